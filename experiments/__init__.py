@@ -1,0 +1,1 @@
+"""``python -m experiments``: the command-line runner of jaxedit."""
