@@ -1,0 +1,390 @@
+"""Producer/consumer of edited views: the 2D editor feeds the 3D trainer.
+
+ProEdit (paper section 3.3, "dual-GPU training") decouples the slow 2D editor
+(seconds per image) from the fast 3DGS trainer (milliseconds per step): the
+editor keeps producing edited views of the *current* scene into a buffer and
+the trainer keeps training on whatever the dataset currently holds, replacing a
+training image whenever a new edit of that view arrives (iterative dataset
+update).
+
+Two interchangeable sources implement that contract for the driver
+(:mod:`jaxedit.edit.progressive`):
+
+* :class:`SyncEditSource`, fully deterministic: the edits due at trainer step
+  ``s`` are fixed by a rule (one view every ``every`` steps, views in a seeded
+  cyclic order) and computed inline from the scene at step ``s``. Same seed,
+  same bits; resuming at any step reproduces the uninterrupted run, because the
+  rule depends on the step only.
+* :class:`AsyncEditSource`, a producer thread (on its own JAX device when there
+  are two or more) that edits views in the same cyclic order, each from the
+  latest scene the trainer published, and hands them over through a bounded
+  queue. The trainer polls without blocking. Editor failures are re-raised in
+  the trainer's thread at the next poll or at close; close (also on Ctrl-C)
+  stops and joins the thread. Which scene version an edit sees depends on
+  timing, so this mode is not bit-reproducible.
+
+Both record :class:`Utilisation`: editor time, how often and how long the
+trainer waited for the editor and the editor for the trainer.
+
+The source is generic: it never renders or edits itself; the driver passes an
+``edit_fn(job, scene) -> image`` that renders view ``job.view`` of ``scene`` and
+calls the editor with the job's seed and annealed timestep.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import queue
+import threading
+import time
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class EditJob:
+    """One edit to perform.
+
+    Attributes:
+      view: index of the training view (position in the training set).
+      iteration: how many edits this subtask issued before this one; it seeds the
+        editor (with the view and ratio) and drives the timestep annealing.
+      step: trainer step (within the subtask) at which the job was issued.
+    """
+
+    view: int
+    iteration: int
+    step: int
+
+
+@dataclasses.dataclass(frozen=True)
+class EditedView:
+    """An edit result. ``image``: float32 [H, W, 3] in [0, 1]; ``seconds``: editor time."""
+
+    job: EditJob
+    image: np.ndarray
+    seconds: float
+    scene_step: int  # trainer step of the scene the editor rendered
+
+
+@dataclasses.dataclass
+class Utilisation:
+    """Counters of who waited for whom (seconds are wall-clock, noisy on shared machines).
+
+    edits: edits produced; consumed: edits the trainer took into its dataset.
+    editor_seconds: total time inside ``edit_fn``.
+    trainer_waits / trainer_wait_s: times (and time) the trainer blocked on the editor.
+    editor_waits / editor_wait_s: times (and time) the editor blocked on the trainer
+      (no scene published yet, or the hand-over queue full).
+    polls / empty_polls: trainer polls, and those that found no new edit (the
+      trainer then trained on the images it had: it never blocks to poll).
+    """
+
+    edits: int = 0
+    consumed: int = 0
+    editor_seconds: float = 0.0
+    trainer_waits: int = 0
+    trainer_wait_s: float = 0.0
+    editor_waits: int = 0
+    editor_wait_s: float = 0.0
+    polls: int = 0
+    empty_polls: int = 0
+
+    def add(self, other: "Utilisation") -> "Utilisation":
+        return Utilisation(**{f.name: getattr(self, f.name) + getattr(other, f.name)
+                              for f in dataclasses.fields(self)})
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+EditFn = Callable[[EditJob, Any], np.ndarray]
+
+
+def view_order(num_views: int, key: jax.Array) -> np.ndarray:
+    """int [num_views], the seeded cyclic order in which views are edited."""
+    if num_views <= 0:
+        raise ValueError("need at least one training view to edit")
+    return np.asarray(jax.random.permutation(key, num_views))
+
+
+def pick_devices() -> tuple[jax.Device, jax.Device]:
+    """(trainer device, editor device): different devices when JAX has two or more."""
+    devices = jax.devices()
+    return devices[0], devices[1] if len(devices) > 1 else devices[0]
+
+
+class SyncEditSource:
+    """Deterministic edits: at step ``s`` (with ``s % every == offset``) edit one view.
+
+    The ``i``-th edit of the subtask (``i = s // every``) edits view
+    ``order[i % N]`` from the scene as it is at step ``s``. Editing happens inline
+    (the trainer "waits" for every edit; counted in ``utilisation``).
+
+    Args:
+      edit_fn: ``(job, scene) -> image float32 [H, W, 3]``.
+      order: int [N], cyclic view order (see :func:`view_order`).
+      every: trainer steps between edits (IN2N: 10).
+      initial_sweep: when True, step 0 edits every view once (in ``order``), so
+        the subtask starts on a dataset fully edited with the new embedding.
+    """
+
+    deterministic = True
+
+    def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int = 10,
+                 initial_sweep: bool = False):
+        if every < 1:
+            raise ValueError(f"every must be >= 1, got {every}")
+        self.edit_fn = edit_fn
+        self.order = np.asarray(order)
+        self.every = int(every)
+        self.initial_sweep = initial_sweep
+        self.utilisation = Utilisation()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    def jobs_at(self, step: int) -> list[EditJob]:
+        """The edits due at trainer ``step`` (a pure function of the step).
+
+        Without the initial sweep, edit ``i`` happens at step ``i * every``; with
+        it, step 0 issues edits 0..N-1 (every view) and edit ``N + k - 1`` happens
+        at step ``k * every`` (k >= 1).
+        """
+        n = len(self.order)
+        if step < 0 or step % self.every:
+            return []
+        k = step // self.every
+        if not self.initial_sweep:
+            return [EditJob(int(self.order[k % n]), k, step)]
+        if k == 0:
+            return [EditJob(int(v), i, 0) for i, v in enumerate(self.order)]
+        i = n + k - 1
+        return [EditJob(int(self.order[i % n]), i, step)]
+
+    def exchange(self, step: int, scene) -> list[EditedView]:
+        """Perform the edits due at ``step`` on ``scene`` and return them."""
+        out = []
+        for job in self.jobs_at(step):
+            t0 = time.perf_counter()
+            image = np.asarray(self.edit_fn(job, scene), np.float32)
+            dt = time.perf_counter() - t0
+            self.utilisation.edits += 1
+            self.utilisation.consumed += 1
+            self.utilisation.editor_seconds += dt
+            self.utilisation.trainer_waits += 1
+            self.utilisation.trainer_wait_s += dt
+            out.append(EditedView(job, image, dt, step))
+        self.utilisation.polls += 1
+        self.utilisation.empty_polls += not out
+        return out
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
+        """Sync edits arrive only through :meth:`exchange`; waiting cannot help."""
+        return predicate()
+
+    def close(self) -> None:
+        pass
+
+
+class EditorThreadError(RuntimeError):
+    """The editor thread failed; the original exception is the ``__cause__``."""
+
+
+class AsyncEditSource:
+    """Edits produced on a background thread (own device), consumed without waiting.
+
+    Use as a context manager (``with AsyncEditSource(...) as src:``) so the
+    thread is stopped and joined on any exit, including errors and Ctrl-C.
+
+    Args:
+      edit_fn: ``(job, scene) -> image`` called on the editor thread with the
+        latest published scene, already placed on ``device``.
+      order: int [N], cyclic view order.
+      device: editor device (``None``: leave arrays where they are).
+      capacity: hand-over queue size; the editor waits when it is full.
+      poll_interval: seconds between checks of the stop flag while waiting.
+    """
+
+    deterministic = False
+
+    def __init__(self, edit_fn: EditFn, order: np.ndarray, *, device: jax.Device | None = None,
+                 capacity: int = 4, poll_interval: float = 0.02):
+        self.edit_fn = edit_fn
+        self.order = np.asarray(order)
+        self.device = device
+        self.poll_interval = poll_interval
+        self.utilisation = Utilisation()
+        self._queue: queue.Queue[EditedView] = queue.Queue(maxsize=max(1, capacity))
+        self._lock = threading.Lock()
+        self._scene = None  # (scene, step)
+        self._scene_ready = threading.Event()
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="jaxedit-editor", daemon=True)
+        self._started = False
+
+    # -- lifecycle -----------------------------------------------------------
+    def start(self) -> "AsyncEditSource":
+        if not self._started:
+            self._started = True
+            self._thread.start()
+        return self
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, exc_type, exc, tb):
+        # On an exception already propagating, do not mask it with the editor's.
+        self.close(raise_error=exc_type is None)
+        return False
+
+    def close(self, raise_error: bool = True, timeout: float = 60.0) -> None:
+        """Stop the editor thread and join it; re-raise its failure if any."""
+        self._stop.set()
+        self._scene_ready.set()
+        if self._started and self._thread.is_alive():
+            t0 = time.perf_counter()
+            while self._thread.is_alive() and time.perf_counter() - t0 < timeout:
+                self._drain_nowait()  # unblock a producer stuck on a full queue
+                self._thread.join(self.poll_interval)
+            waited = time.perf_counter() - t0
+            self.utilisation.trainer_waits += 1
+            self.utilisation.trainer_wait_s += waited
+            if self._thread.is_alive():
+                raise EditorThreadError(f"editor thread did not stop within {timeout:.0f} s")
+        if raise_error:
+            self._raise_if_failed()
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    # -- trainer side ----------------------------------------------------------
+    def publish(self, scene, step: int) -> None:
+        """Make ``scene`` (a pytree of arrays, immutable) the one the editor renders next."""
+        with self._lock:
+            self._scene = (scene, step)
+        self._scene_ready.set()
+
+    def poll(self) -> list[EditedView]:
+        """Every edit produced since the last poll (never blocks)."""
+        self._raise_if_failed()
+        out = self._drain_nowait()
+        self.utilisation.polls += 1
+        self.utilisation.empty_polls += not out
+        self.utilisation.consumed += len(out)
+        return out
+
+    def exchange(self, step: int, scene) -> list[EditedView]:
+        """Publish the trainer's scene at ``step`` and collect finished edits."""
+        self.publish(scene, step)
+        return self.poll()
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
+                 on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
+        """Block until ``predicate()`` holds, feeding arrivals to ``on_edits``.
+
+        The only place the trainer waits for the editor (counted). Returns the
+        final value of the predicate (False on timeout).
+        """
+        if predicate():
+            return True
+        t0 = time.perf_counter()
+        self.utilisation.trainer_waits += 1
+        try:
+            while not predicate():
+                self._raise_if_failed()
+                if not self._thread.is_alive():
+                    break
+                if timeout is not None and time.perf_counter() - t0 > timeout:
+                    break
+                try:
+                    first = self._queue.get(timeout=self.poll_interval)
+                except queue.Empty:
+                    continue
+                got = [first] + self._drain_nowait()
+                self.utilisation.consumed += len(got)
+                if on_edits is not None:
+                    on_edits(got)
+            self._raise_if_failed()
+            return predicate()
+        finally:
+            self.utilisation.trainer_wait_s += time.perf_counter() - t0
+
+    # -- internals -----------------------------------------------------------
+    def _drain_nowait(self) -> list[EditedView]:
+        out = []
+        while True:
+            try:
+                out.append(self._queue.get_nowait())
+            except queue.Empty:
+                return out
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            raise EditorThreadError(f"the editor failed: {self._error!r}") from self._error
+
+    def _latest_scene(self):
+        waited = 0.0
+        if not self._scene_ready.is_set():
+            t0 = time.perf_counter()
+            while not self._scene_ready.wait(self.poll_interval):
+                if self._stop.is_set():
+                    break
+            waited = time.perf_counter() - t0
+            self.utilisation.editor_waits += 1
+            self.utilisation.editor_wait_s += waited
+        with self._lock:
+            return self._scene
+
+    def _put(self, item: EditedView) -> bool:
+        t0 = None
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=self.poll_interval)
+                break
+            except queue.Full:
+                if t0 is None:
+                    t0 = time.perf_counter()
+                    self.utilisation.editor_waits += 1
+        if t0 is not None:
+            self.utilisation.editor_wait_s += time.perf_counter() - t0
+        return not self._stop.is_set()
+
+    def _run(self) -> None:
+        n = len(self.order)
+        i = 0
+        try:
+            while not self._stop.is_set():
+                latest = self._latest_scene()
+                if latest is None or self._stop.is_set():
+                    break
+                scene, scene_step = latest
+                if self.device is not None:
+                    scene = jax.device_put(scene, self.device)
+                job = EditJob(int(self.order[i % n]), i, scene_step)
+                t0 = time.perf_counter()
+                image = np.asarray(self.edit_fn(job, scene), np.float32)
+                dt = time.perf_counter() - t0
+                self.utilisation.edits += 1
+                self.utilisation.editor_seconds += dt
+                if not self._put(EditedView(job, image, dt, scene_step)):
+                    break
+                i += 1
+        except BaseException as e:  # surfaces in the trainer's thread
+            self._error = e
+
+
+def make_source(edit_fn: EditFn, order: np.ndarray, *, asynchronous: bool, every: int = 10,
+                initial_sweep: bool = False, device=None, capacity: int = 4):
+    """The sync (deterministic) or async (threaded) edit source with one call."""
+    if asynchronous:
+        return AsyncEditSource(edit_fn, order, device=device, capacity=capacity)
+    return SyncEditSource(edit_fn, order, every=every, initial_sweep=initial_sweep)
