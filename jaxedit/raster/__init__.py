@@ -4,6 +4,8 @@
 obviously-correct oracle) share one signature and one output type.
 """
 
+from .reference import render_reference
+from .render import render
 from .types import RenderOutput
 
-__all__ = ["RenderOutput"]
+__all__ = ["RenderOutput", "render", "render_reference"]

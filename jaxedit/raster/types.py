@@ -20,8 +20,12 @@ class RenderOutput:
         (W/2, H/2)) is INRIA's NDC densification statistic.
       radii: int [C], screen-space radius in pixels; 0 for culled/dead Gaussians.
       visible: bool [C], projected on screen and alive.
-      num_intersections: int scalar, tile intersections used by the frame
+      num_intersections: int scalar, tile intersections the frame needs
         (0 for the reference renderer).
+      overflow: bool scalar, True when the intersection buffer was too small
+        (only ever True from ``render_tiles`` / ``render(..., max_intersections=n)``
+        inside a caller's trace: the image is then incomplete and must be redone
+        with a buffer of at least ``num_intersections``).
     """
 
     rgb: jax.Array
@@ -31,3 +35,4 @@ class RenderOutput:
     radii: jax.Array
     visible: jax.Array
     num_intersections: jax.Array
+    overflow: jax.Array
