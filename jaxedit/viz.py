@@ -1,0 +1,440 @@
+"""Outputs people look at: coloured depth maps, snapshots, turntables, image grids.
+
+Everything here sits at the edge of the library: it renders Gaussians with the
+splatter and writes files (atomically). The numerical pieces (:func:`colorize_depth`,
+:func:`depth_range`, :func:`image_grid`, :func:`frame_cameras`) are pure NumPy
+functions of their inputs.
+
+Turntables are written as animated WebP (always) and MP4 (when the optional
+``imageio-ffmpeg`` package, which ships its own ffmpeg binary, is installed).
+WebP is the primary format because Pillow (already installed with matplotlib)
+encodes it with no extra binary, it loops, and an ``<img>`` tag plays it in every
+current browser, so the self-contained report can inline it as a data URI; MP4 is
+the format people share and feed to video players.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .errors import DataError
+from .io.files import atomic_path, atomic_write_bytes
+
+# Pixels with less accumulated opacity than this have no meaningful depth.
+MIN_ALPHA = 1e-3
+
+
+# ---------------------------------------------------------------------------
+# Depth maps
+# ---------------------------------------------------------------------------
+def depth_range(depth, alpha, *, percentiles: tuple[float, float] = (2.0, 98.0),
+                coverage: float = 0.5) -> tuple[float, float]:
+    """Robust (near, far) of the depth over covered pixels.
+
+    Percentiles rather than min/max so that a few floaters or the soft edge of
+    the object do not squeeze the colour range of everything else.
+
+    Args:
+      depth: float [..., H, W] expected depth (any leading axes, e.g. views).
+      alpha: float [..., H, W] accumulated opacity, same shape.
+      percentiles: (low, high) in [0, 100].
+      coverage: pixels with alpha above this take part.
+    Returns:
+      (near, far) floats with far > near; (0, 1) when nothing is covered.
+    """
+    depth, alpha = np.asarray(depth, np.float64), np.asarray(alpha, np.float64)
+    if depth.shape != alpha.shape:
+        raise DataError("depth", f"shape {depth.shape} differs from alpha's {alpha.shape}")
+    lo, hi = percentiles
+    if not 0.0 <= lo < hi <= 100.0:
+        raise DataError("percentiles", f"need 0 <= low < high <= 100, got {percentiles}")
+    covered = (alpha > coverage) & np.isfinite(depth)
+    if not covered.any():
+        covered = (alpha > MIN_ALPHA) & np.isfinite(depth)
+    if not covered.any():
+        return 0.0, 1.0
+    near, far = np.percentile(depth[covered], [lo, hi])
+    if not far > near:  # a flat depth map: widen around it so the division stays finite
+        span = max(abs(near) * 1e-3, 1e-6)
+        near, far = near - span, far + span
+    return float(near), float(far)
+
+
+def colorize_depth(depth, alpha, *, near: float | None = None, far: float | None = None,
+                   cmap: str = "turbo", background=(1.0, 1.0, 1.0),
+                   percentiles: tuple[float, float] = (2.0, 98.0)) -> np.ndarray:
+    """A depth map as an RGB image: near is red, far is blue, background blank.
+
+    The colour of a pixel is ``cmap((far - d) / (far - near))`` blended over
+    ``background`` by its alpha, so soft object edges fade out instead of showing
+    the meaningless depth of nearly transparent pixels.
+
+    Args:
+      depth: float [H, W] expected depth (the renderer's ``depth``).
+      alpha: float [H, W] accumulated opacity in [0, 1].
+      near, far: colour range; default :func:`depth_range` of this frame. Pass a
+        shared range to compare several frames.
+      cmap: a matplotlib colormap name (turbo, viridis, ...).
+      background: float [3] in [0, 1], colour of uncovered pixels.
+    Returns:
+      float32 [H, W, 3] in [0, 1].
+    """
+    import matplotlib
+
+    depth, alpha = np.asarray(depth, np.float64), np.asarray(alpha, np.float64)
+    if depth.ndim != 2 or depth.shape != alpha.shape:
+        raise DataError("depth", f"need depth and alpha of one shape [H, W], got {depth.shape} "
+                                 f"and {alpha.shape}")
+    if near is None or far is None:
+        auto_near, auto_far = depth_range(depth, alpha, percentiles=percentiles)
+        near = auto_near if near is None else near
+        far = auto_far if far is None else far
+    if not far > near:
+        raise DataError("depth range", f"far ({far}) must exceed near ({near})")
+    try:
+        colormap = matplotlib.colormaps[cmap]
+    except KeyError:
+        raise DataError("cmap", f"unknown matplotlib colormap {cmap!r}") from None
+    # Reversed so that near things are warm: the usual reading of a depth map.
+    t = np.clip((far - np.nan_to_num(depth, nan=far)) / (far - near), 0.0, 1.0)
+    rgb = colormap(t)[..., :3]
+    a = np.where(alpha > MIN_ALPHA, np.clip(alpha, 0.0, 1.0), 0.0)[..., None]
+    bg = np.asarray(background, np.float64).reshape(1, 1, 3)
+    return (a * rgb + (1.0 - a) * bg).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------
+# Grids and 8-bit conversion
+# ---------------------------------------------------------------------------
+def to_uint8(image) -> np.ndarray:
+    """float [..., 3] in [0, 1] (or uint8) -> uint8, rounded and clipped."""
+    image = np.asarray(image)
+    if image.dtype == np.uint8:
+        return image
+    return np.clip(np.rint(np.nan_to_num(image.astype(np.float64)) * 255.0), 0, 255).astype(np.uint8)
+
+
+def image_grid(images: Sequence, ncols: int | None = None, *, pad: int = 2,
+               pad_value: float = 1.0) -> np.ndarray:
+    """Tile images into one image, row-major.
+
+    Args:
+      images: sequence of float [H_i, W_i, 3] in [0, 1] (or uint8); sizes may
+        differ (each cell is the largest size, images top-left aligned).
+      ncols: columns; default all in one row.
+      pad: pixels between cells and around the grid.
+      pad_value: grey level of the padding in [0, 1].
+    Returns:
+      float32 [rows * (H + pad) + pad, ncols * (W + pad) + pad, 3].
+    """
+    imgs = [np.asarray(im) for im in images]
+    if not imgs:
+        raise DataError("images", "need at least one image for a grid")
+    imgs = [im.astype(np.float32) / 255.0 if im.dtype == np.uint8 else im.astype(np.float32)
+            for im in imgs]
+    for i, im in enumerate(imgs):
+        if im.ndim == 2:
+            imgs[i] = np.repeat(im[..., None], 3, axis=-1)
+        elif im.ndim != 3 or im.shape[-1] != 3:
+            raise DataError(f"images[{i}]", f"need [H, W, 3] or [H, W], got shape {im.shape}")
+    ncols = len(imgs) if ncols is None else int(ncols)
+    if ncols < 1:
+        raise DataError("ncols", f"must be >= 1, got {ncols}")
+    nrows = -(-len(imgs) // ncols)
+    h = max(im.shape[0] for im in imgs)
+    w = max(im.shape[1] for im in imgs)
+    out = np.full((nrows * (h + pad) + pad, ncols * (w + pad) + pad, 3), pad_value, np.float32)
+    for i, im in enumerate(imgs):
+        r, c = divmod(i, ncols)
+        y, x = pad + r * (h + pad), pad + c * (w + pad)
+        out[y:y + im.shape[0], x:x + im.shape[1]] = im
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Rendering helpers
+# ---------------------------------------------------------------------------
+def _default_render():
+    from .raster import render
+
+    return render
+
+
+def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: int | None = None,
+                 render_fn: Callable | None = None):
+    """Render every camera of a batch, one at a time (bounded memory).
+
+    Args:
+      gaussians: a :class:`jaxedit.Gaussians`.
+      cameras: a batched :class:`jaxedit.Camera` [N] (or a single camera).
+      render_fn: the renderer, ``render(gaussians, camera, *, background,
+        sh_degree)``; default :func:`jaxedit.raster.render`.
+    Returns:
+      (rgb float32 [N, H, W, 3], alpha float32 [N, H, W], depth float32 [N, H, W]).
+    """
+    import jax.numpy as jnp
+
+    render_fn = _default_render() if render_fn is None else render_fn
+    cams = [cameras] if not cameras.batch_shape else [cameras[i] for i in range(len(cameras))]
+    kwargs = {"background": jnp.asarray(background, jnp.float32)}
+    if sh_degree is not None:
+        kwargs["sh_degree"] = sh_degree
+    rgbs, alphas, depths = [], [], []
+    for cam in cams:
+        out = render_fn(gaussians, cam, **kwargs)
+        rgbs.append(np.asarray(out.rgb, np.float32))
+        alphas.append(np.asarray(out.alpha, np.float32))
+        depths.append(np.asarray(out.depth, np.float32))
+    return np.stack(rgbs), np.stack(alphas), np.stack(depths)
+
+
+def _write_png(path: Path, image) -> None:
+    from .io import write_image
+
+    write_image(path, np.clip(np.asarray(image, np.float32), 0.0, 1.0))
+
+
+def write_snapshot(directory, gaussians, cameras, *, background=(1.0, 1.0, 1.0),
+                   prefix: str = "view", sh_degree: int | None = None, ply: bool = True,
+                   depth: bool = True, depth_percentiles=(2.0, 98.0),
+                   turntable_frames: int = 0, turntable_size: int | None = None,
+                   render_fn: Callable | None = None) -> dict:
+    """Write what a person looks at for one state of the scene.
+
+    Layout (all files written atomically)::
+
+        directory/scene.ply                   (ply=True; the standard 3DGS layout)
+        directory/renders/{prefix}_000.png    one per camera
+        directory/depth/{prefix}_000.png      coloured depth (depth=True), one shared
+                                              near/far for all views so colours compare
+        directory/turntable.webp [.mp4]       (turntable_frames > 0), an orbit matched
+                                              to the cameras (see :func:`frame_cameras`)
+
+    Args:
+      directory: output folder (created).
+      gaussians: the scene.
+      cameras: batched :class:`jaxedit.Camera` [N], e.g. the test views.
+      background: float [3] render background.
+    Returns:
+      {"ply": str|None, "renders": [str], "depth": [str], "depth_range": [near, far],
+       "turntable": [str]} with paths relative to ``directory``.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    record: dict = {"ply": None, "renders": [], "depth": [], "depth_range": None, "turntable": []}
+    if ply:
+        from .io import save_ply
+
+        save_ply(directory / "scene.ply", gaussians)
+        record["ply"] = "scene.ply"
+    rgb, alpha, dep = render_views(gaussians, cameras, background=background,
+                                   sh_degree=sh_degree, render_fn=render_fn)
+    for i, image in enumerate(rgb):
+        rel = f"renders/{prefix}_{i:03d}.png"
+        _write_png(directory / rel, image)
+        record["renders"].append(rel)
+    if depth:
+        near, far = depth_range(dep, alpha, percentiles=depth_percentiles)
+        record["depth_range"] = [near, far]
+        for i in range(len(dep)):
+            rel = f"depth/{prefix}_{i:03d}.png"
+            _write_png(directory / rel, colorize_depth(dep[i], alpha[i], near=near, far=far,
+                                                       background=background))
+            record["depth"].append(rel)
+    if turntable_frames > 0:
+        frames = turntable(gaussians, n_frames=turntable_frames, cameras=cameras,
+                           size=turntable_size, background=background, sh_degree=sh_degree,
+                           render_fn=render_fn)
+        written = write_turntable(directory / "turntable.webp", frames)
+        record["turntable"] = [p.name for p in written]
+    return record
+
+
+# ---------------------------------------------------------------------------
+# Turntables
+# ---------------------------------------------------------------------------
+def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
+    """An orbit that matches a set of cameras looking at an object.
+
+    The target is the point closest (least squares) to all optical axes, which
+    for captures around an object is the object's centre; the radius and
+    elevation are the median distance and elevation of the camera centres
+    from it (+z up).
+
+    Args:
+      cameras: batched :class:`jaxedit.Camera` [N], N >= 1.
+    Returns:
+      (target float [3], radius, elevation_deg, horizontal fov_deg).
+    """
+    w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
+    rot, trans = w2c[:, :3, :3], w2c[:, :3, 3]
+    centres = -np.einsum("nji,nj->ni", rot, trans)
+    axes = rot[:, 2, :]  # camera +z (viewing direction) in world coordinates
+    # sum_k (I - a a^T) (x - c_k) = 0: least-squares intersection of the axes.
+    proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
+    lhs, rhs = proj.sum(0), np.einsum("nij,nj->i", proj, centres)
+    if len(centres) >= 2 and np.linalg.cond(lhs) < 1e8:
+        target = np.linalg.solve(lhs, rhs)
+    else:  # parallel axes or a single camera: a point ahead of the mean camera
+        target = centres.mean(0) + axes.mean(0) * np.linalg.norm(centres.mean(0))
+    offsets = centres - target
+    dist = np.linalg.norm(offsets, axis=-1)
+    elevation = np.degrees(np.arcsin(np.clip(offsets[:, 2] / np.maximum(dist, 1e-12), -1, 1)))
+    fx = np.asarray(cameras.fx, np.float64).reshape(-1)
+    fov = np.degrees(2 * np.arctan(0.5 * cameras.width / np.median(fx)))
+    return target, float(np.median(dist)), float(np.median(elevation)), float(fov)
+
+
+def frame_gaussians(gaussians, *, fov_deg: float = 40.0) -> tuple[np.ndarray, float]:
+    """(target float [3], radius) that fit the live Gaussians in a ``fov_deg`` view.
+
+    The target is the opacity-weighted median of the live means, the extent the
+    95th percentile of their distances to it (robust to floaters).
+    """
+    alive = np.asarray(gaussians.alive, bool)
+    if not alive.any():
+        raise DataError("gaussians", "no live Gaussians to frame")
+    means = np.asarray(gaussians.means, np.float64)[alive]
+    target = np.median(means, axis=0)
+    extent = float(np.percentile(np.linalg.norm(means - target, axis=-1), 95))
+    radius = 1.15 * max(extent, 1e-6) / np.sin(np.radians(fov_deg) / 2)
+    return target, float(radius)
+
+
+def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
+              elevation: float | None = None, target=None, size: int | None = None,
+              fov_deg: float | None = None, cameras=None, background=(1.0, 1.0, 1.0),
+              sh_degree: int | None = None, render_fn: Callable | None = None) -> np.ndarray:
+    """Render a full orbit around the scene (+z up).
+
+    Unset orbit parameters come from ``cameras`` (:func:`frame_cameras`) when
+    given, else from the Gaussians themselves (:func:`frame_gaussians`, 20 deg
+    elevation, 40 deg field of view).
+
+    Args:
+      n_frames: frames over 360 degrees.
+      radius, elevation (degrees), target float [3]: the orbit.
+      size: frame width and height in pixels (default: the cameras' width, or 128).
+    Returns:
+      uint8 [n_frames, size, size, 3].
+    """
+    from . import camera as camlib
+
+    if n_frames < 1:
+        raise DataError("n_frames", f"must be >= 1, got {n_frames}")
+    if cameras is not None:
+        c_target, c_radius, c_elev, c_fov = frame_cameras(cameras)
+        default_size = cameras.width
+    else:
+        fov0 = 40.0 if fov_deg is None else fov_deg
+        c_target, c_radius = frame_gaussians(gaussians, fov_deg=fov0)
+        c_elev, c_fov, default_size = 20.0, fov0, 128
+    target = c_target if target is None else np.asarray(target, np.float64)
+    radius = c_radius if radius is None else float(radius)
+    elevation = c_elev if elevation is None else float(elevation)
+    fov_deg = c_fov if fov_deg is None else float(fov_deg)
+    size = default_size if size is None else int(size)
+    if not radius > 0 or size < 1:
+        raise DataError("turntable", f"need radius > 0 and size >= 1, got {radius}, {size}")
+    cams = camlib.orbit(n_frames, radius=radius, elevation_deg=elevation, target=target,
+                        width=size, height=size, fov_deg=fov_deg)
+    rgb, _, _ = render_views(gaussians, cams, background=background, sh_degree=sh_degree,
+                             render_fn=render_fn)
+    return to_uint8(rgb)
+
+
+def mp4_available() -> bool:
+    """Whether MP4 turntables can be written (``imageio-ffmpeg`` installed)."""
+    try:
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def encode_webp(frames, fps: float = 12.0, *, quality: int = 85) -> bytes:
+    """Animated WebP bytes of uint8/float frames [F, H, W, 3] (looping)."""
+    from PIL import Image
+
+    frames = to_uint8(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or len(frames) == 0:
+        raise DataError("frames", f"need [F, H, W, 3] with F >= 1, got shape {frames.shape}")
+    if not fps > 0:
+        raise DataError("fps", f"must be > 0, got {fps}")
+    images = [Image.fromarray(f) for f in frames]
+    buf = io.BytesIO()
+    images[0].save(buf, format="WEBP", save_all=True, append_images=images[1:],
+                   duration=int(round(1000.0 / fps)), loop=0, quality=quality, method=4)
+    return buf.getvalue()
+
+
+def _write_mp4(path: Path, frames: np.ndarray, fps: float) -> None:
+    import imageio_ffmpeg
+
+    # H.264 wants even sizes and yuv420p for players (browsers, QuickTime) to accept it.
+    h, w = frames.shape[1:3]
+    pad_h, pad_w = h % 2, w % 2
+    if pad_h or pad_w:
+        frames = np.pad(frames, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        # ffmpeg runs in a subprocess; JAX warns about any fork, but fork+exec is safe.
+        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+        writer = imageio_ffmpeg.write_frames(str(tmp), (frames.shape[2], frames.shape[1]),
+                                             fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+                                             quality=8, macro_block_size=1,
+                                             ffmpeg_log_level="error")
+        writer.send(None)
+        for f in frames:
+            writer.send(np.ascontiguousarray(f))
+        writer.close()
+
+
+def write_turntable(path, frames, fps: float = 12.0, *, mp4: bool | None = None) -> list[Path]:
+    """Write a turntable as animated WebP at ``path`` (and MP4 next to it).
+
+    Args:
+      path: the ``.webp`` file to write.
+      frames: uint8 or float [F, H, W, 3].
+      fps: frames per second.
+      mp4: also write ``path`` with suffix ``.mp4``; default: when
+        ``imageio-ffmpeg`` is installed. ``True`` without it raises DataError.
+    Returns:
+      The paths written.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".webp":
+        raise DataError(path, "turntables are written as .webp (plus .mp4 when available)")
+    frames = to_uint8(frames)
+    atomic_write_bytes(path, encode_webp(frames, fps))
+    written = [path]
+    if mp4 is None:
+        mp4 = mp4_available()
+    if mp4:
+        if not mp4_available():
+            raise DataError(path.with_suffix(".mp4"), "MP4 needs the imageio-ffmpeg package")
+        _write_mp4(path.with_suffix(".mp4"), frames, fps)
+        written.append(path.with_suffix(".mp4"))
+    return written
+
+
+def read_webp_frames(path) -> np.ndarray:
+    """uint8 [F, H, W, 3], the frames of an (animated) WebP file."""
+    from PIL import Image, ImageSequence
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            return np.stack([np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(im)])
+    except (OSError, ValueError) as e:
+        raise DataError(path, f"cannot read WebP ({e})") from None
+
+
+__all__ = ["colorize_depth", "depth_range", "encode_webp", "frame_cameras", "frame_gaussians",
+           "image_grid", "mp4_available", "read_webp_frames", "render_views", "to_uint8",
+           "turntable", "write_snapshot", "write_turntable"]
+
