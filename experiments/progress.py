@@ -1,0 +1,295 @@
+"""Nested progress bars with ETA, for terminals and for logs.
+
+One :class:`Progress` per unit of long work; a child (``parent=...``) is a
+stage inside its parent (a subtask inside an edit, the steps inside a subtask).
+The whole tree is drawn as ONE line on stderr by its root::
+
+    edit 2/5 [######------------] 41% 3:02<4:21 | r0.500 120/400 [###-----] 30% 0:25<0:58 loss=0.021
+
+The parent's fraction includes the running child's, so the overall ETA moves
+smoothly. How it is shown depends on the mode:
+
+- ``"bar"`` (default when stderr is a terminal): the line is redrawn in place
+  (carriage return), at most every ``refresh`` seconds; a finished child leaves
+  one line behind ("done r0.500 400/400 in 1:23").
+- ``"log"`` (default otherwise, and with ``--quiet``): plain lines, the whole tree
+  every ``log_interval`` seconds (10 s; 60 s when quiet) plus one line when a
+  bar finishes -- readable in CI logs and ``nohup`` files.
+- ``"off"``: nothing (library use, tests).
+
+Commands call :func:`configure` once (``configure(quiet=args.quiet)``); every
+bar created afterwards follows it. Updates are thread-safe (an editor thread may
+report progress too). Nothing here touches the numerics: callers update bars
+between jitted steps.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import threading
+import time
+from typing import Callable, Iterable, TextIO
+
+MODES = ("bar", "log", "off")
+
+_settings = {"mode": None, "stream": None, "log_interval": None, "quiet": False}
+
+
+def configure(*, quiet: bool = False, mode: str | None = None, stream: TextIO | None = None,
+              log_interval: float | None = None) -> None:
+    """Set how bars created from now on are shown.
+
+    Args:
+      quiet: log lines only, and rarely (every 60 s), never a live bar.
+      mode: force "bar", "log" or "off" (default: "bar" on a terminal, else "log").
+      stream: where to write (default ``sys.stderr`` at the time of writing).
+      log_interval: seconds between periodic log lines.
+    """
+    if mode is not None and mode not in MODES:
+        raise ValueError(f"progress mode must be one of {MODES}, got {mode!r}")
+    _settings.update(mode=mode, stream=stream, log_interval=log_interval, quiet=bool(quiet))
+
+
+def format_seconds(seconds: float | None) -> str:
+    """``"?"``, ``"M:SS"`` or ``"H:MM:SS"``."""
+    if seconds is None or seconds != seconds or seconds == float("inf"):
+        return "?"
+    seconds = int(round(max(seconds, 0.0)))
+    h, rest = divmod(seconds, 3600)
+    m, s = divmod(rest, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+def _format_value(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+class Progress:
+    """A progress bar, possibly nested under a parent.
+
+    Args:
+      total: units of work (``None``: unknown, shows a count and a rate).
+      desc: short label.
+      parent: the enclosing bar; the root draws the tree.
+      mode, stream, log_interval: override :func:`configure`'s settings (root only).
+      refresh: minimum seconds between redraws in bar mode.
+      clock: a monotonic clock (tests inject a fake one).
+
+    Use as a context manager, or call :meth:`close`. ``update(n, **postfix)``
+    advances and sets the key=value fields shown after the bar.
+    """
+
+    def __init__(self, total: int | None, desc: str = "", *, parent: "Progress | None" = None,
+                 mode: str | None = None, stream: TextIO | None = None,
+                 log_interval: float | None = None, refresh: float = 0.1,
+                 clock: Callable[[], float] = time.monotonic):
+        if total is not None and total < 0:
+            raise ValueError(f"total must be >= 0, got {total}")
+        self.total = total
+        self.desc = desc
+        self.parent = parent
+        self.n = 0
+        self.postfix: dict = {}
+        self.closed = False
+        self._child: Progress | None = None
+        if parent is None:
+            quiet = _settings["quiet"]
+            self._clock = clock
+            self._lock = threading.RLock()
+            self._stream = stream if stream is not None else _settings["stream"]
+            self.mode = mode or _settings["mode"] or ("log" if quiet else self._auto_mode())
+            if self.mode not in MODES:
+                raise ValueError(f"progress mode must be one of {MODES}, got {self.mode!r}")
+            default_interval = 60.0 if quiet else 10.0
+            self._log_interval = (log_interval if log_interval is not None
+                                  else _settings["log_interval"] or default_interval)
+            self._refresh = refresh
+            self._last_draw = -float("inf")
+            self._last_log = clock()
+            self._line_len = 0
+        else:
+            self._clock = parent._root()._clock
+            self._lock = parent._root()._lock
+            self.mode = parent._root().mode
+            with self._lock:
+                parent._child = self
+        self.start = self._clock()
+        self._emit_event(None)
+
+    # -- the tree ------------------------------------------------------------
+    def _root(self) -> "Progress":
+        node = self
+        while node.parent is not None:
+            node = node.parent
+        return node
+
+    def _chain(self) -> list["Progress"]:
+        chain, node = [], self
+        while node is not None and not node.closed:
+            chain.append(node)
+            node = node._child
+        return chain
+
+    def _out(self) -> TextIO:
+        root = self._root()
+        return root._stream if root._stream is not None else sys.stderr
+
+    def _auto_mode(self) -> str:
+        stream = self._stream if self._stream is not None else sys.stderr
+        try:
+            return "bar" if stream.isatty() else "log"
+        except (AttributeError, ValueError):
+            return "log"
+
+    # -- numbers -------------------------------------------------------------
+    @property
+    def elapsed(self) -> float:
+        return self._clock() - self.start
+
+    @property
+    def fraction(self) -> float | None:
+        """Done fraction in [0, 1], counting the running child's share."""
+        if not self.total:
+            return None if self.total is None else 1.0
+        done = float(self.n)
+        child = self._child
+        if child is not None and not child.closed:
+            done += child.fraction or 0.0
+        return min(done / self.total, 1.0)
+
+    def eta(self) -> float | None:
+        """Seconds left at the average rate so far; None until some work is done."""
+        f = self.fraction
+        if f is None or f <= 0.0:
+            return None
+        return self.elapsed * (1.0 - f) / f
+
+    # -- updates -------------------------------------------------------------
+    def update(self, n: int = 1, **postfix) -> None:
+        """Advance by ``n`` units and set postfix fields (``loss=0.02``)."""
+        with self._lock:
+            self.n += n
+            if postfix:
+                self.postfix.update(postfix)
+        self._root()._draw()
+
+    def set_postfix(self, **postfix) -> None:
+        with self._lock:
+            self.postfix.update(postfix)
+        self._root()._draw()
+
+    def child(self, total: int | None, desc: str = "") -> "Progress":
+        """A bar nested under this one (same as ``Progress(total, desc, parent=self)``)."""
+        return Progress(total, desc, parent=self)
+
+    def close(self) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            if self.parent is not None and self.parent._child is self:
+                self.parent._child = None
+        self._emit_event(self)
+
+    def __enter__(self) -> "Progress":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close()
+
+    def track(self, iterable: Iterable):
+        """Yield from ``iterable``, advancing by one per item, then close."""
+        with self:
+            for item in iterable:
+                yield item
+                self.update(1)
+
+    # -- drawing -------------------------------------------------------------
+    def segment(self, width: int = 20) -> str:
+        """This bar alone as text."""
+        parts = [self.desc] if self.desc else []
+        f = self.fraction
+        if self.total is None:
+            rate = self.n / self.elapsed if self.elapsed > 0 else 0.0
+            parts.append(f"{self.n} [{format_seconds(self.elapsed)}, {rate:.3g}/s]")
+        else:
+            filled = int(round(width * (f or 0.0)))
+            bar = "#" * filled + "-" * (width - filled)
+            parts.append(f"{self.n}/{self.total} [{bar}] {100 * (f or 0.0):3.0f}% "
+                         f"{format_seconds(self.elapsed)}<{format_seconds(self.eta())}")
+        parts += [f"{k}={_format_value(v)}" for k, v in self.postfix.items()]
+        return " ".join(parts)
+
+    def line(self) -> str:
+        """The whole tree from this bar down, as one line."""
+        with self._lock:
+            chain = self._chain()
+            width = 20 if len(chain) <= 1 else 12
+            return " | ".join(node.segment(width) for node in chain)
+
+    def _write(self, text: str) -> None:
+        out = self._out()
+        try:
+            out.write(text)
+            out.flush()
+        except (OSError, ValueError):  # a closed/broken stream must not kill the work
+            pass
+
+    def _draw(self, force: bool = False) -> None:
+        """Root only: redraw the live line (bar) or log periodically (log)."""
+        if self.mode == "off":
+            return
+        with self._lock:
+            now = self._clock()
+            if self.mode == "bar":
+                if not force and now - self._last_draw < self._refresh:
+                    return
+                self._last_draw = now
+                text = self.line()
+                cols = shutil.get_terminal_size((120, 20)).columns
+                text = text[: max(cols - 1, 10)]
+                self._write("\r" + text + "\x1b[K")
+                self._line_len = len(text)
+            elif force or now - self._last_log >= self._log_interval:
+                self._last_log = now
+                self._write(self.line() + "\n")
+
+    def _emit_event(self, closed: "Progress | None") -> None:
+        """Start/finish notices: a finished bar leaves one line in either mode."""
+        root = self._root()
+        if root.mode == "off":
+            return
+        with root._lock:
+            if closed is None:
+                if root.mode == "bar":
+                    root._draw(force=True)
+                elif self is root:
+                    root._write(f"start {self.desc or 'work'}"
+                                + (f" ({self.total} steps)" if self.total is not None else "")
+                                + "\n")
+                return
+            done = (f"done {closed.desc or 'work'} {closed.n}"
+                    + (f"/{closed.total}" if closed.total is not None else "")
+                    + f" in {format_seconds(closed.elapsed)}")
+            if closed.postfix:
+                done += " " + " ".join(f"{k}={_format_value(v)}" for k, v in closed.postfix.items())
+            if root.mode == "bar":
+                root._write("\r\x1b[K" + done + "\n")
+                if closed is not root:
+                    root._draw(force=True)
+            else:
+                root._write(done + "\n")
+
+
+def track(iterable: Iterable, total: int | None = None, desc: str = "",
+          parent: Progress | None = None):
+    """``for x in track(items, desc="views"):`` -- a bar over an iterable."""
+    if total is None and hasattr(iterable, "__len__"):
+        total = len(iterable)
+    return Progress(total, desc, parent=parent).track(iterable)
+
+
+__all__ = ["MODES", "Progress", "configure", "format_seconds", "track"]
