@@ -1,0 +1,551 @@
+"""A simulated instruction editor: an offline, deterministic stand-in for a 2D diffusion editor.
+
+:class:`SimulatedEditor` implements the :class:`jaxedit.edit.Editor` protocol without any
+neural network. It is a *test and benchmark instrument*, built so that ProEdit's claims can be
+checked against a known ground truth on a CPU; it is not InstructPix2Pix and does not pretend to
+produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
+
+1. **Instructions name 3D-consistent targets.** Every instruction maps the ORIGINAL view of a
+   scene to a target image, ``target(original, r, instruction)``. The editor only sees images,
+   so targets are image-space functions of the original pixels that stay consistent across views
+   because they depend on the content (colour) of each pixel through smooth functions, or on the
+   object's silhouette, not on the pixel position in the frame:
+
+   ========================================  ==========  ===========================================
+   instruction                               kind        full target (r = 1)
+   ========================================  ==========  ===========================================
+   ``make it look like autumn``              colour      affine warm colour grade of every pixel
+   ``turn him into a bronze statue``         material    foreground luminance through a bronze ramp
+   ``make it look like a cartoon``           style       soft posterisation + outlines on edges
+   ``give him a marble texture``             texture     veins stamped as a function of colour
+                                                         (or of world position, see ``surfaces``)
+   ``make his head bigger``                  shape       radial bulge around the object's centroid
+   ========================================  ==========  ===========================================
+
+   The foreground is the set of pixels whose colour differs from the background colour, taken as
+   the per-channel median of the image border of the original (a soft mask). The bulge is centred
+   on the foreground's centroid with a radius sqrt(area / pi); for an object centred in the views
+   (the built-in scenes) this is view-consistent.
+
+2. **Subtasks.** The framework forms e(r) = r E(p) + (1 - r) E(""). ``encode`` returns
+   E("") = Q e_0 and E(p_i) = Q (e_0 + e_{i+1}) with a fixed orthogonal Q, so the editor
+   recovers the instruction and r from an embedding by projection (``decode``). The target's
+   response to r is continuous and NON-linear: the effective strength is a normalised logistic
+   s(r) = (sigma(k (r - m)) - sigma(-k m)) / (sigma(k (1 - m)) - sigma(-k m)) with a per-
+   instruction midpoint m and steepness k (s(0) = 0, s(1) = 1). Colour/material/style/texture
+   targets cross-fade original -> full target by s(r); the shape target warps with amplitude
+   s(r) a_max (a partial warp, never a ghosted cross-fade).
+
+3. **Feasible output space grows with the requested change.** One call of ``edit`` returns::
+
+       out = keep(t) * image + (1 - keep(t)) * P(T_{s'}(original)) + noise
+
+   where ``image`` is the current render, t ~ U(timestep_range) is the SDEdit noising level and
+   keep(t) = cos(pi t / 2) = sqrt(alpha_bar(t)) of a cosine schedule is the fraction of the
+   current render that survives (low t: output close to ``image``; t = 1: nothing survives). The
+   perturbation P and the jittered strength s' are view-specific random draws (from ``key``)
+   whose amplitude grows with the gap g = mean |image - T_r| between the current render and the
+   r-partial target:
+
+   - strength jitter: s' = s(r) (1 + jitter * g * z), z ~ N(0, 1) ("different degrees of colour
+     change" of the paper's appendix A);
+   - a smooth random displacement of the edited pattern, amplitude ``shift * g`` of the image size;
+   - a low-frequency random colour field, amplitude ``colour * (g + local gap)``, where the local
+     gap is the blurred per-pixel |image - T_r| (inconsistency concentrates where things change);
+   - a small noise floor (``noise``) of smooth and per-pixel noise, scaled by (1 - keep), that
+     is there even for a perfect render (the editor as a refiner, appendix B).
+
+   Text guidance above 7.5 amplifies the perturbation, image guidance above 1.5 damps it
+   (amplitude x (text / 7.5) x sqrt(1.5 / image)); the target itself does not depend on them.
+   Hence a small step (render already close to T_r) gives nearly identical outputs across views
+   and keys, a big jump gives inconsistent ones: exactly the FOS argument of the paper.
+
+Everything random comes from the ``key`` argument; equal inputs and key give equal bits. Use
+:func:`view_key` to derive per-view keys from (run key, view index, ratio, iteration).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import DataError
+
+EMBED_DIM = 8
+_RATIO_QUANTUM = 1_000_000  # ratios enter keys as round(r * 1e6)
+
+
+# --------------------------------------------------------------------------------------------
+# Seeding
+
+
+def quantize_ratio(ratio: float) -> int:
+    """The integer round(ratio * 1e6) used to seed and memoise per-ratio work."""
+    r = float(ratio)
+    if not math.isfinite(r) or r < 0.0 or r > 4000.0:
+        raise DataError("ratio", f"must be a finite number in [0, 1], got {ratio!r}")
+    return int(round(r * _RATIO_QUANTUM))
+
+
+def view_key(run_key: jax.Array, view_index: int, ratio: float, iteration: int) -> jax.Array:
+    """Key of one edit: fold_in of (view index, quantised ratio, iteration) into ``run_key``.
+
+    The ratio is quantised to 1e-6 (``quantize_ratio``) so that ratios read back from JSON or
+    recomputed in floating point give the same key.
+    """
+    if int(view_index) < 0 or int(iteration) < 0:
+        raise DataError("view_key", f"view index and iteration must be >= 0, got "
+                        f"{view_index}, {iteration}")
+    k = jax.random.fold_in(run_key, int(view_index))
+    k = jax.random.fold_in(k, quantize_ratio(ratio))
+    return jax.random.fold_in(k, int(iteration))
+
+
+# --------------------------------------------------------------------------------------------
+# The vocabulary
+
+
+@dataclasses.dataclass(frozen=True)
+class Instruction:
+    """One instruction of the vocabulary.
+
+    Attributes:
+      prompt: the text, matched after lower-casing and collapsing white space.
+      kind: "colour", "material", "style", "texture" or "shape".
+      midpoint, steepness: of the logistic strength curve s(r) (see the module docstring).
+    """
+
+    prompt: str
+    kind: str
+    midpoint: float
+    steepness: float
+
+
+VOCABULARY: tuple[Instruction, ...] = (
+    Instruction("make it look like autumn", "colour", 0.5, 6.0),
+    Instruction("turn him into a bronze statue", "material", 0.35, 9.0),
+    Instruction("make it look like a cartoon", "style", 0.6, 8.0),
+    Instruction("give him a marble texture", "texture", 0.45, 10.0),
+    Instruction("make his head bigger", "shape", 0.5, 12.0),
+)
+
+
+def _normalise_prompt(prompt: str) -> str:
+    return " ".join(str(prompt).lower().split()).rstrip(".!")
+
+
+def strength(ratio, midpoint: float, steepness: float):
+    """Normalised logistic s(r): s(0) = 0, s(1) = 1, continuous, increasing, non-linear.
+
+    Works on floats and arrays (NumPy or JAX); values of r outside [0, 1] extrapolate.
+    """
+    xp = jnp if isinstance(ratio, jax.Array) else np
+    sig = lambda x: 1.0 / (1.0 + xp.exp(-x))  # noqa: E731
+    lo = sig(-steepness * midpoint)
+    hi = sig(steepness * (1.0 - midpoint))
+    return (sig(steepness * (ratio - midpoint)) - lo) / (hi - lo)
+
+
+# --------------------------------------------------------------------------------------------
+# Image helpers (JAX, pure)
+
+
+def _luma(x):
+    """Rec. 601 luma of float [..., 3] -> [...]."""
+    return 0.299 * x[..., 0] + 0.587 * x[..., 1] + 0.114 * x[..., 2]
+
+
+def _smoothstep(e0, e1, x):
+    t = jnp.clip((x - e0) / (e1 - e0), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _gaussian_kernel(sigma: float) -> jnp.ndarray:
+    radius = max(1, int(math.ceil(3.0 * sigma)))
+    x = np.arange(-radius, radius + 1, dtype=np.float32)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return jnp.asarray(k / k.sum())
+
+
+def _blur(x, sigma: float):
+    """Separable Gaussian blur of float [H, W] or [H, W, C] with edge padding."""
+    if sigma <= 0:
+        return x
+    k = _gaussian_kernel(sigma)
+    r = (k.shape[0] - 1) // 2
+    squeeze = x.ndim == 2
+    if squeeze:
+        x = x[..., None]
+
+    def conv_axis(img, axis):
+        pad = [(0, 0)] * img.ndim
+        pad[axis] = (r, r)
+        p = jnp.pad(img, pad, mode="edge")
+        n = img.shape[axis]
+        out = 0.0
+        for i in range(k.shape[0]):
+            out = out + k[i] * jax.lax.slice_in_dim(p, i, i + n, axis=axis)
+        return out
+
+    y = conv_axis(conv_axis(x, 0), 1)
+    return y[..., 0] if squeeze else y
+
+
+def _sample(img, rows, cols):
+    """Bilinear lookup of float [H, W, C] at float [H, W] pixel coordinates (edge clamped)."""
+    coords = jnp.stack([rows, cols])
+    return jnp.stack([jax.scipy.ndimage.map_coordinates(img[..., c], list(coords), order=1,
+                                                        mode="nearest")
+                      for c in range(img.shape[-1])], axis=-1)
+
+
+def foreground(original, *, low: float = 0.03, high: float = 0.10):
+    """Soft foreground mask float [H, W] in [0, 1] of float [H, W, 3].
+
+    The background colour is the per-channel median of the border pixels; a pixel is foreground
+    as its largest channel difference to it goes from ``low`` to ``high``.
+    """
+    border = jnp.concatenate([original[0], original[-1], original[:, 0], original[:, -1]])
+    bg = jnp.median(border, axis=0)
+    dist = jnp.max(jnp.abs(original - bg), axis=-1)
+    return _smoothstep(low, high, _blur(dist, 0.7))
+
+
+def _centroid_radius(mask):
+    """Centroid (row, col) and radius sqrt(area / pi) of a soft mask [H, W] (pixels)."""
+    h, w = mask.shape
+    rows, cols = jnp.meshgrid(jnp.arange(h) + 0.5, jnp.arange(w) + 0.5, indexing="ij")
+    area = jnp.sum(mask)
+    ok = area > 4.0  # an empty foreground falls back to the image centre
+    safe = jnp.maximum(area, 1e-6)
+    cr = jnp.where(ok, jnp.sum(mask * rows) / safe, h / 2.0)
+    cc = jnp.where(ok, jnp.sum(mask * cols) / safe, w / 2.0)
+    rad = jnp.where(ok, jnp.sqrt(safe / jnp.pi), 0.25 * min(h, w))
+    return cr, cc, rad
+
+
+def _random_field(key, h: int, w: int, channels: int, *, waves: int = 4, cycles: float = 1.2):
+    """Smooth random field float [H, W, channels], roughly N(0, 1) per pixel.
+
+    A sum of ``waves`` random plane waves per channel with about ``cycles`` periods across the
+    image: low-frequency, like the colour casts and drifts of independent diffusion samples.
+    """
+    kf, kp, ka = jax.random.split(key, 3)
+    freq = cycles * jax.random.normal(kf, (channels, waves, 2))
+    phase = jax.random.uniform(kp, (channels, waves), minval=0.0, maxval=2 * jnp.pi)
+    amp = jax.random.normal(ka, (channels, waves)) * math.sqrt(2.0 / waves)
+    y = (jnp.arange(h) + 0.5) / max(h, w)
+    x = (jnp.arange(w) + 0.5) / max(h, w)
+    arg = 2 * jnp.pi * (freq[..., 0, None, None] * y[:, None] + freq[..., 1, None, None] * x[None, :])
+    field = jnp.sum(amp[..., None, None] * jnp.cos(arg + phase[..., None, None]), axis=1)
+    return jnp.moveaxis(field, 0, -1)
+
+
+# --------------------------------------------------------------------------------------------
+# Full targets (r = 1 or strength s), one per kind. original: float [H, W, 3] in [0, 1].
+
+_AUTUMN = np.array([[0.55, 0.55, 0.00],
+                    [0.15, 0.55, 0.10],
+                    [0.05, 0.15, 0.35]], np.float32)
+_BRONZE = np.array([[0.16, 0.09, 0.04], [0.70, 0.43, 0.18], [1.00, 0.88, 0.60]], np.float32)
+
+
+def _autumn(original):
+    graded = original @ _AUTUMN.T
+    # a gentle S-curve on the grade adds the contrast of a warm "film look"
+    return jnp.clip(graded + 0.15 * graded * (1 - graded) * (graded - 0.3), 0.0, 1.0)
+
+
+def _bronze(original, mask):
+    lum = _smoothstep(0.0, 1.0, _luma(original))[..., None]
+    lo = _BRONZE[0] + (_BRONZE[1] - _BRONZE[0]) * jnp.clip(2 * lum, 0, 1)
+    ramp = jnp.where(lum < 0.5, lo, _BRONZE[1] + (_BRONZE[2] - _BRONZE[1]) * jnp.clip(2 * lum - 1, 0, 1))
+    m = mask[..., None]
+    return m * ramp + (1 - m) * original
+
+
+def _cartoon(original, levels: int = 4, width: float = 0.2):
+    mean = jnp.mean(original, axis=-1, keepdims=True)
+    sat = jnp.clip(mean + 1.3 * (original - mean), 0.0, 1.0)
+    y = sat * (levels - 1)
+    base = jnp.floor(y)
+    # a soft staircase keeps the target a continuous function of the colour
+    step = _smoothstep(0.5 - width, 0.5 + width, y - base)
+    poster = jnp.clip((base + step) / (levels - 1), 0.0, 1.0)
+    lum = _blur(_luma(original), 0.8)
+    gy = jnp.pad(lum[2:] - lum[:-2], ((1, 1), (0, 0)), mode="edge") * 0.5
+    gx = jnp.pad(lum[:, 2:] - lum[:, :-2], ((0, 0), (1, 1)), mode="edge") * 0.5
+    edge = _smoothstep(0.04, 0.12, jnp.sqrt(gx * gx + gy * gy))
+    return poster * (1.0 - 0.85 * edge[..., None])
+
+
+def _marble(original, mask, points=None):
+    lum = _luma(original)
+    if points is None:
+        # the vein phase is a smooth function of the surface colour, so it is stamped on the
+        # same surface point in every view
+        phase = 3.0 * lum + 2.0 * (original[..., 0] - original[..., 2]) + original[..., 1]
+    else:
+        p = points
+        phase = 3.0 * (p[..., 0] + 0.6 * p[..., 1] + 0.3 * p[..., 2]) \
+            + 0.8 * jnp.sin(4.0 * p[..., 1] + 2.0 * p[..., 2]) + 0.5 * jnp.sin(5.0 * p[..., 0])
+    v = jnp.abs(jnp.sin(jnp.pi * phase))
+    vein = (1.0 - v) ** 8  # thin dark lines where the phase crosses an integer
+    base = jnp.array([0.93, 0.92, 0.89]) * (0.78 + 0.22 * lum[..., None])
+    marble = base * (1.0 - 0.55 * vein[..., None]) + 0.55 * vein[..., None] * jnp.array([0.35, 0.36, 0.40])
+    m = mask[..., None]
+    return m * marble + (1 - m) * original
+
+
+def _bulge(original, mask, amount):
+    """Magnify the object around its centroid: inverse warp x -> c + (x - c) f(|x - c| / R)."""
+    h, w, _ = original.shape
+    cr, cc, rad = _centroid_radius(mask)
+    rows, cols = jnp.meshgrid(jnp.arange(h) + 0.5, jnp.arange(w) + 0.5, indexing="ij")
+    dr, dc = rows - cr, cols - cc
+    rho2 = (dr * dr + dc * dc) / (rad * rad)
+    # f < 1 near the centre samples closer to the centroid (magnification 1 / (1 - amount)),
+    # f -> 1 far away; |amount| <= 0.5 keeps the radial map monotone (no folds)
+    f = 1.0 - amount * jnp.exp(-rho2 / (2 * 0.8 ** 2))
+    return _sample(original, cr + dr * f - 0.5, cc + dc * f - 0.5)
+
+
+BULGE_MAX = 0.35
+
+
+def _target_at_strength(original, s, kind: str, points=None):
+    """Target of strength s (s = 0: the original, s = 1: the full target) for one kind."""
+    if kind == "shape":
+        return _bulge(original, foreground(original), s * BULGE_MAX)
+    if kind == "colour":
+        full = _autumn(original)
+    elif kind == "material":
+        full = _bronze(original, foreground(original))
+    elif kind == "style":
+        full = _cartoon(original)
+    elif kind == "texture":
+        full = _marble(original, foreground(original), points)
+    else:
+        raise ValueError(kind)
+    return jnp.clip(original + s * (full - original), 0.0, 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# The editor
+
+
+@dataclasses.dataclass(frozen=True)
+class _Params:
+    noise: float
+    colour: float
+    shift: float
+    jitter: float
+
+
+@functools.partial(jax.jit, static_argnames=("kind", "params"))
+def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params: _Params):
+    h, w, _ = image.shape
+    k_t, k_jit, k_warp, k_col, k_sm, k_px = jax.random.split(key, 6)
+    t = jax.random.uniform(k_t, (), minval=t_range[0], maxval=t_range[1])
+    keep = jnp.cos(0.5 * jnp.pi * jnp.clip(t, 0.0, 1.0))
+
+    target = _target_at_strength(original, s, kind, points)
+    diff = jnp.abs(image - target)
+    gap = jnp.mean(diff)
+    local = _blur(jnp.mean(diff, axis=-1), max(h, w) / 16.0)
+
+    # the edit of this view: a jittered strength, a displaced pattern, a colour cast
+    s_view = s * (1.0 + params.jitter * gscale * gap * jax.random.normal(k_jit, ()))
+    edited = _target_at_strength(original, s_view, kind, points)
+    disp = _random_field(k_warp, h, w, 2, cycles=0.8) * (params.shift * gscale * gap * max(h, w))
+    rows, cols = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32),
+                              indexing="ij")
+    edited = _sample(edited, rows + disp[..., 0], cols + disp[..., 1])
+    cast = _random_field(k_col, h, w, 3) * (params.colour * gscale * (gap + local))[..., None]
+    edited = edited + cast
+
+    floor = params.noise * (_random_field(k_sm, h, w, 3, cycles=2.0)
+                            + jax.random.normal(k_px, image.shape))
+    out = keep * image + (1.0 - keep) * (edited + floor)
+    return jnp.clip(out, 0.0, 1.0).astype(jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnames=("kind",))
+def _target_impl(original, s, points, *, kind):
+    return _target_at_strength(original, s, kind, points).astype(jnp.float32)
+
+
+def _as_image(x, where: str) -> np.ndarray:
+    a = np.asarray(x, dtype=np.float32)
+    if a.ndim != 3 or a.shape[-1] != 3 or a.shape[0] < 4 or a.shape[1] < 4:
+        raise DataError(where, f"expected an image float [H, W, 3] with H, W >= 4, got shape "
+                        f"{tuple(a.shape)}")
+    if not np.all(np.isfinite(a)):
+        raise DataError(where, "image has NaN or infinite values")
+    return a
+
+
+class SimulatedEditor:
+    """Offline, deterministic (given the key) instruction editor with a known ground truth.
+
+    See the module docstring for the model. Every argument has a default, so
+    ``SimulatedEditor()`` works; ``.instructions`` lists the vocabulary.
+
+    Args:
+      noise: noise floor amplitude (smooth + per-pixel), present even when the render already
+        equals the target.
+      colour: amplitude of the low-frequency colour cast per unit of gap.
+      shift: displacement of the edited pattern, as a fraction of the image size per unit gap.
+      jitter: relative per-view jitter of the edit strength per unit gap.
+      surfaces: optional per-view geometry for a truly 3D texture: a pair
+        ``(originals float [N, H, W, 3], points float [N, H, W, 3])`` of original views and the
+        world point seen by each pixel (e.g. from ``jaxedit.scenes.surface_points_and_ids``).
+        When ``edit``/``target`` receive an ``original`` equal to one of these views, the marble
+        veins are a function of the world position instead of the colour.
+    """
+
+    name = "simulated"
+
+    def __init__(self, *, noise: float = 0.004, colour: float = 0.12, shift: float = 0.05,
+                 jitter: float = 1.0, surfaces: tuple | None = None):
+        for field, v in (("noise", noise), ("colour", colour), ("shift", shift), ("jitter", jitter)):
+            if not (math.isfinite(v) and v >= 0):
+                raise DataError(f"SimulatedEditor.{field}", f"must be a finite number >= 0, got {v!r}")
+        self.params = _Params(float(noise), float(colour), float(shift), float(jitter))
+        q, _ = np.linalg.qr(np.random.default_rng(20241120).normal(size=(EMBED_DIM, EMBED_DIM)))
+        self._basis = q.astype(np.float32)  # columns: null direction, then one per instruction
+        self._surfaces = {}
+        if surfaces is not None:
+            originals, points = (np.asarray(a, np.float32) for a in surfaces)
+            if originals.ndim != 4 or originals.shape[-1] != 3 or points.shape != originals.shape:
+                raise DataError("surfaces", f"expected (originals [N,H,W,3], points [N,H,W,3]), got "
+                                f"{originals.shape} and {points.shape}")
+            for o, p in zip(originals, points):
+                self._surfaces[o.tobytes()] = np.nan_to_num(p)
+
+    # ---- vocabulary and embeddings ----------------------------------------------------------
+
+    @property
+    def instructions(self) -> tuple[str, ...]:
+        return tuple(i.prompt for i in VOCABULARY)
+
+    def _index(self, instruction) -> int:
+        if isinstance(instruction, (int, np.integer)):
+            if 0 <= int(instruction) < len(VOCABULARY):
+                return int(instruction)
+            raise DataError("instruction", f"index {instruction} out of range 0..{len(VOCABULARY) - 1}")
+        key = _normalise_prompt(instruction)
+        for i, ins in enumerate(VOCABULARY):
+            if ins.prompt == key:
+                return i
+        raise DataError("prompt", f"unknown instruction {instruction!r} for the simulated editor; "
+                        f"known: {', '.join(repr(p) for p in self.instructions)}")
+
+    def encode(self, prompt: str) -> np.ndarray:
+        """E(prompt), float32 [8]. E("") is the null embedding; unknown prompts raise DataError."""
+        z = np.zeros(EMBED_DIM, np.float32)
+        z[0] = 1.0
+        if _normalise_prompt(prompt) != "":
+            z[1 + self._index(prompt)] = 1.0
+        return self._basis @ z
+
+    def decode(self, embedding) -> tuple[int | None, float]:
+        """(instruction index or None for the null embedding, ratio r) of e(r) = r E(p) + (1-r) E("")."""
+        e = np.asarray(embedding, np.float64).reshape(-1)
+        if e.shape != (EMBED_DIM,) or not np.all(np.isfinite(e)):
+            raise DataError("embedding", f"expected a finite float [{EMBED_DIM}] embedding of the "
+                            f"simulated editor, got shape {np.shape(embedding)}")
+        z = self._basis.T.astype(np.float64) @ e
+        coords = z[1:1 + len(VOCABULARY)]
+        residual = np.abs(np.concatenate([[z[0] - 1.0], z[1 + len(VOCABULARY):]])).max(initial=0.0)
+        active = np.flatnonzero(np.abs(coords) > 1e-4)
+        if residual > 1e-3 or len(active) > 1:
+            raise DataError("embedding", "not an interpolation r E(p) + (1 - r) E('') of one "
+                            "instruction of the simulated editor")
+        if len(active) == 0:
+            return None, 0.0
+        i = int(active[0])
+        r = float(coords[i])
+        if r < -1e-4 or r > 1 + 1e-4:
+            raise DataError("embedding", f"ratio {r:.4f} outside [0, 1]")
+        return i, min(max(r, 0.0), 1.0)
+
+    def strength(self, ratio: float, instruction) -> float:
+        """s(r) of the instruction: the fraction of the full edit present in the r-target."""
+        ins = VOCABULARY[self._index(instruction)]
+        return float(strength(float(ratio), ins.midpoint, ins.steepness))
+
+    # ---- images -----------------------------------------------------------------------------
+
+    def _points(self, original: np.ndarray):
+        p = self._surfaces.get(original.tobytes())
+        return None if p is None else jnp.asarray(p)
+
+    def target(self, original, ratio: float, instruction) -> np.ndarray:
+        """The noise-free r-partial target T_r(original), float32 [H, W, 3] in [0, 1].
+
+        ``instruction`` is a prompt of the vocabulary or its index; r = 0 gives ``original``.
+        """
+        original = _as_image(original, "original")
+        i = self._index(instruction)
+        ins = VOCABULARY[i]
+        s = strength(float(ratio), ins.midpoint, ins.steepness)
+        return np.asarray(_target_impl(jnp.asarray(original), jnp.float32(s), self._points(original),
+                                       kind=ins.kind))
+
+    def target_of_embedding(self, original, embedding) -> np.ndarray:
+        """The noise-free target for an embedding e(r) (the original for the null embedding)."""
+        i, r = self.decode(embedding)
+        original = _as_image(original, "original")
+        return original.copy() if i is None else self.target(original, r, i)
+
+    def edit(self, image, original, embedding, key: jax.Array, *,
+             timestep_range: tuple[float, float] = (0.02, 0.98),
+             guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
+        """Edit one view: float32 [H, W, 3] in [0, 1], deterministic given ``key``.
+
+        Args:
+          image: float [H, W, 3], the current render of the view.
+          original: float [H, W, 3], the original photo of the view (targets are functions of it).
+          embedding: e(r) from ``encode`` and ``interpolate_embedding``.
+          key: a ``jax.random`` key (see :func:`view_key`).
+          timestep_range: (t_min, t_max) in [0, 1]; t ~ U(t_min, t_max), and a fraction
+            cos(pi t / 2) of ``image`` survives.
+          guidance: (text, image) classifier-free guidance scales; they scale the perturbation.
+        """
+        image = _as_image(image, "image")
+        original = _as_image(original, "original")
+        if image.shape != original.shape:
+            raise DataError("image", f"shape {image.shape} differs from the original's {original.shape}")
+        t0, t1 = (float(t) for t in timestep_range)
+        if not (0.0 <= t0 <= t1 <= 1.0):
+            raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {timestep_range!r}")
+        gt, gi = (float(g) for g in guidance)
+        if not (gt >= 0 and gi > 0 and math.isfinite(gt) and math.isfinite(gi)):
+            raise DataError("guidance", f"need text >= 0 and image > 0 scales, got {guidance!r}")
+        i, r = self.decode(embedding)
+        kind, s = ("colour", 0.0) if i is None else (VOCABULARY[i].kind, self.strength(r, i))
+        gscale = (gt / 7.5) * math.sqrt(1.5 / gi)
+        out = _edit_impl(jnp.asarray(image), jnp.asarray(original), jnp.float32(s), key,
+                         jnp.asarray([t0, t1], jnp.float32), jnp.float32(gscale),
+                         self._points(original), kind=kind, params=self.params)
+        return np.asarray(out)
+
+
+def edit_views(editor, images: Sequence, originals: Sequence, embedding, run_key, ratio: float,
+               iteration: int = 0, *, view_indices: Sequence[int] | None = None,
+               timestep_range=(0.02, 0.98), guidance=(7.5, 1.5)) -> np.ndarray:
+    """Edit several views with per-view keys ``view_key(run_key, k, ratio, iteration)``.
+
+    Returns float32 [N, H, W, 3]. Works with any :class:`Editor`.
+    """
+    idx = range(len(images)) if view_indices is None else view_indices
+    return np.stack([editor.edit(img, orig, embedding, view_key(run_key, k, ratio, iteration),
+                                 timestep_range=timestep_range, guidance=guidance)
+                     for k, img, orig in zip(idx, images, originals)])
