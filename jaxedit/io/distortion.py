@@ -1,0 +1,137 @@
+"""The OpenCV radial-tangential lens model, its inverse, and exact image undistortion.
+
+A normalised undistorted point (x, y) = ((u - cx) / fx, (v - cy) / fy) maps to
+the distorted point
+
+    r2 = x^2 + y^2
+    radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3 + k4 r2^4
+    x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+    y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+
+which is OpenCV's model for k1, k2, k3, p1, p2 (COLMAP's ``OPENCV`` uses k1, k2,
+p1, p2) and nerfstudio's for all six (nerfstudio puts k4 on r2^4).
+
+Undistorting an *image* only needs the forward map: the undistorted pixel at
+(u, v) shows what the distorted image shows at ``K distort(K^-1 (u, v))``, so we
+resample the input there bilinearly with the same intrinsics K (nothing is
+cropped or rescaled). Undistorting *points* needs the inverse, computed by
+Newton's method (:func:`undistort_points`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Distortion(NamedTuple):
+    """Radial (k1..k4, on r^2..r^8) and tangential (p1, p2) coefficients."""
+
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    def is_zero(self) -> bool:
+        return all(v == 0.0 for v in self)
+
+
+def distort_points(xy: np.ndarray, d: Distortion) -> np.ndarray:
+    """float [..., 2] normalised undistorted points -> distorted points [..., 2]."""
+    xy = np.asarray(xy, np.float64)
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (d.k1 + r2 * (d.k2 + r2 * (d.k3 + r2 * d.k4)))
+    xd = x * radial + 2.0 * d.p1 * x * y + d.p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + d.p1 * (r2 + 2.0 * y * y) + 2.0 * d.p2 * x * y
+    return np.stack([xd, yd], axis=-1)
+
+
+def _distort_jacobian(x, y, d: Distortion):
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (d.k1 + r2 * (d.k2 + r2 * (d.k3 + r2 * d.k4)))
+    dradial_dr2 = d.k1 + r2 * (2.0 * d.k2 + r2 * (3.0 * d.k3 + r2 * 4.0 * d.k4))
+    # d(r2)/dx = 2x, d(r2)/dy = 2y
+    dxd_dx = radial + x * dradial_dr2 * 2.0 * x + 2.0 * d.p1 * y + d.p2 * 6.0 * x
+    dxd_dy = x * dradial_dr2 * 2.0 * y + 2.0 * d.p1 * x + d.p2 * 2.0 * y
+    dyd_dx = y * dradial_dr2 * 2.0 * x + d.p1 * 2.0 * x + 2.0 * d.p2 * y
+    dyd_dy = radial + y * dradial_dr2 * 2.0 * y + d.p1 * 6.0 * y + 2.0 * d.p2 * x
+    return dxd_dx, dxd_dy, dyd_dx, dyd_dy
+
+
+def undistort_points(xy_d: np.ndarray, d: Distortion, *, iterations: int = 20,
+                     tol: float = 1e-12) -> np.ndarray:
+    """Invert :func:`distort_points` by Newton's method.
+
+    Args:
+      xy_d: float [..., 2] normalised distorted points.
+      d: the distortion coefficients.
+      iterations: Newton steps at most (convergence is quadratic; 5-10 are
+        enough for real lenses inside the image).
+    Returns:
+      float [..., 2] undistorted points p with ``distort_points(p) ~= xy_d``.
+      Points where the model is not invertible (outside its monotone range)
+      come back as the last iterate; check with ``distort_points`` if needed.
+    """
+    xy_d = np.asarray(xy_d, np.float64)
+    xy = xy_d.copy()
+    for _ in range(iterations):
+        x, y = xy[..., 0], xy[..., 1]
+        res = distort_points(xy, d) - xy_d
+        a, b, c, e = _distort_jacobian(x, y, d)
+        det = a * e - b * c
+        det = np.where(np.abs(det) < 1e-12, np.copysign(1e-12, det), det)
+        step_x = (e * res[..., 0] - b * res[..., 1]) / det
+        step_y = (-c * res[..., 0] + a * res[..., 1]) / det
+        xy = xy - np.stack([step_x, step_y], axis=-1)
+        if np.max(np.abs(res), initial=0.0) < tol:
+            break
+    return xy
+
+
+def bilinear_sample(image: np.ndarray, u: np.ndarray, v: np.ndarray, fill) -> np.ndarray:
+    """Sample ``image`` float [H, W, C] at continuous pixel coordinates.
+
+    Coordinates follow the camera convention (pixel centres at integer + 0.5):
+    (u, v) = (0.5, 0.5) is the centre of the top-left pixel. Samples within the
+    image rectangle [0, W] x [0, H] clamp to the edge pixels; samples outside it
+    get ``fill`` (float [C]).
+    Returns float [*u.shape, C].
+    """
+    h, w = image.shape[:2]
+    inside = (u >= 0.0) & (u <= w) & (v >= 0.0) & (v <= h)
+    fx = np.clip(u - 0.5, 0.0, w - 1.0)
+    fy = np.clip(v - 0.5, 0.0, h - 1.0)
+    x0 = np.minimum(np.floor(fx).astype(np.int64), w - 1)
+    y0 = np.minimum(np.floor(fy).astype(np.int64), h - 1)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    ax, ay = (fx - x0)[..., None], (fy - y0)[..., None]
+    top = image[y0, x0] * (1 - ax) + image[y0, x1] * ax
+    bottom = image[y1, x0] * (1 - ax) + image[y1, x1] * ax
+    out = top * (1 - ay) + bottom * ay
+    return np.where(inside[..., None], out, np.asarray(fill, image.dtype))
+
+
+def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                    d: Distortion, *, fill=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """The pinhole image (same K) seen by a camera with distortion ``d``.
+
+    Args:
+      image: float [H, W, C], as captured through the distorting lens.
+      fx, fy, cx, cy: intrinsics in pixels (pixel centres at integer + 0.5).
+      d: distortion coefficients.
+      fill: value [C] for pixels whose source falls outside the captured image.
+    Returns:
+      float32 [H, W, C].
+    """
+    if d.is_zero():
+        return np.asarray(image, np.float32)
+    h, w = image.shape[:2]
+    v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)
+    xy_d = distort_points(xy, d)
+    us, vs = xy_d[..., 0] * fx + cx, xy_d[..., 1] * fy + cy
+    return bilinear_sample(np.asarray(image, np.float64), us, vs, fill).astype(np.float32)

@@ -1,0 +1,174 @@
+"""Reading and writing images with OpenImageIO.
+
+Images inside jaxedit are float32 [H, W, 3] arrays in [0, 1]. Pixel values are
+taken as stored (no colour-space conversion): an sRGB PNG gives its sRGB code
+values / 255, an EXR its (linear) floats. Values of float files outside
+[0, 1] are clipped, because every consumer (losses, the editors) expects that
+range.
+
+Transparency: formats that store straight (unassociated) alpha, like PNG, are
+read as stored and composited as ``rgb * alpha + background * (1 - alpha)``
+(what nerfstudio does); formats with associated (premultiplied) alpha, like
+EXR, as ``rgb + background * (1 - alpha)``. Both give the same picture.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from ..errors import DataError
+from .files import atomic_path
+
+#: Suffix -> (pixel type written, description). PNG/JPEG are 8-bit, EXR float32,
+#: TIFF 16-bit.
+WRITE_FORMATS = {".png": "uint8", ".jpg": "uint8", ".jpeg": "uint8", ".exr": "float",
+                 ".tif": "uint16", ".tiff": "uint16"}
+
+
+def read_image(path: str | os.PathLike, *, background=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """Read an image file as float32 RGB in [0, 1].
+
+    Args:
+      path: any format OpenImageIO reads (PNG, JPEG, EXR, TIFF, ...), 8/16-bit
+        or float.
+      background: RGB in [0, 1] that transparent pixels are composited over.
+    Returns:
+      float32 [H, W, 3] in [0, 1]. Grey images are expanded to RGB; an alpha
+      channel is composited over ``background`` and dropped.
+    Raises:
+      DataError: missing, unreadable or undecodable file, non-finite pixels.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "image file not found" if not path.exists() else "not a file")
+    # Ask for unassociated alpha as stored (PNG, some TIFFs): compositing in
+    # float then avoids the 8-bit rounding of OpenImageIO's premultiply.
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        raise DataError(path, f"cannot open image ({_oiio_error()})")
+    try:
+        spec = inp.spec()
+        straight = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 1
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None or inp.has_error:
+            raise DataError(path, f"cannot decode image ({_oiio_error(inp)})")
+    finally:
+        inp.close()
+    pixels = np.asarray(pixels, np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    if pixels.ndim != 3 or pixels.shape[0] != spec.height or pixels.shape[1] != spec.width:
+        raise DataError(path, f"decoded pixel array has unexpected shape {list(pixels.shape)}")
+    if not np.isfinite(pixels).all():
+        raise DataError(path, "image has non-finite (NaN or inf) pixel values")
+    return _to_rgb(path, pixels, spec.alpha_channel, background, straight)
+
+
+def _to_rgb(path, pixels: np.ndarray, alpha_channel: int, background,
+            straight: bool) -> np.ndarray:
+    """float [H, W, C] (straight or associated alpha) -> float32 [H, W, 3] in [0, 1]."""
+    nch = pixels.shape[2]
+    if alpha_channel < 0 and nch in (2, 4):
+        alpha_channel = nch - 1  # grey+alpha / RGBA without an explicit alpha tag
+    colour_idx = [i for i in range(nch) if i != alpha_channel]
+    if not colour_idx:
+        raise DataError(path, "image has only an alpha channel")
+    colour = pixels[:, :, colour_idx[:3]]
+    if colour.shape[2] == 1:
+        colour = np.repeat(colour, 3, axis=2)
+    elif colour.shape[2] == 2:
+        raise DataError(path, "image has two colour channels; expected grey or RGB")
+    if alpha_channel >= 0:
+        bg = np.asarray(background, np.float32).reshape(1, 1, 3)
+        alpha = np.clip(pixels[:, :, alpha_channel:alpha_channel + 1], 0.0, 1.0)
+        if straight:
+            colour = colour * alpha
+        colour = colour + (1.0 - alpha) * bg
+    return np.clip(colour, 0.0, 1.0).astype(np.float32)
+
+
+def read_image_with_alpha(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Straight (unpremultiplied) RGB float32 [H, W, 3] and alpha [H, W] (None if opaque)."""
+    path = Path(path)
+    black = read_image(path, background=(0.0, 0.0, 0.0))
+    white = read_image(path, background=(1.0, 1.0, 1.0))
+    alpha = 1.0 - (white - black).mean(axis=2)
+    if np.all(alpha >= 1.0):
+        return black, None
+    straight = np.where(alpha[..., None] > 0, black / np.maximum(alpha[..., None], 1e-8), 0.0)
+    return np.clip(straight, 0, 1).astype(np.float32), alpha.astype(np.float32)
+
+
+def write_image(path: str | os.PathLike, image) -> Path:
+    """Write an image atomically; the format comes from the suffix.
+
+    Args:
+      path: ``.png`` / ``.jpg`` / ``.jpeg`` (8-bit), ``.tif`` (16-bit) or
+        ``.exr`` (float32, values kept as they are).
+      image: float [H, W, 3], [H, W, 4] (straight alpha) or [H, W]; values in
+        [0, 1] (clipped for the integer formats, rounded to nearest).
+    Returns the path written.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in WRITE_FORMATS:
+        raise DataError(path, f"unsupported image suffix {suffix!r}; use one of "
+                              f"{', '.join(sorted(WRITE_FORMATS))}")
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[:, :, None]
+    if image.ndim != 3 or image.shape[2] not in (1, 3, 4) or 0 in image.shape:
+        raise DataError(path, f"image to write must be [H, W], [H, W, 3] or [H, W, 4], "
+                              f"got {list(image.shape)}")
+    image = image.astype(np.float32)
+    if not np.isfinite(image).all():
+        raise DataError(path, "image to write has non-finite (NaN or inf) values")
+    if suffix in (".jpg", ".jpeg") and image.shape[2] == 4:
+        image = image[:, :, :3]  # JPEG has no alpha
+    kind = WRITE_FORMATS[suffix]
+    if kind == "float" and image.shape[2] == 4:
+        # EXR stores associated (premultiplied) alpha.
+        image = np.concatenate([image[:, :, :3] * image[:, :, 3:], image[:, :, 3:]], axis=2)
+    if kind == "uint8":
+        data = np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+        td = oiio.UINT8
+    elif kind == "uint16":
+        data = np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16)
+        td = oiio.UINT16
+    else:
+        data, td = np.ascontiguousarray(image), oiio.FLOAT
+    h, w, c = data.shape
+    spec = oiio.ImageSpec(w, h, c, td)
+    if c == 4:
+        spec.alpha_channel = 3
+        # Our RGBA is straight alpha; say so, so that PNG is written without
+        # an unpremultiply round trip that would change the colour values.
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+    if suffix in (".jpg", ".jpeg"):
+        spec.attribute("Compression", "jpeg:95")
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise DataError(path, f"cannot create image writer ({_oiio_error()})")
+        try:
+            if not out.open(str(tmp), spec):
+                raise DataError(path, f"cannot open image for writing ({_oiio_error(out)})")
+            if not out.write_image(data):
+                raise DataError(path, f"cannot write image ({_oiio_error(out)})")
+        finally:
+            out.close()
+    return path
+
+
+def _oiio_error(obj=None) -> str:
+    msg = ""
+    if obj is not None:
+        msg = obj.geterror() if hasattr(obj, "geterror") else ""
+    msg = msg or oiio.geterror()
+    return " ".join(msg.split()) or "unknown error"

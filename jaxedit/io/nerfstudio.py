@@ -1,0 +1,624 @@
+"""nerfstudio ``transforms.json`` datasets: load them, write them.
+
+The format (see reference.md section 2): a JSON object with intrinsics at the
+top level or per frame (``fl_x fl_y cx cy w h camera_model`` and optional
+distortion ``k1 k2 k3 k4 p1 p2``), a list of ``frames`` each with a
+``file_path`` (relative to the json) and a ``transform_matrix`` (4x4 OpenGL
+camera-to-world: x right, y up, looking down -z), and optionally
+``ply_file_path`` (initial points) and ``train_filenames`` / ``val_filenames``
+/ ``test_filenames``.
+
+What :func:`load_nerfstudio` does, in order (and why):
+
+* Frames are sorted by ``file_path``, as nerfstudio does, so that the held-out
+  views of the default split are the ones a nerfstudio user gets.
+* Camera models: PINHOLE, SIMPLE_PINHOLE and OPENCV. OPENCV images are
+  **undistorted on load** by an exact remap (forward distortion model +
+  bilinear resampling, :mod:`jaxedit.io.distortion`) that keeps the declared
+  intrinsics; pixels whose source lies outside the captured image get the
+  background colour. OPENCV_FISHEYE, EQUIRECTANGULAR and anything else are
+  refused with a :class:`DataError`, as is a PINHOLE camera that declares
+  non-zero distortion.
+* Split: explicit ``train_filenames`` and ``test_filenames`` (falling back to
+  ``val_filenames``) when present, else every ``split_every``-th view is held
+  out (``index % split_every == 0``, nerfstudio's interval rule).
+* ``downscale=f`` averages f x f pixel blocks (cropping the right/bottom
+  remainder) and divides the intrinsics by f: exact in the pixel-centre
+  convention.
+* ``normalize="nerfstudio"``: nerfstudio's default orientation ("up": the mean
+  camera up vector is rotated onto +z), centring (mean camera position) and
+  scaling (max |t| = 1), applied to cameras and points. ``world_transform``
+  records the similarity so that results can be mapped back with
+  :func:`transform_cameras` / :func:`transform_points` and its inverse.
+
+Every problem raises :class:`DataError` naming the file or field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
+from ..errors import DataError
+from .distortion import Distortion, undistort_image
+from .images import read_image, write_image
+from .ply import load_points_ply, save_points_ply
+
+SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_RIGID_TOL = 1e-3
+NORMALIZE_MODES = ("none", "nerfstudio")
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A loaded posed-image dataset.
+
+    Attributes:
+      path: the transforms.json it came from.
+      images: float32 [N, H, W, 3] in [0, 1] (undistorted, downscaled).
+      cameras: batched Camera [N], OpenCV world->camera, in the (normalised) world.
+      filenames: the frames' ``file_path`` strings as in the json, in dataset order.
+      train_indices: int [Ntrain]; test_indices: int [Ntest].
+      points: float32 [P, 3] initial points in the (normalised) world, or None.
+      point_colors: float32 [P, 3] in [0, 1], or None.
+      world_transform: float64 [4, 4] similarity, normalised = world_transform @ original.
+      scene_scale: the uniform scale inside ``world_transform`` (1.0 when not normalised).
+    """
+
+    path: Path
+    images: np.ndarray
+    cameras: Camera
+    filenames: list[str]
+    train_indices: np.ndarray
+    test_indices: np.ndarray
+    points: np.ndarray | None
+    point_colors: np.ndarray | None
+    world_transform: np.ndarray
+    scene_scale: float
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def subset(self, indices) -> tuple[np.ndarray, Camera]:
+        """(images float32 [M, H, W, 3], cameras [M]) for the given view indices."""
+        indices = np.asarray(indices, np.int64)
+        return self.images[indices], self.cameras[indices]
+
+    def train(self) -> tuple[np.ndarray, Camera]:
+        """(images, cameras) of the training views."""
+        return self.subset(self.train_indices)
+
+    def test(self) -> tuple[np.ndarray, Camera]:
+        """(images, cameras) of the held-out views."""
+        return self.subset(self.test_indices)
+
+    def to_original_points(self, points) -> np.ndarray:
+        """float [..., 3] normalised-world points -> the dataset's original world."""
+        return transform_points(points, np.linalg.inv(self.world_transform))
+
+    def to_original_cameras(self, cameras: Camera) -> Camera:
+        """Cameras in the normalised world -> the same cameras in the original world."""
+        return transform_cameras(cameras, np.linalg.inv(self.world_transform))
+
+
+# ---------------------------------------------------------------------------
+# Similarity transforms of the world
+
+
+def _split_similarity(matrix) -> tuple[np.ndarray, float, np.ndarray]:
+    """4x4 similarity [sR | t] -> (R [3, 3], s, t [3]); DataError if it is not one."""
+    m = np.asarray(matrix, np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise DataError("world_transform", f"expected a finite 4x4 matrix, got shape {list(m.shape)}")
+    a = m[:3, :3]
+    det = np.linalg.det(a)
+    if det <= 0:
+        raise DataError("world_transform", "not a similarity (determinant <= 0)")
+    s = float(np.cbrt(det))
+    r = a / s
+    if np.abs(r.T @ r - np.eye(3)).max() > _RIGID_TOL or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise DataError("world_transform", "not a similarity (rotation part is not orthogonal)")
+    return r, s, m[:3, 3]
+
+
+def transform_points(points, matrix) -> np.ndarray:
+    """Apply a 4x4 similarity to float [..., 3] points (returns float64 [..., 3])."""
+    m = np.asarray(matrix, np.float64)
+    p = np.asarray(points, np.float64)
+    return p @ m[:3, :3].T + m[:3, 3]
+
+
+def transform_cameras(cameras: Camera, matrix) -> Camera:
+    """The same physical cameras after the world is mapped by the similarity ``matrix``.
+
+    A world point p becomes ``matrix @ p``; camera rotations follow, camera
+    centres move with the points, intrinsics are unchanged (a uniformly scaled
+    scene seen from a scaled position gives the same image).
+    """
+    r, s, t = _split_similarity(matrix)
+    w2c = np.asarray(cameras.world_to_camera, np.float64)
+    # Old: x = R_c p + t_c. New world q = s R p + t, so p = R^T (q - t) / s and,
+    # measuring camera coordinates in the new units (x' = s x, same pixels):
+    # x' = (R_c R^T) q + (s t_c - R_c R^T t).
+    rc, tc = w2c[..., :3, :3], w2c[..., :3, 3]
+    new_r = rc @ r.T
+    new_t = s * tc - np.einsum("...ij,j->...i", new_r, t)
+    out = np.zeros_like(w2c)
+    out[..., :3, :3] = new_r
+    out[..., :3, 3] = new_t
+    out[..., 3, 3] = 1.0
+    return dataclasses.replace(cameras, world_to_camera=out.astype(np.float32))
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation [3, 3] taking unit vector ``a`` onto unit vector ``b`` (Rodrigues)."""
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1.0 + 1e-10:  # opposite: half-turn about any axis perpendicular to a
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def nerfstudio_world_transform(c2w_opengl: np.ndarray) -> tuple[np.ndarray, float]:
+    """nerfstudio's default pose normalisation as a similarity.
+
+    Orientation "up" (the mean camera up vector, column 1 of the OpenGL
+    camera-to-world, is rotated onto +z), centring on the mean camera position,
+    then scaling so that the largest |coordinate| of a camera position is 1.
+
+    Args:
+      c2w_opengl: float [N, 4, 4] (or [N, 3, 4]) camera-to-world poses.
+    Returns:
+      (world_transform float64 [4, 4] = diag(s, s, s, 1) @ [R | -R mean], s).
+    """
+    c2w = np.asarray(c2w_opengl, np.float64)
+    centres = c2w[:, :3, 3]
+    mean = centres.mean(axis=0)
+    up = c2w[:, :3, 1].mean(axis=0)
+    norm = np.linalg.norm(up)
+    rot = np.eye(3) if norm < 1e-12 else _rotation_between(up / norm, np.array([0.0, 0.0, 1.0]))
+    rigid = np.eye(4)
+    rigid[:3, :3] = rot
+    rigid[:3, 3] = -rot @ mean
+    moved = centres @ rot.T + rigid[:3, 3]
+    extent = float(np.abs(moved).max()) if len(moved) else 0.0
+    scale = 1.0 if extent < 1e-12 else 1.0 / extent
+    return np.diag([scale, scale, scale, 1.0]) @ rigid, scale
+
+
+# ---------------------------------------------------------------------------
+# Reading
+
+
+def _resolve_json(path) -> Path:
+    path = Path(path)
+    if path.is_dir():
+        path = path / "transforms.json"
+    if not path.exists():
+        raise DataError(path, "transforms.json not found")
+    if not path.is_file():
+        raise DataError(path, "not a file")
+    return path
+
+
+def _load_meta(path: Path) -> dict:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DataError(path, "is not UTF-8 text") from None
+    except OSError as e:
+        raise DataError(path, f"cannot read file ({e.strerror or e})") from None
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise DataError(path, f"malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    except RecursionError:
+        raise DataError(path, "malformed JSON: nested too deeply") from None
+    if not isinstance(meta, dict):
+        raise DataError(path, f"top level must be a JSON object, got {type(meta).__name__}")
+    frames = meta.get("frames")
+    if frames is None:
+        raise DataError(path, "missing key 'frames'")
+    if not isinstance(frames, list) or not frames:
+        raise DataError(path, "'frames' must be a non-empty list")
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise DataError(path, f"frames[{i}] must be a JSON object")
+    return meta
+
+
+def _number(path: Path, field: str, value, *, positive=False, integer=False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DataError(path, f"{field} must be a number, got {json.dumps(value)[:40]}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise DataError(path, f"{field} is not finite ({value})")
+    if positive and value <= 0:
+        raise DataError(path, f"{field} must be positive, got {value}")
+    if integer and value != int(value):
+        raise DataError(path, f"{field} must be a whole number, got {value}")
+    return value
+
+
+@dataclass(frozen=True)
+class _Intrinsics:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    distortion: Distortion
+
+
+def _intrinsics(path: Path, meta: dict, frame: dict, where: str) -> _Intrinsics:
+    """Per-frame keys win over top-level ones."""
+    def get(key):
+        if key in frame:
+            return frame[key], f"{where}.{key}"
+        return meta.get(key), key
+
+    model, model_field = get("camera_model")
+    dist_given = {k: get(k) for k in _DISTORTION_KEYS}
+    if model is None:
+        # nerfstudio's default is OPENCV; with no coefficients that is a pinhole.
+        model = "OPENCV"
+    if not isinstance(model, str) or model.upper() not in SUPPORTED_MODELS:
+        raise DataError(path, f"{model_field}: unsupported camera model {json.dumps(model)[:40]} "
+                              f"(supported: {', '.join(SUPPORTED_MODELS)}; fisheye and other "
+                              f"models are not)")
+    model = model.upper()
+
+    def required(key, **kw):
+        value, field = get(key)
+        if value is None:
+            raise DataError(path, f"missing intrinsic '{key}' (neither in {where} nor at top level)")
+        return _number(path, field, value, **kw)
+
+    fx = required("fl_x", positive=True)
+    if model == "SIMPLE_PINHOLE" and get("fl_y")[0] is None:
+        fy = fx
+    else:
+        fy = required("fl_y", positive=True)
+    cx, cy = required("cx"), required("cy")
+    w, h = int(required("w", positive=True, integer=True)), int(required("h", positive=True, integer=True))
+    coeffs = {k: 0.0 if v is None else _number(path, f, v) for k, (v, f) in dist_given.items()}
+    distortion = Distortion(**coeffs)
+    if model != "OPENCV" and not distortion.is_zero():
+        raise DataError(path, f"{model_field}: camera model {model} declares non-zero distortion "
+                              f"coefficients; use OPENCV")
+    return _Intrinsics(fx, fy, cx, cy, w, h, distortion)
+
+
+def _pose(path: Path, frame: dict, where: str) -> np.ndarray:
+    if "transform_matrix" not in frame:
+        raise DataError(path, f"{where}: missing key 'transform_matrix'")
+    raw = frame["transform_matrix"]
+    field = f"{where}.transform_matrix"
+    try:
+        m = np.array(raw, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise DataError(path, f"{field} must be a 4x4 (or 3x4) list of numbers") from None
+    if m.shape not in ((4, 4), (3, 4)) or any(isinstance(x, bool) for row in raw for x in row):
+        raise DataError(path, f"{field} must be a 4x4 (or 3x4) list of numbers, got shape {list(m.shape)}")
+    if not np.isfinite(m).all():
+        raise DataError(path, f"{field} has non-finite values")
+    if m.shape == (3, 4):
+        m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]], axis=0)
+    if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        raise DataError(path, f"{field} last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+    r = m[:3, :3]
+    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    if err > _RIGID_TOL:
+        raise DataError(path, f"{field} is not a rigid transform (rotation part is not "
+                              f"orthonormal: max |R^T R - I| = {err:.3g})")
+    if np.linalg.det(r) < 0:
+        raise DataError(path, f"{field} is not a rigid transform (rotation has determinant < 0, "
+                              f"a reflection)")
+    return m
+
+
+def _file_path(path: Path, frame: dict, where: str) -> str:
+    fp = frame.get("file_path")
+    if fp is None:
+        raise DataError(path, f"{where}: missing key 'file_path'")
+    if not isinstance(fp, str) or not fp.strip():
+        raise DataError(path, f"{where}.file_path must be a non-empty string")
+    return fp
+
+
+def _norm_name(name: str) -> str:
+    return os.path.normpath(name)
+
+
+def _resolve_image(json_path: Path, file_path: str, where: str) -> Path:
+    p = Path(file_path)
+    p = p if p.is_absolute() else json_path.parent / p
+    if p.is_file():
+        return p
+    if not p.suffix:  # Blender/instant-ngp style names without an extension
+        for suffix in (".png", ".jpg", ".jpeg", ".exr"):
+            if p.with_suffix(suffix).is_file():
+                return p.with_suffix(suffix)
+    raise DataError(json_path, f"{where}.file_path: image file {file_path!r} not found")
+
+
+def _split(path: Path, meta: dict, names: list[str], split_every: int):
+    """(train_indices, test_indices) from filename lists or the interval rule."""
+    index = {_norm_name(n): i for i, n in enumerate(names)}
+
+    def indices_of(key):
+        value = meta.get(key)
+        if value is None:
+            return None
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise DataError(path, f"{key} must be a list of file paths")
+        out = []
+        for v in value:
+            i = index.get(_norm_name(v))
+            if i is None:
+                raise DataError(path, f"{key}: {v!r} is not the file_path of any frame")
+            out.append(i)
+        return np.array(sorted(set(out)), np.int64)
+
+    train = indices_of("train_filenames")
+    test = indices_of("test_filenames")
+    if test is None:
+        test = indices_of("val_filenames")
+    n = len(names)
+    if train is None and test is None:
+        all_idx = np.arange(n)
+        if split_every is None or split_every <= 0:
+            return all_idx, np.zeros((0,), np.int64)
+        held = all_idx % split_every == 0
+        return all_idx[~held], all_idx[held]
+    if test is None:
+        test = np.setdiff1d(np.arange(n), train)
+    if train is None:
+        train = np.setdiff1d(np.arange(n), test)
+    return train.astype(np.int64), test.astype(np.int64)
+
+
+def _downscale_image(image: np.ndarray, factor: int) -> np.ndarray:
+    """Area average of factor x factor blocks (right/bottom remainder cropped)."""
+    if factor == 1:
+        return image
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    img = image[:h * factor, :w * factor].astype(np.float64)
+    return img.reshape(h, factor, w, factor, -1).mean(axis=(1, 3)).astype(np.float32)
+
+
+def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(1.0, 1.0, 1.0),
+                    normalize: str = "none", split_every: int = 8) -> Dataset:
+    """Load a nerfstudio dataset (see the module docstring for the exact rules).
+
+    Args:
+      path: the dataset folder or its transforms.json.
+      downscale: integer factor >= 1 (area average; intrinsics divided by it).
+      background: RGB in [0, 1] for compositing RGBA images and for pixels that
+        undistortion leaves without a source.
+      normalize: "none" (poses as in the file) or "nerfstudio" (orient up,
+        centre, scale max |t| to 1).
+      split_every: hold out views with ``index % split_every == 0`` when the
+        file has no filename lists; 0 keeps every view for training.
+    Returns:
+      a :class:`Dataset`.
+    Raises:
+      DataError: for any problem with the json, the images or the points.
+    """
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
+        raise DataError("downscale", f"must be an integer >= 1, got {downscale!r}")
+    if normalize not in NORMALIZE_MODES:
+        raise DataError("normalize", f"must be one of {NORMALIZE_MODES}, got {normalize!r}")
+    bg = np.asarray(background, np.float64)
+    if bg.shape != (3,) or not np.isfinite(bg).all():
+        raise DataError("background", "must be three finite numbers")
+    downscale = int(downscale)
+    json_path = _resolve_json(path)
+    meta = _load_meta(json_path)
+
+    # Parse and validate every frame before decoding any image: fail fast.
+    parsed = []
+    for i, frame in enumerate(meta["frames"]):
+        where = f"frames[{i}]"
+        fp = _file_path(json_path, frame, where)
+        parsed.append((fp, _pose(json_path, frame, where), _intrinsics(json_path, meta, frame, where),
+                       where))
+    names = [p[0] for p in parsed]
+    if len(set(map(_norm_name, names))) != len(names):
+        dup = next(n for n in names if sum(_norm_name(m) == _norm_name(n) for m in names) > 1)
+        raise DataError(json_path, f"file_path {dup!r} appears in more than one frame")
+    parsed.sort(key=lambda p: p[0])  # nerfstudio sorts frames by file name
+    names = [p[0] for p in parsed]
+    sizes = {(p[2].width, p[2].height) for p in parsed}
+    if len(sizes) != 1:
+        raise DataError(json_path, f"frames have different image sizes {sorted(sizes)}; "
+                                   f"jaxedit needs one size per dataset")
+    train_idx, test_idx = _split(json_path, meta, names, split_every)
+    image_paths = [_resolve_image(json_path, fp, where) for fp, _, _, where in parsed]
+
+    images, intr_rows = [], []
+    for (fp, _, intr, where), image_path in zip(parsed, image_paths):
+        image = read_image(image_path, background=bg)
+        if image.shape[:2] != (intr.height, intr.width):
+            raise DataError(image_path, f"image is {image.shape[1]}x{image.shape[0]} but "
+                                        f"{where} declares w={intr.width}, h={intr.height}")
+        image = undistort_image(image, intr.fx, intr.fy, intr.cx, intr.cy, intr.distortion,
+                                fill=bg)
+        images.append(_downscale_image(image, downscale))
+        intr_rows.append((intr.fx, intr.fy, intr.cx, intr.cy))
+    images = np.stack(images)
+    intr_arr = np.asarray(intr_rows, np.float64) / downscale
+    width, height = parsed[0][2].width // downscale, parsed[0][2].height // downscale
+    if width < 1 or height < 1:
+        raise DataError("downscale", f"factor {downscale} leaves no pixels")
+
+    c2w = np.stack([p[1] for p in parsed])
+    if normalize == "nerfstudio":
+        world_transform, scale = nerfstudio_world_transform(c2w)
+    else:
+        world_transform, scale = np.eye(4), 1.0
+    cameras = Camera(
+        world_to_camera=opengl_c2w_to_opencv_w2c(c2w).astype(np.float32),
+        fx=intr_arr[:, 0].astype(np.float32), fy=intr_arr[:, 1].astype(np.float32),
+        cx=intr_arr[:, 2].astype(np.float32), cy=intr_arr[:, 3].astype(np.float32),
+        width=width, height=height)
+    if normalize != "none":
+        cameras = transform_cameras(cameras, world_transform)
+
+    points = colors = None
+    if meta.get("ply_file_path") is not None:
+        ply = meta["ply_file_path"]
+        if not isinstance(ply, str) or not ply.strip():
+            raise DataError(json_path, "ply_file_path must be a non-empty string")
+        ply_path = Path(ply) if Path(ply).is_absolute() else json_path.parent / ply
+        if not ply_path.is_file():
+            raise DataError(json_path, f"ply_file_path: {ply!r} not found")
+        points, colors = load_points_ply(ply_path)
+        points = transform_points(points, world_transform).astype(np.float32)
+
+    return Dataset(path=json_path, images=images, cameras=cameras, filenames=names,
+                   train_indices=train_idx, test_indices=test_idx, points=points,
+                   point_colors=colors, world_transform=world_transform, scene_scale=float(scale))
+
+
+# ---------------------------------------------------------------------------
+# Writing
+
+
+def save_nerfstudio(out_dir: str | os.PathLike, images, cameras: Camera, *, filenames=None,
+                    train_indices=None, test_indices=None, points=None, point_colors=None,
+                    image_format: str = "png") -> Path:
+    """Write a nerfstudio dataset: ``transforms.json``, ``images/*`` and ``sparse_pc.ply``.
+
+    The output is what nerfstudio's own dataparser reads, and
+    :func:`load_nerfstudio` reads it back to the same images (up to 8-bit
+    quantisation for PNG; ``image_format="exr"`` is exact), cameras and split.
+    Intrinsics go at the top level when all cameras share them, per frame
+    otherwise; ``camera_model`` is PINHOLE; ``transform_matrix`` is the OpenGL
+    camera-to-world. With a split, ``train_filenames``, ``val_filenames`` and
+    ``test_filenames`` are written (nerfstudio's evaluation reads the "val" list).
+
+    Args:
+      out_dir: folder to create or update; files are staged in a temporary
+        folder and moved into place, ``transforms.json`` last, so a failure
+        leaves nothing half-written.
+      images: float [N, H, W, 3] in [0, 1].
+      cameras: batched Camera [N] of size W x H.
+      filenames: N relative paths (default ``images/frame_00000.<fmt>``); the
+        suffix picks the image format.
+      train_indices, test_indices: int arrays; when one is given the other
+        defaults to its complement.
+      points, point_colors: float [P, 3] initial points (colours in [0, 1]).
+      image_format: "png" (8-bit), "exr" (float) or "jpg" for default names.
+    Returns:
+      the path of the written transforms.json.
+    """
+    out_dir = Path(out_dir)
+    images = np.asarray(images)
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise DataError("images", f"expected float [N, H, W, 3], got shape {list(images.shape)}")
+    n, h, w = images.shape[:3]
+    w2c = np.asarray(cameras.world_to_camera, np.float64)
+    if w2c.shape != (n, 4, 4):
+        raise DataError("cameras", f"expected a batch of {n} cameras, got world_to_camera "
+                                   f"shape {list(w2c.shape)}")
+    if (cameras.width, cameras.height) != (w, h):
+        raise DataError("cameras", f"camera size {cameras.width}x{cameras.height} differs from "
+                                   f"image size {w}x{h}")
+    if not np.isfinite(w2c).all():
+        raise DataError("cameras", "non-finite world_to_camera")
+    if image_format not in ("png", "exr", "jpg"):
+        raise DataError("image_format", f"must be png, exr or jpg, got {image_format!r}")
+    if filenames is None:
+        filenames = [f"images/frame_{i:05d}.{image_format}" for i in range(n)]
+    filenames = [str(f) for f in filenames]
+    if len(filenames) != n:
+        raise DataError("filenames", f"expected {n} names, got {len(filenames)}")
+    for f in filenames:
+        norm = _norm_name(f)
+        if Path(f).is_absolute() or norm.startswith(".."):
+            raise DataError("filenames", f"{f!r} must be a relative path inside the dataset")
+        if norm == "transforms.json":
+            raise DataError("filenames", "an image cannot be called transforms.json")
+    if len(set(map(_norm_name, filenames))) != n:
+        raise DataError("filenames", "file names must be unique")
+
+    def index_array(value, field):
+        arr = np.asarray(value, np.int64).reshape(-1)
+        if arr.size and (arr.min() < 0 or arr.max() >= n):
+            raise DataError(field, f"indices must lie in [0, {n})")
+        return np.unique(arr)
+
+    split = None
+    if train_indices is not None or test_indices is not None:
+        train = None if train_indices is None else index_array(train_indices, "train_indices")
+        test = None if test_indices is None else index_array(test_indices, "test_indices")
+        train = np.setdiff1d(np.arange(n), test) if train is None else train
+        test = np.setdiff1d(np.arange(n), train) if test is None else test
+        split = (train, test)
+
+    c2w = opencv_w2c_to_opengl_c2w(w2c)
+    intr = np.stack([np.broadcast_to(np.asarray(getattr(cameras, k), np.float64), (n,))
+                     for k in ("fx", "fy", "cx", "cy")], axis=1)
+    shared = bool(np.all(intr == intr[:1]))
+    meta: dict = {"camera_model": "PINHOLE", "w": int(w), "h": int(h)}
+    if shared:
+        meta.update(fl_x=float(intr[0, 0]), fl_y=float(intr[0, 1]), cx=float(intr[0, 2]),
+                    cy=float(intr[0, 3]))
+    frames = []
+    for i in range(n):
+        frame = {"file_path": filenames[i], "transform_matrix": c2w[i].tolist()}
+        if not shared:
+            frame.update(fl_x=float(intr[i, 0]), fl_y=float(intr[i, 1]), cx=float(intr[i, 2]),
+                         cy=float(intr[i, 3]))
+        frames.append(frame)
+    meta["frames"] = frames
+    if split is not None:
+        meta["train_filenames"] = [filenames[i] for i in split[0]]
+        meta["val_filenames"] = [filenames[i] for i in split[1]]
+        meta["test_filenames"] = [filenames[i] for i in split[1]]
+
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
+    try:
+        if points is not None:
+            pts = np.asarray(points)
+            cols = np.full(pts.shape, 0.5) if point_colors is None else point_colors
+            save_points_ply(staging / "sparse_pc.ply", pts, cols)
+            meta["ply_file_path"] = "sparse_pc.ply"
+        for i in range(n):
+            write_image(staging / filenames[i], images[i])
+        (staging / "transforms.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
+        if not out_dir.exists():
+            os.replace(staging, out_dir)
+        else:
+            _merge_into(staging, out_dir)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    return out_dir / "transforms.json"
+
+
+def _merge_into(staging: Path, out_dir: Path) -> None:
+    """Move every staged file into ``out_dir``, transforms.json last."""
+    files = sorted(p for p in staging.rglob("*") if p.is_file() and p.name != "transforms.json")
+    for src in files + [staging / "transforms.json"]:
+        dst = out_dir / src.relative_to(staging)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(src, dst)
