@@ -1,0 +1,406 @@
+"""LPIPS (learned perceptual image patch similarity) in JAX.
+
+The distance of Zhang et al. (CVPR 2018, "v0.1" of the ``lpips`` package): both
+images go through a frozen ImageNet trunk (VGG16 or AlexNet), the activations
+after five ReLU taps are unit-normalised along channels, squared differences are
+weighted per channel by learned non-negative linear heads (1x1 convolutions with
+one output), averaged over space and summed over the five layers::
+
+    d(x, y) = sum_l mean_hw( sum_c w_lc (f_l(x)/|f_l(x)| - f_l(y)/|f_l(y)|)_c^2 )
+
+Inputs are float images [..., H, W, 3] in [0, 1]. As the ``lpips`` package does
+with ``normalize=True``, they are mapped to [-1, 1] and then through its
+ScalingLayer ((x - shift) / scale, constants below) before the trunk.
+
+Everything is pure JAX (``lax.conv_general_dilated`` + ``lax.reduce_window`` in
+NHWC), jit-able and differentiable, so it can also serve as a training loss.
+Weights come from a local ``.safetensors`` or ``.npz`` file written by
+``python -m experiments convert-lpips`` (torchvision's trunk weights + the
+``lpips`` package's heads). The file holds, in torchvision's OIHW layout,
+``trunk.<i>.weight`` / ``trunk.<i>.bias`` for each convolution ``i`` of the
+trunk's ``features`` sequence and ``lin<k>.weight`` [1, C_k, 1, 1] for the five
+heads; its metadata names the trunk (``net``). Nothing here imports torch.
+
+Public API::
+
+    load_lpips(path, net=None) -> LPIPS                    # callable(a, b) -> float array
+    lpips_distance(path, net="vgg") -> PerceptualDistance  # (a, b) -> Python float, has .name
+    lpips_apply(params, img_a, img_b, *, net) -> float array [...]
+    load_lpips_params(path, net=None) -> (LPIPSParams, net)
+    save_lpips_params(path, params, net)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import struct
+from functools import partial
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from .errors import DataError
+from .io.files import atomic_path
+
+__all__ = ["ARCHITECTURES", "LPIPS", "LPIPSParams", "PerceptualDistance", "lpips_apply",
+           "lpips_distance", "load_lpips", "load_lpips_params", "save_lpips_params",
+           "read_safetensors", "write_safetensors"]
+
+# The lpips package's ScalingLayer, applied to images in [-1, 1] (ImageNet statistics
+# re-expressed for that range).
+_SHIFT = np.array([-0.030, -0.088, -0.188], np.float32)
+_SCALE = np.array([0.458, 0.448, 0.450], np.float32)
+# lpips' normalize_tensor adds this to the channel norm.
+_NORM_EPS = 1e-10
+
+
+@dataclasses.dataclass(frozen=True)
+class Conv:
+    """One convolution of torchvision's ``features`` sequence (index ``index`` there)."""
+    index: int
+    cin: int
+    cout: int
+    kernel: int
+    stride: int
+    padding: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Pool:
+    """Max pooling, floor mode, no padding (torchvision's MaxPool2d defaults)."""
+    window: int
+    stride: int
+
+
+def _vgg16():
+    # torchvision vgg16().features: conv-relu blocks of 2, 2, 3, 3, 3 convs, max-pool 2x2 between.
+    # lpips taps relu1_2, relu2_2, relu3_3, relu4_3, relu5_3 (a ReLU follows every conv).
+    widths = [(64, 2), (128, 2), (256, 3), (512, 3), (512, 3)]
+    stages, index, cin = [], 0, 3
+    for s, (cout, n) in enumerate(widths):
+        ops = []
+        if s > 0:
+            ops.append(Pool(2, 2))
+            index += 1
+        for _ in range(n):
+            ops.append(Conv(index, cin, cout, 3, 1, 1))
+            cin, index = cout, index + 2
+        stages.append(tuple(ops))
+    return tuple(stages)
+
+
+def _alexnet():
+    # torchvision alexnet().features; lpips taps the ReLU after each of the five convs.
+    return ((Conv(0, 3, 64, 11, 4, 2),),
+            (Pool(3, 2), Conv(3, 64, 192, 5, 1, 2)),
+            (Pool(3, 2), Conv(6, 192, 384, 3, 1, 1)),
+            (Conv(8, 384, 256, 3, 1, 1),),
+            (Conv(10, 256, 256, 3, 1, 1),))
+
+
+#: net name -> stages; each stage is a tuple of ops ending at an LPIPS tap.
+ARCHITECTURES = {"vgg": _vgg16(), "alex": _alexnet()}
+
+
+def _convs(net: str) -> list[Conv]:
+    return [op for stage in ARCHITECTURES[net] for op in stage if isinstance(op, Conv)]
+
+
+def _tap_channels(net: str) -> list[int]:
+    return [[op for op in stage if isinstance(op, Conv)][-1].cout for stage in ARCHITECTURES[net]]
+
+
+class LPIPSParams(NamedTuple):
+    """Weights of one LPIPS network (a pytree).
+
+    conv_w: tuple of float [k, k, C_in, C_out] (HWIO), one per trunk convolution in order.
+    conv_b: tuple of float [C_out].
+    heads:  tuple of five float [C_l] non-negative channel weights.
+    """
+    conv_w: tuple
+    conv_b: tuple
+    heads: tuple
+
+
+# ----------------------------------------------------------------------------- forward
+
+def _features(params: LPIPSParams, x, net: str, precision):
+    """Trunk activations at the five taps. x: float [N, H, W, 3] (already scaled)."""
+    taps, ci = [], 0
+    for stage in ARCHITECTURES[net]:
+        for op in stage:
+            if isinstance(op, Pool):
+                x = lax.reduce_window(x, -jnp.inf, lax.max, (1, op.window, op.window, 1),
+                                      (1, op.stride, op.stride, 1), "VALID")
+            else:
+                x = lax.conv_general_dilated(
+                    x, params.conv_w[ci], (op.stride, op.stride),
+                    [(op.padding, op.padding)] * 2, dimension_numbers=("NHWC", "HWIO", "NHWC"),
+                    precision=precision)
+                x = jax.nn.relu(x + params.conv_b[ci])
+                ci += 1
+        taps.append(x)
+    return taps
+
+
+def _unit_normalise(f):
+    """f / (|f|_channels + 1e-10) as lpips does; the max() keeps the gradient finite where
+    every channel is zero (after a ReLU that happens), without changing the value there."""
+    norm = jnp.sqrt(jnp.maximum(jnp.sum(f * f, axis=-1, keepdims=True), 1e-30))
+    return f / (norm + _NORM_EPS)
+
+
+def lpips_apply(params: LPIPSParams, img_a, img_b, *, net: str = "vgg",
+                precision=lax.Precision.HIGHEST):
+    """LPIPS distance between float images [..., H, W, 3] in [0, 1] -> float [...].
+
+    ``precision`` defaults to HIGHEST so that GPUs do not silently use TF32 convolutions
+    (LPIPS differences between nearby edits are small).
+    """
+    img_a, img_b = jnp.asarray(img_a, jnp.float32), jnp.asarray(img_b, jnp.float32)
+    if img_a.shape != img_b.shape or img_a.ndim < 3 or img_a.shape[-1] != 3:
+        raise DataError("images", f"LPIPS needs two images of one shape [..., H, W, 3]; got "
+                        f"{img_a.shape} and {img_b.shape}")
+    batch = img_a.shape[:-3]
+    hw3 = img_a.shape[-3:]
+    # Both images through the trunk in one batch.
+    x = jnp.concatenate([img_a.reshape((-1,) + hw3), img_b.reshape((-1,) + hw3)], axis=0)
+    x = ((2.0 * x - 1.0) - _SHIFT) / _SCALE
+    n = x.shape[0] // 2
+    total = jnp.zeros((n,), jnp.float32)
+    for f, w in zip(_features(params, x, net, precision), params.heads):
+        f = _unit_normalise(f)
+        d = (f[:n] - f[n:]) ** 2                       # [n, h, w, C]
+        total = total + jnp.mean(d @ w, axis=(1, 2))   # head = 1x1 conv with one output
+    return total.reshape(batch)
+
+
+_lpips_jit = jax.jit(lpips_apply, static_argnames=("net", "precision"))
+
+
+@partial(jax.tree_util.register_dataclass, data_fields=["params"], meta_fields=["net"])
+@dataclasses.dataclass(frozen=True)
+class LPIPS:
+    """A loaded LPIPS network: ``LPIPS(a, b)`` -> float array [...] (jitted).
+
+    A pytree (params are leaves, ``net`` is static), so it can be passed into jitted code.
+    """
+    params: LPIPSParams
+    net: str
+
+    def __call__(self, img_a, img_b):
+        return _lpips_jit(self.params, img_a, img_b, net=self.net)
+
+
+class PerceptualDistance:
+    """``(img_a, img_b) -> float`` for the scheduler's difficulty, with a ``name`` for its log."""
+
+    def __init__(self, fn, name: str):
+        self._fn = fn
+        self.name = name
+        self.__name__ = name
+
+    def __call__(self, img_a, img_b) -> float:
+        return float(self._fn(img_a, img_b))
+
+    def __repr__(self):
+        return f"PerceptualDistance({self.name})"
+
+
+# ----------------------------------------------------------------------------- files
+
+_ST_DTYPES = {"F32": np.float32, "F16": np.float16, "F64": np.float64, "I64": np.int64,
+              "I32": np.int32, "U8": np.uint8}
+
+
+def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """Read a .safetensors file (header + raw little-endian tensors) without torch.
+
+    Returns (name -> array, metadata). BF16 tensors are widened to float32.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise DataError(path, f"cannot read ({e.strerror or e})") from None
+    if len(data) < 8:
+        raise DataError(path, "not a safetensors file (shorter than its 8-byte header length)")
+    (hlen,) = struct.unpack("<Q", data[:8])
+    if hlen > len(data) - 8:
+        raise DataError(path, "not a safetensors file (header length past the end of the file)")
+    try:
+        header = json.loads(data[8:8 + hlen])
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise DataError(path, "not a safetensors file (header is not JSON)") from None
+    meta = header.pop("__metadata__", None) or {}
+    body = memoryview(data)[8 + hlen:]
+    out = {}
+    for name, info in header.items():
+        try:
+            dtype, shape, (lo, hi) = info["dtype"], tuple(info["shape"]), info["data_offsets"]
+        except (KeyError, TypeError, ValueError):
+            raise DataError(path, f"tensor {name!r} has a malformed header entry") from None
+        if not 0 <= lo <= hi <= len(body):
+            raise DataError(path, f"tensor {name!r} lies outside the file (truncated?)")
+        raw = body[lo:hi]
+        if dtype == "BF16":
+            arr = (np.frombuffer(raw, "<u2").astype(np.uint32) << 16).view(np.float32)
+        elif dtype in _ST_DTYPES:
+            arr = np.frombuffer(raw, np.dtype(_ST_DTYPES[dtype]).newbyteorder("<"))
+        else:
+            raise DataError(path, f"tensor {name!r} has unsupported dtype {dtype}")
+        if arr.size != int(np.prod(shape)):
+            raise DataError(path, f"tensor {name!r}: {arr.size} values for shape {shape}")
+        out[name] = arr.reshape(shape)
+    return out, {str(k): str(v) for k, v in meta.items()}
+
+
+def write_safetensors(path, tensors: dict[str, np.ndarray], metadata: dict[str, str] | None = None):
+    """Write float32 tensors as .safetensors (atomically); readable by the safetensors package."""
+    header, offset, blobs = {}, 0, []
+    for name in sorted(tensors):
+        arr = np.ascontiguousarray(np.asarray(tensors[name], np.float32))
+        blob = arr.astype("<f4").tobytes()
+        header[name] = {"dtype": "F32", "shape": list(arr.shape),
+                        "data_offsets": [offset, offset + len(blob)]}
+        blobs.append(blob)
+        offset += len(blob)
+    if metadata:
+        header["__metadata__"] = {str(k): str(v) for k, v in metadata.items()}
+    hbytes = json.dumps(header, separators=(",", ":")).encode()
+    hbytes += b" " * (-len(hbytes) % 8)  # the format pads the header to 8 bytes
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(struct.pack("<Q", len(hbytes)))
+            f.write(hbytes)
+            for blob in blobs:
+                f.write(blob)
+
+
+def _read_tensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "LPIPS weights file not found; create it with `python -m experiments "
+                        "convert-lpips --out DIR` (torchvision trunk weights + the lpips package's "
+                        "heads) and pass its path with --lpips-weights")
+    if path.suffix == ".safetensors":
+        return read_safetensors(path)
+    if path.suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                tensors = {k: z[k] for k in z.files}
+        except (OSError, ValueError) as e:
+            raise DataError(path, f"cannot read as .npz ({e})") from None
+        meta = {}
+        if "__metadata__" in tensors:
+            try:
+                meta = json.loads(str(tensors.pop("__metadata__")))
+            except json.JSONDecodeError:
+                raise DataError(path, "__metadata__ entry is not JSON") from None
+        return tensors, meta
+    raise DataError(path, "LPIPS weights must be a .safetensors or .npz file")
+
+
+def load_lpips_params(path, net: str | None = None) -> tuple[LPIPSParams, str]:
+    """Read and validate an LPIPS weights file -> (params, net).
+
+    ``net`` ("vgg" | "alex") must match the file's metadata when both are given; when the
+    file has none it is inferred from the tensor shapes.
+    """
+    path = Path(path)
+    if net is not None and net not in ARCHITECTURES:
+        raise DataError("net", f"unknown LPIPS trunk {net!r} (choose from {sorted(ARCHITECTURES)})")
+    tensors, meta = _read_tensors(path)
+    file_net = meta.get("net")
+    if file_net is None:
+        head0 = tensors.get("lin1.weight")
+        file_net = {128: "vgg", 192: "alex"}.get(None if head0 is None else head0.size, net)
+    if file_net not in ARCHITECTURES:
+        raise DataError(path, f"cannot tell which trunk these weights are for (net={file_net!r})")
+    if net is not None and net != file_net:
+        raise DataError(path, f"holds LPIPS-{file_net} weights but net={net!r} was asked for")
+    net = file_net
+
+    def get(key, shape):
+        if key not in tensors:
+            raise DataError(path, f"missing tensor {key!r} for LPIPS-{net}")
+        arr = np.asarray(tensors[key], np.float32)
+        if arr.shape != shape:
+            raise DataError(path, f"tensor {key!r} has shape {arr.shape}, expected {shape}")
+        if not np.all(np.isfinite(arr)):
+            raise DataError(path, f"tensor {key!r} has non-finite values")
+        return arr
+
+    conv_w, conv_b = [], []
+    for c in _convs(net):
+        w = get(f"trunk.{c.index}.weight", (c.cout, c.cin, c.kernel, c.kernel))
+        conv_w.append(jnp.asarray(w.transpose(2, 3, 1, 0)))  # OIHW -> HWIO
+        conv_b.append(jnp.asarray(get(f"trunk.{c.index}.bias", (c.cout,))))
+    heads = []
+    for k, ch in enumerate(_tap_channels(net)):
+        w = get(f"lin{k}.weight", (1, ch, 1, 1)).reshape(ch)
+        if np.any(w < 0):
+            raise DataError(path, f"head lin{k} has negative weights; LPIPS heads are non-negative")
+        heads.append(jnp.asarray(w))
+    return LPIPSParams(tuple(conv_w), tuple(conv_b), tuple(heads)), net
+
+
+def lpips_tensors(trunk: dict[str, np.ndarray], heads: dict[str, np.ndarray], net: str,
+                  where="weights") -> dict[str, np.ndarray]:
+    """Our file's tensors from a torchvision state_dict (``features.<i>.*``; ``classifier.*``
+    ignored) and an lpips heads state_dict (``lin<k>.model.1.weight`` or ``lin<k>.weight``)."""
+    out = {}
+    for c in _convs(net):
+        for part in ("weight", "bias"):
+            key = f"features.{c.index}.{part}"
+            if key not in trunk:
+                raise DataError(where, f"trunk state_dict lacks {key!r}: not a torchvision "
+                                f"{'vgg16' if net == 'vgg' else 'alexnet'} state_dict?")
+            out[f"trunk.{c.index}.{part}"] = np.asarray(trunk[key], np.float32)
+    for k in range(len(_tap_channels(net))):
+        for key in (f"lin{k}.model.1.weight", f"lin{k}.weight"):
+            if key in heads:
+                out[f"lin{k}.weight"] = np.asarray(heads[key], np.float32)
+                break
+        else:
+            raise DataError(where, f"heads state_dict lacks lin{k}.model.1.weight")
+    return out
+
+
+def save_lpips_params(path, tensors: dict[str, np.ndarray], net: str, source: str = "") -> Path:
+    """Write our tensors (see :func:`lpips_tensors`) to ``path`` (.safetensors or .npz), after
+    checking that they load."""
+    path = Path(path)
+    meta = {"format": "jaxedit-lpips", "net": net, "version": "0.1", "source": source}
+    if path.suffix == ".safetensors":
+        write_safetensors(path, tensors, meta)
+    elif path.suffix == ".npz":
+        with atomic_path(path) as tmp:
+            np.savez(tmp, __metadata__=np.array(json.dumps(meta)),
+                     **{k: np.asarray(v, np.float32) for k, v in tensors.items()})
+    else:
+        raise DataError(path, "output must end in .safetensors or .npz")
+    load_lpips_params(path, net)  # fail now, not at the first use
+    return path
+
+
+def load_lpips(path: str | os.PathLike, net: str | None = None) -> LPIPS:
+    """Load LPIPS weights -> ``LPIPS`` callable: (img_a, img_b) float [..., H, W, 3] in [0, 1]
+    -> float array [...] (jitted; differentiable)."""
+    params, net = load_lpips_params(path, net)
+    return LPIPS(params, net)
+
+
+def lpips_distance(path: str | os.PathLike, net: str = "vgg") -> PerceptualDistance:
+    """The difficulty's pluggable distance: (img_a, img_b) [H, W, 3] -> Python float.
+
+    Its ``name`` (e.g. ``"lpips-vgg"``) is what the scheduler logs as the distance used.
+    """
+    model = load_lpips(path, net)
+    return PerceptualDistance(model, f"lpips-{model.net}")
