@@ -1,0 +1,511 @@
+"""Adaptive density control (densify / cull) as a pure, optax-shaped transformation.
+
+``strategy = adaptive(...)`` is a pair of pure functions::
+
+    stats = strategy.init(gaussians)
+    gaussians, opt_state, stats, info = strategy.update(
+        gaussians, opt_state, stats, render_aux, step, key)
+
+Everything works on the fixed-capacity ``alive`` layout of
+:class:`jaxedit.gaussians.Gaussians`: new Gaussians are written into free
+(dead) slots, culled ones are marked dead, no shape ever depends on data, so
+``update`` jit-compiles once and runs inside the compiled train step.
+
+What ``update`` does at every call: accumulate the 3DGS statistics of this
+step's render (norm of the 2D-mean gradient in NDC units, visibility count,
+largest screen radius). At maintenance steps (``step > warmup``, ``step %
+refine_every == 0``, ``step <= stop_at``), in this order:
+
+1. cull: alive Gaussians with opacity < ``cull_alpha``, or larger than
+   ``cull_scale * scene_extent`` in world space, or (after the first opacity
+   reset, as in INRIA's 3DGS) whose screen radius reached ``cull_screen`` of the
+   image size. Culling first frees slots that the creation below can reuse at
+   once, and no Gaussian is created from a parent that is being removed.
+2. create: candidates are the surviving, seen Gaussians whose mean NDC gradient
+   passes the threshold. They are ranked by that score (highest first, ties by
+   slot index) and the first ``k`` are refined, with
+
+   * classic mode (``budget=None``): ``k = min(#candidates, free slots,
+     max_gaussians - alive)``, threshold ``grad_threshold`` (2e-4);
+   * ProEdit's adaptive creation (``budget=t``): ``k = min(t(n, N),
+     #candidates, free slots, max_gaussians - alive)`` where ``n`` is the number
+     culled at the previous maintenance step and ``N`` the number alive before
+     this one. The effective gradient threshold is the score of the k-th
+     candidate: the threshold is chosen by the scheduled count, not fixed
+     (paper, section 3.3 and appendix D).
+
+   A selected Gaussian whose largest scale is <= ``dense_percent *
+   scene_extent`` is duplicated (an exact copy goes to a free slot); a larger
+   one is split: two children are drawn from the parent's own Gaussian
+   distribution with ``key``, scales divided by ``split_factor`` (1.6); the
+   first child replaces the parent in its slot, the second takes a free slot.
+   Either way one refined Gaussian consumes exactly one free slot.
+3. the optimiser moments (every ``Gaussians``-shaped node of ``opt_state``,
+   e.g. Adam's mu and nu) of new, split and freed slots are zeroed; the
+   statistics restart; ``n`` is remembered for the next budget.
+
+At ``step % reset_every == 0`` (``step <= stop_at``) the opacities are clamped
+to ``reset_value`` (2 x ``cull_alpha`` by default) and their moments zeroed.
+
+The number of Gaussians never exceeds ``max_gaussians`` (a hard cap). When the
+cap would allow more than the current capacity, ``update`` does not drop the
+excess silently: ``info.capacity_limited`` is set and ``info.slots_needed``
+says how many slots the step wanted; the caller (outside jit) grows the
+capacity with :func:`grow_state` / :func:`grown_capacity` and redoes the step
+(it is pure, so the redo gives the same result as if the room had been there).
+:func:`jaxedit.train.fit` does this automatically.
+
+Step numbering: ``step`` is the number of optimiser steps done including the
+current one (1-based), as in INRIA's trainer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from . import gaussians as glib
+from .gaussians import Gaussians
+
+BudgetFn = Callable[[jax.Array, jax.Array], jax.Array]
+
+
+class RenderAux(NamedTuple):
+    """What densification needs from one training render.
+
+    Attributes:
+      grad_means2d: float [C, 2], gradient of the loss w.r.t. the projected
+        means in pixels (the gradient of ``means2d_delta``).
+      radii: float or int [C], screen-space radius in pixels (0 if not drawn).
+      visible: bool [C], drawn in this view.
+      image_size: float [2], (width, height) in pixels.
+    """
+
+    grad_means2d: jax.Array
+    radii: jax.Array
+    visible: jax.Array
+    image_size: jax.Array
+
+
+def render_aux(grad_means2d, out, width: int, height: int) -> RenderAux:
+    """A :class:`RenderAux` from a render output ``out`` and its 2D-mean gradient [C, 2]."""
+    return RenderAux(grad_means2d=grad_means2d, radii=out.radii, visible=out.visible,
+                     image_size=jnp.asarray([width, height], jnp.float32))
+
+
+class DensifyStats(NamedTuple):
+    """Running statistics between maintenance steps (all [C] per slot).
+
+    Attributes:
+      grad_sum: float [C], sum over views of the NDC 2D-mean gradient norm.
+      count: int32 [C], number of views in which the Gaussian was drawn.
+      max_radius: float [C], largest screen radius as a fraction of max(W, H).
+      last_culled: int32 [], n: how many were culled at the previous maintenance step.
+    """
+
+    grad_sum: jax.Array
+    count: jax.Array
+    max_radius: jax.Array
+    last_culled: jax.Array
+
+
+class DensifyInfo(NamedTuple):
+    """What one ``update`` did (int32 / bool scalars; zeros when nothing was due).
+
+    Attributes:
+      refined: a maintenance (densify + cull) step ran.
+      reset: the opacities were reset.
+      created: Gaussians added (= split + duplicated).
+      split, duplicated, culled: counts of each operation.
+      alive: Gaussians alive after the update.
+      capacity: slots in the pytree (static, reported for logs).
+      candidates: Gaussians passing the gradient threshold.
+      budget: t(n, N) in budget mode, or the number of candidates in classic mode.
+      threshold: the effective NDC gradient threshold (score of the last
+        created Gaussian; ``grad_threshold`` in classic mode when nothing was created).
+      capacity_limited: free slots were the binding limit and the cap would
+        allow more: grow the capacity and redo the step.
+      cap_limited: the hard cap ``max_gaussians`` was the binding limit.
+      slots_needed: alive + wanted creations (within the cap): the capacity the
+        step needed.
+    """
+
+    refined: jax.Array
+    reset: jax.Array
+    created: jax.Array
+    split: jax.Array
+    duplicated: jax.Array
+    culled: jax.Array
+    alive: jax.Array
+    capacity: jax.Array
+    candidates: jax.Array
+    budget: jax.Array
+    threshold: jax.Array
+    capacity_limited: jax.Array
+    cap_limited: jax.Array
+    slots_needed: jax.Array
+
+
+class Strategy(NamedTuple):
+    """An ``(init, update)`` pair, like an optax ``GradientTransformation``."""
+
+    init: Callable
+    update: Callable
+
+
+# --------------------------------------------------------------------------------------
+# Creation budget t(n, N)
+# --------------------------------------------------------------------------------------
+
+def creation_budget(*, min_new: int = 64, growth: float = 0.02,
+                    max_fraction: float = 0.1) -> BudgetFn:
+    """The default family of creation budgets t(n, N) for ProEdit's adaptive creation.
+
+        t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N)))
+
+    with ``n`` the number culled at the previous maintenance step and ``N`` the
+    number alive. Why this shape: re-creating ``n`` replaces what the last cull
+    removed, so capacity moves from Gaussians that lost their opacity (wrong
+    geometry, floaters) to the places with the largest view-space gradient
+    (where the edited views disagree with the scene most) without growing the
+    scene; ``growth N`` adds a small fraction on top, so the total grows
+    smoothly and geometrically (1.02^k after k maintenance steps by default,
+    about x1.6 over a 25-step subtask) instead of exploding on inconsistent
+    edited views; ``max_fraction N`` bounds a single step (after an opacity
+    reset a cull can remove a large part of the scene; it is refilled at most
+    10% per step); ``min_new`` lets a tiny or freshly culled scene still grow.
+
+    Returns:
+      a jit-able function (n int [], N int []) -> int32 [].
+    """
+    if min_new < 0 or growth < 0 or max_fraction < 0:
+        raise ValueError("creation_budget parameters must be >= 0")
+
+    def budget(n, alive):
+        n = jnp.asarray(n, jnp.float32)
+        alive = jnp.asarray(alive, jnp.float32)
+        t = jnp.minimum(jnp.floor(max_fraction * alive), n + jnp.ceil(growth * alive))
+        return jnp.maximum(min_new, t).astype(jnp.int32)
+
+    return budget
+
+
+# --------------------------------------------------------------------------------------
+# Helpers on optimiser state
+# --------------------------------------------------------------------------------------
+
+def _is_gaussians(x) -> bool:
+    return isinstance(x, Gaussians)
+
+
+def _map_gaussian_nodes(fn, tree):
+    """Apply ``fn(name, array) -> array`` to every array field of every Gaussians node of ``tree``.
+
+    optax keeps its per-parameter state (Adam's mu, nu, ...) in trees shaped like
+    the parameters; with ``optax.partition`` the fields of other labels are
+    ``MaskedNode``s, which are left alone, as are non-Gaussians leaves (counts).
+    """
+
+    def on_node(node):
+        if not _is_gaussians(node):
+            return node
+        fields = {}
+        for f in dataclasses.fields(node):
+            value = getattr(node, f.name)
+            if isinstance(value, jax.Array) or hasattr(value, "shape"):
+                value = fn(f.name, value)
+            fields[f.name] = value
+        return dataclasses.replace(node, **fields)
+
+    return jax.tree_util.tree_map(on_node, tree, is_leaf=_is_gaussians)
+
+
+def zero_moments(opt_state, mask: jax.Array, fields=None):
+    """Zero the per-slot optimiser state where ``mask`` [C] is set.
+
+    Args:
+      opt_state: any optax state whose per-parameter parts are ``Gaussians``-shaped.
+      mask: bool [C].
+      fields: names of Gaussians fields to touch (default: all).
+    """
+
+    def fn(name, a):
+        if fields is not None and name not in fields:
+            return a
+        if a.ndim == 0 or a.shape[0] != mask.shape[0]:
+            return a
+        m = mask.reshape(mask.shape + (1,) * (a.ndim - 1))
+        return jnp.where(m, jnp.zeros_like(a), a)
+
+    return _map_gaussian_nodes(fn, opt_state)
+
+
+def opacity_reset(gaussians: Gaussians, opt_state, value: float, *, clamp: bool = False):
+    """Reset opacities to ``value`` and zero the opacity optimiser moments.
+
+    ProEdit sets every opacity to the cull threshold at the start of each
+    subtask (``clamp=False``); the periodic 3DGS reset lowers opacities to at
+    most ``value`` (``clamp=True``). Dead slots are left untouched.
+
+    Args:
+      gaussians: Gaussians, capacity C.
+      opt_state: optax state with Gaussians-shaped moments (or None).
+      value: opacity in (0, 1).
+    Returns:
+      (gaussians, opt_state).
+    """
+    value = jnp.asarray(value, gaussians.opacity_logits.dtype)
+    logit = jnp.log(value) - jnp.log1p(-value)
+    new = jnp.minimum(gaussians.opacity_logits, logit) if clamp else jnp.full_like(
+        gaussians.opacity_logits, logit)
+    logits = jnp.where(gaussians.alive, new, gaussians.opacity_logits)
+    g = dataclasses.replace(gaussians, opacity_logits=logits)
+    if opt_state is not None:
+        all_slots = jnp.ones(gaussians.alive.shape, bool)
+        opt_state = zero_moments(opt_state, all_slots, fields=("opacity_logits",))
+    return g, opt_state
+
+
+# --------------------------------------------------------------------------------------
+# Capacity growth (outside jit)
+# --------------------------------------------------------------------------------------
+
+def grown_capacity(capacity: int, needed: int, max_gaussians: int) -> int:
+    """Smallest ``capacity * 2^m`` holding ``needed`` slots, clamped to ``max_gaussians``."""
+    needed = min(int(needed), int(max_gaussians))
+    new = max(int(capacity), 1)
+    while new < needed:
+        new *= 2
+    return max(int(capacity), min(new, int(max_gaussians)))
+
+
+def _pad_rows(a, extra: int):
+    pad = jnp.zeros((extra,) + tuple(a.shape[1:]), a.dtype)
+    return jnp.concatenate([a, pad], axis=0)
+
+
+def grow_state(gaussians: Gaussians, opt_state, stats: DensifyStats | None, capacity: int):
+    """Grow Gaussians, optimiser state and densify stats to ``capacity`` slots (outside jit).
+
+    New slots are dead, with zero moments and zero statistics.
+    """
+    old = gaussians.capacity
+    extra = capacity - old
+    if extra < 0:
+        raise ValueError(f"cannot shrink capacity {old} to {capacity}")
+    if extra == 0:
+        return gaussians, opt_state, stats
+    g = glib.grow(gaussians, capacity)
+
+    def fn(name, a):
+        return _pad_rows(a, extra) if a.ndim >= 1 and a.shape[0] == old else a
+
+    if opt_state is not None:
+        opt_state = _map_gaussian_nodes(fn, opt_state)
+    if stats is not None:
+        stats = DensifyStats(grad_sum=_pad_rows(stats.grad_sum, extra),
+                             count=_pad_rows(stats.count, extra),
+                             max_radius=_pad_rows(stats.max_radius, extra),
+                             last_culled=stats.last_culled)
+    return g, opt_state, stats
+
+
+# --------------------------------------------------------------------------------------
+# The strategy
+# --------------------------------------------------------------------------------------
+
+def init_stats(capacity: int) -> DensifyStats:
+    return DensifyStats(grad_sum=jnp.zeros((capacity,), jnp.float32),
+                        count=jnp.zeros((capacity,), jnp.int32),
+                        max_radius=jnp.zeros((capacity,), jnp.float32),
+                        last_culled=jnp.zeros((), jnp.int32))
+
+
+def accumulate(stats: DensifyStats, aux: RenderAux) -> DensifyStats:
+    """Add one view's NDC gradient norms, visibility and screen radii to ``stats``."""
+    ndc = aux.grad_means2d * (0.5 * aux.image_size)  # pixel gradient -> NDC (INRIA's units)
+    norm = jnp.sqrt(jnp.sum(ndc * ndc, axis=-1))
+    vis = aux.visible.astype(bool)
+    radius = aux.radii.astype(jnp.float32) / jnp.max(aux.image_size)
+    return DensifyStats(grad_sum=stats.grad_sum + jnp.where(vis, norm, 0.0),
+                        count=stats.count + vis.astype(jnp.int32),
+                        max_radius=jnp.maximum(stats.max_radius, jnp.where(vis, radius, 0.0)),
+                        last_culled=stats.last_culled)
+
+
+def _empty_info(capacity: int, alive) -> DensifyInfo:
+    z = jnp.zeros((), jnp.int32)
+    f = jnp.zeros((), bool)
+    return DensifyInfo(refined=f, reset=f, created=z, split=z, duplicated=z, culled=z,
+                       alive=alive.astype(jnp.int32), capacity=jnp.int32(capacity), candidates=z,
+                       budget=z, threshold=jnp.zeros((), jnp.float32), capacity_limited=f,
+                       cap_limited=f, slots_needed=alive.astype(jnp.int32))
+
+
+def adaptive(*, scene_extent: float = 1.0, max_gaussians: int = 1_000_000,
+             budget: BudgetFn | None = None, grad_threshold: float = 2e-4,
+             grad_floor: float = 0.0, refine_every: int = 100, warmup: int = 500,
+             stop_at: int = 15_000, reset_every: int = 3000, cull_alpha: float = 0.005,
+             reset_value: float | None = None, dense_percent: float = 0.01,
+             split_factor: float = 1.6, cull_scale: float = 0.1,
+             cull_screen: float | None = 0.15) -> Strategy:
+    """3DGS adaptive density control with an optional ProEdit creation budget.
+
+    Args:
+      scene_extent: world size of the scene (radius of the camera rig, INRIA's
+        ``cameras_extent``); scales the duplicate/split and world-cull thresholds.
+      max_gaussians: hard cap on the number alive, never exceeded.
+      budget: ``t(n, N) -> int`` (e.g. :func:`creation_budget`) for ProEdit's
+        adaptive creation, or None for classic thresholding.
+      grad_threshold: classic mode: mean NDC gradient norm needed to refine (2e-4).
+      grad_floor: budget mode: candidates need a mean gradient strictly above this.
+      refine_every, warmup, stop_at: maintenance at ``step > warmup``, every
+        ``refine_every`` steps, while ``step <= stop_at``.
+      reset_every: opacity reset period (0 disables); only while ``step <= stop_at``.
+      cull_alpha: cull opacity below this.
+      reset_value: opacity after a periodic reset (default ``2 * cull_alpha``).
+      dense_percent: duplicate if max scale <= this * scene_extent, else split.
+      split_factor: children's scales are the parent's divided by this.
+      cull_scale: cull if max scale > this * scene_extent (None disables).
+      cull_screen: cull if the screen radius reached this fraction of max(W, H)
+        since the last maintenance, after the first opacity reset (from the start
+        when ``reset_every`` is 0; None disables).
+    """
+    if refine_every <= 0:
+        raise ValueError("refine_every must be positive")
+    if max_gaussians <= 0:
+        raise ValueError("max_gaussians must be positive")
+    reset_value = 2.0 * cull_alpha if reset_value is None else reset_value
+    log_split = math.log(split_factor)
+    dup_scale = dense_percent * scene_extent
+    big_scale = None if cull_scale is None else cull_scale * scene_extent
+
+    def init(gaussians: Gaussians) -> DensifyStats:
+        return init_stats(gaussians.capacity)
+
+    def refine(gaussians, opt_state, stats, step, key):
+        g = gaussians
+        cap_slots = g.capacity
+        alive0 = g.alive
+        n_alive0 = jnp.sum(alive0.astype(jnp.int32))
+        max_scale = jnp.exp(jnp.max(g.log_scales, axis=-1))
+        opac = jax.nn.sigmoid(g.opacity_logits)
+
+        # 1. Cull.
+        culled = opac < cull_alpha
+        if big_scale is not None:
+            culled |= max_scale > big_scale
+        if cull_screen is not None:
+            culled |= (stats.max_radius > cull_screen) & (step > reset_every)
+        culled &= alive0
+        alive1 = alive0 & ~culled
+        n_alive1 = jnp.sum(alive1.astype(jnp.int32))
+        n_culled = n_alive0 - n_alive1
+
+        # 2. Rank candidates by mean NDC gradient (ties: lower slot first).
+        avg = stats.grad_sum / jnp.maximum(stats.count, 1).astype(jnp.float32)
+        floor = grad_threshold if budget is None else grad_floor
+        cand = alive1 & (stats.count > 0) & (avg > floor)
+        n_cand = jnp.sum(cand.astype(jnp.int32))
+        score = jnp.where(cand, avg, -jnp.inf)
+        index = jnp.arange(cap_slots, dtype=jnp.int32)
+        _, order = jax.lax.sort((-score, index), num_keys=2)  # order[j]: j-th best slot
+        rank = jnp.zeros((cap_slots,), jnp.int32).at[order].set(index)
+
+        if budget is None:
+            t = n_cand
+        else:
+            t = jnp.maximum(jnp.asarray(budget(stats.last_culled, n_alive0), jnp.int32), 0)
+        want = jnp.minimum(t, n_cand)
+        room_cap = jnp.maximum(max_gaussians - n_alive1, 0)
+        free = cap_slots - n_alive1
+        want_in_cap = jnp.minimum(want, room_cap)
+        k = jnp.minimum(want_in_cap, free)
+        selected = cand & (rank < k)
+        small = max_scale <= dup_scale
+        dup = selected & small
+        split = selected & ~small
+
+        # Children of split parents, sampled from the parent's Gaussian.
+        eps = jax.random.normal(key, (cap_slots, 2, 3), g.means.dtype)
+        rot = g.rotations()
+        offsets = jnp.einsum("cij,ckj->cki", rot, eps * jnp.exp(g.log_scales)[:, None, :])
+        children = g.means[:, None, :] + offsets
+        log_scales1 = jnp.where(split[:, None], g.log_scales - log_split, g.log_scales)
+        means1 = jnp.where(split[:, None], children[:, 0], g.means)
+        src_means = jnp.where(split[:, None], children[:, 1], g.means)
+
+        # Free slots in increasing order; the j-th ranked candidate goes to the j-th free slot.
+        _, free_order = jax.lax.sort((alive1.astype(jnp.int32), index), num_keys=2)
+        dst = jnp.where(index < k, free_order, cap_slots)  # cap_slots = out of range: dropped
+        src = order
+
+        def put(a, new_rows):
+            return a.at[dst].set(new_rows[src], mode="drop")
+
+        g_new = Gaussians(
+            means=put(means1, src_means),
+            log_scales=put(log_scales1, log_scales1),
+            quats=put(g.quats, g.quats),
+            opacity_logits=put(g.opacity_logits, g.opacity_logits),
+            sh=put(g.sh, g.sh),
+            alive=put(alive1, jnp.ones_like(alive1)),
+        )
+        created_slots = jnp.zeros((cap_slots,), bool).at[dst].set(True, mode="drop")
+        fresh = created_slots | split | culled
+        opt_state = zero_moments(opt_state, fresh)
+
+        new_stats = DensifyStats(grad_sum=jnp.zeros_like(stats.grad_sum),
+                                 count=jnp.zeros_like(stats.count),
+                                 max_radius=jnp.zeros_like(stats.max_radius),
+                                 last_culled=n_culled.astype(jnp.int32))
+        kth = jnp.clip(k - 1, 0, cap_slots - 1)
+        threshold = jnp.where(k > 0, score[order[kth]], jnp.float32(floor)).astype(jnp.float32)
+        info = DensifyInfo(
+            refined=jnp.ones((), bool), reset=jnp.zeros((), bool), created=k.astype(jnp.int32),
+            split=jnp.sum(split.astype(jnp.int32)), duplicated=jnp.sum(dup.astype(jnp.int32)),
+            culled=n_culled.astype(jnp.int32), alive=(n_alive1 + k).astype(jnp.int32),
+            capacity=jnp.int32(cap_slots), candidates=n_cand, budget=t.astype(jnp.int32),
+            threshold=threshold, capacity_limited=want_in_cap > free,
+            cap_limited=want > room_cap, slots_needed=(n_alive1 + want_in_cap).astype(jnp.int32))
+        return g_new, opt_state, new_stats, info
+
+    def skip(gaussians, opt_state, stats, step, key):
+        return gaussians, opt_state, stats, _empty_info(gaussians.capacity, gaussians.num_alive())
+
+    def update(gaussians: Gaussians, opt_state, stats: DensifyStats, aux: RenderAux | None,
+               step, key: jax.Array):
+        """One step of density control; see the module docstring.
+
+        Args:
+          gaussians: Gaussians, capacity C (after this step's optimiser update).
+          opt_state: optax state with Gaussians-shaped moments (or None).
+          stats: DensifyStats from ``init`` or the previous update.
+          aux: this step's RenderAux, or None to accumulate nothing.
+          step: int, 1-based optimiser step count.
+          key: PRNG key (split children).
+        Returns:
+          (gaussians, opt_state, stats, info: DensifyInfo).
+        """
+        step = jnp.asarray(step, jnp.int32)
+        if aux is not None:
+            stats = accumulate(stats, aux)
+        due = (step > warmup) & (step % refine_every == 0) & (step <= stop_at)
+        gaussians, opt_state, stats, info = jax.lax.cond(
+            due, refine, skip, gaussians, opt_state, stats, step, key)
+        if reset_every > 0:
+            do_reset = (step % reset_every == 0) & (step <= stop_at)
+
+            def reset(g, o):
+                return opacity_reset(g, o, reset_value, clamp=True)
+
+            gaussians, opt_state = jax.lax.cond(do_reset, reset, lambda g, o: (g, o),
+                                                gaussians, opt_state)
+            info = info._replace(reset=do_reset)
+        return gaussians, opt_state, stats, info
+
+    return Strategy(init=init, update=update)
