@@ -245,9 +245,12 @@ def _load_meta(path: Path) -> dict:
 def _number(path: Path, field: str, value, *, positive=False, integer=False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise DataError(path, f"{field} must be a number, got {json.dumps(value)[:40]}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:
+        raise DataError(path, f"{field} is too large") from None
     if not math.isfinite(value):
-        raise DataError(path, f"{field} is not finite ({value})")
+        raise DataError(path, f"{field} has a non-finite value ({value})")
     if positive and value <= 0:
         raise DataError(path, f"{field} must be positive, got {value}")
     if integer and value != int(value):
@@ -310,12 +313,11 @@ def _pose(path: Path, frame: dict, where: str) -> np.ndarray:
         raise DataError(path, f"{where}: missing key 'transform_matrix'")
     raw = frame["transform_matrix"]
     field = f"{where}.transform_matrix"
-    try:
-        m = np.array(raw, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):
-        raise DataError(path, f"{field} must be a 4x4 (or 3x4) list of numbers") from None
-    if m.shape not in ((4, 4), (3, 4)) or any(isinstance(x, bool) for row in raw for x in row):
-        raise DataError(path, f"{field} must be a 4x4 (or 3x4) list of numbers, got shape {list(m.shape)}")
+    shape_ok = (isinstance(raw, list) and len(raw) in (3, 4)
+                and all(isinstance(row, list) and len(row) == 4 for row in raw))
+    if not shape_ok:
+        raise DataError(path, f"{field} must be a 4x4 (or 3x4) list of lists of numbers")
+    m = np.array([[_number(path, field, x) for x in row] for row in raw], np.float64)
     if not np.isfinite(m).all():
         raise DataError(path, f"{field} has non-finite values")
     if m.shape == (3, 4):
@@ -347,6 +349,8 @@ def _norm_name(name: str) -> str:
 
 
 def _resolve_image(json_path: Path, file_path: str, where: str) -> Path:
+    if "\0" in file_path:
+        raise DataError(json_path, f"{where}.file_path contains a NUL character")
     p = Path(file_path)
     p = p if p.is_absolute() else json_path.parent / p
     if p.is_file():
@@ -486,6 +490,8 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
         ply = meta["ply_file_path"]
         if not isinstance(ply, str) or not ply.strip():
             raise DataError(json_path, "ply_file_path must be a non-empty string")
+        if "\0" in ply:
+            raise DataError(json_path, "ply_file_path contains a NUL character")
         ply_path = Path(ply) if Path(ply).is_absolute() else json_path.parent / ply
         if not ply_path.is_file():
             raise DataError(json_path, f"ply_file_path: {ply!r} not found")

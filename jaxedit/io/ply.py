@@ -152,6 +152,12 @@ def _skip_binary_element(path: Path, data: bytes, offset: int, element: _Element
     """Byte offset just past ``element`` (walks list properties item by item)."""
     if not element.has_lists:
         return offset + element.count * _binary_dtype(element, endian).itemsize
+    # Each item takes at least its fixed-size parts: refuse impossible counts
+    # before walking them one by one.
+    min_item = sum(int((p.list_count_kind or p.kind)[1]) for p in element.properties)
+    if offset + element.count * min_item > len(data):
+        raise DataError(path, f"truncated PLY data: element {element.name!r} cannot hold "
+                              f"{element.count} items")
     for _ in range(element.count):
         for p in element.properties:
             if p.list_count_kind is None:
@@ -201,6 +207,9 @@ def _read_ascii_vertices(path: Path, data: bytes, header: _Header):
     pos = 0
     for element in header.elements:
         if element.name != "vertex":
+            if element.count * len(element.properties) > len(tokens) - pos:
+                raise DataError(path, f"truncated ascii PLY: element {element.name!r} cannot hold "
+                                      f"{element.count} items")
             # Walk the element token by token (list lengths vary per item).
             for _ in range(element.count):
                 for p in element.properties:
