@@ -1,19 +1,178 @@
-"""The public render entry point (temporarily the dense oracle; the tile splatter follows)."""
+"""The public entry point: ``render`` (tile splatter) and its jittable core ``render_tiles``.
+
+Pipeline: :func:`.project.project` -> :func:`.binning.bin_gaussians` (fixed-capacity
+buffer, multi-key sort) -> :func:`.composite.composite` (exact blending, custom VJP).
+
+Intersection buffer protocol
+----------------------------
+The number of (Gaussian, tile) pairs depends on the data, but XLA needs a static
+buffer size. ``render_tiles(..., capacity=n)`` is pure and jittable; its output
+carries ``num_intersections`` (what the frame needed) and ``overflow`` (pairs
+were dropped, the image is incomplete).
+
+* Outside a trace (plain calls, and ``jax.grad`` without ``jit``), ``render``
+  counts the pairs first, picks a capacity (cached per scene/image shape, grown
+  geometrically so training does not recompile every step), and never returns
+  a frame with dropped pairs (it re-renders with a larger buffer if needed).
+* Inside a caller's ``jit``/``vmap``, the count is not concrete: pass
+  ``max_intersections=n`` and check ``out.overflow`` yourself; when it is True,
+  re-run the step with a buffer of at least ``out.num_intersections`` (e.g.
+  :func:`next_capacity`). ``render`` raises :class:`DataError` when called
+  under a trace without ``max_intersections``.
+"""
 
 from __future__ import annotations
 
+import functools
+import logging
+import math
+
 import jax
+import jax.numpy as jnp
 
 from ..camera import Camera
+from ..errors import DataError
 from ..gaussians import Gaussians
-from .reference import render_reference
+from . import binning as B
+from . import composite as CP
+from . import project as P
+from .reference import finish
 from .types import RenderOutput
+
+log = logging.getLogger(__name__)
+
+#: Capacities are rounded up to 2^(k/STEPS_PER_OCTAVE) (then to a multiple of 1024).
+STEPS_PER_OCTAVE = 4
+MIN_CAPACITY = 1024
+#: Headroom over the counted pairs when a capacity is (re)chosen.
+HEADROOM = 1.15
+
+_capacity_cache: dict[tuple, int] = {}
+
+
+def next_capacity(needed: int) -> int:
+    """Smallest buffer size on the geometric ladder that holds ``needed`` pairs.
+
+    The ladder has ``STEPS_PER_OCTAVE`` sizes per doubling (so at most ~19 %
+    unused buffer, which the compositor pays for) and few distinct sizes (so
+    few recompiles); sizes are multiples of 1024.
+    """
+    needed = max(int(needed), MIN_CAPACITY)
+    k = math.ceil(STEPS_PER_OCTAVE * math.log2(needed) - 1e-9)
+    cap = int(math.ceil(2.0 ** (k / STEPS_PER_OCTAVE) / 1024.0) * 1024)
+    while cap < needed:  # guard against rounding
+        k += 1
+        cap = int(math.ceil(2.0 ** (k / STEPS_PER_OCTAVE) / 1024.0) * 1024)
+    return cap
+
+
+def _render_one(gaussians, camera, background, means2d_delta, near, far, *, capacity, sh_degree):
+    proj = P.project(gaussians, camera, sh_degree=sh_degree, near=near, far=far,
+                     means2d_delta=means2d_delta)
+    w, h = camera.width, camera.height
+    bins = B.bin_gaussians(proj, w, h, capacity)
+    tiles_x, tiles_y = B.grid_shape(w, h)
+    gids, tile, first = CP.make_chunks(bins, tiles_x * tiles_y, capacity)
+    feats = jnp.concatenate([proj.colors, proj.depths[:, None]], -1)
+    f_img, t_img = CP.composite(proj.means2d, proj.conics, proj.opacities, feats, gids, tile,
+                                first, w, h)
+    rgb, alpha, depth = finish(f_img, t_img, background, gaussians.means.dtype)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii,
+                        visible=proj.visible, num_intersections=bins.num_intersections,
+                        overflow=bins.overflow)
+
+
+def render_tiles(gaussians: Gaussians, camera: Camera, *, capacity: int, background=None,
+                 sh_degree: int | None = None, near: float = 0.01, far: float = 1e10,
+                 means2d_delta: jax.Array | None = None) -> RenderOutput:
+    """Pure, jittable tile splatter with a static intersection ``capacity``.
+
+    Same arguments as :func:`render` (``capacity`` replaces ``max_intersections``).
+    The caller must check ``out.overflow`` (True: pairs were dropped).
+    Batched cameras are vmapped; ``num_intersections``/``overflow`` are then per camera.
+    """
+    capacity = int(capacity)
+    if capacity < 1:
+        raise DataError("max_intersections", f"must be a positive int, got {capacity}")
+    sh_degree = P.check_sh_degree(gaussians, sh_degree)
+    bg = None if background is None else jnp.asarray(background, gaussians.means.dtype)
+    fn = functools.partial(_render_one, capacity=capacity, sh_degree=sh_degree)
+    if camera.batch_shape:
+        d_axis = None if means2d_delta is None else 0
+        return jax.vmap(lambda cam, d: fn(gaussians, cam, bg, d, near, far),
+                        in_axes=(0, d_axis))(camera, means2d_delta)
+    return fn(gaussians, camera, bg, means2d_delta, near, far)
+
+
+@functools.partial(jax.jit, static_argnames=("sh_degree",))
+def _count(gaussians, camera, near, far, means2d_delta, sh_degree):
+    def one(cam, d):
+        proj = P.project(gaussians, cam, sh_degree=0, near=near, far=far, means2d_delta=d)
+        return B.count_intersections(proj, cam.width, cam.height)
+
+    if camera.batch_shape:
+        d_axis = None if means2d_delta is None else 0
+        return jnp.max(jax.vmap(one, in_axes=(0, d_axis))(camera, means2d_delta))
+    return one(camera, means2d_delta)
+
+
+_render_tiles_jit = jax.jit(render_tiles, static_argnames=("capacity", "sh_degree"))
 
 
 def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: int | None = None,
            near: float = 0.01, far: float = 1e10, means2d_delta: jax.Array | None = None,
            max_intersections: int | None = None) -> RenderOutput:
-    """Render Gaussians (see :func:`render_reference` for the arguments)."""
-    del max_intersections
-    return render_reference(gaussians, camera, background=background, sh_degree=sh_degree,
-                            near=near, far=far, means2d_delta=means2d_delta)
+    """Render Gaussians with the exact tile splatter.
+
+    Args:
+      gaussians: the scene, capacity C (dead slots never contribute and get zero gradient).
+      camera: a Camera, or a batch of B cameras along a leading axis (vmapped).
+      background: float [3] colour behind the Gaussians (default black).
+      sh_degree: active SH degree (<= the pytree's); default all.
+      near, far: camera-space depth range kept.
+      means2d_delta: optional float [C, 2] ([B, C, 2] when batched) of zeros added
+        to the projected 2D means, to differentiate w.r.t. them: its gradient is the
+        pixel-space 2D-mean gradient; times (W/2, H/2) it is INRIA's NDC
+        densification statistic.
+      max_intersections: static buffer size (pairs of Gaussian x tile). Required
+        inside a caller's jit/vmap (check ``out.overflow`` then); outside a
+        trace it is a starting size and is grown as needed.
+    Returns:
+      RenderOutput: rgb [H, W, 3], alpha [H, W], depth [H, W] (expected depth),
+      means2d [C, 2], radii [C], visible [C], num_intersections, overflow
+      (with a leading B axis for batched cameras).
+    """
+    sh_degree = P.check_sh_degree(gaussians, sh_degree)
+    kwargs = dict(background=background, sh_degree=sh_degree, near=near, far=far,
+                  means2d_delta=means2d_delta)
+    try:
+        needed = int(_count(gaussians, camera, near, far, means2d_delta, sh_degree=sh_degree))
+    except jax.errors.ConcretizationTypeError:
+        needed = None
+    if needed is None:  # under the caller's jit / vmap: their buffer, their overflow check
+        if max_intersections is None:
+            raise DataError("max_intersections", "render() inside jit/vmap needs a static "
+                            "max_intersections (and a check of out.overflow)")
+        return render_tiles(gaussians, camera, capacity=max_intersections, **kwargs)
+
+    key = (gaussians.capacity, camera.width, camera.height, camera.batch_shape, sh_degree,
+           str(gaussians.means.dtype))
+    cap = _capacity_cache.get(key, max_intersections or 0)
+    if max_intersections is not None:
+        cap = max(cap, int(max_intersections))
+    if cap < needed or cap > 4 * next_capacity(needed):
+        new = next_capacity(needed * HEADROOM)
+        if cap:
+            log.info("render: intersection buffer %d -> %d (frame needs %d)", cap, new, needed)
+        cap = new
+    _capacity_cache[key] = cap
+    while True:
+        out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
+        overflow = bool(jnp.any(out.overflow))
+        if not overflow:
+            return out
+        need = int(jnp.max(out.num_intersections))
+        new = next_capacity(max(need * HEADROOM, 2 * cap))
+        log.warning("render: intersection buffer overflowed (%d > %d), re-rendering with %d",
+                    need, cap, new)
+        cap = _capacity_cache[key] = new

@@ -1,0 +1,106 @@
+"""Tile binning: every (Gaussian, tile it touches) pair in a fixed-capacity buffer.
+
+Each visible Gaussian covers the rectangle of 16x16 tiles that its footprint's
+bounding box (see :mod:`.project`) meets. Pairs are enumerated without any
+per-Gaussian or per-tile cap: a cumulative count over Gaussians gives each its
+slice of the buffer and ``searchsorted`` maps a buffer slot back to (Gaussian,
+k-th tile of its rectangle). One stable multi-key ``lax.sort`` on
+(tile, depth) then groups pairs by tile, front to back, ties in Gaussian order.
+
+The buffer has a static capacity; ``num_intersections`` says how many pairs the
+frame needs and ``overflow`` whether some were dropped (the caller must then
+render again with a larger buffer; see :func:`jaxedit.raster.render`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from .project import Projected
+
+TILE = 16
+
+
+class Bins(NamedTuple):
+    """Sorted tile intersections of one frame.
+
+    Attributes:
+      gids: int32 [N], Gaussian index of each pair, sorted by (tile, depth);
+        unused slots hold C (one past the last Gaussian).
+      tiles: int32 [N], tile index (row-major) of each pair; unused: num_tiles.
+      tile_start: int32 [num_tiles + 1], pairs of tile t are
+        ``gids[tile_start[t]:tile_start[t + 1]]``.
+      num_intersections: int32 scalar, pairs the frame needs (may exceed N).
+      overflow: bool scalar, num_intersections > N.
+    """
+
+    gids: jax.Array
+    tiles: jax.Array
+    tile_start: jax.Array
+    num_intersections: jax.Array
+    overflow: jax.Array
+
+
+def grid_shape(width: int, height: int) -> tuple[int, int]:
+    """(tiles_x, tiles_y) covering a width x height image."""
+    return -(-width // TILE), -(-height // TILE)
+
+
+def tile_rects(proj: Projected, width: int, height: int):
+    """Tile rectangle of each Gaussian's footprint.
+
+    Returns:
+      (x0, y0, nx, ny) int32 [C] each: first tile column/row and the number of
+      tile columns/rows covered (0 for invisible Gaussians).
+    """
+    tiles_x, tiles_y = grid_shape(width, height)
+    m = jax.lax.stop_gradient(proj.means2d)
+    ext = proj.extents
+    # Pixel columns whose centre (x + 0.5) lies in [mx - ex, mx + ex], clipped to the image.
+    px0 = jnp.clip(jnp.ceil(m[:, 0] - ext[:, 0] - 0.5), 0, width - 1)
+    px1 = jnp.clip(jnp.floor(m[:, 0] + ext[:, 0] - 0.5), 0, width - 1)
+    py0 = jnp.clip(jnp.ceil(m[:, 1] - ext[:, 1] - 0.5), 0, height - 1)
+    py1 = jnp.clip(jnp.floor(m[:, 1] + ext[:, 1] - 0.5), 0, height - 1)
+    x0 = (px0 // TILE).astype(jnp.int32)
+    x1 = (px1 // TILE).astype(jnp.int32)
+    y0 = (py0 // TILE).astype(jnp.int32)
+    y1 = (py1 // TILE).astype(jnp.int32)
+    vis = proj.visible
+    nx = jnp.where(vis, jnp.clip(x1 - x0 + 1, 0, tiles_x), 0)
+    ny = jnp.where(vis, jnp.clip(y1 - y0 + 1, 0, tiles_y), 0)
+    return x0, y0, nx, ny
+
+
+def count_intersections(proj: Projected, width: int, height: int) -> jax.Array:
+    """int32 scalar: tile intersections the frame needs."""
+    _, _, nx, ny = tile_rects(proj, width, height)
+    return jnp.sum(nx * ny)
+
+
+def bin_gaussians(proj: Projected, width: int, height: int, capacity: int) -> Bins:
+    """Sorted (tile, depth) intersections in a buffer of static ``capacity``."""
+    tiles_x, tiles_y = grid_shape(width, height)
+    num_tiles = tiles_x * tiles_y
+    c = proj.means2d.shape[0]
+    x0, y0, nx, ny = tile_rects(proj, width, height)
+    counts = nx * ny
+    ends = jnp.cumsum(counts)  # int32: fine below 2^31 pairs
+    total = ends[-1] if c else jnp.zeros((), jnp.int32)
+    slots = jnp.arange(capacity, dtype=jnp.int32)
+    gid = jnp.searchsorted(ends, slots, side="right").astype(jnp.int32)
+    used = slots < total
+    g = jnp.minimum(gid, c - 1)
+    local = slots - (ends[g] - counts[g])
+    w = jnp.maximum(nx[g], 1)
+    tile = (y0[g] + local // w) * tiles_x + x0[g] + local % w
+    tile = jnp.where(used, tile, num_tiles).astype(jnp.int32)
+    gid = jnp.where(used, gid, c).astype(jnp.int32)
+    depth = jnp.where(used, jax.lax.stop_gradient(proj.depths)[g], 0.0)
+    tiles_sorted, _, gids_sorted = jax.lax.sort((tile, depth, gid), num_keys=2, is_stable=True)
+    tile_start = jnp.searchsorted(tiles_sorted, jnp.arange(num_tiles + 1, dtype=jnp.int32),
+                                  side="left").astype(jnp.int32)
+    return Bins(gids=gids_sorted, tiles=tiles_sorted, tile_start=tile_start,
+                num_intersections=total.astype(jnp.int32), overflow=total > capacity)
