@@ -1,0 +1,172 @@
+"""Subtask difficulty d(r_a, r_b) of ProEdit (paper eq. 3), with memoised edits.
+
+    d(r_a, r_b) = sum_{k in V} dist(T2D(v_k(s), e(r_a)), T2D(v_k(s), e(r_b)))
+
+where v_k(s) are renders (or photos) of the ORIGINAL scene, T2D the 2D editor and e(r) the
+interpolated embedding. The difficulty only needs the original views, so it can be evaluated for
+any pair of ratios before editing starts, which is what the scheduler does.
+
+``dist`` is pluggable: any callable ``(img_a float [H, W, 3], img_b float [H, W, 3]) -> float``.
+The paper uses LPIPS (a JAX LPIPS arrives as a drop-in callable); the default here is
+:func:`ms_ssim_distance`, 1 - SSIM averaged over a 2x image pyramid (scikit-image), a
+perceptual structure/contrast/luminance distance in [0, 2] (in practice [0, 1]) that needs no
+weights.
+
+:class:`DifficultyOracle` is the one stateful piece: it memoises the edited image of every
+(ratio, view) pair, so each ratio is edited once per view whatever the scheduler asks, and it
+counts editor calls. The scheduler itself (``jaxedit.edit.schedule``) is a pure fold over it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import jax
+import numpy as np
+from skimage.metrics import structural_similarity
+
+from ..errors import DataError
+from .editors import interpolate_embedding
+from .simulated import quantize_ratio, view_key
+
+Distance = Callable[[np.ndarray, np.ndarray], float]
+
+
+def _pool2(x: np.ndarray) -> np.ndarray:
+    h, w = (x.shape[0] // 2) * 2, (x.shape[1] // 2) * 2
+    x = x[:h, :w]
+    return 0.25 * (x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2])
+
+
+def ms_ssim_distance(a, b, *, levels: int = 3, win_size: int = 7) -> float:
+    """1 - SSIM averaged over an image pyramid of ``levels`` scales (2x2 mean pooling).
+
+    Args:
+      a, b: float [H, W, 3] (or [H, W]) in [0, 1], same shape.
+      levels: pyramid depth; scales smaller than ``win_size`` pixels are skipped.
+      win_size: odd side of SSIM's uniform window (scikit-image's default 7).
+
+    Returns a float >= 0 that is 0 for identical images. Averaging 1 - SSIM over scales
+    (instead of MS-SSIM's product of powers) keeps it well defined when a coarse scale has
+    negative SSIM.
+    """
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    if a.shape != b.shape:
+        raise DataError("distance", f"image shapes differ: {a.shape} vs {b.shape}")
+    if min(a.shape[:2]) < win_size:
+        raise DataError("distance", f"images of {a.shape[:2]} are smaller than the SSIM window "
+                        f"{win_size}")
+    channel_axis = -1 if a.ndim == 3 else None
+    values = []
+    for _ in range(levels):
+        if min(a.shape[:2]) < win_size:
+            break
+        values.append(structural_similarity(a, b, data_range=1.0, win_size=win_size,
+                                            channel_axis=channel_axis))
+        a, b = _pool2(a), _pool2(b)
+    return float(1.0 - np.mean(values))
+
+
+def l1_distance(a, b) -> float:
+    """Mean absolute difference of two images (a cheap, non-perceptual alternative)."""
+    return float(np.mean(np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))))
+
+
+def default_views(num_views: int, count: int = 8) -> tuple[int, ...]:
+    """``count`` view indices spread evenly over ``num_views`` (all of them if fewer)."""
+    if num_views <= 0:
+        raise DataError("views", "need at least one original view")
+    if num_views <= count:
+        return tuple(range(num_views))
+    return tuple(int(i) for i in np.unique(np.round(np.linspace(0, num_views - 1, count))))
+
+
+class DifficultyOracle:
+    """d(r_a, r_b) of one instruction over a subset of original views, memoised.
+
+    Args:
+      editor: any :class:`jaxedit.edit.Editor`.
+      originals: float [N, H, W, 3], renders (or photos) of the original scene, v_k(s).
+      prompt: the instruction p; e(r) = interpolate_embedding(E(p), E(""), r).
+      views: indices of the views V to sum over; default 8 spread evenly (all if N <= 8).
+      distance: ``(img_a, img_b) -> float``; default :func:`ms_ssim_distance`.
+      timestep_range: the editor's SDEdit range for these edits. Default (0.98, 0.98): a
+        full-strength edit, i.e. how far the editor wants to move each view, not how much of it
+        one noisy pass would keep.
+      guidance: the editor's (text, image) guidance scales.
+      seed: every edit uses ``view_key(jax.random.key(seed), k, r, 0)``: one fixed key per
+        (view, ratio), so d(r, r) = 0 and repeated questions get the same answer.
+      reduction: "sum" (the paper's eq. 3) or "mean" over views (a threshold that does not
+        depend on the number of views).
+
+    Attributes:
+      editor_calls: number of ``editor.edit`` calls so far (= distinct (ratio, view) pairs).
+      evaluations: number of distinct (r_a, r_b) pairs evaluated.
+    """
+
+    def __init__(self, editor, originals, prompt: str, *, views: Sequence[int] | None = None,
+                 distance: Distance | None = None,
+                 timestep_range: tuple[float, float] = (0.98, 0.98),
+                 guidance: tuple[float, float] = (7.5, 1.5), seed: int = 0,
+                 reduction: str = "sum"):
+        originals = np.asarray(originals, np.float32)
+        if originals.ndim != 4 or originals.shape[-1] != 3:
+            raise DataError("originals", f"expected float [N, H, W, 3], got shape {originals.shape}")
+        if reduction not in ("sum", "mean"):
+            raise DataError("reduction", f"must be 'sum' or 'mean', got {reduction!r}")
+        self.editor = editor
+        self.originals = originals
+        self.prompt = prompt
+        self.views = default_views(len(originals)) if views is None else tuple(int(v) for v in views)
+        bad = [v for v in self.views if not 0 <= v < len(originals)]
+        if bad or not self.views:
+            raise DataError("views", f"indices must be in 0..{len(originals) - 1}, got {list(self.views)}")
+        self.distance = ms_ssim_distance if distance is None else distance
+        self.timestep_range = tuple(timestep_range)
+        self.guidance = tuple(guidance)
+        self.reduction = reduction
+        self._run_key = jax.random.key(int(seed))
+        self._e_prompt = editor.encode(prompt)
+        self._e_null = editor.encode("")
+        self._images: dict[tuple[int, int], np.ndarray] = {}
+        self._pairs: dict[tuple[int, int], float] = {}
+        self.editor_calls = 0
+
+    @property
+    def evaluations(self) -> int:
+        return len(self._pairs)
+
+    def edited(self, ratio: float, view: int) -> np.ndarray:
+        """T2D(v_k(s), e(r)) for view index ``view``, edited at most once (memoised)."""
+        q = quantize_ratio(ratio)
+        key = (q, int(view))
+        hit = self._images.get(key)
+        if hit is None:
+            r = q / 1e6
+            emb = interpolate_embedding(self._e_prompt, self._e_null, r)
+            original = self.originals[view]
+            hit = np.asarray(self.editor.edit(original, original, emb,
+                                              view_key(self._run_key, view, r, 0),
+                                              timestep_range=self.timestep_range,
+                                              guidance=self.guidance), np.float32)
+            self._images[key] = hit
+            self.editor_calls += 1
+        return hit
+
+    def __call__(self, r_a: float, r_b: float) -> float:
+        """d(r_a, r_b) >= 0, symmetric, d(r, r) = 0."""
+        qa, qb = sorted((quantize_ratio(r_a), quantize_ratio(r_b)))
+        if qa == qb:
+            return 0.0
+        hit = self._pairs.get((qa, qb))
+        if hit is None:
+            ds = [float(self.distance(self.edited(qa / 1e6, k), self.edited(qb / 1e6, k)))
+                  for k in self.views]
+            hit = float(np.sum(ds) if self.reduction == "sum" else np.mean(ds))
+            self._pairs[(qa, qb)] = hit
+        return hit
+
+    def curve(self, ratios: Sequence[float]) -> list[tuple[float, float]]:
+        """[(r, d(0, r))] for plotting the difficulty curve (schedule.json's difficulty_curve)."""
+        return [(float(r), self(0.0, r)) for r in ratios]

@@ -1,0 +1,357 @@
+"""ProEdit's difficulty-aware subtask scheduler (paper section 3.2), plus root placement.
+
+A schedule is a strictly increasing sequence of ratios 0 = r_0 < r_1 < ... < r_n = 1; subtask i
+edits the scene with e(r_i). Three ways to get one, each returning a :class:`Schedule`:
+
+- :func:`decompose` (the paper): recursive bisection of [0, 1] until every interval has
+  d(r_a, r_b) <= threshold, then pruning of every r_i whose neighbours are already within the
+  threshold of each other. The recursion is a fold over an immutable worklist of intervals.
+- :func:`decompose_root` (beyond the paper): walk from r = 0 and place the next ratio at the
+  largest r' with d(r, r') <= threshold, found with ``optimistix``'s bisection root finder on
+  g(r') = d(r, r') - threshold. Adjacent difficulties come out nearly equal (close to the
+  threshold), usually with fewer editor calls than bisection + pruning.
+- :func:`uniform` (the ``--subtasks N`` override): n equal steps.
+
+``difficulty`` is any deterministic callable ``(r_a, r_b) -> float`` (a
+:class:`jaxedit.edit.difficulty.DifficultyOracle`, or a synthetic function in tests). The
+scheduler memoises pair evaluations itself, in its fold state, and reports how many distinct
+pairs it evaluated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ..errors import DataError
+
+DifficultyFn = Callable[[float, float], float]
+
+
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """A subtask decomposition.
+
+    Attributes:
+      ratios: (r_0 = 0, ..., r_n = 1), strictly increasing.
+      difficulties: (d(r_0, r_1), ..., d(r_{n-1}, r_n)); NaN where not measured (``uniform``
+        without a difficulty).
+      depth_limit_hit: True when some interval could not be brought under the threshold (the
+        bisection depth limit, or the root placement's resolution), so some difficulty may exceed
+        the threshold.
+      evaluations: number of distinct (r_a, r_b) pairs the difficulty was evaluated on.
+      method: "bisection", "root" or "uniform".
+      threshold: the difficulty threshold used (None for ``uniform``).
+    """
+
+    ratios: tuple[float, ...]
+    difficulties: tuple[float, ...]
+    depth_limit_hit: bool = False
+    evaluations: int = 0
+    method: str = "bisection"
+    threshold: float | None = None
+
+    def __post_init__(self):
+        r = self.ratios
+        if len(r) < 2 or r[0] != 0.0 or r[-1] != 1.0:
+            raise DataError("schedule.ratios", f"must start at 0 and end at 1, got {list(r)}")
+        if any(b <= a for a, b in zip(r, r[1:])):
+            raise DataError("schedule.ratios", f"must be strictly increasing, got {list(r)}")
+        if len(self.difficulties) != len(r) - 1:
+            raise DataError("schedule.difficulties",
+                            f"need {len(r) - 1} values (one per subtask), got {len(self.difficulties)}")
+
+    @property
+    def num_subtasks(self) -> int:
+        return len(self.ratios) - 1
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (NaN difficulties become None)."""
+        return {"ratios": list(self.ratios),
+                "difficulties": [None if math.isnan(d) else d for d in self.difficulties],
+                "depth_limit_hit": self.depth_limit_hit, "evaluations": self.evaluations,
+                "method": self.method, "threshold": self.threshold}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> Schedule:
+        try:
+            return cls(ratios=tuple(float(r) for r in d["ratios"]),
+                       difficulties=tuple(float("nan") if x is None else float(x)
+                                          for x in d["difficulties"]),
+                       depth_limit_hit=bool(d.get("depth_limit_hit", False)),
+                       evaluations=int(d.get("evaluations", 0)), method=str(d.get("method", "")),
+                       threshold=None if d.get("threshold") is None else float(d["threshold"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise DataError("schedule", f"malformed schedule ({e})") from None
+
+
+def _check_threshold(threshold) -> float:
+    t = float(threshold)
+    if not (math.isfinite(t) and t > 0):
+        raise DataError("threshold", f"must be a finite number > 0, got {threshold!r}")
+    return t
+
+
+# --------------------------------------------------------------------------------------------
+# Pair memo threaded through the folds (an immutable mapping, replaced on every new pair)
+
+
+def _measure(difficulty: DifficultyFn, cache: Mapping, a: float, b: float) -> tuple[float, Mapping]:
+    key = (a, b)
+    if key in cache:
+        return cache[key], cache
+    d = float(difficulty(a, b))
+    if not math.isfinite(d) or d < 0:
+        raise DataError("difficulty", f"d({a:g}, {b:g}) = {d!r} is not a finite number >= 0")
+    return d, {**cache, key: d}
+
+
+# --------------------------------------------------------------------------------------------
+# Bisection (the paper)
+
+
+class _BisectState(NamedTuple):
+    worklist: tuple[tuple[float, float, int], ...]  # intervals (a, b, depth) still to examine
+    accepted: tuple[tuple[float, float, float, bool], ...]  # (a, b, d(a, b), limit hit)
+    cache: Mapping
+
+
+def _bisect_step(state: _BisectState, difficulty: DifficultyFn, threshold: float,
+                 max_depth: int) -> _BisectState:
+    """Examine the first interval of the worklist: accept it or replace it by its two halves."""
+    (a, b, depth), rest = state.worklist[0], state.worklist[1:]
+    d, cache = _measure(difficulty, state.cache, a, b)
+    if d <= threshold or depth >= max_depth:
+        return _BisectState(rest, state.accepted + ((a, b, d, d > threshold),), cache)
+    m = 0.5 * (a + b)  # dyadic midpoints are exact in binary floating point
+    return _BisectState(((a, m, depth + 1), (m, b, depth + 1)) + rest, state.accepted, cache)
+
+
+def _prune(ratios: tuple[float, ...], diffs: tuple[float, ...], difficulty: DifficultyFn,
+           threshold: float, cache: Mapping):
+    """Remove interior ratios r_i with d(r_{i-1}, r_{i+1}) <= threshold until none is left.
+
+    Order: each pass removes the removable ratio with the smallest merged difficulty
+    d(r_{i-1}, r_{i+1}) (ties: the smallest index), then re-examines its neighbours. It stops
+    exactly when no interior ratio is removable, so every removable ratio is removed; every
+    new interval has d <= threshold, so the invariant of the bisection is kept.
+    """
+    while True:
+        best = None
+        for i in range(1, len(ratios) - 1):
+            m, cache = _measure(difficulty, cache, ratios[i - 1], ratios[i + 1])
+            if m <= threshold and (best is None or m < best[0]):
+                best = (m, i)
+        if best is None:
+            return ratios, diffs, cache
+        m, i = best
+        ratios = ratios[:i] + ratios[i + 1:]
+        diffs = diffs[:i - 1] + (m,) + diffs[i + 1:]
+
+
+def decompose(difficulty: DifficultyFn, *, threshold: float, max_depth: int = 6,
+              prune: bool = True) -> Schedule:
+    """The paper's decomposition: bisection from [0, 1], then pruning.
+
+    Args:
+      difficulty: deterministic ``(r_a, r_b) -> float >= 0``.
+      threshold: d_threshold; every accepted interval has d <= threshold unless the depth limit
+        was hit (then ``depth_limit_hit`` is True).
+      max_depth: intervals of length 2^-max_depth are accepted whatever their difficulty.
+      prune: run the pruning pass (see ``_prune`` for its order).
+
+    Returns a :class:`Schedule` with method "bisection".
+    """
+    threshold = _check_threshold(threshold)
+    if int(max_depth) < 0:
+        raise DataError("max_depth", f"must be >= 0, got {max_depth}")
+    state = _BisectState(((0.0, 1.0, 0),), (), {})
+    while state.worklist:
+        state = _bisect_step(state, difficulty, threshold, int(max_depth))
+    accepted = sorted(state.accepted)
+    ratios = (0.0,) + tuple(b for _, b, _, _ in accepted)
+    diffs = tuple(d for _, _, d, _ in accepted)
+    cache = state.cache
+    if prune:
+        ratios, diffs, cache = _prune(ratios, diffs, difficulty, threshold, cache)
+    hit = any(d > threshold for d in diffs)
+    return Schedule(ratios, diffs, hit, len(cache), "bisection", threshold)
+
+
+def prune_ratios(ratios, difficulty: DifficultyFn, *, threshold: float) -> Schedule:
+    """Pruning pass alone on any ratio sequence (e.g. a schedule changed by the user)."""
+    threshold = _check_threshold(threshold)
+    ratios = tuple(float(r) for r in ratios)
+    cache: Mapping = {}
+    diffs = []
+    for a, b in zip(ratios, ratios[1:]):
+        d, cache = _measure(difficulty, cache, a, b)
+        diffs.append(d)
+    ratios, diffs, cache = _prune(ratios, tuple(diffs), difficulty, threshold, cache)
+    return Schedule(ratios, diffs, any(d > threshold for d in diffs), len(cache), "pruned",
+                    threshold)
+
+
+# --------------------------------------------------------------------------------------------
+# Root placement (beyond the paper)
+
+
+def _quantise(y: float, lo: float, resolution: float) -> float:
+    """Nearest point of the global grid k * resolution, clipped to [lo, 1] (1 is on the grid).
+
+    Every ratio placed is on this grid (r_0 = 0 is), so searches from different r_i meet on the
+    same ratios and a per-ratio memo (the editor's) gets hits.
+    """
+    q = round(float(y) / resolution) * resolution
+    q = min(max(q, lo), 1.0)
+    return 1.0 if 1.0 - q < 0.5 * resolution else round(q, 12)
+
+
+# Host functions reachable from the one compiled root finder: g is a module-level function, so
+# optimistix compiles the solve once per (resolution, max_steps) and every search reuses it;
+# the search in progress is named by an integer token passed as an argument.
+_HOST_FNS: dict[int, Callable[[float], float]] = {}
+_NEXT_TOKEN = [0]
+
+
+def _host_g(y, token):
+    return np.float32(_HOST_FNS[int(token)](float(y)))
+
+
+def _g(y, token):
+    return jax.pure_callback(_host_g, jax.ShapeDtypeStruct((), jnp.float32), y, token)
+
+
+def _bracket_steps(resolution: float) -> int:
+    return max(1, math.ceil(math.log2(1.0 / resolution))) + 1
+
+
+def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: float,
+                resolution: float, width_hint: float | None):
+    """Largest grid ratio r' in (r, 1] found by bisection with d(r, r') <= threshold.
+
+    Returns (r', d(r, r'), resolution_hit, cache). For d(r, .) increasing this is the largest
+    admissible ratio on the grid; for a non-monotone or noisy d it is the lower end of a sign
+    change of g, which the bisection keeps verified (g < 0 there). ``width_hint`` (the previous
+    step) sets a first upper end r + 2 * width_hint, kept when g > 0 there, which saves
+    bisection steps, hence editor calls.
+    """
+    d1, cache = _measure(difficulty, cache, r, 1.0)
+    if d1 <= threshold:
+        return 1.0, d1, False, cache
+    upper = 1.0
+    if width_hint is not None:
+        guess = _quantise(r + 2.0 * width_hint, r, resolution)
+        if r < guess < 1.0:
+            d, cache = _measure(difficulty, cache, r, guess)
+            if d > threshold:
+                upper = guess
+    box = {"cache": cache}
+
+    def host(y):
+        d, box["cache"] = _measure(difficulty, box["cache"], r, _quantise(y, r, resolution))
+        # admissible means d <= threshold, but Bisection keeps a point as the lower end only
+        # when g < 0: map d == threshold to a tiny negative value
+        return d - threshold if d > threshold else min(d - threshold, -1e-30)
+
+    token = _NEXT_TOKEN[0] = _NEXT_TOKEN[0] + 1
+    _HOST_FNS[token] = host
+    try:
+        # g(r) = -threshold < 0 < g(upper): a bracket, so flip=False skips Bisection's detection
+        # pass. Bisection only reports success when |g| < atol, which a step-shaped or noisy g
+        # may never reach, hence throw=False and the check below. Once the bracket is below one
+        # grid cell every further step is a memo hit.
+        solver = optx.Bisection(rtol=0.0, atol=0.25 * resolution, flip=False)
+        sol = optx.root_find(_g, solver, jnp.float32(0.5 * (r + upper)), args=jnp.int32(token),
+                             options={"lower": jnp.float32(r), "upper": jnp.float32(upper)},
+                             throw=False, max_steps=_bracket_steps(resolution))
+        lower = float(sol.state.lower)
+    finally:
+        del _HOST_FNS[token]
+    cache = box["cache"]
+    # state.lower only ever moves to points where g < 0 was observed (after quantisation);
+    # verify anyway and walk down the grid if a float32 rounding moved it across the step
+    cand = _quantise(lower, r, resolution)
+    while cand > r:
+        d, cache = _measure(difficulty, cache, r, cand)
+        if d <= threshold:
+            return cand, d, False, cache
+        cand = _quantise(cand - resolution, r, resolution)
+    # not even one grid step stays under the threshold: take it anyway, and report it
+    step = _quantise(r + resolution, r, resolution)
+    d, cache = _measure(difficulty, cache, r, step)
+    return step, d, True, cache
+
+
+def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: float = 2.0 ** -8,
+                   max_subtasks: int = 64, prune: bool = True) -> Schedule:
+    """Greedy placement: each next ratio is the largest one within the threshold.
+
+    From r_0 = 0, r_{i+1} = max{r' on the grid r_i + k * resolution : d(r_i, r') <= threshold},
+    found with ``optimistix.root_find(optx.Bisection)`` on g(r') = d(r_i, r') - threshold
+    evaluated on the host through ``jax.pure_callback``. Ratios are quantised to ``resolution``
+    so a memoised difficulty (editor calls per (ratio, view)) gets hits. For d(r_i, .)
+    increasing, greedy farthest placement gives the fewest subtasks possible for the threshold
+    (the classic interval-cover argument) and every difficulty but the last is close to the
+    threshold. ``depth_limit_hit`` reports a step taken at the grid resolution above the
+    threshold, or ``max_subtasks`` reached (then the last step jumps to 1).
+    """
+    threshold = _check_threshold(threshold)
+    resolution = float(resolution)
+    if not (0.0 < resolution <= 0.5):
+        raise DataError("resolution", f"must be in (0, 0.5], got {resolution!r}")
+    ratios, diffs, hit, cache = [0.0], [], False, {}
+    while ratios[-1] < 1.0:
+        r = ratios[-1]
+        if len(ratios) > int(max_subtasks):
+            d, cache = _measure(difficulty, cache, r, 1.0)
+            nxt, d_next, step_hit = 1.0, d, d > threshold
+        else:
+            hint = r - ratios[-2] if len(ratios) > 1 else None
+            nxt, d_next, step_hit, cache = _next_ratio(difficulty, cache, r, threshold, resolution,
+                                                       hint)
+        ratios.append(nxt)
+        diffs.append(d_next)
+        hit = hit or step_hit
+    ratios, diffs = tuple(ratios), tuple(diffs)
+    if prune:
+        ratios, diffs, cache = _prune(ratios, diffs, difficulty, threshold, cache)
+    return Schedule(ratios, diffs, hit or any(d > threshold for d in diffs), len(cache), "root",
+                    threshold)
+
+
+# --------------------------------------------------------------------------------------------
+# Uniform (the --subtasks N override)
+
+
+def uniform(n: int, difficulty: DifficultyFn | None = None) -> Schedule:
+    """n equal subtasks r_i = i / n; difficulties measured when ``difficulty`` is given."""
+    if int(n) != n or int(n) < 1:
+        raise DataError("subtasks", f"must be an integer >= 1, got {n!r}")
+    n = int(n)
+    ratios = tuple(i / n for i in range(n)) + (1.0,)
+    if difficulty is None:
+        return Schedule(ratios, (float("nan"),) * n, False, 0, "uniform", None)
+    cache: Mapping = {}
+    diffs = []
+    for a, b in zip(ratios, ratios[1:]):
+        d, cache = _measure(difficulty, cache, a, b)
+        diffs.append(d)
+    return Schedule(ratios, tuple(diffs), False, len(cache), "uniform", None)
+
+
+def spread(schedule: Schedule) -> dict:
+    """Summary of the adjacent difficulties: min, max, mean, coefficient of variation."""
+    d = np.asarray([x for x in schedule.difficulties if not math.isnan(x)], np.float64)
+    if d.size == 0:
+        return {"min": None, "max": None, "mean": None, "cv": None}
+    mean = float(d.mean())
+    return {"min": float(d.min()), "max": float(d.max()), "mean": mean,
+            "cv": float(d.std() / mean) if mean > 0 else 0.0}

@@ -1,0 +1,169 @@
+"""Properties of the subtask scheduler (bisection + pruning, root placement, uniform)."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from jaxedit.edit.schedule import (Schedule, decompose, decompose_root, prune_ratios, spread,
+                                   uniform)
+from jaxedit.errors import DataError
+
+KNOTS = 16
+
+
+def monotone_difficulty(increments):
+    """d(a, b) = |F(b) - F(a)| for the piecewise-linear increasing F with these increments."""
+    inc = np.asarray(increments, np.float64) + 1e-3
+    knots = np.concatenate([[0.0], np.cumsum(inc)]) / np.sum(inc)  # F(1) = 1
+    xs = np.linspace(0.0, 1.0, len(knots))
+
+    def d(a, b):
+        return float(abs(np.interp(b, xs, knots) - np.interp(a, xs, knots)))
+
+    return d
+
+
+def noisy(d, amplitude):
+    """Non-monotone, deterministic noise on top of d, still d(r, r) = 0 and symmetric."""
+
+    def nd(a, b):
+        if a == b:
+            return 0.0
+        lo, hi = min(a, b), max(a, b)
+        return d(a, b) + amplitude * abs(math.sin(997.0 * lo + 131.0 * hi))
+
+    return nd
+
+
+def check_schedule(s: Schedule, d, threshold):
+    r = s.ratios
+    assert r[0] == 0.0 and r[-1] == 1.0
+    assert all(b > a for a, b in zip(r, r[1:]))
+    assert len(s.difficulties) == len(r) - 1
+    for (a, b), da in zip(zip(r, r[1:]), s.difficulties):
+        assert da == pytest.approx(d(a, b), abs=1e-12)
+    if not s.depth_limit_hit:
+        assert all(x <= threshold for x in s.difficulties)
+    else:
+        assert any(x > threshold for x in s.difficulties)
+
+
+def assert_nothing_removable(s: Schedule, d, threshold):
+    r = s.ratios
+    for i in range(1, len(r) - 1):
+        assert d(r[i - 1], r[i + 1]) > threshold, f"r_{i} = {r[i]} is removable"
+
+
+increments = st.lists(st.floats(0.0, 1.0), min_size=KNOTS, max_size=KNOTS)
+
+
+@settings(max_examples=60, deadline=None)
+@given(increments, st.floats(0.02, 0.8), st.integers(2, 8), st.floats(0.0, 0.05))
+def test_bisection_properties(inc, threshold, max_depth, noise):
+    d = noisy(monotone_difficulty(inc), noise)
+    full = decompose(d, threshold=threshold, max_depth=max_depth, prune=False)
+    check_schedule(full, d, threshold)
+    # unpruned: every interval is dyadic, and only intervals at the depth limit may exceed
+    for (a, b), x in zip(zip(full.ratios, full.ratios[1:]), full.difficulties):
+        if x > threshold:
+            assert b - a == pytest.approx(2.0 ** -max_depth)
+    pruned = decompose(d, threshold=threshold, max_depth=max_depth)
+    check_schedule(pruned, d, threshold)
+    assert set(pruned.ratios) <= set(full.ratios)
+    assert pruned.depth_limit_hit == full.depth_limit_hit
+    assert_nothing_removable(pruned, d, threshold)
+    assert decompose(d, threshold=threshold, max_depth=max_depth) == pruned  # deterministic
+    assert pruned.evaluations >= full.evaluations
+
+
+def test_bisection_linear_is_exact():
+    d = lambda a, b: abs(b - a)  # noqa: E731
+    s = decompose(d, threshold=0.25)
+    assert s.ratios == (0.0, 0.25, 0.5, 0.75, 1.0) and not s.depth_limit_hit
+    # 7 bisection intervals; of the 3 pruning checks only d(0.25, 0.75) is new
+    assert s.evaluations == 7 + 1
+    assert decompose(d, threshold=2.0).ratios == (0.0, 1.0)
+
+
+def test_step_difficulty_reports_depth_limit():
+    d = lambda a, b: abs(float(b > 0.3) - float(a > 0.3)) + 0.1 * abs(b - a)  # noqa: E731
+    s = decompose(d, threshold=0.5, max_depth=5)
+    assert s.depth_limit_hit
+    bad = [(a, b) for (a, b), x in zip(zip(s.ratios, s.ratios[1:]), s.difficulties) if x > 0.5]
+    assert len(bad) == 1 and bad[0][0] < 0.3 < bad[0][1] and bad[0][1] - bad[0][0] == 2 ** -5
+
+
+def test_prune_removes_smallest_merge_first_and_everything_removable():
+    # both interior ratios are removable on their own but not together: the greedy order
+    # removes the one with the smaller merged difficulty, d(0, 2/3) = 0.25 < d(1/3, 1) = 0.3
+    values = {0.0: 0.0, 1 / 3: 0.1, 2 / 3: 0.25, 1.0: 0.4}
+    d = lambda a, b: abs(values[b] - values[a])  # noqa: E731
+    s = prune_ratios([0.0, 1 / 3, 2 / 3, 1.0], d, threshold=0.3)
+    assert s.ratios == (0.0, 2 / 3, 1.0)
+    assert s.difficulties == pytest.approx((0.25, 0.15))
+    assert_nothing_removable(s, d, 0.3)
+    assert s.depth_limit_hit is False
+    # a jump that no pruning can hide stays, and is reported
+    F = lambda r: 0.1 * r + (0.8 if r > 0.5 else 0.0)  # noqa: E731
+    d2 = lambda a, b: abs(F(b) - F(a))  # noqa: E731
+    s2 = prune_ratios([0.0, 0.25, 0.5, 0.75, 1.0], d2, threshold=0.3)
+    assert s2.ratios == (0.0, 0.5, 0.75, 1.0) and s2.depth_limit_hit
+    assert_nothing_removable(s2, d2, 0.3)
+
+
+root_increments = st.lists(st.floats(0.05, 1.0), min_size=KNOTS, max_size=KNOTS)
+
+
+@settings(max_examples=25, deadline=None)
+@given(root_increments, st.floats(0.08, 0.6))
+def test_root_placement_properties(inc, threshold):
+    d = monotone_difficulty(inc)
+    res = 2.0 ** -8
+    s = decompose_root(d, threshold=threshold, resolution=res, prune=False)
+    check_schedule(s, d, threshold)
+    assert not s.depth_limit_hit
+    for a, b in zip(s.ratios, s.ratios[1:-1]):
+        # greedy maximality on the grid: one grid step further is over the threshold
+        assert d(a, min(b + res, 1.0)) > threshold
+        assert abs(b / res - round(b / res)) < 1e-9  # on the grid
+    # the greedy cover is never longer than the paper's decomposition at the same resolution
+    assert s.num_subtasks <= decompose(d, threshold=threshold, max_depth=8).num_subtasks
+    assert decompose_root(d, threshold=threshold, resolution=res, prune=False) == s
+    pruned = decompose_root(d, threshold=threshold, resolution=res)
+    check_schedule(pruned, d, threshold)
+    assert_nothing_removable(pruned, d, threshold)
+
+
+def test_root_placement_step_and_noise():
+    step = lambda a, b: abs(float(b > 0.3) - float(a > 0.3)) + 0.1 * abs(b - a)  # noqa: E731
+    s = decompose_root(step, threshold=0.5, resolution=1 / 64)
+    check_schedule(s, step, 0.5)
+    assert s.depth_limit_hit and s.method == "root"
+    d = noisy(monotone_difficulty(np.linspace(0.2, 1.0, KNOTS)), 0.03)
+    s = decompose_root(d, threshold=0.2)
+    check_schedule(s, d, 0.2)
+    assert_nothing_removable(s, d, 0.2)
+    assert spread(s)["max"] <= 0.2
+
+
+def test_uniform_and_validation():
+    u = uniform(4)
+    assert u.ratios == (0.0, 0.25, 0.5, 0.75, 1.0) and all(math.isnan(x) for x in u.difficulties)
+    assert Schedule.from_dict(u.to_dict()).ratios == u.ratios
+    assert u.to_dict()["difficulties"] == [None] * 4
+    m = uniform(3, lambda a, b: (b - a) ** 2)
+    assert m.difficulties == pytest.approx((1 / 9,) * 3) and m.evaluations == 3
+    assert Schedule.from_dict(m.to_dict()) == m
+    for bad in (0, -1, 2.5):
+        with pytest.raises(DataError, match="subtasks"):
+            uniform(bad)
+    with pytest.raises(DataError, match="threshold"):
+        decompose(lambda a, b: 0.0, threshold=0.0)
+    with pytest.raises(DataError, match="increasing"):
+        Schedule((0.0, 0.5, 0.5, 1.0), (0.1, 0.0, 0.1))
+    with pytest.raises(DataError, match="start at 0"):
+        Schedule((0.1, 1.0), (0.1,))
+    with pytest.raises(DataError, match="difficulty"):
+        decompose(lambda a, b: float("nan"), threshold=0.1)
