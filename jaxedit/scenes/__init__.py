@@ -1,0 +1,44 @@
+"""Built-in procedural scenes, rendered by an independent NumPy ray caster.
+
+No dataset can be downloaded, so jaxedit ships scene generators that write
+ordinary nerfstudio datasets (transforms.json + PNGs + an initial point cloud),
+and the same loader serves built-in and real scenes::
+
+    from jaxedit import scenes
+    scenes.list_scenes()                      # ['face', 'tabletop', 'fence', 'ball']
+    scenes.make_scene("face", "runs/face")    # 64 train + 8 test views, 128 x 128
+
+    scene = scenes.get_scene("face")
+    cams, train, test = scenes.scene_cameras(scene, views=64, test_views=8, size=128)
+    images = scenes.render_scene(scene, cams)               # float32 [72, 128, 128, 3]
+    points, ids, uv = scenes.surface_points_and_ids(scene, cams)
+
+``surface_points_and_ids`` says what every pixel centre sees (world point, object
+id into ``scene.object_names``, texture coordinates), so an edit defined as a
+function of the surface is 3D-consistent across views by construction.
+
+The ray caster (:mod:`.raycast`) does not import the splatter; it shares only the
+camera convention, so reconstructing its images is a real test of the splatter.
+"""
+
+from . import library, points, raycast, textures
+from .dataset import SCENE_INFO, make_scene
+from .library import SCENES, get_scene, list_scenes, rig_cameras, scene_cameras, split_views
+from .points import sample_points
+from .raycast import Decal, Light, Rig, Scene, Shape, surface_points_and_ids
+from .textures import Texture
+
+
+def render_scene(scene: Scene, cameras, *, supersample: int = 2, alpha: bool = False):
+    """Ground truth of ``scene`` for ``cameras``: float32 [N, H, W, 3] in [0, 1].
+
+    Each pixel averages ``supersample`` x ``supersample`` rays; ``alpha=True`` adds the
+    coverage as a 4th channel. See :func:`raycast.render`.
+    """
+    return raycast.render(scene, cameras, supersample=supersample, alpha=alpha)
+
+
+__all__ = ["Decal", "Light", "Rig", "SCENES", "SCENE_INFO", "Scene", "Shape", "Texture",
+           "get_scene", "library", "list_scenes", "make_scene", "points", "raycast",
+           "render_scene", "rig_cameras", "sample_points", "scene_cameras", "split_views",
+           "surface_points_and_ids", "textures"]
