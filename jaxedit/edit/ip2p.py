@@ -1,0 +1,363 @@
+"""InstructPix2Pix as a jaxedit Editor (optional extra ``jaxedit[ip2p]``: torch + diffusers).
+
+The edit of one view follows Instruct-NeRF2NeRF's use of InstructPix2Pix (IP2P):
+
+1. resize the current render and the original photo to the model size (the longer side
+   becomes ``size``, default 512, both sides rounded to multiples of the VAE factor 8);
+2. encode the render to a latent (VAE posterior sample x ``scaling_factor``) and the original
+   to the conditioning latent (VAE posterior mode, unscaled, as IP2P was trained);
+3. draw a timestep T uniformly in ``timestep_range`` x 1000 (from the JAX key) and noise the
+   latent to T (SDEdit);
+4. run deterministic DDIM (eta = 0) with ``steps`` (default 20) evenly spaced timesteps from
+   T down to 0; each step evaluates the UNet once on a batch of three branches
+   (text+image, image only, unconditional) and combines them with dual classifier-free
+   guidance ``eps = eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u)``;
+5. decode (latent / scaling_factor), map [-1, 1] -> [0, 1], resize back, clamp.
+
+The "image only" branch uses E("") with the original's latent; the unconditional branch
+uses E("") with a zero latent, as in diffusers' IP2P pipeline.
+
+Embeddings: ``encode(prompt)`` returns NumPy float32 [77, D] (D = 768 for SD 1.5): the
+last hidden state of the CLIP text encoder, as Stable Diffusion conditions on it. NumPy
+keeps the framework side (``interpolate_embedding``, memo keys, checkpoints) free of torch;
+``edit`` accepts NumPy, JAX or torch embeddings and moves them to the editor's device
+(77 x 768 floats, negligible next to the diffusion). ``r E(p) + (1 - r) E("")`` is formed
+by the framework with :func:`jaxedit.edit.interpolate_embedding`.
+
+Devices and precision: the editor runs on its own torch device (``cuda:0`` when available,
+else ``cpu``) while JAX may train on another; fp16 on accelerators, fp32 on the CPU. Images
+enter through DLPack (JAX arrays) or ``torch.from_numpy`` (NumPy) without a host copy where
+the source allows, and leave as NumPy float32 [H, W, 3]. The latents and the DDIM arithmetic
+are kept in float32 even when the networks run in fp16.
+
+Randomness: everything is derived from the JAX ``key``: the timestep by ``jax.random.randint``
+and a 63-bit seed for a CPU ``torch.Generator`` that draws the VAE sample and the SDEdit
+noise. Drawing on the CPU makes the noise the same on every device, so a run's edits do not
+depend on which GPU produced them (up to the networks' floating point).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+import os
+import re
+from pathlib import Path
+
+try:
+    import torch
+    import torch.nn.functional as F
+    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextModel, CLIPTokenizer
+except ImportError as e:  # pragma: no cover - exercised by a test that hides torch
+    raise ImportError(
+        f"jaxedit.edit.ip2p needs the optional extra 'ip2p' (torch, diffusers, transformers, "
+        f"safetensors); {e.name or 'a dependency'} is missing. Install it with "
+        f"`pip install torch==2.13.0` (CPU) or a CUDA build of torch, then "
+        f"`pip install 'jaxedit[ip2p]'`.") from e
+
+import jax
+import numpy as np
+
+from ..errors import DataError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["InstructPix2PixEditor", "DEFAULT_MODEL", "HOW_TO_GET", "ddim_step", "dual_guidance",
+           "model_size", "resolve_weights", "seed_from_key", "timestep_schedule"]
+
+DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
+HOW_TO_GET = (f"{DEFAULT_MODEL} in diffusers format; download it on a machine with network with "
+              f"`huggingface-cli download {DEFAULT_MODEL} --local-dir DIR` (or `hf download`) "
+              f"and pass --ip2p-weights DIR")
+
+# Sub-folder -> files of which at least one must exist, in diffusers' save_pretrained layout.
+_LAYOUT = {
+    "unet": ["config.json"],
+    "vae": ["config.json"],
+    "text_encoder": ["config.json"],
+    "tokenizer": ["vocab.json", "tokenizer.json"],
+    "scheduler": ["scheduler_config.json"],
+}
+
+
+# ----------------------------------------------------------------------------- pure helpers
+
+def seed_from_key(key: jax.Array) -> tuple[jax.Array, int]:
+    """Split a JAX key into (key for the timestep draw, 63-bit torch seed)."""
+    k_t, k_n = jax.random.split(key)
+    hi, lo = (int(v) for v in np.asarray(jax.random.bits(k_n, (2,), np.uint32)))
+    return k_t, ((hi << 32) | lo) & ((1 << 63) - 1)
+
+
+def draw_timestep(key: jax.Array, timestep_range: tuple[float, float], num_train: int = 1000) -> int:
+    """Integer T uniform in [round(lo * num_train), round(hi * num_train)], within [1, num_train - 1]."""
+    lo, hi = (float(v) for v in timestep_range)
+    if not (0.0 <= lo <= hi <= 1.0):
+        raise DataError("timestep_range", f"must satisfy 0 <= t_min <= t_max <= 1, got {(lo, hi)}")
+    t_lo = min(max(int(round(lo * num_train)), 1), num_train - 1)
+    t_hi = min(max(int(round(hi * num_train)), t_lo), num_train - 1)
+    return int(jax.random.randint(key, (), t_lo, t_hi + 1))
+
+
+def timestep_schedule(t_start: int, steps: int) -> list[int]:
+    """DDIM timesteps from ``t_start`` down towards 0: round(T (steps - k) / steps), k < steps.
+
+    Evenly spaced, strictly decreasing, first = T; fewer than ``steps`` entries when T < steps.
+    The step after the last one lands on the scheduler's final alpha (the clean image).
+    """
+    if steps < 1:
+        raise DataError("steps", f"must be >= 1, got {steps}")
+    ts = [int(round(t_start * (steps - k) / steps)) for k in range(steps)]
+    return sorted({t for t in ts if t > 0}, reverse=True)
+
+
+def model_size(height: int, width: int, size: int | None, factor: int = 8) -> tuple[int, int]:
+    """(h, w) the networks see: longer side -> ``size`` (None: keep), multiples of ``factor``."""
+    scale = 1.0 if size is None else size / max(height, width)
+    return (max(factor, int(round(height * scale / factor)) * factor),
+            max(factor, int(round(width * scale / factor)) * factor))
+
+
+def dual_guidance(eps: "torch.Tensor", text_scale: float, image_scale: float) -> "torch.Tensor":
+    """Combine the three-branch UNet output [3B, ...] ordered (text+image, image, uncond):
+    eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u)."""
+    eps_ti, eps_i, eps_u = eps.chunk(3)
+    return eps_u + text_scale * (eps_ti - eps_i) + image_scale * (eps_i - eps_u)
+
+
+def ddim_step(sample, model_output, alpha_t: float, alpha_prev: float,
+              prediction_type: str = "epsilon"):
+    """One deterministic DDIM update (eta = 0) from cumulative alpha ``alpha_t`` to ``alpha_prev``.
+
+    x0 = (x - sqrt(1 - a_t) eps) / sqrt(a_t);  x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps.
+    """
+    a_t, a_p = float(alpha_t), float(alpha_prev)
+    if prediction_type == "epsilon":
+        eps = model_output
+        x0 = (sample - (1 - a_t) ** 0.5 * eps) / a_t ** 0.5
+    elif prediction_type == "v_prediction":
+        x0 = a_t ** 0.5 * sample - (1 - a_t) ** 0.5 * model_output
+        eps = a_t ** 0.5 * model_output + (1 - a_t) ** 0.5 * sample
+    else:
+        raise DataError("scheduler.prediction_type", f"unsupported {prediction_type!r}")
+    return a_p ** 0.5 * x0 + (1 - a_p) ** 0.5 * eps
+
+
+# ----------------------------------------------------------------------------- loading
+
+def resolve_weights(path: str | os.PathLike) -> Path:
+    """A local diffusers folder, or a Hub id found in the local Hugging Face cache (never the
+    network). Checks the layout and names what is missing."""
+    p = Path(os.path.expanduser(str(path)))
+    if not p.exists():
+        if re.fullmatch(r"[\w.-]+/[\w.-]+", str(path)):
+            try:
+                from huggingface_hub import snapshot_download
+                p = Path(snapshot_download(str(path), local_files_only=True))
+            except Exception:  # noqa: BLE001 - LocalEntryNotFoundError and friends
+                raise DataError(path, f"not a folder and not in the local Hugging Face cache; "
+                                f"needs {HOW_TO_GET}") from None
+        else:
+            raise DataError(p, f"InstructPix2Pix weights folder not found; needs {HOW_TO_GET}")
+    if not p.is_dir():
+        raise DataError(p, f"is not a folder; needs {HOW_TO_GET}")
+    missing = [f"{sub}/{files[0]}" for sub, files in _LAYOUT.items()
+               if not any((p / sub / f).is_file() for f in files)]
+    if missing:
+        raise DataError(p, f"incomplete diffusers folder, missing {', '.join(missing)}; "
+                        f"needs {HOW_TO_GET}")
+    return p
+
+
+def _load(root: Path, sub: str, loader):
+    try:
+        return loader()
+    except (OSError, ValueError, EnvironmentError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise DataError(root / sub, f"cannot load ({first}); needs {HOW_TO_GET}") from None
+
+
+def _default_device() -> str:
+    return "cuda:0" if torch.cuda.is_available() else "cpu"
+
+
+# ----------------------------------------------------------------------------- the editor
+
+class InstructPix2PixEditor:
+    """InstructPix2Pix implementing :class:`jaxedit.edit.Editor` (see the module docstring)."""
+
+    name = "ip2p"
+
+    def __init__(self, unet, vae, text_encoder, tokenizer, scheduler, *, device=None, dtype=None,
+                 size: int | None = 512, steps: int = 20, source: str = ""):
+        self.device = torch.device(device or _default_device())
+        self.dtype = dtype or (torch.float32 if self.device.type == "cpu" else torch.float16)
+        if unet.config.in_channels != 8:
+            raise DataError(f"{source or 'unet'}", f"UNet has in_channels="
+                            f"{unet.config.in_channels}, not 8: not an InstructPix2Pix model; "
+                            f"needs {HOW_TO_GET}")
+        self.unet = unet.to(self.device, self.dtype).eval().requires_grad_(False)
+        self.vae = vae.to(self.device, self.dtype).eval().requires_grad_(False)
+        self.text_encoder = text_encoder.to(self.device, self.dtype).eval().requires_grad_(False)
+        self.tokenizer = tokenizer
+        self.scheduler = scheduler
+        self.vae_factor = 2 ** (len(self.vae.config.block_out_channels) - 1)
+        if size is not None and size % self.vae_factor:
+            raise DataError("size", f"model size {size} is not a multiple of {self.vae_factor}")
+        self.size = size
+        self.steps = int(steps)
+        self.source = source
+        self.scaling_factor = float(getattr(self.vae.config, "scaling_factor", 0.18215))
+        self.alphas_cumprod = scheduler.alphas_cumprod.double().cpu().numpy()
+        self.final_alpha = float(scheduler.final_alpha_cumprod)
+        self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
+        self.prediction_type = scheduler.config.prediction_type
+        self._embeddings: dict[str, np.ndarray] = {}
+
+    @classmethod
+    def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, device=None, dtype=None,
+                        size: int | None = 512, steps: int = 20, variant: str | None = None):
+        """Load from a local diffusers folder (or the local HF cache) with no network access.
+
+        ``path``: folder with unet/ vae/ text_encoder/ tokenizer/ scheduler/ (diffusers'
+        save_pretrained layout, e.g. timbrooks/instruct-pix2pix), or that Hub id when it is in
+        the local cache. ``device``: torch device string (default ``cuda:0`` if available, else
+        ``cpu``); ``dtype``: torch dtype (default fp16 off-CPU, fp32 on CPU); ``size``: model
+        resolution of the longer side (multiple of 8; None keeps the view's size); ``steps``:
+        DDIM steps from T to 0; ``variant``: diffusers weight variant (e.g. ``"fp16"``).
+        """
+        root = resolve_weights(path)
+        device = torch.device(device or _default_device())
+        dtype = dtype or (torch.float32 if device.type == "cpu" else torch.float16)
+        kw = {"local_files_only": True}
+        unet = _load(root, "unet", lambda: UNet2DConditionModel.from_pretrained(
+            root, subfolder="unet", variant=variant, torch_dtype=dtype, **kw))
+        vae = _load(root, "vae", lambda: AutoencoderKL.from_pretrained(
+            root, subfolder="vae", variant=variant, torch_dtype=dtype, **kw))
+        text_encoder = _load(root, "text_encoder", lambda: CLIPTextModel.from_pretrained(
+            root, subfolder="text_encoder", **kw))
+        tokenizer = _load(root, "tokenizer", lambda: CLIPTokenizer.from_pretrained(
+            root, subfolder="tokenizer", **kw))
+        scheduler = _load(root, "scheduler", lambda: DDIMScheduler.from_pretrained(
+            root, subfolder="scheduler", **kw))
+        editor = cls(unet, vae, text_encoder, tokenizer, scheduler, device=device, dtype=dtype,
+                     size=size, steps=steps, source=str(root))
+        log.info("InstructPix2Pix loaded from %s on %s (%s), size %s, %d DDIM steps", root,
+                 editor.device, editor.dtype, size, steps)
+        return editor
+
+    def __repr__(self):
+        return (f"InstructPix2PixEditor({self.source!r}, device={self.device}, dtype={self.dtype}, "
+                f"size={self.size}, steps={self.steps})")
+
+    # -- embeddings -----------------------------------------------------------------------
+
+    @torch.inference_mode()
+    def encode(self, prompt: str) -> np.ndarray:
+        """CLIP text embedding E(prompt): NumPy float32 [77, D]; E("") is the null embedding."""
+        if not isinstance(prompt, str):
+            raise DataError("prompt", f"must be a string, got {type(prompt).__name__}")
+        if prompt not in self._embeddings:
+            n = self.tokenizer.model_max_length
+            ids = self.tokenizer(prompt, padding="max_length", max_length=n, truncation=True,
+                                 return_tensors="pt").input_ids
+            if len(self.tokenizer(prompt).input_ids) > n:
+                log.warning("prompt truncated to %d CLIP tokens: %r", n, prompt)
+            hidden = self.text_encoder(ids.to(self.device))[0][0]
+            self._embeddings[prompt] = hidden.float().cpu().numpy()
+        return self._embeddings[prompt].copy()
+
+    # -- tensors in and out ---------------------------------------------------------------
+
+    def _image(self, image, field: str) -> "torch.Tensor":
+        """float [H, W, 3] (NumPy, JAX, torch) -> float32 [1, 3, H, W] on the editor's device."""
+        if isinstance(image, torch.Tensor):
+            t = image
+        elif isinstance(image, jax.Array):
+            t = torch.from_dlpack(image)  # zero-copy when JAX and torch share the device
+        else:
+            array = np.ascontiguousarray(image)
+            with warnings.catch_warnings():
+                # Read-only arrays (e.g. from JAX) are shared, not copied; nothing writes to them.
+                warnings.simplefilter("ignore", UserWarning)
+                t = torch.from_numpy(array)
+        if t.ndim != 3 or t.shape[-1] != 3:
+            raise DataError(field, f"expected an image [H, W, 3], got shape {tuple(t.shape)}")
+        if not torch.is_floating_point(t):
+            raise DataError(field, f"expected float values in [0, 1], got {t.dtype}")
+        t = t.to(self.device, torch.float32, non_blocking=True)
+        return t.permute(2, 0, 1)[None]
+
+    def _embedding(self, embedding) -> "torch.Tensor":
+        if isinstance(embedding, torch.Tensor):
+            e = embedding
+        elif isinstance(embedding, jax.Array):
+            e = torch.from_dlpack(embedding)
+        else:
+            e = torch.from_numpy(np.ascontiguousarray(embedding, dtype=np.float32))
+        null = self.encode("")
+        if tuple(e.shape) != null.shape:
+            raise DataError("embedding", f"expected shape {null.shape} (from encode), got "
+                            f"{tuple(e.shape)}")
+        return torch.stack([e.to(self.device, self.dtype),
+                            torch.from_numpy(null).to(self.device, self.dtype)])
+
+    @staticmethod
+    def _resize(x: "torch.Tensor", hw: tuple[int, int]) -> "torch.Tensor":
+        if tuple(x.shape[-2:]) == tuple(hw):
+            return x
+        return F.interpolate(x, size=hw, mode="bilinear", align_corners=False, antialias=True)
+
+    # -- the edit -------------------------------------------------------------------------
+
+    @torch.inference_mode()
+    def edit(self, image, original, embedding, key: jax.Array, *,
+             timestep_range: tuple[float, float] = (0.02, 0.98),
+             guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
+        """Edit one view: float32 [H, W, 3] in [0, 1] at ``image``'s size (see module docstring)."""
+        render = self._image(image, "image")
+        orig = self._image(original, "original")
+        height, width = render.shape[-2:]
+        hw = model_size(height, width, self.size, self.vae_factor)
+        pair = torch.cat([self._resize(render, hw), self._resize(orig, hw)]) * 2 - 1
+
+        k_t, seed = seed_from_key(key)
+        t_start = draw_timestep(k_t, timestep_range, self.num_train_timesteps)
+        gen = torch.Generator("cpu").manual_seed(seed)
+
+        # One VAE pass for both images: posterior sample of the render, mode of the original.
+        posterior = self.vae.encode(pair.to(self.dtype)).latent_dist
+        mean, std = posterior.mean.float(), posterior.std.float()
+        draw = torch.randn(mean[:1].shape, generator=gen).to(self.device)
+        latents = (mean[:1] + std[:1] * draw) * self.scaling_factor
+        cond = mean[1:]
+        cond3 = torch.cat([cond, cond, torch.zeros_like(cond)]).to(self.dtype)
+
+        e = self._embedding(embedding)
+        emb3 = torch.stack([e[0], e[1], e[1]])       # text+image, image only, unconditional
+
+        a = self.alphas_cumprod
+        noise = torch.randn(latents.shape, generator=gen).to(self.device)
+        latents = a[t_start] ** 0.5 * latents + (1 - a[t_start]) ** 0.5 * noise
+
+        ts = timestep_schedule(t_start, self.steps)
+        for i, t in enumerate(ts):
+            inp = torch.cat([torch.cat([latents] * 3).to(self.dtype), cond3], dim=1)
+            out = self.unet(inp, t, encoder_hidden_states=emb3).sample.float()
+            eps = dual_guidance(out, *guidance)
+            a_prev = a[ts[i + 1]] if i + 1 < len(ts) else self.final_alpha
+            latents = ddim_step(latents, eps, a[t], a_prev, self.prediction_type)
+
+        decoded = self.vae.decode((latents / self.scaling_factor).to(self.dtype)).sample.float()
+        decoded = ((decoded + 1) / 2).clamp(0, 1)
+        result = self._resize(decoded, (height, width)).clamp(0, 1)
+        return result[0].permute(1, 2, 0).contiguous().cpu().numpy()
+
+    def describe(self) -> dict:
+        """What a run log / report records about this editor."""
+        return {"editor": self.name, "weights": self.source, "device": str(self.device),
+                "dtype": str(self.dtype).replace("torch.", ""), "size": self.size,
+                "steps": self.steps, "scheduler": type(self.scheduler).__name__,
+                "unet_in_channels": int(self.unet.config.in_channels)}
+
