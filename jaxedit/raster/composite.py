@@ -87,34 +87,59 @@ def _pixel_centres(tile, tiles_x, dtype):
     return px, py
 
 
-def _gather(means2d, conics, opacities, gids):
-    ok = gids >= 0
-    g = jnp.where(ok, gids, 0)
-    return means2d[g], conics[g], jnp.where(ok, opacities[g], 0.0)
+def _chunk_params(means2d, conics, opacities, features, gids):
+    """Per-pair parameters in position-major layout [K, NC, ...] (padding: opacity 0)."""
+    ok = (gids >= 0).T
+    g = jnp.where(ok, gids.T, 0)
+    return means2d[g], conics[g], jnp.where(ok, opacities[g], 0.0), features[g]
 
 
-def _alpha_terms(m, con, op, px, py):
-    """Per (chunk, pair, pixel): dx, dy, vis = exp(power), raw = o vis, alpha."""
-    dx = m[:, :, None, 0] - px[:, None, :]
-    dy = m[:, :, None, 1] - py[:, None, :]
-    a, b, c = con[:, :, None, 0], con[:, :, None, 1], con[:, :, None, 2]
-    power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+def _alpha(m, con, op, px, py):
+    """One pair position across all chunks: dx, dy, exp(power), o exp(power), alpha [NC, 256].
+
+    Args: m [NC, 2], con [NC, 3], op [NC], px/py [NC, 256].
+    """
+    dx = m[:, 0, None] - px
+    dy = m[:, 1, None] - py
+    power = -0.5 * (con[:, 0, None] * dx * dx + con[:, 2, None] * dy * dy) - con[:, 1, None] * dx * dy
     vis = jnp.exp(jnp.minimum(power, 0.0))
-    raw = op[:, :, None] * vis
+    raw = op[:, None] * vis
     alpha = jnp.minimum(ALPHA_MAX, raw)
     alpha = jnp.where((power > 0) | (alpha < ALPHA_MIN), 0.0, alpha)
     return dx, dy, vis, raw, alpha
 
 
-def _transmittance(alpha, first):
-    """T before/after each pair: float [NC, K, 256] each, and the blended mask."""
-    one_minus = 1.0 - alpha
-    local_after = jnp.cumprod(one_minus, axis=1)
-    local_before = jnp.concatenate([jnp.ones_like(local_after[:, :1]), local_after[:, :-1]], 1)
-    carry = _seg_scan(local_after[:, -1], first, jnp.multiply, 1.0)  # [NC, 256]
-    t_before = carry[:, None] * local_before
-    t_after = carry[:, None] * local_after
-    return t_before, t_after, t_after >= T_MIN
+def _local_products(params, px, py):
+    """float [NC, 256]: product of (1 - alpha) over each chunk (pass 1)."""
+    m, con, op, _ = params
+
+    def step(prod, x):
+        return prod * (1.0 - _alpha(*x, px, py)[4]), None
+
+    prod, _ = jax.lax.scan(step, jnp.ones(px.shape, px.dtype), (m, con, op))
+    return prod
+
+
+def _blend(params, px, py, carry):
+    """Pass 2: per chunk, features sum_i w_i f_i [NC, 256, F] and its last blended T [NC, 256].
+
+    ``carry`` [NC, 256] is the transmittance in front of each chunk.
+    """
+    m, con, op, f = params
+
+    def step(state, x):
+        t, t_last, acc = state
+        mk, ck, ok, fk = x
+        alpha = _alpha(mk, ck, ok, px, py)[4]
+        t_after = t * (1.0 - alpha)
+        blended = t_after >= T_MIN  # a prefix of the list: T only decreases
+        w = jnp.where(blended, alpha * t, 0.0)
+        acc = acc + w[..., None] * fk[:, None, :]
+        return (t_after, jnp.where(blended, t_after, t_last), acc), None
+
+    init = (carry, jnp.ones_like(carry), jnp.zeros(carry.shape + (f.shape[-1],), carry.dtype))
+    (_, t_last, acc), _ = jax.lax.scan(step, init, (m, con, op, f))
+    return acc, t_last
 
 
 def _to_image(tiles_img, width, height):
@@ -138,19 +163,14 @@ def _to_tiles(img, width, height):
 def _forward(means2d, conics, opacities, features, gids, tile, first, width, height):
     tiles_x, tiles_y = grid_shape(width, height)
     num_tiles = tiles_x * tiles_y
-    dtype = means2d.dtype
-    px, py = _pixel_centres(tile, tiles_x, dtype)
-    m, con, op = _gather(means2d, conics, opacities, gids)
-    f = features[jnp.where(gids >= 0, gids, 0)]
-    _, _, _, _, alpha = _alpha_terms(m, con, op, px, py)
-    t_before, t_after, blended = _transmittance(alpha, first)
-    w = jnp.where(blended, alpha * t_before, 0.0)
-    chunk_feat = jnp.einsum("nkp,nkf->npf", w, f)
-    chunk_tmin = jnp.min(jnp.where(blended, t_after, 1.0), axis=1)
-    feat = jax.ops.segment_sum(chunk_feat, tile, num_segments=num_tiles + 1)[:num_tiles]
-    tmin = jax.ops.segment_min(chunk_tmin, tile, num_segments=num_tiles + 1)[:num_tiles]
-    trans = jnp.minimum(tmin, 1.0)
-    return _to_image(feat, width, height), _to_image(trans, width, height)
+    px, py = _pixel_centres(tile, tiles_x, means2d.dtype)
+    params = _chunk_params(means2d, conics, opacities, features, gids)
+    carry = _seg_scan(_local_products(params, px, py), first, jnp.multiply, 1.0)
+    acc, t_last = _blend(params, px, py, carry)
+    feat = jax.ops.segment_sum(acc, tile, num_segments=num_tiles + 1)[:num_tiles]
+    tmin = jax.ops.segment_min(t_last, tile, num_segments=num_tiles + 1)[:num_tiles]
+    out = (_to_image(feat, width, height), _to_image(jnp.minimum(tmin, 1.0), width, height))
+    return out, (carry, acc)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8))
@@ -165,69 +185,64 @@ def composite(means2d, conics, opacities, features, gids, tile, first, width, he
     Returns:
       (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
     """
-    return _forward(means2d, conics, opacities, features, gids, tile, first, width, height)
+    return _forward(means2d, conics, opacities, features, gids, tile, first, width, height)[0]
 
 
 def _composite_fwd(means2d, conics, opacities, features, gids, tile, first, width, height):
-    out = _forward(means2d, conics, opacities, features, gids, tile, first, width, height)
-    return out, (means2d, conics, opacities, features, gids, tile, first, out[0], out[1])
+    out, (carry, acc) = _forward(means2d, conics, opacities, features, gids, tile, first,
+                                 width, height)
+    return out, (means2d, conics, opacities, features, gids, tile, first, carry, acc, out[0], out[1])
 
 
 def _composite_bwd(width, height, res, cts):
-    means2d, conics, opacities, features, gids, tile, first, feat_img, trans_img = res
+    means2d, conics, opacities, features, gids, tile, first, carry, acc, feat_img, trans_img = res
     g_feat, g_trans = cts
-    tiles_x, tiles_y = grid_shape(width, height)
-    num_tiles = tiles_x * tiles_y
-    dtype = means2d.dtype
+    tiles_x, _ = grid_shape(width, height)
     c = means2d.shape[0]
 
-    # Per-pixel quantities in tile layout, one extra zero tile for unused chunks.
     def per_chunk(img):
         t = _to_tiles(img, width, height)
-        t = jnp.concatenate([t, jnp.zeros_like(t[:1])], 0)
-        return t[tile]
+        return jnp.concatenate([t, jnp.zeros_like(t[:1])], 0)[tile]
 
     g_f = per_chunk(g_feat)  # [NC, 256, F]
-    g_t = per_chunk(g_trans)  # [NC, 256]
-    t_fin = per_chunk(trans_img)  # [NC, 256]
+    g_tfin = per_chunk(g_trans * trans_img)  # [NC, 256]: dL/dT_final * T_final
     g_total = per_chunk(jnp.sum(g_feat * feat_img, -1))  # [NC, 256]: g . F_total
+    # g . (features of the tile's earlier chunks), per pixel.
+    prefix = _seg_scan(jnp.sum(g_f * acc, -1), first, jnp.add, 0.0)
 
-    px, py = _pixel_centres(tile, tiles_x, dtype)
-    m, con, op = _gather(means2d, conics, opacities, gids)
-    safe = jnp.where(gids >= 0, gids, 0)
-    f = features[safe]
-    dx, dy, vis, raw, alpha = _alpha_terms(m, con, op, px, py)
-    t_before, _, blended = _transmittance(alpha, first)
-    w = jnp.where(blended, alpha * t_before, 0.0)
+    px, py = _pixel_centres(tile, tiles_x, means2d.dtype)
+    params = _chunk_params(means2d, conics, opacities, features, gids)
 
-    s = jnp.einsum("nkf,npf->nkp", f, g_f)  # g . f_i per pixel
-    ws = w * s
-    local = jnp.cumsum(ws, axis=1)
-    prefix = _seg_scan(local[:, -1], first, jnp.add, 0.0)  # [NC, 256]
-    incl = prefix[:, None] + local
-    inv = 1.0 / (1.0 - alpha)
-    d_alpha = t_before * s - (g_total[:, None] - incl) * inv - (g_t * t_fin)[:, None] * inv
-    d_alpha = jnp.where(blended & (alpha > 0) & (raw < ALPHA_MAX), d_alpha, 0.0)
+    def step(state, x):
+        t, run = state
+        mk, ck, ok, fk = x
+        dx, dy, vis, raw, alpha = _alpha(mk, ck, ok, px, py)
+        t_after = t * (1.0 - alpha)
+        blended = t_after >= T_MIN
+        w = jnp.where(blended, alpha * t, 0.0)
+        s = jnp.einsum("nf,npf->np", fk, g_f)  # g . f_i per pixel
+        run = run + w * s  # g . (features up to and including this pair)
+        inv = 1.0 / (1.0 - alpha)
+        d_alpha = t * s - (g_total - run + g_tfin) * inv
+        d_raw = jnp.where(blended & (alpha > 0) & (raw < ALPHA_MAX), d_alpha, 0.0)
+        d_pow = d_raw * raw
+        a, b, cc = ck[:, 0, None], ck[:, 1, None], ck[:, 2, None]
+        d_con = jnp.stack([jnp.sum(d_pow * dx * dx, -1) * -0.5, -jnp.sum(d_pow * dx * dy, -1),
+                           jnp.sum(d_pow * dy * dy, -1) * -0.5], -1)
+        d_m = -jnp.stack([jnp.sum(d_pow * (a * dx + b * dy), -1),
+                          jnp.sum(d_pow * (cc * dy + b * dx), -1)], -1)
+        d_op = jnp.sum(d_raw * vis, -1)
+        d_f = jnp.einsum("np,npf->nf", w, g_f)
+        return (t_after, run), (d_m, d_con, d_op, d_f)
 
-    d_feat = jnp.einsum("nkp,npf->nkf", w, g_f)
-    d_op = jnp.sum(d_alpha * vis, -1)
-    d_pow = d_alpha * raw
-    a, b, cc = con[:, :, None, 0], con[:, :, None, 1], con[:, :, None, 2]
-    d_a = jnp.sum(d_pow * (-0.5) * dx * dx, -1)
-    d_b = jnp.sum(d_pow * (-dx * dy), -1)
-    d_c = jnp.sum(d_pow * (-0.5) * dy * dy, -1)
-    d_mx = jnp.sum(d_pow * -(a * dx + b * dy), -1)
-    d_my = jnp.sum(d_pow * -(cc * dy + b * dx), -1)
-
-    seg = jnp.where(gids >= 0, gids, c).reshape(-1)
+    _, (d_m, d_con, d_op, d_f) = jax.lax.scan(step, (carry, prefix), params)
+    seg = jnp.where(gids >= 0, gids, c).T.reshape(-1)
 
     def scatter(v):
         v = v.reshape((seg.shape[0],) + v.shape[2:])
         return jax.ops.segment_sum(v, seg, num_segments=c + 1)[:c]
 
-    d_means = scatter(jnp.stack([d_mx, d_my], -1))
-    d_conics = scatter(jnp.stack([d_a, d_b, d_c], -1))
-    return (d_means, d_conics, scatter(d_op), scatter(d_feat), None, None, None)
+    return (scatter(d_m), scatter(d_con), scatter(d_op), scatter(d_f), None, None, None)
 
 
 composite.defvjp(_composite_fwd, _composite_bwd)
