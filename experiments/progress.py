@@ -25,6 +25,7 @@ between jitted steps.
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import sys
 import threading
@@ -34,6 +35,9 @@ from typing import Callable, Iterable, TextIO
 MODES = ("bar", "log", "off")
 
 _settings = {"mode": None, "stream": None, "log_interval": None, "quiet": False}
+# Bars that new parentless bars nest under (see :func:`nested`): lets a command that
+# calls other commands (``demo``) show their bars inside its own.
+_ambient: list["Progress"] = []
 
 
 def configure(*, quiet: bool = False, mode: str | None = None, stream: TextIO | None = None,
@@ -90,6 +94,8 @@ class Progress:
             raise ValueError(f"total must be >= 0, got {total}")
         self.total = total
         self.desc = desc
+        if parent is None and _ambient and not _ambient[-1].closed:
+            parent = _ambient[-1]
         self.parent = parent
         self.n = 0
         self.postfix: dict = {}
@@ -284,6 +290,16 @@ class Progress:
                 root._write(done + "\n")
 
 
+@contextlib.contextmanager
+def nested(bar: Progress):
+    """Within this block, bars created without a parent become children of ``bar``."""
+    _ambient.append(bar)
+    try:
+        yield bar
+    finally:
+        _ambient.remove(bar)
+
+
 def track(iterable: Iterable, total: int | None = None, desc: str = "",
           parent: Progress | None = None):
     """``for x in track(items, desc="views"):`` -- a bar over an iterable."""
@@ -292,4 +308,4 @@ def track(iterable: Iterable, total: int | None = None, desc: str = "",
     return Progress(total, desc, parent=parent).track(iterable)
 
 
-__all__ = ["MODES", "Progress", "configure", "format_seconds", "track"]
+__all__ = ["MODES", "Progress", "configure", "format_seconds", "nested", "track"]

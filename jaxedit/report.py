@@ -178,13 +178,12 @@ def _turntable_uri(path: Path, turntable_px: int, max_frames: int) -> str | None
     """The turntable WebP inlined; re-encoded smaller when it is large."""
     from PIL import Image
 
-    from .viz import encode_webp, read_webp_frames
+    from .viz import encode_webp, read_webp
 
     if not path.is_file():
         return None
-    frames = read_webp_frames(path)
-    with Image.open(path) as im:
-        seconds = len(frames) * float(im.info.get("duration") or 83) / 1000.0
+    frames, durations = read_webp(path)
+    seconds = float(durations.sum()) / 1000.0 or len(frames) / 12.0
     if frames.shape[1] <= turntable_px and frames.shape[2] <= turntable_px and len(frames) <= max_frames:
         return data_uri(path.read_bytes(), "image/webp")
     frames = frames[np.round(np.linspace(0, len(frames), min(len(frames), max_frames),

@@ -293,16 +293,18 @@ def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
 def frame_gaussians(gaussians, *, fov_deg: float = 40.0) -> tuple[np.ndarray, float]:
     """(target float [3], radius) that fit the live Gaussians in a ``fov_deg`` view.
 
-    The target is the opacity-weighted median of the live means, the extent the
-    95th percentile of their distances to it (robust to floaters).
+    The target is the median of the live means, the extent the 95th percentile
+    of their distances to it plus their 3-sigma footprint (robust to floaters).
     """
     alive = np.asarray(gaussians.alive, bool)
     if not alive.any():
         raise DataError("gaussians", "no live Gaussians to frame")
     means = np.asarray(gaussians.means, np.float64)[alive]
+    sigma = np.exp(np.asarray(gaussians.log_scales, np.float64)[alive]).max(axis=-1)
     target = np.median(means, axis=0)
-    extent = float(np.percentile(np.linalg.norm(means - target, axis=-1), 95))
-    radius = 1.15 * max(extent, 1e-6) / np.sin(np.radians(fov_deg) / 2)
+    reach = np.linalg.norm(means - target, axis=-1) + 3.0 * np.minimum(sigma, 1e6)
+    extent = float(np.percentile(reach, 95))
+    radius = 1.05 * max(extent, 1e-6) / np.sin(np.radians(fov_deg) / 2)
     return target, float(radius)
 
 
@@ -422,19 +424,29 @@ def write_turntable(path, frames, fps: float = 12.0, *, mp4: bool | None = None)
     return written
 
 
-def read_webp_frames(path) -> np.ndarray:
-    """uint8 [F, H, W, 3], the frames of an (animated) WebP file."""
+def read_webp(path) -> tuple[np.ndarray, np.ndarray]:
+    """Frames uint8 [F, H, W, 3] and their durations in ms int [F] of a WebP file."""
     from PIL import Image, ImageSequence
 
     path = Path(path)
     try:
+        frames, durations = [], []
         with Image.open(path) as im:
-            return np.stack([np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(im)])
+            for f in ImageSequence.Iterator(im):
+                f.load()  # Pillow fills in the frame's duration when it decodes it
+                frames.append(np.asarray(f.convert("RGB")))
+                durations.append(int(f.info.get("duration") or 0))
+        return np.stack(frames), np.asarray(durations)
     except (OSError, ValueError) as e:
         raise DataError(path, f"cannot read WebP ({e})") from None
 
 
+def read_webp_frames(path) -> np.ndarray:
+    """uint8 [F, H, W, 3], the frames of an (animated) WebP file."""
+    return read_webp(path)[0]
+
+
 __all__ = ["colorize_depth", "depth_range", "encode_webp", "frame_cameras", "frame_gaussians",
-           "image_grid", "mp4_available", "read_webp_frames", "render_views", "to_uint8",
+           "image_grid", "mp4_available", "read_webp", "read_webp_frames", "render_views", "to_uint8",
            "turntable", "write_snapshot", "write_turntable"]
 

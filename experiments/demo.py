@@ -1,0 +1,181 @@
+"""``demo``: the README's first command, end to end on the built-in ``face`` scene.
+
+    python -m experiments demo --out runs/demo
+
+Stages (each the in-process call of the command of the same name, so each
+stage directory is a complete, reproducible run directory of that command)::
+
+    RUN_DIR/data/          make-scene face        (a nerfstudio dataset)
+    RUN_DIR/reconstruct/   reconstruct            (scene.ply, test renders, metrics.json)
+    RUN_DIR/edit/          edit --editor simulated (schedule.json, subtasks/, report.html)
+    RUN_DIR/report.html    the edit's report, with the demo's stage timings
+    RUN_DIR/metrics.json   time of each stage, time per subtask, the edit's metrics
+
+The default sizes are chosen to finish in under 10 minutes on a 2-core CPU.
+``--reuse`` skips the stages whose outputs already exist (e.g. to re-run only the
+edit with another ``--threshold``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import time
+from pathlib import Path
+
+HELP = "make the face scene, reconstruct it, edit it progressively (simulated editor), write the report"
+
+STAGES = ("make-scene", "reconstruct", "edit")
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--scene-name", default="face", help="built-in scene to use")
+    p.add_argument("--prompt", default=None,
+                   help="instruction (default: the simulated editor's first instruction)")
+    p.add_argument("--size", type=int, default=64, help="image size of the scene's views")
+    p.add_argument("--views", type=int, default=32, help="training views")
+    p.add_argument("--test-views", type=int, default=4, help="held-out test views")
+    p.add_argument("--iters", type=int, default=1500, help="reconstruction iterations")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="subtask difficulty threshold (default: the edit command's)")
+    p.add_argument("--subtasks", type=int, default=None,
+                   help="uniform schedule of N subtasks instead of the difficulty-aware one")
+    p.add_argument("--mode", choices=["proedit", "nd", "in2n"], default="proedit",
+                   help="editing mode")
+    p.add_argument("--edit-arg", action="append", default=[], metavar="FLAG=VALUE",
+                   help="extra flag for the edit stage, e.g. --edit-arg max-steps=300 (repeatable)")
+    p.add_argument("--reuse", action="store_true",
+                   help="skip stages whose outputs already exist in RUN_DIR")
+
+
+def _require_commands() -> None:
+    """Fail loudly, before any work, when a stage's command is not installed."""
+    missing = [name for name in STAGES
+               if importlib.util.find_spec(f"experiments.{name.replace('-', '_')}") is None]
+    if missing:
+        raise RuntimeError(f"demo needs the command(s) {', '.join(missing)} "
+                           f"(experiments/{missing[0].replace('-', '_')}.py is missing)")
+
+
+def _stage_argv(command: str, flags: dict) -> list[str]:
+    """argv for a stage, keeping only flags its parser knows (None values dropped)."""
+    from experiments import cli
+    from jaxedit import DataError
+
+    parser = cli.build_parser()
+    sub = parser._subparsers._group_actions[0].choices[command]
+    known = {s for a in sub._actions for s in a.option_strings}
+    argv = [command]
+    for flag, value in flags.items():
+        if value is None or value is False:
+            continue
+        if flag.startswith("--") and flag not in known:
+            raise DataError(flag, f"the {command} command has no such flag")
+        if value is True:
+            argv.append(flag)
+        elif flag.startswith("--"):
+            argv += [flag, str(value)]
+        else:  # positional
+            argv.append(str(value))
+    return argv
+
+
+def _run_stage(argv: list[str]) -> dict:
+    """Parse and run one command in this process, as ``python -m experiments`` would."""
+    from experiments import cli
+
+    try:
+        args = cli.parse(argv)
+    except SystemExit as e:  # argparse already printed its one-line error
+        from jaxedit import DataError
+
+        raise DataError(argv[0], f"bad flags for this stage: {' '.join(argv[1:])}") from e
+    cli.write_run_config(args)
+    return args._module.run(args) or {}
+
+
+def _default_prompt() -> str:
+    from jaxedit.edit.simulated import SimulatedEditor
+
+    return SimulatedEditor().instructions[0]
+
+
+def _edit_extra(pairs: list[str]) -> dict:
+    from jaxedit import DataError
+
+    extra = {}
+    for pair in pairs:
+        flag, sep, value = pair.partition("=")
+        if not flag:
+            raise DataError("--edit-arg", f"expected FLAG=VALUE, got {pair!r}")
+        extra["--" + flag.lstrip("-")] = value if sep else True
+    return extra
+
+
+def run(args) -> dict:
+    from experiments.progress import Progress, configure, nested
+    from jaxedit import DataError
+    from jaxedit.io.files import atomic_write_text
+    from jaxedit.report import read_json, write_report
+
+    if args.out is None:  # the README's default; record its config like any run dir
+        from experiments import cli
+
+        args.out = Path("runs/demo")
+        cli.write_run_config(args)
+    out = Path(args.out)
+    for name in ("size", "views", "test_views", "iters"):
+        if getattr(args, name) < 1:
+            raise DataError(f"--{name.replace('_', '-')}", f"must be >= 1, got {getattr(args, name)}")
+    _require_commands()
+    configure(quiet=args.quiet)
+    prompt = args.prompt or _default_prompt()
+    common = {"--seed": args.seed, "--quiet": args.quiet}
+    data, recon, edit = out / "data", out / "reconstruct", out / "edit"
+    plans = [
+        ("make-scene", data / "transforms.json", _stage_argv("make-scene", {
+            "name": args.scene_name, "--out": data, "--size": args.size, "--views": args.views,
+            "--test-views": args.test_views, **common})),
+        ("reconstruct", recon / "scene.ply", _stage_argv("reconstruct", {
+            "--data": data, "--out": recon, "--iters": args.iters, **common})),
+        ("edit", edit / "schedule.json", _stage_argv("edit", {
+            "--data": data, "--scene": recon / "scene.ply", "--prompt": prompt,
+            "--editor": "simulated", "--mode": args.mode, "--threshold": args.threshold,
+            "--subtasks": args.subtasks, "--out": edit, **common, **_edit_extra(args.edit_arg)})),
+    ]
+    seconds: dict[str, float] = {}
+    t_start = time.perf_counter()
+    with Progress(len(plans), "demo") as bar, nested(bar):
+        for name, product, argv in plans:
+            bar.set_postfix(stage=name)
+            if args.reuse and product.exists():
+                seconds[name] = 0.0
+            else:
+                t0 = time.perf_counter()
+                _run_stage(argv)
+                seconds[name] = round(time.perf_counter() - t0, 2)
+                if not product.exists():
+                    raise RuntimeError(f"stage {name} finished without writing {product}")
+            bar.update(1)
+
+    schedule = read_json(edit / "schedule.json")
+    recon_metrics = read_json(recon / "metrics.json", required=False) or {}
+    edit_metrics = read_json(edit / "metrics.json", required=False) or {}
+    subtask_seconds = {s.get("name", str(i)): s.get("seconds")
+                       for i, s in enumerate(schedule.get("subtasks", []))}
+    total = round(time.perf_counter() - t_start, 2)
+    metrics = {
+        "prompt": prompt, "scene": args.scene_name, "total_s": total, "stage_s": seconds,
+        "subtask_s": subtask_seconds,
+        "reconstruct": {k: v for k, v in recon_metrics.items()
+                        if k in ("test_psnr", "test_ssim", "num_gaussians", "wall_time_s")},
+        "edit": edit_metrics,
+    }
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    notes = {"demo total (s)": total,
+             **{f"stage {k} (s)": v for k, v in seconds.items()},
+             "reconstruction test PSNR (dB)": recon_metrics.get("test_psnr")}
+    write_report(edit)  # the edit's own page, next to its data
+    report = write_report(edit, out=out / "report.html", notes=notes,
+                          title=f"jaxedit demo: {prompt}")
+    return {"report": str(report), **metrics}
