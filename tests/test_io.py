@@ -17,9 +17,11 @@ from hypothesis.extra import numpy as hnp
 from jaxedit import camera as camlib
 from jaxedit import gaussians as G
 from jaxedit.camera import Camera
+from jaxedit import sh as shlib
 from jaxedit.io import (Distortion, distort_points, load_nerfstudio, load_ply, load_points_ply,
-                        read_image, save_nerfstudio, save_ply, save_points_ply, transform_cameras,
-                        transform_points, undistort_points, write_image)
+                        read_image, rotate_sh, save_nerfstudio, save_ply, save_points_ply,
+                        transform_cameras, transform_gaussians, transform_points, undistort_points,
+                        write_image)
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -434,3 +436,66 @@ def test_opencv_images_undistorted_exactly(tmp_path):
     err = np.abs(img[interior] - pinhole[interior]).max()
     assert err < 4e-3  # bilinear resampling error only
     assert np.abs(captured[interior] - pinhole[interior]).max() > 10 * err  # distortion was real
+
+
+# ---------------------------------------------------------------------------
+# similarity transforms of Gaussians (mapping results back to the original world)
+
+def _similarity(seed):
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=4)
+    rot = np.asarray(G.quat_to_rotmat(jnp.asarray(q / np.linalg.norm(q))), np.float64)
+    m = np.eye(4)
+    m[:3, :3] = 2.5 * rot
+    m[:3, 3] = rng.normal(size=3)
+    return m, rot, 2.5
+
+
+def test_transform_gaussians_geometry_and_view_dependent_colour():
+    m, rot, s = _similarity(7)
+    rng = np.random.default_rng(8)
+    g = _random_gaussians(rng, 6, 3, capacity=6)
+    g = dataclasses.replace(g, sh=g.sh * 0.3)
+    t = transform_gaussians(g, m)
+    np.testing.assert_allclose(np.asarray(t.means), transform_points(np.asarray(g.means), m), atol=1e-5)
+    cov, cov_t = np.asarray(g.covariances(), np.float64), np.asarray(t.covariances(), np.float64)
+    np.testing.assert_allclose(cov_t, s * s * rot @ cov @ rot.T, rtol=1e-4, atol=1e-9)
+    # The colour seen along d before is the colour seen along R d after.
+    d = rng.normal(size=(6, 3))
+    before = np.asarray(shlib.evaluate(g.sh, jnp.asarray(d, jnp.float32)))
+    after = np.asarray(shlib.evaluate(t.sh, jnp.asarray(d @ rot.T, jnp.float32)))
+    np.testing.assert_allclose(after, before, atol=2e-5)
+    assert np.abs(after - np.asarray(shlib.evaluate(g.sh, jnp.asarray(d @ rot.T, jnp.float32)))).max() > 1e-3
+    # And back again.
+    back = transform_gaussians(t, np.linalg.inv(m))
+    for f in ("means", "log_scales", "sh"):
+        np.testing.assert_allclose(np.asarray(getattr(back, f)), np.asarray(getattr(g, f)), atol=2e-5)
+    np.testing.assert_allclose(np.asarray(back.covariances()), cov, rtol=1e-4, atol=1e-9)
+
+
+def test_rotate_sh_identity_and_dc_invariant():
+    rng = np.random.default_rng(9)
+    sh = rng.normal(size=(4, 16, 3))
+    np.testing.assert_allclose(rotate_sh(sh, np.eye(3)), sh, atol=1e-6)
+    _, rot, _ = _similarity(3)
+    out = rotate_sh(sh, rot)
+    np.testing.assert_allclose(out[:, 0], sh[:, 0], atol=1e-6)  # DC has no direction
+    # Rotations preserve the energy of each band.
+    for band in range(4):
+        sl = slice(band * band, (band + 1) ** 2)
+        np.testing.assert_allclose(np.linalg.norm(out[:, sl], axis=1),
+                                   np.linalg.norm(sh[:, sl], axis=1), rtol=1e-5)
+
+
+def test_dataset_maps_gaussians_back_to_original_world(tmp_path):
+    cams, imgs, rng = _scene(n=6)
+    save_nerfstudio(tmp_path / "ds", imgs, cams)
+    ds = load_nerfstudio(tmp_path / "ds", normalize="nerfstudio")
+    g = _random_gaussians(rng, 5, 1, capacity=5)
+    g = dataclasses.replace(g, means=jnp.asarray(transform_points(np.asarray(g.means), ds.world_transform),
+                                                 jnp.float32))
+    orig = ds.to_original_gaussians(g)
+    # A Gaussian projects to the same pixel in both worlds.
+    uv_n, _ = ds.cameras[2].project(g.means)
+    uv_o, _ = cams[2].project(orig.means)
+    np.testing.assert_allclose(np.asarray(uv_n), np.asarray(uv_o), atol=1e-3)

@@ -102,9 +102,9 @@ def bilinear_sample(image: np.ndarray, u: np.ndarray, v: np.ndarray, fill) -> np
     Returns float [*u.shape, C].
     """
     h, w = image.shape[:2]
-    inside = (u >= 0.0) & (u <= w) & (v >= 0.0) & (v <= h)
-    fx = np.clip(u - 0.5, 0.0, w - 1.0)
-    fy = np.clip(v - 0.5, 0.0, h - 1.0)
+    inside = (u >= 0.0) & (u <= w) & (v >= 0.0) & (v <= h)  # False for NaN too
+    fx = np.clip(np.where(inside, u, 0.5) - 0.5, 0.0, w - 1.0)
+    fy = np.clip(np.where(inside, v, 0.5) - 0.5, 0.0, h - 1.0)
     x0 = np.minimum(np.floor(fx).astype(np.int64), w - 1)
     y0 = np.minimum(np.floor(fy).astype(np.int64), h - 1)
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
@@ -132,6 +132,7 @@ def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: floa
     h, w = image.shape[:2]
     v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
     xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)
-    xy_d = distort_points(xy, d)
+    with np.errstate(over="ignore", invalid="ignore"):  # absurd coefficients -> fill
+        xy_d = distort_points(xy, d)
     us, vs = xy_d[..., 0] * fx + cx, xy_d[..., 1] * fy + cy
     return bilinear_sample(np.asarray(image, np.float64), us, vs, fill).astype(np.float32)

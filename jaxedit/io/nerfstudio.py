@@ -36,7 +36,6 @@ Every problem raises :class:`DataError` naming the file or field.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -49,13 +48,15 @@ import numpy as np
 
 from ..camera import Camera, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
 from ..errors import DataError
+from ..gaussians import Gaussians
 from .distortion import Distortion, undistort_image
 from .images import read_image, write_image
 from .ply import load_points_ply, save_points_ply
+from .similarity import transform_cameras, transform_gaussians, transform_points
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_RIGID_TOL = 1e-3
+_RIGID_TOL = 1e-3  # max |R^T R - I| accepted as a rotation
 NORMALIZE_MODES = ("none", "nerfstudio")
 
 
@@ -110,54 +111,13 @@ class Dataset:
         """Cameras in the normalised world -> the same cameras in the original world."""
         return transform_cameras(cameras, np.linalg.inv(self.world_transform))
 
+    def to_original_gaussians(self, gaussians: Gaussians) -> Gaussians:
+        """A scene fitted in the normalised world -> the dataset's original world."""
+        return transform_gaussians(gaussians, np.linalg.inv(self.world_transform))
+
 
 # ---------------------------------------------------------------------------
-# Similarity transforms of the world
-
-
-def _split_similarity(matrix) -> tuple[np.ndarray, float, np.ndarray]:
-    """4x4 similarity [sR | t] -> (R [3, 3], s, t [3]); DataError if it is not one."""
-    m = np.asarray(matrix, np.float64)
-    if m.shape != (4, 4) or not np.isfinite(m).all():
-        raise DataError("world_transform", f"expected a finite 4x4 matrix, got shape {list(m.shape)}")
-    a = m[:3, :3]
-    det = np.linalg.det(a)
-    if det <= 0:
-        raise DataError("world_transform", "not a similarity (determinant <= 0)")
-    s = float(np.cbrt(det))
-    r = a / s
-    if np.abs(r.T @ r - np.eye(3)).max() > _RIGID_TOL or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
-        raise DataError("world_transform", "not a similarity (rotation part is not orthogonal)")
-    return r, s, m[:3, 3]
-
-
-def transform_points(points, matrix) -> np.ndarray:
-    """Apply a 4x4 similarity to float [..., 3] points (returns float64 [..., 3])."""
-    m = np.asarray(matrix, np.float64)
-    p = np.asarray(points, np.float64)
-    return p @ m[:3, :3].T + m[:3, 3]
-
-
-def transform_cameras(cameras: Camera, matrix) -> Camera:
-    """The same physical cameras after the world is mapped by the similarity ``matrix``.
-
-    A world point p becomes ``matrix @ p``; camera rotations follow, camera
-    centres move with the points, intrinsics are unchanged (a uniformly scaled
-    scene seen from a scaled position gives the same image).
-    """
-    r, s, t = _split_similarity(matrix)
-    w2c = np.asarray(cameras.world_to_camera, np.float64)
-    # Old: x = R_c p + t_c. New world q = s R p + t, so p = R^T (q - t) / s and,
-    # measuring camera coordinates in the new units (x' = s x, same pixels):
-    # x' = (R_c R^T) q + (s t_c - R_c R^T t).
-    rc, tc = w2c[..., :3, :3], w2c[..., :3, 3]
-    new_r = rc @ r.T
-    new_t = s * tc - np.einsum("...ij,j->...i", new_r, t)
-    out = np.zeros_like(w2c)
-    out[..., :3, :3] = new_r
-    out[..., :3, 3] = new_t
-    out[..., 3, 3] = 1.0
-    return dataclasses.replace(cameras, world_to_camera=out.astype(np.float32))
+# nerfstudio's normalisation
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -242,7 +202,10 @@ def _load_meta(path: Path) -> dict:
     return meta
 
 
-def _number(path: Path, field: str, value, *, positive=False, integer=False) -> float:
+_MAX_VALUE = 1e30  # larger values cannot be real intrinsics or poses (and overflow float32)
+
+
+def _number(path: Path, field: str, value, *, positive=False, integer=False, bound=False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise DataError(path, f"{field} must be a number, got {json.dumps(value)[:40]}")
     try:
@@ -253,6 +216,8 @@ def _number(path: Path, field: str, value, *, positive=False, integer=False) -> 
         raise DataError(path, f"{field} has a non-finite value ({value})")
     if positive and value <= 0:
         raise DataError(path, f"{field} must be positive, got {value}")
+    if bound and abs(value) > _MAX_VALUE:
+        raise DataError(path, f"{field} is implausibly large ({value:g})")
     if integer and value != int(value):
         raise DataError(path, f"{field} must be a whole number, got {value}")
     return value
@@ -293,14 +258,16 @@ def _intrinsics(path: Path, meta: dict, frame: dict, where: str) -> _Intrinsics:
             raise DataError(path, f"missing intrinsic '{key}' (neither in {where} nor at top level)")
         return _number(path, field, value, **kw)
 
-    fx = required("fl_x", positive=True)
+    fx = required("fl_x", positive=True, bound=True)
     if model == "SIMPLE_PINHOLE" and get("fl_y")[0] is None:
         fy = fx
     else:
-        fy = required("fl_y", positive=True)
-    cx, cy = required("cx"), required("cy")
-    w, h = int(required("w", positive=True, integer=True)), int(required("h", positive=True, integer=True))
-    coeffs = {k: 0.0 if v is None else _number(path, f, v) for k, (v, f) in dist_given.items()}
+        fy = required("fl_y", positive=True, bound=True)
+    cx, cy = required("cx", bound=True), required("cy", bound=True)
+    w = int(required("w", positive=True, integer=True, bound=True))
+    h = int(required("h", positive=True, integer=True, bound=True))
+    coeffs = {k: 0.0 if v is None else _number(path, f, v, bound=True)
+              for k, (v, f) in dist_given.items()}
     distortion = Distortion(**coeffs)
     if model != "OPENCV" and not distortion.is_zero():
         raise DataError(path, f"{model_field}: camera model {model} declares non-zero distortion "
@@ -317,7 +284,7 @@ def _pose(path: Path, frame: dict, where: str) -> np.ndarray:
                 and all(isinstance(row, list) and len(row) == 4 for row in raw))
     if not shape_ok:
         raise DataError(path, f"{field} must be a 4x4 (or 3x4) list of lists of numbers")
-    m = np.array([[_number(path, field, x) for x in row] for row in raw], np.float64)
+    m = np.array([[_number(path, field, x, bound=True) for x in row] for row in raw], np.float64)
     if not np.isfinite(m).all():
         raise DataError(path, f"{field} has non-finite values")
     if m.shape == (3, 4):

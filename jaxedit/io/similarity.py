@@ -1,0 +1,171 @@
+"""Similarity transforms of the world (q = s R p + t) applied to points, cameras, Gaussians.
+
+Datasets may be normalised on load (nerfstudio's orient/centre/scale); these
+functions map anything made in the normalised world back to the original one
+(pass the inverse of ``Dataset.world_transform``) or vice versa.
+
+Gaussians need more than their means moved: rotations compose with R, log-scales
+shift by log s, and view-dependent colour must follow the rotation, so every SH
+band l is multiplied by its (2l+1)x(2l+1) rotation matrix. We get that matrix by
+least squares on the SH basis itself (exact, since each band is closed under
+rotation), so it is correct for whatever sign convention ``jaxedit.sh`` uses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import sh as shlib
+from ..camera import Camera
+from ..errors import DataError
+from ..gaussians import Gaussians
+
+_RIGID_TOL = 1e-3
+# One compiled basis per SH degree (the direction set has a fixed shape).
+_basis = jax.jit(shlib.basis, static_argnums=0)
+
+
+def split_similarity(matrix) -> tuple[np.ndarray, float, np.ndarray]:
+    """4x4 similarity [s R | t; 0 0 0 1] -> (R float64 [3, 3], s, t [3]).
+
+    Raises DataError if ``matrix`` is not a finite similarity with s > 0 and det R = +1.
+    """
+    m = np.asarray(matrix, np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise DataError("world_transform", f"expected a finite 4x4 matrix, got shape {list(m.shape)}")
+    a = m[:3, :3]
+    det = np.linalg.det(a)
+    if det <= 0:
+        raise DataError("world_transform", "not a similarity (determinant <= 0)")
+    s = float(np.cbrt(det))
+    r = a / s
+    if np.abs(r.T @ r - np.eye(3)).max() > _RIGID_TOL or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise DataError("world_transform", "not a similarity (rotation part is not orthogonal)")
+    return r, s, m[:3, 3]
+
+
+def transform_points(points, matrix) -> np.ndarray:
+    """Apply a 4x4 similarity to float [..., 3] points (returns float64 [..., 3])."""
+    m = np.asarray(matrix, np.float64)
+    p = np.asarray(points, np.float64)
+    return p @ m[:3, :3].T + m[:3, 3]
+
+
+def transform_cameras(cameras: Camera, matrix) -> Camera:
+    """The same physical cameras after the world is mapped by the similarity ``matrix``.
+
+    A world point p becomes ``matrix @ p``; camera rotations follow and camera
+    centres move with the points; intrinsics are unchanged (a scaled scene seen
+    from the scaled position gives the same image). Works on single or batched
+    cameras; returns float32 ``world_to_camera``.
+    """
+    r, s, t = split_similarity(matrix)
+    w2c = np.asarray(cameras.world_to_camera, np.float64)
+    # Old: x = R_c p + t_c. New world q = s R p + t, so p = R^T (q - t) / s and,
+    # measuring camera coordinates in the new units (x' = s x, same pixels):
+    # x' = (R_c R^T) q + (s t_c - R_c R^T t).
+    rc, tc = w2c[..., :3, :3], w2c[..., :3, 3]
+    new_r = rc @ r.T
+    new_t = s * tc - np.einsum("...ij,j->...i", new_r, t)
+    out = np.zeros_like(w2c)
+    out[..., :3, :3] = new_r
+    out[..., :3, 3] = new_t
+    out[..., 3, 3] = 1.0
+    return dataclasses.replace(cameras, world_to_camera=out.astype(np.float32))
+
+
+def rotmat_to_quat(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) float64 [4] of a rotation matrix [3, 3], w >= 0."""
+    r = np.asarray(r, np.float64)
+    tr = np.trace(r)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b of (w, x, y, z) quaternions, broadcasting over [..., 4]."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a, np.float64), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b, np.float64), -1, 0)
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
+                     aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+
+
+def _fibonacci_directions(n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+
+def sh_rotation_matrices(rotation: np.ndarray, degree: int) -> list[np.ndarray]:
+    """Per band l = 0..degree, the matrix X_l [2l+1, 2l+1] with Y_l(R^T d) = X_l^T Y_l(d).
+
+    Rotating a Gaussian by R keeps its appearance when band l of its SH
+    coefficients becomes ``X_l @ sh_l`` (see :func:`rotate_sh`).
+    """
+    r = np.asarray(rotation, np.float64)
+    dirs = _fibonacci_directions(64)
+    full = np.asarray(_basis(degree, jnp.asarray(dirs, jnp.float32)), np.float64)
+    full_rot = np.asarray(_basis(degree, jnp.asarray(dirs @ r, jnp.float32)), np.float64)
+    # The basis is evaluated in float32 (jax default); least squares over 64
+    # well-spread directions still gives the matrices to ~1e-7.
+    out = []
+    for band in range(degree + 1):
+        sl = slice(band * band, (band + 1) * (band + 1))
+        x, *_ = np.linalg.lstsq(full[:, sl], full_rot[:, sl], rcond=None)
+        out.append(x)
+    return out
+
+
+def rotate_sh(sh, rotation) -> np.ndarray:
+    """SH coefficients float [..., K, 3] of the same appearance after rotating the world by R.
+
+    If ``c(d)`` is the colour seen along direction d before, the result gives
+    ``c(R^T d')`` along d' = R d, i.e. the colour follows the rotation.
+    """
+    sh = np.asarray(sh, np.float64)
+    degree = shlib.degree_from_coeffs(sh.shape[-2])
+    out = np.empty_like(sh)
+    for band, x in enumerate(sh_rotation_matrices(rotation, degree)):
+        sl = slice(band * band, (band + 1) * (band + 1))
+        out[..., sl, :] = np.einsum("ij,...jc->...ic", x, sh[..., sl, :])
+    return out
+
+
+def transform_gaussians(g: Gaussians, matrix) -> Gaussians:
+    """The same scene after the world is mapped by the similarity ``matrix`` (q = s R p + t).
+
+    Means move, log-scales shift by log s, quaternions are pre-multiplied by R's
+    and the SH bands are rotated so view-dependent colour follows. Dead slots
+    are transformed too (harmlessly); ``alive`` is kept. Returns float32 arrays.
+    """
+    r, s, t = split_similarity(matrix)
+    means = transform_points(np.asarray(g.means), matrix)
+    q = np.asarray(g.quats, np.float64)
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), [1.0, 0.0, 0.0, 0.0])
+    quats = quat_multiply(rotmat_to_quat(r), q)
+    f32 = lambda a: jnp.asarray(np.asarray(a, np.float32))  # noqa: E731
+    return dataclasses.replace(
+        g, means=f32(means), log_scales=f32(np.asarray(g.log_scales, np.float64) + np.log(s)),
+        quats=f32(quats), sh=f32(rotate_sh(g.sh, r)))
