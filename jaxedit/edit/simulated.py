@@ -230,16 +230,28 @@ def _centroid_radius(mask):
     return cr, cc, rad
 
 
-def _random_field(key, h: int, w: int, channels: int, *, waves: int = 4, cycles: float = 1.2):
-    """Smooth random field float [H, W, channels], roughly N(0, 1) per pixel.
+def _normals(u):
+    """Standard normals from uniforms float [..., 2] in [0, 1) (Box-Muller) -> [...]."""
+    return jnp.sqrt(-2.0 * jnp.log1p(-u[..., 0])) * jnp.cos(2 * jnp.pi * u[..., 1])
 
-    A sum of ``waves`` random plane waves per channel with about ``cycles`` periods across the
-    image: low-frequency, like the colour casts and drifts of independent diffusion samples.
+
+FIELD_WAVES = 4
+
+
+def _random_field(u, h: int, w: int, *, cycles: float = 1.2):
+    """Smooth random field float [H, W, C], roughly N(0, 1) per pixel, from uniforms [C, waves, 5].
+
+    A sum of random plane waves per channel with about ``cycles`` periods across the image:
+    low-frequency, like the colour casts and drifts of independent diffusion samples. (All the
+    randomness of an edit is one uniform draw sliced up: one random-bits kernel to compile
+    instead of one per draw, which dominated the compile time.)
     """
-    kf, kp, ka = jax.random.split(key, 3)
-    freq = cycles * jax.random.normal(kf, (channels, waves, 2))
-    phase = jax.random.uniform(kp, (channels, waves), minval=0.0, maxval=2 * jnp.pi)
-    amp = jax.random.normal(ka, (channels, waves)) * math.sqrt(2.0 / waves)
+    waves = u.shape[1]
+    freq = cycles * jnp.stack([_normals(u[..., 0:2]),
+                               jnp.sqrt(-2.0 * jnp.log1p(-u[..., 0])) * jnp.sin(2 * jnp.pi * u[..., 1])],
+                              axis=-1)
+    phase = 2 * jnp.pi * u[..., 2]
+    amp = _normals(u[..., 3:5]) * math.sqrt(2.0 / waves)
     y = (jnp.arange(h) + 0.5) / max(h, w)
     x = (jnp.arange(w) + 0.5) / max(h, w)
     arg = 2 * jnp.pi * (freq[..., 0, None, None] * y[:, None] + freq[..., 1, None, None] * x[None, :])
@@ -319,10 +331,15 @@ def _bulge(original, mask, amount):
 BULGE_MAX = 0.35
 
 
-def _target_at_strength(original, s, kind: str, points=None):
-    """Target of strength s (s = 0: the original, s = 1: the full target) for one kind."""
+def _target_family(original, kind: str, points=None):
+    """s -> target of strength s (s = 0: the original, s = 1: the full target) for one kind.
+
+    What does not depend on s (the foreground mask, the full colour target) is computed once,
+    so the edit's two strengths (nominal and jittered) share it.
+    """
     if kind == "shape":
-        return _bulge(original, foreground(original), s * BULGE_MAX)
+        mask = foreground(original)
+        return lambda s: _bulge(original, mask, s * BULGE_MAX)
     if kind == "colour":
         full = _autumn(original)
     elif kind == "material":
@@ -333,7 +350,7 @@ def _target_at_strength(original, s, kind: str, points=None):
         full = _marble(original, foreground(original), points)
     else:
         raise ValueError(kind)
-    return jnp.clip(original + s * (full - original), 0.0, 1.0)
+    return lambda s: jnp.clip(original + s * (full - original), 0.0, 1.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -351,34 +368,38 @@ class _Params:
 @functools.partial(jax.jit, static_argnames=("kind", "params"))
 def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params: _Params):
     h, w, _ = image.shape
-    k_t, k_jit, k_warp, k_col, k_sm, k_px = jax.random.split(key, 6)
-    t = jax.random.uniform(k_t, (), minval=t_range[0], maxval=t_range[1])
+    nf = FIELD_WAVES * 5
+    sizes = (1, 2, 2 * nf, 3 * nf, 3 * nf, h * w * 3 * 2)
+    u = jax.random.uniform(key, (sum(sizes),), maxval=1.0 - 1e-7)
+    u_t, u_jit, u_warp, u_col, u_sm, u_px = jnp.split(u, np.cumsum(sizes)[:-1])
+    t = t_range[0] + (t_range[1] - t_range[0]) * u_t[0]
     keep = jnp.cos(0.5 * jnp.pi * jnp.clip(t, 0.0, 1.0))
 
-    target = _target_at_strength(original, s, kind, points)
+    family = _target_family(original, kind, points)
+    target = family(s)
     diff = jnp.abs(image - target)
     gap = jnp.mean(diff)
     local = _blur(jnp.mean(diff, axis=-1), max(h, w) / 16.0)
 
     # the edit of this view: a jittered strength, a displaced pattern, a colour cast
-    s_view = s * (1.0 + params.jitter * gscale * gap * jax.random.normal(k_jit, ()))
-    edited = _target_at_strength(original, s_view, kind, points)
-    disp = _random_field(k_warp, h, w, 2, cycles=0.8) * (params.shift * gscale * gap * max(h, w))
+    s_view = s * (1.0 + params.jitter * gscale * gap * _normals(u_jit))
+    edited = family(s_view)
+    disp = _random_field(u_warp.reshape(2, FIELD_WAVES, 5), h, w, cycles=0.8) * (params.shift * gscale * gap * max(h, w))
     rows, cols = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32),
                               indexing="ij")
     edited = _sample(edited, rows + disp[..., 0], cols + disp[..., 1])
-    cast = _random_field(k_col, h, w, 3) * (params.colour * gscale * (gap + local))[..., None]
+    cast = _random_field(u_col.reshape(3, FIELD_WAVES, 5), h, w) * (params.colour * gscale * (gap + local))[..., None]
     edited = edited + cast
 
-    floor = params.noise * (_random_field(k_sm, h, w, 3, cycles=2.0)
-                            + jax.random.normal(k_px, image.shape))
+    floor = params.noise * (_random_field(u_sm.reshape(3, FIELD_WAVES, 5), h, w, cycles=2.0)
+                            + _normals(u_px.reshape(h, w, 3, 2)))
     out = keep * image + (1.0 - keep) * (edited + floor)
     return jnp.clip(out, 0.0, 1.0).astype(jnp.float32)
 
 
 @functools.partial(jax.jit, static_argnames=("kind",))
 def _target_impl(original, s, points, *, kind):
-    return _target_at_strength(original, s, kind, points).astype(jnp.float32)
+    return _target_family(original, kind, points)(s).astype(jnp.float32)
 
 
 def _as_image(x, where: str) -> np.ndarray:
