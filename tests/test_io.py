@@ -6,6 +6,7 @@ import dataclasses
 import json
 import struct
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import OpenImageIO as oiio
@@ -441,10 +442,15 @@ def test_opencv_images_undistorted_exactly(tmp_path):
 # ---------------------------------------------------------------------------
 # similarity transforms of Gaussians (mapping results back to the original world)
 
+# Jitted once per module: eager jnp calls compile every primitive separately.
+_covariance = jax.jit(G.covariance)
+_sh_eval = jax.jit(shlib.evaluate)
+
+
 def _similarity(seed):
     rng = np.random.default_rng(seed)
-    q = rng.normal(size=4)
-    rot = np.asarray(G.quat_to_rotmat(jnp.asarray(q / np.linalg.norm(q))), np.float64)
+    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    rot *= np.sign(np.linalg.det(rot))  # a proper rotation
     m = np.eye(4)
     m[:3, :3] = 2.5 * rot
     m[:3, 3] = rng.normal(size=3)
@@ -458,19 +464,21 @@ def test_transform_gaussians_geometry_and_view_dependent_colour():
     g = dataclasses.replace(g, sh=g.sh * 0.3)
     t = transform_gaussians(g, m)
     np.testing.assert_allclose(np.asarray(t.means), transform_points(np.asarray(g.means), m), atol=1e-5)
-    cov, cov_t = np.asarray(g.covariances(), np.float64), np.asarray(t.covariances(), np.float64)
+    cov = np.asarray(_covariance(g.quats, g.log_scales), np.float64)
+    cov_t = np.asarray(_covariance(t.quats, t.log_scales), np.float64)
     np.testing.assert_allclose(cov_t, s * s * rot @ cov @ rot.T, rtol=1e-4, atol=1e-9)
     # The colour seen along d before is the colour seen along R d after.
     d = rng.normal(size=(6, 3))
-    before = np.asarray(shlib.evaluate(g.sh, jnp.asarray(d, jnp.float32)))
-    after = np.asarray(shlib.evaluate(t.sh, jnp.asarray(d @ rot.T, jnp.float32)))
+    before = np.asarray(_sh_eval(g.sh, jnp.asarray(d, jnp.float32)))
+    after = np.asarray(_sh_eval(t.sh, jnp.asarray(d @ rot.T, jnp.float32)))
     np.testing.assert_allclose(after, before, atol=2e-5)
-    assert np.abs(after - np.asarray(shlib.evaluate(g.sh, jnp.asarray(d @ rot.T, jnp.float32)))).max() > 1e-3
+    assert np.abs(after - np.asarray(_sh_eval(g.sh, jnp.asarray(d @ rot.T, jnp.float32)))).max() > 1e-3
     # And back again.
     back = transform_gaussians(t, np.linalg.inv(m))
     for f in ("means", "log_scales", "sh"):
         np.testing.assert_allclose(np.asarray(getattr(back, f)), np.asarray(getattr(g, f)), atol=2e-5)
-    np.testing.assert_allclose(np.asarray(back.covariances()), cov, rtol=1e-4, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(_covariance(back.quats, back.log_scales)), cov,
+                               rtol=1e-4, atol=1e-9)
 
 
 def test_rotate_sh_identity_and_dc_invariant():
