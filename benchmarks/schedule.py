@@ -52,6 +52,8 @@ def methods(max_depth: int):
         f"root@2^-{max_depth}": lambda d, thr: decompose_root(d, threshold=thr,
                                                               resolution=2.0 ** -max_depth),
         "root@2^-8": lambda d, thr: decompose_root(d, threshold=thr, resolution=2.0 ** -8),
+        "root@2^-8,b0": lambda d, thr: decompose_root(d, threshold=thr, resolution=2.0 ** -8,
+                                                      balance=0),
     }
 
 

@@ -121,7 +121,7 @@ root_increments = st.lists(st.floats(0.05, 1.0), min_size=KNOTS, max_size=KNOTS)
 def test_root_placement_properties(inc, threshold):
     d = monotone_difficulty(inc)
     res = 2.0 ** -8
-    s = decompose_root(d, threshold=threshold, resolution=res, prune=False)
+    s = decompose_root(d, threshold=threshold, resolution=res, balance=0, prune=False)
     check_schedule(s, d, threshold)
     assert not s.depth_limit_hit
     for a, b in zip(s.ratios, s.ratios[1:-1]):
@@ -130,10 +130,15 @@ def test_root_placement_properties(inc, threshold):
         assert abs(b / res - round(b / res)) < 1e-9  # on the grid
     # the greedy cover is never longer than the paper's decomposition at the same resolution
     assert s.num_subtasks <= decompose(d, threshold=threshold, max_depth=8).num_subtasks
-    assert decompose_root(d, threshold=threshold, resolution=res, prune=False) == s
-    pruned = decompose_root(d, threshold=threshold, resolution=res)
-    check_schedule(pruned, d, threshold)
-    assert_nothing_removable(pruned, d, threshold)
+    assert decompose_root(d, threshold=threshold, resolution=res, balance=0, prune=False) == s
+    # balancing keeps the count, never raises the largest difficulty, narrows the spread
+    balanced = decompose_root(d, threshold=threshold, resolution=res)
+    check_schedule(balanced, d, threshold)
+    assert_nothing_removable(balanced, d, threshold)
+    assert balanced.num_subtasks == s.num_subtasks
+    assert max(balanced.difficulties) <= max(s.difficulties)
+    assert min(balanced.difficulties) >= min(s.difficulties) - 1e-12
+    assert balanced.evaluations >= s.evaluations
 
 
 def test_root_placement_step_and_noise():

@@ -233,6 +233,63 @@ def _bracket_steps(resolution: float) -> int:
     return max(1, math.ceil(math.log2(1.0 / resolution))) + 1
 
 
+def _bisect_host(host: Callable[[float], float], lower: float, upper: float,
+                 resolution: float) -> tuple[float, float]:
+    """optimistix Bisection on a host function with host(lower) < 0 <= host(upper).
+
+    Returns the final bracket (lower, upper): host < 0 was observed at ``lower`` (or it is the
+    initial one). flip=False skips Bisection's sign-detection pass (the caller knows the
+    bracket). Bisection only reports success when |host| < atol, which a step-shaped or noisy
+    function may never reach, hence throw=False and bracket checks by the callers. Once the
+    bracket is below one grid cell every further step is a memo hit.
+    """
+    token = _NEXT_TOKEN[0] = _NEXT_TOKEN[0] + 1
+    _HOST_FNS[token] = host
+    try:
+        solver = optx.Bisection(rtol=0.0, atol=0.25 * resolution, flip=False)
+        sol = optx.root_find(_g, solver, jnp.float32(0.5 * (lower + upper)), args=jnp.int32(token),
+                             options={"lower": jnp.float32(lower), "upper": jnp.float32(upper)},
+                             throw=False, max_steps=_bracket_steps(resolution))
+        return float(sol.state.lower), float(sol.state.upper)
+    finally:
+        del _HOST_FNS[token]
+
+
+def _equalise(difficulty: DifficultyFn, cache: Mapping, a: float, x0: float, b: float,
+              resolution: float):
+    """Move the ratio x0 in (a, b) on the grid to where d(a, x) ~ d(x, b).
+
+    Bisection on h(x) = d(a, x) - d(x, b) (h(a) < 0 < h(b) for d > 0). The move is kept only
+    if it lowers max(d(a, x), d(x, b)), so a noisy d can never make a schedule worse and the
+    threshold invariant is kept. Returns (x, d(a, x), d(x, b), cache).
+    """
+    da, cache = _measure(difficulty, cache, a, x0)
+    db, cache = _measure(difficulty, cache, x0, b)
+    best = (max(da, db), x0, da, db)
+    if b - a < 2.5 * resolution:
+        return x0, da, db, cache
+    box = {"cache": cache}
+
+    def inside(y):
+        return min(max(_quantise(y, a, resolution), a + resolution), b - resolution)
+
+    def host(y):
+        x = inside(y)
+        d1, box["cache"] = _measure(difficulty, box["cache"], a, x)
+        d2, box["cache"] = _measure(difficulty, box["cache"], x, b)
+        return d1 - d2 if d1 != d2 else -1e-30
+
+    lo, hi = _bisect_host(host, a, b, resolution)
+    cache = box["cache"]
+    for y in (lo, hi):
+        x = inside(y)
+        d1, cache = _measure(difficulty, cache, a, x)
+        d2, cache = _measure(difficulty, cache, x, b)
+        if max(d1, d2) < best[0]:
+            best = (max(d1, d2), x, d1, d2)
+    return best[1], best[2], best[3], cache
+
+
 def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: float,
                 resolution: float, width_hint: float | None):
     """Largest grid ratio r' in (r, 1] found by bisection with d(r, r') <= threshold.
@@ -261,20 +318,8 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
         # when g < 0: map d == threshold to a tiny negative value
         return d - threshold if d > threshold else min(d - threshold, -1e-30)
 
-    token = _NEXT_TOKEN[0] = _NEXT_TOKEN[0] + 1
-    _HOST_FNS[token] = host
-    try:
-        # g(r) = -threshold < 0 < g(upper): a bracket, so flip=False skips Bisection's detection
-        # pass. Bisection only reports success when |g| < atol, which a step-shaped or noisy g
-        # may never reach, hence throw=False and the check below. Once the bracket is below one
-        # grid cell every further step is a memo hit.
-        solver = optx.Bisection(rtol=0.0, atol=0.25 * resolution, flip=False)
-        sol = optx.root_find(_g, solver, jnp.float32(0.5 * (r + upper)), args=jnp.int32(token),
-                             options={"lower": jnp.float32(r), "upper": jnp.float32(upper)},
-                             throw=False, max_steps=_bracket_steps(resolution))
-        lower = float(sol.state.lower)
-    finally:
-        del _HOST_FNS[token]
+    # g(r) = -threshold < 0 < g(upper): a bracket
+    lower, _ = _bisect_host(host, r, upper, resolution)
     cache = box["cache"]
     # state.lower only ever moves to points where g < 0 was observed (after quantisation);
     # verify anyway and walk down the grid if a float32 rounding moved it across the step
@@ -291,7 +336,7 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
 
 
 def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: float = 2.0 ** -8,
-                   max_subtasks: int = 64, prune: bool = True) -> Schedule:
+                   max_subtasks: int = 64, balance: int = 1, prune: bool = True) -> Schedule:
     """Greedy placement: each next ratio is the largest one within the threshold.
 
     From r_0 = 0, r_{i+1} = max{r' on the grid r_i + k * resolution : d(r_i, r') <= threshold},
@@ -302,6 +347,12 @@ def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: fl
     (the classic interval-cover argument) and every difficulty but the last is close to the
     threshold. ``depth_limit_hit`` reports a step taken at the grid resolution above the
     threshold, or ``max_subtasks`` reached (then the last step jumps to 1).
+
+    Greedy placement leaves the remainder in the last subtask, often a small one. ``balance``
+    backward sweeps then move each interior ratio, from the last to the first, to where its two
+    neighbouring difficulties are equal (bisection on d(r_{i-1}, x) - d(x, r_{i+1})), keeping a
+    move only when it lowers the larger of the two; this spreads the remainder over the
+    subtasks, never raises the maximum, and costs a few more editor calls (``balance=0``: none).
     """
     threshold = _check_threshold(threshold)
     resolution = float(resolution)
@@ -320,6 +371,10 @@ def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: fl
         ratios.append(nxt)
         diffs.append(d_next)
         hit = hit or step_hit
+    for _ in range(int(balance)):
+        for i in range(len(ratios) - 2, 0, -1):
+            ratios[i], diffs[i - 1], diffs[i], cache = _equalise(
+                difficulty, cache, ratios[i - 1], ratios[i], ratios[i + 1], resolution)
     ratios, diffs = tuple(ratios), tuple(diffs)
     if prune:
         ratios, diffs, cache = _prune(ratios, diffs, difficulty, threshold, cache)
