@@ -197,9 +197,9 @@ class InstructPix2PixEditor:
             raise DataError(f"{source or 'unet'}", f"UNet has in_channels="
                             f"{unet.config.in_channels}, not 8: not an InstructPix2Pix model; "
                             f"needs {HOW_TO_GET}")
-        self.unet = unet.to(self.device, self.dtype).eval().requires_grad_(False)
-        self.vae = vae.to(self.device, self.dtype).eval().requires_grad_(False)
-        self.text_encoder = text_encoder.to(self.device, self.dtype).eval().requires_grad_(False)
+        self.unet = self._place(unet)
+        self.vae = self._place(vae)
+        self.text_encoder = self._place(text_encoder)
         self.tokenizer = tokenizer
         self.scheduler = scheduler
         self.vae_factor = 2 ** (len(self.vae.config.block_out_channels) - 1)
@@ -214,6 +214,12 @@ class InstructPix2PixEditor:
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.prediction_type = scheduler.config.prediction_type
         self._embeddings: dict[str, np.ndarray] = {}
+
+    def _place(self, module):
+        # Cast only when needed: diffusers warns on every dtype-carrying .to() call.
+        if module.dtype != self.dtype:
+            module = module.to(dtype=self.dtype)
+        return module.to(self.device).eval().requires_grad_(False)
 
     @classmethod
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, device=None, dtype=None,
