@@ -158,6 +158,13 @@ def test_three_branch_guidance_reaches_unet(editor, monkeypatch, guidance):
                 guidance=guidance)
 
     assert [c[1] for c in calls] == [500, 250]  # T = 0.5 x 1000, 2 evenly spaced DDIM steps
+    # The conditioning latent is the VAE mode of the original at model size, unscaled.
+    orig = torch.from_numpy(_image(5)).permute(2, 0, 1)[None]
+    orig = torch.nn.functional.interpolate(orig, size=(64, 56), mode="bilinear",
+                                           align_corners=False, antialias=True)
+    with torch.no_grad():
+        mode = editor.vae.encode(orig * 2 - 1).latent_dist.mode()
+    torch.testing.assert_close(calls[0][0][:1, 4:], mode, rtol=1e-4, atol=1e-5)
     alphas = editor.alphas_cumprod
     assert [(s[1], s[2]) for s in steps] == [(alphas[500], alphas[250]),
                                              (alphas[250], editor.final_alpha)]
@@ -214,6 +221,21 @@ def test_model_size(h, w, size):
     assert mh % 8 == 0 and mw % 8 == 0 and mh >= 8 and mw >= 8
     if size is not None:
         assert abs(max(mh, mw) - size) <= 8
+
+
+@pytest.mark.parametrize("shape", [(64, 64, 3), (30, 50, 3)])
+def test_sizes_round_trip(editor, shape):
+    """Model-size views skip resizing; odd sizes go to multiples of 8 and back."""
+    img = _image(6, shape)
+    out = editor.edit(img, img, editor.encode(PROMPT), jax.random.key(0), timestep_range=(0.3, 0.3))
+    assert out.shape == shape and np.isfinite(out).all()
+
+
+def test_load_editor_factory(weights):
+    ed = ip2p.load_editor(weights, device="cpu", size=32, steps=1)
+    assert ed.size == 32 and ed.steps == 1 and ed.source == str(weights)
+    with pytest.raises(DataError, match="not a multiple of 8"):
+        ip2p.load_editor(weights, device="cpu", size=60)
 
 
 def test_bad_inputs(editor):

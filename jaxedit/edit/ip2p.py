@@ -63,7 +63,7 @@ from ..errors import DataError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["InstructPix2PixEditor", "DEFAULT_MODEL", "HOW_TO_GET", "ddim_step", "dual_guidance",
+__all__ = ["InstructPix2PixEditor", "load_editor", "DEFAULT_MODEL", "HOW_TO_GET", "ddim_step", "dual_guidance",
            "model_size", "resolve_weights", "seed_from_key", "timestep_schedule"]
 
 DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
@@ -367,3 +367,12 @@ class InstructPix2PixEditor:
                 "steps": self.steps, "scheduler": type(self.scheduler).__name__,
                 "unet_in_channels": int(self.unet.config.in_channels)}
 
+
+
+def load_editor(path: str | os.PathLike = DEFAULT_MODEL, *, device=None, dtype=None,
+                size: int | None = 512, steps: int = 20,
+                variant: str | None = None) -> InstructPix2PixEditor:
+    """Factory for the CLI (``--editor ip2p --ip2p-weights DIR``): see
+    :meth:`InstructPix2PixEditor.from_pretrained`."""
+    return InstructPix2PixEditor.from_pretrained(path, device=device, dtype=dtype, size=size,
+                                                 steps=steps, variant=variant)
