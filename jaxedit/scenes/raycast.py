@@ -245,10 +245,10 @@ def _intersect_shape(shape: Shape, o: np.ndarray, d: np.ndarray) -> np.ndarray:
             inv = 1.0 / dl
             ta = (-s - ol) * inv
             tb = (s - ol) * inv
-        # Rays parallel to a slab: inside it -> (-inf, inf), outside -> empty.
+        # Rays parallel to a slab: inside it -> (-inf, inf); outside -> (-inf, -inf), empty.
         par = dl == 0
         inside = np.abs(ol) <= s
-        ta = np.where(par, np.where(inside, -np.inf, np.inf), ta)
+        ta = np.where(par, -np.inf, ta)
         tb = np.where(par, np.where(inside, np.inf, -np.inf), tb)
         tnear = np.max(np.minimum(ta, tb), axis=-1)
         tfar = np.min(np.maximum(ta, tb), axis=-1)
