@@ -1,0 +1,162 @@
+"""``python -m experiments edit``: progressive instruction-guided editing of a 3DGS scene (ProEdit).
+
+Writes into ``--out`` RUN_DIR: ``schedule.json`` (updated after every subtask, so a
+run can be previewed while it works), ``metrics.json``, ``original/`` and
+``subtasks/NN_rX.XXX/`` snapshots (scene.ply, renders, depth, metrics), a resumable
+``checkpoint.npz`` and ``report.html``. ``--select R`` points ``selected.ply``
+at a snapshot (also on a finished run with ``--select-only``); ``--resume``
+continues a crashed run; ``--resume-from SNAPSHOT_DIR`` continues from any
+snapshot with another schedule (more or fewer subtasks, another threshold).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+HELP = "progressively edit a 3DGS scene with an instruction (ProEdit)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, help="nerfstudio dataset folder (the scene's photos)")
+    p.add_argument("--scene", type=Path, help="input 3DGS .ply (a reconstruction of --data)")
+    p.add_argument("--prompt", default=None, help="the editing instruction")
+    p.add_argument("--editor", default="simulated", choices=["simulated", "ip2p"],
+                   help="2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix)")
+    p.add_argument("--editor-weights", type=Path, default=None,
+                   help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p)")
+    p.add_argument("--mode", default="proedit", choices=["proedit", "nd", "in2n"],
+                   help="proedit (default), nd (one subtask 0 -> 1), in2n (IN2N baseline)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="difficulty threshold d_threshold of the scheduler")
+    p.add_argument("--subtasks", type=int, default=None, help="N uniform subtasks instead")
+    p.add_argument("--schedule-method", default="bisect", choices=["bisect", "root"],
+                   help="bisect + prune (paper) or root placement (optimistix)")
+    p.add_argument("--select", default=None,
+                   help="subtask index (int) or ratio (float) to export as selected.ply")
+    p.add_argument("--select-only", action="store_true",
+                   help="only (re)select a snapshot of the finished run in --out")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted run in --out from its checkpoint")
+    p.add_argument("--resume-from", type=Path, default=None,
+                   help="snapshot dir (RUN/subtasks/NN_rX.XXX) to continue from, new schedule")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--async", dest="asynchronous", action="store_true", default=True,
+                      help="editor on its own thread/device (default)")
+    mode.add_argument("--sync", dest="asynchronous", action="store_false",
+                      help="deterministic edit schedule (bit-reproducible, exact resume)")
+    p.add_argument("--downscale", type=int, default=1, help="image downscale factor of --data")
+    p.add_argument("--warmup", type=int, default=None, help="W: steps after the opacity reset")
+    p.add_argument("--patience", type=int, default=None, help="P: plateau length ending a subtask")
+    p.add_argument("--max-steps", type=int, default=None, help="per-subtask step guard")
+    p.add_argument("--edit-every", type=int, default=None, help="steps between edits (--sync)")
+    p.add_argument("--turntable-frames", type=int, default=24, help="0 disables turntables")
+    p.add_argument("--test-views", type=int, default=None,
+                   help="at most this many held-out views in snapshots and metrics")
+    p.add_argument("--no-report", action="store_true", help="skip report.html")
+
+
+def make_editor(args):
+    from jaxedit import DataError
+
+    if args.editor == "simulated":
+        from jaxedit.edit.simulated import SimulatedEditor
+
+        return SimulatedEditor()
+    try:
+        from jaxedit.edit.ip2p import InstructPix2Pix
+    except ImportError as e:
+        raise DataError("--editor", f"ip2p is unavailable ({e})") from None
+    if args.editor_weights is None:
+        raise DataError("--editor-weights", "ip2p needs a local diffusers folder of the weights")
+    return InstructPix2Pix(args.editor_weights)
+
+
+def load_inputs(args):
+    """(EditData, input Gaussians) from --data and --scene, with one-line errors."""
+    import numpy as np
+
+    from jaxedit import DataError
+    from jaxedit.edit.progressive import EditData
+    from jaxedit.io import load_nerfstudio, load_ply
+
+    if args.data is None:
+        raise DataError("--data", "required (a nerfstudio dataset folder)")
+    if args.scene is None:
+        raise DataError("--scene", "required (the input 3DGS .ply)")
+    dataset = load_nerfstudio(args.data, downscale=args.downscale)
+    data = EditData.from_dataset(dataset)
+    if args.test_views is not None and len(data.test_images) > args.test_views:
+        keep = np.linspace(0, len(data.test_images) - 1, args.test_views).round().astype(int)
+        data = EditData(data.train_images, data.train_cameras, data.test_images[keep],
+                        data.test_cameras[keep])
+    return data, load_ply(args.scene)
+
+
+def config_from_args(args):
+    from jaxedit.edit.progressive import ProEditConfig
+
+    return ProEditConfig.for_mode(
+        args.mode, threshold=args.threshold, subtasks=args.subtasks,
+        schedule_method=args.schedule_method, asynchronous=args.asynchronous,
+        warmup=args.warmup, patience=args.patience, max_steps=args.max_steps,
+        edit_every=args.edit_every, turntable_frames=args.turntable_frames)
+
+
+def progress_callback(quiet: bool):
+    """A progress(spec, step, loss, state) that drives nested bars (overall + subtask)."""
+    from experiments.progress import Progress, configure
+
+    configure(quiet=quiet)
+    bars: dict = {}
+
+    def progress(spec, step, loss, st):
+        if "root" not in bars:
+            bars["root"] = Progress(None, "edit")
+        if bars.get("spec") != spec.index:
+            if "child" in bars:
+                bars["child"].close()
+                bars["root"].update(1)
+            bars["child"] = bars["root"].child(None, f"{spec.name} r{spec.ratio:.3f}")
+            bars["spec"] = spec.index
+        bars["child"].update(1, loss=f"{loss:.4f}")
+
+    def close():
+        for k in ("child", "root"):
+            if k in bars:
+                bars[k].close()
+
+    progress.close = close
+    return progress
+
+
+def run(args) -> dict:
+    from jaxedit import DataError
+    from jaxedit.edit.progressive import run_edit, select_snapshot
+
+    if args.out is None:
+        raise DataError("--out", "required (the run directory)")
+    if args.select_only:
+        if args.select is None:
+            raise DataError("--select", "required with --select-only")
+        path = select_snapshot(args.out, args.select)
+        return {"selected": str(path)}
+    if args.resume and args.resume_from is not None:
+        raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
+    editor = make_editor(args)
+    if not args.prompt and args.mode != "in2n":
+        raise DataError("--prompt", "required (the editing instruction)")
+    data, scene = load_inputs(args)
+    config = config_from_args(args)
+    progress = progress_callback(args.quiet)
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    try:
+        out = run_edit(editor, args.prompt or "", data, scene, config=config, seed=args.seed,
+                       run_dir=args.out, resume=args.resume, resume_from=args.resume_from,
+                       select=args.select, progress=progress, report=not args.no_report, log=log)
+    finally:
+        progress.close()
+    m = out["metrics"]
+    keys = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
+            "num_gaussians", "wall_time_s", "subtasks", "all_converged")
+    return {k: m.get(k) for k in keys} | {"run_dir": str(args.out)}
