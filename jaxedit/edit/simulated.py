@@ -19,13 +19,14 @@ produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
    ``make it look like a cartoon``           style       soft posterisation + outlines on edges
    ``give him a marble texture``             texture     veins stamped as a function of colour
                                                          (or of world position, see ``surfaces``)
-   ``make his head bigger``                  shape       radial bulge around the object's centroid
+   ``make his head bigger``                  shape       radial bulge around the head's centroid
    ========================================  ==========  ===========================================
 
    The foreground is the set of pixels whose colour differs from the background colour, taken as
    the per-channel median of the image border of the original (a soft mask). The bulge is centred
-   on the foreground's centroid with a radius sqrt(area / pi); for an object centred in the views
-   (the built-in scenes) this is view-consistent.
+   on the centroid of the "head", the upper 60% of the foreground's vertical extent, with a
+   radius sqrt(head area / pi); for an upright subject centred in the views (the built-in
+   ``face`` scene, cameras with +z up) this is view-consistent.
 
 2. **Subtasks.** The framework forms e(r) = r E(p) + (1 - r) E(""). ``encode`` returns
    E("") = Q e_0 and E(p_i) = Q (e_0 + e_{i+1}) with a fixed orthogonal Q, so the editor
@@ -315,10 +316,22 @@ def _marble(original, mask, points=None):
     return m * marble + (1 - m) * original
 
 
+def head_mask(mask, *, fraction: float = 0.6):
+    """The upper ``fraction`` of a foreground mask's vertical extent (the head of an upright
+    subject; image rows grow downwards), float [H, W]."""
+    h = mask.shape[0]
+    rows = jnp.arange(h) + 0.5
+    present = jnp.sum(mask, axis=1) > 0.5
+    top = jnp.min(jnp.where(present, rows, h))
+    bottom = jnp.max(jnp.where(present, rows, 0.0))
+    cut = top + fraction * jnp.maximum(bottom - top, 0.0)
+    return mask * _smoothstep(cut + 1.0, cut - 1.0, rows)[:, None]
+
+
 def _bulge(original, mask, amount):
-    """Magnify the object around its centroid: inverse warp x -> c + (x - c) f(|x - c| / R)."""
+    """Magnify the head around its centroid: inverse warp x -> c + (x - c) f(|x - c| / R)."""
     h, w, _ = original.shape
-    cr, cc, rad = _centroid_radius(mask)
+    cr, cc, rad = _centroid_radius(head_mask(mask))
     rows, cols = jnp.meshgrid(jnp.arange(h) + 0.5, jnp.arange(w) + 0.5, indexing="ij")
     dr, dc = rows - cr, cols - cc
     rho2 = (dr * dr + dc * dc) / (rad * rad)
