@@ -171,8 +171,13 @@ def _skip_binary_element(path: Path, data: bytes, offset: int, element: _Element
     return offset
 
 
-def _read_vertex_table(path: Path) -> tuple[_Header, _Element, dict[str, np.ndarray]]:
-    """Parse ``path`` and return its ``vertex`` element as {property name: column}."""
+def _read_vertex_table(path: Path) -> tuple[_Header, _Element, dict[str, np.ndarray],
+                                           np.ndarray | None]:
+    """Parse ``path`` and return its ``vertex`` element.
+
+    Returns (header, element, {property name: column [N]}, records) where
+    ``records`` is the structured array [N] of a binary file (None for ascii).
+    """
     path, data = _read_bytes(path)
     header = _parse_header(path, data)
     names = [e.name for e in header.elements]
@@ -180,7 +185,7 @@ def _read_vertex_table(path: Path) -> tuple[_Header, _Element, dict[str, np.ndar
         raise DataError(path, f"expected exactly one 'vertex' element, found elements {names}")
     if header.format == "ascii":
         element, table = _read_ascii_vertices(path, data, header)
-        return header, element, table
+        return header, element, table, None
     endian = _FORMATS[header.format]
     offset = header.data_offset
     for element in header.elements:
@@ -195,7 +200,7 @@ def _read_vertex_table(path: Path) -> tuple[_Header, _Element, dict[str, np.ndar
             raise DataError(path, f"truncated PLY data: {element.count} vertices need {need} bytes, "
                                   f"{max(len(data) - offset, 0)} present")
         rows = np.frombuffer(data, dtype, element.count, offset)
-        return header, element, {p.name: rows[p.name] for p in element.properties}
+        return header, element, {p.name: rows[p.name] for p in element.properties}, rows
     raise AssertionError("unreachable")
 
 
@@ -268,7 +273,7 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
         non-float fields, a bad f_rest count, truncated data, non-finite values.
     """
     path = Path(path)
-    header, element, table = _read_vertex_table(path)
+    header, element, table, records = _read_vertex_table(path)
     if header.format != "binary_little_endian":
         raise DataError(path, f"3DGS PLY must be binary_little_endian, this one is {header.format}")
     names = set(table)
@@ -284,9 +289,22 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
         if kinds[name] not in ("f4", "f8"):
             raise DataError(path, f"field {name!r} must be float, it is {kinds[name]}")
 
+    order = [p.name for p in element.properties]
+    matrix = None
+    if records is not None and all(p.kind == "f4" for p in element.properties):
+        # The usual case: every field float32 (little-endian, checked above), so
+        # the records are a float32 matrix [N, F] and picking columns is one
+        # gather -- much faster than stacking strided per-field views.
+        matrix = records.view(np.dtype("<f4")).reshape(element.count, len(order))
+
     def cols(fields):
         if not fields:
             return np.zeros((element.count, 0), np.float32)
+        if matrix is not None:
+            idx = [order.index(f) for f in fields]
+            if idx == list(range(idx[0], idx[0] + len(idx))):  # adjacent: a view, no gather
+                return matrix[:, idx[0]:idx[0] + len(idx)]
+            return matrix[:, idx]
         return np.stack([np.asarray(table[f], np.float32) for f in fields], axis=-1).reshape(
             element.count, len(fields))
 
@@ -392,7 +410,7 @@ def load_points_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
       DataError: unreadable/malformed file, missing x/y/z, non-finite values.
     """
     path = Path(path)
-    _, element, table = _read_vertex_table(path)
+    _, element, table, _ = _read_vertex_table(path)
     missing = [n for n in ("x", "y", "z") if n not in table]
     if missing:
         raise DataError(path, f"point cloud vertex element lacks field(s) {', '.join(missing)}")
