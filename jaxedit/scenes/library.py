@@ -38,8 +38,8 @@ def face(seed: int = 0) -> rc.Scene:
     suit = Texture("astronaut", crop=(280, 340, 60, 120), repeat=(3.0, 1.0), wrap="mirror")
     shapes = (
         rc.ellipsoid("head", (0.0, 0.0, 0.3), (0.72, 0.62, 0.85), color=skin,
-                     decal=rc.Decal(face_tex, center=(0.5, 0.47), radii=(0.48, 0.5), feather=0.25,
-                                    taper=0.5)),
+                     decal=rc.Decal(face_tex, center=(0.5, 0.47), radii=(0.56, 0.5), feather=0.25,
+                                    taper=0.55)),
         # A larger ellipsoid set back and up: where it pokes out of the head it is the hair,
         # and the intersection curve is a natural hairline.
         rc.ellipsoid("hair", (-0.08, 0.0, 0.34), (0.71, 0.7, 0.86), texture=hair),
@@ -59,7 +59,7 @@ def face(seed: int = 0) -> rc.Scene:
 def tabletop(seed: int = 0) -> rc.Scene:
     """Textured objects on a stone table top: an indoor analogue with shadows.
 
-    A cat-textured ball, a coffee box, a rocket box, a galaxy egg and a red ball on a
+    A cat-textured ball, a coffee box, a rocket box, a veined egg and a red ball on a
     gravel-textured slab. Seeds other than 0 jitter positions and yaw of the objects.
     """
     rng = np.random.default_rng(seed)
@@ -79,8 +79,9 @@ def tabletop(seed: int = 0) -> rc.Scene:
                texture=Texture("coffee", crop=(0, 400, 100, 500))),
         rc.box("rocket_box", at(0.5, -0.45, 0.4), (0.18, 0.12, 0.4), euler=(0, 0, -15 + yaw()),
                texture=Texture("rocket", crop=(0, 427, 150, 500))),
-        rc.ellipsoid("galaxy_egg", at(-0.45, -0.4, 0.3), (0.22, 0.22, 0.3), euler=(0, 0, yaw()),
-                     texture=Texture("hubble_deep_field", repeat=(2.0, 1.0), wrap="mirror")),
+        rc.ellipsoid("egg", at(-0.45, -0.4, 0.3), (0.22, 0.22, 0.3), euler=(0, 0, yaw()),
+                     texture=Texture("retina", crop=(300, 1100, 300, 1100), repeat=(2.0, 1.0),
+                                     wrap="mirror")),
         rc.sphere("red_ball", at(0.05, 0.0, 0.14, 0.05), 0.14, color=(0.85, 0.15, 0.1)),
     )
     lights = (rc.Light((0.5, 0.35, 1.0), 0.6), rc.Light((-0.6, -0.3, 0.5), 0.2, shadows=False))

@@ -433,7 +433,7 @@ def _albedo(shape: Shape, local: _Local, sel_grid=None, footprint=None,
         du = (local.decal_uv[:, 0] - dec.center[0]) / ru
         r = np.sqrt(du * du + dv * dv)
         # Soft elliptical mask, restricted to the front half (the projection is two-sided).
-        mask = _smoothstep((1.0 - r) / max(dec.feather, 1e-6)) * _smoothstep(local.front / 0.25)
+        mask = _smoothstep((1.0 - r) / max(dec.feather, 1e-6)) * _smoothstep(local.front / 0.15)
         base = base * (1 - mask[:, None]) + col * mask[:, None]
     return base.astype(np.float32)
 
