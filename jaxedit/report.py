@@ -420,6 +420,11 @@ def _reproduce(config: dict | None) -> str:
             "(the resolved flags are in <code>config.json</code>).</p>")
 
 
+# The last difficulty plot drawn: write_report rebuilds the page at smaller
+# image sizes when it is over budget, and the plot does not depend on them.
+_PLOT_MEMO: dict = {}
+
+
 # ---------------------------------------------------------------------------
 # Edit run report
 # ---------------------------------------------------------------------------
@@ -460,9 +465,12 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
                  f"{_e(', '.join(map(str, unconverged)))}.</p>")
     sections.append(("schedule", "Schedule", body))
 
-    # Difficulty plot ---------------------------------------------------------
+    # Difficulty plot (the same at every size: drawn once per schedule) -------
+    key = json.dumps(schedule, sort_keys=True, default=str)
+    if _PLOT_MEMO.get("key") != key:
+        _PLOT_MEMO.update(key=key, uri=difficulty_plot(schedule))
     sections.append(("difficulty", "Difficulty and chosen ratios",
-                     _img(difficulty_plot(schedule), "difficulty plot", "plot")))
+                     _img(_PLOT_MEMO["uri"], "difficulty plot", "plot")))
 
     # Aggressivity gallery ----------------------------------------------------
     original = _pngs(run_dir / "original" / "renders")

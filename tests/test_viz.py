@@ -84,17 +84,19 @@ def test_frame_cameras_recovers_the_orbit():
     assert abs(radius - 2.5) < 1e-5 and abs(elevation - 30.0) < 1e-4 and abs(fov - 50.0) < 1e-4
 
 
-def _scene(n=64, seed=0):
+def sphere_scene(n=48, seed=0):
+    """``n`` opaque Gaussians on a sphere of radius 0.5, coloured by position.
+
+    test_cli renders the same scene at the same size, so the renderer compiles once.
+    """
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(n, 3))
     pts = 0.5 * v / np.linalg.norm(v, axis=1, keepdims=True)
-    cols = np.clip(0.5 + pts, 0, 1)
-    g = G.from_points(pts, cols, sh_degree=1, capacity=n + 8, init_opacity=0.9)
-    return g
+    return G.from_points(pts, np.clip(0.5 + pts, 0, 1), sh_degree=1, init_opacity=0.9)
 
 
 def test_write_snapshot_and_turntable_with_the_renderer(tmp_path):
-    g = _scene()
+    g = sphere_scene()
     cams = camlib.hemisphere(2, radius=2.2, width=24, height=24, fov_deg=50.0)
     rec = viz.write_snapshot(tmp_path / "snap", g, cams, turntable_frames=4, turntable_size=24,
                              background=(1.0, 1.0, 1.0))
@@ -103,13 +105,13 @@ def test_write_snapshot_and_turntable_with_the_renderer(tmp_path):
     assert rec["depth"] == ["depth/view_000.png", "depth/view_001.png"]
     assert rec["turntable"][0] == "turntable.webp"
     back = load_ply(tmp_path / "snap" / "scene.ply")
-    assert int(back.num_alive()) == 64  # dead slots are not written
+    np.testing.assert_array_equal(np.asarray(back.means), np.asarray(g.means))
     img = read_image(tmp_path / "snap" / "renders" / "view_000.png")
     assert img.shape == (24, 24, 3)
     # The object is in view and the corners show the white background.
-    assert img[10:14, 10:14].mean() < 0.9 and np.allclose(img[0, 0], 1.0, atol=1e-2)
+    assert img[10:14, 10:14].mean() < 0.9 and np.allclose(img[0, 0], 1.0, atol=0.03)
     dep = read_image(tmp_path / "snap" / "depth" / "view_001.png")
-    assert np.allclose(dep[0, 0], 1.0, atol=1e-2) and dep[12, 12].std() > 0.05  # coloured centre
+    assert np.allclose(dep[0, 0], 1.0, atol=0.03) and dep[12, 12].std() > 0.05  # coloured centre
     frames = viz.read_webp_frames(tmp_path / "snap" / "turntable.webp")
     assert frames.shape == (4, 24, 24, 3)
     # Framed from the cameras: every frame sees the object in its centre.

@@ -1,0 +1,115 @@
+"""experiments.progress: nested bars, ETA, modes (bar / log / quiet / off), threads."""
+
+from __future__ import annotations
+
+import io
+import re
+import threading
+
+import pytest
+
+from experiments import progress as P
+
+
+class Clock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+
+@pytest.fixture(autouse=True)
+def _reset_settings():
+    yield
+    P.configure()
+
+
+def test_nested_fraction_and_eta_in_log_mode():
+    clock, out = Clock(), io.StringIO()
+    with P.Progress(4, "edit", mode="log", stream=out, log_interval=5.0, clock=clock) as root:
+        with root.child(10, "r0") as sub:
+            clock.t += 6.0
+            sub.update(5, loss=0.5)  # half of the first of 4 subtasks after 6 s
+            assert root.fraction == pytest.approx(0.125)
+            assert root.eta() == pytest.approx(6.0 * 0.875 / 0.125)
+            assert sub.eta() == pytest.approx(6.0)
+            clock.t += 6.0
+            sub.update(5)
+        root.update(1)
+        assert root.fraction == pytest.approx(0.25)
+    text = out.getvalue()
+    lines = text.splitlines()
+    assert lines[0] == "start edit (4 steps)"
+    # The periodic line shows the tree: parent then child with postfix.
+    assert re.search(r"edit 0/4 \[#+-+\]\s+12% 0:06<0:42 \| r0 5/10 .* loss=0.5", text)
+    assert "done r0 10/10 in 0:12 loss=0.5" in lines
+    assert lines[-1] == "done edit 1/4 in 0:12"
+    assert "\r" not in text  # log mode never uses carriage returns
+
+
+def test_bar_mode_redraws_in_place_and_throttles():
+    clock, out = Clock(), io.StringIO()
+    bar = P.Progress(100, "train", mode="bar", stream=out, refresh=1.0, clock=clock)
+    for _ in range(50):
+        bar.update(1)  # no time passes: throttled, at most the first draw
+    clock.t += 2.0
+    bar.update(1, psnr=31.234567)
+    bar.close()
+    text = out.getvalue()
+    draws = text.count("\r")
+    assert 2 <= draws <= 4, text
+    assert "train 51/100" in text and "psnr=31.23" in text and text.endswith("in 0:02 psnr=31.23\n")
+
+
+def test_quiet_logs_rarely_and_off_is_silent():
+    out = io.StringIO()
+    P.configure(quiet=True, stream=out)
+    clock = Clock()
+    with P.Progress(3, "x", clock=clock) as bar:
+        for _ in range(3):
+            clock.t += 15.0  # 45 s in all: under the quiet 60 s interval
+            bar.update(1)
+    assert out.getvalue().splitlines() == ["start x (3 steps)", "done x 3/3 in 0:45"]
+    P.configure(mode="off", stream=out)
+    with P.Progress(3, "silent") as bar:
+        bar.update(3)
+    assert "silent" not in out.getvalue()
+
+
+def test_ambient_nesting_unknown_total_and_errors():
+    clock, out = Clock(), io.StringIO()
+    with P.Progress(2, "demo", mode="log", stream=out, log_interval=1e9, clock=clock) as demo:
+        with P.nested(demo):
+            inner = P.Progress(None, "stage")  # created by a command that knows nothing of demo
+            assert inner.parent is demo and inner.mode == "log"
+            clock.t += 4.0
+            inner.update(8)
+            assert "stage 8 [0:04, 2/s]" in demo.line()
+            inner.close()
+        assert P.Progress(1, "after", mode="off").parent is None
+    assert P.format_seconds(3725) == "1:02:05" and P.format_seconds(None) == "?"
+    with pytest.raises(ValueError):
+        P.Progress(-1)
+    with pytest.raises(ValueError):
+        P.configure(mode="fancy")
+
+
+def test_threaded_updates_are_counted_exactly():
+    out = io.StringIO()
+    bar = P.Progress(4000, "threads", mode="bar", stream=out, refresh=0.0)
+    workers = [threading.Thread(target=lambda: [bar.update(1) for _ in range(1000)])
+               for _ in range(4)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    bar.close()
+    assert bar.n == 4000 and "threads 4000/4000" in out.getvalue()
+
+
+def test_track_wraps_iterables():
+    out = io.StringIO()
+    P.configure(mode="log", stream=out)
+    assert [x * 2 for x in P.track(range(3), desc="items")] == [0, 2, 4]
+    assert "done items 3/3" in out.getvalue()
