@@ -507,3 +507,14 @@ def test_dataset_maps_gaussians_back_to_original_world(tmp_path):
     uv_n, _ = ds.cameras[2].project(g.means)
     uv_o, _ = cams[2].project(orig.means)
     np.testing.assert_allclose(np.asarray(uv_n), np.asarray(uv_o), atol=1e-3)
+
+
+def test_bilinear_sample_pixel_centre_convention():
+    from jaxedit.io.distortion import bilinear_sample
+
+    img = np.arange(2 * 3 * 1, dtype=np.float32).reshape(2, 3, 1)
+    u = np.array([0.5, 1.5, 1.0, 2.9, 0.2, 3.2, 1.0])
+    v = np.array([0.5, 1.5, 0.5, 1.0, 0.2, 1.0, -0.1])
+    out = bilinear_sample(img, u, v, fill=[-1.0])[:, 0]
+    # centres, a midpoint between columns 0 and 1, edge clamping, outside -> fill
+    np.testing.assert_allclose(out, [0.0, 4.0, 0.5, 3.5, 0.0, -1.0, -1.0])

@@ -101,18 +101,16 @@ def bilinear_sample(image: np.ndarray, u: np.ndarray, v: np.ndarray, fill) -> np
     get ``fill`` (float [C]).
     Returns float [*u.shape, C].
     """
+    from scipy import ndimage  # scipy ships with scikit-image
+
     h, w = image.shape[:2]
     inside = (u >= 0.0) & (u <= w) & (v >= 0.0) & (v <= h)  # False for NaN too
-    fx = np.clip(np.where(inside, u, 0.5) - 0.5, 0.0, w - 1.0)
-    fy = np.clip(np.where(inside, v, 0.5) - 0.5, 0.0, h - 1.0)
-    x0 = np.minimum(np.floor(fx).astype(np.int64), w - 1)
-    y0 = np.minimum(np.floor(fy).astype(np.int64), h - 1)
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    ax, ay = (fx - x0)[..., None], (fy - y0)[..., None]
-    top = image[y0, x0] * (1 - ax) + image[y0, x1] * ax
-    bottom = image[y1, x0] * (1 - ax) + image[y1, x1] * ax
-    out = top * (1 - ay) + bottom * ay
-    return np.where(inside[..., None], out, np.asarray(fill, image.dtype))
+    # Index coordinates (centre of pixel i at i); clamping = mode "nearest".
+    coords = np.stack([np.where(inside, v, 0.5) - 0.5, np.where(inside, u, 0.5) - 0.5])
+    image = image.reshape(h, w, -1)
+    out = np.stack([ndimage.map_coordinates(image[:, :, c], coords, order=1, mode="nearest",
+                                            prefilter=False) for c in range(image.shape[2])], -1)
+    return np.where(inside[..., None], out, np.asarray(fill, out.dtype))
 
 
 def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -135,4 +133,4 @@ def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: floa
     with np.errstate(over="ignore", invalid="ignore"):  # absurd coefficients -> fill
         xy_d = distort_points(xy, d)
     us, vs = xy_d[..., 0] * fx + cx, xy_d[..., 1] * fy + cy
-    return bilinear_sample(np.asarray(image, np.float64), us, vs, fill).astype(np.float32)
+    return bilinear_sample(np.asarray(image, np.float32), us, vs, fill).astype(np.float32)
