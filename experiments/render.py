@@ -118,7 +118,8 @@ def run(args) -> dict:
             frames.append(rgb[0])
             alphas.append(alpha[0])
             depths.append(depth[0])
-            write_image(out / "frames" / f"frame_{i:03d}.png", np.clip(rgb[0], 0.0, 1.0))
+            write_image(out / "frames" / f"frame_{i:03d}.png",
+                        np.ascontiguousarray(np.clip(rgb[0], 0.0, 1.0)))
             bar.update(1)
     render_s = time.perf_counter() - t_render
     if not args.no_depth:

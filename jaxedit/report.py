@@ -377,7 +377,7 @@ td:first-child,th:first-child{text-align:left}.best{background:#e3f4e1;font-weig
 img{max-width:100%;image-rendering:auto}.plot{max-width:100%}
 .slider .controls{margin:6px 0 8px}.slider input{width:min(600px,80%);vertical-align:middle}
 .slider-label{font-weight:600;margin-left:8px}.row-label{font-size:.85em;color:#555;margin:4px 0 1px}
-.cards{display:flex;flex-wrap:wrap;gap:12px}.card{background:#fff;border:1px solid #ddd;padding:6px}
+.cards{display:flex;flex-wrap:wrap;gap:12px}.card{background:#fff;border:1px solid #ddd;padding:6px;margin:0}
 .card figcaption{font-size:.85em;text-align:center;color:#444}.missing{color:#999;font-style:italic}
 code{background:#f0f0f0;padding:1px 4px;border-radius:3px;font-size:.9em;word-break:break-all}
 nav a{margin-right:12px}footer{color:#888;font-size:.8em;margin-top:32px}

@@ -196,7 +196,8 @@ def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: i
 def _write_png(path: Path, image) -> None:
     from .io import write_image
 
-    write_image(path, np.clip(np.asarray(image, np.float32), 0.0, 1.0))
+    # C order: OpenImageIO refuses arrays with strided channels (np.clip keeps the layout).
+    write_image(path, np.ascontiguousarray(np.clip(np.asarray(image, np.float32), 0.0, 1.0)))
 
 
 def write_snapshot(directory, gaussians, cameras, *, background=(1.0, 1.0, 1.0),
