@@ -37,7 +37,6 @@ uninterrupted run. Side effects (files, threads, progress) stay in
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import math
 import os
@@ -286,40 +285,22 @@ class EditData:
 # ---------------------------------------------------------------------------
 # Rendering with the overflow protocol
 # ---------------------------------------------------------------------------
-@functools.lru_cache(maxsize=None)
-def _render_fn(cap: int) -> Callable:
-    """One jitted render per intersection-buffer size, shared by every Renderer (compile once)."""
-    from ..raster import render
-
-    def one(g, cam, bg):
-        return render(g, cam, background=bg, max_intersections=cap)
-
-    return jax.jit(one)
-
-
 class Renderer:
-    """Render single views, redoing a frame with a doubled intersection buffer on overflow.
+    """Render single views over a fixed background, never truncated.
 
-    One jitted function per buffer size (static), shared across calls; thread-safe
-    enough for the editor thread (JAX dispatch is thread-safe; the size only grows).
+    Outside jit, :func:`jaxedit.raster.render` sizes its intersection buffer
+    itself (counting first, caching the size, redoing a frame that overflowed),
+    so a frame is complete whatever the scene's growth.
     """
 
-    def __init__(self, background=(1.0, 1.0, 1.0), max_intersections: int = 1 << 16):
+    def __init__(self, background=(1.0, 1.0, 1.0)):
         self.background = jnp.asarray(background, jnp.float32)
-        self.max_intersections = int(max_intersections)
-
-    def _fn(self, cap: int) -> Callable:
-        return _render_fn(cap)
 
     def __call__(self, gaussians, camera):
-        """RenderOutput of one camera, never truncated."""
-        while True:
-            cap = self.max_intersections
-            out = self._fn(cap)(gaussians, camera, self.background)
-            if not bool(getattr(out, "overflow", False)):
-                return out
-            needed = int(out.num_intersections)
-            self.max_intersections = max(2 * cap, 1 << max(needed - 1, 1).bit_length())
+        """RenderOutput of one camera."""
+        from ..raster import render
+
+        return render(gaussians, camera, background=self.background)
 
     def rgb(self, gaussians, camera) -> np.ndarray:
         return np.asarray(self(gaussians, camera).rgb, np.float32)
@@ -337,15 +318,14 @@ class Renderer:
 # ---------------------------------------------------------------------------
 def image_scores(renders: np.ndarray, targets: np.ndarray) -> dict:
     """Mean PSNR (dB) and SSIM (scikit-image) of renders vs targets, float [N, H, W, 3] in [0, 1]."""
-    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+    from skimage.metrics import structural_similarity
 
     psnrs, ssims = [], []
     for a, b in zip(np.clip(renders, 0, 1), np.clip(targets, 0, 1)):
-        psnrs.append(peak_signal_noise_ratio(b.astype(np.float64), a.astype(np.float64),
-                                             data_range=1.0))
+        mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+        psnrs.append(-10.0 * np.log10(max(mse, 1e-10)))  # identical images: 100 dB, not inf
         ssims.append(structural_similarity(b, a, channel_axis=-1, data_range=1.0,
                                            win_size=min(7, min(a.shape[:2]) // 2 * 2 - 1)))
-    psnrs = np.minimum(np.asarray(psnrs), 100.0)  # identical images: cap the infinity
     return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims))}
 
 
@@ -469,7 +449,7 @@ def save_checkpoint(path: str | os.PathLike, st: DriverState, meta: dict) -> Non
     info = {"subtask": st.subtask, "step": st.step, "records": st.records,
             "seconds": st.seconds, "utilisation": st.utilisation.as_dict(),
             "tracker": [st.tracker.count, st.tracker.best, st.tracker.since_best],
-            "meta": meta}
+            "max_intersections": getattr(st.train, "max_intersections", None), "meta": meta}
     arrays["info"] = np.frombuffer(json.dumps(info).encode(), np.uint8)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
@@ -494,6 +474,8 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[DriverStat
         raise DataError(path, "not a jaxedit edit checkpoint (no info record)") from None
     train = _unflatten(train_template, {k[6:]: v for k, v in arrays.items()
                                         if k.startswith("train/")}, str(path))
+    if info.get("max_intersections") is not None and hasattr(train, "max_intersections"):
+        train = dataclasses.replace(train, max_intersections=int(info["max_intersections"]))
     count, best, since = info["tracker"]
     st = DriverState(subtask=info["subtask"], step=info["step"], train=train,
                      images=arrays["images"], edited=arrays["edited"],
@@ -504,191 +486,105 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[DriverStat
 
 
 # ---------------------------------------------------------------------------
-# The trainer of a subtask: pure jitted steps around jaxedit.densify
+# The trainer of a subtask: jaxedit.train's pure step with ProEdit's density control
 # ---------------------------------------------------------------------------
-class TrainerState(NamedTuple):
-    """Pytree of the 3DGS optimisation: Gaussians, optax state, densify statistics."""
-
-    gaussians: Any
-    opt_state: Any
-    stats: Any
-
-
-def _ssim_loss_fallback(x, y):
-    """1 - SSIM (11x11 Gaussian window, sigma 1.5) of float [H, W, 3] images."""
-    r = jnp.arange(11, dtype=jnp.float32) - 5.0
-    k = jnp.exp(-0.5 * (r / 1.5) ** 2)
-    k = k / k.sum()
-
-    def blur(a):
-        a = jnp.moveaxis(a, -1, 0)[:, None]
-        a = jax.lax.conv_general_dilated(a, k[None, None, :, None], (1, 1), "VALID")
-        a = jax.lax.conv_general_dilated(a, k[None, None, None, :], (1, 1), "VALID")
-        return a[:, 0]
-
-    mx, my = blur(x), blur(y)
-    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    ssim = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return 1.0 - jnp.mean(ssim)
-
-
-def photometric(render, target, lambda_dssim: float = 0.2):
-    """0.8 L1 + 0.2 (1 - SSIM), Splatfacto's loss (jaxedit.losses when available)."""
-    try:
-        from ..losses import photometric_loss
-    except ImportError:
-        l1 = jnp.mean(jnp.abs(render - target))
-        return (1.0 - lambda_dssim) * l1 + lambda_dssim * _ssim_loss_fallback(render, target)
-    return photometric_loss(render, target, lambda_dssim=lambda_dssim)
-
-
 @dataclasses.dataclass(frozen=True)
 class TrainSettings:
     """Optimisation settings of the editing trainer (Splatfacto learning rates, constant).
 
-    ``adaptive``: ProEdit's budgeted creation (True) or classic 3DGS thresholds (False).
-    ``cull_alpha``: the cull threshold, also the opacity every Gaussian gets at a
-    subtask start (Splatfacto's cull_alpha_thresh 0.1: the scene stays visible).
+    Attributes:
+      scene_extent: world size (``jaxedit.train.scene_extent`` of the cameras).
+      adaptive: ProEdit's budgeted creation (True) or classic 3DGS thresholds (False, IN2N).
+      cull_alpha: the cull threshold, which is also the opacity every Gaussian gets
+        at a subtask start (Splatfacto's cull_alpha_thresh 0.1 keeps the scene
+        visible to the editor; gsplat's 0.005 would blank it).
+      warmup: W, steps after the subtask start without density control.
+      refine_every: steps between maintenance steps.
+      max_gaussians: the hard cap.
+      budget_*: the creation budget t(n, N) (see ``jaxedit.densify.creation_budget``).
+      sh_degree: SH degree trained (the input scene's, all degrees on from the start).
+      lr_opacity: Adam learning rate of the opacity logits.
     """
 
     scene_extent: float = 1.0
-    lr_means: float = 1.6e-4
-    lr_sh_dc: float = 2.5e-3
-    lr_sh_rest: float = 2.5e-3 / 20
-    lr_opacity: float = 0.05
-    lr_scales: float = 5e-3
-    lr_quats: float = 1e-3
-    lambda_dssim: float = 0.2
     adaptive: bool = True
     cull_alpha: float = 0.1
+    warmup: int = 30
     refine_every: int = 50
     max_gaussians: int = 200_000
     budget_min_new: int = 16
     budget_growth: float = 0.02
     budget_max_fraction: float = 0.1
+    sh_degree: int = 3
+    lr_opacity: float = 0.05
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
+    def train_config(self):
+        """The :class:`jaxedit.train.TrainConfig` these settings describe."""
+        from ..train import DensifyConfig, TrainConfig
 
-def _labels(g):
-    return dataclasses.replace(g, means="means", log_scales="scales", quats="quats",
-                               opacity_logits="opacity", sh="sh", alive="frozen")
-
-
-_STEP_CACHE: dict = {}
+        if self.adaptive:
+            dens = DensifyConfig(budget=True, budget_min_new=self.budget_min_new,
+                                 budget_growth=self.budget_growth,
+                                 budget_max_fraction=self.budget_max_fraction,
+                                 refine_every=self.refine_every, warmup=self.warmup,
+                                 stop_at=2 ** 30, reset_every=0, cull_alpha=self.cull_alpha,
+                                 max_gaussians=self.max_gaussians)
+        else:  # IN2N / IGS2GS: Splatfacto's classic thresholds and periodic opacity reset
+            dens = DensifyConfig(budget=False, refine_every=self.refine_every, warmup=self.warmup,
+                                 stop_at=2 ** 30, reset_every=3000, cull_alpha=self.cull_alpha,
+                                 max_gaussians=self.max_gaussians)
+        bg = tuple(float(c) for c in self.background)
+        background = {(1.0, 1.0, 1.0): "white", (0.0, 0.0, 0.0): "black"}.get(bg)
+        if background is None:
+            raise DataError("background", f"the trainer supports white or black, got {bg}")
+        # Constant means learning rate (no decay across subtasks), every SH degree from step 1.
+        return TrainConfig(iterations=2 ** 30, lr_means_final=1.6e-4, lr_opacity=self.lr_opacity,
+                           sh_degree=self.sh_degree, sh_degree_interval=1,
+                           background=background, densify=dens)
 
 
 class SubtaskTrainer:
-    """Pure jitted 3DGS steps for the driver, with the overflow and capacity protocols.
+    """The driver's view of :mod:`jaxedit.train`: init, subtask restart, one step.
 
-    ``step(state, image, camera, key, dstep)`` trains one view; ``dstep`` is the
-    densify step count (0: no maintenance, e.g. during the post-reset warmup).
-    A render that overflows its intersection buffer is redone with twice the
-    buffer; a maintenance step that wanted more slots than the capacity is redone
-    after growing the capacity (both pure, so redoing changes nothing else).
+    ``step`` is :func:`jaxedit.train.step_with_retry` (a pure jitted step, redone
+    with a larger intersection buffer or capacity when it asks for it), on the
+    view and key the driver chose. ``restart`` is paper 3.3 (1): every opacity to
+    the cull threshold (moments zeroed), fresh density statistics, and the
+    density-control clock restarted so that the first ``warmup`` steps of the
+    subtask have no densify/cull.
     """
 
-    def __init__(self, settings: TrainSettings = TrainSettings(), max_intersections: int = 1 << 16):
-        import optax
+    def __init__(self, settings: TrainSettings = TrainSettings()):
+        self.settings = settings
+        self.config = settings.train_config()
 
+    def init(self, gaussians):
+        from .. import train
+
+        sh = min(self.settings.sh_degree, gaussians.sh_degree)
+        config = dataclasses.replace(self.config, sh_degree=sh)
+        return train.init_state(gaussians, config, self.settings.scene_extent)
+
+    def restart(self, state):
         from .. import densify
 
-        self.settings = s = settings
-        self.max_intersections = int(max_intersections)
-        lr_means = s.lr_means * s.scene_extent
-
-        def sh_tx():
-            # DC and higher-order coefficients share one array [C, K, 3]: one Adam, then a
-            # learning rate per coefficient row (DC 2.5e-3, the rest 1/20 of it).
-            def scale(updates, state, params=None):
-                def one(u):
-                    factor = jnp.where(jnp.arange(u.shape[1]) == 0, s.lr_sh_dc, s.lr_sh_rest)
-                    return -u * factor[None, :, None].astype(u.dtype)
-                return jax.tree_util.tree_map(one, updates), state
-
-            return optax.chain(optax.scale_by_adam(eps=1e-15),
-                               optax.GradientTransformation(lambda p: optax.EmptyState(), scale))
-
-        self.tx = optax.multi_transform(
-            {"means": optax.adam(lr_means, eps=1e-15), "scales": optax.adam(s.lr_scales, eps=1e-15),
-             "quats": optax.adam(s.lr_quats, eps=1e-15),
-             "opacity": optax.adam(s.lr_opacity, eps=1e-15), "sh": sh_tx(),
-             "frozen": optax.set_to_zero()}, _labels)
-        budget = (densify.creation_budget(min_new=s.budget_min_new, growth=s.budget_growth,
-                                          max_fraction=s.budget_max_fraction)
-                  if s.adaptive else None)
-        self.strategy = densify.adaptive(scene_extent=s.scene_extent, max_gaussians=s.max_gaussians,
-                                         budget=budget, refine_every=s.refine_every, warmup=0,
-                                         stop_at=2 ** 30, reset_every=0 if s.adaptive else 3000,
-                                         cull_alpha=s.cull_alpha)
-        self._densify = densify
-        self._bg = jnp.asarray(s.background, jnp.float32)
-
-    # state ------------------------------------------------------------------
-    def init(self, gaussians) -> TrainerState:
-        gf = dataclasses.replace(gaussians, alive=gaussians.alive.astype(jnp.float32))
-        return TrainerState(gaussians, self.tx.init(gf), self.strategy.init(gaussians))
-
-    def restart(self, state: TrainerState) -> TrainerState:
-        """Subtask start: every opacity to the cull threshold, fresh statistics."""
-        g, opt = self._densify.opacity_reset(state.gaussians, state.opt_state, self.settings.cull_alpha)
-        return TrainerState(g, opt, self.strategy.init(g))
+        g, opt = densify.opacity_reset(state.gaussians, state.opt_state, self.settings.cull_alpha)
+        strategy = state.config.densify.strategy(state.scene_extent, state.config.iterations)
+        return dataclasses.replace(state, gaussians=g, opt_state=opt,
+                                   densify_stats=strategy.init(g), densify_origin=state.step)
 
     @staticmethod
-    def gaussians(state: TrainerState):
+    def gaussians(state):
         return state.gaussians
 
-    # one step -----------------------------------------------------------------
-    def _make_step(self, cap: int) -> Callable:
-        from ..raster import render
+    def step(self, state, image, camera, key):
+        """(state, loss float, metrics) after one optimiser + density-control step."""
+        from .. import train
 
-        tx, strategy, bg, lam = self.tx, self.strategy, self._bg, self.settings.lambda_dssim
-        densify = self._densify
-
-        def step(state: TrainerState, image, camera, key, dstep):
-            g = state.gaussians
-            gf = dataclasses.replace(g, alive=g.alive.astype(jnp.float32))
-            delta = jnp.zeros((g.capacity, 2), jnp.float32)
-
-            def loss_fn(gf, delta):
-                gg = dataclasses.replace(gf, alive=g.alive)
-                out = render(gg, camera, background=bg, means2d_delta=delta, max_intersections=cap)
-                return photometric(out.rgb, image, lam), out
-
-            (loss, out), (grads, gdelta) = jax.value_and_grad(loss_fn, argnums=(0, 1),
-                                                              has_aux=True)(gf, delta)
-            updates, opt_state = tx.update(grads, state.opt_state, gf)
-            gf = jax.tree_util.tree_map(lambda p, u: p + u, gf, updates)
-            g = dataclasses.replace(gf, alive=g.alive)
-            aux = densify.render_aux(gdelta, out, camera.width, camera.height)
-            g, opt_state, stats, info = strategy.update(g, opt_state, state.stats, aux, dstep, key)
-            return TrainerState(g, opt_state, stats), loss, out.overflow, out.num_intersections, info
-
-        return jax.jit(step)
-
-    def step(self, state: TrainerState, image, camera, key, dstep: int):
-        """(state, loss float, info) after one optimiser + density-control step."""
-        image = jnp.asarray(image, jnp.float32)
-        dstep = jnp.int32(dstep)
-        while True:
-            cap = self.max_intersections
-            key_ = (self.settings, cap)
-            if key_ not in _STEP_CACHE:  # shared across trainers: tests and ablations compile once
-                _STEP_CACHE[key_] = self._make_step(cap)
-            new, loss, overflow, needed, info = _STEP_CACHE[key_](state, image, camera, key, dstep)
-            if bool(overflow):
-                self.max_intersections = max(2 * cap, 1 << max(int(needed) - 1, 1).bit_length())
-                continue
-            if bool(info.capacity_limited):
-                capacity = self._densify.grown_capacity(state.gaussians.capacity,
-                                                        int(info.slots_needed),
-                                                        self.settings.max_gaussians)
-                if capacity > state.gaussians.capacity:
-                    g, opt, stats = self._densify.grow_state(state.gaussians, state.opt_state,
-                                                             state.stats, capacity)
-                    state = TrainerState(g, opt, stats)
-                    continue
-            return new, float(loss), info
+        batch = train.Batch(image=jnp.asarray(image, jnp.float32), camera=camera)
+        state, metrics = train.step_with_retry(state, batch, key)
+        return state, float(metrics["loss"]), metrics
 
 
 # ---------------------------------------------------------------------------
@@ -795,7 +691,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     n = len(data.train_images)
     key_sub = jax.random.fold_in(ctx.key, spec.index)
     adaptive = cfg.mode != "in2n"
-    warmup = cfg.warmup if adaptive else 0
+    warmup = trainer.settings.warmup
     if st.step == 0:
         if adaptive:
             st.train = trainer.restart(st.train)
@@ -822,9 +718,8 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
             if s >= warmup:  # no edits while the reset opacities settle (paper 3.3 (1))
                 take(source.exchange(s - warmup, trainer.gaussians(st.train)))
             v = train_view(view_key, s, n)
-            dstep = s - warmup + 1 if s >= warmup else 0
             st.train, loss, _ = trainer.step(st.train, st.images[v], data.train_cameras[v],
-                                             jax.random.fold_in(train_key, s), dstep)
+                                             jax.random.fold_in(train_key, s))
             if s >= warmup:
                 st.tracker = track_loss(st.tracker, loss, min_delta=cfg.min_delta)
             st.step = s + 1
@@ -1010,7 +905,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     run_dir = None if run_dir is None else Path(run_dir)
     settings = settings or TrainSettings(scene_extent=scene_extent(data.train_cameras))
     settings = dataclasses.replace(settings, adaptive=config.mode != "in2n",
-                                   background=tuple(config.background))
+                                   warmup=config.warmup, background=tuple(config.background))
     trainer = SubtaskTrainer(settings)
     trainer_device, editor_device = pick_devices()
     ctx = EditContext(editor, prompt, data, config, trainer, Renderer(config.background),
