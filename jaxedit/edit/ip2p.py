@@ -178,6 +178,15 @@ def _load(root: Path, sub: str, loader):
         raise DataError(root / sub, f"cannot load ({first}); needs {HOW_TO_GET}") from None
 
 
+def _from_jax(x: jax.Array) -> "torch.Tensor":
+    """JAX array -> torch tensor: DLPack (zero-copy, on JAX's device) when this torch build can
+    take it, else one device-to-host copy (e.g. JAX on a GPU with a CPU-only torch)."""
+    try:
+        return torch.from_dlpack(x)
+    except (RuntimeError, TypeError, BufferError, ValueError):
+        return torch.from_numpy(np.array(x))
+
+
 def _default_device() -> str:
     return "cuda:0" if torch.cuda.is_available() else "cpu"
 
@@ -281,7 +290,7 @@ class InstructPix2PixEditor:
         if isinstance(image, torch.Tensor):
             t = image
         elif isinstance(image, jax.Array):
-            t = torch.from_dlpack(image)  # zero-copy when JAX and torch share the device
+            t = _from_jax(image)
         else:
             array = np.ascontiguousarray(image)
             with warnings.catch_warnings():
@@ -299,7 +308,7 @@ class InstructPix2PixEditor:
         if isinstance(embedding, torch.Tensor):
             e = embedding
         elif isinstance(embedding, jax.Array):
-            e = torch.from_dlpack(embedding)
+            e = _from_jax(embedding)
         else:
             e = torch.from_numpy(np.ascontiguousarray(embedding, dtype=np.float32))
         null = self.encode("")
