@@ -212,3 +212,17 @@ def test_oracle_memoises_per_ratio_and_view(editor):
     assert curve[0] == (0.0, 0.0) and curve[2][1] > curve[1][1] > 0
     with pytest.raises(DataError, match="views"):
         DifficultyOracle(editor, views, SHAPE, views=[5])
+
+
+def test_from_scene_stamps_texture_on_the_surface():
+    from jaxedit import scenes
+
+    scene = scenes.get_scene("face")
+    cams, _, _ = scenes.scene_cameras(scene, views=2, test_views=0, size=S)
+    images = scenes.render_scene(scene, cams, supersample=1)
+    geo = SimulatedEditor.from_scene(scene, cams, images)
+    marble = VOCABULARY[3].prompt
+    png = np.round(images[1] * 255) / 255  # as read back from an 8-bit file
+    a = geo.target(png, 1.0, marble)
+    assert np.mean(np.abs(a - SimulatedEditor().target(png, 1.0, marble))) > 1e-3
+    assert np.allclose(a, geo.target(images[1], 1.0, marble), atol=0.02)

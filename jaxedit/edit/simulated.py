@@ -440,8 +440,9 @@ class SimulatedEditor:
       surfaces: optional per-view geometry for a truly 3D texture: a pair
         ``(originals float [N, H, W, 3], points float [N, H, W, 3])`` of original views and the
         world point seen by each pixel (e.g. from ``jaxedit.scenes.surface_points_and_ids``).
-        When ``edit``/``target`` receive an ``original`` equal to one of these views, the marble
-        veins are a function of the world position instead of the colour.
+        When ``edit``/``target`` receive an ``original`` equal to one of these views (up to 8-bit
+        rounding), the marble veins are a function of the world position instead of the colour.
+        See :meth:`from_scene` for the built-in scenes.
     """
 
     name = "simulated"
@@ -454,14 +455,31 @@ class SimulatedEditor:
         self.params = _Params(float(noise), float(colour), float(shift), float(jitter))
         q, _ = np.linalg.qr(np.random.default_rng(20241120).normal(size=(EMBED_DIM, EMBED_DIM)))
         self._basis = q.astype(np.float32)  # columns: null direction, then one per instruction
-        self._surfaces = {}
+        self._surface_views = self._surface_points = None
         if surfaces is not None:
             originals, points = (np.asarray(a, np.float32) for a in surfaces)
             if originals.ndim != 4 or originals.shape[-1] != 3 or points.shape != originals.shape:
                 raise DataError("surfaces", f"expected (originals [N,H,W,3], points [N,H,W,3]), got "
                                 f"{originals.shape} and {points.shape}")
-            for o, p in zip(originals, points):
-                self._surfaces[o.tobytes()] = np.nan_to_num(p)
+            self._surface_views = originals
+            # background pixels have no surface point (NaN from the ray caster): any finite
+            # value does, the foreground mask keeps the texture off the background
+            self._surface_points = np.nan_to_num(points)
+
+    @classmethod
+    def from_scene(cls, scene, cameras, images=None, **kwargs) -> SimulatedEditor:
+        """An editor whose texture instruction is stamped on the 3D surface of a built-in scene.
+
+        ``images`` (float [N, H, W, 3]) are the original views of ``cameras``; default: the ray
+        caster's renders. Uses ``jaxedit.scenes.surface_points_and_ids``.
+        """
+        from .. import scenes
+
+        if images is None:
+            images = scenes.render_scene(scene, cameras)
+        points, ids, _ = scenes.surface_points_and_ids(scene, cameras)
+        points = np.where((np.asarray(ids) >= 0)[..., None], points, 0.0)
+        return cls(surfaces=(images, points), **kwargs)
 
     # ---- vocabulary and embeddings ----------------------------------------------------------
 
@@ -518,8 +536,17 @@ class SimulatedEditor:
     # ---- images -----------------------------------------------------------------------------
 
     def _points(self, original: np.ndarray):
-        p = self._surfaces.get(original.tobytes())
-        return None if p is None else jnp.asarray(p)
+        """World points of a registered view equal to ``original`` up to 8-bit rounding, or None.
+
+        Matching by content (mean absolute difference < 1/255) lets originals read back from
+        PNG files find their geometry.
+        """
+        views = self._surface_views
+        if views is None or views.shape[1:] != original.shape:
+            return None
+        err = np.mean(np.abs(views - original[None]), axis=(1, 2, 3))
+        k = int(np.argmin(err))
+        return jnp.asarray(self._surface_points[k]) if err[k] < 1.0 / 255 else None
 
     def target(self, original, ratio: float, instruction) -> np.ndarray:
         """The noise-free r-partial target T_r(original), float32 [H, W, 3] in [0, 1].
