@@ -172,6 +172,7 @@ def run(args) -> dict:
             bar.set_postfix(running=name)
             records.append(run_one(name, out, smoke=args.smoke, timeout=args.timeout))
             bar.update(1, last=f"{name}:{records[-1]['status']}")
+        bar.postfix.pop("running", None)
     info = machine()
     atomic_write_text(out / "summary.md",
                       summary_markdown(records, info, smoke=args.smoke, max_rows=args.max_rows))

@@ -503,6 +503,10 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
 
     # Turntables ----------------------------------------------------------
     cards = []
+    orig_tt = _turntable_uri(run_dir / "original" / "turntable.webp", turntable_px, max_frames)
+    if orig_tt:
+        cards.append(f'<figure class="card"><img src="{orig_tt}" alt="turntable original">'
+                     "<figcaption>original</figcaption></figure>")
     for label, d in zip(labels, snap_dirs):
         uri = _turntable_uri(d / "turntable.webp", turntable_px, max_frames) if d else None
         if uri:
