@@ -194,6 +194,16 @@ def test_points_ply_ascii_colmap_style_with_normals(tmp_path):
     np.testing.assert_allclose(c, np.array([[255, 0, 0], [0, 128, 255], [10, 20, 30]]) / 255, atol=1e-7)
 
 
+def test_points_from_a_3dgs_file_use_dc_colour(tmp_path):
+    rng = np.random.default_rng(6)
+    g = _random_gaussians(rng, 4, 2, capacity=4)
+    g = dataclasses.replace(g, sh=g.sh.at[:, 0].set(shlib.rgb_to_dc(jnp.asarray(rng.uniform(size=(4, 3)),
+                                                                              jnp.float32))))
+    p, c = load_points_ply(save_ply(tmp_path / "g.ply", g))
+    np.testing.assert_array_equal(p, np.asarray(g.means))
+    np.testing.assert_allclose(c, np.asarray(shlib.dc_to_rgb(g.sh[:, 0])), atol=1e-6)
+
+
 def test_points_ply_double_coords_no_colour_big_endian(tmp_path):
     header = ("ply\nformat binary_big_endian 1.0\nelement vertex 2\nproperty double x\n"
               "property double y\nproperty double z\nend_header\n")

@@ -3,6 +3,7 @@ nothing is left half-written."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import struct
@@ -349,9 +350,19 @@ def test_corrupted_ply_header_raises_only_data_error(tmp_path, data):
             pass
 
 
+def test_save_ply_refuses_non_finite_alive_values(tmp_path):
+    g = G.empty(3, 0)
+    g = dataclasses.replace(g, alive=np.array([True, True, False]),
+                            means=np.array([[0, 0, 0], [0, np.inf, 0], [0, 0, 0]], np.float32))
+    with pytest.raises(DataError, match="1 alive Gaussians have non-finite values"):
+        save_ply(tmp_path / "x.ply", g)
+    assert list(tmp_path.iterdir()) == []
+    dead_nan = dataclasses.replace(g, means=np.array([[0, 0, 0], [0, 1, 0], [np.nan] * 3], np.float32))
+    assert load_ply(save_ply(tmp_path / "y.ply", dead_nan)).capacity == 2  # dead slots not written
+
+
 def test_save_ply_rejects_bad_sh(tmp_path):
     g = G.empty(2, 1)
-    import dataclasses
     bad = dataclasses.replace(g, sh=np.zeros((2, 5, 3), np.float32))
     with pytest.raises(DataError, match="SH coefficients"):
         save_ply(tmp_path / "x.ply", bad)

@@ -414,7 +414,8 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
     if len(set(map(_norm_name, names))) != len(names):
         dup = next(n for n in names if sum(_norm_name(m) == _norm_name(n) for m in names) > 1)
         raise DataError(json_path, f"file_path {dup!r} appears in more than one frame")
-    parsed.sort(key=lambda p: p[0])  # nerfstudio sorts frames by file name
+    # nerfstudio sorts frames by file path (pathlib order: part by part, "./" ignored)
+    parsed.sort(key=lambda p: Path(p[0]).parts)
     names = [p[0] for p in parsed]
     sizes = {(p[2].width, p[2].height) for p in parsed}
     if len(sizes) != 1:

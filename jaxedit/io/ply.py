@@ -32,6 +32,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+from .. import sh as shlib
 from ..errors import DataError
 from ..gaussians import Gaussians
 from .files import atomic_path
@@ -371,6 +372,13 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
     if n_coeffs not in (1, 4, 9, 16):
         raise DataError("gaussians.sh", f"{n_coeffs} SH coefficients is not (d+1)^2 for d in 0..3")
     table = gaussians_to_table(gaussians)
+    if len(table):
+        values = table.view(np.float32).reshape(len(table), -1)
+        bad = ~np.isfinite(values).all(axis=1)
+        if bad.any():
+            # load_ply refuses such files, so never write one.
+            raise DataError(path, f"{int(bad.sum())} alive Gaussians have non-finite values "
+                                  f"(first at alive index {int(np.argmax(bad))}); nothing written")
     header = ["ply", "format binary_little_endian 1.0", "comment written by jaxedit",
               f"element vertex {len(table)}"]
     header += [f"property float {name}" for name in table.dtype.names]
@@ -400,7 +408,8 @@ def load_points_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     Accepts ascii and binary PLYs with a ``vertex`` element holding ``x y z``
     and optionally ``red green blue`` (also spelled ``r g b`` or
     ``diffuse_red ...``); uchar colours are divided by 255, ushort by 65535,
-    float colours are used as they are. Other properties (normals, alpha) and
+    float colours are used as they are. A 3DGS file gives its Gaussians'
+    centres and DC colours. Other properties (normals, alpha) and
     other elements (faces) are ignored.
 
     Returns:
@@ -423,6 +432,10 @@ def load_points_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             colors = np.stack([np.asarray(table[n], np.float64) / _color_scale(kinds[n])
                                for n in names], axis=-1).astype(np.float32).reshape(-1, 3)
             break
+    else:
+        if all(f"f_dc_{i}" in table for i in range(3)):  # a 3DGS file: its DC colour
+            dc = np.stack([np.asarray(table[f"f_dc_{i}"], np.float64) for i in range(3)], axis=-1)
+            colors = shlib.dc_to_rgb(dc).astype(np.float32).reshape(-1, 3)
     if not np.isfinite(points).all():
         raise DataError(path, "point cloud has non-finite (NaN or inf) coordinates")
     if not np.isfinite(colors).all():
