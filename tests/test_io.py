@@ -528,3 +528,24 @@ def test_bilinear_sample_pixel_centre_convention():
     out = bilinear_sample(img, u, v, fill=[-1.0])[:, 0]
     # centres, a midpoint between columns 0 and 1, edge clamping, outside -> fill
     np.testing.assert_allclose(out, [0.0, 4.0, 0.5, 3.5, 0.0, -1.0, -1.0])
+
+
+@pytest.mark.parametrize("up", [[0.3, -0.2, 0.9], [0.0, 0.0, -1.0], [1e-9, 0.0, -1.0], [0, 1.0, 0]])
+def test_nerfstudio_orientation_takes_mean_up_to_z(up):
+    from jaxedit.io.nerfstudio import nerfstudio_world_transform
+
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    # Two cameras whose OpenGL up (column 1) is `up`, at different places.
+    basis = camlib.look_at([0, 0, 0], np.cross(up, [0.1, 0.7, 0.2]), up=up)[:3, :3]  # rows: cam axes
+    c2w = np.tile(np.eye(4), (2, 1, 1))
+    c2w[:, :3, :3] = (np.diag([1.0, -1.0, -1.0]) @ basis).T  # OpenGL columns; column 1 = up
+    c2w[:, :3, 3] = [[1.0, 2.0, 3.0], [3.0, 2.0, 0.0]]
+    np.testing.assert_allclose(c2w[0, :3, 1], up, atol=1e-9)
+    m, s = nerfstudio_world_transform(c2w)
+    r = m[:3, :3] / s
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+    np.testing.assert_allclose(r @ up, [0, 0, 1], atol=1e-9)
+    centres = transform_points(c2w[:, :3, 3], m)
+    np.testing.assert_allclose(centres.mean(0), 0, atol=1e-12)
+    assert np.abs(centres).max() == pytest.approx(1.0)
