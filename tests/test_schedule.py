@@ -172,3 +172,13 @@ def test_uniform_and_validation():
         Schedule((0.1, 1.0), (0.1,))
     with pytest.raises(DataError, match="difficulty"):
         decompose(lambda a, b: float("nan"), threshold=0.1)
+
+
+def test_root_placement_surfaces_difficulty_errors():
+    def d(a, b):
+        if max(a, b) > 0.6 and max(a, b) < 1.0:
+            raise DataError("editor", "boom")
+        return abs(b - a)
+
+    with pytest.raises(DataError, match="boom"):
+        decompose_root(d, threshold=0.3)

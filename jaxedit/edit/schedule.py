@@ -21,6 +21,7 @@ pairs it evaluated.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Callable, Mapping
 from typing import NamedTuple
@@ -218,7 +219,7 @@ def _quantise(y: float, lo: float, resolution: float) -> float:
 # optimistix compiles the solve once per (resolution, max_steps) and every search reuses it;
 # the search in progress is named by an integer token passed as an argument.
 _HOST_FNS: dict[int, Callable[[float], float]] = {}
-_NEXT_TOKEN = [0]
+_TOKENS = itertools.count(1)
 
 
 def _host_g(y, token):
@@ -243,16 +244,32 @@ def _bisect_host(host: Callable[[float], float], lower: float, upper: float,
     function may never reach, hence throw=False and bracket checks by the callers. Once the
     bracket is below one grid cell every further step is a memo hit.
     """
-    token = _NEXT_TOKEN[0] = _NEXT_TOKEN[0] + 1
-    _HOST_FNS[token] = host
+    errors: list[BaseException] = []
+
+    def guarded(y):
+        # an exception inside a callback would come out as an XLA runtime error: keep the
+        # original (e.g. the editor's DataError) and raise it after the solve
+        if errors:
+            return 0.0
+        try:
+            return host(y)
+        except Exception as e:  # noqa: BLE001 - re-raised below, unchanged
+            errors.append(e)
+            return 0.0
+
+    token = next(_TOKENS)
+    _HOST_FNS[token] = guarded
     try:
         solver = optx.Bisection(rtol=0.0, atol=0.25 * resolution, flip=False)
         sol = optx.root_find(_g, solver, jnp.float32(0.5 * (lower + upper)), args=jnp.int32(token),
                              options={"lower": jnp.float32(lower), "upper": jnp.float32(upper)},
                              throw=False, max_steps=_bracket_steps(resolution))
-        return float(sol.state.lower), float(sol.state.upper)
+        lower, upper = float(sol.state.lower), float(sol.state.upper)
     finally:
         del _HOST_FNS[token]
+    if errors:
+        raise errors[0]
+    return lower, upper
 
 
 def _equalise(difficulty: DifficultyFn, cache: Mapping, a: float, x0: float, b: float,
