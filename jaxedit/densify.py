@@ -372,8 +372,9 @@ def adaptive(*, scene_extent: float = 1.0, max_gaussians: int = 1_000_000,
       split_factor: children's scales are the parent's divided by this.
       cull_scale: cull if max scale > this * scene_extent (None disables).
       cull_screen: cull if the screen radius reached this fraction of max(W, H)
-        since the last maintenance, after the first opacity reset (from the start
-        when ``reset_every`` is 0; None disables).
+        since the last maintenance; only after the first opacity reset, as in
+        INRIA's 3DGS (early Gaussians are legitimately large on screen), hence
+        never when ``reset_every`` is 0; None disables.
     """
     if refine_every <= 0:
         raise ValueError("refine_every must be positive")
@@ -399,7 +400,7 @@ def adaptive(*, scene_extent: float = 1.0, max_gaussians: int = 1_000_000,
         culled = opac < cull_alpha
         if big_scale is not None:
             culled |= max_scale > big_scale
-        if cull_screen is not None:
+        if cull_screen is not None and reset_every > 0:
             culled |= (stats.max_radius > cull_screen) & (step > reset_every)
         culled &= alive0
         alive1 = alive0 & ~culled

@@ -26,7 +26,7 @@ CULL_ALPHA = 0.05
 
 BUDGET = D.creation_budget(min_new=3, growth=0.1, max_fraction=0.5)
 COMMON = dict(scene_extent=EXTENT, max_gaussians=CAP, refine_every=10, warmup=0, stop_at=1000,
-              reset_every=0, cull_alpha=CULL_ALPHA, dense_percent=0.05, cull_scale=0.5,
+              reset_every=7, cull_alpha=CULL_ALPHA, dense_percent=0.05, cull_scale=0.5,
               cull_screen=0.3)
 BUDGETED = D.adaptive(budget=BUDGET, **COMMON)
 CLASSIC = D.adaptive(budget=None, grad_threshold=2e-4, **COMMON)
@@ -209,7 +209,7 @@ def test_split_children_follow_the_parent_and_depend_on_the_key():
 
 def test_nothing_happens_outside_maintenance_steps_but_stats_accumulate():
     g, opt_state, stats, aux = random_case(5, 30)
-    g2, o2, s2, info = UPD_BUDGETED(g, opt_state, stats, aux, 7, jax.random.key(0))
+    g2, o2, s2, info = UPD_BUDGETED(g, opt_state, stats, aux, 9, jax.random.key(0))
     assert not bool(info.refined) and int(info.created) == 0 and int(info.culled) == 0
     np.testing.assert_array_equal(np.asarray(g2.alive), np.asarray(g.alive))
     vis = np.asarray(aux.visible)

@@ -1,0 +1,801 @@
+"""3DGS training: a pure, jit-compiled train step, a resumable fit loop, checkpoints.
+
+The pieces, from the inside out:
+
+* :class:`TrainConfig` (with :class:`DensifyConfig`): every hyper-parameter,
+  Splatfacto defaults, JSON-serialisable (it is stored in checkpoints).
+* :class:`TrainState`: the whole training state as one pytree -- Gaussians,
+  optax state (one Adam per attribute through ``optax.partition``), densify
+  statistics, the step count and the run's base PRNG key. The config, the scene
+  extent and the intersection-buffer size are static fields: changing them
+  recompiles, and they travel with the state into checkpoints.
+* :func:`train_step` ``(state, batch, key) -> (state, metrics)``: render one
+  view, 0.8 L1 + 0.2 D-SSIM, Adam, then density control. Pure and jitted.
+  It never silently returns a bad step: when the tile splatter's intersection
+  buffer overflowed, or density control needed more slots than the capacity
+  has (while the hard cap allows more), it returns the *input* state unchanged
+  with ``metrics["redo"]`` set; :func:`step_with_retry` (used by :func:`fit`)
+  grows the buffer / capacity outside jit and redoes the step -- one recompile,
+  logged, and the same result as if the room had been there from the start.
+* :func:`fit`: the loop. The view of step ``s`` and its PRNG key are pure
+  functions of ``(base key, s)`` (a seeded permutation per epoch), so a run
+  resumed from any checkpoint ends with bit-identical Gaussians.
+
+The ProEdit driver can swap the ``images`` array between :func:`fit` calls (the
+edited dataset), stop early with ``should_stop(step, loss_history)``, or run its
+own loop around :func:`select_batch` + :func:`step_with_retry`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from . import densify as dens
+from . import gaussians as glib
+from . import sh as shlib
+from .camera import Camera
+from .errors import DataError
+from .gaussians import Gaussians
+from .io.files import atomic_path
+from .raster import render
+from .raster.render import next_capacity, render_tiles
+
+log = logging.getLogger(__name__)
+
+BACKGROUNDS = ("random", "white", "black")
+CHECKPOINT_VERSION = 1
+
+
+# --------------------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class DensifyConfig:
+    """Density control settings (see :func:`jaxedit.densify.adaptive`).
+
+    ``budget=True`` switches on ProEdit's adaptive creation with the budget
+    family :func:`jaxedit.densify.creation_budget` (``budget_min_new``,
+    ``budget_growth``, ``budget_max_fraction``); otherwise classic 3DGS
+    thresholding at ``grad_threshold``. ``stop_at=None`` means half of the
+    run's iterations (Splatfacto: 15000 of 30000). ``max_gaussians`` is a hard cap.
+    """
+
+    enabled: bool = True
+    max_gaussians: int = 1_000_000
+    budget: bool = False
+    budget_min_new: int = 64
+    budget_growth: float = 0.02
+    budget_max_fraction: float = 0.1
+    grad_threshold: float = 2e-4
+    grad_floor: float = 0.0
+    refine_every: int = 100
+    warmup: int = 500
+    stop_at: int | None = None
+    reset_every: int = 3000
+    cull_alpha: float = 0.005
+    reset_value: float | None = None
+    dense_percent: float = 0.01
+    split_factor: float = 1.6
+    cull_scale: float | None = 0.1
+    cull_screen: float | None = 0.15
+
+    def strategy(self, scene_extent: float, iterations: int) -> dens.Strategy:
+        """The :class:`jaxedit.densify.Strategy` these settings describe."""
+        stop_at = self.stop_at if self.stop_at is not None else iterations // 2
+        if not self.enabled:
+            stop_at, reset_every = -1, 0
+        else:
+            reset_every = self.reset_every
+        budget = None
+        if self.budget:
+            budget = dens.creation_budget(min_new=self.budget_min_new, growth=self.budget_growth,
+                                          max_fraction=self.budget_max_fraction)
+        return dens.adaptive(
+            scene_extent=scene_extent, max_gaussians=self.max_gaussians, budget=budget,
+            grad_threshold=self.grad_threshold, grad_floor=self.grad_floor,
+            refine_every=self.refine_every, warmup=self.warmup, stop_at=stop_at,
+            reset_every=reset_every, cull_alpha=self.cull_alpha, reset_value=self.reset_value,
+            dense_percent=self.dense_percent, split_factor=self.split_factor,
+            cull_scale=self.cull_scale, cull_screen=self.cull_screen)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters (defaults: nerfstudio Splatfacto / INRIA 3DGS).
+
+    Attributes:
+      iterations: optimiser steps of the run (one view per step).
+      lr_means, lr_means_final: means learning rate, decayed exponentially from
+        the first to the second over ``iterations`` steps, both multiplied by the
+        scene extent (INRIA).
+      lr_sh_dc, lr_sh_rest, lr_opacity, lr_scales, lr_quats: Adam learning rates.
+      adam_eps: Adam epsilon (1e-15: tiny, as in 3DGS).
+      lambda_dssim: loss = (1 - l) L1 + l (1 - SSIM).
+      sh_degree: largest SH degree trained (<= the Gaussians'); one degree is
+        switched on every ``sh_degree_interval`` steps, starting at 0.
+      background: "random" (a uniform colour per step), "white" or "black";
+        the colour behind the Gaussians in training renders.
+      densify: :class:`DensifyConfig`.
+    """
+
+    iterations: int = 30_000
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    adam_eps: float = 1e-15
+    lambda_dssim: float = 0.2
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000
+    background: str = "white"
+    densify: DensifyConfig = DensifyConfig()
+
+    def __post_init__(self):
+        if self.background not in BACKGROUNDS:
+            raise DataError("background", f"must be one of {BACKGROUNDS}, got {self.background!r}")
+        if self.iterations < 0:
+            raise DataError("iterations", f"must be >= 0, got {self.iterations}")
+        if not 0 <= self.sh_degree <= 3:
+            raise DataError("sh_degree", f"must be in 0..3, got {self.sh_degree}")
+        if self.sh_degree_interval <= 0:
+            raise DataError("sh_degree_interval", "must be positive")
+        if not 0.0 <= self.lambda_dssim <= 1.0:
+            raise DataError("lambda_dssim", f"must be in [0, 1], got {self.lambda_dssim}")
+        if isinstance(self.densify, dict):
+            object.__setattr__(self, "densify", _densify_from_dict(self.densify))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str = "config") -> "TrainConfig":
+        if not isinstance(data, dict):
+            raise DataError(where, "train config must be an object")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise DataError(where, f"unknown train config field(s) {', '.join(unknown)}")
+        data = dict(data)
+        if "densify" in data:
+            data["densify"] = _densify_from_dict(data["densify"], f"{where}.densify")
+        return cls(**data)
+
+
+def _densify_from_dict(data, where: str = "densify") -> DensifyConfig:
+    if isinstance(data, DensifyConfig):
+        return data
+    if not isinstance(data, dict):
+        raise DataError(where, "must be an object")
+    known = {f.name for f in dataclasses.fields(DensifyConfig)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise DataError(where, f"unknown densify field(s) {', '.join(unknown)}")
+    return DensifyConfig(**data)
+
+
+# --------------------------------------------------------------------------------------
+# State
+# --------------------------------------------------------------------------------------
+
+_LABELS = dict(means="means", log_scales="scales", quats="quats", opacity_logits="opacity", sh="sh")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TrainState:
+    """Everything a run needs to continue.
+
+    Attributes:
+      gaussians: Gaussians, capacity C.
+      opt_state: optax state of ``optimizer(config, extent)`` over the
+        parameters (the Gaussians without ``alive``).
+      densify_stats: :class:`jaxedit.densify.DensifyStats`.
+      step: int32 [], optimiser steps done.
+      densify_origin: int32 [], density control sees ``step - densify_origin``
+        (the ProEdit driver sets it at each subtask start so that warm-up counts
+        from there).
+      key: uint32 [2], the run's base PRNG key data (views and per-step keys derive from it).
+      config: TrainConfig (static).
+      scene_extent: float (static).
+      max_intersections: int (static), the tile splatter's buffer size.
+    """
+
+    gaussians: Gaussians
+    opt_state: Any
+    densify_stats: dens.DensifyStats
+    step: jax.Array
+    densify_origin: jax.Array
+    key: jax.Array
+    config: TrainConfig = dataclasses.field(metadata=dict(static=True))
+    scene_extent: float = dataclasses.field(metadata=dict(static=True))
+    max_intersections: int = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def capacity(self) -> int:
+        return self.gaussians.capacity
+
+
+class Batch(NamedTuple):
+    """One training view: image float [H, W, 3] in [0, 1] and its (single) Camera."""
+
+    image: jax.Array
+    camera: Camera
+
+
+def _params(g: Gaussians) -> Gaussians:
+    """The trainable part of the Gaussians (``alive`` removed: it is not differentiable)."""
+    return dataclasses.replace(g, alive=None)
+
+
+def optimizer(config: TrainConfig, scene_extent: float) -> optax.GradientTransformation:
+    """One Adam per attribute (``optax.partition``), Splatfacto learning rates.
+
+    The SH array holds DC and higher-order coefficients together; Adam is
+    elementwise, so one Adam followed by a per-coefficient learning rate
+    (DC: ``lr_sh_dc``, rest: ``lr_sh_rest``) equals two separate Adams.
+    """
+
+    def adam(lr):
+        return optax.chain(optax.scale_by_adam(eps=config.adam_eps),
+                           optax.scale_by_learning_rate(lr))
+
+    means_lr = optax.exponential_decay(
+        init_value=config.lr_means * scene_extent, transition_steps=max(config.iterations, 1),
+        decay_rate=config.lr_means_final / config.lr_means,
+        end_value=config.lr_means_final * scene_extent)
+    k = shlib.num_coeffs(3)
+    sh_lr = np.full((k, 1), config.lr_sh_rest, np.float32)
+    sh_lr[0] = config.lr_sh_dc
+
+    def sh_transform():
+        def init(params):
+            return optax.EmptyState()
+
+        def update(updates, state, params=None):
+            def scale(u):
+                return u * -jnp.asarray(sh_lr[:u.shape[-2]], u.dtype)
+            return jax.tree_util.tree_map(scale, updates), state
+
+        return optax.chain(optax.scale_by_adam(eps=config.adam_eps),
+                           optax.GradientTransformation(init, update))
+
+    transforms = {"means": adam(means_lr), "scales": adam(config.lr_scales),
+                  "quats": adam(config.lr_quats), "opacity": adam(config.lr_opacity),
+                  "sh": sh_transform()}
+    labels = Gaussians(alive=None, **_LABELS)
+    return optax.partition(transforms, labels)
+
+
+def scene_extent(cameras: Camera) -> float:
+    """INRIA's ``cameras_extent``: 1.1 x the largest camera distance from the rig centre."""
+    centers = np.asarray(cameras.center(), np.float64).reshape(-1, 3)
+    radius = float(np.max(np.linalg.norm(centers - centers.mean(0), axis=-1))) if len(centers) else 0.0
+    return 1.1 * radius if radius > 0 else 1.0
+
+
+def _key_data(key) -> jax.Array:
+    key = jnp.asarray(key) if not isinstance(key, jax.Array) else key
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return jax.random.key_data(key)
+    if key.shape != (2,) or key.dtype != jnp.uint32:
+        raise DataError("key", f"expected a PRNG key, got {key.dtype} {tuple(key.shape)}")
+    return key
+
+
+def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *,
+               key=None, max_intersections: int | None = None) -> TrainState:
+    """A fresh TrainState.
+
+    Args:
+      gaussians: initial Gaussians (e.g. :func:`jaxedit.gaussians.from_points`).
+      config: TrainConfig.
+      scene_extent: world size (see :func:`scene_extent`).
+      key: the run's base PRNG key (default ``jax.random.key(0)``).
+      max_intersections: initial tile buffer size (default: a guess that
+        :func:`fit` grows on overflow).
+    """
+    if config.sh_degree > gaussians.sh_degree:
+        raise DataError("sh_degree", f"config trains degree {config.sh_degree} but the "
+                                     f"Gaussians hold degree {gaussians.sh_degree}")
+    if not np.isfinite(scene_extent) or scene_extent <= 0:
+        raise DataError("scene_extent", f"must be a positive number, got {scene_extent}")
+    key = jax.random.key(0) if key is None else key
+    tx = optimizer(config, scene_extent)
+    strategy = config.densify.strategy(scene_extent, config.iterations)
+    if max_intersections is None:
+        max_intersections = next_capacity(16 * gaussians.capacity)
+    return TrainState(gaussians=gaussians, opt_state=tx.init(_params(gaussians)),
+                      densify_stats=strategy.init(gaussians), step=jnp.zeros((), jnp.int32),
+                      densify_origin=jnp.zeros((), jnp.int32), key=_key_data(key),
+                      config=config, scene_extent=float(scene_extent),
+                      max_intersections=int(max_intersections))
+
+
+# --------------------------------------------------------------------------------------
+# The step
+# --------------------------------------------------------------------------------------
+
+def active_sh_degree(step, config: TrainConfig) -> jax.Array:
+    """int32 [], SH degree in use at 0-based ``step``: one more every ``sh_degree_interval``."""
+    return jnp.minimum(jnp.asarray(step, jnp.int32) // config.sh_degree_interval,
+                       config.sh_degree)
+
+
+def sh_mask(degree, num_coeffs: int) -> jax.Array:
+    """float [K, 1]: 1 for the coefficients of degrees <= ``degree``, else 0.
+
+    Masking (instead of a lower static degree) keeps one compiled step for the
+    whole run; masked coefficients get zero gradient, so Adam leaves them at 0.
+    """
+    k = jnp.arange(num_coeffs)
+    return (k < (jnp.asarray(degree) + 1) ** 2).astype(jnp.float32)[:, None]
+
+
+def background_color(config: TrainConfig, key) -> jax.Array:
+    """float [3], the background of a training render."""
+    if config.background == "random":
+        return jax.random.uniform(key, (3,))
+    return jnp.full((3,), 1.0 if config.background == "white" else 0.0)
+
+
+def psnr_from_mse(mse):
+    return -10.0 * jnp.log10(jnp.maximum(mse, 1e-12))
+
+
+def _train_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
+    from .losses import photometric_loss  # noqa: PLC0415  (TODO: top level once landed)
+
+    cfg = state.config
+    g = state.gaussians
+    k_bg, k_dens = jax.random.split(key)
+    bg = background_color(cfg, k_bg)
+    mask = sh_mask(active_sh_degree(state.step, cfg), g.sh.shape[-2])
+    cam = batch.camera
+    target = jnp.asarray(batch.image, g.means.dtype)
+
+    def loss_fn(params, delta):
+        gg = dataclasses.replace(params, alive=g.alive, sh=params.sh * mask)
+        out = render_tiles(gg, cam, capacity=state.max_intersections, background=bg,
+                           means2d_delta=delta)
+        return photometric_loss(out.rgb, target, cfg.lambda_dssim), out
+
+    params = _params(g)
+    delta = jnp.zeros((g.capacity, 2), g.means.dtype)
+    (loss, out), (grads, grad2d) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(
+        params, delta)
+    tx = optimizer(cfg, state.scene_extent)
+    updates, opt_state = tx.update(grads, state.opt_state, params)
+    params = optax.apply_updates(params, updates)
+    g1 = dataclasses.replace(params, alive=g.alive)
+
+    step = state.step + 1
+    strategy = cfg.densify.strategy(state.scene_extent, cfg.iterations)
+    aux = dens.render_aux(grad2d, out, cam.width, cam.height)
+    g2, opt_state, stats, info = strategy.update(g1, opt_state, state.densify_stats, aux,
+                                                 step - state.densify_origin, k_dens)
+    new = dataclasses.replace(state, gaussians=g2, opt_state=opt_state, densify_stats=stats,
+                              step=step)
+    redo = out.overflow | info.capacity_limited
+    # A step that must be redone leaves the state untouched (never half-applied).
+    new = jax.tree_util.tree_map(lambda old, nw: jnp.where(redo, old, nw), state, new)
+    mse = jnp.mean((out.rgb - target) ** 2)
+    metrics = dict(loss=loss, psnr=psnr_from_mse(mse), num_gaussians=info.alive,
+                   overflow=out.overflow, num_intersections=out.num_intersections,
+                   capacity_limited=info.capacity_limited, redo=redo,
+                   sh_degree=active_sh_degree(state.step, cfg),
+                   lr_means=_means_lr(cfg, state.scene_extent, state.step),
+                   densify=info._asdict())
+    return new, metrics
+
+
+def _means_lr(cfg: TrainConfig, extent: float, step):
+    rate = cfg.lr_means_final / cfg.lr_means
+    frac = jnp.minimum(jnp.asarray(step, jnp.float32) / max(cfg.iterations, 1), 1.0)
+    return cfg.lr_means * extent * rate ** frac
+
+
+train_step = jax.jit(_train_step)
+train_step.__doc__ = """One optimisation step on one view (pure, jitted).
+
+Args:
+  state: TrainState.
+  batch: Batch(image float [H, W, 3], camera: a single Camera).
+  key: PRNG key of this step (random background, split children).
+Returns:
+  (state, metrics): metrics is a dict of scalars -- loss, psnr (of this view),
+  num_gaussians, overflow, num_intersections, capacity_limited, redo, sh_degree,
+  lr_means, and ``densify`` (the :class:`jaxedit.densify.DensifyInfo` fields).
+  When ``metrics["redo"]`` is True the returned state IS the input state: grow
+  with :func:`grow_for_redo` and call again (or use :func:`step_with_retry`).
+"""
+
+
+def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
+    """After a step that asked for a redo: a larger intersection buffer and/or capacity.
+
+    Outside jit. The buffer at least doubles (and holds what the frame needed);
+    the capacity doubles until it holds what density control needed, clamped to
+    the hard cap. Logged (each costs one recompile).
+    """
+    if bool(metrics["overflow"]):
+        needed = int(np.max(np.asarray(metrics["num_intersections"])))
+        # Training grows the scene, so leave room (each size is one more compile).
+        new = max(2 * state.max_intersections, next_capacity(int(needed * 1.5)))
+        log.info("train: intersection buffer %d -> %d (a view needed %d)",
+                 state.max_intersections, new, needed)
+        state = dataclasses.replace(state, max_intersections=new)
+    if bool(metrics["capacity_limited"]):
+        needed = int(metrics["densify"]["slots_needed"])
+        cap = state.config.densify.max_gaussians
+        new_cap = dens.grown_capacity(state.capacity, needed, cap)
+        if new_cap <= state.capacity:
+            raise RuntimeError(f"capacity {state.capacity} cannot grow to hold {needed}")
+        log.info("train: capacity %d -> %d Gaussians (density control needed %d, cap %d)",
+                 state.capacity, new_cap, needed, cap)
+        g, opt_state, stats = dens.grow_state(state.gaussians, state.opt_state,
+                                               state.densify_stats, new_cap)
+        state = dataclasses.replace(state, gaussians=g, opt_state=opt_state, densify_stats=stats)
+    return state
+
+
+def step_with_retry(state: TrainState, batch: Batch, key, *, max_retries: int = 8):
+    """:func:`train_step`, growing buffer/capacity and redoing until the step is complete.
+
+    Returns:
+      (state, metrics) with ``metrics`` pulled to the host (NumPy scalars).
+    """
+    for _ in range(max_retries + 1):
+        new, metrics = train_step(state, batch, key)
+        metrics = jax.device_get(metrics)
+        if not bool(metrics["redo"]):
+            return new, metrics
+        state = grow_for_redo(state, metrics)
+    raise RuntimeError(f"train step still incomplete after {max_retries} retries")
+
+
+# --------------------------------------------------------------------------------------
+# Data order
+# --------------------------------------------------------------------------------------
+
+def _stream_keys(base_data):
+    base = jax.random.wrap_key_data(base_data)
+    return jax.random.fold_in(base, 0), jax.random.fold_in(base, 1)
+
+
+def _view_and_key(base_key_data, step, num_views: int):
+    k_views, k_steps = _stream_keys(base_key_data)
+    epoch, i = step // num_views, step % num_views
+    view = jax.random.permutation(jax.random.fold_in(k_views, epoch), num_views)[i]
+    return view.astype(jnp.int32), jax.random.fold_in(k_steps, step)
+
+
+view_and_key = jax.jit(_view_and_key, static_argnums=2)
+view_and_key.__doc__ = """(view index int32 [], step key) of 0-based ``step`` among ``num_views`` (static).
+
+A pure function of (base key data uint32 [2], step): the views follow a fresh
+seeded permutation every epoch of ``num_views`` steps.
+"""
+
+
+@jax.jit
+def _select(images, cameras, base_key_data, step):
+    view, key = _view_and_key(base_key_data, step, images.shape[0])
+    return Batch(image=images[view], camera=cameras[view]), key
+
+
+def select_batch(images, cameras: Camera, base_key_data, step) -> tuple[Batch, jax.Array]:
+    """(Batch of 0-based ``step``, its key) from images [N, H, W, 3] and cameras [N].
+
+    The view is the ``step % N``-th entry of a seeded permutation of epoch ``step // N``.
+    """
+    return _select(jnp.asarray(images), cameras, jnp.asarray(base_key_data),
+                   jnp.asarray(step, jnp.int32))
+
+
+# --------------------------------------------------------------------------------------
+# Checkpoints
+# --------------------------------------------------------------------------------------
+
+def _leaf_paths(state: TrainState) -> list[str]:
+    return [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(state)[0]]
+
+
+def save_checkpoint(path, state: TrainState, *, extra: dict | None = None) -> Path:
+    """Write ``state`` to ``path`` (.npz) atomically: every leaf plus the static fields.
+
+    ``extra`` (JSON-serialisable) is stored alongside and returned by
+    :func:`load_checkpoint_with_extra`.
+    """
+    path = Path(path)
+    leaves = jax.tree_util.tree_leaves(jax.device_get(state))
+    meta = dict(version=CHECKPOINT_VERSION, config=state.config.to_dict(),
+                scene_extent=state.scene_extent, max_intersections=state.max_intersections,
+                capacity=state.capacity, sh_degree=state.gaussians.sh_degree,
+                step=int(state.step), paths=_leaf_paths(state), extra=extra or {})
+    arrays = {f"leaf_{i:04d}": np.asarray(a) for i, a in enumerate(leaves)}
+    arrays["meta"] = np.asarray(json.dumps(meta))
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+    return path
+
+
+def load_checkpoint_with_extra(path) -> tuple[TrainState, dict]:
+    """(TrainState, extra) from a checkpoint written by :func:`save_checkpoint`."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError) as e:
+        raise DataError(path, f"cannot read checkpoint ({e})") from None
+    if "meta" not in arrays:
+        raise DataError(path, "not a jaxedit checkpoint (no meta record)")
+    try:
+        meta = json.loads(str(arrays["meta"]))
+    except json.JSONDecodeError as e:
+        raise DataError(path, f"corrupt checkpoint metadata ({e})") from None
+    if meta.get("version") != CHECKPOINT_VERSION:
+        raise DataError(path, f"checkpoint version {meta.get('version')} is not "
+                              f"{CHECKPOINT_VERSION}")
+    config = TrainConfig.from_dict(meta["config"], f"{path}:config")
+    template = init_state(glib.empty(int(meta["capacity"]), int(meta["sh_degree"])), config,
+                          float(meta["scene_extent"]), key=jax.random.key(0),
+                          max_intersections=int(meta["max_intersections"]))
+    leaves, treedef = jax.tree_util.tree_flatten(template)
+    if _leaf_paths(template) != meta["paths"]:
+        raise DataError(path, "checkpoint layout does not match this jaxedit version's TrainState")
+    loaded = []
+    for i, ref in enumerate(leaves):
+        a = arrays.get(f"leaf_{i:04d}")
+        if a is None or a.shape != ref.shape or a.dtype != ref.dtype:
+            raise DataError(path, f"checkpoint leaf {meta['paths'][i]} is missing or has the "
+                                  f"wrong shape/dtype")
+        loaded.append(jnp.asarray(a))
+    return jax.tree_util.tree_unflatten(treedef, loaded), meta.get("extra", {})
+
+
+def load_checkpoint(path) -> TrainState:
+    """The TrainState stored at ``path``."""
+    return load_checkpoint_with_extra(path)[0]
+
+
+def checkpoint_name(step: int) -> str:
+    return f"ckpt_{int(step):08d}.npz"
+
+
+def latest_checkpoint(directory) -> Path | None:
+    """The checkpoint of the highest step in ``directory`` (None if there is none)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return None
+    found = sorted(directory.glob("ckpt_*.npz"))
+    return found[-1] if found else None
+
+
+def _prune_checkpoints(directory: Path, keep: int) -> None:
+    for old in sorted(directory.glob("ckpt_*.npz"))[:-keep]:
+        try:
+            old.unlink()
+        except FileNotFoundError:
+            pass
+
+
+# --------------------------------------------------------------------------------------
+# Progress (library side: a tiny stderr line unless the caller passes a bar)
+# --------------------------------------------------------------------------------------
+
+class _LineProgress:
+    """Minimal progress line on stderr: used when experiments.progress is unavailable."""
+
+    def __init__(self, total: int, desc: str, start: int):
+        self.total, self.desc, self.n = total, desc, start
+        self.t0, self.n0, self.last = time.monotonic(), start, 0.0
+        self.postfix = {}
+
+    def update(self, n=1, **postfix):
+        self.n += n
+        self.postfix.update(postfix)
+        now = time.monotonic()
+        if now - self.last >= 0.5 or self.n >= self.total:
+            self.last = now
+            rate = (self.n - self.n0) / max(now - self.t0, 1e-9)
+            eta = (self.total - self.n) / rate if rate > 0 else float("nan")
+            fields = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                              for k, v in self.postfix.items())
+            sys.stderr.write(f"\r{self.desc} {self.n}/{self.total} {fields} eta {eta:.0f}s ")
+            sys.stderr.flush()
+
+    def close(self):
+        sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def _make_progress(progress, total: int, start: int, desc: str):
+    if progress is False or progress is None:
+        return None, False
+    if progress is True:
+        try:
+            from experiments.progress import Progress
+        except ImportError:
+            return _LineProgress(total, desc, start), True
+        bar = Progress(total, desc)
+        if start:
+            bar.update(start)
+        return bar, True
+    if hasattr(progress, "child"):  # an experiments.progress.Progress: nest under it
+        bar = progress.child(total, desc)
+        if start:
+            bar.update(start)
+        return bar, True
+    return progress, False  # any object with update(n, **postfix): the caller owns it
+
+
+# --------------------------------------------------------------------------------------
+# The loop
+# --------------------------------------------------------------------------------------
+
+def _jsonable(metrics: dict) -> dict:
+    out = {}
+    for k, v in metrics.items():
+        if isinstance(v, dict):
+            out[k] = _jsonable(v)
+        else:
+            a = np.asarray(v)
+            out[k] = a.item() if a.ndim == 0 else a.tolist()
+    return out
+
+
+def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int | None = None,
+        log_path=None, log_every: int = 10, checkpoint_dir=None, checkpoint_every: int | None = None,
+        keep_checkpoints: int = 2, progress=True, callback: Callable | None = None,
+        should_stop: Callable[[int, list], bool] | None = None, desc: str = "train") -> TrainState:
+    """Train until ``state.step == iterations`` (default ``state.config.iterations``).
+
+    Args:
+      state: TrainState (fresh from :func:`init_state` or from :func:`load_checkpoint`).
+      images: float [N, H, W, 3] training images in [0, 1] (NumPy or JAX); the
+        caller may pass a different array of the same shape to each call.
+      cameras: Camera batch [N] matching ``images``.
+      key: base PRNG key; default: the one in ``state`` (set by :func:`init_state`).
+        The view and key of step s depend only on (key, s).
+      iterations: stop at this step count (default: the config's).
+      log_path: JSONL file receiving a metrics line every ``log_every`` steps and
+        at every density-control step (appended to, so a resumed run continues it).
+      checkpoint_dir: write ``ckpt_<step>.npz`` there every ``checkpoint_every``
+        steps and at the end (atomic; the newest ``keep_checkpoints`` are kept).
+      progress: True (a bar with loss, PSNR, Gaussians, ETA), False, or a bar
+        object (an ``experiments.progress.Progress`` gets a child bar).
+      callback: ``callback(state, metrics)`` after every completed step.
+      should_stop: ``should_stop(step, loss_history) -> bool`` checked before
+        every step; True ends the loop early (a final checkpoint is still written).
+    Returns:
+      the final TrainState.
+    """
+    if key is not None:
+        state = dataclasses.replace(state, key=_key_data(key))
+    total = state.config.iterations if iterations is None else int(iterations)
+    images = jnp.asarray(images, state.gaussians.means.dtype)
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise DataError("images", f"expected float [N, H, W, 3], got {tuple(images.shape)}")
+    if len(cameras) != images.shape[0]:
+        raise DataError("cameras", f"{len(cameras)} cameras for {images.shape[0]} images")
+    if (cameras.width, cameras.height) != (images.shape[2], images.shape[1]):
+        raise DataError("cameras", f"cameras are {cameras.width}x{cameras.height} but images are "
+                                   f"{images.shape[2]}x{images.shape[1]}")
+    if images.shape[0] == 0:
+        raise DataError("images", "no training views")
+    cameras = jax.tree_util.tree_map(jnp.asarray, cameras)
+    ckpt_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
+    log_file = None
+    if log_path is not None:
+        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+        log_file = open(log_path, "a")
+    bar, own_bar = _make_progress(progress, total, int(state.step), desc)
+    history: list[float] = []
+    t0 = time.monotonic()
+    steps_done = 0
+    try:
+        while int(state.step) < total:
+            step = int(state.step)
+            if should_stop is not None and should_stop(step, history):
+                break
+            batch, key = select_batch(images, cameras, state.key, state.step)
+            new, metrics = train_step(state, batch, key)
+            metrics = jax.device_get(metrics)
+            if bool(metrics["redo"]):
+                state = grow_for_redo(state, metrics)
+                continue
+            state = new
+            steps_done += 1
+            loss = float(metrics["loss"])
+            history.append(loss)
+            done = int(state.step)
+            if bar is not None:
+                bar.update(1, loss=loss, psnr=float(metrics["psnr"]),
+                           gaussians=int(metrics["num_gaussians"]))
+            if log_file is not None and (done % log_every == 0 or done == total
+                                         or bool(metrics["densify"]["refined"])):
+                record = dict(step=done, elapsed_s=time.monotonic() - t0,
+                              capacity=state.capacity, max_intersections=state.max_intersections,
+                              **_jsonable(metrics))
+                log_file.write(json.dumps(record) + "\n")
+                log_file.flush()
+            if callback is not None:
+                callback(state, metrics)
+            if ckpt_dir is not None and checkpoint_every and done % checkpoint_every == 0:
+                save_checkpoint(ckpt_dir / checkpoint_name(done), state)
+                _prune_checkpoints(ckpt_dir, keep_checkpoints)
+    finally:
+        if log_file is not None:
+            log_file.close()
+        if bar is not None and own_bar:
+            bar.close()
+    if ckpt_dir is not None and steps_done:
+        save_checkpoint(ckpt_dir / checkpoint_name(int(state.step)), state)
+        _prune_checkpoints(ckpt_dir, keep_checkpoints)
+    return state
+
+
+def resume(checkpoint) -> TrainState:
+    """The state of ``checkpoint``: a file, or a directory (its newest ``ckpt_*.npz``)."""
+    path = Path(checkpoint)
+    if path.is_dir():
+        found = latest_checkpoint(path)
+        if found is None:
+            raise DataError(path, "no ckpt_*.npz checkpoint in this directory")
+        path = found
+    elif not path.exists():
+        raise DataError(path, "no such checkpoint file or directory")
+    return load_checkpoint(path)
+
+
+# --------------------------------------------------------------------------------------
+# Evaluation
+# --------------------------------------------------------------------------------------
+
+def render_views(gaussians: Gaussians, cameras: Camera, *, background=(1.0, 1.0, 1.0),
+                 sh_degree: int | None = None) -> np.ndarray:
+    """float32 [N, H, W, 3] renders of a camera batch (outside jit, one view at a time)."""
+    out = []
+    bg = jnp.asarray(background, jnp.float32)
+    for i in range(len(cameras)):
+        r = render(gaussians, cameras[i], background=bg, sh_degree=sh_degree)
+        out.append(np.asarray(jnp.clip(r.rgb, 0.0, 1.0)))
+    return np.stack(out) if out else np.zeros((0, cameras.height, cameras.width, 3), np.float32)
+
+
+def evaluate(gaussians: Gaussians, images, cameras: Camera, *, background=(1.0, 1.0, 1.0),
+             sh_degree: int | None = None) -> dict:
+    """Held-out quality: mean PSNR and SSIM (scikit-image) over the views, plus per view.
+
+    Returns:
+      dict(psnr, ssim, psnr_per_view, ssim_per_view, renders float32 [N, H, W, 3]).
+    """
+    from .metrics import psnr, ssim_skimage
+
+    renders = render_views(gaussians, cameras, background=background, sh_degree=sh_degree)
+    images = np.asarray(images, np.float32)
+    p = [float(psnr(r, t)) for r, t in zip(renders, images)]
+    s = [float(ssim_skimage(r, t)) for r, t in zip(renders, images)]
+    return dict(psnr=float(np.mean(p)) if p else math.nan,
+                ssim=float(np.mean(s)) if s else math.nan,
+                psnr_per_view=p, ssim_per_view=s, renders=renders)
