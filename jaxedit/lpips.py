@@ -397,7 +397,7 @@ def load_lpips(path: str | os.PathLike, net: str | None = None) -> LPIPS:
     return LPIPS(params, net)
 
 
-def lpips_distance(path: str | os.PathLike, net: str = "vgg") -> PerceptualDistance:
+def lpips_distance(path: str | os.PathLike, net: str | None = None) -> PerceptualDistance:
     """The difficulty's pluggable distance: (img_a, img_b) [H, W, 3] -> Python float.
 
     Its ``name`` (e.g. ``"lpips-vgg"``) is what the scheduler logs as the distance used.
