@@ -233,6 +233,15 @@ def test_image_round_trip(tmp_path, suffix, tol):
         assert np.abs(back - img).mean() < 0.01
 
 
+@pytest.mark.parametrize("suffix", [".png", ".exr"])
+def test_write_strided_and_fortran_ordered_images(tmp_path, suffix):
+    img = _smooth_image(16, 16)
+    views = [img.transpose(1, 0, 2), np.asfortranarray(img), img[:, ::2], img[..., ::-1]]
+    for i, view in enumerate(views):
+        back = read_image(write_image(tmp_path / f"v{i}{suffix}", view))
+        np.testing.assert_allclose(back, view, atol=0.5 / 255 + 1e-6)
+
+
 def test_rgba_composited_over_background(tmp_path):
     rng = np.random.default_rng(5)
     rgb = (rng.integers(0, 256, (6, 5, 3)) / 255).astype(np.float32)

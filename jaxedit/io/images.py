@@ -142,7 +142,10 @@ def write_image(path: str | os.PathLike, image) -> Path:
         data = np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16)
         td = oiio.UINT16
     else:
-        data, td = np.ascontiguousarray(image), oiio.FLOAT
+        data, td = image, oiio.FLOAT
+    # OpenImageIO refuses strided buffers; numpy keeps a view's layout through
+    # astype/clip (order "K"), so make the pixels C-ordered here, once.
+    data = np.ascontiguousarray(data)
     h, w, c = data.shape
     spec = oiio.ImageSpec(w, h, c, td)
     if c == 4:
