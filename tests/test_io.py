@@ -253,6 +253,22 @@ def test_rgba_composited_over_background(tmp_path):
             np.testing.assert_allclose(read_image(path, background=bg), want, atol=1e-6)
 
 
+def test_read_image_with_alpha_returns_straight_colour(tmp_path):
+    from jaxedit.io.images import read_image_with_alpha
+
+    rng = np.random.default_rng(11)
+    rgb = (rng.integers(0, 256, (5, 4, 3)) / 255).astype(np.float32)
+    alpha = (rng.integers(1, 256, (5, 4, 1)) / 255).astype(np.float32)
+    for suffix, tol in ((".png", 1e-6), (".exr", 1e-5)):
+        path = write_image(tmp_path / f"a{suffix}", np.concatenate([rgb, alpha], -1))
+        colour, a = read_image_with_alpha(path)
+        np.testing.assert_allclose(a, alpha[..., 0], atol=1e-6)
+        np.testing.assert_allclose(colour, rgb, atol=tol)
+    colour, a = read_image_with_alpha(write_image(tmp_path / "o.png", rgb))
+    assert a is None
+    np.testing.assert_allclose(colour, rgb, atol=1e-6)
+
+
 def test_grey_and_16_bit_png_read_with_oiio_writer(tmp_path):
     grey = (np.arange(12, dtype=np.uint16).reshape(3, 4) * 5000)
     out = oiio.ImageOutput.create(str(tmp_path / "g.png"))

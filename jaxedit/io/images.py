@@ -43,6 +43,34 @@ def read_image(path: str | os.PathLike, *, background=(1.0, 1.0, 1.0)) -> np.nda
       DataError: missing, unreadable or undecodable file, non-finite pixels.
     """
     path = Path(path)
+    colour, alpha, straight = _read_rgb_alpha(path)
+    if alpha is not None:
+        bg = np.asarray(background, np.float32).reshape(1, 1, 3)
+        if straight:
+            colour = colour * alpha
+        colour = colour + (1.0 - alpha) * bg
+    return np.clip(colour, 0.0, 1.0).astype(np.float32)
+
+
+def read_image_with_alpha(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """An image and its transparency, not composited.
+
+    Returns:
+      (straight (unpremultiplied) RGB float32 [H, W, 3] in [0, 1],
+       alpha float32 [H, W] in [0, 1], or None when the file has no alpha channel).
+      Fully transparent pixels of an associated-alpha file come back black.
+    """
+    path = Path(path)
+    colour, alpha, straight = _read_rgb_alpha(path)
+    if alpha is None:
+        return np.clip(colour, 0.0, 1.0).astype(np.float32), None
+    if not straight:
+        colour = np.where(alpha > 0, colour / np.maximum(alpha, 1e-12), 0.0)
+    return np.clip(colour, 0.0, 1.0).astype(np.float32), alpha[..., 0].astype(np.float32)
+
+
+def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """(colour float32 [H, W, 3], alpha [H, W, 1] in [0, 1] or None, alpha is straight)."""
     if not path.is_file():
         raise DataError(path, "image file not found" if not path.exists() else "not a file")
     # Ask for unassociated alpha as stored (PNG, some TIFFs): compositing in
@@ -67,13 +95,8 @@ def read_image(path: str | os.PathLike, *, background=(1.0, 1.0, 1.0)) -> np.nda
         raise DataError(path, f"decoded pixel array has unexpected shape {list(pixels.shape)}")
     if not np.isfinite(pixels).all():
         raise DataError(path, "image has non-finite (NaN or inf) pixel values")
-    return _to_rgb(path, pixels, spec.alpha_channel, background, straight)
-
-
-def _to_rgb(path, pixels: np.ndarray, alpha_channel: int, background,
-            straight: bool) -> np.ndarray:
-    """float [H, W, C] (straight or associated alpha) -> float32 [H, W, 3] in [0, 1]."""
     nch = pixels.shape[2]
+    alpha_channel = spec.alpha_channel
     if alpha_channel < 0 and nch in (2, 4):
         alpha_channel = nch - 1  # grey+alpha / RGBA without an explicit alpha tag
     colour_idx = [i for i in range(nch) if i != alpha_channel]
@@ -84,25 +107,10 @@ def _to_rgb(path, pixels: np.ndarray, alpha_channel: int, background,
         colour = np.repeat(colour, 3, axis=2)
     elif colour.shape[2] == 2:
         raise DataError(path, "image has two colour channels; expected grey or RGB")
+    alpha = None
     if alpha_channel >= 0:
-        bg = np.asarray(background, np.float32).reshape(1, 1, 3)
         alpha = np.clip(pixels[:, :, alpha_channel:alpha_channel + 1], 0.0, 1.0)
-        if straight:
-            colour = colour * alpha
-        colour = colour + (1.0 - alpha) * bg
-    return np.clip(colour, 0.0, 1.0).astype(np.float32)
-
-
-def read_image_with_alpha(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
-    """Straight (unpremultiplied) RGB float32 [H, W, 3] and alpha [H, W] (None if opaque)."""
-    path = Path(path)
-    black = read_image(path, background=(0.0, 0.0, 0.0))
-    white = read_image(path, background=(1.0, 1.0, 1.0))
-    alpha = 1.0 - (white - black).mean(axis=2)
-    if np.all(alpha >= 1.0):
-        return black, None
-    straight = np.where(alpha[..., None] > 0, black / np.maximum(alpha[..., None], 1e-8), 0.0)
-    return np.clip(straight, 0, 1).astype(np.float32), alpha.astype(np.float32)
+    return colour, alpha, straight
 
 
 def write_image(path: str | os.PathLike, image) -> Path:
