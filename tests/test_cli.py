@@ -176,3 +176,21 @@ def test_demo_plumbing(tmp_path):
     assert demo._edit_extra(["max-steps=30", "--sync"]) == {"--max-steps": "30", "--sync": True}
     with pytest.raises(DataError):
         demo._edit_extra(["=3"])
+
+
+def test_report_command_rewrites_the_page(tmp_path):
+    import argparse
+
+    from experiments import report as report_cmd
+    from test_report import make_run
+
+    run = make_run(tmp_path / "run", turntables=False)
+    out = report_cmd.run(argparse.Namespace(run_dir=run, output=tmp_path / "r.html", thumb_px=64,
+                                            max_views=2, max_mb=5.0))
+    assert out["report"] == str(tmp_path / "r.html") and out["bytes"] > 1000
+    with pytest.raises(DataError, match="--thumb-px"):
+        report_cmd.run(argparse.Namespace(run_dir=run, output=None, thumb_px=1, max_views=2,
+                                          max_mb=5.0))
+    with pytest.raises(DataError, match="not a run directory"):
+        report_cmd.run(argparse.Namespace(run_dir=tmp_path, output=None, thumb_px=64,
+                                          max_views=2, max_mb=5.0))
