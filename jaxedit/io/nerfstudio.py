@@ -166,7 +166,7 @@ def nerfstudio_world_transform(c2w_opengl: np.ndarray) -> tuple[np.ndarray, floa
 
 
 def _resolve_json(path) -> Path:
-    path = Path(path)
+    path = Path(path).expanduser()
     if path.is_dir():
         path = path / "transforms.json"
     if not path.exists():
