@@ -220,7 +220,8 @@ class Progress:
         f = self.fraction
         if self.total is None:
             rate = self.n / self.elapsed if self.elapsed > 0 else 0.0
-            parts.append(f"{self.n} [{format_seconds(self.elapsed)}, {rate:.3g}/s]")
+            speed = f"{rate:.3g}/s" if rate >= 1.0 or rate == 0.0 else f"{1.0 / rate:.3g}s/it"
+            parts.append(f"{self.n} [{format_seconds(self.elapsed)}, {speed}]")
         else:
             filled = int(round(width * (f or 0.0)))
             bar = "#" * filled + "-" * (width - filled)

@@ -86,6 +86,8 @@ def test_ambient_nesting_unknown_total_and_errors():
             clock.t += 4.0
             inner.update(8)
             assert "stage 8 [0:04, 2/s]" in demo.line()
+            clock.t += 28.0
+            assert "stage 8 [0:32, 4s/it]" in demo.line()  # slow work reads as s/it
             inner.close()
         assert P.Progress(1, "after", mode="off").parent is None
     assert P.format_seconds(3725) == "1:02:05" and P.format_seconds(None) == "?"
