@@ -13,6 +13,7 @@ import json
 import shutil
 import subprocess
 import sys
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +36,7 @@ PROMPT = "turn the bear into a panda"
 
 def build_tiny_ip2p(root):
     """Write a tiny random InstructPix2Pix pipeline to ``root`` (diffusers layout)."""
-    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from diffusers import AutoencoderKL, EulerAncestralDiscreteScheduler, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
 
     torch.manual_seed(0)
@@ -63,9 +64,13 @@ def build_tiny_ip2p(root):
     (tok_dir / "merges.txt").write_text("#version: 0.2\nt h\nth e</w>\n")
     CLIPTokenizer(vocab=str(tok_dir / "vocab.json"), merges=str(tok_dir / "merges.txt"),
                   model_max_length=77).save_pretrained(tok_dir)
-    DDIMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
-                  clip_sample=False, set_alpha_to_one=False,
-                  steps_offset=1).save_pretrained(root / "scheduler")
+    # timbrooks/instruct-pix2pix ships an Euler-ancestral scheduler config; the editor reads it
+    # as DDIM (as IN2N does), so the test writes the same kind of file.
+    with warnings.catch_warnings():  # diffusers' own NumPy 2 deprecation, not ours
+        warnings.simplefilter("ignore", DeprecationWarning)
+        EulerAncestralDiscreteScheduler(beta_start=0.00085, beta_end=0.012,
+                                        beta_schedule="scaled_linear",
+                                        steps_offset=1).save_pretrained(root / "scheduler")
     (root / "model_index.json").write_text(json.dumps(
         {"_class_name": "StableDiffusionInstructPix2PixPipeline"}))
     return root
@@ -147,9 +152,9 @@ def test_three_branch_guidance_reaches_unet(editor, monkeypatch, guidance):
 
     ddim = ip2p.ddim_step
 
-    def recording_step(sample, model_output, a_t, a_prev, prediction_type="epsilon"):
+    def recording_step(sample, model_output, a_t, a_prev, *args):
         steps.append((model_output.clone(), a_t, a_prev))
-        return ddim(sample, model_output, a_t, a_prev, prediction_type)
+        return ddim(sample, model_output, a_t, a_prev, *args)
 
     monkeypatch.setattr(editor.unet, "forward", recording_forward)
     monkeypatch.setattr(ip2p, "ddim_step", recording_step)
@@ -184,8 +189,11 @@ def test_three_branch_guidance_reaches_unet(editor, monkeypatch, guidance):
         torch.testing.assert_close(combined[0], u + s_t * (ti - i) + s_i * (i - u))
 
 
-def test_ddim_step_matches_diffusers_scheduler(editor):
-    sched = editor.scheduler.__class__.from_config(editor.scheduler.config)
+@pytest.mark.parametrize("clip", [True, False])
+def test_ddim_step_matches_diffusers_scheduler(editor, clip):
+    assert type(editor.scheduler).__name__ == "DDIMScheduler"
+    assert editor.clip_sample == 1.0  # DDIM's default, as IN2N ran it with IP2P's config
+    sched = editor.scheduler.__class__.from_config(editor.scheduler.config, clip_sample=clip)
     sched.set_timesteps(10)
     gen = torch.Generator().manual_seed(0)
     sample = torch.randn(1, 4, 8, 8, generator=gen)
@@ -194,8 +202,8 @@ def test_ddim_step_matches_diffusers_scheduler(editor):
         eps = torch.randn(1, 4, 8, 8, generator=gen)
         prev = t - sched.config.num_train_timesteps // 10
         a_prev = a[prev] if prev >= 0 else editor.final_alpha
-        ours = ip2p.ddim_step(sample, eps, a[t], a_prev)
-        theirs = sched.step(eps, t, sample).prev_sample
+        ours = ip2p.ddim_step(sample, 3 * eps, a[t], a_prev, "epsilon", 1.0 if clip else None)
+        theirs = sched.step(3 * eps, t, sample).prev_sample  # large eps: clipping matters
         torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-5)
         sample = theirs
 

@@ -127,10 +127,11 @@ def dual_guidance(eps: "torch.Tensor", text_scale: float, image_scale: float) ->
 
 
 def ddim_step(sample, model_output, alpha_t: float, alpha_prev: float,
-              prediction_type: str = "epsilon"):
+              prediction_type: str = "epsilon", clip_sample: float | None = None):
     """One deterministic DDIM update (eta = 0) from cumulative alpha ``alpha_t`` to ``alpha_prev``.
 
-    x0 = (x - sqrt(1 - a_t) eps) / sqrt(a_t);  x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps.
+    x0 = (x - sqrt(1 - a_t) eps) / sqrt(a_t), clamped to +-``clip_sample`` when given (as
+    DDIMScheduler does with ``clip_sample``); x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps.
     """
     a_t, a_p = float(alpha_t), float(alpha_prev)
     if prediction_type == "epsilon":
@@ -139,8 +140,13 @@ def ddim_step(sample, model_output, alpha_t: float, alpha_prev: float,
     elif prediction_type == "v_prediction":
         x0 = a_t ** 0.5 * sample - (1 - a_t) ** 0.5 * model_output
         eps = a_t ** 0.5 * model_output + (1 - a_t) ** 0.5 * sample
+    elif prediction_type == "sample":
+        x0 = model_output
+        eps = (sample - a_t ** 0.5 * x0) / (1 - a_t) ** 0.5
     else:
         raise DataError("scheduler.prediction_type", f"unsupported {prediction_type!r}")
+    if clip_sample is not None:
+        x0 = x0.clamp(-clip_sample, clip_sample)
     return a_p ** 0.5 * x0 + (1 - a_p) ** 0.5 * eps
 
 
@@ -222,6 +228,14 @@ class InstructPix2PixEditor:
         self.final_alpha = float(scheduler.final_alpha_cumprod)
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.prediction_type = scheduler.config.prediction_type
+        # The DDIM update follows the loaded scheduler config. Note that IP2P's repository ships
+        # an Euler-ancestral config; read as DDIM (as IN2N does) it gets DDIM's default
+        # clip_sample=True, i.e. predicted latents are clamped to +-1 like in IN2N.
+        if getattr(scheduler.config, "thresholding", False):
+            raise DataError(f"{source or 'scheduler'}", "dynamic thresholding schedulers are not "
+                            "supported by the SDEdit loop")
+        self.clip_sample = (float(scheduler.config.clip_sample_range)
+                            if getattr(scheduler.config, "clip_sample", False) else None)
         self._embeddings: dict[str, np.ndarray] = {}
 
     def _place(self, module):
@@ -362,7 +376,7 @@ class InstructPix2PixEditor:
             out = self.unet(inp, t, encoder_hidden_states=emb3).sample.float()
             eps = dual_guidance(out, *guidance)
             a_prev = a[ts[i + 1]] if i + 1 < len(ts) else self.final_alpha
-            latents = ddim_step(latents, eps, a[t], a_prev, self.prediction_type)
+            latents = ddim_step(latents, eps, a[t], a_prev, self.prediction_type, self.clip_sample)
 
         decoded = self.vae.decode((latents / self.scaling_factor).to(self.dtype)).sample.float()
         decoded = ((decoded + 1) / 2).clamp(0, 1)
@@ -374,6 +388,7 @@ class InstructPix2PixEditor:
         return {"editor": self.name, "weights": self.source, "device": str(self.device),
                 "dtype": str(self.dtype).replace("torch.", ""), "size": self.size,
                 "steps": self.steps, "scheduler": type(self.scheduler).__name__,
+                "clip_sample": self.clip_sample, "prediction_type": self.prediction_type,
                 "unet_in_channels": int(self.unet.config.in_channels)}
 
 
