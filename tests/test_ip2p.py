@@ -65,7 +65,7 @@ def build_tiny_ip2p(root):
     CLIPTokenizer(vocab=str(tok_dir / "vocab.json"), merges=str(tok_dir / "merges.txt"),
                   model_max_length=77).save_pretrained(tok_dir)
     # timbrooks/instruct-pix2pix ships an Euler-ancestral scheduler config; the editor reads it
-    # as DDIM (as IN2N does), so the test writes the same kind of file.
+    # as Stable Diffusion's DDIM, so the test writes the same kind of file.
     with warnings.catch_warnings():  # diffusers' own NumPy 2 deprecation, not ours
         warnings.simplefilter("ignore", DeprecationWarning)
         EulerAncestralDiscreteScheduler(beta_start=0.00085, beta_end=0.012,
@@ -191,8 +191,10 @@ def test_three_branch_guidance_reaches_unet(editor, monkeypatch, guidance):
 
 @pytest.mark.parametrize("clip", [True, False])
 def test_ddim_step_matches_diffusers_scheduler(editor, clip):
+    # IP2P's Euler config read as SD 1.x's DDIM: no x0 clipping, final alpha = alpha_0.
     assert type(editor.scheduler).__name__ == "DDIMScheduler"
-    assert editor.clip_sample == 1.0  # DDIM's default, as IN2N ran it with IP2P's config
+    assert editor.clip_sample is None
+    assert editor.final_alpha == pytest.approx(editor.alphas_cumprod[0])
     sched = editor.scheduler.__class__.from_config(editor.scheduler.config, clip_sample=clip)
     sched.set_timesteps(10)
     gen = torch.Generator().manual_seed(0)
@@ -206,6 +208,19 @@ def test_ddim_step_matches_diffusers_scheduler(editor, clip):
         theirs = sched.step(3 * eps, t, sample).prev_sample  # large eps: clipping matters
         torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-5)
         sample = theirs
+
+
+def test_explicit_ddim_config_is_respected(weights, tmp_path):
+    from diffusers import DDIMScheduler
+
+    folder = tmp_path / "w"
+    shutil.copytree(weights, folder)
+    shutil.rmtree(folder / "scheduler")
+    DDIMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
+                  clip_sample=True, clip_sample_range=2.0,
+                  set_alpha_to_one=True).save_pretrained(folder / "scheduler")
+    ed = ip2p.InstructPix2PixEditor.from_pretrained(folder, device="cpu", size=64, steps=2)
+    assert ed.clip_sample == 2.0 and ed.final_alpha == 1.0
 
 
 @settings(max_examples=30, deadline=None)

@@ -38,6 +38,7 @@ depend on which GPU produced them (up to the networks' floating point).
 
 from __future__ import annotations
 
+import json
 import logging
 import warnings
 import os
@@ -193,6 +194,23 @@ def _from_jax(x: jax.Array) -> "torch.Tensor":
         return torch.from_numpy(np.array(x))
 
 
+def _ddim_overrides(folder: Path) -> dict:
+    """DDIM settings for a scheduler config of another class.
+
+    IP2P's repository ships an Euler-ancestral config. Read as DDIM it would get DDIM's
+    defaults clip_sample=True and set_alpha_to_one=True; Stable Diffusion 1.x's DDIM setup
+    (and IN2N, which takes its DDIM config from CompVis/stable-diffusion-v1-4) uses
+    neither. The betas always come from the folder; an explicit DDIM config is kept as is.
+    """
+    try:
+        config = json.loads((folder / "scheduler_config.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        raise DataError(folder / "scheduler_config.json", "unreadable scheduler config") from None
+    if config.get("_class_name") == "DDIMScheduler":
+        return {}
+    return {"clip_sample": False, "set_alpha_to_one": False}
+
+
 def _default_device() -> str:
     return "cuda:0" if torch.cuda.is_available() else "cpu"
 
@@ -228,9 +246,7 @@ class InstructPix2PixEditor:
         self.final_alpha = float(scheduler.final_alpha_cumprod)
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.prediction_type = scheduler.config.prediction_type
-        # The DDIM update follows the loaded scheduler config. Note that IP2P's repository ships
-        # an Euler-ancestral config; read as DDIM (as IN2N does) it gets DDIM's default
-        # clip_sample=True, i.e. predicted latents are clamped to +-1 like in IN2N.
+        # The DDIM update follows the scheduler's config (see _ddim_overrides for IP2P's own).
         if getattr(scheduler.config, "thresholding", False):
             raise DataError(f"{source or 'scheduler'}", "dynamic thresholding schedulers are not "
                             "supported by the SDEdit loop")
@@ -269,7 +285,7 @@ class InstructPix2PixEditor:
         tokenizer = _load(root, "tokenizer", lambda: CLIPTokenizer.from_pretrained(
             root, subfolder="tokenizer", **kw))
         scheduler = _load(root, "scheduler", lambda: DDIMScheduler.from_pretrained(
-            root, subfolder="scheduler", **kw))
+            root, subfolder="scheduler", **_ddim_overrides(root / "scheduler"), **kw))
         editor = cls(unet, vae, text_encoder, tokenizer, scheduler, device=device, dtype=dtype,
                      size=size, steps=steps, source=str(root))
         log.info("InstructPix2Pix loaded from %s on %s (%s), size %s, %d DDIM steps", root,
