@@ -226,3 +226,14 @@ def test_from_scene_stamps_texture_on_the_surface():
     a = geo.target(png, 1.0, marble)
     assert np.mean(np.abs(a - SimulatedEditor().target(png, 1.0, marble))) > 1e-3
     assert np.allclose(a, geo.target(images[1], 1.0, marble), atol=0.02)
+
+
+def test_oracle_common_noise_makes_difficulty_continuous(editor):
+    views = np.stack([object_view(dx) for dx in (-3.0, 3.0)])
+    common = DifficultyOracle(editor, views, AUTUMN)
+    fresh = DifficultyOracle(editor, views, AUTUMN, common_noise=False)
+    full = common(0.0, 1.0)
+    near = [common(0.7, 0.7 + h) for h in (0.1, 0.01, 0.001)]
+    assert near[0] > near[1] > near[2] and near[2] < 0.01 * full
+    # per-ratio keys add the seed-to-seed variation: a floor that does not vanish as h -> 0
+    assert fresh(0.7, 0.701) > 10 * near[2]

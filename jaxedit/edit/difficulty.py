@@ -95,8 +95,14 @@ class DifficultyOracle:
         full-strength edit, i.e. how far the editor wants to move each view, not how much of it
         one noisy pass would keep.
       guidance: the editor's (text, image) guidance scales.
-      seed: every edit uses ``view_key(jax.random.key(seed), k, r, 0)``: one fixed key per
-        (view, ratio), so d(r, r) = 0 and repeated questions get the same answer.
+      seed: seeds the edits' keys (``view_key(jax.random.key(seed), k, ., 0)``); every
+        (view, ratio) is edited with a fixed key, so d(r, r) = 0 and repeated questions get the
+        same answer.
+      common_noise: True (default): one key per view, shared by all ratios ("common random
+        numbers"). d(r_a, r_b) then measures how the edit changes with r, and d(r, r') -> 0 as
+        r' -> r for an editor continuous in r. False: a key per (view, ratio), so d also
+        contains the seed-to-seed variation of the editor, a floor that no subdivision removes
+        (the scheduler then reports its depth limit).
       reduction: "sum" (the paper's eq. 3) or "mean" over views (a threshold that does not
         depend on the number of views).
 
@@ -109,7 +115,7 @@ class DifficultyOracle:
                  distance: Distance | None = None,
                  timestep_range: tuple[float, float] = (0.98, 0.98),
                  guidance: tuple[float, float] = (7.5, 1.5), seed: int = 0,
-                 reduction: str = "sum"):
+                 reduction: str = "sum", common_noise: bool = True):
         originals = np.asarray(originals, np.float32)
         if originals.ndim != 4 or originals.shape[-1] != 3:
             raise DataError("originals", f"expected float [N, H, W, 3], got shape {originals.shape}")
@@ -126,6 +132,7 @@ class DifficultyOracle:
         self.timestep_range = tuple(timestep_range)
         self.guidance = tuple(guidance)
         self.reduction = reduction
+        self.common_noise = bool(common_noise)
         self._run_key = jax.random.key(int(seed))
         self._e_prompt = editor.encode(prompt)
         self._e_null = editor.encode("")
@@ -147,7 +154,8 @@ class DifficultyOracle:
             emb = interpolate_embedding(self._e_prompt, self._e_null, r)
             original = self.originals[view]
             hit = np.asarray(self.editor.edit(original, original, emb,
-                                              view_key(self._run_key, view, r, 0),
+                                              view_key(self._run_key, view,
+                                                       0.0 if self.common_noise else r, 0),
                                               timestep_range=self.timestep_range,
                                               guidance=self.guidance), np.float32)
             self._images[key] = hit
