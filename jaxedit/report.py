@@ -131,8 +131,8 @@ def _load_thumb(path: Path, thumb_px: int) -> np.ndarray:
             flat = Image.new("RGBA", im.size, (255, 255, 255, 255))
             flat.alpha_composite(im)
             im = flat.convert("RGB")
-            # Shrink big views to thumb_px; enlarge tiny ones (at most 2x) so they stay legible.
-            scale = min(thumb_px / max(im.size), 2.0)
+            # Shrink big views to thumb_px; enlarge tiny ones (at most 4x) so they stay legible.
+            scale = min(thumb_px / max(im.size), 4.0)
             if scale < 1.0 or scale >= 1.25:
                 size = (max(1, round(im.size[0] * scale)), max(1, round(im.size[1] * scale)))
                 im = im.resize(size, Image.Resampling.LANCZOS)
@@ -336,8 +336,20 @@ def _table(header: list[str], rows: list[list[str]], cls: str = "") -> str:
     return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
 
 
+def _flat(d: dict, prefix: str = "") -> dict:
+    """Nested dicts as one level with dotted keys (``utilisation.edits``)."""
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        if isinstance(v, dict) and v:
+            out.update(_flat(v, key))
+        else:
+            out[key] = v
+    return out
+
+
 def _kv_table(d: dict) -> str:
-    return _table(["name", "value"], [[_e(k), _fmt(v)] for k, v in d.items()], "kv")
+    return _table(["name", "value"], [[_e(k), _fmt(v)] for k, v in _flat(d).items()], "kv")
 
 
 def _slider(sid: str, frames: list[tuple[str, str]], start: int | None = None) -> str:
@@ -378,7 +390,7 @@ img{max-width:100%;image-rendering:auto}.plot{max-width:100%}
 .slider .controls{margin:6px 0 8px}.slider input{width:min(600px,80%);vertical-align:middle}
 .slider-label{font-weight:600;margin-left:8px}.row-label{font-size:.85em;color:#555;margin:4px 0 1px}
 .cards{display:flex;flex-wrap:wrap;gap:12px}.card{background:#fff;border:1px solid #ddd;padding:6px;margin:0}
-.card figcaption{font-size:.85em;text-align:center;color:#444}.missing{color:#999;font-style:italic}
+.card img{width:192px;height:auto}.card figcaption{font-size:.85em;text-align:center;color:#444}.missing{color:#999;font-style:italic}
 code{background:#f0f0f0;padding:1px 4px;border-radius:3px;font-size:.9em;word-break:break-all}
 nav a{margin-right:12px}footer{color:#888;font-size:.8em;margin-top:32px}
 .compare td{text-align:center;vertical-align:top}

@@ -67,7 +67,7 @@ def make_run(run_dir: Path, ratios=(0.0, 0.4, 1.0, 1.0), *, prompt="Make it <ora
         "difficulty_curve": curve, "subtasks": subtasks}))
     (run_dir / "metrics.json").write_text(json.dumps(
         {"psnr_vs_target": 29.5, "ssim_vs_target": 0.91, "num_gaussians": 1003,
-         "wall_time_s": 12.0}))
+         "wall_time_s": 12.0, "utilisation": {"edits": 17, "trainer_waits": 3}}))
     (run_dir / "config.json").write_text(json.dumps(
         {"command": "edit", "argv": ["edit", "--prompt", prompt, "--out", str(run_dir)],
          "jaxedit_version": "0.1.0", "flags": {}}))
@@ -135,6 +135,8 @@ def test_edit_report_is_self_contained_and_complete(tmp_path):
     assert "Not converged" in text  # r1 did not converge
     # One slider frame per subtask in both the gallery and the depth section.
     assert text.count('class="frame"') == 2 * 4
+    # Nested metrics are flattened to dotted names.
+    assert "<td>utilisation.edits</td><td>17</td>" in text
     assert len(text) < 2_000_000
 
 
