@@ -21,6 +21,9 @@ import jax.numpy as jnp
 
 from .project import Projected
 
+#: INRIA's tile size; binning and compositing take any tile size (the result is
+#: the same, exactly: tiles only group work). Smaller tiles waste less work on
+#: pixels a Gaussian does not reach but make more pairs; see render.TILE.
 TILE = 16
 
 
@@ -44,19 +47,19 @@ class Bins(NamedTuple):
     overflow: jax.Array
 
 
-def grid_shape(width: int, height: int) -> tuple[int, int]:
+def grid_shape(width: int, height: int, tile: int = TILE) -> tuple[int, int]:
     """(tiles_x, tiles_y) covering a width x height image."""
-    return -(-width // TILE), -(-height // TILE)
+    return -(-width // tile), -(-height // tile)
 
 
-def tile_rects(proj: Projected, width: int, height: int):
+def tile_rects(proj: Projected, width: int, height: int, tile: int = TILE):
     """Tile rectangle of each Gaussian's footprint.
 
     Returns:
       (x0, y0, nx, ny) int32 [C] each: first tile column/row and the number of
       tile columns/rows covered (0 for invisible Gaussians).
     """
-    tiles_x, tiles_y = grid_shape(width, height)
+    tiles_x, tiles_y = grid_shape(width, height, tile)
     m = jax.lax.stop_gradient(proj.means2d)
     ext = proj.extents
     # Pixel columns whose centre (x + 0.5) lies in [mx - ex, mx + ex], clipped to the image.
@@ -64,28 +67,29 @@ def tile_rects(proj: Projected, width: int, height: int):
     px1 = jnp.clip(jnp.floor(m[:, 0] + ext[:, 0] - 0.5), 0, width - 1)
     py0 = jnp.clip(jnp.ceil(m[:, 1] - ext[:, 1] - 0.5), 0, height - 1)
     py1 = jnp.clip(jnp.floor(m[:, 1] + ext[:, 1] - 0.5), 0, height - 1)
-    x0 = (px0 // TILE).astype(jnp.int32)
-    x1 = (px1 // TILE).astype(jnp.int32)
-    y0 = (py0 // TILE).astype(jnp.int32)
-    y1 = (py1 // TILE).astype(jnp.int32)
+    x0 = (px0 // tile).astype(jnp.int32)
+    x1 = (px1 // tile).astype(jnp.int32)
+    y0 = (py0 // tile).astype(jnp.int32)
+    y1 = (py1 // tile).astype(jnp.int32)
     vis = proj.visible
     nx = jnp.where(vis, jnp.clip(x1 - x0 + 1, 0, tiles_x), 0)
     ny = jnp.where(vis, jnp.clip(y1 - y0 + 1, 0, tiles_y), 0)
     return x0, y0, nx, ny
 
 
-def count_intersections(proj: Projected, width: int, height: int) -> jax.Array:
+def count_intersections(proj: Projected, width: int, height: int, tile: int = TILE) -> jax.Array:
     """int32 scalar: tile intersections the frame needs."""
-    _, _, nx, ny = tile_rects(proj, width, height)
+    _, _, nx, ny = tile_rects(proj, width, height, tile)
     return jnp.sum(nx * ny)
 
 
-def bin_gaussians(proj: Projected, width: int, height: int, capacity: int) -> Bins:
+def bin_gaussians(proj: Projected, width: int, height: int, capacity: int,
+                  tile: int = TILE) -> Bins:
     """Sorted (tile, depth) intersections in a buffer of static ``capacity``."""
-    tiles_x, tiles_y = grid_shape(width, height)
+    tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
     c = proj.means2d.shape[0]
-    x0, y0, nx, ny = tile_rects(proj, width, height)
+    x0, y0, nx, ny = tile_rects(proj, width, height, tile)
     counts = nx * ny
     ends = jnp.cumsum(counts)  # int32: fine below 2^31 pairs
     total = ends[-1] if c else jnp.zeros((), jnp.int32)

@@ -1,22 +1,28 @@
 """Exact per-tile alpha compositing with a recomputing ``custom_vjp`` backward.
 
 Shape of the computation ("chunked pair-major"). Each tile's depth-sorted list
-is cut into chunks of ``K`` pairs (the last chunk of a tile padded); chunks of
-all tiles are laid end to end, so there is no cap on any list and the padding
-is at most K - 1 pairs per tile. For every (chunk, pair, pixel of the tile)
-alpha is evaluated at once; transmittance is the product of the chunk-local
-running product (exact, front to back) and the carry of the tile's earlier
-chunks, obtained by a segmented exclusive scan over chunks. INRIA's stop rule
-(a Gaussian that would drop T below 1e-4 is not blended, nor anything behind
-it) is a prefix test on T, so it needs no loop.
+is cut into chunks of ``K`` pairs (the last chunk of a tile padded); the chunks
+of all tiles are laid end to end, so no list is capped and the padding is at
+most K - 1 pairs per tile. All chunks advance together through their K pair
+positions (a ``lax.scan`` over positions, every chunk in parallel): at each
+step alpha is evaluated for (chunk, pixel of its tile) and blended front to
+back, exactly as INRIA's per-pixel loop does. A chunk's incoming transmittance
+comes from the tile's earlier chunks: a first pass takes each chunk's product
+of (1 - alpha), a segmented exclusive scan over chunks turns those into carries,
+and the second pass blends. INRIA's stop rule (a Gaussian that would drop T
+below 1e-4 is not blended, nor anything behind it) is a per-pixel prefix test.
 
-The backward recomputes alpha and T instead of storing them: the residuals are
-the inputs, the accumulated features and the final transmittance (memory
-O(pixels + pairs)). The colour "behind" pair i, needed by dL/dalpha_i, is the
-pixel's total minus the inclusive prefix sum, again via a chunk-local scan and
-a segmented scan over chunks.
+Chunks are processed in blocks of ~8k (chunk, pixel) elements (``lax.map``) so
+the scan's working set stays in cache: XLA on CPU runs each fused op over whole
+arrays, and memory traffic, not arithmetic, was the limit without blocking.
 
-Static work is proportional to the buffer capacity (pairs) x 256 pixels.
+The backward recomputes alpha and T rather than storing per-(pair, pixel)
+values. Residuals are the inputs, each chunk's incoming T and feature sums
+(O(pairs)) and the images: memory O(pixels + pairs). The colour behind pair i,
+needed by dL/dalpha_i, is the pixel's total minus the running prefix, whose
+per-chunk start comes from a segmented scan of the saved chunk sums.
+
+Static work is (buffer capacity + K x tiles) x tile pixels, whatever the scene.
 """
 
 from __future__ import annotations
@@ -26,41 +32,46 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from .binning import TILE, Bins, grid_shape
+from .binning import Bins, grid_shape
 from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 #: Pairs per chunk.
 CHUNK = 32
-_PIX = TILE * TILE
+#: Target (chunk, pixel) elements per block of the scan.
+BLOCK_ELEMENTS = 8192
 
 
-def num_chunks(capacity: int, num_tiles: int, chunk: int = CHUNK) -> int:
-    """Static chunk count that can hold ``capacity`` pairs spread over ``num_tiles`` tiles."""
-    return -(-capacity // chunk) + num_tiles
+def layout(capacity: int, num_tiles: int, tile: int, chunk: int = CHUNK) -> tuple[int, int]:
+    """Static (number of blocks, chunks per block) for a buffer of ``capacity`` pairs."""
+    per_block = max(1, BLOCK_ELEMENTS // (tile * tile))
+    nc = -(-capacity // chunk) + num_tiles
+    nb = -(-nc // per_block)
+    return nb, per_block
 
 
-def make_chunks(bins: Bins, num_tiles: int, capacity: int, chunk: int = CHUNK):
+def make_chunks(bins: Bins, num_tiles: int, capacity: int, tile: int, chunk: int = CHUNK):
     """Chunk layout of the sorted pairs.
 
     Returns:
-      (gids int32 [NC, K] (-1 for padding), tile int32 [NC] (num_tiles for
-      unused chunks), first bool [NC]: chunk starts its tile's list).
+      (gids int32 [NC, K] (-1 for padding), tile_of int32 [NC] (num_tiles for
+      unused chunks), first bool [NC]: the chunk starts its tile's list).
     """
-    nc = num_chunks(capacity, num_tiles, chunk)
+    nb, per_block = layout(capacity, num_tiles, tile, chunk)
+    nc = nb * per_block
     start = bins.tile_start
     n_t = start[1:] - start[:-1]
     c_t = (n_t + chunk - 1) // chunk
     c_end = jnp.cumsum(c_t)
     c_begin = c_end - c_t
     j = jnp.arange(nc, dtype=jnp.int32)
-    tile = jnp.searchsorted(c_end, j, side="right").astype(jnp.int32)
-    used = tile < num_tiles
-    t = jnp.minimum(tile, num_tiles - 1)
+    tile_of = jnp.searchsorted(c_end, j, side="right").astype(jnp.int32)
+    used = tile_of < num_tiles
+    t = jnp.minimum(tile_of, num_tiles - 1)
     first = used & (j == c_begin[t])
     idx = start[t][:, None] + (j - c_begin[t])[:, None] * chunk + jnp.arange(chunk, dtype=jnp.int32)
     ok = used[:, None] & (idx < start[t + 1][:, None])
     gids = jnp.where(ok, bins.gids[jnp.clip(idx, 0, bins.gids.shape[0] - 1)], -1)
-    return gids, jnp.where(used, tile, num_tiles), first
+    return gids, jnp.where(used, tile_of, num_tiles), first
 
 
 def _seg_scan(values, first, op, identity):
@@ -77,27 +88,20 @@ def _seg_scan(values, first, op, identity):
     return jnp.where(first.reshape(first.shape + (1,) * (values.ndim - 1)), identity, shifted)
 
 
-def _pixel_centres(tile, tiles_x, dtype):
-    """float [NC, 256] x and y pixel centres of each chunk's tile."""
-    o = jnp.arange(_PIX, dtype=jnp.int32)
-    tx = (tile % tiles_x) * TILE
-    ty = (tile // tiles_x) * TILE
-    px = (tx[:, None] + o[None] % TILE).astype(dtype) + 0.5
-    py = (ty[:, None] + o[None] // TILE).astype(dtype) + 0.5
+def _pixel_centres(tile_of, tiles_x, tile, dtype):
+    """float [NC, P] x and y pixel centres of each chunk's tile (P = tile^2)."""
+    o = jnp.arange(tile * tile, dtype=jnp.int32)
+    tx = (tile_of % tiles_x) * tile
+    ty = (tile_of // tiles_x) * tile
+    px = (tx[:, None] + o[None] % tile).astype(dtype) + 0.5
+    py = (ty[:, None] + o[None] // tile).astype(dtype) + 0.5
     return px, py
 
 
-def _chunk_params(means2d, conics, opacities, features, gids):
-    """Per-pair parameters in position-major layout [K, NC, ...] (padding: opacity 0)."""
-    ok = (gids >= 0).T
-    g = jnp.where(ok, gids.T, 0)
-    return means2d[g], conics[g], jnp.where(ok, opacities[g], 0.0), features[g]
-
-
 def _alpha(m, con, op, px, py):
-    """One pair position across all chunks: dx, dy, exp(power), o exp(power), alpha [NC, 256].
+    """One pair position across a block: dx, dy, exp(power), o exp(power), alpha [NB, P].
 
-    Args: m [NC, 2], con [NC, 3], op [NC], px/py [NC, 256].
+    Args: m [NB, 2], con [NB, 3], op [NB], px/py [NB, P].
     """
     dx = m[:, 0, None] - px
     dy = m[:, 1, None] - py
@@ -109,9 +113,22 @@ def _alpha(m, con, op, px, py):
     return dx, dy, vis, raw, alpha
 
 
-def _local_products(params, px, py):
-    """float [NC, 256]: product of (1 - alpha) over each chunk (pass 1)."""
-    m, con, op, _ = params
+def _blocks(x, nb):
+    """[NC, ...] -> [nb, NC / nb, ...]."""
+    return x.reshape((nb, x.shape[0] // nb) + x.shape[1:])
+
+
+def _block_params(means2d, conics, opacities, features, gids, nb):
+    """Per-pair parameters as [nb, K, NB, ...] (padding pairs: opacity 0)."""
+    gb = jnp.swapaxes(_blocks(gids, nb), 1, 2)  # [nb, K, NB]
+    ok = gb >= 0
+    g = jnp.where(ok, gb, 0)
+    return means2d[g], conics[g], jnp.where(ok, opacities[g], 0.0), features[g]
+
+
+def _local_products(xs):
+    """Pass 1 on one block: product of (1 - alpha) over each chunk, [NB, P]."""
+    m, con, op, px, py = xs
 
     def step(prod, x):
         return prod * (1.0 - _alpha(*x, px, py)[4]), None
@@ -120,12 +137,10 @@ def _local_products(params, px, py):
     return prod
 
 
-def _blend(params, px, py, carry):
-    """Pass 2: per chunk, features sum_i w_i f_i [NC, 256, F] and its last blended T [NC, 256].
-
-    ``carry`` [NC, 256] is the transmittance in front of each chunk.
-    """
-    m, con, op, f = params
+def _blend(xs):
+    """Pass 2 on one block: features sum_i w_i f_i [NB, P, F] and last blended T [NB, P]."""
+    m, con, op, f, px, py, carry = xs
+    nf = f.shape[-1]
 
     def step(state, x):
         t, t_last, acc = state
@@ -134,84 +149,87 @@ def _blend(params, px, py, carry):
         t_after = t * (1.0 - alpha)
         blended = t_after >= T_MIN  # a prefix of the list: T only decreases
         w = jnp.where(blended, alpha * t, 0.0)
-        acc = acc + w[..., None] * fk[:, None, :]
+        # One accumulator per channel keeps the pixel axis innermost (vectorised).
+        acc = tuple(acc[j] + w * fk[:, j, None] for j in range(nf))
         return (t_after, jnp.where(blended, t_after, t_last), acc), None
 
-    init = (carry, jnp.ones_like(carry), jnp.zeros(carry.shape + (f.shape[-1],), carry.dtype))
-    (_, t_last, acc), _ = jax.lax.scan(step, init, (m, con, op, f))
-    return acc, t_last
+    zeros = jnp.zeros_like(carry)
+    (_, t_last, acc), _ = jax.lax.scan(step, (carry, jnp.ones_like(carry), (zeros,) * nf),
+                                       (m, con, op, f))
+    return jnp.stack(acc, -1), t_last
 
 
-def _to_image(tiles_img, width, height):
-    """[num_tiles, 256, ...] tile layout -> [H, W, ...]."""
-    tiles_x, tiles_y = grid_shape(width, height)
+def _to_image(tiles_img, width, height, tile):
+    """[num_tiles, P, ...] tile layout -> [H, W, ...]."""
+    tiles_x, tiles_y = grid_shape(width, height, tile)
     rest = tiles_img.shape[2:]
-    img = tiles_img.reshape((tiles_y, tiles_x, TILE, TILE) + rest)
-    img = jnp.swapaxes(img, 1, 2).reshape((tiles_y * TILE, tiles_x * TILE) + rest)
+    img = tiles_img.reshape((tiles_y, tiles_x, tile, tile) + rest)
+    img = jnp.swapaxes(img, 1, 2).reshape((tiles_y * tile, tiles_x * tile) + rest)
     return img[:height, :width]
 
 
-def _to_tiles(img, width, height):
-    """[H, W, ...] -> [num_tiles, 256, ...] (zero-padded to whole tiles)."""
-    tiles_x, tiles_y = grid_shape(width, height)
+def _to_tiles(img, width, height, tile):
+    """[H, W, ...] -> [num_tiles, P, ...] (zero-padded to whole tiles)."""
+    tiles_x, tiles_y = grid_shape(width, height, tile)
     rest = img.shape[2:]
-    pad = [(0, tiles_y * TILE - height), (0, tiles_x * TILE - width)] + [(0, 0)] * len(rest)
-    img = jnp.pad(img, pad).reshape((tiles_y, TILE, tiles_x, TILE) + rest)
-    return jnp.swapaxes(img, 1, 2).reshape((tiles_y * tiles_x, _PIX) + rest)
+    pad = [(0, tiles_y * tile - height), (0, tiles_x * tile - width)] + [(0, 0)] * len(rest)
+    img = jnp.pad(img, pad).reshape((tiles_y, tile, tiles_x, tile) + rest)
+    return jnp.swapaxes(img, 1, 2).reshape((tiles_y * tiles_x, tile * tile) + rest)
 
 
-def _forward(means2d, conics, opacities, features, gids, tile, first, width, height):
-    tiles_x, tiles_y = grid_shape(width, height)
+def _forward(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile):
+    tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
-    px, py = _pixel_centres(tile, tiles_x, means2d.dtype)
-    params = _chunk_params(means2d, conics, opacities, features, gids)
-    carry = _seg_scan(_local_products(params, px, py), first, jnp.multiply, 1.0)
-    acc, t_last = _blend(params, px, py, carry)
-    feat = jax.ops.segment_sum(acc, tile, num_segments=num_tiles + 1)[:num_tiles]
-    tmin = jax.ops.segment_min(t_last, tile, num_segments=num_tiles + 1)[:num_tiles]
-    out = (_to_image(feat, width, height), _to_image(jnp.minimum(tmin, 1.0), width, height))
+    nb = layout_blocks(gids, tile)
+    px, py = _pixel_centres(tile_of, tiles_x, tile, means2d.dtype)
+    m, con, op, f = _block_params(means2d, conics, opacities, features, gids, nb)
+    pxb, pyb = _blocks(px, nb), _blocks(py, nb)
+    prod = jax.lax.map(_local_products, (m, con, op, pxb, pyb))
+    carry = _seg_scan(prod.reshape(px.shape), first, jnp.multiply, 1.0)
+    acc, t_last = jax.lax.map(_blend, (m, con, op, f, pxb, pyb, _blocks(carry, nb)))
+    acc = acc.reshape(px.shape + (f.shape[-1],))
+    t_last = t_last.reshape(px.shape)
+    feat = jax.ops.segment_sum(acc, tile_of, num_segments=num_tiles + 1)[:num_tiles]
+    tmin = jax.ops.segment_min(t_last, tile_of, num_segments=num_tiles + 1)[:num_tiles]
+    out = (_to_image(feat, width, height, tile),
+           _to_image(jnp.minimum(tmin, 1.0), width, height, tile))
     return out, (carry, acc)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8))
-def composite(means2d, conics, opacities, features, gids, tile, first, width, height):
+def layout_blocks(gids, tile):
+    """Number of blocks of the chunk array ``gids`` [NC, K] (static)."""
+    per_block = max(1, BLOCK_ELEMENTS // (tile * tile))
+    return gids.shape[0] // per_block
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8, 9))
+def composite(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile):
     """Blend the chunked pairs into images.
 
     Args:
       means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C]
         (0 for culled); features: float [C, F] (colour, depth, ...).
-      gids, tile, first: the chunk layout from :func:`make_chunks`.
-      width, height: static image size.
+      gids, tile_of, first: the chunk layout from :func:`make_chunks`.
+      width, height, tile: static image and tile size.
     Returns:
       (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
     """
-    return _forward(means2d, conics, opacities, features, gids, tile, first, width, height)[0]
+    return _forward(means2d, conics, opacities, features, gids, tile_of, first, width, height,
+                    tile)[0]
 
 
-def _composite_fwd(means2d, conics, opacities, features, gids, tile, first, width, height):
-    out, (carry, acc) = _forward(means2d, conics, opacities, features, gids, tile, first,
-                                 width, height)
-    return out, (means2d, conics, opacities, features, gids, tile, first, carry, acc, out[0], out[1])
+def _composite_fwd(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile):
+    out, (carry, acc) = _forward(means2d, conics, opacities, features, gids, tile_of, first,
+                                 width, height, tile)
+    return out, (means2d, conics, opacities, features, gids, tile_of, first, carry, acc,
+                 out[0], out[1])
 
 
-def _composite_bwd(width, height, res, cts):
-    means2d, conics, opacities, features, gids, tile, first, carry, acc, feat_img, trans_img = res
-    g_feat, g_trans = cts
-    tiles_x, _ = grid_shape(width, height)
-    c = means2d.shape[0]
-
-    def per_chunk(img):
-        t = _to_tiles(img, width, height)
-        return jnp.concatenate([t, jnp.zeros_like(t[:1])], 0)[tile]
-
-    g_f = per_chunk(g_feat)  # [NC, 256, F]
-    g_tfin = per_chunk(g_trans * trans_img)  # [NC, 256]: dL/dT_final * T_final
-    g_total = per_chunk(jnp.sum(g_feat * feat_img, -1))  # [NC, 256]: g . F_total
-    # g . (features of the tile's earlier chunks), per pixel.
-    prefix = _seg_scan(jnp.sum(g_f * acc, -1), first, jnp.add, 0.0)
-
-    px, py = _pixel_centres(tile, tiles_x, means2d.dtype)
-    params = _chunk_params(means2d, conics, opacities, features, gids)
+def _grad_block(xs):
+    """Backward on one block: per-pair gradients [K, NB, ...]."""
+    m, con, op, f, px, py, carry, prefix, g_f, g_total, g_tfin = xs
+    nf = f.shape[-1]
+    g_ch = tuple(g_f[..., j] for j in range(nf))  # channel-major: pixel axis innermost
 
     def step(state, x):
         t, run = state
@@ -220,26 +238,51 @@ def _composite_bwd(width, height, res, cts):
         t_after = t * (1.0 - alpha)
         blended = t_after >= T_MIN
         w = jnp.where(blended, alpha * t, 0.0)
-        s = jnp.einsum("nf,npf->np", fk, g_f)  # g . f_i per pixel
+        s = sum(fk[:, j, None] * g_ch[j] for j in range(nf))  # g . f_i per pixel
         run = run + w * s  # g . (features up to and including this pair)
-        inv = 1.0 / (1.0 - alpha)
-        d_alpha = t * s - (g_total - run + g_tfin) * inv
+        # dC/dalpha_i = T_i f_i - (features behind i) / (1 - alpha_i); T_final likewise.
+        d_alpha = t * s - (g_total - run + g_tfin) / (1.0 - alpha)
         d_raw = jnp.where(blended & (alpha > 0) & (raw < ALPHA_MAX), d_alpha, 0.0)
         d_pow = d_raw * raw
-        a, b, cc = ck[:, 0, None], ck[:, 1, None], ck[:, 2, None]
-        d_con = jnp.stack([jnp.sum(d_pow * dx * dx, -1) * -0.5, -jnp.sum(d_pow * dx * dy, -1),
-                           jnp.sum(d_pow * dy * dy, -1) * -0.5], -1)
-        d_m = -jnp.stack([jnp.sum(d_pow * (a * dx + b * dy), -1),
-                          jnp.sum(d_pow * (cc * dy + b * dx), -1)], -1)
-        d_op = jnp.sum(d_raw * vis, -1)
-        d_f = jnp.einsum("np,npf->nf", w, g_f)
-        return (t_after, run), (d_m, d_con, d_op, d_f)
+        sdx, sdy = d_pow * dx, d_pow * dy
+        sums = jnp.stack([jnp.sum(v, -1) for v in (
+            sdx, sdy, sdx * dx, sdx * dy, sdy * dy, d_raw * vis) + tuple(w * gj for gj in g_ch)], -1)
+        a, b, c = ck[:, 0], ck[:, 1], ck[:, 2]
+        d_m = -jnp.stack([a * sums[:, 0] + b * sums[:, 1], c * sums[:, 1] + b * sums[:, 0]], -1)
+        d_con = jnp.stack([-0.5 * sums[:, 2], -sums[:, 3], -0.5 * sums[:, 4]], -1)
+        return (t_after, run), (d_m, d_con, sums[:, 5], sums[:, 6:])
 
-    _, (d_m, d_con, d_op, d_f) = jax.lax.scan(step, (carry, prefix), params)
-    seg = jnp.where(gids >= 0, gids, c).T.reshape(-1)
+    _, grads = jax.lax.scan(step, (carry, prefix), (m, con, op, f))
+    return grads
+
+
+def _composite_bwd(width, height, tile, res, cts):
+    means2d, conics, opacities, features, gids, tile_of, first, carry, acc, feat_img, trans_img = res
+    g_feat, g_trans = cts
+    tiles_x, _ = grid_shape(width, height, tile)
+    c = means2d.shape[0]
+    nb = layout_blocks(gids, tile)
+
+    def per_chunk(img):
+        t = _to_tiles(img, width, height, tile)
+        return jnp.concatenate([t, jnp.zeros_like(t[:1])], 0)[tile_of]
+
+    g_f = per_chunk(g_feat)  # [NC, P, F]
+    g_tfin = per_chunk(g_trans * trans_img)  # [NC, P]: dL/dT_final * T_final
+    g_total = per_chunk(jnp.sum(g_feat * feat_img, -1))  # [NC, P]: g . F_total
+    # g . (features of the tile's earlier chunks), per pixel.
+    prefix = _seg_scan(jnp.sum(g_f * acc, -1), first, jnp.add, 0.0)
+
+    px, py = _pixel_centres(tile_of, tiles_x, tile, means2d.dtype)
+    params = _block_params(means2d, conics, opacities, features, gids, nb)
+    per_pixel = tuple(_blocks(x, nb) for x in (px, py, carry, prefix, g_f, g_total, g_tfin))
+    d_m, d_con, d_op, d_f = jax.lax.map(_grad_block, params + per_pixel)  # [nb, K, NB, ...]
+
+    gb = jnp.swapaxes(_blocks(gids, nb), 1, 2)
+    seg = jnp.where(gb >= 0, gb, c).reshape(-1)
 
     def scatter(v):
-        v = v.reshape((seg.shape[0],) + v.shape[2:])
+        v = v.reshape((seg.shape[0],) + v.shape[3:])
         return jax.ops.segment_sum(v, seg, num_segments=c + 1)[:c]
 
     return (scatter(d_m), scatter(d_con), scatter(d_op), scatter(d_f), None, None, None)

@@ -47,6 +47,9 @@ MIN_CAPACITY = 1024
 #: Headroom over the counted pairs when a capacity is (re)chosen.
 HEADROOM = 1.15
 
+#: Tile size used by the splatter (the image does not depend on it).
+TILE = 8
+
 _capacity_cache: dict[tuple, int] = {}
 
 
@@ -70,12 +73,12 @@ def _render_one(gaussians, camera, background, means2d_delta, near, far, *, capa
     proj = P.project(gaussians, camera, sh_degree=sh_degree, near=near, far=far,
                      means2d_delta=means2d_delta)
     w, h = camera.width, camera.height
-    bins = B.bin_gaussians(proj, w, h, capacity)
-    tiles_x, tiles_y = B.grid_shape(w, h)
-    gids, tile, first = CP.make_chunks(bins, tiles_x * tiles_y, capacity)
+    bins = B.bin_gaussians(proj, w, h, capacity, TILE)
+    tiles_x, tiles_y = B.grid_shape(w, h, TILE)
+    gids, tile_of, first = CP.make_chunks(bins, tiles_x * tiles_y, capacity, TILE)
     feats = jnp.concatenate([proj.colors, proj.depths[:, None]], -1)
-    f_img, t_img = CP.composite(proj.means2d, proj.conics, proj.opacities, feats, gids, tile,
-                                first, w, h)
+    f_img, t_img = CP.composite(proj.means2d, proj.conics, proj.opacities, feats, gids, tile_of,
+                                first, w, h, TILE)
     rgb, alpha, depth = finish(f_img, t_img, background, gaussians.means.dtype)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii,
                         visible=proj.visible, num_intersections=bins.num_intersections,
@@ -108,7 +111,7 @@ def render_tiles(gaussians: Gaussians, camera: Camera, *, capacity: int, backgro
 def _count(gaussians, camera, near, far, means2d_delta, sh_degree):
     def one(cam, d):
         proj = P.project(gaussians, cam, sh_degree=0, near=near, far=far, means2d_delta=d)
-        return B.count_intersections(proj, cam.width, cam.height)
+        return B.count_intersections(proj, cam.width, cam.height, TILE)
 
     if camera.batch_shape:
         d_axis = None if means2d_delta is None else 0
