@@ -25,7 +25,7 @@ import tomllib
 from pathlib import Path
 
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
-            "convert-lpips"]
+            "report", "convert-lpips"]
 
 
 class OneLineParser(argparse.ArgumentParser):
