@@ -50,6 +50,7 @@ from .camera import Camera
 from .errors import DataError
 from .gaussians import Gaussians
 from .io.files import atomic_path
+from .losses import photometric_loss
 from .raster import render
 from .raster.render import next_capacity, render_tiles
 
@@ -360,8 +361,6 @@ def psnr_from_mse(mse):
 
 
 def _train_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
-    from .losses import photometric_loss  # noqa: PLC0415  (TODO: top level once landed)
-
     cfg = state.config
     g = state.gaussians
     k_bg, k_dens = jax.random.split(key)

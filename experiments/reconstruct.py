@@ -1,0 +1,237 @@
+"""``reconstruct``: fit 3D Gaussians to a nerfstudio dataset (built-in scenes included).
+
+    python -m experiments reconstruct --data DIR --out RUN_DIR [--iters N --seed S ...]
+
+Writes into RUN_DIR:
+
+* ``scene.ply``: the alive Gaussians as an INRIA 3DGS PLY (any splat viewer reads it);
+* ``test/NNN_<name>.png``: renders of the held-out views, and ``test_compare.png``
+  (ground truth above, render below, one column per view);
+* ``metrics.json``: ``test_psnr``, ``test_ssim`` (scikit-image), per-view values,
+  ``num_gaussians``, ``wall_time_s``, ``steps_per_s``, where the time went;
+* ``train_log.jsonl``: training metrics every ``--log-every`` steps and at every
+  density-control step;
+* ``checkpoints/ckpt_<step>.npz``: the full training state every
+  ``--checkpoint-every`` steps and at the end. ``--resume`` continues from the
+  newest one and ends with the same Gaussians as an uninterrupted run.
+
+Initial points come from the dataset's ``ply_file_path`` (as COLMAP's sparse
+cloud would); a dataset without points starts from ``--random-points`` uniform
+points in the cameras' bounding box (Splatfacto's random init).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+HELP = "reconstruct a nerfstudio dataset with 3DGS: scene.ply, test renders, metrics.json"
+
+log = logging.getLogger("jaxedit.reconstruct")
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--data", type=Path, required=True,
+                   help="nerfstudio dataset folder (or its transforms.json)")
+    p.add_argument("--iters", type=int, default=30_000, help="training steps (one view each)")
+    p.add_argument("--sh-degree", type=int, default=3, help="largest SH degree (0-3)")
+    p.add_argument("--background", choices=["white", "black", "random"], default="white",
+                   help="background of training renders; also composites RGBA images")
+    p.add_argument("--max-gaussians", type=int, default=1_000_000,
+                   help="hard cap on the number of Gaussians")
+    p.add_argument("--densify-budget", action="store_true",
+                   help="ProEdit's adaptive creation budget instead of the 2e-4 threshold")
+    p.add_argument("--refine-every", type=int, default=100, help="steps between densify/cull")
+    p.add_argument("--warmup", type=int, default=500, help="steps before the first densify")
+    p.add_argument("--densify-until", type=int, default=None,
+                   help="last densify step (default: half of --iters)")
+    p.add_argument("--reset-every", type=int, default=3000, help="opacity reset period (0: off)")
+    p.add_argument("--cull-alpha", type=float, default=0.005, help="cull opacity below this")
+    p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
+    p.add_argument("--normalize", choices=["none", "nerfstudio"], default="none",
+                   help="re-centre and scale the poses as nerfstudio does")
+    p.add_argument("--random-points", type=int, default=20_000,
+                   help="initial points when the dataset has no point cloud")
+    p.add_argument("--checkpoint-every", type=int, default=1000,
+                   help="checkpoint period in steps (0: only at the end)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the newest checkpoint in RUN_DIR/checkpoints")
+    p.add_argument("--log-every", type=int, default=10, help="train_log.jsonl period in steps")
+
+
+def config_from_args(args):
+    from jaxedit.train import DensifyConfig, TrainConfig
+
+    dens = DensifyConfig(max_gaussians=args.max_gaussians, budget=args.densify_budget,
+                         refine_every=args.refine_every, warmup=args.warmup,
+                         stop_at=args.densify_until, reset_every=args.reset_every,
+                         cull_alpha=args.cull_alpha)
+    return TrainConfig(iterations=args.iters, sh_degree=args.sh_degree,
+                       background=args.background, densify=dens)
+
+
+def _check(args) -> None:
+    from jaxedit import DataError
+
+    if args.out is None:
+        raise DataError("--out", "reconstruct needs a run directory (--out RUN_DIR)")
+    for name in ("iters", "max_gaussians", "refine_every", "random_points", "log_every"):
+        if getattr(args, name) < (0 if name == "iters" else 1):
+            raise DataError(f"--{name.replace('_', '-')}", f"out of range: {getattr(args, name)}")
+    if not 0 <= args.sh_degree <= 3:
+        raise DataError("--sh-degree", f"must be in 0..3, got {args.sh_degree}")
+    if args.checkpoint_every < 0 or args.warmup < 0 or args.reset_every < 0:
+        raise DataError("--checkpoint-every/--warmup/--reset-every", "must be >= 0")
+    if not 0.0 < args.cull_alpha < 1.0:
+        raise DataError("--cull-alpha", f"must be in (0, 1), got {args.cull_alpha}")
+
+
+def initial_points(data, n_random: int, seed: int):
+    """(points [P, 3], colours [P, 3]): the dataset's cloud, or uniform points in the rig's box."""
+    import numpy as np
+
+    if data.points is not None and len(data.points) >= 4:
+        colors = data.point_colors if data.point_colors is not None else np.full(
+            (len(data.points), 3), 0.5, np.float32)
+        return np.asarray(data.points, np.float32), np.asarray(colors, np.float32), "dataset"
+    rng = np.random.default_rng(seed)
+    centers = np.asarray(data.cameras.center(), np.float64)
+    lo, hi = centers.min(0), centers.max(0)
+    mid, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-3)
+    points = mid + rng.uniform(-1.0, 1.0, size=(n_random, 3)) * half
+    return points.astype(np.float32), rng.uniform(size=(n_random, 3)).astype(np.float32), "random"
+
+
+def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
+                checkpoint_every: int = 1000, log_every: int = 10, random_points: int = 20_000,
+                progress=True) -> dict:
+    """Train on ``data``'s training views, evaluate on its test views, write the outputs.
+
+    Args:
+      data: a :class:`jaxedit.io.Dataset`.
+      out: run directory.
+      config: :class:`jaxedit.train.TrainConfig`.
+    Returns:
+      the metrics dict (also written to ``out/metrics.json``).
+    """
+    import jax
+    import numpy as np
+
+    from jaxedit import gaussians as G
+    from jaxedit import train as T
+    from jaxedit.io import save_ply, write_image
+    from jaxedit.io.files import atomic_write_text
+
+    t_start = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    train_images, train_cams = data.train()
+    if len(data.test_indices):
+        test_images, test_cams = data.test()
+        test_idx, eval_split = data.test_indices, "test"
+    else:  # no held-out views: report training-view quality, and say so
+        test_images, test_cams = train_images, train_cams
+        test_idx, eval_split = data.train_indices, "train"
+    extent = T.scene_extent(train_cams)
+    ckpt_dir = out / "checkpoints"
+
+    state = None
+    if resume:
+        latest = T.latest_checkpoint(ckpt_dir)
+        if latest is not None:
+            state = T.load_checkpoint(latest)
+            if state.config != config:
+                log.warning("resuming with the checkpoint's training config; the flags differ")
+            log.info("resuming from %s (step %d)", latest, int(state.step))
+    points_source = "checkpoint"
+    if state is None:
+        points, colors, points_source = initial_points(data, random_points, seed)
+        g = G.from_points(points, colors, sh_degree=config.sh_degree)
+        state = T.init_state(g, config, extent, key=jax.random.key(seed))
+    start_step = int(state.step)
+
+    step_times: list[float] = []
+    last = [time.perf_counter()]
+
+    def timer(_state, _metrics):
+        now = time.perf_counter()
+        step_times.append(now - last[0])
+        last[0] = now
+
+    t_train = time.perf_counter()
+    last[0] = t_train
+    state = T.fit(state, train_images, train_cams, log_path=out / "train_log.jsonl",
+                  log_every=log_every, checkpoint_dir=ckpt_dir,
+                  checkpoint_every=checkpoint_every or None, progress=progress, callback=timer,
+                  desc="reconstruct")
+    train_s = time.perf_counter() - t_train
+    steps = int(state.step) - start_step
+
+    t_eval = time.perf_counter()
+    bg = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}.get(config.background,
+                                                                  (1.0, 1.0, 1.0))
+    result = T.evaluate(state.gaussians, test_images, test_cams, background=bg)
+    eval_s = time.perf_counter() - t_eval
+
+    t_write = time.perf_counter()
+    renders = result.pop("renders")
+    for k, (i, r) in enumerate(zip(test_idx, renders)):
+        name = Path(data.filenames[int(i)]).stem
+        write_image(out / eval_split / f"{k:03d}_{name}.png", r)
+    columns = min(len(renders), 8)
+    if columns:
+        top = np.concatenate(list(np.asarray(test_images[:columns])), axis=1)
+        bottom = np.concatenate(list(renders[:columns]), axis=1)
+        write_image(out / f"{eval_split}_compare.png", np.concatenate([top, bottom], axis=0))
+    save_ply(out / "scene.ply", state.gaussians)
+    write_s = time.perf_counter() - t_write
+
+    times = np.asarray(step_times)
+    median = float(np.median(times)) if len(times) else float("nan")
+    # Steps far slower than the median are the ones that (re)compiled the train step:
+    # the first one, and each growth of the capacity or of the intersection buffer.
+    slow = times > 10 * median if len(times) else times
+    metrics = {
+        "test_psnr": result["psnr"], "test_ssim": result["ssim"], "eval_split": eval_split,
+        "test_psnr_per_view": result["psnr_per_view"],
+        "test_ssim_per_view": result["ssim_per_view"],
+        "num_gaussians": int(state.gaussians.num_alive()), "capacity": state.capacity,
+        "max_gaussians": config.densify.max_gaussians,
+        "iterations": int(state.step), "steps_run": steps, "resumed_from": start_step,
+        "wall_time_s": round(time.perf_counter() - t_start, 3), "train_time_s": round(train_s, 3),
+        "steps_per_s": steps / train_s if train_s > 0 else 0.0,
+        "steady_step_ms": 1e3 * median,
+        "steady_steps_per_s": 1.0 / median if median > 0 else 0.0,
+        "compile_steps": int(np.sum(slow)), "compile_time_s": round(float(np.sum(times[slow])), 3),
+        "eval_time_s": round(eval_s, 3), "write_time_s": round(write_s, 3),
+        "max_intersections": state.max_intersections, "scene_extent": extent,
+        "initial_points": points_source, "train_views": int(len(train_images)),
+        "test_views": int(len(test_idx)), "image_size": [int(train_images.shape[2]),
+                                                         int(train_images.shape[1])],
+        "config": config.to_dict(),
+    }
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    return metrics
+
+
+def run(args) -> dict:
+    from jaxedit.io import load_nerfstudio
+
+    from experiments.progress import configure
+
+    _check(args)
+    configure(quiet=args.quiet)
+    data = load_nerfstudio(args.data, downscale=args.downscale, normalize=args.normalize,
+                           background={"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}.get(
+                               args.background, (1.0, 1.0, 1.0)))
+    config = config_from_args(args)
+    metrics = reconstruct(data, args.out, config, seed=args.seed, resume=args.resume,
+                          checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+                          random_points=args.random_points)
+    keys = ("test_psnr", "test_ssim", "num_gaussians", "iterations", "wall_time_s", "steps_per_s")
+    return {k: metrics[k] for k in keys} | {"out": str(args.out)}
+
+
+__all__ = ["reconstruct", "config_from_args", "initial_points"]
