@@ -22,7 +22,8 @@ def object_view(dx: float) -> np.ndarray:
                                     anti_aliasing=True).astype(np.float32)
     yy, xx = np.mgrid[0:S, 0:S] + 0.5
     inside = ((yy - S / 2) / (0.36 * S)) ** 2 + ((xx - S / 2 - dx) / (0.3 * S)) ** 2 < 1
-    return np.where(inside[..., None], np.roll(face, int(round(dx)), axis=1), 1.0).astype(np.float32)
+    textured = np.roll(face, int(round(dx)), axis=1)
+    return np.where(inside[..., None], textured, 1.0).astype(np.float32)
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +152,10 @@ def test_inconsistency_grows_with_jump(editor, img, prompt):
 def test_guidance_and_bad_inputs(editor, img):
     e = emb(editor, AUTUMN, 1.0)
     t1 = editor.target(img, 1.0, AUTUMN)
-    dev = lambda g: np.mean(np.abs(editor.edit(img, img, e, KEY, guidance=g, timestep_range=FULL) - t1))  # noqa: E731
+    def dev(g):
+        out = editor.edit(img, img, e, KEY, guidance=g, timestep_range=FULL)
+        return np.mean(np.abs(out - t1))
+
     assert dev((12.5, 1.5)) > dev((7.5, 1.5)) > dev((7.5, 3.0))
     with pytest.raises(DataError, match="image"):
         editor.edit(img[..., :2], img, e, KEY)

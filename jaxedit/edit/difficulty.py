@@ -118,16 +118,19 @@ class DifficultyOracle:
                  reduction: str = "sum", common_noise: bool = True):
         originals = np.asarray(originals, np.float32)
         if originals.ndim != 4 or originals.shape[-1] != 3:
-            raise DataError("originals", f"expected float [N, H, W, 3], got shape {originals.shape}")
+            raise DataError("originals",
+                            f"expected float [N, H, W, 3], got shape {originals.shape}")
         if reduction not in ("sum", "mean"):
             raise DataError("reduction", f"must be 'sum' or 'mean', got {reduction!r}")
         self.editor = editor
         self.originals = originals
         self.prompt = prompt
-        self.views = default_views(len(originals)) if views is None else tuple(int(v) for v in views)
+        self.views = (default_views(len(originals)) if views is None
+                      else tuple(int(v) for v in views))
         bad = [v for v in self.views if not 0 <= v < len(originals)]
         if bad or not self.views:
-            raise DataError("views", f"indices must be in 0..{len(originals) - 1}, got {list(self.views)}")
+            raise DataError("views", f"indices must be in 0..{len(originals) - 1}, "
+                            f"got {list(self.views)}")
         self.distance = ms_ssim_distance if distance is None else distance
         self.timestep_range = tuple(timestep_range)
         self.guidance = tuple(guidance)

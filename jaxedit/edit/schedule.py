@@ -67,7 +67,8 @@ class Schedule:
             raise DataError("schedule.ratios", f"must be strictly increasing, got {list(r)}")
         if len(self.difficulties) != len(r) - 1:
             raise DataError("schedule.difficulties",
-                            f"need {len(r) - 1} values (one per subtask), got {len(self.difficulties)}")
+                            f"need {len(r) - 1} values (one per subtask), "
+                            f"got {len(self.difficulties)}")
 
     @property
     def num_subtasks(self) -> int:
@@ -296,7 +297,9 @@ def _equalise(difficulty: DifficultyFn, cache: Mapping, a: float, x0: float, b: 
         d2, box["cache"] = _measure(difficulty, box["cache"], x, b)
         return d1 - d2 if d1 != d2 else -1e-30
 
-    lo, hi = _bisect_host(host, a, b, resolution)
+    lo, hi = _tighten(host, a, b, cache)
+    if hi - lo > resolution:
+        lo, hi = _bisect_host(host, lo, hi, resolution)
     cache = box["cache"]
     for y in (lo, hi):
         x = inside(y)
@@ -305,6 +308,22 @@ def _equalise(difficulty: DifficultyFn, cache: Mapping, a: float, x0: float, b: 
         if max(d1, d2) < best[0]:
             best = (max(d1, d2), x, d1, d2)
     return best[1], best[2], best[3], cache
+
+
+def _tighten(fn: Callable[[float], float], lower: float, upper: float, cache: Mapping):
+    """Shrink a bracket fn(lower) < 0 <= fn(upper) with the ratios the cache already knows.
+
+    Every ratio in a cached pair has been edited (for a memoised oracle), so evaluating fn there
+    costs distance computations but no editor call. Scanning them upwards, the bracket becomes
+    (last known point with fn < 0, first known point with fn >= 0): still a sign change.
+    """
+    known = sorted({x for pair in cache for x in pair if lower < x < upper})
+    for x in known:
+        if fn(x) < 0:
+            lower = x
+        else:
+            return lower, x
+    return lower, upper
 
 
 def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: float,
@@ -320,13 +339,6 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
     d1, cache = _measure(difficulty, cache, r, 1.0)
     if d1 <= threshold:
         return 1.0, d1, False, cache
-    upper = 1.0
-    if width_hint is not None:
-        guess = _quantise(r + 2.0 * width_hint, r, resolution)
-        if r < guess < 1.0:
-            d, cache = _measure(difficulty, cache, r, guess)
-            if d > threshold:
-                upper = guess
     box = {"cache": cache}
 
     def host(y):
@@ -335,8 +347,14 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
         # when g < 0: map d == threshold to a tiny negative value
         return d - threshold if d > threshold else min(d - threshold, -1e-30)
 
-    # g(r) = -threshold < 0 < g(upper): a bracket
-    lower, _ = _bisect_host(host, r, upper, resolution)
+    # g(r) = -threshold < 0 < g(1): a bracket, tightened for free by already edited ratios
+    lower, upper = _tighten(host, r, 1.0, cache)
+    if width_hint is not None and upper - lower > 2.0 * width_hint:
+        guess = _quantise(lower + 2.0 * width_hint, r, resolution)
+        if lower < guess < upper and host(guess) >= 0:
+            upper = guess
+    if _quantise(upper, r, resolution) - _quantise(lower, r, resolution) > resolution:
+        lower, _ = _bisect_host(host, lower, upper, resolution)
     cache = box["cache"]
     # state.lower only ever moves to points where g < 0 was observed (after quantisation);
     # verify anyway and walk down the grid if a float32 rounding moved it across the step

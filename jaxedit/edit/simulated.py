@@ -248,14 +248,15 @@ def _random_field(u, h: int, w: int, *, cycles: float = 1.2):
     instead of one per draw, which dominated the compile time.)
     """
     waves = u.shape[1]
-    freq = cycles * jnp.stack([_normals(u[..., 0:2]),
-                               jnp.sqrt(-2.0 * jnp.log1p(-u[..., 0])) * jnp.sin(2 * jnp.pi * u[..., 1])],
-                              axis=-1)
+    radius = jnp.sqrt(-2.0 * jnp.log1p(-u[..., 0]))  # Box-Muller: both normals of one pair
+    angle = 2 * jnp.pi * u[..., 1]
+    freq = cycles * jnp.stack([radius * jnp.cos(angle), radius * jnp.sin(angle)], axis=-1)
     phase = 2 * jnp.pi * u[..., 2]
     amp = _normals(u[..., 3:5]) * math.sqrt(2.0 / waves)
     y = (jnp.arange(h) + 0.5) / max(h, w)
     x = (jnp.arange(w) + 0.5) / max(h, w)
-    arg = 2 * jnp.pi * (freq[..., 0, None, None] * y[:, None] + freq[..., 1, None, None] * x[None, :])
+    arg = 2 * jnp.pi * (freq[..., 0, None, None] * y[:, None]
+                        + freq[..., 1, None, None] * x[None, :])
     field = jnp.sum(amp[..., None, None] * jnp.cos(arg + phase[..., None, None]), axis=1)
     return jnp.moveaxis(field, 0, -1)
 
@@ -278,7 +279,8 @@ def _autumn(original):
 def _bronze(original, mask):
     lum = _smoothstep(0.0, 1.0, _luma(original))[..., None]
     lo = _BRONZE[0] + (_BRONZE[1] - _BRONZE[0]) * jnp.clip(2 * lum, 0, 1)
-    ramp = jnp.where(lum < 0.5, lo, _BRONZE[1] + (_BRONZE[2] - _BRONZE[1]) * jnp.clip(2 * lum - 1, 0, 1))
+    hi = _BRONZE[1] + (_BRONZE[2] - _BRONZE[1]) * jnp.clip(2 * lum - 1, 0, 1)
+    ramp = jnp.where(lum < 0.5, lo, hi)
     m = mask[..., None]
     return m * ramp + (1 - m) * original
 
@@ -311,7 +313,8 @@ def _marble(original, mask, points=None):
     v = jnp.abs(jnp.sin(jnp.pi * phase))
     vein = (1.0 - v) ** 8  # thin dark lines where the phase crosses an integer
     base = jnp.array([0.93, 0.92, 0.89]) * (0.78 + 0.22 * lum[..., None])
-    marble = base * (1.0 - 0.55 * vein[..., None]) + 0.55 * vein[..., None] * jnp.array([0.35, 0.36, 0.40])
+    vein = 0.55 * vein[..., None]
+    marble = base * (1.0 - vein) + vein * jnp.array([0.35, 0.36, 0.40])
     m = mask[..., None]
     return m * marble + (1 - m) * original
 
@@ -397,11 +400,13 @@ def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params
     # the edit of this view: a jittered strength, a displaced pattern, a colour cast
     s_view = s * (1.0 + params.jitter * gscale * gap * _normals(u_jit))
     edited = family(s_view)
-    disp = _random_field(u_warp.reshape(2, FIELD_WAVES, 5), h, w, cycles=0.8) * (params.shift * gscale * gap * max(h, w))
+    disp = _random_field(u_warp.reshape(2, FIELD_WAVES, 5), h, w, cycles=0.8)
+    disp = disp * (params.shift * gscale * gap * max(h, w))
     rows, cols = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32),
                               indexing="ij")
     edited = _sample(edited, rows + disp[..., 0], cols + disp[..., 1])
-    cast = _random_field(u_col.reshape(3, FIELD_WAVES, 5), h, w) * (params.colour * gscale * (gap + local))[..., None]
+    cast = _random_field(u_col.reshape(3, FIELD_WAVES, 5), h, w)
+    cast = cast * (params.colour * gscale * (gap + local))[..., None]
     edited = edited + cast
 
     floor = params.noise * (_random_field(u_sm.reshape(3, FIELD_WAVES, 5), h, w, cycles=2.0)
@@ -449,9 +454,11 @@ class SimulatedEditor:
 
     def __init__(self, *, noise: float = 0.004, colour: float = 0.12, shift: float = 0.05,
                  jitter: float = 1.0, surfaces: tuple | None = None):
-        for field, v in (("noise", noise), ("colour", colour), ("shift", shift), ("jitter", jitter)):
+        for field, v in (("noise", noise), ("colour", colour), ("shift", shift),
+                         ("jitter", jitter)):
             if not (math.isfinite(v) and v >= 0):
-                raise DataError(f"SimulatedEditor.{field}", f"must be a finite number >= 0, got {v!r}")
+                raise DataError(f"SimulatedEditor.{field}",
+                                f"must be a finite number >= 0, got {v!r}")
         self.params = _Params(float(noise), float(colour), float(shift), float(jitter))
         q, _ = np.linalg.qr(np.random.default_rng(20241120).normal(size=(EMBED_DIM, EMBED_DIM)))
         self._basis = q.astype(np.float32)  # columns: null direction, then one per instruction
@@ -459,7 +466,7 @@ class SimulatedEditor:
         if surfaces is not None:
             originals, points = (np.asarray(a, np.float32) for a in surfaces)
             if originals.ndim != 4 or originals.shape[-1] != 3 or points.shape != originals.shape:
-                raise DataError("surfaces", f"expected (originals [N,H,W,3], points [N,H,W,3]), got "
+                raise DataError("surfaces", "expected (originals [N,H,W,3], points [N,H,W,3]), got "
                                 f"{originals.shape} and {points.shape}")
             self._surface_views = originals
             # background pixels have no surface point (NaN from the ray caster): any finite
@@ -491,7 +498,8 @@ class SimulatedEditor:
         if isinstance(instruction, (int, np.integer)):
             if 0 <= int(instruction) < len(VOCABULARY):
                 return int(instruction)
-            raise DataError("instruction", f"index {instruction} out of range 0..{len(VOCABULARY) - 1}")
+            raise DataError("instruction",
+                            f"index {instruction} out of range 0..{len(VOCABULARY) - 1}")
         key = _normalise_prompt(instruction)
         for i, ins in enumerate(VOCABULARY):
             if ins.prompt == key:
@@ -508,7 +516,7 @@ class SimulatedEditor:
         return self._basis @ z
 
     def decode(self, embedding) -> tuple[int | None, float]:
-        """(instruction index or None for the null embedding, ratio r) of e(r) = r E(p) + (1-r) E("")."""
+        """(instruction index, ratio r) of e(r) = r E(p) + (1 - r) E(""); (None, 0) for E("")."""
         e = np.asarray(embedding, np.float64).reshape(-1)
         if e.shape != (EMBED_DIM,) or not np.all(np.isfinite(e)):
             raise DataError("embedding", f"expected a finite float [{EMBED_DIM}] embedding of the "
@@ -557,8 +565,8 @@ class SimulatedEditor:
         i = self._index(instruction)
         ins = VOCABULARY[i]
         s = strength(float(ratio), ins.midpoint, ins.steepness)
-        return np.asarray(_target_impl(jnp.asarray(original), jnp.float32(s), self._points(original),
-                                       kind=ins.kind))
+        return np.asarray(_target_impl(jnp.asarray(original), jnp.float32(s),
+                                       self._points(original), kind=ins.kind))
 
     def target_of_embedding(self, original, embedding) -> np.ndarray:
         """The noise-free target for an embedding e(r) (the original for the null embedding)."""
@@ -583,10 +591,12 @@ class SimulatedEditor:
         image = _as_image(image, "image")
         original = _as_image(original, "original")
         if image.shape != original.shape:
-            raise DataError("image", f"shape {image.shape} differs from the original's {original.shape}")
+            raise DataError("image",
+                            f"shape {image.shape} differs from the original's {original.shape}")
         t0, t1 = (float(t) for t in timestep_range)
         if not (0.0 <= t0 <= t1 <= 1.0):
-            raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {timestep_range!r}")
+            raise DataError("timestep_range",
+                            f"need 0 <= t_min <= t_max <= 1, got {timestep_range!r}")
         gt, gi = (float(g) for g in guidance)
         if not (gt >= 0 and gi > 0 and math.isfinite(gt) and math.isfinite(gi)):
             raise DataError("guidance", f"need text >= 0 and image > 0 scales, got {guidance!r}")
