@@ -493,7 +493,7 @@ class TrainSettings:
     """Optimisation settings of the editing trainer (Splatfacto learning rates, constant).
 
     Attributes:
-      scene_extent: world size (``jaxedit.train.scene_extent`` of the cameras).
+      scene_extent: world size (None: ``jaxedit.train.scene_extent`` of the train cameras).
       adaptive: ProEdit's budgeted creation (True) or classic 3DGS thresholds (False, IN2N).
       cull_alpha: the cull threshold, which is also the opacity every Gaussian gets
         at a subtask start (Splatfacto's cull_alpha_thresh 0.1 keeps the scene
@@ -503,10 +503,13 @@ class TrainSettings:
       max_gaussians: the hard cap.
       budget_*: the creation budget t(n, N) (see ``jaxedit.densify.creation_budget``).
       sh_degree: SH degree trained (the input scene's, all degrees on from the start).
-      lr_opacity: Adam learning rate of the opacity logits.
+      lr_means, lr_sh_dc, lr_opacity: Adam learning rates (Splatfacto's by default;
+        the higher-order SH get lr_sh_dc / 20). Splatfacto's are tuned for ~30k
+        steps; short CPU runs of a few hundred steps per subtask need a larger
+        colour rate to follow the edits at all (the ablation uses 10x).
     """
 
-    scene_extent: float = 1.0
+    scene_extent: float | None = None
     adaptive: bool = True
     cull_alpha: float = 0.1
     warmup: int = 30
@@ -516,6 +519,8 @@ class TrainSettings:
     budget_growth: float = 0.02
     budget_max_fraction: float = 0.1
     sh_degree: int = 3
+    lr_means: float = 1.6e-4
+    lr_sh_dc: float = 2.5e-3
     lr_opacity: float = 0.05
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
@@ -539,7 +544,9 @@ class TrainSettings:
         if background is None:
             raise DataError("background", f"the trainer supports white or black, got {bg}")
         # Constant means learning rate (no decay across subtasks), every SH degree from step 1.
-        return TrainConfig(iterations=2 ** 30, lr_means_final=1.6e-4, lr_opacity=self.lr_opacity,
+        return TrainConfig(iterations=2 ** 30, lr_means=self.lr_means,
+                           lr_means_final=self.lr_means, lr_sh_dc=self.lr_sh_dc,
+                           lr_sh_rest=self.lr_sh_dc / 20, lr_opacity=self.lr_opacity,
                            sh_degree=self.sh_degree, sh_degree_interval=1,
                            background=background, densify=dens)
 
@@ -742,6 +749,10 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                 converged = True
                 break
             if st.step >= cfg.max_steps:
+                if not st.edited.all() and not source.deterministic:
+                    # Never end a subtask on a dataset the editor has not fully updated to
+                    # e(r_i): a slow editor makes the trainer wait here (counted).
+                    source.wait_for(lambda: bool(st.edited.all()), timeout=600, on_edits=take)
                 break
             if checkpoint is not None and st.step % cfg.checkpoint_every == 0:
                 checkpoint(st)
@@ -848,12 +859,6 @@ def edit_fit(ctx: EditContext, st: DriverState) -> float:
 # ---------------------------------------------------------------------------
 # A whole run, with its run directory
 # ---------------------------------------------------------------------------
-def scene_extent(cameras) -> float:
-    """Radius of the camera rig around its centre (INRIA's cameras_extent), times 1.1."""
-    centres = np.asarray(cameras.center(), np.float64)
-    return float(1.1 * np.max(np.linalg.norm(centres - centres.mean(0), axis=-1)) + 1e-6)
-
-
 def _plan_to_json(plan) -> list:
     return [dataclasses.asdict(p) for p in plan]
 
@@ -903,7 +908,14 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     if not str(prompt).strip() and config.mode != "in2n":
         raise DataError("--prompt", "empty instruction")
     run_dir = None if run_dir is None else Path(run_dir)
-    settings = settings or TrainSettings(scene_extent=scene_extent(data.train_cameras))
+    from ..train import scene_extent
+
+    settings = settings or TrainSettings()
+    if settings.scene_extent is None:
+        # Rounded: the extent is a static field of the train state, and cameras that went
+        # through a file differ in the last bits; equal rigs should share one compiled step.
+        extent = float(f"{scene_extent(data.train_cameras):.4g}")
+        settings = dataclasses.replace(settings, scene_extent=extent)
     settings = dataclasses.replace(settings, adaptive=config.mode != "in2n",
                                    warmup=config.warmup, background=tuple(config.background))
     trainer = SubtaskTrainer(settings)

@@ -1,0 +1,273 @@
+"""The ProEdit driver: plan, annealing, plateau, tiny end-to-end edits, exact resume, CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import threading
+
+import jax
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from jaxedit import DataError
+from jaxedit import camera as cl
+from jaxedit import gaussians as gl
+from jaxedit.edit.progressive import (EditData, LossTracker, ProEditConfig, Renderer, TrainSettings,
+                                      anneal_timestep, plan_subtasks, reprojection_consistency,
+                                      run_edit, select_snapshot, track_loss, train_view)
+from jaxedit.edit.simulated import SimulatedEditor
+
+PROMPT = "turn him into a bronze statue"
+
+
+# ---------------------------------------------------------------------------
+# Pure pieces
+# ---------------------------------------------------------------------------
+@settings(max_examples=30, deadline=None)
+@given(lo=st.floats(0, 0.5), span=st.floats(0, 0.5), n=st.integers(1, 500))
+def test_hifa_annealing_goes_from_tmax_to_tmin_monotonically(lo, span, n):
+    hi = lo + span
+    ts = [anneal_timestep(i, n, lo, hi) for i in range(0, n + 5)]
+    assert ts[0] == pytest.approx(hi)
+    assert ts[n] == pytest.approx(lo) and ts[-1] == pytest.approx(lo)  # clamped after N
+    assert all(b <= a + 1e-12 for a, b in zip(ts, ts[1:]))
+    i = n // 4
+    assert ts[i] == pytest.approx(hi - (hi - lo) * math.sqrt(i / n))
+
+
+def test_plan_of_each_mode():
+    p = plan_subtasks("proedit", [0.0, 0.3, 0.6, 1.0], [0.1, 0.2, 0.15])
+    assert [(s.name, s.kind, s.ratio) for s in p] == [
+        ("r0", "refine", 0.0), ("r1", "edit", 0.3), ("r2", "edit", 0.6), ("r3", "edit", 1.0),
+        ("rn", "consolidate", 1.0)]
+    assert [s.index for s in p] == list(range(5))
+    assert [s.difficulty for s in p] == [None, 0.1, 0.2, 0.15, None]
+    assert p[2].dirname == "02_r0.600"
+    nd = plan_subtasks("nd", [0.0, 1.0], [0.4])
+    assert [(s.kind, s.ratio) for s in nd] == [("refine", 0.0), ("edit", 1.0), ("consolidate", 1.0)]
+    assert [(s.kind, s.ratio) for s in plan_subtasks("in2n", [0.0, 1.0])] == [("edit", 1.0)]
+    cont = plan_subtasks("proedit", [0.5, 0.75, 1.0], start_ratio=0.5, refine_first=False)
+    assert [s.ratio for s in cont] == [0.75, 1.0, 1.0]
+    with pytest.raises(DataError):
+        plan_subtasks("proedit", [0.0, 0.5, 0.4, 1.0])
+    with pytest.raises(DataError):
+        ProEditConfig(mode="bogus")
+    in2n = ProEditConfig.for_mode("in2n")
+    assert in2n.timestep_range == (0.02, 0.98) and in2n.edit_every == 10
+    assert not in2n.initial_sweep and not in2n.refine_first
+
+
+def test_loss_tracker_plateau():
+    t = LossTracker.init(3)
+    for loss in [5, 4, 3, 2, 1]:
+        t = track_loss(t, loss, min_delta=0.0)
+    assert t.since_best == 0 and t.mean() == pytest.approx(2.0)
+    t = track_loss(t, 2.0, min_delta=0.0)  # window (2, 1, 2): mean 5/3, a new minimum
+    assert t.since_best == 0 and t.best == pytest.approx(5 / 3)
+    for _ in range(3):
+        t = track_loss(t, 2.0, min_delta=0.0)  # the mean rises to 2 and stays: no new minimum
+    assert t.since_best == 3
+    t = track_loss(t, -10.0, min_delta=0.0)
+    assert t.since_best == 0
+
+
+def test_train_view_is_a_seeded_permutation_per_epoch():
+    key = jax.random.key(3)
+    views = [train_view(key, s, 5) for s in range(15)]
+    for e in range(3):
+        assert sorted(views[5 * e:5 * e + 5]) == list(range(5))
+    assert views == [train_view(key, s, 5) for s in range(15)]
+
+
+# ---------------------------------------------------------------------------
+# A tiny scene: 8 train + 2 held-out views of a coloured ball, 32 x 32
+# ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    g = gl.from_points(d * 0.5, np.clip(0.5 + 0.4 * d[:, [2, 0, 1]], 0, 1), sh_degree=1,
+                       init_opacity=0.8)
+    g = dataclasses.replace(g, log_scales=g.log_scales + 0.3)
+    cams = cl.orbit(10, radius=2.5, width=32, height=32, elevation_deg=15)
+    renderer = Renderer()
+    images = np.stack([renderer.rgb(g, cams[i]) for i in range(10)])
+    data = EditData(images[:8], cams[np.arange(8)], images[8:], cams[np.arange(8, 10)])
+    return g, data, cams, images
+
+
+FAST = TrainSettings(lr_sh_dc=0.05)  # a few dozen steps must visibly move colours
+TINY = dict(warmup=6, patience=8, loss_window=4, max_steps=24, edit_every=3, checkpoint_every=5,
+            subtasks=1, consolidate=False, asynchronous=False)
+
+
+@pytest.fixture(scope="module")
+def sync_run(tiny, tmp_path_factory):
+    g, data, _, _ = tiny
+    run_dir = tmp_path_factory.mktemp("sync")
+    cfg = ProEditConfig.for_mode("proedit", **TINY)
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=7, run_dir=run_dir,
+                   report=False, select=1)
+    return run_dir, out
+
+
+def test_reprojection_consistency_of_a_real_scene(tiny):
+    g, data, cams, images = tiny
+    renderer = Renderer()
+    rgb, alpha, depth = renderer.views(g, cams[np.arange(4)])
+    good = reprojection_consistency(rgb, alpha, depth, cams[np.arange(4)])
+    rng = np.random.default_rng(0)
+    noisy = np.clip(rgb + rng.normal(0, 0.2, rgb.shape), 0, 1).astype(np.float32)
+    bad = reprojection_consistency(noisy, alpha, depth, cams[np.arange(4)])
+    assert good > bad + 5.0  # independent per-view noise is inconsistent across views
+
+
+def test_sync_edit_writes_the_run_directory(sync_run):
+    run_dir, out = sync_run
+    sched = json.loads((run_dir / "schedule.json").read_text())
+    for key in ("prompt", "editor", "mode", "threshold", "difficulty_curve", "subtasks"):
+        assert key in sched
+    assert sched["prompt"] == PROMPT and sched["editor"] == "simulated" and sched["mode"] == "proedit"
+    curve = sched["difficulty_curve"]
+    assert curve[0] == [0.0, 0.0] and curve[-1][0] == 1.0 and curve[-1][1] > 0
+    subs = sched["subtasks"]
+    assert [s["name"] for s in subs] == ["r0", "r1"]
+    assert [s["ratio"] for s in subs] == [0.0, 1.0]
+    for s in subs:
+        for key in ("index", "name", "ratio", "difficulty", "steps", "seconds", "converged",
+                    "snapshot"):
+            assert key in s
+        assert (run_dir / s["snapshot"]).exists()
+        snap = (run_dir / s["snapshot"]).parent
+        assert (snap / "renders" / "view_000.png").exists()
+        assert (snap / "depth" / "view_000.png").exists()
+        assert json.loads((snap / "metrics.json").read_text())["ratio"] == s["ratio"]
+        assert 1 <= s["steps"] <= TINY["max_steps"]
+        assert s["converged"] or s["steps"] == TINY["max_steps"]
+    assert subs[1]["difficulty"] > 0
+    assert (run_dir / "original" / "renders" / "view_000.png").exists()
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    for key in ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "num_gaussians",
+                "wall_time_s"):
+        assert np.isfinite(metrics[key])
+    assert metrics["utilisation"]["edits"] >= 8  # every view edited in each subtask
+    # the edit moved the scene towards the target: the renders beat the unedited scene
+    assert metrics["psnr_vs_target"] > json.loads(
+        (run_dir / "original" / "metrics.json").read_text())["psnr_vs_target"]
+    assert (run_dir / "selected.ply").read_bytes() == (run_dir / subs[1]["snapshot"]).read_bytes()
+    assert json.loads((run_dir / "selected.json").read_text())["index"] == 1
+
+
+def test_select_by_ratio_and_bad_selection(sync_run):
+    run_dir, _ = sync_run
+    select_snapshot(run_dir, 0.1)
+    assert json.loads((run_dir / "selected.json").read_text())["name"] == "r0"
+    select_snapshot(run_dir, "-1")
+    assert json.loads((run_dir / "selected.json").read_text())["name"] == "r1"
+    with pytest.raises(DataError, match="select"):
+        select_snapshot(run_dir, 9)
+    with pytest.raises(DataError, match="select"):
+        select_snapshot(run_dir, 1.5)
+
+
+class Crash(RuntimeError):
+    pass
+
+
+def test_resume_after_a_crash_mid_subtask_is_bit_exact(tiny, sync_run, tmp_path):
+    g, data, _, _ = tiny
+    _, reference = sync_run
+    cfg = ProEditConfig.for_mode("proedit", **TINY)
+
+    def crash(spec, step, loss):
+        if spec.index == 1 and step == 13:  # last checkpoint at step 10 of subtask 1
+            raise Crash
+
+    with pytest.raises(Crash):
+        run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=7, run_dir=tmp_path,
+                 report=False, callback=crash)
+    sched = json.loads((tmp_path / "schedule.json").read_text())
+    assert sched["subtasks"][0]["snapshot"] and sched["subtasks"][1]["snapshot"] is None
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=7, run_dir=tmp_path,
+                   report=False, resume=True)
+    a, b = reference["gaussians"], out["gaussians"]
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert [s["steps"] for s in out["schedule"]["subtasks"]] == \
+        [s["steps"] for s in reference["schedule"]["subtasks"]]
+
+
+def test_resume_from_snapshot_with_another_schedule(tiny, sync_run, tmp_path):
+    g, data, _, _ = tiny
+    run_dir, _ = sync_run
+    cfg = ProEditConfig.for_mode("proedit", **{**TINY, "subtasks": 2, "max_steps": 8})
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=7, run_dir=tmp_path,
+                   report=False, resume_from=run_dir / "subtasks" / "00_r0.000")
+    subs = out["schedule"]["subtasks"]
+    assert [(s["kind"], s["ratio"]) for s in subs] == [("edit", 0.5), ("edit", 1.0)]
+    assert out["schedule"]["start_ratio"] == 0.0 and out["schedule"]["resumed_from"]
+    with pytest.raises(DataError):
+        run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, run_dir=tmp_path / "x",
+                 resume_from=tmp_path / "nope")
+
+
+def test_threaded_edit_completes_and_records_utilisation(tiny):
+    g, data, _, _ = tiny
+    cfg = ProEditConfig.for_mode("nd", **{**TINY, "subtasks": None, "asynchronous": True,
+                                          "refine_first": False})
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=1, run_dir=None)
+    subs = out["schedule"]["subtasks"]
+    assert [s["ratio"] for s in subs] == [1.0]
+    u = out["metrics"]["utilisation"]
+    assert u["edits"] >= 1 and u["consumed"] >= 1 and u["polls"] >= 1
+    assert u["edits"] >= u["consumed"]
+    assert out["metrics"]["asynchronous"] is True
+
+
+def test_editor_failure_in_thread_surfaces(tiny):
+    from jaxedit.edit.buffer import EditorThreadError
+
+    g, data, _, _ = tiny
+
+    class Broken(SimulatedEditor):
+        def edit(self, *a, **k):  # fine for the scheduler (main thread), fails in the producer
+            if threading.current_thread() is not threading.main_thread():
+                raise ValueError("broken editor")
+            return super().edit(*a, **k)
+
+    cfg = ProEditConfig.for_mode("nd", **{**TINY, "subtasks": None, "asynchronous": True,
+                                          "refine_first": False, "max_steps": 200})
+    with pytest.raises(EditorThreadError) as info:
+        run_edit(Broken(), PROMPT, data, g, config=cfg, settings=FAST, run_dir=None)
+    assert isinstance(info.value.__cause__, ValueError)
+
+
+def test_cli_edit_writes_contract_files(tiny, tmp_path):
+    from experiments.cli import main
+    from jaxedit.io import save_nerfstudio, save_ply
+
+    g, _, cams, images = tiny
+    save_nerfstudio(tmp_path / "data", images, cams)
+    save_ply(tmp_path / "scene.ply", g)
+    out = tmp_path / "run"
+    rc = main(["edit", "--data", str(tmp_path / "data"), "--scene", str(tmp_path / "scene.ply"),
+               "--prompt", PROMPT, "--editor", "simulated", "--out", str(out), "--sync",
+               "--subtasks", "1", "--max-steps", "8", "--warmup", "6", "--patience", "3",
+               "--turntable-frames", "0", "--quiet", "--no-report", "--select", "0"])
+    assert rc == 0
+    sched = json.loads((out / "schedule.json").read_text())
+    assert {"prompt", "editor", "mode", "threshold", "difficulty_curve", "subtasks"} <= set(sched)
+    assert all({"index", "name", "ratio", "difficulty", "steps", "seconds", "converged",
+                "snapshot"} <= set(s) for s in sched["subtasks"])
+    assert (out / "metrics.json").exists() and (out / "selected.ply").exists()
+    assert json.loads((out / "config.json").read_text())["command"] == "edit"
+    rc = main(["edit", "--data", str(tmp_path / "data"), "--scene", str(tmp_path / "nope.ply"),
+               "--prompt", PROMPT, "--out", str(tmp_path / "bad"), "--quiet"])
+    assert rc == 2
+    rc = main(["edit", "--data", str(tmp_path / "data"), "--scene", str(tmp_path / "scene.ply"),
+               "--prompt", "make it purple please", "--out", str(tmp_path / "bad2"), "--quiet"])
+    assert rc == 2
