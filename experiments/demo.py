@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -90,7 +91,13 @@ def _run_stage(argv: list[str]) -> dict:
         from jaxedit import DataError
 
         raise DataError(argv[0], f"bad flags for this stage: {' '.join(argv[1:])}") from e
-    cli.write_run_config(args)
+    # config.json records sys.argv: make it this stage's command line, not the demo's,
+    # so the stage directory alone tells how to reproduce it.
+    saved, sys.argv = sys.argv, [sys.argv[0], *argv]
+    try:
+        cli.write_run_config(args)
+    finally:
+        sys.argv = saved
     return args._module.run(args) or {}
 
 
@@ -175,7 +182,12 @@ def run(args) -> dict:
     notes = {"demo total (s)": total,
              **{f"stage {k} (s)": v for k, v in seconds.items()},
              "reconstruction test PSNR (dB)": recon_metrics.get("test_psnr")}
-    write_report(edit)  # the edit's own page, next to its data
+    if not (edit / "report.html").exists():  # the edit command writes its own unless told not to
+        write_report(edit)
     report = write_report(edit, out=out / "report.html", notes=notes,
-                          title=f"jaxedit demo: {prompt}")
-    return {"report": str(report), **metrics}
+                          title=f"jaxedit demo: {prompt}", config_path=out / "config.json")
+    headline = {k: edit_metrics.get(k) for k in ("psnr_vs_target", "ssim_vs_target",
+                                                 "multiview_consistency", "num_gaussians")
+                if k in edit_metrics}
+    return {"report": str(report), "total_s": total, "stage_s": seconds,
+            "subtask_s": subtask_seconds, **headline}

@@ -441,9 +441,10 @@ _PLOT_MEMO: dict = {}
 # Edit run report
 # ---------------------------------------------------------------------------
 def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: int,
-                   turntable_px: int, max_frames: int, notes: dict | None) -> list[tuple[str, str, str]]:
+                   turntable_px: int, max_frames: int, notes: dict | None,
+                   config_path: Path | None = None) -> list[tuple[str, str, str]]:
     """[(anchor, title, html)] of an edit run directory."""
-    config = read_json(run_dir / "config.json", required=False)
+    config = read_json(config_path or run_dir / "config.json", required=False)
     metrics = read_json(run_dir / "metrics.json", required=False) or {}
     subtasks = schedule.get("subtasks", [])
     snap_dirs = [_snapshot_dir(run_dir, s, i) for i, s in enumerate(subtasks)]
@@ -657,7 +658,7 @@ def _generic_sections(run_dir: Path, *, thumb_px: int, max_views: int,
 def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | None = None,
                  thumb_px: int = 192, max_views: int = 8, turntable_px: int = 192,
                  max_frames: int = 48, max_bytes: int = MAX_BYTES,
-                 subreports: bool = True) -> Path:
+                 subreports: bool = True, config_path=None) -> Path:
     """Write the self-contained ``report.html`` of a run directory.
 
     Args:
@@ -672,6 +673,9 @@ def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | N
       turntable_px, max_frames: turntables larger than this are re-encoded.
       max_bytes: when the page exceeds it, thumbnails shrink and it is rebuilt.
       subreports: for an ablation, also write each mode's own report first.
+      config_path: the config.json whose command line the page shows as the way
+        to reproduce the run (default ``run_dir/config.json``; the demo points it
+        at its own).
     Returns:
       The path written.
     Raises:
@@ -699,7 +703,9 @@ def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | N
             page_title = title or f"jaxedit ablation: {run_dir.name}"
         elif schedule_path.is_file():
             schedule = _check_schedule(schedule_path, read_json(schedule_path))
-            sections = _edit_sections(run_dir, schedule, notes=notes, **sizes)
+            sections = _edit_sections(run_dir, schedule, notes=notes,
+                                      config_path=None if config_path is None else Path(config_path),
+                                      **sizes)
             page_title = title or f"jaxedit edit: {schedule.get('prompt', run_dir.name)}"
         else:
             sections = _generic_sections(run_dir, **sizes)

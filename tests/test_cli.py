@@ -194,3 +194,14 @@ def test_report_command_rewrites_the_page(tmp_path):
     with pytest.raises(DataError, match="not a run directory"):
         report_cmd.run(argparse.Namespace(run_dir=tmp_path, output=None, thumb_px=64,
                                           max_views=2, max_mb=5.0))
+
+
+def test_demo_stage_records_its_own_command_line(tmp_path):
+    argv = ["make-scene", "ball", "--out", str(tmp_path / "data"), "--size", "16", "--views", "2",
+            "--test-views", "1", "--points", "50", "--quiet"]
+    demo._run_stage(argv)
+    config = json.loads((tmp_path / "data" / "config.json").read_text())
+    assert config["argv"] == argv and config["command"] == "make-scene"
+    assert (tmp_path / "data" / "transforms.json").is_file()
+    with pytest.raises(DataError, match="bad flags"):
+        demo._run_stage(["make-scene", "ball", "--size", "many"])
