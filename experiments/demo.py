@@ -37,14 +37,18 @@ def add_arguments(p) -> None:
     p.add_argument("--views", type=int, default=32, help="training views")
     p.add_argument("--test-views", type=int, default=4, help="held-out test views")
     p.add_argument("--iters", type=int, default=1500, help="reconstruction iterations")
-    p.add_argument("--threshold", type=float, default=None,
-                   help="subtask difficulty threshold (default: the edit command's)")
+    p.add_argument("--threshold", type=float, default=0.15,
+                   help="subtask difficulty threshold of the scheduler (ignored with --subtasks)")
     p.add_argument("--subtasks", type=int, default=None,
                    help="uniform schedule of N subtasks instead of the difficulty-aware one")
     p.add_argument("--mode", choices=["proedit", "nd", "in2n"], default="proedit",
                    help="editing mode")
+    p.add_argument("--max-steps", type=int, default=150,
+                   help="per-subtask training step guard of the edit")
+    p.add_argument("--turntable-frames", type=int, default=24,
+                   help="frames of each snapshot's turntable (0: none)")
     p.add_argument("--edit-arg", action="append", default=[], metavar="FLAG=VALUE",
-                   help="extra flag for the edit stage, e.g. --edit-arg max-steps=300 (repeatable)")
+                   help="extra flag for the edit stage, e.g. --edit-arg patience=30 (repeatable)")
     p.add_argument("--reuse", action="store_true",
                    help="skip stages whose outputs already exist in RUN_DIR")
 
@@ -101,10 +105,15 @@ def _run_stage(argv: list[str]) -> dict:
     return args._module.run(args) or {}
 
 
+#: The demo's instruction: a strong, easy-to-see texture edit of the face scene.
+DEFAULT_PROMPT = "turn him into a bronze statue"
+
+
 def _default_prompt() -> str:
     from jaxedit.edit.simulated import SimulatedEditor
 
-    return SimulatedEditor().instructions[0]
+    vocabulary = SimulatedEditor().instructions
+    return DEFAULT_PROMPT if DEFAULT_PROMPT in vocabulary else vocabulary[0]
 
 
 def _edit_extra(pairs: list[str]) -> dict:
@@ -131,7 +140,7 @@ def run(args) -> dict:
         args.out = Path("runs/demo")
         cli.write_run_config(args)
     out = Path(args.out)
-    for name in ("size", "views", "test_views", "iters"):
+    for name in ("size", "views", "test_views", "iters", "max_steps"):
         if getattr(args, name) < 1:
             raise DataError(f"--{name.replace('_', '-')}", f"must be >= 1, got {getattr(args, name)}")
     _require_commands()
@@ -147,8 +156,11 @@ def run(args) -> dict:
             "--data": data, "--out": recon, "--iters": args.iters, **common})),
         ("edit", edit / "schedule.json", _stage_argv("edit", {
             "--data": data, "--scene": recon / "scene.ply", "--prompt": prompt,
-            "--editor": "simulated", "--mode": args.mode, "--threshold": args.threshold,
-            "--subtasks": args.subtasks, "--out": edit, **common, **_edit_extra(args.edit_arg)})),
+            "--editor": "simulated", "--mode": args.mode,
+            "--threshold": None if args.subtasks else args.threshold,
+            "--subtasks": args.subtasks, "--max-steps": args.max_steps,
+            "--turntable-frames": args.turntable_frames, "--out": edit, **common,
+            **_edit_extra(args.edit_arg)})),
     ]
     seconds: dict[str, float] = {}
     t_start = time.perf_counter()

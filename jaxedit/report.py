@@ -307,6 +307,8 @@ def _fmt(x) -> str:
         if not math.isfinite(x):
             return _e(x)
         return f"{x:.4g}" if abs(x) < 1e5 else f"{x:.3e}"
+    if isinstance(x, list) and all(_is_number(v) for v in x):
+        return "[" + ", ".join(_fmt(v) for v in x) + "]"
     if isinstance(x, (list, dict)):
         return _e(json.dumps(x))
     return _e(x)
@@ -633,20 +635,77 @@ def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_view
 # ---------------------------------------------------------------------------
 # Generic run (e.g. a reconstruction)
 # ---------------------------------------------------------------------------
+def read_train_log(path: Path) -> list[dict]:
+    """Records of a JSON-lines training log (one object per line); DataError when malformed."""
+    records = []
+    try:
+        lines = Path(path).read_text().splitlines()
+    except OSError as e:
+        raise DataError(path, f"cannot read ({e.strerror or e})") from None
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError as e:
+            if i == len(lines) - 1:  # a run killed mid-write leaves a partial last line
+                break
+            raise DataError(path, f"line {i + 1}: malformed JSON ({e})") from None
+        if isinstance(rec, dict):
+            records.append(rec)
+    return records
+
+
+def training_plot(records: list[dict]) -> str | None:
+    """PNG data URI: loss, PSNR and Gaussian count over the training steps."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in ("loss", "psnr", "num_gaussians")
+            if any(_is_number(r.get(k)) for r in records)]
+    if not keys or not any(_is_number(r.get("step")) for r in records):
+        return None
+    fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys), 2.8), squeeze=False)
+    for ax, k in zip(axes[0], keys):
+        pts = [(r["step"], r[k]) for r in records if _is_number(r.get("step")) and _is_number(r.get(k))]
+        xs, ys = zip(*pts)
+        ax.plot(xs, ys, lw=1.2, color="#1f77b4")
+        ax.set_xlabel("step")
+        ax.set_title({"loss": "training loss", "psnr": "training PSNR (dB)",
+                      "num_gaussians": "Gaussians"}[k], fontsize=10)
+        if k == "loss" and min(ys) > 0:
+            ax.set_yscale("log")
+    fig.tight_layout()
+    return _figure_uri(fig)
+
+
 def _generic_sections(run_dir: Path, *, thumb_px: int, max_views: int,
                       turntable_px: int, max_frames: int) -> list[tuple[str, str, str]]:
     config = read_json(run_dir / "config.json", required=False)
     metrics = read_json(run_dir / "metrics.json", required=False) or {}
     sections = [("run", "Run", _reproduce(config))]
-    views = _grid_uri(_pngs(run_dir / "renders"), thumb_px, max_views)
+    # Test-view renders: renders/ (snapshots, render command: frames/) or test/ (reconstruct).
+    folder = next((run_dir / f for f in ("renders", "test", "frames") if (run_dir / f).is_dir()),
+                  None)
+    views = _grid_uri(_pngs(folder), thumb_px, max_views)
     depth = _grid_uri(_pngs(run_dir / "depth"), thumb_px, max_views)
     body = _img(views, "test-view renders")
+    if (run_dir / "test_compare.png").is_file():
+        body += ('<div class="row-label">ground truth vs render</div>'
+                 + _img(image_uri(_load_thumb(run_dir / "test_compare.png", 4 * thumb_px)),
+                        "comparison"))
     if depth:
         body += '<div class="row-label">depth</div>' + _img(depth, "depth maps")
     tt = _turntable_uri(run_dir / "turntable.webp", turntable_px, max_frames)
     if tt:
         body += '<div class="row-label">turntable</div>' + _img(tt, "turntable")
     sections.append(("views", "Views", body))
+    if (run_dir / "train_log.jsonl").is_file():
+        plot = training_plot(read_train_log(run_dir / "train_log.jsonl"))
+        if plot:
+            sections.append(("training", "Training", _img(plot, "training curves", "plot")))
     sections.append(("metrics", "Metrics",
                      _kv_table(metrics) if metrics else '<p class="missing">no metrics.json</p>'))
     return sections
@@ -723,4 +782,5 @@ def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | N
     return out
 
 
-__all__ = ["MAX_BYTES", "difficulty_plot", "image_uri", "metrics_plot", "read_json", "write_report"]
+__all__ = ["MAX_BYTES", "difficulty_plot", "image_uri", "metrics_plot", "read_json", "read_train_log",
+           "training_plot", "write_report"]

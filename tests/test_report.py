@@ -206,3 +206,21 @@ def test_report_renders_in_headless_chromium(tmp_path):
     assert len(np.unique(img.reshape(-1, 3).astype(np.uint8), axis=0)) > 500
     orange = (img[..., 0] > 200) & (img[..., 1] > 100) & (img[..., 1] < 170) & (img[..., 2] < 80)
     assert orange.sum() > 100
+
+
+def test_generic_run_report_with_training_curves(tmp_path):
+    run = tmp_path / "recon"
+    for v in range(2):
+        write_image(run / "test" / f"{v:03d}_frame.png", _view(v, 0.0)[0])
+    (run / "metrics.json").write_text(json.dumps({"test_psnr": 31.25, "per_view": [30.123456, 32.5]}))
+    lines = [json.dumps({"step": s, "loss": 1.0 / s, "psnr": 10 + s / 10, "num_gaussians": 100 + s})
+             for s in range(10, 110, 10)]
+    (run / "train_log.jsonl").write_text("\n".join(lines) + '\n{"step": 110, "lo')  # killed mid-line
+    text = write_report(run).read_text()
+    doc = _parse(text)
+    assert not doc.errors and {"run", "views", "training", "metrics"} <= doc.ids
+    assert "<td>31.25</td>" in text and "<td>[30.12, 32.5]</td>" in text
+    assert text.count("data:image/png;base64,") == 1  # the training plot
+    (run / "train_log.jsonl").write_text('{"step": 1}\nnot json\n{"step": 2}\n')
+    with pytest.raises(DataError, match="train_log.jsonl: line 2"):
+        write_report(run)
