@@ -22,6 +22,7 @@ points in the cameras' bounding box (Splatfacto's random init).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -143,7 +144,10 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
         if latest is not None:
             state = T.load_checkpoint(latest)
             if state.config != config:
-                log.warning("resuming with the checkpoint's training config; the flags differ")
+                # The flags win (e.g. a larger --iters extends the run); the result then
+                # differs from an uninterrupted run with either setting.
+                log.warning("resuming %s with changed training settings", latest)
+                state = dataclasses.replace(state, config=config)
             log.info("resuming from %s (step %d)", latest, int(state.step))
     points_source = "checkpoint"
     if state is None:
