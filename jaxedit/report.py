@@ -45,8 +45,8 @@ from .io.files import atomic_write_text
 MAX_BYTES = 10_000_000
 
 # Metric names whose direction is known, for highlighting the best mode.
-_HIGHER_IS_BETTER = ("psnr", "ssim", "clip", "consistency_cos", "similarity")
-_LOWER_IS_BETTER = ("lpips", "time", "seconds", "error", "loss", "inconsistency", "num_gaussians",
+_HIGHER_IS_BETTER = ("psnr", "ssim", "clip", "consistency", "similarity")
+_LOWER_IS_BETTER = ("lpips", "time", "seconds", "error", "loss", "inconsistency",
                     "mse", "rss", "memory")
 
 
@@ -272,6 +272,8 @@ def metrics_plot(ablation: dict) -> str | None:
     modes = list(ablation)
     metrics = [m for m in _metric_names(ablation.values())
                if all(_is_number(ablation[mode].get(m)) for mode in modes)]
+    # Plot the metrics that have a better direction (counts and settings only clutter it).
+    metrics = [m for m in metrics if _direction(m)] or metrics
     if not metrics or not modes:
         return None
     ncols = min(4, len(metrics))
@@ -395,7 +397,7 @@ img{max-width:100%;image-rendering:auto}.plot{max-width:100%}
 .card img{width:192px;height:auto}.card figcaption{font-size:.85em;text-align:center;color:#444}.missing{color:#999;font-style:italic}
 code{background:#f0f0f0;padding:1px 4px;border-radius:3px;font-size:.9em;word-break:break-all}
 nav a{margin-right:12px}footer{color:#888;font-size:.8em;margin-top:32px}
-.compare td{text-align:center;vertical-align:top}
+.compare td{text-align:left;vertical-align:middle}.compare th{text-align:left}
 """
 
 _JS = """
@@ -610,24 +612,27 @@ def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_view
         body += _img(plot, "metrics per mode", "plot")
     sections.append(("metrics", "Metrics per mode", body))
 
-    # Side by side: the final snapshot of every mode at the same views.
-    original = None
-    cells, turn_cells = [], []
+    # Side by side: the final snapshot of every mode at the same views, one row per mode
+    # (rows stay legible with many views), and the modes' turntables next to each other.
+    rows, cards = [], []
     for mode in modes:
         mode_dir = run_dir / mode
         _, last = _last_snapshot(mode_dir)
-        if original is None:
-            original = _grid_uri(_pngs(mode_dir / "original" / "renders"), thumb_px, max_views, 2)
-        cells.append(_img(_grid_uri(_pngs(last / "renders" if last else None), thumb_px,
-                                    max_views, 2), f"{mode} final views"))
+        if not rows:
+            original = _grid_uri(_pngs(mode_dir / "original" / "renders"), thumb_px, max_views)
+            if original:
+                rows.append(["original", _img(original, "original views")])
+        rows.append([f"<b>{_e(mode)}</b>",
+                     _img(_grid_uri(_pngs(last / "renders" if last else None), thumb_px,
+                                    max_views), f"{mode} final views")])
         tt = _turntable_uri(last / "turntable.webp", turntable_px, max_frames) if last else None
-        turn_cells.append(_img(tt, f"{mode} turntable"))
-    header = (["original"] if original else []) + [_e(m) for m in modes]
-    row = ([_img(original, "original views")] if original else []) + cells
+        if tt:
+            cards.append(f'<figure class="card"><img src="{tt}" alt="turntable {_e(mode)}">'
+                         f"<figcaption>{_e(mode)}</figcaption></figure>")
     body = ("<p>The final snapshot of each mode at the same test views.</p>"
-            + _table(header, [row], "compare"))
-    if any("src=" in c for c in turn_cells):
-        body += "<h3>Turntables</h3>" + _table([_e(m) for m in modes], [turn_cells], "compare")
+            + _table(["mode", "test views"], rows, "compare"))
+    if cards:
+        body += f'<h3>Turntables</h3><div class="cards">{"".join(cards)}</div>'
     sections.append(("compare", "Modes side by side", body))
     return sections
 
