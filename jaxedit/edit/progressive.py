@@ -756,6 +756,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                 break
             if checkpoint is not None and st.step % cfg.checkpoint_every == 0:
                 checkpoint(st)
+    st.seconds = time.perf_counter() - started  # including the final waits and the join
     st.utilisation = st.utilisation.add(source.utilisation)
     return st, {"steps": st.step, "converged": converged, "seconds": st.seconds,
                 "utilisation": source.utilisation.as_dict()}
@@ -764,7 +765,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
 # ---------------------------------------------------------------------------
 # Schedules
 # ---------------------------------------------------------------------------
-DEFAULT_THRESHOLD = 0.1  # mean 1 - MS-SSIM over views per subtask; ~4 subtasks on the face scene
+DEFAULT_SUBTASKS = 4  # default threshold = d(0, 1) / 4 (paper: ~4 subtasks for texture edits)
 
 
 def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int):
@@ -788,7 +789,10 @@ def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
     elif cfg.subtasks is not None:
         s = sched.uniform(cfg.subtasks, oracle)
     else:
-        threshold = cfg.threshold if cfg.threshold is not None else DEFAULT_THRESHOLD
+        # No threshold given: a quarter of the whole task's difficulty, i.e. about the
+        # paper's ~4 subtasks for texture edits (more where d(0, r) is uneven).
+        threshold = (cfg.threshold if cfg.threshold is not None
+                     else max(oracle(0.0, 1.0) / DEFAULT_SUBTASKS, 1e-6))
         method = sched.decompose_root if cfg.schedule_method == "root" else sched.decompose
         kwargs = {} if cfg.schedule_method == "root" else {"max_depth": cfg.max_depth}
         s = method(oracle, threshold=threshold, **kwargs)
