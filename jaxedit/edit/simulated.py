@@ -277,12 +277,21 @@ def _autumn(original):
 
 
 def _bronze(original, mask):
-    lum = _smoothstep(0.0, 1.0, _luma(original))[..., None]
+    """Cast metal: smoothed shading through a bronze ramp, specular sheen, inside the mask."""
+    h, w, _ = original.shape
+    # a statue has no skin or hair texture: keep the large-scale shading of the luminance and
+    # drop most of its fine detail (a blur of a function of the content, so view-consistent up
+    # to the blur's footprint)
+    lum = _luma(original)
+    smooth = _blur(lum, max(h, w) / 40.0)
+    lum = _smoothstep(0.0, 1.0, 0.8 * smooth + 0.2 * lum)[..., None]
     lo = _BRONZE[0] + (_BRONZE[1] - _BRONZE[0]) * jnp.clip(2 * lum, 0, 1)
     hi = _BRONZE[1] + (_BRONZE[2] - _BRONZE[1]) * jnp.clip(2 * lum - 1, 0, 1)
     ramp = jnp.where(lum < 0.5, lo, hi)
+    sheen = 0.6 * lum ** 6  # metallic highlights on the brightest parts
+    metal = jnp.clip(ramp + sheen, 0.0, 1.0)
     m = mask[..., None]
-    return m * ramp + (1 - m) * original
+    return m * metal + (1 - m) * original
 
 
 def _cartoon(original, levels: int = 4, width: float = 0.2):
