@@ -37,9 +37,9 @@ def noisy(d, amplitude):
     return nd
 
 
-def check_schedule(s: Schedule, d, threshold):
+def check_schedule(s: Schedule, d, threshold, start=0.0):
     r = s.ratios
-    assert r[0] == 0.0 and r[-1] == 1.0
+    assert r[0] == start and r[-1] == 1.0
     assert all(b > a for a, b in zip(r, r[1:]))
     assert len(s.difficulties) == len(r) - 1
     for (a, b), da in zip(zip(r, r[1:]), s.difficulties):
@@ -168,8 +168,10 @@ def test_uniform_and_validation():
         decompose(lambda a, b: 0.0, threshold=0.0)
     with pytest.raises(DataError, match="increasing"):
         Schedule((0.0, 0.5, 0.5, 1.0), (0.1, 0.0, 0.1))
-    with pytest.raises(DataError, match="start at 0"):
-        Schedule((0.1, 1.0), (0.1,))
+    with pytest.raises(DataError, match="end at 1"):
+        Schedule((0.0, 0.9), (0.1,))
+    with pytest.raises(DataError, match="start"):
+        uniform(2, start=1.0)
     with pytest.raises(DataError, match="difficulty"):
         decompose(lambda a, b: float("nan"), threshold=0.1)
 
@@ -182,3 +184,12 @@ def test_root_placement_surfaces_difficulty_errors():
 
     with pytest.raises(DataError, match="boom"):
         decompose_root(d, threshold=0.3)
+
+
+def test_continue_from_a_snapshot_ratio():
+    d = monotone_difficulty(np.linspace(0.1, 1.0, KNOTS))
+    for s in (decompose(d, threshold=0.15, start=0.3),
+              decompose_root(d, threshold=0.15, start=0.3), uniform(3, d, start=0.3)):
+        assert s.ratios[0] == 0.3 and s.ratios[-1] == 1.0
+        check_schedule(s, d, 0.15 if s.method != "uniform" else 10.0, start=0.3)
+    assert uniform(2, start=0.5).ratios == (0.5, 0.75, 1.0)

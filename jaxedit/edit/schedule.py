@@ -46,7 +46,8 @@ class Schedule:
     """A subtask decomposition.
 
     Attributes:
-      ratios: (r_0 = 0, ..., r_n = 1), strictly increasing.
+      ratios: (r_0, ..., r_n = 1), strictly increasing; r_0 = 0 for a whole edit, or the
+        ratio of the snapshot a continued edit starts from.
       difficulties: (d(r_0, r_1), ..., d(r_{n-1}, r_n)); NaN where not measured (``uniform``
         without a difficulty).
       depth_limit_hit: True when some interval could not be brought under the threshold (the
@@ -66,8 +67,10 @@ class Schedule:
 
     def __post_init__(self):
         r = self.ratios
-        if len(r) < 2 or r[0] != 0.0 or r[-1] != 1.0:
-            raise DataError("schedule.ratios", f"must start at 0 and end at 1, got {list(r)}")
+        if len(r) < 2 or not 0.0 <= r[0] < 1.0 or r[-1] != 1.0:
+            raise DataError("schedule.ratios",
+                            f"must start in [0, 1) (0 unless continuing) and end at 1, "
+                            f"got {list(r)}")
         if any(b <= a for a, b in zip(r, r[1:])):
             raise DataError("schedule.ratios", f"must be strictly increasing, got {list(r)}")
         if len(self.difficulties) != len(r) - 1:
@@ -163,9 +166,16 @@ def _prune(ratios: tuple[float, ...], diffs: tuple[float, ...], difficulty: Diff
         diffs = diffs[:i - 1] + (m,) + diffs[i + 1:]
 
 
+def _check_start(start) -> float:
+    r = float(start)
+    if not 0.0 <= r < 1.0:
+        raise DataError("start", f"the first ratio must be in [0, 1), got {start!r}")
+    return r
+
+
 def decompose(difficulty: DifficultyFn, *, threshold: float, max_depth: int = 6,
-              prune: bool = True) -> Schedule:
-    """The paper's decomposition: bisection from [0, 1], then pruning.
+              prune: bool = True, start: float = 0.0) -> Schedule:
+    """The paper's decomposition: bisection from [start, 1] (default [0, 1]), then pruning.
 
     Args:
       difficulty: deterministic ``(r_a, r_b) -> float >= 0``.
@@ -173,17 +183,20 @@ def decompose(difficulty: DifficultyFn, *, threshold: float, max_depth: int = 6,
         was hit (then ``depth_limit_hit`` is True).
       max_depth: intervals of length 2^-max_depth are accepted whatever their difficulty.
       prune: run the pruning pass (see ``_prune`` for its order).
+      start: the ratio already reached, when an edit continues from a snapshot with a new
+        threshold (the schedule then covers [start, 1]).
 
     Returns a :class:`Schedule` with method "bisection".
     """
     threshold = _check_threshold(threshold)
     if int(max_depth) < 0:
         raise DataError("max_depth", f"must be >= 0, got {max_depth}")
-    state = _BisectState(((0.0, 1.0, 0),), (), {})
+    start = _check_start(start)
+    state = _BisectState(((start, 1.0, 0),), (), {})
     while state.worklist:
         state = _bisect_step(state, difficulty, threshold, int(max_depth))
     accepted = sorted(state.accepted)
-    ratios = (0.0,) + tuple(b for _, b, _, _ in accepted)
+    ratios = (start,) + tuple(b for _, b, _, _ in accepted)
     diffs = tuple(d for _, _, d, _ in accepted)
     cache = state.cache
     if prune:
@@ -376,7 +389,8 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
 
 
 def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: float = 2.0 ** -8,
-                   max_subtasks: int = 64, balance: int = 1, prune: bool = True) -> Schedule:
+                   max_subtasks: int = 64, balance: int = 1, prune: bool = True,
+                   start: float = 0.0) -> Schedule:
     """Greedy placement: each next ratio is the largest one within the threshold.
 
     From r_0 = 0, r_{i+1} = max{r' on the grid r_i + k * resolution : d(r_i, r') <= threshold},
@@ -393,12 +407,13 @@ def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: fl
     neighbouring difficulties are equal (bisection on d(r_{i-1}, x) - d(x, r_{i+1})), keeping a
     move only when it lowers the larger of the two; this spreads the remainder over the
     subtasks, never raises the maximum, and costs a few more editor calls (``balance=0``: none).
+    ``start``: as in :func:`decompose` (the next ratios are on the grid).
     """
     threshold = _check_threshold(threshold)
     resolution = float(resolution)
     if not (0.0 < resolution <= 0.5):
         raise DataError("resolution", f"must be in (0, 0.5], got {resolution!r}")
-    ratios, diffs, hit, cache = [0.0], [], False, {}
+    ratios, diffs, hit, cache = [_check_start(start)], [], False, {}
     while ratios[-1] < 1.0:
         r = ratios[-1]
         if len(ratios) > int(max_subtasks):
@@ -426,12 +441,14 @@ def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: fl
 # Uniform (the --subtasks N override)
 
 
-def uniform(n: int, difficulty: DifficultyFn | None = None) -> Schedule:
-    """n equal subtasks r_i = i / n; difficulties measured when ``difficulty`` is given."""
+def uniform(n: int, difficulty: DifficultyFn | None = None, *, start: float = 0.0) -> Schedule:
+    """n equal subtasks r_i = start + i (1 - start) / n (default i / n); difficulties measured
+    when ``difficulty`` is given."""
     if int(n) != n or int(n) < 1:
         raise DataError("subtasks", f"must be an integer >= 1, got {n!r}")
     n = int(n)
-    ratios = tuple(i / n for i in range(n)) + (1.0,)
+    start = _check_start(start)
+    ratios = tuple(start + i * (1.0 - start) / n for i in range(n)) + (1.0,)
     if difficulty is None:
         return Schedule(ratios, (float("nan"),) * n, False, 0, "uniform", None)
     cache: Mapping = {}
