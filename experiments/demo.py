@@ -37,7 +37,7 @@ def add_arguments(p) -> None:
     p.add_argument("--views", type=int, default=32, help="training views")
     p.add_argument("--test-views", type=int, default=4, help="held-out test views")
     p.add_argument("--iters", type=int, default=1500, help="reconstruction iterations")
-    p.add_argument("--threshold", type=float, default=0.15,
+    p.add_argument("--threshold", type=float, default=0.025,
                    help="subtask difficulty threshold of the scheduler (ignored with --subtasks)")
     p.add_argument("--subtasks", type=int, default=None,
                    help="uniform schedule of N subtasks instead of the difficulty-aware one")
