@@ -34,7 +34,6 @@ import json
 import math
 import shlex
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
