@@ -15,7 +15,7 @@ produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
    instruction                               kind        full target (r = 1)
    ========================================  ==========  ===========================================
    ``make it look like autumn``              colour      affine warm colour grade of every pixel
-   ``turn him into a bronze statue``         material    foreground luminance through a bronze ramp
+   ``turn him into a bronze statue``         material    smoothed shading, bronze ramp, metal sheen
    ``make it look like a cartoon``           style       soft posterisation + outlines on edges
    ``give him a marble texture``             texture     veins stamped as a function of colour
                                                          (or of world position, see ``surfaces``)
