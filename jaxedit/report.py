@@ -494,8 +494,14 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
     frames = []
     for label, d in zip(labels, snap_dirs):
         uri = _grid_uri(_pngs(d / "renders" if d else None), thumb_px, max_views)
+        # The snapshot's headline numbers help choose a level, next to its pictures.
+        snap_metrics = (read_json(d / "metrics.json", required=False) if d else None) or {}
+        headline = ", ".join(f"{k} {_fmt(snap_metrics[k])}" for k in
+                             ("psnr_vs_target", "ssim_vs_target", "multiview_consistency",
+                              "num_gaussians") if _is_number(snap_metrics.get(k)))
         inner = ('<div class="row-label">original</div>' + _img(orig_uri, "original views")
-                 + f'<div class="row-label">after subtask {_e(label)}</div>'
+                 + f'<div class="row-label">after subtask {_e(label)}'
+                 + (f" &mdash; {headline}" if headline else "") + "</div>"
                  + _img(uri, f"renders of {label}"))
         frames.append((label, inner))
     body = ("<p>Drag the slider to choose the level of aggressivity: each subtask's snapshot at "
