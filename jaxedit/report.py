@@ -461,6 +461,10 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
         info.update(notes)
     body = (f'<div class="instruction">&ldquo;{_e(schedule.get("prompt", "?"))}&rdquo;</div>'
             + _kv_table(info) + _reproduce(config))
+    if str(schedule.get("editor", "")).startswith("simulated"):
+        body += ("<p>The edits come from the <b>simulated editor</b>: an offline test instrument "
+                 "with a known ground-truth target, not a diffusion model such as "
+                 "InstructPix2Pix.</p>")
     sections.append(("instruction", "Instruction", body))
 
     # Schedule ------------------------------------------------------------

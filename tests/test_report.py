@@ -135,6 +135,7 @@ def test_edit_report_is_self_contained_and_complete(tmp_path):
     assert "Not converged" in text  # r1 did not converge
     # One slider frame per subtask in both the gallery and the depth section.
     assert text.count('class="frame"') == 2 * 4
+    assert "simulated editor</b>: an offline test instrument" in text
     # Each gallery frame quotes its snapshot's headline numbers.
     assert "after subtask r1  (r = 0.400) &mdash; psnr_vs_target 24, num_gaussians 1001" in text
     # Nested metrics are flattened to dotted names.
