@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prompt", default=None, help="the editing instruction")
     p.add_argument("--editor", default="simulated", choices=["simulated", "ip2p"],
                    help="2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix)")
-    p.add_argument("--editor-weights", type=Path, default=None,
+    p.add_argument("--ip2p-weights", type=Path, default=None,
                    help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p)")
     p.add_argument("--mode", default="proedit", choices=["proedit", "nd", "in2n"],
                    help="proedit (default), nd (one subtask 0 -> 1), in2n (IN2N baseline)")
@@ -64,12 +64,10 @@ def make_editor(args):
 
         return SimulatedEditor()
     try:
-        from jaxedit.edit.ip2p import InstructPix2Pix
-    except ImportError as e:
+        from jaxedit.edit.ip2p import DEFAULT_MODEL, load_editor
+    except ImportError as e:  # torch / diffusers are optional extras
         raise DataError("--editor", f"ip2p is unavailable ({e})") from None
-    if args.editor_weights is None:
-        raise DataError("--editor-weights", "ip2p needs a local diffusers folder of the weights")
-    return InstructPix2Pix(args.editor_weights)
+    return load_editor(args.ip2p_weights or DEFAULT_MODEL)
 
 
 def load_inputs(args):
