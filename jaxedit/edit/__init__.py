@@ -1,5 +1,16 @@
-"""Instruction editing: editors, difficulty, the subtask scheduler, the ProEdit driver."""
+"""Instruction editing: editors, difficulty, the subtask scheduler, the ProEdit driver.
 
+The real InstructPix2Pix editor (``jaxedit.edit.ip2p``) needs torch and diffusers and is
+imported only on demand.
+"""
+
+from .difficulty import DifficultyOracle, l1_distance, ms_ssim_distance
 from .editors import Editor, interpolate_embedding
+from .schedule import Schedule, decompose, decompose_root, prune_ratios, spread, uniform
+from .simulated import VOCABULARY, SimulatedEditor, view_key
 
-__all__ = ["Editor", "interpolate_embedding"]
+__all__ = [
+    "DifficultyOracle", "Editor", "Schedule", "SimulatedEditor", "VOCABULARY", "decompose",
+    "decompose_root", "interpolate_embedding", "l1_distance", "ms_ssim_distance", "prune_ratios",
+    "spread", "uniform", "view_key",
+]
