@@ -255,8 +255,11 @@ def test_sizes_round_trip(editor, shape):
 
 
 def test_load_editor_factory(weights):
-    ed = ip2p.load_editor(weights, device="cpu", size=32, steps=1)
+    ed = ip2p.load_editor(weights, device="cpu", dtype="fp32", size=32, steps=1)
     assert ed.size == 32 and ed.steps == 1 and ed.source == str(weights)
+    assert ed.dtype == torch.float32
+    with pytest.raises(DataError, match="dtype"):
+        ip2p.load_editor(weights, device="cpu", dtype="int8")
     with pytest.raises(DataError, match="not a multiple of 8"):
         ip2p.load_editor(weights, device="cpu", size=60)
 

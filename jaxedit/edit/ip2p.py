@@ -211,6 +211,18 @@ def _ddim_overrides(folder: Path) -> dict:
     return {"clip_sample": False, "set_alpha_to_one": False}
 
 
+def _dtype(dtype):
+    """None, a torch dtype, or its name ("float16", "fp16", "bfloat16", "float32")."""
+    if dtype is None or isinstance(dtype, torch.dtype):
+        return dtype
+    names = {"fp16": "float16", "half": "float16", "fp32": "float32", "float": "float32",
+             "bf16": "bfloat16"}
+    value = getattr(torch, names.get(str(dtype), str(dtype)), None)
+    if not isinstance(value, torch.dtype) or not value.is_floating_point:
+        raise DataError("dtype", f"unknown floating point dtype {dtype!r}")
+    return value
+
+
 def _default_device() -> str:
     return "cuda:0" if torch.cuda.is_available() else "cpu"
 
@@ -225,7 +237,7 @@ class InstructPix2PixEditor:
     def __init__(self, unet, vae, text_encoder, tokenizer, scheduler, *, device=None, dtype=None,
                  size: int | None = 512, steps: int = 20, source: str = ""):
         self.device = torch.device(device or _default_device())
-        self.dtype = dtype or (torch.float32 if self.device.type == "cpu" else torch.float16)
+        self.dtype = _dtype(dtype) or (torch.float32 if self.device.type == "cpu" else torch.float16)
         if unet.config.in_channels != 8:
             raise DataError(f"{source or 'unet'}", f"UNet has in_channels="
                             f"{unet.config.in_channels}, not 8: not an InstructPix2Pix model; "
@@ -274,14 +286,14 @@ class InstructPix2PixEditor:
         """
         root = resolve_weights(path)
         device = torch.device(device or _default_device())
-        dtype = dtype or (torch.float32 if device.type == "cpu" else torch.float16)
+        dtype = _dtype(dtype) or (torch.float32 if device.type == "cpu" else torch.float16)
         kw = {"local_files_only": True}
         unet = _load(root, "unet", lambda: UNet2DConditionModel.from_pretrained(
             root, subfolder="unet", variant=variant, torch_dtype=dtype, **kw))
         vae = _load(root, "vae", lambda: AutoencoderKL.from_pretrained(
             root, subfolder="vae", variant=variant, torch_dtype=dtype, **kw))
         text_encoder = _load(root, "text_encoder", lambda: CLIPTextModel.from_pretrained(
-            root, subfolder="text_encoder", **kw))
+            root, subfolder="text_encoder", variant=variant, **kw))
         tokenizer = _load(root, "tokenizer", lambda: CLIPTokenizer.from_pretrained(
             root, subfolder="tokenizer", **kw))
         scheduler = _load(root, "scheduler", lambda: DDIMScheduler.from_pretrained(
