@@ -130,10 +130,11 @@ def test_distance_properties(reference):
     assert float(fn(step, b[0])) < float(fn(a[0], b[0]))
 
 
-@settings(max_examples=8, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), amount=st.floats(0.02, 0.5))
+@settings(max_examples=8, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**31 - 1), amount=st.floats(0.01, 0.2))
 def test_more_perturbation_is_farther(reference, seed, amount):
-    """Along one perturbation direction the distance is non-negative and grows from 0."""
+    """Along one small perturbation the distance is non-negative and grows from 0 (near a,
+    LPIPS is a quadratic form in the perturbation, so halving it roughly quarters d)."""
     fn = load_lpips(reference["alex"][1])
     rng = np.random.default_rng(seed)
     a = _images(seed % 1000, n=1)[0]
@@ -141,6 +142,7 @@ def test_more_perturbation_is_farther(reference, seed, amount):
     near, far = a + 0.5 * amount * direction, a + amount * direction
     d_near, d_far = float(fn(a, near)), float(fn(a, far))
     assert 0.0 <= d_near <= d_far + 1e-6
+    assert d_near < 0.6 * d_far
 
 
 def test_distance_callable_for_difficulty(reference):
