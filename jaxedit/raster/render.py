@@ -160,15 +160,19 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
 
     key = (gaussians.capacity, camera.width, camera.height, camera.batch_shape, sh_degree,
            str(gaussians.means.dtype))
-    cap = _capacity_cache.get(key, max_intersections or 0)
-    if max_intersections is not None:
-        cap = max(cap, int(max_intersections))
-    if cap < needed or cap > 4 * next_capacity(needed):
+    if max_intersections is not None:  # the caller's starting size: grown, never shrunk
+        cap = max(int(max_intersections), 1)
+    else:
+        cap = _capacity_cache.get(key, 0)
+        if cap > 4 * next_capacity(needed):  # the scene shrank a lot: stop paying for it
+            cap = 0
+    if cap < needed:
         new = next_capacity(needed * HEADROOM)
         if cap:
             log.info("render: intersection buffer %d -> %d (frame needs %d)", cap, new, needed)
         cap = new
-    _capacity_cache[key] = cap
+    if max_intersections is None:
+        _capacity_cache[key] = cap
     while True:
         out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
         overflow = bool(jnp.any(out.overflow))
@@ -178,4 +182,6 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
         new = next_capacity(max(need * HEADROOM, 2 * cap))
         log.warning("render: intersection buffer overflowed (%d > %d), re-rendering with %d",
                     need, cap, new)
-        cap = _capacity_cache[key] = new
+        cap = new
+        if max_intersections is None:
+            _capacity_cache[key] = cap
