@@ -188,3 +188,27 @@ def test_missing_clip_weights(tmp_path, clip_dir):
     with pytest.raises(DataError, match="not in the local Hugging Face cache"):
         load_clip_metrics("someone/not-cached-clip")
     assert callable(load_clip_metrics(clip_dir, device="cpu"))
+
+
+def test_clip_metrics_command(clip_dir, tmp_path, capsys, monkeypatch):
+    """The command on a run directory laid out as the edit command writes it."""
+    import experiments.cli as cli
+    from jaxedit.io import write_image
+
+    run = tmp_path / "run"
+    for folder, seed in [("original", 10), ("subtasks/00_r0.000", 11), ("subtasks/01_r1.000", 12)]:
+        for k, img in enumerate(_views(seed, n=3, h=24, w=32)):
+            write_image(run / folder / "renders" / f"view_{k:03d}.png", img)
+    if "clip-metrics" not in cli.COMMANDS:  # until the lead registers the command
+        monkeypatch.setattr(cli, "COMMANDS", cli.COMMANDS + ["clip-metrics"])
+    args = ["clip-metrics", "--run", str(run), "--clip-weights", str(clip_dir),
+            "--caption-orig", "a bear", "--caption-edit", "a panda", "--clip-device", "cpu"]
+    assert cli.main(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["views"] == 3 and out["snapshot"].endswith("01_r1.000")
+    saved = json.loads((run / "subtasks/01_r1.000/clip_metrics.json").read_text())
+    assert saved["direction_similarity"] == pytest.approx(out["direction_similarity"])
+    # Missing weights: one line, status 2.
+    assert cli.main(args[:4] + [str(tmp_path / "nope")] + args[5:]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "nope" in err and "--clip-weights" in err
