@@ -457,6 +457,14 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
     # Instruction ---------------------------------------------------------
     info = {"editor": schedule.get("editor"), "mode": schedule.get("mode"),
             "threshold": schedule.get("threshold"), "subtasks": len(subtasks)}
+    # The level of aggressivity the user picked (edit --select), if any: sliders start there.
+    selected = read_json(run_dir / "selected.json", required=False)
+    start = None
+    if isinstance(selected, dict):
+        positions = [i for i, s in enumerate(subtasks) if s.get("index", i) == selected.get("index")]
+        start = positions[-1] if positions else None
+        if start is not None:
+            info["selected (selected.ply)"] = labels[start]
     if notes:
         info.update(notes)
     body = (f'<div class="instruction">&ldquo;{_e(schedule.get("prompt", "?"))}&rdquo;</div>'
@@ -473,7 +481,8 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
         total_s += float(s.get("seconds") or 0.0)
         total_steps += int(s.get("steps") or 0)
         snap = s.get("snapshot")
-        rows.append([_e(s.get("index", i)), _e(s.get("name", "")), f"{float(s['ratio']):.4f}",
+        name = _e(s.get("name", "")) + (" &#9733;" if i == start else "")
+        rows.append([_e(s.get("index", i)), name, f"{float(s['ratio']):.4f}",
                      _fmt(s.get("difficulty")), _fmt(s.get("steps")), _fmt(s.get("seconds")),
                      _fmt(s.get("converged")), f"<code>{_e(snap)}</code>" if snap else "&mdash;"])
     rows.append(["", "<b>total</b>", "", "", _fmt(total_steps), _fmt(round(total_s, 2)), "", ""])
@@ -509,8 +518,10 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
                  + _img(uri, f"renders of {label}"))
         frames.append((label, inner))
     body = ("<p>Drag the slider to choose the level of aggressivity: each subtask's snapshot at "
-            "the same test views (bottom) under the original scene (top).</p>"
-            + _slider("gallery-slider", frames))
+            "the same test views (bottom) under the original scene (top). Keep a level with "
+            "<code>python -m experiments edit --out RUN_DIR --select-only --select INDEX</code> "
+            "(writes <code>selected.ply</code>).</p>"
+            + _slider("gallery-slider", frames, start))
     sections.append(("gallery", "Aggressivity gallery", body))
 
     # Depth maps ----------------------------------------------------------
@@ -524,7 +535,7 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
         inner += f'<div class="row-label">{_e(label)}</div>' + _img(uri, f"depth of {label}")
         frames.append((label, inner))
     body = ("<p>Expected depth, near = red, far = blue (one colour range per snapshot).</p>"
-            + _slider("depth-slider", frames))
+            + _slider("depth-slider", frames, start))
     sections.append(("depth", "Depth maps", body))
 
     # Turntables ----------------------------------------------------------

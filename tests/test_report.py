@@ -143,6 +143,19 @@ def test_edit_report_is_self_contained_and_complete(tmp_path):
     assert len(text) < 2_000_000
 
 
+def test_selected_level_is_shown_and_preselected(tmp_path):
+    run = make_run(tmp_path / "run", turntables=False)
+    (run / "selected.json").write_text(json.dumps(
+        {"index": 1, "name": "r1", "ratio": 0.4, "snapshot": "subtasks/01_r0.400/scene.ply"}))
+    text = write_report(run).read_text()
+    assert "<td>selected (selected.ply)</td><td>r1  (r = 0.400)</td>" in text
+    assert "<td>r1 &#9733;</td>" in text
+    # Both sliders start on the selected subtask; its frames are the visible ones.
+    assert text.count('value="1" aria-label="subtask"') == 2
+    visible = re.findall(r'<div class="frame" data-label="([^"]*)">', text)
+    assert visible == ["r1  (r = 0.400)"] * 2
+
+
 def test_report_shrinks_to_budget_and_validates(tmp_path):
     run = make_run(tmp_path / "run", turntables=False)
     big = write_report(run, out=tmp_path / "big.html").stat().st_size
