@@ -60,7 +60,8 @@ def random_components(arch: str, tmp: Path, seed: int = 0):
             up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3,
             cross_attention_dim=768, attention_head_dim=8, norm_num_groups=32)
         vae = AutoencoderKL(
-            in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(128, 256, 512, 512),
+            in_channels=3, out_channels=3, latent_channels=4,
+            block_out_channels=(128, 256, 512, 512),
             layers_per_block=2, down_block_types=("DownEncoderBlock2D",) * 4,
             up_block_types=("UpDecoderBlock2D",) * 4, norm_num_groups=32, sample_size=512)
         text = CLIPTextModel(CLIPTextConfig(

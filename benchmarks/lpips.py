@@ -23,7 +23,8 @@ def random_lpips(net: str, seed: int = 0) -> LPIPS:
     rng = np.random.default_rng(seed)
     convs = [op for stage in ARCHITECTURES[net] for op in stage if isinstance(op, Conv)]
     w = tuple(jnp.asarray(rng.normal(0, (2 / (c.cin * c.kernel ** 2)) ** 0.5,
-                                     (c.kernel, c.kernel, c.cin, c.cout)), jnp.float32) for c in convs)
+                                     (c.kernel, c.kernel, c.cin, c.cout)), jnp.float32)
+              for c in convs)
     b = tuple(jnp.zeros((c.cout,), jnp.float32) for c in convs)
     taps = [[op for op in st if isinstance(op, Conv)][-1].cout for st in ARCHITECTURES[net]]
     heads = tuple(jnp.asarray(rng.uniform(0, 0.1, (ch,)), jnp.float32) for ch in taps)

@@ -24,7 +24,8 @@ def add_arguments(p) -> None:
     p.add_argument("--snapshot", type=Path, default=None,
                    help="snapshot folder with renders/ (default: the run's last subtask)")
     p.add_argument("--clip-weights", default=None,
-                   help="transformers CLIP folder (or a cached Hub id), e.g. openai/clip-vit-large-patch14")
+                   help="transformers CLIP folder (or a cached Hub id), e.g. "
+                        "openai/clip-vit-large-patch14")
     p.add_argument("--caption-orig", required=True, help="caption of the original scene")
     p.add_argument("--caption-edit", required=True, help="caption of the edited scene")
     p.add_argument("--clip-device", default=None, help="torch device (default cuda:0 or cpu)")

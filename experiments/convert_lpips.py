@@ -81,7 +81,8 @@ def convert(out_file: Path, net: str = "vgg", trunk: Path | None = None,
     trunk_state = _load_pth(
         trunk, f"torchvision {net} trunk weights",
         f"download {TORCHVISION_FILES[net]} (torchvision's ImageNet weights for "
-        f"{'vgg16' if net == 'vgg' else 'alexnet'}) on a machine with network and pass --trunk FILE")
+        f"{'vgg16' if net == 'vgg' else 'alexnet'}) on a machine with network and pass "
+        f"--trunk FILE")
     heads_state = _load_pth(heads, "LPIPS heads", "pip install --no-deps lpips, or pass --heads")
     tensors = lpips_tensors(trunk_state, heads_state, net, where=f"{trunk} + {heads}")
     return save_lpips_params(out_file, tensors, net, source=f"trunk={trunk.name}; heads={heads}")

@@ -24,7 +24,8 @@ def test_known_directions():
     m = direction_metrics(orig, edit, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
     assert m["direction_similarity"] == pytest.approx(1.0)
     assert m["direction_consistency"] == pytest.approx(1.0)
-    assert m["image_similarity"] == pytest.approx(0.0) and m["clip_score_edit"] == pytest.approx(1.0)
+    assert m["image_similarity"] == pytest.approx(0.0)
+    assert m["clip_score_edit"] == pytest.approx(1.0)
     assert m["views"] == n and len(m["per_pair_direction_consistency"]) == n - 1
     # Swapping the images' roles reverses the image direction: the sign flips.
     swapped = direction_metrics(edit, orig, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))

@@ -178,7 +178,8 @@ def test_three_branch_guidance_reaches_unet(editor, monkeypatch, guidance):
         # 48x40 -> model size 64x56 (longer side 64, multiples of 8) -> latents 8x7.
         assert sample.shape == (3, 8, 8, 7) and hidden.shape == (3, 77, 32)
         # Same noisy latent in every branch; conditioning latent in the first two, zeros last.
-        assert torch.equal(sample[0, :4], sample[1, :4]) and torch.equal(sample[0, :4], sample[2, :4])
+        assert torch.equal(sample[0, :4], sample[1, :4])
+        assert torch.equal(sample[0, :4], sample[2, :4])
         assert torch.equal(sample[0, 4:], sample[1, 4:]) and sample[0, 4:].abs().sum() > 0
         assert torch.count_nonzero(sample[2, 4:]) == 0
         # Text branch gets e, the other two E("").
@@ -224,7 +225,8 @@ def test_explicit_ddim_config_is_respected(weights, tmp_path):
 
 
 @settings(max_examples=30, deadline=None)
-@given(lo=st.floats(0, 1), width=st.floats(0, 1), steps=st.integers(1, 50), seed=st.integers(0, 2**32 - 1))
+@given(lo=st.floats(0, 1), width=st.floats(0, 1), steps=st.integers(1, 50),
+       seed=st.integers(0, 2**32 - 1))
 def test_timestep_draw_and_schedule(lo, width, steps, seed):
     hi = min(1.0, lo + width)
     t = ip2p.draw_timestep(jax.random.PRNGKey(seed), (lo, hi))

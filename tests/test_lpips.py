@@ -44,7 +44,8 @@ def torchvision_features(net: str) -> nn.Sequential:
             nn.Conv2d(384, 256, 3, padding=1), nn.ReLU(True),
             nn.Conv2d(256, 256, 3, padding=1), nn.ReLU(True), nn.MaxPool2d(3, 2))
     layers, cin = [], 3
-    for v in [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"]:
+    vgg16 = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"]
+    for v in vgg16:
         if v == "M":
             layers.append(nn.MaxPool2d(2, 2))
         else:
@@ -104,8 +105,8 @@ def test_matches_lpips_package(reference, net):
     fn = load_lpips(path, net)
     a, b = _images(1), _images(2)
     with torch.no_grad():
-        ref = model(torch.from_numpy(a).permute(0, 3, 1, 2), torch.from_numpy(b).permute(0, 3, 1, 2),
-                    normalize=True).reshape(-1).numpy()
+        nchw = lambda x: torch.from_numpy(x).permute(0, 3, 1, 2)  # noqa: E731
+        ref = model(nchw(a), nchw(b), normalize=True).reshape(-1).numpy()
     ours = np.asarray(fn(a, b))
     assert ours.shape == (2,)
     assert np.all(ref > 1e-3), "degenerate reference"

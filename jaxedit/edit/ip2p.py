@@ -64,7 +64,8 @@ from ..errors import DataError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["InstructPix2PixEditor", "load_editor", "DEFAULT_MODEL", "HOW_TO_GET", "ddim_step", "dual_guidance",
+__all__ = ["InstructPix2PixEditor", "load_editor", "DEFAULT_MODEL", "HOW_TO_GET", "ddim_step",
+           "dual_guidance",
            "model_size", "resolve_weights", "seed_from_key", "timestep_schedule"]
 
 DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
@@ -91,8 +92,9 @@ def seed_from_key(key: jax.Array) -> tuple[jax.Array, int]:
     return k_t, ((hi << 32) | lo) & ((1 << 63) - 1)
 
 
-def draw_timestep(key: jax.Array, timestep_range: tuple[float, float], num_train: int = 1000) -> int:
-    """Integer T uniform in [round(lo * num_train), round(hi * num_train)], within [1, num_train - 1]."""
+def draw_timestep(key: jax.Array, timestep_range: tuple[float, float],
+                  num_train: int = 1000) -> int:
+    """Integer T uniform in [round(lo * N), round(hi * N)] (N = num_train), within [1, N - 1]."""
     lo, hi = (float(v) for v in timestep_range)
     if not (0.0 <= lo <= hi <= 1.0):
         raise DataError("timestep_range", f"must satisfy 0 <= t_min <= t_max <= 1, got {(lo, hi)}")
@@ -237,7 +239,8 @@ class InstructPix2PixEditor:
     def __init__(self, unet, vae, text_encoder, tokenizer, scheduler, *, device=None, dtype=None,
                  size: int | None = 512, steps: int = 20, source: str = ""):
         self.device = torch.device(device or _default_device())
-        self.dtype = _dtype(dtype) or (torch.float32 if self.device.type == "cpu" else torch.float16)
+        on_cpu = self.device.type == "cpu"
+        self.dtype = _dtype(dtype) or (torch.float32 if on_cpu else torch.float16)
         if unet.config.in_channels != 8:
             raise DataError(f"{source or 'unet'}", f"UNet has in_channels="
                             f"{unet.config.in_channels}, not 8: not an InstructPix2Pix model; "
