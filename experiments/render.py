@@ -2,12 +2,15 @@
 
     python -m experiments render --scene PLY --out DIR [--data DIR [--split test]]
     python -m experiments render --scene PLY --out DIR --orbit 36 --radius 3 --elevation 20
+    python -m experiments render --scene PLY --out DIR --camera-path camera_path.json
 
 Writes ``DIR/frames/frame_000.png ...``, coloured depth maps ``DIR/depth/``, the
 frames as a turntable/flythrough ``DIR/turntable.webp`` (+ ``.mp4`` when
-imageio-ffmpeg is installed) and ``DIR/metrics.json`` (frame count, timing).
-With ``--data`` the cameras of a nerfstudio dataset are used (``--split``), else
-an orbit whose unset radius/elevation/target are fitted to the scene.
+imageio-ffmpeg is installed), the path itself as ``DIR/camera_path.json`` (the
+nerfstudio viewer's format, so it can be edited there and rendered again) and
+``DIR/metrics.json`` (frame count, timing). The path: the cameras of a nerfstudio
+dataset (``--data``, ``--split``), a nerfstudio camera path (``--camera-path``),
+or an orbit whose unset radius/elevation/target are fitted to the scene.
 """
 
 from __future__ import annotations
@@ -27,7 +30,9 @@ def add_arguments(p) -> None:
     path.add_argument("--data", type=Path, default=None,
                       help="nerfstudio dataset (folder or transforms.json) whose cameras to use")
     path.add_argument("--orbit", type=int, default=None, metavar="N",
-                      help="an orbit of N frames around the scene (default when --data is absent: 36)")
+                      help="an orbit of N frames around the scene (the default path: 36 frames)")
+    path.add_argument("--camera-path", type=Path, default=None,
+                      help="nerfstudio viewer camera path JSON (camera_path.json) to follow")
     p.add_argument("--split", choices=["all", "train", "test"], default="all",
                    help="with --data: which cameras")
     p.add_argument("--normalize", choices=["none", "nerfstudio"], default="none",
@@ -39,7 +44,8 @@ def add_arguments(p) -> None:
     p.add_argument("--fov", type=float, default=None, help="orbit horizontal field of view, degrees")
     p.add_argument("--size", type=int, default=None,
                    help="frame width in pixels (orbit: square frames, default 256; data: rescales)")
-    p.add_argument("--fps", type=float, default=12.0, help="frames per second of the turntable")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frames per second of the video (default: the camera path's, else 12)")
     p.add_argument("--background", type=float, nargs=3, default=(1.0, 1.0, 1.0),
                    metavar=("R", "G", "B"), help="background colour in [0, 1]")
     p.add_argument("--sh-degree", type=int, default=None, help="SH degree to render (default: all)")
@@ -59,7 +65,7 @@ def _check(args) -> None:
         raise DataError("--size", f"must be in [8, 4096], got {args.size}")
     if args.radius is not None and not args.radius > 0:
         raise DataError("--radius", f"must be > 0, got {args.radius}")
-    if not args.fps > 0:
+    if args.fps is not None and not args.fps > 0:
         raise DataError("--fps", f"must be > 0, got {args.fps}")
     if not all(0.0 <= c <= 1.0 for c in args.background):
         raise DataError("--background", f"colour components must be in [0, 1], got {args.background}")
@@ -68,9 +74,14 @@ def _check(args) -> None:
 
 
 def cameras_for(args, gaussians):
-    """The camera path asked for: a dataset's cameras, or an orbit."""
+    """(cameras [N], fps or None): a dataset's cameras, a camera path file, or an orbit."""
     from jaxedit import DataError, camera as camlib, viz
 
+    if args.camera_path is not None:
+        cams, fps = viz.load_camera_path(args.camera_path)
+        if args.size is not None and args.size != cams.width:
+            cams = cams.scaled(args.size / cams.width)
+        return cams, fps
     if args.data is not None:
         from jaxedit.io import load_nerfstudio
 
@@ -85,7 +96,7 @@ def cameras_for(args, gaussians):
             raise DataError(args.data, f"no cameras in split {args.split!r}")
         if args.size is not None and args.size != cams.width:
             cams = cams.scaled(args.size / cams.width)
-        return cams
+        return cams, None
     fov = 40.0 if args.fov is None else args.fov
     target, radius = viz.frame_gaussians(gaussians, fov_deg=fov)
     if args.target is not None:
@@ -93,7 +104,7 @@ def cameras_for(args, gaussians):
     size = 256 if args.size is None else args.size
     return camlib.orbit(args.orbit or 36, radius=args.radius or radius,
                         elevation_deg=20.0 if args.elevation is None else args.elevation,
-                        target=target, width=size, height=size, fov_deg=fov)
+                        target=target, width=size, height=size, fov_deg=fov), None
 
 
 def run(args) -> dict:
@@ -106,7 +117,8 @@ def run(args) -> dict:
     configure(quiet=args.quiet)
     t0 = time.perf_counter()
     gaussians = load_ply(args.scene)
-    cams = cameras_for(args, gaussians)
+    cams, path_fps = cameras_for(args, gaussians)
+    fps = args.fps or path_fps or 12.0
     n = len(cams)
     out = Path(args.out)
     frames, alphas, depths = [], [], []
@@ -128,13 +140,16 @@ def run(args) -> dict:
             write_image(out / "depth" / f"frame_{i:03d}.png",
                         viz.colorize_depth(depths[i], alphas[i], near=near, far=far,
                                            background=args.background))
-    videos = viz.write_turntable(out / "turntable.webp", np.stack(frames), fps=args.fps)
+    videos = viz.write_turntable(out / "turntable.webp", np.stack(frames), fps=fps)
+    viz.save_camera_path(out / "camera_path.json", cams, fps=fps)
     metrics = {
         "scene": str(args.scene), "frames": n, "width": cams.width, "height": cams.height,
         "num_gaussians": int(np.asarray(gaussians.alive).sum()),
         "render_s": round(render_s, 3), "frames_per_s": round(n / max(render_s, 1e-9), 3),
         "wall_time_s": round(time.perf_counter() - t0, 3),
-        "outputs": ["frames/"] + ([] if args.no_depth else ["depth/"]) + [p.name for p in videos],
+        "fps": fps,
+        "outputs": (["frames/"] + ([] if args.no_depth else ["depth/"]) + [p.name for p in videos]
+                    + ["camera_path.json"]),
     }
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return metrics

@@ -351,6 +351,86 @@ def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
     return to_uint8(rgb)
 
 
+def load_camera_path(path) -> tuple:
+    """Cameras of a nerfstudio viewer camera path (``camera_path.json``).
+
+    The format ``ns-render camera-path`` reads: ``render_width``,
+    ``render_height``, optional ``fps``/``seconds``, and ``camera_path``, a list
+    of ``{"camera_to_world": 16 floats (row-major 4x4, OpenGL axes), "fov":
+    vertical field of view in degrees}``. Only perspective paths are supported.
+
+    Returns:
+      (batched :class:`jaxedit.Camera` [N], fps or None).
+    """
+    import json
+
+    from . import camera as camlib
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as e:
+        raise DataError(path, f"cannot read camera path ({e.strerror or e})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DataError(path, f"malformed JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise DataError(path, "a camera path must be a JSON object")
+    kind = data.get("camera_type", "perspective")
+    if kind != "perspective":
+        raise DataError(path, f"camera_type {kind!r} is not supported (perspective only)")
+    try:
+        width, height = int(data["render_width"]), int(data["render_height"])
+        frames = data["camera_path"]
+    except KeyError as e:
+        raise DataError(path, f"missing key {e.args[0]!r}") from None
+    except (TypeError, ValueError):
+        raise DataError(path, "render_width/render_height must be integers") from None
+    if width < 1 or height < 1:
+        raise DataError(path, f"bad render size {width}x{height}")
+    if not isinstance(frames, list) or not frames:
+        raise DataError(path, "'camera_path' must be a non-empty list")
+    cams = []
+    for i, f in enumerate(frames):
+        try:
+            c2w = np.asarray(f["camera_to_world"], np.float64).reshape(4, 4)
+            fov = float(f["fov"])
+        except (KeyError, TypeError, ValueError):
+            raise DataError(path, f"camera_path[{i}] needs camera_to_world (16 numbers) and fov") from None
+        if not (np.all(np.isfinite(c2w)) and 0.0 < fov < 180.0):
+            raise DataError(path, f"camera_path[{i}]: non-finite pose or fov outside (0, 180)")
+        rot = c2w[:3, :3]
+        if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-3 or np.linalg.det(rot) < 0:
+            raise DataError(path, f"camera_path[{i}]: camera_to_world is not a rigid transform")
+        focal = 0.5 * height / np.tan(np.radians(fov) / 2)  # three.js: fov is vertical
+        cams.append(camlib.make_camera(camlib.opengl_c2w_to_opencv_w2c(c2w), width=width,
+                                       height=height, focal=focal))
+    fps = data.get("fps")
+    return camlib.stack(cams), (float(fps) if isinstance(fps, (int, float)) and fps > 0 else None)
+
+
+def save_camera_path(path, cameras, *, fps: float = 12.0) -> None:
+    """Write cameras [N] as a nerfstudio viewer camera path (see :func:`load_camera_path`).
+
+    The vertical field of view comes from ``fy`` (square pixels assumed by the format).
+    """
+    import json
+
+    from . import camera as camlib
+
+    w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
+    fy = np.broadcast_to(np.asarray(cameras.fy, np.float64).reshape(-1), (len(w2c),))
+    frames = []
+    for m, f in zip(w2c, fy):
+        c2w = camlib.opencv_w2c_to_opengl_c2w(m)
+        fov = float(np.degrees(2 * np.arctan(0.5 * cameras.height / f)))
+        frames.append({"camera_to_world": [float(v) for v in c2w.reshape(-1)], "fov": fov,
+                       "aspect": cameras.width / cameras.height})
+    data = {"camera_type": "perspective", "render_width": cameras.width,
+            "render_height": cameras.height, "fps": fps, "seconds": len(frames) / fps,
+            "camera_path": frames}
+    atomic_write_bytes(Path(path), (json.dumps(data, indent=1) + "\n").encode())
+
+
 def mp4_available() -> bool:
     """Whether MP4 turntables can be written (``imageio-ffmpeg`` installed)."""
     try:
@@ -448,6 +528,7 @@ def read_webp_frames(path) -> np.ndarray:
 
 
 __all__ = ["colorize_depth", "depth_range", "encode_webp", "frame_cameras", "frame_gaussians",
-           "image_grid", "mp4_available", "read_webp", "read_webp_frames", "render_views", "to_uint8",
-           "turntable", "write_snapshot", "write_turntable"]
+           "image_grid", "load_camera_path", "mp4_available", "read_webp", "read_webp_frames",
+           "render_views", "save_camera_path", "to_uint8", "turntable", "write_snapshot",
+           "write_turntable"]
 

@@ -122,6 +122,13 @@ def test_render_orbit_writes_frames_depth_turntable(tmp_path, ply):
     assert metrics["frames"] == 3 and metrics["num_gaussians"] == 48
     config = json.loads((out / "config.json").read_text())
     assert config["command"] == "render" and config["flags"]["orbit"] == 3
+    # The path was saved in nerfstudio's camera-path format: following it renders the same frames.
+    again = tmp_path / "again"
+    assert cli.main(["render", "--scene", str(ply), "--out", str(again), "--camera-path",
+                     str(out / "camera_path.json"), "--no-depth", "--quiet"]) == 0
+    for name in ("frame_000.png", "frame_002.png"):
+        np.testing.assert_allclose(read_image(again / "frames" / name),
+                                   read_image(out / "frames" / name), atol=1.5 / 255)
 
 
 def test_render_along_dataset_cameras(tmp_path, ply):

@@ -146,3 +146,32 @@ def test_turntable_files(tmp_path):
         paths = viz.write_turntable(tmp_path / "m.webp", frames, fps=10, mp4=True)
         mp4 = (tmp_path / "m.mp4").read_bytes()
         assert paths[-1].suffix == ".mp4" and mp4[4:8] == b"ftyp" and len(mp4) > 500
+
+
+def test_camera_path_round_trip_and_errors(tmp_path):
+    import json
+
+    cams = camlib.orbit(4, radius=3.0, elevation_deg=25.0, width=40, height=30, fov_deg=55.0)
+    viz.save_camera_path(tmp_path / "path.json", cams, fps=8)
+    back, fps = viz.load_camera_path(tmp_path / "path.json")
+    assert fps == 8 and (back.width, back.height) == (40, 30)
+    np.testing.assert_allclose(back.world_to_camera, cams.world_to_camera, atol=1e-5)
+    np.testing.assert_allclose(back.fy, cams.fy, rtol=1e-5)
+    data = json.loads((tmp_path / "path.json").read_text())
+    # nerfstudio's convention: fov is the vertical one, pose the OpenGL camera-to-world.
+    assert abs(data["camera_path"][0]["fov"] - np.degrees(2 * np.arctan(15 / float(cams.fy[0])))) < 1e-6
+    c2w = np.asarray(data["camera_path"][0]["camera_to_world"]).reshape(4, 4)
+    np.testing.assert_allclose(c2w[:3, 3], np.asarray(cams.center()[0]), atol=1e-5)
+    for patch, needle in [({"camera_type": "fisheye"}, "perspective only"),
+                          ({"camera_path": []}, "non-empty"),
+                          ({"render_width": "wide"}, "integers")]:
+        (tmp_path / "bad.json").write_text(json.dumps({**data, **patch}))
+        with pytest.raises(DataError, match=needle):
+            viz.load_camera_path(tmp_path / "bad.json")
+    skewed = json.loads(json.dumps(data))
+    skewed["camera_path"][1]["camera_to_world"][0] = 2.0
+    (tmp_path / "bad.json").write_text(json.dumps(skewed))
+    with pytest.raises(DataError, match=r"camera_path\[1\].*rigid"):
+        viz.load_camera_path(tmp_path / "bad.json")
+    with pytest.raises(DataError, match="cannot read"):
+        viz.load_camera_path(tmp_path / "missing.json")
