@@ -81,6 +81,8 @@ class Progress:
       mode, stream, log_interval: override :func:`configure`'s settings (root only).
       refresh: minimum seconds between redraws in bar mode.
       clock: a monotonic clock (tests inject a fake one).
+      weights: expected relative cost of each unit (``total`` of them), so the
+        fraction and ETA of stages of unequal length are not skewed.
 
     Use as a context manager, or call :meth:`close`. ``update(n, **postfix)``
     advances and sets the key=value fields shown after the bar.
@@ -89,9 +91,14 @@ class Progress:
     def __init__(self, total: int | None, desc: str = "", *, parent: "Progress | None" = None,
                  mode: str | None = None, stream: TextIO | None = None,
                  log_interval: float | None = None, refresh: float = 0.1,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic,
+                 weights: list[float] | None = None):
         if total is not None and total < 0:
             raise ValueError(f"total must be >= 0, got {total}")
+        if weights is not None and (total is None or len(weights) != total
+                                    or any(w < 0 for w in weights) or sum(weights) <= 0):
+            raise ValueError(f"weights need one non-negative value per unit of total={total}")
+        self.weights = None if weights is None else [float(w) for w in weights]
         self.total = total
         self.desc = desc
         if parent is None and _ambient and not _ambient[-1].closed:
@@ -160,11 +167,13 @@ class Progress:
         """Done fraction in [0, 1], counting the running child's share."""
         if not self.total:
             return None if self.total is None else 1.0
-        done = float(self.n)
         child = self._child
-        if child is not None and not child.closed:
-            done += child.fraction or 0.0
-        return min(done / self.total, 1.0)
+        partial = (child.fraction or 0.0) if child is not None and not child.closed else 0.0
+        if self.weights is not None:  # units of unequal expected cost
+            n = min(self.n, self.total)
+            done = sum(self.weights[:n]) + (self.weights[n] * partial if n < self.total else 0.0)
+            return min(done / sum(self.weights), 1.0)
+        return min((self.n + partial) / self.total, 1.0)
 
     def eta(self) -> float | None:
         """Seconds left at the average rate so far; None until some work is done."""

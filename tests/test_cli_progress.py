@@ -115,3 +115,17 @@ def test_track_wraps_iterables():
     P.configure(mode="log", stream=out)
     assert [x * 2 for x in P.track(range(3), desc="items")] == [0, 2, 4]
     assert "done items 3/3" in out.getvalue()
+
+
+def test_weighted_units_give_a_fair_fraction():
+    clock = Clock()
+    with P.Progress(3, "stages", mode="off", clock=clock, weights=[1, 3, 6]) as bar:
+        bar.update(1)
+        assert bar.fraction == pytest.approx(0.1)
+        with bar.child(4, "long") as sub:
+            sub.update(2)
+            assert bar.fraction == pytest.approx(0.1 + 0.3 * 0.5)
+        bar.update(2)
+        assert bar.fraction == 1.0
+    with pytest.raises(ValueError, match="weights"):
+        P.Progress(2, weights=[1.0])
