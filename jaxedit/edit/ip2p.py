@@ -11,7 +11,9 @@ The edit of one view follows Instruct-NeRF2NeRF's use of InstructPix2Pix (IP2P):
 4. run deterministic DDIM (eta = 0) with ``steps`` (default 20) evenly spaced timesteps from
    T down to 0; each step evaluates the UNet once on a batch of three branches
    (text+image, image only, unconditional) and combines them with dual classifier-free
-   guidance ``eps = eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u)``;
+   guidance ``eps = eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u)``. The noise schedule
+   comes from the weights' scheduler config; IP2P ships an Euler-ancestral config, which is
+   read as Stable Diffusion 1.x's DDIM (no x0 clipping, final alpha = alpha_0), as IN2N does;
 5. decode (latent / scaling_factor), map [-1, 1] -> [0, 1], resize back, clamp.
 
 The "image only" branch uses E("") with the original's latent; the unconditional branch
@@ -40,9 +42,9 @@ from __future__ import annotations
 
 import json
 import logging
-import warnings
 import os
 import re
+import warnings
 from pathlib import Path
 
 try:
