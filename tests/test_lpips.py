@@ -75,19 +75,26 @@ def reference(tmp_path_factory):
     shim.models = types.ModuleType("torchvision.models")
     shim.models.vgg16, shim.models.alexnet = factory("vgg"), factory("alex")
     out = {}
+    def lpips_modules():
+        return [m for m in sys.modules if m == "lpips" or m.startswith("lpips.")]
+
+    # The stand-in is visible only while the reference is built: afterwards sys.modules holds
+    # exactly the torchvision / lpips modules it held before (none imported via the stand-in).
     with pytest.MonkeyPatch.context() as mp:
         mp.setitem(sys.modules, "torchvision", shim)
         mp.setitem(sys.modules, "torchvision.models", shim.models)
-        for name in [m for m in sys.modules if m == "lpips" or m.startswith("lpips.")]:
+        for name in lpips_modules():
             mp.delitem(sys.modules, name)
-        lpips_pkg = importlib.import_module("lpips")
-        for net, trunk in trunks.items():
-            model = lpips_pkg.LPIPS(net=net, pnet_rand=True, verbose=False).eval()
-            pth = tmp / f"{net}_trunk.pth"
-            torch.save({f"features.{k}": v for k, v in trunk.state_dict().items()}, pth)
-            out[net] = (model, convert(tmp / f"lpips_{net}.safetensors", net, trunk=pth))
-        for name in [m for m in sys.modules if m == "lpips" or m.startswith("lpips.")]:
-            mp.delitem(sys.modules, name)
+        try:
+            lpips_pkg = importlib.import_module("lpips")
+            for net, trunk in trunks.items():
+                model = lpips_pkg.LPIPS(net=net, pnet_rand=True, verbose=False).eval()
+                pth = tmp / f"{net}_trunk.pth"
+                torch.save({f"features.{k}": v for k, v in trunk.state_dict().items()}, pth)
+                out[net] = (model, convert(tmp / f"lpips_{net}.safetensors", net, trunk=pth))
+        finally:
+            for name in lpips_modules():
+                del sys.modules[name]
     return out
 
 
