@@ -433,7 +433,3 @@ def load_editor(path: str | os.PathLike = DEFAULT_MODEL, *, device=None, dtype=N
     :meth:`InstructPix2PixEditor.from_pretrained`."""
     return InstructPix2PixEditor.from_pretrained(path, device=device, dtype=dtype, size=size,
                                                  steps=steps, variant=variant)
-
-
-# The name experiments/edit.py first called; kept so that call keeps working.
-InstructPix2Pix = load_editor
