@@ -7,14 +7,15 @@ real-model editors live behind optional extras.
 
 __version__ = "0.1.0"
 
-from . import (camera, densify, edit, gaussians, io, losses, metrics, raster, report, scenes, sh,
-               train, viz)
+from . import (camera, clip_metrics, densify, edit, gaussians, io, losses, lpips, metrics, raster,
+               report, scenes, sh, train, viz)
 from .camera import Camera
 from .errors import DataError
 from .gaussians import Gaussians
 from .io import (Dataset, load_nerfstudio, load_ply, read_image, save_nerfstudio, save_ply,
                  write_image)
 from .edit import SimulatedEditor, decompose, decompose_root
+from .lpips import load_lpips, lpips_distance
 from .raster import RenderOutput, render, render_reference
 from .report import write_report
 from .scenes import make_scene
@@ -22,8 +23,8 @@ from .viz import colorize_depth, image_grid, turntable, write_snapshot, write_tu
 
 __all__ = [
     "Camera", "DataError", "Dataset", "Gaussians", "RenderOutput", "SimulatedEditor",
-    "__version__", "camera", "colorize_depth", "decompose", "decompose_root", "densify", "edit",
-    "gaussians", "image_grid", "io", "load_nerfstudio", "load_ply", "losses", "make_scene",
+    "__version__", "camera", "clip_metrics", "colorize_depth", "decompose", "decompose_root", "densify", "edit",
+    "gaussians", "image_grid", "io", "lpips", "lpips_distance", "load_lpips", "load_nerfstudio", "load_ply", "losses", "make_scene",
     "metrics", "raster", "read_image", "render", "render_reference", "report", "save_nerfstudio",
     "save_ply", "scenes", "sh", "train", "turntable", "viz", "write_image", "write_report",
     "write_snapshot", "write_turntable",
