@@ -566,12 +566,26 @@ class SubtaskTrainer:
         self.settings = settings
         self.config = settings.train_config()
 
-    def init(self, gaussians):
+    def init(self, gaussians, cameras=None):
+        """A fresh train state; with ``cameras``, its tile buffer is sized to what they need.
+
+        The step's cost grows with the intersection buffer (it is sorted every
+        step), so measure the views instead of guessing from the capacity; a
+        scene that grows later overflows once and the step is redone larger.
+        """
         from .. import train
+        from ..raster import render
+        from ..raster.render import next_capacity
 
         sh = min(self.settings.sh_degree, gaussians.sh_degree)
         config = dataclasses.replace(self.config, sh_degree=sh)
-        return train.init_state(gaussians, config, self.settings.scene_extent)
+        cap = None
+        if cameras is not None and len(cameras):
+            needed = max(int(render(gaussians, cameras[i]).num_intersections)
+                         for i in range(len(cameras)))
+            cap = next_capacity(max(int(needed * 1.5), 1024))
+        return train.init_state(gaussians, config, self.settings.scene_extent,
+                                max_intersections=cap)
 
     def restart(self, state):
         from .. import densify
@@ -668,15 +682,16 @@ def make_edit_fn(ctx: EditContext, spec: SubtaskSpec) -> Callable[[EditJob, Any]
 def initial_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) -> DriverState:
     """A run at its very beginning: the input scene, the original photos as training images."""
     images = ctx.data.train_images if images is None else images
-    # Room to densify from the start: capacity growth means a recompile, so start with 2x.
-    want = 1 << max(2 * int(gaussians.num_alive()) - 1, 1).bit_length()
+    # Room to densify from the start (growth means a recompile), but not much more: the
+    # step's cost grows with the capacity. 1.5x, a multiple of 256.
+    want = -(-int(1.5 * int(gaussians.num_alive())) // 256) * 256
     capacity = min(max(want, gaussians.capacity), max(ctx.trainer.settings.max_gaussians,
                                                      gaussians.capacity))
     if capacity > gaussians.capacity:
         from ..gaussians import grow
 
         gaussians = grow(gaussians, capacity)
-    return DriverState(subtask=0, step=0, train=ctx.trainer.init(gaussians),
+    return DriverState(subtask=0, step=0, train=ctx.trainer.init(gaussians, ctx.data.train_cameras),
                        images=np.array(images, np.float32, copy=True),
                        edited=np.zeros((len(images),), bool),
                        tracker=LossTracker.init(ctx.config.loss_window), records=[])
