@@ -4,8 +4,9 @@ Each visible Gaussian covers the rectangle of 16x16 tiles that its footprint's
 bounding box (see :mod:`.project`) meets. Pairs are enumerated without any
 per-Gaussian or per-tile cap: a cumulative count over Gaussians gives each its
 slice of the buffer and ``searchsorted`` maps a buffer slot back to (Gaussian,
-k-th tile of its rectangle). One stable multi-key ``lax.sort`` on
-(tile, depth) then groups pairs by tile, front to back, ties in Gaussian order.
+k-th tile of its rectangle). Pairs are enumerated in depth order, so one sort on
+an integer (tile, depth rank) key groups them by tile, front to back, ties in
+Gaussian order.
 
 The buffer has a static capacity; ``num_intersections`` says how many pairs the
 frame needs and ``overflow`` whether some were dropped (the caller must then
@@ -85,26 +86,42 @@ def count_intersections(proj: Projected, width: int, height: int, tile: int = TI
 
 def bin_gaussians(proj: Projected, width: int, height: int, capacity: int,
                   tile: int = TILE) -> Bins:
-    """Sorted (tile, depth) intersections in a buffer of static ``capacity``."""
+    """Sorted (tile, depth) intersections in a buffer of static ``capacity``.
+
+    Gaussians are first ordered by depth (a sort of C keys); pairs are then
+    enumerated in that order, so one integer key ``tile * C + depth_rank`` orders
+    them by (tile, depth) with ties in depth broken by Gaussian index, as in the
+    oracle. (Scenes with tiles x C >= 2^31 fall back to a two-key sort.)
+    """
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
     c = proj.means2d.shape[0]
-    x0, y0, nx, ny = tile_rects(proj, width, height, tile)
+    depth = jnp.where(proj.visible, jax.lax.stop_gradient(proj.depths), jnp.inf)
+    order = jnp.argsort(depth, stable=True).astype(jnp.int32)  # front to back
+    x0, y0, nx, ny = (a[order] for a in tile_rects(proj, width, height, tile))
     counts = nx * ny
     ends = jnp.cumsum(counts)  # int32: fine below 2^31 pairs
     total = ends[-1] if c else jnp.zeros((), jnp.int32)
     slots = jnp.arange(capacity, dtype=jnp.int32)
-    gid = jnp.searchsorted(ends, slots, side="right").astype(jnp.int32)
+    rank = jnp.minimum(jnp.searchsorted(ends, slots, side="right").astype(jnp.int32), c - 1)
     used = slots < total
-    g = jnp.minimum(gid, c - 1)
-    local = slots - (ends[g] - counts[g])
-    w = jnp.maximum(nx[g], 1)
-    tile = (y0[g] + local // w) * tiles_x + x0[g] + local % w
-    tile = jnp.where(used, tile, num_tiles).astype(jnp.int32)
-    gid = jnp.where(used, gid, c).astype(jnp.int32)
-    depth = jnp.where(used, jax.lax.stop_gradient(proj.depths)[g], 0.0)
-    tiles_sorted, _, gids_sorted = jax.lax.sort((tile, depth, gid), num_keys=2, is_stable=True)
-    tile_start = jnp.searchsorted(tiles_sorted, jnp.arange(num_tiles + 1, dtype=jnp.int32),
-                                  side="left").astype(jnp.int32)
-    return Bins(gids=gids_sorted, tiles=tiles_sorted, tile_start=tile_start,
+    local = slots - (ends[rank] - counts[rank])
+    w = jnp.maximum(nx[rank], 1)
+    tile_id = (y0[rank] + local // w) * tiles_x + x0[rank] + local % w
+    tile_id = jnp.where(used, tile_id, num_tiles).astype(jnp.int32)
+    if num_tiles * c + c < 2**31:
+        # Unique for used slots, unused sort last. The key alone is sorted: it
+        # carries its payload (rank = key % C), and XLA's single-array sort is
+        # far faster on CPU than its sort of several arrays.
+        key = tile_id * c + rank
+        key_sorted = jax.lax.sort(key)
+        tiles_sorted, rank_sorted = key_sorted // c, key_sorted % c
+        bounds = jnp.arange(num_tiles + 1, dtype=jnp.int32) * c
+        tile_start = jnp.searchsorted(key_sorted, bounds, side="left").astype(jnp.int32)
+    else:
+        tiles_sorted, rank_sorted = jax.lax.sort((tile_id, rank), num_keys=2, is_stable=False)
+        tile_start = jnp.searchsorted(tiles_sorted, jnp.arange(num_tiles + 1, dtype=jnp.int32),
+                                      side="left").astype(jnp.int32)
+    gids = jnp.where(tiles_sorted < num_tiles, order[rank_sorted], c).astype(jnp.int32)
+    return Bins(gids=gids, tiles=tiles_sorted.astype(jnp.int32), tile_start=tile_start,
                 num_intersections=total.astype(jnp.int32), overflow=total > capacity)
