@@ -215,7 +215,9 @@ class TrainState:
       key: uint32 [2], the run's base PRNG key data (views and per-step keys derive from it).
       config: TrainConfig (static).
       scene_extent: float (static).
-      max_intersections: int (static), the tile splatter's buffer size.
+      max_intersections: int (static), the tile splatter's buffer size (0: not
+        sized yet, see :func:`size_buffer`). Every step pays for the whole buffer
+        (it is sorted), so it is measured rather than guessed.
     """
 
     gaussians: Gaussians
@@ -309,8 +311,9 @@ def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *
       config: TrainConfig.
       scene_extent: world size (see :func:`scene_extent`).
       key: the run's base PRNG key (default ``jax.random.key(0)``).
-      max_intersections: initial tile buffer size (default: a guess that
-        :func:`fit` grows on overflow).
+      max_intersections: tile buffer size. Default 0: not sized yet;
+        :func:`fit` and :func:`step_with_retry` size it from the training views
+        (:func:`size_buffer`) before the first step, then grow it on overflow.
     """
     if config.sh_degree > gaussians.sh_degree:
         raise DataError("sh_degree", f"config trains degree {config.sh_degree} but the "
@@ -321,7 +324,7 @@ def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *
     tx = optimizer(config, scene_extent)
     strategy = config.densify.strategy(scene_extent, config.iterations)
     if max_intersections is None:
-        max_intersections = next_capacity(16 * gaussians.capacity)
+        max_intersections = 0
     return TrainState(gaussians=gaussians, opt_state=tx.init(_params(gaussians)),
                       densify_stats=strategy.init(gaussians), step=jnp.zeros((), jnp.int32),
                       densify_origin=jnp.zeros((), jnp.int32), key=_key_data(key),
@@ -426,6 +429,36 @@ Returns:
 """
 
 
+@jax.jit
+def _count_views(gaussians: Gaussians, cameras: Camera):
+    from .raster import binning, project
+
+    def one(cam):
+        proj = project.project(gaussians, cam, sh_degree=0)
+        return binning.count_intersections(proj, cam.width, cam.height)
+
+    return jax.lax.map(one, cameras)
+
+
+def measure_intersections(gaussians: Gaussians, cameras: Camera) -> int:
+    """Most tile intersections any of ``cameras`` (a batch, or one camera) needs."""
+    if not cameras.batch_shape:
+        cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], cameras)
+    return int(jnp.max(_count_views(gaussians, cameras)))
+
+
+def size_buffer(state: TrainState, cameras: Camera, *, headroom: float = 1.5) -> TrainState:
+    """``state`` with a tile buffer of ``headroom`` x what the views need now (outside jit).
+
+    Training grows the scene, hence the headroom; when it is not enough the step
+    overflows and is redone with a larger buffer (:func:`grow_for_redo`).
+    """
+    needed = measure_intersections(state.gaussians, cameras)
+    cap = next_capacity(max(int(needed * headroom), 1))
+    log.info("train: intersection buffer %d (views need up to %d)", cap, needed)
+    return dataclasses.replace(state, max_intersections=cap)
+
+
 def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
     """After a step that asked for a redo: a larger intersection buffer and/or capacity.
 
@@ -460,6 +493,8 @@ def step_with_retry(state: TrainState, batch: Batch, key, *, max_retries: int = 
     Returns:
       (state, metrics) with ``metrics`` pulled to the host (NumPy scalars).
     """
+    if state.max_intersections <= 0:
+        state = size_buffer(state, batch.camera)
     for _ in range(max_retries + 1):
         new, metrics = train_step(state, batch, key)
         metrics = jax.device_get(metrics)
@@ -703,6 +738,8 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
     if images.shape[0] == 0:
         raise DataError("images", "no training views")
     cameras = jax.tree_util.tree_map(jnp.asarray, cameras)
+    if state.max_intersections <= 0:
+        state = size_buffer(state, cameras)
     ckpt_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
     log_file = None
     if log_path is not None:

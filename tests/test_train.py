@@ -176,3 +176,16 @@ def test_sh_schedule_and_learning_rate_decay():
     assert T.scene_extent(scenes.rig_cameras(scenes.get_scene("face").rig, 8)) > 1.0
     assert isinstance(T.background_color(dataclasses.replace(cfg, background="random"),
                                          jax.random.key(0)), jnp.ndarray)
+
+
+def test_buffer_is_sized_from_the_views_not_guessed(face):
+    cams = face["cams"][face["train"]]
+    needed = T.measure_intersections(face["init"], cams)
+    per_view = [T.measure_intersections(face["init"], cams[i]) for i in range(3)]
+    assert needed >= max(per_view) > 0
+    state = T.init_state(face["init"], CONFIG, face["extent"])
+    assert state.max_intersections == 0
+    sized = T.size_buffer(state, cams)
+    assert 1.5 * needed <= sized.max_intersections
+    from jaxedit.raster.render import next_capacity
+    assert sized.max_intersections == next_capacity(int(1.5 * needed))
