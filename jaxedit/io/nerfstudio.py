@@ -50,6 +50,7 @@ from ..camera import Camera, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
 from ..errors import DataError
 from ..gaussians import Gaussians
 from .distortion import Distortion, undistort_image
+from .files import current_umask
 from .images import read_image, write_image
 from .ply import load_points_ply, save_points_ply
 from .similarity import transform_cameras, transform_gaussians, transform_points
@@ -570,6 +571,8 @@ def save_nerfstudio(out_dir: str | os.PathLike, images, cameras: Camera, *, file
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
+    # mkdtemp makes an owner-only folder; the dataset is an ordinary folder once renamed.
+    os.chmod(staging, 0o777 & ~current_umask())
     try:
         if points is not None:
             pts = np.asarray(points)
