@@ -12,9 +12,11 @@ of (1 - alpha), a segmented exclusive scan over chunks turns those into carries,
 and the second pass blends. INRIA's stop rule (a Gaussian that would drop T
 below 1e-4 is not blended, nor anything behind it) is a per-pixel prefix test.
 
-Chunks are processed in blocks of ~8k (chunk, pixel) elements (``lax.map``) so
-the scan's working set stays in cache: XLA on CPU runs each fused op over whole
-arrays, and memory traffic, not arithmetic, was the limit without blocking.
+Chunks are processed in blocks of ~8k (chunk, pixel) elements so the scan's
+working set stays in cache (XLA on CPU runs each fused op over whole arrays, and
+memory traffic, not arithmetic, was the limit without blocking), and only the
+blocks that hold this frame's pairs are computed: a loop with a dynamic trip
+count, so the work follows the frame's pairs rather than the buffer capacity.
 
 The backward recomputes alpha and T rather than storing per-(pair, pixel)
 values. Residuals are the inputs, each chunk's incoming T and feature sums
@@ -22,7 +24,8 @@ values. Residuals are the inputs, each chunk's incoming T and feature sums
 needed by dL/dalpha_i, is the pixel's total minus the running prefix, whose
 per-chunk start comes from a segmented scan of the saved chunk sums.
 
-Static work is (buffer capacity + K x tiles) x tile pixels, whatever the scene.
+Work is about (pairs + K/2 x tiles) x tile pixels per pass: two passes forward,
+one backward.
 """
 
 from __future__ import annotations
@@ -113,6 +116,30 @@ def _alpha(m, con, op, px, py):
     return dx, dy, vis, raw, alpha
 
 
+def _map_used(fn, xs, used_blocks, init):
+    """``lax.map(fn, xs)`` over the first ``used_blocks`` blocks only (a dynamic count).
+
+    The buffer's capacity fixes the number of blocks, but only the blocks that
+    hold pairs of this frame are computed: the work follows the frame's pairs,
+    not the buffer size. Outputs of skipped blocks keep their ``init`` values.
+    """
+
+    def body(b, outs):
+        x = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_index_in_dim(a, b, 0, False), xs)
+        y = fn(x)
+        return jax.tree_util.tree_map(
+            lambda o, v: jax.lax.dynamic_update_index_in_dim(o, v, b, 0), outs, y)
+
+    return jax.lax.fori_loop(0, used_blocks, body, init)
+
+
+def _used_blocks(tile_of, nb, num_tiles):
+    """int32 scalar: blocks holding at least one used chunk (used chunks are a prefix)."""
+    per_block = tile_of.shape[0] // nb
+    n_used = jnp.sum((tile_of < num_tiles).astype(jnp.int32))
+    return (n_used + per_block - 1) // per_block
+
+
 def _blocks(x, nb):
     """[NC, ...] -> [nb, NC / nb, ...]."""
     return x.reshape((nb, x.shape[0] // nb) + x.shape[1:])
@@ -184,9 +211,11 @@ def _forward(means2d, conics, opacities, features, gids, tile_of, first, width, 
     px, py = _pixel_centres(tile_of, tiles_x, tile, means2d.dtype)
     m, con, op, f = _block_params(means2d, conics, opacities, features, gids, nb)
     pxb, pyb = _blocks(px, nb), _blocks(py, nb)
-    prod = jax.lax.map(_local_products, (m, con, op, pxb, pyb))
+    used = _used_blocks(tile_of, nb, num_tiles)
+    prod = _map_used(_local_products, (m, con, op, pxb, pyb), used, jnp.ones_like(pxb))
     carry = _seg_scan(prod.reshape(px.shape), first, jnp.multiply, 1.0)
-    acc, t_last = jax.lax.map(_blend, (m, con, op, f, pxb, pyb, _blocks(carry, nb)))
+    init = (jnp.zeros(pxb.shape + (f.shape[-1],), pxb.dtype), jnp.ones_like(pxb))
+    acc, t_last = _map_used(_blend, (m, con, op, f, pxb, pyb, _blocks(carry, nb)), used, init)
     acc = acc.reshape(px.shape + (f.shape[-1],))
     t_last = t_last.reshape(px.shape)
     feat = jax.ops.segment_sum(acc, tile_of, num_segments=num_tiles + 1)[:num_tiles]
@@ -276,7 +305,11 @@ def _composite_bwd(width, height, tile, res, cts):
     px, py = _pixel_centres(tile_of, tiles_x, tile, means2d.dtype)
     params = _block_params(means2d, conics, opacities, features, gids, nb)
     per_pixel = tuple(_blocks(x, nb) for x in (px, py, carry, prefix, g_f, g_total, g_tfin))
-    d_m, d_con, d_op, d_f = jax.lax.map(_grad_block, params + per_pixel)  # [nb, K, NB, ...]
+    tiles_y = -(-height // tile)
+    used = _used_blocks(tile_of, nb, tiles_x * tiles_y)
+    init = tuple(jnp.zeros(params[0].shape[:3] + shape, means2d.dtype)
+                 for shape in ((2,), (3,), (), (features.shape[-1],)))
+    d_m, d_con, d_op, d_f = _map_used(_grad_block, params + per_pixel, used, init)  # [nb, K, NB, ...]
 
     gb = jnp.swapaxes(_blocks(gids, nb), 1, 2)
     seg = jnp.where(gb >= 0, gb, c).reshape(-1)
