@@ -21,6 +21,9 @@ from pathlib import Path
 HELP = "ablation on the face scene: proedit vs nd vs in2n against the simulated ground truth"
 
 MODES = ("proedit", "nd", "in2n")
+# Extra row: ND given the same total number of training steps as ProEdit's run (its three
+# subtasks r0 / r=1 / rn each get a third), so that the comparison is not just "more steps".
+EXTRA = ("nd_equal_steps",)
 KEYS = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
         "num_gaussians", "wall_time_s", "subtasks", "total_steps", "all_converged")
 
@@ -29,7 +32,9 @@ def add_arguments(p) -> None:
     p.add_argument("--scene-name", default="face", help="built-in scene")
     p.add_argument("--prompt", default="turn him into a bronze statue",
                    help="instruction of the simulated editor")
-    p.add_argument("--modes", default=",".join(MODES), help="comma-separated modes to run")
+    p.add_argument("--modes", default=",".join(MODES + EXTRA),
+                   help="comma-separated rows to run: proedit, nd, in2n, nd_equal_steps (ND with "
+                        "ProEdit's total step count)")
     p.add_argument("--size", type=int, default=64, help="image size in pixels")
     p.add_argument("--views", type=int, default=24, help="training views")
     p.add_argument("--test-views", type=int, default=4, help="held-out views (scored)")
@@ -107,23 +112,36 @@ def run_ablation(out: Path, *, scene_name="face", prompt="turn him into a bronze
     editor = SimulatedEditor()
     settings = TrainSettings(lr_sh_dc=lr_sh_dc, sh_degree=scene.sh_degree)
     results: dict = {}
+    if (out / "ablation.json").exists():  # keep rows of an earlier run (e.g. --modes in2n)
+        results = json.loads((out / "ablation.json").read_text())
     # The unedited reconstruction, scored the same way: the floor every mode should beat.
     from jaxedit.edit.progressive import EditContext, SubtaskTrainer
     ctx = EditContext(editor, prompt, data, ProEditConfig(), SubtaskTrainer(settings),
                       Renderer(), None)
     base = scene_metrics(ctx, scene, 0.0)
     results["input"] = {k: base.get(k) for k in KEYS} | {"recon_test_psnr": recon["test_psnr"]}
-    for mode in modes:
+    for row in modes:
+        mode, steps = row, max_steps
+        if row == "nd_equal_steps":
+            done = results.get("proedit", {}).get("total_steps")
+            if done is None:
+                log("nd_equal_steps needs the proedit row first: skipped")
+                continue
+            mode, steps = "nd", max(-(-int(done) // 3), 1)
+        elif row == "in2n":
+            # IN2N trains for a fixed number of iterations: give it ProEdit's total.
+            done = results.get("proedit", {}).get("total_steps")
+            steps = int(done) if done else 3 * max_steps
         cfg = ProEditConfig.for_mode(mode, threshold=threshold if mode == "proedit" else None,
-                                     max_steps=max_steps, warmup=warmup if mode != "in2n" else None,
+                                     max_steps=steps, warmup=warmup if mode != "in2n" else None,
                                      patience=patience, asynchronous=False,
                                      turntable_frames=turntable_frames)
-        log(f"editing with mode {mode}")
+        log(f"editing with mode {mode} ({row}, max {steps} steps per subtask)")
         t0 = time.perf_counter()
         res = run_edit(editor, prompt, data, scene, config=cfg, settings=settings, seed=seed,
-                       run_dir=out / mode, report=report, log=log)
+                       run_dir=out / row, report=report, log=log)
         m = res["metrics"]
-        results[mode] = {k: m.get(k) for k in KEYS} | {
+        results[row] = {k: m.get(k) for k in KEYS} | {
             "ratios": [s["ratio"] for s in res["schedule"]["subtasks"]],
             "utilisation": m.get("utilisation"), "seconds": time.perf_counter() - t0}
         atomic_write_text(out / "ablation.json", json.dumps(results, indent=2) + "\n")
@@ -148,7 +166,7 @@ def run(args) -> dict:
     if args.out is None:
         raise DataError("--out", "required (the ablation run directory)")
     modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
-    bad = [m for m in modes if m not in MODES]
+    bad = [m for m in modes if m not in MODES + EXTRA]
     if bad or not modes:
         raise DataError("--modes", f"unknown mode(s) {bad}; choose from {', '.join(MODES)}")
     kw = dict(size=args.size, views=args.views, test_views=args.test_views,

@@ -92,6 +92,8 @@ class ProEditConfig:
       num_test_views: held-out views rendered into snapshots.
       turntable_frames: frames of each snapshot's turntable (0: none).
       background: render background (the editor sees renders on it).
+      stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs
+        exactly ``max_steps`` (IN2N trains for a fixed number of iterations).
     """
 
     mode: str = "proedit"
@@ -118,6 +120,7 @@ class ProEditConfig:
     num_test_views: int = 4
     turntable_frames: int = 0
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    stop_on_plateau: bool = True
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -139,7 +142,7 @@ class ProEditConfig:
         base: dict[str, Any] = {"mode": mode}
         if mode == "in2n":
             base.update(timestep_range=(0.02, 0.98), edit_every=10, initial_sweep=False,
-                        refine_first=False, consolidate=False, warmup=0)
+                        refine_first=False, consolidate=False, warmup=0, stop_on_plateau=False)
         base.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**base)
 
@@ -750,7 +753,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                 progress(spec, st.step, loss, st)
             if callback is not None:
                 callback(spec, st.step, loss)
-            plateau = (st.tracker.count >= cfg.loss_window
+            plateau = (cfg.stop_on_plateau and st.tracker.count >= cfg.loss_window
                        and st.tracker.since_best >= cfg.patience)
             if plateau and not st.edited.all():
                 if source.deterministic:
@@ -764,6 +767,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                 converged = True
                 break
             if st.step >= cfg.max_steps:
+                converged = not cfg.stop_on_plateau  # a fixed budget ends where it should
                 if not st.edited.all() and not source.deterministic:
                     # Never end a subtask on a dataset the editor has not fully updated to
                     # e(r_i): a slow editor makes the trainer wait here (counted).
