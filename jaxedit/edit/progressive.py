@@ -25,7 +25,7 @@ Modes (rows of the paper's tables): ``proedit`` (difficulty-aware schedule),
 ``nd`` (no decomposition: one edit subtask 0 -> 1, with the same r_0 / r_n and
 adaptive 3DGS, the paper's ablation), ``in2n`` (Instruct-NeRF2NeRF on 3DGS: one
 subtask at r = 1, no opacity reset, classic densify thresholds, one view edited
-every 10 steps with timesteps drawn from 0.02-0.98).
+every 10 steps with timesteps drawn from 0.02-0.98, a fixed number of steps).
 
 Everything random is derived from one key with ``fold_in`` of (subtask index,
 purpose, step), so the deterministic mode reproduces bits, and a run resumed
