@@ -19,13 +19,14 @@ from .lpips import load_lpips, lpips_distance
 from .raster import RenderOutput, render, render_reference
 from .report import write_report
 from .scenes import make_scene
+from .train import TrainConfig, TrainState, evaluate, fit, init_state, resume, train_step
 from .viz import colorize_depth, image_grid, turntable, write_snapshot, write_turntable
 
 __all__ = [
-    "Camera", "DataError", "Dataset", "Gaussians", "RenderOutput", "SimulatedEditor",
-    "__version__", "camera", "clip_metrics", "colorize_depth", "decompose", "decompose_root", "densify", "edit",
+    "Camera", "DataError", "Dataset", "Gaussians", "RenderOutput", "SimulatedEditor", "TrainConfig", "TrainState",
+    "__version__", "camera", "clip_metrics", "colorize_depth", "decompose", "decompose_root", "densify", "edit", "evaluate", "fit", "init_state",
     "gaussians", "image_grid", "io", "lpips", "lpips_distance", "load_lpips", "load_nerfstudio", "load_ply", "losses", "make_scene",
-    "metrics", "raster", "read_image", "render", "render_reference", "report", "save_nerfstudio",
-    "save_ply", "scenes", "sh", "train", "turntable", "viz", "write_image", "write_report",
+    "metrics", "raster", "read_image", "render", "render_reference", "report", "resume", "save_nerfstudio",
+    "save_ply", "scenes", "sh", "train", "train_step", "turntable", "viz", "write_image", "write_report",
     "write_snapshot", "write_turntable",
 ]
