@@ -65,11 +65,21 @@ def tile_stats(proj, size: int, tile: int) -> dict:
 
 def compile_and_time(jitted, *args, repeats: int) -> dict:
     """Compile ahead of time (timed), then time the compiled call; XLA temp buffer size."""
+    import jax
+
     t0 = time.perf_counter()
     compiled = jitted.lower(*args).compile()
     compile_ms = 1e3 * (time.perf_counter() - t0)
     rec = time_fn(compiled, *args, repeats=repeats)
     rec["compile_ms"] = compile_ms
+    # CPU time of the process per call: steadier than wall time on a shared machine
+    # (XLA's CPU runtime ran these programs on one thread in our measurements).
+    cpu = []
+    for _ in range(repeats):
+        c0 = time.process_time()
+        jax.block_until_ready(compiled(*args))
+        cpu.append(time.process_time() - c0)
+    rec["cpu_median_ms"] = 1e3 * float(np.median(cpu))
     try:
         rec["xla_temp_mb"] = round(compiled.memory_analysis().temp_size_in_bytes / 2**20, 1)
     except Exception:  # memory_analysis is best-effort on some backends
@@ -178,8 +188,10 @@ def main(argv=None):
         t0 = time.perf_counter()
         rec = bench_size(size, n, repeats, profile=not args.smoke)
         rec["wall_s"] = round(time.perf_counter() - t0, 1)
-        print(f"{size}px {n} Gaussians: fwd {rec['forward']['median_ms']:.1f} ms, "
-              f"fwd+bwd {rec['forward_backward']['median_ms']:.1f} ms, "
+        print(f"{size}px {n} Gaussians: fwd {rec['forward']['median_ms']:.1f} ms "
+              f"(cpu {rec['forward']['cpu_median_ms']:.1f}), "
+              f"fwd+bwd {rec['forward_backward']['median_ms']:.1f} ms "
+              f"(cpu {rec['forward_backward']['cpu_median_ms']:.1f}), "
               f"pairs {rec['stats_compositing']['intersections']} (16px tiles: "
               f"{rec['stats_tile16']['intersections']}), stages {rec.get('stages_ms')}", flush=True)
         results.append(rec)
