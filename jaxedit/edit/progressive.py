@@ -53,6 +53,7 @@ from ..errors import DataError
 from ..io.files import atomic_path, atomic_write_text
 from .buffer import EditJob, Utilisation, make_source, pick_devices, view_order
 from .editors import interpolate_embedding
+from .simulated import view_key  # (run key, view, ratio, iteration) -> key, for any editor
 
 MODES = ("proedit", "nd", "in2n")
 CHECKPOINT_NAME = "checkpoint.npz"
@@ -89,7 +90,6 @@ class ProEditConfig:
       checkpoint_every: steps between checkpoints inside a subtask.
       difficulty_views: views the difficulty d(r_a, r_b) sums over.
       curve_points: grid size of the reported d(0, r) curve.
-      num_test_views: held-out views rendered into snapshots.
       turntable_frames: frames of each snapshot's turntable (0: none).
       background: render background (the editor sees renders on it).
       stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs
@@ -117,7 +117,6 @@ class ProEditConfig:
     checkpoint_every: int = 50
     difficulty_views: int = 4
     curve_points: int = 9
-    num_test_views: int = 4
     turntable_frames: int = 0
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     stop_on_plateau: bool = True
@@ -643,15 +642,6 @@ class EditContext:
         self.e_null = np.asarray(self.editor.encode(""))
 
 
-def _view_key(run_key, view: int, ratio: float, iteration: int):
-    try:
-        from .simulated import view_key
-    except ImportError:  # pragma: no cover - the simulated editor ships with jaxedit
-        q = int(round(ratio * 1e6))
-        return jax.random.fold_in(jax.random.fold_in(jax.random.fold_in(run_key, view), q), iteration)
-    return view_key(run_key, view, ratio, iteration)
-
-
 def make_edit_fn(ctx: EditContext, spec: SubtaskSpec) -> Callable[[EditJob, Any], np.ndarray]:
     """``(job, scene) -> edited view`` of subtask ``spec``: render the view, edit it with e(r).
 
@@ -675,7 +665,7 @@ def make_edit_fn(ctx: EditContext, spec: SubtaskSpec) -> Callable[[EditJob, Any]
         else:
             t = anneal_timestep(job.step, anneal_n, *cfg.timestep_range)
             t_range = (t, t)
-        key = _view_key(sub_key, job.view, ratio, job.iteration)
+        key = view_key(sub_key, job.view, ratio, job.iteration)
         return ctx.editor.edit(render, ctx.data.train_images[job.view], embedding, key,
                                timestep_range=t_range, guidance=tuple(cfg.guidance))
 
@@ -727,7 +717,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     source = make_source(make_edit_fn(ctx, spec), order, asynchronous=cfg.asynchronous,
                          every=cfg.edit_every, initial_sweep=cfg.initial_sweep,
                          device=ctx.editor_device)
-    view_key = jax.random.fold_in(key_sub, _VIEWS)
+    views_key = jax.random.fold_in(key_sub, _VIEWS)
     train_key = jax.random.fold_in(key_sub, _TRAIN)
     started = time.perf_counter() - st.seconds
     converged = False
@@ -742,7 +732,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
             s = st.step
             if s >= warmup:  # no edits while the reset opacities settle (paper 3.3 (1))
                 take(source.exchange(s - warmup, trainer.gaussians(st.train)))
-            v = train_view(view_key, s, n)
+            v = train_view(views_key, s, n)
             st.train, loss, _ = trainer.step(st.train, st.images[v], data.train_cameras[v],
                                              jax.random.fold_in(train_key, s))
             if s >= warmup:
