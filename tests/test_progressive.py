@@ -271,3 +271,14 @@ def test_cli_edit_writes_contract_files(tiny, tmp_path):
     rc = main(["edit", "--data", str(tmp_path / "data"), "--scene", str(tmp_path / "scene.ply"),
                "--prompt", "make it purple please", "--out", str(tmp_path / "bad2"), "--quiet"])
     assert rc == 2
+
+
+def test_in2n_baseline_runs_its_fixed_budget_with_one_edit_every_10_steps(tiny):
+    g, data, _, _ = tiny
+    cfg = ProEditConfig.for_mode("in2n", max_steps=30, checkpoint_every=100)
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=0,
+                   run_dir=None)
+    (sub,) = out["schedule"]["subtasks"]
+    assert (sub["kind"], sub["ratio"], sub["steps"], sub["converged"]) == ("edit", 1.0, 30, True)
+    assert out["metrics"]["utilisation"]["edits"] == 3  # steps 0, 10, 20: no sweep, no r0/rn
+    assert out["schedule"]["difficulty_curve"] == []
