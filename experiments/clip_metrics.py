@@ -38,17 +38,21 @@ def _renders(folder: Path) -> list[Path]:
     return files
 
 
-def run(args):
+def clip_metrics_of_run(run_dir: Path, *, snapshot: Path | None = None, clip_weights=None,
+                        caption_orig: str, caption_edit: str, device=None) -> dict:
+    """IN2N's CLIP metrics of ``snapshot`` (default: the last subtask) against ``original/``.
+
+    Also writes them to ``SNAPSHOT/clip_metrics.json``.
+    """
     import numpy as np
 
     from jaxedit.clip_metrics import DEFAULT_CLIP, load_clip_metrics
     from jaxedit.io import read_image
     from jaxedit.io.files import atomic_write_text
 
-    run_dir = Path(args.run)
+    run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DataError(run_dir, "edit run directory not found")
-    snapshot = args.snapshot
     if snapshot is None:
         subtasks = sorted(p for p in (run_dir / "subtasks").glob("*") if (p / "renders").is_dir())
         if not subtasks:
@@ -58,13 +62,20 @@ def run(args):
     if [p.name for p in originals] != [p.name for p in edits]:
         raise DataError(snapshot, "its renders/ do not match original/renders/ view for view")
     try:
-        metrics_fn = load_clip_metrics(args.clip_weights or DEFAULT_CLIP, device=args.clip_device)
+        metrics_fn = load_clip_metrics(clip_weights or DEFAULT_CLIP, device=device)
     except ImportError as e:
         raise DataError("--clip-weights", str(e)) from None
     orig = np.stack([read_image(p) for p in originals])
     edit = np.stack([read_image(p) for p in edits])
-    result = metrics_fn(orig, edit, args.caption_orig, args.caption_edit)
+    result = metrics_fn(orig, edit, caption_orig, caption_edit)
     result["snapshot"] = str(snapshot)
     atomic_write_text(Path(snapshot) / "clip_metrics.json", json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def run(args):
+    result = clip_metrics_of_run(args.run, snapshot=args.snapshot, clip_weights=args.clip_weights,
+                                 caption_orig=args.caption_orig, caption_edit=args.caption_edit,
+                                 device=args.clip_device)
     return {k: result[k] for k in ("direction_similarity", "direction_consistency",
                                    "clip_score_edit", "views", "snapshot")}

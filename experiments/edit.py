@@ -54,6 +54,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-views", type=int, default=None,
                    help="at most this many held-out views in snapshots and metrics")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
+    real = p.add_argument_group("real models (local weights, see the README)")
+    real.add_argument("--ip2p-device", default=None,
+                      help="torch device of the InstructPix2Pix editor (default cuda:0, else cpu)")
+    real.add_argument("--ip2p-size", type=int, default=512, help="IP2P working resolution (px)")
+    real.add_argument("--ip2p-steps", type=int, default=20, help="DDIM steps per IP2P edit")
+    real.add_argument("--lpips-weights", type=Path, default=None,
+                      help="LPIPS .safetensors/.npz (convert-lpips): the difficulty distance")
+    real.add_argument("--clip-weights", default=None,
+                      help="transformers CLIP folder: add IN2N's CLIP metrics to metrics.json")
+    real.add_argument("--caption-orig", default=None, help="caption of the original (CLIP metrics)")
+    real.add_argument("--caption-edit", default=None, help="caption of the edit (CLIP metrics)")
 
 
 def make_editor(args):
@@ -67,7 +78,40 @@ def make_editor(args):
         from jaxedit.edit.ip2p import DEFAULT_MODEL, load_editor
     except ImportError as e:  # torch / diffusers are optional extras
         raise DataError("--editor", f"ip2p is unavailable ({e})") from None
-    return load_editor(args.ip2p_weights or DEFAULT_MODEL)
+    return load_editor(args.ip2p_weights or DEFAULT_MODEL, device=args.ip2p_device,
+                       size=args.ip2p_size, steps=args.ip2p_steps)
+
+
+def make_distance(args):
+    """The difficulty's perceptual distance: LPIPS when weights are given, else the default."""
+    if args.lpips_weights is None:
+        return None
+    from jaxedit.lpips import lpips_distance
+
+    return lpips_distance(args.lpips_weights)
+
+
+def add_clip_metrics(args) -> dict | None:
+    """IN2N's CLIP metrics of the final snapshot, merged into ``RUN_DIR/metrics.json``."""
+    import json
+
+    from jaxedit import DataError
+    from jaxedit.io.files import atomic_write_text
+
+    from .clip_metrics import clip_metrics_of_run
+
+    if args.clip_weights is None:
+        return None
+    if not (args.caption_orig and args.caption_edit):
+        raise DataError("--clip-weights", "needs --caption-orig and --caption-edit")
+    clip = clip_metrics_of_run(args.out, clip_weights=args.clip_weights,
+                               caption_orig=args.caption_orig, caption_edit=args.caption_edit,
+                               device=args.ip2p_device)
+    path = args.out / "metrics.json"
+    metrics = json.loads(path.read_text())
+    metrics["clip"] = clip
+    atomic_write_text(path, json.dumps(metrics, indent=2) + "\n")
+    return clip
 
 
 def load_inputs(args):
@@ -141,7 +185,10 @@ def run(args) -> dict:
         return {"selected": str(path)}
     if args.resume and args.resume_from is not None:
         raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
+    if args.clip_weights is not None and not (args.caption_orig and args.caption_edit):
+        raise DataError("--clip-weights", "needs --caption-orig and --caption-edit")
     editor = make_editor(args)
+    distance = make_distance(args)
     if not args.prompt and args.mode != "in2n":
         raise DataError("--prompt", "required (the editing instruction)")
     data, scene = load_inputs(args)
@@ -151,10 +198,16 @@ def run(args) -> dict:
     try:
         out = run_edit(editor, args.prompt or "", data, scene, config=config, seed=args.seed,
                        run_dir=args.out, resume=args.resume, resume_from=args.resume_from,
-                       select=args.select, progress=progress, report=not args.no_report, log=log)
+                       select=args.select, progress=progress, report=not args.no_report, log=log,
+                       distance=distance)
     finally:
         progress.close()
     m = out["metrics"]
+    clip = add_clip_metrics(args)
+    if clip is not None:
+        m = m | {"clip_direction_similarity": clip.get("direction_similarity"),
+                 "clip_direction_consistency": clip.get("direction_consistency")}
     keys = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
-            "num_gaussians", "wall_time_s", "subtasks", "all_converged")
+            "num_gaussians", "wall_time_s", "subtasks", "all_converged",
+            "clip_direction_similarity", "clip_direction_consistency")
     return {k: m.get(k) for k in keys} | {"run_dir": str(args.out)}

@@ -282,3 +282,36 @@ def test_in2n_baseline_runs_its_fixed_budget_with_one_edit_every_10_steps(tiny):
     assert (sub["kind"], sub["ratio"], sub["steps"], sub["converged"]) == ("edit", 1.0, 30, True)
     assert out["metrics"]["utilisation"]["edits"] == 3  # steps 0, 10, 20: no sweep, no r0/rn
     assert out["schedule"]["difficulty_curve"] == []
+
+
+def test_cli_edit_uses_lpips_difficulty_and_checks_real_model_flags(tiny, tmp_path):
+    from experiments.cli import main
+    from jaxedit.io import save_nerfstudio, save_ply
+    from jaxedit.lpips import _convs, _tap_channels, save_lpips_params
+
+    g, _, cams, images = tiny
+    save_nerfstudio(tmp_path / "data", images, cams)
+    save_ply(tmp_path / "scene.ply", g)
+    rng = np.random.default_rng(3)
+    tensors = {}
+    for c in _convs("alex"):  # a random AlexNet trunk with non-negative heads
+        fan_in = c.cin * c.kernel * c.kernel
+        tensors[f"trunk.{c.index}.weight"] = rng.normal(
+            0, np.sqrt(2 / fan_in), (c.cout, c.cin, c.kernel, c.kernel)).astype(np.float32)
+        tensors[f"trunk.{c.index}.bias"] = np.zeros(c.cout, np.float32)
+    for k, ch in enumerate(_tap_channels("alex")):
+        tensors[f"lin{k}.weight"] = rng.uniform(0, 1, (1, ch, 1, 1)).astype(np.float32)
+    weights = save_lpips_params(tmp_path / "lpips_alex.npz", tensors, "alex")
+    base = ["edit", "--data", str(tmp_path / "data"), "--scene", str(tmp_path / "scene.ply"),
+            "--prompt", PROMPT, "--editor", "simulated", "--sync", "--subtasks", "1",
+            "--max-steps", "4", "--warmup", "2", "--patience", "2", "--turntable-frames", "0",
+            "--quiet", "--no-report"]
+    out = tmp_path / "run"
+    assert main(base + ["--out", str(out), "--lpips-weights", str(weights)]) == 0
+    sched = json.loads((out / "schedule.json").read_text())
+    assert sched["distance"] == "lpips-alex"
+    edit_steps = [s for s in sched["subtasks"] if s["kind"] == "edit"]
+    assert edit_steps and edit_steps[0]["difficulty"] > 0
+    assert main(base + ["--out", str(tmp_path / "bad"), "--lpips-weights",
+                        str(tmp_path / "missing.npz")]) == 2
+    assert main(base + ["--out", str(tmp_path / "bad2"), "--clip-weights", str(tmp_path)]) == 2

@@ -4,12 +4,19 @@ The real InstructPix2Pix editor (``jaxedit.edit.ip2p``) needs torch and diffuser
 imported only on demand.
 """
 
+from .buffer import (AsyncEditSource, EditedView, EditJob, EditorThreadError, SyncEditSource,
+                     Utilisation)
 from .difficulty import DifficultyOracle, l1_distance, ms_ssim_distance
 from .editors import Editor, interpolate_embedding
+from .progressive import (EditData, ProEditConfig, SubtaskSpec, TrainSettings, anneal_timestep,
+                          plan_subtasks, run_edit, select_snapshot)
 from .schedule import Schedule, decompose, decompose_root, prune_ratios, spread, uniform
 from .simulated import VOCABULARY, SimulatedEditor, view_key
 
 __all__ = [
+    "AsyncEditSource", "EditData", "EditJob", "EditedView", "EditorThreadError", "ProEditConfig",
+    "SubtaskSpec", "SyncEditSource", "TrainSettings", "Utilisation", "anneal_timestep",
+    "plan_subtasks", "run_edit", "select_snapshot",
     "DifficultyOracle", "Editor", "Schedule", "SimulatedEditor", "VOCABULARY", "decompose",
     "decompose_root", "interpolate_embedding", "l1_distance", "ms_ssim_distance", "prune_ratios",
     "spread", "uniform", "view_key",

@@ -777,13 +777,25 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
 DEFAULT_SUBTASKS = 4  # default threshold = d(0, 1) / 4 (paper: ~4 subtasks for texture edits)
 
 
-def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int):
-    """The memoised d(r_a, r_b) over ``difficulty_views`` renders of the input scene."""
+def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distance=None):
+    """The memoised d(r_a, r_b) over ``difficulty_views`` renders of the input scene.
+
+    ``distance``: the perceptual distance (e.g. :func:`jaxedit.lpips.lpips_distance`);
+    None is the oracle's default (multi-scale SSIM).
+    """
     from .difficulty import DifficultyOracle, default_views
 
     views = default_views(len(originals), ctx.config.difficulty_views)
-    return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views,
+    return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
                             guidance=tuple(ctx.config.guidance), seed=seed, reduction="mean")
+
+
+def distance_name(distance) -> str:
+    """What schedule.json and the log call a difficulty distance."""
+    from .difficulty import ms_ssim_distance
+
+    distance = ms_ssim_distance if distance is None else distance
+    return getattr(distance, "name", getattr(distance, "__name__", type(distance).__name__))
 
 
 def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
@@ -895,7 +907,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
              run_dir: str | os.PathLike | None = None, resume: bool = False,
              resume_from: str | os.PathLike | None = None, select=None,
              callback: Callable | None = None, progress: Callable | None = None,
-             report: bool = True, log: Callable[[str], None] | None = None) -> dict:
+             report: bool = True, log: Callable[[str], None] | None = None,
+             distance: Callable | None = None) -> dict:
     """Edit ``gaussians`` progressively (see the module docstring); returns the run summary.
 
     Args:
@@ -914,6 +927,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         ``run_dir/selected.ply``.
       callback: ``callback(spec, step, loss)`` after every training step.
       progress: ``progress(spec, step, loss, state)`` after every training step.
+      distance: perceptual distance of the difficulty (default multi-scale SSIM; pass
+        :func:`jaxedit.lpips.lpips_distance` for the paper's LPIPS).
     Returns:
       {"schedule": schedule.json contents, "metrics": metrics.json contents, "gaussians": final}.
     """
@@ -960,7 +975,10 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             log(f"continuing from {snap} (r = {start_ratio:.3f})")
         originals = np.stack([ctx.renderer.rgb(gaussians, data.train_cameras[i])
                               for i in range(len(data.train_images))])
-        oracle = None if config.mode == "in2n" else difficulty_oracle(ctx, originals, seed)
+        oracle = (None if config.mode == "in2n"
+                  else difficulty_oracle(ctx, originals, seed, distance))
+        if oracle is not None:
+            log(f"difficulty distance: {distance_name(distance)}")
         schedule, ratios, diffs = make_schedule(ctx, oracle, start_ratio=start_ratio)
         resumed = resume_from is not None
         if start_ratio >= 1.0 - 1e-9:
@@ -981,6 +999,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                   "difficulty_evaluations": schedule.evaluations,
                   "editor_calls_for_schedule": getattr(oracle, "editor_calls", 0),
                   "difficulty_curve": curve, "seed": seed,
+                  "distance": None if oracle is None else distance_name(distance),
                   "resumed_from": None if resume_from is None else str(resume_from),
                   "start_ratio": start_ratio, "asynchronous": config.asynchronous,
                   "config": {k: v for k, v in dataclasses.asdict(config).items()}}
