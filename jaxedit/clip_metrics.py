@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import json
 import os
-import re
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DataError
+from .io.weights import local_model_folder
 
 __all__ = ["ClipEncoder", "DEFAULT_CLIP", "direction_metrics", "load_clip_metrics"]
 
@@ -102,17 +102,7 @@ def direction_metrics(image_orig, image_edit, text_orig, text_edit) -> dict:
 
 
 def _resolve(path) -> Path:
-    p = Path(os.path.expanduser(str(path)))
-    if not p.exists():
-        if re.fullmatch(r"[\w.-]+/[\w.-]+", str(path)):
-            try:
-                from huggingface_hub import snapshot_download
-                p = Path(snapshot_download(str(path), local_files_only=True))
-            except Exception:  # noqa: BLE001 - LocalEntryNotFoundError and friends
-                raise DataError(path, f"not a folder and not in the local Hugging Face cache; "
-                                f"needs {HOW_TO_GET}") from None
-        else:
-            raise DataError(p, f"CLIP weights folder not found; needs {HOW_TO_GET}")
+    p = local_model_folder(path, what="CLIP weights", how_to_get=HOW_TO_GET)
     if not (p / "config.json").is_file():
         raise DataError(p, f"no config.json: not a transformers model folder; needs {HOW_TO_GET}")
     if not any((p / f).is_file() for f in ("vocab.json", "tokenizer.json")):

@@ -43,7 +43,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import re
 import warnings
 from pathlib import Path
 
@@ -63,6 +62,7 @@ import jax
 import numpy as np
 
 from ..errors import DataError
+from ..io.weights import local_model_folder
 
 log = logging.getLogger(__name__)
 
@@ -160,19 +160,7 @@ def ddim_step(sample, model_output, alpha_t: float, alpha_prev: float,
 def resolve_weights(path: str | os.PathLike) -> Path:
     """A local diffusers folder, or a Hub id found in the local Hugging Face cache (never the
     network). Checks the layout and names what is missing."""
-    p = Path(os.path.expanduser(str(path)))
-    if not p.exists():
-        if re.fullmatch(r"[\w.-]+/[\w.-]+", str(path)):
-            try:
-                from huggingface_hub import snapshot_download
-                p = Path(snapshot_download(str(path), local_files_only=True))
-            except Exception:  # noqa: BLE001 - LocalEntryNotFoundError and friends
-                raise DataError(path, f"not a folder and not in the local Hugging Face cache; "
-                                f"needs {HOW_TO_GET}") from None
-        else:
-            raise DataError(p, f"InstructPix2Pix weights folder not found; needs {HOW_TO_GET}")
-    if not p.is_dir():
-        raise DataError(p, f"is not a folder; needs {HOW_TO_GET}")
+    p = local_model_folder(path, what="InstructPix2Pix weights", how_to_get=HOW_TO_GET)
     missing = [f"{sub}/{files[0]}" for sub, files in _LAYOUT.items()
                if not any((p / sub / f).is_file() for f in files)]
     if missing:
