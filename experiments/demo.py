@@ -43,7 +43,7 @@ def add_arguments(p) -> None:
                    help="uniform schedule of N subtasks instead of the difficulty-aware one")
     p.add_argument("--mode", choices=["proedit", "nd", "in2n"], default="proedit",
                    help="editing mode")
-    p.add_argument("--max-steps", type=int, default=150,
+    p.add_argument("--max-steps", type=int, default=600,
                    help="per-subtask training step guard of the edit")
     p.add_argument("--turntable-frames", type=int, default=24,
                    help="frames of each snapshot's turntable (0: none)")
