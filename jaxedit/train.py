@@ -167,12 +167,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict, where: str = "config") -> "TrainConfig":
-        if not isinstance(data, dict):
-            raise DataError(where, "train config must be an object")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise DataError(where, f"unknown train config field(s) {', '.join(unknown)}")
+        _check_fields(cls, data, where, "train config")
         data = dict(data)
         if "densify" in data:
             data["densify"] = _densify_from_dict(data["densify"], f"{where}.densify")
@@ -182,13 +177,18 @@ class TrainConfig:
 def _densify_from_dict(data, where: str = "densify") -> DensifyConfig:
     if isinstance(data, DensifyConfig):
         return data
+    _check_fields(DensifyConfig, data, where, "densify")
+    return DensifyConfig(**data)
+
+
+def _check_fields(cls, data, where: str, what: str) -> None:
+    """DataError unless ``data`` is a dict whose keys are all fields of dataclass ``cls``."""
     if not isinstance(data, dict):
-        raise DataError(where, "must be an object")
-    known = {f.name for f in dataclasses.fields(DensifyConfig)}
+        raise DataError(where, f"{what} must be an object")
+    known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - known)
     if unknown:
-        raise DataError(where, f"unknown densify field(s) {', '.join(unknown)}")
-    return DensifyConfig(**data)
+        raise DataError(where, f"unknown {what} field(s) {', '.join(unknown)}")
 
 
 # --------------------------------------------------------------------------------------

@@ -530,17 +530,14 @@ class TrainSettings:
         """The :class:`jaxedit.train.TrainConfig` these settings describe."""
         from ..train import DensifyConfig, TrainConfig
 
-        if self.adaptive:
-            dens = DensifyConfig(budget=True, budget_min_new=self.budget_min_new,
-                                 budget_growth=self.budget_growth,
-                                 budget_max_fraction=self.budget_max_fraction,
-                                 refine_every=self.refine_every, warmup=self.warmup,
-                                 stop_at=2 ** 30, reset_every=0, cull_alpha=self.cull_alpha,
-                                 max_gaussians=self.max_gaussians)
+        if self.adaptive:  # ProEdit: creation budget; opacity resets at subtask starts only
+            mode = dict(budget=True, budget_min_new=self.budget_min_new,
+                        budget_growth=self.budget_growth,
+                        budget_max_fraction=self.budget_max_fraction, reset_every=0)
         else:  # IN2N / IGS2GS: Splatfacto's classic thresholds and periodic opacity reset
-            dens = DensifyConfig(budget=False, refine_every=self.refine_every, warmup=self.warmup,
-                                 stop_at=2 ** 30, reset_every=3000, cull_alpha=self.cull_alpha,
-                                 max_gaussians=self.max_gaussians)
+            mode = dict(budget=False, reset_every=3000)
+        dens = DensifyConfig(refine_every=self.refine_every, warmup=self.warmup, stop_at=2 ** 30,
+                             cull_alpha=self.cull_alpha, max_gaussians=self.max_gaussians, **mode)
         bg = tuple(float(c) for c in self.background)
         background = {(1.0, 1.0, 1.0): "white", (0.0, 0.0, 0.0): "black"}.get(bg)
         if background is None:
