@@ -28,8 +28,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", default="proedit", choices=["proedit", "nd", "in2n"],
                    help="proedit (default), nd (one subtask 0 -> 1), in2n (IN2N baseline)")
     p.add_argument("--threshold", type=float, default=None,
-                   help="difficulty threshold d_threshold of the scheduler")
+                   help="difficulty threshold d_threshold of the scheduler, per view")
+    p.add_argument("--target-subtasks", type=int, default=None,
+                   help="find the threshold that gives N subtasks (paper: ~4 texture, ~8 geometry)")
     p.add_argument("--subtasks", type=int, default=None, help="N uniform subtasks instead")
+    p.add_argument("--difficulty-views", type=int, default=None,
+                   help="views the difficulty is taken over (a seeded subset; default all, "
+                        "up to 16)")
+    p.add_argument("--max-gaussians", type=int, default=None,
+                   help="hard cap on Gaussians during the edit (default 2x the input's count)")
     p.add_argument("--schedule-method", default="bisect", choices=["bisect", "root"],
                    help="bisect + prune (paper) or root placement (optimistix)")
     p.add_argument("--select", default=None,
@@ -140,6 +147,7 @@ def config_from_args(args):
 
     return ProEditConfig.for_mode(
         args.mode, threshold=args.threshold, subtasks=args.subtasks,
+        target_subtasks=args.target_subtasks, difficulty_views=args.difficulty_views,
         schedule_method=args.schedule_method, asynchronous=args.asynchronous,
         warmup=args.warmup, patience=args.patience, max_steps=args.max_steps,
         edit_every=args.edit_every, turntable_frames=args.turntable_frames)
@@ -193,10 +201,14 @@ def run(args) -> dict:
         raise DataError("--prompt", "required (the editing instruction)")
     data, scene = load_inputs(args)
     config = config_from_args(args)
+    from jaxedit.edit.progressive import TrainSettings
+
+    settings = TrainSettings(max_gaussians=args.max_gaussians)
     progress = progress_callback(args.quiet)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     try:
-        out = run_edit(editor, args.prompt or "", data, scene, config=config, seed=args.seed,
+        out = run_edit(editor, args.prompt or "", data, scene, config=config, settings=settings,
+                       seed=args.seed,
                        run_dir=args.out, resume=args.resume, resume_from=args.resume_from,
                        select=args.select, progress=progress, report=not args.no_report, log=log,
                        distance=distance)
