@@ -269,11 +269,12 @@ def test_alpha_in_unit_interval_and_outputs_finite(seed):
 
 
 # --------------------------------------------------------------------------- batching
-def test_batched_cameras_equal_single_renders():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_batched_cameras_equal_single_renders(backend):
     g = make_scene(11)
     cams = cam_lib.orbit(3, radius=3.0, width=W, height=H, focal=float(W))
     delta = jnp.zeros((3, N, 2), jnp.float32)
-    out = render(g, cams, background=BG, means2d_delta=delta)
+    out = render(g, cams, background=BG, means2d_delta=delta, backend=backend)
     assert out.rgb.shape == (3, H, W, 3) and out.means2d.shape == (3, N, 2)
     assert out.num_intersections.shape == (3,) and not np.any(np.asarray(out.overflow))
     for i in range(3):

@@ -224,8 +224,13 @@ def _whole():
     return pl.BlockSpec(memory_space=pl.ANY)
 
 
+def _num_warps(tile: int) -> int:
+    """One lane per pixel: a 16 x 16 tile is 8 warps of 32 threads (as gsplat's 256-thread blocks)."""
+    return max(1, min(8, tile * tile // 32))
+
+
 def tiles_forward(means2d, conics, opacities, features, gids, tile_start, width, height, tile,
-                  interpret=False, num_warps=4):
+                  interpret=False):
     """Forward kernel over all tiles.
 
     Args:
@@ -248,7 +253,7 @@ def tiles_forward(means2d, conics, opacities, features, gids, tile_start, width,
                  jax.ShapeDtypeStruct((num_tiles, p), jnp.int32))
     inputs = _padded_inputs(means2d, conics, opacities, features, gids, tile_start)
     return _call(kernel, inputs, [_whole()] * 6, out_shape, (feat_spec, pix_spec, pix_spec),
-                 num_tiles, interpret, num_warps)
+                 num_tiles, interpret, _num_warps(tile))
 
 
 def _padded_inputs(means2d, conics, opacities, features, gids, tile_start):
@@ -262,7 +267,7 @@ def _padded_inputs(means2d, conics, opacities, features, gids, tile_start):
 
 
 def tiles_backward(means2d, conics, opacities, features, gids, tile_start, trans, last, g_feat,
-                   g_trans, width, height, tile, interpret=False, num_warps=4):
+                   g_trans, width, height, tile, interpret=False):
     """Backward kernel: float [N, 6 + F] gradient rows, one per pair slot (0 for unused slots).
 
     Args: as :func:`tiles_forward`, plus the forward's ``trans`` [T, P] and
@@ -280,7 +285,7 @@ def tiles_backward(means2d, conics, opacities, features, gids, tile_start, trans
     inputs += (trans, last, g_feat.astype(dtype), g_trans.astype(dtype))
     rows = jax.ShapeDtypeStruct((gids.shape[0], _ROW_FIXED + nf), dtype)
     rows = _call(kernel, inputs, [_whole()] * 6 + [pix_spec, pix_spec, feat_spec, pix_spec],
-                 rows, _whole(), num_tiles, interpret, num_warps)
+                 rows, _whole(), num_tiles, interpret, _num_warps(tile))
     return rows
 
 
