@@ -7,6 +7,7 @@ run can be previewed while it works), ``metrics.json``, ``original/`` and
 at a snapshot (also on a finished run with ``--select-only``); ``--resume``
 continues a crashed run; ``--resume-from SNAPSHOT_DIR`` continues from any
 snapshot with another schedule (more or fewer subtasks, another threshold).
+``--view`` serves the scene in the browser while it is edited (``experiments/view.py``).
 """
 
 from __future__ import annotations
@@ -61,6 +62,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-views", type=int, default=None,
                    help="at most this many held-out views in snapshots and metrics")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
+    p.add_argument("--view", action="store_true",
+                   help="serve the scene in the browser while it is edited (viser; see `view`)")
+    p.add_argument("--view-port", type=int, default=8080, help="port of --view on 127.0.0.1")
     real = p.add_argument_group("real models (local weights, see the README)")
     real.add_argument("--ip2p-device", default=None,
                       help="torch device of the InstructPix2Pix editor (default cuda:0, else cpu)")
@@ -204,6 +208,11 @@ def run(args) -> dict:
     from jaxedit.edit.progressive import TrainSettings
 
     settings = TrainSettings(max_gaussians=args.max_gaussians)
+    watcher = None
+    if args.view:
+        from .view import check_port, watch_edit
+
+        watcher = watch_edit(args.out, port=check_port(args.view_port, "--view-port"))
     progress = progress_callback(args.quiet)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     try:
@@ -214,6 +223,8 @@ def run(args) -> dict:
                        distance=distance)
     finally:
         progress.close()
+        if watcher is not None:
+            watcher.stop()
     m = out["metrics"]
     clip = add_clip_metrics(args)
     if clip is not None:
@@ -222,4 +233,9 @@ def run(args) -> dict:
     keys = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
             "num_gaussians", "wall_time_s", "subtasks", "all_converged",
             "clip_direction_similarity", "clip_direction_consistency")
+    if watcher is not None:
+        print(f"edit finished; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)",
+              flush=True)
+        watcher.viewer.serve_forever()
+        watcher.viewer.close()
     return {k: m.get(k) for k in keys} | {"run_dir": str(args.out)}
