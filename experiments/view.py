@@ -95,14 +95,15 @@ def camera_pose(centers):
     """(position, look_at) of an initial camera that frames a cloud of centres [N, 3].
 
     Robust to stray splats: it looks at the median and stands off by a multiple of
-    the 90th-percentile radius, from above at an angle (+z is up in jaxedit's scenes).
+    the 90th-percentile radius, slightly above and to the side of +x (+z is up, and the
+    built-in scenes face +x, where their cameras' azimuths start).
     """
     import numpy as np
 
     look_at = np.median(centers, axis=0)
     radius = float(np.quantile(np.linalg.norm(centers - look_at, axis=1), 0.9)) or 1.0
-    direction = np.array([1.0, -1.0, 0.7]) / np.linalg.norm([1.0, -1.0, 0.7])
-    return look_at + 2.5 * radius * direction, look_at
+    direction = np.array([1.0, -0.35, 0.45])
+    return look_at + 2.2 * radius * direction / np.linalg.norm(direction), look_at
 
 
 class SnapshotViewer:
@@ -130,7 +131,7 @@ class SnapshotViewer:
                                       hint="like edit --select-only --select K")
         self._status = gui.add_markdown("")
         self._slider.on_update(lambda _event: self._display(int(self._slider.value)))
-        self._button.on_click(lambda _event: self.select())
+        self._button.on_click(self._select_clicked)
 
     @property
     def url(self) -> str:
@@ -191,6 +192,14 @@ class SnapshotViewer:
             path = select_snapshot(self.run_dir, subtask)
             self._status.content = f"wrote {path.name} from {label}"
             return path
+
+    def _select_clicked(self, _event) -> None:
+        from jaxedit import DataError
+
+        try:
+            self.select()
+        except DataError as e:  # e.g. the run directory went away: say so in the panel
+            self._status.content = f"error: {e}"
 
     def serve_forever(self) -> None:
         """Block until Ctrl-C (the server runs on viser's own threads)."""

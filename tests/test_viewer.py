@@ -120,6 +120,11 @@ def test_slider_and_select_button_write_what_select_only_writes(tmp_path, viser_
         viewer._slider.value = 1  # what dragging the slider does
         assert viewer._shown == 1 and not viewer._button.disabled
         path = viewer.select()
+        assert viewer._status.content == f"wrote selected.ply from {viewer._scenes[1][0]}"
+        (run / "schedule.json").rename(run / "moved.json")
+        viewer._select_clicked(None)  # a click: the error goes to the panel, not a traceback
+        assert viewer._status.content.startswith("error: ") and "schedule.json" in viewer._status.content
+        (run / "moved.json").rename(run / "schedule.json")
     finally:
         viewer.close()
     assert path == run / "selected.ply"
