@@ -153,12 +153,18 @@ class SnapshotViewer:
             follow = self._shown is None or self._shown == len(self._scenes) - 1
             self._scenes.append((label, subtask, arrays))
             if len(self._scenes) == 1 and len(arrays["centers"]):
-                position, look_at = camera_pose(arrays["centers"])
-                self.server.initial_camera.look_at = look_at
-                self.server.initial_camera.position = position
+                self._aim(*camera_pose(arrays["centers"]))
             self._slider.max = len(self._scenes) - 1
             if follow:
                 self.show(len(self._scenes) - 1)
+
+    def _aim(self, position, look_at) -> None:
+        """Frame the first scene, also in browsers opened before it arrived (edit --view)."""
+        self.server.initial_camera.look_at = look_at
+        self.server.initial_camera.position = position
+        for client in self.server.get_clients().values():
+            client.camera.position = position  # moves look_at along: set it second
+            client.camera.look_at = look_at
 
     def show(self, index: int) -> None:
         """Put snapshot ``index`` on screen and the slider on it."""

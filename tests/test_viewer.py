@@ -31,9 +31,12 @@ from jaxedit.io import save_ply
 RED, GREEN, BLUE = (1.0, 0.1, 0.1), (0.1, 0.9, 0.1), (0.1, 0.2, 1.0)
 
 
+CENTRE = np.array([4.0, -3.0, 1.0])  # off the origin, where viser's default camera looks
+
+
 def blob(seed: int, rgb, n: int = 300):
-    """n opaque Gaussians of one colour in a ball of radius ~0.5 at the origin."""
-    points = np.random.default_rng(seed).normal(size=(n, 3)) * 0.25
+    """n opaque Gaussians of one colour in a ball of radius ~0.5 around CENTRE."""
+    points = CENTRE + np.random.default_rng(seed).normal(size=(n, 3)) * 0.25
     g = from_points(points, np.tile(rgb, (n, 1)), sh_degree=1, init_opacity=0.9)
     return dataclasses.replace(g, log_scales=g.log_scales - 1.0)  # a third of the spacing
 
@@ -251,12 +254,17 @@ def screen_until(browser, path, colour, seconds=90.0):
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not on PATH (CI installs Debian's chromium)")
 def test_viewer_draws_the_splats_in_headless_chromium(tmp_path, viser_installed):
-    viewer = view.open_run(make_run(tmp_path / "run"), port=0)
+    run = make_run(tmp_path / "run")
+    viewer = view.SnapshotViewer(run, port=0)
     browser = None
     try:
+        # The page opens before the first snapshot, as with edit --view: the snapshots
+        # and the camera framing them reach it over the websocket.
         browser = DevTools(tmp_path / "profile", viewer.url)
         if not browser.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
             pytest.skip("this Chromium has no WebGL2 (no SwiftShader)")
+        wait_for(lambda: len(viewer.server.get_clients()) == 1, 60)
+        assert view.RunWatcher(run, viewer).refresh() == 3
         last = screen_until(browser, tmp_path / "last.png", "blue")
         viewer.show(0)  # the slider to the original: pushed to the open page
         original = screen_until(browser, tmp_path / "original.png", "red")
