@@ -247,11 +247,14 @@ def test_demo_threshold_default_follows_the_distance(cache, tmp_path, monkeypatc
 
     seen = {}
 
+    def record(command, flags):
+        seen[command] = flags
+        return [command]
+
     def stop(argv):
         raise RuntimeError("stop")  # the plan is built before any stage runs
 
-    monkeypatch.setattr(demo, "_stage_argv", lambda command, flags: seen.setdefault(command, flags)
-                        and [command])
+    monkeypatch.setattr(demo, "_stage_argv", record)
     monkeypatch.setattr(demo, "_run_stage", stop)
     monkeypatch.setattr(demo, "_require_commands", lambda: None)
     args = Namespace(out=tmp_path, size=8, views=2, test_views=1, iters=1, max_steps=1,
