@@ -71,6 +71,18 @@ def _check(args) -> None:
         raise DataError("--background", f"colour components must be in [0, 1], got {args.background}")
     if args.data is None and args.split != "all":
         raise DataError("--split", "only applies with --data")
+    if args.orbit is not None:  # before the orbit's cameras are even made
+        size = 256 if args.size is None else args.size
+        check_memory(args.orbit, size, size)
+
+
+def check_memory(n: int, width: int, height: int) -> None:
+    """Refuse a camera path whose frames would not fit in memory (they are kept for the video)."""
+    from experiments.cli import require_memory
+
+    # float32 RGB, alpha and depth per pixel per frame, kept until the turntable is written.
+    per_frame = width * height * 4 * 5
+    require_memory("--orbit/--size", n * per_frame, f"{n} frames of {width}x{height} px")
 
 
 def cameras_for(args, gaussians):
@@ -120,6 +132,7 @@ def run(args) -> dict:
     cams, path_fps = cameras_for(args, gaussians)
     fps = args.fps or path_fps or 12.0
     n = len(cams)
+    check_memory(n, cams.width, cams.height)
     out = Path(args.out)
     frames, alphas, depths = [], [], []
     t_render = time.perf_counter()
