@@ -190,19 +190,23 @@ def config_values(sub: argparse.ArgumentParser, config: dict, path: Path) -> dic
 
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = build_parser()
+    subs = parser._subparsers._group_actions[0].choices
+    # First pass without required flags: the config file may be the one that sets them.
+    required = [a for sub in subs.values() for a in sub._actions if a.required and a.option_strings]
+    for action in required:
+        action.required = False
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         parser.exit(2)
+    values = {}
     if args.config is not None:
-        sub = parser._subparsers._group_actions[0].choices[args.command]
+        sub = subs[args.command]
         values = config_values(sub, load_config(args.config), args.config)
-        for action in sub._actions:  # a required flag set by the config file is given
-            if action.dest in values and action.option_strings:
-                action.required = False
         sub.set_defaults(**values)
-        args = parser.parse_args(argv)
-    return args
+    for action in required:
+        action.required = action.dest not in values
+    return parser.parse_args(argv)
 
 
 #: Path flags that name outputs (everything else of type Path is an input that must exist).

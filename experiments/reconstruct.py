@@ -129,6 +129,25 @@ def initial_points(data, n_random: int, seed: int):
     return points.astype(np.float32), rng.uniform(size=(n_random, 3)).astype(np.float32), "random"
 
 
+def capped_initial_points(data, n_random: int, cap: int, seed: int):
+    """:func:`initial_points`, subsampled to at most ``cap`` (--max-gaussians) points.
+
+    The cap is hard from the first step on, so a larger initial cloud is thinned
+    (a uniform draw, logged) rather than trained and culled later.
+    """
+    import jax
+
+    from jaxedit import gaussians as G
+
+    points, colors, source = initial_points(data, n_random, seed)
+    if len(points) > cap:
+        log.info("initial points: keeping a random %d of the %d %s points (--max-gaussians)",
+                 cap, len(points), source)
+        points, colors = G.subsample_points(points, colors, cap,
+                                            jax.random.fold_in(jax.random.key(seed), 1))
+    return points, colors, source
+
+
 def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
                 checkpoint_every: int = 1000, log_every: int = 10, random_points: int = 20_000,
                 progress=True) -> dict:
@@ -175,13 +194,8 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
             log.info("resuming from %s (step %d)", latest, int(state.step))
     points_source = "checkpoint"
     if state is None:
-        points, colors, points_source = initial_points(data, random_points, seed)
-        cap = config.densify.max_gaussians
-        if len(points) > cap:  # the cap is hard from the first step on
-            log.info("initial points: keeping a random %d of the %d %s points (--max-gaussians)",
-                     cap, len(points), points_source)
-            points, colors = G.subsample_points(points, colors, cap,
-                                                jax.random.fold_in(jax.random.key(seed), 1))
+        points, colors, points_source = capped_initial_points(
+            data, random_points, config.densify.max_gaussians, seed)
         g = G.from_points(points, colors, sh_degree=config.sh_degree)
         state = T.init_state(g, config, extent, key=jax.random.key(seed))
     start_step = int(state.step)
@@ -269,4 +283,4 @@ def run(args) -> dict:
     return {k: metrics[k] for k in keys} | {"out": str(args.out)}
 
 
-__all__ = ["reconstruct", "config_from_args", "initial_points"]
+__all__ = ["reconstruct", "config_from_args", "initial_points", "capped_initial_points"]

@@ -69,6 +69,12 @@ def _check(args) -> None:
         raise DataError("--fps", f"must be > 0, got {args.fps}")
     if not all(0.0 <= c <= 1.0 for c in args.background):
         raise DataError("--background", f"colour components must be in [0, 1], got {args.background}")
+    if args.fov is not None and not 0.0 < args.fov < 180.0:
+        raise DataError("--fov", f"must be in (0, 180) degrees, got {args.fov}")
+    if args.elevation is not None and not abs(args.elevation) <= 90.0:
+        raise DataError("--elevation", f"must be in [-90, 90] degrees, got {args.elevation}")
+    if args.target is not None and not np.isfinite(args.target).all():
+        raise DataError("--target", f"must be finite, got {args.target}")
     if args.data is None and args.split != "all":
         raise DataError("--split", "only applies with --data")
     if args.orbit is not None:  # before the orbit's cameras are even made
@@ -121,7 +127,7 @@ def cameras_for(args, gaussians):
 
 def run(args) -> dict:
     from experiments.progress import Progress, configure
-    from jaxedit import viz
+    from jaxedit import camera as camlib, viz
     from jaxedit.io import load_ply, write_image
     from jaxedit.io.files import atomic_write_text
 
@@ -130,6 +136,7 @@ def run(args) -> dict:
     t0 = time.perf_counter()
     gaussians = load_ply(args.scene)
     cams, path_fps = cameras_for(args, gaussians)
+    camlib.check_cameras(cams, args.camera_path or args.data or "--orbit/--radius/--fov/--target")
     fps = args.fps or path_fps or 12.0
     n = len(cams)
     check_memory(n, cams.width, cams.height)

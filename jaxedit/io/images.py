@@ -129,10 +129,7 @@ def _c_stderr_to_message():
     passed on to stderr unchanged (a warning about a readable file stays visible).
     """
     failed: list = []
-    try:
-        fd = sys.stderr.fileno() if hasattr(sys.stderr, "fileno") else 2
-    except (OSError, ValueError):  # a captured, fd-less sys.stderr: C writes still go to 2
-        fd = 2
+    fd = 2  # C's stderr, whatever Python's sys.stderr is at the moment
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()
         saved = os.dup(fd)
