@@ -411,7 +411,7 @@ def test_initial_points_never_exceed_the_cap(n_points, cap, seed):
 
 # ---------------------------------------------------------------- kill, resume, lock
 
-RECON_FLAGS = ["--iters", "300", "--checkpoint-every", "20", "--max-gaussians", "40",
+RECON_FLAGS = ["--iters", "400", "--checkpoint-every", "20", "--max-gaussians", "40",
                "--sh-degree", "0", "--warmup", "20", "--refine-every", "20",
                "--densify-until", "200", "--reset-every", "0", "--log-every", "50", "--quiet"]
 
@@ -428,6 +428,29 @@ def _wait_for(path_glob, proc, timeout=240.0):
     return False
 
 
+def _start_and_kill(argv, out: Path, checkpoints: tuple, *, on_stopped=None) -> None:
+    """Run the CLI in a subprocess and SIGKILL it at a random moment after its first checkpoint.
+
+    ``on_stopped(proc)`` runs while the process is frozen (SIGSTOP) just before the kill.
+    """
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.Popen([sys.executable, "-m", "experiments", *argv, "--out", str(out)],
+                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        started = _wait_for(checkpoints, proc)
+        assert started, proc.stderr.read().decode()[-2000:] if proc.poll() is not None else "slow"
+        time.sleep(random.Random().uniform(0.0, 0.2))
+        proc.send_signal(signal.SIGSTOP)  # frozen, it still holds the lock on --out
+        assert proc.poll() is None, "the run ended before it could be killed"
+        if on_stopped is not None:
+            on_stopped(proc)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+
+
+@pytest.mark.slow
 def test_kill_resume_and_lock_of_a_reconstruction(corpus, tmp_path, capfd):
     """SIGKILL after the first checkpoint, resume: the same scene.ply bytes as one run."""
     whole, killed = tmp_path / "whole", tmp_path / "killed"
@@ -436,21 +459,27 @@ def test_kill_resume_and_lock_of_a_reconstruction(corpus, tmp_path, capfd):
     metrics = json.loads((whole / "metrics.json").read_text())
     assert metrics["num_gaussians"] <= 40 and load_ply(whole / "scene.ply").capacity <= 40
 
-    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    proc = subprocess.Popen([sys.executable, "-m", "experiments", *base, "--out", str(killed)],
-                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        started = _wait_for((killed / "checkpoints", "ckpt_*.npz"), proc)
-        assert started, proc.stderr.read().decode()[-2000:] if proc.poll() is not None else "slow"
-        time.sleep(random.Random().uniform(0.0, 0.5))  # a random point after the checkpoint
-        proc.send_signal(signal.SIGSTOP)  # frozen, it still holds the lock on --out
+    def second_process_is_refused(proc):
         listing = _listing(killed)
         line = _fails(capfd, [*base, "--out", killed, "--resume"], "in use by another", killed)
-        assert f"pid {proc.pid}" in line
-        assert _listing(killed) == listing
-        proc.kill()
-    finally:
-        proc.kill()
-        proc.wait()
+        assert f"pid {proc.pid}" in line and _listing(killed) == listing
+
+    _start_and_kill(base, killed, (killed / "checkpoints", "ckpt_*.npz"),
+                    on_stopped=second_process_is_refused)
     assert cli.main([*base, "--out", str(killed), "--resume"]) == 0
     assert (killed / "scene.ply").read_bytes() == (whole / "scene.ply").read_bytes()
+
+
+@pytest.mark.slow
+def test_kill_and_resume_of_an_edit(corpus, tmp_path):
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    base = ["edit", "--data", str(corpus.data), "--scene", str(corpus.scene), "--prompt",
+            "turn him into a bronze statue", "--mode", "nd", "--sync", "--max-steps", "120",
+            "--test-views", "1", "--turntable-frames", "0", "--no-report", "--quiet"]
+    assert cli.main([*base, "--out", str(whole)]) == 0
+    _start_and_kill(base, killed, (killed, "checkpoint.npz"))
+    assert cli.main([*base, "--out", str(killed), "--resume"]) == 0
+    finals = sorted(whole.glob("subtasks/*/scene.ply"))
+    assert finals and [p.relative_to(whole) for p in finals] == [
+        p.relative_to(killed) for p in sorted(killed.glob("subtasks/*/scene.ply"))]
+    assert (killed / finals[-1].relative_to(whole)).read_bytes() == finals[-1].read_bytes()
