@@ -116,7 +116,13 @@ def cameras_for(args, gaussians):
             cams = cams.scaled(args.size / cams.width)
         return cams, None
     fov = 40.0 if args.fov is None else args.fov
-    target, radius = viz.frame_gaussians(gaussians, fov_deg=fov)
+    if args.radius is None or args.target is None:
+        if not np.asarray(gaussians.alive).any():
+            raise DataError(args.scene, "has no Gaussians to frame an orbit around; give --radius "
+                            "and --target (or --data / --camera-path) to render its background")
+        target, radius = viz.frame_gaussians(gaussians, fov_deg=fov)
+    else:
+        radius = args.radius
     if args.target is not None:
         target = np.asarray(args.target, np.float64)
     size = 256 if args.size is None else args.size

@@ -251,7 +251,7 @@ def degenerate(corpus) -> dict:
     ("reconstruct focal", "field of view of almost zero"),
     ("render focal", "field of view of almost zero"),
     ("edit far", "too far for float32"), ("reconstruct far", "too far for float32"),
-    ("edit empty", "has no Gaussians"),
+    ("edit empty", "has no Gaussians"), ("render empty", "has no Gaussians to frame"),
     ("render radius", "too far for float32"), ("render fov", "--fov"),
 ])
 def test_degenerate_data(corpus, degenerate, tmp_path, capfd, case, needle):
@@ -260,6 +260,7 @@ def test_degenerate_data(corpus, degenerate, tmp_path, capfd, case, needle):
     scene = corpus.empty if what == "empty" else corpus.scene
     out = tmp_path / "o"
     extra = {"downscale": ["--downscale", "17"], "radius": ["--orbit", "2", "--radius", "1e29"],
+             "empty": ["--orbit", "2"] if command == "render" else [],
              "fov": ["--orbit", "2", "--fov", "180"]}.get(what, [])
     if command == "render":
         argv = ["render", "--scene", scene, "--out", out, "--quiet"]
@@ -272,13 +273,16 @@ def test_degenerate_data(corpus, degenerate, tmp_path, capfd, case, needle):
     assert not out.exists()
 
 
-def test_render_of_an_empty_scene_is_the_background(corpus, tmp_path):
+@pytest.mark.parametrize("path", [["--data", "{data}"],
+                                  ["--orbit", "2", "--radius", "3", "--target", "0", "0", "0",
+                                   "--size", str(SIZE)]])
+def test_render_of_an_empty_scene_is_the_background(corpus, tmp_path, path):
     out = tmp_path / "o"
-    assert cli.main(["render", "--scene", str(corpus.empty), "--data", str(corpus.data),
-                     "--out", str(out), "--background", "0.2", "0.4", "0.6", "--no-depth",
-                     "--quiet"]) == 0
+    assert cli.main(["render", "--scene", str(corpus.empty), "--out", str(out), "--background",
+                     "0.2", "0.4", "0.6", "--no-depth", "--quiet",
+                     *[a.format(data=corpus.data) for a in path]]) == 0
     frames = sorted((out / "frames").glob("*.png"))
-    assert len(frames) == 4
+    assert len(frames) == (4 if "--data" in path else 2)
     for f in frames:
         np.testing.assert_allclose(read_image(f), np.broadcast_to([0.2, 0.4, 0.6], (SIZE, SIZE, 3)),
                                    atol=1 / 255)
