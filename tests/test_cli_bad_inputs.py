@@ -194,7 +194,7 @@ def test_config_values_get_the_flags_validation(corpus, tmp_path, capfd, key, va
         typed = [flag, str(value)]
     if value is None and key == "densify_until":
         typed = []  # null where the flag's default is unset means "not given"
-    from_flags, flag_error = (None, "unspellable") if typed is None else _parse(
+    from_flags, _ = (None, "unspellable") if typed is None else _parse(
         _reconstruct_argv(corpus, out, *typed))
     if from_flags is None:
         assert from_file is None, (value, vars(from_file))
