@@ -182,14 +182,11 @@ def check_counts(args) -> None:
     """Counts and sizes in range (a flag left unset keeps the mode's default)."""
     from jaxedit import DataError
 
-    for flag, value, low in (("--test-views", args.test_views, 1), ("--subtasks", args.subtasks, 1),
-                             ("--warmup", args.warmup, 0), ("--patience", args.patience, 1),
-                             ("--max-steps", args.max_steps, 1), ("--edit-every", args.edit_every, 1),
-                             ("--turntable-frames", args.turntable_frames, 0),
-                             ("--downscale", args.downscale, 1), ("--ip2p-size", args.ip2p_size, 8),
-                             ("--ip2p-steps", args.ip2p_steps, 1)):
-        if value is not None and value < low:
-            raise DataError(flag, f"must be >= {low}, got {value}")
+    from .cli import check_minimums
+
+    check_minimums(args, {"test_views": 1, "subtasks": 1, "warmup": 0, "patience": 1,
+                          "max_steps": 1, "edit_every": 1, "turntable_frames": 0, "downscale": 1,
+                          "ip2p_size": 8, "ip2p_steps": 1})
     if args.threshold is not None and not args.threshold > 0:
         raise DataError("--threshold", f"must be > 0, got {args.threshold}")
 

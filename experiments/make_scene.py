@@ -43,15 +43,9 @@ def contact_sheet(images, columns: int = 8):
 
 def check_sizes(args) -> None:
     """Counts in range, and the memory they imply within the machine's, before any work."""
-    from jaxedit import DataError
+    from experiments.cli import check_minimums, require_memory
 
-    from experiments.cli import require_memory
-
-    for flag, value, low in (("--size", args.size, 8), ("--views", args.views, 1),
-                             ("--test-views", args.test_views, 0), ("--points", args.points, 1),
-                             ("--supersample", args.supersample, 1)):
-        if value < low:
-            raise DataError(flag, f"must be >= {low}, got {value}")
+    check_minimums(args, {"size": 8, "views": 1, "test_views": 0, "points": 1, "supersample": 1})
     frames = args.views + args.test_views
     # Kept: every frame as float32 RGB (and once more while written). Per frame traced:
     # (size * supersample)^2 rays with about 40 float64 values each (origins, directions,

@@ -76,25 +76,20 @@ def config_from_args(args):
 def _check(args) -> None:
     from jaxedit import DataError
 
+    from experiments.cli import check_minimums, require_memory
+
     if args.out is None:
         raise DataError("--out", "reconstruct needs a run directory (--out RUN_DIR)")
-    for name in ("iters", "max_gaussians", "refine_every", "random_points", "log_every",
-                 "downscale"):
-        if getattr(args, name) < 1:
-            raise DataError(f"--{name.replace('_', '-')}", f"must be >= 1, got {getattr(args, name)}")
+    check_minimums(args, {"iters": 1, "max_gaussians": 1, "refine_every": 1, "random_points": 1,
+                          "log_every": 1, "downscale": 1, "checkpoint_every": 0, "warmup": 0,
+                          "reset_every": 0, "densify_until": 0})
     if not 0 <= args.sh_degree <= 3:
         raise DataError("--sh-degree", f"must be in 0..3, got {args.sh_degree}")
-    if args.checkpoint_every < 0 or args.warmup < 0 or args.reset_every < 0:
-        raise DataError("--checkpoint-every/--warmup/--reset-every", "must be >= 0")
     if not 0.0 < args.cull_alpha < 1.0:
         raise DataError("--cull-alpha", f"must be in (0, 1), got {args.cull_alpha}")
-    if args.densify_until is not None and args.densify_until < 0:
-        raise DataError("--densify-until", f"must be >= 0, got {args.densify_until}")
     # A Gaussian of degree-3 SH costs 59 float32 parameters, each with a gradient and two
     # Adam moments, plus densification statistics: about 1 KiB. The random init alone
     # allocates --random-points of them (before the --max-gaussians cap subsamples).
-    from experiments.cli import require_memory
-
     require_memory("--random-points", args.random_points * 1024,
                    f"{args.random_points} initial Gaussians")
 

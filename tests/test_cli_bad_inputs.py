@@ -372,6 +372,9 @@ def test_absurd_sizes_are_refused_with_the_memory_needed(corpus, tmp_path, capfd
     (["make-scene", "ball", "--size", "0"], "--size"),
     (["render", "--scene", "{scene}", "--orbit", "-3"], "--orbit"),
     (["demo", "--iters", "0"], "--iters"),
+    (["ablation", "--views", "0"], "--views"),
+    (["ablation", "--recon-iters", "-1"], "--recon-iters"),
+    (["bench", "--max-rows", "0"], "--max-rows"),
 ])
 def test_zero_or_negative_counts(corpus, tmp_path, capfd, argv, flag):
     out = tmp_path / "o"
