@@ -490,3 +490,39 @@ def test_kill_and_resume_of_an_edit(corpus, tmp_path):
     assert finals and [p.relative_to(whole) for p in finals] == [
         p.relative_to(killed) for p in sorted(killed.glob("subtasks/*/scene.ply"))]
     assert (killed / finals[-1].relative_to(whole)).read_bytes() == finals[-1].read_bytes()
+
+
+def test_folder_lock_refuses_a_second_holder_and_is_removed_after(tmp_path):
+    from jaxedit import DataError
+    from jaxedit.io.files import LOCK_NAME, folder_lock
+
+    run = tmp_path / "run"
+    with folder_lock(run, flag="--out"):
+        assert (run / LOCK_NAME).read_text().strip() == str(os.getpid())
+        with pytest.raises(DataError, match=f"--out: .* in use .*pid {os.getpid()}"):
+            with folder_lock(run, flag="--out"):
+                pass
+    assert not (run / LOCK_NAME).exists()
+    with folder_lock(run):  # free again
+        pass
+
+
+@pytest.mark.parametrize("change, needle", [
+    (dict(fx=0.0), "must be positive"), (dict(fy=-3.0), "must be positive"),
+    (dict(fx=1e12), "almost zero"), (dict(fy=1e-6), "almost 180"),
+    (dict(fx=np.nan), "non-finite"), (dict(shift=1e7), "too far"), (dict(width=0), "no pixels"),
+])
+def test_check_cameras_explains_unusable_cameras(change, needle):
+    from jaxedit import DataError
+
+    cams = camlib.hemisphere(3, radius=2.0, width=SIZE, height=SIZE, fov_deg=50.0)
+    camlib.check_cameras(cams, "rig")  # a sound rig passes
+    if "shift" in change:
+        w2c = np.array(cams.world_to_camera)
+        w2c[1, :3, 3] += change.pop("shift")
+        cams = dataclasses.replace(cams, world_to_camera=w2c)
+    for k, v in change.items():
+        value = v if k == "width" else np.asarray(cams.fx).copy() * 0 + v
+        cams = dataclasses.replace(cams, **{k: value})
+    with pytest.raises(DataError, match=f"rig: .*{needle}"):
+        camlib.check_cameras(cams, "rig")
