@@ -80,17 +80,15 @@ def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
     # float then avoids the 8-bit rounding of OpenImageIO's premultiply.
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
-    with _c_stderr_to_message() as failed:
+    with _c_stderr_held_back():
         inp = oiio.ImageInput.open(str(path), config)
         if inp is None:
-            failed.append(True)
             raise DataError(path, f"cannot open image ({_oiio_error()})")
         try:
             spec = inp.spec()
             straight = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 1
             pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
             if pixels is None or inp.has_error:
-                failed.append(True)
                 raise DataError(path, f"cannot decode image ({_oiio_error(inp)})")
         finally:
             inp.close()
@@ -120,26 +118,27 @@ def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
 
 
 @contextlib.contextmanager
-def _c_stderr_to_message():
+def _c_stderr_held_back():
     """Hold back what C libraries print on file descriptor 2 (libpng's "libpng error: ..." line).
 
     The decoder's complaint is already part of OpenImageIO's error text, which goes into
-    our one-line DataError; printing it again would make two lines. Yields a list the
-    caller appends to when the read failed: then the held-back text is dropped, else it is
-    passed on to stderr unchanged (a warning about a readable file stays visible).
+    our one-line DataError; printing it too would make two lines. When the block raises,
+    the held-back text is dropped; otherwise it is passed on to stderr unchanged (a
+    warning about a file that could be read stays visible).
     """
-    failed: list = []
     fd = 2  # C's stderr, whatever Python's sys.stderr is at the moment
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()
         saved = os.dup(fd)
         os.dup2(held.fileno(), fd)
+        ok = False
         try:
-            yield failed
+            yield
+            ok = True
         finally:
             os.dup2(saved, fd)
             os.close(saved)
-            if not failed:
+            if ok:
                 held.seek(0)
                 text = held.read()
                 if text:
