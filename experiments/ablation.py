@@ -164,8 +164,15 @@ def run_ablation(out: Path, *, scene_name="face", prompt="turn him into a bronze
 def run(args) -> dict:
     from jaxedit import DataError
 
+    from experiments.cli import check_minimums
+
     if args.out is None:
         raise DataError("--out", "required (the ablation run directory)")
+    check_minimums(args, {"size": 8, "views": 1, "test_views": 1, "recon_iters": 1,
+                          "max_steps": 1, "warmup": 0, "patience": 1})
+    for name in ("threshold", "lr_sh_dc"):
+        if getattr(args, name) is not None and not getattr(args, name) > 0:
+            raise DataError(f"--{name.replace('_', '-')}", f"must be > 0, got {getattr(args, name)}")
     modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     bad = [m for m in modes if m not in MODES + EXTRA]
     if bad or not modes:

@@ -153,6 +153,9 @@ def run(args) -> dict:
         raise DataError("--out", "an output directory is required")
     if args.timeout <= 0:
         raise DataError("--timeout", f"must be > 0, got {args.timeout}")
+    from experiments.cli import check_minimums
+
+    check_minimums(args, {"max_rows": 1})
     available = discover()
     names = available
     if args.only:

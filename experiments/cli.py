@@ -13,14 +13,25 @@ the command line win. Every run directory receives ``config.json`` with the
 resolved flags and the jaxedit version, so a run can be reproduced from it.
 Bad input (:class:`jaxedit.DataError`) and bad flags print one line to stderr and
 exit with status 2.
+
+Before any work starts, :func:`check_paths` checks every path flag (inputs exist,
+``--out``/``--output`` can be created and written) and :func:`config_values` puts
+every config-file value through its flag's own argparse conversion, so a config
+file gets exactly the validation the command line gets. While a command runs it
+holds a lock on ``--out`` (a second process on the same folder is refused), and a
+run that ends in a DataError removes what it had created there.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
+import os
+import shutil
 import sys
+import tempfile
 import tomllib
 from pathlib import Path
 
@@ -53,9 +64,11 @@ def load_config(path: Path) -> dict:
     from jaxedit import DataError
 
     try:
-        text = Path(path).read_text()
+        text = Path(path).read_text(encoding="utf-8")
     except OSError as e:
         raise DataError(path, f"cannot read config file ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise DataError(path, f"config file is not UTF-8 text (byte {e.start})") from None
     try:
         if str(path).endswith(".toml"):
             data = tomllib.loads(text)
@@ -63,6 +76,8 @@ def load_config(path: Path) -> dict:
             data = json.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as e:
         raise DataError(path, f"malformed config ({e})") from None
+    except RecursionError:
+        raise DataError(path, "malformed config (nested too deeply)") from None
     if not isinstance(data, dict):
         raise DataError(path, "config must be a table/object of flag names to values")
     return {k.replace("-", "_"): v for k, v in data.items()}
@@ -110,23 +125,197 @@ def write_run_config(args: argparse.Namespace) -> None:
     atomic_write_text(args.out / "config.json", json.dumps(record, indent=2) + "\n")
 
 
+def _flag_name(action: argparse.Action) -> str:
+    """How the user names a flag: its long option, or a positional's metavar."""
+    if action.option_strings:
+        return action.option_strings[-1]
+    return action.metavar if isinstance(action.metavar, str) else action.dest.upper()
+
+
+def config_value(sub: argparse.ArgumentParser, action: argparse.Action, value, path: Path):
+    """A config-file value converted and checked exactly as its flag's command-line text is.
+
+    The value is turned back into the token(s) a user would type and put through the
+    action's own type and choices (argparse's conversion), so ``"iters": "abc"``, a
+    list for a one-value flag or ``true`` for a number fail just as on the command line.
+    ``null`` is accepted only where the flag's default is unset (it means "not given").
+    """
+    from jaxedit import DataError
+
+    name = _flag_name(action)
+    if value is None:
+        if action.default is None:
+            return None
+        raise DataError(path, f"{action.dest}: null is not a value of {name}")
+    if action.nargs == 0:  # store_true / store_false / store_const switches
+        if not isinstance(value, bool):
+            raise DataError(path, f"{action.dest}: {name} is a switch, expected true or false, "
+                            f"got {value!r}")
+        return value
+    many = isinstance(action, argparse._AppendAction) or action.nargs in ("+", "*") or isinstance(
+        action.nargs, int)
+    values = value if many and isinstance(value, list) else [value]
+    if many and not isinstance(value, list):
+        raise DataError(path, f"{action.dest}: {name} takes a list, got {value!r}")
+    if isinstance(action.nargs, int) and len(values) != action.nargs:
+        raise DataError(path, f"{action.dest}: {name} takes {action.nargs} values, "
+                        f"got {len(values)}")
+    if action.nargs == "+" and not values:
+        raise DataError(path, f"{action.dest}: {name} takes at least one value")
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, (str, int, float)):
+            raise DataError(path, f"{action.dest}: {name} expects a "
+                            f"{'list of ' if many else ''}single value as typed on the "
+                            f"command line, got {json.dumps(v)[:40]}")
+    try:
+        converted = [sub._get_values(action, [str(v)]) for v in values]
+    except argparse.ArgumentError as e:
+        raise DataError(path, f"{action.dest}: {e}") from None
+    return converted if many else converted[0]
+
+
+def config_values(sub: argparse.ArgumentParser, config: dict, path: Path) -> dict:
+    """{dest: value} of a config file, each checked by :func:`config_value`."""
+    from jaxedit import DataError
+
+    actions = {}
+    for a in sub._actions:
+        if a.dest not in ("help", "config"):
+            actions.setdefault(a.dest, a)
+    unknown = sorted(set(config) - set(actions))
+    if unknown:
+        raise DataError(path, f"unknown flag(s) {', '.join(unknown)} for {sub.prog.split()[-1]}")
+    return {k: config_value(sub, actions[k], v, path) for k, v in config.items()}
+
+
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = build_parser()
+    subs = parser._subparsers._group_actions[0].choices
+    # First pass without required flags: the config file may be the one that sets them.
+    required = [a for sub in subs.values() for a in sub._actions if a.required and a.option_strings]
+    for action in required:
+        action.required = False
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         parser.exit(2)
+    values = {}
     if args.config is not None:
-        sub = parser._subparsers._group_actions[0].choices[args.command]
-        config = load_config(args.config)
-        known = {a.dest for a in sub._actions}
-        unknown = sorted(set(config) - known)
-        if unknown:
-            from jaxedit import DataError
-            raise DataError(args.config, f"unknown flag(s) {', '.join(unknown)} for {args.command}")
-        sub.set_defaults(**config)
-        args = parser.parse_args(argv)
-    return args
+        sub = subs[args.command]
+        values = config_values(sub, load_config(args.config), args.config)
+        sub.set_defaults(**values)
+    for action in required:
+        action.required = action.dest not in values
+    return parser.parse_args(argv)
+
+
+#: Path flags that name outputs (everything else of type Path is an input that must exist).
+OUTPUT_DIRS = ("out",)
+OUTPUT_FILES = ("output",)
+
+
+def _check_utf8(path: Path, name: str) -> None:
+    from jaxedit import DataError
+
+    try:
+        os.fsencode(path).decode("utf-8")
+    except UnicodeDecodeError:
+        raise DataError(name, f"path {os.fsencode(path)!r} is not valid UTF-8; "
+                        "use a UTF-8 name") from None
+
+
+def check_output_path(path: Path, name: str, *, directory: bool = True) -> None:
+    """Refuse, before any work, an output that cannot be created or written.
+
+    Args:
+      path: the folder (``directory``) or file to write.
+      name: the flag, for the message.
+    """
+    from jaxedit import DataError
+
+    _check_utf8(path, name)
+    path = Path(path)
+    if path.exists():
+        if directory and not path.is_dir():
+            raise DataError(name, f"{path} exists and is not a directory")
+        if not directory and path.is_dir():
+            raise DataError(name, f"{path} is a directory, expected a file name")
+    existing = path if directory and path.is_dir() else path.parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise DataError(name, f"cannot create {path}: {existing} is a file, not a directory")
+    try:  # a real write: permission bits, read-only mounts and root all answer truthfully
+        fd, probe = tempfile.mkstemp(prefix=".jaxedit-probe-", dir=existing)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise DataError(name, f"cannot write in {existing} ({e.strerror or e})") from None
+
+
+def check_input_path(path: Path, name: str) -> None:
+    from jaxedit import DataError
+
+    _check_utf8(path, name)
+    if not Path(path).exists():
+        raise DataError(path, f"does not exist (given as {name})")
+    if not os.access(path, os.R_OK):
+        raise DataError(path, f"is not readable (given as {name})")
+
+
+def check_paths(args: argparse.Namespace) -> None:
+    """Check every path flag of the command (inputs exist, outputs can be made) up front."""
+    sub = build_parser()._subparsers._group_actions[0].choices[args.command]
+    for action in sub._actions:
+        value = getattr(args, action.dest, None)
+        if action.type is not Path or value is None or action.dest == "config":
+            continue
+        name = _flag_name(action)
+        if action.dest in OUTPUT_DIRS:
+            check_output_path(value, name)
+        elif action.dest in OUTPUT_FILES:
+            check_output_path(value, name, directory=False)
+        else:
+            check_input_path(value, name)
+
+
+def _first_missing(path: Path) -> Path | None:
+    """The outermost folder of ``path`` that does not exist yet (None: it all exists)."""
+    path = Path(os.path.abspath(path))
+    missing = None
+    while not path.exists():
+        missing, path = path, path.parent
+    return missing
+
+
+@contextlib.contextmanager
+def claimed_out(out: Path | None):
+    """Hold ``out``'s lock while the command runs; on a DataError remove what it created.
+
+    Entries of ``out`` that existed before (a resumed run's checkpoints) are kept.
+    """
+    from jaxedit import DataError
+    from jaxedit.io.files import LOCK_NAME, folder_lock
+
+    if out is None:
+        yield
+        return
+    created = _first_missing(out)
+    before = None if created is not None else set(os.listdir(out))
+    with folder_lock(out, flag="--out"):
+        try:
+            yield
+        except DataError:
+            if created is not None:
+                shutil.rmtree(created, ignore_errors=True)
+            else:
+                for name in set(os.listdir(out)) - before - {LOCK_NAME}:
+                    target = Path(out) / name
+                    if target.is_dir() and not target.is_symlink():
+                        shutil.rmtree(target, ignore_errors=True)
+                    else:
+                        target.unlink(missing_ok=True)
+            raise
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,11 +324,13 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
         args = parse(argv)
+        check_paths(args)
         if args.device:
             import jax
             jax.config.update("jax_platforms", args.device)
-        write_run_config(args)
-        result = args._module.run(args)
+        with claimed_out(args.out):
+            write_run_config(args)
+            result = args._module.run(args)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -149,3 +340,48 @@ def main(argv: list[str] | None = None) -> int:
     if result:
         print(json.dumps(jsonable(result), indent=2))
     return 0
+
+
+def available_memory() -> int:
+    """Bytes of memory a new allocation can get now (MemAvailable; else physical memory)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def require_memory(flag: str, needed: float, what: str) -> None:
+    """Refuse up front a run whose estimated working set exceeds the free memory.
+
+    Args:
+      flag: the flag(s) that set the size, for the message.
+      needed: estimated bytes.
+      what: what the bytes are for, in words.
+    """
+    from jaxedit import DataError
+
+    free = available_memory()
+    if needed > free:
+        raise DataError(flag, f"{what} would need about {_gib(needed)} of memory, "
+                        f"this machine has {_gib(free)} free")
+
+
+def _gib(nbytes: float) -> str:
+    return f"{nbytes / 2**30:.3g} GiB"
+
+
+def check_minimums(args: argparse.Namespace, minimums: dict) -> None:
+    """Refuse a count below its minimum: ``{dest: least value}``; unset (None) flags pass.
+
+    Zero or negative counts otherwise fail deep inside the work, as tracebacks.
+    """
+    from jaxedit import DataError
+
+    for dest, low in minimums.items():
+        value = getattr(args, dest)
+        if value is not None and value < low:
+            raise DataError(f"--{dest.replace('_', '-')}", f"must be >= {low}, got {value}")

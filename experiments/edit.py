@@ -147,13 +147,19 @@ def load_inputs(args):
         raise DataError("--data", "required (a nerfstudio dataset folder)")
     if args.scene is None:
         raise DataError("--scene", "required (the input 3DGS .ply)")
+    from .reconstruct import check_image_size
+
     dataset = load_nerfstudio(args.data, downscale=args.downscale)
+    check_image_size(dataset, args.data)
+    scene = load_ply(args.scene)
+    if not np.asarray(scene.alive).any():
+        raise DataError(args.scene, "has no Gaussians (zero vertices): nothing to edit")
     data = EditData.from_dataset(dataset)
     if args.test_views is not None and len(data.test_images) > args.test_views:
         keep = np.linspace(0, len(data.test_images) - 1, args.test_views).round().astype(int)
         data = EditData(data.train_images, data.train_cameras, data.test_images[keep],
                         data.test_cameras[keep])
-    return data, load_ply(args.scene)
+    return data, scene
 
 
 def config_from_args(args):
@@ -194,6 +200,19 @@ def progress_callback(quiet: bool):
     return progress
 
 
+def check_counts(args) -> None:
+    """Counts and sizes in range (a flag left unset keeps the mode's default)."""
+    from jaxedit import DataError
+
+    from .cli import check_minimums
+
+    check_minimums(args, {"test_views": 1, "subtasks": 1, "warmup": 0, "patience": 1,
+                          "max_steps": 1, "edit_every": 1, "turntable_frames": 0, "downscale": 1,
+                          "ip2p_size": 8, "ip2p_steps": 1})
+    if args.threshold is not None and not args.threshold > 0:
+        raise DataError("--threshold", f"must be > 0, got {args.threshold}")
+
+
 def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.edit.progressive import run_edit, select_snapshot
@@ -205,6 +224,7 @@ def run(args) -> dict:
             raise DataError("--select", "required with --select-only")
         path = select_snapshot(args.out, args.select)
         return {"selected": str(path)}
+    check_counts(args)
     if args.resume and args.resume_from is not None:
         raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
     if args.clip_weights is not None and not (args.caption_orig and args.caption_edit):

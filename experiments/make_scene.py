@@ -41,6 +41,21 @@ def contact_sheet(images, columns: int = 8):
     return sheet
 
 
+def check_sizes(args) -> None:
+    """Counts in range, and the memory they imply within the machine's, before any work."""
+    from experiments.cli import check_minimums, require_memory
+
+    check_minimums(args, {"size": 8, "views": 1, "test_views": 0, "points": 1, "supersample": 1})
+    frames = args.views + args.test_views
+    # Kept: every frame as float32 RGB (and once more while written). Per frame traced:
+    # (size * supersample)^2 rays with about 40 float64 values each (origins, directions,
+    # hits, shading). Points: a few float64 copies of [points, 3] positions and colours.
+    rays = (args.size * args.supersample) ** 2
+    needed = 2 * frames * args.size ** 2 * 3 * 4 + rays * 40 * 8 + args.points * 6 * 8 * 4
+    require_memory("--size/--views/--points", needed,
+                   f"{frames} views of {args.size}x{args.size} px and {args.points} points")
+
+
 def run(args) -> dict:
     from jaxedit import DataError, scenes
     from jaxedit.io.nerfstudio import load_nerfstudio
@@ -50,6 +65,7 @@ def run(args) -> dict:
     if args.name not in scenes.list_scenes():
         raise DataError("NAME", f"unknown scene {args.name!r}; built-in scenes: "
                         f"{', '.join(scenes.list_scenes())}")
+    check_sizes(args)
     start = time.perf_counter()
     path = scenes.make_scene(args.name, args.out, size=args.size, views=args.views,
                              test_views=args.test_views, seed=args.seed, num_points=args.points,

@@ -76,17 +76,36 @@ def config_from_args(args):
 def _check(args) -> None:
     from jaxedit import DataError
 
+    from experiments.cli import check_minimums, require_memory
+
     if args.out is None:
         raise DataError("--out", "reconstruct needs a run directory (--out RUN_DIR)")
-    for name in ("iters", "max_gaussians", "refine_every", "random_points", "log_every"):
-        if getattr(args, name) < (0 if name == "iters" else 1):
-            raise DataError(f"--{name.replace('_', '-')}", f"out of range: {getattr(args, name)}")
+    check_minimums(args, {"iters": 1, "max_gaussians": 1, "refine_every": 1, "random_points": 1,
+                          "log_every": 1, "downscale": 1, "checkpoint_every": 0, "warmup": 0,
+                          "reset_every": 0, "densify_until": 0})
     if not 0 <= args.sh_degree <= 3:
         raise DataError("--sh-degree", f"must be in 0..3, got {args.sh_degree}")
-    if args.checkpoint_every < 0 or args.warmup < 0 or args.reset_every < 0:
-        raise DataError("--checkpoint-every/--warmup/--reset-every", "must be >= 0")
     if not 0.0 < args.cull_alpha < 1.0:
         raise DataError("--cull-alpha", f"must be in (0, 1), got {args.cull_alpha}")
+    # A Gaussian of degree-3 SH costs 59 float32 parameters, each with a gradient and two
+    # Adam moments, plus densification statistics: about 1 KiB. The random init alone
+    # allocates --random-points of them (before the --max-gaussians cap subsamples).
+    require_memory("--random-points", args.random_points * 1024,
+                   f"{args.random_points} initial Gaussians")
+
+
+#: Smallest image side that training and evaluation accept: SSIM's 11-pixel window.
+MIN_IMAGE_SIZE = 11
+
+
+def check_image_size(data, where) -> None:
+    """DataError when ``data``'s images (after --downscale) are smaller than SSIM's window."""
+    from jaxedit import DataError
+
+    h, w = data.images.shape[1:3]
+    if min(h, w) < MIN_IMAGE_SIZE:
+        raise DataError(where, f"images are {w}x{h} px (after --downscale); training needs at "
+                        f"least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE} (the SSIM window)")
 
 
 def initial_points(data, n_random: int, seed: int):
@@ -103,6 +122,25 @@ def initial_points(data, n_random: int, seed: int):
     mid, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-3)
     points = mid + rng.uniform(-1.0, 1.0, size=(n_random, 3)) * half
     return points.astype(np.float32), rng.uniform(size=(n_random, 3)).astype(np.float32), "random"
+
+
+def capped_initial_points(data, n_random: int, cap: int, seed: int):
+    """:func:`initial_points`, subsampled to at most ``cap`` (--max-gaussians) points.
+
+    The cap is hard from the first step on, so a larger initial cloud is thinned
+    (a uniform draw, logged) rather than trained and culled later.
+    """
+    import jax
+
+    from jaxedit import gaussians as G
+
+    points, colors, source = initial_points(data, n_random, seed)
+    if len(points) > cap:
+        log.info("initial points: keeping a random %d of the %d %s points (--max-gaussians)",
+                 cap, len(points), source)
+        points, colors = G.subsample_points(points, colors, cap,
+                                            jax.random.fold_in(jax.random.key(seed), 1))
+    return points, colors, source
 
 
 def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
@@ -151,7 +189,8 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
             log.info("resuming from %s (step %d)", latest, int(state.step))
     points_source = "checkpoint"
     if state is None:
-        points, colors, points_source = initial_points(data, random_points, seed)
+        points, colors, points_source = capped_initial_points(
+            data, random_points, config.densify.max_gaussians, seed)
         g = G.from_points(points, colors, sh_degree=config.sh_degree)
         state = T.init_state(g, config, extent, key=jax.random.key(seed))
     start_step = int(state.step)
@@ -230,6 +269,7 @@ def run(args) -> dict:
     data = load_nerfstudio(args.data, downscale=args.downscale, normalize=args.normalize,
                            background={"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}.get(
                                args.background, (1.0, 1.0, 1.0)))
+    check_image_size(data, args.data)
     config = config_from_args(args)
     metrics = reconstruct(data, args.out, config, seed=args.seed, resume=args.resume,
                           checkpoint_every=args.checkpoint_every, log_every=args.log_every,
@@ -238,4 +278,4 @@ def run(args) -> dict:
     return {k: metrics[k] for k in keys} | {"out": str(args.out)}
 
 
-__all__ = ["reconstruct", "config_from_args", "initial_points"]
+__all__ = ["reconstruct", "config_from_args", "initial_points", "capped_initial_points"]

@@ -69,8 +69,26 @@ def _check(args) -> None:
         raise DataError("--fps", f"must be > 0, got {args.fps}")
     if not all(0.0 <= c <= 1.0 for c in args.background):
         raise DataError("--background", f"colour components must be in [0, 1], got {args.background}")
+    if args.fov is not None and not 0.0 < args.fov < 180.0:
+        raise DataError("--fov", f"must be in (0, 180) degrees, got {args.fov}")
+    if args.elevation is not None and not abs(args.elevation) <= 90.0:
+        raise DataError("--elevation", f"must be in [-90, 90] degrees, got {args.elevation}")
+    if args.target is not None and not np.isfinite(args.target).all():
+        raise DataError("--target", f"must be finite, got {args.target}")
     if args.data is None and args.split != "all":
         raise DataError("--split", "only applies with --data")
+    if args.orbit is not None:  # before the orbit's cameras are even made
+        size = 256 if args.size is None else args.size
+        check_memory(args.orbit, size, size)
+
+
+def check_memory(n: int, width: int, height: int) -> None:
+    """Refuse a camera path whose frames would not fit in memory (they are kept for the video)."""
+    from experiments.cli import require_memory
+
+    # float32 RGB, alpha and depth per pixel per frame, kept until the turntable is written.
+    per_frame = width * height * 4 * 5
+    require_memory("--orbit/--size", n * per_frame, f"{n} frames of {width}x{height} px")
 
 
 def cameras_for(args, gaussians):
@@ -98,7 +116,13 @@ def cameras_for(args, gaussians):
             cams = cams.scaled(args.size / cams.width)
         return cams, None
     fov = 40.0 if args.fov is None else args.fov
-    target, radius = viz.frame_gaussians(gaussians, fov_deg=fov)
+    if args.radius is None or args.target is None:
+        if not np.asarray(gaussians.alive).any():
+            raise DataError(args.scene, "has no Gaussians to frame an orbit around; give --radius "
+                            "and --target (or --data / --camera-path) to render its background")
+        target, radius = viz.frame_gaussians(gaussians, fov_deg=fov)
+    else:
+        radius = args.radius
     if args.target is not None:
         target = np.asarray(args.target, np.float64)
     size = 256 if args.size is None else args.size
@@ -109,7 +133,7 @@ def cameras_for(args, gaussians):
 
 def run(args) -> dict:
     from experiments.progress import Progress, configure
-    from jaxedit import viz
+    from jaxedit import camera as camlib, viz
     from jaxedit.io import load_ply, write_image
     from jaxedit.io.files import atomic_write_text
 
@@ -118,8 +142,10 @@ def run(args) -> dict:
     t0 = time.perf_counter()
     gaussians = load_ply(args.scene)
     cams, path_fps = cameras_for(args, gaussians)
+    camlib.check_cameras(cams, args.camera_path or args.data or "--orbit/--radius/--fov/--target")
     fps = args.fps or path_fps or 12.0
     n = len(cams)
+    check_memory(n, cams.width, cams.height)
     out = Path(args.out)
     frames, alphas, depths = [], [], []
     t_render = time.perf_counter()

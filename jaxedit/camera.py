@@ -18,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .errors import DataError
+
 # nerfstudio / OpenGL camera axes (x right, y up, looking down -z) to OpenCV's.
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -122,6 +124,53 @@ def rigid_inverse(m):
     bottom = xp.broadcast_to(xp.asarray([0.0, 0.0, 0.0, 1.0], dtype=top.dtype),
                              top.shape[:-2] + (1, 4))
     return xp.concatenate([top, bottom], axis=-2)
+
+
+#: Camera centres farther than this from the origin leave float32 (7 digits) too little
+#: precision for a scene of ordinary size around the origin.
+MAX_DISTANCE = 1e6
+#: Focal lengths beyond this many image widths are a field of view under ~0.006 degrees.
+MAX_FOCAL_WIDTHS = 1e4
+#: ... and below this fraction of the image size, one over 179.9 degrees.
+MIN_FOCAL_WIDTHS = 1e-3
+
+
+def check_cameras(cameras: Camera, where) -> None:
+    """Raise :class:`DataError` (in words) for cameras no image can be rendered from.
+
+    Args:
+      cameras: a Camera or a batch of them.
+      where: the file or flag the cameras came from, for the message.
+    Raises:
+      DataError: empty image size, non-finite values, a focal length that is not
+        positive or gives an absurd field of view, a centre too far from the origin.
+    """
+    if cameras.width < 1 or cameras.height < 1:
+        raise DataError(where, f"camera image size {cameras.width}x{cameras.height} has no pixels")
+    w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
+    intr = np.stack([np.asarray(getattr(cameras, k), np.float64).reshape(-1)
+                     for k in ("fx", "fy", "cx", "cy")], -1)
+    if not (np.isfinite(w2c).all() and np.isfinite(intr).all()):
+        raise DataError(where, "a camera has a non-finite (NaN or inf) pose or intrinsic")
+    size = max(cameras.width, cameras.height)
+    for k, name in ((0, "fx"), (1, "fy")):
+        f = intr[:, k]
+        i = int(np.argmax(np.abs(f - np.clip(f, MIN_FOCAL_WIDTHS * size,
+                                             MAX_FOCAL_WIDTHS * size))))
+        if f[i] <= 0:
+            raise DataError(where, f"camera {i}: focal length {name}={f[i]:g} px must be positive")
+        if f[i] > MAX_FOCAL_WIDTHS * size:
+            raise DataError(where, f"camera {i}: focal length {name}={f[i]:g} px for a {size} px "
+                            "image is a field of view of almost zero: nothing would be visible")
+        if f[i] < MIN_FOCAL_WIDTHS * size:
+            raise DataError(where, f"camera {i}: focal length {name}={f[i]:g} px for a {size} px "
+                            "image is a field of view of almost 180 degrees")
+    centres = rigid_inverse(w2c)[:, :3, 3]
+    dist = np.linalg.norm(centres, axis=-1)
+    if dist.max() > MAX_DISTANCE:
+        i = int(np.argmax(dist))
+        raise DataError(where, f"camera {i} is {dist[i]:.3g} units from the origin: too far for "
+                        f"float32 arithmetic (keep cameras within {MAX_DISTANCE:g})")
 
 
 def stack(cameras: list[Camera]) -> Camera:

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import sh as shlib
+from .errors import DataError
 
 
 @jax.tree_util.register_dataclass
@@ -161,6 +162,28 @@ def from_points(points, colors, *, sh_degree: int = 3, capacity: int | None = No
         sh=g.sh.at[:n, 0, :].set(dc.astype(np.float32)),
         alive=g.alive.at[:n].set(True),
     )
+
+
+def subsample_points(points, colors, max_count: int, key: jax.Array):
+    """At most ``max_count`` of the points, drawn uniformly without replacement.
+
+    A hard cap on the number of Gaussians must already hold for the initial cloud.
+    The kept points stay in their original order.
+
+    Args:
+      points: float [N, 3]; colors: [N, 3].
+      max_count: the cap (>= 1).
+      key: PRNG key of the draw.
+    Returns:
+      (points [min(N, max_count), 3], colors [min(N, max_count), 3]) as numpy arrays.
+    """
+    points, colors = np.asarray(points), np.asarray(colors)
+    if max_count < 1:
+        raise DataError("max_count", f"must be >= 1, got {max_count}")
+    if len(points) <= max_count:
+        return points, colors
+    keep = np.sort(np.asarray(jax.random.permutation(key, len(points))[:max_count]))
+    return points[keep], colors[keep]
 
 
 def grow(g: Gaussians, capacity: int) -> Gaussians:

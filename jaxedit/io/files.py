@@ -51,3 +51,52 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+#: The lock file a running command keeps in its output folder.
+LOCK_NAME = ".jaxedit.lock"
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike, *, flag: str = "folder"):
+    """Create ``folder`` and hold an exclusive lock on it, or refuse at once.
+
+    Two processes writing one run directory would interleave checkpoints and
+    outputs; the second one gets a :class:`DataError` naming the holder's pid. The
+    lock is an ``flock`` on ``folder/.jaxedit.lock``: the kernel releases it when
+    its holder dies (even by SIGKILL), so a killed run can be resumed at once.
+    The file is removed on a normal exit.
+    """
+    import fcntl
+
+    from ..errors import DataError
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK_NAME
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode("ascii", "replace").strip() or "?"
+            os.close(fd)
+            raise DataError(flag, f"{folder} is in use by another jaxedit process (pid {holder}); "
+                            "wait for it to finish or choose another folder") from None
+        # The holder before us may have removed the file between our open and flock:
+        # then we locked an orphan and must lock the file that is there now.
+        try:
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield path
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        os.close(fd)

@@ -14,7 +14,10 @@ EXR, as ``rgb + background * (1 - alpha)``. Both give the same picture.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -77,17 +80,18 @@ def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
     # float then avoids the 8-bit rounding of OpenImageIO's premultiply.
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(str(path), config)
-    if inp is None:
-        raise DataError(path, f"cannot open image ({_oiio_error()})")
-    try:
-        spec = inp.spec()
-        straight = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 1
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        if pixels is None or inp.has_error:
-            raise DataError(path, f"cannot decode image ({_oiio_error(inp)})")
-    finally:
-        inp.close()
+    with _c_stderr_held_back():
+        inp = oiio.ImageInput.open(str(path), config)
+        if inp is None:
+            raise DataError(path, f"cannot open image ({_oiio_error()})")
+        try:
+            spec = inp.spec()
+            straight = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 1
+            pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+            if pixels is None or inp.has_error:
+                raise DataError(path, f"cannot decode image ({_oiio_error(inp)})")
+        finally:
+            inp.close()
     pixels = np.asarray(pixels, np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
@@ -111,6 +115,34 @@ def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
     if alpha_channel >= 0:
         alpha = np.clip(pixels[:, :, alpha_channel:alpha_channel + 1], 0.0, 1.0)
     return colour, alpha, straight
+
+
+@contextlib.contextmanager
+def _c_stderr_held_back():
+    """Hold back what C libraries print on file descriptor 2 (libpng's "libpng error: ..." line).
+
+    The decoder's complaint is already part of OpenImageIO's error text, which goes into
+    our one-line DataError; printing it too would make two lines. When the block raises,
+    the held-back text is dropped; otherwise it is passed on to stderr unchanged (a
+    warning about a file that could be read stays visible).
+    """
+    fd = 2  # C's stderr, whatever Python's sys.stderr is at the moment
+    with tempfile.TemporaryFile() as held:
+        sys.stderr.flush()
+        saved = os.dup(fd)
+        os.dup2(held.fileno(), fd)
+        ok = False
+        try:
+            yield
+            ok = True
+        finally:
+            os.dup2(saved, fd)
+            os.close(saved)
+            if ok:
+                held.seek(0)
+                text = held.read()
+                if text:
+                    os.write(fd, text)
 
 
 def write_image(path: str | os.PathLike, image) -> Path:

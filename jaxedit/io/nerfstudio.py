@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
+from ..camera import Camera, check_cameras, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
 from ..errors import DataError
 from ..gaussians import Gaussians
 from .distortion import Distortion, undistort_image
@@ -422,6 +422,10 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
     if len(sizes) != 1:
         raise DataError(json_path, f"frames have different image sizes {sorted(sizes)}; "
                                    f"jaxedit needs one size per dataset")
+    (full_w, full_h), = sizes
+    if full_w // downscale < 1 or full_h // downscale < 1:  # before decoding any image
+        raise DataError("downscale", f"factor {downscale} is larger than the {full_w}x{full_h} "
+                        "images: no pixels would be left")
     train_idx, test_idx = _split(json_path, meta, names, split_every)
     image_paths = [_resolve_image(json_path, fp, where) for fp, _, _, where in parsed]
 
@@ -437,9 +441,7 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
         intr_rows.append((intr.fx, intr.fy, intr.cx, intr.cy))
     images = np.stack(images)
     intr_arr = np.asarray(intr_rows, np.float64) / downscale
-    width, height = parsed[0][2].width // downscale, parsed[0][2].height // downscale
-    if width < 1 or height < 1:
-        raise DataError("downscale", f"factor {downscale} leaves no pixels")
+    width, height = full_w // downscale, full_h // downscale
 
     c2w = np.stack([p[1] for p in parsed])
     if normalize == "nerfstudio":
@@ -451,6 +453,7 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
         fx=intr_arr[:, 0].astype(np.float32), fy=intr_arr[:, 1].astype(np.float32),
         cx=intr_arr[:, 2].astype(np.float32), cy=intr_arr[:, 3].astype(np.float32),
         width=width, height=height)
+    check_cameras(cameras, json_path)
     if normalize != "none":
         cameras = transform_cameras(cameras, world_transform)
 

@@ -168,6 +168,25 @@ def count_pairs(gaussians: Gaussians, camera: Camera, *, backend: str = "auto", 
     return int(_count(gaussians, camera, near, far, None, sh_degree=0, tile=tile))
 
 
+def _background_only(gaussians: Gaussians, camera: Camera, background) -> RenderOutput:
+    """The frame of a scene that puts nothing on screen: background colour, zero alpha/depth.
+
+    Same shapes and dtypes as a splatted frame (leading batch axes of ``camera`` kept).
+    """
+    batch = camera.batch_shape
+    dtype = gaussians.means.dtype
+    bg = jnp.zeros((3,), dtype) if background is None else jnp.asarray(background, dtype)
+    pixels = batch + (camera.height, camera.width)
+    per_gaussian = batch + (gaussians.capacity,)
+    return RenderOutput(rgb=jnp.broadcast_to(bg, pixels + (3,)), alpha=jnp.zeros(pixels, dtype),
+                        depth=jnp.zeros(pixels, dtype),
+                        means2d=jnp.zeros(per_gaussian + (2,), dtype),
+                        radii=jnp.zeros(per_gaussian, jnp.int32),
+                        visible=jnp.zeros(per_gaussian, bool),
+                        num_intersections=jnp.zeros(batch, jnp.int32),
+                        overflow=jnp.zeros(batch, bool))
+
+
 def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: int | None = None,
            near: float = 0.01, far: float = 1e10, means2d_delta: jax.Array | None = None,
            max_intersections: int | None = None, backend: str = "auto") -> RenderOutput:
@@ -197,11 +216,15 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
     backend = resolve_backend(backend)
     kwargs = dict(background=background, sh_degree=sh_degree, near=near, far=far,
                   means2d_delta=means2d_delta, backend=backend)
+    if gaussians.capacity == 0:  # an empty scene (a PLY without vertices): only background
+        return _background_only(gaussians, camera, background)
     try:
         needed = int(_count(gaussians, camera, near, far, means2d_delta, sh_degree=sh_degree,
                             tile=tile_size(backend)))
     except jax.errors.ConcretizationTypeError:
         needed = None
+    if needed == 0:  # nothing alive on screen (all dead or culled): the frame is the background
+        return _background_only(gaussians, camera, background)
     if needed is None:  # under the caller's jit / vmap: their buffer, their overflow check
         if max_intersections is None:
             raise DataError("max_intersections", "render() inside jit/vmap needs a static "
