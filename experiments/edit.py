@@ -208,7 +208,8 @@ def check_counts(args) -> None:
 
     check_minimums(args, {"test_views": 1, "subtasks": 1, "warmup": 0, "patience": 1,
                           "max_steps": 1, "edit_every": 1, "turntable_frames": 0, "downscale": 1,
-                          "ip2p_size": 8, "ip2p_steps": 1})
+                          "ip2p_size": 8, "ip2p_steps": 1, "target_subtasks": 1,
+                          "difficulty_views": 1, "max_gaussians": 1})
     if args.threshold is not None and not args.threshold > 0:
         raise DataError("--threshold", f"must be > 0, got {args.threshold}")
 
