@@ -8,8 +8,7 @@ methods and the mode-aware scores) into ``DIR/ablation_run`` (ablation.json with
 ablation.md, views/, report.html) and writes ``DIR/ablation.json`` with the settings, the
 summary (mean and Student-t 95% CI over seeds per scene, instruction, method and metric), the
 paired differences proedit - other, the wall time, the CPU time of the process (steadier on a
-shared machine; on 2 free cores the wall time is about CPU time / 1.3, the train step being
-partly parallel) and the peak memory.
+shared machine) and the peak memory.
 """
 
 from __future__ import annotations

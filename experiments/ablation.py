@@ -30,6 +30,13 @@ Writes ``RUN_DIR/ablation.json``::
 tables), ``RUN_DIR/views/*.png`` (seed 0: the modes' targets and every method's final test
 views) and ``RUN_DIR/report.html``. An interrupted run resumes: finished records are kept when
 the settings match.
+
+Cost. The default (face and tabletop, all 5 instructions, 5 seeds, the 3-mode editor; 32 px,
+12 + 4 views, 60-step subtask guard) is 50 (scene, instruction, seed) groups of four edits,
+about 1000 training steps per group. Measured on the shared 2-core machine: about 27 ms of CPU
+per editing step (32 px, ~8.7k Gaussians, edits and renders included), so about 25 minutes of
+CPU in all with compiling and the two reconstructions (an estimate from a reduced run, not an
+end-to-end measurement). ``--editor-modes 1,3`` adds the single-outcome editor and doubles it.
 """
 
 from __future__ import annotations
@@ -70,7 +77,7 @@ def add_arguments(p) -> None:
     p.add_argument("--test-views", type=int, default=4, help="held-out views (scored)")
     p.add_argument("--recon-iters", type=int, default=400, help="reconstruction steps")
     p.add_argument("--threshold", type=float, default=None, help="proedit difficulty threshold")
-    p.add_argument("--max-steps", type=int, default=80, help="per-subtask step guard")
+    p.add_argument("--max-steps", type=int, default=60, help="per-subtask step guard")
     p.add_argument("--warmup", type=int, default=10, help="W after each opacity reset")
     p.add_argument("--patience", type=int, default=20, help="plateau length ending a subtask")
     p.add_argument("--lr-sh-dc", type=float, default=0.025,
@@ -224,7 +231,7 @@ def _slug(text: str) -> str:
 
 def run_ablation(out: Path, *, scenes=SCENES, prompts=None, seeds=5, editor_modes=(3,),
                  methods=METHODS, size=32, views=12, test_views=4, recon_iters=400,
-                 threshold=None, max_steps=80, warmup=10, patience=20, lr_sh_dc=0.025,
+                 threshold=None, max_steps=60, warmup=10, patience=20, lr_sh_dc=0.025,
                  recon_seed=0, report=True, log=print) -> dict:
     """Run the ablation into ``out``; returns the contents of ablation.json."""
     from jaxedit import DataError

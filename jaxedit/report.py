@@ -290,7 +290,7 @@ def ablation_plot(summary: list[dict], *, metrics=("psnr_best", "mode_mixing")) 
     groups = list(dict.fromkeys((r["scene"], r["prompt"]) for r in summary))
     methods = [m for m in ABLATION_METHODS if any(r["method"] == m for r in summary)]
     fig, axes = plt.subplots(len(modes), len(metrics), squeeze=False,
-                             figsize=(max(6.0, 0.55 * len(groups) * len(metrics) + 3),
+                             figsize=(max(8.0, 0.55 * len(groups) * len(metrics) + 3),
                                       2.9 * len(modes)))
     width = 0.8 / max(len(methods), 1)
     for i, k in enumerate(modes):
@@ -309,8 +309,9 @@ def ablation_plot(summary: list[dict], *, metrics=("psnr_best", "mode_mixing")) 
             ax.set_xticks(range(len(groups)),
                           [f"{sc}: {pr[:18]}" for sc, pr in groups], rotation=40, ha="right",
                           fontsize=7)
-            arrow = " (lower: one mode)" if metric == "mode_mixing" else " (higher better)"
-            ax.set_title(f"editor modes = {k}: {metric}{arrow}", fontsize=9)
+            ax.set_title(f"editor modes = {k}: {metric}", fontsize=9)
+            ax.set_ylabel("0: one mode, 1: even blend" if metric == "mode_mixing"
+                          else "higher is better", fontsize=8)
             ax.tick_params(axis="y", labelsize=8)
             for g in range(1, len(groups)):
                 ax.axvline(g - 0.5, color="#eeeeee", lw=0.8, zorder=0)
