@@ -133,14 +133,14 @@ def prepare(out: Path, *, scene_name: str, size: int, views: int, test_views: in
 # ---------------------------------------------------------------------------
 # Statistics (pure)
 # ---------------------------------------------------------------------------
-def _values(runs, *, editor_modes, scene, prompt, method, metric, seeds) -> list[float] | None:
-    """Per-seed values (averaged over the instructions for prompt "all"), None if incomplete."""
+def _values(runs, *, prompts, method, metric, seeds) -> list[float] | None:
+    """Per-seed values of one scene and editor setting, averaged over ``prompts`` (one prompt,
+    or the complete ones for "all"); None if a seed lacks any of them."""
     out = []
     for seed in seeds:
-        vals = [r[metric] for r in runs if r["editor_modes"] == editor_modes
-                and r["scene"] == scene and r["method"] == method and r["seed"] == seed
-                and (prompt == ALL or r["prompt"] == prompt) and r.get(metric) is not None]
-        if not vals:
+        vals = [r[metric] for r in runs if r["method"] == method and r["seed"] == seed
+                and r["prompt"] in prompts and r.get(metric) is not None]
+        if len(vals) != len(prompts):
             return None
         out.append(sum(vals) / len(vals))
     return out
@@ -157,12 +157,22 @@ def summarise(runs: list[dict]) -> tuple[list[dict], list[dict]]:
         prompts = list(dict.fromkeys(r["prompt"] for r in mine))
         methods = [m for m in METHODS if any(r["method"] == m for r in mine)]
         seeds = sorted({r["seed"] for r in mine})
-        for prompt in prompts + ([ALL] if len(prompts) > 1 else []):
+        # An interrupted run has a partial last instruction: each row uses the seeds that
+        # every method finished (so differences stay paired), "all" the complete instructions.
+        done = {(r["prompt"], r["seed"]) for r in mine
+                if all(any(q["prompt"] == r["prompt"] and q["seed"] == r["seed"]
+                           and q["method"] == m for q in mine) for m in methods)}
+        finished = {p: [sd for sd in seeds if (p, sd) in done] for p in prompts}
+        complete = [p for p in prompts if len(finished[p]) == len(seeds)]
+        for prompt in prompts + ([ALL] if len(complete) > 1 else []):
+            over = complete if prompt == ALL else [prompt]
+            use = seeds if prompt == ALL else finished[prompt]
+            if not use:
+                continue
             for metric in METRICS:
                 base = None
                 for method in methods:
-                    vals = _values(mine, editor_modes=modes, scene=scene, prompt=prompt,
-                                   method=method, metric=metric, seeds=seeds)
+                    vals = _values(mine, prompts=over, method=method, metric=metric, seeds=use)
                     if vals is None:
                         continue
                     key = {"editor_modes": modes, "scene": scene, "prompt": prompt,

@@ -126,3 +126,16 @@ def test_bad_flags_fail_in_one_line(tmp_path, capsys, argv, needle):
     assert cli.main(["ablation", "--out", str(tmp_path / "run"), *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
+
+
+def test_an_interrupted_run_summarises_what_finished():
+    runs = records(seeds=3, modes=(3,))
+    # the second instruction stopped after seed 1's nd: seed 2 of it is left out, paired
+    runs = [r for r in runs if not (r["prompt"] == PROMPTS[1] and (
+        r["seed"] == 2 or (r["seed"] == 1 and r["method"] in ("nd_equal_steps", "in2n"))))]
+    summary, differences = summarise(runs)
+    rows = [r for r in summary if r["metric"] == "psnr_best" and r["method"] == "proedit"]
+    assert {r["prompt"]: r["n"] for r in rows} == {PROMPTS[0]: 3, PROMPTS[1]: 1}
+    assert all(r["prompt"] != "all" for r in summary)  # one complete instruction: no "all"
+    d = [r for r in differences if r["prompt"] == PROMPTS[1] and r["method"] == "nd"]
+    assert d and all(r["n"] == 1 and r["ci"] is None for r in d)
