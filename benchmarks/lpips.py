@@ -1,8 +1,9 @@
 """LPIPS (JAX) speed: jitted distance of one pair and of a batch of views, VGG and AlexNet.
 
-The cost does not depend on the weight values, so the trunk and heads are random (no
-download needed); shapes are exactly LPIPS-vgg / LPIPS-alex. The difficulty of ProEdit
-evaluates one LPIPS per (view, ratio pair), so the per-pair time at the training
+The real converted weights are used where they are (``~/.cache/jaxedit/weights``, see the
+README); otherwise a random trunk and heads of exactly LPIPS-vgg / LPIPS-alex's shapes, since
+the cost does not depend on the weight values (the JSON records which). The difficulty of
+ProEdit evaluates one LPIPS per (view, ratio pair), so the per-pair time at the training
 resolution is the figure that matters.
 
     python benchmarks/lpips.py [--smoke] [--out DIR]
@@ -16,7 +17,8 @@ from common import parse_args, peak_rss_mb, time_fn, write_json
 import jax
 import jax.numpy as jnp
 
-from jaxedit.lpips import ARCHITECTURES, LPIPS, LPIPSParams, Conv
+from jaxedit.io.weights import default_lpips_weights
+from jaxedit.lpips import ARCHITECTURES, LPIPS, LPIPSParams, Conv, load_lpips
 
 
 def random_lpips(net: str, seed: int = 0) -> LPIPS:
@@ -31,6 +33,12 @@ def random_lpips(net: str, seed: int = 0) -> LPIPS:
     return LPIPS(LPIPSParams(w, b, heads), net)
 
 
+def lpips_model(net: str) -> tuple[LPIPS, str]:
+    """(model, "real" | "random"): the converted weights when present, else random ones."""
+    path = default_lpips_weights(net)
+    return (load_lpips(path, net), "real") if path.is_file() else (random_lpips(net), "random")
+
+
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv)
     repeats = args.repeats or (2 if args.smoke else 5)
@@ -39,12 +47,12 @@ def main(argv=None):
              + [("alex", 256, 4), ("vgg", 256, 4)])
     results = []
     for net, size, batch in cases:
-        fn = random_lpips(net)
+        fn, weights = lpips_model(net)
         rng = np.random.default_rng(1)
         a = jnp.asarray(rng.uniform(0, 1, (batch, size, size, 3)), jnp.float32)
         b = jnp.asarray(rng.uniform(0, 1, (batch, size, size, 3)), jnp.float32)
         timing = time_fn(fn, a, b, repeats=repeats)
-        row = {"net": net, "size": size, "batch": batch, **timing,
+        row = {"net": net, "weights": weights, "size": size, "batch": batch, **timing,
                "ms_per_pair": timing["median_ms"] / batch}
         results.append(row)
         print(f"lpips-{net} {size}x{size} batch {batch}: {timing['median_ms']:.1f} ms "

