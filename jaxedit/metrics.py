@@ -4,9 +4,16 @@
 training uses the JAX versions in :mod:`jaxedit.losses`. Perceptual metrics
 (LPIPS, CLIP) live in their own modules and may build on these.
 
-Every function takes images float [H, W, C] in [0, data_range] and returns a
+Every image function takes images float [H, W, C] in [0, data_range] and returns a
 float, or a batch [N, H, W, C] and returns float [N] (one value per image;
 average them for a dataset score, as the 3DGS papers do).
+
+Scoring against an editor with several valid outcomes (the simulated editor's
+divergent modes) must not favour any of them: :func:`mode_scores` gives the best
+over modes of the per-scene PSNR / SSIM and :func:`mode_mixture` how much of the
+result is a blend of modes rather than one. :func:`mean_ci` and
+:func:`paired_differences` turn per-seed numbers into means with Student-t
+confidence intervals.
 """
 
 from __future__ import annotations
@@ -60,3 +67,86 @@ def image_metrics(renders, targets, *, data_range: float = 1.0) -> dict:
     p = np.minimum(np.atleast_1d(psnr(renders, targets, data_range=data_range)), 100.0)
     s = np.atleast_1d(ssim_skimage(renders, targets, data_range=data_range))
     return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s))}
+
+
+def mode_mixture(renders, mode_targets) -> np.ndarray:
+    """Weights w float [K] of the convex blend of modes closest to the renders.
+
+    argmin over the simplex (w >= 0, sum w = 1) of || renders - sum_k w_k T_k ||^2,
+    renders float [N, H, W, C] (or [H, W, C]), mode_targets float [K, N, H, W, C].
+    Pixels where all modes agree do not move w; K = 1 gives [1.0]. Exact for the
+    small K of an editor's modes: the least-squares solution on every face of the
+    simplex (every non-empty subset of modes, sum constraint eliminated), the best
+    feasible one.
+    """
+    from itertools import combinations
+
+    r = np.asarray(renders, np.float64)
+    t = np.asarray(mode_targets, np.float64)
+    if t.ndim != r.ndim + 1 or t.shape[1:] != r.shape:
+        raise DataError("mode_targets", f"expected [K, *{list(r.shape)}], got {list(t.shape)}")
+    k = t.shape[0]
+    flat, y = t.reshape(k, -1), r.reshape(-1)
+    best, best_err = None, np.inf
+    for size in range(1, k + 1):
+        for face in combinations(range(k), size):
+            last, others = face[-1], list(face[:-1])
+            w = np.zeros(k)
+            if others:  # y - T_last = sum_{j in others} w_j (T_j - T_last)
+                a = (flat[others] - flat[last]).T
+                w[others] = np.linalg.lstsq(a, y - flat[last], rcond=None)[0]
+            w[last] = 1.0 - w.sum()
+            if w.min() < -1e-9:
+                continue  # the optimum of this face lies outside the simplex
+            err = float(np.sum((w @ flat - y) ** 2))
+            if err < best_err - 1e-12:
+                best, best_err = np.clip(w, 0.0, 1.0), err
+    return best
+
+
+def mode_scores(renders, mode_targets, *, data_range: float = 1.0) -> dict:
+    """Scores of renders [N, H, W, C] against K valid outcomes [K, N, H, W, C] of an edit.
+
+    Returns {"psnr_best", "ssim_best": max over modes of the per-scene (mean over
+    views) PSNR / SSIM; "mode": the mode with the best PSNR; "psnr_per_mode",
+    "ssim_per_mode": lists [K]; "mode_weights": :func:`mode_mixture`;
+    "mode_mixing": 1 - max_k w_k scaled by K / (K - 1) to [0, 1] (0: the result is
+    one mode, 1: an even blend of all K; 0 when K = 1)}.
+    """
+    t = np.asarray(mode_targets)
+    per = [image_metrics(renders, t[k], data_range=data_range) for k in range(t.shape[0])]
+    psnrs = [p["psnr"] for p in per]
+    ssims = [p["ssim"] for p in per]
+    w = mode_mixture(renders, t)
+    k = len(per)
+    mixing = 0.0 if k == 1 else float((1.0 - w.max()) * k / (k - 1))
+    return {"psnr_best": max(psnrs), "ssim_best": max(ssims), "mode": int(np.argmax(psnrs)),
+            "psnr_per_mode": psnrs, "ssim_per_mode": ssims,
+            "mode_weights": [float(x) for x in w], "mode_mixing": mixing}
+
+
+def mean_ci(values, *, level: float = 0.95) -> dict:
+    """Mean and Student-t confidence interval of independent samples (e.g. one per seed).
+
+    Returns {"mean", "ci": half-width t_{(1+level)/2, n-1} s / sqrt(n), "low", "high",
+    "n"}; with n = 1 the interval is unknown (ci None). Non-finite values raise.
+    """
+    from scipy.stats import t as student_t
+
+    x = np.asarray(values, np.float64).reshape(-1)
+    if x.size == 0 or not np.isfinite(x).all():
+        raise DataError("mean_ci", f"need finite samples, got {x.tolist()}")
+    mean = float(x.mean())
+    if x.size < 2:
+        return {"mean": mean, "ci": None, "low": None, "high": None, "n": 1}
+    half = float(student_t.ppf(0.5 + level / 2, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size))
+    return {"mean": mean, "ci": half, "low": mean - half, "high": mean + half, "n": int(x.size)}
+
+
+def paired_differences(a, b, *, level: float = 0.95) -> dict:
+    """:func:`mean_ci` of a_i - b_i for paired samples (same seed / instruction)."""
+    a = np.asarray(a, np.float64).reshape(-1)
+    b = np.asarray(b, np.float64).reshape(-1)
+    if a.shape != b.shape:
+        raise DataError("paired_differences", f"{a.size} vs {b.size} samples: not paired")
+    return mean_ci(a - b, level=level)

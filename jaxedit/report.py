@@ -4,7 +4,9 @@ The page is what a person opens to judge an edit. It holds the instruction,
 the subtask schedule, a plot of the difficulty d(0, r) with the chosen ratios,
 an aggressivity gallery (a slider over subtasks showing the same test views
 under the original ones), the depth maps, the turntables and the metrics. For an
-ablation run directory (``ablation.json``) it compares the modes side by side.
+ablation run directory (``ablation.json`` of ``python -m experiments ablation``) it
+shows the statistics: means with 95% confidence intervals per method and the
+paired differences, as tables and a plot.
 
 Self-contained: every image is inlined as a base64 ``data:`` URI, the only
 script is a dozen lines of inline JavaScript (the sliders), the only style is
@@ -21,7 +23,8 @@ Run-directory layout read here (written by the edit driver)::
     metrics.json     {name: number, ...}
     original/renders/*.png, original/depth/*.png (optional)
     subtasks/NN_rX.XXX/{renders/*.png, depth/*.png, turntable.webp, metrics.json}
-    ablation.json    {mode: {metric: value}} with per-mode edit run dirs RUN_DIR/<mode>/
+    ablation.json    {settings, runs, summary, differences} (experiments/ablation.py),
+                     views/*.png
 """
 
 from __future__ import annotations
@@ -261,35 +264,86 @@ def difficulty_plot(schedule: dict) -> str:
     return _figure_uri(fig)
 
 
-def metrics_plot(ablation: dict) -> str | None:
-    """PNG data URI: one bar chart per numeric metric, modes side by side."""
+ABLATION_METHODS = ("proedit", "nd", "nd_equal_steps", "in2n")
+_METHOD_COLOURS = {"proedit": "#d62728", "nd": "#1f77b4", "nd_equal_steps": "#2ca02c",
+                   "in2n": "#9467bd"}
+
+
+def _summary_index(rows: list[dict]) -> dict:
+    return {(r["editor_modes"], r["scene"], r["prompt"], r["method"], r["metric"]): r
+            for r in rows}
+
+
+def ablation_plot(summary: list[dict], *, metrics=("psnr_best", "mode_mixing")) -> str | None:
+    """PNG data URI: per editor-modes setting (rows) and metric (columns), the mean and 95%
+    CI of every method per scene and instruction (error bars, methods side by side)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    modes = list(ablation)
-    metrics = [m for m in _metric_names(ablation.values())
-               if all(_is_number(ablation[mode].get(m)) for mode in modes)]
-    # Plot the metrics that have a better direction (counts and settings only clutter it).
-    metrics = [m for m in metrics if _direction(m)] or metrics
-    if not metrics or not modes:
+    index = _summary_index(summary)
+    modes = sorted({r["editor_modes"] for r in summary})
+    metrics = [m for m in metrics if any(r["metric"] == m for r in summary)]
+    if not modes or not metrics:
         return None
-    ncols = min(4, len(metrics))
-    nrows = math.ceil(len(metrics) / ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(3.0 * ncols, 2.6 * nrows), squeeze=False)
-    colors = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b"]
-    for ax, m in zip(axes.flat, metrics):
-        vals = [float(ablation[mode][m]) for mode in modes]
-        ax.bar(range(len(modes)), vals, color=[colors[i % len(colors)] for i in range(len(modes))])
-        ax.set_xticks(range(len(modes)), modes, fontsize=8)
-        arrow = {1: " (higher better)", -1: " (lower better)"}.get(_direction(m), "")
-        ax.set_title(m + arrow, fontsize=9)
-        ax.tick_params(axis="y", labelsize=8)
-    for ax in list(axes.flat)[len(metrics):]:
-        ax.axis("off")
+    groups = list(dict.fromkeys((r["scene"], r["prompt"]) for r in summary))
+    methods = [m for m in ABLATION_METHODS if any(r["method"] == m for r in summary)]
+    fig, axes = plt.subplots(len(modes), len(metrics), squeeze=False,
+                             figsize=(max(8.0, 0.55 * len(groups) * len(metrics) + 3),
+                                      2.9 * len(modes)))
+    width = 0.8 / max(len(methods), 1)
+    for i, k in enumerate(modes):
+        for j, metric in enumerate(metrics):
+            ax = axes[i][j]
+            for n, method in enumerate(methods):
+                xs, ys, es = [], [], []
+                for g, (scene, prompt) in enumerate(groups):
+                    r = index.get((k, scene, prompt, method, metric))
+                    if r is not None:
+                        xs.append(g + (n - (len(methods) - 1) / 2) * width)
+                        ys.append(r["mean"])
+                        es.append(r["ci"] or 0.0)
+                ax.errorbar(xs, ys, yerr=es, fmt="o", ms=4, capsize=2, lw=1,
+                            color=_METHOD_COLOURS.get(method, "#555555"), label=method)
+            ax.set_xticks(range(len(groups)),
+                          [f"{sc}: {pr[:18]}" for sc, pr in groups], rotation=40, ha="right",
+                          fontsize=7)
+            ax.set_title(f"editor modes = {k}: {metric}", fontsize=9)
+            ax.set_ylabel("0: one mode, 1: even blend" if metric == "mode_mixing"
+                          else "higher is better", fontsize=8)
+            ax.tick_params(axis="y", labelsize=8)
+            for g in range(1, len(groups)):
+                ax.axvline(g - 0.5, color="#eeeeee", lw=0.8, zorder=0)
+    axes[0][0].legend(fontsize=7, loc="best")
     fig.tight_layout()
     return _figure_uri(fig)
+
+
+def ablation_table(summary: list[dict], differences: list[dict], *, editor_modes: int,
+                   metric: str, digits: int = 2) -> tuple[list[str], list[list[str]]]:
+    """(header, rows) of plain-text cells: one row per (scene, instruction), the mean ± 95% CI
+    of every method, then the paired difference proedit - other (``*``: its CI excludes 0)."""
+    index, dindex = _summary_index(summary), _summary_index(differences)
+    groups = list(dict.fromkeys((r["scene"], r["prompt"]) for r in summary
+                                if r["editor_modes"] == editor_modes))
+    methods = [m for m in ABLATION_METHODS
+               if (editor_modes, *groups[0], m, metric) in index] if groups else []
+    others = [m for m in methods if m != "proedit"]
+
+    def cell(r, mark=False):
+        if r is None:
+            return "-"
+        ci = "" if r["ci"] is None else f" ± {r['ci']:.{digits}f}"
+        sig = mark and r["ci"] is not None and abs(r["mean"]) > r["ci"]
+        return f"{r['mean']:.{digits}f}{ci}" + (" *" if sig else "")
+
+    header = ["scene", "instruction"] + methods + [f"proedit − {m}" for m in others]
+    rows = [[scene, prompt] + [cell(index.get((editor_modes, scene, prompt, m, metric)))
+                               for m in methods]
+            + [cell(dindex.get((editor_modes, scene, prompt, m, metric)), True) for m in others]
+            for scene, prompt in groups]
+    return header, rows
 
 
 # ---------------------------------------------------------------------------
@@ -570,90 +624,80 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
 # ---------------------------------------------------------------------------
 # Ablation report
 # ---------------------------------------------------------------------------
-def _last_snapshot(mode_dir: Path) -> tuple[dict | None, Path | None]:
-    sched_path = mode_dir / "schedule.json"
-    if not sched_path.is_file():
-        return None, None
-    schedule = _check_schedule(sched_path, read_json(sched_path))
-    subtasks = schedule.get("subtasks", [])
-    if not subtasks:
-        return schedule, None
-    return schedule, _snapshot_dir(mode_dir, subtasks[-1], len(subtasks) - 1)
+#: What the simulated ablation can and cannot show (shown on every ablation page).
+SIMULATION_NOTE = (
+    "The editor here is jaxedit's simulated editor, a test instrument with known noise-free "
+    "targets, not InstructPix2Pix. With <b>editor modes = 1</b> each instruction has one "
+    "outcome and views differ only by noise that shrinks as the render approaches the target; "
+    "with <b>editor modes = K &gt; 1</b> each edit call draws one of K discrete, individually "
+    "3D-consistent outcomes, with probabilities that follow how close the current render is "
+    "to each (jaxedit.edit.simulated, section 4). The ablation therefore tests how the editing "
+    "machinery (schedule, iterative dataset update, adaptive 3DGS) responds to divergent modes "
+    "of a known size. It cannot show how large a real diffusion model's feasible output space "
+    "is, how its modes are distributed, or how the difficulty measure tracks them; scores are "
+    "against the simulated targets only, on small CPU-sized scenes.")
 
 
 def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_views: int,
                        turntable_px: int, max_frames: int) -> list[tuple[str, str, str]]:
     path = run_dir / "ablation.json"
-    if not isinstance(ablation, dict) or not ablation or not all(
-            isinstance(v, dict) for v in ablation.values()):
-        raise DataError(path, "must be a non-empty object {mode: {metric: value}}")
-    modes = list(ablation)
+    if not (isinstance(ablation, dict) and isinstance(ablation.get("runs"), list)
+            and isinstance(ablation.get("summary", []), list)
+            and isinstance(ablation.get("differences", []), list)):
+        raise DataError(path, "must be an object {settings, runs: [...], summary: [...], "
+                              "differences: [...]} (python -m experiments ablation)")
+    need = ("editor_modes", "scene", "prompt", "method", "metric", "mean", "ci")
+    for name in ("summary", "differences"):
+        for i, r in enumerate(ablation.get(name, [])):
+            if not isinstance(r, dict) or any(k not in r for k in need) \
+                    or not _is_number(r["mean"]) or not (r["ci"] is None or _is_number(r["ci"])):
+                raise DataError(path, f"{name}[{i}] needs {', '.join(need)} (numbers for "
+                                      f"mean and ci)")
+    summary, differences = ablation.get("summary", []), ablation.get("differences", [])
+    settings = ablation.get("settings") or {}
     config = read_json(run_dir / "config.json", required=False)
-    sections = []
+    body = (f"<p>{SIMULATION_NOTE}</p><p>{len(ablation['runs'])} edit runs; means and "
+            "Student-t 95% confidence intervals over seeds; differences are paired by seed "
+            "(proedit minus the other method); &ldquo;all&rdquo; averages the instructions of "
+            "a seed first.</p>" + _reproduce(config))
+    if settings:
+        body += "<h3>Settings</h3>" + _kv_table(settings)
+    sections = [("instruction", "Ablation", body)]
+    if not summary:
+        sections.append(("metrics", "Statistics", '<p class="missing">no summary yet (the run '
+                                                  "has not finished)</p>"))
+        return sections
 
-    prompt = None
-    for mode in modes:
-        sched, _ = _last_snapshot(run_dir / mode)
-        if sched and sched.get("prompt"):
-            prompt = sched["prompt"]
-            break
     body = ""
-    if prompt:
-        body += f'<div class="instruction">&ldquo;{_e(prompt)}&rdquo;</div>'
-    links = [f'<a href="{_e(mode)}/report.html">{_e(mode)}</a>' for mode in modes
-             if (run_dir / mode / "report.html").is_file()]
-    body += (f"<p>Modes compared: {_e(', '.join(modes))}.</p>" + _reproduce(config))
-    if links:
-        body += "<p>Per-mode reports: " + " ".join(links) + "</p>"
-    sections.append(("instruction", "Ablation", body))
-
-    # Metric table, best per row highlighted where the direction is known.
-    names = _metric_names(ablation.values())
-    rows = []
-    for n in names:
-        vals = [ablation[m].get(n) for m in modes]
-        nums = [v for v in vals if _is_number(v) and math.isfinite(v)]
-        direction = _direction(n)
-        best = (max(nums) if direction > 0 else min(nums)) if (nums and direction) else None
-        cells = []
-        for v in vals:
-            cell = _fmt(v)
-            if best is not None and _is_number(v) and v == best and len(nums) > 1:
-                cell = f'<span class="best-cell">{cell}</span>'
-            cells.append(cell)
-        arrow = {1: " &uarr;", -1: " &darr;"}.get(direction, "")
-        rows.append([_e(n) + arrow] + cells)
-    body = _table(["metric"] + [_e(m) for m in modes], rows, "ablation")
-    # Mark best cells via the class of their td (CSS cannot select a parent).
-    body = body.replace('<td><span class="best-cell">', '<td class="best"><span>')
-    body += "<p>&uarr; higher is better, &darr; lower is better; best mode highlighted.</p>"
-    plot = metrics_plot(ablation)
+    for k in sorted({r["editor_modes"] for r in summary}):
+        for metric, digits in (("psnr_best", 2), ("ssim_best", 3), ("mode_mixing", 3),
+                               ("multiview_consistency", 2), ("total_steps", 0)):
+            header, rows = ablation_table(summary, differences, editor_modes=k, metric=metric,
+                                          digits=digits)
+            if not rows or len(header) <= 2:
+                continue
+            body += (f"<h3>editor modes = {k}: {_e(metric)}</h3>"
+                     + _table([_e(h) for h in header], [[_e(c) for c in row] for row in rows],
+                              "ablation"))
+    body += ("<p>psnr_best / ssim_best: best over modes of the per-scene score against that "
+             "mode's noise-free target at r = 1 (higher is better); mode_mixing: 0 when the "
+             "result is one mode, 1 for an even blend of all; multiview_consistency: "
+             "reprojection PSNR between neighbouring test views (dB). <b>*</b>: the 95% CI of "
+             "the paired difference excludes 0.</p>")
+    plot = ablation_plot(summary)
     if plot:
-        body += _img(plot, "metrics per mode", "plot")
-    sections.append(("metrics", "Metrics per mode", body))
+        body += _img(plot, "means and 95% CIs per method", "plot")
+    sections.append(("metrics", "Statistics", body))
 
-    # Side by side: the final snapshot of every mode at the same views, one row per mode
-    # (rows stay legible with many views), and the modes' turntables next to each other.
-    rows, cards = [], []
-    for mode in modes:
-        mode_dir = run_dir / mode
-        _, last = _last_snapshot(mode_dir)
-        if not rows:
-            original = _grid_uri(_pngs(mode_dir / "original" / "renders"), thumb_px, max_views)
-            if original:
-                rows.append(["original", _img(original, "original views")])
-        rows.append([f"<b>{_e(mode)}</b>",
-                     _img(_grid_uri(_pngs(last / "renders" if last else None), thumb_px,
-                                    max_views), f"{mode} final views")])
-        tt = _turntable_uri(last / "turntable.webp", turntable_px, max_frames) if last else None
-        if tt:
-            cards.append(f'<figure class="card"><img src="{tt}" alt="turntable {_e(mode)}">'
-                         f"<figcaption>{_e(mode)}</figcaption></figure>")
-    body = ("<p>The final snapshot of each mode at the same test views.</p>"
-            + _table(["mode", "test views"], rows, "compare"))
-    if cards:
-        body += f'<h3>Turntables</h3><div class="cards">{"".join(cards)}</div>'
-    sections.append(("compare", "Modes side by side", body))
+    views = sorted((run_dir / "views").glob("*.png")) if (run_dir / "views").is_dir() else []
+    if views:
+        methods = settings.get("methods") or list(ABLATION_METHODS)
+        rows = [[f"<b>{_e(p.stem)}</b>",
+                 _img(image_uri(_load_thumb(p, 6 * thumb_px)), p.stem)] for p in views]
+        body = (f"<p>Seed 0, test views. Rows of each image: the noise-free target of every "
+                f"mode at r = 1, then the final scene of {_e(', '.join(methods))}.</p>"
+                + _table(["run", "targets, then methods"], rows, "compare"))
+        sections.append(("compare", "Views", body))
     return sections
 
 
@@ -742,12 +786,12 @@ def _generic_sections(run_dir: Path, *, thumb_px: int, max_views: int,
 def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | None = None,
                  thumb_px: int = 192, max_views: int = 8, turntable_px: int = 192,
                  max_frames: int = 48, max_bytes: int = MAX_BYTES,
-                 subreports: bool = True, config_path=None) -> Path:
+                 config_path=None) -> Path:
     """Write the self-contained ``report.html`` of a run directory.
 
     Args:
       run_dir: an edit run directory (``schedule.json``), an ablation run
-        directory (``ablation.json`` + one edit run dir per mode), or any run
+        directory (``ablation.json``, ``views/``), or any run
         directory with ``metrics.json`` and ``renders/``.
       out: where to write (default ``run_dir/report.html``).
       title: page title (default from the run).
@@ -756,7 +800,6 @@ def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | N
       max_views: at most this many test views per row (evenly spread).
       turntable_px, max_frames: turntables larger than this are re-encoded.
       max_bytes: when the page exceeds it, thumbnails shrink and it is rebuilt.
-      subreports: for an ablation, also write each mode's own report first.
       config_path: the config.json whose command line the page shows as the way
         to reproduce the run (default ``run_dir/config.json``; the demo points it
         at its own).
@@ -773,11 +816,6 @@ def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | N
     schedule_path = run_dir / "schedule.json"
     if ablation is None and not schedule_path.is_file() and not (run_dir / "metrics.json").is_file():
         raise DataError(run_dir, "not a run directory (no schedule.json, ablation.json or metrics.json)")
-    if ablation is not None and subreports:
-        for mode in ablation if isinstance(ablation, dict) else []:
-            if (run_dir / str(mode) / "schedule.json").is_file():
-                write_report(run_dir / str(mode), thumb_px=thumb_px, max_views=max_views,
-                             turntable_px=turntable_px, max_frames=max_frames, max_bytes=max_bytes)
 
     sizes = dict(thumb_px=thumb_px, max_views=max_views, turntable_px=turntable_px,
                  max_frames=max_frames)
@@ -807,5 +845,5 @@ def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | N
     return out
 
 
-__all__ = ["MAX_BYTES", "difficulty_plot", "image_uri", "metrics_plot", "read_json", "read_train_log",
-           "training_plot", "write_report"]
+__all__ = ["MAX_BYTES", "SIMULATION_NOTE", "ablation_plot", "ablation_table", "difficulty_plot",
+           "image_uri", "read_json", "read_train_log", "training_plot", "write_report"]

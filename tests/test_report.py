@@ -175,29 +175,6 @@ def test_report_shrinks_to_budget_and_validates(tmp_path):
         write_report(run)
 
 
-def test_ablation_report_compares_modes(tmp_path):
-    root = tmp_path / "abl"
-    make_run(root / "proedit", ratios=(0.0, 0.5, 1.0, 1.0), turntables=False)
-    make_run(root / "nd", ratios=(0.0, 1.0, 1.0), turntables=False)
-    (root / "ablation.json").write_text(json.dumps({
-        "proedit": {"psnr_vs_target": 30.1, "ssim_vs_target": 0.93, "wall_time_s": 40.0},
-        "nd": {"psnr_vs_target": 27.4, "ssim_vs_target": 0.88, "wall_time_s": 20.0}}))
-    text = write_report(root).read_text()
-    doc = _parse(text)
-    assert not doc.errors and {"instruction", "metrics", "compare"} <= doc.ids
-    # Per-mode reports written and linked relatively; everything else inlined.
-    assert (root / "proedit" / "report.html").is_file() and (root / "nd" / "report.html").is_file()
-    assert all(u.startswith(("data:", "#")) or u in ("proedit/report.html", "nd/report.html")
-               for u in doc.urls)
-    # Best per metric: proedit's PSNR/SSIM, nd's wall time.
-    assert '<td class="best"><span>30.1</span></td>' in text
-    assert '<td class="best"><span>0.93</span></td>' in text
-    assert '<td class="best"><span>20</span></td>' in text
-    (root / "ablation.json").write_text(json.dumps({"proedit": 3}))
-    with pytest.raises(DataError, match="ablation.json"):
-        write_report(root, subreports=False)
-
-
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 

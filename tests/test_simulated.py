@@ -1,5 +1,7 @@
 """The simulated editor (a test instrument, not IP2P) and the memoised difficulty oracle."""
 
+from pathlib import Path
+
 import jax
 import numpy as np
 import pytest
@@ -241,3 +243,101 @@ def test_oracle_common_noise_makes_difficulty_continuous(editor):
     assert near[0] > near[1] > near[2] and near[2] < 0.01 * full
     # per-ratio keys add the seed-to-seed variation: a floor that does not vanish as h -> 0
     assert fresh(0.7, 0.701) > 10 * near[2]
+
+
+# ---- divergent modes (module docstring, section 4) -----------------------------------------
+
+GOLDEN = Path(__file__).parent / "data" / "simulated_modes1_golden.npz"
+
+
+def test_modes1_is_bit_for_bit_the_editor_before_modes():
+    # Outputs recorded with the editor before divergent modes existed (commit 8da66cf): the
+    # single-outcome editor must keep reproducing them, so earlier figures stay reproducible.
+    g = np.load(GOLDEN)
+    ed = SimulatedEditor(modes=1)
+    for i, ins in enumerate(VOCABULARY):
+        e = emb(ed, ins.prompt, 0.6)
+        a = ed.edit(g["render"], g["original"], e, jax.random.key(7 + i))
+        b = ed.edit(g["render"], g["original"], e, jax.random.key(11), timestep_range=(0.6, 0.6),
+                    guidance=(9.0, 1.2))
+        assert np.array_equal(a, g[f"edit_{i}"]), ins.kind
+        assert np.array_equal(b, g[f"edit_fixed_t_{i}"]), ins.kind
+        assert np.array_equal(ed.target(g["original"], 0.8, i), g[f"target_{i}"]), ins.kind
+        assert ed.edit_with_mode(g["render"], g["original"], e, jax.random.key(1))[1] == 0
+
+
+@pytest.fixture(scope="module")
+def modal():
+    return SimulatedEditor(modes=3)
+
+
+def test_modes_are_distinct_consistent_targets(modal, img):
+    for i, ins in enumerate(VOCABULARY):
+        t = modal.mode_targets(img, 1.0, i)
+        assert t.shape == (3, *img.shape)
+        np.testing.assert_array_equal(t[0], SimulatedEditor().target(img, 1.0, i))
+        for a in range(3):
+            np.testing.assert_allclose(modal.target(img, 0.0, i, a), img, atol=1e-5)
+            for b in range(a):
+                assert np.mean(np.abs(t[a] - t[b])) > 0.01, (ins.kind, a, b)
+        # each mode follows the content like mode 0: shifted views get shifted targets
+        v0, v1 = object_view(0.0), object_view(3.0)
+        inner = (slice(8, 24), slice(12, 20))
+        for k in range(3):
+            np.testing.assert_allclose(np.roll(modal.target(v0, 1.0, i, k), 3, axis=1)[inner],
+                                       modal.target(v1, 1.0, i, k)[inner], atol=0.08)
+    with pytest.raises(DataError, match="mode"):
+        modal.target(img, 1.0, 0, mode=3)
+    with pytest.raises(DataError, match="mode"):
+        SimulatedEditor().target(img, 1.0, 0, mode=1)
+    for bad in (0, 4, 2.5, True):
+        with pytest.raises(DataError, match="modes"):
+            SimulatedEditor(modes=bad)
+
+
+@pytest.mark.parametrize("index", range(len(VOCABULARY)))
+def test_mode_draw_keeps_a_mode_the_render_shows_and_mixes_from_the_original(modal, img, index):
+    calls = 20
+    for r in (1.0, 0.6):
+        e = emb(modal, VOCABULARY[index].prompt, r)
+        targets = modal.mode_targets(img, r, index)
+        for k in range(3):
+            drawn = [modal.edit_with_mode(targets[k], img, e, jax.random.key(j))
+                     for j in range(calls)]
+            assert sum(m == k for _, m in drawn) >= 0.95 * calls, (r, k)
+            # the output is the edit towards the drawn mode: nearest to that mode's target
+            out = drawn[0][0]
+            assert np.argmin([np.mean(np.abs(out - t)) for t in targets]) == k
+    # from the original scene at r = 1 (far from every mode) every mode occurs
+    e = emb(modal, VOCABULARY[index].prompt, 1.0)
+    seen = {modal.edit_with_mode(img, img, e, jax.random.key(j))[1] for j in range(40)}
+    assert seen == {0, 1, 2}
+
+
+def test_mode_draw_follows_the_documented_equation(modal, img):
+    from jaxedit.edit.simulated import mode_probabilities
+
+    e = emb(modal, VOCABULARY[1].prompt, 0.7)
+    t = modal.mode_targets(img, 0.7, 1)
+    render = np.clip(0.6 * t[0] + 0.4 * t[2], 0, 1).astype(np.float32)
+    d = np.mean(np.abs(render[None] - t), axis=(1, 2, 3))
+    tau = 0.004 + 0.25 * d.min()
+    want = np.exp(-(d - d.min()) / tau)
+    want /= want.sum()
+    got = modal.mode_probabilities(render, img, e)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(mode_probabilities(d, kappa=0.25, floor=0.004), want, rtol=1e-6)
+    assert got[0] > got[2] > got[1]  # closer to mode 0 than to 2; mode 1 is not in the blend
+    # far from every mode (tau large against the spread of d): close to uniform
+    far = mode_probabilities(np.array([1.0, 1.02, 1.04]), kappa=0.25, floor=0.004)
+    assert far.min() > 0.25
+
+
+def test_mode_draw_same_key_same_output(modal, img):
+    e = emb(modal, SHAPE, 1.0)
+    a = modal.edit_with_mode(img, img, e, KEY)
+    b = modal.edit_with_mode(img, img, e, KEY)
+    assert a[1] == b[1] and np.array_equal(a[0], b[0])
+    assert np.array_equal(modal.edit(img, img, e, KEY), a[0])
+    outs = [modal.edit_with_mode(img, img, e, jax.random.key(j)) for j in range(6)]
+    assert len({o[0].tobytes() for o in outs}) == 6

@@ -61,6 +61,44 @@ produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
    Hence a small step (render already close to T_r) gives nearly identical outputs across views
    and keys, a big jump gives inconsistent ones: exactly the FOS argument of the paper.
 
+4. **Divergent modes** (``modes=K``, K = 2 or 3; default 1). A real editor's feasible output space
+   holds *different* plausible outcomes, not one outcome plus zero-mean noise (paper sections 1
+   and 3.2: one view gets a hat here, another there). With K > 1 every instruction has K
+   discrete outcomes, each 3D-consistent on its own; mode 0 is the single target above:
+
+   ===========  ================================================================================
+   kind         modes 0, 1, 2 (full targets)
+   ===========  ================================================================================
+   colour       orange-red grade; golden grade; crimson grade
+   material     polished bronze; verdigris (green patina); dark antique bronze
+   style        neutral posterised palette; cool palette; rose palette (channel gains)
+   texture      veins at phase offsets 0, 1/3, 2/3 (other places on the same surface) in white,
+                blue-grey and pink marble
+   shape        round bulge; taller head (vertical amount, 0.35 of it horizontally); wider head
+   ===========  ================================================================================
+
+   Each call draws one mode k per view (from ``key``, on its own ``fold_in`` stream, so the
+   draws of section 3 keep their bits) and then edits exactly as in section 3 with T^k in
+   place of T. The draw looks at how close the current render x already is to each mode's
+   r-partial target T^k_r:
+
+       d_k   = mean over pixels and channels of |x - T^k_r|
+       tau   = tau_0 + kappa * min_j d_j
+       p_k   = exp(-(d_k - min_j d_j) / tau) / sum_j exp(-(d_j - min_j d_j) / tau)
+
+   with ``mode_floor`` tau_0 = 0.004 (the noise floor: differences below it are invisible) and
+   ``mode_kappa`` kappa = 0.25. The temperature shrinks with the distance to the nearest mode,
+   so the draw sharpens as the render approaches a mode: a render equal to T^k_r (d_k = 0,
+   tau = tau_0) stays in mode k unless another mode is within a few tau_0, as SDEdit keeps what
+   a lightly noised input already shows; a render far from every mode (d_min large) has
+   tau >> the spread of the d_k and picks nearly uniformly. In between, kappa sets the
+   feedback: a render twice as close to mode k as to mode j picks j about exp(-1 / kappa) =
+   2% as often as k, and an even blend of K modes is unstable (the gain of the draw at the
+   blend, about 1 / (K kappa), exceeds 1), so a scene trained on its own edits drifts to one
+   mode. The modes are not equally likely from every start: from the original, the mode whose
+   target is nearest to the original is favoured (e.g. polished bronze over verdigris on skin).
+   ``modes=1`` skips the draw: bit for bit the editor before modes existed.
+
 Everything random comes from the ``key`` argument; equal inputs and key give equal bits. Use
 :func:`view_key` to derive per-view keys from (run key, view index, ratio, iteration).
 """
@@ -268,16 +306,41 @@ _AUTUMN = np.array([[0.55, 0.55, 0.00],
                     [0.15, 0.55, 0.10],
                     [0.05, 0.15, 0.35]], np.float32)
 _BRONZE = np.array([[0.16, 0.09, 0.04], [0.70, 0.43, 0.18], [1.00, 0.88, 0.60]], np.float32)
+_MARBLE_BASE = np.array([0.93, 0.92, 0.89], np.float32)
+
+# The divergent modes (see the module docstring, section 4). Mode 0 of every kind is the single
+# target of the editor with ``modes=1``; the others are equally plausible, individually
+# 3D-consistent alternatives (each is a function of the content, the silhouette or the surface
+# point, like mode 0).
+MAX_MODES = 3
+_MODE_GRADES = (_AUTUMN,  # orange-red foliage
+                np.array([[0.50, 0.50, 0.05],  # golden: yellow highlights, dim blue
+                          [0.35, 0.50, 0.10],
+                          [0.05, 0.10, 0.20]], np.float32),
+                np.array([[0.50, 0.45, 0.05],  # crimson: redder, bluish shadows
+                          [0.10, 0.45, 0.05],
+                          [0.10, 0.20, 0.45]], np.float32))
+_MODE_PATINAS = (_BRONZE,  # polished bronze
+                 np.array([[0.06, 0.14, 0.12], [0.27, 0.55, 0.46],  # verdigris (green patina)
+                           [0.75, 0.95, 0.85]], np.float32),
+                 np.array([[0.09, 0.05, 0.02], [0.42, 0.27, 0.10],  # dark antique bronze
+                           [0.80, 0.62, 0.30]], np.float32))
+_MODE_PALETTES = (None, (0.80, 0.95, 1.20), (1.15, 0.80, 1.05))  # neutral, cool, rose cartoon
+_MODE_MARBLES = ((0.0, _MARBLE_BASE),  # (vein phase offset, base colour): white Carrara,
+                 (1.0 / 3.0, np.array([0.80, 0.84, 0.92], np.float32)),  # blue-grey,
+                 (2.0 / 3.0, np.array([0.95, 0.84, 0.80], np.float32)))  # pink
+_MODE_ASPECTS = ((1.0, 1.0), (1.0, 0.35), (0.35, 1.0))  # bulge: round, taller, wider
 
 
-def _autumn(original):
-    graded = original @ _AUTUMN.T
+def _autumn(original, grade=_AUTUMN):
+    graded = original @ grade.T
     # a gentle S-curve on the grade adds the contrast of a warm "film look"
     return jnp.clip(graded + 0.15 * graded * (1 - graded) * (graded - 0.3), 0.0, 1.0)
 
 
-def _bronze(original, mask):
-    """Cast metal: smoothed shading through a bronze ramp, specular sheen, inside the mask."""
+def _bronze(original, mask, ramp_colours=_BRONZE):
+    """Cast metal: smoothed shading through a metal ramp (dark, mid, light colours [3, 3]),
+    specular sheen, inside the mask."""
     h, w, _ = original.shape
     # a statue has no skin or hair texture: keep the large-scale shading of the luminance and
     # drop most of its fine detail (a blur of a function of the content, so view-consistent up
@@ -285,8 +348,9 @@ def _bronze(original, mask):
     lum = _luma(original)
     smooth = _blur(lum, max(h, w) / 40.0)
     lum = _smoothstep(0.0, 1.0, 0.8 * smooth + 0.2 * lum)[..., None]
-    lo = _BRONZE[0] + (_BRONZE[1] - _BRONZE[0]) * jnp.clip(2 * lum, 0, 1)
-    hi = _BRONZE[1] + (_BRONZE[2] - _BRONZE[1]) * jnp.clip(2 * lum - 1, 0, 1)
+    c = ramp_colours
+    lo = c[0] + (c[1] - c[0]) * jnp.clip(2 * lum, 0, 1)
+    hi = c[1] + (c[2] - c[1]) * jnp.clip(2 * lum - 1, 0, 1)
     ramp = jnp.where(lum < 0.5, lo, hi)
     sheen = 0.6 * lum ** 6  # metallic highlights on the brightest parts
     metal = jnp.clip(ramp + sheen, 0.0, 1.0)
@@ -294,9 +358,12 @@ def _bronze(original, mask):
     return m * metal + (1 - m) * original
 
 
-def _cartoon(original, levels: int = 4, width: float = 0.2):
+def _cartoon(original, levels: int = 4, width: float = 0.2, gains=None):
     mean = jnp.mean(original, axis=-1, keepdims=True)
-    sat = jnp.clip(mean + 1.3 * (original - mean), 0.0, 1.0)
+    sat = mean + 1.3 * (original - mean)
+    if gains is not None:  # the palette of a mode: per-channel gains before posterising
+        sat = sat * jnp.asarray(gains, jnp.float32)
+    sat = jnp.clip(sat, 0.0, 1.0)
     y = sat * (levels - 1)
     base = jnp.floor(y)
     # a soft staircase keeps the target a continuous function of the colour
@@ -309,7 +376,7 @@ def _cartoon(original, levels: int = 4, width: float = 0.2):
     return poster * (1.0 - 0.85 * edge[..., None])
 
 
-def _marble(original, mask, points=None):
+def _marble(original, mask, points=None, offset: float = 0.0, base=_MARBLE_BASE):
     lum = _luma(original)
     if points is None:
         # the vein phase is a smooth function of the surface colour, so it is stamped on the
@@ -319,9 +386,11 @@ def _marble(original, mask, points=None):
         p = points
         phase = 3.0 * (p[..., 0] + 0.6 * p[..., 1] + 0.3 * p[..., 2]) \
             + 0.8 * jnp.sin(4.0 * p[..., 1] + 2.0 * p[..., 2]) + 0.5 * jnp.sin(5.0 * p[..., 0])
+    if offset:  # another mode: the same world-anchored pattern, veins in other places
+        phase = phase + offset
     v = jnp.abs(jnp.sin(jnp.pi * phase))
     vein = (1.0 - v) ** 8  # thin dark lines where the phase crosses an integer
-    base = jnp.array([0.93, 0.92, 0.89]) * (0.78 + 0.22 * lum[..., None])
+    base = jnp.asarray(base) * (0.78 + 0.22 * lum[..., None])
     vein = 0.55 * vein[..., None]
     marble = base * (1.0 - vein) + vein * jnp.array([0.35, 0.36, 0.40])
     m = mask[..., None]
@@ -340,8 +409,11 @@ def head_mask(mask, *, fraction: float = 0.6):
     return mask * _smoothstep(cut + 1.0, cut - 1.0, rows)[:, None]
 
 
-def _bulge(original, mask, amount):
-    """Magnify the head around its centroid: inverse warp x -> c + (x - c) f(|x - c| / R)."""
+def _bulge(original, mask, amount, aspect=(1.0, 1.0)):
+    """Magnify the head around its centroid: inverse warp x -> c + (x - c) f(|x - c| / R).
+
+    ``aspect`` (rows, columns) scales the amount along each image axis: (1, 1) is the
+    isotropic bulge; (1, 0.35) makes the head taller, (0.35, 1) wider."""
     h, w, _ = original.shape
     cr, cc, rad = _centroid_radius(head_mask(mask))
     rows, cols = jnp.meshgrid(jnp.arange(h) + 0.5, jnp.arange(w) + 0.5, indexing="ij")
@@ -349,33 +421,54 @@ def _bulge(original, mask, amount):
     rho2 = (dr * dr + dc * dc) / (rad * rad)
     # f < 1 near the centre samples closer to the centroid (magnification 1 / (1 - amount)),
     # f -> 1 far away; |amount| <= 0.5 keeps the radial map monotone (no folds)
-    f = 1.0 - amount * jnp.exp(-rho2 / (2 * 0.8 ** 2))
-    return _sample(original, cr + dr * f - 0.5, cc + dc * f - 0.5)
+    g = jnp.exp(-rho2 / (2 * 0.8 ** 2))
+    if aspect == (1.0, 1.0):
+        f = 1.0 - amount * g
+        return _sample(original, cr + dr * f - 0.5, cc + dc * f - 0.5)
+    fr, fc = 1.0 - aspect[0] * amount * g, 1.0 - aspect[1] * amount * g
+    return _sample(original, cr + dr * fr - 0.5, cc + dc * fc - 0.5)
 
 
 BULGE_MAX = 0.35
 
 
-def _target_family(original, kind: str, points=None):
-    """s -> target of strength s (s = 0: the original, s = 1: the full target) for one kind.
+def _target_family(original, kind: str, points=None, mode: int = 0):
+    """s -> target of strength s (s = 0: the original, s = 1: the full target) for one kind
+    and one divergent mode (0 .. MAX_MODES - 1; mode 0 is the editor's single target).
 
     What does not depend on s (the foreground mask, the full colour target) is computed once,
     so the edit's two strengths (nominal and jittered) share it.
     """
     if kind == "shape":
         mask = foreground(original)
-        return lambda s: _bulge(original, mask, s * BULGE_MAX)
+        aspect = _MODE_ASPECTS[mode]
+        return lambda s: _bulge(original, mask, s * BULGE_MAX, aspect)
     if kind == "colour":
-        full = _autumn(original)
+        full = _autumn(original, _MODE_GRADES[mode])
     elif kind == "material":
-        full = _bronze(original, foreground(original))
+        full = _bronze(original, foreground(original), _MODE_PATINAS[mode])
     elif kind == "style":
-        full = _cartoon(original)
+        full = _cartoon(original, gains=_MODE_PALETTES[mode])
     elif kind == "texture":
-        full = _marble(original, foreground(original), points)
+        offset, base = _MODE_MARBLES[mode]
+        full = _marble(original, foreground(original), points, offset, base)
     else:
         raise ValueError(kind)
     return lambda s: jnp.clip(original + s * (full - original), 0.0, 1.0)
+
+
+def mode_probabilities(distances, *, kappa: float, floor: float):
+    """p_k of the mode draw from the distances d_k of the render to each mode's r-target.
+
+    p_k = softmax_k(-(d_k - d_min) / tau) with tau = floor + kappa * d_min (module docstring,
+    section 4). float [K] -> float [K]; NumPy or JAX arrays.
+    """
+    xp = jnp if isinstance(distances, jax.Array) else np
+    d = distances
+    d_min = xp.min(d)
+    logits = -(d - d_min) / (floor + kappa * d_min)
+    w = xp.exp(logits - xp.max(logits))
+    return w / xp.sum(w)
 
 
 # --------------------------------------------------------------------------------------------
@@ -388,10 +481,23 @@ class _Params:
     colour: float
     shift: float
     jitter: float
+    modes: int = 1
+    mode_kappa: float = 0.25
+    mode_floor: float = 0.004
+
+
+_MODE_STREAM = 0x6D6F6465  # fold_in tag of the mode draw: the other draws keep their bits
+
+
+def _mode_distances(image, original, s, points, kind: str, modes: int):
+    """(partial targets float [K, H, W, 3], d_k = mean |image - T^k| float [K]) at strength s."""
+    partial = jnp.stack([_target_family(original, kind, points, k)(s) for k in range(modes)])
+    return partial, jnp.mean(jnp.abs(image[None] - partial), axis=(1, 2, 3))
 
 
 @functools.partial(jax.jit, static_argnames=("kind", "params"))
 def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params: _Params):
+    """(edited image float32 [H, W, 3], drawn mode int32 []); see the module docstring."""
     h, w, _ = image.shape
     nf = FIELD_WAVES * 5
     sizes = (1, 2, 2 * nf, 3 * nf, 3 * nf, h * w * 3 * 2)
@@ -400,8 +506,17 @@ def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params
     t = t_range[0] + (t_range[1] - t_range[0]) * u_t[0]
     keep = jnp.cos(0.5 * jnp.pi * jnp.clip(t, 0.0, 1.0))
 
-    family = _target_family(original, kind, points)
-    target = family(s)
+    if params.modes == 1:  # the single-outcome editor, exactly as before modes existed
+        mode = jnp.int32(0)
+        family = _target_family(original, kind, points)
+        target = family(s)
+    else:
+        partial, dist = _mode_distances(image, original, s, points, kind, params.modes)
+        p = mode_probabilities(dist, kappa=params.mode_kappa, floor=params.mode_floor)
+        mode = jax.random.categorical(jax.random.fold_in(key, _MODE_STREAM), jnp.log(p))
+        families = [_target_family(original, kind, points, k) for k in range(params.modes)]
+        family = lambda v: jax.lax.switch(mode, families, v)  # noqa: E731
+        target = partial[mode]
     diff = jnp.abs(image - target)
     gap = jnp.mean(diff)
     local = _blur(jnp.mean(diff, axis=-1), max(h, w) / 16.0)
@@ -421,12 +536,18 @@ def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params
     floor = params.noise * (_random_field(u_sm.reshape(3, FIELD_WAVES, 5), h, w, cycles=2.0)
                             + _normals(u_px.reshape(h, w, 3, 2)))
     out = keep * image + (1.0 - keep) * (edited + floor)
-    return jnp.clip(out, 0.0, 1.0).astype(jnp.float32)
+    return jnp.clip(out, 0.0, 1.0).astype(jnp.float32), mode
 
 
-@functools.partial(jax.jit, static_argnames=("kind",))
-def _target_impl(original, s, points, *, kind):
-    return _target_family(original, kind, points)(s).astype(jnp.float32)
+@functools.partial(jax.jit, static_argnames=("kind", "params"))
+def _probabilities_impl(image, original, s, points, *, kind, params: _Params):
+    _, dist = _mode_distances(image, original, s, points, kind, params.modes)
+    return mode_probabilities(dist, kappa=params.mode_kappa, floor=params.mode_floor)
+
+
+@functools.partial(jax.jit, static_argnames=("kind", "mode"))
+def _target_impl(original, s, points, *, kind, mode=0):
+    return _target_family(original, kind, points, mode)(s).astype(jnp.float32)
 
 
 def _as_image(x, where: str) -> np.ndarray:
@@ -457,18 +578,32 @@ class SimulatedEditor:
         When ``edit``/``target`` receive an ``original`` equal to one of these views (up to 8-bit
         rounding), the marble veins are a function of the world position instead of the colour.
         See :meth:`from_scene` for the built-in scenes.
+      modes: number K of divergent outcomes per instruction, 1 .. MAX_MODES. 1 (default) is the
+        single-outcome editor (bit for bit the editor before modes existed); K > 1 draws one of
+        K modes per edit call (module docstring, section 4).
+      mode_kappa: kappa of the draw's temperature tau = mode_floor + kappa * d_min.
+      mode_floor: tau_0, the temperature of a render that already equals a mode's target.
     """
 
     name = "simulated"
 
     def __init__(self, *, noise: float = 0.004, colour: float = 0.12, shift: float = 0.05,
-                 jitter: float = 1.0, surfaces: tuple | None = None):
+                 jitter: float = 1.0, surfaces: tuple | None = None, modes: int = 1,
+                 mode_kappa: float = 0.25, mode_floor: float = 0.004):
         for field, v in (("noise", noise), ("colour", colour), ("shift", shift),
-                         ("jitter", jitter)):
+                         ("jitter", jitter), ("mode_kappa", mode_kappa)):
             if not (math.isfinite(v) and v >= 0):
                 raise DataError(f"SimulatedEditor.{field}",
                                 f"must be a finite number >= 0, got {v!r}")
-        self.params = _Params(float(noise), float(colour), float(shift), float(jitter))
+        if not (math.isfinite(mode_floor) and mode_floor > 0):
+            raise DataError("SimulatedEditor.mode_floor", f"must be a finite number > 0, got "
+                            f"{mode_floor!r}")
+        if isinstance(modes, bool) or not isinstance(modes, (int, np.integer)) \
+                or not 1 <= modes <= MAX_MODES:
+            raise DataError("SimulatedEditor.modes",
+                            f"must be an integer in 1..{MAX_MODES}, got {modes!r}")
+        self.params = _Params(float(noise), float(colour), float(shift), float(jitter),
+                              int(modes), float(mode_kappa), float(mode_floor))
         q, _ = np.linalg.qr(np.random.default_rng(20241120).normal(size=(EMBED_DIM, EMBED_DIM)))
         self._basis = q.astype(np.float32)  # columns: null direction, then one per instruction
         self._surface_views = self._surface_points = None
@@ -565,17 +700,39 @@ class SimulatedEditor:
         k = int(np.argmin(err))
         return jnp.asarray(self._surface_points[k]) if err[k] < 1.0 / 255 else None
 
-    def target(self, original, ratio: float, instruction) -> np.ndarray:
-        """The noise-free r-partial target T_r(original), float32 [H, W, 3] in [0, 1].
+    @property
+    def modes(self) -> int:
+        """K, the number of divergent outcomes of every instruction."""
+        return self.params.modes
+
+    def target(self, original, ratio: float, instruction, mode: int = 0) -> np.ndarray:
+        """The noise-free r-partial target T^k_r(original) of mode k, float32 [H, W, 3] in [0, 1].
 
         ``instruction`` is a prompt of the vocabulary or its index; r = 0 gives ``original``.
+        ``mode`` k in 0 .. modes - 1 (mode 0: the target of the single-outcome editor).
         """
         original = _as_image(original, "original")
         i = self._index(instruction)
+        if isinstance(mode, bool) or not isinstance(mode, (int, np.integer)) \
+                or not 0 <= mode < self.modes:
+            raise DataError("mode", f"must be an integer in 0..{self.modes - 1}, got {mode!r}")
         ins = VOCABULARY[i]
         s = strength(float(ratio), ins.midpoint, ins.steepness)
         return np.asarray(_target_impl(jnp.asarray(original), jnp.float32(s),
-                                       self._points(original), kind=ins.kind))
+                                       self._points(original), kind=ins.kind, mode=int(mode)))
+
+    def mode_targets(self, original, ratio: float, instruction) -> np.ndarray:
+        """The targets of every mode, float32 [K, H, W, 3] (K = ``modes``)."""
+        return np.stack([self.target(original, ratio, instruction, k) for k in range(self.modes)])
+
+    def mode_probabilities(self, image, original, embedding) -> np.ndarray:
+        """p_k of the mode draw for the render ``image`` and embedding e(r), float [K]."""
+        image, original = _as_image(image, "image"), _as_image(original, "original")
+        i, r = self.decode(embedding)
+        kind, s = ("colour", 0.0) if i is None else (VOCABULARY[i].kind, self.strength(r, i))
+        return np.asarray(_probabilities_impl(jnp.asarray(image), jnp.asarray(original),
+                                              jnp.float32(s), self._points(original),
+                                              kind=kind, params=self.params))
 
     def target_of_embedding(self, original, embedding) -> np.ndarray:
         """The noise-free target for an embedding e(r) (the original for the null embedding)."""
@@ -587,6 +744,16 @@ class SimulatedEditor:
              timestep_range: tuple[float, float] = (0.02, 0.98),
              guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
         """Edit one view: float32 [H, W, 3] in [0, 1], deterministic given ``key``.
+
+        The arguments are those of :meth:`edit_with_mode`, which also returns the drawn mode.
+        """
+        return self.edit_with_mode(image, original, embedding, key, timestep_range=timestep_range,
+                                   guidance=guidance)[0]
+
+    def edit_with_mode(self, image, original, embedding, key: jax.Array, *,
+                       timestep_range: tuple[float, float] = (0.02, 0.98),
+                       guidance: tuple[float, float] = (7.5, 1.5)) -> tuple[np.ndarray, int]:
+        """(edited view float32 [H, W, 3] in [0, 1], the mode k it was drawn in).
 
         Args:
           image: float [H, W, 3], the current render of the view.
@@ -612,10 +779,10 @@ class SimulatedEditor:
         i, r = self.decode(embedding)
         kind, s = ("colour", 0.0) if i is None else (VOCABULARY[i].kind, self.strength(r, i))
         gscale = (gt / 7.5) * math.sqrt(1.5 / gi)
-        out = _edit_impl(jnp.asarray(image), jnp.asarray(original), jnp.float32(s), key,
-                         jnp.asarray([t0, t1], jnp.float32), jnp.float32(gscale),
-                         self._points(original), kind=kind, params=self.params)
-        return np.asarray(out)
+        out, mode = _edit_impl(jnp.asarray(image), jnp.asarray(original), jnp.float32(s), key,
+                               jnp.asarray([t0, t1], jnp.float32), jnp.float32(gscale),
+                               self._points(original), kind=kind, params=self.params)
+        return np.asarray(out), int(mode)
 
 
 def edit_views(editor, images: Sequence, originals: Sequence, embedding, run_key, ratio: float,

@@ -1,0 +1,141 @@
+"""The ablation as statistics: per-seed records -> means, Student-t CIs, paired differences,
+tables and the report page. (The end-to-end run is ``benchmarks/ablation.py --smoke`` in CI.)"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from experiments import cli
+from experiments.ablation import METHODS, summarise, tables
+from jaxedit import DataError
+from jaxedit.metrics import mean_ci, mode_mixture, mode_scores, paired_differences
+from jaxedit.report import write_report
+
+PROMPTS = ("make it look like autumn", "make his head bigger")
+
+
+def records(seeds=4, modes=(1, 3)):
+    """Synthetic runs: proedit is 1 dB better than nd on the first prompt, equal on the second."""
+    rng = np.random.default_rng(0)
+    out = []
+    for k in modes:
+        for p, prompt in enumerate(PROMPTS):
+            for seed in range(seeds):
+                noise = rng.normal(0, 0.3)  # shared by the methods of a seed: pairing removes it
+                for m, method in enumerate(METHODS):
+                    lead = 1.0 if (p == 0 and method == "proedit") else 0.0
+                    out.append({"editor_modes": k, "scene": "face", "prompt": prompt,
+                                "seed": seed, "method": method,
+                                "psnr_best": 20.0 + lead + noise + 0.01 * rng.normal(),
+                                "ssim_best": 0.8, "mode_mixing": 0.1 * m,
+                                "multiview_consistency": 25.0, "psnr_vs_target": 19.0,
+                                "total_steps": 100 + seed, "cpu_seconds": 1.0})
+    return out
+
+
+def test_mean_ci_and_paired_differences_are_student_t():
+    x = np.array([1.0, 2.0, 4.0, 7.0])
+    r = mean_ci(x)
+    half = stats.t.ppf(0.975, 3) * x.std(ddof=1) / 2.0
+    assert r["mean"] == pytest.approx(3.5) and r["ci"] == pytest.approx(half) and r["n"] == 4
+    assert r["low"] == pytest.approx(3.5 - half) and r["high"] == pytest.approx(3.5 + half)
+    assert mean_ci([2.0])["ci"] is None
+    d = paired_differences([3.0, 4.0, 6.0], [1.0, 2.0, 4.5])
+    assert d["mean"] == pytest.approx(np.mean([2.0, 2.0, 1.5]))
+    with pytest.raises(DataError, match="paired"):
+        paired_differences([1.0, 2.0], [1.0])
+    with pytest.raises(DataError, match="finite"):
+        mean_ci([1.0, float("nan")])
+
+
+def test_mode_scores_favour_no_mode():
+    rng = np.random.default_rng(1)
+    t = rng.uniform(0, 1, (3, 2, 12, 12, 3))  # SSIM windows need >= 11 px
+    for k in range(3):  # a render equal to any one mode scores the same and does not mix
+        s = mode_scores(t[k], t)
+        assert s["mode"] == k and s["psnr_best"] == pytest.approx(100.0, abs=1e-6)
+        assert s["mode_mixing"] == pytest.approx(0.0, abs=1e-9)
+    even = mode_scores(t.mean(0), t)
+    assert even["mode_mixing"] == pytest.approx(1.0, abs=1e-6)
+    w = mode_mixture(0.7 * t[0] + 0.3 * t[2], t)
+    np.testing.assert_allclose(w, [0.7, 0.0, 0.3], atol=1e-6)
+    # outside the simplex: the nearest blend on its boundary, weights still sum to 1
+    w = mode_mixture(np.clip(1.4 * t[1] - 0.4 * t[0], 0, 1), t)
+    assert w.min() >= 0 and w.sum() == pytest.approx(1.0) and w[1] == w.max()
+    assert mode_scores(t[0], t[:1])["mode_mixing"] == 0.0
+    with pytest.raises(DataError, match="mode_targets"):
+        mode_mixture(t[0], t[:, :1])
+
+
+def test_summary_and_paired_differences():
+    runs = records()
+    summary, differences = summarise(runs)
+    pick = lambda rows, **kw: [r for r in rows if all(r[k] == v for k, v in kw.items())]  # noqa: E731
+    for k in (1, 3):
+        row, = pick(summary, editor_modes=k, prompt=PROMPTS[0], method="nd", metric="psnr_best")
+        vals = [r["psnr_best"] for r in runs if r["editor_modes"] == k and r["method"] == "nd"
+                and r["prompt"] == PROMPTS[0]]
+        assert row["n"] == 4 and row["mean"] == pytest.approx(np.mean(vals))
+        assert row["ci"] == pytest.approx(mean_ci(vals)["ci"])
+        # pairing by seed removes the shared noise: proedit's 1 dB lead is resolved
+        d, = pick(differences, editor_modes=k, prompt=PROMPTS[0], method="nd", metric="psnr_best")
+        assert d["mean"] == pytest.approx(1.0, abs=0.05) and d["ci"] < 0.1
+        d, = pick(differences, editor_modes=k, prompt=PROMPTS[1], method="in2n",
+                  metric="psnr_best")
+        assert abs(d["mean"]) < 0.05
+        # "all" averages the instructions of each seed first: half the lead
+        d, = pick(differences, editor_modes=k, prompt="all", method="nd_equal_steps",
+                  metric="psnr_best")
+        assert d["mean"] == pytest.approx(0.5, abs=0.05) and d["n"] == 4
+    assert not pick(differences, method="proedit")
+    md = tables(summary, differences)
+    assert "editor modes = 1: psnr_best" in md and "editor modes = 3: mode_mixing" in md
+    assert "| face | make it look like autumn |" in md and "proedit − in2n" in md
+    assert " *" in md  # the resolved lead is marked
+
+
+def test_report_shows_the_statistics(tmp_path):
+    runs = records(seeds=3)
+    summary, differences = summarise(runs)
+    (tmp_path / "ablation.json").write_text(json.dumps({
+        "settings": {"scenes": ["face"], "seeds": 3}, "runs": runs, "summary": summary,
+        "differences": differences}))
+    text = write_report(tmp_path).read_text()
+    assert "editor modes = 3: mode_mixing" in text and "not InstructPix2Pix" in text
+    assert "proedit − nd_equal_steps" in text and "data:image/png;base64," in text
+    (tmp_path / "ablation.json").write_text(json.dumps({"proedit": {"psnr": 3}}))
+    with pytest.raises(DataError, match="ablation.json"):
+        write_report(tmp_path)
+    (tmp_path / "ablation.json").write_text(json.dumps({"runs": [], "summary": [{"mean": 1}]}))
+    with pytest.raises(DataError, match=r"summary\[0\]"):
+        write_report(tmp_path)
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--scenes", "moon"], "--scenes"),
+    (["--editor-modes", "1,7"], "--editor-modes"),
+    (["--methods", "nd,in2n"], "include proedit"),
+    (["--prompts", "make it a dragon"], "unknown instruction"),
+    (["--seeds", "0"], "--seeds"),
+])
+def test_bad_flags_fail_in_one_line(tmp_path, capsys, argv, needle):
+    assert cli.main(["ablation", "--out", str(tmp_path / "run"), *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+
+
+def test_an_interrupted_run_summarises_what_finished():
+    runs = records(seeds=3, modes=(3,))
+    # the second instruction stopped after seed 1's nd: seed 2 of it is left out, paired
+    runs = [r for r in runs if not (r["prompt"] == PROMPTS[1] and (
+        r["seed"] == 2 or (r["seed"] == 1 and r["method"] in ("nd_equal_steps", "in2n"))))]
+    summary, differences = summarise(runs)
+    rows = [r for r in summary if r["metric"] == "psnr_best" and r["method"] == "proedit"]
+    assert {r["prompt"]: r["n"] for r in rows} == {PROMPTS[0]: 3, PROMPTS[1]: 1}
+    assert all(r["prompt"] != "all" for r in summary)  # one complete instruction: no "all"
+    d = [r for r in differences if r["prompt"] == PROMPTS[1] and r["method"] == "nd"]
+    assert d and all(r["n"] == 1 and r["ci"] is None for r in d)
