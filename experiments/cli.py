@@ -25,7 +25,7 @@ import tomllib
 from pathlib import Path
 
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
-            "report", "convert-lpips", "clip-metrics"]
+            "report", "convert-lpips", "clip-metrics", "process-data"]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -138,8 +138,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.device:
             import jax
             jax.config.update("jax_platforms", args.device)
-        write_run_config(args)
+        # A command whose output folder must start empty records its config once it succeeded.
+        after = getattr(args._module, "RECORD_CONFIG_AFTER_RUN", False)
+        if not after:
+            write_run_config(args)
         result = args._module.run(args)
+        if after:
+            write_run_config(args)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
