@@ -68,8 +68,12 @@ def pose_errors(estimated: Camera, reference: Camera) -> dict:
     moved = transform_cameras(estimated, sim)
     r_est = np.asarray(moved.world_to_camera, np.float64)[:, :3, :3]
     r_ref = np.asarray(reference.world_to_camera, np.float64)[:, :3, :3]
-    cos = (np.einsum("nij,nij->n", r_est, r_ref) - 1.0) / 2.0  # trace(R_est R_ref^T)
-    rotation_deg = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    rel = r_est @ np.swapaxes(r_ref, -1, -2)
+    # atan2 of the axis part over the trace part: accurate for small angles (arccos is not).
+    sin = 0.5 * np.linalg.norm(np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0],
+                                         rel[:, 1, 0] - rel[:, 0, 1]], -1), axis=-1)
+    cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
+    rotation_deg = np.degrees(np.arctan2(sin, cos))
     centre_error = np.linalg.norm(np.asarray(moved.center(), np.float64) - ref_c, axis=1)
     extent = camera_extent(reference)
     return {"rotation_deg": rotation_deg, "centre_error": centre_error, "extent": extent,

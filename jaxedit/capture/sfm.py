@@ -191,7 +191,7 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
 
 
 def quiet_colmap(quiet: bool = True) -> None:
-    """Silence COLMAP's own per-step log lines (errors still show)."""
+    """Silence COLMAP's own log lines (its failures come back as our one-line errors)."""
     import pycolmap
 
-    pycolmap.logging.minloglevel = 2 if quiet else 0
+    pycolmap.logging.minloglevel = 3 if quiet else 0
