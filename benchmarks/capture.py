@@ -34,6 +34,7 @@ def extra(p):
     p.add_argument("--views", type=int, default=None, help="training views (default 36)")
     p.add_argument("--downscale", type=int, default=None, help="training downscale (default 2)")
     p.add_argument("--max-features", type=int, default=2048, help="SIFT features per image")
+    p.add_argument("--camera-model", default="SIMPLE_RADIAL", help="process-data's camera model")
     p.add_argument("--keep", type=Path, default=None,
                    help="keep the datasets and runs here (default: a temp dir)")
 
@@ -67,7 +68,7 @@ def main(argv=None):
                           num_points=4000, supersample=1)
         images = sorted((root / "truth" / "images").glob("*.png"))
         summary = process_capture(root / "sfm", images, options=SfmOptions(
-            max_features=args.max_features), report=None)
+            max_features=args.max_features, camera_model=args.camera_model), report=None)
 
         truth = load_nerfstudio(root / "truth", downscale=down, normalize="nerfstudio")
         sfm = load_nerfstudio(root / "sfm", downscale=down, normalize="nerfstudio", split_every=0)
@@ -92,7 +93,8 @@ def main(argv=None):
     payload = {
         "scene": "face", "size": size, "train_views": views, "test_views": TEST_VIEWS,
         "downscale": down, "iterations": iters, "smoke": bool(args.smoke),
-        "max_features": args.max_features, "camera": summary["camera"],
+        "max_features": args.max_features, "camera_model": args.camera_model,
+        "camera": summary["camera"],
         "registered": summary["num_registered"], "images": summary["num_images"],
         "sfm_points": summary["num_points"], "sfm_seconds": summary["seconds"],
         "median_rotation_deg": errors["median_rotation_deg"],

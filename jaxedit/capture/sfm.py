@@ -26,8 +26,6 @@ import time
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 from ..errors import DataError
 
 MATCHING = ("exhaustive", "sequential")
@@ -100,11 +98,8 @@ def image_pairs(num_images: int, matching: str, overlap: int = 10) -> list[tuple
         return [(i, j) for i in range(num_images) for j in range(i + 1, num_images)]
     if matching != "sequential":
         raise DataError("--matching", f"must be one of {', '.join(MATCHING)}, got {matching!r}")
-    pairs = set()
-    for i in range(num_images):
-        ahead = set(range(1, overlap + 1)) | {2 ** k for k in range(int(np.log2(max(num_images, 1))) + 1)}
-        pairs.update((i, i + d) for d in ahead if i + d < num_images)
-    return sorted(pairs)
+    ahead = set(range(1, overlap + 1)) | {2 ** k for k in range(max(num_images, 1).bit_length())}
+    return sorted((i, i + d) for i in range(num_images) for d in ahead if i + d < num_images)
 
 
 def _chunks(items: list, size: int) -> list[list]:
