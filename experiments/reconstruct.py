@@ -55,7 +55,8 @@ def add_arguments(p) -> None:
     p.add_argument("--normalize", choices=["none", "nerfstudio"], default="none",
                    help="re-centre and scale the poses as nerfstudio does")
     p.add_argument("--random-points", type=int, default=20_000,
-                   help="initial points when the dataset has no point cloud")
+                   help="initial points when the dataset has no point cloud (photo-consistent "
+                        "random points where the training frusta overlap)")
     p.add_argument("--checkpoint-every", type=int, default=1000,
                    help="checkpoint period in steps (0: only at the end)")
     p.add_argument("--resume", action="store_true",
