@@ -100,6 +100,9 @@ def main(argv=None):
         "median_rotation_deg": errors["median_rotation_deg"],
         "median_centre_error_rel": errors["median_centre_error_rel"],
         "max_rotation_deg": float(errors["rotation_deg"].max()),
+        # The same error as an image shift at the training resolution: what PSNR feels.
+        "median_rotation_px": float(np.radians(errors["median_rotation_deg"])
+                                    * float(np.asarray(truth.cameras.fx).mean())),
         "test_psnr_true_poses": m_truth["test_psnr"],
         "test_psnr_sfm_aligned": aligned["psnr"], "test_psnr_sfm_estimated": m_sfm["test_psnr"],
         "test_ssim_true_poses": m_truth["test_ssim"], "test_ssim_sfm_aligned": aligned["ssim"],
