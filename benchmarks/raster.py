@@ -30,7 +30,8 @@ ORACLE_FWD_MAX = 2e8
 ORACLE_BWD_MAX = 3e7
 
 
-def scene(n: int, size: int, seed: int = 0):
+def scene(n: int, size: int, seed: int = 0, height: int | None = None):
+    """``n`` Gaussians and a camera of ``size`` x ``height`` (default square) pixels, focal = width."""
     import jax.numpy as jnp
 
     from jaxedit import camera as cam_lib
@@ -46,7 +47,7 @@ def scene(n: int, size: int, seed: int = 0):
                   opacity_logits=jnp.asarray(rng.normal(0.0, 1.0, n), jnp.float32),
                   sh=jnp.asarray(sh), alive=jnp.ones(n, bool))
     cam = cam_lib.make_camera(cam_lib.look_at((3.0, 0.0, 0.0), (0.0, 0.0, 0.0)), width=size,
-                              height=size, focal=float(size))
+                              height=height or size, focal=float(size))
     return g, cam
 
 

@@ -116,7 +116,8 @@ def run_ablation(out: Path, *, scene_name="face", prompt="turn him into a bronze
         results = json.loads((out / "ablation.json").read_text())
     # The unedited reconstruction, scored the same way: the floor every mode should beat.
     from jaxedit.edit.progressive import EditContext, SubtaskTrainer
-    ctx = EditContext(editor, prompt, data, ProEditConfig(), SubtaskTrainer(settings),
+    ctx = EditContext(editor, prompt, data, ProEditConfig(),
+                      SubtaskTrainer(settings, num_input=int(scene.num_alive())),
                       Renderer(), None)
     base = scene_metrics(ctx, scene, 0.0)
     results["input"] = {k: base.get(k) for k in KEYS} | {"recon_test_psnr": recon["test_psnr"]}

@@ -25,7 +25,7 @@ import tomllib
 from pathlib import Path
 
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
-            "report", "convert-lpips", "clip-metrics", "process-data"]
+            "report", "convert-lpips", "clip-metrics", "view", "process-data"]
 
 
 class OneLineParser(argparse.ArgumentParser):

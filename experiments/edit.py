@@ -7,6 +7,7 @@ run can be previewed while it works), ``metrics.json``, ``original/`` and
 at a snapshot (also on a finished run with ``--select-only``); ``--resume``
 continues a crashed run; ``--resume-from SNAPSHOT_DIR`` continues from any
 snapshot with another schedule (more or fewer subtasks, another threshold).
+``--view`` serves the scene in the browser while it is edited (``experiments/view.py``).
 """
 
 from __future__ import annotations
@@ -28,8 +29,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", default="proedit", choices=["proedit", "nd", "in2n"],
                    help="proedit (default), nd (one subtask 0 -> 1), in2n (IN2N baseline)")
     p.add_argument("--threshold", type=float, default=None,
-                   help="difficulty threshold d_threshold of the scheduler")
+                   help="difficulty threshold d_threshold of the scheduler, per view")
+    p.add_argument("--target-subtasks", type=int, default=None,
+                   help="find the threshold that gives N subtasks (paper: ~4 texture, ~8 geometry)")
     p.add_argument("--subtasks", type=int, default=None, help="N uniform subtasks instead")
+    p.add_argument("--difficulty-views", type=int, default=None,
+                   help="views the difficulty is taken over (a seeded subset; default all, "
+                        "up to 16)")
+    p.add_argument("--max-gaussians", type=int, default=None,
+                   help="hard cap on Gaussians during the edit (default 2x the input's count)")
     p.add_argument("--schedule-method", default="bisect", choices=["bisect", "root"],
                    help="bisect + prune (paper) or root placement (optimistix)")
     p.add_argument("--select", default=None,
@@ -54,6 +62,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-views", type=int, default=None,
                    help="at most this many held-out views in snapshots and metrics")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
+    p.add_argument("--view", action="store_true",
+                   help="serve the scene in the browser while it is edited (viser; see `view`)")
+    p.add_argument("--view-port", type=int, default=8080, help="port of --view on 127.0.0.1")
     real = p.add_argument_group("real models (local weights, see the README)")
     real.add_argument("--ip2p-device", default=None,
                       help="torch device of the InstructPix2Pix editor (default cuda:0, else cpu)")
@@ -140,6 +151,7 @@ def config_from_args(args):
 
     return ProEditConfig.for_mode(
         args.mode, threshold=args.threshold, subtasks=args.subtasks,
+        target_subtasks=args.target_subtasks, difficulty_views=args.difficulty_views,
         schedule_method=args.schedule_method, asynchronous=args.asynchronous,
         warmup=args.warmup, patience=args.patience, max_steps=args.max_steps,
         edit_every=args.edit_every, turntable_frames=args.turntable_frames)
@@ -193,15 +205,26 @@ def run(args) -> dict:
         raise DataError("--prompt", "required (the editing instruction)")
     data, scene = load_inputs(args)
     config = config_from_args(args)
+    from jaxedit.edit.progressive import TrainSettings
+
+    settings = TrainSettings(max_gaussians=args.max_gaussians)
+    watcher = None
+    if args.view:
+        from .view import check_port, watch_edit
+
+        watcher = watch_edit(args.out, port=check_port(args.view_port, "--view-port"))
     progress = progress_callback(args.quiet)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     try:
-        out = run_edit(editor, args.prompt or "", data, scene, config=config, seed=args.seed,
+        out = run_edit(editor, args.prompt or "", data, scene, config=config, settings=settings,
+                       seed=args.seed,
                        run_dir=args.out, resume=args.resume, resume_from=args.resume_from,
                        select=args.select, progress=progress, report=not args.no_report, log=log,
                        distance=distance)
     finally:
         progress.close()
+        if watcher is not None:
+            watcher.stop()
     m = out["metrics"]
     clip = add_clip_metrics(args)
     if clip is not None:
@@ -210,4 +233,9 @@ def run(args) -> dict:
     keys = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
             "num_gaussians", "wall_time_s", "subtasks", "all_converged",
             "clip_direction_similarity", "clip_direction_consistency")
+    if watcher is not None:
+        print(f"edit finished; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)",
+              flush=True)
+        watcher.viewer.serve_forever()
+        watcher.viewer.close()
     return {k: m.get(k) for k in keys} | {"run_dir": str(args.out)}

@@ -1,21 +1,26 @@
-"""Nested progress bars with ETA, for terminals and for logs.
+"""Nested progress bars with ETA: rich's live bars on a terminal, plain lines in logs.
 
 One :class:`Progress` per unit of long work; a child (``parent=...``) is a
 stage inside its parent (a subtask inside an edit, the steps inside a subtask).
-The whole tree is drawn as ONE line on stderr by its root::
+This module keeps the tree (counts, fractions, ETA, weights of unequal stages) and
+leaves the drawing to ``rich.progress``. The parent's fraction includes the
+running child's, so the overall ETA moves smoothly. How it is shown depends on
+the mode:
 
-    edit 2/5 [######------------] 41% 3:02<4:21 | r0.500 120/400 [###-----] 30% 0:25<0:58 loss=0.021
-
-The parent's fraction includes the running child's, so the overall ETA moves
-smoothly. How it is shown depends on the mode:
-
-- ``"bar"`` (default when stderr is a terminal): the line is redrawn in place
-  (carriage return), at most every ``refresh`` seconds; a finished child leaves
-  one line behind ("done r0.500 400/400 in 1:23").
+- ``"bar"`` (default when stderr is a terminal): one live ``rich`` bar per open
+  node of the tree, children indented under their parent, with percentage,
+  elapsed time, ETA and the postfix fields; a finished child leaves one line
+  behind ("done r0.500 400/400 in 1:23 loss=0.021").
 - ``"log"`` (default otherwise, and with ``--quiet``): plain lines, the whole tree
   every ``log_interval`` seconds (10 s; 60 s when quiet) plus one line when a
-  bar finishes -- readable in CI logs and ``nohup`` files.
-- ``"off"``: nothing (library use, tests).
+  bar finishes -- readable in CI logs and ``nohup`` files::
+
+      edit 2/5 [######------------] 41% 3:02<4:21 | r0.500 120/400 [###-----] 30% 0:25<0:58 loss=0.021
+
+- ``"off"``: nothing (tests).
+
+The library (``jaxedit``) never draws: it reports through plain callbacks, and the
+commands turn those into these bars.
 
 Commands call :func:`configure` once (``configure(quiet=args.quiet)``); every
 bar created afterwards follows it. Updates are thread-safe (an editor thread may
@@ -26,7 +31,6 @@ between jitted steps.
 from __future__ import annotations
 
 import contextlib
-import shutil
 import sys
 import threading
 import time
@@ -79,7 +83,7 @@ class Progress:
       desc: short label.
       parent: the enclosing bar; the root draws the tree.
       mode, stream, log_interval: override :func:`configure`'s settings (root only).
-      refresh: minimum seconds between redraws in bar mode.
+      refresh: minimum seconds between redraws in bar mode (rich's refresh rate).
       clock: a monotonic clock (tests inject a fake one).
       weights: expected relative cost of each unit (``total`` of them), so the
         fraction and ETA of stages of unequal length are not skewed.
@@ -119,10 +123,8 @@ class Progress:
             default_interval = 60.0 if quiet else 10.0
             self._log_interval = (log_interval if log_interval is not None
                                   else _settings["log_interval"] or default_interval)
-            self._refresh = refresh
-            self._last_draw = -float("inf")
             self._last_log = clock()
-            self._line_len = 0
+            self._display = _RichDisplay(self._out(), refresh) if self.mode == "bar" else None
         else:
             self._clock = parent._root()._clock
             self._lock = parent._root()._lock
@@ -130,6 +132,9 @@ class Progress:
             with self._lock:
                 parent._child = self
         self.start = self._clock()
+        root = self._root()
+        if root._display is not None:
+            self._task = root._display.add(self)
         self._emit_event(None)
 
     # -- the tree ------------------------------------------------------------
@@ -255,21 +260,16 @@ class Progress:
             pass
 
     def _draw(self, force: bool = False) -> None:
-        """Root only: redraw the live line (bar) or log periodically (log)."""
+        """Root only: update the rich bars (bar) or log periodically (log)."""
         if self.mode == "off":
             return
         with self._lock:
-            now = self._clock()
             if self.mode == "bar":
-                if not force and now - self._last_draw < self._refresh:
-                    return
-                self._last_draw = now
-                text = self.line()
-                cols = shutil.get_terminal_size((120, 20)).columns
-                text = text[: max(cols - 1, 10)]
-                self._write("\r" + text + "\x1b[K")
-                self._line_len = len(text)
-            elif force or now - self._last_log >= self._log_interval:
+                for node in self._chain():
+                    self._display.show(node)
+                return
+            now = self._clock()
+            if force or now - self._last_log >= self._log_interval:
                 self._last_log = now
                 self._write(self.line() + "\n")
 
@@ -282,6 +282,8 @@ class Progress:
             if closed is None:
                 if root.mode == "bar":
                     root._draw(force=True)
+                    if self is root:
+                        root._display.start()
                 elif self is root:
                     root._write(f"start {self.desc or 'work'}"
                                 + (f" ({self.total} steps)" if self.total is not None else "")
@@ -293,11 +295,61 @@ class Progress:
             if closed.postfix:
                 done += " " + " ".join(f"{k}={_format_value(v)}" for k, v in closed.postfix.items())
             if root.mode == "bar":
-                root._write("\r\x1b[K" + done + "\n")
-                if closed is not root:
+                root._display.finish(closed, done)
+                if closed is root:
+                    root._display.stop()
+                else:
                     root._draw(force=True)
             else:
                 root._write(done + "\n")
+
+
+class _RichDisplay:
+    """The live ``rich.progress`` display of one tree: a task per open node."""
+
+    def __init__(self, stream: TextIO, refresh: float):
+        from rich.console import Console
+        from rich.progress import (BarColumn, Progress as RichProgress, TaskProgressColumn,
+                                   TextColumn, TimeElapsedColumn, TimeRemainingColumn)
+
+        self.console = Console(file=stream, highlight=False)
+        self.rich = RichProgress(
+            TextColumn("{task.description}"), BarColumn(bar_width=24), TaskProgressColumn(),
+            TextColumn("{task.fields[count]}"), TimeElapsedColumn(), TextColumn("<"),
+            TimeRemainingColumn(), TextColumn("{task.fields[postfix]}"),
+            console=self.console, refresh_per_second=max(1.0, 1.0 / max(refresh, 1e-3)),
+            transient=False)
+
+    @staticmethod
+    def _depth(node: Progress) -> int:
+        depth, parent = 0, node.parent
+        while parent is not None:
+            depth, parent = depth + 1, parent.parent
+        return depth
+
+    def add(self, node: Progress):
+        return self.rich.add_task("  " * self._depth(node) + (node.desc or "work"),
+                                  total=None if node.total is None else 1.0, count="",
+                                  postfix="")
+
+    def show(self, node: Progress) -> None:
+        """Set the node's task from the tree (its fraction counts the running child)."""
+        count = f"{node.n}" + (f"/{node.total}" if node.total is not None else "")
+        postfix = " ".join(f"{k}={_format_value(v)}" for k, v in node.postfix.items())
+        fraction = node.fraction
+        self.rich.update(node._task, completed=fraction if fraction is not None else node.n,
+                         count=count, postfix=postfix)
+
+    def finish(self, node: Progress, line: str) -> None:
+        """A finished node leaves one line (above the live bars) and its bar goes."""
+        self.rich.remove_task(node._task)
+        self.rich.console.print(line, markup=False, highlight=False)
+
+    def start(self) -> None:
+        self.rich.start()
+
+    def stop(self) -> None:
+        self.rich.stop()
 
 
 @contextlib.contextmanager

@@ -177,6 +177,24 @@ def compact(g: Gaussians) -> Gaussians:
     return jax.tree_util.tree_map(lambda a: a[keep], g)
 
 
+def splat_arrays(g: Gaussians) -> dict[str, np.ndarray]:
+    """The alive Gaussians as the plain arrays a browser splat viewer draws.
+
+    The keys are the arguments of viser's ``scene.add_gaussian_splats``: such
+    viewers draw one colour per splat, so the view-dependent SH terms are dropped.
+
+    Returns:
+      {"centers": float32 [N, 3], "covariances": float32 [N, 3, 3] (world, R S S^T R^T),
+       "rgbs": float32 [N, 3] in [0, 1] (the DC colour), "opacities": float32 [N, 1]},
+      N = the number of alive Gaussians, in slot order.
+    """
+    g = compact(g)
+    return {"centers": np.asarray(g.means, np.float32),
+            "covariances": np.asarray(g.covariances(), np.float32),
+            "rgbs": np.clip(np.asarray(g.colors(), np.float32), 0.0, 1.0),
+            "opacities": np.asarray(g.opacities(), np.float32)[:, None]}
+
+
 def with_sh_degree(g: Gaussians, degree: int) -> Gaussians:
     """Same Gaussians with SH coefficients truncated or zero-padded to ``degree``."""
     k_new, k_old = shlib.num_coeffs(degree), g.sh.shape[1]

@@ -1,4 +1,4 @@
-"""experiments.progress: nested bars, ETA, modes (bar / log / quiet / off), threads."""
+"""experiments.progress: nested bars (rich), ETA, modes (bar / log / quiet / off), threads."""
 
 from __future__ import annotations
 
@@ -48,18 +48,25 @@ def test_nested_fraction_and_eta_in_log_mode():
     assert "\r" not in text  # log mode never uses carriage returns
 
 
-def test_bar_mode_redraws_in_place_and_throttles():
+def test_bar_mode_draws_nested_rich_bars_and_leaves_done_lines():
     clock, out = Clock(), io.StringIO()
-    bar = P.Progress(100, "train", mode="bar", stream=out, refresh=1.0, clock=clock)
-    for _ in range(50):
-        bar.update(1)  # no time passes: throttled, at most the first draw
-    clock.t += 2.0
-    bar.update(1, psnr=31.234567)
-    bar.close()
+    with P.Progress(2, "edit", mode="bar", stream=out, clock=clock) as root:
+        display = root._display
+        with root.child(100, "r0.500") as sub:
+            clock.t += 2.0
+            sub.update(51, psnr=31.234567)
+            tasks = {t.description.strip(): t for t in display.rich.tasks}
+            assert set(tasks) == {"edit", "r0.500"}
+            assert tasks["r0.500"].description.startswith("  ")  # indented under its parent
+            assert tasks["r0.500"].completed == pytest.approx(0.51)
+            assert tasks["edit"].completed == pytest.approx(0.255)  # counts the child's share
+            assert tasks["r0.500"].fields["postfix"] == "psnr=31.23"
+            assert tasks["r0.500"].fields["count"] == "51/100"
+        assert [t.description for t in display.rich.tasks] == ["edit"]  # the child's bar went
+        root.update(1)
     text = out.getvalue()
-    draws = text.count("\r")
-    assert 2 <= draws <= 4, text
-    assert "train 51/100" in text and "psnr=31.23" in text and text.endswith("in 0:02 psnr=31.23\n")
+    assert "done r0.500 51/100 in 0:02 psnr=31.23" in text
+    assert "done edit 1/2 in 0:02" in text
 
 
 def test_quiet_logs_rarely_and_off_is_silent():
@@ -99,7 +106,7 @@ def test_ambient_nesting_unknown_total_and_errors():
 
 def test_threaded_updates_are_counted_exactly():
     out = io.StringIO()
-    bar = P.Progress(4000, "threads", mode="bar", stream=out, refresh=0.0)
+    bar = P.Progress(4000, "threads", mode="bar", stream=out)
     workers = [threading.Thread(target=lambda: [bar.update(1) for _ in range(1000)])
                for _ in range(4)]
     for w in workers:

@@ -1,7 +1,9 @@
 """The tile splatter against its dense oracle, and the splatter's invariances.
 
-Shapes are fixed per test (hypothesis draws seeds and values, never shapes) and
-the jitted renderers are shared at module level, so each compiles once.
+Every compositing backend (the XLA path and the Pallas kernel, the latter in the
+Pallas interpreter on the CPU) is held to the same oracle tests. Shapes are fixed
+per test (hypothesis draws seeds and values, never shapes) and the jitted
+renderers are shared at module level, so each compiles once per backend.
 """
 
 from __future__ import annotations
@@ -53,10 +55,20 @@ CAM = make_camera()
 BG = jnp.array([0.1, 0.2, 0.3], jnp.float32)
 
 
-@functools.partial(jax.jit, static_argnames=("capacity",))
-def tiles_fwd(g, cam, capacity=CAP):
-    # render() inside a caller's jit: the caller's buffer, the caller's overflow check.
-    return render(g, cam, background=BG, max_intersections=capacity)
+BACKENDS = ("xla", "pallas")
+
+
+def _fwd(backend):
+    @functools.partial(jax.jit, static_argnames=("capacity",))
+    def fwd(g, cam, capacity=CAP):
+        # render() inside a caller's jit: the caller's buffer, the caller's overflow check.
+        return render(g, cam, background=BG, max_intersections=capacity, backend=backend)
+
+    return fwd
+
+
+TILES_FWD = {b: _fwd(b) for b in BACKENDS}
+tiles_fwd = TILES_FWD["xla"]
 
 
 @jax.jit
@@ -85,8 +97,10 @@ def _grad(renderer):
     return jax.jit(jax.grad(loss, argnums=(0, 1), allow_int=True))
 
 
-tiles_grad = _grad(lambda g, cam, d: render(g, cam, background=BG, means2d_delta=d,
-                                            max_intersections=CAP))
+TILES_GRAD = {b: _grad(lambda g, cam, d, b=b: render(g, cam, background=BG, means2d_delta=d,
+                                                     max_intersections=CAP, backend=b))
+              for b in BACKENDS}
+tiles_grad = TILES_GRAD["xla"]
 ref_grad = _grad(lambda g, cam, d: render_reference(g, cam, background=BG, means2d_delta=d))
 ZEROS2D = jnp.zeros((N, 2), jnp.float32)
 
@@ -109,7 +123,8 @@ def assert_grads_close(ga, gb, rtol=1e-3, atol=1e-6):
 
 
 # --------------------------------------------------------------------------- known pixel
-def test_one_gaussian_lands_on_the_expected_pixel():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_one_gaussian_lands_on_the_expected_pixel(backend):
     # Camera at the origin looking down +z; principal point at the centre of pixel (12, 7).
     cam = cam_lib.Camera(world_to_camera=np.eye(4, dtype=np.float32), fx=20.0, fy=20.0,
                          cx=12.5, cy=7.5, width=W, height=H)
@@ -124,7 +139,7 @@ def test_one_gaussian_lands_on_the_expected_pixel():
         opacity_logits=g.opacity_logits.at[0].set(0.0),  # opacity 0.5
         sh=g.sh.at[0].set(0.0).at[0, 0].set(jnp.asarray(dc, jnp.float32)),
         alive=jnp.arange(N) == 0)
-    for fn in (tiles_fwd, ref_fwd):
+    for fn in (TILES_FWD[backend], ref_fwd):
         out = fn(g, cam)
         np.testing.assert_allclose(np.asarray(out.means2d[0]), [14.5, 6.5], atol=1e-5)
         alpha = np.asarray(out.alpha)
@@ -144,17 +159,19 @@ def test_one_gaussian_lands_on_the_expected_pixel():
 
 
 # --------------------------------------------------------------------------- oracle
+@pytest.mark.parametrize("backend", BACKENDS)
 @SETTINGS
 @given(seed=st.integers(0, 2**31 - 1))
-def test_tiles_match_oracle_values_and_gradients(seed):
+def test_tiles_match_oracle_values_and_gradients(backend, seed):
     g = make_scene(seed)
-    a, b = tiles_fwd(g, CAM), ref_fwd(g, CAM)
+    a, b = TILES_FWD[backend](g, CAM), ref_fwd(g, CAM)
     assert not bool(a.overflow)
     assert_images_close(a, b)
     np.testing.assert_array_equal(np.asarray(a.radii), np.asarray(b.radii))
     np.testing.assert_allclose(np.asarray(a.means2d), np.asarray(b.means2d), atol=1e-5)
     weights = loss_weights(seed)
-    (ga, da), (gb, db) = tiles_grad(g, ZEROS2D, CAM, weights), ref_grad(g, ZEROS2D, CAM, weights)
+    (ga, da), (gb, db) = (TILES_GRAD[backend](g, ZEROS2D, CAM, weights),
+                          ref_grad(g, ZEROS2D, CAM, weights))
     assert_grads_close(ga, gb)
     # The 2D-mean gradient (INRIA's densification statistic once scaled to NDC).
     da, db = np.asarray(da), np.asarray(db)
@@ -211,7 +228,9 @@ def test_rigid_motion_of_scene_and_camera_changes_nothing(seed):
     assert_images_close(b, ref_fwd(g2, cam2))
 
 
-def test_dead_and_behind_camera_gaussians_change_nothing_and_get_zero_gradient():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_dead_and_behind_camera_gaussians_change_nothing_and_get_zero_gradient(backend):
+    tiles_fwd, tiles_grad = TILES_FWD[backend], TILES_GRAD[backend]
     g = make_scene(3, n=N // 2)
     extra = make_scene(4, n=N // 2)
     # Half the extras are dead (in view!), half alive but behind the camera.
@@ -250,11 +269,12 @@ def test_alpha_in_unit_interval_and_outputs_finite(seed):
 
 
 # --------------------------------------------------------------------------- batching
-def test_batched_cameras_equal_single_renders():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_batched_cameras_equal_single_renders(backend):
     g = make_scene(11)
     cams = cam_lib.orbit(3, radius=3.0, width=W, height=H, focal=float(W))
     delta = jnp.zeros((3, N, 2), jnp.float32)
-    out = render(g, cams, background=BG, means2d_delta=delta)
+    out = render(g, cams, background=BG, means2d_delta=delta, backend=backend)
     assert out.rgb.shape == (3, H, W, 3) and out.means2d.shape == (3, N, 2)
     assert out.num_intersections.shape == (3,) and not np.any(np.asarray(out.overflow))
     for i in range(3):
@@ -264,7 +284,9 @@ def test_batched_cameras_equal_single_renders():
 
 
 # --------------------------------------------------------------------------- overflow
-def test_too_small_buffer_still_yields_the_exact_image():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_too_small_buffer_still_yields_the_exact_image(backend):
+    tiles_fwd = TILES_FWD[backend]
     g = make_scene(5)
     small = tiles_fwd(g, CAM, capacity=64)
     need = int(small.num_intersections)
@@ -273,7 +295,7 @@ def test_too_small_buffer_still_yields_the_exact_image():
     assert int(full.num_intersections) == need and not bool(full.overflow)
     assert np.max(np.abs(np.asarray(small.rgb) - np.asarray(full.rgb))) > 1e-3  # really dropped
     # render() starting from a buffer that is too small grows it and re-renders.
-    out = render(g, CAM, background=BG, max_intersections=64)
+    out = render(g, CAM, background=BG, max_intersections=64, backend=backend)
     assert not bool(out.overflow)
     assert_images_close(out, ref_fwd(g, CAM))
     assert next_capacity(need) >= need
@@ -307,7 +329,8 @@ def at_pixels(u, v, z, cam=CAM0):
                      (v - float(cam.cy)) * z / float(cam.fy), z], -1).astype(np.float32)
 
 
-def check_against_oracle(g, cam=CAM0, seed=0, grads=True):
+def check_against_oracle(g, cam=CAM0, seed=0, grads=True, backend="xla"):
+    tiles_fwd, tiles_grad = TILES_FWD[backend], TILES_GRAD[backend]
     a, b = tiles_fwd(g, cam), ref_fwd(g, cam)
     assert not bool(a.overflow)
     for x in (a.rgb, a.alpha, a.depth, a.means2d):
@@ -324,9 +347,10 @@ def check_against_oracle(g, cam=CAM0, seed=0, grads=True):
     return a
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @SETTINGS
 @given(seed=st.integers(0, 2**31 - 1))
-def test_stress_whole_scene_in_one_tile(seed):
+def test_stress_whole_scene_in_one_tile(backend, seed):
     # 48 Gaussians (more than a 32-pair chunk) inside pixels [8, 16)^2: one 8x8 tile,
     # opaque enough that pixels finish (T < 1e-4) part-way through the list.
     rng = np.random.default_rng(seed)
@@ -334,35 +358,38 @@ def test_stress_whole_scene_in_one_tile(seed):
     means = at_pixels(rng.uniform(9, 15, N), rng.uniform(9, 15, N), rng.uniform(1.0, 3.0, N))
     g = dataclasses.replace(g, means=jnp.asarray(means),
                             opacity_logits=jnp.asarray(rng.normal(3.0, 1.0, N), jnp.float32))
-    out = check_against_oracle(g, seed=seed)
+    out = check_against_oracle(g, seed=seed, backend=backend)
     assert float(jnp.max(out.alpha)) > 0.999  # some pixels hit the transmittance stop
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @SETTINGS
 @given(seed=st.integers(0, 2**31 - 1))
-def test_stress_gaussians_straddling_tile_borders(seed):
+def test_stress_gaussians_straddling_tile_borders(backend, seed):
     rng = np.random.default_rng(seed)
     g = make_scene(seed, scale=(0.005, 0.05))
     # Centres exactly on 8- and 16-pixel tile borders and corners, and on the image edge.
     u = rng.choice([0.0, 8.0, 16.0, 24.0, 32.0, 40.0], N) + rng.choice([0.0, 1e-4, -1e-4], N)
     v = rng.choice([0.0, 8.0, 16.0, 24.0, 32.0, 36.0], N)
     g = dataclasses.replace(g, means=jnp.asarray(at_pixels(u, v, rng.uniform(1.0, 4.0, N))))
-    check_against_oracle(g, seed=seed)
+    check_against_oracle(g, seed=seed, backend=backend)
 
 
-def test_stress_near_plane():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_stress_near_plane(backend):
     rng = np.random.default_rng(1)
     g = make_scene(1, scale=(0.001, 0.01))
     # Depths around near = 0.01: behind, on, just beyond it, and a little further.
     z = np.resize([-0.5, 0.0, 0.005, 0.01, 0.0100001, 0.0105, 0.02, 0.05, 0.2, 1.0], N)
     g = dataclasses.replace(g, means=jnp.asarray(at_pixels(rng.uniform(-20, 60, N),
                                                             rng.uniform(-20, 56, N), z)))
-    out = check_against_oracle(g)
+    out = check_against_oracle(g, backend=backend)
     assert not np.any(np.asarray(out.visible)[z <= 0.01])
     assert np.any(np.asarray(out.visible)[z > 0.01])
 
 
-def test_stress_huge_and_tiny_scales_and_odd_quaternions():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_stress_huge_and_tiny_scales_and_odd_quaternions(backend):
     rng = np.random.default_rng(2)
     g = make_scene(2)
     log_scales = np.asarray(g.log_scales).copy()
@@ -377,4 +404,42 @@ def test_stress_huge_and_tiny_scales_and_odd_quaternions():
                             opacity_logits=jnp.asarray(rng.normal(-1.0, 1.0, N), jnp.float32))
     # A 1e5:1 needle's 2D covariance is ill-conditioned in float32 (for the oracle
     # too): gradients are compared in float64 in test_raster_grad_fd.py.
-    check_against_oracle(g, cam=CAM, grads=False)
+    check_against_oracle(g, cam=CAM, grads=False, backend=backend)
+
+
+# --------------------------------------------------------------------------- backends
+def test_auto_backend_is_pallas_on_gpu_and_xla_elsewhere():
+    from jaxedit.raster.render import resolve_backend
+
+    assert resolve_backend("auto", "gpu") == "pallas"
+    assert resolve_backend("auto", "cpu") == "xla"
+    assert resolve_backend("xla", "gpu") == "xla"
+    with pytest.raises(DataError, match="backend"):
+        resolve_backend("cuda")
+
+
+def test_pallas_gradients_are_deterministic():
+    # Per-pair gradient rows, one writer each, then a fixed-order reduction: no atomics.
+    g = make_scene(7)
+    weights = loss_weights(7)
+    a = TILES_GRAD["pallas"](g, ZEROS2D, CAM, weights)
+    b = TILES_GRAD["pallas"](g, ZEROS2D, CAM, weights)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_pallas_forward_and_backward_lower_for_cuda_from_any_machine():
+    # The kernels are lowered to Triton (not run): what a CPU machine can check of the GPU path.
+    from jaxedit.raster import pallas as PK
+    from jaxedit.raster import render_tiles
+
+    def loss(g, d, w):
+        out = render_tiles(g, CAM, background=BG, means2d_delta=d, capacity=CAP, backend="pallas")
+        return scalar_loss(out, w)
+
+    fn = jax.jit(jax.value_and_grad(loss, argnums=(0, 1), allow_int=True))
+    checks = [jax.export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")]
+    with PK.compiled_for_gpu():
+        exported = jax.export.export(fn, platforms=("cuda",), disabled_checks=checks)(
+            make_scene(0), ZEROS2D, loss_weights(0))
+    assert exported.mlir_module().count("xla.gpu.triton") == 2  # forward and backward kernels

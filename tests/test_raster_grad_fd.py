@@ -1,4 +1,8 @@
-"""Gradients of the tile splatter against central finite differences, in float64."""
+"""Gradients of the tile splatter against central finite differences, in float64.
+
+Both compositing backends: the XLA path and the Pallas kernel (in the interpreter),
+whose backward recovers each pair's transmittance by division, back to front.
+"""
 
 from __future__ import annotations
 
@@ -46,12 +50,18 @@ def _loss(renderer):
     return loss
 
 
-def _tiles(g, cam, **kw):
-    return render_tiles(g, cam, capacity=256, **kw)
+BACKENDS = ("xla", "pallas")
 
 
-loss_tiles = jax.jit(_loss(_tiles))
-grad_tiles = jax.jit(jax.grad(_loss(_tiles), allow_int=True))
+def _tiles_fn(backend):
+    def tiles(g, cam, **kw):
+        return render_tiles(g, cam, capacity=256, backend=backend, **kw)
+
+    return tiles
+
+
+LOSS_TILES = {b: jax.jit(_loss(_tiles_fn(b))) for b in BACKENDS}
+GRAD_TILES = {b: jax.jit(jax.grad(_loss(_tiles_fn(b)), allow_int=True)) for b in BACKENDS}
 grad_ref = jax.jit(jax.grad(_loss(render_reference), allow_int=True))
 
 
@@ -60,11 +70,13 @@ def _weights(seed):
     return (jnp.asarray(rng.normal(size=(S - 3, S, 3))), jnp.asarray(rng.normal(size=(S - 3, S))))
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_gradients_match_central_differences_float64(seed):
+def test_gradients_match_central_differences_float64(seed, backend):
+    loss_tiles, grad_tiles = LOSS_TILES[backend], GRAD_TILES[backend]
     with jax.enable_x64(True):
         g, cam, (w_rgb, w_a) = _scene(seed), _camera(), _weights(seed)
-        assert not bool(_tiles(g, cam).overflow)
+        assert not bool(_tiles_fn(backend)(g, cam).overflow)
         grads = grad_tiles(g, cam, w_rgb, w_a)
         rng = np.random.default_rng(200 + seed)
         eps = 1e-6
@@ -83,7 +95,9 @@ def test_gradients_match_central_differences_float64(seed):
                                        np.asarray(getattr(ref, name)), rtol=1e-9, atol=1e-9)
 
 
-def test_extreme_gaussians_match_oracle_gradients_float64():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_extreme_gaussians_match_oracle_gradients_float64(backend):
+    grad_tiles = GRAD_TILES[backend]
     with jax.enable_x64(True):
         g = _scene(3)
         log_scales = np.asarray(g.log_scales).copy()

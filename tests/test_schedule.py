@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from jaxedit.edit.schedule import (Schedule, decompose, decompose_root, prune_ratios, spread,
-                                   uniform)
+from jaxedit.edit.schedule import (Schedule, decompose, decompose_root, for_target_subtasks,
+                                   prune_ratios, spread, uniform)
 from jaxedit.errors import DataError
 
 KNOTS = 16
@@ -193,3 +193,56 @@ def test_continue_from_a_snapshot_ratio():
         assert s.ratios[0] == 0.3 and s.ratios[-1] == 1.0
         check_schedule(s, d, 0.15 if s.method != "uniform" else 10.0, start=0.3)
     assert uniform(2, start=0.5).ratios == (0.5, 0.75, 1.0)
+
+
+# --------------------------------------------------------------------------- target subtasks
+@settings(max_examples=8, deadline=None, derandomize=True)
+@given(inc=increments, target=st.integers(1, 12))
+def test_target_subtasks_finds_a_threshold_within_one_subtask(inc, target):
+    d = monotone_difficulty(inc)
+    s = for_target_subtasks(d, target, max_depth=5)
+    assert s.target_subtasks == target and s.method == "bisection"
+    assert abs(s.num_subtasks - target) <= 1
+    check_schedule(s, d, s.threshold)
+    # It is an ordinary decomposition at the threshold it reports.
+    assert decompose(d, threshold=s.threshold, max_depth=5).ratios == s.ratios
+
+
+def test_target_subtasks_beyond_the_depth_limit_gives_the_finest_schedule_and_says_so():
+    d = monotone_difficulty(np.ones(KNOTS))
+    s = for_target_subtasks(d, 40, max_depth=3)
+    assert s.num_subtasks == 8 and s.depth_limit_hit and s.target_subtasks == 40
+    assert Schedule.from_dict(s.to_dict()) == s
+
+
+def test_target_subtasks_with_root_placement():
+    d = monotone_difficulty(np.linspace(0.1, 1.0, KNOTS))
+    s = for_target_subtasks(d, 5, method=decompose_root)
+    assert s.method == "root" and abs(s.num_subtasks - 5) <= 1
+
+
+def test_target_subtasks_rejects_bad_targets():
+    with pytest.raises(DataError, match="target_subtasks"):
+        for_target_subtasks(monotone_difficulty(np.ones(KNOTS)), 0)
+
+
+# --------------------------------------------------------------------------- the demo's scene
+@pytest.fixture(scope="module")
+def face_oracle():
+    """d(r_a, r_b) of the demo's instruction on renders of the demo's scene (48 px)."""
+    from jaxedit import scenes
+    from jaxedit.edit.difficulty import DifficultyOracle
+    from jaxedit.edit.simulated import SimulatedEditor
+
+    scene = scenes.get_scene("face")
+    cams, train, _ = scenes.scene_cameras(scene, views=6, test_views=0, size=48)
+    views = scenes.render_scene(scene, cams[train], supersample=1)
+    return DifficultyOracle(SimulatedEditor(), views, "turn him into a bronze statue",
+                            reduction="mean")
+
+
+@pytest.mark.parametrize("target", [4, 8])
+def test_target_subtasks_on_the_demo_scene(face_oracle, target):
+    s = for_target_subtasks(face_oracle, target, max_depth=4)
+    assert abs(s.num_subtasks - target) <= 1, (s.ratios, s.threshold)
+    assert s.target_subtasks == target

@@ -71,7 +71,12 @@ class ProEditConfig:
 
     Attributes:
       mode: "proedit" | "nd" | "in2n".
-      threshold: d_threshold of the scheduler (None: ``subtasks`` or 4 uniform).
+      threshold: d_threshold of the scheduler, per view: the difficulty is the mean over
+        the difficulty views of the per-view distance (the paper's eq. 3 sum divided by
+        |V|), so the threshold does not change with the number of views (None:
+        ``target_subtasks``, else d(0, 1) / 4).
+      target_subtasks: find the threshold that gives this many subtasks (a 1-D root
+        find; the paper reports ~4 for texture and ~8 for geometry edits).
       subtasks: override with N uniform ratios (paper: ~4 texture, ~8 geometry).
       schedule_method: "bisect" (paper) or "root" (optimistix placement).
       max_depth: bisection depth limit.
@@ -88,7 +93,9 @@ class ProEditConfig:
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
       asynchronous: producer thread instead of the deterministic schedule.
       checkpoint_every: steps between checkpoints inside a subtask.
-      difficulty_views: views the difficulty d(r_a, r_b) sums over.
+      difficulty_views: size of the fixed, seeded subset of training views the difficulty
+        d(r_a, r_b) is taken over (None: all of them, up to
+        ``DIFFICULTY_VIEWS_DEFAULT_MAX``; each view costs one editor call per ratio).
       curve_points: grid size of the reported d(0, r) curve.
       turntable_frames: frames of each snapshot's turntable (0: none).
       background: render background (the editor sees renders on it).
@@ -98,6 +105,7 @@ class ProEditConfig:
 
     mode: str = "proedit"
     threshold: float | None = None
+    target_subtasks: int | None = None
     subtasks: int | None = None
     schedule_method: str = "bisect"
     max_depth: int = 4
@@ -115,7 +123,7 @@ class ProEditConfig:
     initial_sweep: bool = True
     asynchronous: bool = False
     checkpoint_every: int = 50
-    difficulty_views: int = 4
+    difficulty_views: int | None = None
     curve_points: int = 9
     turntable_frames: int = 0
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -128,6 +136,10 @@ class ProEditConfig:
             raise DataError("--threshold", f"must be > 0, got {self.threshold}")
         if self.subtasks is not None and self.subtasks < 1:
             raise DataError("--subtasks", f"must be >= 1, got {self.subtasks}")
+        if self.target_subtasks is not None and self.target_subtasks < 1:
+            raise DataError("--target-subtasks", f"must be >= 1, got {self.target_subtasks}")
+        if self.difficulty_views is not None and self.difficulty_views < 1:
+            raise DataError("--difficulty-views", f"must be >= 1, got {self.difficulty_views}")
         lo, hi = self.timestep_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {lo}, {hi}")
@@ -502,7 +514,7 @@ class TrainSettings:
         visible to the editor; gsplat's 0.005 would blank it).
       warmup: W, steps after the subtask start without density control.
       refine_every: steps between maintenance steps.
-      max_gaussians: the hard cap.
+      max_gaussians: the hard cap (None: :func:`default_max_gaussians` of the input).
       budget_*: the creation budget t(n, N) (see ``jaxedit.densify.creation_budget``).
       sh_degree: SH degree trained (the input scene's, all degrees on from the start).
       lr_means, lr_sh_dc, lr_opacity: Adam learning rates (Splatfacto's by default;
@@ -516,7 +528,7 @@ class TrainSettings:
     cull_alpha: float = 0.1
     warmup: int = 30
     refine_every: int = 50
-    max_gaussians: int = 200_000
+    max_gaussians: int | None = None
     budget_min_new: int = 16
     budget_growth: float = 0.02
     budget_max_fraction: float = 0.1
@@ -550,6 +562,30 @@ class TrainSettings:
                            background=background, densify=dens)
 
 
+#: Room the default cap leaves above a small input (Gaussians).
+CAP_MIN_ROOM = 10_000
+
+
+def default_max_gaussians(num_input: int) -> int:
+    """The edit's default hard cap: twice the input's Gaussians, at least CAP_MIN_ROOM more.
+
+    Reconstructions by Splatfacto or gsplat hold 0.3-3M Gaussians; a fixed cap below that
+    would leave ProEdit's creation budget no room, so geometry edits could only recolour.
+    """
+    return max(2 * int(num_input), int(num_input) + CAP_MIN_ROOM)
+
+
+def resolve_max_gaussians(settings: TrainSettings, num_input: int) -> TrainSettings:
+    """``settings`` with its cap resolved for an input of ``num_input`` Gaussians (never below)."""
+    cap = settings.max_gaussians
+    if cap is None:
+        return dataclasses.replace(settings, max_gaussians=default_max_gaussians(num_input))
+    if int(cap) < int(num_input):
+        raise DataError("--max-gaussians", f"{cap} is below the input scene's {num_input} "
+                        "Gaussians (the cap never removes Gaussians)")
+    return settings
+
+
 class SubtaskTrainer:
     """The driver's view of :mod:`jaxedit.train`: init, subtask restart, one step.
 
@@ -561,7 +597,12 @@ class SubtaskTrainer:
     subtask have no densify/cull.
     """
 
-    def __init__(self, settings: TrainSettings = TrainSettings()):
+    def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None):
+        """``num_input``: the input scene's Gaussian count, to resolve a cap left as None."""
+        if settings.max_gaussians is None:
+            if num_input is None:
+                raise DataError("max_gaussians", "unresolved: pass num_input or a cap")
+            settings = resolve_max_gaussians(settings, num_input)
         self.settings = settings
         self.config = settings.train_config()
 
@@ -772,17 +813,40 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
 # Schedules
 # ---------------------------------------------------------------------------
 DEFAULT_SUBTASKS = 4  # default threshold = d(0, 1) / 4 (paper: ~4 subtasks for texture edits)
+#: Difficulty views by default: every training view up to this many (an editor call per
+#: view and ratio: 16 views x 17 ratios of a depth-4 bisection is ~270 edits, about 9
+#: minutes of InstructPix2Pix at ~2 s per edit), else a seeded subset of this size.
+DIFFICULTY_VIEWS_DEFAULT_MAX = 16
+#: fold_in purpose of the difficulty view subset's key.
+_DIFFICULTY_VIEWS = 5
+
+
+def difficulty_view_subset(num_views: int, count: int | None, key) -> tuple[int, ...]:
+    """The fixed, seeded subset of ``count`` view indices (sorted) the difficulty is taken over.
+
+    ``count`` None: all views up to :data:`DIFFICULTY_VIEWS_DEFAULT_MAX`. A subset is a
+    uniform draw without replacement from ``key``, so it depends on the run seed only.
+    """
+    if num_views <= 0:
+        raise DataError("views", "need at least one original view")
+    count = min(num_views, DIFFICULTY_VIEWS_DEFAULT_MAX if count is None else int(count))
+    if count >= num_views:
+        return tuple(range(num_views))
+    chosen = jax.random.choice(jax.random.fold_in(key, _DIFFICULTY_VIEWS), num_views, (count,),
+                               replace=False)
+    return tuple(sorted(int(v) for v in np.asarray(chosen)))
 
 
 def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distance=None):
-    """The memoised d(r_a, r_b) over ``difficulty_views`` renders of the input scene.
+    """The memoised d(r_a, r_b) over the difficulty views' renders of the input scene.
 
     ``distance``: the perceptual distance (e.g. :func:`jaxedit.lpips.lpips_distance`);
-    None is the oracle's default (multi-scale SSIM).
+    None is the oracle's default (multi-scale SSIM). The reduction over views is the
+    mean (eq. 3's sum / |V|), so thresholds are per view.
     """
-    from .difficulty import DifficultyOracle, default_views
+    from .difficulty import DifficultyOracle
 
-    views = default_views(len(originals), ctx.config.difficulty_views)
+    views = difficulty_view_subset(len(originals), ctx.config.difficulty_views, ctx.key)
     return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
                             guidance=tuple(ctx.config.guidance), seed=seed, reduction="mean")
 
@@ -806,6 +870,10 @@ def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
         s = sched.uniform(1, None)
     elif cfg.subtasks is not None:
         s = sched.uniform(cfg.subtasks, oracle)
+    elif cfg.threshold is None and cfg.target_subtasks is not None:
+        method = sched.decompose_root if cfg.schedule_method == "root" else sched.decompose
+        kwargs = {} if cfg.schedule_method == "root" else {"max_depth": cfg.max_depth}
+        s = sched.for_target_subtasks(oracle, cfg.target_subtasks, method=method, **kwargs)
     else:
         # No threshold given: a quarter of the whole task's difficulty, i.e. about the
         # paper's ~4 subtasks for texture edits (more where d(0, r) is uneven).
@@ -943,6 +1011,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         settings = dataclasses.replace(settings, scene_extent=extent)
     settings = dataclasses.replace(settings, adaptive=config.mode != "in2n",
                                    warmup=config.warmup, background=tuple(config.background))
+    settings = resolve_max_gaussians(settings, int(gaussians.num_alive()))
     trainer = SubtaskTrainer(settings)
     trainer_device, editor_device = pick_devices()
     ctx = EditContext(editor, prompt, data, config, trainer, Renderer(config.background),
@@ -990,8 +1059,22 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         if oracle is not None:
             grid = np.linspace(0.0, 1.0, max(config.curve_points, 2))
             curve = [[r, d] for r, d in oracle.curve(sorted(set(map(float, grid)) | set(ratios)))]
+        if schedule.depth_limit_hit:
+            log(f"WARNING: the scheduler hit its depth limit (max_depth {config.max_depth}, at "
+                f"most {2 ** config.max_depth} subtasks): some subtask is harder than the "
+                f"threshold {schedule.threshold:.4g}")
+        if schedule.target_subtasks is not None:
+            log(f"threshold {schedule.threshold:.4g} gives {schedule.num_subtasks} subtasks "
+                f"(target {schedule.target_subtasks})")
         header = {"prompt": prompt, "editor": getattr(editor, "name", type(editor).__name__),
                   "mode": config.mode, "threshold": schedule.threshold,
+                  "target_subtasks": schedule.target_subtasks,
+                  "difficulty": None if oracle is None else {
+                      "distance": distance_name(distance),
+                      "reduction": "mean over views (paper eq. 3's sum / |V|; the threshold "
+                                   "is per view)",
+                      "views": list(oracle.views), "num_views": len(oracle.views),
+                      "of_training_views": len(data.train_images)},
                   "schedule_method": schedule.method, "depth_limit_hit": schedule.depth_limit_hit,
                   "difficulty_evaluations": schedule.evaluations,
                   "editor_calls_for_schedule": getattr(oracle, "editor_calls", 0),

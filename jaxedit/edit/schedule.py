@@ -16,6 +16,10 @@ edits the scene with e(r_i). Three ways to get one, each returning a :class:`Sch
   dyadic midpoints are shared by all intervals). A subtask costs minutes of 3DGS training, an
   editor call seconds, so fewer subtasks usually pay for the extra calls.
 - :func:`uniform` (the ``--subtasks N`` override): n equal steps.
+- :func:`for_target_subtasks` (``--target-subtasks N``): the threshold for which either of the
+  first two gives N subtasks, found by a 1-D root find (optimistix bisection on the log of
+  the threshold), for users who know how many steps they want (the paper reports about 4
+  for texture edits and about 8 for geometry edits) rather than a difficulty scale.
 
 ``difficulty`` is any deterministic callable ``(r_a, r_b) -> float`` (a
 :class:`jaxedit.edit.difficulty.DifficultyOracle`, or a synthetic function in tests). The
@@ -56,6 +60,8 @@ class Schedule:
       evaluations: number of distinct (r_a, r_b) pairs the difficulty was evaluated on.
       method: "bisection", "root" or "uniform".
       threshold: the difficulty threshold used (None for ``uniform``).
+      target_subtasks: the subtask count the threshold was searched for
+        (:func:`for_target_subtasks`), else None.
     """
 
     ratios: tuple[float, ...]
@@ -64,6 +70,7 @@ class Schedule:
     evaluations: int = 0
     method: str = "bisection"
     threshold: float | None = None
+    target_subtasks: int | None = None
 
     def __post_init__(self):
         r = self.ratios
@@ -87,7 +94,8 @@ class Schedule:
         return {"ratios": list(self.ratios),
                 "difficulties": [None if math.isnan(d) else d for d in self.difficulties],
                 "depth_limit_hit": self.depth_limit_hit, "evaluations": self.evaluations,
-                "method": self.method, "threshold": self.threshold}
+                "method": self.method, "threshold": self.threshold,
+                "target_subtasks": self.target_subtasks}
 
     @classmethod
     def from_dict(cls, d: Mapping) -> Schedule:
@@ -97,7 +105,9 @@ class Schedule:
                                           for x in d["difficulties"]),
                        depth_limit_hit=bool(d.get("depth_limit_hit", False)),
                        evaluations=int(d.get("evaluations", 0)), method=str(d.get("method", "")),
-                       threshold=None if d.get("threshold") is None else float(d["threshold"]))
+                       threshold=None if d.get("threshold") is None else float(d["threshold"]),
+                       target_subtasks=(None if d.get("target_subtasks") is None
+                                        else int(d["target_subtasks"])))
         except (KeyError, TypeError, ValueError) as e:
             raise DataError("schedule", f"malformed schedule ({e})") from None
 
@@ -435,6 +445,57 @@ def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: fl
         ratios, diffs, cache = _prune(ratios, diffs, difficulty, threshold, cache)
     return Schedule(ratios, diffs, hit or any(d > threshold for d in diffs), len(cache), "root",
                     threshold)
+
+
+# --------------------------------------------------------------------------------------------
+# The threshold for a number of subtasks (the --target-subtasks N option)
+
+
+def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
+                        method: Callable[..., Schedule] = decompose,
+                        resolution: float = 2.0 ** -12, start: float = 0.0,
+                        **method_kwargs) -> Schedule:
+    """The schedule of ``method`` whose number of subtasks is closest to ``target``.
+
+    The count n(t) of subtasks that ``method`` (:func:`decompose` or :func:`decompose_root`)
+    gives for a threshold t falls from the depth limit towards 1 as t grows to d(start, 1). The
+    threshold is found by optimistix bisection on y in [0, 1], t = d01 * 2^(-K (1 - y)) with
+    K = 24 octaves below d01 = d(start, 1), of h(y) = target + 1/2 - n(t(y)) (negative where
+    there are too many subtasks); n is a step function, so the search ends at a jump, and of
+    the two thresholds around it the one whose count is nearest the target wins (ties: fewer
+    subtasks, which cost less training). Every decomposition reuses the difficulty's memo, so
+    the search costs editor calls only for ratios no earlier candidate used. A target beyond
+    what the depth limit allows gives the finest schedule, with ``depth_limit_hit`` set.
+
+    Returns the chosen :class:`Schedule`, its ``target_subtasks`` set.
+    """
+    if int(target) != target or int(target) < 1:
+        raise DataError("target_subtasks", f"must be an integer >= 1, got {target!r}")
+    target = int(target)
+    start = _check_start(start)
+    d01 = float(difficulty(start, 1.0))
+    if not d01 > 0.0:  # nothing to edit: one subtask whatever the threshold
+        return dataclasses.replace(method(difficulty, threshold=1e-12, start=start,
+                                          **method_kwargs), target_subtasks=target)
+    octaves = 24.0
+    found: dict[float, Schedule] = {}
+
+    def schedule_at(y: float) -> Schedule:
+        y = min(max(round(float(y) / resolution) * resolution, 0.0), 1.0)
+        if y not in found:
+            t = d01 * 2.0 ** (-octaves * (1.0 - y)) * (1.0 + 1e-9)
+            found[y] = method(difficulty, threshold=t, start=start, **method_kwargs)
+        return found[y]
+
+    def h(y: float) -> float:
+        return target + 0.5 - schedule_at(y).num_subtasks
+
+    lower, upper = 0.0, 1.0
+    if h(lower) < 0.0 <= h(upper):
+        lower, upper = _bisect_host(h, lower, upper, resolution)
+    candidates = [schedule_at(lower), schedule_at(upper)]
+    best = min(candidates, key=lambda c: (abs(c.num_subtasks - target), c.num_subtasks))
+    return dataclasses.replace(best, target_subtasks=target)
 
 
 # --------------------------------------------------------------------------------------------

@@ -53,6 +53,24 @@ def grid_shape(width: int, height: int, tile: int = TILE) -> tuple[int, int]:
     return -(-width // tile), -(-height // tile)
 
 
+def tiles_to_image(tiles_img, width: int, height: int, tile: int):
+    """[num_tiles, P, ...] tile layout (P = tile^2, row-major in the tile) -> [H, W, ...]."""
+    tiles_x, tiles_y = grid_shape(width, height, tile)
+    rest = tiles_img.shape[2:]
+    img = tiles_img.reshape((tiles_y, tiles_x, tile, tile) + rest)
+    img = jnp.swapaxes(img, 1, 2).reshape((tiles_y * tile, tiles_x * tile) + rest)
+    return img[:height, :width]
+
+
+def image_to_tiles(img, width: int, height: int, tile: int):
+    """[H, W, ...] -> [num_tiles, P, ...] tile layout (zero-padded to whole tiles)."""
+    tiles_x, tiles_y = grid_shape(width, height, tile)
+    rest = img.shape[2:]
+    pad = [(0, tiles_y * tile - height), (0, tiles_x * tile - width)] + [(0, 0)] * len(rest)
+    img = jnp.pad(img, pad).reshape((tiles_y, tile, tiles_x, tile) + rest)
+    return jnp.swapaxes(img, 1, 2).reshape((tiles_y * tiles_x, tile * tile) + rest)
+
+
 def tile_rects(proj: Projected, width: int, height: int, tile: int = TILE):
     """Tile rectangle of each Gaussian's footprint.
 

@@ -35,31 +35,43 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from .binning import Bins, grid_shape
+from .binning import Bins, grid_shape, image_to_tiles, tiles_to_image
 from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 #: Pairs per chunk.
 CHUNK = 32
-#: Target (chunk, pixel) elements per block of the scan.
+#: Target (chunk, pixel) elements per block of the scan on a CPU: the scan's
+#: working set then stays in cache.
 BLOCK_ELEMENTS = 8192
+#: The same on an accelerator, where each block is a few kernel launches per pair
+#: position: blocks must be large (a 1080p frame with 1M Gaussians has ~20M
+#: pairs; 8k-element blocks would mean ~10^5 launches per frame).
+BLOCK_ELEMENTS_ACCELERATOR = 1 << 22
 
 
-def layout(capacity: int, num_tiles: int, tile: int, chunk: int = CHUNK) -> tuple[int, int]:
+def block_elements(platform: str) -> int:
+    """(chunk, pixel) elements per block of the scan on ``platform`` ("cpu", "gpu", ...)."""
+    return BLOCK_ELEMENTS if platform == "cpu" else BLOCK_ELEMENTS_ACCELERATOR
+
+
+def layout(capacity: int, num_tiles: int, tile: int, chunk: int = CHUNK,
+           block_elements: int = BLOCK_ELEMENTS) -> tuple[int, int]:
     """Static (number of blocks, chunks per block) for a buffer of ``capacity`` pairs."""
-    per_block = max(1, BLOCK_ELEMENTS // (tile * tile))
+    per_block = max(1, block_elements // (tile * tile))
     nc = -(-capacity // chunk) + num_tiles
     nb = -(-nc // per_block)
     return nb, per_block
 
 
-def make_chunks(bins: Bins, num_tiles: int, capacity: int, tile: int, chunk: int = CHUNK):
-    """Chunk layout of the sorted pairs.
+def make_chunks(bins: Bins, num_tiles: int, capacity: int, tile: int, chunk: int = CHUNK,
+                block_elements: int = BLOCK_ELEMENTS):
+    """Chunk layout of the sorted pairs (``block_elements``: see :func:`block_elements`).
 
     Returns:
       (gids int32 [NC, K] (-1 for padding), tile_of int32 [NC] (num_tiles for
       unused chunks), first bool [NC]: the chunk starts its tile's list).
     """
-    nb, per_block = layout(capacity, num_tiles, tile, chunk)
+    nb, per_block = layout(capacity, num_tiles, tile, chunk, block_elements)
     nc = nb * per_block
     start = bins.tile_start
     n_t = start[1:] - start[:-1]
@@ -186,28 +198,11 @@ def _blend(xs):
     return jnp.stack(acc, -1), t_last
 
 
-def _to_image(tiles_img, width, height, tile):
-    """[num_tiles, P, ...] tile layout -> [H, W, ...]."""
-    tiles_x, tiles_y = grid_shape(width, height, tile)
-    rest = tiles_img.shape[2:]
-    img = tiles_img.reshape((tiles_y, tiles_x, tile, tile) + rest)
-    img = jnp.swapaxes(img, 1, 2).reshape((tiles_y * tile, tiles_x * tile) + rest)
-    return img[:height, :width]
-
-
-def _to_tiles(img, width, height, tile):
-    """[H, W, ...] -> [num_tiles, P, ...] (zero-padded to whole tiles)."""
-    tiles_x, tiles_y = grid_shape(width, height, tile)
-    rest = img.shape[2:]
-    pad = [(0, tiles_y * tile - height), (0, tiles_x * tile - width)] + [(0, 0)] * len(rest)
-    img = jnp.pad(img, pad).reshape((tiles_y, tile, tiles_x, tile) + rest)
-    return jnp.swapaxes(img, 1, 2).reshape((tiles_y * tiles_x, tile * tile) + rest)
-
-
-def _forward(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile):
+def _forward(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile,
+             block):
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
-    nb = layout_blocks(gids, tile)
+    nb = layout_blocks(gids, tile, block)
     px, py = _pixel_centres(tile_of, tiles_x, tile, means2d.dtype)
     m, con, op, f = _block_params(means2d, conics, opacities, features, gids, nb)
     pxb, pyb = _blocks(px, nb), _blocks(py, nb)
@@ -220,36 +215,39 @@ def _forward(means2d, conics, opacities, features, gids, tile_of, first, width, 
     t_last = t_last.reshape(px.shape)
     feat = jax.ops.segment_sum(acc, tile_of, num_segments=num_tiles + 1)[:num_tiles]
     tmin = jax.ops.segment_min(t_last, tile_of, num_segments=num_tiles + 1)[:num_tiles]
-    out = (_to_image(feat, width, height, tile),
-           _to_image(jnp.minimum(tmin, 1.0), width, height, tile))
+    out = (tiles_to_image(feat, width, height, tile),
+           tiles_to_image(jnp.minimum(tmin, 1.0), width, height, tile))
     return out, (carry, acc)
 
 
-def layout_blocks(gids, tile):
+def layout_blocks(gids, tile, block: int = BLOCK_ELEMENTS):
     """Number of blocks of the chunk array ``gids`` [NC, K] (static)."""
-    per_block = max(1, BLOCK_ELEMENTS // (tile * tile))
+    per_block = max(1, block // (tile * tile))
     return gids.shape[0] // per_block
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8, 9))
-def composite(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8, 9, 10))
+def composite(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile,
+              block=BLOCK_ELEMENTS):
     """Blend the chunked pairs into images.
 
     Args:
       means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C]
         (0 for culled); features: float [C, F] (colour, depth, ...).
       gids, tile_of, first: the chunk layout from :func:`make_chunks`.
-      width, height, tile: static image and tile size.
+      width, height, tile: static image and tile size; block: the
+        ``block_elements`` the layout was made with.
     Returns:
       (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
     """
     return _forward(means2d, conics, opacities, features, gids, tile_of, first, width, height,
-                    tile)[0]
+                    tile, block)[0]
 
 
-def _composite_fwd(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile):
+def _composite_fwd(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile,
+                   block):
     out, (carry, acc) = _forward(means2d, conics, opacities, features, gids, tile_of, first,
-                                 width, height, tile)
+                                 width, height, tile, block)
     return out, (means2d, conics, opacities, features, gids, tile_of, first, carry, acc,
                  out[0], out[1])
 
@@ -285,15 +283,15 @@ def _grad_block(xs):
     return grads
 
 
-def _composite_bwd(width, height, tile, res, cts):
+def _composite_bwd(width, height, tile, block, res, cts):
     means2d, conics, opacities, features, gids, tile_of, first, carry, acc, feat_img, trans_img = res
     g_feat, g_trans = cts
     tiles_x, _ = grid_shape(width, height, tile)
     c = means2d.shape[0]
-    nb = layout_blocks(gids, tile)
+    nb = layout_blocks(gids, tile, block)
 
     def per_chunk(img):
-        t = _to_tiles(img, width, height, tile)
+        t = image_to_tiles(img, width, height, tile)
         return jnp.concatenate([t, jnp.zeros_like(t[:1])], 0)[tile_of]
 
     g_f = per_chunk(g_feat)  # [NC, P, F]

@@ -35,6 +35,7 @@ from ..errors import DataError
 from ..gaussians import Gaussians
 from . import binning as B
 from . import composite as CP
+from . import pallas as PK
 from . import project as P
 from .reference import finish
 from .types import RenderOutput
@@ -47,8 +48,32 @@ MIN_CAPACITY = 1024
 #: Headroom over the counted pairs when a capacity is (re)chosen.
 HEADROOM = 1.15
 
-#: Tile size used by the splatter (the image does not depend on it).
+#: Tile size of the XLA compositor (the image does not depend on it): small tiles
+#: waste less work on pixels a Gaussian does not reach, which is what costs on a CPU.
 TILE = 8
+#: Tile size of the Pallas kernel: one program per tile, its pixels the vector
+#: lanes (256 = 8 warps of 32), as the CUDA rasterizers do.
+PALLAS_TILE = 16
+
+BACKENDS = ("auto", "xla", "pallas")
+
+
+def resolve_backend(backend: str, platform: str | None = None) -> str:
+    """The compositor for ``backend`` on ``platform`` (default: JAX's default backend).
+
+    ``auto`` is the Pallas kernel on a GPU and the XLA path elsewhere; ``pallas``
+    off a GPU runs the kernel in the Pallas interpreter (slow; for tests).
+    """
+    if backend not in BACKENDS:
+        raise DataError("backend", f"must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "auto":
+        return "pallas" if (platform or jax.default_backend()) == "gpu" else "xla"
+    return backend
+
+
+def tile_size(backend: str) -> int:
+    """Binning/compositing tile size of a resolved backend."""
+    return PALLAS_TILE if backend == "pallas" else TILE
 
 _capacity_cache: dict[tuple, int] = {}
 
@@ -69,16 +94,28 @@ def next_capacity(needed: int) -> int:
     return cap
 
 
-def _render_one(gaussians, camera, background, means2d_delta, near, far, *, capacity, sh_degree):
+def _composite(proj, bins, w, h, capacity, backend):
+    """features float [H, W, 4] and transmittance [H, W] of the binned pairs."""
+    feats = jnp.concatenate([proj.colors, proj.depths[:, None]], -1)
+    tile = tile_size(backend)
+    if backend == "pallas":
+        return PK.composite(proj.means2d, proj.conics, proj.opacities, feats, bins.gids,
+                            bins.tile_start, w, h, tile, PK.use_interpreter())
+    tiles_x, tiles_y = B.grid_shape(w, h, tile)
+    block = CP.block_elements(jax.default_backend())
+    gids, tile_of, first = CP.make_chunks(bins, tiles_x * tiles_y, capacity, tile,
+                                          block_elements=block)
+    return CP.composite(proj.means2d, proj.conics, proj.opacities, feats, gids, tile_of, first,
+                        w, h, tile, block)
+
+
+def _render_one(gaussians, camera, background, means2d_delta, near, far, *, capacity, sh_degree,
+                backend):
     proj = P.project(gaussians, camera, sh_degree=sh_degree, near=near, far=far,
                      means2d_delta=means2d_delta)
     w, h = camera.width, camera.height
-    bins = B.bin_gaussians(proj, w, h, capacity, TILE)
-    tiles_x, tiles_y = B.grid_shape(w, h, TILE)
-    gids, tile_of, first = CP.make_chunks(bins, tiles_x * tiles_y, capacity, TILE)
-    feats = jnp.concatenate([proj.colors, proj.depths[:, None]], -1)
-    f_img, t_img = CP.composite(proj.means2d, proj.conics, proj.opacities, feats, gids, tile_of,
-                                first, w, h, TILE)
+    bins = B.bin_gaussians(proj, w, h, capacity, tile_size(backend))
+    f_img, t_img = _composite(proj, bins, w, h, capacity, backend)
     rgb, alpha, depth = finish(f_img, t_img, background, gaussians.means.dtype)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii,
                         visible=proj.visible, num_intersections=bins.num_intersections,
@@ -87,19 +124,21 @@ def _render_one(gaussians, camera, background, means2d_delta, near, far, *, capa
 
 def render_tiles(gaussians: Gaussians, camera: Camera, *, capacity: int, background=None,
                  sh_degree: int | None = None, near: float = 0.01, far: float = 1e10,
-                 means2d_delta: jax.Array | None = None) -> RenderOutput:
+                 means2d_delta: jax.Array | None = None, backend: str = "auto") -> RenderOutput:
     """Pure, jittable tile splatter with a static intersection ``capacity``.
 
     Same arguments as :func:`render` (``capacity`` replaces ``max_intersections``).
     The caller must check ``out.overflow`` (True: pairs were dropped).
     Batched cameras are vmapped; ``num_intersections``/``overflow`` are then per camera.
+    The buffer counts pairs at the backend's tile size (see :func:`count_pairs`).
     """
     capacity = int(capacity)
     if capacity < 1:
         raise DataError("max_intersections", f"must be a positive int, got {capacity}")
+    backend = resolve_backend(backend)
     sh_degree = P.check_sh_degree(gaussians, sh_degree)
     bg = None if background is None else jnp.asarray(background, gaussians.means.dtype)
-    fn = functools.partial(_render_one, capacity=capacity, sh_degree=sh_degree)
+    fn = functools.partial(_render_one, capacity=capacity, sh_degree=sh_degree, backend=backend)
     if camera.batch_shape:
         d_axis = None if means2d_delta is None else 0
         return jax.vmap(lambda cam, d: fn(gaussians, cam, bg, d, near, far),
@@ -107,11 +146,11 @@ def render_tiles(gaussians: Gaussians, camera: Camera, *, capacity: int, backgro
     return fn(gaussians, camera, bg, means2d_delta, near, far)
 
 
-@functools.partial(jax.jit, static_argnames=("sh_degree",))
-def _count(gaussians, camera, near, far, means2d_delta, sh_degree):
+@functools.partial(jax.jit, static_argnames=("sh_degree", "tile"))
+def _count(gaussians, camera, near, far, means2d_delta, sh_degree, tile):
     def one(cam, d):
         proj = P.project(gaussians, cam, sh_degree=0, near=near, far=far, means2d_delta=d)
-        return B.count_intersections(proj, cam.width, cam.height, TILE)
+        return B.count_intersections(proj, cam.width, cam.height, tile)
 
     if camera.batch_shape:
         d_axis = None if means2d_delta is None else 0
@@ -119,12 +158,19 @@ def _count(gaussians, camera, near, far, means2d_delta, sh_degree):
     return one(camera, means2d_delta)
 
 
-_render_tiles_jit = jax.jit(render_tiles, static_argnames=("capacity", "sh_degree"))
+_render_tiles_jit = jax.jit(render_tiles, static_argnames=("capacity", "sh_degree", "backend"))
+
+
+def count_pairs(gaussians: Gaussians, camera: Camera, *, backend: str = "auto", near: float = 0.01,
+                far: float = 1e10) -> int:
+    """(Gaussian, tile) pairs a frame needs at ``backend``'s tile size (max over a batch)."""
+    tile = tile_size(resolve_backend(backend))
+    return int(_count(gaussians, camera, near, far, None, sh_degree=0, tile=tile))
 
 
 def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: int | None = None,
            near: float = 0.01, far: float = 1e10, means2d_delta: jax.Array | None = None,
-           max_intersections: int | None = None) -> RenderOutput:
+           max_intersections: int | None = None, backend: str = "auto") -> RenderOutput:
     """Render Gaussians with the exact tile splatter.
 
     Args:
@@ -140,16 +186,20 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
       max_intersections: static buffer size (pairs of Gaussian x tile). Required
         inside a caller's jit/vmap (check ``out.overflow`` then); outside a
         trace it is a starting size and is grown as needed.
+      backend: "auto" (the Pallas kernel on a GPU, the XLA path elsewhere),
+        "xla" or "pallas" (off a GPU: the Pallas interpreter, for tests).
     Returns:
       RenderOutput: rgb [H, W, 3], alpha [H, W], depth [H, W] (expected depth),
       means2d [C, 2], radii [C], visible [C], num_intersections, overflow
       (with a leading B axis for batched cameras).
     """
     sh_degree = P.check_sh_degree(gaussians, sh_degree)
+    backend = resolve_backend(backend)
     kwargs = dict(background=background, sh_degree=sh_degree, near=near, far=far,
-                  means2d_delta=means2d_delta)
+                  means2d_delta=means2d_delta, backend=backend)
     try:
-        needed = int(_count(gaussians, camera, near, far, means2d_delta, sh_degree=sh_degree))
+        needed = int(_count(gaussians, camera, near, far, means2d_delta, sh_degree=sh_degree,
+                            tile=tile_size(backend)))
     except jax.errors.ConcretizationTypeError:
         needed = None
     if needed is None:  # under the caller's jit / vmap: their buffer, their overflow check
@@ -159,7 +209,7 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
         return render_tiles(gaussians, camera, capacity=max_intersections, **kwargs)
 
     key = (gaussians.capacity, camera.width, camera.height, camera.batch_shape, sh_degree,
-           str(gaussians.means.dtype))
+           str(gaussians.means.dtype), backend)
     if max_intersections is not None:  # the caller's starting size: grown, never shrunk
         cap = max(int(max_intersections), 1)
     else:

@@ -1,0 +1,345 @@
+"""Per-tile alpha compositing as a Pallas kernel (Triton on GPU), forward and backward.
+
+The GPU shape of :mod:`.composite`: one program per image tile, the tile's pixels
+as the vector axis (a 16 x 16 tile is 256 lanes), and the tile's depth-sorted
+pairs streamed through one at a time, front to back, exactly as INRIA's CUDA
+rasterizer blends them (same rules as :mod:`.reference`: power > 0 and
+alpha < 1/255 skip a pair, alpha is clamped at 0.99, and a pixel stops before
+the pair that would drop its transmittance below 1e-4). A program ends as soon
+as every pixel of its tile has stopped, so the work follows what is visible.
+
+Residuals of the backward are only the inputs, the final transmittance and the
+index of the last blended pair per pixel: O(pixels + pairs). The backward kernel
+walks each tile's list back to front from its last contributor, recovering the
+transmittance before each pair by division (T_i = T_{i+1} / (1 - alpha_i)) and
+keeping the colour behind it as a running sum, and writes one gradient row per
+pair (each pair belongs to one tile, so every row has one writer: no atomics).
+The rows are then summed per Gaussian by :func:`reduce_pair_rows`.
+
+Gradient of the blended features C = sum_i w_i f_i, w_i = alpha_i T_i, and of
+T_final = prod_i (1 - alpha_i), for one pixel with upstream g = dL/dC and
+g_T = dL/dT_final:
+
+    dL/dalpha_i = T_i (g . f_i) - (g . S_i + g_T T_final) / (1 - alpha_i),
+    S_i = sum_{j > i} w_j f_j  (the colour behind pair i),
+
+then alpha = min(0.99, o exp(power)) and the conic quadratic give the gradients
+of the 2D mean, the conic and the opacity. ``interpret=True`` runs the same
+kernels on the CPU (tests hold them to the dense oracle there).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+
+from .binning import grid_shape, image_to_tiles, tiles_to_image
+from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
+
+#: Pairs blended per iteration of a program's loop between "is the tile done?" tests.
+PAIR_BATCH = 8
+#: Gradient row layout per pair: d means2d (2), d conic (3), d opacity (1), d features (F).
+_ROW_FIXED = 6
+
+
+_compile_for_gpu = False
+
+
+@contextlib.contextmanager
+def compiled_for_gpu():
+    """Within this context the kernels are lowered for Triton even off a GPU.
+
+    For ``jax.export(..., platforms=("cuda",))`` from a machine without a GPU:
+    it checks that the kernels lower, without running them.
+    """
+    global _compile_for_gpu
+    old, _compile_for_gpu = _compile_for_gpu, True
+    try:
+        yield
+    finally:
+        _compile_for_gpu = old
+
+
+def use_interpreter() -> bool:
+    """Run the kernels in the Pallas interpreter: off a GPU, unless :func:`compiled_for_gpu`."""
+    return jax.default_backend() != "gpu" and not _compile_for_gpu
+
+
+def _triton_params(num_warps: int):
+    """Triton compiler parameters (the import fails on jaxlibs without Pallas GPU support)."""
+    from jax.experimental.pallas import triton as pltriton
+
+    return pltriton.CompilerParams(num_warps=num_warps)
+
+
+def _pixel_centres(tile_id, tiles_x: int, tile: int, dtype):
+    """float [P] x and y pixel centres of tile ``tile_id`` (P = tile^2, row-major)."""
+    lane = jnp.arange(tile * tile, dtype=jnp.int32)
+    x = (tile_id % tiles_x) * tile + lane % tile
+    y = (tile_id // tiles_x) * tile + lane // tile
+    return x.astype(dtype) + 0.5, y.astype(dtype) + 0.5
+
+
+def _load_pair(slot, gids_ref, m_ref, con_ref, op_ref):
+    """Scalars of the Gaussian in pair ``slot``: (gid, mx, my, a, b, c, opacity)."""
+    g = gids_ref[slot]
+    return (g, m_ref[g, 0], m_ref[g, 1], con_ref[g, 0], con_ref[g, 1], con_ref[g, 2], op_ref[g])
+
+
+def _alpha(mx, my, a, b, c, o, px, py):
+    """dx, dy, exp(power), o exp(power) and alpha [P] of one Gaussian over the tile's pixels."""
+    dx = mx - px
+    dy = my - py
+    power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+    vis = jnp.exp(jnp.minimum(power, 0.0))
+    raw = o * vis
+    alpha = jnp.minimum(ALPHA_MAX, raw)
+    alpha = jnp.where((power > 0) | (alpha < ALPHA_MIN), 0.0, alpha)
+    return dx, dy, vis, raw, alpha
+
+
+def _forward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref,
+                    feat_ref, trans_ref, last_ref, *, tiles_x, tile, num_features, capacity):
+    """One tile: blend its pairs front to back.
+
+    Outputs (this tile's blocks): feat_ref float [F, P], trans_ref float [P]
+    (transmittance after the last blended pair), last_ref int32 [P] (buffer slot
+    of the last blended pair, begin - 1 where none).
+    """
+    t = pl.program_id(0)
+    begin = start_ref[t]
+    end = start_ref[t + 1]
+    dtype = m_ref.dtype
+    px, py = _pixel_centres(t, tiles_x, tile, dtype)
+    n = tile * tile
+
+    def one_pair(i, state):
+        trans, alive, last, acc = state
+        valid = i < end
+        g, mx, my, a, b, c, o = _load_pair(jnp.minimum(i, capacity - 1), gids_ref, m_ref,
+                                            con_ref, op_ref)
+        alpha = _alpha(mx, my, a, b, c, o, px, py)[4]
+        alpha = jnp.where(valid, alpha, 0.0)
+        t_after = trans * (1.0 - alpha)
+        stop = alive & (t_after < T_MIN)
+        blend = alive & ~stop & (alpha > 0.0)
+        w = jnp.where(blend, alpha * trans, 0.0)
+        acc = tuple(acc[k] + w * f_ref[g, k] for k in range(num_features))
+        trans = jnp.where(blend, t_after, trans)
+        last = jnp.where(blend, i, last)
+        return trans, alive & ~stop, last, acc
+
+    def cond(carry):
+        i, (_, alive, _, _) = carry
+        return (i < end) & (jnp.max(alive.astype(jnp.int32)) > 0)
+
+    def batch(carry):
+        i, state = carry
+        for k in range(PAIR_BATCH):  # unrolled: one "done?" test per batch of pairs
+            state = one_pair(i + k, state)
+        return i + PAIR_BATCH, state
+
+    state = (jnp.ones((n,), dtype), jnp.ones((n,), jnp.bool_),
+             jnp.full((n,), begin - 1, jnp.int32),
+             tuple(jnp.zeros((n,), dtype) for _ in range(num_features)))
+    _, (trans, _, last, acc) = jax.lax.while_loop(cond, batch, (begin, state))
+    for k in range(num_features):
+        feat_ref[k, :] = acc[k]
+    trans_ref[...] = trans
+    last_ref[...] = last
+
+
+def _backward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref, trans_ref, last_ref,
+                     gf_ref, gt_ref, rows_ref, *, tiles_x, tile, num_features, capacity):
+    """One tile: per-pair gradient rows, walking its list back to front.
+
+    Inputs (this tile's blocks): trans_ref float [P] and last_ref int32 [P] from
+    the forward; gf_ref float [F, P] = dL/dfeatures; gt_ref float [P] =
+    dL/dT_final. Output: rows_ref float [N, 6 + F], the rows of this tile's pairs.
+    """
+    t = pl.program_id(0)
+    begin = start_ref[t]
+    px, py = _pixel_centres(t, tiles_x, tile, m_ref.dtype)
+    t_final = trans_ref[...]
+    last = last_ref[...]
+    g_f = tuple(gf_ref[k, :] for k in range(num_features))
+    behind_final = gt_ref[...] * t_final  # g_T T_final: the final T is "behind" every pair
+    stop = jnp.max(last)  # the tile's last contributing slot
+
+    def one_pair(j, state):
+        trans, behind = state  # T after pair i, and g . S_i + g_T T_final
+        i = stop - j
+        g, mx, my, a, b, c, o = _load_pair(i, gids_ref, m_ref, con_ref, op_ref)
+        dx, dy, vis, raw, alpha = _alpha(mx, my, a, b, c, o, px, py)
+        active = (i <= last) & (alpha > 0.0)
+        one_minus = jnp.where(active, 1.0 - alpha, 1.0)
+        t_before = trans / one_minus
+        gdotf = sum(g_f[k] * f_ref[g, k] for k in range(num_features))
+        d_alpha = t_before * gdotf - behind / one_minus
+        d_raw = jnp.where(active & (raw < ALPHA_MAX), d_alpha, 0.0)
+        d_pow = d_raw * raw
+        w = jnp.where(active, alpha * t_before, 0.0)
+        sdx, sdy = jnp.sum(d_pow * dx), jnp.sum(d_pow * dy)
+        sxx, sxy, syy = jnp.sum(d_pow * dx * dx), jnp.sum(d_pow * dx * dy), jnp.sum(d_pow * dy * dy)
+        rows_ref[i, 0] = -(a * sdx + b * sdy)
+        rows_ref[i, 1] = -(c * sdy + b * sdx)
+        rows_ref[i, 2] = -0.5 * sxx
+        rows_ref[i, 3] = -sxy
+        rows_ref[i, 4] = -0.5 * syy
+        rows_ref[i, 5] = jnp.sum(d_raw * vis)
+        for k in range(num_features):
+            rows_ref[i, _ROW_FIXED + k] = jnp.sum(w * g_f[k])
+        return jnp.where(active, t_before, trans), behind + w * gdotf
+
+    jax.lax.fori_loop(0, jnp.maximum(stop - begin + 1, 0), one_pair, (t_final, behind_final))
+
+    def zero_row(i, carry):  # pairs behind every pixel's last contributor get no gradient
+        for r in range(_ROW_FIXED + num_features):
+            rows_ref[i, r] = jnp.zeros((), rows_ref.dtype)
+        return carry
+
+    jax.lax.fori_loop(jnp.maximum(stop + 1, begin), start_ref[t + 1], zero_row, ())
+
+
+def _specs(num_tiles, tile, num_features):
+    """Block specs of the per-tile image arrays ([T, F, P], [T, P])."""
+    p = tile * tile
+    feat = pl.BlockSpec((None, num_features, p), lambda t: (t, 0, 0))
+    pix = pl.BlockSpec((None, p), lambda t: (t, 0))
+    return feat, pix
+
+
+def _call(kernel, inputs, in_specs, out_shape, out_specs, num_tiles, interpret, num_warps):
+    return pl.pallas_call(
+        kernel, out_shape=out_shape, grid=(num_tiles,), in_specs=in_specs, out_specs=out_specs,
+        interpret=interpret, compiler_params=None if interpret else _triton_params(num_warps),
+    )(*inputs)
+
+
+def _whole():
+    return pl.BlockSpec(memory_space=pl.ANY)
+
+
+def _num_warps(tile: int) -> int:
+    """One lane per pixel: a 16 x 16 tile is 8 warps of 32 threads (as gsplat's 256-thread blocks)."""
+    return max(1, min(8, tile * tile // 32))
+
+
+def tiles_forward(means2d, conics, opacities, features, gids, tile_start, width, height, tile,
+                  interpret=False):
+    """Forward kernel over all tiles.
+
+    Args:
+      means2d float [C, 2], conics [C, 3], opacities [C], features [C, F];
+      gids int32 [N] (sorted by tile, depth; padding slots may hold C);
+      tile_start int32 [T + 1].
+    Returns:
+      (features float [T, F, P], transmittance float [T, P], last int32 [T, P]).
+    """
+    tiles_x, tiles_y = grid_shape(width, height, tile)
+    num_tiles = tiles_x * tiles_y
+    nf = features.shape[-1]
+    p = tile * tile
+    feat_spec, pix_spec = _specs(num_tiles, tile, nf)
+    kernel = functools.partial(_forward_kernel, tiles_x=tiles_x, tile=tile, num_features=nf,
+                               capacity=gids.shape[0])
+    dtype = means2d.dtype
+    out_shape = (jax.ShapeDtypeStruct((num_tiles, nf, p), dtype),
+                 jax.ShapeDtypeStruct((num_tiles, p), dtype),
+                 jax.ShapeDtypeStruct((num_tiles, p), jnp.int32))
+    inputs = _padded_inputs(means2d, conics, opacities, features, gids, tile_start)
+    return _call(kernel, inputs, [_whole()] * 6, out_shape, (feat_spec, pix_spec, pix_spec),
+                 num_tiles, interpret, _num_warps(tile))
+
+
+def _padded_inputs(means2d, conics, opacities, features, gids, tile_start):
+    """Kernel inputs in the means' dtype, one zero-opacity Gaussian appended for padding slots."""
+    def pad(x):
+        x = x.astype(means2d.dtype)
+        return jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)], 0)
+
+    return (tile_start.astype(jnp.int32), gids.astype(jnp.int32), pad(means2d), pad(conics),
+            pad(opacities), pad(features))
+
+
+def tiles_backward(means2d, conics, opacities, features, gids, tile_start, trans, last, g_feat,
+                   g_trans, width, height, tile, interpret=False):
+    """Backward kernel: float [N, 6 + F] gradient rows, one per pair slot (0 for unused slots).
+
+    Args: as :func:`tiles_forward`, plus the forward's ``trans`` [T, P] and
+    ``last`` [T, P], and the upstream gradients g_feat float [T, F, P] and
+    g_trans float [T, P] in tile layout.
+    """
+    tiles_x, tiles_y = grid_shape(width, height, tile)
+    num_tiles = tiles_x * tiles_y
+    nf = features.shape[-1]
+    feat_spec, pix_spec = _specs(num_tiles, tile, nf)
+    kernel = functools.partial(_backward_kernel, tiles_x=tiles_x, tile=tile, num_features=nf,
+                               capacity=gids.shape[0])
+    inputs = _padded_inputs(means2d, conics, opacities, features, gids, tile_start)
+    dtype = means2d.dtype
+    inputs += (trans, last, g_feat.astype(dtype), g_trans.astype(dtype))
+    rows = jax.ShapeDtypeStruct((gids.shape[0], _ROW_FIXED + nf), dtype)
+    rows = _call(kernel, inputs, [_whole()] * 6 + [pix_spec, pix_spec, feat_spec, pix_spec],
+                 rows, _whole(), num_tiles, interpret, _num_warps(tile))
+    return rows
+
+
+def reduce_pair_rows(rows, gids, num_gaussians):
+    """Per-Gaussian sums of per-pair rows: float [C, R] from rows [N, R], gids [N] (C = unused).
+
+    Slots past the frame's pairs are never written by the kernel and may hold
+    anything, so they are masked by their gid (C) before the sum.
+    """
+    used = gids < num_gaussians
+    rows = jnp.where(used[:, None], rows, 0.0)
+    seg = jnp.where(used, gids, num_gaussians)
+    return jax.ops.segment_sum(rows, seg, num_segments=num_gaussians + 1)[:num_gaussians]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(6, 7, 8, 9))
+def composite(means2d, conics, opacities, features, gids, tile_start, width, height, tile,
+              interpret=False):
+    """Blend the sorted pairs into images with the Pallas kernels.
+
+    Args:
+      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C] (0 for
+        culled); features: float [C, F].
+      gids: int32 [N], pairs sorted by (tile, depth), unused slots C;
+      tile_start: int32 [T + 1] (see :class:`.binning.Bins`).
+      width, height, tile: static image and tile size; interpret: run the
+        kernels with the Pallas interpreter (CPU).
+    Returns:
+      (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
+    """
+    return _composite_fwd(means2d, conics, opacities, features, gids, tile_start, width, height,
+                          tile, interpret)[0]
+
+
+def _composite_fwd(means2d, conics, opacities, features, gids, tile_start, width, height, tile,
+                   interpret):
+    feat, trans, last = tiles_forward(means2d, conics, opacities, features, gids, tile_start,
+                                      width, height, tile, interpret=interpret)
+    out = (tiles_to_image(jnp.swapaxes(feat, 1, 2), width, height, tile),
+           tiles_to_image(trans, width, height, tile))
+    return out, (means2d, conics, opacities, features, gids, tile_start, trans, last)
+
+
+def _composite_bwd(width, height, tile, interpret, res, cts):
+    means2d, conics, opacities, features, gids, tile_start, trans, last = res
+    g_feat, g_trans = cts
+    g_feat = jnp.swapaxes(image_to_tiles(g_feat, width, height, tile), 1, 2)  # [T, F, P]
+    g_trans = image_to_tiles(g_trans, width, height, tile)
+    rows = tiles_backward(means2d, conics, opacities, features, gids, tile_start, trans, last,
+                          g_feat, g_trans, width, height, tile, interpret=interpret)
+    grads = reduce_pair_rows(rows, gids, means2d.shape[0])
+    nf = features.shape[-1]
+    return (grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, _ROW_FIXED:_ROW_FIXED + nf],
+            None, None)
+
+
+composite.defvjp(_composite_fwd, _composite_bwd)

@@ -1,0 +1,278 @@
+"""The splat viewer (experiments/view.py): snapshots, slider, select button, live refresh, browser.
+
+Runs are written directly (three snapshot PLYs of 300 Gaussians and a schedule.json, as
+the edit driver lays them out) instead of running an edit. The browser test opens the
+viewer in headless Chromium with software WebGL and looks for the splats' colours.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import json
+import shutil
+import subprocess
+import sys
+import time
+import urllib.request
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from experiments import view
+from experiments.cli import main
+from jaxedit import DataError
+from jaxedit.edit import select_snapshot
+from jaxedit.gaussians import covariance, from_points, grow, splat_arrays
+from jaxedit.io import save_ply
+
+# One vivid colour per snapshot, so a screenshot tells which one is on screen.
+RED, GREEN, BLUE = (1.0, 0.1, 0.1), (0.1, 0.9, 0.1), (0.1, 0.2, 1.0)
+
+
+CENTRE = np.array([4.0, -3.0, 1.0])  # off the origin, where viser's default camera looks
+
+
+def blob(seed: int, rgb, n: int = 300):
+    """n opaque Gaussians of one colour in a ball of radius ~0.5 around CENTRE."""
+    points = CENTRE + np.random.default_rng(seed).normal(size=(n, 3)) * 0.25
+    g = from_points(points, np.tile(rgb, (n, 1)), sh_degree=1, init_opacity=0.9)
+    return dataclasses.replace(g, log_scales=g.log_scales - 1.0)  # a third of the spacing
+
+
+def write_snapshot(run, rel: str, scene) -> str:
+    save_ply(run / rel / "scene.ply", scene)
+    return f"{rel}/scene.ply"
+
+
+def write_schedule(run, records) -> None:
+    subtasks = [{"index": i, "name": f"s{i}", "kind": "edit", "ratio": r, "snapshot": snap}
+                for i, (r, snap) in enumerate(records)]
+    (run / "schedule.json").write_text(json.dumps({"prompt": "test", "subtasks": subtasks}))
+
+
+def make_run(run):
+    """An edit run directory as the driver leaves it: original + two subtask snapshots."""
+    write_snapshot(run, "original", blob(0, RED))
+    snaps = [write_snapshot(run, "subtasks/00_r0.500", blob(1, GREEN)),
+             write_snapshot(run, "subtasks/01_r1.000", blob(2, BLUE))]
+    write_schedule(run, [(0.5, snaps[0]), (1.0, snaps[1])])
+    return run
+
+
+def test_splat_arrays_are_the_alive_gaussians_activated():
+    g = blob(0, RED, n=5)
+    quats = jnp.array([[0.9, 0.1, -0.3, 0.2]] * 5)
+    g = grow(dataclasses.replace(g, log_scales=g.log_scales.at[:, 0].add(0.7), quats=quats),
+             8)  # 3 dead slots
+    a = splat_arrays(g)
+    assert {k: v.shape for k, v in a.items()} == {
+        "centers": (5, 3), "covariances": (5, 3, 3), "rgbs": (5, 3), "opacities": (5, 1)}
+    assert all(v.dtype == np.float32 for v in a.values())
+    np.testing.assert_allclose(a["centers"], g.means[:5])
+    np.testing.assert_allclose(a["covariances"], covariance(quats, g.log_scales[:5]), rtol=1e-6)
+    assert np.allclose(a["covariances"], np.swapaxes(a["covariances"], 1, 2))
+    assert not np.allclose(a["covariances"][:, 0, 1], 0.0)  # rotated: not axis aligned
+    np.testing.assert_allclose(a["rgbs"], np.tile(RED, (5, 1)), atol=1e-5)
+    np.testing.assert_allclose(a["opacities"], 0.9, atol=1e-5)
+
+
+def test_run_snapshots_in_order_and_bad_run_dirs(tmp_path, capsys):
+    run = make_run(tmp_path / "run")
+    snaps = view.run_snapshots(run)
+    assert [s.subtask for s in snaps] == [None, 0, 1]
+    assert [s.path.parent.name for s in snaps] == ["original", "00_r0.500", "01_r1.000"]
+    assert "r = 0.500" in snaps[1].label
+    # A demo run directory is accepted through its edit stage.
+    shutil.copytree(run, tmp_path / "demo" / "edit")
+    assert view.edit_run_dir(tmp_path / "demo") == tmp_path / "demo" / "edit"
+    with pytest.raises(DataError, match="no snapshot yet"):
+        view.run_snapshots(tmp_path / "missing")
+    (run / "schedule.json").write_text('{"subtasks": [{"snapshot": "x"}]}')
+    with pytest.raises(DataError, match="schedule.json: malformed schedule"):
+        view.run_snapshots(run)
+    assert main(["view", str(tmp_path / "missing"), "--port", "0"]) == 2
+    assert main(["view", str(run), "--port", "70000"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "missing: no snapshot yet" in err[0] and "--port" in err[1]
+
+
+def test_missing_viser_is_a_one_line_error(tmp_path, monkeypatch, capsys):
+    run = make_run(tmp_path / "run")
+    monkeypatch.setitem(sys.modules, "viser", None)  # import viser raises ImportError
+    assert main(["view", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "viser" in err and "jaxedit[viewer]" in err
+
+
+@pytest.fixture
+def viser_installed():
+    pytest.importorskip("viser", reason="the optional extra 'viewer' is not installed")
+
+
+def test_slider_and_select_button_write_what_select_only_writes(tmp_path, viser_installed):
+    run = make_run(tmp_path / "run")
+    viewer = view.open_run(run, port=0)
+    try:
+        assert len(viewer) == 3 and viewer._shown == 2  # the most edited snapshot first
+        assert viewer.url.startswith("http://127.0.0.1:") and viewer.server.get_port() > 0
+        viewer.show(0)
+        assert viewer._button.disabled and viewer.select() is None  # the original: no subtask
+        assert not (run / "selected.ply").exists()
+        viewer._slider.value = 1  # what dragging the slider does
+        assert viewer._shown == 1 and not viewer._button.disabled
+        path = viewer.select()
+        assert viewer._status.content == f"wrote selected.ply from {viewer._scenes[1][0]}"
+        (run / "schedule.json").rename(run / "moved.json")
+        viewer._select_clicked(None)  # a click: the error goes to the panel, not a traceback
+        assert viewer._status.content.startswith("error: ") and "schedule.json" in viewer._status.content
+        (run / "moved.json").rename(run / "schedule.json")
+    finally:
+        viewer.close()
+    assert path == run / "selected.ply"
+    assert path.read_bytes() == (run / "subtasks/00_r0.500/scene.ply").read_bytes()
+    # The same files as `edit --select-only --select 0` on a copy of the run.
+    other = shutil.copytree(run, tmp_path / "other", ignore=shutil.ignore_patterns("selected.*"))
+    assert main(["edit", "--out", str(other), "--select-only", "--select", "0"]) == 0
+    for name in ("selected.ply", "selected.json"):
+        assert (other / name).read_bytes() == (run / name).read_bytes()
+    assert select_snapshot(other, -1).read_bytes() != path.read_bytes()
+
+
+def wait_for(predicate, seconds=20.0):
+    deadline = time.monotonic() + seconds
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.02)
+
+
+def test_watcher_shows_each_snapshot_as_the_run_writes_it(tmp_path, viser_installed):
+    run = tmp_path / "run"
+    run.mkdir()
+    viewer = view.SnapshotViewer(run, port=0)
+    watcher = view.RunWatcher(run, viewer, interval=0.02).start()
+    try:
+        time.sleep(0.1)
+        assert len(viewer) == 0  # nothing written yet: no error, nothing shown
+        write_snapshot(run, "original", blob(0, RED))
+        wait_for(lambda: len(viewer) == 1)
+        snap = write_snapshot(run, "subtasks/00_r1.000", blob(1, BLUE))
+        time.sleep(0.1)
+        assert len(viewer) == 1  # a PLY not yet in schedule.json is not a finished subtask
+        write_schedule(run, [(1.0, snap)])  # the driver lists a subtask once its PLY is written
+        wait_for(lambda: len(viewer) == 2)
+        assert viewer._shown == 1  # followed the edit
+        viewer.show(0)  # the user goes back: a later snapshot must not pull the view away
+        snap2 = write_snapshot(run, "subtasks/01_r1.000", blob(2, GREEN))
+        write_schedule(run, [(1.0, snap), (1.0, snap2)])
+    finally:
+        watcher.stop()  # stopping picks up what was written last
+        viewer.close()
+    assert len(viewer) == 3 and viewer._shown == 0
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+WIDTH, HEIGHT = 1000, 700
+
+
+class DevTools:
+    """Headless Chromium driven over the DevTools protocol: one page, kept open.
+
+    One browser for the whole test, so the second snapshot reaches the open page over
+    viser's websocket, as in ``edit --view``, instead of by a reload.
+    """
+
+    def __init__(self, profile, url):
+        from websockets.sync.client import connect
+
+        # Software WebGL (SwiftShader through ANGLE): no GPU on CI or the developers' machines.
+        self.proc = subprocess.Popen(
+            [CHROMIUM, "--headless", "--no-sandbox", "--use-angle=swiftshader",
+             "--enable-unsafe-swiftshader", "--no-first-run", "--disable-background-networking",
+             "--disable-component-update", "--disable-sync", "--hide-scrollbars",
+             "--remote-debugging-port=0", f"--user-data-dir={profile}",
+             f"--window-size={WIDTH},{HEIGHT}", url],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            port_file = profile / "DevToolsActivePort"  # Chromium writes its free port here
+            wait_for(lambda: port_file.is_file() and port_file.read_text().count("\n") >= 1, 60)
+            port = int(port_file.read_text().split()[0])
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=30) as r:
+                page = next(t for t in json.load(r) if t["type"] == "page")
+            self.ws = connect(page["webSocketDebuggerUrl"], proxy=None, max_size=None)
+        except BaseException:
+            self.close()
+            raise
+        self.calls = 0
+
+    def call(self, method, **params):
+        self.calls += 1
+        self.ws.send(json.dumps({"id": self.calls, "method": method, "params": params}))
+        while True:  # skip the page's events until our answer
+            msg = json.loads(self.ws.recv(timeout=60))
+            if msg.get("id") == self.calls:
+                assert "error" not in msg, msg["error"]
+                return msg["result"]
+
+    def evaluate(self, expression):
+        return self.call("Runtime.evaluate", expression=expression)["result"].get("value")
+
+    def screenshot(self, path):
+        from PIL import Image
+
+        path.write_bytes(base64.b64decode(self.call("Page.captureScreenshot")["data"]))
+        return np.asarray(Image.open(path).convert("RGB"), np.int32)
+
+    def close(self):
+        if hasattr(self, "ws"):
+            self.ws.close()
+        self.proc.terminate()
+        self.proc.wait(timeout=30)
+
+
+def colour_pixels(img):
+    """Pixels of each snapshot colour in the middle of the canvas (off viser's panels)."""
+    h, w = img.shape[:2]
+    r, g, b = np.moveaxis(img[h // 4:, w // 5:int(w * 0.64)], -1, 0)
+    return {"red": int(((r - g > 80) & (r - b > 80)).sum()),
+            "green": int(((g - r > 60) & (g - b > 60)).sum()),
+            "blue": int(((b - r > 80) & (b - g > 60)).sum())}
+
+
+def screen_until(browser, path, colour, seconds=90.0):
+    """Screenshots until ``colour`` covers the canvas middle (the scene arrives over a
+    websocket and software WebGL is slow on a busy machine); the pixel counts of the last."""
+    deadline = time.monotonic() + seconds
+    while True:
+        counts = colour_pixels(browser.screenshot(path))
+        if counts[colour] > 5000 or time.monotonic() > deadline:
+            return counts
+        time.sleep(0.5)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not on PATH (CI installs Debian's chromium)")
+def test_viewer_draws_the_splats_in_headless_chromium(tmp_path, viser_installed):
+    run = make_run(tmp_path / "run")
+    viewer = view.SnapshotViewer(run, port=0)
+    browser = None
+    try:
+        # The page opens before the first snapshot, as with edit --view: the snapshots
+        # and the camera framing them reach it over the websocket.
+        browser = DevTools(tmp_path / "profile", viewer.url)
+        if not browser.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
+            pytest.skip("this Chromium has no WebGL2 (no SwiftShader)")
+        wait_for(lambda: len(viewer.server.get_clients()) == 1, 60)
+        assert view.RunWatcher(run, viewer).refresh() == 3
+        last = screen_until(browser, tmp_path / "last.png", "blue")
+        viewer.show(0)  # the slider to the original: pushed to the open page
+        original = screen_until(browser, tmp_path / "original.png", "red")
+    finally:
+        if browser is not None:
+            browser.close()
+        viewer.close()
+    # 300 splats framed by the initial camera cover tens of thousands of pixels; the
+    # other snapshots' colours are absent.
+    assert last["blue"] > 5000 and last["red"] < 50 and last["green"] < 50, last
+    assert original["red"] > 5000 and original["blue"] < 50 and original["green"] < 50, original
