@@ -12,6 +12,10 @@ Umeyama similarity of the training cameras ("aligned"), and also from the test
 cameras SfM itself estimated ("estimated"). Writes ``DIR/capture.json``: pose
 errors, registered views, seconds of each SfM stage, both held-out PSNRs and
 their gap (goal: under 1 dB). ``--smoke``: 16 views, 40 steps at 64 px.
+
+The "aligned" PSNR punishes every residual pose error: a 0.7 degree rotation error is
+about 2 px at 128 px and 176 px focal length, and a single similarity cannot absorb
+per-view errors or SfM's focal/k1 estimates, so it sits far below "estimated".
 """
 
 from __future__ import annotations
