@@ -36,7 +36,7 @@ import tomllib
 from pathlib import Path
 
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
-            "report", "convert-lpips", "clip-metrics", "view"]
+            "report", "convert-lpips", "clip-metrics", "view", "process-data"]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -328,9 +328,16 @@ def main(argv: list[str] | None = None) -> int:
         if args.device:
             import jax
             jax.config.update("jax_platforms", args.device)
-        with claimed_out(args.out):
-            write_run_config(args)
+        # A command that builds its output folder whole (staged beside it, renamed into
+        # place: process-data) must find it absent or empty: it takes no lock inside it
+        # and records its config once it succeeded.
+        whole = getattr(args._module, "RECORD_CONFIG_AFTER_RUN", False)
+        with claimed_out(None if whole else args.out):
+            if not whole:
+                write_run_config(args)
             result = args._module.run(args)
+        if whole:
+            write_run_config(args)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -1,0 +1,81 @@
+"""Compare estimated camera poses with reference poses, up to a similarity.
+
+Structure from motion recovers a scene only up to a similarity (rotation,
+translation, scale), so estimated cameras are first mapped onto the reference
+ones by the least-squares similarity between their centres (Umeyama 1991), then
+compared view by view.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import DataError
+from ..io.similarity import transform_cameras
+
+
+def umeyama(src, dst) -> np.ndarray:
+    """The similarity q = s R p + t minimising sum |dst_i - (s R src_i + t)|^2.
+
+    Args:
+      src, dst: float [N, 3] corresponding points, N >= 3, not all collinear.
+    Returns:
+      float64 [4, 4] similarity matrix mapping ``src`` onto ``dst``.
+    """
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise DataError("umeyama", f"need two [N, 3] point sets with N >= 3, got "
+                                   f"{list(src.shape)} and {list(dst.shape)}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    var_s = float((xs ** 2).sum() / len(src))
+    if var_s < 1e-18:
+        raise DataError("umeyama", "the source points all coincide")
+    u, d, vt = np.linalg.svd(xd.T @ xs / len(src))
+    # Flip the weakest axis when the best orthogonal map would be a reflection.
+    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
+    rot = u @ sign @ vt
+    scale = float(np.trace(np.diag(d) @ sign) / var_s)
+    out = np.eye(4)
+    out[:3, :3] = scale * rot
+    out[:3, 3] = mu_d - scale * rot @ mu_s
+    return out
+
+
+def camera_extent(cameras: Camera) -> float:
+    """Diagonal of the bounding box of the camera centres (the scene's size for errors)."""
+    centres = np.asarray(cameras.center(), np.float64)
+    return float(np.linalg.norm(centres.max(0) - centres.min(0)))
+
+
+def pose_errors(estimated: Camera, reference: Camera) -> dict:
+    """Per-view pose errors of ``estimated`` after its Umeyama alignment to ``reference``.
+
+    Args:
+      estimated, reference: batched cameras [N] of the same N views.
+    Returns:
+      dict with ``rotation_deg`` float64 [N] (angle of R_est R_ref^T), ``centre_error``
+      float64 [N] (distance, reference units), ``extent`` (see :func:`camera_extent`),
+      ``similarity`` float64 [4, 4] (estimated world -> reference world) and the
+      medians ``median_rotation_deg``, ``median_centre_error_rel`` (over ``extent``).
+    """
+    est_c = np.asarray(estimated.center(), np.float64)
+    ref_c = np.asarray(reference.center(), np.float64)
+    if est_c.shape != ref_c.shape:
+        raise DataError("cameras", f"{len(est_c)} estimated views but {len(ref_c)} reference views")
+    sim = umeyama(est_c, ref_c)
+    moved = transform_cameras(estimated, sim)
+    r_est = np.asarray(moved.world_to_camera, np.float64)[:, :3, :3]
+    r_ref = np.asarray(reference.world_to_camera, np.float64)[:, :3, :3]
+    rel = r_est @ np.swapaxes(r_ref, -1, -2)
+    # atan2 of the axis part over the trace part: accurate for small angles (arccos is not).
+    sin = 0.5 * np.linalg.norm(np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0],
+                                         rel[:, 1, 0] - rel[:, 0, 1]], -1), axis=-1)
+    cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
+    rotation_deg = np.degrees(np.arctan2(sin, cos))
+    centre_error = np.linalg.norm(np.asarray(moved.center(), np.float64) - ref_c, axis=1)
+    extent = camera_extent(reference)
+    return {"rotation_deg": rotation_deg, "centre_error": centre_error, "extent": extent,
+            "similarity": sim, "median_rotation_deg": float(np.median(rotation_deg)),
+            "median_centre_error_rel": float(np.median(centre_error) / max(extent, 1e-12))}

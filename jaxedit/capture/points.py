@@ -1,0 +1,97 @@
+"""Starting points for a dataset that has none (no SfM cloud): photo-consistent random points.
+
+Splatfacto starts such scenes from uniform random points in a fixed cube. Two
+things make that work better here:
+
+1. **where**: the box where the training cameras' view frusta overlap
+   (:func:`view_box`), which holds whatever they all film -- the box of the
+   camera centres misses an object that cameras circle from above;
+2. **which**: of ``oversample`` x more uniform candidates in that box, keep those
+   whose colours agree best across the views that see them (lowest variance),
+   coloured by their mean. Points on a surface see one colour from every side,
+   points in free space see unrelated pixels: this is the photo-consistency test
+   of voxel colouring, without its occlusion bookkeeping.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from ..camera import Camera
+
+
+def _project(points: np.ndarray, cameras: Camera):
+    """(columns int [N, P], rows int [N, P], inside bool [N, P]) of points in every camera."""
+    w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
+    n = len(w2c)
+    fx, fy, cx, cy = (np.broadcast_to(np.asarray(getattr(cameras, k), np.float64), (n,))[:, None]
+                      for k in ("fx", "fy", "cx", "cy"))
+    p = np.einsum("nij,pj->npi", w2c[:, :3, :3], points) + w2c[:, None, :3, 3]
+    z = np.maximum(p[..., 2], 1e-9)
+    u, v = fx * p[..., 0] / z + cx, fy * p[..., 1] / z + cy
+    inside = (p[..., 2] > 1e-6) & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
+    cols = np.clip(np.floor(u), 0, cameras.width - 1).astype(np.int64)
+    rows = np.clip(np.floor(v), 0, cameras.height - 1).astype(np.int64)
+    return cols, rows, inside
+
+
+def view_box(cameras: Camera, *, grid: int = 32, min_fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The box where the cameras' view frusta overlap: where a scene they all film must be.
+
+    A ``grid``^3 lattice fills a cube around the camera centres (twice their spread
+    each way); each lattice point counts the cameras that see it (in front, inside
+    the image); the box bounds the points seen by at least ``min_fraction`` of the
+    best-seen point's count, padded by half a lattice cell.
+
+    Args:
+      cameras: batched Camera [N].
+    Returns:
+      (lo float64 [3], hi float64 [3]) corners of the box.
+    """
+    w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
+    centres = -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
+    mid = centres.mean(axis=0)
+    spread = float(np.abs(centres - mid).max())
+    half = 2.0 * spread if spread > 1e-9 else 1.0
+    axis = mid[:, None] + np.linspace(-half, half, grid)[None, :]
+    lattice = np.stack(np.meshgrid(axis[0], axis[1], axis[2], indexing="ij"), -1).reshape(-1, 3)
+    counts = _project(lattice, cameras)[2].sum(axis=0)
+    seen = lattice[counts >= max(1, min_fraction * counts.max())]
+    if len(seen) == 0:  # no camera sees any lattice point: the cube itself
+        return mid - half, mid + half
+    cell = 2.0 * half / (grid - 1)
+    return seen.min(axis=0) - cell / 2, seen.max(axis=0) + cell / 2
+
+
+def random_points(images, cameras: Camera, num_points: int, key: jax.Array, *,
+                  oversample: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Photo-consistent random starting points (see the module docstring).
+
+    Args:
+      images: float [N, H, W, 3] training images; cameras: batched Camera [N] (same N).
+      num_points: points returned.
+      key: PRNG key of the candidate draw.
+      oversample: candidates drawn per point kept (1: plain uniform points, random colours).
+    Returns:
+      (points float32 [num_points, 3], colours float32 [num_points, 3] in [0, 1]).
+    """
+    lo, hi = view_box(cameras)
+    k_pos, k_col = jax.random.split(key)
+    total = num_points * max(1, int(oversample))
+    points = lo + np.asarray(jax.random.uniform(k_pos, (total, 3)), np.float64) * (hi - lo)
+    colors = np.asarray(jax.random.uniform(k_col, (total, 3)), np.float64)
+    if oversample <= 1:
+        return points.astype(np.float32), colors.astype(np.float32)
+    images = np.asarray(images, np.float64)
+    cols, rows, inside = _project(points, cameras)
+    views = np.arange(len(images))[:, None]
+    seen = images[views, rows, cols] * inside[..., None]          # [N, P, 3]
+    count = inside.sum(axis=0)[:, None]
+    mean = seen.sum(axis=0) / np.maximum(count, 1)
+    var = ((seen - mean) ** 2 * inside[..., None]).sum(axis=0).sum(-1) / np.maximum(count[:, 0], 1)
+    # Points seen by fewer than two views cannot be tested: rank them last.
+    var = np.where(count[:, 0] >= 2, var, np.inf)
+    keep = np.argsort(var, kind="stable")[:num_points]
+    colors = np.where(count[keep] >= 1, mean[keep], colors[keep])
+    return points[keep].astype(np.float32), colors.astype(np.float32)
