@@ -231,4 +231,4 @@ def test_bad_inputs_fail_with_one_line_and_write_nothing(tmp_path, capsys):
                     "clip.mp4", "cannot read video")
     _nothing_written(tmp_path, out)
     _one_line_error(_main(capsys, "process-data", "--images", tmp_path / "none", "--out", out),
-                    "image folder not found")
+                    "none", "does not exist")
