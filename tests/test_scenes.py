@@ -356,3 +356,14 @@ def test_cli_make_scene_person(tmp_path, capsys):
         err = capsys.readouterr().err
         assert flag in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "bad" / "transforms.json").exists()
+
+
+def test_demo_copies_the_person_at_its_size(tmp_path):
+    from experiments import cli, demo
+
+    assert cli.parse(["demo", "--out", str(tmp_path)]).scene_name == "person"
+
+    assert demo._scene_size("person", 64) == {"--downscale": 4}
+    assert demo._scene_size("face", 48) == {"--size": 48}
+    with pytest.raises(DataError, match="--size"):
+        demo._scene_size("person", 100)
