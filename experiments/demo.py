@@ -1,11 +1,15 @@
-"""``demo``: the README's first command, end to end on the built-in ``face`` scene.
+"""``demo``: the README's first command, end to end on the built-in ``person`` scene.
 
-    python -m experiments demo --out runs/demo
+    python -m experiments demo --out runs/demo [--scene-name face]
+
+``person`` is Blender Cycles renders of a photo-textured man (256 px, copied at
+``--size``: 256 / --size must be an integer); the procedural scenes (face, tabletop,
+fence, ball) are rendered at ``--size`` by the ray caster.
 
 Stages (each the in-process call of the command of the same name, so each
 stage directory is a complete, reproducible run directory of that command)::
 
-    RUN_DIR/data/          make-scene face        (a nerfstudio dataset)
+    RUN_DIR/data/          make-scene person      (a nerfstudio dataset)
     RUN_DIR/reconstruct/   reconstruct            (scene.ply, test renders, metrics.json)
     RUN_DIR/edit/          edit --editor simulated (schedule.json, subtasks/, report.html)
     RUN_DIR/report.html    the edit's report, with the demo's stage timings
@@ -24,7 +28,8 @@ import sys
 import time
 from pathlib import Path
 
-HELP = "make the face scene, reconstruct it, edit it progressively (simulated editor), write the report"
+HELP = ("make the person scene, reconstruct it, edit it progressively (simulated editor), "
+        "write the report")
 
 STAGES = ("make-scene", "reconstruct", "edit")
 
@@ -36,7 +41,8 @@ MS_SSIM_THRESHOLD = 0.025
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--scene-name", default="face", help="built-in scene to use")
+    p.add_argument("--scene-name", default="person",
+                   help="built-in scene to use (person, or a procedural one: face, tabletop, ...)")
     p.add_argument("--prompt", default=None,
                    help="instruction (default: the simulated editor's first instruction)")
     p.add_argument("--size", type=int, default=64, help="image size of the scene's views")
@@ -127,6 +133,20 @@ def _default_prompt() -> str:
     return DEFAULT_PROMPT if DEFAULT_PROMPT in vocabulary else vocabulary[0]
 
 
+def _scene_size(name: str, size: int) -> dict:
+    """make-scene's size flag: --size for a procedural scene, --downscale for a rendered one."""
+    from jaxedit import DataError, scenes
+
+    if name not in scenes.DATASETS:
+        return {"--size": size}
+    full = scenes.dataset_path(name)
+    width = int(json.loads((full / scenes.SCENE_INFO).read_text(encoding="utf-8"))["size"])
+    if width % size:
+        raise DataError("--size", f"{name} is rendered at {width} px; --size must divide it "
+                                  f"(e.g. {width // 4} or {width // 2}), got {size}")
+    return {"--downscale": width // size}
+
+
 def _edit_extra(pairs: list[str]) -> dict:
     from jaxedit import DataError
 
@@ -165,8 +185,8 @@ def run(args) -> dict:
     data, recon, edit = out / "data", out / "reconstruct", out / "edit"
     plans = [
         ("make-scene", data / "transforms.json", _stage_argv("make-scene", {
-            "name": args.scene_name, "--out": data, "--size": args.size, "--views": args.views,
-            "--test-views": args.test_views, **common})),
+            "name": args.scene_name, "--out": data, **_scene_size(args.scene_name, args.size),
+            "--views": args.views, "--test-views": args.test_views, **common})),
         ("reconstruct", recon / "scene.ply", _stage_argv("reconstruct", {
             "--data": data, "--out": recon, "--iters": args.iters, **common})),
         ("edit", edit / "schedule.json", _stage_argv("edit", {

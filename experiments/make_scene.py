@@ -2,28 +2,45 @@
 
     python -m experiments make-scene NAME --out DIR [--size N --views N --test-views N
                                                      --points N --supersample S --preview]
+    python -m experiments make-scene person --out DIR [--downscale F --views N --test-views N]
 
-NAME is one of :func:`jaxedit.scenes.list_scenes` (face, tabletop, fence, ball).
-``--seed`` (shared flag) picks the scene variant and the point-cloud draws; the
-same flags give byte-identical files. ``--preview`` also writes ``preview.png``,
-a contact sheet of up to 16 views, next to the dataset.
+NAME is one of :func:`jaxedit.scenes.list_scenes`: the procedural scenes (face,
+tabletop, fence, ball) are rendered on the spot (defaults: 128 px, 64 + 8 views,
+4000 points, 2x2 supersampling); ``person`` (Blender Cycles renders of a photo-textured
+man, 256 px, 72 + 8 views, RGBA) is copied from the package, ``--downscale F``
+dividing its size, ``--views`` / ``--test-views`` keeping that many views evenly spread
+along its camera arc. ``--seed`` (shared flag) picks the scene variant and the
+point-cloud draws of procedural scenes; the same flags give byte-identical files.
+``--preview`` also writes ``preview.png``, a contact sheet of up to 16 views, next to
+the dataset.
 """
 
 from __future__ import annotations
 
+import json
 import time
 
-HELP = "write a built-in scene (face, tabletop, fence, ball) as a nerfstudio dataset"
+HELP = "write a built-in scene (face, tabletop, fence, ball, person) as a nerfstudio dataset"
+
+# Flags that only the procedural scenes take, by make_scene keyword.
+_PROCEDURAL_ONLY = {"size": "--size", "num_points": "--points", "supersample": "--supersample"}
 
 
 def add_arguments(p) -> None:
+    # None = the scene's own default (see the module docstring).
     p.add_argument("name", metavar="NAME", help="built-in scene name")
-    p.add_argument("--size", type=int, default=128, help="image width and height in pixels")
-    p.add_argument("--views", type=int, default=64, help="number of training views")
-    p.add_argument("--test-views", type=int, default=8, help="number of held-out views")
-    p.add_argument("--points", type=int, default=4000, help="points in the initial cloud")
-    p.add_argument("--supersample", type=int, default=2,
-                   help="rays per pixel along each axis (anti-aliasing)")
+    p.add_argument("--size", type=int, default=None,
+                   help="image width and height in pixels (procedural scenes; default 128)")
+    p.add_argument("--views", type=int, default=None,
+                   help="number of training views (default: 64; person: all 72)")
+    p.add_argument("--test-views", type=int, default=None,
+                   help="number of held-out views (default: 8)")
+    p.add_argument("--points", type=int, default=None,
+                   help="points in the initial cloud (procedural scenes; default 4000)")
+    p.add_argument("--supersample", type=int, default=None,
+                   help="rays per pixel along each axis (procedural scenes; default 2)")
+    p.add_argument("--downscale", type=int, default=1,
+                   help="image downscale factor of a rendered scene (person: 256 px / F)")
     p.add_argument("--preview", action="store_true", help="also write DIR/preview.png")
 
 
@@ -43,17 +60,32 @@ def contact_sheet(images, columns: int = 8):
 
 def check_sizes(args) -> None:
     """Counts in range, and the memory they imply within the machine's, before any work."""
+    from jaxedit.scenes.dataset import PROCEDURAL_DEFAULTS
+
     from experiments.cli import check_minimums, require_memory
 
     check_minimums(args, {"size": 8, "views": 1, "test_views": 0, "points": 1, "supersample": 1})
-    frames = args.views + args.test_views
+    if args.name in _rendered_scenes():
+        return  # copied from the package: a few MB whatever the flags
+    d = PROCEDURAL_DEFAULTS
+    size = args.size or d["size"]
+    supersample = args.supersample or d["supersample"]
+    points = args.points or d["num_points"]
+    frames = ((d["views"] if args.views is None else args.views)
+              + (d["test_views"] if args.test_views is None else args.test_views))
     # Kept: every frame as float32 RGB (and once more while written). Per frame traced:
     # (size * supersample)^2 rays with about 40 float64 values each (origins, directions,
     # hits, shading). Points: a few float64 copies of [points, 3] positions and colours.
-    rays = (args.size * args.supersample) ** 2
-    needed = 2 * frames * args.size ** 2 * 3 * 4 + rays * 40 * 8 + args.points * 6 * 8 * 4
+    rays = (size * supersample) ** 2
+    needed = 2 * frames * size ** 2 * 3 * 4 + rays * 40 * 8 + points * 6 * 8 * 4
     require_memory("--size/--views/--points", needed,
-                   f"{frames} views of {args.size}x{args.size} px and {args.points} points")
+                   f"{frames} views of {size}x{size} px and {points} points")
+
+
+def _rendered_scenes():
+    from jaxedit import scenes
+
+    return scenes.DATASETS
 
 
 def run(args) -> dict:
@@ -65,17 +97,28 @@ def run(args) -> dict:
     if args.name not in scenes.list_scenes():
         raise DataError("NAME", f"unknown scene {args.name!r}; built-in scenes: "
                         f"{', '.join(scenes.list_scenes())}")
+    kwargs = {"size": args.size, "num_points": args.points, "supersample": args.supersample}
+    if args.name in scenes.DATASETS:
+        # Name the flag, not make_scene's keyword, when one does not apply.
+        for key, value in kwargs.items():
+            if value is not None:
+                raise DataError(_PROCEDURAL_ONLY[key], f"{args.name} is a rendered dataset of "
+                                f"256 px views; use --downscale, --views, --test-views")
+        kwargs = {"downscale": args.downscale}
+    elif args.downscale != 1:
+        raise DataError("--downscale", f"applies to rendered scenes "
+                        f"({', '.join(scenes.DATASETS)}); {args.name} takes --size")
     check_sizes(args)
     start = time.perf_counter()
-    path = scenes.make_scene(args.name, args.out, size=args.size, views=args.views,
-                             test_views=args.test_views, seed=args.seed, num_points=args.points,
-                             supersample=args.supersample)
+    path = scenes.make_scene(args.name, args.out, views=args.views, test_views=args.test_views,
+                             seed=args.seed, **kwargs)
     seconds = time.perf_counter() - start
     if args.preview:
         from jaxedit.io.images import write_image
 
         data = load_nerfstudio(path)
         write_image(args.out / "preview.png", contact_sheet(data.images[:16]))
-    return {"scene": args.name, "dataset": str(path.parent), "views": args.views,
-            "test_views": args.test_views, "size": args.size, "points": args.points,
-            "seed": args.seed, "seconds": round(seconds, 2)}
+    info = json.loads((path.parent / scenes.SCENE_INFO).read_text(encoding="utf-8"))
+    return {"scene": args.name, "dataset": str(path.parent), "views": info["views"],
+            "test_views": info["test_views"], "size": info["size"],
+            "downscale": args.downscale, "seed": args.seed, "seconds": round(seconds, 2)}

@@ -227,3 +227,143 @@ def test_cli_make_scene(tmp_path, capsys):
     data = load_nerfstudio(out)
     assert data.images.shape == (4, 16, 16, 3) and len(data.test_indices) == 1
     assert data.points.shape == (50, 3) and (out / "preview.png").is_file()
+
+
+# ---------------------------------------------------------------- the rendered person
+
+
+@pytest.fixture(scope="module")
+def person_full():
+    return load_nerfstudio(scenes.dataset_path("person"))
+
+
+@pytest.fixture(scope="module")
+def person_small(tmp_path_factory):
+    out = tmp_path_factory.mktemp("person") / "data"
+    scenes.make_scene("person", out, downscale=2, views=6, test_views=2)
+    return out
+
+
+def _alpha(path):
+    from jaxedit.io.images import read_image_with_alpha
+
+    _, alpha = read_image_with_alpha(path)
+    assert alpha is not None, f"{path} has no alpha channel"
+    return alpha
+
+
+def _on_silhouette(points, camera, alpha):
+    """(in-frame mask, on-silhouette mask) of points projected through ``camera``: a point is on
+    the silhouette when some pixel of the 3 x 3 block around it is mostly covered."""
+    pix, depth = camera.project(np.asarray(points, np.float32))
+    col, row = np.floor(np.asarray(pix)).astype(int).T
+    h, w = alpha.shape
+    inside = (np.asarray(depth) > 0) & (col >= 1) & (col < w - 1) & (row >= 1) & (row < h - 1)
+    padded = np.pad(alpha, 1)
+    covered = np.max([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)], axis=0) > 0.5
+    return inside, inside & covered[np.clip(row, 0, h - 1), np.clip(col, 0, w - 1)]
+
+
+def test_person_is_a_rendered_dataset():
+    assert "person" in scenes.list_scenes() and "person" in scenes.DATASETS
+    with pytest.raises(DataError, match="rendered dataset"):
+        scenes.get_scene("person")
+    with pytest.raises(DataError, match="face, tabletop, fence, ball, person"):
+        scenes.dataset_path("bear")
+
+
+def test_person_mesh_vertices_land_on_the_silhouette(person_full):
+    # The dataset's conventions (OpenGL camera-to-world, PINHOLE intrinsics, pixel centres at
+    # +0.5, the world of the point cloud): vertices of the rendered mesh, projected through the
+    # loaded cameras, land on the person's silhouette (the PNG's alpha) in every view.
+    data, root = person_full, scenes.dataset_path("person")
+    info = json.loads((root / scenes.SCENE_INFO).read_text())
+    verts = np.asarray(info["mesh_vertices"])
+    assert data.images.shape == (80, 256, 256, 3)
+    assert len(data.train_indices) == 72 and len(data.test_indices) == 8
+    assert set(data.test_indices) & set(data.train_indices) == set()
+    hits, flipped_hits, seen = 0, 0, 0
+    for v in range(0, 80, 9):
+        alpha = _alpha(root / data.filenames[v])
+        inside, on = _on_silhouette(verts, data.cameras[v], alpha)
+        assert inside.sum() > 40, v  # head and shoulders fill the frame
+        seen, hits = seen + inside.sum(), hits + on.sum()
+        # The same test fails for a camera that is wrong by a vertical flip (OpenCV read as
+        # OpenGL): the check has teeth.
+        _, on_flipped = _on_silhouette(verts, data.cameras[v], alpha[::-1])
+        flipped_hits += on_flipped.sum()
+    assert hits == seen
+    assert flipped_hits < 0.8 * seen
+    # Above the head there is only backdrop, in every view.
+    top = verts[np.argmax(verts[:, 2])] + np.array([0.0, 0.0, 0.06])
+    for v in (0, 40, 79):
+        inside, on = _on_silhouette(top[None], data.cameras[v], _alpha(root / data.filenames[v]))
+        assert inside[0] and not on[0], v
+
+
+def test_person_points_lie_on_the_visible_surface(person_full):
+    data = person_full
+    assert data.points.shape[0] >= 2000 and data.point_colors.shape == data.points.shape
+    # Every point projects onto the silhouette of the training views that contain it.
+    root = scenes.dataset_path("person")
+    for v in data.train_indices[::24]:
+        inside, on = _on_silhouette(data.points, data.cameras[v], _alpha(root / data.filenames[v]))
+        assert inside.sum() > 500 and on[inside].mean() > 0.99
+    # Colours come from the renders: skin, hair and suit, not a flat fill.
+    assert data.point_colors.std(0).min() > 0.08
+
+
+def test_person_copy_downscales_and_subsets(person_full, person_small):
+    small = load_nerfstudio(person_small)
+    assert small.images.shape == (8, 128, 128, 3)
+    assert len(small.train_indices) == 6 and len(small.test_indices) == 2
+    full = person_full
+    for k, name in enumerate(small.filenames):
+        j = full.filenames.index(name)
+        np.testing.assert_allclose(np.asarray(small.cameras.world_to_camera[k]),
+                                   np.asarray(full.cameras.world_to_camera[j]), atol=1e-6)
+        assert float(small.cameras.fx[k]) == pytest.approx(float(full.cameras.fx[j]) / 2)
+        assert float(small.cameras.cx[k]) == pytest.approx(float(full.cameras.cx[j]) / 2)
+        # RGBA kept: compositing the downscaled copy = downscaling the composited original.
+        a = full.images[j].reshape(128, 2, 128, 2, 3).mean(axis=(1, 3))
+        assert np.abs(small.images[k] - a).max() < 3 / 255
+        assert 0.0 < _alpha(person_small / name).mean() < 1.0
+    # Held-out views of the copy are held-out views of the original (evenly spread).
+    assert {small.filenames[i] for i in small.test_indices} <= \
+        {full.filenames[i] for i in full.test_indices}
+    np.testing.assert_array_equal(small.points, full.points)
+    info = json.loads((person_small / scenes.SCENE_INFO).read_text())
+    assert (info["size"], info["downscale"], info["views"]) == (128, 2, 6)
+    credits = (person_small / "CREDITS.txt").read_text()
+    assert "Reallusion" in credits and "Attribution 3.0" in credits
+    assert "Creative Commons" in (person_small / "LICENSE-Reallusion.txt").read_text()
+
+
+def test_cli_make_scene_person(tmp_path, capsys):
+    from experiments.cli import main
+
+    out = tmp_path / "person"
+    assert main(["make-scene", "person", "--out", str(out), "--downscale", "4", "--views", "3",
+                 "--test-views", "1"]) == 0
+    data = load_nerfstudio(out)
+    assert data.images.shape == (4, 64, 64, 3) and len(data.test_indices) == 1
+    capsys.readouterr()
+    for argv, flag in ((["person", "--size", "64"], "--size"),
+                       (["person", "--views", "100"], "views"),
+                       (["person", "--downscale", "0"], "downscale"),
+                       (["face", "--downscale", "2"], "--downscale")):
+        assert main(["make-scene", *argv, "--out", str(tmp_path / "bad")]) == 2, argv
+        err = capsys.readouterr().err
+        assert flag in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "bad" / "transforms.json").exists()
+
+
+def test_demo_copies_the_person_at_its_size(tmp_path):
+    from experiments import cli, demo
+
+    assert cli.parse(["demo", "--out", str(tmp_path)]).scene_name == "person"
+
+    assert demo._scene_size("person", 64) == {"--downscale": 4}
+    assert demo._scene_size("face", 48) == {"--size": 48}
+    with pytest.raises(DataError, match="--size"):
+        demo._scene_size("person", 100)

@@ -496,7 +496,8 @@ def save_nerfstudio(out_dir: str | os.PathLike, images, cameras: Camera, *, file
       out_dir: folder to create or update; files are staged in a temporary
         folder and moved into place, ``transforms.json`` last, so a failure
         leaves nothing half-written.
-      images: float [N, H, W, 3] in [0, 1].
+      images: float [N, H, W, 3] in [0, 1], or [N, H, W, 4] with straight alpha (written
+        as RGBA; :func:`load_nerfstudio` composites it over its ``background``).
       cameras: batched Camera [N] of size W x H.
       filenames: N relative paths (default ``images/frame_00000.<fmt>``); the
         suffix picks the image format.
@@ -509,8 +510,9 @@ def save_nerfstudio(out_dir: str | os.PathLike, images, cameras: Camera, *, file
     """
     out_dir = Path(out_dir)
     images = np.asarray(images)
-    if images.ndim != 4 or images.shape[-1] != 3:
-        raise DataError("images", f"expected float [N, H, W, 3], got shape {list(images.shape)}")
+    if images.ndim != 4 or images.shape[-1] not in (3, 4):
+        raise DataError("images", f"expected float [N, H, W, 3] or [N, H, W, 4], got shape "
+                                  f"{list(images.shape)}")
     n, h, w = images.shape[:3]
     w2c = np.asarray(cameras.world_to_camera, np.float64)
     if w2c.shape != (n, 4, 4):

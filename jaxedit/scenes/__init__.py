@@ -1,12 +1,18 @@
-"""Built-in procedural scenes, rendered by an independent NumPy ray caster.
+"""Built-in scenes: procedural ones, rendered by an independent NumPy ray caster, and
+rendered datasets shipped with the package.
 
 No dataset can be downloaded, so jaxedit ships scene generators that write
 ordinary nerfstudio datasets (transforms.json + PNGs + an initial point cloud),
 and the same loader serves built-in and real scenes::
 
     from jaxedit import scenes
-    scenes.list_scenes()                      # ['face', 'tabletop', 'fence', 'ball']
+    scenes.list_scenes()                      # ['face', 'tabletop', 'fence', 'ball', 'person']
     scenes.make_scene("face", "runs/face")    # 64 train + 8 test views, 128 x 128
+    scenes.make_scene("person", "runs/person", downscale=2)   # 72 + 8 Cycles views, 128 x 128
+
+``person`` is a photo-textured man (Reallusion's CC BY 3.0 model from Sweet Home 3D's
+furniture library) rendered by Blender's Cycles on a frontal arc, head and shoulders, as
+RGBA PNGs with a transparent backdrop; ``scripts/render_person.py`` regenerates it.
 
     scene = scenes.get_scene("face")
     cams, train, test = scenes.scene_cameras(scene, views=64, test_views=8, size=128)
@@ -22,8 +28,9 @@ camera convention, so reconstructing its images is a real test of the splatter.
 """
 
 from . import library, points, raycast, textures
-from .dataset import SCENE_INFO, make_scene
-from .library import SCENES, get_scene, list_scenes, rig_cameras, scene_cameras, split_views
+from .dataset import SCENE_INFO, copy_rendered_scene, make_scene
+from .library import (DATASETS, SCENES, dataset_path, get_scene, list_scenes, rig_cameras,
+                      scene_cameras, split_views)
 from .points import sample_points
 from .raycast import Decal, Light, Rig, Scene, Shape, surface_points_and_ids
 from .textures import Texture
@@ -38,7 +45,7 @@ def render_scene(scene: Scene, cameras, *, supersample: int = 2, alpha: bool = F
     return raycast.render(scene, cameras, supersample=supersample, alpha=alpha)
 
 
-__all__ = ["Decal", "Light", "Rig", "SCENES", "SCENE_INFO", "Scene", "Shape", "Texture",
-           "get_scene", "library", "list_scenes", "make_scene", "points", "raycast",
+__all__ = ["DATASETS", "Decal", "Light", "Rig", "SCENES", "SCENE_INFO", "Scene", "Shape",
+           "Texture", "copy_rendered_scene", "dataset_path", "get_scene", "library", "list_scenes", "make_scene", "points", "raycast",
            "render_scene", "rig_cameras", "sample_points", "scene_cameras", "split_views",
            "surface_points_and_ids", "textures"]

@@ -1,13 +1,20 @@
 """The built-in scenes and their camera rigs.
 
-Each scene is a function ``seed -> Scene``. Seed 0 is the canonical layout; other
-seeds jitter what is meant to vary (object placement on the table), never the
+Each procedural scene is a function ``seed -> Scene``. Seed 0 is the canonical layout;
+other seeds jitter what is meant to vary (object placement on the table), never the
 look of ``face``, which is the benchmark scene.
+
+Rendered scenes (:data:`DATASETS`, e.g. ``person``) are not generated: they ship as
+nerfstudio datasets under ``jaxedit/scenes/data/NAME`` (package data), made by an outside
+renderer (``scripts/render_person.py``: Blender Cycles), and are copied out by
+:func:`jaxedit.scenes.make_scene`.
 
 World frame: +z up, units of about a metre. The face looks along +x.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -132,17 +139,42 @@ def ball(seed: int = 0) -> rc.Scene:
 
 SCENES = {"face": face, "tabletop": tabletop, "fence": fence, "ball": ball}
 
+#: Rendered scenes shipped as datasets: name -> description.
+DATASETS = {
+    "person": "head and shoulders of a photo-textured man (Reallusion model, CC BY 3.0), "
+              "80 Blender Cycles views at 256 px on a frontal arc, RGBA",
+}
+
 
 def list_scenes() -> list[str]:
-    """Names of the built-in scenes."""
-    return list(SCENES)
+    """Names of the built-in scenes: the procedural ones, then the rendered datasets."""
+    return [*SCENES, *DATASETS]
+
+
+def _unknown(name: str) -> DataError:
+    return DataError("scene", f"unknown scene {name!r}; built-in scenes: "
+                              f"{', '.join(list_scenes())}")
 
 
 def get_scene(name: str, seed: int = 0) -> rc.Scene:
-    """The built-in scene ``name`` for ``seed``; unknown names raise DataError listing them."""
+    """The procedural scene ``name`` for ``seed``; other names raise DataError."""
+    if name in DATASETS:
+        raise DataError("scene", f"{name!r} is a rendered dataset, not a procedural scene; "
+                                 f"write it with make_scene or read dataset_path({name!r})")
     if name not in SCENES:
-        raise DataError("scene", f"unknown scene {name!r}; built-in scenes: {', '.join(SCENES)}")
+        raise _unknown(name)
     return SCENES[name](int(seed))
+
+
+def dataset_path(name: str) -> Path:
+    """The folder of the rendered scene ``name`` inside the installed package."""
+    if name not in DATASETS:
+        raise _unknown(name)
+    path = Path(__file__).parent / "data" / name
+    if not (path / "transforms.json").is_file():
+        raise DataError(path, "the rendered scene's files are missing from this installation "
+                              "(package data of jaxedit.scenes)")
+    return path
 
 
 # ------------------------------------------------------------------ cameras
