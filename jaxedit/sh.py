@@ -77,7 +77,9 @@ def evaluate(sh: jnp.ndarray, dirs: jnp.ndarray, degree: int | None = None) -> j
     unit = dirs / jnp.maximum(norm, 1e-12)
     b = basis(degree, unit)  # [..., k]
     k = num_coeffs(degree)
-    rgb = jnp.einsum("...k,...kc->...c", b, sh[..., :k, :]) + 0.5
+    # Products and a sum rather than an einsum: a float32 dot may run in TF32 on a GPU
+    # (10-bit mantissa); this stays float32 everywhere and XLA fuses it.
+    rgb = jnp.sum(b[..., :, None] * sh[..., :k, :], axis=-2) + 0.5
     return jnp.maximum(rgb, 0.0)
 
 
