@@ -17,13 +17,25 @@ The pieces, from the inside out:
   with ``metrics["redo"]`` set; :func:`step_with_retry` (used by :func:`fit`)
   grows the buffer / capacity outside jit and redoes the step -- one recompile,
   logged, and the same result as if the room had been there from the start.
-* :func:`fit`: the loop. The view of step ``s`` and its PRNG key are pure
-  functions of ``(base key, s)`` (a seeded permutation per epoch), so a run
-  resumed from any checkpoint ends with bit-identical Gaussians.
+* :func:`train_chunk`: up to ``length`` steps in one compiled ``lax.scan``; the
+  views are picked from the device-resident images on the device, and the
+  metrics come back stacked, so there is no host round trip per step.
+* :func:`fit`: the loop over chunks; between them the host logs, checkpoints,
+  grows the buffer / capacity after a redo, and runs the divergence guard
+  (:func:`divergence`: a non-finite loss or parameter, or an exploding loss,
+  stops the run with a DataError naming the step). The view of step ``s`` and
+  its PRNG key are pure functions of ``(base key, s)`` (a seeded permutation
+  per epoch), so a run resumed from any checkpoint ends with bit-identical
+  Gaussians, whatever the chunking.
+
+Numerics: no float32 dot in the step runs at DEFAULT precision (on NVIDIA GPUs
+that is TF32, a 10-bit mantissa, which made training diverge there, issue #18);
+``tests/test_backbone.py`` checks it with :mod:`jaxedit.tf32`.
 
 The ProEdit driver can swap the ``images`` array between :func:`fit` calls (the
-edited dataset), stop early with ``should_stop(step, loss_history)``, or run its
-own loop around :func:`select_batch` + :func:`step_with_retry`.
+edited dataset; :func:`put_image` updates one view of a device array in place),
+stop early with ``should_stop(step, loss_history)``, or run its own loop around
+:func:`select_batch` + :func:`step_with_retry`.
 """
 
 from __future__ import annotations

@@ -216,3 +216,10 @@ def test_divergence_guard_catches_an_exploding_loss():
     assert T.divergence(100, metrics, history=[0.1] * 30 + list(metrics["loss"][:2])) is None
     metrics["finite"]["sh"][3] = False
     assert T.divergence(100, metrics) == "step 104: training diverged: parameter sh is not finite"
+
+
+def test_put_image_replaces_one_view_on_the_device():
+    images = jax.device_put(np.zeros((3, 4, 4, 3), np.float32))
+    new = T.put_image(images, 1, np.ones((4, 4, 3), np.float32))
+    out = np.asarray(new)
+    assert out[1].min() == 1.0 and out[0].max() == 0.0 and out[2].max() == 0.0
