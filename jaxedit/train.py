@@ -638,8 +638,12 @@ def _put_image(images, index, image):
     return images.at[index].set(image)
 
 
+#: Steps averaged by the divergence guard's loss rule.
+GUARD_WINDOW = 16
+
+
 def divergence(step0: int, metrics: dict, *, history=None, max_loss: float | None = 0.75,
-               window: int = 16) -> str | None:
+               window: int = GUARD_WINDOW) -> str | None:
     """Why the steps of a chunk diverged, or None (host side, on fetched metrics).
 
     Args:
@@ -908,8 +912,9 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
             completed = metrics["ran"] & ~metrics["redo"]
             k = int(np.sum(completed))
             steps = jax.tree_util.tree_map(lambda a: a[:k], metrics)
-            reason = divergence(step, steps, history=history + [float(x) for x in steps["loss"]],
-                                max_loss=max_loss)
+            recent = history[-GUARD_WINDOW:] + [float(x) for x in steps["loss"]]
+            reason = divergence(step, steps, history=recent, max_loss=max_loss,
+                                window=GUARD_WINDOW)
             if reason is not None:
                 raise DataError(desc, reason)
             state = new
