@@ -120,8 +120,8 @@ def test_random_cube_init_converges(reference):
 
 @pytest.mark.parametrize("scale,shift", [(0.01, 0.0), (100.0, 0.0), (1.0, 1000.0)])
 def test_world_frame_invariance(face, reference, scale, shift):
+    # Measured: 18.27 (scale 0.01), 18.08 (scale 100), 18.15 dB (shift 1000) vs 18.23 dB.
     psnr, _ = train_and_test(face, similarity(scale, shift))
-    print(f"scale {scale} shift {shift}: {psnr:.3f} dB vs {reference[0]:.3f} dB")
     assert abs(psnr - reference[0]) < 0.3, (psnr, reference[0])
 
 
