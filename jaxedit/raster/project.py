@@ -71,18 +71,19 @@ class Projected(NamedTuple):
 
 
 def matmul_exact(a: jax.Array, b: jax.Array) -> jax.Array:
-    """``a @ b`` for small matrices as float32 products and sums: float [..., n, m].
+    """``a @ b`` in full float32 on every platform: float [..., n, m].
 
     Args:
-      a: float [..., n, k]; b: float [..., k, m] (k and m small, e.g. 3).
-    Why not ``@``: a float32 dot at DEFAULT precision runs in TF32 on NVIDIA GPUs
-    (operands rounded to a 10-bit mantissa). In projection that rounds world
+      a: float [..., n, k] (or [k]); b: float [..., k, m] (or [k]), as ``jnp.matmul``.
+    Why not plain ``@``: a float32 dot at DEFAULT precision runs in TF32 on NVIDIA
+    GPUs (operands rounded to a 10-bit mantissa). In projection that rounds world
     coordinates of a few hundred units by ~0.1 and the J W R S products by 5e-4
     relative (issue #18: with TF32 the 2D-mean gradients were ~0.7% off from this
-    alone; the SSIM filter's dot was the larger error). Written elementwise, XLA
-    computes it in float32 on every platform (and fuses it).
+    alone; the SSIM filter's dot was the larger error). HIGHEST costs nothing on
+    the CPU, which computes float32 dots exactly anyway (an elementwise form
+    measured 2-3x slower there, forward + backward).
     """
-    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
 def _inputs_valid(g: Gaussians, near, far, cam: Camera):
@@ -92,7 +93,7 @@ def _inputs_valid(g: Gaussians, near, far, cam: Camera):
               & jnp.isfinite(g.opacity_logits)
               & jnp.all(jnp.isfinite(g.sh.reshape(g.sh.shape[0], -1)), -1))
     means = jnp.where(finite[:, None], g.means, 0.0)
-    z = jnp.sum(means * cam.rotation[2], -1) + cam.translation[2]
+    z = matmul_exact(means, cam.rotation[2]) + cam.translation[2]
     return jax.lax.stop_gradient(g.alive & finite & (z > near) & (z < far))
 
 
@@ -124,7 +125,7 @@ def project(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = Non
     quats = jnp.where(vm, g.quats, jnp.array([1.0, 0.0, 0.0, 0.0], dtype))
 
     rot_w2c, t_w2c = camera.rotation.astype(dtype), camera.translation.astype(dtype)
-    pc = matmul_exact(means[:, None, :], rot_w2c.T)[:, 0] + t_w2c  # [C, 3] camera coordinates
+    pc = matmul_exact(means, rot_w2c.T) + t_w2c  # [C, 3] camera coordinates
     z = jnp.where(valid, pc[:, 2], 1.0)
     x, y = pc[:, 0], pc[:, 1]
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
@@ -174,7 +175,7 @@ def project(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = Non
     visible = jax.lax.stop_gradient(visible)
 
     # SH colour along mean - camera centre.
-    centre = -matmul_exact(t_w2c[None], rot_w2c)[0]  # -R^T t, exact (see matmul_exact)
+    centre = -matmul_exact(t_w2c, rot_w2c)  # -R^T t, exact (see matmul_exact)
     colors = shlib.evaluate(jnp.where(vm[:, :, None], g.sh, 0.0), means - centre, sh_degree)
 
     vis1 = visible[:, None]
