@@ -64,7 +64,7 @@ def main(argv=None):
         "num_gaussians": m["num_gaussians"], "capacity": m["capacity"],
         "wall_time_s": m["wall_time_s"], "train_time_s": m["train_time_s"],
         "steps_per_s": m["steps_per_s"], "steady_step_ms": m["steady_step_ms"],
-        "steady_steps_per_s": m["steady_steps_per_s"], "compile_steps": m["compile_steps"],
+        "steady_steps_per_s": m["steady_steps_per_s"], "compile_chunks": m["compile_chunks"],
         "compile_time_s": m["compile_time_s"], "eval_time_s": m["eval_time_s"],
         "make_scene_s": round(make_s, 3), "max_intersections": m["max_intersections"],
         "test_psnr_per_view": m["test_psnr_per_view"], "peak_rss_mb": peak_rss_mb(),

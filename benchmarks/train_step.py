@@ -10,7 +10,9 @@ times, each jitted on its own, with compile time reported separately:
 * ``train_step``: the whole :func:`jaxedit.train.train_step` (grad, Adam,
   density-control statistics; a step without maintenance);
 * ``train_step_refine``: the same at a maintenance step (cull + ranked creation);
-* ``densify_update``: the density-control update alone at a maintenance step.
+* ``densify_update``: the density-control update alone at a maintenance step;
+* ``train_chunk``: :func:`jaxedit.train.train_chunk`, ``CHUNK`` steps in one call
+  (what :func:`jaxedit.train.fit` runs), and ``train_chunk_per_step`` = that / ``CHUNK``.
 
 Writes ``DIR/train_step.json``. ``--smoke``: 32 x 32, 300 Gaussians, 3 repeats, only
 ``train_step`` and ``densify_update``.
@@ -84,9 +86,19 @@ def main(argv=None):
         "densify_update": (jax.jit(strategy.update), g, state.opt_state, state.densify_stats,
                            aux, 1, key),
     }
+    # fit's device-resident loop: a chunk of T.CHUNK steps in one call (timed per chunk,
+    # reported per step below), the views picked from the images on the device.
+    imgs, cams_d = jax.device_put(jnp.asarray(images)), jax.device_put(cams)
+    n_chunk = jax.device_put(jnp.int32(T.CHUNK))
+    parts["train_chunk"] = (lambda st: T.train_chunk(st, imgs, cams_d, n_chunk, length=T.CHUNK),
+                            state)
     if args.smoke:  # each part is one more compile: keep the smoke run short
         parts = {k: parts[k] for k in ("train_step", "densify_update")}
     results = {name: time_fn(*fn_args, repeats=repeats) for name, fn_args in parts.items()}
+    if "train_chunk" in results:
+        r = results["train_chunk"]
+        results["train_chunk_per_step"] = {k: (v / T.CHUNK if k.endswith("_ms") else v)
+                                           for k, v in r.items()}
     _, metrics = T.train_step(state, batch, key)
     payload = {"size": size, "gaussians": n, "capacity": g.capacity,
                "max_intersections": cap, "intersections": int(metrics["num_intersections"]),

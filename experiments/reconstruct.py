@@ -197,12 +197,12 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
         state = T.init_state(g, config, extent, key=jax.random.key(seed))
     start_step = int(state.step)
 
-    step_times: list[float] = []
+    chunk_times: list[tuple[float, int]] = []  # (seconds, steps) of every chunk of steps
     last = [time.perf_counter()]
 
-    def timer(_state, _metrics):
+    def timer(_state, metrics):
         now = time.perf_counter()
-        step_times.append(now - last[0])
+        chunk_times.append((now - last[0], len(metrics["loss"])))
         last[0] = now
 
     t_train = time.perf_counter()
@@ -233,11 +233,12 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     save_ply(out / "scene.ply", state.gaussians)
     write_s = time.perf_counter() - t_write
 
-    times = np.asarray(step_times)
+    seconds = np.asarray([t for t, _ in chunk_times], np.float64)
+    times = seconds / np.maximum([n for _, n in chunk_times], 1) if chunk_times else seconds
     median = float(np.median(times)) if len(times) else float("nan")
-    # Steps far slower than the median are the ones that (re)compiled the train step:
-    # the first one, and each growth of the capacity or of the intersection buffer.
-    slow = times > 10 * median if len(times) else times
+    # Chunks far slower per step than the median are the ones that (re)compiled the
+    # train chunk: the first one, and each growth of the capacity or of the buffer.
+    slow = times > 10 * median if len(times) else times.astype(bool)
     metrics = {
         "test_psnr": result["psnr"], "test_ssim": result["ssim"], "eval_split": eval_split,
         "test_psnr_per_view": result["psnr_per_view"],
@@ -249,7 +250,8 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
         "steps_per_s": steps / train_s if train_s > 0 else 0.0,
         "steady_step_ms": 1e3 * median,
         "steady_steps_per_s": 1.0 / median if median > 0 else 0.0,
-        "compile_steps": int(np.sum(slow)), "compile_time_s": round(float(np.sum(times[slow])), 3),
+        "compile_chunks": int(np.sum(slow)),
+        "compile_time_s": round(float(np.sum(seconds[slow])), 3),
         "eval_time_s": round(eval_s, 3), "write_time_s": round(write_s, 3),
         "max_intersections": state.max_intersections, "scene_extent": extent,
         "initial_points": points_source, "train_views": int(len(train_images)),

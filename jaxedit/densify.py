@@ -434,7 +434,8 @@ def adaptive(*, scene_extent: float = 1.0, max_gaussians: int = 1_000_000,
         # Children of split parents, sampled from the parent's Gaussian.
         eps = jax.random.normal(key, (cap_slots, 2, 3), g.means.dtype)
         rot = g.rotations()
-        offsets = jnp.einsum("cij,ckj->cki", rot, eps * jnp.exp(g.log_scales)[:, None, :])
+        offsets = jnp.einsum("cij,ckj->cki", rot, eps * jnp.exp(g.log_scales)[:, None, :],
+                             precision=jax.lax.Precision.HIGHEST)  # no TF32 on GPUs
         children = g.means[:, None, :] + offsets
         log_scales1 = jnp.where(split[:, None], g.log_scales - log_split, g.log_scales)
         means1 = jnp.where(split[:, None], children[:, 0], g.means)

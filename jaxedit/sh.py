@@ -7,6 +7,7 @@ DC term. The constants are the standard real SH normalisations.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -77,7 +78,9 @@ def evaluate(sh: jnp.ndarray, dirs: jnp.ndarray, degree: int | None = None) -> j
     unit = dirs / jnp.maximum(norm, 1e-12)
     b = basis(degree, unit)  # [..., k]
     k = num_coeffs(degree)
-    rgb = jnp.einsum("...k,...kc->...c", b, sh[..., :k, :]) + 0.5
+    # HIGHEST: at DEFAULT precision a GPU may run this float32 dot in TF32 (10-bit mantissa).
+    rgb = jnp.einsum("...k,...kc->...c", b, sh[..., :k, :],
+                     precision=jax.lax.Precision.HIGHEST) + 0.5
     return jnp.maximum(rgb, 0.0)
 
 

@@ -17,18 +17,31 @@ The pieces, from the inside out:
   with ``metrics["redo"]`` set; :func:`step_with_retry` (used by :func:`fit`)
   grows the buffer / capacity outside jit and redoes the step -- one recompile,
   logged, and the same result as if the room had been there from the start.
-* :func:`fit`: the loop. The view of step ``s`` and its PRNG key are pure
-  functions of ``(base key, s)`` (a seeded permutation per epoch), so a run
-  resumed from any checkpoint ends with bit-identical Gaussians.
+* :func:`train_chunk`: up to ``length`` steps in one compiled ``lax.scan``; the
+  views are picked from the device-resident images on the device, and the
+  metrics come back stacked, so there is no host round trip per step.
+* :func:`fit`: the loop over chunks; between them the host logs, checkpoints,
+  grows the buffer / capacity after a redo, and runs the divergence guard
+  (:func:`divergence`: a non-finite loss or parameter, or an exploding loss,
+  stops the run with a DataError naming the step). The view of step ``s`` and
+  its PRNG key are pure functions of ``(base key, s)`` (a seeded permutation
+  per epoch), so a run resumed from any checkpoint ends with bit-identical
+  Gaussians, whatever the chunking.
+
+Numerics: no float32 dot in the step runs at DEFAULT precision (on NVIDIA GPUs
+that is TF32, a 10-bit mantissa, which made training diverge there, issue #18);
+``tests/test_backbone.py`` checks it with :mod:`jaxedit.tf32`.
 
 The ProEdit driver can swap the ``images`` array between :func:`fit` calls (the
-edited dataset), stop early with ``should_stop(step, loss_history)``, or run its
-own loop around :func:`select_batch` + :func:`step_with_retry`.
+edited dataset; :func:`put_image` updates one view of a device array in place),
+stop early with ``should_stop(step, loss_history)``, or run its own loop around
+:func:`select_batch` + :func:`step_with_retry`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -399,12 +412,27 @@ def _train_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]
     new = jax.tree_util.tree_map(lambda old, nw: jnp.where(redo, old, nw), state, new)
     mse = jnp.mean((out.rgb - target) ** 2)
     metrics = dict(loss=loss, psnr=psnr_from_mse(mse), num_gaussians=info.alive,
+                   finite=_finite_fields(g2, loss),
                    overflow=out.overflow, num_intersections=out.num_intersections,
                    capacity_limited=info.capacity_limited, redo=redo,
                    sh_degree=active_sh_degree(state.step, cfg),
                    lr_means=_means_lr(cfg, state.scene_extent, state.step),
                    densify=info._asdict())
     return new, metrics
+
+
+#: Fields checked by the divergence guard, in the order its message names them.
+GUARDED = ("loss", "means", "log_scales", "quats", "opacity_logits", "sh")
+
+
+def _finite_fields(g: Gaussians, loss) -> dict:
+    """bool [] per :data:`GUARDED` quantity: the loss, and each parameter over the alive slots."""
+    out = {"loss": jnp.isfinite(loss)}
+    for name in GUARDED[1:]:
+        a = getattr(g, name)
+        ok = jnp.isfinite(a).reshape(a.shape[0], -1).all(-1)
+        out[name] = jnp.all(ok | ~g.alive)
+    return out
 
 
 def _means_lr(cfg: TrainConfig, extent: float, step):
@@ -541,6 +569,109 @@ def select_batch(images, cameras: Camera, base_key_data, step) -> tuple[Batch, j
     """
     return _select(jnp.asarray(images), cameras, jnp.asarray(base_key_data),
                    jnp.asarray(step, jnp.int32))
+
+
+# --------------------------------------------------------------------------------------
+# Chunks of steps on the device
+# --------------------------------------------------------------------------------------
+
+#: Steps per compiled chunk in :func:`fit` (the host acts only between chunks).
+CHUNK = 16
+
+
+def _train_chunk(state: TrainState, images, cameras: Camera, n_active, *, length: int):
+    """Up to ``length`` train steps in one ``lax.scan``, views and keys chosen on the device.
+
+    Step ``i`` runs when ``i < n_active`` and no earlier step of the chunk asked
+    for a redo; the others are skipped (``lax.cond``), so one compiled chunk
+    serves every count. A step that asks for a redo leaves the state as it was
+    (see :func:`train_step`), so the returned state is the one after the
+    completed steps.
+
+    Args:
+      state: TrainState.
+      images: float [N, H, W, 3] training images (on the device).
+      cameras: Camera batch [N].
+      n_active: int32 [], steps wanted (<= ``length``).
+      length: static scan length.
+    Returns:
+      (state, metrics): metrics holds :func:`train_step`'s metrics stacked over
+      the chunk ([length] each) plus ``ran`` (bool [length]: the step was
+      attempted); a completed step has ``ran & ~redo``.
+    """
+    num_views = images.shape[0]
+
+    def one(st):
+        view, key = _view_and_key(st.key, st.step, num_views)
+        return _train_step(st, Batch(image=images[view], camera=cameras[view]), key)
+
+    blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
+                                   jax.eval_shape(one, state)[1])
+
+    def body(carry, i):
+        st, stopped = carry
+        run = (i < n_active) & ~stopped
+        st, metrics = jax.lax.cond(run, one, lambda s: (s, blank), st)
+        metrics = dict(metrics, ran=run)
+        return (st, stopped | (run & metrics["redo"])), metrics
+
+    (state, _), metrics = jax.lax.scan(body, (state, jnp.zeros((), bool)),
+                                       jnp.arange(length, dtype=jnp.int32))
+    return state, metrics
+
+
+train_chunk = jax.jit(_train_chunk, static_argnames=("length",))
+
+
+def put_image(images: jax.Array, index, image) -> jax.Array:
+    """``images`` [N, H, W, 3] with view ``index`` replaced by ``image`` [H, W, 3], in place.
+
+    The buffer is donated, so an edited view lands in the device-resident
+    training set without copying the other views (where the platform supports
+    donation; elsewhere it is a copy, with the same result).
+    """
+    return _put_image(images, jnp.asarray(index, jnp.int32), jnp.asarray(image, images.dtype))
+
+
+@functools.partial(jax.jit, donate_argnums=0)
+def _put_image(images, index, image):
+    return images.at[index].set(image)
+
+
+#: Steps averaged by the divergence guard's loss rule.
+GUARD_WINDOW = 16
+
+
+def divergence(step0: int, metrics: dict, *, history=None, max_loss: float | None = 0.75,
+               window: int = GUARD_WINDOW) -> str | None:
+    """Why the steps of a chunk diverged, or None (host side, on fetched metrics).
+
+    Args:
+      step0: the step count before the chunk.
+      metrics: per-step metrics of the chunk's completed steps (NumPy, [n]).
+      history: the run's losses so far, this chunk's included (default: the chunk's).
+      max_loss: the loss averaged over the last ``window`` steps may not exceed
+        this. A photometric loss is at most ~1.2 (L1 <= 1, 1 - SSIM <= 2); an
+        untrained scene sits near 0.3-0.4 and an opacity reset returns there, a
+        render unrelated to its target (the GPU failure of issue #18) at ~1.
+      window: steps averaged by the loss rule.
+    Returns:
+      a one-line reason naming the first bad step and quantity.
+    """
+    finite = metrics["finite"]
+    for i in range(len(metrics["loss"])):
+        for name in GUARDED:
+            if not bool(finite[name][i]):
+                what = "the loss" if name == "loss" else f"parameter {name}"
+                return f"step {step0 + i + 1}: training diverged: {what} is not finite"
+    n = len(metrics["loss"])
+    losses = np.asarray(metrics["loss"] if history is None else history, np.float64)
+    if max_loss is not None and n:
+        recent = losses[-window:]
+        if len(recent) >= min(window, 4) and recent.mean() > max_loss:
+            return (f"step {step0 + n}: training diverged: the loss averaged "
+                    f"{recent.mean():.3g} over {len(recent)} steps (more than {max_loss})")
+    return None
 
 
 # --------------------------------------------------------------------------------------
@@ -701,8 +832,15 @@ def _jsonable(metrics: dict) -> dict:
 def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int | None = None,
         log_path=None, log_every: int = 10, checkpoint_dir=None, checkpoint_every: int | None = None,
         keep_checkpoints: int = 2, progress=True, callback: Callable | None = None,
-        should_stop: Callable[[int, list], bool] | None = None, desc: str = "train") -> TrainState:
+        should_stop: Callable[[int, list], bool] | None = None, desc: str = "train",
+        chunk: int = CHUNK, max_loss: float | None = 0.75) -> TrainState:
     """Train until ``state.step == iterations`` (default ``state.config.iterations``).
+
+    The images live on the device and the steps run in compiled chunks of up to
+    ``chunk`` (:func:`train_chunk`); the host acts only between chunks (logs,
+    progress, checkpoints, the divergence guard, growing the buffer or capacity),
+    reading the chunk's metrics back at once. Chunking does not change the
+    result: the view and key of step s depend only on (key, s).
 
     Args:
       state: TrainState (fresh from :func:`init_state` or from :func:`load_checkpoint`).
@@ -716,17 +854,28 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         at every density-control step (appended to, so a resumed run continues it).
       checkpoint_dir: write ``ckpt_<step>.npz`` there every ``checkpoint_every``
         steps and at the end (atomic; the newest ``keep_checkpoints`` are kept).
+        Chunks end on those steps.
       progress: True (a bar with loss, PSNR, Gaussians, ETA), False, or a bar
         object (an ``experiments.progress.Progress`` gets a child bar).
-      callback: ``callback(state, metrics)`` after every completed step.
+      callback: ``callback(state, metrics)`` after every chunk: the state at its
+        end and the metrics of its completed steps (NumPy arrays [n]).
       should_stop: ``should_stop(step, loss_history) -> bool`` checked before
-        every step; True ends the loop early (a final checkpoint is still written).
+        every chunk; True ends the loop early (a final checkpoint is still written).
+      chunk: steps per compiled chunk (1: the host sees every step).
+      max_loss: divergence guard threshold (see :func:`divergence`; None: only
+        non-finite values stop the run).
     Returns:
       the final TrainState.
+    Raises:
+      DataError: the run diverged (a non-finite loss or parameter, or an exploding
+        loss); the message names the step and the quantity. Nothing of the bad
+        chunk is checkpointed, so the newest checkpoint is the last good state.
     """
     if key is not None:
         state = dataclasses.replace(state, key=_key_data(key))
     total = state.config.iterations if iterations is None else int(iterations)
+    if chunk < 1:
+        raise DataError("chunk", f"must be >= 1, got {chunk}")
     images = jnp.asarray(images, state.gaussians.means.dtype)
     if images.ndim != 4 or images.shape[-1] != 3:
         raise DataError("images", f"expected float [N, H, W, 3], got {tuple(images.shape)}")
@@ -745,40 +894,55 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
     if log_path is not None:
         Path(log_path).parent.mkdir(parents=True, exist_ok=True)
         log_file = open(log_path, "a")
-    bar, own_bar = _make_progress(progress, total, int(state.step), desc)
+    step = int(jax.device_get(state.step))
+    bar, own_bar = _make_progress(progress, total, step, desc)
     history: list[float] = []
     t0 = time.monotonic()
     steps_done = 0
     try:
-        while int(state.step) < total:
-            step = int(state.step)
+        while step < total:
             if should_stop is not None and should_stop(step, history):
                 break
-            batch, key = select_batch(images, cameras, state.key, state.step)
-            new, metrics = train_step(state, batch, key)
+            n = min(chunk, total - step)
+            if ckpt_dir is not None and checkpoint_every:
+                n = min(n, checkpoint_every - step % checkpoint_every)
+            new, metrics = train_chunk(state, images, cameras, jax.device_put(np.int32(n)),
+                                       length=chunk)
             metrics = jax.device_get(metrics)
-            if bool(metrics["redo"]):
-                state = grow_for_redo(state, metrics)
-                continue
+            completed = metrics["ran"] & ~metrics["redo"]
+            k = int(np.sum(completed))
+            steps = jax.tree_util.tree_map(lambda a: a[:k], metrics)
+            recent = history[-GUARD_WINDOW:] + [float(x) for x in steps["loss"]]
+            reason = divergence(step, steps, history=recent, max_loss=max_loss,
+                                window=GUARD_WINDOW)
+            if reason is not None:
+                raise DataError(desc, reason)
             state = new
-            steps_done += 1
-            loss = float(metrics["loss"])
-            history.append(loss)
-            done = int(state.step)
-            if bar is not None:
-                bar.update(1, loss=loss, psnr=float(metrics["psnr"]),
-                           gaussians=int(metrics["num_gaussians"]))
-            if log_file is not None and (done % log_every == 0 or done == total
-                                         or bool(metrics["densify"]["refined"])):
-                record = dict(step=done, elapsed_s=time.monotonic() - t0,
-                              capacity=state.capacity, max_intersections=state.max_intersections,
-                              **_jsonable(metrics))
-                log_file.write(json.dumps(record) + "\n")
+            for i in range(k):
+                history.append(float(steps["loss"][i]))
+                done = step + i + 1
+                if log_file is not None and (done % log_every == 0 or done == total
+                                             or bool(steps["densify"]["refined"][i])):
+                    record = dict(step=done, elapsed_s=time.monotonic() - t0,
+                                  capacity=state.capacity,
+                                  max_intersections=state.max_intersections,
+                                  **_jsonable(jax.tree_util.tree_map(lambda a: a[i], steps)))
+                    log_file.write(json.dumps(record) + "\n")
+            if log_file is not None:
                 log_file.flush()
+            step += k
+            steps_done += k
+            if k < n:  # a step asked for more room: grow, then redo it in the next chunk
+                state = grow_for_redo(state, jax.tree_util.tree_map(lambda a: a[k], metrics))
+            if k == 0:
+                continue
+            if bar is not None:
+                bar.update(k, loss=float(steps["loss"][-1]), psnr=float(steps["psnr"][-1]),
+                           gaussians=int(steps["num_gaussians"][-1]))
             if callback is not None:
-                callback(state, metrics)
-            if ckpt_dir is not None and checkpoint_every and done % checkpoint_every == 0:
-                save_checkpoint(ckpt_dir / checkpoint_name(done), state)
+                callback(state, steps)
+            if ckpt_dir is not None and checkpoint_every and step % checkpoint_every == 0:
+                save_checkpoint(ckpt_dir / checkpoint_name(step), state)
                 _prune_checkpoints(ckpt_dir, keep_checkpoints)
     finally:
         if log_file is not None:
@@ -786,7 +950,7 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         if bar is not None and own_bar:
             bar.close()
     if ckpt_dir is not None and steps_done:
-        save_checkpoint(ckpt_dir / checkpoint_name(int(state.step)), state)
+        save_checkpoint(ckpt_dir / checkpoint_name(step), state)
         _prune_checkpoints(ckpt_dir, keep_checkpoints)
     return state
 

@@ -760,10 +760,17 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     started = time.perf_counter() - st.seconds
     converged = False
 
+    from ..train import put_image
+
+    # The training views live on the device; an edited view lands there in place, so a
+    # step uploads nothing (st.images keeps the host copy that checkpoints store).
+    device_images = [jax.device_put(np.asarray(st.images, np.float32))]
+
     def take(arrivals):
         for e in arrivals:
             st.images[e.job.view] = e.image
             st.edited[e.job.view] = True
+            device_images[0] = put_image(device_images[0], e.job.view, st.images[e.job.view])
 
     with source:
         while True:
@@ -771,7 +778,8 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
             if s >= warmup:  # no edits while the reset opacities settle (paper 3.3 (1))
                 take(source.exchange(s - warmup, trainer.gaussians(st.train)))
             v = train_view(views_key, s, n)
-            st.train, loss, _ = trainer.step(st.train, st.images[v], data.train_cameras[v],
+            image = device_images[0][v]
+            st.train, loss, _ = trainer.step(st.train, image, data.train_cameras[v],
                                              jax.random.fold_in(train_key, s))
             if s >= warmup:
                 st.tracker = track_loss(st.tracker, loss, min_delta=cfg.min_delta)
