@@ -352,6 +352,33 @@ class _RichDisplay:
         self.rich.stop()
 
 
+def training_bar(parent: Progress | None = None) -> Callable:
+    """A ``progress`` callback for :func:`jaxedit.train.fit`: its events drive one bar.
+
+    The bar opens on the first event (at the run's total and starting step, nested
+    under ``parent`` or the ambient bar) and closes when the run reaches its total.
+    """
+    state: dict = {}
+
+    def on_event(event) -> None:
+        bar = state.get("bar")
+        if bar is None:
+            bar = state["bar"] = Progress(event.total, event.desc, parent=parent)
+            bar.update(event.step)
+        elif event.step > bar.n:
+            bar.update(event.step - bar.n, loss=event.loss, psnr=event.psnr,
+                       gaussians=event.gaussians)
+        if event.step >= event.total:
+            bar.close()
+
+    def close() -> None:
+        if "bar" in state:
+            state["bar"].close()
+
+    on_event.close = close
+    return on_event
+
+
 @contextlib.contextmanager
 def nested(bar: Progress):
     """Within this block, bars created without a parent become children of ``bar``."""
@@ -370,4 +397,4 @@ def track(iterable: Iterable, total: int | None = None, desc: str = "",
     return Progress(total, desc, parent=parent).track(iterable)
 
 
-__all__ = ["MODES", "Progress", "configure", "format_seconds", "nested", "track"]
+__all__ = ["MODES", "Progress", "configure", "format_seconds", "nested", "track", "training_bar"]

@@ -29,6 +29,8 @@ import logging
 import time
 from pathlib import Path
 
+from experiments.progress import training_bar
+
 HELP = "reconstruct a nerfstudio dataset with 3DGS: scene.ply, test renders, metrics.json"
 
 log = logging.getLogger("jaxedit.reconstruct")
@@ -207,10 +209,15 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
 
     t_train = time.perf_counter()
     last[0] = t_train
-    state = T.fit(state, train_images, train_cams, log_path=out / "train_log.jsonl",
-                  log_every=log_every, checkpoint_dir=ckpt_dir,
-                  checkpoint_every=checkpoint_every or None, progress=progress, callback=timer,
-                  desc="reconstruct")
+    bar = training_bar() if progress else None
+    try:
+        state = T.fit(state, train_images, train_cams, log_path=out / "train_log.jsonl",
+                      log_every=log_every, checkpoint_dir=ckpt_dir,
+                      checkpoint_every=checkpoint_every or None, progress=bar, callback=timer,
+                      desc="reconstruct")
+    finally:
+        if bar is not None:
+            bar.close()
     train_s = time.perf_counter() - t_train
     steps = int(state.step) - start_step
 

@@ -46,7 +46,6 @@ import json
 import logging
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
@@ -765,53 +764,24 @@ def _prune_checkpoints(directory: Path, keep: int) -> None:
 
 
 # --------------------------------------------------------------------------------------
-# Progress (library side: a tiny stderr line unless the caller passes a bar)
+# Progress events (the library never draws: callers render them, see experiments/progress.py)
 # --------------------------------------------------------------------------------------
 
-class _LineProgress:
-    """Minimal progress line on stderr: used when experiments.progress is unavailable."""
+class TrainProgress(NamedTuple):
+    """One progress event of :func:`fit`, sent after every chunk of steps.
 
-    def __init__(self, total: int, desc: str, start: int):
-        self.total, self.desc, self.n = total, desc, start
-        self.t0, self.n0, self.last = time.monotonic(), start, 0.0
-        self.postfix = {}
+    Attributes:
+      desc: the run's label (``fit(desc=...)``).
+      step: steps done so far; total: the step the run ends at.
+      loss, psnr: the last step's training loss and PSNR; gaussians: alive Gaussians.
+    """
 
-    def update(self, n=1, **postfix):
-        self.n += n
-        self.postfix.update(postfix)
-        now = time.monotonic()
-        if now - self.last >= 0.5 or self.n >= self.total:
-            self.last = now
-            rate = (self.n - self.n0) / max(now - self.t0, 1e-9)
-            eta = (self.total - self.n) / rate if rate > 0 else float("nan")
-            fields = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                              for k, v in self.postfix.items())
-            sys.stderr.write(f"\r{self.desc} {self.n}/{self.total} {fields} eta {eta:.0f}s ")
-            sys.stderr.flush()
-
-    def close(self):
-        sys.stderr.write("\n")
-        sys.stderr.flush()
-
-
-def _make_progress(progress, total: int, start: int, desc: str):
-    if progress is False or progress is None:
-        return None, False
-    if progress is True:
-        try:
-            from experiments.progress import Progress
-        except ImportError:
-            return _LineProgress(total, desc, start), True
-        bar = Progress(total, desc)
-        if start:
-            bar.update(start)
-        return bar, True
-    if hasattr(progress, "child"):  # an experiments.progress.Progress: nest under it
-        bar = progress.child(total, desc)
-        if start:
-            bar.update(start)
-        return bar, True
-    return progress, False  # any object with update(n, **postfix): the caller owns it
+    desc: str
+    step: int
+    total: int
+    loss: float
+    psnr: float
+    gaussians: int
 
 
 # --------------------------------------------------------------------------------------
@@ -831,7 +801,8 @@ def _jsonable(metrics: dict) -> dict:
 
 def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int | None = None,
         log_path=None, log_every: int = 10, checkpoint_dir=None, checkpoint_every: int | None = None,
-        keep_checkpoints: int = 2, progress=True, callback: Callable | None = None,
+        keep_checkpoints: int = 2, progress: Callable[[TrainProgress], None] | None = None,
+        callback: Callable | None = None,
         should_stop: Callable[[int, list], bool] | None = None, desc: str = "train",
         chunk: int = CHUNK, max_loss: float | None = 0.75) -> TrainState:
     """Train until ``state.step == iterations`` (default ``state.config.iterations``).
@@ -855,8 +826,8 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
       checkpoint_dir: write ``ckpt_<step>.npz`` there every ``checkpoint_every``
         steps and at the end (atomic; the newest ``keep_checkpoints`` are kept).
         Chunks end on those steps.
-      progress: True (a bar with loss, PSNR, Gaussians, ETA), False, or a bar
-        object (an ``experiments.progress.Progress`` gets a child bar).
+      progress: ``progress(TrainProgress)`` after every chunk (and once at the start),
+        e.g. to draw a bar; None: silent. The library itself never prints.
       callback: ``callback(state, metrics)`` after every chunk: the state at its
         end and the metrics of its completed steps (NumPy arrays [n]).
       should_stop: ``should_stop(step, loss_history) -> bool`` checked before
@@ -895,7 +866,9 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         Path(log_path).parent.mkdir(parents=True, exist_ok=True)
         log_file = open(log_path, "a")
     step = int(jax.device_get(state.step))
-    bar, own_bar = _make_progress(progress, total, step, desc)
+    if progress is not None:
+        progress(TrainProgress(desc, step, total, float("nan"), float("nan"),
+                               int(state.gaussians.num_alive())))
     history: list[float] = []
     t0 = time.monotonic()
     steps_done = 0
@@ -936,9 +909,10 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
                 state = grow_for_redo(state, jax.tree_util.tree_map(lambda a: a[k], metrics))
             if k == 0:
                 continue
-            if bar is not None:
-                bar.update(k, loss=float(steps["loss"][-1]), psnr=float(steps["psnr"][-1]),
-                           gaussians=int(steps["num_gaussians"][-1]))
+            if progress is not None:
+                progress(TrainProgress(desc, step, total, float(steps["loss"][-1]),
+                                       float(steps["psnr"][-1]),
+                                       int(steps["num_gaussians"][-1])))
             if callback is not None:
                 callback(state, steps)
             if ckpt_dir is not None and checkpoint_every and step % checkpoint_every == 0:
@@ -947,8 +921,6 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
     finally:
         if log_file is not None:
             log_file.close()
-        if bar is not None and own_bar:
-            bar.close()
     if ckpt_dir is not None and steps_done:
         save_checkpoint(ckpt_dir / checkpoint_name(step), state)
         _prune_checkpoints(ckpt_dir, keep_checkpoints)
