@@ -67,8 +67,7 @@ def train_and_test(face, matrix, iterations=STEPS):
     train = cams[face["train"]]
     state = T.init_state(g, CONFIG, T.scene_extent(train), key=jax.random.key(3),
                          max_intersections=16384)
-    state = T.fit(state, face["images"][face["train"]], train, iterations=iterations,
-                  progress=False)
+    state = T.fit(state, face["images"][face["train"]], train, iterations=iterations)
     result = T.evaluate(state.gaussians, face["images"][face["test"]], cams[face["test"]])
     return result["psnr"], state
 
@@ -196,14 +195,14 @@ def test_divergence_guard_names_step_and_quantity(face, tmp_path):
     state = T.init_state(g, CONFIG, T.scene_extent(cams), key=jax.random.key(3),
                          max_intersections=16384)
     state = T.fit(state, images, cams, iterations=20, checkpoint_dir=tmp_path,
-                  checkpoint_every=8, progress=False)
+                  checkpoint_every=8)
     bad_view = 4
     images[bad_view, 5, 5, 0] = np.nan
     first = min(s for s in range(20, 20 + 2 * len(images))
                 if int(T.view_and_key(state.key, s, len(images))[0]) == bad_view)
     with pytest.raises(DataError, match=rf"^train: step {first + 1}: training diverged: the loss"):
         T.fit(state, images, cams, iterations=STEPS, checkpoint_dir=tmp_path, checkpoint_every=8,
-              progress=False, desc="train")
+              desc="train")
     saved = T.resume(tmp_path)
     assert int(saved.step) == max(20, first // 8 * 8)
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(saved.gaussians))

@@ -47,7 +47,7 @@ def first_leg(face, tmp_path_factory):
     """The uninterrupted run up to RESUME_AT steps, with its metrics log."""
     log = tmp_path_factory.mktemp("leg") / "log.jsonl"
     state = T.fit(fresh_state(face), face["images"][face["train"]], face["cams"][face["train"]],
-                  iterations=RESUME_AT, log_path=log, log_every=10, progress=False)
+                  iterations=RESUME_AT, log_path=log, log_every=10)
     return state, log
 
 
@@ -68,13 +68,13 @@ def test_killed_run_resumes_bit_identically(face, first_leg, tmp_path):
 
     with pytest.raises(Killed):
         T.fit(fresh_state(face), face["images"][face["train"]], face["cams"][face["train"]],
-              iterations=RESUME_AT, checkpoint_dir=ckpt, checkpoint_every=60, progress=False,
+              iterations=RESUME_AT, checkpoint_dir=ckpt, checkpoint_every=60,
               callback=kill)
     assert [p.name for p in sorted(ckpt.glob("ckpt_*.npz"))] == ["ckpt_00000060.npz"]
     resumed = T.resume(ckpt)
     assert int(resumed.step) == 60
     resumed = T.fit(resumed, face["images"][face["train"]], face["cams"][face["train"]],
-                    iterations=RESUME_AT, checkpoint_dir=ckpt, progress=False)
+                    iterations=RESUME_AT, checkpoint_dir=ckpt)
     assert int(resumed.step) == RESUME_AT
     assert resumed.capacity == full.capacity and resumed.max_intersections == full.max_intersections
     for a, b in zip(leaves(full), leaves(resumed)):
@@ -102,7 +102,7 @@ def test_reconstruction_loss_falls_and_test_psnr_is_reasonable(face, first_leg):
     state, log = first_leg
     history = []
     state = T.fit(state, face["images"][face["train"]], face["cams"][face["train"]],
-                  progress=False, callback=lambda s, m: history.extend(m["loss"].tolist()))
+                  callback=lambda s, m: history.extend(m["loss"].tolist()))
     assert int(state.step) == CONFIG.iterations
     first = [json.loads(line)["loss"] for line in log.read_text().splitlines()][:3]
     assert np.mean(history[-20:]) < 0.6 * np.mean(first)
@@ -125,7 +125,7 @@ def test_should_stop_ends_early_and_data_order_is_a_function_of_key_and_step(fac
     batch, _ = T.select_batch(images, face["cams"][face["train"]],
                               jax.random.key_data(jax.random.key(3)), 4)
     np.testing.assert_array_equal(np.asarray(batch.image), images[views[4]])
-    state = T.fit(fresh_state(face), images, face["cams"][face["train"]], progress=False,
+    state = T.fit(fresh_state(face), images, face["cams"][face["train"]],
                   should_stop=lambda step, losses: step >= 5, chunk=1)
     assert int(state.step) == 5
 
@@ -162,7 +162,7 @@ def test_config_and_checkpoint_errors(tmp_path, face):
     with pytest.raises(DataError, match="no such"):
         T.resume(tmp_path / "missing.npz")
     with pytest.raises(DataError, match="images"):
-        T.fit(fresh_state(face), np.zeros((3, SIZE, SIZE)), face["cams"][:3], progress=False)
+        T.fit(fresh_state(face), np.zeros((3, SIZE, SIZE)), face["cams"][:3])
 
 
 def test_sh_schedule_and_learning_rate_decay():
