@@ -132,6 +132,11 @@ def test_sync_edit_writes_the_run_directory(sync_run):
     for key in ("prompt", "editor", "mode", "threshold", "difficulty_curve", "subtasks"):
         assert key in sched
     assert sched["prompt"] == PROMPT and sched["editor"] == "simulated" and sched["mode"] == "proedit"
+    # How the difficulty was measured: distance, reduction, the seeded view subset.
+    diff = sched["difficulty"]
+    assert diff["distance"] == sched["distance"] and diff["reduction"].startswith("mean")
+    assert diff["num_views"] == len(diff["views"]) == 8 == diff["of_training_views"]
+    assert "target_subtasks" in sched and isinstance(sched["depth_limit_hit"], bool)
     curve = sched["difficulty_curve"]
     assert curve[0] == [0.0, 0.0] and curve[-1][0] == 1.0 and curve[-1][1] > 0
     subs = sched["subtasks"]
@@ -315,3 +320,33 @@ def test_cli_edit_uses_lpips_difficulty_and_checks_real_model_flags(tiny, tmp_pa
     assert main(base + ["--out", str(tmp_path / "bad"), "--lpips-weights",
                         str(tmp_path / "missing.npz")]) == 2
     assert main(base + ["--out", str(tmp_path / "bad2"), "--clip-weights", str(tmp_path)]) == 2
+
+
+def test_edit_cap_defaults_to_twice_the_input_and_is_never_below_it():
+    from jaxedit.edit.progressive import (CAP_MIN_ROOM, SubtaskTrainer, default_max_gaussians,
+                                          resolve_max_gaussians)
+
+    # Reconstructions of 0.3-3M Gaussians keep room to create (the old fixed 200k cap had none).
+    assert default_max_gaussians(1_000_000) == 2_000_000
+    assert default_max_gaussians(500) == 500 + CAP_MIN_ROOM
+    assert resolve_max_gaussians(TrainSettings(), 300_000).max_gaussians == 600_000
+    assert resolve_max_gaussians(TrainSettings(max_gaussians=400_000), 300_000).max_gaussians == 400_000
+    with pytest.raises(DataError, match="--max-gaussians"):
+        resolve_max_gaussians(TrainSettings(max_gaussians=1000), 300_000)
+    trainer = SubtaskTrainer(TrainSettings(), num_input=250_000)
+    assert trainer.config.densify.max_gaussians == 500_000
+    with pytest.raises(DataError, match="max_gaussians"):
+        SubtaskTrainer(TrainSettings())
+
+
+def test_difficulty_views_are_a_fixed_seeded_subset():
+    from jaxedit.edit.progressive import DIFFICULTY_VIEWS_DEFAULT_MAX, difficulty_view_subset
+
+    key = jax.random.key(0)
+    assert difficulty_view_subset(10, None, key) == tuple(range(10))  # all views when few
+    many = difficulty_view_subset(40, None, key)
+    assert len(many) == DIFFICULTY_VIEWS_DEFAULT_MAX and list(many) == sorted(set(many))
+    assert difficulty_view_subset(40, None, key) == many  # seeded: the same subset again
+    assert difficulty_view_subset(40, 5, jax.random.key(1)) != difficulty_view_subset(40, 5, key)
+    with pytest.raises(DataError):
+        difficulty_view_subset(0, None, key)
