@@ -46,7 +46,7 @@ import time
 from pathlib import Path
 
 HELP = ("ablation: proedit vs nd vs nd at equal steps vs in2n over seeds, instructions and "
-        "scenes, with 95% confidence intervals (simulated editor)")
+        "scenes, with 95-percent confidence intervals (simulated editor)")
 
 METHODS = ("proedit", "nd", "nd_equal_steps", "in2n")
 SCENES = ("face", "tabletop")

@@ -405,7 +405,8 @@ def test_initial_points_never_exceed_the_cap(n_points, cap, seed):
     rng = np.random.default_rng(seed)
     cams = camlib.hemisphere(3, radius=2.0, width=8, height=8, fov_deg=50.0)
     points = rng.normal(size=(n_points, 3)).astype(np.float32) if n_points else None
-    data = types.SimpleNamespace(points=points, cameras=cams,
+    views = rng.uniform(size=(3, 8, 8, 3)).astype(np.float32)
+    data = types.SimpleNamespace(points=points, cameras=cams, train=lambda: (views, cams),
                                  point_colors=None if points is None else rng.uniform(
                                      size=(n_points, 3)).astype(np.float32))
     pts, colors, source = capped_initial_points(data, 150, cap, seed)

