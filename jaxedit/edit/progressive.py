@@ -513,12 +513,11 @@ class TrainSettings:
         at a subtask start (Splatfacto's cull_alpha_thresh 0.1 keeps the scene
         visible to the editor; gsplat's 0.005 would blank it).
       warmup: W, steps after the subtask start without density control.
-      refine_every: steps between maintenance steps.
       max_gaussians: the hard cap (None: :func:`default_max_gaussians` of the input).
       budget_*: the creation budget t(n, N) (see ``jaxedit.densify.creation_budget``).
         ASSUMPTION: the paper (appendix "Gaussian Creation Strategy") gives only the form
         "t(n) of the culled count n and the total N", no constants; 16 / 2% / 10% are ours.
-      refine_every: ASSUMPTION: 50, where Splatfacto (whose defaults the paper follows)
+      refine_every: steps between maintenance steps. ASSUMPTION: 50, where Splatfacto (whose defaults the paper follows)
         uses 100; our CPU subtasks are a few hundred steps, not 10-20 minutes.
       sh_degree: SH degree trained (the input scene's, all degrees on from the start).
       lr_means, lr_sh_dc, lr_opacity: Adam learning rates (Splatfacto's by default;
