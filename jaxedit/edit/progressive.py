@@ -517,8 +517,9 @@ class TrainSettings:
       budget_*: the creation budget t(n, N) (see ``jaxedit.densify.creation_budget``).
         ASSUMPTION: the paper (appendix "Gaussian Creation Strategy") gives only the form
         "t(n) of the culled count n and the total N", no constants; 16 / 2% / 10% are ours.
-      refine_every: steps between maintenance steps. ASSUMPTION: 50, where Splatfacto (whose defaults the paper follows)
-        uses 100; our CPU subtasks are a few hundred steps, not 10-20 minutes.
+      refine_every: steps between maintenance steps. ASSUMPTION: 50, where Splatfacto
+        (whose defaults the paper follows) uses 100; our CPU subtasks are a few hundred
+        steps, not the paper's 10-20 minutes.
       sh_degree: SH degree trained (the input scene's, all degrees on from the start).
       lr_means, lr_sh_dc, lr_opacity: Adam learning rates (Splatfacto's by default;
         the higher-order SH get lr_sh_dc / 20). Splatfacto's are tuned for ~30k
