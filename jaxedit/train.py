@@ -456,22 +456,26 @@ Returns:
 """
 
 
-@jax.jit
-def _count_views(gaussians: Gaussians, cameras: Camera):
+@functools.partial(jax.jit, static_argnames=("tile",))
+def _count_views(gaussians: Gaussians, cameras: Camera, tile: int):
     from .raster import binning, project
 
     def one(cam):
         proj = project.project(gaussians, cam, sh_degree=0)
-        return binning.count_intersections(proj, cam.width, cam.height)
+        return binning.count_intersections(proj, cam.width, cam.height, tile)
 
     return jax.lax.map(one, cameras)
 
 
 def measure_intersections(gaussians: Gaussians, cameras: Camera) -> int:
-    """Most tile intersections any of ``cameras`` (a batch, or one camera) needs."""
+    """Most tile intersections any of ``cameras`` (a batch, or one camera) needs, counted at
+    the tile size of the compositor the training step renders with (``backend="auto"``)."""
+    from .raster.render import resolve_backend, tile_size
+
     if not cameras.batch_shape:
         cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], cameras)
-    return int(jnp.max(_count_views(gaussians, cameras)))
+    tile = tile_size(resolve_backend("auto"))
+    return int(jnp.max(_count_views(gaussians, cameras, tile=tile)))
 
 
 def size_buffer(state: TrainState, cameras: Camera, *, headroom: float = 1.5) -> TrainState:
