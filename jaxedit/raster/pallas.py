@@ -205,7 +205,7 @@ def _backward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref, trans_r
     jax.lax.fori_loop(jnp.maximum(stop + 1, begin), start_ref[t + 1], zero_row, ())
 
 
-def _specs(num_tiles, tile, num_features):
+def _specs(tile, num_features):
     """Block specs of the per-tile image arrays ([T, F, P], [T, P])."""
     p = tile * tile
     feat = pl.BlockSpec((None, num_features, p), lambda t: (t, 0, 0))
@@ -244,7 +244,7 @@ def tiles_forward(means2d, conics, opacities, features, gids, tile_start, width,
     num_tiles = tiles_x * tiles_y
     nf = features.shape[-1]
     p = tile * tile
-    feat_spec, pix_spec = _specs(num_tiles, tile, nf)
+    feat_spec, pix_spec = _specs(tile, nf)
     kernel = functools.partial(_forward_kernel, tiles_x=tiles_x, tile=tile, num_features=nf,
                                capacity=gids.shape[0])
     dtype = means2d.dtype
@@ -277,7 +277,7 @@ def tiles_backward(means2d, conics, opacities, features, gids, tile_start, trans
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
     nf = features.shape[-1]
-    feat_spec, pix_spec = _specs(num_tiles, tile, nf)
+    feat_spec, pix_spec = _specs(tile, nf)
     kernel = functools.partial(_backward_kernel, tiles_x=tiles_x, tile=tile, num_features=nf,
                                capacity=gids.shape[0])
     inputs = _padded_inputs(means2d, conics, opacities, features, gids, tile_start)
