@@ -69,9 +69,42 @@ def jaxedit_raster(g, cam, backend: str, repeats: int) -> dict:
     w = jnp.asarray(np.random.default_rng(1).normal(size=(cam.height, cam.width, 3)), jnp.float32)
     fwd = jax.jit(lambda g: render_tiles(g, cam, capacity=cap, backend=backend).rgb)
     fwd_bwd = jax.jit(jax.value_and_grad(_loss_fn(cam, cap, backend), allow_int=True))
-    return {"backend": backend, "capacity": cap,
+    return {"backend": backend, "capacity": cap, "stages": stage_times(g, cam, backend, cap, repeats),
             "forward": compile_and_time(fwd, g, repeats=repeats),
             "forward_backward": compile_and_time(fwd_bwd, g, w, repeats=repeats)}
+
+
+def stage_times(g, cam, backend: str, cap: int, repeats: int) -> dict:
+    """Forward time of the pipeline's prefixes (projection; projection + binning), so the
+    compositing share is the full forward minus the second: where the time goes."""
+    import jax
+
+    from jaxedit.raster import binning as B
+    from jaxedit.raster import project as P
+    from jaxedit.raster.render import tile_size
+
+    tile = tile_size(backend)
+
+    def projected(g):
+        return P.project(g, cam, sh_degree=3)
+
+    def binned(g):
+        return B.bin_gaussians(projected(g), cam.width, cam.height, cap, tile).gids
+
+    return {"project": compile_and_time(jax.jit(lambda g: projected(g).means2d), g,
+                                        repeats=repeats),
+            "project_and_bin": compile_and_time(jax.jit(binned), g, repeats=repeats)}
+
+
+def _guarded(fn, *args, **kwargs) -> dict:
+    """``fn``'s record, or the error that stopped it (a row that fails, e.g. out of device
+    memory, is recorded and the run goes on to the next)."""
+    try:
+        return fn(*args, **kwargs)
+    except Exception as e:  # noqa: BLE001  (a benchmark records every failure as a row)
+        msg = str(e).strip().splitlines()[0][:300] if str(e).strip() else ""
+        print(f"  failed: {type(e).__name__}: {msg}", flush=True)
+        return {"error": f"{type(e).__name__}: {msg}"}
 
 
 def residual_bytes(g, cam, backend: str, cap: int) -> int:
@@ -300,6 +333,22 @@ def gsplat_training(size: int, n: int, steps: int) -> dict:
 
 
 # ----------------------------------------------------------------------------- main
+def training_rows(args, why_not_gsplat) -> dict:
+    size, n = SMOKE_TRAIN_ROW if args.smoke else TRAIN_ROW
+    steps = args.train_steps or (4 if args.smoke else 300)
+    train = {"size": size, "gaussians": n,
+             "jaxedit": _guarded(jaxedit_training, size, n, steps=steps, chunk=min(steps, 50))}
+    if why_not_gsplat is None:
+        train["gsplat"] = _guarded(gsplat_training, size, n, steps)
+        train["ratio_steps_per_s_gsplat_to_jaxedit"] = _ratio(
+            train["gsplat"].get("steps_per_s"), train["jaxedit"].get("steps_per_s"))
+    else:
+        train["gsplat"] = f"skipped: {why_not_gsplat}"
+    print(f"training {size}px / {n}: jaxedit {train['jaxedit'].get('steps_per_s')} steps/s; "
+          f"gsplat/jaxedit {train.get('ratio_steps_per_s_gsplat_to_jaxedit')}", flush=True)
+    return train
+
+
 def _ratio(a, b):
     return None if not a or not b else round(a / b, 2)
 
@@ -309,12 +358,17 @@ def main(argv=None):
         p.add_argument("--backends", default="pallas,xla")
         p.add_argument("--skip-memory", action="store_true")
         p.add_argument("--train-steps", type=int, default=None)
+        p.add_argument("--skip-training", action="store_true")
+        p.add_argument("--rows", default=None,
+                       help="raster rows to run, e.g. 512x512x200000 (default: all)")
 
     args = parse_args(__doc__.splitlines()[0], argv, extra)
     import jax
 
     backends = [b for b in args.backends.split(",") if b]
     rows = SMOKE_ROWS if args.smoke else RASTER_ROWS
+    if args.rows:
+        rows = [tuple(int(v) for v in r.split("x")) for r in args.rows.split(",")]
     repeats = args.repeats or (2 if args.smoke else 20)
     why_not_gsplat = gsplat_unavailable()
     results = {"platform": jax.default_backend(), "gsplat": why_not_gsplat or "ran",
@@ -323,41 +377,33 @@ def main(argv=None):
         g, cam = scene(n, width, height=height)
         row = {"width": width, "height": height, "gaussians": n, "jaxedit": {}}
         for backend in backends:
-            row["jaxedit"][backend] = jaxedit_raster(g, cam, backend, repeats)
+            row["jaxedit"][backend] = _guarded(jaxedit_raster, g, cam, backend, repeats)
         if why_not_gsplat is None:
-            row["gsplat"] = gsplat_raster(g, cam, repeats)
+            row["gsplat"] = _guarded(gsplat_raster, g, cam, repeats)
             for backend in backends:
                 for what in ("forward", "forward_backward"):
                     row[f"ratio_{backend}_to_gsplat_{what}"] = _ratio(
-                        row["jaxedit"][backend][what]["median_ms"],
-                        row["gsplat"][what]["median_ms"])
+                        row["jaxedit"][backend].get(what, {}).get("median_ms"),
+                        row["gsplat"].get(what, {}).get("median_ms"))
         else:
             row["gsplat"] = f"skipped: {why_not_gsplat}"
         results["raster"].append(row)
+        write_json(args.out, "gpu", {"smoke": bool(args.smoke), "partial": True, **results})
         for backend in backends:
             j = row["jaxedit"][backend]
+            if "error" in j:
+                continue
             print(f"{width}x{height} / {n}: {backend} fwd {j['forward']['median_ms']:.2f} ms, "
                   f"fwd+bwd {j['forward_backward']['median_ms']:.2f} ms; to gsplat "
                   f"{row.get(f'ratio_{backend}_to_gsplat_forward')} / "
                   f"{row.get(f'ratio_{backend}_to_gsplat_forward_backward')}", flush=True)
 
-    size, n = SMOKE_TRAIN_ROW if args.smoke else TRAIN_ROW
-    steps = args.train_steps or (4 if args.smoke else 300)
-    train = {"size": size, "gaussians": n,
-             "jaxedit": jaxedit_training(size, n, steps=steps, chunk=min(steps, 50))}
-    if why_not_gsplat is None:
-        train["gsplat"] = gsplat_training(size, n, steps)
-        train["ratio_steps_per_s_gsplat_to_jaxedit"] = _ratio(
-            train["gsplat"]["steps_per_s"], train["jaxedit"]["steps_per_s"])
-    else:
-        train["gsplat"] = f"skipped: {why_not_gsplat}"
-    results["training"] = train
-    print(f"training {size}px / {n}: jaxedit {train['jaxedit']['steps_per_s']:.1f} steps/s; "
-          f"gsplat/jaxedit {train.get('ratio_steps_per_s_gsplat_to_jaxedit')}", flush=True)
-
+    if not args.skip_training:
+        results["training"] = training_rows(args, why_not_gsplat)
+        write_json(args.out, "gpu", {"smoke": bool(args.smoke), "partial": True, **results})
     if not args.skip_memory:
         width, height, n = SMOKE_ROWS[0] if args.smoke else MEMORY_ROW
-        results["memory"] = memory_analysis(width, height, n, backends)
+        results["memory"] = _guarded(memory_analysis, width, height, n, backends)
         print(f"memory {width}x{height} / {n}: {results['memory']}", flush=True)
     write_json(args.out, "gpu", {"smoke": bool(args.smoke), **results})
 
