@@ -43,6 +43,11 @@ def extra(p):
     p.add_argument("--lpips-weights", type=Path, default=None, help="LPIPS-vgg weights file")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-gsplat", action="store_true", help="skip the live gsplat runs")
+    p.add_argument("--sides", default="jaxedit,gsplat",
+                   help="which trainers to run here (a GPU session may split them)")
+    p.add_argument("--renders", type=Path, default=None,
+                   help="also save each run's held-out renders (uint8 .npz) in this folder, "
+                        "e.g. to score LPIPS elsewhere")
 
 
 def held_out_metrics(renders, targets, lpips_fn=None) -> dict:
@@ -59,7 +64,14 @@ def held_out_metrics(renders, targets, lpips_fn=None) -> dict:
     return out
 
 
-def run_jaxedit(data, steps: int, seed: int, workdir: Path, lpips_fn) -> dict:
+def save_renders(folder, name: str, renders) -> None:
+    if folder is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+        u8 = (np.clip(np.asarray(renders, np.float32), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+        np.savez_compressed(folder / f"{name}.npz", renders=u8)
+
+
+def run_jaxedit(data, steps: int, seed: int, workdir: Path, lpips_fn, renders_dir=None) -> dict:
     """One ``reconstruct`` run with the CLI's defaults (white background)."""
     from experiments.reconstruct import reconstruct
     from jaxedit import train as T
@@ -71,6 +83,7 @@ def run_jaxedit(data, steps: int, seed: int, workdir: Path, lpips_fn) -> dict:
     g = load_ply(workdir / "scene.ply")
     test_images, test_cams = data.test()
     renders = T.render_views(g, test_cams, sh_degree=config.sh_degree)
+    save_renders(renders_dir, f"jaxedit_{steps}", renders)
     return dict(steps=steps, **held_out_metrics(renders, test_images, lpips_fn),
                 steps_per_s=m["steps_per_s"], steady_steps_per_s=m["steady_steps_per_s"],
                 train_time_s=m["train_time_s"], num_gaussians=m["num_gaussians"],
@@ -108,7 +121,7 @@ def _torch_ssim(a, b):
     return s.mean()
 
 
-def run_gsplat(data, points, colors, steps: int, seed: int, lpips_fn) -> dict:
+def run_gsplat(data, points, colors, steps: int, seed: int, lpips_fn, renders_dir=None) -> dict:
     """A minimal gsplat trainer with simple_trainer's defaults (one view per step)."""
     import torch
     from gsplat import rasterization
@@ -191,6 +204,7 @@ def run_gsplat(data, points, colors, steps: int, seed: int, lpips_fn) -> dict:
     with torch.no_grad():
         renders = [render([j], tv, tk, 3)[0][0].clamp(0, 1).cpu().numpy()
                    for j in range(len(test_images))]
+    save_renders(renders_dir, f"gsplat_{steps}", renders)
     return dict(steps=steps, **held_out_metrics(renders, test_images, lpips_fn),
                 steps_per_s=steps / train_s, train_time_s=train_s,
                 num_gaussians=int(params["means"].shape[0]))
@@ -244,11 +258,15 @@ def main(argv=None):
         if args.lpips_weights is not None:
             from jaxedit.lpips import load_lpips
             lpips_fn = load_lpips(args.lpips_weights)
-        ours = [run_jaxedit(data, s, args.seed, tmp / f"jaxedit_{s}", lpips_fn) for s in steps]
-        live = gsplat_available() and not args.no_gsplat and not args.smoke
+        sides = set(args.sides.split(","))
+        ours = [run_jaxedit(data, s, args.seed, tmp / f"jaxedit_{s}", lpips_fn, args.renders)
+                for s in steps] if "jaxedit" in sides else []
+        live = (gsplat_available() and not args.no_gsplat and not args.smoke
+                and "gsplat" in sides)
         if live:
             points, colors, _ = initial_points(data, 20_000, args.seed)
-            theirs = [run_gsplat(data, points, colors, s, args.seed, lpips_fn) for s in steps]
+            theirs = [run_gsplat(data, points, colors, s, args.seed, lpips_fn, args.renders)
+                      for s in steps]
             gsplat_source = {"source": "measured in this run"}
         else:
             baseline = committed_gsplat()
@@ -257,12 +275,15 @@ def main(argv=None):
             gsplat_source["source"] = f"committed figures ({BASELINE.name}), not measured here"
     payload = {"data": str(args.data) if args.data else "built-in face (smoke)",
                "steps": steps, "smoke": bool(args.smoke), "gsplat_source": gsplat_source,
-               "rows": side_by_side(ours, theirs)}
+               "rows": side_by_side(ours, theirs) if ours else [
+                   {"steps": g["steps"], "jaxedit": None, "gsplat": g} for g in theirs]}
     write_json(args.out, "parity", payload)
     for row in payload["rows"]:
         r, g = row["jaxedit"], row["gsplat"]
-        line = (f"{row['steps']} steps: jaxedit {r['psnr']:.2f} dB, {r['num_gaussians']} "
-                f"Gaussians, {r['steps_per_s']:.1f} steps/s")
+        line = f"{row['steps']} steps:"
+        if r is not None:
+            line += (f" jaxedit {r['psnr']:.2f} dB, {r['num_gaussians']} Gaussians, "
+                     f"{r['steps_per_s']:.1f} steps/s")
         if g is not None:
             line += (f" | gsplat {g['psnr']:.2f} dB, {g['num_gaussians']} Gaussians, "
                      f"{g['steps_per_s']:.1f} steps/s")
