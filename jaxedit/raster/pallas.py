@@ -14,7 +14,10 @@ walks each tile's list back to front from its last contributor, recovering the
 transmittance before each pair by division (T_i = T_{i+1} / (1 - alpha_i)) and
 keeping the colour behind it as a running sum, and writes one gradient row per
 pair (each pair belongs to one tile, so every row has one writer: no atomics).
-The rows are then summed per Gaussian by :func:`reduce_pair_rows`.
+Rows land at the pair's slot in enumeration order (see :class:`.binning.Bins`),
+where each Gaussian's rows are consecutive, and a third kernel sums each
+Gaussian's run in a fixed order (:func:`reduce_pair_rows`): gradients are
+bit-identical from run to run, which a scatter-add (float atomics on a GPU) is not.
 
 Gradient of the blended features C = sum_i w_i f_i, w_i = alpha_i T_i, and of
 T_final = prod_i (1 - alpha_i), for one pixel with upstream g = dL/dC and
@@ -153,14 +156,19 @@ def _forward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref,
     last_ref[...] = last
 
 
-def _backward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref, trans_ref, last_ref,
-                     gf_ref, gt_ref, rows_ref, *, tiles_x, tile, num_features, capacity):
+def _backward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref, slots_ref, trans_ref,
+                     last_ref, gf_ref, gt_ref, zeros_ref, rows_ref, *, tiles_x, tile,
+                     num_features, capacity):
     """One tile: per-pair gradient rows, walking its list back to front.
 
     Inputs (this tile's blocks): trans_ref float [P] and last_ref int32 [P] from
     the forward; gf_ref float [F, P] = dL/dfeatures; gt_ref float [P] =
-    dL/dT_final. Output: rows_ref float [N, 6 + F], the rows of this tile's pairs.
+    dL/dT_final; slots_ref int32 [N], each pair's slot in enumeration order.
+    Output: rows_ref float [N + PAIR_BATCH, ROW] (aliased to the zeroed
+    zeros_ref), the rows of this tile's pairs up to its last contributor, at
+    their enumeration slots; rows of pairs behind it stay zero.
     """
+    del zeros_ref  # the output's initial (zero) contents
     t = pl.program_id(0)
     begin = start_ref[t]
     px, py = _pixel_centres(t, tiles_x, tile, m_ref.dtype)
@@ -185,24 +193,18 @@ def _backward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref, trans_r
         w = jnp.where(active, alpha * t_before, 0.0)
         sdx, sdy = jnp.sum(d_pow * dx), jnp.sum(d_pow * dy)
         sxx, sxy, syy = jnp.sum(d_pow * dx * dx), jnp.sum(d_pow * dx * dy), jnp.sum(d_pow * dy * dy)
-        rows_ref[i, 0] = -(a * sdx + b * sdy)
-        rows_ref[i, 1] = -(c * sdy + b * sdx)
-        rows_ref[i, 2] = -0.5 * sxx
-        rows_ref[i, 3] = -sxy
-        rows_ref[i, 4] = -0.5 * syy
-        rows_ref[i, 5] = jnp.sum(d_raw * vis)
+        dest = slots_ref[i]
+        rows_ref[dest, 0] = -(a * sdx + b * sdy)
+        rows_ref[dest, 1] = -(c * sdy + b * sdx)
+        rows_ref[dest, 2] = -0.5 * sxx
+        rows_ref[dest, 3] = -sxy
+        rows_ref[dest, 4] = -0.5 * syy
+        rows_ref[dest, 5] = jnp.sum(d_raw * vis)
         for k in range(num_features):
-            rows_ref[i, _ROW_FIXED + k] = jnp.sum(w * g_f[k])
+            rows_ref[dest, _ROW_FIXED + k] = jnp.sum(w * g_f[k])
         return jnp.where(active, t_before, trans), behind + w * gdotf
 
     jax.lax.fori_loop(0, jnp.maximum(stop - begin + 1, 0), one_pair, (t_final, behind_final))
-
-    def zero_row(i, carry):  # pairs behind every pixel's last contributor get no gradient
-        for r in range(_ROW_FIXED + num_features):
-            rows_ref[i, r] = jnp.zeros((), rows_ref.dtype)
-        return carry
-
-    jax.lax.fori_loop(jnp.maximum(stop + 1, begin), start_ref[t + 1], zero_row, ())
 
 
 def _specs(tile, num_features):
@@ -213,10 +215,12 @@ def _specs(tile, num_features):
     return feat, pix
 
 
-def _call(kernel, inputs, in_specs, out_shape, out_specs, num_tiles, interpret, num_warps):
+def _call(kernel, inputs, in_specs, out_shape, out_specs, num_programs, interpret, num_warps,
+          aliases=None):
     return pl.pallas_call(
-        kernel, out_shape=out_shape, grid=(num_tiles,), in_specs=in_specs, out_specs=out_specs,
-        interpret=interpret, compiler_params=None if interpret else _triton_params(num_warps),
+        kernel, out_shape=out_shape, grid=(num_programs,), in_specs=in_specs,
+        out_specs=out_specs, input_output_aliases=aliases or {}, interpret=interpret,
+        compiler_params=None if interpret else _triton_params(num_warps),
     )(*inputs)
 
 
@@ -266,13 +270,24 @@ def _padded_inputs(means2d, conics, opacities, features, gids, tile_start):
             pad(opacities), pad(features))
 
 
-def tiles_backward(means2d, conics, opacities, features, gids, tile_start, trans, last, g_feat,
-                   g_trans, width, height, tile, interpret=False):
-    """Backward kernel: float [N, 6 + F] gradient rows, one per pair slot (0 for unused slots).
+def row_width(num_features: int) -> int:
+    """Columns of a gradient row: 6 + F rounded up to a power of two (Triton's block shapes)."""
+    return 1 << (_ROW_FIXED + num_features - 1).bit_length()
 
-    Args: as :func:`tiles_forward`, plus the forward's ``trans`` [T, P] and
-    ``last`` [T, P], and the upstream gradients g_feat float [T, F, P] and
-    g_trans float [T, P] in tile layout.
+
+def tiles_backward(means2d, conics, opacities, features, gids, tile_start, enum_slots, trans,
+                   last, g_feat, g_trans, width, height, tile, interpret=False):
+    """Backward kernel: float [N + PAIR_BATCH, ROW] gradient rows in enumeration order.
+
+    Row ``enum_slots[i]`` holds pair i's d means2d (2), d conic (3), d opacity (1)
+    and d features (F), zero-padded to ROW = :func:`row_width` columns; rows of
+    unused slots, of pairs behind their tile's last contributor and the
+    PAIR_BATCH padding rows are zero.
+
+    Args: as :func:`tiles_forward`, plus ``enum_slots`` int32 [N] (see
+    :class:`.binning.Bins`), the forward's ``trans`` [T, P] and ``last``
+    [T, P], and the upstream gradients g_feat float [T, F, P] and g_trans float
+    [T, P] in tile layout.
     """
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
@@ -282,64 +297,87 @@ def tiles_backward(means2d, conics, opacities, features, gids, tile_start, trans
                                capacity=gids.shape[0])
     inputs = _padded_inputs(means2d, conics, opacities, features, gids, tile_start)
     dtype = means2d.dtype
-    inputs += (trans, last, g_feat.astype(dtype), g_trans.astype(dtype))
-    rows = jax.ShapeDtypeStruct((gids.shape[0], _ROW_FIXED + nf), dtype)
-    rows = _call(kernel, inputs, [_whole()] * 6 + [pix_spec, pix_spec, feat_spec, pix_spec],
-                 rows, _whole(), num_tiles, interpret, _num_warps(tile))
-    return rows
+    zeros = jnp.zeros((gids.shape[0] + PAIR_BATCH, row_width(nf)), dtype)
+    inputs += (enum_slots.astype(jnp.int32), trans, last, g_feat.astype(dtype),
+               g_trans.astype(dtype), zeros)
+    rows = jax.ShapeDtypeStruct(zeros.shape, dtype)
+    specs = [_whole()] * 7 + [pix_spec, pix_spec, feat_spec, pix_spec, _whole()]
+    return _call(kernel, inputs, specs, rows, _whole(), num_tiles, interpret, _num_warps(tile),
+                 aliases={len(inputs) - 1: 0})
 
 
-def reduce_pair_rows(rows, gids, num_gaussians):
-    """Per-Gaussian sums of per-pair rows: float [C, R] from rows [N, R], gids [N] (C = unused).
+def _reduce_kernel(ends_ref, rows_ref, out_ref, *, width):
+    """One Gaussian (k-th in depth order): the sum of its run of rows, PAIR_BATCH at a time,
+    always in the same order. out_ref: float [ROW]."""
+    k = pl.program_id(0)
+    end = ends_ref[k]
+    begin = jnp.where(k > 0, ends_ref[jnp.maximum(k - 1, 0)], 0)
+    row = jax.lax.broadcasted_iota(jnp.int32, (PAIR_BATCH, width), 0)
 
-    Slots past the frame's pairs are never written by the kernel and may hold
-    anything, so they are masked by their gid (C) before the sum.
+    def batch(j, acc):
+        first = begin + j * PAIR_BATCH
+        block = rows_ref[pl.ds(first, PAIR_BATCH), :]
+        return acc + jnp.where(first + row < end, block, 0.0)
+
+    steps = (end - begin + PAIR_BATCH - 1) // PAIR_BATCH
+    acc = jax.lax.fori_loop(0, steps, batch, jnp.zeros((PAIR_BATCH, width), rows_ref.dtype))
+    out_ref[...] = jnp.sum(acc, axis=0)
+
+
+def reduce_pair_rows(rows, depth_order, run_ends, interpret=False):
+    """Per-Gaussian sums of gradient rows: float [C, ROW].
+
+    Args:
+      rows: float [N + PAIR_BATCH, ROW] in enumeration order (:func:`tiles_backward`);
+      depth_order: int32 [C], Gaussian of each run; run_ends: int32 [C], where each
+        run ends (both from :class:`.binning.Bins`).
     """
-    used = gids < num_gaussians
-    rows = jnp.where(used[:, None], rows, 0.0)
-    seg = jnp.where(used, gids, num_gaussians)
-    return jax.ops.segment_sum(rows, seg, num_segments=num_gaussians + 1)[:num_gaussians]
+    c, width = depth_order.shape[0], rows.shape[1]
+    ends = jnp.minimum(run_ends, rows.shape[0] - PAIR_BATCH)  # an overflowed frame is redone
+    sums = _call(functools.partial(_reduce_kernel, width=width), (ends.astype(jnp.int32), rows),
+                 [_whole(), _whole()], jax.ShapeDtypeStruct((c, width), rows.dtype),
+                 pl.BlockSpec((None, width), lambda k: (k, 0)), c, interpret, 1)
+    return jnp.zeros_like(sums).at[depth_order].set(sums, unique_indices=True)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(6, 7, 8, 9))
-def composite(means2d, conics, opacities, features, gids, tile_start, width, height, tile,
+@functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6, 7, 8))
+def composite(means2d, conics, opacities, features, bins, width, height, tile,
               interpret=False):
     """Blend the sorted pairs into images with the Pallas kernels.
 
     Args:
       means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C] (0 for
         culled); features: float [C, F].
-      gids: int32 [N], pairs sorted by (tile, depth), unused slots C;
-      tile_start: int32 [T + 1] (see :class:`.binning.Bins`).
+      bins: the frame's :class:`.binning.Bins` (pairs sorted by tile and depth).
       width, height, tile: static image and tile size; interpret: run the
         kernels with the Pallas interpreter (CPU).
     Returns:
       (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
     """
-    return _composite_fwd(means2d, conics, opacities, features, gids, tile_start, width, height,
-                          tile, interpret)[0]
+    return _composite_fwd(means2d, conics, opacities, features, bins, width, height, tile,
+                          interpret)[0]
 
 
-def _composite_fwd(means2d, conics, opacities, features, gids, tile_start, width, height, tile,
-                   interpret):
-    feat, trans, last = tiles_forward(means2d, conics, opacities, features, gids, tile_start,
-                                      width, height, tile, interpret=interpret)
+def _composite_fwd(means2d, conics, opacities, features, bins, width, height, tile, interpret):
+    feat, trans, last = tiles_forward(means2d, conics, opacities, features, bins.gids,
+                                      bins.tile_start, width, height, tile, interpret=interpret)
     out = (tiles_to_image(jnp.swapaxes(feat, 1, 2), width, height, tile),
            tiles_to_image(trans, width, height, tile))
-    return out, (means2d, conics, opacities, features, gids, tile_start, trans, last)
+    return out, (means2d, conics, opacities, features, bins, trans, last)
 
 
 def _composite_bwd(width, height, tile, interpret, res, cts):
-    means2d, conics, opacities, features, gids, tile_start, trans, last = res
+    means2d, conics, opacities, features, bins, trans, last = res
     g_feat, g_trans = cts
     g_feat = jnp.swapaxes(image_to_tiles(g_feat, width, height, tile), 1, 2)  # [T, F, P]
     g_trans = image_to_tiles(g_trans, width, height, tile)
-    rows = tiles_backward(means2d, conics, opacities, features, gids, tile_start, trans, last,
-                          g_feat, g_trans, width, height, tile, interpret=interpret)
-    grads = reduce_pair_rows(rows, gids, means2d.shape[0])
+    rows = tiles_backward(means2d, conics, opacities, features, bins.gids, bins.tile_start,
+                          bins.enum_slots, trans, last, g_feat, g_trans, width, height, tile,
+                          interpret=interpret)
+    grads = reduce_pair_rows(rows, bins.depth_order, bins.run_ends, interpret=interpret)
     nf = features.shape[-1]
     return (grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, _ROW_FIXED:_ROW_FIXED + nf],
-            None, None)
+            None)
 
 
 composite.defvjp(_composite_fwd, _composite_bwd)

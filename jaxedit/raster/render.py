@@ -99,8 +99,8 @@ def _composite(proj, bins, w, h, capacity, backend):
     feats = jnp.concatenate([proj.colors, proj.depths[:, None]], -1)
     tile = tile_size(backend)
     if backend == "pallas":
-        return PK.composite(proj.means2d, proj.conics, proj.opacities, feats, bins.gids,
-                            bins.tile_start, w, h, tile, PK.use_interpreter())
+        return PK.composite(proj.means2d, proj.conics, proj.opacities, feats, bins, w, h, tile,
+                            PK.use_interpreter())
     tiles_x, tiles_y = B.grid_shape(w, h, tile)
     block = CP.block_elements(jax.default_backend())
     gids, tile_of, first = CP.make_chunks(bins, tiles_x * tiles_y, capacity, tile,
