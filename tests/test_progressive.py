@@ -350,3 +350,51 @@ def test_difficulty_views_are_a_fixed_seeded_subset():
     assert difficulty_view_subset(40, 5, jax.random.key(1)) != difficulty_view_subset(40, 5, key)
     with pytest.raises(DataError):
         difficulty_view_subset(0, None, key)
+
+
+# ---------------------------------------------------------------------------
+# The driver's pure parts
+# ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def chunk_start(tiny):
+    """A context and the state at the start of an edit subtask (the tiny scene)."""
+    from jaxedit.edit.driver import EditContext, begin_subtask, init_state
+    from jaxedit.edit.plan import SubtaskSpec
+    from jaxedit.edit.trainer import SubtaskTrainer
+
+    g, data, _, _ = tiny
+    cfg = ProEditConfig.for_mode("proedit", **TINY)
+    settings = dataclasses.replace(FAST, scene_extent=3.0, warmup=cfg.warmup)
+    trainer = SubtaskTrainer(settings, num_input=int(g.num_alive()))
+    ctx = EditContext(SimulatedEditor(), PROMPT, data, cfg, trainer, Renderer(), jax.random.key(3))
+    return ctx, begin_subtask(ctx, init_state(ctx, g)), SubtaskSpec(1, "r1", 0.5, None, "edit")
+
+
+def _bits(tree):
+    return [np.asarray(x).tobytes() for x in jax.tree_util.tree_leaves(tree)]
+
+
+@settings(max_examples=4, deadline=None)
+@given(num_steps=st.integers(1, 16), stop_if_plateau=st.booleans(), skip=st.integers(0, 12))
+def test_step_chunk_is_a_pure_function_of_its_inputs(chunk_start, num_steps, stop_if_plateau, skip):
+    from jaxedit.edit.driver import step_chunk
+
+    ctx, start, spec = chunk_start
+    start = dataclasses.replace(start, step=skip)  # any point of the subtask
+    before = _bits((start.train, start.tracker, start.images))
+    a, ra = step_chunk(ctx, start, spec, num_steps, stop_if_plateau=stop_if_plateau)
+    b, rb = step_chunk(ctx, start, spec, num_steps, stop_if_plateau=stop_if_plateau)
+    assert _bits((a.train, a.tracker, a.images)) == _bits((b.train, b.tracker, b.images))
+    assert a.step == b.step == skip + len(ra.losses) and ra.losses.tobytes() == rb.losses.tobytes()
+    assert _bits((start.train, start.tracker, start.images)) == before  # the input is untouched
+    assert start.step == skip
+
+
+def test_a_chunk_of_edit_steps_makes_no_implicit_host_transfer(chunk_start):
+    from jaxedit.edit.driver import step_chunk
+
+    ctx, start, spec = chunk_start
+    step_chunk(ctx, start, spec, 8, stop_if_plateau=False)  # compiled outside the guard
+    with jax.transfer_guard("disallow"):
+        st, result = step_chunk(ctx, start, spec, 8, stop_if_plateau=False)
+    assert st.step == 8 and len(result.losses) == 8 and np.all(np.isfinite(result.losses))

@@ -1,0 +1,437 @@
+"""The ProEdit driver of one subtask (paper 3.1, 3.3) as a state machine of pure parts.
+
+A run's state is an immutable :class:`DriverState`; pure functions advance it:
+
+* :func:`init_state`: the input scene and the original photos;
+* :func:`begin_subtask`: paper 3.3 (1), every opacity to the cull threshold, fresh
+  density statistics, loss tracker and edit flags;
+* :func:`apply_edits`: edited views land in the device-resident training set;
+* :func:`step_chunk`: up to ``CHUNK`` training steps in one compiled ``lax.scan``
+  (views, keys, density control and the loss-plateau test all on the device);
+  the host reads the chunk's losses once;
+* :func:`finish_subtask`: the subtask's record appended, the clock moved on.
+
+The edge is :func:`run_subtask`: the editor exchange (a thread in the
+asynchronous mode), checkpoints and progress happen only between chunks, at
+steps fixed by the config (every ``edit_every`` steps after the warm-up, every
+``checkpoint_every`` steps), so a seeded run and a resumed one take the same
+steps with the same bits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import DataError
+from .buffer import EditJob, Utilisation, make_source, view_order
+from .editors import interpolate_embedding
+from .outputs import Renderer
+from .plan import ProEditConfig, SubtaskSpec, anneal_timestep
+from .simulated import view_key  # (run key, view, ratio, iteration) -> key, for any editor
+from .trainer import SubtaskTrainer
+
+# fold_in "purposes" of the per-subtask key: one stream per use, never shared.
+_ORDER, _TRAIN, _VIEWS, _EDIT = 1, 2, 3, 4
+#: Most steps per compiled chunk; the host acts only between chunks.
+CHUNK = 16
+
+
+# ---------------------------------------------------------------------------
+# Views and convergence, pure in their inputs (host or device)
+# ---------------------------------------------------------------------------
+def _view_at(key, step, num_views: int):
+    epoch, pos = step // num_views, step % num_views
+    return jax.random.permutation(jax.random.fold_in(key, epoch), num_views)[pos]
+
+
+def train_view(key: jax.Array, step: int, num_views: int) -> int:
+    """The view trained at ``step``: epochs of seeded permutations (pure in (key, step))."""
+    return int(_view_at(key, int(step), num_views))
+
+
+class LossTracker(NamedTuple):
+    """Running mean of the last ``window`` losses and steps since its last minimum.
+
+    recent: float32 [window] ring buffer; count: int32, losses seen; best:
+    float32, lowest running mean so far (inf before the window is full);
+    since_best: int32, steps since then. A pytree: it is advanced on the device.
+    """
+
+    recent: jax.Array
+    count: jax.Array
+    best: jax.Array
+    since_best: jax.Array
+
+    @staticmethod
+    def init(window: int) -> "LossTracker":
+        return LossTracker(jnp.zeros((window,), jnp.float32), jnp.int32(0),
+                           jnp.float32(math.inf), jnp.int32(0))
+
+    def mean(self) -> float:
+        n = min(int(self.count), len(self.recent))
+        return float(np.mean(np.asarray(self.recent)[:n])) if n else math.inf
+
+
+def track_loss(tracker: LossTracker, loss, *, min_delta: float) -> LossTracker:
+    """Add one loss; a running mean below best * (1 - min_delta) resets the patience counter."""
+    window = tracker.recent.shape[0]
+    recent = tracker.recent.at[tracker.count % window].set(jnp.asarray(loss, jnp.float32))
+    count = tracker.count + 1
+    full = count >= window
+    mean = jnp.mean(recent)
+    better = (mean < tracker.best * (1.0 - min_delta)) | ~jnp.isfinite(tracker.best)
+    best = jnp.where(full & better, mean, tracker.best)
+    since = jnp.where(full, jnp.where(better, 0, tracker.since_best + 1), tracker.since_best)
+    return LossTracker(recent, count, best.astype(jnp.float32), since.astype(jnp.int32))
+
+
+# ---------------------------------------------------------------------------
+# What the driver reads and what it advances
+# ---------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class EditData:
+    """Views of the scene being edited.
+
+    Attributes:
+      train_images: float32 [N, H, W, 3], the original photos of the training views.
+      train_cameras: batched Camera [N].
+      test_images: float32 [M, H, W, 3], held-out originals (never trained on).
+      test_cameras: batched Camera [M].
+    """
+
+    train_images: np.ndarray
+    train_cameras: Any
+    test_images: np.ndarray
+    test_cameras: Any
+
+    def __post_init__(self):
+        if self.train_images.ndim != 4 or self.train_images.shape[-1] != 3:
+            raise DataError("train_images", f"need float [N, H, W, 3], got {self.train_images.shape}")
+        if len(self.train_cameras) != len(self.train_images):
+            raise DataError("train_cameras", f"{len(self.train_cameras)} cameras for "
+                                             f"{len(self.train_images)} images")
+        if len(self.test_cameras) != len(self.test_images):
+            raise DataError("test_cameras", f"{len(self.test_cameras)} cameras for "
+                                            f"{len(self.test_images)} images")
+        # On the device once: the training chunks read the cameras every step.
+        object.__setattr__(self, "train_cameras", jax.device_put(self.train_cameras))
+        object.__setattr__(self, "test_cameras", jax.device_put(self.test_cameras))
+
+    @staticmethod
+    def from_dataset(dataset) -> "EditData":
+        """From a :func:`jaxedit.io.load_nerfstudio` dataset (train/test split)."""
+        images = np.asarray(dataset.images, np.float32)
+        train = np.asarray(dataset.train_indices)
+        test = np.asarray(dataset.test_indices)
+        if len(test) == 0:  # no held-out split: score on the training views, say so
+            test = train
+        return EditData(images[train], dataset.cameras[train], images[test], dataset.cameras[test])
+
+
+@dataclasses.dataclass(frozen=True)
+class DriverState:
+    """Where a run is: everything needed to continue it exactly (never mutated).
+
+    Attributes:
+      subtask: index of the current subtask in the plan.
+      step: steps already taken inside it (0: not started, opacity not yet reset).
+      train: the trainer's state pytree (Gaussians, optimiser, densify stats).
+      images: float32 [N, H, W, 3] on the device, the training images as of now.
+      edited: bool [N] (host), views edited at least once in the current subtask.
+      tracker: the loss tracker of the current subtask.
+      records: one dict per finished subtask (schedule.json entries).
+      seconds: wall time spent in the current subtask before the last restart.
+      utilisation: buffer counters summed over the run.
+    """
+
+    subtask: int
+    step: int
+    train: Any
+    images: jax.Array
+    edited: np.ndarray
+    tracker: LossTracker
+    records: tuple = ()
+    seconds: float = 0.0
+    utilisation: Utilisation = dataclasses.field(default_factory=Utilisation)
+
+
+@dataclasses.dataclass(frozen=True)
+class EditContext:
+    """Everything a run reads but never changes.
+
+    Attributes:
+      editor: an :class:`jaxedit.edit.Editor`.
+      prompt: the instruction p.
+      data: the views (:class:`EditData`).
+      config: :class:`ProEditConfig`.
+      trainer: :class:`SubtaskTrainer`.
+      renderer: :class:`Renderer` used for the editor's inputs and the snapshots.
+      key: the run key (``jax.random.key(seed)``).
+      editor_device: device of the editor (async mode), see :func:`pick_devices`.
+    """
+
+    editor: Any
+    prompt: str
+    data: EditData
+    config: ProEditConfig
+    trainer: SubtaskTrainer
+    renderer: Renderer
+    key: jax.Array
+    editor_device: Any = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "e_prompt", np.asarray(self.editor.encode(self.prompt)))
+        object.__setattr__(self, "e_null", np.asarray(self.editor.encode("")))
+
+
+def make_edit_fn(ctx: EditContext, spec: SubtaskSpec) -> Callable[[EditJob, Any], np.ndarray]:
+    """``(job, scene) -> edited view`` of subtask ``spec``: render the view, edit it with e(r).
+
+    The editor sees ``image`` = the current render, ``original`` = the original
+    photo, embedding e(r); the key is (run key | subtask, view, ratio, iteration);
+    the timestep follows HiFA's annealing over ``anneal_steps`` (IN2N mode: the
+    fixed range, from which the editor draws).
+    """
+    cfg = ctx.config
+    ratio = 0.0 if spec.kind == "refine" else spec.ratio
+    embedding = interpolate_embedding(ctx.e_prompt, ctx.e_null, ratio)
+    sub_key = jax.random.fold_in(jax.random.fold_in(ctx.key, spec.index), _EDIT)
+    anneal_n = cfg.anneal_steps or cfg.max_steps
+    renderer = ctx.renderer
+
+    def edit_fn(job: EditJob, scene) -> np.ndarray:
+        camera = ctx.data.train_cameras[job.view]
+        render = renderer.rgb(scene, camera)
+        if cfg.mode == "in2n":
+            t_range = tuple(cfg.timestep_range)
+        else:
+            t = anneal_timestep(job.step, anneal_n, *cfg.timestep_range)
+            t_range = (t, t)
+        key = view_key(sub_key, job.view, ratio, job.iteration)
+        return ctx.editor.edit(render, ctx.data.train_images[job.view], embedding, key,
+                               timestep_range=t_range, guidance=tuple(cfg.guidance))
+
+    return edit_fn
+
+
+def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) -> DriverState:
+    """A run at its very beginning: the input scene, the original photos as training images."""
+    images = ctx.data.train_images if images is None else images
+    # Room to densify from the start (growth means a recompile), but not much more: the
+    # step's cost grows with the capacity. 1.5x, a multiple of 256.
+    want = -(-int(1.5 * int(gaussians.num_alive())) // 256) * 256
+    capacity = min(max(want, gaussians.capacity), max(ctx.trainer.settings.max_gaussians,
+                                                     gaussians.capacity))
+    if capacity > gaussians.capacity:
+        from ..gaussians import grow
+
+        gaussians = grow(gaussians, capacity)
+    return DriverState(subtask=0, step=0, train=ctx.trainer.init(gaussians, ctx.data.train_cameras),
+                       images=jax.device_put(np.asarray(images, np.float32)),
+                       edited=np.zeros((len(images),), bool),
+                       tracker=LossTracker.init(ctx.config.loss_window))
+
+
+def begin_subtask(ctx: EditContext, st: DriverState) -> DriverState:
+    """The state at the start of a subtask: opacity reset (paper 3.3 (1); not in IN2N mode),
+    nothing edited yet, a fresh loss tracker."""
+    train = ctx.trainer.restart(st.train) if ctx.config.mode != "in2n" else st.train
+    return dataclasses.replace(st, step=0, train=train, edited=np.zeros(len(st.edited), bool),
+                               tracker=LossTracker.init(ctx.config.loss_window), seconds=0.0)
+
+
+def apply_edits(st: DriverState, views, images) -> DriverState:
+    """``st`` with edited ``images`` [K, H, W, 3] as the training images of ``views`` [K]."""
+    if not len(views):
+        return st
+    from ..train import put_image
+
+    data, edited = st.images, st.edited.copy()
+    for v, image in zip(views, images):
+        data = put_image(data, int(v), image)
+        edited[int(v)] = True
+    return dataclasses.replace(st, images=data, edited=edited)
+
+
+def finish_subtask(st: DriverState, record: dict) -> DriverState:
+    """The state after a finished subtask: its record kept, the next subtask not begun."""
+    return dataclasses.replace(st, records=tuple(st.records) + (record,), subtask=st.subtask + 1,
+                               step=0, seconds=0.0)
+
+
+class ChunkResult(NamedTuple):
+    """What the host learns from a chunk (NumPy).
+
+    losses: float [k] of the k completed steps; redo: a step asked for a larger
+    buffer or capacity (it is redone after :func:`jaxedit.train.grow_for_redo`);
+    plateau: the loss plateaued at the last completed step; metrics: the step
+    metrics of the chunk ([length] each, for the redo's sizes).
+    """
+
+    losses: np.ndarray
+    redo: bool
+    plateau: bool
+    metrics: dict
+
+
+@functools.partial(jax.jit, static_argnames=("length", "warmup", "window", "patience",
+                                             "min_delta", "stop_on_plateau"))
+def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, length, warmup,
+                window, patience, min_delta, stop_on_plateau):
+    from ..train import Batch, _train_step
+
+    subtask, step0, n_active, stop_if_plateau = scalars[0], scalars[1], scalars[2], scalars[3] > 0
+    key_sub = jax.random.fold_in(run_key, subtask)
+    views_key, train_key = (jax.random.fold_in(key_sub, _VIEWS),
+                            jax.random.fold_in(key_sub, _TRAIN))
+    num_views = images.shape[0]
+
+    def one(carry, s):
+        st, tr = carry
+        view = _view_at(views_key, s, num_views)
+        st, m = _train_step(st, Batch(image=images[view], camera=cameras[view]),
+                            jax.random.fold_in(train_key, s))
+        tracked = ~m["redo"] & (s >= warmup)
+        tr = jax.tree_util.tree_map(functools.partial(jnp.where, tracked),
+                                    track_loss(tr, m["loss"], min_delta=min_delta), tr)
+        return (st, tr), m
+
+    blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
+                                   jax.eval_shape(one, (train_state, tracker), step0)[1])
+
+    def body(carry, i):
+        st, tr, stopped = carry
+        run = (i < n_active) & ~stopped
+        (st, tr), m = jax.lax.cond(run, one, lambda c, s: (c, blank), (st, tr), step0 + i)
+        plateau = (stop_on_plateau & (tr.count >= window) & (tr.since_best >= patience))
+        stop = run & (m["redo"] | (plateau & stop_if_plateau))
+        return (st, tr, stopped | stop), dict(m, ran=run, plateau=plateau)
+
+    (train_state, tracker, _), metrics = jax.lax.scan(
+        body, (train_state, tracker, jnp.zeros((), bool)), jnp.arange(length, dtype=jnp.int32))
+    return train_state, tracker, metrics
+
+
+def step_chunk(ctx: EditContext, st: DriverState, spec: SubtaskSpec, num_steps: int, *,
+               stop_if_plateau: bool) -> tuple[DriverState, ChunkResult]:
+    """Up to ``num_steps`` (<= CHUNK) steps of subtask ``spec``: a pure function of its inputs.
+
+    Stops early after a step that asks for a redo (not counted) or, when
+    ``stop_if_plateau``, at the step where the loss plateaus.
+    """
+    cfg = ctx.config
+    # The chunk's only upload: four int32 (explicit; images and state stay on the device).
+    scalars = jax.device_put(np.array([spec.index, st.step, num_steps, stop_if_plateau], np.int32))
+    train, tracker, metrics = _edit_chunk(
+        st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.key, scalars,
+        length=CHUNK, warmup=ctx.trainer.settings.warmup, window=cfg.loss_window,
+        patience=cfg.patience, min_delta=cfg.min_delta, stop_on_plateau=cfg.stop_on_plateau)
+    metrics = jax.device_get(metrics)  # the one host read of the chunk
+    completed = metrics["ran"] & ~metrics["redo"]
+    k = int(np.sum(completed))
+    redo = bool(np.any(metrics["ran"] & metrics["redo"]))
+    plateau = bool(k and metrics["plateau"][k - 1])
+    return (dataclasses.replace(st, train=train, tracker=tracker, step=st.step + k),
+            ChunkResult(np.asarray(metrics["loss"][:k]), redo, plateau, metrics))
+
+
+def _next_stop(step: int, cfg: ProEditConfig, warmup: int) -> int:
+    """The next step after ``step`` where the host must act (editor exchange, checkpoint, end)."""
+    stops = [cfg.max_steps, step + CHUNK, (step // cfg.checkpoint_every + 1) * cfg.checkpoint_every]
+    if step < warmup:
+        stops.append(warmup)
+    else:
+        stops.append(warmup + ((step - warmup) // cfg.edit_every + 1) * cfg.edit_every)
+    return min(stops)
+
+
+# ---------------------------------------------------------------------------
+# The edge: editor exchange, checkpoints, progress
+# ---------------------------------------------------------------------------
+def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
+                callback: Callable | None = None, checkpoint: Callable | None = None,
+                progress: Callable | None = None) -> tuple[DriverState, dict]:
+    """Train subtask ``spec`` from ``st`` (possibly resumed mid-way) until it converges.
+
+    Args:
+      callback: ``callback(spec, step, loss)`` after every step (may raise, e.g. to stop).
+      checkpoint: ``checkpoint(st)`` every ``checkpoint_every`` steps.
+      progress: ``progress(spec, step, loss, st)`` after every chunk of steps.
+    Returns:
+      (state at the end of the subtask, {"steps", "converged", "seconds", "utilisation"}).
+    """
+    from ..train import grow_for_redo
+
+    cfg, trainer = ctx.config, ctx.trainer
+    n = len(ctx.data.train_images)
+    warmup = trainer.settings.warmup
+    if st.step == 0:
+        st = begin_subtask(ctx, st)
+    key_sub = jax.random.fold_in(ctx.key, spec.index)
+    order = view_order(n, jax.random.fold_in(key_sub, _ORDER))
+    source = make_source(make_edit_fn(ctx, spec), order, asynchronous=cfg.asynchronous,
+                         every=cfg.edit_every, initial_sweep=cfg.initial_sweep,
+                         device=ctx.editor_device)
+    started = time.perf_counter() - st.seconds
+    converged = False
+    holder = [st]
+
+    def take(arrivals):
+        holder[0] = apply_edits(holder[0], [e.job.view for e in arrivals],
+                                [e.image for e in arrivals])
+
+    with source:
+        while True:
+            st = holder[0]
+            s = st.step
+            if s >= warmup and ((s - warmup) % cfg.edit_every == 0 or not source.deterministic):
+                take(source.exchange(s - warmup, trainer.gaussians(st.train)))
+                st = holder[0]
+            # The deterministic source edits the missing views itself: plateaus wait for it.
+            stop_if_plateau = bool(st.edited.all()) or not source.deterministic
+            st, chunk = step_chunk(ctx, st, spec, _next_stop(s, cfg, warmup) - s,
+                                   stop_if_plateau=stop_if_plateau)
+            if chunk.redo:
+                k = len(chunk.losses)
+                st = dataclasses.replace(st, train=grow_for_redo(st.train, jax.tree_util.tree_map(
+                    lambda a: a[k], chunk.metrics)))
+            st = dataclasses.replace(st, seconds=time.perf_counter() - started)
+            holder[0] = st
+            for i, loss in enumerate(chunk.losses):
+                if callback is not None:
+                    callback(spec, s + i + 1, float(loss))
+            if progress is not None and len(chunk.losses):
+                progress(spec, st.step, float(chunk.losses[-1]), st)
+            if chunk.plateau and not st.edited.all() and not source.deterministic:
+                # The loss settled on a partly stale dataset: wait for the missing views.
+                source.wait_for(lambda: bool(holder[0].edited.all()), timeout=600, on_edits=take)
+                st = holder[0]
+                holder[0] = st = dataclasses.replace(st, tracker=st.tracker._replace(
+                    since_best=jnp.int32(0)))
+                continue
+            if chunk.plateau and st.edited.all():
+                converged = True
+                break
+            if st.step >= cfg.max_steps:
+                converged = not cfg.stop_on_plateau  # a fixed budget ends where it should
+                if not st.edited.all() and not source.deterministic:
+                    # Never end a subtask on a dataset the editor has not fully updated to
+                    # e(r_i): a slow editor makes the trainer wait here (counted).
+                    source.wait_for(lambda: bool(holder[0].edited.all()), timeout=600,
+                                    on_edits=take)
+                break
+            if checkpoint is not None and st.step % cfg.checkpoint_every == 0 and not chunk.redo:
+                checkpoint(st)
+    st = holder[0]
+    st = dataclasses.replace(st, seconds=time.perf_counter() - started,  # final waits, join
+                             utilisation=st.utilisation.add(source.utilisation))
+    return st, {"steps": st.step, "converged": converged, "seconds": st.seconds,
+                "utilisation": source.utilisation.as_dict()}

@@ -1,0 +1,209 @@
+"""What an edit run shows: renders, metrics and snapshot folders of scene states, and the
+selection of one snapshot as ``selected.ply`` (the user's choice of aggressivity).
+
+Renders go through :class:`Renderer` (never truncated); the numbers are
+:func:`image_scores` against the editor's targets and
+:func:`reprojection_consistency` across views.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import DataError
+from ..io.files import atomic_path, atomic_write_text
+
+class Renderer:
+    """Render single views over a fixed background, never truncated.
+
+    Outside jit, :func:`jaxedit.raster.render` sizes its intersection buffer
+    itself (counting first, caching the size, redoing a frame that overflowed),
+    so a frame is complete whatever the scene's growth.
+    """
+
+    def __init__(self, background=(1.0, 1.0, 1.0)):
+        self.background = jnp.asarray(background, jnp.float32)
+
+    def __call__(self, gaussians, camera):
+        """RenderOutput of one camera."""
+        from ..raster import render
+
+        return render(gaussians, camera, background=self.background)
+
+    def rgb(self, gaussians, camera) -> np.ndarray:
+        return np.asarray(self(gaussians, camera).rgb, np.float32)
+
+    def views(self, gaussians, cameras) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rgb [N,H,W,3], alpha [N,H,W], depth [N,H,W]) of a batched camera."""
+        outs = [self(gaussians, cameras[i]) for i in range(len(cameras))]
+        return (np.stack([np.asarray(o.rgb, np.float32) for o in outs]),
+                np.stack([np.asarray(o.alpha, np.float32) for o in outs]),
+                np.stack([np.asarray(o.depth, np.float32) for o in outs]))
+
+
+def image_scores(renders: np.ndarray, targets: np.ndarray) -> dict:
+    """Mean PSNR (dB) and SSIM (scikit-image) of renders vs targets, float [N, H, W, 3] in [0, 1]."""
+    from skimage.metrics import structural_similarity
+
+    psnrs, ssims = [], []
+    for a, b in zip(np.clip(renders, 0, 1), np.clip(targets, 0, 1)):
+        mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+        psnrs.append(-10.0 * np.log10(max(mse, 1e-10)))  # identical images: 100 dB, not inf
+        ssims.append(structural_similarity(b, a, channel_axis=-1, data_range=1.0,
+                                           win_size=min(7, min(a.shape[:2]) // 2 * 2 - 1)))
+    return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims))}
+
+
+def reprojection_consistency(rgb: np.ndarray, alpha: np.ndarray, depth: np.ndarray, cameras,
+                             *, min_alpha: float = 0.5) -> float:
+    """Multi-view consistency of renders: PSNR (dB) of colours carried between neighbouring views.
+
+    Each pixel of view i with alpha > min_alpha is lifted to 3D with its rendered
+    depth, projected into view i+1 (cyclically) and compared with the colour
+    there (nearest pixel, only where that view also sees a surface at the same
+    depth within 5%). View-dependent colour that overfits inconsistent edits,
+    floaters and depth errors all lower it. Returns NaN when no pixel is co-visible.
+
+    Args:
+      rgb: float [N, H, W, 3]; alpha, depth: float [N, H, W]; cameras: batched [N].
+    """
+    n, h, w = depth.shape
+    if n < 2:
+        return float("nan")
+    ys, xs = np.mgrid[0:h, 0:w]
+    pix = np.stack([xs + 0.5, ys + 0.5, np.ones_like(xs, dtype=np.float64)], -1).reshape(-1, 3)
+    err, count = 0.0, 0
+    w2c = np.asarray(cameras.world_to_camera, np.float64)
+    k = np.asarray(cameras.intrinsics(), np.float64)
+    for i in range(n):
+        j = (i + 1) % n
+        ok = alpha[i].reshape(-1) > min_alpha
+        if not ok.any():
+            continue
+        rays = pix[ok] @ np.linalg.inv(k[i]).T
+        cam_pts = rays * depth[i].reshape(-1)[ok, None]
+        c2w = np.linalg.inv(w2c[i])
+        world = cam_pts @ c2w[:3, :3].T + c2w[:3, 3]
+        pj = world @ w2c[j][:3, :3].T + w2c[j][:3, 3]
+        z = pj[:, 2]
+        uv = pj @ k[j].T
+        front = z > 1e-6
+        u = np.floor(uv[:, 0] / np.where(front, z, 1)).astype(np.int64)
+        v = np.floor(uv[:, 1] / np.where(front, z, 1)).astype(np.int64)
+        inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        u, v, zi = u[inside], v[inside], z[inside]
+        seen = (alpha[j][v, u] > min_alpha) & (np.abs(depth[j][v, u] - zi) < 0.05 * zi)
+        if not seen.any():
+            continue
+        ci = rgb[i].reshape(-1, 3)[ok][inside][seen]
+        cj = rgb[j][v[seen], u[seen]]
+        err += float(np.sum((ci - cj) ** 2))
+        count += ci.size
+    if count == 0:
+        return float("nan")
+    mse = max(err / count, 1e-10)
+    return float(-10.0 * np.log10(mse))
+
+
+def scene_metrics(ctx, gaussians, ratio: float) -> dict:
+    """Numbers of one scene state at the held-out views.
+
+    psnr/ssim_vs_target: renders vs the editor's noise-free target at r = 1 (None
+    when the editor has no ground truth, e.g. a real diffusion model);
+    psnr/ssim_vs_subtask_target: vs the target at this subtask's ratio;
+    multiview_consistency: :func:`reprojection_consistency` of the renders (dB);
+    num_gaussians.
+    """
+    rgb, alpha, depth = ctx.renderer.views(gaussians, ctx.data.test_cameras)
+    out = {"ratio": float(ratio), "num_gaussians": int(gaussians.num_alive()),
+           "multiview_consistency": reprojection_consistency(rgb, alpha, depth,
+                                                             ctx.data.test_cameras)}
+    target = getattr(ctx.editor, "target", None)
+    if target is None:
+        out.update(psnr_vs_target=None, ssim_vs_target=None)
+        return out
+    originals = ctx.data.test_images
+    full = np.stack([target(o, 1.0, ctx.prompt) for o in originals])
+    sc = image_scores(rgb, full)
+    out.update(psnr_vs_target=sc["psnr"], ssim_vs_target=sc["ssim"])
+    part = np.stack([target(o, ratio, ctx.prompt) for o in originals])
+    sc = image_scores(rgb, part)
+    out.update(psnr_vs_subtask_target=sc["psnr"], ssim_vs_subtask_target=sc["ssim"])
+    return out
+
+
+def write_scene_snapshot(ctx, directory: Path, gaussians, *, ratio: float) -> dict:
+    """scene.ply, renders/, depth/, (turntable.webp) and metrics.json of one scene state."""
+    from .. import viz
+
+    directory = Path(directory)
+    viz.write_snapshot(directory, gaussians, ctx.data.test_cameras,
+                       background=tuple(ctx.config.background),
+                       turntable_frames=ctx.config.turntable_frames,
+                       render_fn=lambda g, cam, **kw: ctx.renderer(g, cam))
+    metrics = scene_metrics(ctx, gaussians, ratio)
+    atomic_write_text(directory / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    return metrics
+
+
+def snapshot_ratio(directory: Path) -> float:
+    """The ratio of a snapshot folder (its metrics.json)."""
+    path = Path(directory) / "metrics.json"
+    try:
+        return float(json.loads(path.read_text())["ratio"])
+    except FileNotFoundError:
+        raise DataError(path, "not a snapshot directory of an edit run (no metrics.json)") from None
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataError(path, f"malformed snapshot metrics ({e})") from None
+
+
+def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
+    """Make ``run_dir/selected.ply`` the snapshot of a subtask, chosen by ratio or index.
+
+    ``which``: an int (subtask index, negative counts from the end) or a float
+    ratio (the last subtask with the nearest ratio; a string is parsed: "2" is
+    an index, "0.5" a ratio). Also writes ``selected.json``. Returns the path.
+    """
+    run_dir = Path(run_dir)
+    path = run_dir / "schedule.json"
+    try:
+        subtasks = [s for s in json.loads(path.read_text())["subtasks"] if s.get("snapshot")]
+    except FileNotFoundError:
+        raise DataError(path, "no schedule.json: not an edit run directory") from None
+    except (KeyError, ValueError) as e:
+        raise DataError(path, f"malformed schedule ({e})") from None
+    if not subtasks:
+        raise DataError(path, "no finished subtask to select")
+    if isinstance(which, str):
+        try:
+            which = int(which) if which.lstrip("-").isdigit() else float(which)
+        except ValueError:
+            raise DataError("--select", f"expected a subtask index or a ratio, got {which!r}") from None
+    if isinstance(which, (int, np.integer)) and not isinstance(which, bool):
+        by_index = {s["index"]: s for s in subtasks}
+        idx = int(which) if which >= 0 else subtasks[int(which)]["index"] if -len(subtasks) <= which else None
+        if idx not in by_index:
+            raise DataError("--select", f"no finished subtask {which}; have "
+                                        f"{sorted(by_index)}")
+        chosen = by_index[idx]
+    else:
+        r = float(which)
+        if not 0.0 <= r <= 1.0:
+            raise DataError("--select", f"ratio must be in [0, 1], got {r}")
+        best = min(abs(s["ratio"] - r) for s in subtasks)
+        chosen = [s for s in subtasks if abs(s["ratio"] - r) == best][-1]
+    src = run_dir / chosen["snapshot"]
+    dst = run_dir / "selected.ply"
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+    atomic_write_text(run_dir / "selected.json",
+                      json.dumps({"index": chosen["index"], "name": chosen["name"],
+                                  "ratio": chosen["ratio"], "snapshot": chosen["snapshot"]},
+                                 indent=2) + "\n")
+    return dst

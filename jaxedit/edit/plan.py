@@ -1,0 +1,163 @@
+"""The plan of a ProEdit run: the driver's configuration and its subtasks (paper 3.1, 3.3).
+
+A run is the sequence r_0 (refine, e(0)) -> r_1 ... r_n -> consolidate (e(1));
+:func:`plan_subtasks` lays it out from the scheduler's ratios and
+:func:`anneal_timestep` is the SDEdit timestep within a subtask (HiFA's annealing).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Sequence
+
+from ..errors import DataError
+
+MODES = ("proedit", "nd", "in2n")
+
+
+@dataclasses.dataclass(frozen=True)
+class ProEditConfig:
+    """Knobs of the driver (defaults follow the paper where it gives a value).
+
+    Attributes:
+      mode: "proedit" | "nd" | "in2n".
+      threshold: d_threshold of the scheduler, per view: the difficulty is the mean over
+        the difficulty views of the per-view distance (the paper's eq. 3 sum divided by
+        |V|), so the threshold does not change with the number of views (None:
+        ``target_subtasks``, else d(0, 1) / 4).
+      target_subtasks: find the threshold that gives this many subtasks (a 1-D root
+        find; the paper reports ~4 for texture and ~8 for geometry edits).
+      subtasks: override with N uniform ratios (paper: ~4 texture, ~8 geometry).
+      schedule_method: "bisect" (paper) or "root" (optimistix placement).
+      max_depth: bisection depth limit.
+      refine_first / consolidate: the extra subtasks r_0 and r_n (appendix B).
+      warmup: W, steps after the opacity reset without densify/cull.
+      patience: P, steps without a new minimum of the running mean loss.
+      loss_window: length of the running mean.
+      min_delta: relative decrease that counts as "decreased".
+      max_steps: per-subtask guard.
+      anneal_steps: N of the HiFA annealing (default: max_steps).
+      timestep_range: (t_min, t_max) of SDEdit (paper 0.45-0.85).
+      guidance: (text, image) classifier-free guidance scales.
+      edit_every: trainer steps between edits in the deterministic mode.
+      initial_sweep: edit every view at the start of a subtask (deterministic mode).
+      asynchronous: producer thread instead of the deterministic schedule.
+      checkpoint_every: steps between checkpoints inside a subtask.
+      difficulty_views: size of the fixed, seeded subset of training views the difficulty
+        d(r_a, r_b) is taken over (None: all of them, up to
+        ``DIFFICULTY_VIEWS_DEFAULT_MAX``; each view costs one editor call per ratio).
+      curve_points: grid size of the reported d(0, r) curve.
+      turntable_frames: frames of each snapshot's turntable (0: none).
+      background: render background (the editor sees renders on it).
+      stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs
+        exactly ``max_steps`` (IN2N trains for a fixed number of iterations).
+    """
+
+    mode: str = "proedit"
+    threshold: float | None = None
+    target_subtasks: int | None = None
+    subtasks: int | None = None
+    schedule_method: str = "bisect"
+    max_depth: int = 4
+    refine_first: bool = True
+    consolidate: bool = True
+    warmup: int = 30
+    patience: int = 60
+    loss_window: int = 20
+    min_delta: float = 1e-3
+    max_steps: int = 600
+    anneal_steps: int | None = None
+    timestep_range: tuple[float, float] = (0.45, 0.85)
+    guidance: tuple[float, float] = (7.5, 1.5)
+    edit_every: int = 10
+    initial_sweep: bool = True
+    asynchronous: bool = False
+    checkpoint_every: int = 50
+    difficulty_views: int | None = None
+    curve_points: int = 9
+    turntable_frames: int = 0
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    stop_on_plateau: bool = True
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise DataError("--mode", f"unknown mode {self.mode!r}; choose from {', '.join(MODES)}")
+        if self.threshold is not None and not self.threshold > 0:
+            raise DataError("--threshold", f"must be > 0, got {self.threshold}")
+        if self.subtasks is not None and self.subtasks < 1:
+            raise DataError("--subtasks", f"must be >= 1, got {self.subtasks}")
+        if self.target_subtasks is not None and self.target_subtasks < 1:
+            raise DataError("--target-subtasks", f"must be >= 1, got {self.target_subtasks}")
+        if self.difficulty_views is not None and self.difficulty_views < 1:
+            raise DataError("--difficulty-views", f"must be >= 1, got {self.difficulty_views}")
+        lo, hi = self.timestep_range
+        if not 0.0 <= lo <= hi <= 1.0:
+            raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {lo}, {hi}")
+        for name in ("patience", "loss_window", "max_steps", "edit_every", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise DataError(name, f"must be >= 1, got {getattr(self, name)}")
+
+    @classmethod
+    def for_mode(cls, mode: str, **overrides) -> "ProEditConfig":
+        """Defaults of a mode; IN2N's schedule differs (no annealing, no sweep, 0.02-0.98)."""
+        base: dict[str, Any] = {"mode": mode}
+        if mode == "in2n":
+            base.update(timestep_range=(0.02, 0.98), edit_every=10, initial_sweep=False,
+                        refine_first=False, consolidate=False, warmup=0, stop_on_plateau=False)
+        base.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**base)
+
+
+@dataclasses.dataclass(frozen=True)
+class SubtaskSpec:
+    """One subtask: ``ratio`` r_i and the measured difficulty d(r_{i-1}, r_i) (None: not an edit step).
+
+    kind: "refine" (r_0, null embedding), "edit" or "consolidate" (r_n, e(1)).
+    """
+
+    index: int
+    name: str
+    ratio: float
+    difficulty: float | None
+    kind: str
+
+    @property
+    def dirname(self) -> str:
+        return f"{self.index:02d}_r{self.ratio:.3f}"
+
+
+def plan_subtasks(mode: str, ratios: Sequence[float], difficulties: Sequence[float] | None = None,
+                  *, refine_first: bool = True, consolidate: bool = True,
+                  start_ratio: float = 0.0) -> tuple[SubtaskSpec, ...]:
+    """The ordered subtasks of a run.
+
+    Args:
+      ratios: the schedule r_0 = start_ratio < r_1 < ... < r_n = 1.
+      difficulties: d(r_{i-1}, r_i) for i = 1..n (or None).
+      start_ratio: ratio the scene already has (continuing from a snapshot).
+    Returns:
+      proedit/nd: r_0 refine (if asked), r_1..r_n, r_n consolidate (if asked);
+      in2n: a single edit subtask at r = 1.
+    """
+    ratios = [float(r) for r in ratios]
+    if mode == "in2n":
+        return (SubtaskSpec(0, "r1", 1.0, None, "edit"),)
+    if len(ratios) < 2 or abs(ratios[-1] - 1.0) > 1e-9 or any(
+            b <= a for a, b in zip(ratios, ratios[1:])):
+        raise DataError("schedule", f"ratios must increase strictly to 1, got {ratios}")
+    diffs = list(difficulties) if difficulties is not None else [None] * (len(ratios) - 1)
+    specs: list[SubtaskSpec] = []
+    if refine_first:
+        specs.append(SubtaskSpec(0, "r0", float(start_ratio), None, "refine"))
+    for i, (r, d) in enumerate(zip(ratios[1:], diffs), start=1):
+        specs.append(SubtaskSpec(len(specs), f"r{i}", r, None if d is None else float(d), "edit"))
+    if consolidate:
+        specs.append(SubtaskSpec(len(specs), "rn", 1.0, None, "consolidate"))
+    return tuple(specs)
+
+
+def anneal_timestep(step: int, total: int, t_min: float, t_max: float) -> float:
+    """HiFA's annealing t(i) = t_max - (t_max - t_min) sqrt(i / N), clamped at t_min."""
+    frac = min(max(step, 0) / max(total, 1), 1.0)
+    return float(t_max - (t_max - t_min) * math.sqrt(frac))
