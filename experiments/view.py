@@ -138,7 +138,8 @@ class SnapshotViewer:
         return f"http://{HOST}:{self.server.get_port()}/"
 
     def __len__(self) -> int:
-        return len(self._scenes)
+        with self._lock:  # not mid-update
+            return len(self._scenes)
 
     def update(self, scene, label: str, *, subtask: int | None = None) -> None:
         """Add ``scene`` (Gaussians) as the newest snapshot, labelled for the user.

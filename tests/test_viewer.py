@@ -163,7 +163,8 @@ def test_watcher_shows_each_snapshot_as_the_run_writes_it(tmp_path, viser_instal
         assert len(viewer) == 1  # a PLY not yet in schedule.json is not a finished subtask
         write_schedule(run, [(1.0, snap)])  # the driver lists a subtask once its PLY is written
         wait_for(lambda: len(viewer) == 2)
-        assert viewer._shown == 1  # followed the edit
+        # Followed the edit (the slider's callback may run on viser's thread: wait for it).
+        wait_for(lambda: viewer._shown == 1)
         viewer.show(0)  # the user goes back: a later snapshot must not pull the view away
         snap2 = write_snapshot(run, "subtasks/01_r1.000", blob(2, GREEN))
         write_schedule(run, [(1.0, snap), (1.0, snap2)])
