@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 import math
 import threading
 
@@ -398,3 +399,24 @@ def test_a_chunk_of_edit_steps_makes_no_implicit_host_transfer(chunk_start):
     with jax.transfer_guard("disallow"):
         st, result = step_chunk(ctx, start, spec, 8, stop_if_plateau=False)
     assert st.step == 8 and len(result.losses) == 8 and np.all(np.isfinite(result.losses))
+
+
+class SlowEditor(SimulatedEditor):
+    """The simulated editor, 40 ms per edit: far slower than the trainer's steps."""
+
+    def edit(self, *args, **kwargs):
+        time.sleep(0.04)
+        return super().edit(*args, **kwargs)
+
+
+def test_async_driver_never_ends_a_subtask_on_edits_it_has_not_trained_on(tiny):
+    g, data, _, _ = tiny
+    # A 12-step guard fires long before 8 slow edits arrive: the driver must wait for the
+    # missing views and then train `patience` steps on the complete dataset.
+    cfg = ProEditConfig.for_mode("nd", **{**TINY, "subtasks": None, "asynchronous": True,
+                                          "refine_first": False, "max_steps": 12})
+    out = run_edit(SlowEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=2, run_dir=None)
+    for sub in out["schedule"]["subtasks"]:
+        assert sub["edits_complete_at"] is not None
+        assert sub["steps"] >= sub["edits_complete_at"] + cfg.patience
+    assert out["metrics"]["utilisation"]["trainer_waits"] >= 1

@@ -62,6 +62,7 @@ def save_checkpoint(path: str | os.PathLike, st: DriverState, meta: dict) -> Non
     arrays["tracker_recent"] = np.asarray(st.tracker.recent)
     info = {"subtask": st.subtask, "step": st.step, "records": list(st.records),
             "seconds": st.seconds, "utilisation": st.utilisation.as_dict(),
+            "complete_at": st.complete_at,
             "tracker": [int(st.tracker.count), float(st.tracker.best),
                         int(st.tracker.since_best)],
             "max_intersections": getattr(st.train, "max_intersections", None), "meta": meta}
@@ -97,5 +98,6 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[DriverStat
     st = DriverState(subtask=info["subtask"], step=info["step"], train=train,
                      images=jax.device_put(arrays["images"]), edited=arrays["edited"],
                      tracker=tracker, records=tuple(info["records"]), seconds=info["seconds"],
+                     complete_at=int(info.get("complete_at", -1)),
                      utilisation=Utilisation(**info["utilisation"]))
     return st, info["meta"]

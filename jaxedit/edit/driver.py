@@ -150,6 +150,9 @@ class DriverState:
       records: one dict per finished subtask (schedule.json entries).
       seconds: wall time spent in the current subtask before the last restart.
       utilisation: buffer counters summed over the run.
+      complete_at: the subtask's step when every view had been edited (-1: not yet);
+        it may end no earlier than ``patience`` steps later, so it never ends on
+        edits it has not trained on.
     """
 
     subtask: int
@@ -161,6 +164,7 @@ class DriverState:
     records: tuple = ()
     seconds: float = 0.0
     utilisation: Utilisation = dataclasses.field(default_factory=Utilisation)
+    complete_at: int = -1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,7 +249,8 @@ def begin_subtask(ctx: EditContext, st: DriverState) -> DriverState:
     nothing edited yet, a fresh loss tracker."""
     train = ctx.trainer.restart(st.train) if ctx.config.mode != "in2n" else st.train
     return dataclasses.replace(st, step=0, train=train, edited=np.zeros(len(st.edited), bool),
-                               tracker=LossTracker.init(ctx.config.loss_window), seconds=0.0)
+                               tracker=LossTracker.init(ctx.config.loss_window), seconds=0.0,
+                               complete_at=-1)
 
 
 def apply_edits(st: DriverState, views, images) -> DriverState:
@@ -258,13 +263,14 @@ def apply_edits(st: DriverState, views, images) -> DriverState:
     for v, image in zip(views, images):
         data = put_image(data, int(v), image)
         edited[int(v)] = True
-    return dataclasses.replace(st, images=data, edited=edited)
+    complete_at = st.step if st.complete_at < 0 and edited.all() else st.complete_at
+    return dataclasses.replace(st, images=data, edited=edited, complete_at=complete_at)
 
 
 def finish_subtask(st: DriverState, record: dict) -> DriverState:
     """The state after a finished subtask: its record kept, the next subtask not begun."""
     return dataclasses.replace(st, records=tuple(st.records) + (record,), subtask=st.subtask + 1,
-                               step=0, seconds=0.0)
+                               step=0, seconds=0.0, complete_at=-1)
 
 
 class ChunkResult(NamedTuple):
@@ -288,7 +294,8 @@ def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, leng
                 window, patience, min_delta, stop_on_plateau):
     from ..train import Batch, _train_step
 
-    subtask, step0, n_active, stop_if_plateau = scalars[0], scalars[1], scalars[2], scalars[3] > 0
+    subtask, step0, n_active = scalars[0], scalars[1], scalars[2]
+    stop_if_plateau, earliest_end = scalars[3] > 0, scalars[4]
     key_sub = jax.random.fold_in(run_key, subtask)
     views_key, train_key = (jax.random.fold_in(key_sub, _VIEWS),
                             jax.random.fold_in(key_sub, _TRAIN))
@@ -311,7 +318,8 @@ def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, leng
         st, tr, stopped = carry
         run = (i < n_active) & ~stopped
         (st, tr), m = jax.lax.cond(run, one, lambda c, s: (c, blank), (st, tr), step0 + i)
-        plateau = (stop_on_plateau & (tr.count >= window) & (tr.since_best >= patience))
+        plateau = (stop_on_plateau & (tr.count >= window) & (tr.since_best >= patience)
+                   & (step0 + i + 1 >= earliest_end))
         stop = run & (m["redo"] | (plateau & stop_if_plateau))
         return (st, tr, stopped | stop), dict(m, ran=run, plateau=plateau)
 
@@ -325,11 +333,13 @@ def step_chunk(ctx: EditContext, st: DriverState, spec: SubtaskSpec, num_steps: 
     """Up to ``num_steps`` (<= CHUNK) steps of subtask ``spec``: a pure function of its inputs.
 
     Stops early after a step that asks for a redo (not counted) or, when
-    ``stop_if_plateau``, at the step where the loss plateaus.
+    ``stop_if_plateau``, at the step where the loss plateaus (a plateau counts
+    only from :func:`earliest_end` on).
     """
     cfg = ctx.config
-    # The chunk's only upload: four int32 (explicit; images and state stay on the device).
-    scalars = jax.device_put(np.array([spec.index, st.step, num_steps, stop_if_plateau], np.int32))
+    # The chunk's only upload: five int32 (explicit; images and state stay on the device).
+    scalars = jax.device_put(np.array([spec.index, st.step, num_steps, stop_if_plateau,
+                                       earliest_end(st, cfg)], np.int32))
     train, tracker, metrics = _edit_chunk(
         st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.key, scalars,
         length=CHUNK, warmup=ctx.trainer.settings.warmup, window=cfg.loss_window,
@@ -343,9 +353,26 @@ def step_chunk(ctx: EditContext, st: DriverState, spec: SubtaskSpec, num_steps: 
             ChunkResult(np.asarray(metrics["loss"][:k]), redo, plateau, metrics))
 
 
-def _next_stop(step: int, cfg: ProEditConfig, warmup: int) -> int:
+def earliest_end(st: DriverState, cfg: ProEditConfig) -> int:
+    """The first step count at which a plateau may end the subtask: ``patience`` steps of
+    training on the complete edited dataset. While a view is still unedited a plateau is
+    reported at once (0): it ends nothing, but with edits from a thread the driver then
+    waits for the missing views."""
+    return st.complete_at + cfg.patience if st.complete_at >= 0 else 0
+
+
+def _last_step(st: DriverState, cfg: ProEditConfig, deterministic: bool) -> int:
+    """Where the ``max_steps`` guard ends the subtask. With edits from a thread, a guard that
+    fired before every view was edited waits for them and then trains ``patience`` more steps
+    on them; the deterministic schedule is a fixed budget (IN2N) and ends at ``max_steps``."""
+    if deterministic or st.complete_at < 0:
+        return cfg.max_steps
+    return max(cfg.max_steps, st.complete_at + cfg.patience)
+
+
+def _next_stop(step: int, cfg: ProEditConfig, warmup: int, last: int) -> int:
     """The next step after ``step`` where the host must act (editor exchange, checkpoint, end)."""
-    stops = [cfg.max_steps, step + CHUNK, (step // cfg.checkpoint_every + 1) * cfg.checkpoint_every]
+    stops = [last, step + CHUNK, (step // cfg.checkpoint_every + 1) * cfg.checkpoint_every]
     if step < warmup:
         stops.append(warmup)
     else:
@@ -397,7 +424,8 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                 st = holder[0]
             # The deterministic source edits the missing views itself: plateaus wait for it.
             stop_if_plateau = bool(st.edited.all()) or not source.deterministic
-            st, chunk = step_chunk(ctx, st, spec, _next_stop(s, cfg, warmup) - s,
+            last = _last_step(st, cfg, source.deterministic)
+            st, chunk = step_chunk(ctx, st, spec, _next_stop(s, cfg, warmup, last) - s,
                                    stop_if_plateau=stop_if_plateau)
             if chunk.redo:
                 k = len(chunk.losses)
@@ -420,13 +448,16 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
             if chunk.plateau and st.edited.all():
                 converged = True
                 break
-            if st.step >= cfg.max_steps:
-                converged = not cfg.stop_on_plateau  # a fixed budget ends where it should
+            if st.step >= _last_step(st, cfg, source.deterministic):
                 if not st.edited.all() and not source.deterministic:
                     # Never end a subtask on a dataset the editor has not fully updated to
-                    # e(r_i): a slow editor makes the trainer wait here (counted).
+                    # e(r_i): a slow editor makes the trainer wait here (counted), then the
+                    # guard moves to `patience` steps after the last view arrived.
                     source.wait_for(lambda: bool(holder[0].edited.all()), timeout=600,
                                     on_edits=take)
+                    if holder[0].edited.all():
+                        continue
+                converged = not cfg.stop_on_plateau  # a fixed budget ends where it should
                 break
             if checkpoint is not None and st.step % cfg.checkpoint_every == 0 and not chunk.redo:
                 checkpoint(st)
@@ -434,4 +465,5 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     st = dataclasses.replace(st, seconds=time.perf_counter() - started,  # final waits, join
                              utilisation=st.utilisation.add(source.utilisation))
     return st, {"steps": st.step, "converged": converged, "seconds": st.seconds,
+                "edits_complete_at": None if st.complete_at < 0 else st.complete_at,
                 "utilisation": source.utilisation.as_dict()}

@@ -319,6 +319,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         g = trainer.gaussians(st.train)
         record = {"index": spec.index, "name": spec.name, "kind": spec.kind, "ratio": spec.ratio,
                   "difficulty": spec.difficulty, "steps": info["steps"],
+                  "edits_complete_at": info["edits_complete_at"],
                   "seconds": info["seconds"], "converged": info["converged"],
                   "num_gaussians": int(g.num_alive()), "snapshot": None, "metrics": None}
         if not info["converged"]:
