@@ -112,23 +112,39 @@ def check_image_size(data, where) -> None:
                         f"least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE} (the SSIM window)")
 
 
-def initial_points(data, n_random: int, seed: int):
+#: Border pixels of the training images that must show the background for carving.
+CARVE_BORDER_FRACTION = 0.5
+
+
+def initial_points(data, n_random: int, seed: int, background=None):
     """(points [P, 3], colours [P, 3], source): the dataset's cloud, or photo-consistent random
-    points in the box where the training cameras' frusta overlap (jaxedit.capture.points)."""
+    points in the box where the training cameras' frusta overlap (jaxedit.capture.points).
+
+    ``background`` (RGB, the training background): when at least
+    :data:`CARVE_BORDER_FRACTION` of the training images' border pixels show it (an object
+    on a uniform background), random candidates seen as background are carved away.
+    """
     import jax
     import numpy as np
 
-    from jaxedit.capture.points import random_points
+    from jaxedit.capture.points import background_fraction, random_points
 
     if data.points is not None and len(data.points) >= 4:
         colors = data.point_colors if data.point_colors is not None else np.full(
             (len(data.points), 3), 0.5, np.float32)
         return np.asarray(data.points, np.float32), np.asarray(colors, np.float32), "dataset"
-    points, colors = random_points(*data.train(), n_random, jax.random.key(seed))
+    images, cameras = data.train()
+    if background is not None and background_fraction(images, background) < CARVE_BORDER_FRACTION:
+        background = None  # a scene photo, not an object on a background: no carving
+    points, colors = random_points(images, cameras, n_random, jax.random.key(seed),
+                                   background=background)
+    if background is not None:
+        log.info("initial points: %d random points carved by the background %s",
+                 len(points), tuple(float(c) for c in background))
     return points, colors, "random"
 
 
-def capped_initial_points(data, n_random: int, cap: int, seed: int):
+def capped_initial_points(data, n_random: int, cap: int, seed: int, background=None):
     """:func:`initial_points`, subsampled to at most ``cap`` (--max-gaussians) points.
 
     The cap is hard from the first step on, so a larger initial cloud is thinned
@@ -138,7 +154,7 @@ def capped_initial_points(data, n_random: int, cap: int, seed: int):
 
     from jaxedit import gaussians as G
 
-    points, colors, source = initial_points(data, n_random, seed)
+    points, colors, source = initial_points(data, n_random, seed, background)
     if len(points) > cap:
         log.info("initial points: keeping a random %d of the %d %s points (--max-gaussians)",
                  cap, len(points), source)
@@ -193,8 +209,9 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
             log.info("resuming from %s (step %d)", latest, int(state.step))
     points_source = "checkpoint"
     if state is None:
+        solid = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}.get(config.background)
         points, colors, points_source = capped_initial_points(
-            data, random_points, config.densify.max_gaussians, seed)
+            data, random_points, config.densify.max_gaussians, seed, solid)
         g = G.from_points(points, colors, sh_degree=config.sh_degree)
         state = T.init_state(g, config, extent, key=jax.random.key(seed))
     start_step = int(state.step)

@@ -10,7 +10,14 @@ things make that work better here:
    whose colours agree best across the views that see them (lowest variance),
    coloured by their mean. Points on a surface see one colour from every side,
    points in free space see unrelated pixels: this is the photo-consistency test
-   of voxel colouring, without its occlusion bookkeeping.
+   of voxel colouring, without its occlusion bookkeeping;
+3. **carving**: when the images show an object on a known uniform ``background``
+   (renders, RGBA captures composited over a colour), a candidate that projects
+   onto a background pixel in any view lies on a ray that hits nothing: it is in
+   free space, and is dropped (the visual hull of space carving). Without this,
+   free-space candidates that see the background in every view are the most
+   photo-consistent of all, and train into background-coloured floaters that
+   cover the object in held-out views.
 """
 
 from __future__ import annotations
@@ -64,34 +71,83 @@ def view_box(cameras: Camera, *, grid: int = 32, min_fraction: float = 1.0) -> t
     return seen.min(axis=0) - cell / 2, seen.max(axis=0) + cell / 2
 
 
+#: Largest per-channel difference from the background of a pixel that counts as background.
+BACKGROUND_TOLERANCE = 0.02
+
+
+def background_fraction(images, background) -> float:
+    """Fraction of the images' border pixels within :data:`BACKGROUND_TOLERANCE` of ``background``.
+
+    An object filmed against a uniform background (a render, an RGBA capture) has
+    borders of that colour; a photo of a scene does not.
+    """
+    images = np.asarray(images)
+    border = np.concatenate([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
+    bg = np.asarray(background, np.float64)
+    return float(np.mean(np.abs(border - bg).max(-1) <= BACKGROUND_TOLERANCE))
+
+
+def _score(points: np.ndarray, images: np.ndarray, cameras: Camera, background):
+    """(variance float64 [P], mean colour float64 [P, 3], views that see each point int [P]).
+
+    The variance is inf for points that cannot be tested (seen by fewer than two
+    views) and for carved ones (seen as ``background`` by a view): they rank last.
+    """
+    cols, rows, inside = _project(points, cameras)
+    views = np.arange(len(images))[:, None]
+    seen = images[views, rows, cols] * inside[..., None]          # [N, P, 3]
+    count = inside.sum(axis=0)
+    mean = seen.sum(axis=0) / np.maximum(count, 1)[:, None]
+    var = ((seen - mean) ** 2 * inside[..., None]).sum(axis=0).sum(-1) / np.maximum(count, 1)
+    var = np.where(count >= 2, var, np.inf)
+    if background is not None:
+        bg = np.asarray(background, np.float64)
+        carved = ((np.abs(seen - bg).max(-1) <= BACKGROUND_TOLERANCE) & inside).any(axis=0)
+        var = np.where(carved, np.inf, var)
+    return var, mean, count
+
+
 def random_points(images, cameras: Camera, num_points: int, key: jax.Array, *,
-                  oversample: int = 4) -> tuple[np.ndarray, np.ndarray]:
+                  oversample: int = 4, background=None,
+                  max_rounds: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Photo-consistent random starting points (see the module docstring).
+
+    Candidates are drawn in rounds of ``num_points * oversample`` until that many are
+    testable and not carved, or ``max_rounds`` rounds were drawn (carving may reject
+    most of the box); the ``num_points`` lowest-variance candidates are kept.
 
     Args:
       images: float [N, H, W, 3] training images; cameras: batched Camera [N] (same N).
       num_points: points returned.
-      key: PRNG key of the candidate draw.
+      key: PRNG key of the candidate draws.
       oversample: candidates drawn per point kept (1: plain uniform points, random colours).
+      background: RGB of a uniform background that the images show around the scene, or
+        None: candidates seen as background by any view are carved (ranked last).
+      max_rounds: most rounds of candidates drawn.
     Returns:
       (points float32 [num_points, 3], colours float32 [num_points, 3] in [0, 1]).
     """
     lo, hi = view_box(cameras)
     k_pos, k_col = jax.random.split(key)
     total = num_points * max(1, int(oversample))
-    points = lo + np.asarray(jax.random.uniform(k_pos, (total, 3)), np.float64) * (hi - lo)
-    colors = np.asarray(jax.random.uniform(k_col, (total, 3)), np.float64)
+
+    def draw(k):
+        pts = lo + np.asarray(jax.random.uniform(jax.random.fold_in(k_pos, k), (total, 3)),
+                              np.float64) * (hi - lo)
+        rgb = np.asarray(jax.random.uniform(jax.random.fold_in(k_col, k), (total, 3)), np.float64)
+        return pts, rgb
+
     if oversample <= 1:
+        points, colors = draw(0)
         return points.astype(np.float32), colors.astype(np.float32)
     images = np.asarray(images, np.float64)
-    cols, rows, inside = _project(points, cameras)
-    views = np.arange(len(images))[:, None]
-    seen = images[views, rows, cols] * inside[..., None]          # [N, P, 3]
-    count = inside.sum(axis=0)[:, None]
-    mean = seen.sum(axis=0) / np.maximum(count, 1)
-    var = ((seen - mean) ** 2 * inside[..., None]).sum(axis=0).sum(-1) / np.maximum(count[:, 0], 1)
-    # Points seen by fewer than two views cannot be tested: rank them last.
-    var = np.where(count[:, 0] >= 2, var, np.inf)
+    rounds = []
+    for k in range(max(1, int(max_rounds))):
+        pts, rgb = draw(k)
+        rounds.append((pts, rgb, *_score(pts, images, cameras, background)))
+        if sum(int(np.isfinite(r[2]).sum()) for r in rounds) >= total:
+            break
+    points, colors, var, mean, count = (np.concatenate(parts) for parts in zip(*rounds))
     keep = np.argsort(var, kind="stable")[:num_points]
-    colors = np.where(count[keep] >= 1, mean[keep], colors[keep])
+    colors = np.where(count[keep, None] >= 1, mean[keep], colors[keep])
     return points[keep].astype(np.float32), colors.astype(np.float32)
