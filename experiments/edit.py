@@ -174,7 +174,10 @@ def config_from_args(args):
 
 
 def progress_callback(quiet: bool):
-    """A progress(spec, step, loss, state) that drives nested bars (overall + subtask)."""
+    """A progress(spec, step, loss, state) that drives nested bars (overall + subtask).
+
+    The driver calls it after each chunk of steps with the subtask's step count so far.
+    """
     from experiments.progress import Progress, configure
 
     configure(quiet=quiet)
@@ -188,8 +191,10 @@ def progress_callback(quiet: bool):
                 bars["child"].close()
                 bars["root"].update(1)
             bars["child"] = bars["root"].child(None, f"{spec.name} r{spec.ratio:.3f}")
-            bars["spec"] = spec.index
-        bars["child"].update(1, loss=f"{loss:.4f}")
+            bars["spec"], bars["step"] = spec.index, 0
+        # Called once per chunk of steps: advance by the steps it took.
+        bars["child"].update(max(step - bars["step"], 0), loss=f"{loss:.4f}")
+        bars["step"] = step
 
     def close():
         for k in ("child", "root"):
