@@ -582,14 +582,50 @@ def select_batch(images, cameras: Camera, base_key_data, step) -> tuple[Batch, j
 CHUNK = 16
 
 
-def _train_chunk(state: TrainState, images, cameras: Camera, n_active, *, length: int):
-    """Up to ``length`` train steps in one ``lax.scan``, views and keys chosen on the device.
+def scan_steps(step, carry, n_active, *, length: int, after=None):
+    """Up to ``length`` steps of ``step`` in one ``lax.scan``, ending early on a redo or a stop.
 
     Step ``i`` runs when ``i < n_active`` and no earlier step of the chunk asked
-    for a redo; the others are skipped (``lax.cond``), so one compiled chunk
-    serves every count. A step that asks for a redo leaves the state as it was
-    (see :func:`train_step`), so the returned state is the one after the
-    completed steps.
+    for a redo or a stop; the others are skipped (``lax.cond``) with blank
+    metrics, so one compiled chunk serves every count. A step that asks for a
+    redo must leave its carry as it was (see :func:`train_step`), so the
+    returned carry is the one after the completed steps.
+
+    Args:
+      step: ``(carry, i) -> (carry, metrics)``, ``i`` int32 [] the index in the
+        chunk; ``metrics`` is a dict of arrays holding a bool ``redo``.
+      carry: the pytree the steps advance.
+      n_active: int32 [], steps wanted (<= ``length``).
+      length: static scan length.
+      after: optional ``(carry, metrics, i) -> (metrics, stop)``, evaluated after
+        every index: extends the metrics and says whether the chunk ends after
+        this step (e.g. a loss plateau); its stop counts only for a step that ran.
+    Returns:
+      (carry, metrics): the metrics stacked over the chunk ([length] each) plus
+      ``ran`` (bool [length]: the step was attempted); a completed step has
+      ``ran & ~redo``.
+    """
+    blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
+                                   jax.eval_shape(step, carry, jnp.zeros((), jnp.int32))[1])
+
+    def body(state, i):
+        inner, stopped = state
+        run = (i < n_active) & ~stopped
+        inner, metrics = jax.lax.cond(run, step, lambda c, _: (c, blank), inner, i)
+        stop = metrics["redo"]
+        if after is not None:
+            metrics, extra_stop = after(inner, metrics, i)
+            stop = stop | extra_stop
+        return (inner, stopped | (run & stop)), dict(metrics, ran=run)
+
+    (carry, _), metrics = jax.lax.scan(body, (carry, jnp.zeros((), bool)),
+                                       jnp.arange(length, dtype=jnp.int32))
+    return carry, metrics
+
+
+def _train_chunk(state: TrainState, images, cameras: Camera, n_active, *, length: int):
+    """Up to ``length`` train steps in one ``lax.scan`` (:func:`scan_steps`), views and keys
+    chosen on the device.
 
     Args:
       state: TrainState.
@@ -598,29 +634,16 @@ def _train_chunk(state: TrainState, images, cameras: Camera, n_active, *, length
       n_active: int32 [], steps wanted (<= ``length``).
       length: static scan length.
     Returns:
-      (state, metrics): metrics holds :func:`train_step`'s metrics stacked over
-      the chunk ([length] each) plus ``ran`` (bool [length]: the step was
-      attempted); a completed step has ``ran & ~redo``.
+      (state, metrics): :func:`train_step`'s metrics stacked over the chunk
+      ([length] each) plus ``ran``; a completed step has ``ran & ~redo``.
     """
     num_views = images.shape[0]
 
-    def one(st):
+    def one(st, _):
         view, key = _view_and_key(st.key, st.step, num_views)
         return _train_step(st, Batch(image=images[view], camera=cameras[view]), key)
 
-    blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
-                                   jax.eval_shape(one, state)[1])
-
-    def body(carry, i):
-        st, stopped = carry
-        run = (i < n_active) & ~stopped
-        st, metrics = jax.lax.cond(run, one, lambda s: (s, blank), st)
-        metrics = dict(metrics, ran=run)
-        return (st, stopped | (run & metrics["redo"])), metrics
-
-    (state, _), metrics = jax.lax.scan(body, (state, jnp.zeros((), bool)),
-                                       jnp.arange(length, dtype=jnp.int32))
-    return state, metrics
+    return scan_steps(one, state, n_active, length=length)
 
 
 train_chunk = jax.jit(_train_chunk, static_argnames=("length",))

@@ -292,7 +292,7 @@ class ChunkResult(NamedTuple):
                                              "min_delta", "stop_on_plateau"))
 def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, length, warmup,
                 window, patience, min_delta, stop_on_plateau):
-    from ..train import Batch, _train_step
+    from ..train import Batch, _train_step, scan_steps
 
     subtask, step0, n_active = scalars[0], scalars[1], scalars[2]
     stop_if_plateau, earliest_end = scalars[3] > 0, scalars[4]
@@ -301,8 +301,9 @@ def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, leng
                             jax.random.fold_in(key_sub, _TRAIN))
     num_views = images.shape[0]
 
-    def one(carry, s):
+    def one(carry, i):
         st, tr = carry
+        s = step0 + i
         view = _view_at(views_key, s, num_views)
         st, m = _train_step(st, Batch(image=images[view], camera=cameras[view]),
                             jax.random.fold_in(train_key, s))
@@ -311,20 +312,14 @@ def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, leng
                                     track_loss(tr, m["loss"], min_delta=min_delta), tr)
         return (st, tr), m
 
-    blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
-                                   jax.eval_shape(one, (train_state, tracker), step0)[1])
-
-    def body(carry, i):
-        st, tr, stopped = carry
-        run = (i < n_active) & ~stopped
-        (st, tr), m = jax.lax.cond(run, one, lambda c, s: (c, blank), (st, tr), step0 + i)
+    def after(carry, m, i):
+        tr = carry[1]
         plateau = (stop_on_plateau & (tr.count >= window) & (tr.since_best >= patience)
                    & (step0 + i + 1 >= earliest_end))
-        stop = run & (m["redo"] | (plateau & stop_if_plateau))
-        return (st, tr, stopped | stop), dict(m, ran=run, plateau=plateau)
+        return dict(m, plateau=plateau), plateau & stop_if_plateau
 
-    (train_state, tracker, _), metrics = jax.lax.scan(
-        body, (train_state, tracker, jnp.zeros((), bool)), jnp.arange(length, dtype=jnp.int32))
+    (train_state, tracker), metrics = scan_steps(one, (train_state, tracker), n_active,
+                                                 length=length, after=after)
     return train_state, tracker, metrics
 
 
