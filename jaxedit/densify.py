@@ -260,6 +260,9 @@ def opacity_reset(gaussians: Gaussians, opt_state, value: float, *, clamp: bool 
     """
     value = jnp.asarray(value, gaussians.opacity_logits.dtype)
     logit = jnp.log(value) - jnp.log1p(-value)
+    # Rounded, sigmoid(logit) can land one ulp below ``value`` (0.005 does in float32): the
+    # cull ``opacity < cull_alpha`` would then remove every Gaussian no view has updated yet.
+    logit = jnp.where(jax.nn.sigmoid(logit) < value, jnp.nextafter(logit, jnp.inf), logit)
     new = jnp.minimum(gaussians.opacity_logits, logit) if clamp else jnp.full_like(
         gaussians.opacity_logits, logit)
     logits = jnp.where(gaussians.alive, new, gaussians.opacity_logits)

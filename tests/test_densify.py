@@ -291,6 +291,16 @@ def test_opacity_reset_set_and_clamp():
         assert np.all(np.asarray(node.means) == 1)
 
 
+@pytest.mark.parametrize("value", [0.005, 0.01, 0.1, 0.3])
+def test_an_opacity_reset_to_the_cull_threshold_culls_nothing(value):
+    # In float32 sigmoid(logit(0.005)) rounds one ulp below 0.005: the cull would remove
+    # every Gaussian no view had updated since the reset.
+    g, _, _, _ = random_case(2, 20)
+    g_set, _ = D.opacity_reset(g, None, value)
+    op = np.asarray(g_set.opacities())[np.asarray(g.alive)]
+    assert np.all(op >= np.float32(value)) and np.allclose(op, value, rtol=1e-6)
+
+
 def test_periodic_reset_runs_inside_update():
     strategy = D.adaptive(budget=None, **{**COMMON, "reset_every": 20})
     g, opt_state, stats, aux = random_case(4, 25)
