@@ -420,3 +420,111 @@ def test_async_driver_never_ends_a_subtask_on_edits_it_has_not_trained_on(tiny):
         assert sub["edits_complete_at"] is not None
         assert sub["steps"] >= sub["edits_complete_at"] + cfg.patience
     assert out["metrics"]["utilisation"]["trainer_waits"] >= 1
+
+
+def test_subtask_guard_scales_with_views_and_resolution():
+    from jaxedit.edit.plan import GUARD_MIN_STEPS, subtask_guard
+
+    assert subtask_guard(4, 32, 32) == GUARD_MIN_STEPS  # small scenes keep the floor
+    assert subtask_guard(32, 64, 64) == 640  # the demo: 20 epochs of its 32 views
+    assert subtask_guard(64, 64, 64) == 2 * subtask_guard(32, 64, 64)
+    assert subtask_guard(100, 512, 512) == 4000  # twice the passes at twice the side
+    assert subtask_guard(100, 540, 960) > subtask_guard(100, 256, 256)
+
+
+class RecordingEditor(SimulatedEditor):
+    """The simulated editor, recording the SDEdit timestep range of every call."""
+
+    def __init__(self):
+        super().__init__()
+        self.timesteps = []
+
+    def edit(self, *args, timestep_range=(0.02, 0.98), **kwargs):
+        self.timesteps.append(tuple(float(t) for t in timestep_range))
+        return super().edit(*args, timestep_range=timestep_range, **kwargs)
+
+
+def test_the_anneal_reaches_t_min_in_subtasks_that_end_on_their_plateau(tiny):
+    g, data, _, _ = tiny
+    # A guard far above where the plateau ends: the anneal must follow the subtask's real
+    # length (with N = max_steps it would stop near t_max).
+    cfg = ProEditConfig.for_mode("proedit", **{**TINY, "subtasks": 2, "refine_first": False,
+                                               "max_steps": 300})
+    editor = RecordingEditor()
+    out = run_edit(editor, PROMPT, data, g, config=cfg, settings=FAST, seed=5, run_dir=None)
+    subs = out["schedule"]["subtasks"]
+    assert len(subs) == 2 and all(s["converged"] and s["guard"] is None for s in subs)
+    t_min, t_max = cfg.timestep_range
+    # The subtasks' edits (the difficulty's edits use t = 0.98): one non-increasing run of
+    # timesteps per subtask, restarting at t_max.
+    ts = [t0 for t0, t1 in editor.timesteps if t0 == t1 and t0 <= t_max]
+    starts = [0] + [i for i in range(1, len(ts)) if ts[i] > ts[i - 1]] + [len(ts)]
+    runs = [ts[a:b] for a, b in zip(starts, starts[1:])]
+    assert len(runs) == 2
+    for run, sub in zip(runs, subs):
+        assert run[0] == pytest.approx(t_max) and run[-1] == pytest.approx(t_min)
+        assert sub["annealed_at"] + cfg.patience <= sub["steps"] < cfg.max_steps
+    # The second subtask anneals over half the first one's length.
+    assert subs[1]["anneal_horizon"] == cfg.warmup + (subs[0]["steps"] - cfg.warmup) // 2
+
+
+def test_an_input_above_200k_gaussians_grows_up_to_its_cap_and_never_past_it():
+    # Real reconstructions hold 0.3-3M Gaussians; the old fixed 200k cap left such a scene
+    # no room at all. Tiny images keep the 200k-Gaussian steps cheap.
+    rng = np.random.default_rng(1)
+    n = 200_200
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    g = gl.from_points(d * rng.uniform(0.2, 0.5, (n, 1)), rng.uniform(0, 1, (n, 3)),
+                       sh_degree=0, init_opacity=0.5)
+    cams = cl.orbit(6, radius=2.5, width=16, height=16, elevation_deg=15)
+    renderer = Renderer()
+    images = np.stack([renderer.rgb(g, cams[i]) for i in range(6)])
+    data = EditData(images[:4], cams[np.arange(4)], images[4:], cams[np.arange(4, 6)])
+    cap = n + 500
+    # Opacities frozen: the cull removes nothing, so only the cap can bound the growth.
+    settings = dataclasses.replace(FAST, max_gaussians=cap, refine_every=4, lr_opacity=0.0)
+    cfg = ProEditConfig.for_mode("nd", warmup=2, patience=4, loss_window=4, max_steps=14,
+                                 edit_every=3, refine_first=False, consolidate=False,
+                                 difficulty_views=1, curve_points=2, asynchronous=False)
+    alive, logs = [], []
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=settings, seed=0,
+                   run_dir=None, log=logs.append,
+                   progress=lambda spec, step, loss, st: alive.append(
+                       int(st.train.gaussians.num_alive())))
+    sub = out["schedule"]["subtasks"][0]
+    density = sub["density"]
+    assert density["refinements"] >= 2 and density["created"] > 0
+    assert max(alive) <= cap and int(out["gaussians"].num_alive()) == cap  # up to it, not past
+    # t(n) wanted ~2% of 200k per maintenance step; the cap left room for 500: said loudly.
+    assert density["cap_limited"] >= 1 and density["shortfall"] > 0
+    assert any(f"the Gaussian cap ({cap}) limited creation" in m for m in logs)
+    assert out["schedule"]["max_gaussians"] == cap
+
+
+def test_target_subtasks_gives_4_and_8_subtasks_on_the_demo_scene(tmp_path):
+    """The demo's edit (the person scene at 64 px, its first instruction, 8 seeded difficulty
+    views, LPIPS-VGG where its weights are converted) split for 4 and for 8 subtasks."""
+    from jaxedit import scenes
+    from jaxedit.edit import schedule as sched
+    from jaxedit.edit.difficulty import DifficultyOracle, lpips_weights_to_use
+    from jaxedit.edit.progressive import difficulty_view_subset
+    from jaxedit.io import load_nerfstudio
+
+    path = scenes.make_scene("person", tmp_path / "person", downscale=4, views=32, test_views=4)
+    ds = load_nerfstudio(path)
+    originals = np.asarray(ds.images, np.float32)[np.asarray(ds.train_indices)]
+    weights = lpips_weights_to_use("auto")
+    distance = None
+    if weights is not None:
+        from jaxedit.lpips import lpips_distance
+
+        distance = lpips_distance(weights)
+    editor = SimulatedEditor()
+    views = difficulty_view_subset(len(originals), 8, jax.random.key(0))
+    oracle = DifficultyOracle(editor, originals, editor.instructions[0], views=views,
+                              distance=distance, seed=0, reduction="mean")
+    for target in (4, 8):
+        s = sched.for_target_subtasks(oracle, target, max_depth=4)
+        assert abs(s.num_subtasks - target) <= 1, (target, s.num_subtasks, s.threshold)
+        assert not s.depth_limit_hit

@@ -19,7 +19,7 @@ import numpy as np
 from ..errors import DataError
 from ..io.files import atomic_path
 from .buffer import Utilisation
-from .driver import DriverState, LossTracker
+from .driver import DensityTally, DriverState, LossTracker
 
 CHECKPOINT_NAME = "checkpoint.npz"
 
@@ -62,7 +62,8 @@ def save_checkpoint(path: str | os.PathLike, st: DriverState, meta: dict) -> Non
     arrays["tracker_recent"] = np.asarray(st.tracker.recent)
     info = {"subtask": st.subtask, "step": st.step, "records": list(st.records),
             "seconds": st.seconds, "utilisation": st.utilisation.as_dict(),
-            "complete_at": st.complete_at,
+            "complete_at": st.complete_at, "annealed_at": st.annealed_at,
+            "density": list(st.density),
             "tracker": [int(st.tracker.count), float(st.tracker.best),
                         int(st.tracker.since_best)],
             "max_intersections": getattr(st.train, "max_intersections", None), "meta": meta}
@@ -99,5 +100,7 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[DriverStat
                      images=jax.device_put(arrays["images"]), edited=arrays["edited"],
                      tracker=tracker, records=tuple(info["records"]), seconds=info["seconds"],
                      complete_at=int(info.get("complete_at", -1)),
+                     annealed_at=int(info.get("annealed_at", -1)),
+                     density=DensityTally(*info.get("density", ())),
                      utilisation=Utilisation(**info["utilisation"]))
     return st, info["meta"]

@@ -34,7 +34,7 @@ from ..errors import DataError
 from .buffer import EditJob, Utilisation, make_source, view_order
 from .editors import interpolate_embedding
 from .outputs import Renderer
-from .plan import ProEditConfig, SubtaskSpec, anneal_timestep
+from .plan import ProEditConfig, SubtaskSpec, anneal_horizon, anneal_timestep, subtask_guard
 from .simulated import view_key  # (run key, view, ratio, iteration) -> key, for any editor
 from .trainer import SubtaskTrainer
 
@@ -91,6 +91,37 @@ def track_loss(tracker: LossTracker, loss, *, min_delta: float) -> LossTracker:
     best = jnp.where(full & better, mean, tracker.best)
     since = jnp.where(full, jnp.where(better, 0, tracker.since_best + 1), tracker.since_best)
     return LossTracker(recent, count, best.astype(jnp.float32), since.astype(jnp.int32))
+
+
+class DensityTally(NamedTuple):
+    """What density control did in a subtask (host ints, summed over its maintenance steps).
+
+    refinements: maintenance steps; created / culled: Gaussians; cap_limited:
+    maintenance steps where the hard cap, not the budget t(n), bounded creation;
+    shortfall: Gaussians those steps wanted (min(t(n), candidates)) but had no room for.
+    """
+
+    refinements: int = 0
+    created: int = 0
+    culled: int = 0
+    cap_limited: int = 0
+    shortfall: int = 0
+
+
+def tally_density(tally: DensityTally, densify: dict, completed: np.ndarray) -> DensityTally:
+    """``tally`` plus the maintenance steps among the ``completed`` steps of a chunk.
+
+    ``densify`` holds :class:`jaxedit.densify.DensifyInfo`'s fields as NumPy arrays [length].
+    """
+    ran = completed & np.asarray(densify["refined"], bool)
+    capped = ran & np.asarray(densify["cap_limited"], bool)
+    wanted = np.minimum(densify["budget"], densify["candidates"]).astype(np.int64)
+    short = np.maximum(wanted - np.asarray(densify["created"], np.int64), 0)
+    return DensityTally(tally.refinements + int(ran.sum()),
+                        tally.created + int(np.sum(densify["created"], where=ran)),
+                        tally.culled + int(np.sum(densify["culled"], where=ran)),
+                        tally.cap_limited + int(capped.sum()),
+                        tally.shortfall + int(np.sum(short, where=capped)))
 
 
 # ---------------------------------------------------------------------------
@@ -153,6 +184,10 @@ class DriverState:
       complete_at: the subtask's step when every view had been edited (-1: not yet);
         it may end no earlier than ``patience`` steps later, so it never ends on
         edits it has not trained on.
+      annealed_at: the subtask's step when the first edit made at t_min arrived
+        (-1: not yet); a plateau ends the subtask no earlier than ``patience`` steps
+        later, so the annealing always reaches t_min.
+      density: the subtask's :class:`DensityTally`.
     """
 
     subtask: int
@@ -165,6 +200,8 @@ class DriverState:
     seconds: float = 0.0
     utilisation: Utilisation = dataclasses.field(default_factory=Utilisation)
     complete_at: int = -1
+    annealed_at: int = -1
+    density: DensityTally = DensityTally()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,7 +212,8 @@ class EditContext:
       editor: an :class:`jaxedit.edit.Editor`.
       prompt: the instruction p.
       data: the views (:class:`EditData`).
-      config: :class:`ProEditConfig`.
+      config: :class:`ProEditConfig`; a ``max_steps`` of None becomes the scene's
+        :func:`jaxedit.edit.plan.subtask_guard`.
       trainer: :class:`SubtaskTrainer`.
       renderer: :class:`Renderer` used for the editor's inputs and the snapshots.
       key: the run key (``jax.random.key(seed)``).
@@ -192,23 +230,27 @@ class EditContext:
     editor_device: Any = None
 
     def __post_init__(self):
+        if self.config.max_steps is None:
+            n, h, w = self.data.train_images.shape[:3]
+            object.__setattr__(self, "config", dataclasses.replace(
+                self.config, max_steps=subtask_guard(n, h, w)))
         object.__setattr__(self, "e_prompt", np.asarray(self.editor.encode(self.prompt)))
         object.__setattr__(self, "e_null", np.asarray(self.editor.encode("")))
 
 
-def make_edit_fn(ctx: EditContext, spec: SubtaskSpec) -> Callable[[EditJob, Any], np.ndarray]:
+def make_edit_fn(ctx: EditContext, spec: SubtaskSpec,
+                 horizon: int) -> Callable[[EditJob, Any], np.ndarray]:
     """``(job, scene) -> edited view`` of subtask ``spec``: render the view, edit it with e(r).
 
     The editor sees ``image`` = the current render, ``original`` = the original
     photo, embedding e(r); the key is (run key | subtask, view, ratio, iteration);
-    the timestep follows HiFA's annealing over ``anneal_steps`` (IN2N mode: the
-    fixed range, from which the editor draws).
+    the timestep follows HiFA's annealing over ``horizon`` steps after the warm-up
+    (:func:`anneal_horizon`; IN2N mode: the fixed range, from which the editor draws).
     """
     cfg = ctx.config
     ratio = 0.0 if spec.kind == "refine" else spec.ratio
     embedding = interpolate_embedding(ctx.e_prompt, ctx.e_null, ratio)
     sub_key = jax.random.fold_in(jax.random.fold_in(ctx.key, spec.index), _EDIT)
-    anneal_n = cfg.anneal_steps or cfg.max_steps
     renderer = ctx.renderer
 
     def edit_fn(job: EditJob, scene) -> np.ndarray:
@@ -217,7 +259,7 @@ def make_edit_fn(ctx: EditContext, spec: SubtaskSpec) -> Callable[[EditJob, Any]
         if cfg.mode == "in2n":
             t_range = tuple(cfg.timestep_range)
         else:
-            t = anneal_timestep(job.step, anneal_n, *cfg.timestep_range)
+            t = anneal_timestep(job.step, horizon, *cfg.timestep_range)
             t_range = (t, t)
         key = view_key(sub_key, job.view, ratio, job.iteration)
         return ctx.editor.edit(render, ctx.data.train_images[job.view], embedding, key,
@@ -250,11 +292,14 @@ def begin_subtask(ctx: EditContext, st: DriverState) -> DriverState:
     train = ctx.trainer.restart(st.train) if ctx.config.mode != "in2n" else st.train
     return dataclasses.replace(st, step=0, train=train, edited=np.zeros(len(st.edited), bool),
                                tracker=LossTracker.init(ctx.config.loss_window), seconds=0.0,
-                               complete_at=-1)
+                               complete_at=-1, annealed_at=-1, density=DensityTally())
 
 
-def apply_edits(st: DriverState, views, images) -> DriverState:
-    """``st`` with edited ``images`` [K, H, W, 3] as the training images of ``views`` [K]."""
+def apply_edits(st: DriverState, views, images, annealed=()) -> DriverState:
+    """``st`` with edited ``images`` [K, H, W, 3] as the training images of ``views`` [K].
+
+    ``annealed`` (bool [K], optional): the edit was made at t_min.
+    """
     if not len(views):
         return st
     from ..train import put_image
@@ -264,13 +309,16 @@ def apply_edits(st: DriverState, views, images) -> DriverState:
         data = put_image(data, int(v), image)
         edited[int(v)] = True
     complete_at = st.step if st.complete_at < 0 and edited.all() else st.complete_at
-    return dataclasses.replace(st, images=data, edited=edited, complete_at=complete_at)
+    annealed_at = st.step if st.annealed_at < 0 and any(annealed) else st.annealed_at
+    return dataclasses.replace(st, images=data, edited=edited, complete_at=complete_at,
+                               annealed_at=annealed_at)
 
 
 def finish_subtask(st: DriverState, record: dict) -> DriverState:
     """The state after a finished subtask: its record kept, the next subtask not begun."""
     return dataclasses.replace(st, records=tuple(st.records) + (record,), subtask=st.subtask + 1,
-                               step=0, seconds=0.0, complete_at=-1)
+                               step=0, seconds=0.0, complete_at=-1, annealed_at=-1,
+                               density=DensityTally())
 
 
 class ChunkResult(NamedTuple):
@@ -344,25 +392,41 @@ def step_chunk(ctx: EditContext, st: DriverState, spec: SubtaskSpec, num_steps: 
     k = int(np.sum(completed))
     redo = bool(np.any(metrics["ran"] & metrics["redo"]))
     plateau = bool(k and metrics["plateau"][k - 1])
-    return (dataclasses.replace(st, train=train, tracker=tracker, step=st.step + k),
+    density = tally_density(st.density, metrics["densify"], completed)
+    return (dataclasses.replace(st, train=train, tracker=tracker, step=st.step + k,
+                                density=density),
             ChunkResult(np.asarray(metrics["loss"][:k]), redo, plateau, metrics))
+
+
+#: earliest_end while the annealing has not reached t_min: no plateau ends the subtask.
+NOT_YET = 2 ** 30
 
 
 def earliest_end(st: DriverState, cfg: ProEditConfig) -> int:
     """The first step count at which a plateau may end the subtask: ``patience`` steps of
-    training on the complete edited dataset. While a view is still unedited a plateau is
-    reported at once (0): it ends nothing, but with edits from a thread the driver then
-    waits for the missing views."""
-    return st.complete_at + cfg.patience if st.complete_at >= 0 else 0
+    training on the complete edited dataset, and on an edit made at t_min (the annealing
+    reaches its end in every subtask; not in IN2N mode, which does not anneal). While a
+    view is still unedited a plateau is reported at once (0): it ends nothing, but with
+    edits from a thread the driver then waits for the missing views."""
+    if st.complete_at < 0:
+        return 0
+    if cfg.mode == "in2n":
+        return st.complete_at + cfg.patience
+    if st.annealed_at < 0:
+        return NOT_YET
+    return max(st.complete_at, st.annealed_at) + cfg.patience
 
 
-def _last_step(st: DriverState, cfg: ProEditConfig, deterministic: bool) -> int:
-    """Where the ``max_steps`` guard ends the subtask. With edits from a thread, a guard that
-    fired before every view was edited waits for them and then trains ``patience`` more steps
-    on them; the deterministic schedule is a fixed budget (IN2N) and ends at ``max_steps``."""
+def _last_step(st: DriverState, cfg: ProEditConfig, deterministic: bool,
+               guard: int | None = None) -> int:
+    """Where the guard (``max_steps``, or ``guard`` when the time guard fired there) ends
+    the subtask. With edits from a thread, a guard that fired before every view was edited
+    waits for them and then trains ``patience`` more steps on them; the deterministic
+    schedule is a fixed budget (IN2N) and ends at the guard."""
+    guard = cfg.max_steps if guard is None else min(guard, cfg.max_steps)
     if deterministic or st.complete_at < 0:
-        return cfg.max_steps
-    return max(cfg.max_steps, st.complete_at + cfg.patience)
+        return guard
+    return max(guard, st.complete_at + cfg.patience)
 
 
 def _next_stop(step: int, cfg: ProEditConfig, warmup: int, last: int) -> int:
@@ -388,7 +452,9 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
       checkpoint: ``checkpoint(st)`` every ``checkpoint_every`` steps.
       progress: ``progress(spec, step, loss, st)`` after every chunk of steps.
     Returns:
-      (state at the end of the subtask, {"steps", "converged", "seconds", "utilisation"}).
+      (state at the end of the subtask, {"steps", "converged", "guard", "seconds",
+      "edits_complete_at", "anneal_horizon", "annealed_at", "density", "utilisation"});
+      ``guard`` is None (plateau), "steps" or "seconds".
     """
     from ..train import grow_for_redo
 
@@ -399,18 +465,20 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
         st = begin_subtask(ctx, st)
     key_sub = jax.random.fold_in(ctx.key, spec.index)
     order = view_order(n, jax.random.fold_in(key_sub, _ORDER))
+    horizon = anneal_horizon(st.records, cfg, warmup)
     # Room for two chunks' worth of edits, so a fast editor is never held up between
     # the trainer's collections.
-    source = make_source(make_edit_fn(ctx, spec), order, asynchronous=cfg.asynchronous,
+    source = make_source(make_edit_fn(ctx, spec, horizon), order, asynchronous=cfg.asynchronous,
                          every=cfg.edit_every, initial_sweep=cfg.initial_sweep,
                          device=ctx.editor_device, capacity=2 * CHUNK)
     started = time.perf_counter() - st.seconds
-    converged = False
+    converged, timed_out_at = False, None
     holder = [st]
 
     def take(arrivals):
         holder[0] = apply_edits(holder[0], [e.job.view for e in arrivals],
-                                [e.image for e in arrivals])
+                                [e.image for e in arrivals],
+                                [e.job.step >= horizon for e in arrivals])
 
     with source:
         while True:
@@ -421,7 +489,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                 st = holder[0]
             # The deterministic source edits the missing views itself: plateaus wait for it.
             stop_if_plateau = bool(st.edited.all()) or not source.deterministic
-            last = _last_step(st, cfg, source.deterministic)
+            last = _last_step(st, cfg, source.deterministic, timed_out_at)
             # With edits from a thread the host exchanges with the editor at every step, as
             # the per-step driver did: collecting them once per 10-step chunk left the editor
             # working from stale renders and cost the demo 1.5 dB (38.4 -> 36.4-36.9 dB vs
@@ -434,6 +502,8 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                 st = dataclasses.replace(st, train=grow_for_redo(st.train, jax.tree_util.tree_map(
                     lambda a: a[k], chunk.metrics)))
             st = dataclasses.replace(st, seconds=time.perf_counter() - started)
+            if timed_out_at is None and cfg.max_seconds is not None and st.seconds >= cfg.max_seconds:
+                timed_out_at = st.step
             holder[0] = st
             for i, loss in enumerate(chunk.losses):
                 if callback is not None:
@@ -450,7 +520,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
             if chunk.plateau and st.edited.all():
                 converged = True
                 break
-            if st.step >= _last_step(st, cfg, source.deterministic):
+            if st.step >= _last_step(st, cfg, source.deterministic, timed_out_at):
                 if not st.edited.all() and not source.deterministic:
                     # Never end a subtask on a dataset the editor has not fully updated to
                     # e(r_i): a slow editor makes the trainer wait here (counted), then the
@@ -466,6 +536,11 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     st = holder[0]
     st = dataclasses.replace(st, seconds=time.perf_counter() - started,  # final waits, join
                              utilisation=st.utilisation.add(source.utilisation))
-    return st, {"steps": st.step, "converged": converged, "seconds": st.seconds,
+    guard = None if converged or not cfg.stop_on_plateau else (
+        "seconds" if timed_out_at is not None else "steps")
+    return st, {"steps": st.step, "converged": converged, "guard": guard, "seconds": st.seconds,
                 "edits_complete_at": None if st.complete_at < 0 else st.complete_at,
+                "anneal_horizon": None if cfg.mode == "in2n" else warmup + horizon,
+                "annealed_at": None if st.annealed_at < 0 else st.annealed_at,
+                "density": st.density._asdict(),
                 "utilisation": source.utilisation.as_dict()}

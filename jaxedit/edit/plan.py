@@ -36,8 +36,12 @@ class ProEditConfig:
       patience: P, steps without a new minimum of the running mean loss.
       loss_window: length of the running mean.
       min_delta: relative decrease that counts as "decreased".
-      max_steps: per-subtask guard.
-      anneal_steps: N of the HiFA annealing (default: max_steps).
+      max_steps: per-subtask step guard; the plateau test decides where a subtask
+        ends and this only bounds it (None: :func:`subtask_guard` of the scene).
+      max_seconds: per-subtask wall-clock guard (None: none). A subtask it ends is
+        not reproducible, since where it ends depends on the machine.
+      anneal_steps: N of the HiFA annealing, in steps after the warm-up (None:
+        :func:`anneal_horizon`, from the lengths of the subtasks already run).
       timestep_range: (t_min, t_max) of SDEdit (paper 0.45-0.85).
       guidance: (text, image) classifier-free guidance scales.
       edit_every: trainer steps between edits in the deterministic mode.
@@ -66,7 +70,8 @@ class ProEditConfig:
     patience: int = 60
     loss_window: int = 20
     min_delta: float = 1e-3
-    max_steps: int = 600
+    max_steps: int | None = None
+    max_seconds: float | None = None
     anneal_steps: int | None = None
     timestep_range: tuple[float, float] = (0.45, 0.85)
     guidance: tuple[float, float] = (7.5, 1.5)
@@ -94,8 +99,11 @@ class ProEditConfig:
         lo, hi = self.timestep_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {lo}, {hi}")
-        for name in ("patience", "loss_window", "max_steps", "edit_every", "checkpoint_every"):
-            if getattr(self, name) < 1:
+        if self.max_seconds is not None and not self.max_seconds > 0:
+            raise DataError("--max-subtask-seconds", f"must be > 0, got {self.max_seconds}")
+        for name in ("patience", "loss_window", "max_steps", "anneal_steps", "edit_every",
+                     "checkpoint_every"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise DataError(name, f"must be >= 1, got {getattr(self, name)}")
 
     @classmethod
@@ -161,3 +169,48 @@ def anneal_timestep(step: int, total: int, t_min: float, t_max: float) -> float:
     """HiFA's annealing t(i) = t_max - (t_max - t_min) sqrt(i / N), clamped at t_min."""
     frac = min(max(step, 0) / max(total, 1), 1.0)
     return float(t_max - (t_max - t_min) * math.sqrt(frac))
+
+
+#: The smallest step guard of a subtask (what every scene gets at least).
+GUARD_MIN_STEPS = 600
+#: Epochs over the training views the guard allows at the reference resolution.
+#: ASSUMPTION (the paper bounds a subtask only in time, 10-20 minutes): 20 epochs, so a
+#: guard never cuts a subtask whose views each need ~20 passes to settle.
+GUARD_EPOCHS = 20
+#: The resolution the epoch count is meant for; larger images hold more Gaussians and
+#: finer detail, which takes more steps to settle: the guard grows with the image's
+#: side over this one (its square root of pixels).
+GUARD_REFERENCE_SIDE = 256
+
+
+def subtask_guard(num_views: int, height: int, width: int) -> int:
+    """The default ``max_steps`` guard of a scene with ``num_views`` training views of H x W.
+
+    ``max(GUARD_MIN_STEPS, GUARD_EPOCHS * num_views * max(1, sqrt(H W) / 256))``: every
+    view gets the same number of passes whatever the view count, and more at high
+    resolution. The 32-view, 64 px demo gets 640; 100 views at 512 px get 4000.
+    """
+    side = math.sqrt(float(height) * float(width)) / GUARD_REFERENCE_SIDE
+    return max(GUARD_MIN_STEPS, int(math.ceil(GUARD_EPOCHS * num_views * max(1.0, side))))
+
+
+def anneal_horizon(records: Sequence[dict], config: ProEditConfig, warmup: int) -> int:
+    """Steps after the warm-up at which a subtask's annealed timestep reaches t_min.
+
+    HiFA anneals over the whole optimisation; a ProEdit subtask has no fixed length, its
+    plateau ends it. The scheduler makes subtasks about equally hard, so the last
+    subtask that ended on its plateau estimates this one's length L, and the timestep
+    reaches t_min at L / 2 (the second half refines at t_min); before any subtask has
+    converged, a quarter of the guard. ``config.anneal_steps`` overrides. Clamped so
+    that an edit at t_min and ``patience`` steps of training on it fit under the guard
+    (the driver does not end a subtask on its plateau before that, see
+    :func:`jaxedit.edit.driver.earliest_end`).
+    """
+    if config.anneal_steps is not None:
+        horizon = config.anneal_steps
+    else:
+        lengths = [int(r["steps"]) for r in records if r.get("converged") and r.get("steps")]
+        horizon = ((lengths[-1] - warmup) // 2 if lengths
+                   else (config.max_steps - warmup) // 4)
+    room = config.max_steps - warmup - config.patience - config.edit_every
+    return int(max(1, min(horizon, room)))

@@ -15,11 +15,16 @@ training state. A subtask with ratio r:
    e(r) = r E(p) + (1 - r) E("")) replace the training images as they arrive
    from an edit source (:mod:`jaxedit.edit.buffer`: deterministic inline or a
    producer thread); the SDEdit timestep follows HiFA's annealing
-   t(i) = t_max - (t_max - t_min) sqrt(i / N) within the subtask;
-3. trains with the budgeted adaptive density control (paper 3.3 (2), app. D);
+   t(i) = t_max - (t_max - t_min) sqrt(i / N) within the subtask, N estimated
+   from the last converged subtask's length (:func:`plan.anneal_horizon`);
+3. trains with the budgeted adaptive density control (paper 3.3 (2), app. D)
+   under a hard cap (default twice the input's Gaussians; a warning with
+   figures whenever the cap, not t(n), limited creation);
 4. ends when the running mean of the training loss has not decreased for
-   ``patience`` steps after every view was edited at least once, or when the
-   ``max_steps`` guard fires (recorded as ``converged: False``).
+   ``patience`` steps after every view was edited at least once and after an
+   edit at t_min arrived, or when a guard fires (``max_steps``, scaled with the
+   scene by :func:`plan.subtask_guard`, or ``max_seconds``; recorded as
+   ``converged: False`` and the guard's name).
 
 Modes (rows of the paper's tables): ``proedit`` (difficulty-aware schedule),
 ``nd`` (no decomposition: one edit subtask 0 -> 1, with the same r_0 / r_n and
@@ -173,6 +178,17 @@ def _plan_from_json(items) -> tuple[SubtaskSpec, ...]:
     return tuple(SubtaskSpec(**p) for p in items)
 
 
+def cap_warning(name: str, density: dict, cap: int, alive: int) -> str | None:
+    """The warning of a subtask whose Gaussian creation the hard cap limited (None: it did not)."""
+    if not density["cap_limited"]:
+        return None
+    return (f"WARNING: subtask {name}: the Gaussian cap ({cap}) limited creation in "
+            f"{density['cap_limited']} of {density['refinements']} maintenance steps: "
+            f"{density['shortfall']} Gaussians the budget t(n) wanted were not created "
+            f"({density['created']} were; {alive} alive at the end). Raise --max-gaussians "
+            f"to let the edit grow geometry")
+
+
 def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
              settings: TrainSettings | None = None, seed: int = 0,
              run_dir: str | os.PathLike | None = None, resume: bool = False,
@@ -288,7 +304,12 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                   "distance": None if oracle is None else distance_name(distance),
                   "resumed_from": None if resume_from is None else str(resume_from),
                   "start_ratio": start_ratio, "asynchronous": config.asynchronous,
-                  "config": {k: v for k, v in dataclasses.asdict(config).items()}}
+                  "config": dataclasses.asdict(ctx.config),
+                  "guard": {"max_steps": ctx.config.max_steps,
+                            "max_steps_scaled": config.max_steps is None,
+                            "max_seconds": ctx.config.max_seconds},
+                  "max_gaussians": settings.max_gaussians,
+                  "input_gaussians": int(gaussians.num_alive())}
         st = init_state(ctx, start_scene, images)
         if run_dir is not None:
             write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
@@ -320,11 +341,20 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         record = {"index": spec.index, "name": spec.name, "kind": spec.kind, "ratio": spec.ratio,
                   "difficulty": spec.difficulty, "steps": info["steps"],
                   "edits_complete_at": info["edits_complete_at"],
+                  "anneal_horizon": info["anneal_horizon"], "annealed_at": info["annealed_at"],
                   "seconds": info["seconds"], "converged": info["converged"],
+                  "guard": info["guard"], "density": info["density"],
                   "num_gaussians": int(g.num_alive()), "snapshot": None, "metrics": None}
-        if not info["converged"]:
-            log(f"subtask {spec.name}: max_steps guard ({config.max_steps}) fired before the "
-                f"loss plateaued")
+        if info["guard"] == "steps":
+            log(f"subtask {spec.name}: max_steps guard ({ctx.config.max_steps}) fired before "
+                f"the loss plateaued")
+        elif info["guard"] == "seconds":
+            log(f"subtask {spec.name}: max_seconds guard ({ctx.config.max_seconds:g} s) fired "
+                f"before the loss plateaued, at step {info['steps']}")
+        warning = cap_warning(spec.name, info["density"], settings.max_gaussians,
+                              int(g.num_alive()))
+        if warning:
+            log(warning)
         if run_dir is not None:
             rel = Path("subtasks") / spec.dirname
             record["metrics"] = write_scene_snapshot(ctx, run_dir / rel, g, ratio=spec.ratio)
