@@ -62,8 +62,9 @@ def add_arguments(p) -> None:
                    help="uniform schedule of N subtasks instead of the difficulty-aware one")
     p.add_argument("--mode", choices=["proedit", "nd", "in2n"], default="proedit",
                    help="editing mode")
-    p.add_argument("--max-steps", type=int, default=600,
-                   help="per-subtask training step guard of the edit")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="per-subtask training step guard of the edit (default: the edit's, "
+                        "scaled with the views and resolution)")
     p.add_argument("--turntable-frames", type=int, default=24,
                    help="frames of each snapshot's turntable (0: none)")
     p.add_argument("--edit-arg", action="append", default=[], metavar="FLAG=VALUE",
@@ -175,7 +176,7 @@ def run(args) -> dict:
         cli.write_run_config(args)
     out = Path(args.out)
     for name in ("size", "views", "test_views", "iters", "max_steps"):
-        if getattr(args, name) < 1:
+        if getattr(args, name) is not None and getattr(args, name) < 1:
             raise DataError(f"--{name.replace('_', '-')}", f"must be >= 1, got {getattr(args, name)}")
     _require_commands()
     configure(quiet=args.quiet)

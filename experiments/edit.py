@@ -56,7 +56,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--downscale", type=int, default=1, help="image downscale factor of --data")
     p.add_argument("--warmup", type=int, default=None, help="W: steps after the opacity reset")
     p.add_argument("--patience", type=int, default=None, help="P: plateau length ending a subtask")
-    p.add_argument("--max-steps", type=int, default=None, help="per-subtask step guard")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="per-subtask step guard; the loss plateau ends a subtask, this bounds "
+                        "it (default: 20 epochs of the training views, more above 256 px, at "
+                        "least 600)")
+    p.add_argument("--max-subtask-seconds", type=float, default=None,
+                   help="per-subtask wall-clock guard (default none; a subtask it ends is not "
+                        "reproducible)")
     p.add_argument("--edit-every", type=int, default=None, help="steps between edits (--sync)")
     p.add_argument("--turntable-frames", type=int, default=24, help="0 disables turntables")
     p.add_argument("--test-views", type=int, default=None,
@@ -170,7 +176,7 @@ def config_from_args(args):
         target_subtasks=args.target_subtasks, difficulty_views=args.difficulty_views,
         schedule_method=args.schedule_method, asynchronous=args.asynchronous,
         warmup=args.warmup, patience=args.patience, max_steps=args.max_steps,
-        edit_every=args.edit_every, turntable_frames=args.turntable_frames)
+        max_seconds=args.max_subtask_seconds, edit_every=args.edit_every, turntable_frames=args.turntable_frames)
 
 
 def progress_callback(quiet: bool):
@@ -217,6 +223,8 @@ def check_counts(args) -> None:
                           "difficulty_views": 1, "max_gaussians": 1})
     if args.threshold is not None and not args.threshold > 0:
         raise DataError("--threshold", f"must be > 0, got {args.threshold}")
+    if args.max_subtask_seconds is not None and not args.max_subtask_seconds > 0:
+        raise DataError("--max-subtask-seconds", f"must be > 0, got {args.max_subtask_seconds}")
 
 
 def run(args) -> dict:
