@@ -74,7 +74,8 @@ def frame_index(filenames) -> np.ndarray:
     return np.array([int(Path(f).stem.split("_")[1]) - 1 for f in filenames], np.int64)
 
 
-def refined_psnr(scene, images, cameras, steps: int, lr: float | None, background) -> tuple[dict, dict]:
+def refined_psnr(scene, images, cameras, steps: int, lr: float | None,
+                 background) -> tuple[dict, dict]:
     """(evaluate() of ``cameras`` after test-time pose refinement, refinement info)."""
     from jaxedit.poses import RefineConfig, refine_poses
     from jaxedit.train import evaluate

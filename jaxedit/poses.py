@@ -195,7 +195,8 @@ def _refine(gaussians, cameras, images, depth, background, lr, final_fraction, b
     return delta, losses, overflow
 
 
-def refine_poses(gaussians: Gaussians, cameras: Camera, images, *, config: RefineConfig = RefineConfig(),
+def refine_poses(gaussians: Gaussians, cameras: Camera, images, *,
+                 config: RefineConfig = RefineConfig(),
                  background=None, sh_degree: int | None = None,
                  backend: str = "auto") -> tuple[Camera, dict]:
     """Refine each camera's pose so that the frozen scene renders its image.

@@ -1,4 +1,5 @@
-"""Test-time pose refinement (jaxedit.poses) against an oracle: a scene rendered from known cameras."""
+"""Test-time pose refinement (jaxedit.poses) against an oracle: a scene rendered from known
+cameras."""
 
 from __future__ import annotations
 
