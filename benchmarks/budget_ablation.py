@@ -54,8 +54,9 @@ when the settings match).
 
 Cost. Sized from one measured edit on the shared 2-core CPU (see the settings in the JSON):
 the default grid is 6 variants x 3 seeds = 18 edits at ``--max-steps 300 --patience 40``.
-``--smoke``: 16 px, 4 + 2 views, 30 reconstruction steps, 2 variants x 2 seeds of a few
-steps each (the maintenance period is shortened so that creation happens at all).
+``--smoke``: 16 px, 4 + 2 views, the dataset's initial cloud instead of a reconstruction,
+no LPIPS, 2 variants x 2 seeds of a few steps each (the maintenance period is shortened so
+that creation happens at all); its time is compiling (two editing trainers, the renderer).
 """
 
 from __future__ import annotations
@@ -93,8 +94,11 @@ TABLE_METRICS = ("psnr_vs_target", "lpips_vs_target", "multiview_consistency", "
 
 FULL = dict(size=64, views=32, test_views=4, iters=1500, max_steps=300, patience=40, warmup=30,
             difficulty_views=8, refine_every=None)
-SMOKE = dict(size=16, views=4, test_views=2, iters=30, max_steps=8, patience=4, warmup=2,
+#: --smoke: iters 0 edits the dataset's initial cloud (at most SMOKE_POINTS Gaussians) without
+#: reconstructing it; compiling a reconstruction would take a third of the smoke's time.
+SMOKE = dict(size=16, views=4, test_views=2, iters=0, max_steps=8, patience=4, warmup=2,
              difficulty_views=2, refine_every=3)
+SMOKE_POINTS = 2000
 
 
 def extra(p):
@@ -138,6 +142,13 @@ def prepare(out: Path, *, size: int, views: int, test_views: int, iters: int, se
         _run_stage(_stage_argv("make-scene", {"name": SCENE, "--out": data,
                                               **_scene_size(SCENE, size), "--views": views,
                                               "--test-views": test_views, **common}))
+    if iters == 0:  # smoke: the dataset's initial cloud, no reconstruction to compile
+        from experiments.reconstruct import capped_initial_points
+        from jaxedit.gaussians import from_points
+
+        dataset = load_nerfstudio(data)
+        points, colors, _ = capped_initial_points(dataset, SMOKE_POINTS, SMOKE_POINTS, seed)
+        return EditData.from_dataset(dataset), from_points(points, colors, sh_degree=1), {}
     if not (recon / "scene.ply").exists():
         log(f"reconstructing {SCENE} ({iters} steps)")
         _run_stage(_stage_argv("reconstruct", {"--data": data, "--out": recon,
@@ -300,6 +311,25 @@ def table(summary: list[dict], differences: list[dict], variants,
     return "\n".join(lines)
 
 
+def resumable(path: Path, settings: dict, sizes: dict) -> list[dict]:
+    """The finished edits in ``path`` that this run can keep: same scene, prompt and sizes,
+    and a variant whose overrides are still the same (more seeds or variants only add)."""
+    if not path.exists():
+        return []
+    old = json.loads(path.read_text())
+    fixed = ("scene", "prompt", "smoke", *sizes)
+    if any(old.get("settings", {}).get(k) != settings[k] for k in fixed):
+        return []
+    keep = []
+    for r in old.get("runs", []):
+        want = dict(VARIANTS.get(r["variant"], {"?": None}))
+        if sizes["refine_every"] is not None:
+            want.setdefault("refine_every", sizes["refine_every"])
+        if r["variant"] in VARIANTS and r["settings"] == want:
+            keep.append(r)
+    return keep
+
+
 # ---------------------------------------------------------------------------
 # Main
 # ---------------------------------------------------------------------------
@@ -330,14 +360,12 @@ def main(argv=None):
                                  test_views=sizes["test_views"], iters=sizes["iters"])
     print(f"{SCENE}: {int(scene.num_alive())} Gaussians, reconstruction test PSNR "
           f"{recon.get('test_psnr', float('nan')):.2f} dB", flush=True)
-    editor, lpips = SimulatedEditor(), lpips_scorer(sizes["size"])
+    # No LPIPS in the smoke: its compile would be a tenth of the smoke's time.
+    editor, lpips = SimulatedEditor(), None if args.smoke else lpips_scorer(sizes["size"])
     runs_path = run_dir / "runs.json"
-    runs = []
-    if runs_path.exists():
-        old = json.loads(runs_path.read_text())
-        if old.get("settings") == settings:
-            runs = old["runs"]
-            print(f"resuming: {len(runs)} finished edits", flush=True)
+    runs = resumable(runs_path, settings, sizes)
+    if runs:
+        print(f"resuming: {len(runs)} finished edits", flush=True)
     done = {(r["variant"], r["seed"]) for r in runs}
     # Seeds outside, variants inside: an interrupted run still has complete paired seeds.
     for seed in range(seeds):
