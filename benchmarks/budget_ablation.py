@@ -1,7 +1,9 @@
 """Budget ablation: ProEdit's creation budget t(n, N) constants and maintenance period.
 
-    python benchmarks/budget_ablation.py [--smoke] [--out DIR] [--seeds 3]
+    python benchmarks/budget_ablation.py [--smoke] [--out DIR] [--seeds 8]
         [--variants default,growth=0.005,...] [--max-steps 300] [--patience 40]
+
+(defaults: 8 seeds, every variant of VARIANTS.)
 
 The editing trainer's density control (:class:`jaxedit.edit.trainer.TrainSettings`) creates
 at most t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N))) Gaussians per
@@ -32,10 +34,10 @@ Variants (one constant changed; with N ~ 8.5k, ceil(0.02 N) ~ 170):
 - ``max_fraction=0.05`` / ``max_fraction=0.2``: the cap on one step's creation (binds at
   the maintenance after a large cull, e.g. after the subtask-start opacity reset);
 - ``refine_every=100``: Splatfacto's maintenance period;
-- ``min_new=256`` (not in the default grid): ``min_new`` only binds when it exceeds
+- ``min_new=256``: ``min_new`` only binds when it exceeds
   min(floor(max_fraction N), n + ceil(growth N)) >= ceil(0.02 N) ~ 170 here, so any
   ``min_new`` <= 170 (the default 16, or 4 and 64) runs bit for bit as the default on
-  this scene; 256 is the smallest round value that does anything.
+  this scene; 256 is a round value above that.
 
 Scores (held-out test views, renders vs the editor's noise-free target at r = 1):
 ``psnr_vs_target``, ``ssim_vs_target`` (from :func:`jaxedit.edit.progressive.run_edit`),
@@ -43,7 +45,8 @@ Scores (held-out test views, renders vs the editor's noise-free target at r = 1)
 ``edit_fit_psnr``; the scene: ``final_gaussians``, ``created`` and ``culled`` (summed over
 every maintenance step of the edit), ``maintenance`` (maintenance steps), ``budget_bound``
 (maintenance steps whose creation was set by t(n, N), not by the candidates or the cap),
-``cap_hits`` (steps where the hard cap limited creation); the cost: ``subtasks``,
+``cap_hits`` (steps where the hard cap limited creation); ``guard_hits`` (subtasks that ran
+into ``--max-steps`` instead of their plateau); the cost: ``subtasks``,
 ``total_steps``, ``seconds``, ``cpu_seconds``. The summary gives, per variant and metric,
 the mean and Student-t 95% CI over seeds (:func:`jaxedit.metrics.mean_ci`), and the paired
 difference variant - default by seed (:func:`jaxedit.metrics.paired_differences`).
@@ -52,8 +55,12 @@ Writes ``DIR/budget_ablation.json`` (settings, runs, summary, differences, wall 
 ``DIR/budget_ablation_run/runs.json`` (the finished edits; an interrupted run resumes from it
 when the settings match).
 
-Cost. Sized from one measured edit on the shared 2-core CPU (see the settings in the JSON):
-the default grid is 6 variants x 3 seeds = 18 edits at ``--max-steps 300 --patience 40``.
+Cost. Sized from one measured edit on the shared 2-core CPU: the first edit took 139 s
+(compiling included, machine loaded), later ones 47-65 s (about 1100-1550 steps, 6 subtasks),
+the reconstruction 106 s. The default grid, 7 variants x 8 seeds = 56 edits at
+``--max-steps 300 --patience 40``, is about an hour there; ``--seeds 3`` (21 edits) is under
+half an hour. Variants run inside the seed loop, so an interrupted run still has complete
+paired seeds, and a rerun with more seeds or variants keeps the finished edits.
 ``--smoke``: 16 px, 4 + 2 views, the dataset's initial cloud instead of a reconstruction,
 no LPIPS, 2 variants x 2 seeds of a few steps each (the maintenance period is shortened so
 that creation happens at all); its time is compiling (two editing trainers, the renderer).
@@ -63,6 +70,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import statistics
 import time
 from pathlib import Path
 
@@ -81,16 +89,15 @@ VARIANTS = {
     "refine_every=100": {"refine_every": 100},
     "min_new=256": {"budget_min_new": 256},
 }
-DEFAULT_GRID = ("default", "growth=0.005", "growth=0.05", "max_fraction=0.05",
-                "max_fraction=0.2", "refine_every=100")
+DEFAULT_GRID = tuple(VARIANTS)
 
 #: Metrics summarised with CIs, and how the table prints them (digits).
 METRICS = {"psnr_vs_target": 2, "ssim_vs_target": 4, "lpips_vs_target": 4,
            "multiview_consistency": 2, "edit_fit_psnr": 2, "final_gaussians": 0, "created": 0,
            "culled": 0, "maintenance": 1, "budget_bound": 1, "cap_hits": 1, "subtasks": 1,
-           "total_steps": 0, "seconds": 1, "cpu_seconds": 1}
+           "guard_hits": 2, "total_steps": 0, "seconds": 1, "cpu_seconds": 1}
 TABLE_METRICS = ("psnr_vs_target", "lpips_vs_target", "multiview_consistency", "created",
-                 "final_gaussians", "subtasks", "total_steps", "seconds")
+                 "final_gaussians", "guard_hits", "total_steps", "seconds")
 
 FULL = dict(size=64, views=32, test_views=4, iters=1500, max_steps=300, patience=40, warmup=30,
             difficulty_views=8, refine_every=None)
@@ -102,7 +109,7 @@ SMOKE_POINTS = 2000
 
 
 def extra(p):
-    p.add_argument("--seeds", type=int, default=3, help="edit seeds per variant (0 .. N-1)")
+    p.add_argument("--seeds", type=int, default=8, help="edit seeds per variant (0 .. N-1)")
     p.add_argument("--variants", default=",".join(DEFAULT_GRID),
                    help="comma-separated variants, default first (known: "
                         + ", ".join(VARIANTS) + ")")
@@ -248,6 +255,8 @@ def run_one(editor, data, scene, *, variant: str, seed: int, sizes: dict, lpips=
             "input_gaussians": int(scene.num_alive()), **totals,
             "subtasks": m["subtasks"], "total_steps": m["total_steps"],
             "all_converged": m["all_converged"],
+            "guard_hits": guard_hits([s["steps"] for s in res["schedule"]["subtasks"]],
+                                     sizes["max_steps"]),
             "steps_per_subtask": [s["steps"] for s in res["schedule"]["subtasks"]],
             "ratios": [s["ratio"] for s in res["schedule"]["subtasks"]],
             "seconds": seconds, "cpu_seconds": cpu}
@@ -256,9 +265,18 @@ def run_one(editor, data, scene, *, variant: str, seed: int, sizes: dict, lpips=
 # ---------------------------------------------------------------------------
 # Statistics (pure)
 # ---------------------------------------------------------------------------
+def guard_hits(steps_per_subtask, max_steps: int) -> int:
+    """Subtasks that ran into the ``max_steps`` guard instead of ending on their plateau.
+
+    The deterministic driver stops a subtask exactly at the guard; an edit whose scene went
+    wrong (e.g. the consolidation subtask never settles) shows up here.
+    """
+    return int(sum(int(s) >= int(max_steps) for s in steps_per_subtask))
+
+
 def summarise(runs: list[dict], variants, metrics=tuple(METRICS)) -> tuple[list, list]:
-    """(summary, differences): mean and 95% CI per variant and metric over the seeds every
-    variant finished; paired differences variant - default by seed."""
+    """(summary, differences): mean, 95% CI and median per variant and metric over the seeds
+    every variant finished; paired differences variant - default by seed."""
     from jaxedit.metrics import mean_ci, paired_differences
 
     by = {(r["variant"], r["seed"]): r for r in runs}
@@ -271,7 +289,10 @@ def summarise(runs: list[dict], variants, metrics=tuple(METRICS)) -> tuple[list,
         for v in variants:
             if any(x is None for x in vals[v]):
                 continue
-            summary.append({"variant": v, "metric": metric, **mean_ci(vals[v])})
+            # The median too: an edit that goes wrong costs ~4 dB, so the means are
+            # dominated by how many of the few seeds did.
+            summary.append({"variant": v, "metric": metric, **mean_ci(vals[v]),
+                            "median": float(statistics.median(vals[v]))})
             base = vals[variants[0]]
             if v != variants[0] and not any(x is None for x in base):
                 differences.append({"variant": v, "metric": metric,
@@ -326,6 +347,8 @@ def resumable(path: Path, settings: dict, sizes: dict) -> list[dict]:
         if sizes["refine_every"] is not None:
             want.setdefault("refine_every", sizes["refine_every"])
         if r["variant"] in VARIANTS and r["settings"] == want:
+            # Records from before guard_hits was recorded: derived from the step counts.
+            r.setdefault("guard_hits", guard_hits(r["steps_per_subtask"], sizes["max_steps"]))
             keep.append(r)
     return keep
 
