@@ -1,0 +1,75 @@
+"""The budget ablation's pure parts: densify counters, guard hits, statistics and the table.
+
+(The end-to-end run is ``benchmarks/budget_ablation.py --smoke`` in CI; it edits the default
+only, so the paired differences are checked here.)"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# The benchmarks are scripts that import their sibling ``common``.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import budget_ablation as ba  # noqa: E402
+
+from jaxedit.metrics import mean_ci  # noqa: E402
+
+
+def records(seeds=4):
+    """Synthetic edits: growth=0.05 creates 500 more and is 0.2 dB better on every seed."""
+    rng = np.random.default_rng(0)
+    out = []
+    for seed in range(seeds):
+        noise = rng.normal(0, 0.5)  # shared by the variants of a seed: pairing removes it
+        for v, lead, extra in (("default", 0.0, 0), ("growth=0.05", 0.2, 500)):
+            out.append({"variant": v, "seed": seed, "psnr_vs_target": 37.0 + noise + lead,
+                        "created": 10_000 + 100 * seed + extra, "lpips_vs_target": None})
+    return out
+
+
+def test_paired_differences_remove_the_seed_noise():
+    summary, diffs = ba.summarise(records(), ("default", "growth=0.05"),
+                                  metrics=("psnr_vs_target", "created", "lpips_vs_target"))
+    d = {(r["variant"], r["metric"]): r for r in diffs}
+    assert d[("growth=0.05", "psnr_vs_target")]["mean"] == pytest.approx(0.2)
+    assert d[("growth=0.05", "psnr_vs_target")]["ci"] == pytest.approx(0.0, abs=1e-9)
+    assert d[("growth=0.05", "created")]["mean"] == pytest.approx(500)
+    s = {(r["variant"], r["metric"]): r for r in summary}
+    vals = [r["psnr_vs_target"] for r in records() if r["variant"] == "default"]
+    assert s[("default", "psnr_vs_target")]["ci"] == pytest.approx(mean_ci(vals)["ci"])
+    assert s[("default", "psnr_vs_target")]["median"] == pytest.approx(float(np.median(vals)))
+    assert ("default", "lpips_vs_target") not in s  # missing scores are left out, not zeros
+
+
+def test_summary_uses_only_seeds_every_variant_finished():
+    runs = [r for r in records() if not (r["seed"] == 3 and r["variant"] == "growth=0.05")]
+    summary, _ = ba.summarise(runs, ("default", "growth=0.05"), metrics=("created",))
+    assert {r["n"] for r in summary} == {3}
+
+
+def test_table_marks_differences_whose_ci_excludes_zero():
+    variants = ("default", "growth=0.05")
+    summary, diffs = ba.summarise(records(), variants, metrics=("psnr_vs_target", "created"))
+    text = ba.table(summary, diffs, variants, metrics=("psnr_vs_target", "created"))
+    row = next(line for line in text.splitlines() if line.startswith("| growth=0.05 - default"))
+    assert "+0.20 ± 0.00 *" in row and "+500 ± 0 *" in row
+
+
+def test_densify_totals_count_completed_maintenance_steps_only():
+    z = np.zeros(4, np.int32)
+    metrics = {"ran": np.array([1, 1, 1, 0], bool), "redo": np.array([0, 1, 0, 0], bool),
+               "densify": {"refined": np.array([1, 1, 1, 1], bool),
+                           "created": np.array([10, 99, 5, 99], np.int32),
+                           "culled": np.array([3, 99, 1, 99], np.int32),
+                           "budget": np.array([10, 99, 8, 99], np.int32),
+                           "cap_limited": np.array([0, 0, 1, 0], bool), "split": z}}
+    assert ba.densify_totals(metrics) == {"created": 15, "culled": 4, "maintenance": 2,
+                                          "budget_bound": 1, "cap_hits": 1}
+
+
+def test_guard_hits():
+    assert ba.guard_hits([240, 300, 130, 300], 300) == 2
+    assert ba.guard_hits([], 300) == 0
