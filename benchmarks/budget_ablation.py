@@ -69,7 +69,6 @@ time is compiling (the editing trainer, the renderer), about 40 s of CPU.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import statistics
 import time
@@ -168,45 +167,13 @@ def prepare(out: Path, *, size: int, views: int, test_views: int, iters: int, se
 # ---------------------------------------------------------------------------
 # Densify counters
 # ---------------------------------------------------------------------------
-def densify_totals(metrics: dict) -> dict:
-    """Sums over the completed steps of one chunk's step metrics (NumPy, [CHUNK] each)."""
-    import numpy as np
-
-    done = np.asarray(metrics["ran"]) & ~np.asarray(metrics["redo"])
-    d = {k: np.asarray(v) for k, v in metrics["densify"].items()}
-    refined = done & d["refined"]
-    # Creation was set by the budget when it created exactly t (not fewer candidates,
-    # free slots or room under the cap).
-    bound = refined & (d["created"] >= d["budget"]) & ~d["cap_limited"]
-    return {"created": int(d["created"][done].sum()), "culled": int(d["culled"][done].sum()),
-            "maintenance": int(refined.sum()), "budget_bound": int(bound.sum()),
-            "cap_hits": int((done & d["cap_limited"]).sum())}
-
-
-@contextlib.contextmanager
-def count_densify():
-    """Yields a dict that sums :func:`densify_totals` over every chunk the driver trains.
-
-    run_edit's records carry only each subtask's final count; the per-step density
-    information lives in the chunk metrics, so the driver's ``step_chunk`` is wrapped
-    for the duration (restored on exit; it is pure, the wrapper only reads its output).
-    """
-    from jaxedit.edit import driver
-
-    totals = {"created": 0, "culled": 0, "maintenance": 0, "budget_bound": 0, "cap_hits": 0}
-    original = driver.step_chunk
-
-    def counted(*args, **kwargs):
-        st, chunk = original(*args, **kwargs)
-        for k, v in densify_totals(chunk.metrics).items():
-            totals[k] += v
-        return st, chunk
-
-    driver.step_chunk = counted
-    try:
-        yield totals
-    finally:
-        driver.step_chunk = original
+def densify_totals(subtasks: list[dict]) -> dict:
+    """The density counters of an edit: each subtask record's ``density`` tally
+    (:class:`jaxedit.edit.driver.DensityTally`) summed over the subtasks."""
+    fields = {"created": "created", "culled": "culled", "maintenance": "refinements",
+              "budget_bound": "budget_limited", "cap_hits": "cap_limited"}
+    return {ours: sum(int(s["density"][theirs]) for s in subtasks)
+            for ours, theirs in fields.items()}
 
 
 # ---------------------------------------------------------------------------
@@ -238,11 +205,11 @@ def run_one(editor, data, scene, *, variant: str, seed: int, sizes: dict, lpips=
                                     difficulty_views=sizes["difficulty_views"],
                                     asynchronous=False)
     t0, c0 = time.perf_counter(), time.process_time()
-    with count_densify() as totals:
-        res = run_edit(editor, PROMPT, data, scene, config=config, settings=settings, seed=seed,
-                       run_dir=None, report=False)
+    res = run_edit(editor, PROMPT, data, scene, config=config, settings=settings, seed=seed,
+                   run_dir=None, report=False)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     m = res["metrics"]
+    subtasks = res["schedule"]["subtasks"]
     lp = None
     if lpips is not None:
         renderer = Renderer(config.background)
@@ -253,28 +220,18 @@ def run_one(editor, data, scene, *, variant: str, seed: int, sizes: dict, lpips=
             "psnr_vs_target": m["psnr_vs_target"], "ssim_vs_target": m["ssim_vs_target"],
             "lpips_vs_target": lp, "multiview_consistency": m["multiview_consistency"],
             "edit_fit_psnr": m["edit_fit_psnr"], "final_gaussians": m["num_gaussians"],
-            "input_gaussians": int(scene.num_alive()), **totals,
+            "input_gaussians": int(scene.num_alive()), **densify_totals(subtasks),
             "subtasks": m["subtasks"], "total_steps": m["total_steps"],
             "all_converged": m["all_converged"],
-            "guard_hits": guard_hits([s["steps"] for s in res["schedule"]["subtasks"]],
-                                     sizes["max_steps"]),
-            "steps_per_subtask": [s["steps"] for s in res["schedule"]["subtasks"]],
-            "ratios": [s["ratio"] for s in res["schedule"]["subtasks"]],
+            "guard_hits": sum(s["guard"] is not None for s in subtasks),
+            "steps_per_subtask": [s["steps"] for s in subtasks],
+            "ratios": [s["ratio"] for s in subtasks],
             "seconds": seconds, "cpu_seconds": cpu}
 
 
 # ---------------------------------------------------------------------------
 # Statistics (pure)
 # ---------------------------------------------------------------------------
-def guard_hits(steps_per_subtask, max_steps: int) -> int:
-    """Subtasks that ran into the ``max_steps`` guard instead of ending on their plateau.
-
-    The deterministic driver stops a subtask exactly at the guard; an edit whose scene went
-    wrong (e.g. the consolidation subtask never settles) shows up here.
-    """
-    return int(sum(int(s) >= int(max_steps) for s in steps_per_subtask))
-
-
 def summarise(runs: list[dict], variants, metrics=tuple(METRICS)) -> tuple[list, list]:
     """(summary, differences): mean, 95% CI and median per variant and metric over the seeds
     every variant finished; paired differences variant - default by seed."""
@@ -347,9 +304,8 @@ def resumable(path: Path, settings: dict, sizes: dict) -> list[dict]:
         want = dict(VARIANTS.get(r["variant"], {"?": None}))
         if sizes["refine_every"] is not None:
             want.setdefault("refine_every", sizes["refine_every"])
-        if r["variant"] in VARIANTS and r["settings"] == want:
-            # Records from before guard_hits was recorded: derived from the step counts.
-            r.setdefault("guard_hits", guard_hits(r["steps_per_subtask"], sizes["max_steps"]))
+        # Records from before the driver recorded its guard and density tally are redone.
+        if r["variant"] in VARIANTS and r["settings"] == want and "guard_hits" in r:
             keep.append(r)
     return keep
 

@@ -75,6 +75,23 @@ def test_loss_tracker_plateau():
     assert t.since_best == 0
 
 
+def test_density_tally_counts_completed_maintenance_steps_only():
+    from jaxedit.edit.driver import DensityTally, tally_density
+
+    completed = np.array([1, 0, 1, 1, 1], bool)  # step 1 was redone
+    densify = {"refined": np.array([1, 1, 1, 1, 0], bool),
+               "created": np.array([10, 99, 5, 2, 99], np.int32),
+               "culled": np.array([3, 99, 1, 0, 99], np.int32),
+               "budget": np.array([10, 99, 8, 50, 99], np.int32),
+               "candidates": np.array([40, 99, 30, 1, 99], np.int32),
+               "cap_limited": np.array([0, 0, 1, 0, 0], bool)}
+    t = tally_density(DensityTally(refinements=1, created=4), densify, completed)
+    # Steps 0, 2 and 3 refined: step 0 created its budget, step 2 was held by the cap
+    # (wanted min(8, 30) = 8, made 5), step 3 by its candidates.
+    assert t == DensityTally(refinements=4, created=21, culled=4, budget_limited=1,
+                             cap_limited=1, shortfall=3)
+
+
 def test_train_view_is_a_seeded_permutation_per_epoch():
     key = jax.random.key(3)
     views = [train_view(key, s, 5) for s in range(15)]

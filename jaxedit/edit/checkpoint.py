@@ -63,7 +63,7 @@ def save_checkpoint(path: str | os.PathLike, st: DriverState, meta: dict) -> Non
     info = {"subtask": st.subtask, "step": st.step, "records": list(st.records),
             "seconds": st.seconds, "utilisation": st.utilisation.as_dict(),
             "complete_at": st.complete_at, "annealed_at": st.annealed_at,
-            "density": list(st.density),
+            "density": st.density._asdict(),
             "tracker": [int(st.tracker.count), float(st.tracker.best),
                         int(st.tracker.since_best)],
             "max_intersections": getattr(st.train, "max_intersections", None), "meta": meta}
@@ -101,6 +101,6 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[DriverStat
                      tracker=tracker, records=tuple(info["records"]), seconds=info["seconds"],
                      complete_at=int(info.get("complete_at", -1)),
                      annealed_at=int(info.get("annealed_at", -1)),
-                     density=DensityTally(*info.get("density", ())),
+                     density=DensityTally(**info.get("density", {})),
                      utilisation=Utilisation(**info["utilisation"]))
     return st, info["meta"]

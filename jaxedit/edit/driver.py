@@ -96,14 +96,17 @@ def track_loss(tracker: LossTracker, loss, *, min_delta: float) -> LossTracker:
 class DensityTally(NamedTuple):
     """What density control did in a subtask (host ints, summed over its maintenance steps).
 
-    refinements: maintenance steps; created / culled: Gaussians; cap_limited:
-    maintenance steps where the hard cap, not the budget t(n), bounded creation;
-    shortfall: Gaussians those steps wanted (min(t(n), candidates)) but had no room for.
+    refinements: maintenance steps; created / culled: Gaussians; budget_limited:
+    maintenance steps whose creation the budget t(n) set (it created t(n), neither the
+    candidates nor the cap held it lower); cap_limited: maintenance steps where the hard
+    cap, not the budget t(n), bounded creation; shortfall: Gaussians those steps wanted
+    (min(t(n), candidates)) but had no room for.
     """
 
     refinements: int = 0
     created: int = 0
     culled: int = 0
+    budget_limited: int = 0
     cap_limited: int = 0
     shortfall: int = 0
 
@@ -115,11 +118,13 @@ def tally_density(tally: DensityTally, densify: dict, completed: np.ndarray) -> 
     """
     ran = completed & np.asarray(densify["refined"], bool)
     capped = ran & np.asarray(densify["cap_limited"], bool)
+    by_budget = ran & ~capped & (np.asarray(densify["created"]) >= np.asarray(densify["budget"]))
     wanted = np.minimum(densify["budget"], densify["candidates"]).astype(np.int64)
     short = np.maximum(wanted - np.asarray(densify["created"], np.int64), 0)
     return DensityTally(tally.refinements + int(ran.sum()),
                         tally.created + int(np.sum(densify["created"], where=ran)),
                         tally.culled + int(np.sum(densify["culled"], where=ran)),
+                        tally.budget_limited + int(by_budget.sum()),
                         tally.cap_limited + int(capped.sum()),
                         tally.shortfall + int(np.sum(short, where=capped)))
 
