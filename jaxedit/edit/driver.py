@@ -470,7 +470,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
         st = begin_subtask(ctx, st)
     key_sub = jax.random.fold_in(ctx.key, spec.index)
     order = view_order(n, jax.random.fold_in(key_sub, _ORDER))
-    horizon = anneal_horizon(st.records, cfg, warmup)
+    horizon = anneal_horizon(cfg, warmup)
     # Room for two chunks' worth of edits, so a fast editor is never held up between
     # the trainer's collections.
     source = make_source(make_edit_fn(ctx, spec, horizon), order, asynchronous=cfg.asynchronous,

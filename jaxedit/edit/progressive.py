@@ -15,8 +15,8 @@ training state. A subtask with ratio r:
    e(r) = r E(p) + (1 - r) E("")) replace the training images as they arrive
    from an edit source (:mod:`jaxedit.edit.buffer`: deterministic inline or a
    producer thread); the SDEdit timestep follows HiFA's annealing
-   t(i) = t_max - (t_max - t_min) sqrt(i / N) within the subtask, N estimated
-   from the last converged subtask's length (:func:`plan.anneal_horizon`);
+   t(i) = t_max - (t_max - t_min) sqrt(i / N) within the subtask, N half the
+   room under the step guard (:func:`plan.anneal_horizon`);
 3. trains with the budgeted adaptive density control (paper 3.3 (2), app. D)
    under a hard cap (default twice the input's Gaussians; a warning with
    figures whenever the cap, not t(n), limited creation);
