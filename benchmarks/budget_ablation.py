@@ -131,20 +131,15 @@ def prepare(out: Path, *, size: int, views: int, test_views: int, iters: int, se
     The stages are the demo's own (make-scene, reconstruct through the CLI parser), so the
     reconstruction is the one the demo edits; a cache made with other sizes is an error.
     """
+    from experiments.ablation import stamp_prepared
     from experiments.demo import _run_stage, _scene_size, _stage_argv
-    from jaxedit import DataError
     from jaxedit.edit.progressive import EditData
     from jaxedit.io import load_nerfstudio, load_ply
 
     data, recon = out / "data", out / "reconstruct"
     wanted = {"scene": SCENE, "size": size, "views": views, "test_views": test_views,
               "iters": iters, "seed": seed}
-    stamp = out / "prepared.json"
-    if stamp.exists() and json.loads(stamp.read_text()) != wanted:
-        raise DataError(stamp, f"prepared with other settings ({stamp.read_text().strip()}); "
-                               "use another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    stamp.write_text(json.dumps(wanted) + "\n")
+    stamp_prepared(out, wanted)
     common = {"--seed": seed, "--quiet": True}
     if not (data / "transforms.json").exists():
         log(f"making the {SCENE} scene ({views}+{test_views} views, {size} px)")

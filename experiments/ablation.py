@@ -94,13 +94,25 @@ def smoke_overrides() -> dict:
                 views=4, test_views=2, recon_iters=30, max_steps=8, warmup=2, patience=4)
 
 
+def stamp_prepared(out: Path, wanted: dict) -> None:
+    """Claims ``out`` for the cached inputs described by ``wanted`` (``out/prepared.json``);
+    a DataError when an earlier run prepared it with other settings."""
+    from jaxedit import DataError
+    from jaxedit.io.files import atomic_write_text
+
+    stamp = out / "prepared.json"
+    if stamp.exists() and json.loads(stamp.read_text()) != wanted:
+        raise DataError(stamp, f"prepared with other settings ({stamp.read_text().strip()}); "
+                               "use another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(stamp, json.dumps(wanted) + "\n")
+
+
 def prepare(out: Path, *, scene_name: str, size: int, views: int, test_views: int,
             recon_iters: int, seed: int, log=print):
     """(EditData, reconstructed Gaussians, recon metrics): dataset + reconstruction, cached on disk."""
-    from jaxedit import DataError
     from jaxedit.edit.progressive import EditData
     from jaxedit.io import load_nerfstudio, load_ply
-    from jaxedit.io.files import atomic_write_text
     from jaxedit.scenes import make_scene
     from jaxedit.train import DensifyConfig, TrainConfig
 
@@ -109,12 +121,7 @@ def prepare(out: Path, *, scene_name: str, size: int, views: int, test_views: in
     data_dir, recon_dir = out / "data", out / "recon"
     wanted = {"scene": scene_name, "size": size, "views": views, "test_views": test_views,
               "recon_iters": recon_iters, "seed": seed}
-    stamp = out / "prepared.json"
-    if stamp.exists() and json.loads(stamp.read_text()) != wanted:
-        raise DataError(stamp, f"prepared with other settings ({stamp.read_text().strip()}); "
-                               f"use another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(stamp, json.dumps(wanted) + "\n")
+    stamp_prepared(out, wanted)
     if not (data_dir / "transforms.json").exists():
         log(f"making the {scene_name} scene ({views}+{test_views} views, {size}px)")
         make_scene(scene_name, data_dir, size=size, views=views, test_views=test_views, seed=seed)
@@ -285,7 +292,6 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=None, seeds=5, editor_mode
         payload = {"settings": settings_json, "runs": runs} | (extra or {})
         atomic_write_text(path, json.dumps(payload, indent=2) + "\n")
 
-    done = {(r["editor_modes"], r["scene"], r["prompt"], r["seed"], r["method"]) for r in runs}
     total = len(scenes) * len(prompts) * seeds * len(editors) * len(order)
     t_start = time.perf_counter()
     for scene_name in scenes:
