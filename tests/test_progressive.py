@@ -439,6 +439,22 @@ def test_async_driver_never_ends_a_subtask_on_edits_it_has_not_trained_on(tiny):
     assert out["metrics"]["utilisation"]["trainer_waits"] >= 1
 
 
+def test_the_wall_clock_guard_ends_subtasks_and_says_so(tiny):
+    g, data, _, _ = tiny
+    # A guard of a millisecond fires after the first chunk of every subtask; the record
+    # names it, and the step guard stays far away.
+    cfg = ProEditConfig.for_mode("nd", **{**TINY, "subtasks": None, "refine_first": False,
+                                          "max_steps": 200, "max_seconds": 1e-3})
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=2,
+                   run_dir=None)
+    subs = out["schedule"]["subtasks"]
+    assert subs and all(s["guard"] == "seconds" and not s["converged"] for s in subs)
+    assert all(s["steps"] < cfg.max_steps for s in subs)
+    assert out["schedule"]["guard"]["max_seconds"] == 1e-3
+    with pytest.raises(DataError, match="max-subtask-seconds"):
+        ProEditConfig.for_mode("nd", max_seconds=0.0)
+
+
 def test_subtask_guard_scales_with_views_and_resolution():
     from jaxedit.edit.plan import GUARD_MIN_STEPS, subtask_guard
 
