@@ -5,17 +5,29 @@ only, so the paired differences are checked here.)"""
 
 from __future__ import annotations
 
+import importlib
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-# The benchmarks are scripts that import their sibling ``common``.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import budget_ablation as ba  # noqa: E402
+from jaxedit.metrics import mean_ci
 
-from jaxedit.metrics import mean_ci  # noqa: E402
+
+def _import_benchmark(name: str):
+    """The benchmark script ``name``, which imports its sibling ``common``. The benchmarks
+    folder is on sys.path only while it loads: left there, its ``lpips.py`` would shadow
+    the lpips package for every later test."""
+    folder = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, folder)
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(folder)
+
+
+ba = _import_benchmark("budget_ablation")
 
 
 def records(seeds=4):
