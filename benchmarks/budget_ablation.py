@@ -81,7 +81,7 @@ from common import parse_args, peak_rss_mb, write_json
 PROMPT = "make his head bigger"
 SCENE = "person"
 
-#: name -> TrainSettings overrides (one constant changed from the defaults).
+#: name -> changes to the editing trainer's DensifyConfig (one constant from the defaults).
 VARIANTS = {
     "default": {},
     "growth=0.005": {"budget_growth": 0.005},
@@ -196,7 +196,7 @@ def run_one(editor, data, scene, *, variant: str, seed: int, sizes: dict, lpips=
     overrides = dict(VARIANTS[variant])
     if sizes["refine_every"] is not None:  # smoke: a period short enough to fire at all
         overrides.setdefault("refine_every", sizes["refine_every"])
-    settings = TrainSettings(**overrides)
+    settings = TrainSettings().replace_densify(**overrides)
     config = ProEditConfig.for_mode("proedit", max_steps=sizes["max_steps"],
                                     patience=sizes["patience"], warmup=sizes["warmup"],
                                     difficulty_views=sizes["difficulty_views"],

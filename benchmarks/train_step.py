@@ -74,7 +74,8 @@ def main(argv=None):
     grad = jax.jit(jax.value_and_grad(
         lambda p: loss_fn(dataclasses.replace(p, alive=g.alive))))
     params = dataclasses.replace(g, alive=None)
-    strategy = refine_cfg.densify.strategy(extent, refine_cfg.iterations)
+    strategy = D.adaptive(refine_cfg.densify, scene_extent=extent,
+                          iterations=refine_cfg.iterations)
     aux = D.RenderAux(grad_means2d=jnp.full((g.capacity, 2), 1e-4), radii=jnp.ones(g.capacity),
                       visible=g.alive, image_size=jnp.asarray([size, size], jnp.float32))
     refine_state = dataclasses.replace(state, config=refine_cfg)

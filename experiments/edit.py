@@ -251,7 +251,7 @@ def run(args) -> dict:
     config = config_from_args(args)
     from jaxedit.edit.progressive import TrainSettings
 
-    settings = TrainSettings(max_gaussians=args.max_gaussians)
+    settings = TrainSettings().replace_densify(max_gaussians=args.max_gaussians)
     watcher = None
     if args.view:
         from .view import check_port, watch_edit

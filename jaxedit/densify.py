@@ -1,6 +1,7 @@
 """Adaptive density control (densify / cull) as a pure, optax-shaped transformation.
 
-``strategy = adaptive(...)`` is a pair of pure functions::
+``strategy = adaptive(DensifyConfig(...), scene_extent=..., iterations=...)`` is a pair
+of pure functions::
 
     stats = strategy.init(gaussians)
     gaussians, opt_state, stats, info = strategy.update(
@@ -161,9 +162,8 @@ class Strategy(NamedTuple):
 # Creation budget t(n, N)
 # --------------------------------------------------------------------------------------
 
-def creation_budget(*, min_new: int = 64, growth: float = 0.02,
-                    max_fraction: float = 0.1) -> BudgetFn:
-    """The default family of creation budgets t(n, N) for ProEdit's adaptive creation.
+def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> BudgetFn:
+    """The family of creation budgets t(n, N) for ProEdit's adaptive creation.
 
         t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N)))
 
@@ -178,6 +178,7 @@ def creation_budget(*, min_new: int = 64, growth: float = 0.02,
     edited views; ``max_fraction N`` bounds a single step (after an opacity
     reset a cull can remove a large part of the scene; it is refilled at most
     10% per step); ``min_new`` lets a tiny or freshly culled scene still grow.
+    The constants' defaults are :class:`DensifyConfig`'s ``budget_*`` fields.
 
     Returns:
       a jit-able function (n int [], N int []) -> int32 [].
@@ -349,28 +350,27 @@ def _empty_info(capacity: int, alive) -> DensifyInfo:
                        cap_limited=f, slots_needed=alive.astype(jnp.int32))
 
 
-def adaptive(*, scene_extent: float = 1.0, max_gaussians: int = 1_000_000,
-             budget: BudgetFn | None = None, grad_threshold: float = 2e-4,
-             grad_floor: float = 0.0, refine_every: int = 100, warmup: int = 500,
-             stop_at: int = 15_000, reset_every: int = 3000, cull_alpha: float = 0.005,
-             reset_value: float | None = None, dense_percent: float = 0.01,
-             split_factor: float = 1.6, cull_scale: float = 0.1,
-             cull_screen: float | None = 0.15) -> Strategy:
-    """3DGS adaptive density control with an optional ProEdit creation budget.
+@dataclasses.dataclass(frozen=True)
+class DensifyConfig:
+    """Density control settings: the one declaration of them and their defaults
+    (nerfstudio Splatfacto / INRIA 3DGS). :func:`adaptive` turns them into a strategy;
+    :class:`jaxedit.train.TrainConfig` stores them (JSON, checkpoints).
 
-    Args:
-      scene_extent: world size of the scene (radius of the camera rig, INRIA's
-        ``cameras_extent``); scales the duplicate/split and world-cull thresholds.
-      max_gaussians: hard cap on the number alive, never exceeded.
-      budget: ``t(n, N) -> int`` (e.g. :func:`creation_budget`) for ProEdit's
-        adaptive creation, or None for classic thresholding.
+    Attributes:
+      enabled: False turns density control off (no maintenance, no resets).
+      max_gaussians: hard cap on the number alive, never exceeded (None: not yet
+        resolved; the edit trainer resolves it from its input scene).
+      budget: ProEdit's adaptive creation with the budget :func:`creation_budget`
+        (``budget_min_new``, ``budget_growth``, ``budget_max_fraction``) instead of
+        classic thresholding at ``grad_threshold``.
       grad_threshold: classic mode: mean NDC gradient norm needed to refine (2e-4).
       grad_floor: budget mode: candidates need a mean gradient strictly above this.
       refine_every, warmup, stop_at: maintenance at ``step > warmup``, every
-        ``refine_every`` steps, while ``step <= stop_at``.
+        ``refine_every`` steps, while ``step <= stop_at`` (None: half of the run's
+        iterations, Splatfacto's 15000 of 30000).
       reset_every: opacity reset period (0 disables); only while ``step <= stop_at``.
       cull_alpha: cull opacity below this.
-      reset_value: opacity after a periodic reset (default ``2 * cull_alpha``).
+      reset_value: opacity after a periodic reset (None: ``2 * cull_alpha``).
       dense_percent: duplicate if max scale <= this * scene_extent, else split.
       split_factor: children's scales are the parent's divided by this.
       cull_scale: cull if max scale > this * scene_extent (None disables).
@@ -379,14 +379,58 @@ def adaptive(*, scene_extent: float = 1.0, max_gaussians: int = 1_000_000,
         INRIA's 3DGS (early Gaussians are legitimately large on screen), hence
         never when ``reset_every`` is 0; None disables.
     """
+
+    enabled: bool = True
+    max_gaussians: int | None = 1_000_000
+    budget: bool = False
+    budget_min_new: int = 64
+    budget_growth: float = 0.02
+    budget_max_fraction: float = 0.1
+    grad_threshold: float = 2e-4
+    grad_floor: float = 0.0
+    refine_every: int = 100
+    warmup: int = 500
+    stop_at: int | None = None
+    reset_every: int = 3000
+    cull_alpha: float = 0.005
+    reset_value: float | None = None
+    dense_percent: float = 0.01
+    split_factor: float = 1.6
+    cull_scale: float | None = 0.1
+    cull_screen: float | None = 0.15
+
+
+def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> Strategy:
+    """3DGS adaptive density control with an optional ProEdit creation budget.
+
+    Args:
+      config: the :class:`DensifyConfig`.
+      scene_extent: world size of the scene (radius of the camera rig, INRIA's
+        ``cameras_extent``); scales the duplicate/split and world-cull thresholds.
+      iterations: the run's steps (``stop_at=None`` stops at half of them).
+    """
+    if config.max_gaussians is None:
+        raise ValueError("max_gaussians is unresolved (None): set the cap first")
+    stop_at = config.stop_at if config.stop_at is not None else iterations // 2
+    reset_every = config.reset_every
+    if not config.enabled:
+        stop_at, reset_every = -1, 0
+    budget = None
+    if config.budget:
+        budget = creation_budget(min_new=config.budget_min_new, growth=config.budget_growth,
+                                 max_fraction=config.budget_max_fraction)
+    max_gaussians, grad_threshold, grad_floor = (config.max_gaussians, config.grad_threshold,
+                                                 config.grad_floor)
+    refine_every, warmup, cull_alpha = config.refine_every, config.warmup, config.cull_alpha
+    cull_screen = config.cull_screen
     if refine_every <= 0:
         raise ValueError("refine_every must be positive")
     if max_gaussians <= 0:
         raise ValueError("max_gaussians must be positive")
-    reset_value = 2.0 * cull_alpha if reset_value is None else reset_value
-    log_split = math.log(split_factor)
-    dup_scale = dense_percent * scene_extent
-    big_scale = None if cull_scale is None else cull_scale * scene_extent
+    reset_value = 2.0 * cull_alpha if config.reset_value is None else config.reset_value
+    log_split = math.log(config.split_factor)
+    dup_scale = config.dense_percent * scene_extent
+    big_scale = None if config.cull_scale is None else config.cull_scale * scene_extent
 
     def init(gaussians: Gaussians) -> DensifyStats:
         return init_stats(gaussians.capacity)

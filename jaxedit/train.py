@@ -2,7 +2,7 @@
 
 The pieces, from the inside out:
 
-* :class:`TrainConfig` (with :class:`DensifyConfig`): every hyper-parameter,
+* :class:`TrainConfig` (with :class:`jaxedit.densify.DensifyConfig`): every hyper-parameter,
   Splatfacto defaults, JSON-serialisable (it is stored in checkpoints).
 * :class:`TrainState`: the whole training state as one pytree -- Gaussians,
   optax state (one Adam per attribute through ``optax.partition``), densify
@@ -59,6 +59,7 @@ from . import densify as dens
 from . import gaussians as glib
 from . import sh as shlib
 from .camera import Camera
+from .densify import DensifyConfig
 from .errors import DataError
 from .gaussians import Gaussians
 from .io.files import atomic_path
@@ -75,56 +76,6 @@ CHECKPOINT_VERSION = 1
 # --------------------------------------------------------------------------------------
 # Configuration
 # --------------------------------------------------------------------------------------
-
-@dataclasses.dataclass(frozen=True)
-class DensifyConfig:
-    """Density control settings (see :func:`jaxedit.densify.adaptive`).
-
-    ``budget=True`` switches on ProEdit's adaptive creation with the budget
-    family :func:`jaxedit.densify.creation_budget` (``budget_min_new``,
-    ``budget_growth``, ``budget_max_fraction``); otherwise classic 3DGS
-    thresholding at ``grad_threshold``. ``stop_at=None`` means half of the
-    run's iterations (Splatfacto: 15000 of 30000). ``max_gaussians`` is a hard cap.
-    """
-
-    enabled: bool = True
-    max_gaussians: int = 1_000_000
-    budget: bool = False
-    budget_min_new: int = 64
-    budget_growth: float = 0.02
-    budget_max_fraction: float = 0.1
-    grad_threshold: float = 2e-4
-    grad_floor: float = 0.0
-    refine_every: int = 100
-    warmup: int = 500
-    stop_at: int | None = None
-    reset_every: int = 3000
-    cull_alpha: float = 0.005
-    reset_value: float | None = None
-    dense_percent: float = 0.01
-    split_factor: float = 1.6
-    cull_scale: float | None = 0.1
-    cull_screen: float | None = 0.15
-
-    def strategy(self, scene_extent: float, iterations: int) -> dens.Strategy:
-        """The :class:`jaxedit.densify.Strategy` these settings describe."""
-        stop_at = self.stop_at if self.stop_at is not None else iterations // 2
-        if not self.enabled:
-            stop_at, reset_every = -1, 0
-        else:
-            reset_every = self.reset_every
-        budget = None
-        if self.budget:
-            budget = dens.creation_budget(min_new=self.budget_min_new, growth=self.budget_growth,
-                                          max_fraction=self.budget_max_fraction)
-        return dens.adaptive(
-            scene_extent=scene_extent, max_gaussians=self.max_gaussians, budget=budget,
-            grad_threshold=self.grad_threshold, grad_floor=self.grad_floor,
-            refine_every=self.refine_every, warmup=self.warmup, stop_at=stop_at,
-            reset_every=reset_every, cull_alpha=self.cull_alpha, reset_value=self.reset_value,
-            dense_percent=self.dense_percent, split_factor=self.split_factor,
-            cull_scale=self.cull_scale, cull_screen=self.cull_screen)
-
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -334,7 +285,8 @@ def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *
         raise DataError("scene_extent", f"must be a positive number, got {scene_extent}")
     key = jax.random.key(0) if key is None else key
     tx = optimizer(config, scene_extent)
-    strategy = config.densify.strategy(scene_extent, config.iterations)
+    strategy = dens.adaptive(config.densify, scene_extent=scene_extent,
+                             iterations=config.iterations)
     if max_intersections is None:
         max_intersections = 0
     return TrainState(gaussians=gaussians, opt_state=tx.init(_params(gaussians)),
@@ -400,7 +352,8 @@ def _train_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]
     g1 = dataclasses.replace(params, alive=g.alive)
 
     step = state.step + 1
-    strategy = cfg.densify.strategy(state.scene_extent, cfg.iterations)
+    strategy = dens.adaptive(cfg.densify, scene_extent=state.scene_extent,
+                             iterations=cfg.iterations)
     aux = dens.render_aux(grad2d, out, cam.width, cam.height)
     g2, opt_state, stats, info = strategy.update(g1, opt_state, state.densify_stats, aux,
                                                  step - state.densify_origin, k_dens)

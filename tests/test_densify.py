@@ -24,13 +24,22 @@ EXTENT = 2.0
 IMAGE = (64.0, 48.0)
 CULL_ALPHA = 0.05
 
+BUDGET_KW = dict(budget_min_new=3, budget_growth=0.1, budget_max_fraction=0.5)
 BUDGET = D.creation_budget(min_new=3, growth=0.1, max_fraction=0.5)
-COMMON = dict(scene_extent=EXTENT, max_gaussians=CAP, refine_every=10, warmup=0, stop_at=1000,
-              reset_every=7, cull_alpha=CULL_ALPHA, dense_percent=0.05, cull_scale=0.5,
-              cull_screen=0.3)
-BUDGETED = D.adaptive(budget=BUDGET, **COMMON)
-CLASSIC = D.adaptive(budget=None, grad_threshold=2e-4, **COMMON)
-NO_CREATE = D.adaptive(budget=D.creation_budget(min_new=0, growth=0.0, max_fraction=0.0), **COMMON)
+COMMON = D.DensifyConfig(max_gaussians=CAP, refine_every=10, warmup=0, stop_at=1000,
+                         reset_every=7, cull_alpha=CULL_ALPHA, dense_percent=0.05, cull_scale=0.5,
+                         cull_screen=0.3)
+
+
+def strategy_with(**changes) -> D.Strategy:
+    """The strategy of COMMON with ``changes`` (DensifyConfig fields)."""
+    return D.adaptive(dataclasses.replace(COMMON, **changes), scene_extent=EXTENT,
+                      iterations=2000)
+
+
+BUDGETED = strategy_with(budget=True, **BUDGET_KW)
+CLASSIC = strategy_with(budget=False, grad_threshold=2e-4)
+NO_CREATE = strategy_with(budget=True, budget_min_new=0, budget_growth=0.0, budget_max_fraction=0.0)
 UPD_BUDGETED = jax.jit(BUDGETED.update)
 UPD_CLASSIC = jax.jit(CLASSIC.update)
 UPD_NO_CREATE = jax.jit(NO_CREATE.update)
@@ -217,7 +226,7 @@ def test_nothing_happens_outside_maintenance_steps_but_stats_accumulate():
     ndc = np.asarray(aux.grad_means2d) * np.asarray(IMAGE) / 2
     np.testing.assert_allclose(np.asarray(s2.grad_sum), np.linalg.norm(ndc, axis=-1) * vis,
                                rtol=1e-6)
-    late = D.adaptive(budget=BUDGET, **{**COMMON, "stop_at": 5})
+    late = strategy_with(budget=True, stop_at=5, **BUDGET_KW)
     info = jax.jit(late.update)(g, opt_state, stats, aux, 10, jax.random.key(0))[3]
     assert not bool(info.refined)
 
@@ -228,8 +237,8 @@ def test_ties_are_broken_by_slot_index():
                             log_scales=jnp.full((C, 3), np.log(0.01 * EXTENT), jnp.float32))
     aux = aux._replace(grad_means2d=jnp.full((C, 2), 1e-3), visible=g.alive,
                        radii=jnp.ones((C,)))
-    strategy = D.adaptive(budget=D.creation_budget(min_new=4, growth=0.0, max_fraction=0.0),
-                          **COMMON)
+    strategy = strategy_with(budget=True, budget_min_new=4, budget_growth=0.0,
+                             budget_max_fraction=0.0)
     g2, _, _, info = jax.jit(strategy.update)(g, opt_state, stats, aux, 10, jax.random.key(0))
     assert int(info.created) == 4 and int(info.duplicated) == 4
     first4 = np.flatnonzero(np.asarray(g.alive))[:4]
@@ -239,8 +248,7 @@ def test_ties_are_broken_by_slot_index():
 
 def test_capacity_growth_redo_creates_what_the_small_capacity_could_not():
     cap = 200
-    strategy = D.adaptive(budget=None, **{**COMMON, "max_gaussians": cap, "cull_scale": None,
-                                          "cull_screen": None})
+    strategy = strategy_with(max_gaussians=cap, cull_scale=None, cull_screen=None)
     g, opt_state, stats, aux = random_case(2, 30, capacity=32)
     g = dataclasses.replace(g, opacity_logits=jnp.full((32,), 2.0))
     aux = aux._replace(grad_means2d=jnp.full((32, 2), 1e-3), visible=g.alive,
@@ -264,7 +272,7 @@ def test_capacity_growth_redo_creates_what_the_small_capacity_could_not():
 
 
 def test_hard_cap_holds_when_capacity_exceeds_it():
-    strategy = D.adaptive(budget=None, **{**COMMON, "max_gaussians": 35})
+    strategy = strategy_with(max_gaussians=35)
     g, opt_state, stats, aux = random_case(9, 30)
     g = dataclasses.replace(g, opacity_logits=jnp.full((C,), 2.0),
                             log_scales=jnp.full((C, 3), np.log(0.01 * EXTENT), jnp.float32))
@@ -302,7 +310,7 @@ def test_an_opacity_reset_to_the_cull_threshold_culls_nothing(value):
 
 
 def test_periodic_reset_runs_inside_update():
-    strategy = D.adaptive(budget=None, **{**COMMON, "reset_every": 20})
+    strategy = strategy_with(reset_every=20)
     g, opt_state, stats, aux = random_case(4, 25)
     g2, o2, _, info = jax.jit(strategy.update)(g, opt_state, stats, aux, 20, jax.random.key(0))
     assert bool(info.reset)
@@ -315,4 +323,4 @@ def test_creation_budget_default_shape():
     assert int(t(jnp.int32(50), jnp.int32(10_000))) == 250      # n + 2% N
     assert int(t(jnp.int32(5000), jnp.int32(10_000))) == 1000   # capped at 10% N
     with pytest.raises(ValueError):
-        D.creation_budget(growth=-1.0)
+        D.creation_budget(min_new=0, growth=-1.0, max_fraction=0.1)

@@ -347,10 +347,14 @@ def test_edit_cap_defaults_to_twice_the_input_and_is_never_below_it():
     # Reconstructions of 0.3-3M Gaussians keep room to create (the old fixed 200k cap had none).
     assert default_max_gaussians(1_000_000) == 2_000_000
     assert default_max_gaussians(500) == 500 + CAP_MIN_ROOM
-    assert resolve_max_gaussians(TrainSettings(), 300_000).max_gaussians == 600_000
-    assert resolve_max_gaussians(TrainSettings(max_gaussians=400_000), 300_000).max_gaussians == 400_000
+    def cap(settings):
+        return settings.densify.max_gaussians
+
+    capped = TrainSettings().replace_densify
+    assert cap(resolve_max_gaussians(TrainSettings(), 300_000)) == 600_000
+    assert cap(resolve_max_gaussians(capped(max_gaussians=400_000), 300_000)) == 400_000
     with pytest.raises(DataError, match="--max-gaussians"):
-        resolve_max_gaussians(TrainSettings(max_gaussians=1000), 300_000)
+        resolve_max_gaussians(capped(max_gaussians=1000), 300_000)
     trainer = SubtaskTrainer(TrainSettings(), num_input=250_000)
     assert trainer.config.densify.max_gaussians == 500_000
     with pytest.raises(DataError, match="max_gaussians"):
@@ -516,7 +520,8 @@ def test_an_input_above_200k_gaussians_grows_up_to_its_cap_and_never_past_it():
     data = EditData(images[:4], cams[np.arange(4)], images[4:], cams[np.arange(4, 6)])
     cap = n + 500
     # Opacities frozen: the cull removes nothing, so only the cap can bound the growth.
-    settings = dataclasses.replace(FAST, max_gaussians=cap, refine_every=4, lr_opacity=0.0)
+    settings = dataclasses.replace(FAST, lr_opacity=0.0).replace_densify(max_gaussians=cap,
+                                                                         refine_every=4)
     cfg = ProEditConfig.for_mode("nd", warmup=2, patience=4, loss_window=4, max_steps=14,
                                  edit_every=3, refine_first=False, consolidate=False,
                                  difficulty_views=1, curve_points=2, asynchronous=False)

@@ -279,7 +279,7 @@ def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) ->
     # Room to densify from the start (growth means a recompile), but not much more: the
     # step's cost grows with the capacity. 1.5x, a multiple of 256.
     want = -(-int(1.5 * int(gaussians.num_alive())) // 256) * 256
-    capacity = min(max(want, gaussians.capacity), max(ctx.trainer.settings.max_gaussians,
+    capacity = min(max(want, gaussians.capacity), max(ctx.trainer.settings.densify.max_gaussians,
                                                      gaussians.capacity))
     if capacity > gaussians.capacity:
         from ..gaussians import grow
@@ -390,7 +390,7 @@ def step_chunk(ctx: EditContext, st: DriverState, spec: SubtaskSpec, num_steps: 
                                        earliest_end(st, cfg)], np.int32))
     train, tracker, metrics = _edit_chunk(
         st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.key, scalars,
-        length=CHUNK, warmup=ctx.trainer.settings.warmup, window=cfg.loss_window,
+        length=CHUNK, warmup=ctx.trainer.settings.densify.warmup, window=cfg.loss_window,
         patience=cfg.patience, min_delta=cfg.min_delta, stop_on_plateau=cfg.stop_on_plateau)
     metrics = jax.device_get(metrics)  # the one host read of the chunk
     completed = metrics["ran"] & ~metrics["redo"]
@@ -465,7 +465,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
 
     cfg, trainer = ctx.config, ctx.trainer
     n = len(ctx.data.train_images)
-    warmup = trainer.settings.warmup
+    warmup = trainer.settings.densify.warmup
     if st.step == 0:
         st = begin_subtask(ctx, st)
     key_sub = jax.random.fold_in(ctx.key, spec.index)

@@ -231,8 +231,10 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         # through a file differ in the last bits; equal rigs should share one compiled step.
         extent = float(f"{scene_extent(data.train_cameras):.4g}")
         settings = dataclasses.replace(settings, scene_extent=extent)
+    # The plan owns W, the mode and the background; the trainer runs with them.
     settings = dataclasses.replace(settings, adaptive=config.mode != "in2n",
-                                   warmup=config.warmup, background=tuple(config.background))
+                                   background=tuple(config.background)
+                                   ).replace_densify(warmup=config.warmup)
     settings = resolve_max_gaussians(settings, int(gaussians.num_alive()))
     trainer = SubtaskTrainer(settings)
     trainer_device, editor_device = pick_devices()
@@ -308,7 +310,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                   "guard": {"max_steps": ctx.config.max_steps,
                             "max_steps_scaled": config.max_steps is None,
                             "max_seconds": ctx.config.max_seconds},
-                  "max_gaussians": settings.max_gaussians,
+                  "max_gaussians": settings.densify.max_gaussians,
                   "input_gaussians": int(gaussians.num_alive())}
         st = init_state(ctx, start_scene, images)
         if run_dir is not None:
@@ -351,7 +353,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         elif info["guard"] == "seconds":
             log(f"subtask {spec.name}: max_seconds guard ({ctx.config.max_seconds:g} s) fired "
                 f"before the loss plateaued, at step {info['steps']}")
-        warning = cap_warning(spec.name, info["density"], settings.max_gaussians,
+        warning = cap_warning(spec.name, info["density"], settings.densify.max_gaussians,
                               int(g.num_alive()))
         if warning:
             log(warning)

@@ -10,7 +10,31 @@ import dataclasses
 
 import jax.numpy as jnp
 
+from ..densify import DensifyConfig
 from ..errors import DataError
+
+#: The editing trainer's density control (paper 3.3; the paper follows Splatfacto's
+#: defaults where it says nothing), a :class:`jaxedit.densify.DensifyConfig`:
+#:
+#: - ``budget`` on with t(n, N) = max(16, min(10% N, n + 2% N)). ASSUMPTION: the paper
+#:   (appendix "Gaussian Creation Strategy") gives only the form "t(n) of the culled
+#:   count n and the total N", no constants; 16 / 2% / 10% are ours, kept by
+#:   ``benchmarks/budget_ablation.py`` (no variant edited better).
+#: - ``refine_every`` 100, Splatfacto's; the budget ablation compared our earlier 50:
+#:   the same edit quality, far fewer Gaussians created, fewer subtasks cut by the guard.
+#: - ``cull_alpha`` 0.1, Splatfacto's cull_alpha_thresh, which is also the opacity every
+#:   Gaussian gets at a subtask start (it keeps the scene visible to the editor;
+#:   gsplat's 0.005 would blank it); no periodic reset (``reset_every`` 0): the subtask
+#:   start is the reset.
+#: - ``max_gaussians`` None: :func:`default_max_gaussians` of the input scene.
+#: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig`), set per run.
+#: - ``stop_at``: never (a subtask has no fixed length).
+EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
+                             budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
+                             warmup=30, stop_at=2 ** 30, reset_every=0, cull_alpha=0.1)
+#: IN2N / IGS2GS mode: Splatfacto's classic thresholds and its periodic opacity reset.
+CLASSIC_RESET_EVERY = 3000
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainSettings:
@@ -18,53 +42,38 @@ class TrainSettings:
 
     Attributes:
       scene_extent: world size (None: ``jaxedit.train.scene_extent`` of the train cameras).
-      adaptive: ProEdit's budgeted creation (True) or classic 3DGS thresholds (False, IN2N).
-      cull_alpha: the cull threshold, which is also the opacity every Gaussian gets
-        at a subtask start (Splatfacto's cull_alpha_thresh 0.1 keeps the scene
-        visible to the editor; gsplat's 0.005 would blank it).
-      warmup: W, steps after the subtask start without density control.
-      max_gaussians: the hard cap (None: :func:`default_max_gaussians` of the input).
-      budget_*: the creation budget t(n, N) (see ``jaxedit.densify.creation_budget``).
-        ASSUMPTION: the paper (appendix "Gaussian Creation Strategy") gives only the form
-        "t(n) of the culled count n and the total N", no constants; 16 / 2% / 10% are ours.
-      refine_every: steps between maintenance steps: Splatfacto's 100 (the paper follows
-        its defaults). ``benchmarks/budget_ablation.py`` compared it with our earlier 50:
-        the same edit quality, far fewer Gaussians created, fewer subtasks cut by the
-        step guard.
+      adaptive: ProEdit's budgeted creation (True) or classic 3DGS thresholds with a
+        periodic opacity reset (False, IN2N); ``run_edit`` sets it from the mode.
+      densify: the density control (:data:`EDIT_DENSIFY`); in classic mode its budget
+        is off and it resets opacities every :data:`CLASSIC_RESET_EVERY` steps.
       sh_degree: SH degree trained (the input scene's, all degrees on from the start).
       lr_means, lr_sh_dc, lr_opacity: Adam learning rates (Splatfacto's by default;
         the higher-order SH get lr_sh_dc / 20). Splatfacto's are tuned for ~30k
         steps; short CPU runs of a few hundred steps per subtask need a larger
         colour rate to follow the edits at all (the ablation uses 10x).
+      background: the colour behind the Gaussians, white or black (``run_edit`` sets
+        the plan's).
     """
 
     scene_extent: float | None = None
     adaptive: bool = True
-    cull_alpha: float = 0.1
-    warmup: int = 30
-    refine_every: int = 100
-    max_gaussians: int | None = None
-    budget_min_new: int = 16
-    budget_growth: float = 0.02
-    budget_max_fraction: float = 0.1
+    densify: DensifyConfig = EDIT_DENSIFY
     sh_degree: int = 3
     lr_means: float = 1.6e-4
     lr_sh_dc: float = 2.5e-3
     lr_opacity: float = 0.05
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
+    def replace_densify(self, **changes) -> "TrainSettings":
+        """These settings with ``densify``'s fields ``changes`` replaced."""
+        return dataclasses.replace(self, densify=dataclasses.replace(self.densify, **changes))
+
     def train_config(self):
         """The :class:`jaxedit.train.TrainConfig` these settings describe."""
-        from ..train import DensifyConfig, TrainConfig
+        from ..train import TrainConfig
 
-        if self.adaptive:  # ProEdit: creation budget; opacity resets at subtask starts only
-            mode = dict(budget=True, budget_min_new=self.budget_min_new,
-                        budget_growth=self.budget_growth,
-                        budget_max_fraction=self.budget_max_fraction, reset_every=0)
-        else:  # IN2N / IGS2GS: Splatfacto's classic thresholds and periodic opacity reset
-            mode = dict(budget=False, reset_every=3000)
-        dens = DensifyConfig(refine_every=self.refine_every, warmup=self.warmup, stop_at=2 ** 30,
-                             cull_alpha=self.cull_alpha, max_gaussians=self.max_gaussians, **mode)
+        dens = self.densify if self.adaptive else dataclasses.replace(
+            self.densify, budget=False, reset_every=CLASSIC_RESET_EVERY)
         bg = tuple(float(c) for c in self.background)
         background = {(1.0, 1.0, 1.0): "white", (0.0, 0.0, 0.0): "black"}.get(bg)
         if background is None:
@@ -92,9 +101,9 @@ def default_max_gaussians(num_input: int) -> int:
 
 def resolve_max_gaussians(settings: TrainSettings, num_input: int) -> TrainSettings:
     """``settings`` with its cap resolved for an input of ``num_input`` Gaussians (never below)."""
-    cap = settings.max_gaussians
+    cap = settings.densify.max_gaussians
     if cap is None:
-        return dataclasses.replace(settings, max_gaussians=default_max_gaussians(num_input))
+        return settings.replace_densify(max_gaussians=default_max_gaussians(num_input))
     if int(cap) < int(num_input):
         raise DataError("--max-gaussians", f"{cap} is below the input scene's {num_input} "
                         "Gaussians (the cap never removes Gaussians)")
@@ -114,7 +123,7 @@ class SubtaskTrainer:
 
     def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None):
         """``num_input``: the input scene's Gaussian count, to resolve a cap left as None."""
-        if settings.max_gaussians is None:
+        if settings.densify.max_gaussians is None:
             if num_input is None:
                 raise DataError("max_gaussians", "unresolved: pass num_input or a cap")
             settings = resolve_max_gaussians(settings, num_input)
@@ -145,8 +154,10 @@ class SubtaskTrainer:
     def restart(self, state):
         from .. import densify
 
-        g, opt = densify.opacity_reset(state.gaussians, state.opt_state, self.settings.cull_alpha)
-        strategy = state.config.densify.strategy(state.scene_extent, state.config.iterations)
+        g, opt = densify.opacity_reset(state.gaussians, state.opt_state,
+                                        self.settings.densify.cull_alpha)
+        strategy = densify.adaptive(state.config.densify, scene_extent=state.scene_extent,
+                                    iterations=state.config.iterations)
         return dataclasses.replace(state, gaussians=g, opt_state=opt,
                                    densify_stats=strategy.init(g), densify_origin=state.step)
 
