@@ -386,7 +386,7 @@ def chunk_start(tiny):
 
     g, data, _, _ = tiny
     cfg = ProEditConfig.for_mode("proedit", **TINY)
-    settings = dataclasses.replace(FAST, scene_extent=3.0, warmup=cfg.warmup)
+    settings = dataclasses.replace(FAST, scene_extent=3.0).replace_densify(warmup=cfg.warmup)
     trainer = SubtaskTrainer(settings, num_input=int(g.num_alive()))
     ctx = EditContext(SimulatedEditor(), PROMPT, data, cfg, trainer, Renderer(), jax.random.key(3))
     return ctx, begin_subtask(ctx, init_state(ctx, g)), SubtaskSpec(1, "r1", 0.5, None, "edit")
