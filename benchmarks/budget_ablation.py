@@ -60,8 +60,9 @@ when the settings match).
 Cost. Sized from one measured edit on the shared 2-core CPU: the first edit took 139 s
 (compiling included, machine loaded), later ones 47-65 s (about 1100-1550 steps, 6 subtasks),
 the reconstruction 106 s. The default grid, 7 variants x 8 seeds = 56 edits at
-``--max-steps 300 --patience 40``, is about an hour there; ``--seeds 3`` (21 edits) is under
-half an hour. Variants run inside the seed loop, so an interrupted run still has complete
+``--max-steps 300 --patience 40``, took 82 minutes of edits there (the machine shared;
+``benchmarks/results/cpu/budget_ablation.json``); ``--seeds 3`` (21 edits) is about half an
+hour. Variants run inside the seed loop, so an interrupted run still has complete
 paired seeds, and a rerun with more seeds or variants keeps the finished edits.
 ``--smoke``: 16 px, 4 + 2 views, the dataset's initial cloud instead of a reconstruction,
 no LPIPS, the default only (every variant compiles its own editing trainer), 2 seeds of a
