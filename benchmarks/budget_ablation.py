@@ -339,8 +339,9 @@ def main(argv=None):
     t_start, c_start = time.perf_counter(), time.process_time()
     data, scene, recon = prepare(run_dir, size=sizes["size"], views=sizes["views"],
                                  test_views=sizes["test_views"], iters=sizes["iters"])
-    print(f"{SCENE}: {int(scene.num_alive())} Gaussians, reconstruction test PSNR "
-          f"{recon.get('test_psnr', float('nan')):.2f} dB", flush=True)
+    quality = (f"reconstruction test PSNR {recon['test_psnr']:.2f} dB" if "test_psnr" in recon
+               else "the dataset's initial cloud, not reconstructed")
+    print(f"{SCENE}: {int(scene.num_alive())} Gaussians, {quality}", flush=True)
     # No LPIPS in the smoke: its compile would be a tenth of the smoke's time.
     editor, lpips = SimulatedEditor(), None if args.smoke else lpips_scorer(sizes["size"])
     runs_path = run_dir / "runs.json"
