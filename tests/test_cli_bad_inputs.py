@@ -191,7 +191,8 @@ def test_config_values_get_the_flags_validation(corpus, tmp_path, capfd, key, va
     elif value is None or isinstance(value, (bool, list, dict)):
         typed = None  # no command-line spelling: the file must be refused
     else:
-        typed = [flag, str(value)]
+        # "--flag=value": argparse reads a separate "-1e+16" as an unknown option, not a value.
+        typed = [f"{flag}={value}"]
     if value is None and key == "densify_until":
         typed = []  # null where the flag's default is unset means "not given"
     from_flags, _ = (None, "unspellable") if typed is None else _parse(
