@@ -67,6 +67,8 @@ def extra(p):
     p.add_argument("--refine-steps", type=int, default=None,
                    help="test-time pose refinement steps (default 100; smoke 10)")
     p.add_argument("--refine-lr", type=float, default=None, help="refinement learning rate")
+    p.add_argument("--no-camera-opt", dest="camera_opt", action="store_false",
+                   help="train both runs without camera optimisation (reconstruct --camera-opt)")
 
 
 def frame_index(filenames) -> np.ndarray:
@@ -106,7 +108,7 @@ def main(argv=None):
         size, views, iters, down = args.size or 320, args.views or 36, args.iters or 3000, args.downscale or 2
         dens = DensifyConfig()
         refine_steps = args.refine_steps or 100
-    config = TrainConfig(iterations=iters, densify=dens)
+    config = TrainConfig(iterations=iters, densify=dens, camera_opt=args.camera_opt)
     background = np.ones(3, np.float32)  # TrainConfig's default white, as evaluate() uses
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.keep) if args.keep else Path(tmp)
@@ -136,16 +138,27 @@ def main(argv=None):
         runs = {}
         for name, data in (("truth", truth), ("sfm", sfm)):
             run = root / f"run_{name}"
-            if args.reuse and (run / "metrics.json").is_file() and (run / "scene.ply").is_file():
-                runs[name] = json.loads((run / "metrics.json").read_text())
+            kept = run / "metrics.json"
+            if (args.reuse and kept.is_file() and (run / "scene.ply").is_file()
+                    and json.loads(kept.read_text())["config"] == config.to_dict()):
+                runs[name] = json.loads(kept.read_text())
             else:
                 runs[name] = reconstruct(data, run, config, checkpoint_every=0, log_every=100)
         m_truth, m_sfm = runs["truth"], runs["sfm"]
         train_s = time.perf_counter() - t0
         scene_truth = load_ply(root / "run_truth" / "scene.ply")
         scene_sfm = load_ply(root / "run_sfm" / "scene.ply")
+        if args.camera_opt:
+            # The scene lives with the training cameras as corrected during training:
+            # align to those (reconstruct wrote them to run_sfm/dataset).
+            learned = load_nerfstudio(root / "run_sfm" / "dataset")
+            train_err_learned = pose_errors(learned.cameras[learned.train_indices],
+                                            truth.cameras[source[sfm.train_indices]])
+            to_sfm = np.linalg.inv(train_err_learned["similarity"])
+        else:
+            train_err_learned = None
+            to_sfm = np.linalg.inv(train_err["similarity"])
         # The same four held-out images, seen by the true test cameras carried into SfM's world.
-        to_sfm = np.linalg.inv(train_err["similarity"])
         test_images, test_cams = truth.test()
         aligned_cams = transform_cameras(test_cams, to_sfm)
         aligned = evaluate(scene_sfm, test_images, aligned_cams, background=background)
@@ -165,7 +178,15 @@ def main(argv=None):
         "camera": summary["camera"],
         "registered": summary["num_registered"], "images": summary["num_images"],
         "sfm_points": summary["num_points"], "sfm_seconds": summary["seconds"],
+        "camera_opt": bool(args.camera_opt),
         "median_rotation_deg": errors["median_rotation_deg"],
+        "median_rotation_deg_train_sfm": train_err["median_rotation_deg"],
+        # The SfM training cameras after training-time camera optimisation (None without).
+        "median_rotation_deg_train_learned": (None if train_err_learned is None
+                                              else train_err_learned["median_rotation_deg"]),
+        "median_centre_error_rel_train_learned": (
+            None if train_err_learned is None else train_err_learned["median_centre_error_rel"]),
+        "camera_corrections": {name: runs[name].get("camera_corrections") for name in runs},
         "median_centre_error_rel": errors["median_centre_error_rel"],
         "max_rotation_deg": float(errors["rotation_deg"].max()),
         # The same error as an image shift at the training resolution: what PSNR feels.

@@ -40,20 +40,28 @@ def test_so3_exp_is_rodrigues():
     np.testing.assert_allclose(so3_exp(jnp.zeros(3)), np.eye(3), atol=0)
 
 
-def test_refinement_recovers_perturbed_poses_and_keeps_exact_ones():
-    """Face-scene Gaussians render the targets from known cameras; two cameras start 1 degree
-    and 1% of the depth off, a third exactly right. All must end at the truth."""
+def _exact_scene(views: int, seed: int):
+    """(true cameras [views], Gaussians of the face scene, their renders from those cameras,
+    float64 [views, 6] corrections of 1 degree and 1% of the depth): an oracle whose images the
+    Gaussians reproduce exactly from the true poses."""
     scene = scenes.get_scene("face")
-    truth = scenes.rig_cameras(scene.rig, 3, width=SIZE)
-    rng = np.random.default_rng(0)
+    truth = scenes.rig_cameras(scene.rig, views, width=SIZE)
+    rng = np.random.default_rng(seed)
     pts, rgb = scenes.sample_points(scene, truth, 3000, rng, position_noise=0.0, color_noise=0.0,
                                     outlier_fraction=0.0, min_views=1)
     g = G.from_points(pts, rgb, sh_degree=0, init_opacity=0.9)
-    bg = jnp.ones(3)
-    images = render(g, truth, background=bg).rgb
-    delta = rng.normal(size=(3, 6))
+    images = render(g, truth, background=jnp.ones(3)).rgb
+    delta = rng.normal(size=(views, 6))
     delta[:, :3] *= np.radians(1.0) / np.linalg.norm(delta[:, :3], axis=1, keepdims=True)
     delta[:, 3:] *= 0.01 / np.linalg.norm(delta[:, 3:], axis=1, keepdims=True)
+    return truth, g, images, delta
+
+
+def test_refinement_recovers_perturbed_poses_and_keeps_exact_ones():
+    """Face-scene Gaussians render the targets from known cameras; two cameras start 1 degree
+    and 1% of the depth off, a third exactly right. All must end at the truth."""
+    truth, g, images, delta = _exact_scene(3, seed=0)
+    bg = jnp.ones(3)
     delta[2] = 0.0
     depth = np.asarray(scene_depth(g, truth))
     start = apply_delta(truth, jnp.asarray(delta, jnp.float32), depth)
@@ -105,17 +113,8 @@ def test_training_recovers_perturbed_training_poses():
     """The oracle of the training step's pose gradient: Gaussians that render the targets
     exactly from known cameras, held (near) fixed by tiny learning rates, and training
     cameras that start 1 degree and 1% of the depth off. Camera optimisation must bring
-    every view back; the corrections, checkpointed, must come back bit for bit."""
-    scene = scenes.get_scene("face")
-    truth = scenes.rig_cameras(scene.rig, 6, width=SIZE)
-    rng = np.random.default_rng(1)
-    pts, rgb = scenes.sample_points(scene, truth, 3000, rng, position_noise=0.0, color_noise=0.0,
-                                    outlier_fraction=0.0, min_views=1)
-    g = G.from_points(pts, rgb, sh_degree=0, init_opacity=0.9)
-    images = render(g, truth, background=jnp.ones(3)).rgb
-    delta = rng.normal(size=(6, 6))
-    delta[:, :3] *= np.radians(1.0) / np.linalg.norm(delta[:, :3], axis=1, keepdims=True)
-    delta[:, 3:] *= 0.01 / np.linalg.norm(delta[:, 3:], axis=1, keepdims=True)
+    every view back."""
+    truth, g, images, delta = _exact_scene(6, seed=1)
     noisy = apply_delta(truth, jnp.asarray(delta, jnp.float32), scene_depth(g, truth))
     tiny = 1e-12
     config = T.TrainConfig(
