@@ -11,6 +11,10 @@ Writes into RUN_DIR:
   ``num_gaussians``, ``wall_time_s``, ``steps_per_s``, where the time went;
 * ``train_log.jsonl``: training metrics every ``--log-every`` steps and at every
   density-control step;
+* with ``--camera-opt``, ``dataset/``: a nerfstudio dataset of the images as trained
+  (undistorted, downscaled, in the normalised world) with the training cameras'
+  learned pose corrections applied; the scene lives in its frame, so
+  ``edit --data RUN_DIR/dataset --scene RUN_DIR/scene.ply`` edits with those poses;
 * ``checkpoints/ckpt_<step>.npz``: the full training state every
   ``--checkpoint-every`` steps and at the end. ``--resume`` continues from the
   newest one and ends with the same Gaussians as an uninterrupted run.
@@ -53,6 +57,13 @@ def add_arguments(p) -> None:
                    help="last densify step (default: half of --iters)")
     p.add_argument("--reset-every", type=int, default=3000, help="opacity reset period (0: off)")
     p.add_argument("--cull-alpha", type=float, default=0.005, help="cull opacity below this")
+    p.add_argument("--camera-opt", action="store_true",
+                   help="learn a pose correction per training view with the scene (for "
+                        "poses from structure from motion; writes RUN_DIR/dataset)")
+    p.add_argument("--camera-lr", type=float, default=None,
+                   help="learning rate of the pose corrections (default: TrainConfig's)")
+    p.add_argument("--camera-opt-from", type=int, default=None,
+                   help="step at which the pose corrections start to move (default 500)")
     p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
     p.add_argument("--normalize", choices=["none", "nerfstudio"], default="none",
                    help="re-centre and scale the poses as nerfstudio does")
@@ -73,8 +84,16 @@ def config_from_args(args):
                          refine_every=args.refine_every, warmup=args.warmup,
                          stop_at=args.densify_until, reset_every=args.reset_every,
                          cull_alpha=args.cull_alpha)
+    camera = {}
+    if args.camera_opt_from is not None:
+        camera["camera_opt_from"] = args.camera_opt_from
+    if args.camera_lr is not None:
+        camera.update(lr_camera=args.camera_lr,
+                      lr_camera_final=args.camera_lr * TrainConfig.lr_camera_final
+                      / TrainConfig.lr_camera)
     return TrainConfig(iterations=args.iters, sh_degree=args.sh_degree,
-                       background=args.background, densify=dens)
+                       background=args.background, densify=dens,
+                       camera_opt=args.camera_opt, **camera)
 
 
 def _check(args) -> None:
@@ -86,9 +105,11 @@ def _check(args) -> None:
         raise DataError("--out", "reconstruct needs a run directory (--out RUN_DIR)")
     check_minimums(args, {"iters": 1, "max_gaussians": 1, "refine_every": 1, "random_points": 1,
                           "log_every": 1, "downscale": 1, "checkpoint_every": 0, "warmup": 0,
-                          "reset_every": 0, "densify_until": 0})
+                          "reset_every": 0, "densify_until": 0, "camera_opt_from": 0})
     if not 0 <= args.sh_degree <= 3:
         raise DataError("--sh-degree", f"must be in 0..3, got {args.sh_degree}")
+    if args.camera_lr is not None and not args.camera_lr > 0:
+        raise DataError("--camera-lr", f"must be positive, got {args.camera_lr}")
     if not 0.0 < args.cull_alpha < 1.0:
         raise DataError("--cull-alpha", f"must be in (0, 1), got {args.cull_alpha}")
     # A Gaussian of degree-3 SH costs 59 float32 parameters, each with a gradient and two
@@ -213,7 +234,7 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
         points, colors, points_source = capped_initial_points(
             data, random_points, config.densify.max_gaussians, seed, solid)
         g = G.from_points(points, colors, sh_degree=config.sh_degree)
-        state = T.init_state(g, config, extent, key=jax.random.key(seed))
+        state = T.init_state(g, config, extent, key=jax.random.key(seed), cameras=train_cams)
     start_step = int(state.step)
 
     chunk_times: list[tuple[float, int]] = []  # (seconds, steps) of every chunk of steps
@@ -255,6 +276,9 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
         bottom = np.concatenate(list(renders[:columns]), axis=1)
         write_image(out / f"{eval_split}_compare.png", np.concatenate([top, bottom], axis=0))
     save_ply(out / "scene.ply", state.gaussians)
+    corrections = None
+    if config.camera_opt:
+        corrections = write_corrected_dataset(out / "dataset", data, state.cameras)
     write_s = time.perf_counter() - t_write
 
     seconds = np.asarray([t for t, _ in chunk_times], np.float64)
@@ -283,8 +307,36 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
                                                          int(train_images.shape[1])],
         "config": config.to_dict(),
     }
+    if corrections is not None:
+        metrics["camera_corrections"] = corrections
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def write_corrected_dataset(folder: Path, data, corrections) -> dict:
+    """Write ``data`` as trained, with its training cameras' learned corrections, to
+    ``folder`` (a nerfstudio dataset, atomically); returns the corrections' summary.
+
+    The test cameras keep their poses: they were never trained on.
+    """
+    import numpy as np
+
+    from jaxedit import poses
+    from jaxedit.io import save_nerfstudio
+
+    train = np.asarray(data.train_indices)
+    fixed = poses.corrected_cameras(data.cameras[train], corrections)
+    w2c = np.array(data.cameras.world_to_camera, np.float32)
+    w2c[train] = np.asarray(fixed.world_to_camera)
+    cameras = dataclasses.replace(data.cameras, world_to_camera=w2c)
+    save_nerfstudio(folder, data.images, cameras, filenames=data.filenames,
+                    train_indices=train, test_indices=np.asarray(data.test_indices),
+                    points=data.points, point_colors=data.point_colors)
+    sizes = poses.correction_sizes(corrections)
+    rot, trans = sizes["rotation_deg"], sizes["translation"]
+    return {"median_rotation_deg": float(np.median(rot)), "max_rotation_deg": float(rot.max()),
+            "median_translation": float(np.median(trans)), "max_translation": float(trans.max()),
+            "dataset": str(folder)}
 
 
 def run(args) -> dict:

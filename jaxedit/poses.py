@@ -1,29 +1,36 @@
-"""Test-time pose refinement: fit a small rigid correction of cameras to their images.
+"""Pose corrections: a small rigid correction of cameras fitted to their images.
+
+Two uses of one parameterisation (:func:`apply_delta`): test-time refinement of
+held-out cameras against a frozen scene (:func:`refine_poses`, below), and training-time
+camera optimisation, where each training view's correction is learned with the scene
+(:class:`CameraCorrections`, used by :mod:`jaxedit.train` with ``TrainConfig.camera_opt``).
 
 A scene trained on poses estimated by structure from motion lives in SfM's world,
 and the held-out cameras carried into it (by a similarity fitted to the training
 cameras) keep their own residual pose errors: a 0.5 degree rotation is about 1.5 px
 at 128 px, which costs several dB of PSNR that say nothing about the scene. Methods
 trained on estimated poses (BARF, NoPe-NeRF and later ones) are therefore scored
-after refining each test camera's pose against its image with the scene frozen.
-This module does that:
+after refining each test camera's pose against its image with the scene frozen,
+which :func:`refine_poses` does:
 
     cams, info = refine_poses(scene, test_cameras, test_images, background=jnp.ones(3))
 
 Each camera gets a correction ``delta`` float [6] applied on the left of its
 world-to-camera pose, ``w2c' = [exp(w) | depth * u] w2c`` with ``w = delta[:3]`` a
-rotation vector (radians, about the camera centre) and ``u = delta[3:]`` a translation
+rotation vector (radians, about the point at the scene's depth on the optical axis) and
+``u = delta[3:]`` a translation
 in the camera frame in units of the scene's depth in front of the camera. In those
 units a unit of either half moves a point at that depth by about ``f`` pixels, so one
 Adam learning rate suits both. The intrinsics stay fixed. The rasterizer is
 differentiable in the camera pose (projection is plain JAX), so the gradient flows
-into ``delta`` directly; the Gaussians are never changed. Nothing is random.
+into ``delta`` directly; refinement never changes the Gaussians. Nothing is random.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -249,3 +256,76 @@ def refine_poses(gaussians: Gaussians, cameras: Camera, images, *,
             "translation": np.linalg.norm(delta[:, 3:], axis=1) * depth, "depth": depth,
             "loss": np.asarray(losses, np.float64)}
     return refined, info
+
+
+# --------------------------------------------------------------------------------------
+# Training-time camera optimisation: the same correction, learned with the scene
+# --------------------------------------------------------------------------------------
+
+def _row_adam() -> optax.GradientTransformation:
+    """The Adam direction of one camera's correction (the learning rate is applied outside)."""
+    return optax.scale_by_adam()
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CameraCorrections:
+    """Per-view pose corrections trained jointly with the scene (Splatfacto's camera
+    optimizer, gsplat's ``pose_opt``), in :func:`apply_delta`'s parameterisation.
+
+    Each step trains on one view, so only that view's row gets a gradient. Its Adam
+    moments and step count are kept per row and advanced only when the view is
+    trained (a sparse Adam): a shared Adam would keep moving every other view's
+    correction by its stale momentum at every step.
+
+    Attributes:
+      delta: float [V, 6], the corrections (rotation vector, translation / depth).
+      depth: float [V], each view's translation unit and pivot depth, fixed at init
+        (:func:`scene_depth` of the initial scene).
+      adam: ``optax.scale_by_adam`` state with a leading [V] on every leaf.
+    V = 0 when camera optimisation is off: the state is empty and the step skips it.
+    """
+
+    delta: jax.Array
+    depth: jax.Array
+    adam: Any
+
+    @property
+    def num_views(self) -> int:
+        return int(self.delta.shape[0])
+
+
+def init_corrections(depth) -> CameraCorrections:
+    """Zero corrections for ``len(depth)`` views (depth float [V], e.g. :func:`scene_depth`)."""
+    depth = jnp.asarray(depth, jnp.float32).reshape(-1)
+    delta = jnp.zeros((depth.shape[0], 6), jnp.float32)
+    return CameraCorrections(delta=delta, depth=depth, adam=jax.vmap(_row_adam().init)(delta))
+
+
+def update_correction(corr: CameraCorrections, view, grad, lr) -> CameraCorrections:
+    """One sparse Adam step on the row ``view`` (int32 []) with ``grad`` float [6] and
+    learning rate ``lr`` (float []; 0 leaves the row and its moments as they were)."""
+    row_state = jax.tree_util.tree_map(lambda a: a[view], corr.adam)
+    direction, new_state = _row_adam().update(grad, row_state)
+    active = lr > 0
+    row = jnp.where(active, corr.delta[view] - lr * direction, corr.delta[view])
+    adam = jax.tree_util.tree_map(
+        lambda a, new, old: a.at[view].set(jnp.where(active, new, old)),
+        corr.adam, new_state, row_state)
+    return dataclasses.replace(corr, delta=corr.delta.at[view].set(row), adam=adam)
+
+
+def corrected_cameras(cameras: Camera, corr: CameraCorrections) -> Camera:
+    """The training cameras [V] with their learned corrections applied."""
+    if corr.num_views != len(cameras):
+        raise DataError("cameras", f"{len(cameras)} cameras for {corr.num_views} learned "
+                                   f"pose corrections")
+    return apply_delta(cameras, corr.delta, corr.depth)
+
+
+def correction_sizes(corr: CameraCorrections) -> dict:
+    """Host summary of the corrections: ``rotation_deg`` and ``translation`` (scene units), [V]."""
+    delta = np.asarray(corr.delta, np.float64)
+    depth = np.asarray(corr.depth, np.float64)
+    return {"rotation_deg": np.degrees(np.linalg.norm(delta[:, :3], axis=1)),
+            "translation": np.linalg.norm(delta[:, 3:], axis=1) * depth}

@@ -57,6 +57,7 @@ import optax
 
 from . import densify as dens
 from . import gaussians as glib
+from . import poses
 from . import sh as shlib
 from .camera import Camera
 from .densify import DensifyConfig
@@ -64,6 +65,7 @@ from .errors import DataError
 from .gaussians import Gaussians
 from .io.files import atomic_path
 from .losses import photometric_loss
+from .poses import CameraCorrections
 from .raster import render
 from .raster.render import next_capacity, render_tiles
 
@@ -94,6 +96,16 @@ class TrainConfig:
       background: "random" (a uniform colour per step), "white" or "black";
         the colour behind the Gaussians in training renders.
       densify: :class:`DensifyConfig`.
+      camera_opt: learn a 6-DoF pose correction per training view with the scene
+        (Splatfacto's camera optimizer, gsplat's ``pose_opt``): for poses estimated
+        by structure from motion, whose residual errors (~0.4 degree, 1-2 px) the
+        Gaussians would otherwise blur over. See :class:`jaxedit.poses.CameraCorrections`.
+      lr_camera, lr_camera_final: its learning rate (radians, and the translation in
+        units of the view's scene depth, see :func:`jaxedit.poses.apply_delta`), decayed
+        exponentially from the first to the second between ``camera_opt_from`` and
+        ``iterations``.
+      camera_opt_from: the step the corrections start to move: before it the scene is
+        too blurred for its photometric gradient to say where a camera points.
     """
 
     iterations: int = 30_000
@@ -110,6 +122,10 @@ class TrainConfig:
     sh_degree_interval: int = 1000
     background: str = "white"
     densify: DensifyConfig = DensifyConfig()
+    camera_opt: bool = False
+    lr_camera: float = 1e-3
+    lr_camera_final: float = 1e-5
+    camera_opt_from: int = 500
 
     def __post_init__(self):
         if self.background not in BACKGROUNDS:
@@ -122,6 +138,11 @@ class TrainConfig:
             raise DataError("sh_degree_interval", "must be positive")
         if not 0.0 <= self.lambda_dssim <= 1.0:
             raise DataError("lambda_dssim", f"must be in [0, 1], got {self.lambda_dssim}")
+        if not (self.lr_camera > 0 and 0 < self.lr_camera_final <= self.lr_camera):
+            raise DataError("lr_camera", f"need 0 < lr_camera_final <= lr_camera, got "
+                                         f"{self.lr_camera_final}, {self.lr_camera}")
+        if self.camera_opt_from < 0:
+            raise DataError("camera_opt_from", f"must be >= 0, got {self.camera_opt_from}")
         if isinstance(self.densify, dict):
             object.__setattr__(self, "densify", _densify_from_dict(self.densify))
 
@@ -176,6 +197,8 @@ class TrainState:
         (the ProEdit driver sets it at each subtask start so that warm-up counts
         from there).
       key: uint32 [2], the run's base PRNG key data (views and per-step keys derive from it).
+      cameras: :class:`jaxedit.poses.CameraCorrections` of the V training views
+        (V = 0 unless ``config.camera_opt``).
       config: TrainConfig (static).
       scene_extent: float (static).
       max_intersections: int (static), the tile splatter's buffer size (0: not
@@ -189,6 +212,7 @@ class TrainState:
     step: jax.Array
     densify_origin: jax.Array
     key: jax.Array
+    cameras: CameraCorrections
     config: TrainConfig = dataclasses.field(metadata=dict(static=True))
     scene_extent: float = dataclasses.field(metadata=dict(static=True))
     max_intersections: int = dataclasses.field(metadata=dict(static=True))
@@ -199,10 +223,12 @@ class TrainState:
 
 
 class Batch(NamedTuple):
-    """One training view: image float [H, W, 3] in [0, 1] and its (single) Camera."""
+    """One training view: image float [H, W, 3] in [0, 1], its (single) Camera, and its
+    index among the training views (int32 []; needed only with ``config.camera_opt``)."""
 
     image: jax.Array
     camera: Camera
+    view: jax.Array | None = None
 
 
 def _params(g: Gaussians) -> Gaussians:
@@ -266,7 +292,8 @@ def _key_data(key) -> jax.Array:
 
 
 def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *,
-               key=None, max_intersections: int | None = None) -> TrainState:
+               key=None, max_intersections: int | None = None,
+               cameras: Camera | None = None) -> TrainState:
     """A fresh TrainState.
 
     Args:
@@ -277,6 +304,9 @@ def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *
       max_intersections: tile buffer size. Default 0: not sized yet;
         :func:`fit` and :func:`step_with_retry` size it from the training views
         (:func:`size_buffer`) before the first step, then grow it on overflow.
+      cameras: the training cameras [V] in the order :func:`fit` will get them;
+        required with ``config.camera_opt`` (their corrections start at zero, their
+        depth units from ``gaussians``), ignored otherwise.
     """
     if config.sh_degree > gaussians.sh_degree:
         raise DataError("sh_degree", f"config trains degree {config.sh_degree} but the "
@@ -289,10 +319,17 @@ def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *
                              iterations=config.iterations)
     if max_intersections is None:
         max_intersections = 0
+    if config.camera_opt:
+        if cameras is None or not cameras.batch_shape:
+            raise DataError("cameras", "camera optimisation needs the batch of training cameras")
+        depth = poses.scene_depth(gaussians, jax.tree_util.tree_map(jnp.asarray, cameras))
+    else:
+        depth = jnp.zeros((0,), jnp.float32)
     return TrainState(gaussians=gaussians, opt_state=tx.init(_params(gaussians)),
                       densify_stats=strategy.init(gaussians), step=jnp.zeros((), jnp.int32),
                       densify_origin=jnp.zeros((), jnp.int32), key=_key_data(key),
-                      config=config, scene_extent=float(scene_extent),
+                      cameras=poses.init_corrections(depth), config=config,
+                      scene_extent=float(scene_extent),
                       max_intersections=int(max_intersections))
 
 
@@ -333,19 +370,30 @@ def _train_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]
     k_bg, k_dens = jax.random.split(key)
     bg = background_color(cfg, k_bg)
     mask = sh_mask(active_sh_degree(state.step, cfg), g.sh.shape[-2])
-    cam = batch.camera
     target = jnp.asarray(batch.image, g.means.dtype)
+    corr = state.cameras
+    # A static branch: without camera optimisation the step has no pose terms at all.
+    learn_pose = corr.num_views > 0
+    if learn_pose and batch.view is None:
+        raise DataError("batch", "camera optimisation needs the view index of every batch")
+    view = batch.view if learn_pose else None
 
-    def loss_fn(params, delta):
+    def loss_fn(params, delta, pose):
         gg = dataclasses.replace(params, alive=g.alive, sh=params.sh * mask)
+        cam = batch.camera
+        if learn_pose:
+            cam = poses.apply_delta(cam, pose, corr.depth[view])
         out = render_tiles(gg, cam, capacity=state.max_intersections, background=bg,
                            means2d_delta=delta)
         return photometric_loss(out.rgb, target, cfg.lambda_dssim), out
 
     params = _params(g)
     delta = jnp.zeros((g.capacity, 2), g.means.dtype)
-    (loss, out), (grads, grad2d) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(
-        params, delta)
+    pose = corr.delta[view] if learn_pose else jnp.zeros((6,), g.means.dtype)
+    (loss, out), (grads, grad2d, grad_pose) = jax.value_and_grad(
+        loss_fn, argnums=(0, 1, 2), has_aux=True)(params, delta, pose)
+    if learn_pose:
+        corr = poses.update_correction(corr, view, grad_pose, _camera_lr(cfg, state.step))
     tx = optimizer(cfg, state.scene_extent)
     updates, opt_state = tx.update(grads, state.opt_state, params)
     params = optax.apply_updates(params, updates)
@@ -354,11 +402,11 @@ def _train_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]
     step = state.step + 1
     strategy = dens.adaptive(cfg.densify, scene_extent=state.scene_extent,
                              iterations=cfg.iterations)
-    aux = dens.render_aux(grad2d, out, cam.width, cam.height)
+    aux = dens.render_aux(grad2d, out, batch.camera.width, batch.camera.height)
     g2, opt_state, stats, info = strategy.update(g1, opt_state, state.densify_stats, aux,
                                                  step - state.densify_origin, k_dens)
     new = dataclasses.replace(state, gaussians=g2, opt_state=opt_state, densify_stats=stats,
-                              step=step)
+                              step=step, cameras=corr)
     redo = out.overflow | info.capacity_limited
     # A step that must be redone leaves the state untouched (never half-applied).
     new = jax.tree_util.tree_map(lambda old, nw: jnp.where(redo, old, nw), state, new)
@@ -385,6 +433,15 @@ def _finite_fields(g: Gaussians, loss) -> dict:
         ok = jnp.isfinite(a).reshape(a.shape[0], -1).all(-1)
         out[name] = jnp.all(ok | ~g.alive)
     return out
+
+
+def _camera_lr(cfg: TrainConfig, step):
+    """float [], the pose corrections' learning rate at 0-based ``step`` (0 before
+    ``camera_opt_from``)."""
+    span = max(cfg.iterations - cfg.camera_opt_from, 1)
+    frac = jnp.clip((jnp.asarray(step, jnp.float32) - cfg.camera_opt_from) / span, 0.0, 1.0)
+    lr = cfg.lr_camera * (cfg.lr_camera_final / cfg.lr_camera) ** frac
+    return jnp.where(step >= cfg.camera_opt_from, lr, 0.0)
 
 
 def _means_lr(cfg: TrainConfig, extent: float, step):
@@ -515,7 +572,7 @@ seeded permutation every epoch of ``num_views`` steps.
 @jax.jit
 def _select(images, cameras, base_key_data, step):
     view, key = _view_and_key(base_key_data, step, images.shape[0])
-    return Batch(image=images[view], camera=cameras[view]), key
+    return Batch(image=images[view], camera=cameras[view], view=view), key
 
 
 def select_batch(images, cameras: Camera, base_key_data, step) -> tuple[Batch, jax.Array]:
@@ -594,7 +651,7 @@ def _train_chunk(state: TrainState, images, cameras: Camera, n_active, *, length
 
     def one(st, _):
         view, key = _view_and_key(st.key, st.step, num_views)
-        return _train_step(st, Batch(image=images[view], camera=cameras[view]), key)
+        return _train_step(st, Batch(image=images[view], camera=cameras[view], view=view), key)
 
     return scan_steps(one, state, n_active, length=length)
 
@@ -672,7 +729,8 @@ def save_checkpoint(path, state: TrainState, *, extra: dict | None = None) -> Pa
     meta = dict(version=CHECKPOINT_VERSION, config=state.config.to_dict(),
                 scene_extent=state.scene_extent, max_intersections=state.max_intersections,
                 capacity=state.capacity, sh_degree=state.gaussians.sh_degree,
-                step=int(state.step), paths=_leaf_paths(state), extra=extra or {})
+                step=int(state.step), num_views=state.cameras.num_views,
+                paths=_leaf_paths(state), extra=extra or {})
     arrays = {f"leaf_{i:04d}": np.asarray(a) for i, a in enumerate(leaves)}
     arrays["meta"] = np.asarray(json.dumps(meta))
     with atomic_path(path) as tmp:
@@ -701,9 +759,12 @@ def load_checkpoint_with_extra(path) -> tuple[TrainState, dict]:
         raise DataError(path, f"checkpoint version {meta.get('version')} is not "
                               f"{CHECKPOINT_VERSION}")
     config = TrainConfig.from_dict(meta["config"], f"{path}:config")
-    template = init_state(glib.empty(int(meta["capacity"]), int(meta["sh_degree"])), config,
+    template = init_state(glib.empty(int(meta["capacity"]), int(meta["sh_degree"])),
+                          dataclasses.replace(config, camera_opt=False),
                           float(meta["scene_extent"]), key=jax.random.key(0),
                           max_intersections=int(meta["max_intersections"]))
+    template = dataclasses.replace(template, config=config, cameras=poses.init_corrections(
+        jnp.ones((int(meta.get("num_views", 0)),), jnp.float32)))
     leaves, treedef = jax.tree_util.tree_flatten(template)
     if _leaf_paths(template) != meta["paths"]:
         raise DataError(path, "checkpoint layout does not match this jaxedit version's TrainState")
@@ -837,6 +898,9 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
                                    f"{images.shape[2]}x{images.shape[1]}")
     if images.shape[0] == 0:
         raise DataError("images", "no training views")
+    if state.config.camera_opt and state.cameras.num_views != images.shape[0]:
+        raise DataError("cameras", f"{images.shape[0]} training views but the state learns "
+                                   f"pose corrections for {state.cameras.num_views}")
     cameras = jax.tree_util.tree_map(jnp.asarray, cameras)
     if state.max_intersections <= 0:
         state = size_buffer(state, cameras)

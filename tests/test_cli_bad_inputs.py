@@ -358,6 +358,8 @@ def test_absurd_sizes_are_refused_with_the_memory_needed(corpus, tmp_path, capfd
     (["reconstruct", "--data", "{data}", "--random-points", "-1"], "--random-points"),
     (["reconstruct", "--data", "{data}", "--downscale", "0"], "--downscale"),
     (["reconstruct", "--data", "{data}", "--log-every", "0"], "--log-every"),
+    (["reconstruct", "--data", "{data}", "--camera-lr", "0"], "--camera-lr"),
+    (["reconstruct", "--data", "{data}", "--camera-opt-from", "-1"], "--camera-opt-from"),
     (["edit", "--data", "{data}", "--scene", "{scene}", "--prompt", "x", "--test-views", "0"],
      "--test-views"),
     (["edit", "--data", "{data}", "--scene", "{scene}", "--prompt", "x", "--test-views", "-1"],
