@@ -328,8 +328,8 @@ def main(argv=None):
     seeds = 2 if args.smoke else args.seeds
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown or not variants or variants[0] != "default":
-        raise DataError("--variants", f"need default first and known names ({', '.join(VARIANTS)}); "
-                                      f"got {', '.join(variants)}")
+        raise DataError("--variants", f"need default first and known names "
+                                      f"({', '.join(VARIANTS)}); got {', '.join(variants)}")
     if seeds < 2:
         raise DataError("--seeds", f"a CI needs at least 2 seeds, got {seeds}")
     run_dir = Path(args.out) / "budget_ablation_run"

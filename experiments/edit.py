@@ -176,7 +176,8 @@ def config_from_args(args):
         target_subtasks=args.target_subtasks, difficulty_views=args.difficulty_views,
         schedule_method=args.schedule_method, asynchronous=args.asynchronous,
         warmup=args.warmup, patience=args.patience, max_steps=args.max_steps,
-        max_seconds=args.max_subtask_seconds, edit_every=args.edit_every, turntable_frames=args.turntable_frames)
+        max_seconds=args.max_subtask_seconds, edit_every=args.edit_every,
+        turntable_frames=args.turntable_frames)
 
 
 def progress_callback(quiet: bool):

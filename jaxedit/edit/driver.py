@@ -507,7 +507,8 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                 st = dataclasses.replace(st, train=grow_for_redo(st.train, jax.tree_util.tree_map(
                     lambda a: a[k], chunk.metrics)))
             st = dataclasses.replace(st, seconds=time.perf_counter() - started)
-            if timed_out_at is None and cfg.max_seconds is not None and st.seconds >= cfg.max_seconds:
+            timed_out = cfg.max_seconds is not None and st.seconds >= cfg.max_seconds
+            if timed_out_at is None and timed_out:
                 timed_out_at = st.step
             holder[0] = st
             for i, loss in enumerate(chunk.losses):
