@@ -49,10 +49,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume-from", type=Path, default=None,
                    help="snapshot dir (RUN/subtasks/NN_rX.XXX) to continue from, new schedule")
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--async", dest="asynchronous", action="store_true", default=True,
-                      help="editor on its own thread/device (default)")
+    mode.add_argument("--async", dest="asynchronous", action="store_true", default=False,
+                      help="editor on its own thread/device (faster with a second device)")
     mode.add_argument("--sync", dest="asynchronous", action="store_false",
-                      help="deterministic edit schedule (bit-reproducible, exact resume)")
+                      help="deterministic edit schedule (default: bit-reproducible, exact "
+                           "resume)")
     p.add_argument("--downscale", type=int, default=1, help="image downscale factor of --data")
     p.add_argument("--warmup", type=int, default=None, help="W: steps after the opacity reset")
     p.add_argument("--patience", type=int, default=None, help="P: plateau length ending a subtask")

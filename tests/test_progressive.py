@@ -120,7 +120,7 @@ def tiny():
 
 FAST = TrainSettings(lr_sh_dc=0.05)  # a few dozen steps must visibly move colours
 TINY = dict(warmup=6, patience=8, loss_window=4, max_steps=24, edit_every=3, checkpoint_every=5,
-            subtasks=1, consolidate=False, asynchronous=False)
+            subtasks=1, consolidate=False, asynchronous=False, turntable_frames=0)
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import math
 from typing import Any, Sequence
 
 from ..errors import DataError
+from .schedule import MAX_DEPTH
 
 MODES = ("proedit", "nd", "in2n")
 
@@ -30,7 +31,7 @@ class ProEditConfig:
         find; the paper reports ~4 for texture and ~8 for geometry edits).
       subtasks: override with N uniform ratios (paper: ~4 texture, ~8 geometry).
       schedule_method: "bisect" (paper) or "root" (optimistix placement).
-      max_depth: bisection depth limit.
+      max_depth: bisection depth limit (:data:`jaxedit.edit.schedule.MAX_DEPTH`).
       refine_first / consolidate: the extra subtasks r_0 and r_n (appendix B).
       warmup: W, steps after the opacity reset without densify/cull.
       patience: P, steps without a new minimum of the running mean loss.
@@ -46,13 +47,19 @@ class ProEditConfig:
       guidance: (text, image) classifier-free guidance scales.
       edit_every: trainer steps between edits in the deterministic mode.
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
-      asynchronous: producer thread instead of the deterministic schedule.
+      asynchronous: producer thread instead of the deterministic schedule. Off by
+        default, in the library and on the command line alike: the deterministic
+        schedule is the one whose bits a seed fixes and whose resume is exact; the
+        producer thread (``edit --async``) is the faster opt-in when the editor has a
+        device of its own.
       checkpoint_every: steps between checkpoints inside a subtask.
       difficulty_views: size of the fixed, seeded subset of training views the difficulty
         d(r_a, r_b) is taken over (None: all of them, up to
-        ``DIFFICULTY_VIEWS_DEFAULT_MAX``; each view costs one editor call per ratio).
+        :data:`jaxedit.edit.difficulty.DIFFICULTY_VIEWS`; each view costs one editor call
+        per ratio).
       curve_points: grid size of the reported d(0, r) curve.
-      turntable_frames: frames of each snapshot's turntable (0: none).
+      turntable_frames: frames of each snapshot's turntable (0: none). A run directory
+        is for people to look at, and the turntable is how they see a snapshot in 3D.
       background: render background (the editor sees renders on it).
       stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs
         exactly ``max_steps`` (IN2N trains for a fixed number of iterations).
@@ -63,7 +70,7 @@ class ProEditConfig:
     target_subtasks: int | None = None
     subtasks: int | None = None
     schedule_method: str = "bisect"
-    max_depth: int = 4
+    max_depth: int = MAX_DEPTH
     refine_first: bool = True
     consolidate: bool = True
     warmup: int = 30
@@ -81,7 +88,7 @@ class ProEditConfig:
     checkpoint_every: int = 50
     difficulty_views: int | None = None
     curve_points: int = 9
-    turntable_frames: int = 0
+    turntable_frames: int = 24
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     stop_on_plateau: bool = True
 
