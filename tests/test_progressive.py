@@ -353,7 +353,7 @@ def test_edit_cap_defaults_to_twice_the_input_and_is_never_below_it():
     capped = TrainSettings().replace_densify
     assert cap(resolve_max_gaussians(TrainSettings(), 300_000)) == 600_000
     assert cap(resolve_max_gaussians(capped(max_gaussians=400_000), 300_000)) == 400_000
-    with pytest.raises(DataError, match="--max-gaussians"):
+    with pytest.raises(DataError, match="max_gaussians"):
         resolve_max_gaussians(capped(max_gaussians=1000), 300_000)
     trainer = SubtaskTrainer(TrainSettings(), num_input=250_000)
     assert trainer.config.densify.max_gaussians == 500_000

@@ -92,10 +92,10 @@ def lpips_weights_to_use(choice: str = "auto", lpips_weights=None, net: str = "v
     from ..io.weights import default_lpips_weights
 
     if choice not in DISTANCES:
-        raise DataError("--distance", f"must be one of {', '.join(DISTANCES)}, got {choice!r}")
+        raise DataError("distance", f"must be one of {', '.join(DISTANCES)}, got {choice!r}")
     if choice == "ms-ssim":
         if lpips_weights is not None:
-            raise DataError("--lpips-weights", "given with --distance ms-ssim")
+            raise DataError("lpips_weights", "given with distance ms-ssim")
         return None
     if lpips_weights is not None:
         return Path(lpips_weights)  # an explicit file must exist: the loader says so if not

@@ -22,7 +22,8 @@ class ProEditConfig:
     """Knobs of the driver (defaults follow the paper where it gives a value).
 
     Attributes:
-      mode: "proedit" | "nd" | "in2n".
+      mode: "proedit" (the difficulty-aware schedule), "nd" (no decomposition: one
+        subtask 0 -> 1) or "in2n" (the Instruct-NeRF2NeRF baseline).
       threshold: d_threshold of the scheduler, per view: the difficulty is the mean over
         the difficulty views of the per-view distance (the paper's eq. 3 sum divided by
         |V|), so the threshold does not change with the number of views (None:
@@ -94,20 +95,23 @@ class ProEditConfig:
 
     def __post_init__(self):
         if self.mode not in MODES:
-            raise DataError("--mode", f"unknown mode {self.mode!r}; choose from {', '.join(MODES)}")
+            raise DataError("mode", f"unknown mode {self.mode!r}; choose from {', '.join(MODES)}")
         if self.threshold is not None and not self.threshold > 0:
-            raise DataError("--threshold", f"must be > 0, got {self.threshold}")
+            raise DataError("threshold", f"must be > 0, got {self.threshold}")
         if self.subtasks is not None and self.subtasks < 1:
-            raise DataError("--subtasks", f"must be >= 1, got {self.subtasks}")
+            raise DataError("subtasks", f"must be >= 1, got {self.subtasks}")
         if self.target_subtasks is not None and self.target_subtasks < 1:
-            raise DataError("--target-subtasks", f"must be >= 1, got {self.target_subtasks}")
+            raise DataError("target_subtasks", f"must be >= 1, got {self.target_subtasks}")
         if self.difficulty_views is not None and self.difficulty_views < 1:
-            raise DataError("--difficulty-views", f"must be >= 1, got {self.difficulty_views}")
+            raise DataError("difficulty_views", f"must be >= 1, got {self.difficulty_views}")
         lo, hi = self.timestep_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {lo}, {hi}")
+        for name in ("warmup", "turntable_frames"):
+            if getattr(self, name) < 0:
+                raise DataError(name, f"must be >= 0, got {getattr(self, name)}")
         if self.max_seconds is not None and not self.max_seconds > 0:
-            raise DataError("--max-subtask-seconds", f"must be > 0, got {self.max_seconds}")
+            raise DataError("max_seconds", f"must be > 0, got {self.max_seconds}")
         for name in ("patience", "loss_window", "max_steps", "anneal_steps", "edit_every",
                      "checkpoint_every"):
             if getattr(self, name) is not None and getattr(self, name) < 1:

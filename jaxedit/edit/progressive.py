@@ -165,7 +165,7 @@ def cap_warning(name: str, density: dict, cap: int, alive: int) -> str | None:
     return (f"WARNING: subtask {name}: the Gaussian cap ({cap}) limited creation in "
             f"{density['cap_limited']} of {density['refinements']} maintenance steps: "
             f"{density['shortfall']} Gaussians the budget t(n) wanted were not created "
-            f"({density['created']} were; {alive} alive at the end). Raise --max-gaussians "
+            f"({density['created']} were; {alive} alive at the end). Raise the cap (max_gaussians) "
             f"to let the edit grow geometry")
 
 
@@ -201,7 +201,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     """
     log = log or (lambda msg: None)
     if not str(prompt).strip() and config.mode != "in2n":
-        raise DataError("--prompt", "empty instruction")
+        raise DataError("prompt", "empty instruction")
     run_dir = None if run_dir is None else Path(run_dir)
     from ..train import scene_extent
 
@@ -212,18 +212,17 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         extent = float(f"{scene_extent(data.train_cameras):.4g}")
         settings = dataclasses.replace(settings, scene_extent=extent)
     # The plan owns W, the mode and the background; the trainer runs with them.
-    settings = dataclasses.replace(settings, adaptive=config.mode != "in2n",
-                                   background=tuple(config.background)
+    settings = dataclasses.replace(settings, adaptive=config.mode != "in2n"
                                    ).replace_densify(warmup=config.warmup)
     settings = resolve_max_gaussians(settings, int(gaussians.num_alive()))
-    trainer = SubtaskTrainer(settings)
+    trainer = SubtaskTrainer(settings, background=config.background)
     trainer_device, editor_device = pick_devices()
     ctx = EditContext(editor, prompt, data, config, trainer, Renderer(config.background),
                       jax.random.key(seed), editor_device)
     wall0 = time.perf_counter()
     ckpt = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if resume and (ckpt is None or not ckpt.exists()):
-        raise DataError(ckpt or "--out", "no checkpoint to resume from")
+        raise DataError(ckpt or "run_dir", "no checkpoint to resume from")
 
     if resume:
         st, meta = load_checkpoint(ckpt, trainer.init(gaussians))
