@@ -455,7 +455,7 @@ def test_the_wall_clock_guard_ends_subtasks_and_says_so(tiny):
     assert subs and all(s["guard"] == "seconds" and not s["converged"] for s in subs)
     assert all(s["steps"] < cfg.max_steps for s in subs)
     assert out["schedule"]["guard"]["max_seconds"] == 1e-3
-    with pytest.raises(DataError, match="max-subtask-seconds"):
+    with pytest.raises(DataError, match="max_seconds"):
         ProEditConfig.for_mode("nd", max_seconds=0.0)
 
 
