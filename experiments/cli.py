@@ -360,15 +360,26 @@ def named_by_flag(error, args: argparse.Namespace | None):
     The library's errors name fields (``max_seconds``); the user typed flags
     (``--max-subtask-seconds``). The mapping is generated from the command's config
     tree (its module's ``FLAGS``, see experiments/flags.py), its parser's dests and,
-    for a library argument named unlike its flag, the module's ``FIELD_FLAGS``.
+    for a library argument named unlike its flag, the module's ``FIELD_FLAGS``. An
+    error about a file or folder the user gave says with which flag.
     """
+    from jaxedit import DataError
+
     from experiments.flags import as_flags, flag_names
 
     if args is None or getattr(args, "command", None) is None:
         return error
     sub = build_parser()._subparsers._group_actions[0].choices[args.command]
     names = flag_names(*getattr(args._module, "FLAGS", ()), parser=sub)
-    return as_flags(error, names | getattr(args._module, "FIELD_FLAGS", {}))
+    named = as_flags(error, names | getattr(args._module, "FIELD_FLAGS", {}))
+    if named is not error or error.where is None:
+        return named
+    for action in sub._actions:
+        value = getattr(args, action.dest, None)
+        if (action.option_strings and isinstance(value, (str, Path)) and str(value) == error.where
+                and action.option_strings[-1] not in error.problem):
+            return DataError(error.where, f"{error.problem} (given as {action.option_strings[-1]})")
+    return error
 
 
 def available_memory() -> int:

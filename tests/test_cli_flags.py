@@ -118,6 +118,12 @@ def test_errors_that_name_fields_print_flags(command, field, flag):
     assert str(cli.named_by_flag(DataError("/some/file.ply", "x"), args)) == "/some/file.ply: x"
 
 
+def test_errors_about_a_given_path_say_which_flag(tmp_path):
+    args = _parse("edit", "--ip2p-weights", str(tmp_path / "nowhere"))
+    error = DataError(tmp_path / "nowhere", "InstructPix2Pix folder not found")
+    assert str(cli.named_by_flag(error, args)).endswith("not found (given as --ip2p-weights)")
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["edit", "--max-subtask-seconds", "-1"], "--max-subtask-seconds: must be > 0"),
     (["edit", "--warmup", "-1"], "--warmup: must be >= 0"),
