@@ -2,27 +2,12 @@
 
     python -m experiments reconstruct --data DIR --out RUN_DIR [--iters N --seed S ...]
 
-Writes into RUN_DIR:
-
-* ``scene.ply``: the alive Gaussians as an INRIA 3DGS PLY (any splat viewer reads it);
-* ``test/NNN_<name>.png``: renders of the held-out views, and ``test_compare.png``
-  (ground truth above, render below, one column per view);
-* ``metrics.json``: ``test_psnr``, ``test_ssim`` (scikit-image), per-view values,
-  ``num_gaussians``, ``wall_time_s``, ``steps_per_s``, where the time went;
-* ``train_log.jsonl``: training metrics every ``--log-every`` steps and at every
-  density-control step;
-* with ``--camera-opt``, ``dataset/``: a nerfstudio dataset of the images as trained
-  (undistorted, downscaled, in the normalised world) with the training cameras'
-  learned pose corrections applied; the scene lives in its frame, so
-  ``edit --data RUN_DIR/dataset --scene RUN_DIR/scene.ply`` edits with those poses;
-* ``checkpoints/ckpt_<step>.npz``: the full training state every
-  ``--checkpoint-every`` steps and at the end. ``--resume`` continues from the
-  newest one and ends with the same Gaussians as an uninterrupted run.
-
-Initial points come from the dataset's ``ply_file_path`` (as COLMAP's sparse
-cloud would); a dataset without points starts from ``--random-points`` random
-points in the box where the training cameras' view frusta overlap, the most
-photo-consistent of 4x as many uniform candidates (see jaxedit.capture.points).
+The edge of :mod:`jaxedit.pipelines.reconstruct`, whose docstring lists what RUN_DIR
+receives (scene.ply, test renders, metrics.json, train_log.jsonl, checkpoints/, and
+with ``--camera-opt`` the corrected dataset/). The flags are generated from
+:class:`jaxedit.pipelines.reconstruct.ReconstructConfig` (experiments/flags.py);
+``--resume`` continues from the newest checkpoint and ends with the same Gaussians as
+an uninterrupted run.
 """
 
 from __future__ import annotations
