@@ -100,11 +100,11 @@ def refined_psnr(scene, images, cameras, steps: int, lr: float | None,
 
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra)
-    from experiments.progress import configure
-    from experiments.reconstruct import reconstruct
+    from experiments.progress import configure, training_bar
     from jaxedit import DataError, scenes
     from jaxedit.capture import SfmOptions, pose_errors, process_capture, quiet_colmap
     from jaxedit.io import load_nerfstudio, load_ply, transform_cameras
+    from jaxedit.pipelines.reconstruct import reconstruct
     from jaxedit.train import DensifyConfig, TrainConfig, evaluate
 
     if args.reuse and args.keep is None:
@@ -156,7 +156,8 @@ def main(argv=None):
                     and json.loads(kept.read_text())["config"] == config.to_dict()):
                 runs[name] = json.loads(kept.read_text())
             else:
-                runs[name] = reconstruct(data, run, config, checkpoint_every=0, log_every=100)
+                runs[name] = reconstruct(data, run, config, checkpoint_every=0, log_every=100,
+                                         progress=training_bar())
         m_truth, m_sfm = runs["truth"], runs["sfm"]
         train_s = time.perf_counter() - t0
         scene_truth = load_ply(root / "run_truth" / "scene.ply")

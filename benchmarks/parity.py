@@ -73,13 +73,12 @@ def save_renders(folder, name: str, renders) -> None:
 
 def run_jaxedit(data, steps: int, seed: int, workdir: Path, lpips_fn, renders_dir=None) -> dict:
     """One ``reconstruct`` run with the CLI's defaults (white background)."""
-    from experiments.reconstruct import reconstruct
     from jaxedit import train as T
     from jaxedit.io import load_ply
+    from jaxedit.pipelines.reconstruct import reconstruct
 
     config = T.TrainConfig(iterations=steps)
-    m = reconstruct(data, workdir, config, seed=seed, checkpoint_every=0, log_every=100,
-                    progress=False)
+    m = reconstruct(data, workdir, config, seed=seed, checkpoint_every=0, log_every=100)
     g = load_ply(workdir / "scene.ply")
     test_images, test_cams = data.test()
     renders = T.render_views(g, test_cams, sh_degree=config.sh_degree)
@@ -234,9 +233,9 @@ def side_by_side(ours: list[dict], theirs: list[dict]) -> list[dict]:
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra)
     from experiments.progress import configure
-    from experiments.reconstruct import initial_points
     from jaxedit import DataError, scenes
     from jaxedit.io import load_nerfstudio
+    from jaxedit.pipelines.reconstruct import initial_points
 
     configure(mode="log", log_interval=60.0)
     steps = args.steps or ([40] if args.smoke else [2500, 7000])

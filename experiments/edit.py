@@ -18,6 +18,40 @@ from pathlib import Path
 HELP = "progressively edit a 3DGS scene with an instruction (ProEdit)"
 
 
+#: Library arguments named unlike their flags (for error messages).
+FIELD_FLAGS = {"run_dir": "--out"}
+
+def _config_flags():
+    from jaxedit.edit.plan import MODES
+    from jaxedit.pipelines.edit import EditRunConfig
+
+    from .flags import Flag, FlagSet
+
+    # Ranges only where the owning dataclass does not check the field itself.
+    return FlagSet(EditRunConfig, (
+        Flag("plan.mode", choices=MODES),
+        Flag("plan.threshold"),
+        Flag("plan.target_subtasks"),
+        Flag("plan.subtasks"),
+        Flag("plan.difficulty_views"),
+        Flag("train.densify.max_gaussians", low=1),
+        Flag("plan.schedule_method", choices=("bisect", "root")),
+        Flag("plan.asynchronous", "--async", off="--sync", key="asynchronous"),
+        Flag("downscale"),
+        Flag("plan.warmup"),
+        Flag("plan.patience"),
+        Flag("plan.max_steps"),
+        Flag("plan.max_seconds", "--max-subtask-seconds"),
+        Flag("plan.edit_every"),
+        Flag("plan.turntable_frames"),
+        Flag("test_views"),
+    ))
+
+
+#: The command's settings' flags, generated from :class:`jaxedit.pipelines.edit.EditRunConfig`.
+FLAGS = (_config_flags(),)
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, help="nerfstudio dataset folder (the scene's photos)")
     p.add_argument("--scene", type=Path, help="input 3DGS .ply (a reconstruction of --data)")
@@ -26,20 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix)")
     p.add_argument("--ip2p-weights", type=Path, default=None,
                    help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p)")
-    p.add_argument("--mode", default="proedit", choices=["proedit", "nd", "in2n"],
-                   help="proedit (default), nd (one subtask 0 -> 1), in2n (IN2N baseline)")
-    p.add_argument("--threshold", type=float, default=None,
-                   help="difficulty threshold d_threshold of the scheduler, per view")
-    p.add_argument("--target-subtasks", type=int, default=None,
-                   help="find the threshold that gives N subtasks (paper: ~4 texture, ~8 geometry)")
-    p.add_argument("--subtasks", type=int, default=None, help="N uniform subtasks instead")
-    p.add_argument("--difficulty-views", type=int, default=None,
-                   help="views the difficulty is taken over (a seeded subset; default all, "
-                        "up to 16)")
-    p.add_argument("--max-gaussians", type=int, default=None,
-                   help="hard cap on Gaussians during the edit (default 2x the input's count)")
-    p.add_argument("--schedule-method", default="bisect", choices=["bisect", "root"],
-                   help="bisect + prune (paper) or root placement (optimistix)")
+    FLAGS[0].add_to(p)
     p.add_argument("--select", default=None,
                    help="subtask index (int) or ratio (float) to export as selected.ply")
     p.add_argument("--select-only", action="store_true",
@@ -48,25 +69,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="continue the interrupted run in --out from its checkpoint")
     p.add_argument("--resume-from", type=Path, default=None,
                    help="snapshot dir (RUN/subtasks/NN_rX.XXX) to continue from, new schedule")
-    mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--async", dest="asynchronous", action="store_true", default=True,
-                      help="editor on its own thread/device (default)")
-    mode.add_argument("--sync", dest="asynchronous", action="store_false",
-                      help="deterministic edit schedule (bit-reproducible, exact resume)")
-    p.add_argument("--downscale", type=int, default=1, help="image downscale factor of --data")
-    p.add_argument("--warmup", type=int, default=None, help="W: steps after the opacity reset")
-    p.add_argument("--patience", type=int, default=None, help="P: plateau length ending a subtask")
-    p.add_argument("--max-steps", type=int, default=None,
-                   help="per-subtask step guard; the loss plateau ends a subtask, this bounds "
-                        "it (default: 20 epochs of the training views, more above 256 px, at "
-                        "least 600)")
-    p.add_argument("--max-subtask-seconds", type=float, default=None,
-                   help="per-subtask wall-clock guard (default none; a subtask it ends is not "
-                        "reproducible)")
-    p.add_argument("--edit-every", type=int, default=None, help="steps between edits (--sync)")
-    p.add_argument("--turntable-frames", type=int, default=24, help="0 disables turntables")
-    p.add_argument("--test-views", type=int, default=None,
-                   help="at most this many held-out views in snapshots and metrics")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--view", action="store_true",
                    help="serve the scene in the browser while it is edited (viser; see `view`)")
@@ -141,8 +143,9 @@ def add_clip_metrics(args) -> dict | None:
     return clip
 
 
-def load_inputs(args):
-    """(EditData, input Gaussians) from --data and --scene, with one-line errors."""
+def load_inputs(args, config):
+    """(EditData, input Gaussians) from --data and --scene, read as ``config`` (an
+    EditRunConfig) says, with one-line errors."""
     import numpy as np
 
     from jaxedit import DataError
@@ -153,31 +156,32 @@ def load_inputs(args):
         raise DataError("--data", "required (a nerfstudio dataset folder)")
     if args.scene is None:
         raise DataError("--scene", "required (the input 3DGS .ply)")
-    from .reconstruct import check_image_size
+    from jaxedit.pipelines.reconstruct import check_image_size
 
-    dataset = load_nerfstudio(args.data, downscale=args.downscale)
+    dataset = load_nerfstudio(args.data, downscale=config.downscale)
     check_image_size(dataset, args.data)
     scene = load_ply(args.scene)
     if not np.asarray(scene.alive).any():
         raise DataError(args.scene, "has no Gaussians (zero vertices): nothing to edit")
     data = EditData.from_dataset(dataset)
-    if args.test_views is not None and len(data.test_images) > args.test_views:
-        keep = np.linspace(0, len(data.test_images) - 1, args.test_views).round().astype(int)
+    if config.test_views is not None and len(data.test_images) > config.test_views:
+        keep = np.linspace(0, len(data.test_images) - 1, config.test_views).round().astype(int)
         data = EditData(data.train_images, data.train_cameras, data.test_images[keep],
                         data.test_cameras[keep])
     return data, scene
 
 
-def config_from_args(args):
+def run_config(args):
+    """The :class:`jaxedit.pipelines.edit.EditRunConfig` of ``args``: the flags given over
+    ``--mode``'s defaults (DataErrors name its fields)."""
     from jaxedit.edit.progressive import ProEditConfig
 
-    return ProEditConfig.for_mode(
-        args.mode, threshold=args.threshold, subtasks=args.subtasks,
-        target_subtasks=args.target_subtasks, difficulty_views=args.difficulty_views,
-        schedule_method=args.schedule_method, asynchronous=args.asynchronous,
-        warmup=args.warmup, patience=args.patience, max_steps=args.max_steps,
-        max_seconds=args.max_subtask_seconds, edit_every=args.edit_every,
-        turntable_frames=args.turntable_frames)
+    return FLAGS[0].build(args, bases={"plan": ProEditConfig.for_mode(args.mode)})
+
+
+def config_from_args(args):
+    """The :class:`jaxedit.edit.plan.ProEditConfig` of ``args``."""
+    return run_config(args).plan
 
 
 def progress_callback(quiet: bool):
@@ -213,19 +217,10 @@ def progress_callback(quiet: bool):
 
 
 def check_counts(args) -> None:
-    """Counts and sizes in range (a flag left unset keeps the mode's default)."""
-    from jaxedit import DataError
-
+    """The editor's counts in range (the config tree's are checked as it is built)."""
     from .cli import check_minimums
 
-    check_minimums(args, {"test_views": 1, "subtasks": 1, "warmup": 0, "patience": 1,
-                          "max_steps": 1, "edit_every": 1, "turntable_frames": 0, "downscale": 1,
-                          "ip2p_size": 8, "ip2p_steps": 1, "target_subtasks": 1,
-                          "difficulty_views": 1, "max_gaussians": 1})
-    if args.threshold is not None and not args.threshold > 0:
-        raise DataError("--threshold", f"must be > 0, got {args.threshold}")
-    if args.max_subtask_seconds is not None and not args.max_subtask_seconds > 0:
-        raise DataError("--max-subtask-seconds", f"must be > 0, got {args.max_subtask_seconds}")
+    check_minimums(args, {"ip2p_size": 8, "ip2p_steps": 1})
 
 
 def run(args) -> dict:
@@ -240,6 +235,7 @@ def run(args) -> dict:
         path = select_snapshot(args.out, args.select)
         return {"selected": str(path)}
     check_counts(args)
+    run_cfg = run_config(args)
     if args.resume and args.resume_from is not None:
         raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
     if args.clip_weights is not None and not (args.caption_orig and args.caption_edit):
@@ -248,11 +244,8 @@ def run(args) -> dict:
     distance = make_distance(args)
     if not args.prompt and args.mode != "in2n":
         raise DataError("--prompt", "required (the editing instruction)")
-    data, scene = load_inputs(args)
-    config = config_from_args(args)
-    from jaxedit.edit.progressive import TrainSettings
-
-    settings = TrainSettings().replace_densify(max_gaussians=args.max_gaussians)
+    data, scene = load_inputs(args, run_cfg)
+    config, settings = run_cfg.plan, run_cfg.train
     watcher = None
     if args.view:
         from .view import check_port, watch_edit

@@ -25,6 +25,9 @@ HELP = "photos or a video -> nerfstudio dataset by structure from motion (COLMAP
 RECORD_CONFIG_AFTER_RUN = True
 
 
+#: Library arguments named unlike their flags (for error messages).
+FIELD_FLAGS = {"min_fraction": "--min-registered"}
+
 def add_arguments(p) -> None:
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--images", type=Path, help="folder of photos (png, jpg, tif)")

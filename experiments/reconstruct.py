@@ -2,360 +2,111 @@
 
     python -m experiments reconstruct --data DIR --out RUN_DIR [--iters N --seed S ...]
 
-Writes into RUN_DIR:
-
-* ``scene.ply``: the alive Gaussians as an INRIA 3DGS PLY (any splat viewer reads it);
-* ``test/NNN_<name>.png``: renders of the held-out views, and ``test_compare.png``
-  (ground truth above, render below, one column per view);
-* ``metrics.json``: ``test_psnr``, ``test_ssim`` (scikit-image), per-view values,
-  ``num_gaussians``, ``wall_time_s``, ``steps_per_s``, where the time went;
-* ``train_log.jsonl``: training metrics every ``--log-every`` steps and at every
-  density-control step;
-* with ``--camera-opt``, ``dataset/``: a nerfstudio dataset of the images as trained
-  (undistorted, downscaled, in the normalised world) with the training cameras'
-  learned pose corrections applied; the scene lives in its frame, so
-  ``edit --data RUN_DIR/dataset --scene RUN_DIR/scene.ply`` edits with those poses;
-* ``checkpoints/ckpt_<step>.npz``: the full training state every
-  ``--checkpoint-every`` steps and at the end. ``--resume`` continues from the
-  newest one and ends with the same Gaussians as an uninterrupted run.
-
-Initial points come from the dataset's ``ply_file_path`` (as COLMAP's sparse
-cloud would); a dataset without points starts from ``--random-points`` random
-points in the box where the training cameras' view frusta overlap, the most
-photo-consistent of 4x as many uniform candidates (see jaxedit.capture.points).
+The edge of :mod:`jaxedit.pipelines.reconstruct`, whose docstring lists what RUN_DIR
+receives (scene.ply, test renders, metrics.json, train_log.jsonl, checkpoints/, and
+with ``--camera-opt`` the corrected dataset/). The flags are generated from
+:class:`jaxedit.pipelines.reconstruct.ReconstructConfig` (experiments/flags.py);
+``--resume`` continues from the newest checkpoint and ends with the same Gaussians as
+an uninterrupted run.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
-import logging
-import time
 from pathlib import Path
 
-from experiments.progress import training_bar
+from experiments.flags import Flag, FlagSet
+# Re-exported: the pipeline is the library's (jaxedit.pipelines.reconstruct); this module is its edge.
+from jaxedit.pipelines.reconstruct import capped_initial_points, initial_points, reconstruct  # noqa: F401
+from jaxedit.train import BACKGROUNDS
 
 HELP = "reconstruct a nerfstudio dataset with 3DGS: scene.ply, test renders, metrics.json"
 
-log = logging.getLogger("jaxedit.reconstruct")
+
+def _config_flags() -> FlagSet:
+    from jaxedit.pipelines.reconstruct import NORMALIZE, ReconstructConfig
+
+    # Ranges only where the owning dataclass does not check the field itself.
+    return FlagSet(ReconstructConfig, (
+        Flag("train.iterations", "--iters", low=1),
+        Flag("train.sh_degree"),
+        Flag("train.background", choices=BACKGROUNDS),
+        Flag("train.densify.max_gaussians", low=1),
+        Flag("train.densify.budget", "--densify-budget"),
+        Flag("train.densify.refine_every", low=1),
+        Flag("train.densify.warmup", low=0),
+        Flag("train.densify.stop_at", "--densify-until", low=0),
+        Flag("train.densify.reset_every", low=0),
+        Flag("train.densify.cull_alpha", low=0.0, high=1.0, open=True),
+        Flag("train.camera_opt"),
+        Flag("train.lr_camera", "--camera-lr"),
+        Flag("train.camera_opt_from"),
+        Flag("downscale"),
+        Flag("normalize", choices=NORMALIZE),
+        Flag("random_points"),
+        Flag("checkpoint_every"),
+        Flag("log_every"),
+    ))
+
+
+#: The command's flags, generated from :class:`jaxedit.pipelines.reconstruct.ReconstructConfig`.
+FLAGS = (_config_flags(),)
 
 
 def add_arguments(p) -> None:
     p.add_argument("--data", type=Path, required=True,
                    help="nerfstudio dataset folder (or its transforms.json)")
-    p.add_argument("--iters", type=int, default=30_000, help="training steps (one view each)")
-    p.add_argument("--sh-degree", type=int, default=3, help="largest SH degree (0-3)")
-    p.add_argument("--background", choices=["white", "black", "random"], default="white",
-                   help="background of training renders; also composites RGBA images")
-    p.add_argument("--max-gaussians", type=int, default=1_000_000,
-                   help="hard cap on the number of Gaussians")
-    p.add_argument("--densify-budget", action="store_true",
-                   help="ProEdit's adaptive creation budget instead of the 2e-4 threshold")
-    p.add_argument("--refine-every", type=int, default=100, help="steps between densify/cull")
-    p.add_argument("--warmup", type=int, default=500, help="steps before the first densify")
-    p.add_argument("--densify-until", type=int, default=None,
-                   help="last densify step (default: half of --iters)")
-    p.add_argument("--reset-every", type=int, default=3000, help="opacity reset period (0: off)")
-    p.add_argument("--cull-alpha", type=float, default=0.005, help="cull opacity below this")
-    p.add_argument("--camera-opt", action="store_true",
-                   help="learn a pose correction per training view with the scene (for "
-                        "poses from structure from motion; writes RUN_DIR/dataset)")
-    p.add_argument("--camera-lr", type=float, default=None,
-                   help="learning rate of the pose corrections (default: TrainConfig's)")
-    p.add_argument("--camera-opt-from", type=int, default=None,
-                   help="step at which the pose corrections start to move (default 500)")
-    p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
-    p.add_argument("--normalize", choices=["none", "nerfstudio"], default="none",
-                   help="re-centre and scale the poses as nerfstudio does")
-    p.add_argument("--random-points", type=int, default=20_000,
-                   help="initial points when the dataset has no point cloud (photo-consistent "
-                        "random points where the training frusta overlap)")
-    p.add_argument("--checkpoint-every", type=int, default=1000,
-                   help="checkpoint period in steps (0: only at the end)")
+    FLAGS[0].add_to(p)
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest checkpoint in RUN_DIR/checkpoints")
-    p.add_argument("--log-every", type=int, default=10, help="train_log.jsonl period in steps")
+
+
+def run_config(args):
+    """The :class:`ReconstructConfig` of ``args`` (DataErrors name its fields).
+
+    ``--camera-lr`` scales the final camera rate with it, keeping TrainConfig's decay.
+    """
+    from jaxedit.train import TrainConfig
+
+    derived = {}
+    lr = FLAGS[0].values(args).get("train.lr_camera")
+    if lr is not None:  # the decay's ratio stays TrainConfig's
+        derived["train.lr_camera_final"] = (lr * TrainConfig.lr_camera_final
+                                            / TrainConfig.lr_camera)
+    return FLAGS[0].build(args, derived=derived)
 
 
 def config_from_args(args):
-    from jaxedit.train import DensifyConfig, TrainConfig
-
-    dens = DensifyConfig(max_gaussians=args.max_gaussians, budget=args.densify_budget,
-                         refine_every=args.refine_every, warmup=args.warmup,
-                         stop_at=args.densify_until, reset_every=args.reset_every,
-                         cull_alpha=args.cull_alpha)
-    camera = {}
-    if args.camera_opt_from is not None:
-        camera["camera_opt_from"] = args.camera_opt_from
-    if args.camera_lr is not None:
-        camera.update(lr_camera=args.camera_lr,
-                      lr_camera_final=args.camera_lr * TrainConfig.lr_camera_final
-                      / TrainConfig.lr_camera)
-    return TrainConfig(iterations=args.iters, sh_degree=args.sh_degree,
-                       background=args.background, densify=dens,
-                       camera_opt=args.camera_opt, **camera)
+    """The :class:`jaxedit.train.TrainConfig` of ``args``."""
+    return run_config(args).train
 
 
-def _check(args) -> None:
+def _check(args, config) -> None:
     from jaxedit import DataError
 
-    from experiments.cli import check_minimums, require_memory
+    from experiments.cli import require_memory
 
     if args.out is None:
         raise DataError("--out", "reconstruct needs a run directory (--out RUN_DIR)")
-    check_minimums(args, {"iters": 1, "max_gaussians": 1, "refine_every": 1, "random_points": 1,
-                          "log_every": 1, "downscale": 1, "checkpoint_every": 0, "warmup": 0,
-                          "reset_every": 0, "densify_until": 0, "camera_opt_from": 0})
-    if not 0 <= args.sh_degree <= 3:
-        raise DataError("--sh-degree", f"must be in 0..3, got {args.sh_degree}")
-    if args.camera_lr is not None and not args.camera_lr > 0:
-        raise DataError("--camera-lr", f"must be positive, got {args.camera_lr}")
-    if not 0.0 < args.cull_alpha < 1.0:
-        raise DataError("--cull-alpha", f"must be in (0, 1), got {args.cull_alpha}")
     # A Gaussian of degree-3 SH costs 59 float32 parameters, each with a gradient and two
     # Adam moments, plus densification statistics: about 1 KiB. The random init alone
     # allocates --random-points of them (before the --max-gaussians cap subsamples).
-    require_memory("--random-points", args.random_points * 1024,
-                   f"{args.random_points} initial Gaussians")
-
-
-#: Smallest image side that training and evaluation accept: SSIM's 11-pixel window.
-MIN_IMAGE_SIZE = 11
-
-
-def check_image_size(data, where) -> None:
-    """DataError when ``data``'s images (after --downscale) are smaller than SSIM's window."""
-    from jaxedit import DataError
-
-    h, w = data.images.shape[1:3]
-    if min(h, w) < MIN_IMAGE_SIZE:
-        raise DataError(where, f"images are {w}x{h} px (after --downscale); training needs at "
-                        f"least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE} (the SSIM window)")
-
-
-#: Border pixels of the training images that must show the background for carving.
-CARVE_BORDER_FRACTION = 0.5
-
-
-def initial_points(data, n_random: int, seed: int, background=None):
-    """(points [P, 3], colours [P, 3], source): the dataset's cloud, or photo-consistent random
-    points in the box where the training cameras' frusta overlap (jaxedit.capture.points).
-
-    ``background`` (RGB, the training background): when at least
-    :data:`CARVE_BORDER_FRACTION` of the training images' border pixels show it (an object
-    on a uniform background), random candidates seen as background are carved away.
-    """
-    import jax
-    import numpy as np
-
-    from jaxedit.capture.points import background_fraction, random_points
-
-    if data.points is not None and len(data.points) >= 4:
-        colors = data.point_colors if data.point_colors is not None else np.full(
-            (len(data.points), 3), 0.5, np.float32)
-        return np.asarray(data.points, np.float32), np.asarray(colors, np.float32), "dataset"
-    images, cameras = data.train()
-    if background is not None and background_fraction(images, background) < CARVE_BORDER_FRACTION:
-        background = None  # a scene photo, not an object on a background: no carving
-    points, colors = random_points(images, cameras, n_random, jax.random.key(seed),
-                                   background=background)
-    if background is not None:
-        log.info("initial points: %d random points carved by the background %s",
-                 len(points), tuple(float(c) for c in background))
-    return points, colors, "random"
-
-
-def capped_initial_points(data, n_random: int, cap: int, seed: int, background=None):
-    """:func:`initial_points`, subsampled to at most ``cap`` (--max-gaussians) points.
-
-    The cap is hard from the first step on, so a larger initial cloud is thinned
-    (a uniform draw, logged) rather than trained and culled later.
-    """
-    import jax
-
-    from jaxedit import gaussians as G
-
-    points, colors, source = initial_points(data, n_random, seed, background)
-    if len(points) > cap:
-        log.info("initial points: keeping a random %d of the %d %s points (--max-gaussians)",
-                 cap, len(points), source)
-        points, colors = G.subsample_points(points, colors, cap,
-                                            jax.random.fold_in(jax.random.key(seed), 1))
-    return points, colors, source
-
-
-def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
-                checkpoint_every: int = 1000, log_every: int = 10, random_points: int = 20_000,
-                progress=True) -> dict:
-    """Train on ``data``'s training views, evaluate on its test views, write the outputs.
-
-    Args:
-      data: a :class:`jaxedit.io.Dataset`.
-      out: run directory.
-      config: :class:`jaxedit.train.TrainConfig`.
-    Returns:
-      the metrics dict (also written to ``out/metrics.json``).
-    """
-    import jax
-    import numpy as np
-
-    from jaxedit import gaussians as G
-    from jaxedit import train as T
-    from jaxedit.io import save_ply, write_image
-    from jaxedit.io.files import atomic_write_text
-
-    t_start = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    train_images, train_cams = data.train()
-    if len(data.test_indices):
-        test_images, test_cams = data.test()
-        test_idx, eval_split = data.test_indices, "test"
-    else:  # no held-out views: report training-view quality, and say so
-        test_images, test_cams = train_images, train_cams
-        test_idx, eval_split = data.train_indices, "train"
-    extent = T.scene_extent(train_cams)
-    ckpt_dir = out / "checkpoints"
-
-    state = None
-    if resume:
-        latest = T.latest_checkpoint(ckpt_dir)
-        if latest is not None:
-            state = T.load_checkpoint(latest)
-            if state.config != config:
-                # The flags win (e.g. a larger --iters extends the run); the result then
-                # differs from an uninterrupted run with either setting.
-                log.warning("resuming %s with changed training settings", latest)
-                state = dataclasses.replace(state, config=config)
-            log.info("resuming from %s (step %d)", latest, int(state.step))
-    points_source = "checkpoint"
-    if state is None:
-        solid = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}.get(config.background)
-        points, colors, points_source = capped_initial_points(
-            data, random_points, config.densify.max_gaussians, seed, solid)
-        g = G.from_points(points, colors, sh_degree=config.sh_degree)
-        state = T.init_state(g, config, extent, key=jax.random.key(seed), cameras=train_cams)
-    start_step = int(state.step)
-
-    chunk_times: list[tuple[float, int]] = []  # (seconds, steps) of every chunk of steps
-    last = [time.perf_counter()]
-
-    def timer(_state, metrics):
-        now = time.perf_counter()
-        chunk_times.append((now - last[0], len(metrics["loss"])))
-        last[0] = now
-
-    t_train = time.perf_counter()
-    last[0] = t_train
-    bar = training_bar() if progress else None
-    try:
-        state = T.fit(state, train_images, train_cams, log_path=out / "train_log.jsonl",
-                      log_every=log_every, checkpoint_dir=ckpt_dir,
-                      checkpoint_every=checkpoint_every or None, progress=bar, callback=timer,
-                      desc="reconstruct")
-    finally:
-        if bar is not None:
-            bar.close()
-    train_s = time.perf_counter() - t_train
-    steps = int(state.step) - start_step
-
-    t_eval = time.perf_counter()
-    bg = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}.get(config.background,
-                                                                  (1.0, 1.0, 1.0))
-    result = T.evaluate(state.gaussians, test_images, test_cams, background=bg)
-    eval_s = time.perf_counter() - t_eval
-
-    t_write = time.perf_counter()
-    renders = result.pop("renders")
-    for k, (i, r) in enumerate(zip(test_idx, renders)):
-        name = Path(data.filenames[int(i)]).stem
-        write_image(out / eval_split / f"{k:03d}_{name}.png", r)
-    columns = min(len(renders), 8)
-    if columns:
-        top = np.concatenate(list(np.asarray(test_images[:columns])), axis=1)
-        bottom = np.concatenate(list(renders[:columns]), axis=1)
-        write_image(out / f"{eval_split}_compare.png", np.concatenate([top, bottom], axis=0))
-    save_ply(out / "scene.ply", state.gaussians)
-    corrections = None
-    if config.camera_opt:
-        corrections = write_corrected_dataset(out / "dataset", data, state.cameras)
-    write_s = time.perf_counter() - t_write
-
-    seconds = np.asarray([t for t, _ in chunk_times], np.float64)
-    times = seconds / np.maximum([n for _, n in chunk_times], 1) if chunk_times else seconds
-    median = float(np.median(times)) if len(times) else float("nan")
-    # Chunks far slower per step than the median are the ones that (re)compiled the
-    # train chunk: the first one, and each growth of the capacity or of the buffer.
-    slow = times > 10 * median if len(times) else times.astype(bool)
-    metrics = {
-        "test_psnr": result["psnr"], "test_ssim": result["ssim"], "eval_split": eval_split,
-        "test_psnr_per_view": result["psnr_per_view"],
-        "test_ssim_per_view": result["ssim_per_view"],
-        "num_gaussians": int(state.gaussians.num_alive()), "capacity": state.capacity,
-        "max_gaussians": config.densify.max_gaussians,
-        "iterations": int(state.step), "steps_run": steps, "resumed_from": start_step,
-        "wall_time_s": round(time.perf_counter() - t_start, 3), "train_time_s": round(train_s, 3),
-        "steps_per_s": steps / train_s if train_s > 0 else 0.0,
-        "steady_step_ms": 1e3 * median,
-        "steady_steps_per_s": 1.0 / median if median > 0 else 0.0,
-        "compile_chunks": int(np.sum(slow)),
-        "compile_time_s": round(float(np.sum(seconds[slow])), 3),
-        "eval_time_s": round(eval_s, 3), "write_time_s": round(write_s, 3),
-        "max_intersections": state.max_intersections, "scene_extent": extent,
-        "initial_points": points_source, "train_views": int(len(train_images)),
-        "test_views": int(len(test_idx)), "image_size": [int(train_images.shape[2]),
-                                                         int(train_images.shape[1])],
-        "config": config.to_dict(),
-    }
-    if corrections is not None:
-        metrics["camera_corrections"] = corrections
-    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
-    return metrics
-
-
-def write_corrected_dataset(folder: Path, data, corrections) -> dict:
-    """Write ``data`` as trained, with its training cameras' learned corrections, to
-    ``folder`` (a nerfstudio dataset, atomically); returns the corrections' summary.
-
-    The test cameras keep their poses: they were never trained on.
-    """
-    import numpy as np
-
-    from jaxedit import poses
-    from jaxedit.io import save_nerfstudio
-
-    train = np.asarray(data.train_indices)
-    fixed = poses.corrected_cameras(data.cameras[train], corrections)
-    w2c = np.array(data.cameras.world_to_camera, np.float32)
-    w2c[train] = np.asarray(fixed.world_to_camera)
-    cameras = dataclasses.replace(data.cameras, world_to_camera=w2c)
-    save_nerfstudio(folder, data.images, cameras, filenames=data.filenames,
-                    train_indices=train, test_indices=np.asarray(data.test_indices),
-                    points=data.points, point_colors=data.point_colors)
-    sizes = poses.correction_sizes(corrections)
-    rot, trans = sizes["rotation_deg"], sizes["translation"]
-    return {"median_rotation_deg": float(np.median(rot)), "max_rotation_deg": float(rot.max()),
-            "median_translation": float(np.median(trans)), "max_translation": float(trans.max()),
-            "dataset": str(folder)}
+    require_memory("--random-points", config.random_points * 1024,
+                   f"{config.random_points} initial Gaussians")
 
 
 def run(args) -> dict:
-    from jaxedit.io import load_nerfstudio
+    from jaxedit.pipelines import reconstruct as runs
 
-    from experiments.progress import configure
+    from experiments.progress import configure, training_bar
 
-    _check(args)
+    config = run_config(args)
+    _check(args, config)
     configure(quiet=args.quiet)
-    data = load_nerfstudio(args.data, downscale=args.downscale, normalize=args.normalize,
-                           background={"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}.get(
-                               args.background, (1.0, 1.0, 1.0)))
-    check_image_size(data, args.data)
-    config = config_from_args(args)
-    metrics = reconstruct(data, args.out, config, seed=args.seed, resume=args.resume,
-                          checkpoint_every=args.checkpoint_every, log_every=args.log_every,
-                          random_points=args.random_points)
+    metrics = runs.run(args.data, args.out, config, seed=args.seed, resume=args.resume,
+                       progress=training_bar())
     keys = ("test_psnr", "test_ssim", "num_gaussians", "iterations", "wall_time_s", "steps_per_s")
     return {k: metrics[k] for k in keys} | {"out": str(args.out)}
 
 
-__all__ = ["reconstruct", "config_from_args", "initial_points", "capped_initial_points"]
+__all__ = ["reconstruct", "config_from_args", "run_config", "initial_points",
+           "capped_initial_points"]

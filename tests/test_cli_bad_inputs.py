@@ -25,7 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from experiments import cli
-from experiments.reconstruct import capped_initial_points
+from jaxedit.pipelines.reconstruct import capped_initial_points
 from jaxedit import camera as camlib, gaussians as G
 from jaxedit.io import read_image, save_nerfstudio, save_ply
 from jaxedit.io.ply import load_ply

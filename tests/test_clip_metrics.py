@@ -181,7 +181,7 @@ def test_metrics_match_embeddings(encoder):
 def test_missing_clip_weights(tmp_path, clip_dir):
     from jaxedit.clip_metrics import ClipEncoder, load_clip_metrics
 
-    with pytest.raises(DataError, match="CLIP weights folder not found.*--clip-weights"):
+    with pytest.raises(DataError, match="CLIP weights folder not found.*huggingface-cli download"):
         ClipEncoder.from_pretrained(tmp_path / "nope")
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="no config.json"):

@@ -70,8 +70,8 @@ def test_a_dataset_without_points_reconstructs_within_2_db_of_one_with_points(tm
     """Issue 11 item 4: the starting points of a dataset without a cloud cost < 2 dB."""
     import dataclasses
 
-    from experiments.reconstruct import reconstruct
     from jaxedit.io import load_nerfstudio
+    from jaxedit.pipelines.reconstruct import reconstruct
     from jaxedit.train import TrainConfig
 
     scenes.make_scene("tabletop", tmp_path / "data", size=32, views=16, test_views=4,
@@ -82,6 +82,6 @@ def test_a_dataset_without_points_reconstructs_within_2_db_of_one_with_points(tm
     psnr = {}
     for name, d in (("points", data), ("random", bare)):
         m = reconstruct(d, tmp_path / name, config, checkpoint_every=0, log_every=100,
-                        random_points=2000, progress=False)
+                        random_points=2000)
         psnr[name] = m["test_psnr"]
     assert psnr["random"] > psnr["points"] - 2.0, psnr

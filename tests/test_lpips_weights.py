@@ -231,7 +231,7 @@ def test_default_distance_is_lpips_vgg_where_the_weights_are(cache, tmp_path, mo
     assert make_distance(args).name == "lpips-vgg"
     alex = cache / "weights" / "lpips_alex.safetensors"
     assert make_distance(Namespace(**{**vars(args), "lpips_weights": alex})).name == "lpips-alex"
-    with pytest.raises(DataError, match="--distance ms-ssim"):
+    with pytest.raises(DataError, match="distance ms-ssim"):
         lpips_weights_to_use("ms-ssim", alex)
     # An empty cache: auto falls back to MS-SSIM, lpips says how to get the weights.
     monkeypatch.setenv("JAXEDIT_CACHE", str(tmp_path))

@@ -120,7 +120,7 @@ def tiny():
 
 FAST = TrainSettings(lr_sh_dc=0.05)  # a few dozen steps must visibly move colours
 TINY = dict(warmup=6, patience=8, loss_window=4, max_steps=24, edit_every=3, checkpoint_every=5,
-            subtasks=1, consolidate=False, asynchronous=False)
+            subtasks=1, consolidate=False, asynchronous=False, turntable_frames=0)
 
 
 @pytest.fixture(scope="module")
@@ -353,7 +353,7 @@ def test_edit_cap_defaults_to_twice_the_input_and_is_never_below_it():
     capped = TrainSettings().replace_densify
     assert cap(resolve_max_gaussians(TrainSettings(), 300_000)) == 600_000
     assert cap(resolve_max_gaussians(capped(max_gaussians=400_000), 300_000)) == 400_000
-    with pytest.raises(DataError, match="--max-gaussians"):
+    with pytest.raises(DataError, match="max_gaussians"):
         resolve_max_gaussians(capped(max_gaussians=1000), 300_000)
     trainer = SubtaskTrainer(TrainSettings(), num_input=250_000)
     assert trainer.config.densify.max_gaussians == 500_000
@@ -455,7 +455,7 @@ def test_the_wall_clock_guard_ends_subtasks_and_says_so(tiny):
     assert subs and all(s["guard"] == "seconds" and not s["converged"] for s in subs)
     assert all(s["steps"] < cfg.max_steps for s in subs)
     assert out["schedule"]["guard"]["max_seconds"] == 1e-3
-    with pytest.raises(DataError, match="max-subtask-seconds"):
+    with pytest.raises(DataError, match="max_seconds"):
         ProEditConfig.for_mode("nd", max_seconds=0.0)
 
 

@@ -156,7 +156,7 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
     check_out_dir(out_dir)
     options.check()
     if not 0.0 <= min_fraction <= 1.0:
-        raise DataError("--min-registered", f"must be in [0, 1], got {min_fraction}")
+        raise DataError("min_fraction", f"must be in [0, 1], got {min_fraction}")
     report = report or (lambda stage, done, total: None)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))

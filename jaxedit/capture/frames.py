@@ -89,7 +89,7 @@ def sample_video(path: str | os.PathLike, target: int) -> tuple[np.ndarray, np.n
     if not path.is_file():
         raise DataError(path, "video file not found" if not path.exists() else "not a file")
     if target < MIN_IMAGES:
-        raise DataError("--num-frames", f"must be >= {MIN_IMAGES}, got {target}")
+        raise DataError("num_frames", f"must be >= {MIN_IMAGES}, got {target}")
     try:
         num_frames, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
         reader = imageio_ffmpeg.read_frames(str(path))

@@ -61,15 +61,14 @@ class SfmOptions:
 
     def check(self) -> "SfmOptions":
         if self.camera_model not in CAMERA_MODELS:
-            raise DataError("--camera-model", f"must be one of {', '.join(CAMERA_MODELS)}, "
+            raise DataError("camera_model", f"must be one of {', '.join(CAMERA_MODELS)}, "
                                               f"got {self.camera_model!r}")
         if self.matching not in MATCHING:
-            raise DataError("--matching", f"must be one of {', '.join(MATCHING)}, got "
+            raise DataError("matching", f"must be one of {', '.join(MATCHING)}, got "
                                           f"{self.matching!r}")
         for name in ("overlap", "max_features", "max_image_size", "chunk"):
             if getattr(self, name) < 1:
-                raise DataError(f"--{name.replace('_', '-')}", f"must be >= 1, got "
-                                                               f"{getattr(self, name)}")
+                raise DataError(name, f"must be >= 1, got {getattr(self, name)}")
         return self
 
 
@@ -97,7 +96,7 @@ def image_pairs(num_images: int, matching: str, overlap: int = 10) -> list[tuple
     if matching == "exhaustive":
         return [(i, j) for i in range(num_images) for j in range(i + 1, num_images)]
     if matching != "sequential":
-        raise DataError("--matching", f"must be one of {', '.join(MATCHING)}, got {matching!r}")
+        raise DataError("matching", f"must be one of {', '.join(MATCHING)}, got {matching!r}")
     ahead = set(range(1, overlap + 1)) | {2 ** k for k in range(max(num_images, 1).bit_length())}
     return sorted((i, i + d) for i in range(num_images) for d in ahead if i + d < num_images)
 

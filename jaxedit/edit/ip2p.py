@@ -73,7 +73,7 @@ __all__ = ["InstructPix2PixEditor", "load_editor", "DEFAULT_MODEL", "HOW_TO_GET"
 DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
 HOW_TO_GET = (f"{DEFAULT_MODEL} in diffusers format; download it on a machine with network with "
               f"`huggingface-cli download {DEFAULT_MODEL} --local-dir DIR` (or `hf download`) "
-              f"and pass --ip2p-weights DIR")
+              f"and give that folder as the editor's weights")
 
 # Sub-folder -> files of which at least one must exist, in diffusers' save_pretrained layout.
 _LAYOUT = {

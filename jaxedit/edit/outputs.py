@@ -184,18 +184,18 @@ def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
         try:
             which = int(which) if which.lstrip("-").isdigit() else float(which)
         except ValueError:
-            raise DataError("--select", f"expected a subtask index or a ratio, got {which!r}") from None
+            raise DataError("select", f"expected a subtask index or a ratio, got {which!r}") from None
     if isinstance(which, (int, np.integer)) and not isinstance(which, bool):
         by_index = {s["index"]: s for s in subtasks}
         idx = int(which) if which >= 0 else subtasks[int(which)]["index"] if -len(subtasks) <= which else None
         if idx not in by_index:
-            raise DataError("--select", f"no finished subtask {which}; have "
+            raise DataError("select", f"no finished subtask {which}; have "
                                         f"{sorted(by_index)}")
         chosen = by_index[idx]
     else:
         r = float(which)
         if not 0.0 <= r <= 1.0:
-            raise DataError("--select", f"ratio must be in [0, 1], got {r}")
+            raise DataError("select", f"ratio must be in [0, 1], got {r}")
         best = min(abs(s["ratio"] - r) for s in subtasks)
         chosen = [s for s in subtasks if abs(s["ratio"] - r) == best][-1]
     src = run_dir / chosen["snapshot"]

@@ -12,6 +12,7 @@ import math
 from typing import Any, Sequence
 
 from ..errors import DataError
+from .schedule import MAX_DEPTH
 
 MODES = ("proedit", "nd", "in2n")
 
@@ -21,7 +22,8 @@ class ProEditConfig:
     """Knobs of the driver (defaults follow the paper where it gives a value).
 
     Attributes:
-      mode: "proedit" | "nd" | "in2n".
+      mode: "proedit" (the difficulty-aware schedule), "nd" (no decomposition: one
+        subtask 0 -> 1) or "in2n" (the Instruct-NeRF2NeRF baseline).
       threshold: d_threshold of the scheduler, per view: the difficulty is the mean over
         the difficulty views of the per-view distance (the paper's eq. 3 sum divided by
         |V|), so the threshold does not change with the number of views (None:
@@ -30,7 +32,7 @@ class ProEditConfig:
         find; the paper reports ~4 for texture and ~8 for geometry edits).
       subtasks: override with N uniform ratios (paper: ~4 texture, ~8 geometry).
       schedule_method: "bisect" (paper) or "root" (optimistix placement).
-      max_depth: bisection depth limit.
+      max_depth: bisection depth limit (:data:`jaxedit.edit.schedule.MAX_DEPTH`).
       refine_first / consolidate: the extra subtasks r_0 and r_n (appendix B).
       warmup: W, steps after the opacity reset without densify/cull.
       patience: P, steps without a new minimum of the running mean loss.
@@ -46,13 +48,19 @@ class ProEditConfig:
       guidance: (text, image) classifier-free guidance scales.
       edit_every: trainer steps between edits in the deterministic mode.
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
-      asynchronous: producer thread instead of the deterministic schedule.
+      asynchronous: producer thread instead of the deterministic schedule. Off by
+        default, in the library and on the command line alike: the deterministic
+        schedule is the one whose bits a seed fixes and whose resume is exact; the
+        producer thread (``edit --async``) is the faster opt-in when the editor has a
+        device of its own.
       checkpoint_every: steps between checkpoints inside a subtask.
       difficulty_views: size of the fixed, seeded subset of training views the difficulty
         d(r_a, r_b) is taken over (None: all of them, up to
-        ``DIFFICULTY_VIEWS_DEFAULT_MAX``; each view costs one editor call per ratio).
+        :data:`jaxedit.edit.difficulty.DIFFICULTY_VIEWS`; each view costs one editor call
+        per ratio).
       curve_points: grid size of the reported d(0, r) curve.
-      turntable_frames: frames of each snapshot's turntable (0: none).
+      turntable_frames: frames of each snapshot's turntable (0: none). A run directory
+        is for people to look at, and the turntable is how they see a snapshot in 3D.
       background: render background (the editor sees renders on it).
       stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs
         exactly ``max_steps`` (IN2N trains for a fixed number of iterations).
@@ -63,7 +71,7 @@ class ProEditConfig:
     target_subtasks: int | None = None
     subtasks: int | None = None
     schedule_method: str = "bisect"
-    max_depth: int = 4
+    max_depth: int = MAX_DEPTH
     refine_first: bool = True
     consolidate: bool = True
     warmup: int = 30
@@ -81,26 +89,29 @@ class ProEditConfig:
     checkpoint_every: int = 50
     difficulty_views: int | None = None
     curve_points: int = 9
-    turntable_frames: int = 0
+    turntable_frames: int = 24
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     stop_on_plateau: bool = True
 
     def __post_init__(self):
         if self.mode not in MODES:
-            raise DataError("--mode", f"unknown mode {self.mode!r}; choose from {', '.join(MODES)}")
+            raise DataError("mode", f"unknown mode {self.mode!r}; choose from {', '.join(MODES)}")
         if self.threshold is not None and not self.threshold > 0:
-            raise DataError("--threshold", f"must be > 0, got {self.threshold}")
+            raise DataError("threshold", f"must be > 0, got {self.threshold}")
         if self.subtasks is not None and self.subtasks < 1:
-            raise DataError("--subtasks", f"must be >= 1, got {self.subtasks}")
+            raise DataError("subtasks", f"must be >= 1, got {self.subtasks}")
         if self.target_subtasks is not None and self.target_subtasks < 1:
-            raise DataError("--target-subtasks", f"must be >= 1, got {self.target_subtasks}")
+            raise DataError("target_subtasks", f"must be >= 1, got {self.target_subtasks}")
         if self.difficulty_views is not None and self.difficulty_views < 1:
-            raise DataError("--difficulty-views", f"must be >= 1, got {self.difficulty_views}")
+            raise DataError("difficulty_views", f"must be >= 1, got {self.difficulty_views}")
         lo, hi = self.timestep_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {lo}, {hi}")
+        for name in ("warmup", "turntable_frames"):
+            if getattr(self, name) < 0:
+                raise DataError(name, f"must be >= 0, got {getattr(self, name)}")
         if self.max_seconds is not None and not self.max_seconds > 0:
-            raise DataError("--max-subtask-seconds", f"must be > 0, got {self.max_seconds}")
+            raise DataError("max_seconds", f"must be > 0, got {self.max_seconds}")
         for name in ("patience", "loss_window", "max_steps", "anneal_steps", "edit_every",
                      "checkpoint_every"):
             if getattr(self, name) is not None and getattr(self, name) < 1:

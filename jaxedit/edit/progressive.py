@@ -64,6 +64,7 @@ from ..io.files import atomic_write_text
 from .buffer import pick_devices
 # Re-exported: the names the CLI, the tests and users import from here.
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint  # noqa: F401
+from .difficulty import DIFFICULTY_VIEWS, difficulty_view_subset  # noqa: F401
 from .driver import (CHUNK, DriverState, EditContext, EditData, LossTracker,  # noqa: F401
                      apply_edits, begin_subtask, finish_subtask, init_state, make_edit_fn,
                      run_subtask, step_chunk, track_loss, train_view)
@@ -78,28 +79,7 @@ from .trainer import (CAP_MIN_ROOM, SubtaskTrainer, TrainSettings,  # noqa: F401
 # Schedules
 # ---------------------------------------------------------------------------
 DEFAULT_SUBTASKS = 4  # default threshold = d(0, 1) / 4 (paper: ~4 subtasks for texture edits)
-#: Difficulty views by default: every training view up to this many (an editor call per
-#: view and ratio: 16 views x 17 ratios of a depth-4 bisection is ~270 edits, about 9
-#: minutes of InstructPix2Pix at ~2 s per edit), else a seeded subset of this size.
-DIFFICULTY_VIEWS_DEFAULT_MAX = 16
-#: fold_in purpose of the difficulty view subset's key.
-_DIFFICULTY_VIEWS = 5
-
-
-def difficulty_view_subset(num_views: int, count: int | None, key) -> tuple[int, ...]:
-    """The fixed, seeded subset of ``count`` view indices (sorted) the difficulty is taken over.
-
-    ``count`` None: all views up to :data:`DIFFICULTY_VIEWS_DEFAULT_MAX`. A subset is a
-    uniform draw without replacement from ``key``, so it depends on the run seed only.
-    """
-    if num_views <= 0:
-        raise DataError("views", "need at least one original view")
-    count = min(num_views, DIFFICULTY_VIEWS_DEFAULT_MAX if count is None else int(count))
-    if count >= num_views:
-        return tuple(range(num_views))
-    chosen = jax.random.choice(jax.random.fold_in(key, _DIFFICULTY_VIEWS), num_views, (count,),
-                               replace=False)
-    return tuple(sorted(int(v) for v in np.asarray(chosen)))
+DIFFICULTY_VIEWS_DEFAULT_MAX = DIFFICULTY_VIEWS  # the earlier name
 
 
 def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distance=None):
@@ -107,13 +87,13 @@ def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distan
 
     ``distance``: the perceptual distance (e.g. :func:`jaxedit.lpips.lpips_distance`);
     None is the oracle's default (multi-scale SSIM). The reduction over views is the
-    mean (eq. 3's sum / |V|), so thresholds are per view.
+    oracle's default, the mean (eq. 3's sum / |V|), so thresholds are per view.
     """
     from .difficulty import DifficultyOracle
 
     views = difficulty_view_subset(len(originals), ctx.config.difficulty_views, ctx.key)
     return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
-                            guidance=tuple(ctx.config.guidance), seed=seed, reduction="mean")
+                            guidance=tuple(ctx.config.guidance), seed=seed)
 
 
 def distance_name(distance) -> str:
@@ -185,7 +165,7 @@ def cap_warning(name: str, density: dict, cap: int, alive: int) -> str | None:
     return (f"WARNING: subtask {name}: the Gaussian cap ({cap}) limited creation in "
             f"{density['cap_limited']} of {density['refinements']} maintenance steps: "
             f"{density['shortfall']} Gaussians the budget t(n) wanted were not created "
-            f"({density['created']} were; {alive} alive at the end). Raise --max-gaussians "
+            f"({density['created']} were; {alive} alive at the end). Raise the cap (max_gaussians) "
             f"to let the edit grow geometry")
 
 
@@ -221,7 +201,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     """
     log = log or (lambda msg: None)
     if not str(prompt).strip() and config.mode != "in2n":
-        raise DataError("--prompt", "empty instruction")
+        raise DataError("prompt", "empty instruction")
     run_dir = None if run_dir is None else Path(run_dir)
     from ..train import scene_extent
 
@@ -232,18 +212,17 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         extent = float(f"{scene_extent(data.train_cameras):.4g}")
         settings = dataclasses.replace(settings, scene_extent=extent)
     # The plan owns W, the mode and the background; the trainer runs with them.
-    settings = dataclasses.replace(settings, adaptive=config.mode != "in2n",
-                                   background=tuple(config.background)
+    settings = dataclasses.replace(settings, adaptive=config.mode != "in2n"
                                    ).replace_densify(warmup=config.warmup)
     settings = resolve_max_gaussians(settings, int(gaussians.num_alive()))
-    trainer = SubtaskTrainer(settings)
+    trainer = SubtaskTrainer(settings, background=config.background)
     trainer_device, editor_device = pick_devices()
     ctx = EditContext(editor, prompt, data, config, trainer, Renderer(config.background),
                       jax.random.key(seed), editor_device)
     wall0 = time.perf_counter()
     ckpt = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if resume and (ckpt is None or not ckpt.exists()):
-        raise DataError(ckpt or "--out", "no checkpoint to resume from")
+        raise DataError(ckpt or "run_dir", "no checkpoint to resume from")
 
     if resume:
         st, meta = load_checkpoint(ckpt, trainer.init(gaussians))

@@ -183,7 +183,15 @@ def _check_start(start) -> float:
     return r
 
 
-def decompose(difficulty: DifficultyFn, *, threshold: float, max_depth: int = 6,
+#: The bisection's depth limit, the one default of it (``ProEditConfig.max_depth`` is this):
+#: at most 2^4 = 16 subtasks, twice the paper's ~8 for geometry edits, and a depth-4 fold
+#: asks the editor about at most 17 ratios per difficulty view (16 views x 17 ratios ~ 270
+#: InstructPix2Pix edits, ~9 minutes at ~2 s each); depth 6 (65 ratios) would quadruple that
+#: for subtasks no edit in the paper needs.
+MAX_DEPTH = 4
+
+
+def decompose(difficulty: DifficultyFn, *, threshold: float, max_depth: int = MAX_DEPTH,
               prune: bool = True, start: float = 0.0) -> Schedule:
     """The paper's decomposition: bisection from [start, 1] (default [0, 1]), then pruning.
 

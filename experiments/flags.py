@@ -1,0 +1,301 @@
+"""Command-line flags generated from a command's frozen config tree.
+
+A command's settings are declared once, as fields of frozen dataclasses (the library's
+:class:`jaxedit.train.TrainConfig`, :class:`jaxedit.densify.DensifyConfig`,
+:class:`jaxedit.edit.plan.ProEditConfig`, ...). A :class:`Flag` names one field by its
+dotted path in the tree; :class:`FlagSet` turns a tree's flags into argparse arguments
+whose type, default and help come from the field (the help from the owner's docstring
+``Attributes:`` section), builds the tree back from the parsed flags, and maps the
+fields the library's errors name to the flags a user typed (:meth:`FlagSet.flag_of`).
+
+So a default changes in one place, the dataclass, and the command line follows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import inspect
+import re
+import types
+import typing
+from typing import Any, Sequence
+
+#: Namespace attribute of the dests set on the command line or by ``--config``.
+GIVEN = "_given"
+
+
+@dataclasses.dataclass(frozen=True)
+class Flag:
+    """One generated flag.
+
+    Attributes:
+      field: dotted path of the field in the tree, e.g. ``"train.densify.stop_at"``.
+      name: the flag (default ``--`` and the field's own name with dashes).
+      off: for a boolean field, the flag that sets it False (``--sync`` of ``--async``).
+      choices: the values a string field takes.
+      low, high: range the command line accepts where the field's owner does not check
+        it itself (an error names the field); ``open``: the bounds are excluded.
+      key: the name a ``--config`` file and config.json use (default: the flag's, with
+        underscores).
+    """
+
+    field: str
+    name: str | None = None
+    off: str | None = None
+    choices: tuple | None = None
+    low: float | None = None
+    high: float | None = None
+    open: bool = False
+    key: str | None = None
+
+    @property
+    def flag(self) -> str:
+        return self.name or "--" + self.field.rsplit(".", 1)[-1].replace("_", "-")
+
+    @property
+    def dest(self) -> str:
+        return self.key or self.flag[2:].replace("-", "_")
+
+
+class _Given(argparse.Action):
+    """Store (or store a constant), and record that the flag was given."""
+
+    def __init__(self, option_strings, dest, const=None, nargs=None, **kwargs):
+        self.switch = const is not None
+        super().__init__(option_strings, dest, nargs=0 if self.switch else nargs, const=const,
+                         **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, self.const if self.switch else values)
+        given = set(getattr(namespace, GIVEN, ()))
+        setattr(namespace, GIVEN, given | {self.dest})
+
+
+def attribute_docs(cls: type) -> dict[str, str]:
+    """{attribute: its text} from ``cls``'s docstring ``Attributes:`` section.
+
+    An entry is ``name: text`` or ``a, b, c: text`` (shared by the names), continued on
+    more deeply indented lines; text is joined into one line.
+    """
+    doc = inspect.getdoc(cls) or ""
+    docs: dict[str, str] = {}
+    lines = doc.split("\n")
+    try:
+        start = lines.index("Attributes:") + 1
+    except ValueError:
+        return docs
+    names: list[str] = []
+    indent = None
+    for line in lines[start:]:
+        if not line.strip():
+            continue
+        depth = len(line) - len(line.lstrip())
+        if depth == 0:
+            break
+        if indent is None:
+            indent = depth
+        m = re.match(r"\s*([A-Za-z_][\w, ]*):\s*(.*)$", line)
+        if depth == indent and m:
+            names = [n.strip() for n in m.group(1).split(",")]
+            for n in names:
+                docs[n] = m.group(2).strip()
+        elif names:
+            for n in names:
+                docs[n] = f"{docs[n]} {line.strip()}".strip()
+    return {k: _plain(v) for k, v in docs.items()}
+
+
+def _plain(text: str) -> str:
+    """Docstring markup as help text: ``x`` and :func:`x` become x."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", text)
+    return text.replace("``", "")
+
+
+def _owner_and_field(root: type, path: str) -> tuple[type, dataclasses.Field, Any]:
+    """(dataclass owning the last component, its field, the field's default in the tree)."""
+    cls, default = root, _default_instance(root)
+    parts = path.split(".")
+    for i, part in enumerate(parts):
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        if part not in fields:
+            raise KeyError(f"{cls.__name__} has no field {part!r} ({path})")
+        field = fields[part]
+        value = getattr(default, part)
+        if i == len(parts) - 1:
+            return cls, field, value
+        cls, default = typing.get_type_hints(cls)[part], value
+
+
+def _default_instance(cls: type):
+    return cls()
+
+
+def _value_type(hint) -> type:
+    """The scalar type of a field's annotation (``int | None`` -> int)."""
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) == 1:
+            return _value_type(args[0])
+    if hint in (int, float, str, bool):
+        return hint
+    raise TypeError(f"no flag for a field of type {hint!r}")
+
+
+def _bound_error(flag: Flag, value) -> str | None:
+    low, high = flag.low, flag.high
+    if flag.open:
+        bad = (low is not None and not value > low) or (high is not None and not value < high)
+        if low is not None and high is not None:
+            what = f"in ({low:g}, {high:g})"
+        else:
+            what = f"> {low:g}" if low is not None else f"< {high:g}"
+    else:
+        bad = (low is not None and not value >= low) or (high is not None and not value <= high)
+        if low is not None and high is not None:
+            what = f"in [{low:g}, {high:g}]"
+        else:
+            what = f">= {low:g}" if low is not None else f"<= {high:g}"
+    return f"must be {what}, got {value}" if bad else None
+
+
+@dataclasses.dataclass(frozen=True)
+class FlagSet:
+    """The flags of one config tree ``root`` (a frozen dataclass whose fields may be
+    dataclasses in turn)."""
+
+    root: type
+    flags: tuple[Flag, ...]
+
+    def owner(self, flag: Flag) -> tuple[type, dataclasses.Field, Any]:
+        return _owner_and_field(self.root, flag.field)
+
+    def default(self, flag: Flag):
+        """The flag's default: its field's default in the tree."""
+        return self.owner(flag)[2]
+
+    def add_to(self, parser: argparse.ArgumentParser) -> None:
+        """Add every flag to ``parser`` (type, default, help from the field)."""
+        for flag in self.flags:
+            cls, field, default = self.owner(flag)
+            kind = _value_type(typing.get_type_hints(cls)[field.name])
+            doc = attribute_docs(cls).get(field.name)
+            if doc is None:
+                raise ValueError(f"{cls.__name__}.{field.name} has no entry in its docstring")
+            text = doc.replace("%", "%%")
+            if kind is bool:
+                if flag.off is None:
+                    if default:
+                        raise ValueError(f"{flag.flag}: a switch needs a default of False "
+                                         "or an off flag")
+                    parser.add_argument(flag.flag, dest=flag.dest, action=_Given, const=True,
+                                        default=False, help=text)
+                else:
+                    group = parser.add_mutually_exclusive_group()
+                    group.add_argument(flag.flag, dest=flag.dest, action=_Given, const=True,
+                                       default=default,
+                                       help=f"{text}{' (default)' if default else ''}")
+                    group.add_argument(flag.off, dest=flag.dest, action=_Given, const=False,
+                                       default=default,
+                                       help=f"not {flag.flag}{'' if default else ' (default)'}")
+                continue
+            parser.add_argument(flag.flag, dest=flag.dest, action=_Given, type=kind,
+                                default=default, choices=flag.choices,
+                                help=f"{text} (default: {default})")
+
+    def check(self, args: argparse.Namespace) -> None:
+        """DataError naming the field of the first flag outside its range."""
+        from jaxedit import DataError
+
+        for flag in self.flags:
+            value = getattr(args, flag.dest)
+            if value is None or (flag.low is None and flag.high is None):
+                continue
+            problem = _bound_error(flag, value)
+            if problem:
+                raise DataError(flag.field.rsplit(".", 1)[-1], problem)
+
+    def values(self, args: argparse.Namespace) -> dict[str, Any]:
+        """{field path: value} of the flags to apply: each one given (on the command line
+        or in --config) or, for a namespace built by hand, each that differs from its
+        field's default."""
+        given = getattr(args, GIVEN, None)
+        out = {}
+        for flag in self.flags:
+            value = getattr(args, flag.dest)
+            if (flag.dest in given) if given is not None else value != self.default(flag):
+                out[flag.field] = value
+        return out
+
+    def build(self, args: argparse.Namespace, bases: dict[str, Any] | None = None,
+              derived: dict[str, Any] | None = None):
+        """The config tree of ``args``: ``root()`` (with ``bases``, {top-level field:
+        instance}, as the starting points of those subtrees) and the flags' values, plus
+        ``derived`` {field path: value} that follow from them.
+
+        The flags' range checks (:meth:`check`) run first; the dataclasses' own checks
+        run as the tree is built. Both raise DataErrors that name fields.
+        """
+        self.check(args)
+        tree: dict = {}
+        for path, value in (self.values(args) | (derived or {})).items():
+            node = tree
+            *parents, leaf = path.split(".")
+            for part in parents:
+                node = node.setdefault(part, {})
+            node[leaf] = value
+        return _replace(self.root(), tree, bases or {})
+
+    def flag_of(self) -> dict[str, str]:
+        """{field name or dotted path: flag} for turning an error's field into a flag.
+
+        A field's own name maps only where it is unambiguous in this set.
+        """
+        out: dict[str, str] = {}
+        short: dict[str, set] = {}
+        for flag in self.flags:
+            out[flag.field] = flag.flag
+            short.setdefault(flag.field.rsplit(".", 1)[-1], set()).add(flag.flag)
+        out.update({k: next(iter(v)) for k, v in short.items() if len(v) == 1})
+        return out
+
+
+def _replace(instance, changes: dict, bases: dict):
+    """``instance`` with nested ``changes`` ({field: value or {subfield: ...}}) applied."""
+    updates = {}
+    for name in set(changes) | set(bases):
+        current = bases.get(name, getattr(instance, name))
+        change = changes.get(name)
+        if isinstance(change, dict):
+            updates[name] = _replace(current, change, {})
+        elif name in changes:
+            updates[name] = change
+        else:
+            updates[name] = current
+    return dataclasses.replace(instance, **updates)
+
+
+def flag_names(*sets: FlagSet, parser: argparse.ArgumentParser | None = None) -> dict[str, str]:
+    """{field: flag} of ``sets``, and {dest: flag} of every other flag of ``parser``."""
+    out: dict[str, str] = {}
+    if parser is not None:
+        for action in parser._actions:
+            if action.option_strings and action.dest not in (argparse.SUPPRESS, "help"):
+                out.setdefault(action.dest, action.option_strings[-1])
+    for s in sets:
+        out.update(s.flag_of())
+    return out
+
+
+def as_flags(error, names: dict[str, str]):
+    """``error`` (a DataError) with the field it names replaced by its flag, if it has one."""
+    from jaxedit import DataError
+
+    where = getattr(error, "where", None)
+    if where is None or where not in names:
+        return error
+    return DataError(names[where], error.problem)
+
+
+def every_flag(sets: Sequence[FlagSet]) -> list[tuple[FlagSet, Flag]]:
+    return [(s, f) for s in sets for f in s.flags]

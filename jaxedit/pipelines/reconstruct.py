@@ -1,0 +1,326 @@
+"""A reconstruction run: fit 3D Gaussians to a nerfstudio dataset and write its run directory.
+
+The library half of ``python -m experiments reconstruct`` (the command is its thin edge:
+flags, progress bars, printing). :class:`ReconstructConfig` is the run's one config
+tree; the command's flags are generated from it. What :func:`reconstruct` writes
+into the run directory:
+
+* ``scene.ply``: the alive Gaussians as an INRIA 3DGS PLY (any splat viewer reads it);
+* ``test/NNN_<name>.png``: renders of the held-out views, and ``test_compare.png``
+  (ground truth above, render below, one column per view);
+* ``metrics.json``: ``test_psnr``, ``test_ssim`` (scikit-image), per-view values,
+  ``num_gaussians``, ``wall_time_s``, ``steps_per_s``, where the time went;
+* ``train_log.jsonl``: training metrics every ``log_every`` steps and at every
+  density-control step;
+* with ``camera_opt``, ``dataset/``: a nerfstudio dataset of the images as trained
+  (undistorted, downscaled, in the normalised world) with the training cameras'
+  learned pose corrections applied; the scene lives in its frame, so
+  ``edit --data RUN_DIR/dataset --scene RUN_DIR/scene.ply`` edits with those poses;
+* ``checkpoints/ckpt_<step>.npz``: the full training state every
+  ``checkpoint_every`` steps and at the end. Resuming continues from the
+  newest one and ends with the same Gaussians as an uninterrupted run.
+
+Initial points come from the dataset's ``ply_file_path`` (as COLMAP's sparse
+cloud would); a dataset without points starts from ``random_points`` random
+points in the box where the training cameras' view frusta overlap, the most
+photo-consistent of 4x as many uniform candidates (see jaxedit.capture.points).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import numpy as np
+
+from .. import gaussians as G
+from ..background import background_rgb
+from ..errors import DataError
+from ..train import TrainConfig
+
+log = logging.getLogger("jaxedit.reconstruct")
+
+#: How the poses may be normalised when the dataset is read.
+NORMALIZE = ("none", "nerfstudio")
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconstructConfig:
+    """A reconstruction run's settings: training, reading the dataset, recording the run.
+
+    Attributes:
+      train: training hyper-parameters (:class:`jaxedit.train.TrainConfig`).
+      downscale: integer image downscale factor.
+      normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not
+        ("none").
+      random_points: initial points when the dataset has no point cloud (photo-consistent
+        random points where the training frusta overlap).
+      checkpoint_every: checkpoint period in steps (0: only at the end).
+      log_every: train_log.jsonl period in steps.
+    """
+
+    train: TrainConfig = TrainConfig()
+    downscale: int = 1
+    normalize: str = "none"
+    random_points: int = 20_000
+    checkpoint_every: int = 1000
+    log_every: int = 10
+
+    def __post_init__(self):
+        for name, low in (("downscale", 1), ("random_points", 1), ("checkpoint_every", 0),
+                          ("log_every", 1)):
+            if getattr(self, name) < low:
+                raise DataError(name, f"must be >= {low}, got {getattr(self, name)}")
+        if self.normalize not in NORMALIZE:
+            raise DataError("normalize", f"must be one of {', '.join(NORMALIZE)}, got "
+                            f"{self.normalize!r}")
+
+
+def composite_background(name: str) -> tuple[float, float, float]:
+    """The solid colour renders are scored on and RGBA photos composited over for a
+    training background ``name``: its own colour, white for "random"."""
+    return background_rgb(name) or background_rgb("white")
+
+
+def load_dataset(path, config: ReconstructConfig):
+    """The nerfstudio dataset at ``path`` as ``config`` reads it (downscale, normalisation,
+    RGBA composited over the background); DataError if its images are too small."""
+    from ..io import load_nerfstudio
+
+    data = load_nerfstudio(path, downscale=config.downscale, normalize=config.normalize,
+                           background=composite_background(config.train.background))
+    check_image_size(data, path)
+    return data
+
+
+def run(data_path, out, config: ReconstructConfig, *, seed: int = 0, resume: bool = False,
+        progress: Callable | None = None) -> dict:
+    """Read the dataset at ``data_path`` and reconstruct it into ``out`` (see
+    :func:`reconstruct`); returns the metrics."""
+    data = load_dataset(data_path, config)
+    return reconstruct(data, out, config.train, seed=seed, resume=resume,
+                       checkpoint_every=config.checkpoint_every, log_every=config.log_every,
+                       random_points=config.random_points, progress=progress)
+
+
+#: Smallest image side that training and evaluation accept: SSIM's 11-pixel window.
+MIN_IMAGE_SIZE = 11
+
+
+def check_image_size(data, where) -> None:
+    """DataError when ``data``'s images (after downscaling) are smaller than SSIM's window."""
+
+    h, w = data.images.shape[1:3]
+    if min(h, w) < MIN_IMAGE_SIZE:
+        raise DataError(where, f"images are {w}x{h} px (after downscaling); training needs at "
+                        f"least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE} (the SSIM window)")
+
+
+#: Border pixels of the training images that must show the background for carving.
+CARVE_BORDER_FRACTION = 0.5
+
+
+def initial_points(data, n_random: int, seed: int, background=None):
+    """(points [P, 3], colours [P, 3], source): the dataset's cloud, or photo-consistent random
+    points in the box where the training cameras' frusta overlap (jaxedit.capture.points).
+
+    ``background`` (RGB, the training background): when at least
+    :data:`CARVE_BORDER_FRACTION` of the training images' border pixels show it (an object
+    on a uniform background), random candidates seen as background are carved away.
+    """
+
+    from ..capture.points import background_fraction, random_points
+
+    if data.points is not None and len(data.points) >= 4:
+        colors = data.point_colors if data.point_colors is not None else np.full(
+            (len(data.points), 3), 0.5, np.float32)
+        return np.asarray(data.points, np.float32), np.asarray(colors, np.float32), "dataset"
+    images, cameras = data.train()
+    if background is not None and background_fraction(images, background) < CARVE_BORDER_FRACTION:
+        background = None  # a scene photo, not an object on a background: no carving
+    points, colors = random_points(images, cameras, n_random, jax.random.key(seed),
+                                   background=background)
+    if background is not None:
+        log.info("initial points: %d random points carved by the background %s",
+                 len(points), tuple(float(c) for c in background))
+    return points, colors, "random"
+
+
+def capped_initial_points(data, n_random: int, cap: int, seed: int, background=None):
+    """:func:`initial_points`, subsampled to at most ``cap`` (``max_gaussians``) points.
+
+    The cap is hard from the first step on, so a larger initial cloud is thinned
+    (a uniform draw, logged) rather than trained and culled later.
+    """
+
+    points, colors, source = initial_points(data, n_random, seed, background)
+    if len(points) > cap:
+        log.info("initial points: keeping a random %d of the %d %s points (max_gaussians)",
+                 cap, len(points), source)
+        points, colors = G.subsample_points(points, colors, cap,
+                                            jax.random.fold_in(jax.random.key(seed), 1))
+    return points, colors, source
+
+
+def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
+                checkpoint_every: int = 1000, log_every: int = 10, random_points: int = 20_000,
+                progress: Callable | None = None) -> dict:
+    """Train on ``data``'s training views, evaluate on its test views, write the outputs.
+
+    Args:
+      data: a :class:`jaxedit.io.Dataset`.
+      out: run directory.
+      config: :class:`jaxedit.train.TrainConfig`.
+      seed, resume, checkpoint_every, log_every, random_points: as
+        :class:`ReconstructConfig` (``resume``: continue from the newest checkpoint).
+      progress: :func:`jaxedit.train.fit`'s progress callback (a bar at the edge); its
+        ``close()``, if it has one, is called when training ends.
+    Returns:
+      the metrics dict (also written to ``out/metrics.json``).
+    """
+
+    from .. import train as T
+    from ..io import save_ply, write_image
+    from ..io.files import atomic_write_text
+
+    t_start = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    train_images, train_cams = data.train()
+    if len(data.test_indices):
+        test_images, test_cams = data.test()
+        test_idx, eval_split = data.test_indices, "test"
+    else:  # no held-out views: report training-view quality, and say so
+        test_images, test_cams = train_images, train_cams
+        test_idx, eval_split = data.train_indices, "train"
+    extent = T.scene_extent(train_cams)
+    ckpt_dir = out / "checkpoints"
+
+    state = None
+    if resume:
+        latest = T.latest_checkpoint(ckpt_dir)
+        if latest is not None:
+            state = T.load_checkpoint(latest)
+            if state.config != config:
+                # The flags win (e.g. a larger --iters extends the run); the result then
+                # differs from an uninterrupted run with either setting.
+                log.warning("resuming %s with changed training settings", latest)
+                state = dataclasses.replace(state, config=config)
+            log.info("resuming from %s (step %d)", latest, int(state.step))
+    points_source = "checkpoint"
+    if state is None:
+        points, colors, points_source = capped_initial_points(
+            data, random_points, config.densify.max_gaussians, seed,
+            background_rgb(config.background))
+        g = G.from_points(points, colors, sh_degree=config.sh_degree)
+        state = T.init_state(g, config, extent, key=jax.random.key(seed), cameras=train_cams)
+    start_step = int(state.step)
+
+    chunk_times: list[tuple[float, int]] = []  # (seconds, steps) of every chunk of steps
+    last = [time.perf_counter()]
+
+    def timer(_state, metrics):
+        now = time.perf_counter()
+        chunk_times.append((now - last[0], len(metrics["loss"])))
+        last[0] = now
+
+    t_train = time.perf_counter()
+    last[0] = t_train
+    bar = progress or None  # False: no progress (the earlier boolean)
+    try:
+        state = T.fit(state, train_images, train_cams, log_path=out / "train_log.jsonl",
+                      log_every=log_every, checkpoint_dir=ckpt_dir,
+                      checkpoint_every=checkpoint_every or None, progress=bar, callback=timer,
+                      desc="reconstruct")
+    finally:
+        if bar is not None and hasattr(bar, "close"):
+            bar.close()
+    train_s = time.perf_counter() - t_train
+    steps = int(state.step) - start_step
+
+    t_eval = time.perf_counter()
+    result = T.evaluate(state.gaussians, test_images, test_cams,
+                        background=composite_background(config.background))
+    eval_s = time.perf_counter() - t_eval
+
+    t_write = time.perf_counter()
+    renders = result.pop("renders")
+    for k, (i, r) in enumerate(zip(test_idx, renders)):
+        name = Path(data.filenames[int(i)]).stem
+        write_image(out / eval_split / f"{k:03d}_{name}.png", r)
+    columns = min(len(renders), 8)
+    if columns:
+        top = np.concatenate(list(np.asarray(test_images[:columns])), axis=1)
+        bottom = np.concatenate(list(renders[:columns]), axis=1)
+        write_image(out / f"{eval_split}_compare.png", np.concatenate([top, bottom], axis=0))
+    save_ply(out / "scene.ply", state.gaussians)
+    corrections = None
+    if config.camera_opt:
+        corrections = write_corrected_dataset(out / "dataset", data, state.cameras)
+    write_s = time.perf_counter() - t_write
+
+    seconds = np.asarray([t for t, _ in chunk_times], np.float64)
+    times = seconds / np.maximum([n for _, n in chunk_times], 1) if chunk_times else seconds
+    median = float(np.median(times)) if len(times) else float("nan")
+    # Chunks far slower per step than the median are the ones that (re)compiled the
+    # train chunk: the first one, and each growth of the capacity or of the buffer.
+    slow = times > 10 * median if len(times) else times.astype(bool)
+    metrics = {
+        "test_psnr": result["psnr"], "test_ssim": result["ssim"], "eval_split": eval_split,
+        "test_psnr_per_view": result["psnr_per_view"],
+        "test_ssim_per_view": result["ssim_per_view"],
+        "num_gaussians": int(state.gaussians.num_alive()), "capacity": state.capacity,
+        "max_gaussians": config.densify.max_gaussians,
+        "iterations": int(state.step), "steps_run": steps, "resumed_from": start_step,
+        "wall_time_s": round(time.perf_counter() - t_start, 3), "train_time_s": round(train_s, 3),
+        "steps_per_s": steps / train_s if train_s > 0 else 0.0,
+        "steady_step_ms": 1e3 * median,
+        "steady_steps_per_s": 1.0 / median if median > 0 else 0.0,
+        "compile_chunks": int(np.sum(slow)),
+        "compile_time_s": round(float(np.sum(seconds[slow])), 3),
+        "eval_time_s": round(eval_s, 3), "write_time_s": round(write_s, 3),
+        "max_intersections": state.max_intersections, "scene_extent": extent,
+        "initial_points": points_source, "train_views": int(len(train_images)),
+        "test_views": int(len(test_idx)), "image_size": [int(train_images.shape[2]),
+                                                         int(train_images.shape[1])],
+        "config": config.to_dict(),
+    }
+    if corrections is not None:
+        metrics["camera_corrections"] = corrections
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    return metrics
+
+
+def write_corrected_dataset(folder: Path, data, corrections) -> dict:
+    """Write ``data`` as trained, with its training cameras' learned corrections, to
+    ``folder`` (a nerfstudio dataset, atomically); returns the corrections' summary.
+
+    The test cameras keep their poses: they were never trained on.
+    """
+
+    from .. import poses
+    from ..io import save_nerfstudio
+
+    train = np.asarray(data.train_indices)
+    fixed = poses.corrected_cameras(data.cameras[train], corrections)
+    w2c = np.array(data.cameras.world_to_camera, np.float32)
+    w2c[train] = np.asarray(fixed.world_to_camera)
+    cameras = dataclasses.replace(data.cameras, world_to_camera=w2c)
+    save_nerfstudio(folder, data.images, cameras, filenames=data.filenames,
+                    train_indices=train, test_indices=np.asarray(data.test_indices),
+                    points=data.points, point_colors=data.point_colors)
+    sizes = poses.correction_sizes(corrections)
+    rot, trans = sizes["rotation_deg"], sizes["translation"]
+    return {"median_rotation_deg": float(np.median(rot)), "max_rotation_deg": float(rot.max()),
+            "median_translation": float(np.median(trans)), "max_translation": float(trans.max()),
+            "dataset": str(folder)}
+
+
+__all__ = ["NORMALIZE", "ReconstructConfig", "capped_initial_points", "check_image_size",
+           "composite_background", "initial_points", "load_dataset", "reconstruct", "run",
+           "write_corrected_dataset"]

@@ -1,0 +1,160 @@
+"""Flags generated from the config trees (experiments/flags.py): defaults, help, errors.
+
+The oracle is the dataclasses themselves: every generated flag's parsed default must be
+its field's default, its help the field's docstring entry, and a library error that
+names the field must reach the user as the flag.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+
+import pytest
+
+from experiments import cli, flags
+from jaxedit import DataError
+
+
+def _generated():
+    """(command, FlagSet, Flag) of every command with generated flags."""
+    out = []
+    for name in cli.COMMANDS:
+        module = cli._module(name)
+        for flag_set in getattr(module, "FLAGS", ()):
+            out += [(name, flag_set, f) for f in flag_set.flags]
+    return out
+
+
+GENERATED = _generated()
+
+
+def _parse(command: str, *argv: str) -> argparse.Namespace:
+    required = ["--data", "unchecked"] if command == "reconstruct" else []
+    return cli.parse([command, *required, *argv])
+
+
+def test_the_commands_with_settings_generate_their_flags():
+    commands = {c for c, _, _ in GENERATED}
+    assert {"reconstruct", "edit"} <= commands
+
+
+@pytest.mark.parametrize("command, flag_set, flag", GENERATED,
+                         ids=[f"{c}{f.flag}" for c, _, f in GENERATED])
+def test_every_cli_default_is_its_fields_default(command, flag_set, flag):
+    args = _parse(command)
+    tree_default = functools.reduce(getattr, flag.field.split("."), flag_set.root())
+    assert getattr(args, flag.dest) == tree_default
+    assert flag_set.default(flag) == tree_default
+
+
+@pytest.mark.parametrize("command, flag_set, flag", GENERATED,
+                         ids=[f"{c}{f.flag}" for c, _, f in GENERATED])
+def test_help_is_the_fields_docstring(command, flag_set, flag):
+    cls, field, _ = flag_set.owner(flag)
+    sub = cli.build_parser()._subparsers._group_actions[0].choices[command]
+    action = next(a for a in sub._actions if flag.flag in a.option_strings)
+    doc = flags.attribute_docs(cls)[field.name]
+    assert action.help.startswith(doc.replace("%", "%%"))
+
+
+@pytest.mark.parametrize("command", sorted({c for c, _, _ in GENERATED}))
+def test_no_flags_build_the_default_tree(command):
+    module = cli._module(command)
+    args = _parse(command)
+    built = module.run_config(args)
+    assert built == module.FLAGS[0].root()
+
+
+def test_reconstruct_tree_from_flags():
+    from experiments import reconstruct
+    from jaxedit.train import TrainConfig
+
+    args = _parse("reconstruct", "--iters", "7", "--densify-until", "5", "--camera-lr", "1e-4",
+                  "--background", "black", "--log-every", "3")
+    config = reconstruct.run_config(args)
+    assert (config.train.iterations, config.train.densify.stop_at, config.log_every) == (7, 5, 3)
+    assert config.train.background == "black"
+    # --camera-lr keeps TrainConfig's decay ratio (1e-3 -> 1e-5)
+    assert config.train.lr_camera_final == pytest.approx(1e-4 * TrainConfig.lr_camera_final
+                                                         / TrainConfig.lr_camera)
+    rest = dataclasses.replace(config.train, iterations=TrainConfig.iterations,
+                               densify=TrainConfig().densify, background="white",
+                               lr_camera=TrainConfig.lr_camera,
+                               lr_camera_final=TrainConfig.lr_camera_final)
+    assert rest == TrainConfig()
+
+
+def test_edit_mode_defaults_yield_only_to_given_flags(tmp_path):
+    from experiments import edit
+    from jaxedit.edit.plan import ProEditConfig
+
+    in2n = edit.run_config(_parse("edit", "--mode", "in2n"))
+    assert in2n.plan == ProEditConfig.for_mode("in2n")  # IN2N's warm-up 0, not the flag's 30
+    given = edit.run_config(_parse("edit", "--mode", "in2n", "--warmup", "30", "--async"))
+    assert given.plan == ProEditConfig.for_mode("in2n", warmup=30, asynchronous=True)
+    # a config file's values count as given too
+    (tmp_path / "c.json").write_text('{"warmup": 30, "asynchronous": true}')
+    from_file = edit.run_config(_parse("edit", "--mode", "in2n", "--config",
+                                       str(tmp_path / "c.json")))
+    assert from_file.plan.warmup == 30 and from_file.plan.asynchronous
+    capped = edit.run_config(_parse("edit", "--max-gaussians", "5000"))
+    assert capped.train.densify.max_gaussians == 5000
+
+
+@pytest.mark.parametrize("command, field, flag", [
+    ("edit", "max_seconds", "--max-subtask-seconds"), ("edit", "max_gaussians", "--max-gaussians"),
+    ("edit", "threshold", "--threshold"), ("edit", "run_dir", "--out"),
+    ("edit", "select", "--select"), ("reconstruct", "iterations", "--iters"),
+    ("reconstruct", "stop_at", "--densify-until"), ("reconstruct", "lr_camera", "--camera-lr"),
+    ("reconstruct", "sh_degree", "--sh-degree"),
+])
+def test_errors_that_name_fields_print_flags(command, field, flag):
+    args = _parse(command)
+    line = str(cli.named_by_flag(DataError(field, "is wrong"), args))
+    assert line == f"{flag}: is wrong"
+    # a path or an unknown name is left alone
+    assert str(cli.named_by_flag(DataError("/some/file.ply", "x"), args)) == "/some/file.ply: x"
+
+
+def test_errors_about_a_given_path_say_which_flag(tmp_path):
+    args = _parse("edit", "--ip2p-weights", str(tmp_path / "nowhere"))
+    error = DataError(tmp_path / "nowhere", "InstructPix2Pix folder not found")
+    assert str(cli.named_by_flag(error, args)).endswith("not found (given as --ip2p-weights)")
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["edit", "--max-subtask-seconds", "-1"], "--max-subtask-seconds: must be > 0"),
+    (["edit", "--warmup", "-1"], "--warmup: must be >= 0"),
+    (["edit", "--max-gaussians", "0"], "--max-gaussians: must be >= 1"),
+    (["reconstruct", "--cull-alpha", "1.5"], "--cull-alpha: must be in (0, 1)"),
+    (["reconstruct", "--sh-degree", "4"], "--sh-degree: must be in 0..3"),
+    (["reconstruct", "--iters", "0"], "--iters: must be >= 1"),
+])
+def test_range_errors_name_the_flag(argv, needle):
+    command = cli._module(argv[0])
+    args = _parse(*argv)
+    with pytest.raises(DataError) as e:
+        command.run_config(args)
+    assert str(cli.named_by_flag(e.value, args)).startswith(needle)
+
+
+def test_attribute_docs_reads_grouped_and_continued_entries():
+    @dataclasses.dataclass(frozen=True)
+    class Knobs:
+        """Knobs.
+
+        Attributes:
+          a, b: shared text
+            continued here.
+          c: ``c``'s text, see :func:`jaxedit.train.fit`.
+        """
+
+        a: int = 1
+        b: int = 2
+        c: float = 0.5
+
+    docs = flags.attribute_docs(Knobs)
+    assert docs == {"a": "shared text continued here.", "b": "shared text continued here.",
+                    "c": "c's text, see jaxedit.train.fit."}
