@@ -53,13 +53,15 @@ PROMPTS = ["Turn him into a clown!", "the  THE\tthe thethe", "what's up? it'll r
            " ".join(["make it look like a painting by van gogh"] * 12)]
 
 
-def perturb(model: "torch.nn.Module", seed: int, scale: float = 0.3) -> "torch.nn.Module":
-    """Add noise to every parameter (norm weights leave 1, biases leave 0)."""
+def perturb(model: "torch.nn.Module", seed: int, scale: float = 0.3,
+            floor: float = 0.02) -> "torch.nn.Module":
+    """Add N(0, (scale std(p) + floor)^2) noise to every parameter p (norm weights leave 1,
+    biases leave 0)."""
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in model.parameters():
             std = float(p.std()) if p.numel() > 1 else 0.0
-            p.add_(torch.randn(p.shape, generator=g) * (scale * std + 0.02))
+            p.add_(torch.randn(p.shape, generator=g) * (scale * std + floor))
     return model.eval()
 
 
