@@ -33,7 +33,8 @@ from safetensors.numpy import load_file, save_file  # noqa: E402
 
 from jaxedit.errors import DataError  # noqa: E402
 from jaxedit.models import (AutoencoderKL, CLIPTextEncoder, CLIPTokenizer, UNet2DCondition,  # noqa: E402
-                            cast, load_ip2p, load_module)
+                            cast, load_ip2p, load_module, set_query_chunk)
+from jaxedit.models.layers import Attention, attention  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -274,6 +275,22 @@ def test_cast_bf16_runs_and_tracks_fp32(models, unet_fn):
     assert low.dtype == jnp.bfloat16
     err = np.abs(np.asarray(low, np.float32) - full).max()
     assert err < 0.05 * np.abs(full).max()
+
+
+def test_query_chunks_change_only_memory(models):
+    """Attention over query chunks (with a remainder) equals attention over all queries, and
+    set_query_chunk reaches every attention of the networks."""
+    k1, k2, k3 = jax.random.split(jax.random.key(0), 3)
+    q = jax.random.normal(k1, (2, 23, 3, 8))
+    k, v = jax.random.normal(k2, (2, 11, 3, 8)), jax.random.normal(k3, (2, 11, 3, 8))
+    np.testing.assert_allclose(attention(q, k, v, query_chunk=5), attention(q, k, v),
+                               rtol=1e-6, atol=1e-6)
+    chunked = set_query_chunk(models, 64)
+    is_attention = lambda x: isinstance(x, Attention)  # noqa: E731
+    found = [a.query_chunk for a in jax.tree_util.tree_leaves(chunked, is_leaf=is_attention)
+             if is_attention(a)]
+    # UNet: (self, cross) x (2 down + 1 mid + 3 up transformers); VAE: one per mid block.
+    assert len(found) == 2 * (2 + 1 + 3) + 2 and set(found) == {64}
 
 
 def test_models_jit_as_arguments(models):

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from .layers import Embedding, LayerNorm, Linear, activation
+from .layers import Embedding, LayerNorm, Linear, activation, attention
 
 Array = jax.Array
 
@@ -43,8 +43,8 @@ class CLIPAttention(eqx.Module):
     def __call__(self, x: Array) -> Array:
         """[B, L, D] -> [B, L, D]"""
         split = lambda t: t.reshape(*t.shape[:2], self.heads, -1)  # noqa: E731
-        out = jax.nn.dot_product_attention(split(self.q_proj(x)), split(self.k_proj(x)),
-                                           split(self.v_proj(x)), is_causal=True)
+        out = attention(split(self.q_proj(x)), split(self.k_proj(x)), split(self.v_proj(x)),
+                        causal=True)
         return self.out_proj(out.reshape(x.shape[:2] + (-1,)))
 
 
