@@ -260,12 +260,17 @@ def test_schedule_matches_diffusers(models, tiny):
     np.testing.assert_allclose(s.alphas_cumprod, ref.alphas_cumprod.numpy(), rtol=2e-6)
 
 
-def test_cast_bf16_runs_and_tracks_fp32(models, unet_fn):
+def test_cast_bf16_runs_and_tracks_fp32(tiny, models, unet_fn):
     """bf16 weights compute in bf16 (norm statistics and softmax in fp32): same answer to bf16
-    accuracy."""
+    accuracy. Loading in bf16 gives the cast networks."""
     half = cast(models, jnp.bfloat16)
     assert half.unet.conv_in.weight.dtype == jnp.bfloat16
     assert half.tokenizer is models.tokenizer
+    loaded = load_ip2p(tiny, dtype=jnp.bfloat16)
+    assert jax.tree_util.tree_structure(loaded) == jax.tree_util.tree_structure(half)
+    for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(half)):
+        assert a.dtype == b.dtype == jnp.bfloat16
+        np.testing.assert_array_equal(np.asarray(a, np.float32), np.asarray(b, np.float32))
     rng = np.random.default_rng(3)
     sample = rng.standard_normal((2, 8, 8, 8)).astype(np.float32)
     context = rng.standard_normal((2, 7, 24)).astype(np.float32)
@@ -317,7 +322,8 @@ def _edit_weights(path: Path, change) -> None:
 def test_missing_tensor_is_named(tiny, tmp_path):
     folder, path = _copy_component(tiny, tmp_path, "unet")
     _edit_weights(path, lambda t: t.pop("down_blocks.0.attentions.1.proj_in.weight"))
-    with pytest.raises(DataError, match=r"missing tensor 'down_blocks\.0\.attentions\.1\.proj_in\.weight'") as e:
+    with pytest.raises(DataError,
+                       match=r"missing tensor 'down_blocks\.0\.attentions\.1\.proj_in\.weight'") as e:
         load_module(folder, UNet2DCondition.from_config)
     assert e.value.where == str(path) and "\n" not in str(e.value)
 
@@ -343,6 +349,9 @@ def test_wrong_shape_is_named(tiny, tmp_path):
         load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
 
 
+LEGACY_NAMES = (("to_q", "query"), ("to_k", "key"), ("to_v", "value"), ("to_out.0", "proj_attn"))
+
+
 def test_legacy_vae_attention_names_load(tiny, tmp_path, models):
     """VAE checkpoints from before diffusers 0.14 name the mid-block attention query/key/value/
     proj_attn, some with 1x1-conv shaped weights; they load to the same module."""
@@ -350,10 +359,11 @@ def test_legacy_vae_attention_names_load(tiny, tmp_path, models):
 
     def rename(t):
         for name in [k for k in t if ".attentions.0." in k]:
-            for new, old in (("to_q", "query"), ("to_k", "key"), ("to_v", "value"), ("to_out.0", "proj_attn")):
+            for new, old in LEGACY_NAMES:
                 if f".{new}." in name:
                     value = t.pop(name)
-                    t[name.replace(f".{new}.", f".{old}.")] = value[..., None, None] if value.ndim == 2 else value
+                    as_conv = value[..., None, None] if value.ndim == 2 else value
+                    t[name.replace(f".{new}.", f".{old}.")] = as_conv
     _edit_weights(path, rename)
     vae = load_module(folder, AutoencoderKL.from_config)
     for a, b in zip(jax.tree_util.tree_leaves(vae), jax.tree_util.tree_leaves(models.vae)):

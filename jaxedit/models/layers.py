@@ -369,7 +369,8 @@ class ResnetBlock2D(eqx.Module):
         return ResnetBlock2D(
             GroupNorm.init(groups, c_in, eps, dtype), Conv2d.init(k1, c_in, c_out, 3, padding=1, dtype=dtype),
             None if temb is None else Linear.init(k2, temb, c_out, dtype=dtype),
-            GroupNorm.init(groups, c_out, eps, dtype), Conv2d.init(k3, c_out, c_out, 3, padding=1, dtype=dtype),
+            GroupNorm.init(groups, c_out, eps, dtype),
+            Conv2d.init(k3, c_out, c_out, 3, padding=1, dtype=dtype),
             None if c_in == c_out else Conv2d.init(k4, c_in, c_out, 1, dtype=dtype), output_scale)
 
     def __call__(self, x: Array, temb: Array | None = None) -> Array:

@@ -273,21 +273,22 @@ class IP2PModels(eqx.Module):
 def load_ip2p(folder: str | os.PathLike, *, dtype=jnp.float32) -> IP2PModels:
     """An InstructPix2Pix (or any SD 1.x) diffusers folder -> :class:`IP2PModels` in ``dtype``.
 
-    The networks load in float32 and are cast by :func:`cast` when ``dtype`` differs."""
+    Each tensor is converted to ``dtype`` as it is read (as :func:`cast` would), so a bf16
+    load never holds the float32 networks."""
     from .unet import UNet2DCondition
     from .vae import AutoencoderKL
 
     root = check_layout(folder)
     models = IP2PModels(
-        unet=load_module(root / "unet", UNet2DCondition.from_config),
-        vae=load_module(root / "vae", AutoencoderKL.from_config),
+        unet=load_module(root / "unet", UNet2DCondition.from_config, dtype=dtype),
+        vae=load_module(root / "vae", AutoencoderKL.from_config, dtype=dtype),
         text_encoder=load_module(root / "text_encoder", CLIPTextEncoder.from_config,
-                                 prefix=CLIPTextEncoder.CHECKPOINT_PREFIX),
+                                 prefix=CLIPTextEncoder.CHECKPOINT_PREFIX, dtype=dtype),
         tokenizer=CLIPTokenizer.from_folder(root / "tokenizer"),
         scheduler=DDPMSchedule.from_config(
             read_config(root / "scheduler" / "scheduler_config.json"),
             root / "scheduler" / "scheduler_config.json"))
-    return models if jnp.dtype(dtype) == jnp.float32 else cast(models, dtype)
+    return models
 
 
 def cast(models, dtype):
