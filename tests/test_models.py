@@ -370,15 +370,46 @@ def test_legacy_vae_attention_names_load(tiny, tmp_path, models):
         np.testing.assert_array_equal(a, b)
 
 
-def test_torch_pickle_is_refused_with_a_conversion_hint(tiny, tmp_path):
+def test_torch_bin_checkpoint_loads_without_running_code(tiny, tmp_path, models):
+    """A legacy pytorch_model.bin loads to the same module; a pickle calling anything but
+    tensor rebuilding is refused, naming what it tried."""
     folder, path = _copy_component(tiny, tmp_path, "text_encoder")
-    path.rename(folder / "pytorch_model.bin")
-    with pytest.raises(DataError, match=r"pytorch_model\.bin: is a torch pickle.*convert it.*"
-                                        r"'model\.safetensors'"):
+    torch.save({k: torch.from_numpy(v) for k, v in load_file(str(path)).items()},
+               folder / "pytorch_model.bin")
+    path.unlink()
+    enc = load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
+    for a, b in zip(jax.tree_util.tree_leaves(enc), jax.tree_util.tree_leaves(models.text_encoder)):
+        np.testing.assert_array_equal(a, b)
+    torch.save({"weight": torch.zeros(2), "payload": Exploit()}, folder / "pytorch_model.bin")
+    with pytest.raises(DataError, match=r"pytorch_model\.bin: refused to unpickle global "
+                                        r"(__builtin__|builtins)\.print"):
         load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
     (folder / "pytorch_model.bin").unlink()
     with pytest.raises(DataError, match="no weights file"):
         load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
+
+
+def test_torch_checkpoint_reader_rebuilds_views_and_dtypes(tmp_path):
+    """Transposed and offset views of a shared storage, fp16, bf16 (widened to fp32), ints,
+    empty tensors: each as torch holds it."""
+    from jaxedit.io.weights import load_torch_checkpoint
+    a = torch.randn(3, 4)
+    state = {"a": a, "t": torch.randn(4, 3).t(), "view": a[1:, 1:], "h": torch.randn(5).half(),
+             "bf": torch.randn(2).bfloat16(), "i": torch.arange(3), "empty": torch.zeros(0, 3)}
+    torch.save(state, tmp_path / "x.bin")
+    got = load_torch_checkpoint(tmp_path / "x.bin")
+    assert sorted(got) == sorted(state)
+    for name, t in state.items():
+        want = t.float().numpy() if t.dtype == torch.bfloat16 else t.numpy()
+        assert got[name].dtype == want.dtype, name
+        np.testing.assert_array_equal(got[name], want)
+
+
+class Exploit:
+    """Unpickling this would call print: stands for any code a pickle can run."""
+
+    def __reduce__(self):
+        return (print, ("a pickle ran code",))
 
 
 def test_fp16_variant_loads(tiny, tmp_path, models):
