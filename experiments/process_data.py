@@ -44,6 +44,15 @@ def add_arguments(p) -> None:
     p.add_argument("--min-registered", type=float, default=0.5,
                    help="fail when SfM registers fewer than this fraction of the images")
     p.add_argument("--threads", type=int, default=-1, help="COLMAP threads (-1: all cores)")
+    known = p.add_mutually_exclusive_group()
+    known.add_argument("--focal-px", type=float, default=None,
+                       help="known focal length in pixels (principal point at the centre); "
+                            "held fixed unless --refine-intrinsics")
+    known.add_argument("--camera-params", default=None, metavar="FX,FY,CX,CY[,K1,K2,P1,P2]",
+                       help="known intrinsics in pixels (nerfstudio's fl_x,fl_y,cx,cy,k1,...), "
+                            "in --camera-model's terms; held fixed unless --refine-intrinsics")
+    p.add_argument("--refine-intrinsics", action="store_true",
+                   help="refine --focal-px / --camera-params in bundle adjustment (a start only)")
 
 
 def stage_reporter(root):
@@ -74,7 +83,7 @@ def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.capture import frames
     from jaxedit.capture.dataset import check_out_dir, process_capture
-    from jaxedit.capture.sfm import SfmOptions, quiet_colmap
+    from jaxedit.capture.sfm import SfmOptions, parse_camera_params, quiet_colmap
 
     from experiments.progress import Progress, configure
 
@@ -91,7 +100,10 @@ def run(args) -> dict:
         matching = "sequential" if args.video is not None else "exhaustive"
     options = SfmOptions(camera_model=args.camera_model, matching=matching, overlap=args.overlap,
                          max_features=args.max_features, max_image_size=args.max_image_size,
-                         num_threads=args.threads, seed=args.seed).check()
+                         num_threads=args.threads, seed=args.seed, focal_px=args.focal_px,
+                         camera_params=(None if args.camera_params is None
+                                        else parse_camera_params(args.camera_params)),
+                         refine_intrinsics=args.refine_intrinsics).check()
     check_out_dir(args.out)  # before decoding anything
     extra = {}
     if args.images is not None:

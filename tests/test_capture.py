@@ -234,3 +234,79 @@ def test_bad_inputs_fail_with_one_line_and_write_nothing(tmp_path, capsys):
     _nothing_written(tmp_path, out)
     _one_line_error(_main(capsys, "process-data", "--images", tmp_path / "none", "--out", out),
                     "none", "does not exist")
+
+
+# ----------------------------------------------------------------- known intrinsics
+
+
+@pytest.fixture(scope="module")
+def person_photos(tmp_path_factory):
+    """12 plain photos of the person scene over its 160-degree arc: (folder, true cameras),
+    and the same photos as JPEGs whose EXIF carries the 35 mm equivalent focal length."""
+    root = tmp_path_factory.mktemp("person")
+    paths, truth = scenes.photo_capture("person", root / "png", views=12)
+    diagonal = float(np.hypot(truth.width, truth.height))
+    f35 = int(round(float(np.asarray(truth.fx)[0]) * np.hypot(36.0, 24.0) / diagonal))
+    scenes.photo_capture("person", root / "jpg", views=12, suffix=".jpg",
+                         exif={"Exif:FocalLengthIn35mmFilm": f35})
+    return root, truth
+
+
+@pytest.mark.parametrize("how", ["focal-px", "camera-params", "exif"])
+def test_known_intrinsics_are_held_and_photo_names_kept(person_photos, tmp_path, capsys, how):
+    root, truth = person_photos
+    f = float(np.asarray(truth.fx)[0])
+    out = tmp_path / "data"
+    flags = {"focal-px": ["--focal-px", f],
+             "camera-params": ["--camera-params", f"{f},{f},128,128", "--camera-model", "PINHOLE"],
+             "exif": []}[how]
+    photos = root / ("jpg" if how == "exif" else "png")
+    proc = _main(capsys, "process-data", "--images", photos, "--out", out, *FAST, *flags, "--quiet")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout)
+    meta = json.loads((out / "transforms.json").read_text())
+    if how == "exif":
+        # COLMAP reads the 35 mm equivalent against the diagonal and refines from there.
+        assert summary["focal_source"] == "exif"
+        assert abs(meta["fl_x"] / f - 1.0) < 0.05, meta["fl_x"]
+    else:
+        assert summary["focal_source"] == "given"
+        assert meta["fl_x"] == meta["fl_y"] == f and (meta["cx"], meta["cy"]) == (128.0, 128.0)
+        assert meta.get("k1", 0.0) == 0.0
+    # Every frame names its photo: frame_00001 is the first photo in sorted order.
+    data = load_nerfstudio(out, split_every=0)
+    assert summary["num_registered"] == len(data.filenames) >= 10
+    for frame in meta["frames"]:
+        k = int(Path(frame["file_path"]).stem.split("_")[1]) - 1
+        assert frame["original_file_path"] == f"IMG_{k:04d}.{photos.name}"
+    index = np.array([int(Path(f).stem.split("_")[1]) - 1 for f in data.filenames])
+    assert pose_errors(data.cameras, truth[index])["median_relative_rotation_deg"] < 2.0
+
+
+@pytest.mark.parametrize("flags, needle", [
+    (["--focal-px", "0"], "--focal-px"), (["--focal-px", "-300"], "--focal-px"),
+    (["--focal-px", "nan"], "--focal-px"), (["--focal-px", "inf"], "--focal-px"),
+    (["--camera-params", "300,300,64"], "--camera-params"),
+    (["--camera-params", "300,300,64,64,0,0,0"], "--camera-params"),
+    (["--camera-params", "300,300,64,64,0,0,0,0,0"], "--camera-params"),
+    (["--camera-params", "300,x,64,64"], "--camera-params"),
+    (["--camera-params", "0,300,64,64"], "--camera-params"),
+    (["--camera-params", "300,300,inf,64"], "--camera-params"),
+    (["--camera-params", "300,310,64,64"], "--camera-params"),  # SIMPLE_RADIAL: one focal
+    (["--camera-params", "300,300,64,64,0.1,0.2"], "--camera-params"),  # SIMPLE_RADIAL: no k2
+    (["--refine-intrinsics"], "--refine-intrinsics"),
+    (["--focal-px", "300", "--camera-params", "300,300,64,64"], "--camera-params"),
+])
+def test_bad_intrinsics_exit_2_naming_the_flag(tmp_path, capsys, flags, needle):
+    photos = tmp_path / "photos"
+    for k in range(3):
+        write_image(photos / f"p{k}.png", np.full((32, 32, 3), 0.5))
+    out = tmp_path / "data"
+    capsys.readouterr()
+    try:
+        code = cli.main(["process-data", "--images", str(photos), "--out", str(out), *flags])
+    except SystemExit as e:  # argparse's own errors (two exclusive flags)
+        code = e.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0], err
+    _nothing_written(tmp_path, out)

@@ -145,7 +145,7 @@ def _c_stderr_held_back():
                     os.write(fd, text)
 
 
-def write_image(path: str | os.PathLike, image) -> Path:
+def write_image(path: str | os.PathLike, image, *, metadata: dict | None = None) -> Path:
     """Write an image atomically; the format comes from the suffix.
 
     Args:
@@ -153,6 +153,7 @@ def write_image(path: str | os.PathLike, image) -> Path:
         ``.exr`` (float32, values kept as they are).
       image: float [H, W, 3], [H, W, 4] (straight alpha) or [H, W]; values in
         [0, 1] (clipped for the integer formats, rounded to nearest).
+      metadata: OpenImageIO attributes to store, e.g. ``{"Exif:FocalLengthIn35mmFilm": 50}``.
     Returns the path written.
     """
     path = Path(path)
@@ -195,6 +196,8 @@ def write_image(path: str | os.PathLike, image) -> Path:
         spec.attribute("oiio:UnassociatedAlpha", 1)
     if suffix in (".jpg", ".jpeg"):
         spec.attribute("Compression", "jpeg:95")
+    for key, value in (metadata or {}).items():
+        spec.attribute(key, value)
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
