@@ -144,16 +144,15 @@ def person_captures(args) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.keep) if args.keep else Path(tmp)
         for capture, picked in captures.items():
+            png, truth = scenes.photo_capture("person", root / f"{capture}_png", **picked)
+            true_f = float(np.asarray(truth.fx)[0])
             for setting in settings:
-                suffix = ".jpg" if setting == "exif" else ".png"
-                photos, truth = scenes.photo_capture("person", root / f"{capture}_{setting}_photos",
-                                                     suffix=suffix, exif=None, **picked)
-                true_f = float(np.asarray(truth.fx)[0])
+                photos = png
                 if setting == "exif":  # 35 mm equivalent by the diagonal, as COLMAP reads it
-                    diagonal = float(np.hypot(truth.width, truth.height))
-                    f35 = int(round(true_f * np.hypot(36.0, 24.0) / diagonal))
-                    photos, truth = scenes.photo_capture(
-                        "person", root / f"{capture}_{setting}_photos", suffix=suffix,
+                    f35 = int(round(true_f * np.hypot(36.0, 24.0)
+                                    / float(np.hypot(truth.width, truth.height))))
+                    photos, _ = scenes.photo_capture(
+                        "person", root / f"{capture}_jpg", suffix=".jpg",
                         exif={"Exif:FocalLengthIn35mmFilm": f35}, **picked)
                 known = {"focal_px": dict(focal_px=true_f),
                          "focal_prior": dict(focal_px=0.9 * true_f, refine_intrinsics=True)}

@@ -199,6 +199,8 @@ def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
         best = min(abs(s["ratio"] - r) for s in subtasks)
         chosen = [s for s in subtasks if abs(s["ratio"] - r) == best][-1]
     src = run_dir / chosen["snapshot"]
+    if not src.is_file():
+        raise DataError(src, f"snapshot of subtask {chosen['index']} is missing (listed in {path})")
     dst = run_dir / "selected.ply"
     with atomic_path(dst) as tmp:
         shutil.copyfile(src, tmp)
