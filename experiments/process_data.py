@@ -2,6 +2,7 @@
 
     python -m experiments process-data --images DIR --out DATA [--matching exhaustive]
     python -m experiments process-data --video FILE --out DATA [--num-frames 300]
+    python -m experiments process-data --images DIR --out DATA --focal-px 1200 [--refine-intrinsics]
 
 The analogue of nerfstudio's ``ns-process-data images|video``: SIFT extraction,
 matching (exhaustive for photos, sequential for video frames), incremental
@@ -9,7 +10,10 @@ mapping, the largest model kept; writes ``DATA/transforms.json`` (OpenGL
 camera-to-world, OPENCV or PINHOLE intrinsics, ``applied_transform``),
 ``images/``, ``images_2/``, ``images_4/``, ``sparse_pc.ply`` and ``colmap/``, all
 at once when everything succeeded. A video is cut into ``--num-frames`` windows
-and the sharpest frame of each is kept. Then::
+and the sharpest frame of each is kept. Known intrinsics (``--focal-px`` or
+``--camera-params``) are held fixed in bundle adjustment, or only start it with
+``--refine-intrinsics``; photos with an EXIF focal length start COLMAP from it. Each
+frame records its photo's name as ``original_file_path``. Then::
 
     python -m experiments reconstruct --data DATA --out RUN --normalize nerfstudio
 

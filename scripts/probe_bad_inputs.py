@@ -16,13 +16,12 @@ and the counts; a case that runs longer than ``--timeout`` seconds counts as a f
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import os
 import signal
 import sys
 import tempfile
+import time
 import traceback
 from pathlib import Path
 
@@ -30,10 +29,6 @@ import numpy as np
 
 
 PROMPT = "turn him into a bronze statue"  # one the simulated editor knows
-
-
-class TimedOut(BaseException):
-    pass
 
 
 def _inputs(root: Path) -> dict:
@@ -82,8 +77,15 @@ def _inputs(root: Path) -> dict:
         {"index": 0, "name": "r0", "ratio": 0.5, "snapshot": "subtasks/00/scene.ply"},
         {"index": 1, "name": "r1", "ratio": 1.0, "snapshot": "subtasks/01/scene.ply"}]}))
     (root / "afile").write_text("x\n")
-    return dict(data=data, scene=scene, photos=photos, badname=badname, badjson=badjson,
-                runs=runs, edit_run=edit_run, afile=root / "afile")
+    return _paths(root)
+
+
+def _paths(root: Path) -> dict:
+    """Where :func:`_inputs` put everything."""
+    return dict(data=root / "data", scene=root / "scene.ply", photos=root / "photos",
+                badname=root / "photos_badname", badjson=root / "data_badname",
+                runs={k: root / f"run_{k}" for k in ("empty", "garbage", "text")},
+                edit_run=root / "edit_run", afile=root / "afile")
 
 
 def _base(command: str, inp: dict, out: str) -> list[str]:
@@ -201,49 +203,50 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
     return found
 
 
-@contextlib.contextmanager
-def _stderr_captured():
-    """Capture fd 2 (C libraries write there) and sys.stderr into one buffer."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        box = io.StringIO()
-        old = sys.stderr
-        sys.stderr = box
-        result = {}
-        try:
-            yield result
-        finally:
-            sys.stderr.flush()
-            sys.stderr = old
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            result["err"] = tmp.read().decode("utf-8", "replace") + box.getvalue()
-
-
 def run_case(argv: list[str], timeout: float) -> tuple[int | str, str]:
-    from experiments import cli
+    """(exit status, "traceback" or "timeout"; stderr) of ``cli.main(argv)`` in a forked child.
 
-    def alarm(*_):
-        raise TimedOut()
+    A fork starts at once (everything is imported) and can be killed when a bad input is
+    not refused and the command starts its real work.
+    """
+    with tempfile.TemporaryFile() as err:
+        pid = os.fork()
+        if pid == 0:  # the child: stderr to the file, stdout to nowhere
+            os.dup2(err.fileno(), 2)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+            sys.stderr = os.fdopen(2, "w", buffering=1)
+            sys.stdout = os.fdopen(1, "w")
+            from experiments import cli
 
-    signal.signal(signal.SIGALRM, alarm)
-    signal.alarm(int(timeout))
-    with _stderr_captured() as captured, contextlib.redirect_stdout(io.StringIO()):
-        try:
-            code = cli.main(argv)
-        except SystemExit as e:
-            code = e.code
-        except TimedOut:
-            code = "timeout"
-        except BaseException:  # noqa: BLE001 - a traceback is what we are looking for
-            code = "traceback"
-            traceback.print_exc()
-        finally:
-            signal.alarm(0)
-    return code, captured["err"]
+            try:
+                code = cli.main(argv)
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else 1
+            except BaseException:  # noqa: BLE001 - a traceback is what we are looking for
+                traceback.print_exc()
+                code = 99
+            sys.stderr.flush()
+            os._exit(code if isinstance(code, int) else 1)
+        deadline = time.monotonic() + timeout
+        status = None
+        while time.monotonic() < deadline:
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done:
+                break
+            time.sleep(0.05)
+        else:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            status = None
+        err.seek(0)
+        text = err.read().decode("utf-8", "replace")
+    if status is None:
+        return "timeout", text
+    if os.WIFSIGNALED(status):
+        return f"signal {os.WTERMSIG(status)}", text
+    code = os.WEXITSTATUS(status)
+    return ("traceback" if code == 99 else code), text
 
 
 def main(argv=None) -> int:
@@ -255,7 +258,12 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         os.chdir(root)  # relative paths in the cases are relative to here
-        inp = _inputs(root)
+        pid = os.fork()  # the inputs use JAX: build them in a child, keep this one fork-safe
+        if pid == 0:
+            _inputs(root)
+            os._exit(0)
+        assert os.waitpid(pid, 0)[1] == 0, "building the inputs failed"
+        inp = _paths(root)
         todo = [c for c in cases(inp, root) if args.only is None or args.only in c[0]]
         if args.list:
             print("\n".join(name for name, *_ in todo))

@@ -28,14 +28,13 @@ pycolmap is imported only here, inside the functions: it is an optional extra
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import time
 from pathlib import Path
 from typing import Callable
 
 from ..errors import DataError
-
-import math
 
 MATCHING = ("exhaustive", "sequential")
 CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL")
@@ -222,9 +221,9 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
     start = time.perf_counter()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options.camera_model
-    known = options.known_params(*(image_size or (0, 0)))
     if options.focal_px is not None and image_size is None:
         raise ValueError("run_sfm: focal_px needs image_size")
+    known = options.known_params(*(image_size or (0, 0)))
     if known is not None:
         reader.camera_params = ",".join(repr(float(v)) for v in known)
     extraction = pycolmap.FeatureExtractionOptions()
