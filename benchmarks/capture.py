@@ -116,9 +116,11 @@ length held fixed: ``--focal-px``), "focal_prior" (the focal length 10% off, ref
 ``--focal-px F --refine-intrinsics``). Rotation errors: "aligned" after the Umeyama
 similarity of the camera centres (unreliable on a narrow arc: nearly collinear centres
 leave the rotation about their line free), "relative" the median error of every view
-pair's relative rotation (no alignment). Measured (2-core CPU, 2 COLMAP threads, whose
-scheduling moves the figures by about 0.02 degree): see benchmarks/results/cpu/
-capture_person.json and the README's capture section. Tried on arc160 and not kept:
+pair's relative rotation (no alignment). COLMAP runs on one thread: seeded, it is then
+deterministic (with two, thread scheduling moved the wide arc's focal length between +0.8% and
++2.5% and its aligned rotation error between 0.34 and 0.53 degree). Measured (2-core CPU):
+see benchmarks/results/cpu/capture_person.json and the README's capture section. Tried on arc160 (two threads, against
+0.34 to 0.53 degree for the default there) and not kept:
 guided matching (aligned 0.99 vs 0.38 degree), a final global bundle adjustment
 refining the principal point (it walks to cx 183 px, 11 degrees), a lower SIFT peak
 threshold 0.002 (0.42), a tighter mapper filter (2 px) and global BA tolerance (0.39), and
@@ -156,7 +158,7 @@ def person_captures(args) -> dict:
                         exif={"Exif:FocalLengthIn35mmFilm": f35}, **picked)
                 known = {"focal_px": dict(focal_px=true_f),
                          "focal_prior": dict(focal_px=0.9 * true_f, refine_intrinsics=True)}
-                options = SfmOptions(max_features=features, num_threads=2,
+                options = SfmOptions(max_features=features, num_threads=1,
                                      **known.get(setting, {}))
                 out = root / f"{capture}_{setting}"
                 summary = process_capture(out, photos, options=options)

@@ -77,6 +77,7 @@ def _inputs(root: Path) -> dict:
         {"index": 0, "name": "r0", "ratio": 0.5, "snapshot": "subtasks/00/scene.ply"},
         {"index": 1, "name": "r1", "ratio": 1.0, "snapshot": "subtasks/01/scene.ply"}]}))
     (root / "afile").write_text("x\n")
+    (root / "emptydir").mkdir()
     return _paths(root)
 
 
@@ -141,6 +142,10 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
                 else:
                     args += [flag, given]
                 found.append((f"{command} {flag} missing", args, given, None))
+                # The wrong kind of thing: a one-line text file, an empty folder.
+                for kind, wrong in (("a text file", "afile"), ("an empty folder", "emptydir")):
+                    bad = [wrong if a == given else a for a in args]
+                    found.append((f"{command} {flag} {kind}", bad, (wrong, flag), None))
         # Positional paths (report, view): a missing one.
         if command in ("report", "view"):
             args = [a if a not in (str(inp["data"]), str(inp["edit_run"])) else "no/such/run"

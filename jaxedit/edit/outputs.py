@@ -155,6 +155,8 @@ def write_scene_snapshot(ctx, directory: Path, gaussians, *, ratio: float) -> di
 def snapshot_ratio(directory: Path) -> float:
     """The ratio of a snapshot folder (its metrics.json)."""
     path = Path(directory) / "metrics.json"
+    if not Path(directory).is_dir():
+        raise DataError(directory, "not a snapshot directory of an edit run (not a folder)")
     try:
         return float(json.loads(path.read_text())["ratio"])
     except FileNotFoundError:
