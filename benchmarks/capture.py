@@ -119,8 +119,8 @@ leave the rotation about their line free), "relative" the median error of every 
 pair's relative rotation (no alignment). COLMAP runs on one thread: seeded, it is then
 deterministic (with two, thread scheduling moved the wide arc's focal length between +0.8% and
 +2.5% and its aligned rotation error between 0.34 and 0.53 degree). Measured (2-core CPU):
-see benchmarks/results/cpu/capture_person.json and the README's capture section. Tried on arc160 (two threads, against
-0.34 to 0.53 degree for the default there) and not kept:
+see benchmarks/results/cpu/capture_person.json and the README's capture section. Tried on
+arc160 (two threads, against 0.34 to 0.53 degree for the default there) and not kept:
 guided matching (aligned 0.99 vs 0.38 degree), a final global bundle adjustment
 refining the principal point (it walks to cx 183 px, 11 degrees), a lower SIFT peak
 threshold 0.002 (0.42), a tighter mapper filter (2 px) and global BA tolerance (0.39), and

@@ -11,6 +11,7 @@ exit status 2, nothing written.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -79,6 +80,29 @@ def test_umeyama_recovers_a_similarity_and_pose_errors_are_zero_for_it():
     assert e["median_rotation_deg"] < 1e-2 and e["median_centre_error_rel"] < 1e-5
     with pytest.raises(DataError, match="N >= 3"):
         umeyama(src[:2], src[:2])
+
+
+def test_relative_rotation_errors_are_the_differences_of_known_turns():
+    """Each view turned by theta_k about the world z axis: the pair (i, j) is off by
+    |theta_i - theta_j|, whatever frame the estimate is in (no alignment)."""
+    from scipy.spatial.transform import Rotation
+
+    from jaxedit.capture.align import relative_rotation_errors
+
+    cams = camlib.orbit(6, radius=3.0, elevation_deg=30.0, width=16, height=16)
+    theta = np.array([0.0, 1.0, 2.5, 3.0, 4.0, 7.0])
+    w2c = np.array(cams.world_to_camera, np.float64)
+    w2c[:, :3, :3] = w2c[:, :3, :3] @ Rotation.from_euler("z", theta[:, None], degrees=True).as_matrix()
+    turned = dataclasses.replace(cams, world_to_camera=w2c.astype(np.float32))
+    q, _ = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))
+    sim = np.eye(4)
+    sim[:3, :3] = 2.0 * q * np.sign(np.linalg.det(q))
+    moved = transform_cameras(turned, sim)  # another frame: the pairs' errors stay
+    i, j = np.triu_indices(6, 1)
+    np.testing.assert_allclose(relative_rotation_errors(moved, cams), np.abs(theta[i] - theta[j]),
+                               atol=2e-3)
+    assert pose_errors(moved, cams)["median_relative_rotation_deg"] == pytest.approx(
+        np.median(np.abs(theta[i] - theta[j])), abs=2e-3)
 
 
 def test_image_pairs_exhaustive_and_sequential_with_quadratic_overlap():
