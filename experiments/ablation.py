@@ -41,6 +41,7 @@ end-to-end measurement). ``--editor-modes 1,3`` adds the single-outcome editor a
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -252,10 +253,12 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=None, seeds=5, editor_mode
     out = Path(out)
     bad = [s for s in scenes if s not in list_scenes()]
     if bad or not scenes:
-        raise DataError("--scenes", f"unknown scene(s) {bad}; built-in: {', '.join(list_scenes())}")
+        raise DataError("--scenes", f"unknown scene(s) {bad}; built-in: {', '.join(list_scenes())}"
+                        if bad else f"no scene given; built-in: {', '.join(list_scenes())}")
     bad = [m for m in methods if m not in METHODS]
     if bad or not methods:
-        raise DataError("--methods", f"unknown method(s) {bad}; choose from {', '.join(METHODS)}")
+        raise DataError("--methods", f"unknown method(s) {bad}; choose from {', '.join(METHODS)}"
+                        if bad else f"no method given; choose from {', '.join(METHODS)}")
     if any(m in methods for m in ("nd_equal_steps", "in2n")) and "proedit" not in methods:
         raise DataError("--methods", "nd_equal_steps and in2n take ProEdit's step count: "
                                      "include proedit")
@@ -264,7 +267,10 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=None, seeds=5, editor_mode
     editors = {int(k): SimulatedEditor(modes=int(k)) for k in editor_modes}
     prompts = tuple(prompts) if prompts else next(iter(editors.values())).instructions
     for p in prompts:
-        next(iter(editors.values())).encode(p)  # unknown instructions fail here, in one line
+        try:
+            next(iter(editors.values())).encode(p)  # unknown instructions fail here
+        except DataError as e:
+            raise DataError("--prompts", e.problem) from None
     order = [m for m in METHODS if m in methods]  # proedit first: the others need its steps
     settings_json = {"scenes": list(scenes), "prompts": list(prompts), "seeds": seeds,
                      "editor_modes": sorted(editors), "methods": order, "size": size,
@@ -373,6 +379,19 @@ def run(args) -> dict:
     if not modes or not all(1 <= m <= MAX_MODES for m in modes):
         raise DataError("--editor-modes", f"expected integers in 1..{MAX_MODES} like 1,3, got "
                         f"{args.editor_modes!r}")
+    if args.prompts is not None and not _csv(args.prompts):
+        raise DataError("--prompts", f"no instruction given in {args.prompts!r} (leave the flag "
+                                     f"out for all of them)")
+    if args.smoke:
+        # --smoke sets these itself: a value given beside it would be silently dropped.
+        defaults = argparse.ArgumentParser()
+        add_arguments(defaults)
+        given = [f"--{k.replace('_', '-')}" for k in smoke_overrides()
+                 if k != "prompts" and getattr(args, k) != defaults.get_default(k)]
+        given += ["--prompts"] if args.prompts is not None else []
+        if given:
+            raise DataError(given[0], f"--smoke sets {', '.join(given)} itself; give either "
+                                      f"--smoke or {', '.join(given)}")
     kw = dict(scenes=tuple(_csv(args.scenes)), prompts=tuple(_csv(args.prompts or "")) or None,
               seeds=args.seeds, editor_modes=modes, methods=tuple(_csv(args.methods)),
               size=args.size, views=args.views, test_views=args.test_views,

@@ -27,7 +27,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import errno
 import json
+import math
 import os
 import shutil
 import sys
@@ -39,8 +41,27 @@ COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "
             "report", "convert-lpips", "clip-metrics", "view", "process-data"]
 
 
+def finite_float(text: str) -> float:
+    """argparse's ``type=float``, refusing inf and nan (argparse then names the flag)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
 class OneLineParser(argparse.ArgumentParser):
-    """argparse, but errors are one line and exit with status 2."""
+    """argparse, but errors are one line and exit with status 2.
+
+    Every ``type=float`` flag of every command (and its config-file value) is read by
+    :func:`finite_float`: no command has a use for an infinite or NaN number.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.register("type", float, finite_float)
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -254,7 +275,7 @@ def check_output_path(path: Path, name: str, *, directory: bool = True) -> None:
         os.close(fd)
         os.unlink(probe)
     except OSError as e:
-        raise DataError(name, f"cannot write in {existing} ({e.strerror or e})") from None
+        raise DataError(name, f"{path}: cannot write in {existing} ({e.strerror or e})") from None
 
 
 def check_input_path(path: Path, name: str) -> None:
@@ -292,11 +313,32 @@ def _first_missing(path: Path) -> Path | None:
     return missing
 
 
+#: OSError numbers of a write the machine refused (full disk, quota, read-only, too large):
+#: the environment's fault, reported as one line like bad input.
+WRITE_REFUSED = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG)
+
+
+def write_refused(error: OSError, out: Path | None):
+    """The :class:`jaxedit.DataError` of a refused write (None for other OS errors).
+
+    Names the file when the OS did, else the output folder ``out``.
+    """
+    from jaxedit import DataError
+
+    if error.errno not in WRITE_REFUSED:
+        return None
+    return DataError(error.filename or out, f"cannot write ({os.strerror(error.errno)}); "
+                                            f"what this command wrote there was removed")
+
+
 @contextlib.contextmanager
 def claimed_out(out: Path | None):
-    """Hold ``out``'s lock while the command runs; on a DataError remove what it created.
+    """Hold ``out``'s lock while the command runs; on a failure remove what it created.
 
-    Entries of ``out`` that existed before (a resumed run's checkpoints) are kept.
+    A failure is a DataError or a refused write (:func:`write_refused`, raised as a
+    DataError). Entries of ``out`` that existed before (a resumed run's checkpoints) are
+    kept, and its ``config.json`` is put back as it was: a failed command leaves the
+    record of the run alone.
     """
     from jaxedit import DataError
     from jaxedit.io.files import LOCK_NAME, folder_lock
@@ -306,20 +348,54 @@ def claimed_out(out: Path | None):
         return
     created = _first_missing(out)
     before = None if created is not None else set(os.listdir(out))
-    with folder_lock(out, flag="--out"):
+    with folder_lock(out, flag="--out"), _record_kept(Path(out) / "config.json"):
         try:
-            yield
+            try:
+                yield
+            except OSError as e:
+                refused = write_refused(e, out)
+                if refused is None:
+                    raise
+                raise refused from None
         except DataError:
             if created is not None:
                 shutil.rmtree(created, ignore_errors=True)
             else:
-                for name in set(os.listdir(out)) - before - {LOCK_NAME}:
+                for name in set(os.listdir(out)) - before - {LOCK_NAME, KEPT_RECORD}:
                     target = Path(out) / name
                     if target.is_dir() and not target.is_symlink():
                         shutil.rmtree(target, ignore_errors=True)
                     else:
                         target.unlink(missing_ok=True)
             raise
+
+
+KEPT_RECORD = ".config.json.kept"
+
+
+@contextlib.contextmanager
+def _record_kept(record: Path):
+    """Put ``record`` back as it was if the block fails with a DataError.
+
+    The old file stays hard-linked under a hidden name meanwhile (the new record is
+    written beside it and renamed over it), so putting it back is a rename: it needs
+    no free space, which a full disk would not give.
+    """
+    from jaxedit import DataError
+
+    kept = record.with_name(KEPT_RECORD)
+    had = record.is_file()
+    if had:
+        kept.unlink(missing_ok=True)
+        os.link(record, kept)
+    try:
+        yield
+    except DataError:
+        if had:
+            os.replace(kept, record)
+        raise
+    finally:
+        kept.unlink(missing_ok=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -345,6 +421,12 @@ def main(argv: list[str] | None = None) -> int:
             write_run_config(args)
     except DataError as e:
         print(f"error: {named_by_flag(e, args)}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        refused = write_refused(e, getattr(args, "out", None))
+        if refused is None:
+            raise
+        print(f"error: {refused}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

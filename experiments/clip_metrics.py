@@ -58,7 +58,8 @@ def clip_metrics_of_run(run_dir: Path, *, snapshot: Path | None = None, clip_wei
         if not subtasks:
             raise DataError(run_dir / "subtasks", "no snapshot with renders/; pass --snapshot")
         snapshot = subtasks[-1]
-    originals, edits = _renders(run_dir / "original"), _renders(Path(snapshot))
+    edits = _renders(Path(snapshot))  # first: it may be the path the user gave
+    originals = _renders(run_dir / "original")
     if [p.name for p in originals] != [p.name for p in edits]:
         raise DataError(snapshot, "its renders/ do not match original/renders/ view for view")
     try:

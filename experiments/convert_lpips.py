@@ -97,14 +97,20 @@ def convert(out_file: Path, net: str = "vgg", trunk: Path | None = None,
     """Write jaxedit's LPIPS file ``out_file`` from the two .pth files; returns its path."""
     from jaxedit.lpips import lpips_tensors, save_lpips_params
 
+    given_heads = heads is not None
+    heads = Path(heads) if given_heads else default_heads(net)
+    # A file the user named is checked before a default one is looked for.
+    heads_state = (_load_pth(heads, "LPIPS heads", "pip install --no-deps lpips, or pass --heads")
+                   if given_heads else None)
     trunk = Path(trunk) if trunk is not None else default_trunk(net)
-    heads = Path(heads) if heads is not None else default_heads(net)
     trunk_state = _load_pth(
         trunk, f"torchvision {net} trunk weights",
         f"download {TORCHVISION_FILES[net]} (torchvision's ImageNet weights for "
         f"{'vgg16' if net == 'vgg' else 'alexnet'}) on a machine with network and pass "
         f"--trunk FILE")
-    heads_state = _load_pth(heads, "LPIPS heads", "pip install --no-deps lpips, or pass --heads")
+    if heads_state is None:
+        heads_state = _load_pth(heads, "LPIPS heads", "pip install --no-deps lpips, or pass "
+                                                      "--heads")
     tensors = lpips_tensors(trunk_state, heads_state, net, where=f"{trunk} + {heads}")
     return save_lpips_params(out_file, tensors, net, source=f"trunk={trunk.name}; heads={heads}")
 

@@ -238,6 +238,9 @@ def run(args) -> dict:
     run_cfg = run_config(args)
     if args.resume and args.resume_from is not None:
         raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
+    if args.ip2p_weights is not None and args.editor != "ip2p":
+        raise DataError("--ip2p-weights", f"used only with --editor ip2p (the editor is "
+                                          f"{args.editor})")
     if args.clip_weights is not None and not (args.caption_orig and args.caption_edit):
         raise DataError("--clip-weights", "needs --caption-orig and --caption-edit")
     editor = make_editor(args)

@@ -2,6 +2,7 @@
 
     python -m experiments process-data --images DIR --out DATA [--matching exhaustive]
     python -m experiments process-data --video FILE --out DATA [--num-frames 300]
+    python -m experiments process-data --images DIR --out DATA --focal-px 1200 [--refine-intrinsics]
 
 The analogue of nerfstudio's ``ns-process-data images|video``: SIFT extraction,
 matching (exhaustive for photos, sequential for video frames), incremental
@@ -9,7 +10,10 @@ mapping, the largest model kept; writes ``DATA/transforms.json`` (OpenGL
 camera-to-world, OPENCV or PINHOLE intrinsics, ``applied_transform``),
 ``images/``, ``images_2/``, ``images_4/``, ``sparse_pc.ply`` and ``colmap/``, all
 at once when everything succeeded. A video is cut into ``--num-frames`` windows
-and the sharpest frame of each is kept. Then::
+and the sharpest frame of each is kept. Known intrinsics (``--focal-px`` or
+``--camera-params``) are held fixed in bundle adjustment, or only start it with
+``--refine-intrinsics``; photos with an EXIF focal length start COLMAP from it. Each
+frame records its photo's name as ``original_file_path``. Then::
 
     python -m experiments reconstruct --data DATA --out RUN --normalize nerfstudio
 
@@ -47,6 +51,15 @@ def add_arguments(p) -> None:
     p.add_argument("--min-registered", type=float, default=0.5,
                    help="fail when SfM registers fewer than this fraction of the images")
     p.add_argument("--threads", type=int, default=-1, help="COLMAP threads (-1: all cores)")
+    known = p.add_mutually_exclusive_group()
+    known.add_argument("--focal-px", type=float, default=None,
+                       help="known focal length in pixels (principal point at the centre); "
+                            "held fixed unless --refine-intrinsics")
+    known.add_argument("--camera-params", default=None, metavar="FX,FY,CX,CY[,K1,K2,P1,P2]",
+                       help="known intrinsics in pixels (nerfstudio's fl_x,fl_y,cx,cy,k1,...), "
+                            "in --camera-model's terms; held fixed unless --refine-intrinsics")
+    p.add_argument("--refine-intrinsics", action="store_true",
+                   help="refine --focal-px / --camera-params in bundle adjustment (a start only)")
 
 
 def stage_reporter(root):
@@ -77,7 +90,7 @@ def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.capture import frames
     from jaxedit.capture.dataset import check_out_dir, process_capture
-    from jaxedit.capture.sfm import SfmOptions, quiet_colmap
+    from jaxedit.capture.sfm import SfmOptions, parse_camera_params, quiet_colmap
 
     from experiments.progress import Progress, configure
 
@@ -94,7 +107,10 @@ def run(args) -> dict:
         matching = "sequential" if args.video is not None else "exhaustive"
     options = SfmOptions(camera_model=args.camera_model, matching=matching, overlap=args.overlap,
                          max_features=args.max_features, max_image_size=args.max_image_size,
-                         num_threads=args.threads, seed=args.seed).check()
+                         num_threads=args.threads, seed=args.seed, focal_px=args.focal_px,
+                         camera_params=(None if args.camera_params is None
+                                        else parse_camera_params(args.camera_params)),
+                         refine_intrinsics=args.refine_intrinsics).check()
     check_out_dir(args.out)  # before decoding anything
     extra = {}
     if args.images is not None:

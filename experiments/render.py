@@ -58,7 +58,8 @@ def _check(args) -> None:
     if args.out is None:
         raise DataError("--out", "an output directory is required")
     if not args.scene.is_file():
-        raise DataError(args.scene, "scene file does not exist")
+        raise DataError(args.scene, "is a folder, expected a scene .ply file (given as --scene)"
+                        if args.scene.is_dir() else "scene file does not exist")
     if args.orbit is not None and args.orbit < 1:
         raise DataError("--orbit", f"needs at least 1 frame, got {args.orbit}")
     if args.size is not None and not 8 <= args.size <= 4096:

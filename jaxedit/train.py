@@ -63,7 +63,7 @@ from .camera import Camera
 from .densify import DensifyConfig
 from .errors import DataError
 from .gaussians import Gaussians
-from .io.files import atomic_path
+from .io.files import atomic_path, read_npz
 from .losses import photometric_loss
 from .poses import CameraCorrections
 from .raster import render
@@ -744,17 +744,17 @@ def save_checkpoint(path, state: TrainState, *, extra: dict | None = None) -> Pa
 def load_checkpoint_with_extra(path) -> tuple[TrainState, dict]:
     """(TrainState, extra) from a checkpoint written by :func:`save_checkpoint`."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as e:
-        raise DataError(path, f"cannot read checkpoint ({e})") from None
+    arrays = read_npz(path)
     if "meta" not in arrays:
         raise DataError(path, "not a jaxedit checkpoint (no meta record)")
     try:
         meta = json.loads(str(arrays["meta"]))
-    except json.JSONDecodeError as e:
-        raise DataError(path, f"corrupt checkpoint metadata ({e})") from None
+        if not isinstance(meta, dict) or not isinstance(meta.get("paths"), list):
+            raise ValueError("not a record of a TrainState")
+        for key in ("capacity", "sh_degree", "scene_extent", "max_intersections", "config"):
+            meta[key]  # noqa: B018 - present, or KeyError below
+    except (ValueError, KeyError, TypeError) as e:
+        raise DataError(path, f"corrupt checkpoint metadata ({type(e).__name__}: {e})") from None
     if meta.get("version") != CHECKPOINT_VERSION:
         raise DataError(path, f"checkpoint version {meta.get('version')} is not "
                               f"{CHECKPOINT_VERSION}")

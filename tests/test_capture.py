@@ -11,6 +11,7 @@ exit status 2, nothing written.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -79,6 +80,29 @@ def test_umeyama_recovers_a_similarity_and_pose_errors_are_zero_for_it():
     assert e["median_rotation_deg"] < 1e-2 and e["median_centre_error_rel"] < 1e-5
     with pytest.raises(DataError, match="N >= 3"):
         umeyama(src[:2], src[:2])
+
+
+def test_relative_rotation_errors_are_the_differences_of_known_turns():
+    """Each view turned by theta_k about the world z axis: the pair (i, j) is off by
+    |theta_i - theta_j|, whatever frame the estimate is in (no alignment)."""
+    from scipy.spatial.transform import Rotation
+
+    from jaxedit.capture.align import relative_rotation_errors
+
+    cams = camlib.orbit(6, radius=3.0, elevation_deg=30.0, width=16, height=16)
+    theta = np.array([0.0, 1.0, 2.5, 3.0, 4.0, 7.0])
+    w2c = np.array(cams.world_to_camera, np.float64)
+    w2c[:, :3, :3] = w2c[:, :3, :3] @ Rotation.from_euler("z", theta[:, None], degrees=True).as_matrix()
+    turned = dataclasses.replace(cams, world_to_camera=w2c.astype(np.float32))
+    q, _ = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))
+    sim = np.eye(4)
+    sim[:3, :3] = 2.0 * q * np.sign(np.linalg.det(q))
+    moved = transform_cameras(turned, sim)  # another frame: the pairs' errors stay
+    i, j = np.triu_indices(6, 1)
+    np.testing.assert_allclose(relative_rotation_errors(moved, cams), np.abs(theta[i] - theta[j]),
+                               atol=2e-3)
+    assert pose_errors(moved, cams)["median_relative_rotation_deg"] == pytest.approx(
+        np.median(np.abs(theta[i] - theta[j])), abs=2e-3)
 
 
 def test_image_pairs_exhaustive_and_sequential_with_quadratic_overlap():
@@ -234,3 +258,79 @@ def test_bad_inputs_fail_with_one_line_and_write_nothing(tmp_path, capsys):
     _nothing_written(tmp_path, out)
     _one_line_error(_main(capsys, "process-data", "--images", tmp_path / "none", "--out", out),
                     "none", "does not exist")
+
+
+# ----------------------------------------------------------------- known intrinsics
+
+
+@pytest.fixture(scope="module")
+def person_photos(tmp_path_factory):
+    """12 plain photos of the person scene over its 160-degree arc: (folder, true cameras),
+    and the same photos as JPEGs whose EXIF carries the 35 mm equivalent focal length."""
+    root = tmp_path_factory.mktemp("person")
+    paths, truth = scenes.photo_capture("person", root / "png", views=12)
+    diagonal = float(np.hypot(truth.width, truth.height))
+    f35 = int(round(float(np.asarray(truth.fx)[0]) * np.hypot(36.0, 24.0) / diagonal))
+    scenes.photo_capture("person", root / "jpg", views=12, suffix=".jpg",
+                         exif={"Exif:FocalLengthIn35mmFilm": f35})
+    return root, truth
+
+
+@pytest.mark.parametrize("how", ["focal-px", "camera-params", "exif"])
+def test_known_intrinsics_are_held_and_photo_names_kept(person_photos, tmp_path, capsys, how):
+    root, truth = person_photos
+    f = float(np.asarray(truth.fx)[0])
+    out = tmp_path / "data"
+    flags = {"focal-px": ["--focal-px", f],
+             "camera-params": ["--camera-params", f"{f},{f},128,128", "--camera-model", "PINHOLE"],
+             "exif": []}[how]
+    photos = root / ("jpg" if how == "exif" else "png")
+    proc = _main(capsys, "process-data", "--images", photos, "--out", out, *FAST, *flags, "--quiet")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout)
+    meta = json.loads((out / "transforms.json").read_text())
+    if how == "exif":
+        # COLMAP reads the 35 mm equivalent against the diagonal and refines from there.
+        assert summary["focal_source"] == "exif"
+        assert abs(meta["fl_x"] / f - 1.0) < 0.05, meta["fl_x"]
+    else:
+        assert summary["focal_source"] == "given"
+        assert meta["fl_x"] == meta["fl_y"] == f and (meta["cx"], meta["cy"]) == (128.0, 128.0)
+        assert meta.get("k1", 0.0) == 0.0
+    # Every frame names its photo: frame_00001 is the first photo in sorted order.
+    data = load_nerfstudio(out, split_every=0)
+    assert summary["num_registered"] == len(data.filenames) >= 10
+    for frame in meta["frames"]:
+        k = int(Path(frame["file_path"]).stem.split("_")[1]) - 1
+        assert frame["original_file_path"] == f"IMG_{k:04d}.{photos.name}"
+    index = np.array([int(Path(f).stem.split("_")[1]) - 1 for f in data.filenames])
+    assert pose_errors(data.cameras, truth[index])["median_relative_rotation_deg"] < 2.0
+
+
+@pytest.mark.parametrize("flags, needle", [
+    (["--focal-px", "0"], "--focal-px"), (["--focal-px", "-300"], "--focal-px"),
+    (["--focal-px", "nan"], "--focal-px"), (["--focal-px", "inf"], "--focal-px"),
+    (["--camera-params", "300,300,64"], "--camera-params"),
+    (["--camera-params", "300,300,64,64,0,0,0"], "--camera-params"),
+    (["--camera-params", "300,300,64,64,0,0,0,0,0"], "--camera-params"),
+    (["--camera-params", "300,x,64,64"], "--camera-params"),
+    (["--camera-params", "0,300,64,64"], "--camera-params"),
+    (["--camera-params", "300,300,inf,64"], "--camera-params"),
+    (["--camera-params", "300,310,64,64"], "--camera-params"),  # SIMPLE_RADIAL: one focal
+    (["--camera-params", "300,300,64,64,0.1,0.2"], "--camera-params"),  # SIMPLE_RADIAL: no k2
+    (["--refine-intrinsics"], "--refine-intrinsics"),
+    (["--focal-px", "300", "--camera-params", "300,300,64,64"], "--camera-params"),
+])
+def test_bad_intrinsics_exit_2_naming_the_flag(tmp_path, capsys, flags, needle):
+    photos = tmp_path / "photos"
+    for k in range(3):
+        write_image(photos / f"p{k}.png", np.full((32, 32, 3), 0.5))
+    out = tmp_path / "data"
+    capsys.readouterr()
+    try:
+        code = cli.main(["process-data", "--images", str(photos), "--out", str(out), *flags])
+    except SystemExit as e:  # argparse's own errors (two exclusive flags)
+        code = e.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0], err
+    _nothing_written(tmp_path, out)

@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from experiments import cli
 from jaxedit.pipelines.reconstruct import capped_initial_points
 from jaxedit import camera as camlib, gaussians as G
-from jaxedit.io import read_image, save_nerfstudio, save_ply
+from jaxedit.io import read_image, save_nerfstudio, save_ply, write_image
 from jaxedit.io.ply import load_ply
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -533,3 +533,208 @@ def test_check_cameras_explains_unusable_cameras(change, needle):
         cams = dataclasses.replace(cams, **{k: value})
     with pytest.raises(DataError, match=f"rig: .*{needle}"):
         camlib.check_cameras(cams, "rig")
+
+
+# ---------------------------------------------------------------- issue 28: one class per kind
+
+
+def _float_flags() -> list[tuple[str, str, int]]:
+    """(command, flag, values it takes) of every float flag of every command."""
+    subs = cli.build_parser()._subparsers._group_actions[0].choices
+    return [(command, a.option_strings[-1], a.nargs if isinstance(a.nargs, int) else 1)
+            for command, sub in subs.items() for a in sub._actions if a.type is float]
+
+
+class TestNonFiniteNumbers:
+    """inf and nan are refused by every float flag (one converter for all), naming it."""
+
+    def test_every_command_has_float_flags_here(self):
+        commands = {c for c, _, _ in _float_flags()}
+        assert {"render", "report", "reconstruct", "edit", "process-data", "bench"} <= commands
+
+    @pytest.mark.parametrize("value", ["inf", "-inf", "nan", "1e999"])
+    @pytest.mark.parametrize("command, flag, nargs", _float_flags())
+    def test_flag(self, tmp_path, capfd, command, flag, nargs, value):
+        if nargs > 1 and value.startswith("-"):
+            pytest.skip("argparse reads a separate -inf as an option, not a value")
+        out = tmp_path / "o"
+        # "--flag=-inf": argparse reads a separate "-inf" as an option; the last of several
+        # values is the bad one.
+        typed = [f"{flag}={value}"] if nargs == 1 else [flag, *["1"] * (nargs - 1), value]
+        line = _fails(capfd, [command, *typed, "--out", out], flag)
+        assert "finite" in line and not out.exists()
+
+    def test_config_file_value(self, corpus, tmp_path, capfd):
+        config = tmp_path / "c.json"
+        config.write_text('{"fps": Infinity}')  # Python's json reads it
+        out = tmp_path / "o"
+        line = _fails(capfd, ["render", "--scene", corpus.scene, "--out", out, "--config", config],
+                      "--fps")
+        assert line.startswith(f"error: {config}: fps:") and not out.exists()
+
+
+@pytest.fixture(scope="module")
+def badly_named(corpus) -> types.SimpleNamespace:
+    """A photo folder and a dataset, each with one file whose name is not UTF-8."""
+    photos = corpus.dir / "photos_badname"
+    for k in range(3):
+        write_image(photos / f"p{k}.png", np.full((16, 16, 3), 0.2 * k))
+    os.rename(photos / "p2.png", os.fsencode(photos) + b"/p\xff.png")
+    data = _dataset(corpus.dir / "data_badname", points=10)
+    meta = (data / "transforms.json").read_text()
+    old = "images/frame_00001.png"
+    assert old in meta
+    new = old.replace(".png", "\udcff.png")  # JSON's "\udcff": the stray byte 0xff of a name
+    os.rename(data / old, os.fsencode(data) + b"/" + os.fsencode(new))
+    (data / "transforms.json").write_text(meta.replace(old, json.dumps(new)[1:-1]))
+    return types.SimpleNamespace(photos=photos, data=data)
+
+
+class TestFileNamesNotUtf8:
+    """Refused (the image reader takes UTF-8 names), naming the file by its bytes."""
+
+    def test_process_data_photo(self, badly_named, tmp_path, capfd):
+        pytest.importorskip("pycolmap")
+        out = tmp_path / "o"
+        line = _fails(capfd, ["process-data", "--images", badly_named.photos, "--out", out],
+                      "not valid UTF-8")
+        assert "p\\xff.png" in line and not out.exists()
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".o.")]  # no staging
+
+    @pytest.mark.parametrize("command", ["reconstruct", "edit"])
+    def test_dataset_frame(self, corpus, badly_named, tmp_path, capfd, command):
+        out = tmp_path / "o"
+        argv = [command, "--data", badly_named.data, "--out", out, "--quiet"]
+        if command == "edit":
+            argv += ["--scene", corpus.scene, "--prompt", "turn him into a bronze statue"]
+        line = _fails(capfd, argv, "not valid UTF-8")
+        assert "frame_00001\\xff.png" in line and not out.exists()
+
+
+def _train_checkpoint(path: Path) -> Path:
+    """A real reconstruct checkpoint (a fresh TrainState), written by the trainer's writer."""
+    from jaxedit import train as T
+    import jax
+
+    state = T.init_state(G.empty(8, 0), T.TrainConfig(sh_degree=0), 1.0, key=jax.random.key(0))
+    return T.save_checkpoint(path, state)
+
+
+class TestBrokenCheckpointOnResume:
+    """An empty, garbage or truncated checkpoint: one line naming it, the run left as it was."""
+
+    @pytest.mark.parametrize("kind", ["empty", "garbage", "truncated"])
+    @pytest.mark.parametrize("command", ["reconstruct", "edit"])
+    def test_resume(self, corpus, tmp_path, capfd, command, kind):
+        run = tmp_path / "run"
+        ckpt = (run / "checkpoints" / "ckpt_00000020.npz" if command == "reconstruct"
+                else run / "checkpoint.npz")
+        ckpt.parent.mkdir(parents=True)
+        if kind == "truncated":
+            whole = _train_checkpoint(tmp_path / "whole.npz").read_bytes()
+            ckpt.write_bytes(whole[:len(whole) // 2])
+        else:
+            ckpt.write_bytes(b"" if kind == "empty" else b"PK\x03\x04" + bytes(range(256)) * 8)
+        (run / "config.json").write_text('{"the": "record"}\n')
+        argv = [command, "--data", corpus.data, "--out", run, "--resume", "--quiet"]
+        if command == "edit":
+            argv += ["--scene", corpus.scene, "--prompt", "turn him into a bronze statue"]
+        line = _fails(capfd, argv, "cannot read checkpoint", out=run)
+        assert line.startswith(f"error: {ckpt}:"), line
+        assert (run / "config.json").read_text() == '{"the": "record"}\n'
+
+
+def _full_disk(tmp_path: Path, monkeypatch) -> Path:
+    """A folder on a full disk: a 48 KiB tmpfs where we may mount one (root), else one where
+    every durable write after the first (the run's config.json) fails with ENOSPC."""
+    import errno
+    import shutil
+
+    mount = tmp_path / "tmpfs"
+    mount.mkdir()
+    if os.geteuid() == 0 and shutil.which("mount") and subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=48k", "tmpfs", str(mount)],
+            capture_output=True).returncode == 0:
+        return mount
+    real, calls = os.fsync, []
+
+    def fsync(fd):
+        calls.append(fd)
+        if len(calls) > 1:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    return mount
+
+
+class TestFullDisk:
+    """A write refused mid-run: one line, exit 2, nothing of the run left (no temp files)."""
+
+    @pytest.mark.slow  # compiles the training chunk: the first checkpoint is the failing write
+    def test_reconstruct(self, corpus, tmp_path, capfd, monkeypatch):
+        disk = _full_disk(tmp_path, monkeypatch)
+        try:
+            out = disk / "run"
+            capfd.readouterr()
+            code = cli.main(["reconstruct", "--data", str(corpus.data), "--out", str(out),
+                             *RECON_FLAGS[:8], "--iters", "40"])
+            err = capfd.readouterr().err
+            lines = err.strip().splitlines()
+            assert code == 2 and "Traceback" not in err, err[-2000:]
+            assert lines[-1].startswith("error: ") and "No space left on device" in lines[-1]
+            assert [line for line in lines if line.startswith("error")] == lines[-1:]
+            assert not out.exists() and list(disk.iterdir()) == []
+        finally:
+            subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+class TestFailedCommandKeepsTheRecord:
+    """A failed ``edit --select-only`` leaves config.json (and everything else) as it was."""
+
+    @pytest.mark.parametrize("select, needle", [("abc", "--select"), ("7", "--select"),
+                                                ("nan", "--select"), ("1", "is missing")])
+    def test_select(self, corpus, tmp_path, capfd, select, needle):
+        run = tmp_path / "run"
+        (run / "subtasks" / "00").mkdir(parents=True)
+        (run / "subtasks" / "00" / "scene.ply").write_bytes(corpus.scene.read_bytes())
+        (run / "schedule.json").write_text(json.dumps({"subtasks": [
+            {"index": 0, "name": "r0", "ratio": 0.5, "snapshot": "subtasks/00/scene.ply"},
+            {"index": 1, "name": "r1", "ratio": 1.0, "snapshot": "subtasks/01/scene.ply"}]}))
+        (run / "config.json").write_text('{"command": "edit", "the": "record"}\n')
+        _fails(capfd, ["edit", "--data", corpus.data, "--scene", corpus.scene, "--prompt", "x",
+                       "--out", run, "--select-only", "--select", select], needle, out=run)
+        assert (run / "config.json").read_text() == '{"command": "edit", "the": "record"}\n'
+
+
+class TestPathsAsGiven:
+    """Messages about a missing input or an unwritable output name the path as typed."""
+
+    def test_missing_data(self, tmp_path, capfd, monkeypatch):
+        monkeypatch.chdir(tmp_path)
+        line = _fails(capfd, ["reconstruct", "--data", "no/such/data", "--out", "o"],
+                      "no/such/data")
+        assert str(tmp_path) not in line and not (tmp_path / "o").exists()
+
+    def test_read_only_out(self, corpus, tmp_path, capfd, monkeypatch):
+        monkeypatch.chdir(tmp_path)
+        given = os.path.relpath(_readonly_dir(tmp_path) / "run", tmp_path)
+        line = _fails(capfd, ["reconstruct", "--data", corpus.data, "--out", given], given)
+        assert line.startswith("error: --out:"), line
+
+
+class TestAblationFlagCombinations:
+    """A combination ablation cannot honour names the flag at fault."""
+
+    @pytest.mark.parametrize("flags, flag", [
+        (["--prompts", "zzz"], "--prompts"), (["--prompts", ","], "--prompts"),
+        (["--methods", ","], "--methods"), (["--methods", "in2n"], "--methods"),
+        (["--scenes", ","], "--scenes"), (["--editor-modes", "1,x"], "--editor-modes"),
+        (["--smoke", "--scenes", "person"], "--scenes"), (["--smoke", "--seeds", "3"], "--seeds"),
+        (["--smoke", "--prompts", "make it look like autumn"], "--prompts"),
+    ])
+    def test_combination(self, tmp_path, capfd, flags, flag):
+        out = tmp_path / "o"
+        line = _fails(capfd, ["ablation", "--out", out, *flags], flag)
+        assert line.startswith(f"error: {flag}:"), line
+        assert not out.exists()

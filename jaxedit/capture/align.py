@@ -57,8 +57,9 @@ def pose_errors(estimated: Camera, reference: Camera) -> dict:
     Returns:
       dict with ``rotation_deg`` float64 [N] (angle of R_est R_ref^T), ``centre_error``
       float64 [N] (distance, reference units), ``extent`` (see :func:`camera_extent`),
-      ``similarity`` float64 [4, 4] (estimated world -> reference world) and the
-      medians ``median_rotation_deg``, ``median_centre_error_rel`` (over ``extent``).
+      ``similarity`` float64 [4, 4] (estimated world -> reference world), the
+      medians ``median_rotation_deg``, ``median_centre_error_rel`` (over ``extent``) and
+      ``median_relative_rotation_deg`` (see :func:`relative_rotation_errors`).
     """
     est_c = np.asarray(estimated.center(), np.float64)
     ref_c = np.asarray(reference.center(), np.float64)
@@ -68,14 +69,38 @@ def pose_errors(estimated: Camera, reference: Camera) -> dict:
     moved = transform_cameras(estimated, sim)
     r_est = np.asarray(moved.world_to_camera, np.float64)[:, :3, :3]
     r_ref = np.asarray(reference.world_to_camera, np.float64)[:, :3, :3]
-    rel = r_est @ np.swapaxes(r_ref, -1, -2)
-    # atan2 of the axis part over the trace part: accurate for small angles (arccos is not).
-    sin = 0.5 * np.linalg.norm(np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0],
-                                         rel[:, 1, 0] - rel[:, 0, 1]], -1), axis=-1)
-    cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
-    rotation_deg = np.degrees(np.arctan2(sin, cos))
+    rotation_deg = rotation_angle_deg(r_est @ np.swapaxes(r_ref, -1, -2))
     centre_error = np.linalg.norm(np.asarray(moved.center(), np.float64) - ref_c, axis=1)
     extent = camera_extent(reference)
     return {"rotation_deg": rotation_deg, "centre_error": centre_error, "extent": extent,
             "similarity": sim, "median_rotation_deg": float(np.median(rotation_deg)),
-            "median_centre_error_rel": float(np.median(centre_error) / max(extent, 1e-12))}
+            "median_centre_error_rel": float(np.median(centre_error) / max(extent, 1e-12)),
+            "median_relative_rotation_deg": float(np.median(
+                relative_rotation_errors(estimated, reference)))}
+
+
+def rotation_angle_deg(rel) -> np.ndarray:
+    """Angles in degrees of rotation matrices float [..., 3, 3]."""
+    rel = np.asarray(rel, np.float64)
+    # atan2 of the axis part over the trace part: accurate for small angles (arccos is not).
+    sin = 0.5 * np.linalg.norm(np.stack([rel[..., 2, 1] - rel[..., 1, 2],
+                                         rel[..., 0, 2] - rel[..., 2, 0],
+                                         rel[..., 1, 0] - rel[..., 0, 1]], -1), axis=-1)
+    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arctan2(sin, cos))
+
+
+def relative_rotation_errors(estimated: Camera, reference: Camera) -> np.ndarray:
+    """float64 [N (N - 1) / 2]: rotation error of every view pair's relative rotation, degrees.
+
+    Needs no alignment: the rotation between views i and j is the same in any similar
+    frame. Where the camera centres are nearly collinear (a narrow arc) the similarity
+    fitted to them leaves the rotation about their line free, and the aligned rotation
+    error of :func:`pose_errors` grows with that, not with the poses' own error.
+    """
+    r_est = np.asarray(estimated.world_to_camera, np.float64)[:, :3, :3]
+    r_ref = np.asarray(reference.world_to_camera, np.float64)[:, :3, :3]
+    i, j = np.triu_indices(len(r_est), 1)
+    rel_est = r_est[i] @ np.swapaxes(r_est[j], -1, -2)
+    rel_ref = r_ref[i] @ np.swapaxes(r_ref[j], -1, -2)
+    return rotation_angle_deg(rel_est @ np.swapaxes(rel_ref, -1, -2))

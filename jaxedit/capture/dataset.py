@@ -13,7 +13,9 @@ jaxedit both read the result):
 * ``images/frame_00001.png`` ... (1-based, in the sorted order of the inputs) and
   area-averaged copies ``images_2/``, ``images_4/``; the COLMAP database and
   models stay in ``colmap/``. Frames that SfM could not register stay in
-  ``images/`` but are not listed in ``transforms.json``.
+  ``images/`` but are not listed in ``transforms.json``. Each frame made from a
+  photo keeps its photo's file name as ``original_file_path`` (nerfstudio's
+  loader ignores keys it does not know).
 
 The dataset is staged in a temporary folder beside the output and renamed into
 place when complete: a failure leaves nothing behind.
@@ -93,13 +95,16 @@ def reconstruction_points(reconstruction) -> tuple[np.ndarray, np.ndarray]:
 
 
 def transforms_meta(names: list[str], w2c: np.ndarray, intrinsics: list[dict],
-                    image_ids: list[int] | None = None) -> dict:
+                    image_ids: list[int] | None = None,
+                    originals: dict[str, str] | None = None) -> dict:
     """The transforms.json object (without ``ply_file_path``) of registered views.
 
     Args:
       names: image file names inside ``images/``.
       w2c: float [N, 4, 4] OpenCV world-to-camera in COLMAP's world.
       intrinsics: N dicts from :func:`colmap_intrinsics`; shared ones go to the top level.
+      image_ids: COLMAP image ids (``colmap_im_id``), or None.
+      originals: ``{name: the photo's own file name}`` (``original_file_path``), or None.
     """
     applied = np.vstack([APPLIED_TRANSFORM, [0.0, 0.0, 0.0, 1.0]])
     c2w = applied @ opencv_w2c_to_opengl_c2w(np.asarray(w2c, np.float64))
@@ -110,6 +115,8 @@ def transforms_meta(names: list[str], w2c: np.ndarray, intrinsics: list[dict],
         frame = {"file_path": f"images/{name}", "transform_matrix": c2w[k].tolist()}
         if image_ids is not None:
             frame["colmap_im_id"] = int(image_ids[k])
+        if originals and name in originals:
+            frame["original_file_path"] = originals[name]
         if not shared:
             frame.update(intrinsics[k])
         frames.append(frame)
@@ -150,7 +157,8 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
         "map", "write".
     Returns:
       a summary: ``num_images``, ``num_registered``, ``num_models``, ``num_points``,
-      ``seconds`` per stage, ``camera`` (the shared intrinsics), ``transforms`` (path).
+      ``seconds`` per stage, ``camera`` (the shared intrinsics), ``focal_source`` (see
+      :class:`~jaxedit.capture.sfm.SfmResult`), ``transforms`` (path).
     """
     out_dir = Path(out_dir)
     check_out_dir(out_dir)
@@ -170,14 +178,17 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
                 shutil.copyfile(source, images / name)
             else:
                 write_image(images / name, np.asarray(source, np.float32) / 255.0)
-        sfm = run_sfm(images, names, staging / "colmap", options, report)
+        height, width = read_image(images / names[0]).shape[:2]
+        sfm = run_sfm(images, names, staging / "colmap", options, report, (width, height))
         need = min_registered(len(names), min_fraction)
         if sfm.num_registered < need:
             raise DataError("structure from motion", f"registered {sfm.num_registered} of "
                             f"{len(names)} images (need {need}); the views may overlap too little, "
                             f"be blurry or lack texture")
         reg_names, w2c, intrinsics, ids = reconstruction_views(sfm.reconstruction)
-        meta = transforms_meta(reg_names, w2c, intrinsics, ids)
+        originals = {name: Path(source).name for name, source in zip(names, sources)
+                     if isinstance(source, (str, Path))}
+        meta = transforms_meta(reg_names, w2c, intrinsics, ids, originals)
         points, colors = reconstruction_points(sfm.reconstruction)
         save_points_ply(staging / "sparse_pc.ply", points @ APPLIED_TRANSFORM[:, :3].T, colors)
         meta["ply_file_path"] = "sparse_pc.ply"
@@ -199,4 +210,5 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
     return {"num_images": len(names), "num_registered": sfm.num_registered,
             "num_models": sfm.num_models, "num_points": int(len(points)),
             "seconds": {k: round(v, 3) for k, v in sfm.seconds.items()}, "camera": camera,
+            "focal_source": sfm.focal_source,
             "transforms": str(out_dir / "transforms.json")}

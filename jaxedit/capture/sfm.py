@@ -11,6 +11,13 @@ Three stages, as in COLMAP's and nerfstudio's pipelines:
 3. **map**: incremental mapping; of the models it makes, the one with the most
    registered images is kept.
 
+Known intrinsics (``camera_params`` or ``focal_px``) set the shared camera before
+extraction and are held fixed in every bundle adjustment, or only start it with
+``refine_intrinsics``. Without them COLMAP starts from the photos' EXIF focal length
+when they carry one (FocalLengthIn35mmFilm, or FocalLength with the sensor size) and
+else from 1.2 x the longer side, and refines it. On narrow object captures the focal
+length trades off against depth and radial distortion, so a known one pins the poses.
+
 Every stage reports its progress through an optional callback
 ``report(stage, done, total)``, so callers can draw bars; extraction and
 matching run in chunks for that (each chunk is multi-threaded inside COLMAP).
@@ -21,6 +28,7 @@ pycolmap is imported only here, inside the functions: it is an optional extra
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import time
 from pathlib import Path
@@ -48,6 +56,12 @@ class SfmOptions:
       num_threads: COLMAP threads (-1: all cores).
       seed: COLMAP's random seed (RANSAC, mapper).
       chunk: images per extraction call and pairs per matching call (progress granularity).
+      camera_params: known intrinsics ``(fx, fy, cx, cy[, k1[, k2[, p1, p2]]])`` in pixels
+        (OpenCV's order; nerfstudio's ``fl_x fl_y cx cy k1 k2 p1 p2``), or None.
+      focal_px: known focal length in pixels (principal point at the image centre, no
+        distortion), or None; excludes ``camera_params``.
+      refine_intrinsics: with known intrinsics, refine them in bundle adjustment (they are
+        then only the start); without, they stay fixed.
     """
 
     camera_model: str = "SIMPLE_RADIAL"
@@ -58,6 +72,9 @@ class SfmOptions:
     num_threads: int = -1
     seed: int = 0
     chunk: int = 64
+    camera_params: tuple[float, ...] | None = None
+    focal_px: float | None = None
+    refine_intrinsics: bool = False
 
     def check(self) -> "SfmOptions":
         if self.camera_model not in CAMERA_MODELS:
@@ -69,7 +86,75 @@ class SfmOptions:
         for name in ("overlap", "max_features", "max_image_size", "chunk"):
             if getattr(self, name) < 1:
                 raise DataError(name, f"must be >= 1, got {getattr(self, name)}")
+        if self.focal_px is not None and self.camera_params is not None:
+            raise DataError("focal_px", "give either focal_px or camera_params, not both")
+        if self.focal_px is not None and not (math.isfinite(self.focal_px) and self.focal_px > 0):
+            raise DataError("focal_px", f"must be a finite number > 0, got {self.focal_px}")
+        if self.camera_params is not None:
+            check_camera_params(self.camera_params)
+            model_params(self.camera_model, self.camera_params)  # representable in the model
+        if self.refine_intrinsics and self.focal_px is None and self.camera_params is None:
+            raise DataError("refine_intrinsics", "needs focal_px or camera_params (without "
+                                                  "them the intrinsics are always refined)")
         return self
+
+    def known_params(self, width: int, height: int) -> list[float] | None:
+        """COLMAP parameters of ``camera_model`` for the known intrinsics (None: unknown)."""
+        if self.focal_px is not None:
+            f = float(self.focal_px)
+            return model_params(self.camera_model, (f, f, width / 2.0, height / 2.0))
+        if self.camera_params is not None:
+            return model_params(self.camera_model, self.camera_params)
+        return None
+
+
+#: COLMAP's parameter order of each model, in the names of ``(fx, fy, cx, cy, k1, k2, p1, p2)``;
+#: "f" is a single focal length (fx == fy).
+MODEL_PARAMS = {"SIMPLE_PINHOLE": ("f", "cx", "cy"), "PINHOLE": ("fx", "fy", "cx", "cy"),
+                "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"), "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+                "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")}
+PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+
+
+def parse_camera_params(text: str) -> tuple[float, ...]:
+    """``"fx,fy,cx,cy[,k1...]"`` (the --camera-params flag) as floats, checked."""
+    try:
+        values = tuple(float(t) for t in str(text).split(","))
+    except ValueError:
+        raise DataError("camera_params", f"expected comma-separated numbers fx,fy,cx,cy[,k1,"
+                                           f"k2,p1,p2], got {text!r}") from None
+    return check_camera_params(values)
+
+
+def check_camera_params(values) -> tuple[float, ...]:
+    """``values`` if it is 4 to 8 finite numbers with positive focal lengths, else DataError."""
+    values = tuple(float(v) for v in values)
+    if not 4 <= len(values) <= len(PARAM_NAMES) or len(values) == 7:
+        raise DataError("camera_params", f"expected fx,fy,cx,cy then optionally k1, k2 and "
+                                           f"p1,p2 (4, 5, 6 or 8 numbers), got {len(values)}")
+    if not all(math.isfinite(v) for v in values):
+        raise DataError("camera_params", f"must be finite numbers, got {values}")
+    if values[0] <= 0 or values[1] <= 0:
+        raise DataError("camera_params", f"focal lengths fx, fy must be > 0, got {values[:2]}")
+    return values
+
+
+def model_params(model: str, values) -> list[float]:
+    """COLMAP parameters of ``model`` for intrinsics ``(fx, fy, cx, cy[, k1, k2, p1, p2])``.
+
+    Refuses intrinsics the model cannot hold (fx != fy for a single focal length, a
+    distortion term the model lacks) rather than dropping them silently.
+    """
+    named = dict(zip(PARAM_NAMES, (list(values) + [0.0] * len(PARAM_NAMES))[:len(PARAM_NAMES)]))
+    wanted = MODEL_PARAMS[model]
+    if "f" in wanted and not math.isclose(named["fx"], named["fy"], rel_tol=1e-9):
+        raise DataError("camera_params", f"fx != fy but camera_model {model} has one focal "
+                                           f"length; use PINHOLE or OPENCV")
+    dropped = [k for k in PARAM_NAMES[4:] if k not in wanted and named[k] != 0.0]
+    if dropped:
+        raise DataError("camera_params", f"camera_model {model} has no {', '.join(dropped)}; "
+                                           f"use OPENCV")
+    return [named["fx"] if k == "f" else named[k] for k in wanted]
 
 
 @dataclasses.dataclass
@@ -82,6 +167,8 @@ class SfmResult:
       num_registered: images with a pose in ``reconstruction``.
       num_models: models the mapper made.
       seconds: wall seconds of each stage ("extract", "match", "map").
+      focal_source: where the starting focal length came from: "given" (the options),
+        "exif" (the photos' metadata, read by COLMAP) or "guess" (1.2 x the longer side).
     """
 
     reconstruction: object
@@ -89,6 +176,7 @@ class SfmResult:
     num_registered: int
     num_models: int
     seconds: dict
+    focal_source: str = "guess"
 
 
 def image_pairs(num_images: int, matching: str, overlap: int = 10) -> list[tuple[int, int]]:
@@ -106,8 +194,12 @@ def _chunks(items: list, size: int) -> list[list]:
 
 
 def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.PathLike,
-            options: SfmOptions = SfmOptions(), report: Report | None = None) -> SfmResult:
+            options: SfmOptions = SfmOptions(), report: Report | None = None,
+            image_size: tuple[int, int] | None = None) -> SfmResult:
     """Run the three stages on ``names`` (files in ``image_dir``); COLMAP files go to ``work_dir``.
+
+    ``image_size`` (width, height) places ``options.focal_px``'s principal point; it is
+    needed only with ``focal_px``.
 
     ``work_dir`` receives ``database.db`` and ``sparse/<k>/`` (COLMAP's binary models),
     which COLMAP's GUI and nerfstudio's tools open.
@@ -128,6 +220,11 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
     start = time.perf_counter()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options.camera_model
+    if options.focal_px is not None and image_size is None:
+        raise ValueError("run_sfm: focal_px needs image_size")
+    known = options.known_params(*(image_size or (0, 0)))
+    if known is not None:
+        reader.camera_params = ",".join(repr(float(v)) for v in known)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = options.max_features
     extraction.max_image_size = options.max_image_size
@@ -143,6 +240,8 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
         done += len(chunk)
         report("extract", done, len(names))
     seconds["extract"] = time.perf_counter() - start
+    focal_source = "given" if known is not None else ("exif" if _has_prior_focal(database)
+                                                      else "guess")
 
     start = time.perf_counter()
     pairs = image_pairs(len(names), options.matching, options.overlap)
@@ -166,6 +265,11 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = options.num_threads
     mapping.random_seed = options.seed
+    if known is not None:  # held fixed, or refined from there
+        refine = bool(options.refine_intrinsics)
+        mapping.ba_refine_focal_length = refine
+        mapping.ba_refine_extra_params = refine
+        mapping.ba_refine_principal_point = False  # COLMAP's default: poorly constrained
     registered = [0]
     report("map", 0, len(names))
 
@@ -181,7 +285,18 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
     best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
     count = 0 if best is None else int(best.num_reg_images())
     report("map", count, len(names))
-    return SfmResult(best, len(names), count, len(models), seconds)
+    return SfmResult(best, len(names), count, len(models), seconds, focal_source)
+
+
+def _has_prior_focal(database: Path) -> bool:
+    """Whether COLMAP found a focal length in the photos' EXIF (the shared camera's prior)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(database)
+    try:
+        return any(c.has_prior_focal_length for c in db.read_all_cameras())
+    finally:
+        db.close()
 
 
 def quiet_colmap(quiet: bool = True) -> None:

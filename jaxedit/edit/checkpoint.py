@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from ..io.files import atomic_path
+from ..io.files import atomic_path, read_npz
 from .buffer import Utilisation
 from .driver import DensityTally, DriverState, LossTracker
 
@@ -80,13 +80,11 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[DriverStat
     differ: capacity grows during a run); its typed PRNG keys are restored.
     """
     path = Path(path)
-    try:
-        with np.load(path) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise DataError(path, f"cannot read checkpoint ({e})") from None
+    arrays = read_npz(path)
     try:
         info = json.loads(arrays.pop("info").tobytes().decode())
+        if not isinstance(info, dict):
+            raise ValueError("not a record")
     except (KeyError, ValueError):
         raise DataError(path, "not a jaxedit edit checkpoint (no info record)") from None
     train = _unflatten(train_template, {k[6:]: v for k, v in arrays.items()

@@ -155,6 +155,8 @@ def write_scene_snapshot(ctx, directory: Path, gaussians, *, ratio: float) -> di
 def snapshot_ratio(directory: Path) -> float:
     """The ratio of a snapshot folder (its metrics.json)."""
     path = Path(directory) / "metrics.json"
+    if not Path(directory).is_dir():
+        raise DataError(directory, "not a snapshot directory of an edit run (not a folder)")
     try:
         return float(json.loads(path.read_text())["ratio"])
     except FileNotFoundError:
@@ -199,6 +201,8 @@ def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
         best = min(abs(s["ratio"] - r) for s in subtasks)
         chosen = [s for s in subtasks if abs(s["ratio"] - r) == best][-1]
     src = run_dir / chosen["snapshot"]
+    if not src.is_file():
+        raise DataError(src, f"snapshot of subtask {chosen['index']} is missing (listed in {path})")
     dst = run_dir / "selected.ply"
     with atomic_path(dst) as tmp:
         shutil.copyfile(src, tmp)

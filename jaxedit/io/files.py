@@ -100,3 +100,29 @@ def folder_lock(folder: str | os.PathLike, *, flag: str = "folder"):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(path)
         os.close(fd)
+
+
+def read_npz(path) -> dict:
+    """Every array of an ``.npz`` file, or a DataError naming it (empty, truncated, not a zip).
+
+    A crash or a full disk can leave such a file where a checkpoint was expected; numpy
+    and zipfile then raise half a dozen exception types, all meaning "unreadable".
+    """
+    import zipfile
+    import zlib
+
+    import numpy as np
+
+    from ..errors import DataError
+
+    path = Path(path)
+    try:
+        if path.stat().st_size == 0:
+            raise DataError(path, "cannot read checkpoint (empty file); delete it to start over")
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+        if isinstance(e, DataError):
+            raise
+        raise DataError(path, f"cannot read checkpoint ({type(e).__name__}: {e}); it may be "
+                              f"truncated or not a checkpoint") from None

@@ -55,6 +55,21 @@ def read_image(path: str | os.PathLike, *, background=(1.0, 1.0, 1.0)) -> np.nda
     return np.clip(colour, 0.0, 1.0).astype(np.float32)
 
 
+def utf8_name(path: str | os.PathLike) -> str:
+    """``path`` as text for OpenImageIO, which takes UTF-8 names only.
+
+    A name that is not valid UTF-8 (Python holds its stray bytes as surrogates) is
+    refused, named by its bytes, rather than failing inside the C++ binding.
+    """
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise DataError(repr(os.fsencode(path)), "file name is not valid UTF-8 (the image "
+                                                 "reader takes UTF-8 names); rename the file") from None
+    return text
+
+
 def read_image_with_alpha(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     """An image and its transparency, not composited.
 
@@ -76,6 +91,7 @@ def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
     """(colour float32 [H, W, 3], alpha [H, W, 1] in [0, 1] or None, alpha is straight)."""
     if not path.is_file():
         raise DataError(path, "image file not found" if not path.exists() else "not a file")
+    utf8_name(path)
     # Ask for unassociated alpha as stored (PNG, some TIFFs): compositing in
     # float then avoids the 8-bit rounding of OpenImageIO's premultiply.
     config = oiio.ImageSpec()
@@ -145,7 +161,7 @@ def _c_stderr_held_back():
                     os.write(fd, text)
 
 
-def write_image(path: str | os.PathLike, image) -> Path:
+def write_image(path: str | os.PathLike, image, *, metadata: dict | None = None) -> Path:
     """Write an image atomically; the format comes from the suffix.
 
     Args:
@@ -153,9 +169,11 @@ def write_image(path: str | os.PathLike, image) -> Path:
         ``.exr`` (float32, values kept as they are).
       image: float [H, W, 3], [H, W, 4] (straight alpha) or [H, W]; values in
         [0, 1] (clipped for the integer formats, rounded to nearest).
+      metadata: OpenImageIO attributes to store, e.g. ``{"Exif:FocalLengthIn35mmFilm": 50}``.
     Returns the path written.
     """
     path = Path(path)
+    utf8_name(path)
     suffix = path.suffix.lower()
     if suffix not in WRITE_FORMATS:
         raise DataError(path, f"unsupported image suffix {suffix!r}; use one of "
@@ -195,6 +213,8 @@ def write_image(path: str | os.PathLike, image) -> Path:
         spec.attribute("oiio:UnassociatedAlpha", 1)
     if suffix in (".jpg", ".jpeg"):
         spec.attribute("Compression", "jpeg:95")
+    for key, value in (metadata or {}).items():
+        spec.attribute(key, value)
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:

@@ -28,7 +28,7 @@ camera convention, so reconstructing its images is a real test of the splatter.
 """
 
 from . import library, points, raycast, textures
-from .dataset import SCENE_INFO, copy_rendered_scene, make_scene, size_arguments
+from .dataset import SCENE_INFO, copy_rendered_scene, make_scene, photo_capture, size_arguments
 from .library import (DATASETS, SCENES, dataset_path, get_scene, list_scenes, rig_cameras,
                       scene_cameras, split_views)
 from .points import sample_points
@@ -46,6 +46,7 @@ def render_scene(scene: Scene, cameras, *, supersample: int = 2, alpha: bool = F
 
 
 __all__ = ["DATASETS", "Decal", "Light", "Rig", "SCENES", "SCENE_INFO", "Scene", "Shape",
-           "Texture", "copy_rendered_scene", "dataset_path", "get_scene", "library", "list_scenes", "make_scene", "size_arguments", "points", "raycast",
-           "render_scene", "rig_cameras", "sample_points", "scene_cameras", "split_views",
+           "Texture", "copy_rendered_scene", "dataset_path", "get_scene", "library", "list_scenes",
+           "make_scene", "photo_capture", "points", "raycast", "render_scene", "rig_cameras",
+           "sample_points", "scene_cameras", "size_arguments", "split_views",
            "surface_points_and_ids", "textures"]

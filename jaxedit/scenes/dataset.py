@@ -178,3 +178,33 @@ def copy_rendered_scene(name: str, out_dir: str | os.PathLike, *, downscale: int
     for extra in sorted(src.glob("*.txt")):  # credits and licence travel with the images
         atomic_write_bytes(out_dir / extra.name, extra.read_bytes())
     return path
+
+
+def photo_capture(name: str, out_dir: str | os.PathLike, *, views: int,
+                  first: int = 0, last: int | None = None, background=(0.5, 0.5, 0.5),
+                  suffix: str = ".png", exif: dict | None = None):
+    """The rendered scene ``name`` as a folder of plain photos, as a user's capture would be.
+
+    ``views`` views evenly spread over the scene's views ``first .. last`` (all of its
+    views in order along the camera arc by default), composited over the plain
+    ``background``, written as ``IMG_0000<suffix>``, ... with no poses (``exif``: metadata
+    attributes such as ``{"Exif:FocalLengthIn35mmFilm": 63}``). The true cameras come
+    back for judging what structure from motion recovers from them.
+
+    Returns:
+      (the photo paths in order, their true cameras [views]).
+    """
+    from ..io.images import write_image
+
+    data = load_nerfstudio(library.dataset_path(name), background=background, split_every=0)
+    last = len(data.filenames) - 1 if last is None else last
+    _positive_int("views", views, 3)
+    if not 0 <= first < last < len(data.filenames) or views > last - first + 1:
+        raise DataError("views", f"cannot pick {views} of views {first}..{last} of {name} "
+                                 f"({len(data.filenames)} views)")
+    index = np.round(np.linspace(first, last, views)).astype(np.int64)
+    out_dir = Path(out_dir)
+    paths = [out_dir / f"IMG_{k:04d}{suffix}" for k in range(views)]
+    for path, k in zip(paths, index):
+        write_image(path, data.images[k], metadata=exif)
+    return paths, data.cameras[index]
