@@ -479,6 +479,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     started = time.perf_counter() - st.seconds
     converged, timed_out_at = False, None
     holder = [st]
+    exchanged_at = None  # a chunk redone (larger buffers) must not edit the same views again
 
     def take(arrivals):
         holder[0] = apply_edits(holder[0], [e.job.view for e in arrivals],
@@ -489,8 +490,10 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
         while True:
             st = holder[0]
             s = st.step
-            if s >= warmup and ((s - warmup) % cfg.edit_every == 0 or not source.deterministic):
+            if s >= warmup and ((s - warmup) % cfg.edit_every == 0 or not source.deterministic) \
+                    and s != exchanged_at:
                 take(source.exchange(s - warmup, trainer.gaussians(st.train)))
+                exchanged_at = s
                 st = holder[0]
             # The deterministic source edits the missing views itself: plateaus wait for it.
             stop_if_plateau = bool(st.edited.all()) or not source.deterministic
