@@ -386,7 +386,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     metrics.update(edit_fit_psnr=edit_fit(ctx, st), wall_time_s=time.perf_counter() - wall0,
                    total_steps=int(sum(r["steps"] for r in st.records)),
                    subtasks=len(st.records),
-                   all_converged=bool(all(r["converged"] for r in st.records)),
+                   # a fixed budget's subtasks (converged None) were not cut short
+                   all_converged=bool(all(r["converged"] is not False for r in st.records)),
                    utilisation=st.utilisation.as_dict(), mode=config.mode,
                    asynchronous=config.asynchronous)
     sched_json = schedule_json(st.records)
