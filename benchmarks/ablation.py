@@ -4,8 +4,8 @@
                                   [--variants 3,1,3:0] [--prompts P1,P2]
 
 Runs :func:`experiments.ablation.run_ablation` at its defaults (simulated editor; see that
-module for the methods, the editor variants and the mode-aware scores) into ``DIR/ablation_run`` (ablation.json with every run,
-ablation.md, views/, report.html) and writes ``DIR/ablation.json`` with the settings, the
+module for the methods, the editor variants and the mode-aware scores) into
+``DIR/ablation_run`` (ablation.json with every run, ablation.md, views/, report.html) and writes ``DIR/ablation.json`` with the settings, the
 summary (mean and Student-t 95% CI over seeds per scene, instruction, method and metric), the
 paired differences proedit - other, the wall time, the CPU time of the process (steadier on a
 shared machine) and the peak memory.
