@@ -43,6 +43,12 @@ Writes ``RUN_DIR/ablation.json``::
 (``prompt`` "all" averages the instructions per seed first), ``RUN_DIR/ablation.md`` and
 ``RUN_DIR/views/*.png`` (seed 0). The file is rewritten after every run; a run with the same
 settings resumes from it.
+
+Cost. The defaults (face, 20 px, 6 + 2 views; texture and shape; 20 seeds; variant 3 with five
+methods, 1 and 3:0 with proedit and nd) are 360 edit runs, about 8 s each for texture and 13 s
+for shape on the shared 2-core machine: 43 minutes of wall time with the gain-0 control in a
+second process (the record ``benchmarks/results/cpu/mechanism_ablation.json``; README, "What
+the mechanism test shows").
 """
 
 from __future__ import annotations
