@@ -1,11 +1,11 @@
-"""Ablation benchmark: ProEdit vs ND vs IN2N as statistics over seeds, instructions and scenes.
+"""Ablation benchmark: ProEdit vs its controls as paired statistics over seeds.
 
-    python benchmarks/ablation.py [--smoke] [--out DIR] [--scenes face,tabletop] [--seeds 5]
-                                  [--editor-modes 3] [--prompts P1,P2]
+    python benchmarks/ablation.py [--smoke] [--out DIR] [--scenes face] [--seeds 20]
+                                  [--variants 3,1,3:0] [--prompts P1,P2]
 
-Runs :func:`experiments.ablation.run_ablation` (simulated editor; see that module for the
-methods and the mode-aware scores) into ``DIR/ablation_run`` (ablation.json with every run,
-ablation.md, views/, report.html) and writes ``DIR/ablation.json`` with the settings, the
+Runs :func:`experiments.ablation.run_ablation` at its defaults (simulated editor; see that
+module for the methods, the editor variants and the mode-aware scores) into
+``DIR/ablation_run`` (ablation.json with every run, ablation.md, views/, report.html) and writes ``DIR/ablation.json`` with the settings, the
 summary (mean and Student-t 95% CI over seeds per scene, instruction, method and metric), the
 paired differences proedit - other, the wall time, the CPU time of the process (steadier on a
 shared machine) and the peak memory.
@@ -19,10 +19,13 @@ from common import parse_args, peak_rss_mb, write_json
 
 
 def extra(p):
-    p.add_argument("--scenes", default="face,tabletop")
-    p.add_argument("--prompts", default=None, help="comma-separated (default: every instruction)")
-    p.add_argument("--seeds", type=int, default=5)
-    p.add_argument("--editor-modes", default="3")
+    from experiments.ablation import PROMPTS, SCENES, VARIANTS
+
+    p.add_argument("--scenes", default=",".join(SCENES))
+    p.add_argument("--prompts", default=",".join(PROMPTS), help="comma-separated instructions")
+    p.add_argument("--seeds", type=int, default=20)
+    p.add_argument("--variants", default=",".join(VARIANTS),
+                   help="editor variants K or K:GAIN; the first is the mechanism test")
 
 
 def main(argv=None):
@@ -30,8 +33,8 @@ def main(argv=None):
     from experiments.ablation import run_ablation, smoke_overrides, tables
 
     split = lambda text: tuple(t.strip() for t in text.split(",") if t.strip())  # noqa: E731
-    kw = dict(scenes=split(args.scenes), prompts=split(args.prompts or "") or None,
-              seeds=args.seeds, editor_modes=tuple(int(k) for k in split(args.editor_modes)))
+    kw = dict(scenes=split(args.scenes), prompts=split(args.prompts) or None,
+              seeds=args.seeds, variants=split(args.variants))
     if args.smoke:
         kw.update(smoke_overrides())
     t0, c0 = time.perf_counter(), time.process_time()

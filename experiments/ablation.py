@@ -1,42 +1,54 @@
-"""``python -m experiments ablation``: ProEdit vs ND vs IN2N as statistics over seeds, instructions and scenes.
+"""``python -m experiments ablation``: ProEdit vs its controls as paired statistics over seeds.
 
 With the simulated editor (a test instrument whose noise-free targets are known; not
 InstructPix2Pix) on built-in scenes: make each scene's dataset and reconstruct it once, then
-edit the reconstruction with every method, for every instruction, for several seeds, and for
-each requested number of divergent editor modes (``--editor-modes 1,3``: the single-outcome
-editor and the editor with three modes per instruction, see :mod:`jaxedit.edit.simulated`).
+edit the reconstruction with every method, for every instruction, for every seed, and for every
+editor variant. An editor variant (``--variants``) is ``K`` or ``K:GAIN``: K divergent modes per
+instruction and the mode draw's ``mode_step_gain`` (default 1; see
+:mod:`jaxedit.edit.simulated`, section 4). The mechanism test is variant ``3``; ``1`` (one
+outcome: nothing to keep consistent) and ``3:0`` (holding a mode does not depend on the step
+size) are the negative controls, run with ``--control-methods``.
 
-Methods (rows): ``proedit`` (difficulty-aware schedule), ``nd`` (no decomposition, its own
-step guard), ``nd_equal_steps`` (ND given ProEdit's total step count of the same seed, a third
-per subtask r0 / r=1 / rn) and ``in2n`` (IN2N on 3DGS, a fixed budget of ProEdit's total step
-count). The seed varies everything random in the edit (editor draws, view order, training);
-the dataset and the reconstruction are the same for all seeds of a scene.
+Methods (rows), every one with the same trainer, W, patience, ``edit_every``, ``refine_every``
+and a step guard of at least 3 x ``refine_every`` (so adaptive density control runs in every
+subtask of every method):
 
-Scores at the held-out views (:func:`jaxedit.metrics.mode_scores`), none favouring a mode:
-``psnr_best`` / ``ssim_best`` (best over modes of the per-scene PSNR / SSIM against the mode's
-noise-free target at r = 1), ``mode_mixing`` (0: the scene shows one mode, 1: an even blend of
-all), plus ``multiview_consistency``, ``psnr_vs_target`` (against mode 0 only, the old score),
-steps and CPU seconds.
+- ``proedit``: the difficulty-aware schedule, ``target_subtasks`` by instruction kind
+  (:data:`TARGET_SUBTASKS`: about 8 for geometry, 4 otherwise, the paper's figures);
+- ``nd``: no decomposition, one edit subtask 0 -> 1 with its own plateau and guard;
+- ``nd_equal``: ND with ProEdit's steps (r0 / the sum of ProEdit's edit subtasks / rn, the same
+  seed) AND ProEdit's training editor calls (``edit_every`` chosen to match them);
+- ``nd_k``: ProEdit's n edit subtasks all at r = 1, each as long as ProEdit's: the same opacity
+  resets, initial sweeps, steps and editor calls, only the ratios differ (progression itself);
+- ``uniform``: n uniform ratios i / n (ProEdit's n), plateau and guard as ProEdit's (does the
+  difficulty-aware placement matter);
+- ``in2n``: IN2N on 3DGS, ProEdit's total step count, one view every ``edit_every`` steps.
+
+Scores at the held-out views (:func:`jaxedit.metrics.mode_scores`): ``psnr_best`` (best over modes
+of the PSNR against the mode's noise-free target at r = 1), ``mode_mixing`` (0: one mode, 1: an
+even blend), ``multiview_consistency``. Per run also: ``editor_calls`` (training edits; the
+schedule's difficulty calls separately as ``schedule_calls``), ``sweeps`` (complete passes over
+the views), ``total_steps``, ``guard_ended`` (subtasks the step guard, not the plateau, ended),
+``maintenance`` (density-control steps), ``agreement`` (per sweep, the fraction of views whose
+drawn mode is the sweep's most common one; ``agreement_final`` the last sweep's).
 
 Writes ``RUN_DIR/ablation.json``::
 
-    {"settings": {...}, "runs": [one record per (editor_modes, scene, prompt, seed, method)],
-     "summary": [{"editor_modes", "scene", "prompt", "method", "metric",
-                  "mean", "ci", "low", "high", "n"}],       # Student-t 95% CI over seeds
-     "differences": [{... "method": other, "metric", "mean", "ci", ...}]}  # proedit - other,
-                                                                            # paired by seed
+    {"settings": {...}, "runs": [one record per (variant, scene, prompt, seed, method)],
+     "summary": [{"editor_modes" (the variant), "scene", "prompt", "method", "metric",
+                  "mean", "ci", "low", "high", "n"}],   # Student-t 95% CI over seeds
+     "differences": [{..., "method": other, ...}]}     # proedit - other, paired t 95% CI,
+                                                        # paired by (scene, instruction, seed)
 
-(``prompt`` "all" averages the instructions per seed first), ``RUN_DIR/ablation.md`` (the
-tables), ``RUN_DIR/views/*.png`` (seed 0: the modes' targets and every method's final test
-views) and ``RUN_DIR/report.html``. An interrupted run resumes: finished records are kept when
-the settings match.
+(``prompt`` "all" averages the instructions per seed first), ``RUN_DIR/ablation.md`` and
+``RUN_DIR/views/*.png`` (seed 0). The file is rewritten after every run; a run with the same
+settings resumes from it.
 
-Cost. The default (face and tabletop, all 5 instructions, 5 seeds, the 3-mode editor; 32 px,
-12 + 4 views, 60-step subtask guard) is 50 (scene, instruction, seed) groups of four edits,
-about 1000 training steps per group. Measured on the shared 2-core machine: about 27 ms of CPU
-per editing step (32 px, ~8.7k Gaussians, edits and renders included), so about 25 minutes of
-CPU in all with compiling and the two reconstructions (an estimate from a reduced run, not an
-end-to-end measurement). ``--editor-modes 1,3`` adds the single-outcome editor and doubles it.
+Cost. The defaults (face, 20 px, 6 + 2 views; texture and shape; 20 seeds; variant 3 with five
+methods, 1 and 3:0 with proedit and nd) are 360 edit runs, about 8 s each for texture and 13 s
+for shape on the shared 2-core machine: 43 minutes of wall time with the gain-0 control in a
+second process (the record ``benchmarks/results/cpu/mechanism_ablation.json``; README, "What
+the mechanism test shows").
 """
 
 from __future__ import annotations
@@ -46,14 +58,26 @@ import json
 import time
 from pathlib import Path
 
-HELP = ("ablation: proedit vs nd vs nd at equal steps vs in2n over seeds, instructions and "
-        "scenes, with 95-percent confidence intervals (simulated editor)")
+HELP = ("ablation: proedit vs nd, nd at equal steps and calls, nd-k, uniform and in2n over "
+        "seeds, with paired 95-percent confidence intervals (simulated editor)")
 
-METHODS = ("proedit", "nd", "nd_equal_steps", "in2n")
-SCENES = ("face", "tabletop")
-#: Metrics summarised with confidence intervals (higher is better except where noted).
-METRICS = ("psnr_best", "ssim_best", "mode_mixing", "multiview_consistency", "psnr_vs_target",
-           "total_steps", "cpu_seconds")
+METHODS = ("proedit", "nd", "nd_equal", "nd_k", "uniform", "in2n")
+#: The default rows of the mechanism variant (in2n, one more trainer compile and no
+#: schedule, is asked for with --methods).
+MAIN_METHODS = ("proedit", "nd", "nd_equal", "nd_k", "uniform")
+#: Methods that take ProEdit's run of the same seed as their budget.
+FOLLOWERS = ("nd_equal", "nd_k", "uniform", "in2n")
+SCENES = ("face",)
+PROMPTS = ("give him a marble texture", "make his head bigger")
+VARIANTS = ("3", "1", "3:0")
+CONTROL_METHODS = ("proedit", "nd")
+#: ProEdit's subtask count by instruction kind (paper: ~8 for geometry, ~4 for texture edits).
+TARGET_SUBTASKS = {"shape": 8}
+TARGET_SUBTASKS_DEFAULT = 4
+#: Metrics summarised with confidence intervals.
+METRICS = ("psnr_best", "ssim_best", "mode_mixing", "agreement_final", "multiview_consistency",
+           "psnr_vs_target", "total_steps", "editor_calls", "sweeps", "guard_ended",
+           "maintenance", "cpu_seconds")
 ALL = "all"
 
 
@@ -61,38 +85,60 @@ def _csv(text: str) -> list[str]:
     return [t.strip() for t in str(text).split(",") if t.strip()]
 
 
+def parse_variant(text: str) -> tuple[int, float]:
+    """``"K"`` or ``"K:GAIN"`` -> (modes, mode_step_gain); a DataError otherwise."""
+    from jaxedit import DataError
+    from jaxedit.edit.simulated import MAX_MODES
+
+    parts = str(text).split(":")
+    try:
+        modes, gain = int(parts[0]), (float(parts[1]) if len(parts) == 2 else 1.0)
+    except (ValueError, IndexError):
+        modes, gain = 0, -1.0
+    if len(parts) > 2 or not 1 <= modes <= MAX_MODES or not gain >= 0:
+        raise DataError("--variants", f"expected K or K:GAIN with K in 1..{MAX_MODES} and "
+                                      f"GAIN >= 0 (like 3,1,3:0), got {text!r}")
+    return modes, gain
+
+
 def add_arguments(p) -> None:
     p.add_argument("--scenes", default=",".join(SCENES),
                    help="comma-separated built-in scenes (jaxedit.scenes.list_scenes())")
-    p.add_argument("--prompts", default=None,
-                   help="comma-separated instructions of the simulated editor (default: all)")
-    p.add_argument("--seeds", type=int, default=5, help="seeds per instruction (0 .. N-1)")
-    p.add_argument("--editor-modes", default="3",
-                   help="comma-separated numbers of divergent editor modes to compare (1: the "
-                        "single-outcome editor)")
-    p.add_argument("--methods", default=",".join(METHODS),
-                   help="comma-separated rows: proedit, nd, nd_equal_steps, in2n "
-                        "(nd_equal_steps and in2n take ProEdit's step count, so need proedit)")
-    p.add_argument("--size", type=int, default=32, help="image size in pixels")
-    p.add_argument("--views", type=int, default=12, help="training views")
-    p.add_argument("--test-views", type=int, default=4, help="held-out views (scored)")
+    p.add_argument("--prompts", default=",".join(PROMPTS),
+                   help="comma-separated instructions of the simulated editor")
+    p.add_argument("--seeds", type=int, default=20, help="seeds per instruction (0 .. N-1)")
+    p.add_argument("--variants", default=",".join(VARIANTS),
+                   help="comma-separated editor variants K or K:GAIN (modes, mode_step_gain); "
+                        "the first runs --methods, the others --control-methods")
+    p.add_argument("--methods", default=",".join(MAIN_METHODS),
+                   help="rows of the first variant: " + ", ".join(METHODS)
+                        + " (all but nd follow proedit's budget, so need proedit)")
+    p.add_argument("--control-methods", default=",".join(CONTROL_METHODS),
+                   help="rows of the other variants (the negative controls)")
+    p.add_argument("--size", type=int, default=20, help="image size in pixels")
+    p.add_argument("--views", type=int, default=6, help="training views")
+    p.add_argument("--test-views", type=int, default=2, help="held-out views (scored)")
     p.add_argument("--recon-iters", type=int, default=400, help="reconstruction steps")
-    p.add_argument("--threshold", type=float, default=None, help="proedit difficulty threshold")
-    p.add_argument("--max-steps", type=int, default=60, help="per-subtask step guard")
-    p.add_argument("--warmup", type=int, default=10, help="W after each opacity reset")
-    p.add_argument("--patience", type=int, default=20, help="plateau length ending a subtask")
+    p.add_argument("--refine-every", type=int, default=10,
+                   help="density-control period of the editing trainer (steps)")
+    p.add_argument("--max-steps", type=int, default=30,
+                   help="per-subtask step guard (at least 3 x --refine-every)")
+    p.add_argument("--warmup", type=int, default=4, help="W after each opacity reset")
+    p.add_argument("--patience", type=int, default=6, help="plateau length ending a subtask")
+    p.add_argument("--edit-every", type=int, default=3, help="steps between edits")
     p.add_argument("--lr-sh-dc", type=float, default=0.025,
                    help="colour learning rate of the editing trainer (same for every method)")
     p.add_argument("--smoke", action="store_true", help="tiny sizes (CI): seconds, not minutes")
 
 
 def smoke_overrides() -> dict:
-    """Tiny sizes for CI. The cost is compiling (reconstruction, editing trainer, renderer,
-    editor): in2n is left out, its trainer would be one more compile (~13 s of CPU); the
-    driver's tests run it."""
+    """Tiny sizes for CI: one instruction, two seeds, the mechanism variant and one control,
+    no in2n (one more trainer compile)."""
     return dict(scenes=("ball",), prompts=("make it look like autumn",), seeds=2,
-                editor_modes=(3,), methods=("proedit", "nd", "nd_equal_steps"), size=16,
-                views=4, test_views=2, recon_iters=30, max_steps=8, warmup=2, patience=4)
+                variants=("3", "3:0"), methods=("proedit", "nd", "nd_equal", "nd_k"),
+                control_methods=("proedit", "nd"), size=16, views=4, test_views=2,
+                recon_iters=30, refine_every=4, max_steps=12, warmup=2, patience=3,
+                edit_every=2)
 
 
 def stamp_prepared(out: Path, wanted: dict) -> None:
@@ -239,14 +285,111 @@ def _slug(text: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in text.lower()).strip("_")[:40]
 
 
-def run_ablation(out: Path, *, scenes=SCENES, prompts=None, seeds=5, editor_modes=(3,),
-                 methods=METHODS, size=32, views=12, test_views=4, recon_iters=400,
-                 threshold=None, max_steps=60, warmup=10, patience=20, lr_sh_dc=0.025,
-                 recon_seed=0, report=True, log=print) -> dict:
+def edits_per_subtask(steps: int, *, warmup: int, every: int, views: int,
+                      initial_sweep: bool) -> int:
+    """Training edits of a deterministic subtask of ``steps`` steps: the driver exchanges with
+    the editor at steps s >= W with (s - W) % every == 0 and s < steps
+    (:class:`jaxedit.edit.buffer.SyncEditSource` decides how many views each exchange edits)."""
+    from jaxedit.edit.buffer import SyncEditSource
+
+    source = SyncEditSource(lambda job, scene: None, list(range(views)), every=every,
+                            initial_sweep=initial_sweep)
+    return sum(len(source.jobs_at(s)) for s in range(0, max(steps - warmup, 0), every))
+
+
+def sweep_agreement(modes, edits: list[int], views: int) -> list[list[float]]:
+    """Per subtask, per complete sweep (``views`` consecutive edits: every view once), the
+    fraction of views drawn in the sweep's most common mode. ``modes`` int [sum(edits)] in
+    the order the edits were made, ``edits`` the count of each subtask."""
+    import numpy as np
+
+    modes = np.asarray(modes, int)
+    if len(modes) != sum(edits):
+        raise ValueError(f"{len(modes)} recorded modes for {sum(edits)} edits")
+    out, at = [], 0
+    for count in edits:
+        sub = modes[at:at + count]
+        at += count
+        out.append([float(np.bincount(sub[i:i + views]).max()) / views
+                    for i in range(0, count - views + 1, views)])
+    return out
+
+
+def match_edit_every(target_edits: int, steps: list[int], *, warmup: int, views: int,
+                     most: int) -> int:
+    """The ``edit_every`` (1 .. most) whose training edits over subtasks of ``steps`` come
+    closest to ``target_edits`` (ties: the larger, fewer exchanges)."""
+    def edits(every):
+        return sum(edits_per_subtask(s, warmup=warmup, every=every, views=views,
+                                     initial_sweep=True) for s in steps)
+    return min(range(1, most + 1), key=lambda e: (abs(edits(e) - target_edits), -e))
+
+
+class ModeLog:
+    """An editor that remembers the mode of every ``edit`` call (the mode draw is the
+    simulated editor's :meth:`edit_with_mode`); everything else is the editor's."""
+
+    def __init__(self, editor):
+        self.editor = editor
+        self.modes: list[int] = []
+
+    def __getattr__(self, name):
+        return getattr(self.editor, name)
+
+    def edit(self, image, original, embedding, key, **kwargs):
+        out, mode = self.editor.edit_with_mode(image, original, embedding, key, **kwargs)
+        self.modes.append(mode)
+        return out
+
+
+def method_config(method: str, *, kind: str, lead: dict | None, warmup: int, patience: int,
+                  max_steps: int, edit_every: int, views: int):
+    """The :class:`ProEditConfig` of ``method``; ``lead`` is ProEdit's run of the same seed
+    ({"steps": per subtask, "edits": training edits, "horizon": its annealing horizon})."""
+    from jaxedit.edit.plan import ProEditConfig
+
+    # the difficulty over 3 views and no plotted curve: the schedule's editor calls are
+    # bookkeeping here, not part of any method's training budget
+    common = dict(max_steps=max_steps, patience=patience, edit_every=edit_every,
+                  asynchronous=False, difficulty_views=3, curve_points=2)
+    if method == "proedit":
+        return ProEditConfig.for_mode("proedit", warmup=warmup, target_subtasks=TARGET_SUBTASKS.get(
+            kind, TARGET_SUBTASKS_DEFAULT), **common)
+    if method == "nd":
+        return ProEditConfig.for_mode("nd", warmup=warmup, **common)
+    steps, n = lead["steps"], len(lead["steps"]) - 2  # r0, n edit subtasks, rn
+    if method == "uniform":
+        return ProEditConfig.for_mode("proedit", warmup=warmup, subtasks=n, **common)
+    if method == "in2n":
+        return ProEditConfig.for_mode("in2n", max_steps=sum(steps), patience=patience,
+                                      edit_every=edit_every, asynchronous=False, curve_points=2)
+    fixed = dict(common, anneal_steps=lead["horizon"])
+    if method == "nd_k":
+        return ProEditConfig.for_mode("nd", warmup=warmup, nd_subtasks=n,
+                                      subtask_steps=tuple(steps), **fixed)
+    if method == "nd_equal":
+        lengths = (steps[0], sum(steps[1:-1]), steps[-1])
+        every = match_edit_every(lead["edits"], list(lengths), warmup=warmup, views=views,
+                                 most=edit_every)
+        return ProEditConfig.for_mode("nd", warmup=warmup, subtask_steps=lengths,
+                                      **dict(fixed, edit_every=every))
+    raise ValueError(method)
+
+
+def _variant_label(modes: int, gain: float) -> str:
+    return str(modes) if gain == 1.0 else f"{modes}:{gain:g}"
+
+
+def run_ablation(out: Path, *, scenes=SCENES, prompts=PROMPTS, seeds=20, variants=VARIANTS,
+                 methods=MAIN_METHODS, control_methods=CONTROL_METHODS, size=20, views=6,
+                 test_views=2, recon_iters=400, refine_every=10, max_steps=30, warmup=4,
+                 patience=6, edit_every=3, lr_sh_dc=0.025, recon_seed=0, report=True,
+                 log=print) -> dict:
     """Run the ablation into ``out``; returns the contents of ablation.json."""
     from jaxedit import DataError
-    from jaxedit.edit.progressive import ProEditConfig, TrainSettings, run_edit
-    from jaxedit.edit.simulated import SimulatedEditor
+    from jaxedit.edit.plan import anneal_horizon
+    from jaxedit.edit.progressive import TrainSettings
+    from jaxedit.edit.simulated import VOCABULARY, SimulatedEditor
     from jaxedit.io.files import atomic_write_text
     from jaxedit.scenes import list_scenes
 
@@ -255,28 +398,41 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=None, seeds=5, editor_mode
     if bad or not scenes:
         raise DataError("--scenes", f"unknown scene(s) {bad}; built-in: {', '.join(list_scenes())}"
                         if bad else f"no scene given; built-in: {', '.join(list_scenes())}")
-    bad = [m for m in methods if m not in METHODS]
-    if bad or not methods:
-        raise DataError("--methods", f"unknown method(s) {bad}; choose from {', '.join(METHODS)}"
-                        if bad else f"no method given; choose from {', '.join(METHODS)}")
-    if any(m in methods for m in ("nd_equal_steps", "in2n")) and "proedit" not in methods:
-        raise DataError("--methods", "nd_equal_steps and in2n take ProEdit's step count: "
-                                     "include proedit")
+    for flag, rows in (("--methods", methods), ("--control-methods", control_methods)):
+        bad = [m for m in rows if m not in METHODS]
+        if bad or not rows:
+            raise DataError(flag, f"unknown method(s) {bad}; choose from {', '.join(METHODS)}"
+                            if bad else f"no method given; choose from {', '.join(METHODS)}")
+        if any(m in FOLLOWERS for m in rows) and "proedit" not in rows:
+            raise DataError(flag, f"{', '.join(FOLLOWERS)} take ProEdit's budget: include proedit")
     if seeds < 1:
         raise DataError("--seeds", f"must be >= 1, got {seeds}")
-    editors = {int(k): SimulatedEditor(modes=int(k)) for k in editor_modes}
-    prompts = tuple(prompts) if prompts else next(iter(editors.values())).instructions
+    if max_steps < 3 * refine_every:
+        raise DataError("--max-steps", f"must be at least 3 x --refine-every ({refine_every}) so "
+                                       f"density control runs in every subtask, got {max_steps}")
+    parsed = [parse_variant(v) for v in variants]
+    if not parsed:
+        raise DataError("--variants", "need at least one editor variant")
+    editors = {_variant_label(k, g): SimulatedEditor(modes=k, mode_step_gain=g) for k, g in parsed}
+    rows_of = {label: [m for m in METHODS if m in (methods if i == 0 else control_methods)]
+               for i, label in enumerate(editors)}
+    first = next(iter(editors.values()))
+    prompts = tuple(prompts) if prompts else first.instructions
+    kinds = {}
     for p in prompts:
         try:
-            next(iter(editors.values())).encode(p)  # unknown instructions fail here
+            first.encode(p)  # unknown instructions fail here
         except DataError as e:
             raise DataError("--prompts", e.problem) from None
-    order = [m for m in METHODS if m in methods]  # proedit first: the others need its steps
+        kinds[p] = VOCABULARY[first._index(p)].kind
     settings_json = {"scenes": list(scenes), "prompts": list(prompts), "seeds": seeds,
-                     "editor_modes": sorted(editors), "methods": order, "size": size,
+                     "variants": list(editors), "methods": rows_of, "size": size,
                      "views": views, "test_views": test_views, "recon_iters": recon_iters,
-                     "threshold": threshold, "max_steps": max_steps, "warmup": warmup,
-                     "patience": patience, "lr_sh_dc": lr_sh_dc, "recon_seed": recon_seed}
+                     "refine_every": refine_every, "max_steps": max_steps, "warmup": warmup,
+                     "patience": patience, "edit_every": edit_every, "lr_sh_dc": lr_sh_dc,
+                     "recon_seed": recon_seed,
+                     "target_subtasks": {k: TARGET_SUBTASKS.get(k, TARGET_SUBTASKS_DEFAULT)
+                                         for k in sorted(set(kinds.values()))}}
     out.mkdir(parents=True, exist_ok=True)
     path = out / "ablation.json"
     runs: list[dict] = []
@@ -285,69 +441,65 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=None, seeds=5, editor_mode
         if isinstance(old, dict) and old.get("settings") == settings_json:
             runs = list(old.get("runs", []))
             log(f"resuming: {len(runs)} finished runs in {path}")
+    elapsed0 = sum(r.get("seconds", 0.0) for r in runs)
 
     def save(extra=None):
         payload = {"settings": settings_json, "runs": runs} | (extra or {})
         atomic_write_text(path, json.dumps(payload, indent=2) + "\n")
 
-    total = len(scenes) * len(prompts) * seeds * len(editors) * len(order)
+    total = len(scenes) * len(prompts) * seeds * sum(len(r) for r in rows_of.values())
     t_start = time.perf_counter()
     for scene_name in scenes:
         data, scene, recon = prepare(out / scene_name, scene_name=scene_name, size=size,
                                      views=views, test_views=test_views,
                                      recon_iters=recon_iters, seed=recon_seed, log=log)
-        settings = TrainSettings(lr_sh_dc=lr_sh_dc, sh_degree=scene.sh_degree)
-        for modes, editor in editors.items():
+        settings = TrainSettings(lr_sh_dc=lr_sh_dc, sh_degree=scene.sh_degree
+                                 ).replace_densify(refine_every=refine_every)
+        n_views = len(data.train_images)
+        for label, editor in editors.items():
             for prompt in prompts:
                 for seed in range(seeds):
-                    renders = {}
-                    steps = {}
-                    for method in order:
-                        tag = (modes, scene_name, prompt, seed, method)
+                    renders, lead = {}, None
+                    for method in rows_of[label]:
+                        tag = (label, scene_name, prompt, seed, method)
                         prior = next((r for r in runs if (r["editor_modes"], r["scene"],
                                                           r["prompt"], r["seed"],
                                                           r["method"]) == tag), None)
-                        if prior is not None:  # finished before an interruption
-                            steps[method] = prior["total_steps"]
-                            continue
-                        mode, cap = method, max_steps
-                        if method == "nd_equal_steps":
-                            mode, cap = "nd", max(-(-int(steps["proedit"]) // 3), 1)
-                        elif method == "in2n":
-                            cap = int(steps["proedit"])
-                        cfg = ProEditConfig.for_mode(
-                            mode, threshold=threshold if mode == "proedit" else None,
-                            max_steps=cap, warmup=warmup if mode != "in2n" else None,
-                            patience=patience, asynchronous=False)
-                        t0, c0 = time.perf_counter(), time.process_time()
-                        res = run_edit(editor, prompt, data, scene, config=cfg,
-                                       settings=settings, seed=seed, run_dir=None, report=False)
-                        scores, rgb, targets = _score(editor, prompt, data, res["gaussians"],
-                                                      cfg.background)
-                        renders[method] = rgb
-                        m = res["metrics"]
-                        steps[method] = int(m["total_steps"])
-                        runs.append({
-                            "editor_modes": modes, "scene": scene_name, "prompt": prompt,
-                            "seed": seed, "method": method, **scores,
-                            "psnr_vs_target": m.get("psnr_vs_target"),
-                            "multiview_consistency": m.get("multiview_consistency"),
-                            "total_steps": steps[method], "subtasks": m.get("subtasks"),
-                            "all_converged": m.get("all_converged"),
-                            "ratios": [s["ratio"] for s in res["schedule"]["subtasks"]],
-                            "seconds": time.perf_counter() - t0,
-                            "cpu_seconds": time.process_time() - c0})
-                        save()
-                        log(f"[{len(runs)}/{total}] modes={modes} {scene_name} '{prompt}' "
-                            f"seed {seed} {method}: psnr_best {scores['psnr_best']:.2f}, "
-                            f"mixing {scores['mode_mixing']:.2f}, {steps[method]} steps, "
-                            f"{time.perf_counter() - t_start:.0f} s so far")
+                        if prior is None:
+                            cfg = method_config(method, kind=kinds[prompt], lead=lead,
+                                                warmup=warmup, patience=patience,
+                                                max_steps=max_steps, edit_every=edit_every,
+                                                views=n_views)
+                            record, rgb, targets = _run_one(
+                                ModeLog(editor), prompt, data, scene, cfg, settings, seed)
+                            record.update(editor_modes=label, modes=editor.modes,
+                                          step_gain=editor.params.mode_step_gain,
+                                          scene=scene_name, prompt=prompt, kind=kinds[prompt],
+                                          seed=seed, method=method)
+                            runs.append(record)
+                            renders[method] = rgb
+                            save()
+                            prior = record
+                            log(f"[{len(runs)}/{total}] {label} {scene_name} {kinds[prompt]} "
+                                f"seed {seed} {method}: psnr_best {record['psnr_best']:.2f}, "
+                                f"mixing {record['mode_mixing']:.2f}, agreement "
+                                f"{record['agreement_final']}, {record['total_steps']} steps, "
+                                f"{record['editor_calls']} calls, "
+                                f"{elapsed0 + time.perf_counter() - t_start:.0f} s so far")
+                        if method == "proedit":
+                            cfg = method_config("proedit", kind=kinds[prompt], lead=None,
+                                                warmup=warmup, patience=patience,
+                                                max_steps=max_steps, edit_every=edit_every,
+                                                views=n_views)
+                            lead = {"steps": prior["subtask_steps"],
+                                    "edits": prior["editor_calls"],
+                                    "horizon": anneal_horizon(cfg, warmup)}
                     if seed == 0 and renders:
-                        _write_views(out / "views" / f"m{modes}_{scene_name}_{_slug(prompt)}.png",
-                                     targets, renders)
+                        _write_views(out / "views" / f"m{_slug(label)}_{scene_name}_"
+                                     f"{_slug(prompt)}.png", targets, renders)
     summary, differences = summarise(runs)
     save({"summary": summary, "differences": differences,
-          "wall_time_s": time.perf_counter() - t_start})
+          "wall_time_s": elapsed0 + time.perf_counter() - t_start})
     atomic_write_text(out / "ablation.md", "# Ablation (simulated editor)\n\n"
                       f"Settings: `{json.dumps(settings_json)}`\n" + tables(summary, differences))
     if report:
@@ -358,6 +510,43 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=None, seeds=5, editor_mode
             "differences": differences}
 
 
+def _run_one(editor: ModeLog, prompt, data, scene, cfg, settings, seed):
+    """(record, test renders, mode targets) of one edit run."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    from jaxedit.edit.progressive import run_edit
+
+    res = run_edit(editor, prompt, data, scene, config=cfg, settings=settings, seed=seed,
+                   run_dir=None, report=False)
+    scores, rgb, targets = _score(editor.editor, prompt, data, res["gaussians"], cfg.background)
+    m, subtasks = res["metrics"], res["schedule"]["subtasks"]
+    n_views = len(data.train_images)
+    warmup = 0 if cfg.mode == "in2n" else cfg.warmup
+    edits = [edits_per_subtask(s["steps"], warmup=warmup, every=cfg.edit_every, views=n_views,
+                               initial_sweep=cfg.initial_sweep) for s in subtasks]
+    calls = int(m["utilisation"]["edits"])
+    if sum(edits) != calls:
+        raise RuntimeError(f"counted {sum(edits)} training edits, the driver made {calls}")
+    agreement = sweep_agreement(editor.modes[len(editor.modes) - calls:], edits, n_views)
+    sweeps = sum(len(a) for a in agreement)
+    # the refine subtask edits with e(0): every mode's target is the original, its draws mean
+    # nothing
+    agreement = [[] if s["kind"] == "refine" else a for s, a in zip(subtasks, agreement)]
+    flat = [a for sub in agreement for a in sub]
+    return ({**scores, "psnr_vs_target": m.get("psnr_vs_target"),
+             "multiview_consistency": m.get("multiview_consistency"),
+             "total_steps": int(m["total_steps"]), "subtasks": len(subtasks),
+             "subtask_steps": [int(s["steps"]) for s in subtasks],
+             "ratios": [s["ratio"] for s in subtasks],
+             "editor_calls": calls, "schedule_calls": len(editor.modes) - calls,
+             "edits_per_subtask": edits, "edit_every": cfg.edit_every,
+             "sweeps": sweeps,
+             "guard_ended": sum(s["guard"] is not None for s in subtasks),
+             "maintenance": sum(int(s["density"]["refinements"]) for s in subtasks),
+             "agreement": agreement, "agreement_final": flat[-1] if flat else None,
+             "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0},
+            rgb, targets)
+
+
 def run(args) -> dict:
     from jaxedit import DataError
 
@@ -366,20 +555,11 @@ def run(args) -> dict:
     if args.out is None:
         raise DataError("--out", "required (the ablation run directory)")
     check_minimums(args, {"size": 8, "views": 1, "test_views": 1, "recon_iters": 1,
-                          "max_steps": 1, "warmup": 0, "patience": 1, "seeds": 1})
-    for name in ("threshold", "lr_sh_dc"):
-        if getattr(args, name) is not None and not getattr(args, name) > 0:
-            raise DataError(f"--{name.replace('_', '-')}", f"must be > 0, got {getattr(args, name)}")
-    from jaxedit.edit.simulated import MAX_MODES
-
-    try:
-        modes = tuple(int(m) for m in _csv(args.editor_modes))
-    except ValueError:
-        modes = ()
-    if not modes or not all(1 <= m <= MAX_MODES for m in modes):
-        raise DataError("--editor-modes", f"expected integers in 1..{MAX_MODES} like 1,3, got "
-                        f"{args.editor_modes!r}")
-    if args.prompts is not None and not _csv(args.prompts):
+                          "max_steps": 1, "warmup": 0, "patience": 1, "seeds": 1,
+                          "refine_every": 1, "edit_every": 1})
+    if not args.lr_sh_dc > 0:
+        raise DataError("--lr-sh-dc", f"must be > 0, got {args.lr_sh_dc}")
+    if not _csv(args.prompts):
         raise DataError("--prompts", f"no instruction given in {args.prompts!r} (leave the flag "
                                      f"out for all of them)")
     if args.smoke:
@@ -387,21 +567,21 @@ def run(args) -> dict:
         defaults = argparse.ArgumentParser()
         add_arguments(defaults)
         given = [f"--{k.replace('_', '-')}" for k in smoke_overrides()
-                 if k != "prompts" and getattr(args, k) != defaults.get_default(k)]
-        given += ["--prompts"] if args.prompts is not None else []
+                 if getattr(args, k) != defaults.get_default(k)]
         if given:
             raise DataError(given[0], f"--smoke sets {', '.join(given)} itself; give either "
                                       f"--smoke or {', '.join(given)}")
-    kw = dict(scenes=tuple(_csv(args.scenes)), prompts=tuple(_csv(args.prompts or "")) or None,
-              seeds=args.seeds, editor_modes=modes, methods=tuple(_csv(args.methods)),
+    kw = dict(scenes=tuple(_csv(args.scenes)), prompts=tuple(_csv(args.prompts)) or None,
+              seeds=args.seeds, variants=tuple(_csv(args.variants)),
+              methods=tuple(_csv(args.methods)), control_methods=tuple(_csv(args.control_methods)),
               size=args.size, views=args.views, test_views=args.test_views,
-              recon_iters=args.recon_iters, max_steps=args.max_steps, warmup=args.warmup,
-              patience=args.patience)
+              recon_iters=args.recon_iters, refine_every=args.refine_every,
+              max_steps=args.max_steps, warmup=args.warmup, patience=args.patience,
+              edit_every=args.edit_every)
     if args.smoke:
         kw.update(smoke_overrides())
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
-    result = run_ablation(args.out, threshold=args.threshold, lr_sh_dc=args.lr_sh_dc,
-                          recon_seed=args.seed, log=log, **kw)
+    result = run_ablation(args.out, lr_sh_dc=args.lr_sh_dc, recon_seed=args.seed, log=log, **kw)
     return {f"m{r['editor_modes']} {r['scene']} {r['method']} {r['metric']}":
             round(r["mean"], 4) for r in result["summary"]
             if r["prompt"] in (ALL, result["settings"]["prompts"][0])

@@ -15,7 +15,9 @@ Everything works on the fixed-capacity ``alive`` layout of
 What ``update`` does at every call: accumulate the 3DGS statistics of this
 step's render (norm of the 2D-mean gradient in NDC units, visibility count,
 largest screen radius). At maintenance steps (``step > warmup``, ``step %
-refine_every == 0``, ``step <= stop_at``), in this order:
+refine_every == 0``, ``step <= stop_at``; with ``refine_from_warmup`` the clock starts
+at the warm-up: ``step >= warmup``, ``(step - warmup) % refine_every == 0``), in this
+order:
 
 1. cull: alive Gaussians with opacity < ``cull_alpha``, or larger than
    ``cull_scale * scene_extent`` in world space, or (after the first opacity
@@ -368,6 +370,13 @@ class DensifyConfig:
       refine_every, warmup, stop_at: maintenance at ``step > warmup``, every
         ``refine_every`` steps, while ``step <= stop_at`` (None: half of the run's
         iterations, Splatfacto's 15000 of 30000).
+      refine_from_warmup: False: INRIA's clock, maintenance at the multiples of
+        ``refine_every`` above ``warmup`` (a warmup below ``refine_every`` changes
+        nothing). True: the clock starts at the warm-up, maintenance at steps
+        ``warmup, warmup + refine_every, ...`` (``refine_every, ...`` for a warmup of
+        0), so the warm-up is exactly the steps without density control (ProEdit's W:
+        Gaussians on the right surface earn opacity for W steps, then the wrong ones
+        are culled).
       reset_every: opacity reset period (0 disables); only while ``step <= stop_at``.
       cull_alpha: cull opacity below this.
       reset_value: opacity after a periodic reset (None: ``2 * cull_alpha``).
@@ -390,6 +399,7 @@ class DensifyConfig:
     grad_floor: float = 0.0
     refine_every: int = 100
     warmup: int = 500
+    refine_from_warmup: bool = False
     stop_at: int | None = None
     reset_every: int = 3000
     cull_alpha: float = 0.005
@@ -422,6 +432,7 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
     max_gaussians, grad_threshold, grad_floor = (config.max_gaussians, config.grad_threshold,
                                                  config.grad_floor)
     refine_every, warmup, cull_alpha = config.refine_every, config.warmup, config.cull_alpha
+    from_warmup = config.refine_from_warmup
     cull_screen = config.cull_screen
     if refine_every <= 0:
         raise ValueError("refine_every must be positive")
@@ -543,7 +554,11 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
         step = jnp.asarray(step, jnp.int32)
         if aux is not None:
             stats = accumulate(stats, aux)
-        due = (step > warmup) & (step % refine_every == 0) & (step <= stop_at)
+        if from_warmup:
+            due = (step >= warmup) & ((step - warmup) % refine_every == 0) & (step > 0)
+        else:
+            due = (step > warmup) & (step % refine_every == 0)
+        due = due & (step <= stop_at)
         gaussians, opt_state, stats, info = jax.lax.cond(
             due, refine, skip, gaussians, opt_state, stats, step, key)
         if reset_every > 0:

@@ -88,7 +88,7 @@ def test_summary_and_paired_differences():
                   metric="psnr_best")
         assert abs(d["mean"]) < 0.05
         # "all" averages the instructions of each seed first: half the lead
-        d, = pick(differences, editor_modes=k, prompt="all", method="nd_equal_steps",
+        d, = pick(differences, editor_modes=k, prompt="all", method="nd_equal",
                   metric="psnr_best")
         assert d["mean"] == pytest.approx(0.5, abs=0.05) and d["n"] == 4
     assert not pick(differences, method="proedit")
@@ -106,7 +106,7 @@ def test_report_shows_the_statistics(tmp_path):
         "differences": differences}))
     text = write_report(tmp_path).read_text()
     assert "editor modes = 3: mode_mixing" in text and "not InstructPix2Pix" in text
-    assert "proedit − nd_equal_steps" in text and "data:image/png;base64," in text
+    assert "proedit − nd_equal" in text and "data:image/png;base64," in text
     (tmp_path / "ablation.json").write_text(json.dumps({"proedit": {"psnr": 3}}))
     with pytest.raises(DataError, match="ablation.json"):
         write_report(tmp_path)
@@ -117,7 +117,9 @@ def test_report_shows_the_statistics(tmp_path):
 
 @pytest.mark.parametrize("argv, needle", [
     (["--scenes", "moon"], "--scenes"),
-    (["--editor-modes", "1,7"], "--editor-modes"),
+    (["--variants", "1,7"], "--variants"),
+    (["--variants", "3:x"], "--variants"),
+    (["--max-steps", "20", "--refine-every", "10"], "3 x --refine-every"),
     (["--methods", "nd,in2n"], "include proedit"),
     (["--prompts", "make it a dragon"], "unknown instruction"),
     (["--seeds", "0"], "--seeds"),
@@ -132,10 +134,69 @@ def test_an_interrupted_run_summarises_what_finished():
     runs = records(seeds=3, modes=(3,))
     # the second instruction stopped after seed 1's nd: seed 2 of it is left out, paired
     runs = [r for r in runs if not (r["prompt"] == PROMPTS[1] and (
-        r["seed"] == 2 or (r["seed"] == 1 and r["method"] in ("nd_equal_steps", "in2n"))))]
+        r["seed"] == 2 or (r["seed"] == 1 and r["method"] in ("nd_equal", "nd_k", "uniform", "in2n"))))]
     summary, differences = summarise(runs)
     rows = [r for r in summary if r["metric"] == "psnr_best" and r["method"] == "proedit"]
     assert {r["prompt"]: r["n"] for r in rows} == {PROMPTS[0]: 3, PROMPTS[1]: 1}
     assert all(r["prompt"] != "all" for r in summary)  # one complete instruction: no "all"
     d = [r for r in differences if r["prompt"] == PROMPTS[1] and r["method"] == "nd"]
     assert d and all(r["n"] == 1 and r["ci"] is None for r in d)
+
+
+# ---- the run's bookkeeping (pure) and the mechanism's planted effect -------------------------
+
+def test_edit_counts_follow_the_deterministic_source():
+    from experiments.ablation import edits_per_subtask, match_edit_every, sweep_agreement
+
+    # exchanges at steps W, W + E, ... below the subtask's length; the first edits every view
+    assert edits_per_subtask(30, warmup=4, every=3, views=6, initial_sweep=True) == 6 + 8
+    assert edits_per_subtask(4, warmup=4, every=3, views=6, initial_sweep=True) == 0
+    assert edits_per_subtask(30, warmup=0, every=10, views=6, initial_sweep=False) == 3
+    lengths = [30, 120, 30]
+    every = match_edit_every(70, lengths, warmup=4, views=6, most=3)
+    got = sum(edits_per_subtask(s, warmup=4, every=every, views=6, initial_sweep=True)
+              for s in lengths)
+    assert all(abs(got - 70) <= abs(sum(edits_per_subtask(s, warmup=4, every=e, views=6,
+                                                           initial_sweep=True)
+                                        for s in lengths) - 70) for e in (1, 2, 3))
+    # complete sweeps only; the fraction of views in the sweep's most common mode
+    assert sweep_agreement([0, 0, 1, 2, 2, 1, 1], [4, 3], 2) == [[1.0, 0.5], [0.5]]
+    with pytest.raises(ValueError):
+        sweep_agreement([0, 1], [3], 2)
+
+
+def _stays(editor, original, ratio, seeds, views):
+    """Per seed, the fraction of views whose edit at ``ratio`` stays in mode 0, from a render
+    committed to mode 0 at r = 0.45 (the first sweep of the next subtask, t = t_max)."""
+    import jax
+
+    from jaxedit.edit.editors import interpolate_embedding
+    from jaxedit.edit.simulated import view_key
+
+    prompt = "give him a marble texture"
+    render = editor.target(original, 0.45, prompt, 0)
+    e = interpolate_embedding(editor.encode(prompt), editor.encode(""), ratio)
+    return [np.mean([editor.edit_with_mode(render, original, e, view_key(
+        jax.random.key(seed), v, 0.0, 0), timestep_range=(0.85, 0.85))[1] == 0
+        for v in range(views)]) for seed in range(seeds)]
+
+
+def test_paired_intervals_detect_the_planted_step_size_effect_and_not_its_absence():
+    # Planted: holding a mode falls with the step (mode_step_gain 1, the default; P(stay) 0.76
+    # vs 0.59 here), so a committed scene keeps its mode in more views when the next subtask is
+    # a small step (0.45 -> 0.575) than when it jumps to r = 1. Same keys for both (paired by seed and view). Gain 0: the draw
+    # does not depend on the step, the same keys draw the same modes, the difference is 0.
+    from jaxedit.edit.simulated import SimulatedEditor
+
+    yy, xx = np.mgrid[0:24, 0:24] + 0.5
+    inside = ((yy - 12) / 9) ** 2 + ((xx - 12) / 7) ** 2 < 1
+    shade = np.stack([0.5 + 0.4 * np.sin(xx / 3), 0.4 + 0.3 * np.cos(yy / 4),
+                      0.3 + 0.2 * np.sin((xx + yy) / 5)], -1)
+    original = np.where(inside[..., None], shade, 1.0).astype(np.float32)
+    planted = SimulatedEditor(modes=3)
+    d = paired_differences(_stays(planted, original, 0.575, 16, 8),
+                           _stays(planted, original, 1.0, 16, 8))
+    assert d["low"] > 0, d
+    off = SimulatedEditor(modes=3, mode_step_gain=0.0)
+    d = paired_differences(_stays(off, original, 0.575, 16, 8), _stays(off, original, 1.0, 16, 8))
+    assert d["low"] <= 0 <= d["high"] and d["mean"] == 0.0, d

@@ -729,7 +729,7 @@ class TestAblationFlagCombinations:
     @pytest.mark.parametrize("flags, flag", [
         (["--prompts", "zzz"], "--prompts"), (["--prompts", ","], "--prompts"),
         (["--methods", ","], "--methods"), (["--methods", "in2n"], "--methods"),
-        (["--scenes", ","], "--scenes"), (["--editor-modes", "1,x"], "--editor-modes"),
+        (["--scenes", ","], "--scenes"), (["--variants", "1,x"], "--variants"),
         (["--smoke", "--scenes", "person"], "--scenes"), (["--smoke", "--seeds", "3"], "--seeds"),
         (["--smoke", "--prompts", "make it look like autumn"], "--prompts"),
     ])

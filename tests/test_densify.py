@@ -231,6 +231,22 @@ def test_nothing_happens_outside_maintenance_steps_but_stats_accumulate():
     assert not bool(info.refined)
 
 
+@pytest.mark.parametrize("warmup,from_warmup,want", [
+    (3, True, [3, 13, 23]),  # the clock starts at the warm-up: exactly W steps without
+    (3, False, [10, 20, 30]),  # INRIA's clock: a warm-up below refine_every changes nothing
+    (0, True, [10, 20, 30]),
+    (15, False, [20, 30]),
+    (15, True, [15, 25])])
+def test_maintenance_steps_follow_the_warmup_clock(warmup, from_warmup, want):
+    g, opt_state, stats, _ = random_case(2, 20)
+    strategy = strategy_with(budget=True, warmup=warmup, refine_from_warmup=from_warmup,
+                             reset_every=0, stop_at=1000, **BUDGET_KW)
+    due = jax.jit(jax.vmap(lambda s: strategy.update(g, opt_state, stats, None, s,
+                                                     jax.random.key(0))[3].refined))
+    steps = np.arange(1, 31)
+    assert list(steps[np.asarray(due(jnp.asarray(steps)))]) == want
+
+
 def test_ties_are_broken_by_slot_index():
     g, opt_state, stats, aux = random_case(11, 20)
     g = dataclasses.replace(g, opacity_logits=jnp.full((C,), 2.0),

@@ -121,13 +121,15 @@ def tiny():
 FAST = TrainSettings(lr_sh_dc=0.05)  # a few dozen steps must visibly move colours
 TINY = dict(warmup=6, patience=8, loss_window=4, max_steps=24, edit_every=3, checkpoint_every=5,
             subtasks=1, consolidate=False, asynchronous=False, turntable_frames=0)
+#: The sync run: the difficulty-aware scheduler picks two edit subtasks (not ND).
+SCHEDULED = {**TINY, "subtasks": None, "target_subtasks": 2, "difficulty_views": 3}
 
 
 @pytest.fixture(scope="module")
 def sync_run(tiny, tmp_path_factory):
     g, data, _, _ = tiny
     run_dir = tmp_path_factory.mktemp("sync")
-    cfg = ProEditConfig.for_mode("proedit", **TINY)
+    cfg = ProEditConfig.for_mode("proedit", **SCHEDULED)
     out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=7, run_dir=run_dir,
                    report=False, select=1)
     return run_dir, out
@@ -153,13 +155,19 @@ def test_sync_edit_writes_the_run_directory(sync_run):
     # How the difficulty was measured: distance, reduction, the seeded view subset.
     diff = sched["difficulty"]
     assert diff["distance"] == sched["distance"] and diff["reduction"].startswith("mean")
-    assert diff["num_views"] == len(diff["views"]) == 8 == diff["of_training_views"]
+    assert diff["num_views"] == len(diff["views"]) == 3 and diff["of_training_views"] == 8
     assert "target_subtasks" in sched and isinstance(sched["depth_limit_hit"], bool)
     curve = sched["difficulty_curve"]
     assert curve[0] == [0.0, 0.0] and curve[-1][0] == 1.0 and curve[-1][1] > 0
     subs = sched["subtasks"]
-    assert [s["name"] for s in subs] == ["r0", "r1"]
-    assert [s["ratio"] for s in subs] == [0.0, 1.0]
+    # a progressive run: the refine subtask, then the scheduler's two steps 0 < r1 < r2 = 1
+    assert [s["name"] for s in subs] == ["r0", "r1", "r2"]
+    assert subs[0]["ratio"] == 0.0 < subs[1]["ratio"] < subs[2]["ratio"] == 1.0
+    assert sched["target_subtasks"] == 2 and sched["schedule_method"] == "bisection"
+    if not sched["depth_limit_hit"]:
+        assert all(0 < s["difficulty"] <= sched["threshold"] for s in subs[1:])
+    from experiments.ablation import edits_per_subtask
+
     for s in subs:
         for key in ("index", "name", "ratio", "difficulty", "steps", "seconds", "converged",
                     "snapshot"):
@@ -169,15 +177,26 @@ def test_sync_edit_writes_the_run_directory(sync_run):
         assert (snap / "renders" / "view_000.png").exists()
         assert (snap / "depth" / "view_000.png").exists()
         assert json.loads((snap / "metrics.json").read_text())["ratio"] == s["ratio"]
-        assert 1 <= s["steps"] <= TINY["max_steps"]
-        assert s["converged"] or s["steps"] == TINY["max_steps"]
-    assert subs[1]["difficulty"] > 0
+        # a plateau ends a subtask only after every view's edit and an edit at t_min trained
+        # `patience` steps; otherwise the step guard ends it exactly at max_steps
+        if s["guard"] is None:
+            assert s["converged"] is True and s["steps"] < TINY["max_steps"]
+            assert s["steps"] >= max(s["edits_complete_at"], s["annealed_at"]) + TINY["patience"]
+        else:
+            assert s["guard"] == "steps" and s["converged"] is False
+            assert s["steps"] == TINY["max_steps"]
+        assert s["edits_complete_at"] == TINY["warmup"]  # the initial sweep edits every view
+    # the deterministic edit schedule: the initial sweep of all 8 views in every subtask, then
+    # one view every edit_every steps after W
+    per_subtask = [edits_per_subtask(s["steps"], warmup=TINY["warmup"], every=TINY["edit_every"],
+                                     views=8, initial_sweep=True) for s in subs]
+    assert all(n >= 8 for n in per_subtask)
     assert (run_dir / "original" / "renders" / "view_000.png").exists()
     metrics = json.loads((run_dir / "metrics.json").read_text())
     for key in ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "num_gaussians",
                 "wall_time_s"):
         assert np.isfinite(metrics[key])
-    assert metrics["utilisation"]["edits"] >= 8  # every view edited in each subtask
+    assert metrics["utilisation"]["edits"] == sum(per_subtask)
     # the edit moved the scene towards the target: the renders beat the unedited scene
     assert metrics["psnr_vs_target"] > json.loads(
         (run_dir / "original" / "metrics.json").read_text())["psnr_vs_target"]
@@ -190,7 +209,7 @@ def test_select_by_ratio_and_bad_selection(sync_run):
     select_snapshot(run_dir, 0.1)
     assert json.loads((run_dir / "selected.json").read_text())["name"] == "r0"
     select_snapshot(run_dir, "-1")
-    assert json.loads((run_dir / "selected.json").read_text())["name"] == "r1"
+    assert json.loads((run_dir / "selected.json").read_text())["name"] == "r2"
     with pytest.raises(DataError, match="select"):
         select_snapshot(run_dir, 9)
     with pytest.raises(DataError, match="select"):
@@ -204,7 +223,7 @@ class Crash(RuntimeError):
 def test_resume_after_a_crash_mid_subtask_is_bit_exact(tiny, sync_run, tmp_path):
     g, data, _, _ = tiny
     _, reference = sync_run
-    cfg = ProEditConfig.for_mode("proedit", **TINY)
+    cfg = ProEditConfig.for_mode("proedit", **SCHEDULED)
 
     def crash(spec, step, loss):
         if spec.index == 1 and step == 13:  # last checkpoint at step 10 of subtask 1
@@ -302,7 +321,10 @@ def test_in2n_baseline_runs_its_fixed_budget_with_one_edit_every_10_steps(tiny):
     out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=0,
                    run_dir=None)
     (sub,) = out["schedule"]["subtasks"]
-    assert (sub["kind"], sub["ratio"], sub["steps"], sub["converged"]) == ("edit", 1.0, 30, True)
+    # a fixed budget: it neither plateaus (converged None) nor is cut by a guard
+    assert (sub["kind"], sub["ratio"], sub["steps"]) == ("edit", 1.0, 30)
+    assert sub["converged"] is None and sub["guard"] is None
+    assert out["metrics"]["all_converged"]
     assert out["metrics"]["utilisation"]["edits"] == 3  # steps 0, 10, 20: no sweep, no r0/rn
     assert out["schedule"]["difficulty_curve"] == []
 

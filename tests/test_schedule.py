@@ -63,19 +63,32 @@ increments = st.lists(st.floats(0.0, 1.0), min_size=KNOTS, max_size=KNOTS)
 @given(increments, st.floats(0.02, 0.8), st.integers(2, 8), st.floats(0.0, 0.05))
 def test_bisection_properties(inc, threshold, max_depth, noise):
     d = noisy(monotone_difficulty(inc), noise)
-    full = decompose(d, threshold=threshold, max_depth=max_depth, prune=False)
+    asked_full, asked_pruned = set(), set()
+    full = decompose(recording(d, asked_full), threshold=threshold, max_depth=max_depth,
+                     prune=False)
     check_schedule(full, d, threshold)
     # unpruned: every interval is dyadic, and only intervals at the depth limit may exceed
     for (a, b), x in zip(zip(full.ratios, full.ratios[1:]), full.difficulties):
         if x > threshold:
             assert b - a == pytest.approx(2.0 ** -max_depth)
-    pruned = decompose(d, threshold=threshold, max_depth=max_depth)
+    pruned = decompose(recording(d, asked_pruned), threshold=threshold, max_depth=max_depth)
     check_schedule(pruned, d, threshold)
     assert set(pruned.ratios) <= set(full.ratios)
     assert pruned.depth_limit_hit == full.depth_limit_hit
     assert_nothing_removable(pruned, d, threshold)
     assert decompose(d, threshold=threshold, max_depth=max_depth) == pruned  # deterministic
-    assert pruned.evaluations >= full.evaluations
+    # evaluations counts exactly the distinct pairs the difficulty was asked for; pruning
+    # asks for the bisection's pairs and then its own checks
+    assert full.evaluations == len(asked_full) and pruned.evaluations == len(asked_pruned)
+    assert asked_full <= asked_pruned
+
+
+def recording(difficulty, asked: set):
+    """``difficulty`` that adds every pair (r_a, r_b) it is asked for to ``asked``."""
+    def d(a, b):
+        asked.add((float(a), float(b)))
+        return difficulty(a, b)
+    return d
 
 
 def test_bisection_linear_is_exact():
@@ -132,13 +145,14 @@ def test_root_placement_properties(inc, threshold):
     assert s.num_subtasks <= decompose(d, threshold=threshold, max_depth=8).num_subtasks
     assert decompose_root(d, threshold=threshold, resolution=res, balance=0, prune=False) == s
     # balancing keeps the count, never raises the largest difficulty, narrows the spread
-    balanced = decompose_root(d, threshold=threshold, resolution=res)
+    asked = set()
+    balanced = decompose_root(recording(d, asked), threshold=threshold, resolution=res)
     check_schedule(balanced, d, threshold)
     assert_nothing_removable(balanced, d, threshold)
     assert balanced.num_subtasks == s.num_subtasks
     assert max(balanced.difficulties) <= max(s.difficulties)
     assert min(balanced.difficulties) >= min(s.difficulties) - 1e-12
-    assert balanced.evaluations >= s.evaluations
+    assert balanced.evaluations == len(asked)
 
 
 def test_root_placement_step_and_noise():

@@ -459,7 +459,8 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     Returns:
       (state at the end of the subtask, {"steps", "converged", "guard", "seconds",
       "edits_complete_at", "anneal_horizon", "annealed_at", "density", "utilisation"});
-      ``guard`` is None (plateau), "steps" or "seconds".
+      ``guard`` is None (plateau, or the end of a fixed budget), "steps" or "seconds";
+      ``converged`` is None for a fixed budget (``stop_on_plateau`` False).
     """
     from ..train import grow_for_redo
 
@@ -479,6 +480,7 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     started = time.perf_counter() - st.seconds
     converged, timed_out_at = False, None
     holder = [st]
+    exchanged_at = None  # a chunk redone (larger buffers) must not edit the same views again
 
     def take(arrivals):
         holder[0] = apply_edits(holder[0], [e.job.view for e in arrivals],
@@ -489,8 +491,10 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
         while True:
             st = holder[0]
             s = st.step
-            if s >= warmup and ((s - warmup) % cfg.edit_every == 0 or not source.deterministic):
+            if s >= warmup and ((s - warmup) % cfg.edit_every == 0 or not source.deterministic) \
+                    and s != exchanged_at:
                 take(source.exchange(s - warmup, trainer.gaussians(st.train)))
+                exchanged_at = s
                 st = holder[0]
             # The deterministic source edits the missing views itself: plateaus wait for it.
             stop_if_plateau = bool(st.edited.all()) or not source.deterministic
@@ -535,7 +539,6 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                                     on_edits=take)
                     if holder[0].edited.all():
                         continue
-                converged = not cfg.stop_on_plateau  # a fixed budget ends where it should
                 break
             if checkpoint is not None and st.step % cfg.checkpoint_every == 0 and not chunk.redo:
                 checkpoint(st)
@@ -544,7 +547,9 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
                              utilisation=st.utilisation.add(source.utilisation))
     guard = None if converged or not cfg.stop_on_plateau else (
         "seconds" if timed_out_at is not None else "steps")
-    return st, {"steps": st.step, "converged": converged, "guard": guard, "seconds": st.seconds,
+    # a fixed budget (IN2N, the equal-budget controls) has no plateau to reach: None, not True
+    return st, {"steps": st.step, "converged": converged if cfg.stop_on_plateau else None,
+                "guard": guard, "seconds": st.seconds,
                 "edits_complete_at": None if st.complete_at < 0 else st.complete_at,
                 "anneal_horizon": None if cfg.mode == "in2n" else warmup + horizon,
                 "annealed_at": None if st.annealed_at < 0 else st.annealed_at,

@@ -64,6 +64,12 @@ class ProEditConfig:
       background: render background (the editor sees renders on it).
       stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs
         exactly ``max_steps`` (IN2N trains for a fixed number of iterations).
+      nd_subtasks: ND mode only: k edit subtasks, all at r = 1 (ND-k: ND with the opacity
+        resets, initial sweeps and subtask count of a k-subtask ProEdit run, the control
+        that separates progression from the extra resets and sweeps).
+      subtask_steps: fixed lengths of the subtasks in plan order (the equal-budget
+        controls): each runs exactly that many steps, no plateau test, no guard (None:
+        the plateau and ``max_steps`` decide).
     """
 
     mode: str = "proedit"
@@ -92,6 +98,8 @@ class ProEditConfig:
     turntable_frames: int = 24
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     stop_on_plateau: bool = True
+    nd_subtasks: int = 1
+    subtask_steps: tuple[int, ...] | None = None
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -110,6 +118,12 @@ class ProEditConfig:
         for name in ("warmup", "turntable_frames"):
             if getattr(self, name) < 0:
                 raise DataError(name, f"must be >= 0, got {getattr(self, name)}")
+        if self.nd_subtasks < 1 or (self.nd_subtasks > 1 and self.mode != "nd"):
+            raise DataError("nd_subtasks", f"must be >= 1, and 1 unless mode is nd, got "
+                                           f"{self.nd_subtasks} ({self.mode})")
+        if self.subtask_steps is not None and (
+                not len(self.subtask_steps) or min(self.subtask_steps) < 1):
+            raise DataError("subtask_steps", f"need lengths >= 1, got {self.subtask_steps}")
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise DataError("max_seconds", f"must be > 0, got {self.max_seconds}")
         for name in ("patience", "loss_window", "max_steps", "anneal_steps", "edit_every",
@@ -152,7 +166,7 @@ def plan_subtasks(mode: str, ratios: Sequence[float], difficulties: Sequence[flo
     """The ordered subtasks of a run.
 
     Args:
-      ratios: the schedule r_0 = start_ratio < r_1 < ... < r_n = 1.
+      ratios: the schedule r_0 = start_ratio < r_1 < ... < r_n = 1 (ND-k: r_1 = ... = r_k = 1).
       difficulties: d(r_{i-1}, r_i) for i = 1..n (or None).
       start_ratio: ratio the scene already has (continuing from a snapshot).
     Returns:
@@ -162,9 +176,12 @@ def plan_subtasks(mode: str, ratios: Sequence[float], difficulties: Sequence[flo
     ratios = [float(r) for r in ratios]
     if mode == "in2n":
         return (SubtaskSpec(0, "r1", 1.0, None, "edit"),)
+    repeats_of_one = mode == "nd" and all(r == 1.0 for r in ratios[1:])
+    steps = list(zip(ratios, ratios[1:]))
     if len(ratios) < 2 or abs(ratios[-1] - 1.0) > 1e-9 or any(
-            b <= a for a, b in zip(ratios, ratios[1:])):
-        raise DataError("schedule", f"ratios must increase strictly to 1, got {ratios}")
+            b <= a for a, b in (steps[:1] if repeats_of_one else steps)):
+        raise DataError("schedule", f"ratios must increase strictly to 1 (ND: or stay at 1), "
+                                    f"got {ratios}")
     diffs = list(difficulties) if difficulties is not None else [None] * (len(ratios) - 1)
     specs: list[SubtaskSpec] = []
     if refine_first:

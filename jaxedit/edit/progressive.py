@@ -111,6 +111,9 @@ def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
     cfg = ctx.config
     if cfg.mode == "nd":
         s = sched.uniform(1, oracle)
+        if cfg.nd_subtasks > 1 and start_ratio == 0.0:  # ND-k: the same edit k times
+            return s, [0.0] + [1.0] * cfg.nd_subtasks, [s.difficulties[0]] + [0.0] * (
+                cfg.nd_subtasks - 1)
     elif cfg.mode == "in2n":
         s = sched.uniform(1, None)
     elif cfg.subtasks is not None:
@@ -314,9 +317,20 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         atomic_write_text(run_dir / "schedule.json", json.dumps(schedule_json(st.records), indent=2) + "\n")
         save(st)
 
+    if config.subtask_steps is not None and len(config.subtask_steps) != len(plan):
+        raise DataError("subtask_steps", f"{len(config.subtask_steps)} lengths for a plan of "
+                                         f"{len(plan)} subtasks")
+
+    def context_of(spec):
+        """The context a subtask runs in (a fixed length: its own step budget, no plateau)."""
+        if config.subtask_steps is None:
+            return ctx
+        return dataclasses.replace(ctx, config=dataclasses.replace(
+            ctx.config, max_steps=int(config.subtask_steps[spec.index]), stop_on_plateau=False))
+
     for spec in plan[st.subtask:]:
         log(f"subtask {spec.index} {spec.name} ({spec.kind}) r = {spec.ratio:.3f}")
-        st, info = run_subtask(ctx, st, spec, callback=callback, checkpoint=save,
+        st, info = run_subtask(context_of(spec), st, spec, callback=callback, checkpoint=save,
                                progress=progress)
         g = trainer.gaussians(st.train)
         record = {"index": spec.index, "name": spec.name, "kind": spec.kind, "ratio": spec.ratio,
@@ -351,7 +365,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     metrics.update(edit_fit_psnr=edit_fit(ctx, st), wall_time_s=time.perf_counter() - wall0,
                    total_steps=int(sum(r["steps"] for r in st.records)),
                    subtasks=len(st.records),
-                   all_converged=bool(all(r["converged"] for r in st.records)),
+                   # a fixed budget's subtasks (converged None) were not cut short
+                   all_converged=bool(all(r["converged"] is not False for r in st.records)),
                    utilisation=st.utilisation.as_dict(), mode=config.mode,
                    asynchronous=config.asynchronous)
     sched_json = schedule_json(st.records)

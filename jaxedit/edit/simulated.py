@@ -79,24 +79,42 @@ produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
 
    Each call draws one mode k per view (from ``key``, on its own ``fold_in`` stream, so the
    draws of section 3 keep their bits) and then edits exactly as in section 3 with T^k in
-   place of T. The draw looks at how close the current render x already is to each mode's
-   r-partial target T^k_r:
+   place of T. The draw follows the mode the current render x already shows, *at the strength
+   it shows it* (not at the requested r: a render half-way to mode c is nearer to every mode's
+   full target than to c's partial one, so comparing at r favours the mode nearest the original):
 
-       d_k   = mean over pixels and channels of |x - T^k_r|
-       tau   = tau_0 + kappa * min_j d_j
-       p_k   = exp(-(d_k - min_j d_j) / tau) / sum_j exp(-(d_j - min_j d_j) / tau)
+       e_k   = min over s in {0, 0.05, ..., 1} of mean |x - T^k(s)|, s_k its argmin
+       z_k   = (e_k - min_j e_j) / (sep(s_khat) + floor)      khat = argmin_j e_j
+       rho   = mean |x - T^khat(s_r)| / (sep(s_r) + floor)
+       tau   = beta t (1 + (lambda rho)^2)
+       p_k   = softmax_k(-z_k / tau)
 
-   with ``mode_floor`` tau_0 = 0.004 (the noise floor: differences below it are invisible) and
-   ``mode_kappa`` kappa = 0.25. The temperature shrinks with the distance to the nearest mode,
-   so the draw sharpens as the render approaches a mode: a render equal to T^k_r (d_k = 0,
-   tau = tau_0) stays in mode k unless another mode is within a few tau_0, as SDEdit keeps what
-   a lightly noised input already shows; a render far from every mode (d_min large) has
-   tau >> the spread of the d_k and picks nearly uniformly. In between, kappa sets the
-   feedback: a render twice as close to mode k as to mode j picks j about exp(-1 / kappa) =
-   2% as often as k, and an even blend of K modes is unstable (the gain of the draw at the
-   blend, about 1 / (K kappa), exceeds 1), so a scene trained on its own edits drifts to one
-   mode. The modes are not equally likely from every start: from the original, the mode whose
-   target is nearest to the original is favoured (e.g. polished bronze over verdigris on skin).
+   where sep(s) is the mean distance between the modes' targets of strength s, t the SDEdit
+   timestep of this call (the same draw as in section 3), ``mode_temperature`` beta = 0.15,
+   ``mode_step_gain`` lambda = 1 and ``mode_floor`` 0.004 (differences below it are invisible).
+   z_k is the render's evidence against mode k in units of what can be told apart where the
+   render is; rho is the step the edit asks for in units of how far apart the modes are where
+   it goes. Hence:
+
+   - the original shows no mode (all T^k(0) are the original): a uniform draw;
+   - a render equal to T^c(s) with s large enough for the modes to differ stays in c with a
+     probability that rises as t falls (a lightly noised input keeps what it shows) and, with
+     lambda > 0, falls with the step size rho (the paper's hypothesis: a small step has a small
+     feasible output space). Measured from T^c at r_{i-1} to the scheduler's r_i (the
+     ``face``-like test views, 4 texture / 8 shape subtasks; tests/test_simulated.py): 0.98-1.00
+     (texture) and 0.93-1.00 (shape, s >= 0.18) at t = 0.45, 0.86-0.99 and 0.76-0.97 at
+     t = 0.85; the whole rest of the edit at once holds 0.72 / 0.44-0.56 from the early ratios;
+   - ``mode_step_gain=0`` is the negative control: the draw does not depend on r at all;
+   - an even blend of modes is unstable (its evidence favours whichever mode it leans to), so a
+     scene trained on its own edits drifts to one mode.
+
+   Geometry-like modes (``geometry_lock``, default on, kind ``shape``): the edit warps the
+   *render* on from the strength it shows (s_k) to the requested one with mode k's aspect,
+   instead of re-deriving the shape from the original. A scene whose views disagree on the
+   shape renders a ghost of several shapes; editing warps the ghost but never removes it, only
+   training (moving Gaussians, whose learning rate is small) can: the failure of editing in one
+   big step that the paper reports for geometry. Colour-like kinds re-derive their targets from
+   the original, so a wrong colour is undone by the next edits.
    ``modes=1`` skips the draw: bit for bit the editor before modes existed.
 
 Everything random comes from the ``key`` argument; equal inputs and key give equal bits. Use
@@ -109,6 +127,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -457,16 +476,22 @@ def _target_family(original, kind: str, points=None, mode: int = 0):
     return lambda s: jnp.clip(original + s * (full - original), 0.0, 1.0)
 
 
-def mode_probabilities(distances, *, kappa: float, floor: float):
-    """p_k of the mode draw from the distances d_k of the render to each mode's r-target.
+def mode_probabilities(evidence, step_ratio, timestep, *, temperature: float, step_gain: float):
+    """p_k of the mode draw (module docstring, section 4). NumPy or JAX.
 
-    p_k = softmax_k(-(d_k - d_min) / tau) with tau = floor + kappa * d_min (module docstring,
-    section 4). float [K] -> float [K]; NumPy or JAX arrays.
+    Args:
+      evidence: float [K], z_k >= 0, how much worse mode k explains the render than the best
+        mode does, in units of the modes' separation at the render's own strength.
+      step_ratio: float [], rho = the step the edit asks for / the modes' separation at the
+        requested strength.
+      timestep: float [], the SDEdit timestep t in [0, 1].
+      temperature, step_gain: beta and lambda of tau = beta t (1 + (lambda rho)^2).
+    Returns:
+      float [K], softmax_k(-z_k / tau).
     """
-    xp = jnp if isinstance(distances, jax.Array) else np
-    d = distances
-    d_min = xp.min(d)
-    logits = -(d - d_min) / (floor + kappa * d_min)
+    xp = jnp if isinstance(evidence, jax.Array) else np
+    tau = temperature * xp.maximum(timestep, 1e-3) * (1.0 + (step_gain * step_ratio) ** 2)
+    logits = -evidence / tau
     w = xp.exp(logits - xp.max(logits))
     return w / xp.sum(w)
 
@@ -482,17 +507,58 @@ class _Params:
     shift: float
     jitter: float
     modes: int = 1
-    mode_kappa: float = 0.25
+    mode_temperature: float = 0.15
+    mode_step_gain: float = 1.0
     mode_floor: float = 0.004
+    geometry_lock: bool = True
 
 
 _MODE_STREAM = 0x6D6F6465  # fold_in tag of the mode draw: the other draws keep their bits
 
 
-def _mode_distances(image, original, s, points, kind: str, modes: int):
-    """(partial targets float [K, H, W, 3], d_k = mean |image - T^k| float [K]) at strength s."""
-    partial = jnp.stack([_target_family(original, kind, points, k)(s) for k in range(modes)])
-    return partial, jnp.mean(jnp.abs(image[None] - partial), axis=(1, 2, 3))
+#: Strengths at which the draw looks for the mode a render shows (its own strength).
+_OWN_STRENGTHS = np.linspace(0.0, 1.0, 21, dtype=np.float32)
+
+
+def _mean_pair_distance(images):
+    """Mean over pairs j < k of mean |images[j] - images[k]|, of float [K, H, W, 3] -> []."""
+    k = images.shape[0]
+    pairs = [jnp.mean(jnp.abs(images[a] - images[b])) for a in range(k) for b in range(a)]
+    return sum(pairs) / len(pairs)
+
+
+class ModeEvidence(NamedTuple):
+    """What the mode draw sees (module docstring, section 4); arrays of one edit.
+
+    partial: float [K, H, W, 3], T^k at the requested strength s.
+    evidence: float [K], z_k.
+    own: float [K], s_k, the strength at which mode k best explains the render.
+    step_ratio: float [], rho.
+    """
+
+    partial: jax.Array
+    evidence: jax.Array
+    own: jax.Array
+    step_ratio: jax.Array
+
+
+def _mode_evidence(image, original, s, points, kind: str, modes: int, floor: float):
+    """The :class:`ModeEvidence` of render ``image`` for an edit of strength ``s``."""
+    families = [_target_family(original, kind, points, k) for k in range(modes)]
+    grid = jnp.asarray(_OWN_STRENGTHS)
+    # [K, G, H, W, 3]: every mode at every strength of the grid
+    paths = jnp.stack([jax.vmap(f)(grid) for f in families])
+    dist = jnp.mean(jnp.abs(image[None, None] - paths), axis=(2, 3, 4))  # [K, G]
+    best = jnp.argmin(dist, axis=1)
+    e = jnp.min(dist, axis=1)
+    k_hat = jnp.argmin(e)
+    # the modes' separation where the render is: evidence is relative to what can be told apart
+    sep_own = _mean_pair_distance(paths[:, best[k_hat]])
+    evidence = (e - jnp.min(e)) / (sep_own + floor)
+    partial = jnp.stack([f(s) for f in families])
+    step = jnp.mean(jnp.abs(image - partial[k_hat]))
+    step_ratio = step / (_mean_pair_distance(partial) + floor)
+    return ModeEvidence(partial, evidence, grid[best], step_ratio)
 
 
 @functools.partial(jax.jit, static_argnames=("kind", "params"))
@@ -506,24 +572,37 @@ def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params
     t = t_range[0] + (t_range[1] - t_range[0]) * u_t[0]
     keep = jnp.cos(0.5 * jnp.pi * jnp.clip(t, 0.0, 1.0))
 
+    geometry = None
     if params.modes == 1:  # the single-outcome editor, exactly as before modes existed
         mode = jnp.int32(0)
         family = _target_family(original, kind, points)
         target = family(s)
     else:
-        partial, dist = _mode_distances(image, original, s, points, kind, params.modes)
-        p = mode_probabilities(dist, kappa=params.mode_kappa, floor=params.mode_floor)
+        ev = _mode_evidence(image, original, s, points, kind, params.modes, params.mode_floor)
+        p = mode_probabilities(ev.evidence, ev.step_ratio, t,
+                               temperature=params.mode_temperature,
+                               step_gain=params.mode_step_gain)
         mode = jax.random.categorical(jax.random.fold_in(key, _MODE_STREAM), jnp.log(p))
         families = [_target_family(original, kind, points, k) for k in range(params.modes)]
         family = lambda v: jax.lax.switch(mode, families, v)  # noqa: E731
-        target = partial[mode]
+        target = ev.partial[mode]
+        if kind == "shape" and params.geometry_lock:
+            # geometry is what the render already has: the edit warps the render on from the
+            # strength it shows, so a ghost of two shapes stays a ghost (only training,
+            # by moving Gaussians, can remove it)
+            mask_r = foreground(image)
+            warps = [functools.partial(lambda a, k: _bulge(image, mask_r, a, _MODE_ASPECTS[k]),
+                                       k=k) for k in range(params.modes)]
+            own = ev.own[mode]
+            geometry = lambda v: jax.lax.switch(  # noqa: E731
+                mode, warps, jnp.clip((v - own) * BULGE_MAX, -BULGE_MAX, BULGE_MAX))
     diff = jnp.abs(image - target)
     gap = jnp.mean(diff)
     local = _blur(jnp.mean(diff, axis=-1), max(h, w) / 16.0)
 
     # the edit of this view: a jittered strength, a displaced pattern, a colour cast
     s_view = s * (1.0 + params.jitter * gscale * gap * _normals(u_jit))
-    edited = family(s_view)
+    edited = family(s_view) if geometry is None else geometry(s_view)
     disp = _random_field(u_warp.reshape(2, FIELD_WAVES, 5), h, w, cycles=0.8)
     disp = disp * (params.shift * gscale * gap * max(h, w))
     rows, cols = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32),
@@ -540,9 +619,10 @@ def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params
 
 
 @functools.partial(jax.jit, static_argnames=("kind", "params"))
-def _probabilities_impl(image, original, s, points, *, kind, params: _Params):
-    _, dist = _mode_distances(image, original, s, points, kind, params.modes)
-    return mode_probabilities(dist, kappa=params.mode_kappa, floor=params.mode_floor)
+def _probabilities_impl(image, original, s, t, points, *, kind, params: _Params):
+    ev = _mode_evidence(image, original, s, points, kind, params.modes, params.mode_floor)
+    return mode_probabilities(ev.evidence, ev.step_ratio, t, temperature=params.mode_temperature,
+                              step_gain=params.mode_step_gain)
 
 
 @functools.partial(jax.jit, static_argnames=("kind", "mode"))
@@ -581,29 +661,37 @@ class SimulatedEditor:
       modes: number K of divergent outcomes per instruction, 1 .. MAX_MODES. 1 (default) is the
         single-outcome editor (bit for bit the editor before modes existed); K > 1 draws one of
         K modes per edit call (module docstring, section 4).
-      mode_kappa: kappa of the draw's temperature tau = mode_floor + kappa * d_min.
-      mode_floor: tau_0, the temperature of a render that already equals a mode's target.
+      mode_temperature: beta of the draw's temperature tau = beta t (1 + (lambda rho)^2).
+      mode_step_gain: lambda, how fast holding a mode falls with the step size relative to the
+        modes' separation (the paper's hypothesis); 0 removes any dependence on the step (the
+        negative control of the mechanism).
+      mode_floor: separations below this (image units) cannot be told apart.
+      geometry_lock: shape modes edit the geometry the render shows instead of re-deriving it
+        from the original (a ghost of two shapes is not undone by editing; section 4).
     """
 
     name = "simulated"
 
     def __init__(self, *, noise: float = 0.004, colour: float = 0.12, shift: float = 0.05,
                  jitter: float = 1.0, surfaces: tuple | None = None, modes: int = 1,
-                 mode_kappa: float = 0.25, mode_floor: float = 0.004):
+                 mode_temperature: float = 0.15, mode_step_gain: float = 1.0,
+                 mode_floor: float = 0.004, geometry_lock: bool = True):
         for field, v in (("noise", noise), ("colour", colour), ("shift", shift),
-                         ("jitter", jitter), ("mode_kappa", mode_kappa)):
+                         ("jitter", jitter), ("mode_step_gain", mode_step_gain)):
             if not (math.isfinite(v) and v >= 0):
                 raise DataError(f"SimulatedEditor.{field}",
                                 f"must be a finite number >= 0, got {v!r}")
-        if not (math.isfinite(mode_floor) and mode_floor > 0):
-            raise DataError("SimulatedEditor.mode_floor", f"must be a finite number > 0, got "
-                            f"{mode_floor!r}")
+        for field, v in (("mode_floor", mode_floor), ("mode_temperature", mode_temperature)):
+            if not (math.isfinite(v) and v > 0):
+                raise DataError(f"SimulatedEditor.{field}", f"must be a finite number > 0, got "
+                                f"{v!r}")
         if isinstance(modes, bool) or not isinstance(modes, (int, np.integer)) \
                 or not 1 <= modes <= MAX_MODES:
             raise DataError("SimulatedEditor.modes",
                             f"must be an integer in 1..{MAX_MODES}, got {modes!r}")
         self.params = _Params(float(noise), float(colour), float(shift), float(jitter),
-                              int(modes), float(mode_kappa), float(mode_floor))
+                              int(modes), float(mode_temperature), float(mode_step_gain),
+                              float(mode_floor), bool(geometry_lock))
         q, _ = np.linalg.qr(np.random.default_rng(20241120).normal(size=(EMBED_DIM, EMBED_DIM)))
         self._basis = q.astype(np.float32)  # columns: null direction, then one per instruction
         self._surface_views = self._surface_points = None
@@ -725,14 +813,18 @@ class SimulatedEditor:
         """The targets of every mode, float32 [K, H, W, 3] (K = ``modes``)."""
         return np.stack([self.target(original, ratio, instruction, k) for k in range(self.modes)])
 
-    def mode_probabilities(self, image, original, embedding) -> np.ndarray:
-        """p_k of the mode draw for the render ``image`` and embedding e(r), float [K]."""
+    def mode_probabilities(self, image, original, embedding, timestep: float = 0.5) -> np.ndarray:
+        """p_k of the mode draw for the render ``image``, embedding e(r) and SDEdit timestep t,
+        float [K]."""
         image, original = _as_image(image, "image"), _as_image(original, "original")
+        if not 0.0 <= float(timestep) <= 1.0:
+            raise DataError("timestep", f"must be in [0, 1], got {timestep!r}")
         i, r = self.decode(embedding)
         kind, s = ("colour", 0.0) if i is None else (VOCABULARY[i].kind, self.strength(r, i))
         return np.asarray(_probabilities_impl(jnp.asarray(image), jnp.asarray(original),
-                                              jnp.float32(s), self._points(original),
-                                              kind=kind, params=self.params))
+                                              jnp.float32(s), jnp.float32(timestep),
+                                              self._points(original), kind=kind,
+                                              params=self.params))
 
     def target_of_embedding(self, original, embedding) -> np.ndarray:
         """The noise-free target for an embedding e(r) (the original for the null embedding)."""

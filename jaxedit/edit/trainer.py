@@ -31,12 +31,15 @@ from .plan import ProEditConfig
 #:   start is the reset.
 #: - ``max_gaussians`` None: :func:`default_max_gaussians` of the input scene.
 #: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig` owns it; ``run_edit``
-#:   sets it per run).
+#:   sets it per run); ``refine_from_warmup``: the first maintenance (cull and create) comes
+#:   right after the W steps, then every ``refine_every`` (with INRIA's clock a W below
+#:   ``refine_every`` had no effect: the first maintenance was at step ``refine_every``
+#:   whatever W).
 #: - ``stop_at``: never (a subtask has no fixed length).
 EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
                              budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
-                             warmup=ProEditConfig.warmup, stop_at=2 ** 30, reset_every=0,
-                             cull_alpha=0.1)
+                             warmup=ProEditConfig.warmup, refine_from_warmup=True, stop_at=2 ** 30,
+                             reset_every=0, cull_alpha=0.1)
 #: IN2N / IGS2GS mode: Splatfacto's classic thresholds and its periodic opacity reset.
 CLASSIC_RESET_EVERY = 3000
 
