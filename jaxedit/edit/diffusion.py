@@ -10,11 +10,30 @@ JAX arrays alike; nothing here imports torch.
 
 from __future__ import annotations
 
+import json
+import os
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
+from ..io.weights import local_model_folder
+
+DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
+HOW_TO_GET = (f"{DEFAULT_MODEL} in diffusers format; download it on a machine with network with "
+              f"`huggingface-cli download {DEFAULT_MODEL} --local-dir DIR` (or `hf download`) "
+              f"and pass --ip2p-weights DIR")
+
+# Sub-folder -> files of which at least one must exist, in diffusers' save_pretrained layout.
+_LAYOUT = {
+    "unet": ["config.json"],
+    "vae": ["config.json"],
+    "text_encoder": ["config.json"],
+    "tokenizer": ["vocab.json", "tokenizer.json"],
+    "scheduler": ["scheduler_config.json"],
+}
 
 #: The diffusion timesteps Stable Diffusion is trained with.
 NUM_TRAIN_TIMESTEPS = 1000
@@ -69,10 +88,11 @@ def timestep_table(t_start: jax.Array, steps: int) -> tuple[jax.Array, jax.Array
       the last one, where the update lands on the final alpha).
     """
     t_start = jnp.asarray(t_start, jnp.int32)
-    k = jnp.arange(steps, dtype=jnp.float32)
-    # T (steps - k) < 2^24 is exact in float32, and a quotient that is not a half-integer
-    # lies at least 1 / (2 steps) from one, so rounding matches Python's float64 round.
-    t = jnp.round(t_start[..., None].astype(jnp.float32) * (steps - k) / steps).astype(jnp.int32)
+    # Integer arithmetic: a float quotient may be computed as a product with 1 / steps
+    # (XLA does), which turns 343 / 14 = 24.5 into 24.500002 and rounds it the wrong way.
+    num = t_start[..., None] * (steps - jnp.arange(steps, dtype=jnp.int32))
+    q, r = num // steps, num % steps
+    t = q + ((2 * r > steps) | ((2 * r == steps) & (q % 2 == 1))).astype(jnp.int32)
     prev = jnp.concatenate([jnp.full(t.shape[:-1] + (1,), -1, jnp.int32), t[..., :-1]], -1)
     valid = (t > 0) & (t != prev)
     # The slots are non-increasing, so the next valid timestep is the largest smaller one.
@@ -122,3 +142,52 @@ def ddim_step(sample, model_output, alpha_t, alpha_prev, prediction_type: str = 
         x0 = x0.clamp(-clip_sample, clip_sample) if hasattr(x0, "clamp") else jnp.clip(
             x0, -clip_sample, clip_sample)
     return a_p ** 0.5 * x0 + (1 - a_p) ** 0.5 * eps
+
+
+# ----------------------------------------------------------------------------- weights folders
+
+def resolve_weights(path: str | os.PathLike) -> Path:
+    """A local diffusers folder, or a Hub id found in the local Hugging Face cache (never the
+    network). Checks the layout and names what is missing."""
+    p = local_model_folder(path, what="InstructPix2Pix weights", how_to_get=HOW_TO_GET)
+    missing = [f"{sub}/{files[0]}" for sub, files in _LAYOUT.items()
+               if not any((p / sub / f).is_file() for f in files)]
+    if missing:
+        raise DataError(p, f"incomplete diffusers folder, missing {', '.join(missing)}; "
+                        f"needs {HOW_TO_GET}")
+    return p
+
+
+def ddim_overrides(folder: Path) -> dict:
+    """DDIM settings for a scheduler config of another class.
+
+    IP2P's repository ships an Euler-ancestral config. Read as DDIM it would get DDIM's
+    defaults clip_sample=True and set_alpha_to_one=True; Stable Diffusion 1.x's DDIM setup
+    (and IN2N, which takes its DDIM config from CompVis/stable-diffusion-v1-4) uses
+    neither. The betas always come from the folder; an explicit DDIM config is kept as is.
+    """
+    try:
+        config = json.loads((folder / "scheduler_config.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        raise DataError(folder / "scheduler_config.json", "unreadable scheduler config") from None
+    if config.get("_class_name") == "DDIMScheduler":
+        return {}
+    return {"clip_sample": False, "set_alpha_to_one": False}
+
+
+def ddim_settings(folder: Path, alphas_cumprod) -> dict:
+    """The DDIM update's settings from a scheduler folder, read as :func:`ddim_overrides` says.
+
+    Returns {"final_alpha": float, "clip_sample": float | None}: alpha after the last step
+    (1 with ``set_alpha_to_one``, else alpha_0) and the x0 clamp (None: no clipping), with
+    DDIMScheduler's defaults (clip_sample True, range 1, set_alpha_to_one True) for keys an
+    explicit DDIM config leaves out.
+    """
+    config = {**json.loads((folder / "scheduler_config.json").read_text()),
+              **ddim_overrides(folder)}
+    if config.get("thresholding", False):
+        raise DataError(folder, "dynamic thresholding schedulers are not supported by the "
+                        "SDEdit loop")
+    clip = float(config.get("clip_sample_range", 1.0)) if config.get("clip_sample", True) else None
+    final = 1.0 if config.get("set_alpha_to_one", True) else float(np.asarray(alphas_cumprod)[0])
+    return {"final_alpha": final, "clip_sample": clip}

@@ -40,7 +40,6 @@ depend on which GPU produced them (up to the networks' floating point).
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import warnings
@@ -62,31 +61,16 @@ import jax
 import numpy as np
 
 from ..errors import DataError
-from ..io.weights import local_model_folder
 # The shared diffusion arithmetic; re-exported here, where it used to live.
-from .diffusion import (check_timestep_range, ddim_step, draw_timestep, dual_guidance,  # noqa: F401
-                        model_size, timestep_schedule)
+from .diffusion import (DEFAULT_MODEL, HOW_TO_GET, check_timestep_range,  # noqa: F401
+                        ddim_overrides, ddim_step, draw_timestep, dual_guidance, model_size,
+                        resolve_weights, timestep_schedule)
 
 log = logging.getLogger(__name__)
 
 __all__ = ["InstructPix2PixEditor", "load_editor", "DEFAULT_MODEL", "HOW_TO_GET", "ddim_step",
            "draw_timestep", "dual_guidance", "model_size", "resolve_weights", "seed_from_key",
            "timestep_schedule"]
-
-DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
-HOW_TO_GET = (f"{DEFAULT_MODEL} in diffusers format; download it on a machine with network with "
-              f"`huggingface-cli download {DEFAULT_MODEL} --local-dir DIR` (or `hf download`) "
-              f"and pass --ip2p-weights DIR")
-
-# Sub-folder -> files of which at least one must exist, in diffusers' save_pretrained layout.
-_LAYOUT = {
-    "unet": ["config.json"],
-    "vae": ["config.json"],
-    "text_encoder": ["config.json"],
-    "tokenizer": ["vocab.json", "tokenizer.json"],
-    "scheduler": ["scheduler_config.json"],
-}
-
 
 # ----------------------------------------------------------------------------- pure helpers
 
@@ -98,18 +82,6 @@ def seed_from_key(key: jax.Array) -> tuple[jax.Array, int]:
 
 
 # ----------------------------------------------------------------------------- loading
-
-def resolve_weights(path: str | os.PathLike) -> Path:
-    """A local diffusers folder, or a Hub id found in the local Hugging Face cache (never the
-    network). Checks the layout and names what is missing."""
-    p = local_model_folder(path, what="InstructPix2Pix weights", how_to_get=HOW_TO_GET)
-    missing = [f"{sub}/{files[0]}" for sub, files in _LAYOUT.items()
-               if not any((p / sub / f).is_file() for f in files)]
-    if missing:
-        raise DataError(p, f"incomplete diffusers folder, missing {', '.join(missing)}; "
-                        f"needs {HOW_TO_GET}")
-    return p
-
 
 def _load(root: Path, sub: str, loader):
     try:
@@ -126,23 +98,6 @@ def _from_jax(x: jax.Array) -> "torch.Tensor":
         return torch.from_dlpack(x)
     except (RuntimeError, TypeError, BufferError, ValueError):
         return torch.from_numpy(np.array(x))
-
-
-def _ddim_overrides(folder: Path) -> dict:
-    """DDIM settings for a scheduler config of another class.
-
-    IP2P's repository ships an Euler-ancestral config. Read as DDIM it would get DDIM's
-    defaults clip_sample=True and set_alpha_to_one=True; Stable Diffusion 1.x's DDIM setup
-    (and IN2N, which takes its DDIM config from CompVis/stable-diffusion-v1-4) uses
-    neither. The betas always come from the folder; an explicit DDIM config is kept as is.
-    """
-    try:
-        config = json.loads((folder / "scheduler_config.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        raise DataError(folder / "scheduler_config.json", "unreadable scheduler config") from None
-    if config.get("_class_name") == "DDIMScheduler":
-        return {}
-    return {"clip_sample": False, "set_alpha_to_one": False}
 
 
 def _dtype(dtype):
@@ -193,7 +148,7 @@ class InstructPix2PixEditor:
         self.final_alpha = float(scheduler.final_alpha_cumprod)
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.prediction_type = scheduler.config.prediction_type
-        # The DDIM update follows the scheduler's config (see _ddim_overrides for IP2P's own).
+        # The DDIM update follows the scheduler's config (see ddim_overrides for IP2P's own).
         if getattr(scheduler.config, "thresholding", False):
             raise DataError(f"{source or 'scheduler'}", "dynamic thresholding schedulers are not "
                             "supported by the SDEdit loop")
@@ -232,7 +187,7 @@ class InstructPix2PixEditor:
         tokenizer = _load(root, "tokenizer", lambda: CLIPTokenizer.from_pretrained(
             root, subfolder="tokenizer", **kw))
         scheduler = _load(root, "scheduler", lambda: DDIMScheduler.from_pretrained(
-            root, subfolder="scheduler", **_ddim_overrides(root / "scheduler"), **kw))
+            root, subfolder="scheduler", **ddim_overrides(root / "scheduler"), **kw))
         editor = cls(unet, vae, text_encoder, tokenizer, scheduler, device=device, dtype=dtype,
                      size=size, steps=steps, source=str(root))
         log.info("InstructPix2Pix loaded from %s on %s (%s), size %s, %d DDIM steps", root,
