@@ -1,0 +1,395 @@
+"""jaxedit.models against diffusers / transformers (the oracle) on tiny random pipelines.
+
+The tiny configs keep every block kind Stable Diffusion 1.5 / InstructPix2Pix uses
+(CrossAttnDownBlock2D, DownBlock2D, UNetMidBlock2DCrossAttn, UpBlock2D, CrossAttnUpBlock2D,
+layers_per_block 2, attention_head_dim as a head count, cross-attention, 8 input channels;
+the VAE's asymmetric downsampling and mid-block attention; CLIP's causal quick-gelu layers).
+Every parameter is perturbed before saving so that norms are not (1, 0) and no tensor is
+zero: a wrong name mapping or layout cannot pass.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+import warnings
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+diffusers = pytest.importorskip("diffusers")
+transformers = pytest.importorskip("transformers")
+
+from safetensors.numpy import load_file, save_file  # noqa: E402
+
+from jaxedit.errors import DataError  # noqa: E402
+from jaxedit.models import (AutoencoderKL, CLIPTextEncoder, CLIPTokenizer, UNet2DCondition,  # noqa: E402
+                            cast, load_ip2p, load_module)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY_UNET = dict(
+    sample_size=8, in_channels=8, out_channels=4, layers_per_block=2,
+    block_out_channels=(16, 32, 32),
+    down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
+    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+    cross_attention_dim=24, attention_head_dim=2, norm_num_groups=8)
+TINY_VAE = dict(
+    in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(8, 16, 16),
+    layers_per_block=2, down_block_types=("DownEncoderBlock2D",) * 3,
+    up_block_types=("UpDecoderBlock2D",) * 3, norm_num_groups=4, sample_size=32)
+TINY_CLIP = dict(hidden_size=24, intermediate_size=37, num_hidden_layers=2, num_attention_heads=4,
+                 max_position_embeddings=77, hidden_act="quick_gelu")
+PROMPTS = ["Turn him into a clown!", "the  THE\tthe thethe", "what's up? it'll rain, 42 C...",
+           "émigré café ☃ naïve", "", "<|endoftext|> in the middle",
+           " ".join(["make it look like a painting by van gogh"] * 12)]
+
+
+def perturb(model: "torch.nn.Module", seed: int, scale: float = 0.3) -> "torch.nn.Module":
+    """Add noise to every parameter (norm weights leave 1, biases leave 0)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            std = float(p.std()) if p.numel() > 1 else 0.0
+            p.add_(torch.randn(p.shape, generator=g) * (scale * std + 0.02))
+    return model.eval()
+
+
+def byte_level_vocab(words: list[str], merges: list[tuple[str, str]]) -> dict[str, int]:
+    """A CLIP-style vocabulary: specials, the 256 byte symbols (plain and word-final), merges."""
+    from tokenizers import pre_tokenizers
+    alphabet = pre_tokenizers.ByteLevel.alphabet()
+    vocab = {"<|startoftext|>": 0, "<|endoftext|>": 1}
+    for token in sorted(alphabet) + [c + "</w>" for c in sorted(alphabet)] + words:
+        vocab.setdefault(token, len(vocab))
+    for a, b in merges:
+        vocab.setdefault(a + b, len(vocab))
+    return vocab
+
+
+MERGES = [("t", "h"), ("th", "e</w>"), ("i", "n"), ("a", "n"), ("o", "n</w>"), ("c", "l"),
+          ("cl", "o"), ("clo", "w"), ("clow", "n</w>"), ("t", "o</w>"), ("in", "to</w>")]
+
+
+def write_tokenizer_files(folder: Path) -> Path:
+    """vocab.json + merges.txt only (the reader's own BPE construction path)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "vocab.json").write_text(json.dumps(byte_level_vocab([], MERGES)))
+    (folder / "merges.txt").write_text("#version: 0.2\n" + "".join(f"{a} {b}\n" for a, b in MERGES))
+    return folder
+
+
+def build_tiny_pipeline(root: Path, *, linear_projection: bool = False) -> Path:
+    """A tiny random SD / IP2P pipeline in diffusers' layout (perturbed weights)."""
+    from diffusers import AutoencoderKL as TorchVAE
+    from diffusers import EulerAncestralDiscreteScheduler, UNet2DConditionModel
+    from transformers import CLIPTextConfig, CLIPTextModel
+    from transformers import CLIPTokenizer as TorchTokenizer
+
+    torch.manual_seed(0)
+    perturb(UNet2DConditionModel(**TINY_UNET, use_linear_projection=linear_projection), 1) \
+        .save_pretrained(root / "unet")
+    perturb(TorchVAE(**TINY_VAE), 2).save_pretrained(root / "vae")
+    tok_dir = write_tokenizer_files(root / "tokenizer")
+    vocab_size = len(json.loads((tok_dir / "vocab.json").read_text()))
+    perturb(CLIPTextModel(CLIPTextConfig(vocab_size=vocab_size, bos_token_id=0, eos_token_id=1,
+                                         pad_token_id=1, **TINY_CLIP)), 3) \
+        .save_pretrained(root / "text_encoder")
+    TorchTokenizer(vocab=str(tok_dir / "vocab.json"), merges=str(tok_dir / "merges.txt"),
+                   model_max_length=77).save_pretrained(tok_dir)
+    with warnings.catch_warnings():  # diffusers' own NumPy 2 deprecation, not ours
+        warnings.simplefilter("ignore", DeprecationWarning)
+        EulerAncestralDiscreteScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
+                                        steps_offset=1).save_pretrained(root / "scheduler")
+    (root / "model_index.json").write_text(json.dumps(
+        {"_class_name": "StableDiffusionInstructPix2PixPipeline"}))
+    return root
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # toy tensors: threads only add contention on a shared 2-core box
+    yield build_tiny_pipeline(tmp_path_factory.mktemp("models") / "tiny-ip2p")
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def models(tiny):
+    return load_ip2p(tiny)
+
+
+def nchw(x: np.ndarray) -> "torch.Tensor":
+    return torch.from_numpy(np.ascontiguousarray(np.asarray(x).transpose(0, 3, 1, 2)))
+
+
+def nhwc(t: "torch.Tensor") -> np.ndarray:
+    return t.detach().numpy().transpose(0, 2, 3, 1)
+
+
+def assert_close(ours, ref, rel=1e-4):
+    ours, ref = np.asarray(ours, np.float64), np.asarray(ref, np.float64)
+    assert ours.shape == ref.shape
+    err, scale = np.abs(ours - ref).max(), np.abs(ref).max()
+    assert scale > 1e-3, "reference output is degenerate"
+    assert err <= rel * scale, f"max |diff| {err:.3g} > {rel} x max |ref| {scale:.3g}"
+
+
+# ----------------------------------------------------------------------------- equivalence
+
+@pytest.mark.parametrize("hw", [(8, 8), (7, 10)])
+def test_unet_matches_diffusers(tiny, models, hw):
+    """eps for a batch of two timesteps; (7, 10) is not a multiple of 4, so the up path must
+    resize to the skips' sizes as diffusers does."""
+    from diffusers import UNet2DConditionModel
+    ref_model = UNet2DConditionModel.from_pretrained(tiny / "unet").eval()
+    rng = np.random.default_rng(0)
+    sample = rng.standard_normal((2, *hw, 8)).astype(np.float32)
+    context = rng.standard_normal((2, 7, 24)).astype(np.float32)
+    t = np.array([981, 17], np.int32)
+    with torch.no_grad():
+        ref = ref_model(nchw(sample), torch.from_numpy(t).long(), torch.from_numpy(context)).sample
+    ours = eqx.filter_jit(lambda m, x, t, c: m(x, t, c))(models.unet, sample, t, context)
+    assert_close(ours, nhwc(ref))
+    # A scalar timestep is broadcast over the batch.
+    with torch.no_grad():
+        ref_scalar = ref_model(nchw(sample), 500, torch.from_numpy(context)).sample
+    assert_close(models.unet(sample, 500, context), nhwc(ref_scalar))
+
+
+def test_unet_linear_projection_matches_diffusers(tmp_path):
+    """SD 2.x's use_linear_projection: proj_in / proj_out are linear layers."""
+    from diffusers import UNet2DConditionModel
+    torch.manual_seed(4)
+    ref_model = perturb(UNet2DConditionModel(**{**TINY_UNET, "block_out_channels": (16, 16, 16)},
+                                             use_linear_projection=True), 5)
+    ref_model.save_pretrained(tmp_path / "unet")
+    unet = load_module(tmp_path / "unet", UNet2DCondition.from_config)
+    assert type(unet.down_blocks[0].attentions[0].proj_in).__name__ == "Linear"
+    rng = np.random.default_rng(1)
+    sample = rng.standard_normal((1, 8, 8, 8)).astype(np.float32)
+    context = rng.standard_normal((1, 5, 24)).astype(np.float32)
+    with torch.no_grad():
+        ref = ref_model(nchw(sample), 250, torch.from_numpy(context)).sample
+    assert_close(jax.jit(lambda m, x, c: m(x, 250, c))(unet, sample, context), nhwc(ref))
+
+
+def test_vae_matches_diffusers(tiny, models):
+    from diffusers import AutoencoderKL as TorchVAE
+    ref_model = TorchVAE.from_pretrained(tiny / "vae").eval()
+    rng = np.random.default_rng(2)
+    image = rng.uniform(-1, 1, (2, 32, 24, 3)).astype(np.float32)
+    latent = rng.standard_normal((2, 4, 3, 4)).astype(np.float32)
+    with torch.no_grad():
+        posterior = ref_model.encode(nchw(image)).latent_dist
+        decoded = ref_model.decode(nchw(latent)).sample
+    mean, logvar = eqx.filter_jit(lambda m, x: m.encode(x))(models.vae, image)
+    assert mean.shape == (2, 8, 6, 4)
+    assert_close(mean, nhwc(posterior.mean))
+    assert_close(logvar, nhwc(posterior.logvar))
+    assert_close(eqx.filter_jit(lambda m, z: m.decode(z))(models.vae, latent), nhwc(decoded))
+    assert models.vae.scaling_factor == ref_model.config.scaling_factor
+
+
+def test_text_encoder_and_tokenizer_match_transformers(tiny, models):
+    from transformers import CLIPTextModel
+    from transformers import CLIPTokenizer as TorchTokenizer
+    ref_tok = TorchTokenizer.from_pretrained(tiny / "tokenizer")
+    ref_ids = ref_tok(PROMPTS, padding="max_length", max_length=77, truncation=True,
+                      return_tensors="np").input_ids
+    ids = models.tokenizer.ids(PROMPTS)
+    assert ids.dtype == np.int32 and ids.shape == (len(PROMPTS), 77)
+    np.testing.assert_array_equal(ids, ref_ids)
+    ref_model = CLIPTextModel.from_pretrained(tiny / "text_encoder").eval()
+    with torch.no_grad():
+        ref = ref_model(torch.from_numpy(ref_ids).long()).last_hidden_state.numpy()
+    assert_close(jax.jit(lambda m, i: m(i))(models.text_encoder, ids), ref)
+
+
+def test_tokenizer_from_vocab_and_merges_matches_transformers(tmp_path):
+    """Without tokenizer.json the BPE is built from vocab.json + merges.txt; a pad token
+    other than eos (as SD 2.x's "!") comes from special_tokens_map.json."""
+    from transformers import CLIPTokenizer as TorchTokenizer
+    folder = write_tokenizer_files(tmp_path / "tok")
+    ref = TorchTokenizer(vocab=str(folder / "vocab.json"), merges=str(folder / "merges.txt"))
+    want = ref(PROMPTS, padding="max_length", max_length=77, truncation=True).input_ids
+    np.testing.assert_array_equal(CLIPTokenizer.from_folder(folder).ids(PROMPTS), want)
+    # Unknown characters: a single-letter vocabulary without the byte symbols maps them to unk.
+    (folder / "special_tokens_map.json").write_text(json.dumps({"pad_token": "!"}))
+    ref = TorchTokenizer(vocab=str(folder / "vocab.json"), merges=str(folder / "merges.txt"),
+                         pad_token="!")
+    want = ref(PROMPTS, padding="max_length", max_length=77, truncation=True).input_ids
+    np.testing.assert_array_equal(CLIPTokenizer.from_folder(folder).ids(PROMPTS), want)
+    assert want[0][-1] == ref.convert_tokens_to_ids("!")
+
+
+def test_tokenizer_unknown_symbols(tmp_path):
+    """A vocabulary lacking most byte symbols: what is not in it becomes the unk token."""
+    from transformers import CLIPTokenizer as TorchTokenizer
+    folder = tmp_path / "tok"
+    folder.mkdir()
+    vocab = {"<|startoftext|>": 0, "<|endoftext|>": 1}
+    for c in "abcdefghijklmnopqrstuvwxyz":
+        vocab[c], vocab[c + "</w>"] = len(vocab), len(vocab) + 1
+    vocab["th"], vocab["the</w>"] = len(vocab), len(vocab) + 1
+    (folder / "vocab.json").write_text(json.dumps(vocab))
+    (folder / "merges.txt").write_text("#version: 0.2\nt h\nth e</w>\n")
+    ref = TorchTokenizer(vocab=str(folder / "vocab.json"), merges=str(folder / "merges.txt"))
+    want = ref(PROMPTS, padding="max_length", max_length=77, truncation=True).input_ids
+    np.testing.assert_array_equal(CLIPTokenizer.from_folder(folder).ids(PROMPTS), want)
+
+
+def test_schedule_matches_diffusers(models, tiny):
+    from diffusers import DDIMScheduler
+    ref = DDIMScheduler.from_pretrained(tiny / "scheduler")
+    s = models.scheduler
+    assert (s.num_train_timesteps, s.beta_schedule, s.prediction_type) == (1000, "scaled_linear", "epsilon")
+    np.testing.assert_allclose(s.alphas_cumprod, ref.alphas_cumprod.numpy(), rtol=2e-6)
+
+
+def test_cast_bf16_runs_and_tracks_fp32(models):
+    """bf16 weights compute in bf16 (norm statistics and softmax in fp32): same answer to bf16
+    accuracy."""
+    half = cast(models, jnp.bfloat16)
+    assert half.unet.conv_in.weight.dtype == jnp.bfloat16
+    assert half.tokenizer is models.tokenizer
+    rng = np.random.default_rng(3)
+    sample = rng.standard_normal((1, 8, 8, 8)).astype(np.float32)
+    context = rng.standard_normal((1, 7, 24)).astype(np.float32)
+    full = np.asarray(models.unet(sample, 300, context))
+    low = half.unet(sample, 300, context)
+    assert low.dtype == jnp.bfloat16
+    err = np.abs(np.asarray(low, np.float32) - full).max()
+    assert err < 0.05 * np.abs(full).max()
+
+
+def test_models_jit_as_arguments(models):
+    """The whole IP2PModels pytree (static tokenizer and schedule) goes through jax.jit."""
+    ids = models.tokenizer.ids(["a cat"])
+    f = jax.jit(lambda m, i: m.text_encoder(i))
+    np.testing.assert_allclose(f(models, ids), models.text_encoder(ids), rtol=1e-5, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- loader errors
+
+def _copy_component(tiny: Path, tmp_path: Path, sub: str) -> tuple[Path, Path]:
+    folder = tmp_path / sub
+    shutil.copytree(tiny / sub, folder)
+    return folder, next(folder.glob("*.safetensors"))
+
+
+def _edit_weights(path: Path, change) -> None:
+    tensors = load_file(str(path))
+    change(tensors)
+    save_file(tensors, str(path))
+
+
+def test_missing_tensor_is_named(tiny, tmp_path):
+    folder, path = _copy_component(tiny, tmp_path, "unet")
+    _edit_weights(path, lambda t: t.pop("down_blocks.1.attentions.0.proj_in.weight"))
+    with pytest.raises(DataError, match=r"missing tensor 'down_blocks\.1\.attentions\.0\.proj_in\.weight'") as e:
+        load_module(folder, UNet2DCondition.from_config)
+    assert e.value.where == str(path) and "\n" not in str(e.value)
+
+
+def test_unexpected_tensors_are_named_and_counted(tiny, tmp_path):
+    folder, path = _copy_component(tiny, tmp_path, "vae")
+
+    def add(t):
+        for i in range(5):
+            t[f"decoder.extra.{i}.weight"] = np.zeros(3, np.float32)
+    _edit_weights(path, add)
+    with pytest.raises(DataError, match=r"unexpected tensors 'decoder\.extra\.0\.weight', .* and 2 more"):
+        load_module(folder, AutoencoderKL.from_config)
+
+
+def test_wrong_shape_is_named(tiny, tmp_path):
+    folder, path = _copy_component(tiny, tmp_path, "text_encoder")
+    # Names carry "text_model." in SD's checkpoints, not in what transformers 5 saves.
+    name = next(k for k in load_file(str(path)) if k.endswith("encoder.layers.1.mlp.fc1.weight"))
+    _edit_weights(path, lambda t: t.__setitem__(name, t[name][:-1]))
+    with pytest.raises(DataError, match=f"'{name}' has shape "
+                                        r"\[36, 24\], expected \[37, 24\]"):
+        load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
+
+
+def test_legacy_vae_attention_names_load(tiny, tmp_path, models):
+    """VAE checkpoints from before diffusers 0.14 name the mid-block attention query/key/value/
+    proj_attn, some with 1x1-conv shaped weights; they load to the same module."""
+    folder, path = _copy_component(tiny, tmp_path, "vae")
+
+    def rename(t):
+        for name in [k for k in t if ".attentions.0." in k]:
+            for new, old in (("to_q", "query"), ("to_k", "key"), ("to_v", "value"), ("to_out.0", "proj_attn")):
+                if f".{new}." in name:
+                    value = t.pop(name)
+                    t[name.replace(f".{new}.", f".{old}.")] = value[..., None, None] if value.ndim == 2 else value
+    _edit_weights(path, rename)
+    vae = load_module(folder, AutoencoderKL.from_config)
+    for a, b in zip(jax.tree_util.tree_leaves(vae), jax.tree_util.tree_leaves(models.vae)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_torch_pickle_is_refused_with_a_conversion_hint(tiny, tmp_path):
+    folder, path = _copy_component(tiny, tmp_path, "text_encoder")
+    path.rename(folder / "pytorch_model.bin")
+    with pytest.raises(DataError, match=r"pytorch_model\.bin: is a torch pickle.*convert it.*"
+                                        r"'model\.safetensors'"):
+        load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
+    (folder / "pytorch_model.bin").unlink()
+    with pytest.raises(DataError, match="no weights file"):
+        load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
+
+
+def test_fp16_variant_loads(tiny, tmp_path, models):
+    folder, path = _copy_component(tiny, tmp_path, "text_encoder")
+    tensors = {k: v.astype(np.float16) for k, v in load_file(str(path)).items()}
+    path.unlink()
+    save_file(tensors, str(folder / "model.fp16.safetensors"))
+    enc = load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
+    w = enc.encoder.layers[0].mlp.fc1.weight
+    assert w.dtype == jnp.float32
+    np.testing.assert_array_equal(w, np.asarray(models.text_encoder.encoder.layers[0].mlp.fc1.weight)
+                                  .astype(np.float16).astype(np.float32))
+
+
+def test_incomplete_folder_names_what_is_missing(tiny, tmp_path):
+    shutil.copytree(tiny, tmp_path / "p")
+    shutil.rmtree(tmp_path / "p" / "scheduler")
+    with pytest.raises(DataError, match=r"missing scheduler/scheduler_config\.json"):
+        load_ip2p(tmp_path / "p")
+
+
+# ----------------------------------------------------------------------------- no torch
+
+def test_models_import_and_load_without_torch(tiny):
+    """jaxedit.models needs none of torch / diffusers / transformers: a child process where
+    importing them fails loads the tiny folder and runs the text encoder."""
+    script = textwrap.dedent(f"""
+        import sys
+        class Block:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in ("torch", "diffusers", "transformers"):
+                    raise ImportError("blocked: " + name)
+                return None
+        sys.meta_path.insert(0, Block())
+        import jaxedit.models as m
+        models = m.load_ip2p({str(tiny)!r})
+        ids = models.tokenizer.ids(["turn him into a clown"])
+        print(ids.shape, models.text_encoder(ids).shape)
+        assert not [k for k in sys.modules if k.split(".")[0] in ("torch", "diffusers", "transformers")]
+    """)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "(1, 77) (1, 77, 24)" in out.stdout
