@@ -8,6 +8,13 @@ resizing, VAE, three-branch guidance, the DDIM schedule and update, decoding.
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,6 +30,7 @@ from jaxedit.edit import ip2p  # noqa: E402
 from jaxedit.edit import jax_ip2p as jx  # noqa: E402
 
 STEPS = 2
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def assert_close(ours, ref, rel=1e-4):
@@ -91,3 +99,47 @@ def test_whole_edit_matches_torch_editor(editors, shape, t_start):
     # The edit did something the comparison can see: it is not the input.
     assert np.abs(expected - image).mean() > 1e-2
 
+
+
+@pytest.mark.slow
+def test_cli_edit_with_the_jax_editor_runs_without_torch(weights, tmp_path):
+    """`python -m experiments edit --editor ip2p --ip2p-weights DIR` in a child process where
+    importing torch, diffusers or transformers fails: a whole (tiny) edit runs to the end."""
+    from test_cli_bad_inputs import _dataset
+
+    from jaxedit import gaussians as G
+    from jaxedit.io import save_ply
+
+    data = _dataset(tmp_path / "data")
+    scene = tmp_path / "scene.ply"
+    rng = np.random.default_rng(1)
+    save_ply(scene, G.from_points(rng.normal(scale=0.3, size=(30, 3)), rng.uniform(size=(30, 3)),
+                                  sh_degree=0))
+    out = tmp_path / "run"
+    argv = ["edit", "--editor", "ip2p", "--ip2p-weights", str(weights), "--ip2p-size", "16",
+            "--ip2p-steps", "1", "--data", str(data), "--scene", str(scene), "--prompt",
+            "make it red", "--mode", "nd", "--sync", "--max-steps", "12", "--warmup", "2",
+            "--edit-every", "4", "--test-views", "1", "--turntable-frames", "0", "--no-report",
+            "--quiet", "--out", str(out)]
+    script = textwrap.dedent(f"""
+        import sys
+        class Block:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in ("torch", "diffusers", "transformers"):
+                    raise ImportError("blocked: " + name)
+                return None
+        sys.meta_path.insert(0, Block())
+        from experiments import cli
+        code = cli.main({argv!r})
+        assert not [k for k in sys.modules if k.split(".")[0] in ("torch", "diffusers",
+                                                                   "transformers")]
+        sys.exit(code)
+    """)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          env=env, timeout=600, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert sorted(out.glob("subtasks/*/scene.ply")), sorted(p.name for p in out.iterdir())
+    schedule = json.loads((out / "schedule.json").read_text())
+    assert schedule["editor"] == "ip2p"
+    assert sum(r["utilisation"]["edits"] for r in schedule["subtasks"] if r.get("utilisation")) > 0
