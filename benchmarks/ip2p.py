@@ -256,6 +256,7 @@ def main(argv=None):
                       + (f" (compile {r['compile_s']:.1f} s)" if "compile_s" in r else ""),
                       flush=True)
     result = {"smoke": args.smoke, "arch": "weights" if args.weights else arch,
+              "load_average_1min": os.getloadavg()[0],  # a shared machine's timings need it
               "model_size": size, "image_hw": list(hw), "ddim_steps": steps,
               "unet_batch_per_view": 3, "timestep": 0.85, "batches": batches, **results}
     if "jax" in results and "torch" in results:

@@ -24,31 +24,14 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
-from test_ip2p import PROMPT, build_tiny_ip2p  # noqa: E402 - the one tiny pipeline
+from test_ip2p import PROMPT, weights  # noqa: E402,F401 - the one tiny pipeline (fixture)
+from test_models import assert_close  # noqa: E402 - the issue's "1e-4 relative"
 
 from jaxedit.edit import ip2p  # noqa: E402
 from jaxedit.edit import jax_ip2p as jx  # noqa: E402
 
 STEPS = 2
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def assert_close(ours, ref, rel=1e-4):
-    """max |ours - ref| <= rel x max |ref| (the issue's "1e-4 relative")."""
-    ours, ref = np.asarray(ours, np.float64), np.asarray(ref, np.float64)
-    assert ours.shape == ref.shape
-    err, scale = np.abs(ours - ref).max(), np.abs(ref).max()
-    assert scale > 1e-3, "reference output is degenerate"
-    print(f"max |diff| / max |ref| = {err / scale:.2e}")
-    assert err <= rel * scale, f"max |diff| {err:.3g} > {rel} x max |ref| {scale:.3g}"
-
-
-@pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # toy tensors: threads only add contention on a shared 2-core box
-    yield build_tiny_ip2p(tmp_path_factory.mktemp("ip2p-eq") / "tiny-ip2p")
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

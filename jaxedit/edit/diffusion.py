@@ -11,7 +11,6 @@ JAX arrays alike; nothing here imports torch.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import jax
@@ -19,22 +18,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from ..io.weights import local_model_folder
+# The folder checks live with the loader; the torch reference reads the same folders.
+from ..models.load import HOW_TO_GET  # noqa: F401 - re-exported
+from ..models.load import check_layout as resolve_weights  # noqa: F401 - re-exported
 
 DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
-HOW_TO_GET = (f"{DEFAULT_MODEL} in diffusers format; download it on a machine with network with "
-              f"`huggingface-cli download {DEFAULT_MODEL} --local-dir DIR` (or `hf download`) "
-              f"and pass --ip2p-weights DIR")
-
-# Sub-folder -> files of which at least one must exist, in diffusers' save_pretrained layout.
-_LAYOUT = {
-    "unet": ["config.json"],
-    "vae": ["config.json"],
-    "text_encoder": ["config.json"],
-    "tokenizer": ["vocab.json", "tokenizer.json"],
-    "scheduler": ["scheduler_config.json"],
-}
-
 #: The diffusion timesteps Stable Diffusion is trained with.
 NUM_TRAIN_TIMESTEPS = 1000
 
@@ -145,18 +133,6 @@ def ddim_step(sample, model_output, alpha_t, alpha_prev, prediction_type: str = 
 
 
 # ----------------------------------------------------------------------------- weights folders
-
-def resolve_weights(path: str | os.PathLike) -> Path:
-    """A local diffusers folder, or a Hub id found in the local Hugging Face cache (never the
-    network). Checks the layout and names what is missing."""
-    p = local_model_folder(path, what="InstructPix2Pix weights", how_to_get=HOW_TO_GET)
-    missing = [f"{sub}/{files[0]}" for sub, files in _LAYOUT.items()
-               if not any((p / sub / f).is_file() for f in files)]
-    if missing:
-        raise DataError(p, f"incomplete diffusers folder, missing {', '.join(missing)}; "
-                        f"needs {HOW_TO_GET}")
-    return p
-
 
 def ddim_overrides(folder: Path) -> dict:
     """DDIM settings for a scheduler config of another class.
