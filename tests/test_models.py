@@ -33,15 +33,15 @@ from safetensors.numpy import load_file, save_file  # noqa: E402
 
 from jaxedit.errors import DataError  # noqa: E402
 from jaxedit.models import (AutoencoderKL, CLIPTextEncoder, CLIPTokenizer, UNet2DCondition,  # noqa: E402
-                            cast, load_ip2p, load_module)
+                            cast, load_ip2p, load_module, set_query_chunk)
+from jaxedit.models.layers import Attention, attention  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
 TINY_UNET = dict(
     sample_size=8, in_channels=8, out_channels=4, layers_per_block=2,
-    block_out_channels=(16, 32, 32),
-    down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
-    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+    block_out_channels=(16, 32), down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
     cross_attention_dim=24, attention_head_dim=2, norm_num_groups=8)
 TINY_VAE = dict(
     in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(8, 16, 16),
@@ -54,13 +54,15 @@ PROMPTS = ["Turn him into a clown!", "the  THE\tthe thethe", "what's up? it'll r
            " ".join(["make it look like a painting by van gogh"] * 12)]
 
 
-def perturb(model: "torch.nn.Module", seed: int, scale: float = 0.3) -> "torch.nn.Module":
-    """Add noise to every parameter (norm weights leave 1, biases leave 0)."""
+def perturb(model: "torch.nn.Module", seed: int, scale: float = 0.3,
+            floor: float = 0.02) -> "torch.nn.Module":
+    """Add N(0, (scale std(p) + floor)^2) noise to every parameter p (norm weights leave 1,
+    biases leave 0)."""
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in model.parameters():
             std = float(p.std()) if p.numel() > 1 else 0.0
-            p.add_(torch.randn(p.shape, generator=g) * (scale * std + 0.02))
+            p.add_(torch.randn(p.shape, generator=g) * (scale * std + floor))
     return model.eval()
 
 
@@ -146,31 +148,33 @@ def assert_close(ours, ref, rel=1e-4):
 
 # ----------------------------------------------------------------------------- equivalence
 
-@pytest.mark.parametrize("hw", [(8, 8), (7, 10)])
-def test_unet_matches_diffusers(tiny, models, hw):
-    """eps for a batch of two timesteps; (7, 10) is not a multiple of 4, so the up path must
-    resize to the skips' sizes as diffusers does."""
+@pytest.fixture(scope="module")
+def unet_fn():
+    """One jitted UNet call shared by the tests (compiled once per shape and dtype)."""
+    return eqx.filter_jit(lambda unet, x, t, c: unet(x, t, c))
+
+
+@pytest.mark.parametrize("hw, timestep", [((8, 8), [981, 17]), ((7, 10), 500)])
+def test_unet_matches_diffusers(tiny, models, unet_fn, hw, timestep):
+    """eps for a batch of two; a scalar timestep is broadcast over the batch. (7, 10) is not
+    a multiple of 2, so the up path must resize to the skips' sizes as diffusers does."""
     from diffusers import UNet2DConditionModel
     ref_model = UNet2DConditionModel.from_pretrained(tiny / "unet").eval()
     rng = np.random.default_rng(0)
     sample = rng.standard_normal((2, *hw, 8)).astype(np.float32)
     context = rng.standard_normal((2, 7, 24)).astype(np.float32)
-    t = np.array([981, 17], np.int32)
+    t = np.asarray(timestep, np.int32)
     with torch.no_grad():
-        ref = ref_model(nchw(sample), torch.from_numpy(t).long(), torch.from_numpy(context)).sample
-    ours = eqx.filter_jit(lambda m, x, t, c: m(x, t, c))(models.unet, sample, t, context)
-    assert_close(ours, nhwc(ref))
-    # A scalar timestep is broadcast over the batch.
-    with torch.no_grad():
-        ref_scalar = ref_model(nchw(sample), 500, torch.from_numpy(context)).sample
-    assert_close(models.unet(sample, 500, context), nhwc(ref_scalar))
+        ref = ref_model(nchw(sample), torch.from_numpy(t).long() if t.ndim else int(t),
+                        torch.from_numpy(context)).sample
+    assert_close(unet_fn(models.unet, sample, t, context), nhwc(ref))
 
 
 def test_unet_linear_projection_matches_diffusers(tmp_path):
     """SD 2.x's use_linear_projection: proj_in / proj_out are linear layers."""
     from diffusers import UNet2DConditionModel
     torch.manual_seed(4)
-    ref_model = perturb(UNet2DConditionModel(**{**TINY_UNET, "block_out_channels": (16, 16, 16)},
+    ref_model = perturb(UNet2DConditionModel(**{**TINY_UNET, "block_out_channels": (16, 16)},
                                              use_linear_projection=True), 5)
     ref_model.save_pretrained(tmp_path / "unet")
     unet = load_module(tmp_path / "unet", UNet2DCondition.from_config)
@@ -256,20 +260,41 @@ def test_schedule_matches_diffusers(models, tiny):
     np.testing.assert_allclose(s.alphas_cumprod, ref.alphas_cumprod.numpy(), rtol=2e-6)
 
 
-def test_cast_bf16_runs_and_tracks_fp32(models):
+def test_cast_bf16_runs_and_tracks_fp32(tiny, models, unet_fn):
     """bf16 weights compute in bf16 (norm statistics and softmax in fp32): same answer to bf16
-    accuracy."""
+    accuracy. Loading in bf16 gives the cast networks."""
     half = cast(models, jnp.bfloat16)
     assert half.unet.conv_in.weight.dtype == jnp.bfloat16
     assert half.tokenizer is models.tokenizer
+    loaded = load_ip2p(tiny, dtype=jnp.bfloat16)
+    assert jax.tree_util.tree_structure(loaded) == jax.tree_util.tree_structure(half)
+    for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(half)):
+        assert a.dtype == b.dtype == jnp.bfloat16
+        np.testing.assert_array_equal(np.asarray(a, np.float32), np.asarray(b, np.float32))
     rng = np.random.default_rng(3)
-    sample = rng.standard_normal((1, 8, 8, 8)).astype(np.float32)
-    context = rng.standard_normal((1, 7, 24)).astype(np.float32)
-    full = np.asarray(models.unet(sample, 300, context))
-    low = half.unet(sample, 300, context)
+    sample = rng.standard_normal((2, 8, 8, 8)).astype(np.float32)
+    context = rng.standard_normal((2, 7, 24)).astype(np.float32)
+    t = np.array([300, 700], np.int32)
+    full = np.asarray(unet_fn(models.unet, sample, t, context))
+    low = unet_fn(half.unet, sample, t, context)
     assert low.dtype == jnp.bfloat16
     err = np.abs(np.asarray(low, np.float32) - full).max()
     assert err < 0.05 * np.abs(full).max()
+
+
+def test_query_chunks_change_only_memory(models):
+    """Attention over query chunks (with a remainder) equals attention over all queries, and
+    set_query_chunk reaches every attention of the networks."""
+    rng = np.random.default_rng(4)
+    q, k, v = (rng.standard_normal((2, n, 3, 8)).astype(np.float32) for n in (23, 11, 11))
+    attend = jax.jit(attention, static_argnames="query_chunk")
+    np.testing.assert_allclose(attend(q, k, v, query_chunk=5), attend(q, k, v), rtol=1e-6, atol=1e-6)
+    chunked = set_query_chunk(models, 64)
+    is_attention = lambda x: isinstance(x, Attention)  # noqa: E731
+    found = [a.query_chunk for a in jax.tree_util.tree_leaves(chunked, is_leaf=is_attention)
+             if is_attention(a)]
+    # UNet: (self, cross) x (2 down + 1 mid + 3 up transformers); VAE: one per mid block.
+    assert len(found) == 2 * (2 + 1 + 3) + 2 and set(found) == {64}
 
 
 def test_models_jit_as_arguments(models):
@@ -295,8 +320,9 @@ def _edit_weights(path: Path, change) -> None:
 
 def test_missing_tensor_is_named(tiny, tmp_path):
     folder, path = _copy_component(tiny, tmp_path, "unet")
-    _edit_weights(path, lambda t: t.pop("down_blocks.1.attentions.0.proj_in.weight"))
-    with pytest.raises(DataError, match=r"missing tensor 'down_blocks\.1\.attentions\.0\.proj_in\.weight'") as e:
+    _edit_weights(path, lambda t: t.pop("down_blocks.0.attentions.1.proj_in.weight"))
+    with pytest.raises(DataError,
+                       match=r"missing tensor 'down_blocks\.0\.attentions\.1\.proj_in\.weight'") as e:
         load_module(folder, UNet2DCondition.from_config)
     assert e.value.where == str(path) and "\n" not in str(e.value)
 
@@ -322,6 +348,9 @@ def test_wrong_shape_is_named(tiny, tmp_path):
         load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
 
 
+LEGACY_NAMES = (("to_q", "query"), ("to_k", "key"), ("to_v", "value"), ("to_out.0", "proj_attn"))
+
+
 def test_legacy_vae_attention_names_load(tiny, tmp_path, models):
     """VAE checkpoints from before diffusers 0.14 name the mid-block attention query/key/value/
     proj_attn, some with 1x1-conv shaped weights; they load to the same module."""
@@ -329,25 +358,57 @@ def test_legacy_vae_attention_names_load(tiny, tmp_path, models):
 
     def rename(t):
         for name in [k for k in t if ".attentions.0." in k]:
-            for new, old in (("to_q", "query"), ("to_k", "key"), ("to_v", "value"), ("to_out.0", "proj_attn")):
+            for new, old in LEGACY_NAMES:
                 if f".{new}." in name:
                     value = t.pop(name)
-                    t[name.replace(f".{new}.", f".{old}.")] = value[..., None, None] if value.ndim == 2 else value
+                    as_conv = value[..., None, None] if value.ndim == 2 else value
+                    t[name.replace(f".{new}.", f".{old}.")] = as_conv
     _edit_weights(path, rename)
     vae = load_module(folder, AutoencoderKL.from_config)
     for a, b in zip(jax.tree_util.tree_leaves(vae), jax.tree_util.tree_leaves(models.vae)):
         np.testing.assert_array_equal(a, b)
 
 
-def test_torch_pickle_is_refused_with_a_conversion_hint(tiny, tmp_path):
+def test_torch_bin_checkpoint_loads_without_running_code(tiny, tmp_path, models):
+    """A legacy pytorch_model.bin loads to the same module; a pickle calling anything but
+    tensor rebuilding is refused, naming what it tried."""
     folder, path = _copy_component(tiny, tmp_path, "text_encoder")
-    path.rename(folder / "pytorch_model.bin")
-    with pytest.raises(DataError, match=r"pytorch_model\.bin: is a torch pickle.*convert it.*"
-                                        r"'model\.safetensors'"):
+    torch.save({k: torch.from_numpy(v) for k, v in load_file(str(path)).items()},
+               folder / "pytorch_model.bin")
+    path.unlink()
+    enc = load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
+    for a, b in zip(jax.tree_util.tree_leaves(enc), jax.tree_util.tree_leaves(models.text_encoder)):
+        np.testing.assert_array_equal(a, b)
+    torch.save({"weight": torch.zeros(2), "payload": Exploit()}, folder / "pytorch_model.bin")
+    with pytest.raises(DataError, match=r"pytorch_model\.bin: refused to unpickle global "
+                                        r"(__builtin__|builtins)\.print"):
         load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
     (folder / "pytorch_model.bin").unlink()
     with pytest.raises(DataError, match="no weights file"):
         load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
+
+
+def test_torch_checkpoint_reader_rebuilds_views_and_dtypes(tmp_path):
+    """Transposed and offset views of a shared storage, fp16, bf16 (widened to fp32), ints,
+    empty tensors: each as torch holds it."""
+    from jaxedit.io.weights import load_torch_checkpoint
+    a = torch.randn(3, 4)
+    state = {"a": a, "t": torch.randn(4, 3).t(), "view": a[1:, 1:], "h": torch.randn(5).half(),
+             "bf": torch.randn(2).bfloat16(), "i": torch.arange(3), "empty": torch.zeros(0, 3)}
+    torch.save(state, tmp_path / "x.bin")
+    got = load_torch_checkpoint(tmp_path / "x.bin")
+    assert sorted(got) == sorted(state)
+    for name, t in state.items():
+        want = t.float().numpy() if t.dtype == torch.bfloat16 else t.numpy()
+        assert got[name].dtype == want.dtype, name
+        np.testing.assert_array_equal(got[name], want)
+
+
+class Exploit:
+    """Unpickling this would call print: stands for any code a pickle can run."""
+
+    def __reduce__(self):
+        return (print, ("a pickle ran code",))
 
 
 def test_fp16_variant_loads(tiny, tmp_path, models):

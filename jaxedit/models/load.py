@@ -11,8 +11,10 @@ converting torch's layout. A missing, unexpected or mis-shaped tensor is a one-l
 
 Weights files, per sub-folder, in order of preference: ``model.safetensors`` /
 ``diffusion_pytorch_model.safetensors``, then their ``.fp16.safetensors`` variants
-(converted to the requested dtype), read with ``safetensors.numpy``. Legacy ``.bin`` pickles
-are not read (unpickling one can run code): the error names the file and how to convert it.
+(converted to the requested dtype), read with ``safetensors.numpy``; then legacy torch
+``.bin`` checkpoints (``diffusion_pytorch_model.bin``, ``pytorch_model.bin``), read by a
+restricted unpickler that rebuilds tensors as NumPy arrays and refuses anything else (a
+pickle can run code).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from ..io.weights import local_model_folder
+from ..io.weights import load_torch_checkpoint, local_model_folder
 from .clip_text import CLIPTextEncoder, CLIPTokenizer
 from .layers import ParamLayer
 
@@ -93,12 +95,7 @@ def weights_file(folder: Path) -> Path:
     for stem in ("diffusion_pytorch_model", "pytorch_model"):  # diffusers', transformers' names
         for suffix in (".bin", ".fp16.bin"):
             if (folder / f"{stem}{suffix}").is_file():
-                bad = folder / f"{stem}{suffix}"
-                out = "model" if stem == "pytorch_model" else stem
-                raise DataError(bad, "is a torch pickle, which jaxedit does not unpickle (it can run "
-                                "code); convert it once where torch is installed: python -c \"import "
-                                "torch, safetensors.torch as s; s.save_file(torch.load('"
-                                f"{bad.name}', weights_only=True), '{out}.safetensors')\"")
+                return folder / f"{stem}{suffix}"
     sharded = sorted(folder.glob("*.safetensors.index.json"))
     if sharded:
         raise DataError(sharded[0], "sharded weights are not supported; save the component unsharded")
@@ -107,10 +104,14 @@ def weights_file(folder: Path) -> Path:
 
 
 def read_weights(path: Path) -> dict[str, np.ndarray]:
-    """All tensors of a ``.safetensors`` file as NumPy arrays (bfloat16 ones as float32)."""
+    """All tensors of a ``.safetensors`` file, or of a torch ``.bin`` state_dict (read without
+    torch and without running code, :func:`jaxedit.io.weights.load_torch_checkpoint`), as
+    NumPy arrays."""
     from safetensors import SafetensorError
     from safetensors.numpy import load_file
 
+    if path.suffix == ".bin":
+        return load_torch_checkpoint(path)
     try:
         return load_file(str(path))
     except (SafetensorError, OSError, ValueError, TypeError) as e:
@@ -273,21 +274,22 @@ class IP2PModels(eqx.Module):
 def load_ip2p(folder: str | os.PathLike, *, dtype=jnp.float32) -> IP2PModels:
     """An InstructPix2Pix (or any SD 1.x) diffusers folder -> :class:`IP2PModels` in ``dtype``.
 
-    The networks load in float32 and are cast by :func:`cast` when ``dtype`` differs."""
+    Each tensor is converted to ``dtype`` as it is read (as :func:`cast` would), so a bf16
+    load never holds the float32 networks."""
     from .unet import UNet2DCondition
     from .vae import AutoencoderKL
 
     root = check_layout(folder)
     models = IP2PModels(
-        unet=load_module(root / "unet", UNet2DCondition.from_config),
-        vae=load_module(root / "vae", AutoencoderKL.from_config),
+        unet=load_module(root / "unet", UNet2DCondition.from_config, dtype=dtype),
+        vae=load_module(root / "vae", AutoencoderKL.from_config, dtype=dtype),
         text_encoder=load_module(root / "text_encoder", CLIPTextEncoder.from_config,
-                                 prefix=CLIPTextEncoder.CHECKPOINT_PREFIX),
+                                 prefix=CLIPTextEncoder.CHECKPOINT_PREFIX, dtype=dtype),
         tokenizer=CLIPTokenizer.from_folder(root / "tokenizer"),
         scheduler=DDPMSchedule.from_config(
             read_config(root / "scheduler" / "scheduler_config.json"),
             root / "scheduler" / "scheduler_config.json"))
-    return models if jnp.dtype(dtype) == jnp.float32 else cast(models, dtype)
+    return models
 
 
 def cast(models, dtype):

@@ -116,7 +116,8 @@ class UNet2DCondition(eqx.Module):
             "num_class_embeds": None, "cross_attention_norm": None, "attention_type": "default",
             "reverse_transformer_layers_per_block": None, "resnet_skip_time_act": False,
             "resnet_out_scale_factor": 1.0, "mid_block_only_cross_attention": None,
-            "time_embedding_act_fn": None, "time_embedding_dim": None, "projection_class_embeddings_input_dim": None,
+            "time_embedding_act_fn": None, "time_embedding_dim": None,
+            "projection_class_embeddings_input_dim": None,
             "class_embeddings_concat": False,
         }
         for name, default in unsupported.items():
@@ -166,7 +167,8 @@ class UNet2DCondition(eqx.Module):
             c = c_block
 
         mid_scale = float(config.get("mid_block_scale_factor", 1.0))
-        mid = MidBlock((res(channels[-1], channels[-1], mid_scale), res(channels[-1], channels[-1], mid_scale)),
+        c_mid = channels[-1]
+        mid = MidBlock((res(c_mid, c_mid, mid_scale), res(c_mid, c_mid, mid_scale)),
                        (xf(channels[-1], n - 1, tlayers[-1]),))
 
         ups, rev = [], channels[::-1]
