@@ -1,18 +1,30 @@
-"""InstructPix2Pix editor cost: one view edit (VAE encode, DDIM with three-branch guidance,
-decode) and the text encoder, with the real architecture at random weights or real weights.
+"""InstructPix2Pix editor cost, JAX editor vs the torch reference: seconds per edit (VAE
+encode, DDIM with three-branch guidance, decode) after compilation, compile time, peak memory.
 
 The time of a diffusion edit does not depend on the weight values, so ``--arch sd15``
 builds Stable Diffusion 1.5's UNet (8 input channels, as IP2P), VAE and CLIP ViT-L text
-encoder from their published configurations with random weights: a GPU user can measure
-the cost of a full edit before downloading anything. ``--weights DIR`` uses real weights.
+encoder from their published configurations with random weights and saves them with
+``save_pretrained``; both editors then load that folder, as they would load
+timbrooks/instruct-pix2pix. ``--weights DIR`` uses real weights instead.
 
-    python benchmarks/ip2p.py --smoke                         # tiny model, CI
-    python benchmarks/ip2p.py --arch sd15 --size 512 --steps 20 --torch-device cuda:0
+Each framework runs in its own child process, one after the other, so that peak memory is
+its own (JAX: ``device.memory_stats()["peak_bytes_in_use"]`` where the device reports it,
+else the process's peak RSS; torch: ``torch.cuda.max_memory_allocated`` on a GPU, else
+peak RSS). The JAX editor edits a batch of B views in one call (``edit_many``); the torch
+editor edits one view per call, so its batch of B is B calls. Seconds per edit = batch
+time / B.
+
+    python benchmarks/ip2p.py --smoke                                   # tiny model, CI
+    python benchmarks/ip2p.py --arch sd15 --size 512 --steps 20 --batch 1 8   # a GPU
+    python benchmarks/ip2p.py --arch sd15 --size 128 --steps 2 --batch 1 2    # the CPU record
 """
 
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -22,14 +34,26 @@ from common import parse_args, peak_rss_mb, write_json
 
 import jax
 
+PROMPT = "turn the bear into a panda"
+
 
 def _extra(p):
     p.add_argument("--arch", choices=["tiny", "sd15"], default="sd15")
     p.add_argument("--weights", type=Path, default=None, help="real diffusers folder instead")
-    p.add_argument("--size", type=int, default=None, help="model size (default 512; CPU 256)")
+    p.add_argument("--size", type=int, default=None, help="model size (default 512; CPU 128)")
     p.add_argument("--steps", type=int, default=None, help="DDIM steps (default 20; CPU 2)")
-    p.add_argument("--image", type=int, nargs=2, default=(512, 512), metavar=("H", "W"))
+    p.add_argument("--batch", type=int, nargs="+", default=None,
+                   help="views per batch (default 1 8; CPU 1 2)")
+    p.add_argument("--frameworks", nargs="+", choices=["jax", "torch"], default=["jax", "torch"])
     p.add_argument("--torch-device", default=None, help="torch device (default cuda:0 or cpu)")
+    p.add_argument("--worker", choices=["jax", "torch"], default=None, help=argparse_hidden())
+    p.add_argument("--folder", type=Path, default=None, help=argparse_hidden())
+
+
+def argparse_hidden():
+    import argparse
+
+    return argparse.SUPPRESS
 
 
 def _tokenizer(tmp: Path):
@@ -87,8 +111,64 @@ def random_components(arch: str, tmp: Path, seed: int = 0):
     return unet, vae, text, _tokenizer(tmp), scheduler
 
 
-def main(argv=None):
-    args = parse_args(__doc__.splitlines()[0], argv, extra=_extra)
+def save_random_pipeline(arch: str, root: Path) -> Path:
+    """``random_components(arch)`` saved in diffusers' layout (what both editors load)."""
+    import warnings
+
+    root.mkdir(parents=True)
+    unet, vae, text, tokenizer, scheduler = random_components(arch, root)
+    unet.save_pretrained(root / "unet")
+    vae.save_pretrained(root / "vae")
+    text.save_pretrained(root / "text_encoder")
+    tokenizer.save_pretrained(root / "tokenizer")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        scheduler.save_pretrained(root / "scheduler")
+    (root / "model_index.json").write_text(json.dumps(
+        {"_class_name": "StableDiffusionInstructPix2PixPipeline"}))
+    return root
+
+
+def _images(batch: int, hw) -> np.ndarray:
+    return np.random.default_rng(0).uniform(0, 1, (batch, *hw, 3)).astype(np.float32)
+
+
+def run_jax(args, folder: Path, size: int, steps: int, batches, hw) -> dict:
+    """JAX editor: compile and steady-state time of edit_many per batch size, peak memory."""
+    from jaxedit.edit.jax_ip2p import JaxIP2PEditor
+
+    t0 = time.perf_counter()
+    editor = JaxIP2PEditor.from_pretrained(folder, size=size, steps=steps)
+    load_s = time.perf_counter() - t0
+    emb = editor.encode(PROMPT)
+    out = {"framework": "jax", "device": str(editor.devices[0]), "dtype": editor.dtype,
+           "load_s": load_s, "batches": {}}
+    for b in batches:
+        images = _images(b, hw)
+        keys = jax.random.split(jax.random.key(0), b)
+
+        def one():
+            t = time.perf_counter()
+            editor.edit_many(images, images, emb, keys,
+                             timestep_range=(0.85, 0.85)).block_until_ready()
+            return time.perf_counter() - t
+
+        first = one()
+        times = [one() for _ in range(args.repeats)]
+        med = float(np.median(times))
+        out["batches"][str(b)] = {"first_call_s": first, "compile_s": max(first - med, 0.0),
+                                  "batch_median_s": med, "s_per_edit": med / b,
+                                  "repeats": args.repeats}
+    stats = editor.devices[0].memory_stats() or {}
+    out["peak_device_mb"] = (stats["peak_bytes_in_use"] / 2**20
+                             if "peak_bytes_in_use" in stats else None)
+    out["peak_rss_mb"] = peak_rss_mb()
+    out["jax"] = jax.__version__
+    return out
+
+
+def run_torch(args, folder: Path, size: int, steps: int, batches, hw) -> dict:
+    """torch reference: B single-view edits per batch (it has no batched edit), peak memory."""
     import torch
 
     from jaxedit.edit.ip2p import InstructPix2PixEditor
@@ -96,59 +176,93 @@ def main(argv=None):
     if args.smoke:
         torch.set_num_threads(1)  # toy tensors: extra threads only add contention
     device = torch.device(args.torch_device or ("cuda:0" if torch.cuda.is_available() else "cpu"))
-    on_cpu = device.type == "cpu"
-    arch = "tiny" if args.smoke else args.arch
-    size = args.size or (64 if arch == "tiny" else 256 if on_cpu else 512)
-    steps = args.steps or (2 if (on_cpu or args.smoke) else 20)
-    image_hw = (48, 40) if args.smoke else tuple(args.image)
-    repeats = args.repeats or (2 if (args.smoke or on_cpu) else 5)
-
     t0 = time.perf_counter()
-    if args.weights is not None:
-        editor = InstructPix2PixEditor.from_pretrained(args.weights, device=device, size=size,
-                                                       steps=steps)
-        arch = f"weights:{args.weights}"
-    else:
-        with tempfile.TemporaryDirectory() as tmp:
-            editor = InstructPix2PixEditor(*random_components(arch, Path(tmp)), device=device,
-                                           size=size, steps=steps, source=f"random-{arch}")
+    editor = InstructPix2PixEditor.from_pretrained(folder, device=device, size=size, steps=steps)
     load_s = time.perf_counter() - t0
-
-    rng = np.random.default_rng(0)
-    image = rng.uniform(0, 1, image_hw + (3,)).astype(np.float32)
-    t0 = time.perf_counter()
-    emb = editor.encode("turn the bear into a panda")
-    encode_ms = 1e3 * (time.perf_counter() - t0)
+    emb = editor.encode(PROMPT)
 
     def sync():
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
-    def one(i):
-        sync()
-        t = time.perf_counter()
-        # A fixed timestep range so every repeat runs the same number of DDIM steps.
-        editor.edit(image, image, emb, jax.random.key(i), timestep_range=(0.85, 0.85))
-        sync()
-        return time.perf_counter() - t
+    out = {"framework": "torch", "device": str(device), "dtype": str(editor.dtype),
+           "load_s": load_s, "batches": {}}
+    for b in batches:
+        images = _images(b, hw)
 
-    first = one(0)
-    times = [one(i + 1) for i in range(repeats)]
-    med = float(np.median(times))
-    result = {
-        "smoke": args.smoke, "arch": arch, "device": str(device), "dtype": str(editor.dtype),
-        "model_size": size, "image_hw": list(image_hw), "ddim_steps": steps,
-        "unet_passes_per_edit": steps, "unet_batch": 3,
-        "load_s": load_s, "encode_ms": encode_ms, "first_edit_ms": 1e3 * first,
-        "edit_median_ms": 1e3 * med, "edit_min_ms": 1e3 * min(times), "repeats": repeats,
-        "ms_per_ddim_step": 1e3 * med / steps, "peak_rss_mb": peak_rss_mb(),
-        "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-    }
-    if device.type == "cuda":
-        result["cuda_peak_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
-        result["gpu"] = torch.cuda.get_device_name(device)
-    print(f"ip2p {arch} on {device} ({editor.dtype}), size {size}, {steps} steps: "
-          f"{1e3 * med:.0f} ms per edit ({1e3 * med / steps:.0f} ms per DDIM step)")
+        def one():
+            sync()
+            t = time.perf_counter()
+            for i in range(b):
+                editor.edit(images[i], images[i], emb, jax.random.key(i),
+                            timestep_range=(0.85, 0.85))
+            sync()
+            return time.perf_counter() - t
+
+        first = one()
+        times = [one() for _ in range(args.repeats)]
+        med = float(np.median(times))
+        out["batches"][str(b)] = {"first_call_s": first, "batch_median_s": med,
+                                  "s_per_edit": med / b, "repeats": args.repeats}
+    out["peak_device_mb"] = (torch.cuda.max_memory_allocated(device) / 2**20
+                             if device.type == "cuda" else None)
+    out["peak_rss_mb"] = peak_rss_mb()
+    out["torch"] = torch.__version__
+    out["torch_threads"] = torch.get_num_threads()
+    return out
+
+
+def _settings(args):
+    import jax
+
+    on_cpu = jax.default_backend() == "cpu"
+    arch = "tiny" if args.smoke else args.arch
+    size = args.size or (64 if arch == "tiny" else 128 if on_cpu else 512)
+    steps = args.steps or (2 if (on_cpu or args.smoke) else 20)
+    # Smoke: one batch size, since each is a compilation (CI's budget is seconds).
+    batches = args.batch or ([2] if args.smoke else [1, 2] if on_cpu else [1, 8])
+    args.repeats = args.repeats or (1 if (args.smoke or on_cpu) else 5)
+    hw = (48, 40) if args.smoke else (size, size)
+    return arch, size, steps, batches, hw
+
+
+def main(argv=None):
+    args = parse_args(__doc__.splitlines()[0], argv, extra=_extra)
+    arch, size, steps, batches, hw = _settings(args)
+    if args.worker is not None:  # a child: one framework, JSON on stdout
+        run = run_jax if args.worker == "jax" else run_torch
+        print("RESULT " + json.dumps(run(args, args.folder, size, steps, batches, hw)))
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = args.weights
+        if folder is None:
+            t0 = time.perf_counter()
+            folder = save_random_pipeline(arch, Path(tmp) / f"random-{arch}")
+            print(f"random {arch} pipeline saved in {time.perf_counter() - t0:.0f} s", flush=True)
+        results = {}
+        for fw in args.frameworks:  # one after the other: each child's memory is its own
+            cmd = [sys.executable, __file__, "--worker", fw, "--folder", str(folder),
+                   "--arch", args.arch, "--repeats", str(args.repeats), "--size", str(size),
+                   "--steps", str(steps), "--batch", *map(str, batches)]
+            cmd += ["--smoke"] if args.smoke else []
+            cmd += ["--torch-device", args.torch_device] if args.torch_device else []
+            done = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+            if done.returncode:
+                sys.exit(f"{fw} worker failed:\n{done.stderr[-3000:]}")
+            results[fw] = json.loads([x for x in done.stdout.splitlines()
+                                      if x.startswith("RESULT ")][-1][len("RESULT "):])
+            for b, r in results[fw]["batches"].items():
+                print(f"{fw:5s} batch {b}: {r['s_per_edit']:.3f} s per edit"
+                      + (f" (compile {r['compile_s']:.1f} s)" if "compile_s" in r else ""),
+                      flush=True)
+    result = {"smoke": args.smoke, "arch": "weights" if args.weights else arch,
+              "load_average_1min": os.getloadavg()[0],  # a shared machine's timings need it
+              "model_size": size, "image_hw": list(hw), "ddim_steps": steps,
+              "unet_batch_per_view": 3, "timestep": 0.85, "batches": batches, **results}
+    if "jax" in results and "torch" in results:
+        result["speedup_jax_over_torch"] = {
+            b: results["torch"]["batches"][b]["s_per_edit"] / results["jax"]["batches"][b]
+            ["s_per_edit"] for b in results["jax"]["batches"]}
     write_json(args.out, "ip2p", result)
 
 

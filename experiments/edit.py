@@ -56,10 +56,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, help="nerfstudio dataset folder (the scene's photos)")
     p.add_argument("--scene", type=Path, help="input 3DGS .ply (a reconstruction of --data)")
     p.add_argument("--prompt", default=None, help="the editing instruction")
-    p.add_argument("--editor", default="simulated", choices=["simulated", "ip2p"],
-                   help="2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix)")
+    p.add_argument("--editor", default="simulated", choices=["simulated", "ip2p", "ip2p-torch"],
+                   help="2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix "
+                        "in JAX; ip2p-torch: the torch + diffusers reference)")
     p.add_argument("--ip2p-weights", type=Path, default=None,
-                   help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p)")
+                   help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p, ip2p-torch)")
     FLAGS[0].add_to(p)
     p.add_argument("--select", default=None,
                    help="subtask index (int) or ratio (float) to export as selected.ply")
@@ -75,7 +76,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--view-port", type=int, default=8080, help="port of --view on 127.0.0.1")
     real = p.add_argument_group("real models (local weights, see the README)")
     real.add_argument("--ip2p-device", default=None,
-                      help="torch device of the InstructPix2Pix editor (default cuda:0, else cpu)")
+                      help="torch device of --editor ip2p-torch (default cuda:0, else cpu); the "
+                           "JAX editor runs on the editor's JAX device (the second if any)")
+    real.add_argument("--ip2p-dtype", default=None,
+                      help="networks' dtype (default float32 on the CPU; bfloat16 (JAX) or "
+                           "float16 (torch) on accelerators)")
     real.add_argument("--ip2p-size", type=int, default=512, help="IP2P working resolution (px)")
     real.add_argument("--ip2p-steps", type=int, default=20, help="DDIM steps per IP2P edit")
     real.add_argument("--distance", default="auto", choices=["auto", "lpips", "ms-ssim"],
@@ -97,12 +102,20 @@ def make_editor(args):
         from jaxedit.edit.simulated import SimulatedEditor
 
         return SimulatedEditor()
+    if args.editor == "ip2p":
+        from jaxedit.edit.buffer import pick_devices
+        from jaxedit.edit.diffusion import DEFAULT_MODEL
+        from jaxedit.edit.jax_ip2p import load_editor
+
+        # The editor's device of pick_devices, the one run_edit gives the editor.
+        return load_editor(args.ip2p_weights or DEFAULT_MODEL, devices=[pick_devices()[1]],
+                           dtype=args.ip2p_dtype, size=args.ip2p_size, steps=args.ip2p_steps)
     try:
         from jaxedit.edit.ip2p import DEFAULT_MODEL, load_editor
     except ImportError as e:  # torch / diffusers are optional extras
-        raise DataError("--editor", f"ip2p is unavailable ({e})") from None
+        raise DataError("--editor", f"ip2p-torch is unavailable ({e})") from None
     return load_editor(args.ip2p_weights or DEFAULT_MODEL, device=args.ip2p_device,
-                       size=args.ip2p_size, steps=args.ip2p_steps)
+                       dtype=args.ip2p_dtype, size=args.ip2p_size, steps=args.ip2p_steps)
 
 
 def make_distance(args):
@@ -238,9 +251,9 @@ def run(args) -> dict:
     run_cfg = run_config(args)
     if args.resume and args.resume_from is not None:
         raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
-    if args.ip2p_weights is not None and args.editor != "ip2p":
-        raise DataError("--ip2p-weights", f"used only with --editor ip2p (the editor is "
-                                          f"{args.editor})")
+    if args.ip2p_weights is not None and not args.editor.startswith("ip2p"):
+        raise DataError("--ip2p-weights", f"used only with --editor ip2p or ip2p-torch (the "
+                                          f"editor is {args.editor})")
     if args.clip_weights is not None and not (args.caption_orig and args.caption_edit):
         raise DataError("--clip-weights", "needs --caption-orig and --caption-edit")
     editor = make_editor(args)

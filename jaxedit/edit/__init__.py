@@ -1,7 +1,8 @@
 """Instruction editing: editors, difficulty, the subtask scheduler, the ProEdit driver.
 
-The real InstructPix2Pix editor (``jaxedit.edit.ip2p``) needs torch and diffusers and is
-imported only on demand.
+InstructPix2Pix: ``jaxedit.edit.jax_ip2p`` (JAX, no torch) and its torch + diffusers
+reference ``jaxedit.edit.ip2p``, both imported on demand; their shared arithmetic is
+``jaxedit.edit.diffusion``.
 """
 
 from .buffer import (AsyncEditSource, EditedView, EditJob, EditorThreadError, SyncEditSource,

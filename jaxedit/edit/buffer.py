@@ -29,6 +29,12 @@ trainer waited for the editor and the editor for the trainer.
 The source is generic: it never renders or edits itself; the driver passes an
 ``edit_fn(job, scene) -> image`` that renders view ``job.view`` of ``scene`` and
 calls the editor with the job's seed and annealed timestep.
+
+Edited views stay where the editor made them when it returns a JAX array (the JAX
+editor, :mod:`jaxedit.edit.jax_ip2p`): the asynchronous source moves them to the
+trainer's device with ``jax.device_put`` (device to device, no host copy), so editor
+and trainer are two jitted programs on two device groups exchanging device arrays.
+NumPy results (the torch reference, the simulated editor) stay NumPy.
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ import time
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -61,10 +68,11 @@ class EditJob:
 
 @dataclasses.dataclass(frozen=True)
 class EditedView:
-    """An edit result. ``image``: float32 [H, W, 3] in [0, 1]; ``seconds``: editor time."""
+    """An edit result. ``image``: float32 [H, W, 3] in [0, 1] (NumPy, or a JAX array on the
+    trainer's device); ``seconds``: editor time (until the edit is complete on its device)."""
 
     job: EditJob
-    image: np.ndarray
+    image: np.ndarray | jax.Array
     seconds: float
     scene_step: int  # trainer step of the scene the editor rendered
 
@@ -100,7 +108,18 @@ class Utilisation:
         return dataclasses.asdict(self)
 
 
-EditFn = Callable[[EditJob, Any], np.ndarray]
+EditFn = Callable[[EditJob, Any], Any]
+
+
+def as_view(image, device: jax.Device | None = None):
+    """An editor's result as the trainer takes it: a JAX array finished and moved to ``device``
+    (None: left where it is), anything else as NumPy float32 [H, W, 3]."""
+    if isinstance(image, jax.Array):
+        image = image.astype(jnp.float32)
+        if device is not None:
+            image = jax.device_put(image, device)
+        return image.block_until_ready()  # the editor's time is the time of a finished edit
+    return np.asarray(image, np.float32)
 
 
 def view_order(num_views: int, key: jax.Array) -> np.ndarray:
@@ -129,18 +148,20 @@ class SyncEditSource:
       every: trainer steps between edits (IN2N: 10).
       initial_sweep: when True, step 0 edits every view once (in ``order``), so
         the subtask starts on a dataset fully edited with the new embedding.
+      trainer_device: where JAX results go (``None``: left where the editor made them).
     """
 
     deterministic = True
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int = 10,
-                 initial_sweep: bool = False):
+                 initial_sweep: bool = False, trainer_device: jax.Device | None = None):
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
         self.edit_fn = edit_fn
         self.order = np.asarray(order)
         self.every = int(every)
         self.initial_sweep = initial_sweep
+        self.trainer_device = trainer_device
         self.utilisation = Utilisation()
 
     def __enter__(self):
@@ -173,7 +194,7 @@ class SyncEditSource:
         out = []
         for job in self.jobs_at(step):
             t0 = time.perf_counter()
-            image = np.asarray(self.edit_fn(job, scene), np.float32)
+            image = as_view(self.edit_fn(job, scene), self.trainer_device)
             dt = time.perf_counter() - t0
             self.utilisation.edits += 1
             self.utilisation.consumed += 1
@@ -208,6 +229,7 @@ class AsyncEditSource:
         latest published scene, already placed on ``device``.
       order: int [N], cyclic view order.
       device: editor device (``None``: leave arrays where they are).
+      trainer_device: where JAX results go (``None``: left on the editor's device).
       capacity: hand-over queue size; the editor waits when it is full.
       poll_interval: seconds between checks of the stop flag while waiting.
     """
@@ -215,10 +237,12 @@ class AsyncEditSource:
     deterministic = False
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, device: jax.Device | None = None,
-                 capacity: int = 4, poll_interval: float = 0.02):
+                 capacity: int = 4, poll_interval: float = 0.02,
+                 trainer_device: jax.Device | None = None):
         self.edit_fn = edit_fn
         self.order = np.asarray(order)
         self.device = device
+        self.trainer_device = trainer_device
         self.poll_interval = poll_interval
         self.utilisation = Utilisation()
         self._queue: queue.Queue[EditedView] = queue.Queue(maxsize=max(1, capacity))
@@ -371,7 +395,7 @@ class AsyncEditSource:
                     scene = jax.device_put(scene, self.device)
                 job = EditJob(int(self.order[i % n]), i, scene_step)
                 t0 = time.perf_counter()
-                image = np.asarray(self.edit_fn(job, scene), np.float32)
+                image = as_view(self.edit_fn(job, scene), self.trainer_device)
                 dt = time.perf_counter() - t0
                 self.utilisation.edits += 1
                 self.utilisation.editor_seconds += dt
@@ -383,8 +407,11 @@ class AsyncEditSource:
 
 
 def make_source(edit_fn: EditFn, order: np.ndarray, *, asynchronous: bool, every: int = 10,
-                initial_sweep: bool = False, device=None, capacity: int = 4):
+                initial_sweep: bool = False, device=None, capacity: int = 4,
+                trainer_device=None):
     """The sync (deterministic) or async (threaded) edit source with one call."""
     if asynchronous:
-        return AsyncEditSource(edit_fn, order, device=device, capacity=capacity)
-    return SyncEditSource(edit_fn, order, every=every, initial_sweep=initial_sweep)
+        return AsyncEditSource(edit_fn, order, device=device, capacity=capacity,
+                               trainer_device=trainer_device)
+    return SyncEditSource(edit_fn, order, every=every, initial_sweep=initial_sweep,
+                          trainer_device=trainer_device)

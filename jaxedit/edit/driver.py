@@ -257,17 +257,21 @@ def make_edit_fn(ctx: EditContext, spec: SubtaskSpec,
     embedding = interpolate_embedding(ctx.e_prompt, ctx.e_null, ratio)
     sub_key = jax.random.fold_in(jax.random.fold_in(ctx.key, spec.index), _EDIT)
     renderer = ctx.renderer
+    # The original photos once on the editor's device (the default one when it has none).
+    originals = jax.device_put(ctx.data.train_images, ctx.editor_device)
 
-    def edit_fn(job: EditJob, scene) -> np.ndarray:
+    def edit_fn(job: EditJob, scene):
         camera = ctx.data.train_cameras[job.view]
-        render = renderer.rgb(scene, camera)
+        # A device array where the scene is (the editor's device in async mode): an editor
+        # in JAX takes it as it is; the torch reference copies it to its own device.
+        render = renderer(scene, camera).rgb
         if cfg.mode == "in2n":
             t_range = tuple(cfg.timestep_range)
         else:
             t = anneal_timestep(job.step, horizon, *cfg.timestep_range)
             t_range = (t, t)
         key = view_key(sub_key, job.view, ratio, job.iteration)
-        return ctx.editor.edit(render, ctx.data.train_images[job.view], embedding, key,
+        return ctx.editor.edit(render, originals[job.view], embedding, key,
                                timestep_range=t_range, guidance=tuple(cfg.guidance))
 
     return edit_fn
@@ -476,7 +480,8 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     # the trainer's collections.
     source = make_source(make_edit_fn(ctx, spec, horizon), order, asynchronous=cfg.asynchronous,
                          every=cfg.edit_every, initial_sweep=cfg.initial_sweep,
-                         device=ctx.editor_device, capacity=2 * CHUNK)
+                         device=ctx.editor_device, capacity=2 * CHUNK,
+                         trainer_device=next(iter(st.images.devices())))
     started = time.perf_counter() - st.seconds
     converged, timed_out_at = False, None
     holder = [st]

@@ -30,8 +30,9 @@ class Editor(Protocol):
 
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
-             guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
-        """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key``."""
+             guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray | jax.Array:
+        """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key`` (NumPy, or a
+        JAX array on the editor's device: the JAX editor's result stays on the device)."""
         ...
 
 

@@ -40,7 +40,6 @@ depend on which GPU produced them (up to the networks' floating point).
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import warnings
@@ -62,28 +61,16 @@ import jax
 import numpy as np
 
 from ..errors import DataError
-from ..io.weights import local_model_folder
+# The shared diffusion arithmetic; re-exported here, where it used to live.
+from .diffusion import (DEFAULT_MODEL, HOW_TO_GET, check_timestep_range,  # noqa: F401
+                        ddim_overrides, ddim_step, draw_timestep, dual_guidance, model_size,
+                        resolve_weights, timestep_schedule)
 
 log = logging.getLogger(__name__)
 
 __all__ = ["InstructPix2PixEditor", "load_editor", "DEFAULT_MODEL", "HOW_TO_GET", "ddim_step",
-           "dual_guidance",
-           "model_size", "resolve_weights", "seed_from_key", "timestep_schedule"]
-
-DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
-HOW_TO_GET = (f"{DEFAULT_MODEL} in diffusers format; download it on a machine with network with "
-              f"`huggingface-cli download {DEFAULT_MODEL} --local-dir DIR` (or `hf download`) "
-              f"and give that folder as the editor's weights")
-
-# Sub-folder -> files of which at least one must exist, in diffusers' save_pretrained layout.
-_LAYOUT = {
-    "unet": ["config.json"],
-    "vae": ["config.json"],
-    "text_encoder": ["config.json"],
-    "tokenizer": ["vocab.json", "tokenizer.json"],
-    "scheduler": ["scheduler_config.json"],
-}
-
+           "draw_timestep", "dual_guidance", "model_size", "resolve_weights", "seed_from_key",
+           "timestep_schedule"]
 
 # ----------------------------------------------------------------------------- pure helpers
 
@@ -94,80 +81,7 @@ def seed_from_key(key: jax.Array) -> tuple[jax.Array, int]:
     return k_t, ((hi << 32) | lo) & ((1 << 63) - 1)
 
 
-def draw_timestep(key: jax.Array, timestep_range: tuple[float, float],
-                  num_train: int = 1000) -> int:
-    """Integer T uniform in [round(lo * N), round(hi * N)] (N = num_train), within [1, N - 1]."""
-    lo, hi = (float(v) for v in timestep_range)
-    if not (0.0 <= lo <= hi <= 1.0):
-        raise DataError("timestep_range", f"must satisfy 0 <= t_min <= t_max <= 1, got {(lo, hi)}")
-    t_lo = min(max(int(round(lo * num_train)), 1), num_train - 1)
-    t_hi = min(max(int(round(hi * num_train)), t_lo), num_train - 1)
-    return int(jax.random.randint(key, (), t_lo, t_hi + 1))
-
-
-def timestep_schedule(t_start: int, steps: int) -> list[int]:
-    """DDIM timesteps from ``t_start`` down towards 0: round(T (steps - k) / steps), k < steps.
-
-    Evenly spaced, strictly decreasing, first = T; fewer than ``steps`` entries when T < steps.
-    The step after the last one lands on the scheduler's final alpha (the clean image).
-    """
-    if steps < 1:
-        raise DataError("steps", f"must be >= 1, got {steps}")
-    ts = [int(round(t_start * (steps - k) / steps)) for k in range(steps)]
-    return sorted({t for t in ts if t > 0}, reverse=True)
-
-
-def model_size(height: int, width: int, size: int | None, factor: int = 8) -> tuple[int, int]:
-    """(h, w) the networks see: longer side -> ``size`` (None: keep), multiples of ``factor``."""
-    scale = 1.0 if size is None else size / max(height, width)
-    return (max(factor, int(round(height * scale / factor)) * factor),
-            max(factor, int(round(width * scale / factor)) * factor))
-
-
-def dual_guidance(eps: "torch.Tensor", text_scale: float, image_scale: float) -> "torch.Tensor":
-    """Combine the three-branch UNet output [3B, ...] ordered (text+image, image, uncond):
-    eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u)."""
-    eps_ti, eps_i, eps_u = eps.chunk(3)
-    return eps_u + text_scale * (eps_ti - eps_i) + image_scale * (eps_i - eps_u)
-
-
-def ddim_step(sample, model_output, alpha_t: float, alpha_prev: float,
-              prediction_type: str = "epsilon", clip_sample: float | None = None):
-    """One deterministic DDIM update (eta = 0) from cumulative alpha ``alpha_t`` to ``alpha_prev``.
-
-    x0 = (x - sqrt(1 - a_t) eps) / sqrt(a_t), clamped to +-``clip_sample`` when given (as
-    DDIMScheduler does with ``clip_sample``); x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps.
-    """
-    a_t, a_p = float(alpha_t), float(alpha_prev)
-    if prediction_type == "epsilon":
-        eps = model_output
-        x0 = (sample - (1 - a_t) ** 0.5 * eps) / a_t ** 0.5
-    elif prediction_type == "v_prediction":
-        x0 = a_t ** 0.5 * sample - (1 - a_t) ** 0.5 * model_output
-        eps = a_t ** 0.5 * model_output + (1 - a_t) ** 0.5 * sample
-    elif prediction_type == "sample":
-        x0 = model_output
-        eps = (sample - a_t ** 0.5 * x0) / (1 - a_t) ** 0.5
-    else:
-        raise DataError("scheduler.prediction_type", f"unsupported {prediction_type!r}")
-    if clip_sample is not None:
-        x0 = x0.clamp(-clip_sample, clip_sample)
-    return a_p ** 0.5 * x0 + (1 - a_p) ** 0.5 * eps
-
-
 # ----------------------------------------------------------------------------- loading
-
-def resolve_weights(path: str | os.PathLike) -> Path:
-    """A local diffusers folder, or a Hub id found in the local Hugging Face cache (never the
-    network). Checks the layout and names what is missing."""
-    p = local_model_folder(path, what="InstructPix2Pix weights", how_to_get=HOW_TO_GET)
-    missing = [f"{sub}/{files[0]}" for sub, files in _LAYOUT.items()
-               if not any((p / sub / f).is_file() for f in files)]
-    if missing:
-        raise DataError(p, f"incomplete diffusers folder, missing {', '.join(missing)}; "
-                        f"needs {HOW_TO_GET}")
-    return p
-
 
 def _load(root: Path, sub: str, loader):
     try:
@@ -184,23 +98,6 @@ def _from_jax(x: jax.Array) -> "torch.Tensor":
         return torch.from_dlpack(x)
     except (RuntimeError, TypeError, BufferError, ValueError):
         return torch.from_numpy(np.array(x))
-
-
-def _ddim_overrides(folder: Path) -> dict:
-    """DDIM settings for a scheduler config of another class.
-
-    IP2P's repository ships an Euler-ancestral config. Read as DDIM it would get DDIM's
-    defaults clip_sample=True and set_alpha_to_one=True; Stable Diffusion 1.x's DDIM setup
-    (and IN2N, which takes its DDIM config from CompVis/stable-diffusion-v1-4) uses
-    neither. The betas always come from the folder; an explicit DDIM config is kept as is.
-    """
-    try:
-        config = json.loads((folder / "scheduler_config.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        raise DataError(folder / "scheduler_config.json", "unreadable scheduler config") from None
-    if config.get("_class_name") == "DDIMScheduler":
-        return {}
-    return {"clip_sample": False, "set_alpha_to_one": False}
 
 
 def _dtype(dtype):
@@ -251,7 +148,7 @@ class InstructPix2PixEditor:
         self.final_alpha = float(scheduler.final_alpha_cumprod)
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.prediction_type = scheduler.config.prediction_type
-        # The DDIM update follows the scheduler's config (see _ddim_overrides for IP2P's own).
+        # The DDIM update follows the scheduler's config (see ddim_overrides for IP2P's own).
         if getattr(scheduler.config, "thresholding", False):
             raise DataError(f"{source or 'scheduler'}", "dynamic thresholding schedulers are not "
                             "supported by the SDEdit loop")
@@ -290,7 +187,7 @@ class InstructPix2PixEditor:
         tokenizer = _load(root, "tokenizer", lambda: CLIPTokenizer.from_pretrained(
             root, subfolder="tokenizer", **kw))
         scheduler = _load(root, "scheduler", lambda: DDIMScheduler.from_pretrained(
-            root, subfolder="scheduler", **_ddim_overrides(root / "scheduler"), **kw))
+            root, subfolder="scheduler", **ddim_overrides(root / "scheduler"), **kw))
         editor = cls(unet, vae, text_encoder, tokenizer, scheduler, device=device, dtype=dtype,
                      size=size, steps=steps, source=str(root))
         log.info("InstructPix2Pix loaded from %s on %s (%s), size %s, %d DDIM steps", root,
@@ -366,21 +263,34 @@ class InstructPix2PixEditor:
              timestep_range: tuple[float, float] = (0.02, 0.98),
              guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
         """Edit one view: float32 [H, W, 3] in [0, 1] at ``image``'s size (see module docstring)."""
+        check_timestep_range(timestep_range)
+        hw = model_size(*self._image(image, "image").shape[-2:], self.size, self.vae_factor)
+        k_t, seed = seed_from_key(key)
+        t_start = draw_timestep(k_t, timestep_range, self.num_train_timesteps)
+        gen = torch.Generator("cpu").manual_seed(seed)
+        latent_shape = (1, 4, hw[0] // self.vae_factor, hw[1] // self.vae_factor)
+        vae_noise = torch.randn(latent_shape, generator=gen)
+        sde_noise = torch.randn(latent_shape, generator=gen)
+        return self.edit_with_noise(image, original, embedding, t_start, vae_noise, sde_noise,
+                                    guidance=guidance)
+
+    @torch.inference_mode()
+    def edit_with_noise(self, image, original, embedding, t_start: int, vae_noise, sde_noise, *,
+                        guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
+        """:meth:`edit` with its random draws given: the timestep ``t_start`` and the standard
+        normal ``vae_noise`` (the posterior sample's) and ``sde_noise`` (SDEdit's), each
+        [1, 4, h/8, w/8] at the model size; :meth:`edit` draws them from its key."""
         render = self._image(image, "image")
         orig = self._image(original, "original")
         height, width = render.shape[-2:]
         hw = model_size(height, width, self.size, self.vae_factor)
         pair = torch.cat([self._resize(render, hw), self._resize(orig, hw)]) * 2 - 1
 
-        k_t, seed = seed_from_key(key)
-        t_start = draw_timestep(k_t, timestep_range, self.num_train_timesteps)
-        gen = torch.Generator("cpu").manual_seed(seed)
-
         # One VAE pass for both images: posterior sample of the render, mode of the original.
         posterior = self.vae.encode(pair.to(self.dtype)).latent_dist
         mean, std = posterior.mean.float(), posterior.std.float()
-        draw = torch.randn(mean[:1].shape, generator=gen).to(self.device)
-        latents = (mean[:1] + std[:1] * draw) * self.scaling_factor
+        latents = (mean[:1] + std[:1] * torch.as_tensor(vae_noise).to(self.device)
+                   ) * self.scaling_factor
         cond = mean[1:]
         cond3 = torch.cat([cond, cond, torch.zeros_like(cond)]).to(self.dtype)
 
@@ -388,7 +298,7 @@ class InstructPix2PixEditor:
         emb3 = torch.stack([e[0], e[1], e[1]])       # text+image, image only, unconditional
 
         a = self.alphas_cumprod
-        noise = torch.randn(latents.shape, generator=gen).to(self.device)
+        noise = torch.as_tensor(sde_noise).to(self.device)
         latents = a[t_start] ** 0.5 * latents + (1 - a[t_start]) ** 0.5 * noise
 
         ts = timestep_schedule(t_start, self.steps)

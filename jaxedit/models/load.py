@@ -41,7 +41,7 @@ __all__ = ["IP2PModels", "DDPMSchedule", "load_ip2p", "load_module", "read_weigh
 
 HOW_TO_GET = ("timbrooks/instruct-pix2pix in diffusers format; download it on a machine with network "
               "with `huggingface-cli download timbrooks/instruct-pix2pix --local-dir DIR` (or "
-              "`hf download`) and pass --ip2p-weights DIR")
+              "`hf download`) and give that folder as the editor's weights")
 
 #: Sub-folder -> files of which at least one must exist (diffusers' save_pretrained layout).
 LAYOUT = {

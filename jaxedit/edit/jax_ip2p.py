@@ -1,0 +1,441 @@
+"""InstructPix2Pix in JAX: the edit of :mod:`jaxedit.edit.ip2p`, as one jit-compiled pure function.
+
+The edit is the torch reference's, step for step (see :mod:`jaxedit.edit.ip2p`): resize to
+the model size, VAE-encode the render (posterior sample x ``scaling_factor``) and the
+original (posterior mode, unscaled), draw T in ``timestep_range`` from the key, noise the
+latent to T (SDEdit), deterministic DDIM (eta = 0) over :func:`timestep_schedule`'s steps
+with three-branch dual classifier-free guidance, decode, resize back, clamp. The shared
+arithmetic lives in :mod:`jaxedit.edit.diffusion`.
+
+The core, :func:`edit_with_noise`, is pure in (networks, images, originals, embeddings,
+T, noises) and batched: B views in one call, each with its own T. Its number of DDIM
+steps is static while T is traced: slot k of the schedule holds round(T (steps - k) /
+steps) and slots that repeat or reach 0 (T < steps) leave the latent as it is
+(:func:`jaxedit.edit.diffusion.timestep_table`), so one compiled program serves every
+T. :func:`edit_batch` only draws T and the noises from per-view keys.
+
+Randomness: view key -> (k_t, k_n) by ``jax.random.split`` exactly as the torch editor
+splits it, so both draw the same T from the same key; the two standard normal latents
+(posterior sample, SDEdit noise) are drawn from k_n with ``jax.random.normal``, on the
+device.
+
+Devices and precision: the editor runs on ``devices`` (default: the first JAX device). With
+several, a :class:`jax.sharding.Mesh` over them shards a batch of views along its first
+axis (``NamedSharding(mesh, P("views"))``) with the networks replicated; every view's
+arithmetic is independent, so a sharded batch gives a one-device batch's results. The
+networks run in bfloat16 on accelerators (float32's range: no fp16 VAE overflow; pass
+``dtype="float16"`` for torch's choice) and float32 on the CPU; the latents, the DDIM
+arithmetic and the output are float32. Images go in as NumPy or JAX arrays and the result
+is a JAX array on the editor's device: the trainer takes it from there with
+``jax.device_put`` (:mod:`jaxedit.edit.buffer`), never through the host.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from typing import Any, Callable, NamedTuple, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ..errors import DataError
+from .diffusion import (DEFAULT_MODEL, ddim_step, dual_guidance, model_size, timestep_bounds,
+                        timestep_table)
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DiffusionSchedule", "EditConfig", "JaxIP2PEditor", "Networks", "decode",
+           "denoise", "draw_noise", "edit_batch", "edit_with_noise", "encode_latents",
+           "load_editor", "resize_images"]
+
+#: Name of the mesh axis a batch of views is sharded along.
+VIEWS = "views"
+
+
+class Networks(eqx.Module):
+    """The two networks an edit runs: the 8-channel conditional UNet and the VAE.
+
+    ``unet(sample [B, h, w, 8], timestep [B], context [B, 77, D]) -> eps [B, h, w, 4]``;
+    ``vae.encode(x [B, H, W, 3] in [-1, 1]) -> (mean, logvar)`` [B, H/8, W/8, 4] each;
+    ``vae.decode(z) -> [B, H, W, 3]`` (see :mod:`jaxedit.models`).
+    """
+
+    unet: Any
+    vae: Any
+
+
+class DiffusionSchedule(NamedTuple):
+    """The noise schedule, as the DDIM update reads it.
+
+    alphas_cumprod: float32 [N] (N = num_train_timesteps), cumulative alpha per timestep.
+    final_alpha: the alpha the last DDIM step lands on (alpha_0, or 1 with
+      ``set_alpha_to_one``).
+    """
+
+    alphas_cumprod: jax.Array
+    final_alpha: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class EditConfig:
+    """Static settings of a compiled edit (hashable: a change recompiles).
+
+    steps: DDIM slots; prediction_type: "epsilon", "v_prediction" or "sample";
+    clip_sample: x0 clamp (None: none, SD 1.x); scaling_factor: the VAE latent scale;
+    dtype: the networks' dtype name; guidance: (text, image) scales.
+    """
+
+    steps: int = 20
+    prediction_type: str = "epsilon"
+    clip_sample: float | None = None
+    scaling_factor: float = 0.18215
+    dtype: str = "float32"
+    guidance: tuple[float, float] = (7.5, 1.5)
+
+
+# ----------------------------------------------------------------------------- pure pieces
+
+def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
+    """[B, H, W, C] -> [B, h, w, C]: bilinear, antialiased when shrinking (as torch's
+    ``interpolate(mode="bilinear", antialias=True)``); the same size is returned as is."""
+    if tuple(images.shape[1:3]) == tuple(hw):
+        return images
+    return jax.image.resize(images, (images.shape[0], *hw, images.shape[3]), method="linear",
+                            antialias=True)
+
+
+def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.Array,
+                   cfg: EditConfig) -> tuple[jax.Array, jax.Array]:
+    """(latents, cond), float32 [B, h/8, w/8, 4] each, from images in [0, 1] at model size.
+
+    One VAE pass over both: the render's posterior sample mean + std * ``vae_noise`` times
+    the scaling factor, and the original's posterior mode (its mean), unscaled.
+    """
+    b = images.shape[0]
+    pair = jnp.concatenate([images, originals]) * 2 - 1
+    mean, logvar = vae.encode(pair.astype(cfg.dtype))
+    mean, logvar = mean.astype(jnp.float32), logvar.astype(jnp.float32)
+    std = jnp.exp(0.5 * jnp.clip(logvar, -30.0, 20.0))  # diffusers' posterior clamps logvar
+    latents = (mean[:b] + std[:b] * vae_noise) * cfg.scaling_factor
+    return latents, mean[b:]
+
+
+def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, null: jax.Array,
+            t_start: jax.Array, sde_noise: jax.Array, schedule: DiffusionSchedule,
+            cfg: EditConfig) -> jax.Array:
+    """SDEdit to T then DDIM back to the clean latent, float32 [B, h, w, 4].
+
+    Args:
+      latents, cond, sde_noise: float32 [B, h, w, 4].
+      embeddings: float [B, 77, D] the edit's embeddings e; null: float [77, D], E("").
+      t_start: int32 [B], T per view.
+    Each step evaluates the UNet once on 3B samples ordered (text+image: e with cond;
+    image: E("") with cond; unconditional: E("") with zeros) and combines them with
+    :func:`dual_guidance`.
+    """
+    a = schedule.alphas_cumprod
+    b = latents.shape[0]
+    expand = lambda v: v[:, None, None, None]  # noqa: E731 - [B] -> broadcast over a latent
+    a_start = expand(a[t_start])
+    x = a_start ** 0.5 * latents + (1 - a_start) ** 0.5 * sde_noise
+    ts, t_next, valid = timestep_table(t_start, cfg.steps)  # [B, steps] each
+    nulls = jnp.broadcast_to(null, (2 * b, *null.shape))
+    context = jnp.concatenate([embeddings, nulls]).astype(cfg.dtype)
+    cond3 = jnp.concatenate([cond, cond, jnp.zeros_like(cond)]).astype(cfg.dtype)
+
+    def step(x, slot):
+        t, t_n, ok = slot
+        sample = jnp.concatenate([jnp.concatenate([x] * 3).astype(cfg.dtype), cond3], axis=-1)
+        eps = unet(sample, jnp.concatenate([t] * 3), context).astype(jnp.float32)
+        eps = dual_guidance(eps, *cfg.guidance)
+        a_prev = jnp.where(t_n > 0, a[t_n], schedule.final_alpha)
+        new = ddim_step(x, eps, expand(a[t]), expand(a_prev), cfg.prediction_type,
+                        cfg.clip_sample)
+        return jnp.where(expand(ok), new, x), None
+
+    x, _ = jax.lax.scan(step, x, (ts.T, t_next.T, valid.T))
+    return x
+
+
+def decode(vae, latents: jax.Array, cfg: EditConfig) -> jax.Array:
+    """Latents [B, h, w, 4] -> images float32 [B, 8h, 8w, 3] in [0, 1]."""
+    decoded = vae.decode((latents / cfg.scaling_factor).astype(cfg.dtype)).astype(jnp.float32)
+    return jnp.clip((decoded + 1) / 2, 0, 1)
+
+
+def edit_with_noise(nets: Networks, images: jax.Array, originals: jax.Array,
+                    embeddings: jax.Array, null: jax.Array, t_start: jax.Array,
+                    vae_noise: jax.Array, sde_noise: jax.Array, schedule: DiffusionSchedule,
+                    cfg: EditConfig) -> jax.Array:
+    """The whole edit with its random draws given (pure; the torch editor's
+    ``edit_with_noise``).
+
+    Args:
+      images, originals: float [B, H, W, 3] in [0, 1], renders and original photos.
+      embeddings: float [B, 77, D] or [77, D] (one for all views); null: [77, D].
+      t_start: int32 [B]; vae_noise, sde_noise: float32 [B, h/8, w/8, 4] standard normals
+        at the model size (h, w) = latent size x 8.
+    Returns:
+      float32 [B, H, W, 3] in [0, 1].
+    """
+    b, height, width = images.shape[:3]
+    hw = (vae_noise.shape[1] * 8, vae_noise.shape[2] * 8)
+    embeddings = jnp.broadcast_to(embeddings, (b, *null.shape))
+    latents, cond = encode_latents(nets.vae, resize_images(images.astype(jnp.float32), hw),
+                                   resize_images(originals.astype(jnp.float32), hw),
+                                   vae_noise.astype(jnp.float32), cfg)
+    latents = denoise(nets.unet, latents, cond, embeddings, null, t_start,
+                      sde_noise.astype(jnp.float32), schedule, cfg)
+    return jnp.clip(resize_images(decode(nets.vae, latents, cfg), (height, width)), 0, 1)
+
+
+def draw_noise(keys: jax.Array, t_bounds: jax.Array, latent_hw: tuple[int, int]):
+    """(t_start int32 [B], vae_noise, sde_noise float32 [B, h, w, 4]) from keys [B].
+
+    ``t_bounds``: int32 [2], T's inclusive range (:func:`timestep_bounds`). Each key splits
+    into (k_t, k_n) as in the torch editor (same T from the same key); k_n gives the noises.
+    """
+    def one(key):
+        k_t, k_n = jax.random.split(key)
+        t = jax.random.randint(k_t, (), t_bounds[0], t_bounds[1] + 1)
+        k_vae, k_sde = jax.random.split(k_n)
+        shape = (*latent_hw, 4)
+        return (t.astype(jnp.int32), jax.random.normal(k_vae, shape, jnp.float32),
+                jax.random.normal(k_sde, shape, jnp.float32))
+
+    return jax.vmap(one)(keys)
+
+
+def edit_batch(nets: Networks, images: jax.Array, originals: jax.Array, embeddings: jax.Array,
+               null: jax.Array, keys: jax.Array, t_bounds: jax.Array,
+               schedule: DiffusionSchedule, cfg: EditConfig, model_hw: tuple[int, int]):
+    """Edit B views, float32 [B, H, W, 3], T and noises drawn from ``keys`` [B] (typed keys).
+
+    ``model_hw``: the networks' (h, w), multiples of 8 (:func:`model_size`).
+    """
+    t_start, vae_noise, sde_noise = draw_noise(keys, t_bounds, (model_hw[0] // 8,
+                                                                model_hw[1] // 8))
+    return edit_with_noise(nets, images, originals, embeddings, null, t_start, vae_noise,
+                           sde_noise, schedule, cfg)
+
+
+#: Compiled: everything but the networks' arrays, the inputs and the schedule is static.
+edit_batch_jit = eqx.filter_jit(edit_batch)
+edit_with_noise_jit = eqx.filter_jit(edit_with_noise)
+
+
+# ----------------------------------------------------------------------------- the editor
+
+def default_dtype(device: jax.Device) -> str:
+    """float32 on the CPU, bfloat16 on accelerators."""
+    return "float32" if device.platform == "cpu" else "bfloat16"
+
+
+def _dtype_name(dtype) -> str:
+    names = {"fp16": "float16", "half": "float16", "fp32": "float32", "float": "float32",
+             "bf16": "bfloat16"}
+    name = names.get(str(dtype), str(dtype))
+    try:
+        ok = jnp.issubdtype(jnp.dtype(name), jnp.floating)
+    except TypeError:
+        ok = False
+    if not ok:
+        raise DataError("dtype", f"unknown floating point dtype {dtype!r}")
+    return jnp.dtype(name).name
+
+
+def _as_batch(x, field: str, ndim: int) -> jax.Array:
+    """An array of ``ndim`` dims (a single view gets a batch axis of 1), float, last axis 3."""
+    x = x if isinstance(x, jax.Array) else np.asarray(x)
+    if x.ndim == ndim - 1:
+        x = x[None]
+    if x.ndim != ndim or x.shape[-1] != 3:
+        raise DataError(field, f"expected images [B, H, W, 3] or [H, W, 3], got shape "
+                        f"{tuple(x.shape)}")
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        raise DataError(field, f"expected float values in [0, 1], got {x.dtype}")
+    return x
+
+
+class JaxIP2PEditor:
+    """InstructPix2Pix in JAX implementing :class:`jaxedit.edit.Editor` (module docstring).
+
+    Args:
+      unet, vae, text_encoder: equinox modules (:mod:`jaxedit.models`); the UNet's parameter
+        dtype is the networks' compute dtype (:meth:`from_pretrained` loads them in the
+        device's default: float32 on the CPU, bfloat16 on accelerators).
+      tokenize: ``list[str] -> int32 [B, 77]`` CLIP token ids.
+      schedule: :class:`DiffusionSchedule`; prediction_type, clip_sample: the DDIM update's.
+      devices: the editor's devices (default: the first JAX device); several shard batches.
+      size: model resolution of the longer side (multiple of 8; None keeps the view's size).
+      steps: DDIM steps from T to 0.
+    """
+
+    name = "ip2p"
+
+    def __init__(self, unet, vae, text_encoder, tokenize: Callable[[list[str]], np.ndarray],
+                 schedule: DiffusionSchedule, *, prediction_type: str = "epsilon",
+                 clip_sample: float | None = None, scaling_factor: float = 0.18215,
+                 devices: Sequence[jax.Device] | None = None,
+                 size: int | None = 512, steps: int = 20, source: str = ""):
+        self.devices = list(devices) if devices else [jax.devices()[0]]
+        self.dtype = _float_dtype(unet)
+        if size is not None and size % 8:
+            raise DataError("size", f"model size {size} is not a multiple of 8")
+        if int(steps) < 1:
+            raise DataError("steps", f"must be >= 1, got {steps}")
+        self.size, self.steps, self.source = size, int(steps), source
+        self.mesh = Mesh(np.array(self.devices), (VIEWS,))
+        self.replicated = NamedSharding(self.mesh, PartitionSpec())
+        self.by_view = NamedSharding(self.mesh, PartitionSpec(VIEWS))
+        self.nets = jax.device_put(Networks(unet, vae), self.replicated)
+        self.text_encoder = jax.device_put(text_encoder, self.replicated)
+        self.tokenize = tokenize
+        self.schedule = jax.device_put(DiffusionSchedule(
+            jnp.asarray(schedule.alphas_cumprod, jnp.float32),
+            jnp.asarray(schedule.final_alpha, jnp.float32)), self.replicated)
+        self.num_train_timesteps = int(np.shape(schedule.alphas_cumprod)[0])
+        self.prediction_type = prediction_type
+        self.clip_sample = clip_sample
+        self.scaling_factor = float(scaling_factor)
+        self._embeddings: dict[str, np.ndarray] = {}
+        self._encode = eqx.filter_jit(lambda enc, ids: enc(ids).astype(jnp.float32))
+
+    @classmethod
+    def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, devices=None,
+                        dtype=None, size: int | None = 512, steps: int = 20) -> "JaxIP2PEditor":
+        """Load a local diffusers folder (or a Hub id in the local cache) into JAX, no torch.
+
+        ``path`` as :func:`jaxedit.edit.diffusion.resolve_weights`; the scheduler config is
+        read as Stable Diffusion 1.x's DDIM (:func:`jaxedit.edit.diffusion.ddim_settings`).
+        """
+        from ..models import load_ip2p
+        from .diffusion import ddim_settings, resolve_weights
+
+        root = resolve_weights(path)
+        devices = list(devices) if devices else [jax.devices()[0]]
+        name = _dtype_name(dtype) if dtype is not None else default_dtype(devices[0])
+        models = load_ip2p(root, dtype=jnp.dtype(name))
+        settings = ddim_settings(root / "scheduler", models.scheduler.alphas_cumprod)
+        editor = cls(models.unet, models.vae, models.text_encoder, models.tokenizer.ids,
+                     DiffusionSchedule(np.asarray(models.scheduler.alphas_cumprod),
+                                       settings["final_alpha"]),
+                     prediction_type=str(models.scheduler.prediction_type),
+                     clip_sample=settings["clip_sample"],
+                     scaling_factor=float(models.vae.scaling_factor), devices=devices,
+                     size=size, steps=steps, source=str(root))
+        log.info("InstructPix2Pix (JAX) loaded from %s on %s (%s), size %s, %d DDIM steps", root,
+                 editor.devices, editor.dtype, size, steps)
+        return editor
+
+    def __repr__(self):
+        return (f"JaxIP2PEditor({self.source!r}, devices={self.devices}, dtype={self.dtype}, "
+                f"size={self.size}, steps={self.steps})")
+
+    def config(self, guidance=(7.5, 1.5)) -> EditConfig:
+        return EditConfig(steps=self.steps, prediction_type=self.prediction_type,
+                          clip_sample=self.clip_sample, scaling_factor=self.scaling_factor,
+                          dtype=self.dtype, guidance=tuple(float(g) for g in guidance))
+
+    # -- embeddings -----------------------------------------------------------------------
+
+    def encode(self, prompt: str) -> np.ndarray:
+        """CLIP text embedding E(prompt): NumPy float32 [77, D]; E("") is the null embedding."""
+        if not isinstance(prompt, str):
+            raise DataError("prompt", f"must be a string, got {type(prompt).__name__}")
+        if prompt not in self._embeddings:
+            ids = jnp.asarray(np.asarray(self.tokenize([prompt]), np.int32))
+            hidden = self._encode(self.text_encoder, jax.device_put(ids, self.replicated))
+            self._embeddings[prompt] = np.asarray(hidden[0], np.float32)
+        return self._embeddings[prompt].copy()
+
+    def _embedding(self, embedding) -> jax.Array:
+        null = self.encode("")
+        e = embedding if isinstance(embedding, jax.Array) else np.asarray(embedding, np.float32)
+        if tuple(e.shape[-2:]) != null.shape or e.ndim not in (2, 3):
+            raise DataError("embedding", f"expected shape {null.shape} or [B, *{null.shape}] "
+                            f"(from encode), got {tuple(e.shape)}")
+        return e
+
+    # -- the edit -------------------------------------------------------------------------
+
+    def model_hw(self, height: int, width: int) -> tuple[int, int]:
+        return model_size(height, width, self.size)
+
+    def edit_many(self, images, originals, embeddings, keys: jax.Array, *,
+                  timestep_range: tuple[float, float] = (0.02, 0.98),
+                  guidance: tuple[float, float] = (7.5, 1.5)) -> jax.Array:
+        """Edit B views in one call: float32 [B, H, W, 3] on the editor's devices.
+
+        ``images``, ``originals``: [B, H, W, 3]; ``embeddings``: [B, 77, D] or one [77, D];
+        ``keys``: B typed keys (or raw uint32 [B, 2]). With several devices the batch is
+        padded to a multiple of their number and sharded over them.
+        """
+        images = _as_batch(images, "image", 4)
+        originals = _as_batch(originals, "original", 4)
+        if images.shape != originals.shape:
+            raise DataError("original", f"shape {tuple(originals.shape)} differs from the "
+                            f"image's {tuple(images.shape)}")
+        keys = keys if jnp.issubdtype(keys.dtype, jax.dtypes.prng_key) else \
+            jax.random.wrap_key_data(jnp.asarray(keys, jnp.uint32))
+        keys = keys.reshape(-1)
+        b = images.shape[0]
+        if keys.shape[0] != b:
+            raise DataError("keys", f"{keys.shape[0]} keys for {b} views")
+        emb = self._embedding(embeddings)
+        if emb.ndim == 3 and emb.shape[0] != b:
+            raise DataError("embedding", f"{emb.shape[0]} embeddings for {b} views")
+        t_bounds = np.asarray(timestep_bounds(timestep_range, self.num_train_timesteps), np.int32)
+        pad = -b % len(self.devices)
+        batched = [images, originals, keys] + ([emb] if emb.ndim == 3 else [])
+        if pad:  # repeat the last view; its copies are dropped below
+            batched = [jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]) for x in batched]
+        batched = [jax.device_put(x, self.by_view) for x in batched]
+        if emb.ndim == 2:
+            batched.append(jax.device_put(emb, self.replicated))
+        images, originals, keys, emb = batched
+        null = jax.device_put(self.encode(""), self.replicated)
+        out = edit_batch_jit(self.nets, images, originals, emb, null, keys,
+                             jax.device_put(t_bounds, self.replicated), self.schedule,
+                             self.config(guidance), self.model_hw(*images.shape[1:3]))
+        return out[:b] if pad else out
+
+    def edit(self, image, original, embedding, key: jax.Array, *,
+             timestep_range: tuple[float, float] = (0.02, 0.98),
+             guidance: tuple[float, float] = (7.5, 1.5)) -> jax.Array:
+        """Edit one view: float32 [H, W, 3] in [0, 1] (a JAX array on the editor's device)."""
+        image = _as_batch(image, "image", 3 + 1)
+        if image.shape[0] != 1:
+            raise DataError("image", f"expected one image [H, W, 3], got {tuple(image.shape)}")
+        key = key if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else \
+            jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
+        return self.edit_many(image, original, embedding, key.reshape(1),
+                              timestep_range=timestep_range, guidance=guidance)[0]
+
+    def describe(self) -> dict:
+        """What a run log / report records about this editor."""
+        return {"editor": self.name, "framework": "jax", "weights": self.source,
+                "devices": [str(d) for d in self.devices], "dtype": self.dtype,
+                "size": self.size, "steps": self.steps, "clip_sample": self.clip_sample,
+                "prediction_type": self.prediction_type}
+
+
+def _float_dtype(module) -> str:
+    """The dtype of a module's floating point parameters (float32 if it has none)."""
+    leaves = [x for x in jax.tree_util.tree_leaves(eqx.filter(module, eqx.is_array))
+              if jnp.issubdtype(x.dtype, jnp.floating)]
+    return jnp.dtype(leaves[0].dtype).name if leaves else "float32"
+
+
+def load_editor(path: str | os.PathLike = DEFAULT_MODEL, *, devices=None, dtype=None,
+                size: int | None = 512, steps: int = 20) -> JaxIP2PEditor:
+    """Factory for the CLI (``--editor ip2p --ip2p-weights DIR``):
+    :meth:`JaxIP2PEditor.from_pretrained`."""
+    return JaxIP2PEditor.from_pretrained(path, devices=devices, dtype=dtype, size=size,
+                                         steps=steps)
+

@@ -1,0 +1,100 @@
+"""Data parallelism over a mesh of devices: views sharded, Gaussians and networks replicated.
+
+Two batched computations of a ProEdit run split over views:
+
+* the edit of a batch of views (:meth:`jaxedit.edit.jax_ip2p.JaxIP2PEditor.edit_many`:
+  the editor's own mesh), and
+* the training loss over a batch of views, :func:`views_step`: the mean photometric loss
+  of V views rendered from one replicated scene. With the images and cameras placed by
+  :func:`shard_views` and the train state by :func:`replicate`, ``jax.jit`` compiles one
+  SPMD program: every device renders and differentiates its views, and XLA all-reduces
+  the gradient (the mean over views) before the replicated Adam update.
+
+:func:`views_step` is the multi-view counterpart of :func:`jaxedit.train._train_step`
+(same loss, background, SH schedule and optimiser) without density control and camera
+optimisation, whose statistics are per view; a step whose tile buffer overflowed in any
+view leaves the state as it was and says so (``overflow``), as the single-view step does.
+
+On several hosts (``jax.distributed.initialize()`` first, one process per host) the same
+code runs unchanged with a mesh over ``jax.devices()``, the global device list.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from .losses import photometric_loss
+from .raster.render import render_tiles
+
+#: Name of the mesh axis views are sharded along (the editor's too).
+VIEWS = "views"
+
+
+def views_mesh(devices=None) -> Mesh:
+    """A one-axis mesh over ``devices`` (default: every device JAX sees)."""
+    return Mesh(np.array(list(devices) if devices is not None else jax.devices()), (VIEWS,))
+
+
+def replicate(tree, mesh: Mesh):
+    """``tree`` with every array copied to every device of ``mesh``."""
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+def shard_views(tree, mesh: Mesh):
+    """``tree``'s arrays split along their first (view) axis over ``mesh``; that axis must be
+    a multiple of the mesh size."""
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(VIEWS)))
+
+
+def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
+    """(loss, render output, gradient w.r.t. the trainable Gaussians) of V views.
+
+    Args:
+      state: :class:`jaxedit.train.TrainState` (its Gaussians, config, tile buffer size).
+      images: float [V, H, W, 3] targets; cameras: batched Camera [V].
+      key: the step key (the background colour when it is random).
+    """
+    from .train import _params, active_sh_degree, background_color, sh_mask
+
+    cfg, g = state.config, state.gaussians
+    bg = background_color(cfg, jax.random.split(key)[0])
+    mask = sh_mask(active_sh_degree(state.step, cfg), g.sh.shape[-2])
+    target = jnp.asarray(images, g.means.dtype)
+
+    def loss_fn(params):
+        gg = dataclasses.replace(params, alive=g.alive, sh=params.sh * mask)
+        out = render_tiles(gg, cameras, capacity=state.max_intersections, background=bg)
+        return photometric_loss(out.rgb, target, cfg.lambda_dssim), out
+
+    (loss, out), grads = jax.value_and_grad(loss_fn, has_aux=True)(_params(g))
+    return loss, out, grads
+
+
+def views_step(state, images: jax.Array, cameras, key: jax.Array):
+    """One optimiser step on the mean loss of V views: (state, {"loss", "overflow"}).
+
+    Shard ``images`` / ``cameras`` over a mesh and replicate ``state`` to run it data
+    parallel (module docstring); unsharded inputs give the one-device program.
+    """
+    from .train import _params, optimizer
+
+    loss, out, grads = views_loss_and_grad(state, images, cameras, key)
+    params = _params(state.gaussians)
+    updates, opt_state = optimizer(state.config, state.scene_extent).update(
+        grads, state.opt_state, params)
+    params = optax.apply_updates(params, updates)
+    new = dataclasses.replace(state, gaussians=dataclasses.replace(
+        params, alive=state.gaussians.alive), opt_state=opt_state, step=state.step + 1)
+    overflow = jnp.any(out.overflow)
+    new = jax.tree_util.tree_map(lambda old, nw: jnp.where(overflow, old, nw), state, new)
+    return new, {"loss": loss, "overflow": overflow}
+
+
+views_step_jit = jax.jit(views_step)
+views_loss_and_grad_jit = jax.jit(views_loss_and_grad)
