@@ -517,7 +517,8 @@ def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
     if bool(metrics["capacity_limited"]):
         needed = int(metrics["densify"]["slots_needed"])
         cap = state.config.densify.max_gaussians
-        new_cap = dens.grown_capacity(state.capacity, needed, cap)
+        # Room for the next maintenance steps too: each growth is one more compile.
+        new_cap = dens.grown_capacity(state.capacity, GROWTH_ROOM * needed, cap)
         if new_cap <= state.capacity:
             raise RuntimeError(f"capacity {state.capacity} cannot grow to hold {needed}")
         log.info("train: capacity %d -> %d Gaussians (density control needed %d, cap %d)",
@@ -526,6 +527,59 @@ def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
                                                state.densify_stats, new_cap)
         state = dataclasses.replace(state, gaussians=g, opt_state=opt_state, densify_stats=stats)
     return state
+
+
+#: On a capacity redo, the capacity grows to hold this many times the slots the step needed.
+GROWTH_ROOM = 2
+
+#: The capacity :func:`fit` gives a fresh run that will densify on a GPU, as a multiple
+#: of its alive Gaussians (within ``max_gaussians``): see :func:`plan_room`.
+ROOM = 4.0
+
+
+def default_room(platform: str | None = None) -> float | None:
+    """:func:`fit`'s ``room`` on ``platform`` (default: JAX's default backend).
+
+    A dead slot still costs its share of every step's per-Gaussian passes
+    (projection, Adam, the statistics): on a GPU nothing measurable, on a CPU
+    about 1 ms per 1000 slots and step at 64 px (benchmarks/train_loop.py), more
+    than the compiles it saves over a run. So: :data:`ROOM` on a GPU, on-demand
+    growth (None) elsewhere.
+    """
+    return ROOM if (platform or jax.default_backend()) == "gpu" else None
+
+
+def planned_capacity(state: TrainState, room: float | None) -> int:
+    """The capacity :func:`plan_room` gives ``state`` (never less than it has)."""
+    d = state.config.densify
+    stop_at = d.stop_at if d.stop_at is not None else state.config.iterations // 2
+    if room is None or room <= 1 or not d.enabled or int(state.step) >= stop_at:
+        return state.capacity
+    want = int(math.ceil(room * int(state.gaussians.num_alive()) / 1024.0)) * 1024
+    return max(state.capacity, min(want, int(d.max_gaussians)))
+
+
+def plan_room(state: TrainState, room: float | None = ROOM) -> TrainState:
+    """``state`` with the room a densifying run will need, allocated before its first step.
+
+    Density control runs inside the compiled chunk and only flips ``alive`` bits,
+    but when it needs more slots than the capacity has, the chunk ends, the host
+    grows the capacity and the chunk recompiles (seconds on a CPU, more with the
+    GPU's kernels): the host stop that made end-to-end training several times
+    slower than its steady state. Giving a fresh run ``room`` x its alive
+    Gaussians up front makes those stops rare; the unused slots are dead and cost
+    little per step. Outside jit. The capacity is part of the state (and of its
+    checkpoints), so :func:`fit` plans only at step 0 and a resumed run keeps
+    the capacity it had: resume stays bit-exact.
+    """
+    new_cap = planned_capacity(state, room)
+    if new_cap <= state.capacity:
+        return state
+    log.info("train: capacity %d -> %d Gaussians (room planned for density control)",
+             state.capacity, new_cap)
+    g, opt_state, stats = dens.grow_state(state.gaussians, state.opt_state,
+                                           state.densify_stats, new_cap)
+    return dataclasses.replace(state, gaussians=g, opt_state=opt_state, densify_stats=stats)
 
 
 def step_with_retry(state: TrainState, batch: Batch, key, *, max_retries: int = 8):
@@ -845,7 +899,8 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         keep_checkpoints: int = 2, progress: Callable[[TrainProgress], None] | None = None,
         callback: Callable | None = None,
         should_stop: Callable[[int, list], bool] | None = None, desc: str = "train",
-        chunk: int = CHUNK, max_loss: float | None = 0.75) -> TrainState:
+        chunk: int = CHUNK, max_loss: float | None = 0.75,
+        room: float | None | str = "auto") -> TrainState:
     """Train until ``state.step == iterations`` (default ``state.config.iterations``).
 
     The images live on the device and the steps run in compiled chunks of up to
@@ -876,6 +931,10 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
       chunk: steps per compiled chunk (1: the host sees every step).
       max_loss: divergence guard threshold (see :func:`divergence`; None: only
         non-finite values stop the run).
+      room: a fresh run (step 0) that will densify starts with ``room`` x its alive
+        Gaussians of capacity (:func:`plan_room`; None: as given, grown on demand;
+        "auto": :func:`default_room`). The capacity changes only the speed and the
+        last bits of the floats (reductions over differently sized arrays).
     Returns:
       the final TrainState.
     Raises:
@@ -902,6 +961,8 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         raise DataError("cameras", f"{images.shape[0]} training views but the state learns "
                                    f"pose corrections for {state.cameras.num_views}")
     cameras = jax.tree_util.tree_map(jnp.asarray, cameras)
+    if int(state.step) == 0:
+        state = plan_room(state, default_room() if room == "auto" else room)
     if state.max_intersections <= 0:
         state = size_buffer(state, cameras)
     ckpt_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
@@ -916,15 +977,26 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
     history: list[float] = []
     t0 = time.monotonic()
     steps_done = 0
+
+    def launch(st, at):
+        """Dispatch the chunk that starts at step ``at`` (asynchronous: nothing is read)."""
+        n = min(chunk, total - at)
+        if ckpt_dir is not None and checkpoint_every:
+            n = min(n, checkpoint_every - at % checkpoint_every)
+        new, metrics = train_chunk(st, images, cameras, jax.device_put(np.int32(n)),
+                                   length=chunk)
+        return new, metrics, n
+
     try:
-        while step < total:
-            if should_stop is not None and should_stop(step, history):
-                break
-            n = min(chunk, total - step)
-            if ckpt_dir is not None and checkpoint_every:
-                n = min(n, checkpoint_every - step % checkpoint_every)
-            new, metrics = train_chunk(state, images, cameras, jax.device_put(np.int32(n)),
-                                       length=chunk)
+        ahead = None
+        if step < total and not (should_stop is not None and should_stop(step, history)):
+            ahead = launch(state, step)
+        while ahead is not None:
+            new, metrics, n = ahead
+            # The next chunk goes to the device before this one is read, so the device
+            # never waits for the host's logging and checks. It assumes this chunk
+            # completes; when it does not (a redo, a stop, divergence) it is dropped.
+            ahead = launch(new, step + n) if step + n < total else None
             metrics = jax.device_get(metrics)
             completed = metrics["ran"] & ~metrics["redo"]
             k = int(np.sum(completed))
@@ -949,19 +1021,23 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
                 log_file.flush()
             step += k
             steps_done += k
-            if k < n:  # a step asked for more room: grow, then redo it in the next chunk
+            if k < n:  # a step asked for more room: grow, then redo it in a new chunk
                 state = grow_for_redo(state, jax.tree_util.tree_map(lambda a: a[k], metrics))
-            if k == 0:
-                continue
-            if progress is not None:
-                progress(TrainProgress(desc, step, total, float(steps["loss"][-1]),
-                                       float(steps["psnr"][-1]),
-                                       int(steps["num_gaussians"][-1])))
-            if callback is not None:
-                callback(state, steps)
-            if ckpt_dir is not None and checkpoint_every and step % checkpoint_every == 0:
-                save_checkpoint(ckpt_dir / checkpoint_name(step), state)
-                _prune_checkpoints(ckpt_dir, keep_checkpoints)
+                ahead = None
+            if k:
+                if progress is not None:
+                    progress(TrainProgress(desc, step, total, float(steps["loss"][-1]),
+                                           float(steps["psnr"][-1]),
+                                           int(steps["num_gaussians"][-1])))
+                if callback is not None:
+                    callback(state, steps)
+                if ckpt_dir is not None and checkpoint_every and step % checkpoint_every == 0:
+                    save_checkpoint(ckpt_dir / checkpoint_name(step), state)
+                    _prune_checkpoints(ckpt_dir, keep_checkpoints)
+            if should_stop is not None and step < total and should_stop(step, history):
+                break
+            if ahead is None and step < total:
+                ahead = launch(state, step)
     finally:
         if log_file is not None:
             log_file.close()
