@@ -170,8 +170,8 @@ def test_sh_schedule_and_learning_rate_decay():
     assert [int(T.active_sh_degree(s, cfg)) for s in (0, 999, 1000, 2500, 9000)] == [0, 0, 1, 2, 3]
     mask = np.asarray(T.sh_mask(1, 16))[:, 0]
     np.testing.assert_array_equal(mask, [1, 1, 1, 1] + [0] * 12)
-    lr0 = float(T._means_lr(cfg, 2.0, 0))
-    lr_end = float(T._means_lr(cfg, 2.0, cfg.iterations))
+    lr0 = float(T.means_lr(cfg, 2.0, 0))
+    lr_end = float(T.means_lr(cfg, 2.0, cfg.iterations))
     assert lr0 == pytest.approx(1.6e-4 * 2.0) and lr_end == pytest.approx(1.6e-6 * 2.0)
     assert T.scene_extent(scenes.rig_cameras(scenes.get_scene("face").rig, 8)) > 1.0
     assert isinstance(T.background_color(dataclasses.replace(cfg, background="random"),
