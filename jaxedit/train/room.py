@@ -92,21 +92,24 @@ def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
 #: On a capacity redo, the capacity grows to hold this many times the slots the step needed.
 GROWTH_ROOM = 2
 
-#: The capacity :func:`fit` gives a fresh run that will densify on a GPU, as a multiple
-#: of its alive Gaussians (within ``max_gaussians``): see :func:`plan_room`.
-ROOM = 4.0
+#: The capacity :func:`fit` gives a fresh run that will densify, as a multiple of its
+#: alive Gaussians (within ``max_gaussians``), on a GPU and elsewhere: see :func:`default_room`.
+ROOM = {"gpu": 4.0, "cpu": 2.0}
 
 
-def default_room(platform: str | None = None) -> float | None:
+def default_room(platform: str | None = None) -> float:
     """:func:`fit`'s ``room`` on ``platform`` (default: JAX's default backend).
 
     A dead slot still costs its share of every step's per-Gaussian passes
-    (projection, Adam, the statistics): on a GPU nothing measurable, on a CPU
-    about 1 ms per 1000 slots and step at 64 px (benchmarks/train_loop.py), more
-    than the compiles it saves over a run. So: :data:`ROOM` on a GPU, on-demand
-    growth (None) elsewhere.
+    (projection, Adam, the statistics): on a GPU nothing measurable, on a CPU about
+    1 ms per 1000 slots and step at 64 px (15 / 21 / 31 ms of CPU per step at
+    capacity 5000 / 10240 / 20480 on the person scene), while a compile costs ~10 s
+    of CPU. So 4x on a GPU, 2x on a CPU: on the person scene at 64 px (1500 steps,
+    5000 initial Gaussians growing to 8607) 2x ran 28.9 steps per CPU second against
+    22.7-26.7 growing on demand and 4x cost more per step than the compile it saved
+    (benchmarks/train_loop.py).
     """
-    return ROOM if (platform or jax.default_backend()) == "gpu" else None
+    return ROOM["gpu"] if (platform or jax.default_backend()) == "gpu" else ROOM["cpu"]
 
 
 def planned_capacity(state: TrainState, room: float | None) -> int:
@@ -119,7 +122,7 @@ def planned_capacity(state: TrainState, room: float | None) -> int:
     return max(state.capacity, min(want, int(d.max_gaussians)))
 
 
-def plan_room(state: TrainState, room: float | None = ROOM) -> TrainState:
+def plan_room(state: TrainState, room: float | None) -> TrainState:
     """``state`` with the room a densifying run will need, allocated before its first step.
 
     Density control runs inside the compiled chunk and only flips ``alive`` bits,
@@ -128,7 +131,7 @@ def plan_room(state: TrainState, room: float | None = ROOM) -> TrainState:
     GPU's kernels): the host stop that made end-to-end training several times
     slower than its steady state. Giving a fresh run ``room`` x its alive
     Gaussians up front makes those stops rare; the unused slots are dead and cost
-    little per step. Outside jit. The capacity is part of the state (and of its
+    little per step (see :func:`default_room`). Outside jit. The capacity is part of the state (and of its
     checkpoints), so :func:`fit` plans only at step 0 and a resumed run keeps
     the capacity it had: resume stays bit-exact.
     """
