@@ -325,26 +325,9 @@ def _gsplat_ssim():
 
         return (lambda a, b: fused_ssim(a, b, padding="valid")), "fused_ssim"
     except ImportError:
-        import torch.nn.functional as F
+        from parity import torch_ssim  # the same window and constants, in plain torch
 
-        def ssim(x, y):
-            import torch
-
-            c1, c2 = 0.01 ** 2, 0.03 ** 2
-            coords = torch.arange(11, device=x.device, dtype=torch.float32) - 5
-            g1 = torch.exp(-coords ** 2 / (2 * 1.5 ** 2))
-            g1 = g1 / g1.sum()
-            win = (g1[:, None] * g1[None]).expand(3, 1, 11, 11)
-
-            def f(z):
-                return F.conv2d(z, win, groups=3)
-
-            mx, my = f(x), f(y)
-            sxx, syy, sxy = f(x * x) - mx ** 2, f(y * y) - my ** 2, f(x * y) - mx * my
-            return (((2 * mx * my + c1) * (2 * sxy + c2))
-                    / ((mx ** 2 + my ** 2 + c1) * (sxx + syy + c2))).mean()
-
-        return ssim, "torch conv2d SSIM (fused_ssim is not installed)"
+        return torch_ssim, "torch conv2d SSIM (fused_ssim is not installed)"
 
 
 def gsplat_training(size: int, n: int, steps: int, chunk: int) -> dict:
