@@ -50,11 +50,13 @@ class _Growths(logging.Handler):
 
     def __init__(self):
         super().__init__(logging.INFO)
-        self.buffer, self.capacity = 0, 0
+        self.buffer, self.capacity, self.planned = 0, 0, 0
 
     def emit(self, record):
         msg = record.getMessage()
-        if "intersection buffer" in msg and "->" in msg:
+        if "room planned" in msg:  # the capacity given before the first step: no recompile
+            self.planned += 1
+        elif "intersection buffer" in msg and "->" in msg:
             self.buffer += 1
         elif "capacity" in msg and "->" in msg:
             self.capacity += 1
@@ -105,6 +107,7 @@ def one_run(data, config, points, colors, seed: int, room) -> dict:
             "chunks": len(chunks), "compile_chunks": int(slow.sum()),
             "compile_s": round(float(sum(s for (s, _), x in zip(chunks, slow) if x)), 3),
             "buffer_growths": growths.buffer, "capacity_growths": growths.capacity,
+            "capacity_planned": bool(growths.planned),
             "capacity": state.capacity, "max_intersections": state.max_intersections,
             "num_gaussians": int(state.gaussians.num_alive())}
 

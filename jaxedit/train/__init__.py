@@ -36,19 +36,21 @@ from .config import BACKGROUNDS, TrainConfig
 from .evaluation import evaluate, render_views
 from .loop import (CHUNK, GUARD_WINDOW, TrainProgress, divergence, fit, put_image, scan_steps,
                    select_batch, train_chunk, view_and_key)
-from .room import (GROWTH_ROOM, ROOM, default_room, grow_for_redo, measure_intersections,
-                   plan_room, planned_capacity, size_buffer, step_with_retry)
+from .room import (GROWTH_ROOM, HEADROOM, ROOM, default_room, grow_for_redo,
+                   measure_intersections, plan_room, planned_capacity, planned_headroom,
+                   size_buffer, step_with_retry)
 from .state import Batch, TrainState, init_state, optimizer, scene_extent
 from .step import (GUARDED, active_sh_degree, apply_step, background_color, camera_lr, means_lr,
                    psnr_from_mse, sh_mask, train_step)
 
 __all__ = [
     "BACKGROUNDS", "Batch", "CHECKPOINT_VERSION", "CHUNK", "DensifyConfig", "GROWTH_ROOM",
-    "GUARDED", "GUARD_WINDOW", "ROOM", "TrainConfig", "TrainProgress", "TrainState",
+    "GUARDED", "GUARD_WINDOW", "HEADROOM", "ROOM", "TrainConfig", "TrainProgress", "TrainState",
     "active_sh_degree", "apply_step", "background_color", "camera_lr", "checkpoint_name",
     "default_room", "divergence", "evaluate", "fit", "grow_for_redo", "init_state",
     "latest_checkpoint", "load_checkpoint", "load_checkpoint_with_extra", "means_lr",
-    "measure_intersections", "optimizer", "plan_room", "planned_capacity", "prune_checkpoints",
+    "measure_intersections", "optimizer", "plan_room", "planned_capacity", "planned_headroom",
+    "prune_checkpoints",
     "psnr_from_mse", "put_image", "render_views", "resume", "save_checkpoint", "scan_steps",
     "scene_extent", "select_batch", "sh_mask", "size_buffer", "step_with_retry", "train_chunk",
     "train_step", "view_and_key",

@@ -24,7 +24,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import DataError
 from .checkpoint import checkpoint_name, prune_checkpoints, save_checkpoint
-from .room import default_room, grow_for_redo, plan_room, size_buffer
+from .room import default_room, grow_for_redo, plan_room, planned_headroom, size_buffer
 from .state import Batch, TrainState, key_data
 from .step import GUARDED, apply_step
 
@@ -268,7 +268,8 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         non-finite values stop the run).
       room: a fresh run (step 0) that will densify starts with ``room`` x its alive
         Gaussians of capacity (:func:`plan_room`; None: as given, grown on demand;
-        "auto": :func:`default_room`). The capacity changes only the speed and the
+        "auto": :func:`default_room`), and an unsized buffer ``room`` x the usual
+        headroom (:func:`planned_headroom`). The capacity changes only the speed and the
         last bits of the floats (reductions over differently sized arrays).
     Returns:
       the final TrainState.
@@ -296,10 +297,12 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         raise DataError("cameras", f"{images.shape[0]} training views but the state learns "
                                    f"pose corrections for {state.cameras.num_views}")
     cameras = jax.tree_util.tree_map(jnp.asarray, cameras)
+    room = default_room() if room == "auto" else room
+    headroom = planned_headroom(state, room if int(state.step) == 0 else None)
     if int(state.step) == 0:
-        state = plan_room(state, default_room() if room == "auto" else room)
+        state = plan_room(state, room)
     if state.max_intersections <= 0:
-        state = size_buffer(state, cameras)
+        state = size_buffer(state, cameras, headroom=headroom)
     ckpt_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
     log_file = None
     if log_path is not None:

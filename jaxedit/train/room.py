@@ -30,6 +30,10 @@ from .step import train_step
 log = logging.getLogger("jaxedit.train")
 
 
+#: Headroom of the intersection buffer over what the views need now (:func:`size_buffer`).
+HEADROOM = 1.5
+
+
 @functools.partial(jax.jit, static_argnames=("tile",))
 def _count_views(gaussians: Gaussians, cameras: Camera, tile: int):
     def one(cam):
@@ -48,7 +52,7 @@ def measure_intersections(gaussians: Gaussians, cameras: Camera) -> int:
     return int(jnp.max(_count_views(gaussians, cameras, tile=tile)))
 
 
-def size_buffer(state: TrainState, cameras: Camera, *, headroom: float = 1.5) -> TrainState:
+def size_buffer(state: TrainState, cameras: Camera, *, headroom: float = HEADROOM) -> TrainState:
     """``state`` with a tile buffer of ``headroom`` x what the views need now (outside jit).
 
     Training grows the scene, hence the headroom; when it is not enough the step
@@ -70,7 +74,7 @@ def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
     if bool(metrics["overflow"]):
         needed = int(np.max(np.asarray(metrics["num_intersections"])))
         # Training grows the scene, so leave room (each size is one more compile).
-        new = max(2 * state.max_intersections, next_capacity(int(needed * 1.5)))
+        new = max(2 * state.max_intersections, next_capacity(int(needed * HEADROOM)))
         log.info("train: intersection buffer %d -> %d (a view needed %d)",
                  state.max_intersections, new, needed)
         state = dataclasses.replace(state, max_intersections=new)
@@ -105,18 +109,33 @@ def default_room(platform: str | None = None) -> float:
     1 ms per 1000 slots and step at 64 px (15 / 21 / 31 ms of CPU per step at
     capacity 5000 / 10240 / 20480 on the person scene), while a compile costs ~10 s
     of CPU. So 4x on a GPU, 2x on a CPU: on the person scene at 64 px (1500 steps,
-    5000 initial Gaussians growing to 8607) 2x ran 28.9 steps per CPU second against
-    22.7-26.7 growing on demand and 4x cost more per step than the compile it saved
-    (benchmarks/train_loop.py).
+    5000 initial Gaussians growing to 8607; with the buffer planned alike, see
+    :func:`planned_headroom`) 2x ran 33-34 steps per CPU second end to end against
+    24-25 growing on demand, while 4x costs more per step than the compile it saves
+    (benchmarks/results/cpu/train_loop.json).
     """
     return ROOM["gpu"] if (platform or jax.default_backend()) == "gpu" else ROOM["cpu"]
+
+
+def _will_densify(state: TrainState, room: float | None) -> bool:
+    d = state.config.densify
+    stop_at = d.stop_at if d.stop_at is not None else state.config.iterations // 2
+    return room is not None and room > 1 and d.enabled and int(state.step) < stop_at
+
+
+def planned_headroom(state: TrainState, room: float | None) -> float:
+    """The buffer's headroom for a run about to start: :data:`HEADROOM`, times ``room`` when
+    density control will grow the scene (the pairs grow with the Gaussians, and each buffer
+    growth is a recompile too). On the person scene at 64 px the buffer grew from 1.5x to
+    3x the initial need within 1500 steps; a 2x larger buffer costs ~2.4 ms of CPU per step
+    there (16k -> 32k pairs), less than the compile it saves, and nothing measurable on a GPU."""
+    return HEADROOM * room if _will_densify(state, room) else HEADROOM
 
 
 def planned_capacity(state: TrainState, room: float | None) -> int:
     """The capacity :func:`plan_room` gives ``state`` (never less than it has)."""
     d = state.config.densify
-    stop_at = d.stop_at if d.stop_at is not None else state.config.iterations // 2
-    if room is None or room <= 1 or not d.enabled or int(state.step) >= stop_at:
+    if not _will_densify(state, room):
         return state.capacity
     want = int(math.ceil(room * int(state.gaussians.num_alive()) / 1024.0)) * 1024
     return max(state.capacity, min(want, int(d.max_gaussians)))
