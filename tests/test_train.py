@@ -189,6 +189,11 @@ def test_buffer_is_sized_from_the_views_not_guessed(face):
     assert 1.5 * needed <= sized.max_intersections
     from jaxedit.raster.render import next_capacity
     assert sized.max_intersections == next_capacity(int(1.5 * needed))
+    # A run about to densify gets the buffer room it gets capacity; one past stop_at does not.
+    assert T.planned_headroom(state, 2.0) == 2.0 * T.HEADROOM
+    assert T.planned_headroom(state, None) == T.HEADROOM
+    done = dataclasses.replace(state, step=jnp.int32(CONFIG.densify.stop_at))
+    assert T.planned_headroom(done, 2.0) == T.HEADROOM
 
 
 def test_planned_room_trains_the_same_scene_without_stopping_for_capacity(face, first_leg,
