@@ -98,7 +98,7 @@ def gsplat_available() -> bool:
     return bool(torch.cuda.is_available())
 
 
-def _torch_ssim(a, b):
+def torch_ssim(a, b):
     """Mean SSIM of [B, 3, H, W] images, Gaussian window 11 / sigma 1.5, 'valid' (as fused_ssim)."""
     import torch
     import torch.nn.functional as F
@@ -189,7 +189,7 @@ def run_gsplat(data, points, colors, steps: int, seed: int, lpips_fn, renders_di
         strategy.step_pre_backward(params, optimizers, state, step, info)
         target = gt[i:i + 1]
         l1 = torch.abs(rgb - target).mean()
-        dssim = 1.0 - _torch_ssim(rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2))
+        dssim = 1.0 - torch_ssim(rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2))
         loss = 0.8 * l1 + 0.2 * dssim
         loss.backward()
         for opt in optimizers.values():

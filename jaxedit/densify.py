@@ -12,6 +12,11 @@ Everything works on the fixed-capacity ``alive`` layout of
 (dead) slots, culled ones are marked dead, no shape ever depends on data, so
 ``update`` jit-compiles once and runs inside the compiled train step.
 
+The maintenance step is composed of named pure operations, each usable alone:
+:func:`cull_mask` + :func:`remove` (cull), :func:`select` (rank and budget),
+:func:`split`, :func:`place` (duplication: a copy, or a split's second child, into a
+free slot) and :func:`opacity_reset`.
+
 What ``update`` does at every call: accumulate the 3DGS statistics of this
 step's render (norm of the 2D-mean gradient in NDC units, visibility count,
 largest screen radius). At maintenance steps (``step > warmup``, ``step %
@@ -410,6 +415,115 @@ class DensifyConfig:
     cull_screen: float | None = 0.15
 
 
+# --------------------------------------------------------------------------------------
+# The operations of a maintenance step (pure; composed by :func:`adaptive`)
+# --------------------------------------------------------------------------------------
+
+def cull_mask(g: Gaussians, stats: DensifyStats, step, *, cull_alpha: float,
+              big_scale: float | None, cull_screen: float | None,
+              screen_from: int | None) -> jax.Array:
+    """bool [C]: the alive Gaussians to remove -- opacity below ``cull_alpha``, largest
+    world scale above ``big_scale``, or (from step ``screen_from`` on) a screen radius
+    that reached ``cull_screen`` of the image since the last maintenance step."""
+    culled = jax.nn.sigmoid(g.opacity_logits) < cull_alpha
+    if big_scale is not None:
+        culled |= jnp.exp(jnp.max(g.log_scales, axis=-1)) > big_scale
+    if cull_screen is not None and screen_from is not None:
+        culled |= (stats.max_radius > cull_screen) & (step > screen_from)
+    return culled & g.alive
+
+
+def remove(g: Gaussians, mask: jax.Array) -> Gaussians:
+    """``g`` with the slots of ``mask`` [C] dead (their parameters stay, unused)."""
+    return dataclasses.replace(g, alive=g.alive & ~mask)
+
+
+class Selection(NamedTuple):
+    """The Gaussians one maintenance step refines, best first.
+
+    Attributes:
+      candidates: bool [C], alive, seen, mean NDC gradient above the floor.
+      score: float [C], the mean gradient (-inf off the candidates).
+      order: int32 [C], slots by decreasing score (ties: lower slot first).
+      selected: bool [C], the first ``count`` of ``order``.
+      count: int32 [], k, how many are refined.
+      wanted: int32 [], min(budget, #candidates): what the step would create with room.
+      room_cap: int32 [], how many the hard cap still allows.
+    """
+
+    candidates: jax.Array
+    score: jax.Array
+    order: jax.Array
+    selected: jax.Array
+    count: jax.Array
+    wanted: jax.Array
+    room_cap: jax.Array
+
+
+def select(stats: DensifyStats, alive: jax.Array, *, floor: float, budget, max_gaussians: int
+           ) -> Selection:
+    """Rank the candidates by mean NDC gradient and take the first ``min(budget, #candidates,
+    max_gaussians - alive, free slots)`` (``budget`` None: every candidate)."""
+    capacity = alive.shape[0]
+    avg = stats.grad_sum / jnp.maximum(stats.count, 1).astype(jnp.float32)
+    cand = alive & (stats.count > 0) & (avg > floor)
+    n_cand = jnp.sum(cand.astype(jnp.int32))
+    score = jnp.where(cand, avg, -jnp.inf)
+    index = jnp.arange(capacity, dtype=jnp.int32)
+    _, order = jax.lax.sort((-score, index), num_keys=2)  # order[j]: j-th best slot
+    rank = jnp.zeros((capacity,), jnp.int32).at[order].set(index)
+    n_alive = jnp.sum(alive.astype(jnp.int32))
+    want = jnp.minimum(n_cand if budget is None else budget, n_cand)
+    room_cap = jnp.maximum(max_gaussians - n_alive, 0)
+    k = jnp.minimum(jnp.minimum(want, room_cap), capacity - n_alive)
+    return Selection(candidates=cand, score=score, order=order, selected=cand & (rank < k),
+                     count=k, wanted=want, room_cap=room_cap)
+
+
+def split(g: Gaussians, mask: jax.Array, key: jax.Array, factor: float
+          ) -> tuple[Gaussians, Gaussians]:
+    """Split the Gaussians of ``mask`` [C] in two, drawn from the parent's own distribution.
+
+    Returns:
+      (g with each split parent replaced by its first child, rows [C] whose split rows
+      are the second children -- to be placed in free slots -- and whose other rows
+      are ``g``'s own). Children's scales are the parent's divided by ``factor``.
+    """
+    eps = jax.random.normal(key, (g.capacity, 2, 3), g.means.dtype)
+    offsets = jnp.einsum("cij,ckj->cki", g.rotations(), eps * jnp.exp(g.log_scales)[:, None, :],
+                         precision=jax.lax.Precision.HIGHEST)  # no TF32 on GPUs
+    children = g.means[:, None, :] + offsets
+    m = mask[:, None]
+    log_scales = jnp.where(m, g.log_scales - math.log(factor), g.log_scales)
+    first = dataclasses.replace(g, means=jnp.where(m, children[:, 0], g.means),
+                                log_scales=log_scales)
+    second = dataclasses.replace(first, means=jnp.where(m, children[:, 1], g.means))
+    return first, second
+
+
+def place(g: Gaussians, rows: Gaussians, order: jax.Array, count) -> tuple[Gaussians, jax.Array]:
+    """Write ``rows[order[j]]`` into the j-th free slot of ``g`` for j < ``count`` (alive).
+
+    Duplication is placing a parent's own row; a split places its second child.
+
+    Returns:
+      (g, bool [C]: the slots written).
+    """
+    capacity = g.capacity
+    index = jnp.arange(capacity, dtype=jnp.int32)
+    _, free_order = jax.lax.sort((g.alive.astype(jnp.int32), index), num_keys=2)
+    dst = jnp.where(index < count, free_order, capacity)  # capacity = out of range: dropped
+
+    def put(a, new_rows):
+        return a.at[dst].set(new_rows[order], mode="drop")
+
+    placed = Gaussians(means=put(g.means, rows.means), log_scales=put(g.log_scales, rows.log_scales),
+                       quats=put(g.quats, rows.quats),
+                       opacity_logits=put(g.opacity_logits, rows.opacity_logits),
+                       sh=put(g.sh, rows.sh), alive=put(g.alive, jnp.ones_like(g.alive)))
+    return placed, jnp.zeros((capacity,), bool).at[dst].set(True, mode="drop")
+
+
 def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> Strategy:
     """3DGS adaptive density control with an optional ProEdit creation budget.
 
@@ -439,7 +553,9 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
     if max_gaussians <= 0:
         raise ValueError("max_gaussians must be positive")
     reset_value = 2.0 * cull_alpha if config.reset_value is None else config.reset_value
-    log_split = math.log(config.split_factor)
+    floor = grad_threshold if budget is None else grad_floor
+    # INRIA culls by screen size only after the first opacity reset.
+    screen_from = reset_every if reset_every > 0 else None
     dup_scale = config.dense_percent * scene_extent
     big_scale = None if config.cull_scale is None else config.cull_scale * scene_extent
 
@@ -447,92 +563,40 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
         return init_stats(gaussians.capacity)
 
     def refine(gaussians, opt_state, stats, step, key):
-        g = gaussians
-        cap_slots = g.capacity
-        alive0 = g.alive
-        n_alive0 = jnp.sum(alive0.astype(jnp.int32))
-        max_scale = jnp.exp(jnp.max(g.log_scales, axis=-1))
-        opac = jax.nn.sigmoid(g.opacity_logits)
-
-        # 1. Cull.
-        culled = opac < cull_alpha
-        if big_scale is not None:
-            culled |= max_scale > big_scale
-        if cull_screen is not None and reset_every > 0:
-            culled |= (stats.max_radius > cull_screen) & (step > reset_every)
-        culled &= alive0
-        alive1 = alive0 & ~culled
-        n_alive1 = jnp.sum(alive1.astype(jnp.int32))
-        n_culled = n_alive0 - n_alive1
-
-        # 2. Rank candidates by mean NDC gradient (ties: lower slot first).
-        avg = stats.grad_sum / jnp.maximum(stats.count, 1).astype(jnp.float32)
-        floor = grad_threshold if budget is None else grad_floor
-        cand = alive1 & (stats.count > 0) & (avg > floor)
-        n_cand = jnp.sum(cand.astype(jnp.int32))
-        score = jnp.where(cand, avg, -jnp.inf)
-        index = jnp.arange(cap_slots, dtype=jnp.int32)
-        _, order = jax.lax.sort((-score, index), num_keys=2)  # order[j]: j-th best slot
-        rank = jnp.zeros((cap_slots,), jnp.int32).at[order].set(index)
-
-        if budget is None:
-            t = n_cand
-        else:
-            t = jnp.maximum(jnp.asarray(budget(stats.last_culled, n_alive0), jnp.int32), 0)
-        want = jnp.minimum(t, n_cand)
-        room_cap = jnp.maximum(max_gaussians - n_alive1, 0)
-        free = cap_slots - n_alive1
-        want_in_cap = jnp.minimum(want, room_cap)
-        k = jnp.minimum(want_in_cap, free)
-        selected = cand & (rank < k)
-        small = max_scale <= dup_scale
-        dup = selected & small
-        split = selected & ~small
-
-        # Children of split parents, sampled from the parent's Gaussian.
-        eps = jax.random.normal(key, (cap_slots, 2, 3), g.means.dtype)
-        rot = g.rotations()
-        offsets = jnp.einsum("cij,ckj->cki", rot, eps * jnp.exp(g.log_scales)[:, None, :],
-                             precision=jax.lax.Precision.HIGHEST)  # no TF32 on GPUs
-        children = g.means[:, None, :] + offsets
-        log_scales1 = jnp.where(split[:, None], g.log_scales - log_split, g.log_scales)
-        means1 = jnp.where(split[:, None], children[:, 0], g.means)
-        src_means = jnp.where(split[:, None], children[:, 1], g.means)
-
-        # Free slots in increasing order; the j-th ranked candidate goes to the j-th free slot.
-        _, free_order = jax.lax.sort((alive1.astype(jnp.int32), index), num_keys=2)
-        dst = jnp.where(index < k, free_order, cap_slots)  # cap_slots = out of range: dropped
-        src = order
-
-        def put(a, new_rows):
-            return a.at[dst].set(new_rows[src], mode="drop")
-
-        g_new = Gaussians(
-            means=put(means1, src_means),
-            log_scales=put(log_scales1, log_scales1),
-            quats=put(g.quats, g.quats),
-            opacity_logits=put(g.opacity_logits, g.opacity_logits),
-            sh=put(g.sh, g.sh),
-            alive=put(alive1, jnp.ones_like(alive1)),
-        )
-        created_slots = jnp.zeros((cap_slots,), bool).at[dst].set(True, mode="drop")
-        fresh = created_slots | split | culled
-        opt_state = zero_moments(opt_state, fresh)
-
-        new_stats = DensifyStats(grad_sum=jnp.zeros_like(stats.grad_sum),
-                                 count=jnp.zeros_like(stats.count),
-                                 max_radius=jnp.zeros_like(stats.max_radius),
-                                 last_culled=n_culled.astype(jnp.int32))
-        kth = jnp.clip(k - 1, 0, cap_slots - 1)
-        threshold = jnp.where(k > 0, score[order[kth]], jnp.float32(floor)).astype(jnp.float32)
+        n_alive0 = gaussians.num_alive()
+        culled = cull_mask(gaussians, stats, step, cull_alpha=cull_alpha, big_scale=big_scale,
+                           cull_screen=cull_screen, screen_from=screen_from)
+        g = remove(gaussians, culled)
+        n_alive1 = g.num_alive()
+        t = None if budget is None else jnp.maximum(
+            jnp.asarray(budget(stats.last_culled, n_alive0), jnp.int32), 0)
+        sel = select(stats, g.alive, floor=floor, budget=t, max_gaussians=max_gaussians)
+        small = jnp.exp(jnp.max(g.log_scales, axis=-1)) <= dup_scale
+        splits, dups = sel.selected & ~small, sel.selected & small
+        g, second = split(g, splits, key, config.split_factor)
+        # A duplicated parent's copy is its own row; a split parent's is its second child.
+        rows = jax.tree_util.tree_map(lambda a, b: jnp.where(
+            splits.reshape(splits.shape + (1,) * (a.ndim - 1)), a, b), second, g)
+        g, created = place(g, rows, sel.order, sel.count)
+        opt_state = zero_moments(opt_state, created | splits | culled)
+        n_culled = (n_alive0 - n_alive1).astype(jnp.int32)
+        new_stats = init_stats(g.capacity)._replace(last_culled=n_culled)
+        k = sel.count
+        kth = jnp.clip(k - 1, 0, g.capacity - 1)
+        threshold = jnp.where(k > 0, sel.score[sel.order[kth]], jnp.float32(floor))
+        free = g.capacity - n_alive1
+        want_in_cap = jnp.minimum(sel.wanted, sel.room_cap)
         info = DensifyInfo(
             refined=jnp.ones((), bool), reset=jnp.zeros((), bool), created=k.astype(jnp.int32),
-            split=jnp.sum(split.astype(jnp.int32)), duplicated=jnp.sum(dup.astype(jnp.int32)),
-            culled=n_culled.astype(jnp.int32), alive=(n_alive1 + k).astype(jnp.int32),
-            capacity=jnp.int32(cap_slots), candidates=n_cand, budget=t.astype(jnp.int32),
-            threshold=threshold, capacity_limited=want_in_cap > free,
-            cap_limited=want > room_cap, slots_needed=(n_alive1 + want_in_cap).astype(jnp.int32))
-        return g_new, opt_state, new_stats, info
+            split=jnp.sum(splits.astype(jnp.int32)), duplicated=jnp.sum(dups.astype(jnp.int32)),
+            culled=n_culled, alive=(n_alive1 + k).astype(jnp.int32),
+            capacity=jnp.int32(g.capacity), candidates=jnp.sum(sel.candidates.astype(jnp.int32)),
+            budget=(jnp.sum(sel.candidates.astype(jnp.int32)) if t is None else t
+                    ).astype(jnp.int32),
+            threshold=threshold.astype(jnp.float32), capacity_limited=want_in_cap > free,
+            cap_limited=sel.wanted > sel.room_cap,
+            slots_needed=(n_alive1 + want_in_cap).astype(jnp.int32))
+        return g, opt_state, new_stats, info
 
     def skip(gaussians, opt_state, stats, step, key):
         return gaussians, opt_state, stats, _empty_info(gaussians.capacity, gaussians.num_alive())

@@ -10,7 +10,7 @@ Two batched computations of a ProEdit run split over views:
   SPMD program: every device renders and differentiates its views, and XLA all-reduces
   the gradient (the mean over views) before the replicated Adam update.
 
-:func:`views_step` is the multi-view counterpart of :func:`jaxedit.train._train_step`
+:func:`views_step` is the multi-view counterpart of :func:`jaxedit.train.apply_step`
 (same loss, background, SH schedule and optimiser) without density control and camera
 optimisation, whose statistics are per view; a step whose tile buffer overflowed in any
 view leaves the state as it was and says so (``overflow``), as the single-view step does.
@@ -60,7 +60,7 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
       images: float [V, H, W, 3] targets; cameras: batched Camera [V].
       key: the step key (the background colour when it is random).
     """
-    from .train import _params, active_sh_degree, background_color, sh_mask
+    from .train import active_sh_degree, background_color, params_of, sh_mask
 
     cfg, g = state.config, state.gaussians
     bg = background_color(cfg, jax.random.split(key)[0])
@@ -72,7 +72,7 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
         out = render_tiles(gg, cameras, capacity=state.max_intersections, background=bg)
         return photometric_loss(out.rgb, target, cfg.lambda_dssim), out
 
-    (loss, out), grads = jax.value_and_grad(loss_fn, has_aux=True)(_params(g))
+    (loss, out), grads = jax.value_and_grad(loss_fn, has_aux=True)(params_of(g))
     return loss, out, grads
 
 
@@ -82,10 +82,10 @@ def views_step(state, images: jax.Array, cameras, key: jax.Array):
     Shard ``images`` / ``cameras`` over a mesh and replicate ``state`` to run it data
     parallel (module docstring); unsharded inputs give the one-device program.
     """
-    from .train import _params, optimizer
+    from .train import optimizer, params_of
 
     loss, out, grads = views_loss_and_grad(state, images, cameras, key)
-    params = _params(state.gaussians)
+    params = params_of(state.gaussians)
     updates, opt_state = optimizer(state.config, state.scene_extent).update(
         grads, state.opt_state, params)
     params = optax.apply_updates(params, updates)

@@ -105,7 +105,7 @@ def test_train_step_runs_no_dot_in_tf32(face):
     state = T.init_state(g, CONFIG, T.scene_extent(cams), max_intersections=16384)
     batch, key = T.select_batch(face["images"][face["train"]], cams, state.key, 0)
     counter = {}
-    jax.eval_shape(tf32.emulate_tf32(T._train_step, counter=counter), state, batch, key)
+    jax.eval_shape(tf32.emulate_tf32(T.apply_step, counter=counter), state, batch, key)
     assert counter == {}, f"dots at DEFAULT precision (TF32 on a GPU): {counter}"
 
 

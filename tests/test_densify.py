@@ -340,3 +340,45 @@ def test_creation_budget_default_shape():
     assert int(t(jnp.int32(5000), jnp.int32(10_000))) == 1000   # capped at 10% N
     with pytest.raises(ValueError):
         D.creation_budget(min_new=0, growth=-1.0, max_fraction=0.1)
+
+
+def test_named_operations_against_numpy():
+    """cull_mask, select, split and place, each alone, against NumPy transcriptions."""
+    g, _, stats, aux = random_case(3, n_alive=30)
+    stats = D.accumulate(stats, aux)
+    # cull: low opacity or too large, alive only (no screen rule before ``screen_from``).
+    culled = np.asarray(D.cull_mask(g, stats, 5, cull_alpha=CULL_ALPHA, big_scale=0.5 * EXTENT,
+                                    cull_screen=0.3, screen_from=7))
+    opac = 1 / (1 + np.exp(-np.asarray(g.opacity_logits)))
+    big = np.exp(np.asarray(g.log_scales)).max(-1) > 0.5 * EXTENT
+    np.testing.assert_array_equal(culled, ((opac < CULL_ALPHA) | big) & np.asarray(g.alive))
+    g1 = D.remove(g, jnp.asarray(culled))
+    assert int(g1.num_alive()) == int(g.num_alive()) - int(culled.sum())
+    # select: the best ``budget`` candidates by mean gradient, ties by slot.
+    sel = D.select(stats, g1.alive, floor=0.0, budget=jnp.int32(4), max_gaussians=CAP)
+    avg = np.asarray(stats.grad_sum) / np.maximum(np.asarray(stats.count), 1)
+    cand = np.asarray(g1.alive) & (np.asarray(stats.count) > 0) & (avg > 0)
+    best = sorted(np.flatnonzero(cand), key=lambda i: (-avg[i], i))
+    k = min(4, len(best), CAP - int(g1.num_alive()), C - int(g1.num_alive()))
+    assert int(sel.count) == k
+    np.testing.assert_array_equal(np.flatnonzero(np.asarray(sel.selected)), sorted(best[:k]))
+    # split: children = parent mean + R (eps * scale), scales / factor.
+    key = jax.random.key(5)
+    first, second = D.split(g1, sel.selected, key, 1.6)
+    eps = np.asarray(jax.random.normal(key, (C, 2, 3)))
+    rot = np.asarray(g1.rotations())
+    scale = np.exp(np.asarray(g1.log_scales))
+    kids = np.asarray(g1.means)[:, None] + np.einsum("cij,ckj->cki", rot, eps * scale[:, None])
+    s = np.asarray(sel.selected)
+    np.testing.assert_allclose(np.asarray(first.means)[s], kids[s, 0], atol=1e-5)
+    np.testing.assert_allclose(np.asarray(second.means)[s], kids[s, 1], atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(first.means)[~s], np.asarray(g1.means)[~s])
+    np.testing.assert_allclose(np.asarray(first.log_scales)[s],
+                               np.asarray(g1.log_scales)[s] - np.log(1.6), rtol=1e-6)
+    # place: the j-th ranked row goes to the j-th free slot, now alive.
+    placed, written = D.place(first, second, sel.order, sel.count)
+    free = np.flatnonzero(~np.asarray(first.alive))[:k]
+    np.testing.assert_array_equal(np.flatnonzero(np.asarray(written)), free)
+    order = np.asarray(sel.order)[:k]
+    np.testing.assert_array_equal(np.asarray(placed.means)[free], np.asarray(second.means)[order])
+    assert int(placed.num_alive()) == int(first.num_alive()) + k

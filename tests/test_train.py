@@ -47,7 +47,7 @@ def first_leg(face, tmp_path_factory):
     """The uninterrupted run up to RESUME_AT steps, with its metrics log."""
     log = tmp_path_factory.mktemp("leg") / "log.jsonl"
     state = T.fit(fresh_state(face), face["images"][face["train"]], face["cams"][face["train"]],
-                  iterations=RESUME_AT, log_path=log, log_every=10)
+                  iterations=RESUME_AT, log_path=log, log_every=10, room=None)
     return state, log
 
 
@@ -69,12 +69,12 @@ def test_killed_run_resumes_bit_identically(face, first_leg, tmp_path):
     with pytest.raises(Killed):
         T.fit(fresh_state(face), face["images"][face["train"]], face["cams"][face["train"]],
               iterations=RESUME_AT, checkpoint_dir=ckpt, checkpoint_every=60,
-              callback=kill)
+              callback=kill, room=None)
     assert [p.name for p in sorted(ckpt.glob("ckpt_*.npz"))] == ["ckpt_00000060.npz"]
     resumed = T.resume(ckpt)
     assert int(resumed.step) == 60
     resumed = T.fit(resumed, face["images"][face["train"]], face["cams"][face["train"]],
-                    iterations=RESUME_AT, checkpoint_dir=ckpt)
+                    iterations=RESUME_AT, checkpoint_dir=ckpt, room=4.0)  # no plan after step 0
     assert int(resumed.step) == RESUME_AT
     assert resumed.capacity == full.capacity and resumed.max_intersections == full.max_intersections
     for a, b in zip(leaves(full), leaves(resumed)):
@@ -170,8 +170,8 @@ def test_sh_schedule_and_learning_rate_decay():
     assert [int(T.active_sh_degree(s, cfg)) for s in (0, 999, 1000, 2500, 9000)] == [0, 0, 1, 2, 3]
     mask = np.asarray(T.sh_mask(1, 16))[:, 0]
     np.testing.assert_array_equal(mask, [1, 1, 1, 1] + [0] * 12)
-    lr0 = float(T._means_lr(cfg, 2.0, 0))
-    lr_end = float(T._means_lr(cfg, 2.0, cfg.iterations))
+    lr0 = float(T.means_lr(cfg, 2.0, 0))
+    lr_end = float(T.means_lr(cfg, 2.0, cfg.iterations))
     assert lr0 == pytest.approx(1.6e-4 * 2.0) and lr_end == pytest.approx(1.6e-6 * 2.0)
     assert T.scene_extent(scenes.rig_cameras(scenes.get_scene("face").rig, 8)) > 1.0
     assert isinstance(T.background_color(dataclasses.replace(cfg, background="random"),
@@ -189,3 +189,30 @@ def test_buffer_is_sized_from_the_views_not_guessed(face):
     assert 1.5 * needed <= sized.max_intersections
     from jaxedit.raster.render import next_capacity
     assert sized.max_intersections == next_capacity(int(1.5 * needed))
+    # A run about to densify gets the buffer room it gets capacity; one past stop_at does not.
+    assert T.planned_headroom(state, 2.0) == 2.0 * T.HEADROOM
+    assert T.planned_headroom(state, None) == T.HEADROOM
+    done = dataclasses.replace(state, step=jnp.int32(CONFIG.densify.stop_at))
+    assert T.planned_headroom(done, 2.0) == T.HEADROOM
+
+
+def test_planned_room_trains_the_same_scene_without_stopping_for_capacity(face, first_leg,
+                                                                          tmp_path):
+    grown, _ = first_leg  # room=None: the capacity grew on demand (a redo and a recompile)
+    state = fresh_state(face)
+    assert T.planned_capacity(state, 4.0) == CONFIG.densify.max_gaussians  # 4 x 300 > 600
+    assert T.planned_capacity(state, None) == T.planned_capacity(state, 1.0) == state.capacity
+    done = dataclasses.replace(state, step=jnp.int32(CONFIG.densify.stop_at))
+    assert T.planned_capacity(done, 4.0) == state.capacity  # nothing left to densify
+    log = tmp_path / "log.jsonl"
+    planned = T.fit(state, face["images"][face["train"]], face["cams"][face["train"]],
+                    iterations=RESUME_AT, room=4.0, log_path=log, log_every=10)
+    # From the first step on, density control had its room: no growth stopped the loop.
+    assert {json.loads(line)["capacity"] for line in log.read_text().splitlines()} == {600}
+    unplanned = {json.loads(line)["capacity"] for line in first_leg[1].read_text().splitlines()}
+    assert unplanned == {320, 600}
+    # The dead slots change nothing but the last bits of the floats.
+    a, b = G.compact(grown.gaussians), G.compact(planned.gaussians)
+    assert a.capacity == b.capacity
+    for x, y in zip(leaves(a), leaves(b)):
+        np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-4)

@@ -35,7 +35,6 @@ from .buffer import EditJob, Utilisation, make_source, view_order
 from .editors import interpolate_embedding
 from .outputs import Renderer
 from .plan import ProEditConfig, SubtaskSpec, anneal_horizon, anneal_timestep, subtask_guard
-from .simulated import view_key  # (run key, view, ratio, iteration) -> key, for any editor
 from .trainer import SubtaskTrainer
 
 # fold_in "purposes" of the per-subtask key: one stream per use, never shared.
@@ -55,6 +54,15 @@ def _view_at(key, step, num_views: int):
 def train_view(key: jax.Array, step: int, num_views: int) -> int:
     """The view trained at ``step``: epochs of seeded permutations (pure in (key, step))."""
     return int(_view_at(key, int(step), num_views))
+
+
+def edit_key(edit_stream: jax.Array, view: int, iteration: int) -> jax.Array:
+    """The key of the ``iteration``-th edit of ``view`` in a subtask whose edit stream is
+    ``edit_stream``: the driver's own draws (no editor's key scheme decides them), the
+    same in a seeded run, a resumed one and the asynchronous mode."""
+    if int(view) < 0 or int(iteration) < 0:
+        raise DataError("edit_key", f"view and iteration must be >= 0, got {view}, {iteration}")
+    return jax.random.fold_in(jax.random.fold_in(edit_stream, int(view)), int(iteration))
 
 
 class LossTracker(NamedTuple):
@@ -248,7 +256,7 @@ def make_edit_fn(ctx: EditContext, spec: SubtaskSpec,
     """``(job, scene) -> edited view`` of subtask ``spec``: render the view, edit it with e(r).
 
     The editor sees ``image`` = the current render, ``original`` = the original
-    photo, embedding e(r); the key is (run key | subtask, view, ratio, iteration);
+    photo, embedding e(r); the key is :func:`edit_key` of (run key | subtask, view, iteration);
     the timestep follows HiFA's annealing over ``horizon`` steps after the warm-up
     (:func:`anneal_horizon`; IN2N mode: the fixed range, from which the editor draws).
     """
@@ -270,7 +278,7 @@ def make_edit_fn(ctx: EditContext, spec: SubtaskSpec,
         else:
             t = anneal_timestep(job.step, horizon, *cfg.timestep_range)
             t_range = (t, t)
-        key = view_key(sub_key, job.view, ratio, job.iteration)
+        key = edit_key(sub_key, job.view, job.iteration)
         return ctx.editor.edit(render, originals[job.view], embedding, key,
                                timestep_range=t_range, guidance=tuple(cfg.guidance))
 
@@ -349,7 +357,7 @@ class ChunkResult(NamedTuple):
                                              "min_delta", "stop_on_plateau"))
 def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, length, warmup,
                 window, patience, min_delta, stop_on_plateau):
-    from ..train import Batch, _train_step, scan_steps
+    from ..train import Batch, apply_step, scan_steps
 
     subtask, step0, n_active = scalars[0], scalars[1], scalars[2]
     stop_if_plateau, earliest_end = scalars[3] > 0, scalars[4]
@@ -362,7 +370,7 @@ def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, leng
         st, tr = carry
         s = step0 + i
         view = _view_at(views_key, s, num_views)
-        st, m = _train_step(st, Batch(image=images[view], camera=cameras[view]),
+        st, m = apply_step(st, Batch(image=images[view], camera=cameras[view]),
                             jax.random.fold_in(train_key, s))
         tracked = ~m["redo"] & (s >= warmup)
         tr = jax.tree_util.tree_map(functools.partial(jnp.where, tracked),

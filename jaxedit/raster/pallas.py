@@ -34,6 +34,7 @@ kernels on the CPU (tests hold them to the dense oracle there).
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
 
 import jax
@@ -49,7 +50,9 @@ PAIR_BATCH = 8
 _ROW_FIXED = 6
 
 
-_compile_for_gpu = False
+#: Whether the kernels are lowered for Triton off a GPU: context-local (a ContextVar, so a
+#: thread or task sees only its own ``with compiled_for_gpu()``), never a rebound global.
+_FOR_GPU = contextvars.ContextVar("jaxedit_pallas_for_gpu", default=False)
 
 
 @contextlib.contextmanager
@@ -59,17 +62,16 @@ def compiled_for_gpu():
     For ``jax.export(..., platforms=("cuda",))`` from a machine without a GPU:
     it checks that the kernels lower, without running them.
     """
-    global _compile_for_gpu
-    old, _compile_for_gpu = _compile_for_gpu, True
+    token = _FOR_GPU.set(True)
     try:
         yield
     finally:
-        _compile_for_gpu = old
+        _FOR_GPU.reset(token)
 
 
 def use_interpreter() -> bool:
     """Run the kernels in the Pallas interpreter: off a GPU, unless :func:`compiled_for_gpu`."""
-    return jax.default_backend() != "gpu" and not _compile_for_gpu
+    return jax.default_backend() != "gpu" and not _FOR_GPU.get()
 
 
 def _triton_params(num_warps: int):

@@ -11,9 +11,11 @@ carries ``num_intersections`` (what the frame needed) and ``overflow`` (pairs
 were dropped, the image is incomplete).
 
 * Outside a trace (plain calls, and ``jax.grad`` without ``jit``), ``render``
-  counts the pairs first, picks a capacity (cached per scene/image shape, grown
-  geometrically so training does not recompile every step), and never returns
-  a frame with dropped pairs (it re-renders with a larger buffer if needed).
+  counts the pairs first, picks the capacity :func:`next_capacity` gives that
+  count (a pure function of it: no state between calls; the geometric ladder
+  keeps the distinct sizes, hence compiles, few, and jit's own cache, keyed on
+  the static capacity, reuses them), and never returns a frame with dropped
+  pairs (it re-renders with a larger buffer if needed).
 * Inside a caller's ``jit``/``vmap``, the count is not concrete: pass
   ``max_intersections=n`` and check ``out.overflow`` yourself; when it is True,
   re-run the step with a buffer of at least ``out.num_intersections`` (e.g.
@@ -74,9 +76,6 @@ def resolve_backend(backend: str, platform: str | None = None) -> str:
 def tile_size(backend: str) -> int:
     """Binning/compositing tile size of a resolved backend."""
     return PALLAS_TILE if backend == "pallas" else TILE
-
-_capacity_cache: dict[tuple, int] = {}
-
 
 def next_capacity(needed: int) -> int:
     """Smallest buffer size on the geometric ladder that holds ``needed`` pairs.
@@ -231,21 +230,10 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
                             "max_intersections (and a check of out.overflow)")
         return render_tiles(gaussians, camera, capacity=max_intersections, **kwargs)
 
-    key = (gaussians.capacity, camera.width, camera.height, camera.batch_shape, sh_degree,
-           str(gaussians.means.dtype), backend)
-    if max_intersections is not None:  # the caller's starting size: grown, never shrunk
-        cap = max(int(max_intersections), 1)
+    if max_intersections is not None and int(max_intersections) >= needed:
+        cap = int(max_intersections)  # the caller's size, when it holds the frame
     else:
-        cap = _capacity_cache.get(key, 0)
-        if cap > 4 * next_capacity(needed):  # the scene shrank a lot: stop paying for it
-            cap = 0
-    if cap < needed:
-        new = next_capacity(needed * HEADROOM)
-        if cap:
-            log.info("render: intersection buffer %d -> %d (frame needs %d)", cap, new, needed)
-        cap = new
-    if max_intersections is None:
-        _capacity_cache[key] = cap
+        cap = next_capacity(needed * HEADROOM)
     while True:
         out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
         overflow = bool(jnp.any(out.overflow))
@@ -256,5 +244,3 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
         log.warning("render: intersection buffer overflowed (%d > %d), re-rendering with %d",
                     need, cap, new)
         cap = new
-        if max_intersections is None:
-            _capacity_cache[key] = cap

@@ -1,0 +1,125 @@
+"""Pytrees to and from one ``.npz`` file: the checkpoint format of every jaxedit loop.
+
+A checkpoint holds each array leaf of a pytree under its pytree path
+(``jax.tree_util.keystr``: ``.gaussians.means``, ``['images']``), typed PRNG keys
+as their raw key data, and one JSON record ``meta``: the format version, the
+``kind`` of checkpoint (``"train"``, ``"edit"``: a file of one kind is never read
+as another), the leaf paths, which of them are keys, and the caller's own JSON
+``meta``. Writing is atomic (a temporary file, fsync, rename: a crash leaves the
+previous checkpoint or the new one, never half a file). Reading restores the
+leaves into a *template* of the same structure, so the bits that come back are
+the bits that went in: resumed runs continue bit-identically.
+
+Used by :mod:`jaxedit.train.checkpoint` (the trainer's state) and
+:mod:`jaxedit.edit.checkpoint` (the ProEdit driver's state).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import DataError
+from .files import atomic_path, read_npz
+
+#: Bumped whenever the layout of the file changes (not when a pytree gains a leaf:
+#: a missing leaf is reported by its path).
+FORMAT_VERSION = 2
+_META = "__meta__"
+
+
+def _is_key(x) -> bool:
+    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def leaf_paths(tree) -> list[str]:
+    """The pytree paths of ``tree``'s leaves, in flattening order."""
+    return [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
+def save_pytree(path, tree, *, kind: str, meta: dict | None = None) -> Path:
+    """Write ``tree``'s leaves and ``meta`` (JSON-serialisable) to ``path`` atomically.
+
+    Args:
+      path: the ``.npz`` file (its folder must exist).
+      tree: any pytree of arrays (device arrays are fetched; typed keys stored as data).
+      kind: what the file holds, checked again on reading.
+      meta: the caller's record (config, counters...), returned by :func:`read_pytree`.
+    """
+    path = Path(path)
+    flat = jax.tree_util.tree_flatten_with_path(jax.device_get(tree))[0]
+    arrays, keys = {}, []
+    for p, leaf in flat:
+        name = jax.tree_util.keystr(p)
+        if _is_key(leaf):
+            keys.append(name)
+            leaf = jax.random.key_data(leaf)
+        arrays[name] = np.asarray(leaf)
+    record = dict(version=FORMAT_VERSION, kind=kind, paths=list(arrays), keys=keys,
+                  meta=meta or {})
+    arrays[_META] = np.asarray(json.dumps(record))
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+    return path
+
+
+def read_pytree(path, *, kind: str) -> tuple[dict[str, np.ndarray], dict]:
+    """(arrays by leaf path, the caller's meta) of a file written by :func:`save_pytree`.
+
+    Raises:
+      DataError naming ``path``: unreadable, not a jaxedit checkpoint, another
+      format version, or another kind.
+    """
+    path = Path(path)
+    arrays = read_npz(path)
+    if _META not in arrays:
+        raise DataError(path, "not a jaxedit checkpoint (no meta record)")
+    try:
+        record = json.loads(str(arrays.pop(_META)))
+    except json.JSONDecodeError as e:
+        raise DataError(path, f"corrupt checkpoint metadata ({e})") from None
+    if not isinstance(record, dict) or record.get("version") != FORMAT_VERSION:
+        version = record.get("version") if isinstance(record, dict) else None
+        raise DataError(path, f"checkpoint format version {version} is not {FORMAT_VERSION} "
+                              f"(written by another jaxedit version)")
+    if record.get("kind") != kind:
+        raise DataError(path, f"a {record.get('kind')!r} checkpoint, not a {kind!r} one")
+    return arrays, record.get("meta", {})
+
+
+def restore(template, arrays: dict[str, np.ndarray], where, *, shapes: bool = True) -> Any:
+    """``template`` with every leaf replaced by the array stored under its path.
+
+    Args:
+      template: a pytree of the structure that was saved (e.g. a fresh state).
+      arrays: from :func:`read_pytree`.
+      where: what a DataError names (the file).
+      shapes: also require each stored leaf's shape to be the template's (False:
+        only the dtype, for states whose capacity grows during a run).
+    """
+    flat, treedef = jax.tree_util.tree_flatten_with_path(template)
+    leaves = []
+    for p, ref in flat:
+        name = jax.tree_util.keystr(p)
+        a = arrays.get(name)
+        if a is None:
+            raise DataError(where, f"checkpoint lacks {name} (saved by another version?)")
+        if _is_key(ref):
+            leaves.append(jax.random.wrap_key_data(np.asarray(a)))
+            continue
+        ref_dtype = np.dtype(getattr(ref, "dtype", np.asarray(ref).dtype))
+        ref_shape = tuple(np.shape(ref))
+        if np.dtype(a.dtype) != ref_dtype or (shapes and tuple(a.shape) != ref_shape):
+            raise DataError(where, f"checkpoint leaf {name} is {a.dtype} {tuple(a.shape)}, "
+                                   f"expected {ref_dtype} {ref_shape}")
+        leaves.append(jnp.asarray(np.asarray(a)))
+    return jax.tree_util.tree_unflatten(treedef, leaves)

@@ -1,0 +1,101 @@
+"""Trainer checkpoints: a :class:`TrainState` in one ``.npz`` (:mod:`jaxedit.io.checkpoint`).
+
+The static fields (config, scene extent, buffer size) and the shapes that rebuild
+the template (capacity, SH degree, camera views) travel in the file's meta
+record; the arrays are the state's leaves, bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from .. import gaussians as glib
+from .. import poses
+from ..errors import DataError
+from ..io.checkpoint import FORMAT_VERSION, read_pytree, restore, save_pytree
+from .config import TrainConfig
+from .state import TrainState, init_state
+
+KIND = "train"
+#: The version of the file layout (that of every jaxedit checkpoint).
+CHECKPOINT_VERSION = FORMAT_VERSION
+
+
+def save_checkpoint(path, state: TrainState, *, extra: dict | None = None) -> Path:
+    """Write ``state`` to ``path`` (.npz) atomically: every leaf plus the static fields.
+
+    ``extra`` (JSON-serialisable) is stored alongside and returned by
+    :func:`load_checkpoint_with_extra`.
+    """
+    meta = dict(config=state.config.to_dict(), scene_extent=state.scene_extent,
+                max_intersections=state.max_intersections, capacity=state.capacity,
+                sh_degree=state.gaussians.sh_degree, step=int(state.step),
+                num_views=state.cameras.num_views, extra=extra or {})
+    return save_pytree(path, state, kind=KIND, meta=meta)
+
+
+def _template(meta: dict, where) -> TrainState:
+    """A TrainState of the stored structure and static fields (its arrays are placeholders)."""
+    try:
+        config = TrainConfig.from_dict(meta["config"], f"{where}:config")
+        capacity, sh_degree = int(meta["capacity"]), int(meta["sh_degree"])
+        extent, buffer = float(meta["scene_extent"]), int(meta["max_intersections"])
+        views = int(meta.get("num_views", 0))
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataError(where, f"checkpoint metadata lacks or garbles {e}") from None
+    template = init_state(glib.empty(capacity, sh_degree),
+                          dataclasses.replace(config, camera_opt=False), extent,
+                          key=jax.random.key(0), max_intersections=buffer)
+    return dataclasses.replace(template, config=config, cameras=poses.init_corrections(
+        jnp.ones((views,), jnp.float32)))
+
+
+def load_checkpoint_with_extra(path) -> tuple[TrainState, dict]:
+    """(TrainState, extra) from a checkpoint written by :func:`save_checkpoint`."""
+    arrays, meta = read_pytree(path, kind=KIND)
+    state = restore(_template(meta, path), arrays, path)
+    return state, meta.get("extra", {})
+
+
+def load_checkpoint(path) -> TrainState:
+    """The TrainState stored at ``path``."""
+    return load_checkpoint_with_extra(path)[0]
+
+
+def checkpoint_name(step: int) -> str:
+    return f"ckpt_{int(step):08d}.npz"
+
+
+def latest_checkpoint(directory) -> Path | None:
+    """The checkpoint of the highest step in ``directory`` (None if there is none)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return None
+    found = sorted(directory.glob("ckpt_*.npz"))
+    return found[-1] if found else None
+
+
+def prune_checkpoints(directory: Path, keep: int) -> None:
+    """Delete all but the newest ``keep`` checkpoints in ``directory``."""
+    for old in sorted(Path(directory).glob("ckpt_*.npz"))[:-keep]:
+        try:
+            old.unlink()
+        except FileNotFoundError:
+            pass
+
+
+def resume(checkpoint) -> TrainState:
+    """The state of ``checkpoint``: a file, or a directory (its newest ``ckpt_*.npz``)."""
+    path = Path(checkpoint)
+    if path.is_dir():
+        found = latest_checkpoint(path)
+        if found is None:
+            raise DataError(path, "no ckpt_*.npz checkpoint in this directory")
+        path = found
+    elif not path.exists():
+        raise DataError(path, "no such checkpoint file or directory")
+    return load_checkpoint(path)

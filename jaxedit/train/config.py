@@ -1,0 +1,107 @@
+"""Training settings: :class:`TrainConfig` (with :class:`jaxedit.densify.DensifyConfig`),
+JSON-serialisable, stored in every checkpoint."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ..densify import DensifyConfig
+from ..errors import DataError
+
+BACKGROUNDS = ("random", "white", "black")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters (defaults: nerfstudio Splatfacto / INRIA 3DGS).
+
+    Attributes:
+      iterations: optimiser steps of the run (one view per step).
+      lr_means, lr_means_final: means learning rate, decayed exponentially from
+        the first to the second over ``iterations`` steps, both multiplied by the
+        scene extent (INRIA).
+      lr_sh_dc, lr_sh_rest, lr_opacity, lr_scales, lr_quats: Adam learning rates.
+      adam_eps: Adam epsilon (1e-15: tiny, as in 3DGS).
+      lambda_dssim: loss = (1 - l) L1 + l (1 - SSIM).
+      sh_degree: largest SH degree trained (<= the Gaussians'); one degree is
+        switched on every ``sh_degree_interval`` steps, starting at 0.
+      background: "random" (a uniform colour per step), "white" or "black";
+        the colour behind the Gaussians in training renders.
+      densify: :class:`DensifyConfig`.
+      camera_opt: learn a 6-DoF pose correction per training view with the scene
+        (Splatfacto's camera optimizer, gsplat's ``pose_opt``): for poses estimated
+        by structure from motion, whose residual errors (~0.4 degree, 1-2 px) the
+        Gaussians would otherwise blur over. See :class:`jaxedit.poses.CameraCorrections`.
+      lr_camera, lr_camera_final: its learning rate (radians, and the translation in
+        units of the view's scene depth, see :func:`jaxedit.poses.apply_delta`), decayed
+        exponentially from the first to the second between ``camera_opt_from`` and
+        ``iterations``.
+      camera_opt_from: the step the corrections start to move: before it the scene is
+        too blurred for its photometric gradient to say where a camera points.
+    """
+
+    iterations: int = 30_000
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    adam_eps: float = 1e-15
+    lambda_dssim: float = 0.2
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000
+    background: str = "white"
+    densify: DensifyConfig = DensifyConfig()
+    camera_opt: bool = False
+    lr_camera: float = 1e-3
+    lr_camera_final: float = 1e-5
+    camera_opt_from: int = 500
+
+    def __post_init__(self):
+        if self.background not in BACKGROUNDS:
+            raise DataError("background", f"must be one of {BACKGROUNDS}, got {self.background!r}")
+        if self.iterations < 0:
+            raise DataError("iterations", f"must be >= 0, got {self.iterations}")
+        if not 0 <= self.sh_degree <= 3:
+            raise DataError("sh_degree", f"must be in 0..3, got {self.sh_degree}")
+        if self.sh_degree_interval <= 0:
+            raise DataError("sh_degree_interval", "must be positive")
+        if not 0.0 <= self.lambda_dssim <= 1.0:
+            raise DataError("lambda_dssim", f"must be in [0, 1], got {self.lambda_dssim}")
+        if not (self.lr_camera > 0 and 0 < self.lr_camera_final <= self.lr_camera):
+            raise DataError("lr_camera", f"need 0 < lr_camera_final <= lr_camera, got "
+                                         f"{self.lr_camera_final}, {self.lr_camera}")
+        if self.camera_opt_from < 0:
+            raise DataError("camera_opt_from", f"must be >= 0, got {self.camera_opt_from}")
+        if isinstance(self.densify, dict):
+            object.__setattr__(self, "densify", _densify_from_dict(self.densify))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str = "config") -> "TrainConfig":
+        _check_fields(cls, data, where, "train config")
+        data = dict(data)
+        if "densify" in data:
+            data["densify"] = _densify_from_dict(data["densify"], f"{where}.densify")
+        return cls(**data)
+
+
+def _densify_from_dict(data, where: str = "densify") -> DensifyConfig:
+    if isinstance(data, DensifyConfig):
+        return data
+    _check_fields(DensifyConfig, data, where, "densify")
+    return DensifyConfig(**data)
+
+
+def _check_fields(cls, data, where: str, what: str) -> None:
+    """DataError unless ``data`` is a dict whose keys are all fields of dataclass ``cls``."""
+    if not isinstance(data, dict):
+        raise DataError(where, f"{what} must be an object")
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise DataError(where, f"unknown {what} field(s) {', '.join(unknown)}")

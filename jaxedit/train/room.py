@@ -1,0 +1,181 @@
+"""Room for a step: the tile splatter's intersection buffer and the Gaussians' capacity.
+
+Both are static sizes (every step pays for them; changing one recompiles). A step
+that finds one too small asks for a redo instead of returning a truncated frame
+or dropping Gaussians (:mod:`jaxedit.train.step`); here, outside jit, they are
+sized from the training views (:func:`size_buffer`), planned for a densifying
+run (:func:`plan_room`), grown after a redo (:func:`grow_for_redo`), and the
+redo loop of a single step (:func:`step_with_retry`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import densify as dens
+from ..camera import Camera
+from ..gaussians import Gaussians
+from ..raster import binning, project
+from ..raster.render import next_capacity, resolve_backend, tile_size
+from .state import Batch, TrainState
+from .step import train_step
+
+log = logging.getLogger("jaxedit.train")
+
+
+#: Headroom of the intersection buffer over what the views need now (:func:`size_buffer`).
+HEADROOM = 1.5
+
+
+@functools.partial(jax.jit, static_argnames=("tile",))
+def _count_views(gaussians: Gaussians, cameras: Camera, tile: int):
+    def one(cam):
+        proj = project.project(gaussians, cam, sh_degree=0)
+        return binning.count_intersections(proj, cam.width, cam.height, tile)
+
+    return jax.lax.map(one, cameras)
+
+
+def measure_intersections(gaussians: Gaussians, cameras: Camera) -> int:
+    """Most tile intersections any of ``cameras`` (a batch, or one camera) needs, counted at
+    the tile size of the compositor the training step renders with (``backend="auto"``)."""
+    if not cameras.batch_shape:
+        cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], cameras)
+    tile = tile_size(resolve_backend("auto"))
+    return int(jnp.max(_count_views(gaussians, cameras, tile=tile)))
+
+
+def size_buffer(state: TrainState, cameras: Camera, *, headroom: float = HEADROOM) -> TrainState:
+    """``state`` with a tile buffer of ``headroom`` x what the views need now (outside jit).
+
+    Training grows the scene, hence the headroom; when it is not enough the step
+    overflows and is redone with a larger buffer (:func:`grow_for_redo`).
+    """
+    needed = measure_intersections(state.gaussians, cameras)
+    cap = next_capacity(max(int(needed * headroom), 1))
+    log.info("train: intersection buffer %d (views need up to %d)", cap, needed)
+    return dataclasses.replace(state, max_intersections=cap)
+
+
+def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
+    """After a step that asked for a redo: a larger intersection buffer and/or capacity.
+
+    Outside jit. The buffer at least doubles (and holds what the frame needed);
+    the capacity doubles until it holds what density control needed, clamped to
+    the hard cap. Logged (each costs one recompile).
+    """
+    if bool(metrics["overflow"]):
+        needed = int(np.max(np.asarray(metrics["num_intersections"])))
+        # Training grows the scene, so leave room (each size is one more compile).
+        new = max(2 * state.max_intersections, next_capacity(int(needed * HEADROOM)))
+        log.info("train: intersection buffer %d -> %d (a view needed %d)",
+                 state.max_intersections, new, needed)
+        state = dataclasses.replace(state, max_intersections=new)
+    if bool(metrics["capacity_limited"]):
+        needed = int(metrics["densify"]["slots_needed"])
+        cap = state.config.densify.max_gaussians
+        # Room for the next maintenance steps too: each growth is one more compile.
+        new_cap = dens.grown_capacity(state.capacity, GROWTH_ROOM * needed, cap)
+        if new_cap <= state.capacity:
+            raise RuntimeError(f"capacity {state.capacity} cannot grow to hold {needed}")
+        log.info("train: capacity %d -> %d Gaussians (density control needed %d, cap %d)",
+                 state.capacity, new_cap, needed, cap)
+        g, opt_state, stats = dens.grow_state(state.gaussians, state.opt_state,
+                                               state.densify_stats, new_cap)
+        state = dataclasses.replace(state, gaussians=g, opt_state=opt_state, densify_stats=stats)
+    return state
+
+
+#: On a capacity redo, the capacity grows to hold this many times the slots the step needed.
+GROWTH_ROOM = 2
+
+#: The capacity :func:`fit` gives a fresh run that will densify, as a multiple of its
+#: alive Gaussians (within ``max_gaussians``), on a GPU and elsewhere: see :func:`default_room`.
+ROOM = {"gpu": 4.0, "cpu": 2.0}
+
+
+def default_room(platform: str | None = None) -> float:
+    """:func:`fit`'s ``room`` on ``platform`` (default: JAX's default backend).
+
+    A dead slot still costs its share of every step's per-Gaussian passes
+    (projection, Adam, the statistics): on a GPU nothing measurable, on a CPU about
+    1 ms per 1000 slots and step at 64 px (15 / 21 / 31 ms of CPU per step at
+    capacity 5000 / 10240 / 20480 on the person scene), while a compile costs ~10 s
+    of CPU. So 4x on a GPU, 2x on a CPU: on the person scene at 64 px (1500 steps,
+    5000 initial Gaussians growing to 8607; with the buffer planned alike, see
+    :func:`planned_headroom`) 2x ran 33-34 steps per CPU second end to end against
+    24-25 growing on demand, while 4x costs more per step than the compile it saves
+    (benchmarks/results/cpu/train_loop.json).
+    """
+    return ROOM["gpu"] if (platform or jax.default_backend()) == "gpu" else ROOM["cpu"]
+
+
+def _will_densify(state: TrainState, room: float | None) -> bool:
+    d = state.config.densify
+    stop_at = d.stop_at if d.stop_at is not None else state.config.iterations // 2
+    return room is not None and room > 1 and d.enabled and int(state.step) < stop_at
+
+
+def planned_headroom(state: TrainState, room: float | None) -> float:
+    """The buffer's headroom for a run about to start: :data:`HEADROOM`, times ``room`` when
+    density control will grow the scene (the pairs grow with the Gaussians, and each buffer
+    growth is a recompile too). On the person scene at 64 px the buffer grew from 1.5x to
+    3x the initial need within 1500 steps; a 2x larger buffer costs ~2.4 ms of CPU per step
+    there (16k -> 32k pairs), less than the compile it saves, and nothing measurable on a GPU."""
+    return HEADROOM * room if _will_densify(state, room) else HEADROOM
+
+
+def planned_capacity(state: TrainState, room: float | None) -> int:
+    """The capacity :func:`plan_room` gives ``state`` (never less than it has)."""
+    d = state.config.densify
+    if not _will_densify(state, room):
+        return state.capacity
+    want = int(math.ceil(room * int(state.gaussians.num_alive()) / 1024.0)) * 1024
+    return max(state.capacity, min(want, int(d.max_gaussians)))
+
+
+def plan_room(state: TrainState, room: float | None) -> TrainState:
+    """``state`` with the room a densifying run will need, allocated before its first step.
+
+    Density control runs inside the compiled chunk and only flips ``alive`` bits,
+    but when it needs more slots than the capacity has, the chunk ends, the host
+    grows the capacity and the chunk recompiles (seconds on a CPU, more with the
+    GPU's kernels): the host stop that made end-to-end training several times
+    slower than its steady state. Giving a fresh run ``room`` x its alive
+    Gaussians up front makes those stops rare; the unused slots are dead and cost
+    little per step (see :func:`default_room`). Outside jit. The capacity is part of the state (and of its
+    checkpoints), so :func:`fit` plans only at step 0 and a resumed run keeps
+    the capacity it had: resume stays bit-exact.
+    """
+    new_cap = planned_capacity(state, room)
+    if new_cap <= state.capacity:
+        return state
+    log.info("train: capacity %d -> %d Gaussians (room planned for density control)",
+             state.capacity, new_cap)
+    g, opt_state, stats = dens.grow_state(state.gaussians, state.opt_state,
+                                           state.densify_stats, new_cap)
+    return dataclasses.replace(state, gaussians=g, opt_state=opt_state, densify_stats=stats)
+
+
+def step_with_retry(state: TrainState, batch: Batch, key, *, max_retries: int = 8):
+    """:func:`train_step`, growing buffer/capacity and redoing until the step is complete.
+
+    Returns:
+      (state, metrics) with ``metrics`` pulled to the host (NumPy scalars).
+    """
+    if state.max_intersections <= 0:
+        state = size_buffer(state, batch.camera)
+    for _ in range(max_retries + 1):
+        new, metrics = train_step(state, batch, key)
+        metrics = jax.device_get(metrics)
+        if not bool(metrics["redo"]):
+            return new, metrics
+        state = grow_for_redo(state, metrics)
+    raise RuntimeError(f"train step still incomplete after {max_retries} retries")
