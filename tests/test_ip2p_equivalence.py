@@ -9,13 +9,7 @@ resizing, VAE, three-branch guidance, the DDIM schedule and update, decoding.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
-import textwrap
-from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -26,12 +20,12 @@ pytest.importorskip("transformers")
 
 from test_ip2p import PROMPT, weights  # noqa: E402,F401 - the one tiny pipeline (fixture)
 from test_models import assert_close  # noqa: E402 - the issue's "1e-4 relative"
+from without_torch import run_without_torch  # noqa: E402
 
 from jaxedit.edit import ip2p  # noqa: E402
 from jaxedit.edit import jax_ip2p as jx  # noqa: E402
 
 STEPS = 2
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -104,23 +98,10 @@ def test_cli_edit_with_the_jax_editor_runs_without_torch(weights, tmp_path):
             "make it red", "--mode", "nd", "--sync", "--max-steps", "12", "--warmup", "2",
             "--edit-every", "4", "--test-views", "1", "--turntable-frames", "0", "--no-report",
             "--quiet", "--out", str(out)]
-    script = textwrap.dedent(f"""
-        import sys
-        class Block:
-            def find_spec(self, name, path=None, target=None):
-                if name.split(".")[0] in ("torch", "diffusers", "transformers"):
-                    raise ImportError("blocked: " + name)
-                return None
-        sys.meta_path.insert(0, Block())
+    done = run_without_torch(f"""
         from experiments import cli
         code = cli.main({argv!r})
-        assert not [k for k in sys.modules if k.split(".")[0] in ("torch", "diffusers",
-                                                                   "transformers")]
-        sys.exit(code)
-    """)
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                          env=env, timeout=600, cwd=ROOT)
+    """, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert sorted(out.glob("subtasks/*/scene.ply")), sorted(p.name for p in out.iterdir())
     assert json.loads((out / "schedule.json").read_text())["editor"] == "ip2p"

@@ -11,11 +11,7 @@ zero: a wrong name mapping or layout cannot pass.
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
-import textwrap
 import warnings
 from pathlib import Path
 
@@ -35,8 +31,8 @@ from jaxedit.errors import DataError  # noqa: E402
 from jaxedit.models import (AutoencoderKL, CLIPTextEncoder, CLIPTokenizer, UNet2DCondition,  # noqa: E402
                             cast, load_ip2p, load_module, set_query_chunk)
 from jaxedit.models.layers import Attention, attention  # noqa: E402
+from without_torch import run_without_torch  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 
 TINY_UNET = dict(
     sample_size=8, in_channels=8, out_channels=4, layers_per_block=2,
@@ -435,22 +431,11 @@ def test_incomplete_folder_names_what_is_missing(tiny, tmp_path):
 def test_models_import_and_load_without_torch(tiny):
     """jaxedit.models needs none of torch / diffusers / transformers: a child process where
     importing them fails loads the tiny folder and runs the text encoder."""
-    script = textwrap.dedent(f"""
-        import sys
-        class Block:
-            def find_spec(self, name, path=None, target=None):
-                if name.split(".")[0] in ("torch", "diffusers", "transformers"):
-                    raise ImportError("blocked: " + name)
-                return None
-        sys.meta_path.insert(0, Block())
+    out = run_without_torch(f"""
         import jaxedit.models as m
         models = m.load_ip2p({str(tiny)!r})
         ids = models.tokenizer.ids(["turn him into a clown"])
         print(ids.shape, models.text_encoder(ids).shape)
-        assert not [k for k in sys.modules if k.split(".")[0] in ("torch", "diffusers", "transformers")]
-    """)
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
-                         timeout=300)
+    """, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "(1, 77) (1, 77, 24)" in out.stdout
