@@ -60,7 +60,8 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
       images: float [V, H, W, 3] targets; cameras: batched Camera [V].
       key: the step key (the background colour when it is random).
     """
-    from .train import active_sh_degree, background_color, params_of, sh_mask
+    from .train import active_sh_degree, background_color, sh_mask
+    from .train.state import params_of
 
     cfg, g = state.config, state.gaussians
     bg = background_color(cfg, jax.random.split(key)[0])
@@ -82,7 +83,8 @@ def views_step(state, images: jax.Array, cameras, key: jax.Array):
     Shard ``images`` / ``cameras`` over a mesh and replicate ``state`` to run it data
     parallel (module docstring); unsharded inputs give the one-device program.
     """
-    from .train import optimizer, params_of
+    from .train import optimizer
+    from .train.state import params_of
 
     loss, out, grads = views_loss_and_grad(state, images, cameras, key)
     params = params_of(state.gaussians)
