@@ -36,7 +36,7 @@ PROMPT = "turn the bear into a panda"
 
 def build_tiny_ip2p(root):
     """Write a tiny random InstructPix2Pix pipeline to ``root`` (diffusers layout)."""
-    from diffusers import AutoencoderKL, EulerAncestralDiscreteScheduler, UNet2DConditionModel
+    from diffusers import AutoencoderKL, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
 
     torch.manual_seed(0)
@@ -64,8 +64,18 @@ def build_tiny_ip2p(root):
     (tok_dir / "merges.txt").write_text("#version: 0.2\nt h\nth e</w>\n")
     CLIPTokenizer(vocab=str(tok_dir / "vocab.json"), merges=str(tok_dir / "merges.txt"),
                   model_max_length=77).save_pretrained(tok_dir)
-    # timbrooks/instruct-pix2pix ships an Euler-ancestral scheduler config; the editor reads it
-    # as Stable Diffusion's DDIM, so the test writes the same kind of file.
+    write_scheduler_and_index(root)
+    return root
+
+
+def write_scheduler_and_index(root):
+    """The pipeline's scheduler/ and model_index.json, as timbrooks/instruct-pix2pix ships them.
+
+    It ships an Euler-ancestral scheduler config; the editors read it as Stable Diffusion's
+    DDIM, so the tests write the same kind of file.
+    """
+    from diffusers import EulerAncestralDiscreteScheduler
+
     with warnings.catch_warnings():  # diffusers' own NumPy 2 deprecation, not ours
         warnings.simplefilter("ignore", DeprecationWarning)
         EulerAncestralDiscreteScheduler(beta_start=0.00085, beta_end=0.012,
@@ -73,7 +83,6 @@ def build_tiny_ip2p(root):
                                         steps_offset=1).save_pretrained(root / "scheduler")
     (root / "model_index.json").write_text(json.dumps(
         {"_class_name": "StableDiffusionInstructPix2PixPipeline"}))
-    return root
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import warnings
 from pathlib import Path
 
 import equinox as eqx
@@ -31,6 +30,7 @@ from jaxedit.errors import DataError  # noqa: E402
 from jaxedit.models import (AutoencoderKL, CLIPTextEncoder, CLIPTokenizer, UNet2DCondition,  # noqa: E402
                             cast, load_ip2p, load_module, set_query_chunk)
 from jaxedit.models.layers import Attention, attention  # noqa: E402
+from test_ip2p import write_scheduler_and_index  # noqa: E402 - the one scheduler writer
 from without_torch import run_without_torch  # noqa: E402
 
 
@@ -89,7 +89,7 @@ def write_tokenizer_files(folder: Path) -> Path:
 def build_tiny_pipeline(root: Path, *, linear_projection: bool = False) -> Path:
     """A tiny random SD / IP2P pipeline in diffusers' layout (perturbed weights)."""
     from diffusers import AutoencoderKL as TorchVAE
-    from diffusers import EulerAncestralDiscreteScheduler, UNet2DConditionModel
+    from diffusers import UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel
     from transformers import CLIPTokenizer as TorchTokenizer
 
@@ -104,12 +104,7 @@ def build_tiny_pipeline(root: Path, *, linear_projection: bool = False) -> Path:
         .save_pretrained(root / "text_encoder")
     TorchTokenizer(vocab=str(tok_dir / "vocab.json"), merges=str(tok_dir / "merges.txt"),
                    model_max_length=77).save_pretrained(tok_dir)
-    with warnings.catch_warnings():  # diffusers' own NumPy 2 deprecation, not ours
-        warnings.simplefilter("ignore", DeprecationWarning)
-        EulerAncestralDiscreteScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
-                                        steps_offset=1).save_pretrained(root / "scheduler")
-    (root / "model_index.json").write_text(json.dumps(
-        {"_class_name": "StableDiffusionInstructPix2PixPipeline"}))
+    write_scheduler_and_index(root)
     return root
 
 
