@@ -19,7 +19,8 @@ from .lpips import load_lpips, lpips_distance
 from .raster import RenderOutput, render, render_reference
 from .report import write_report
 from .scenes import make_scene
-from .train import TrainConfig, TrainState, evaluate, fit, init_state, resume, train_step
+from .train import TrainConfig, TrainState, evaluate, fit, init_state, train_step
+from .pipelines.rundir import resume
 from .viz import colorize_depth, image_grid, turntable, write_snapshot, write_turntable
 
 __all__ = [

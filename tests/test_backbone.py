@@ -25,6 +25,7 @@ from jaxedit import gaussians as G
 from jaxedit import scenes
 from jaxedit import tf32
 from jaxedit import train as T
+from jaxedit.pipelines.rundir import RollingCheckpoints, resume
 from jaxedit.camera import Camera, look_at
 from jaxedit.io.similarity import transform_cameras, transform_points
 
@@ -194,16 +195,16 @@ def test_divergence_guard_names_step_and_quantity(face, tmp_path):
     g = G.from_points(face["points"], face["colors"], sh_degree=1, capacity=CAPACITY)
     state = T.init_state(g, CONFIG, T.scene_extent(cams), key=jax.random.key(3),
                          max_intersections=16384)
-    state = T.fit(state, images, cams, iterations=20, checkpoint_dir=tmp_path,
+    state = T.fit(state, images, cams, iterations=20, checkpoint=RollingCheckpoints(tmp_path),
                   checkpoint_every=8)
     bad_view = 4
     images[bad_view, 5, 5, 0] = np.nan
     first = min(s for s in range(20, 20 + 2 * len(images))
                 if int(T.view_and_key(state.key, s, len(images))[0]) == bad_view)
     with pytest.raises(DataError, match=rf"^train: step {first + 1}: training diverged: the loss"):
-        T.fit(state, images, cams, iterations=STEPS, checkpoint_dir=tmp_path, checkpoint_every=8,
-              desc="train")
-    saved = T.resume(tmp_path)
+        T.fit(state, images, cams, iterations=STEPS, checkpoint=RollingCheckpoints(tmp_path),
+              checkpoint_every=8, desc="train")
+    saved = resume(tmp_path)
     assert int(saved.step) == max(20, first // 8 * 8)
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(saved.gaussians))
 

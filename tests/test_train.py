@@ -16,6 +16,7 @@ from jaxedit import DataError
 from jaxedit import gaussians as G
 from jaxedit import scenes
 from jaxedit import train as T
+from jaxedit.pipelines.rundir import JsonlLog, RollingCheckpoints, resume
 
 SIZE = 32
 CONFIG = T.TrainConfig(
@@ -46,8 +47,10 @@ def fresh_state(face):
 def first_leg(face, tmp_path_factory):
     """The uninterrupted run up to RESUME_AT steps, with its metrics log."""
     log = tmp_path_factory.mktemp("leg") / "log.jsonl"
-    state = T.fit(fresh_state(face), face["images"][face["train"]], face["cams"][face["train"]],
-                  iterations=RESUME_AT, log_path=log, log_every=10, room=None)
+    with JsonlLog(log) as record:
+        state = T.fit(fresh_state(face), face["images"][face["train"]],
+                      face["cams"][face["train"]], iterations=RESUME_AT, log=record,
+                      log_every=10, room=None)
     return state, log
 
 
@@ -68,19 +71,20 @@ def test_killed_run_resumes_bit_identically(face, first_leg, tmp_path):
 
     with pytest.raises(Killed):
         T.fit(fresh_state(face), face["images"][face["train"]], face["cams"][face["train"]],
-              iterations=RESUME_AT, checkpoint_dir=ckpt, checkpoint_every=60,
+              iterations=RESUME_AT, checkpoint=RollingCheckpoints(ckpt), checkpoint_every=60,
               callback=kill, room=None)
     assert [p.name for p in sorted(ckpt.glob("ckpt_*.npz"))] == ["ckpt_00000060.npz"]
-    resumed = T.resume(ckpt)
+    resumed = resume(ckpt)
     assert int(resumed.step) == 60
     resumed = T.fit(resumed, face["images"][face["train"]], face["cams"][face["train"]],
-                    iterations=RESUME_AT, checkpoint_dir=ckpt, room=4.0)  # no plan after step 0
+                    iterations=RESUME_AT, checkpoint=RollingCheckpoints(ckpt),
+                    room=4.0)  # no plan after step 0
     assert int(resumed.step) == RESUME_AT
     assert resumed.capacity == full.capacity and resumed.max_intersections == full.max_intersections
     for a, b in zip(leaves(full), leaves(resumed)):
         np.testing.assert_array_equal(a, b)
     # The final checkpoint holds the final state.
-    again = T.resume(ckpt)
+    again = resume(ckpt)
     for a, b in zip(leaves(full), leaves(again)):
         np.testing.assert_array_equal(a, b)
 
@@ -158,9 +162,9 @@ def test_config_and_checkpoint_errors(tmp_path, face):
     with pytest.raises(DataError, match="cannot read checkpoint"):
         T.load_checkpoint(bad)
     with pytest.raises(DataError, match="no ckpt"):
-        T.resume(tmp_path)
+        resume(tmp_path)
     with pytest.raises(DataError, match="no such"):
-        T.resume(tmp_path / "missing.npz")
+        resume(tmp_path / "missing.npz")
     with pytest.raises(DataError, match="images"):
         T.fit(fresh_state(face), np.zeros((3, SIZE, SIZE)), face["cams"][:3])
 
@@ -205,8 +209,9 @@ def test_planned_room_trains_the_same_scene_without_stopping_for_capacity(face, 
     done = dataclasses.replace(state, step=jnp.int32(CONFIG.densify.stop_at))
     assert T.planned_capacity(done, 4.0) == state.capacity  # nothing left to densify
     log = tmp_path / "log.jsonl"
-    planned = T.fit(state, face["images"][face["train"]], face["cams"][face["train"]],
-                    iterations=RESUME_AT, room=4.0, log_path=log, log_every=10)
+    with JsonlLog(log) as record:
+        planned = T.fit(state, face["images"][face["train"]], face["cams"][face["train"]],
+                        iterations=RESUME_AT, room=4.0, log=record, log_every=10)
     # From the first step on, density control had its room: no growth stopped the loop.
     assert {json.loads(line)["capacity"] for line in log.read_text().splitlines()} == {600}
     unplanned = {json.loads(line)["capacity"] for line in first_leg[1].read_text().splitlines()}

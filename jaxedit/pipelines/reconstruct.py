@@ -42,6 +42,7 @@ from .. import gaussians as G
 from ..background import background_rgb
 from ..errors import DataError
 from ..train import TrainConfig
+from .rundir import JsonlLog, RollingCheckpoints, latest_checkpoint
 
 log = logging.getLogger("jaxedit.reconstruct")
 
@@ -203,7 +204,7 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
 
     state = None
     if resume:
-        latest = T.latest_checkpoint(ckpt_dir)
+        latest = latest_checkpoint(ckpt_dir)
         if latest is not None:
             state = T.load_checkpoint(latest)
             if state.config != config:
@@ -233,10 +234,11 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     last[0] = t_train
     bar = progress or None  # False: no progress (the earlier boolean)
     try:
-        state = T.fit(state, train_images, train_cams, log_path=out / "train_log.jsonl",
-                      log_every=log_every, checkpoint_dir=ckpt_dir,
-                      checkpoint_every=checkpoint_every or None, progress=bar, callback=timer,
-                      desc="reconstruct")
+        with JsonlLog(out / "train_log.jsonl") as log_record:
+            state = T.fit(state, train_images, train_cams, log=log_record, log_every=log_every,
+                          checkpoint=RollingCheckpoints(ckpt_dir),
+                          checkpoint_every=checkpoint_every or None, progress=bar,
+                          callback=timer, desc="reconstruct")
     finally:
         if bar is not None and hasattr(bar, "close"):
             bar.close()

@@ -15,12 +15,13 @@ The pieces, from the inside out (one module each):
 * :mod:`.room` -- the buffer and the capacity: sized from the views, planned for a
   densifying run, grown after a redo (:func:`step_with_retry` for single steps).
 * :mod:`.loop` -- :func:`train_chunk` (up to ``length`` steps in one ``lax.scan``,
-  views picked on the device) and :func:`fit`, the loop over chunks with logs,
-  progress events, checkpoints and the divergence guard (:func:`divergence`). The
+  views picked on the device) and :func:`fit`, the loop over chunks with log
+  records, progress events, checkpoint calls and the divergence guard
+  (:func:`divergence`); it writes no files (:mod:`jaxedit.pipelines.rundir` does). The
   view of step ``s`` and its key are pure functions of ``(base key, s)``, so a run
   resumed from any checkpoint ends with bit-identical Gaussians, whatever the chunking.
-* :mod:`.checkpoint` -- :func:`save_checkpoint` / :func:`load_checkpoint` /
-  :func:`resume` (the shared format of :mod:`jaxedit.io.checkpoint`).
+* :mod:`.checkpoint` -- :func:`save_checkpoint` / :func:`load_checkpoint` (the
+  shared format of :mod:`jaxedit.io.checkpoint`).
 * :mod:`.evaluation` -- :func:`evaluate`, :func:`render_views`.
 
 The ProEdit driver swaps the ``images`` array between chunks (:func:`put_image`
@@ -29,8 +30,7 @@ updates one view of a device array in place) and runs its own scan of
 """
 
 from ..densify import DensifyConfig
-from .checkpoint import (CHECKPOINT_VERSION, checkpoint_name, latest_checkpoint,
-                         load_checkpoint, load_checkpoint_with_extra, prune_checkpoints, resume,
+from .checkpoint import (CHECKPOINT_VERSION, load_checkpoint, load_checkpoint_with_extra,
                          save_checkpoint)
 from .config import BACKGROUNDS, TrainConfig
 from .evaluation import evaluate, render_views
@@ -46,12 +46,11 @@ from .step import (GUARDED, active_sh_degree, apply_step, background_color, came
 __all__ = [
     "BACKGROUNDS", "Batch", "CHECKPOINT_VERSION", "CHUNK", "DensifyConfig", "GROWTH_ROOM",
     "GUARDED", "GUARD_WINDOW", "HEADROOM", "ROOM", "TrainConfig", "TrainProgress", "TrainState",
-    "active_sh_degree", "apply_step", "background_color", "camera_lr", "checkpoint_name",
+    "active_sh_degree", "apply_step", "background_color", "camera_lr",
     "default_room", "divergence", "evaluate", "fit", "grow_for_redo", "init_state",
-    "latest_checkpoint", "load_checkpoint", "load_checkpoint_with_extra", "means_lr",
+    "load_checkpoint", "load_checkpoint_with_extra", "means_lr",
     "measure_intersections", "optimizer", "plan_room", "planned_capacity", "planned_headroom",
-    "prune_checkpoints",
-    "psnr_from_mse", "put_image", "render_views", "resume", "save_checkpoint", "scan_steps",
+    "psnr_from_mse", "put_image", "render_views", "save_checkpoint", "scan_steps",
     "scene_extent", "select_batch", "sh_mask", "size_buffer", "step_with_retry", "train_chunk",
     "train_step", "view_and_key",
 ]

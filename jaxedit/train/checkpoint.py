@@ -64,38 +64,3 @@ def load_checkpoint_with_extra(path) -> tuple[TrainState, dict]:
 def load_checkpoint(path) -> TrainState:
     """The TrainState stored at ``path``."""
     return load_checkpoint_with_extra(path)[0]
-
-
-def checkpoint_name(step: int) -> str:
-    return f"ckpt_{int(step):08d}.npz"
-
-
-def latest_checkpoint(directory) -> Path | None:
-    """The checkpoint of the highest step in ``directory`` (None if there is none)."""
-    directory = Path(directory)
-    if not directory.is_dir():
-        return None
-    found = sorted(directory.glob("ckpt_*.npz"))
-    return found[-1] if found else None
-
-
-def prune_checkpoints(directory: Path, keep: int) -> None:
-    """Delete all but the newest ``keep`` checkpoints in ``directory``."""
-    for old in sorted(Path(directory).glob("ckpt_*.npz"))[:-keep]:
-        try:
-            old.unlink()
-        except FileNotFoundError:
-            pass
-
-
-def resume(checkpoint) -> TrainState:
-    """The state of ``checkpoint``: a file, or a directory (its newest ``ckpt_*.npz``)."""
-    path = Path(checkpoint)
-    if path.is_dir():
-        found = latest_checkpoint(path)
-        if found is None:
-            raise DataError(path, "no ckpt_*.npz checkpoint in this directory")
-        path = found
-    elif not path.exists():
-        raise DataError(path, "no such checkpoint file or directory")
-    return load_checkpoint(path)

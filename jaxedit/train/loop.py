@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import time
-from pathlib import Path
 from typing import Callable, NamedTuple
 
 import jax
@@ -23,7 +21,6 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import DataError
-from .checkpoint import checkpoint_name, prune_checkpoints, save_checkpoint
 from .room import default_room, grow_for_redo, plan_room, planned_headroom, size_buffer
 from .state import Batch, TrainState, key_data
 from .step import GUARDED, apply_step
@@ -230,8 +227,9 @@ def _jsonable(metrics: dict) -> dict:
 
 
 def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int | None = None,
-        log_path=None, log_every: int = 10, checkpoint_dir=None, checkpoint_every: int | None = None,
-        keep_checkpoints: int = 2, progress: Callable[[TrainProgress], None] | None = None,
+        log: Callable[[dict], None] | None = None, log_every: int = 10,
+        checkpoint: Callable[[TrainState], None] | None = None,
+        checkpoint_every: int | None = None, progress: Callable[[TrainProgress], None] | None = None,
         callback: Callable | None = None,
         should_stop: Callable[[int, list], bool] | None = None, desc: str = "train",
         chunk: int = CHUNK, max_loss: float | None = 0.75,
@@ -252,11 +250,13 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
       key: base PRNG key; default: the one in ``state`` (set by :func:`init_state`).
         The view and key of step s depend only on (key, s).
       iterations: stop at this step count (default: the config's).
-      log_path: JSONL file receiving a metrics line every ``log_every`` steps and
-        at every density-control step (appended to, so a resumed run continues it).
-      checkpoint_dir: write ``ckpt_<step>.npz`` there every ``checkpoint_every``
-        steps and at the end (atomic; the newest ``keep_checkpoints`` are kept).
-        Chunks end on those steps.
+      log: ``log(record)`` with a JSON-ready metrics record (step, elapsed seconds,
+        capacity, buffer size and the step's metrics) every ``log_every`` steps, at
+        the last step and at every density-control step; None: no records.
+      checkpoint: ``checkpoint(state)`` every ``checkpoint_every`` steps (chunks end
+        on those steps) and at the end of a run that took a step; None: never.
+        The library writes no files: :mod:`jaxedit.pipelines.rundir` has the run
+        directory's writers (a JSONL log, rolling ``ckpt_<step>.npz`` files).
       progress: ``progress(TrainProgress)`` after every chunk (and once at the start),
         e.g. to draw a bar; None: silent. The library itself never prints.
       callback: ``callback(state, metrics)`` after every chunk: the state at its
@@ -303,11 +303,8 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         state = plan_room(state, room)
     if state.max_intersections <= 0:
         state = size_buffer(state, cameras, headroom=headroom)
-    ckpt_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
-    log_file = None
-    if log_path is not None:
-        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
-        log_file = open(log_path, "a")
+    if checkpoint is None:
+        checkpoint_every = None
     step = int(jax.device_get(state.step))
     if progress is not None:
         progress(TrainProgress(desc, step, total, float("nan"), float("nan"),
@@ -319,67 +316,60 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
     def launch(st, at):
         """Dispatch the chunk that starts at step ``at`` (asynchronous: nothing is read)."""
         n = min(chunk, total - at)
-        if ckpt_dir is not None and checkpoint_every:
+        if checkpoint_every:
             n = min(n, checkpoint_every - at % checkpoint_every)
         new, metrics = train_chunk(st, images, cameras, jax.device_put(np.int32(n)),
                                    length=chunk)
         return new, metrics, n
 
-    try:
-        ahead = None
-        if step < total and not (should_stop is not None and should_stop(step, history)):
+    ahead = None
+    if step < total and not (should_stop is not None and should_stop(step, history)):
+        ahead = launch(state, step)
+    while ahead is not None:
+        new, metrics, n = ahead
+        # The next chunk goes to the device before this one is read, so the device
+        # never waits for the host's logging and checks. It assumes this chunk
+        # completes; when it does not (a redo, a stop, divergence) it is dropped.
+        ahead = launch(new, step + n) if step + n < total else None
+        metrics = jax.device_get(metrics)
+        completed = metrics["ran"] & ~metrics["redo"]
+        k = int(np.sum(completed))
+        steps = jax.tree_util.tree_map(lambda a: a[:k], metrics)
+        recent = history[-GUARD_WINDOW:] + [float(x) for x in steps["loss"]]
+        reason = divergence(step, steps, history=recent, max_loss=max_loss,
+                            window=GUARD_WINDOW)
+        if reason is not None:
+            raise DataError(desc, reason)
+        state = new
+        for i in range(k):
+            history.append(float(steps["loss"][i]))
+            done = step + i + 1
+            if log is not None and (done % log_every == 0 or done == total
+                                    or bool(steps["densify"]["refined"][i])):
+                record = dict(step=done, elapsed_s=time.monotonic() - t0,
+                              capacity=state.capacity,
+                              max_intersections=state.max_intersections,
+                              **_jsonable(jax.tree_util.tree_map(lambda a: a[i], steps)))
+                log(record)
+        step += k
+        steps_done += k
+        if k < n:  # a step asked for more room: grow, then redo it in a new chunk
+            state = grow_for_redo(state, jax.tree_util.tree_map(lambda a: a[k], metrics))
+            ahead = None
+        if k:
+            if progress is not None:
+                progress(TrainProgress(desc, step, total, float(steps["loss"][-1]),
+                                       float(steps["psnr"][-1]),
+                                       int(steps["num_gaussians"][-1])))
+            if callback is not None:
+                callback(state, steps)
+            if checkpoint_every and step % checkpoint_every == 0:
+                checkpoint(state)
+        if should_stop is not None and step < total and should_stop(step, history):
+            break
+        if ahead is None and step < total:
             ahead = launch(state, step)
-        while ahead is not None:
-            new, metrics, n = ahead
-            # The next chunk goes to the device before this one is read, so the device
-            # never waits for the host's logging and checks. It assumes this chunk
-            # completes; when it does not (a redo, a stop, divergence) it is dropped.
-            ahead = launch(new, step + n) if step + n < total else None
-            metrics = jax.device_get(metrics)
-            completed = metrics["ran"] & ~metrics["redo"]
-            k = int(np.sum(completed))
-            steps = jax.tree_util.tree_map(lambda a: a[:k], metrics)
-            recent = history[-GUARD_WINDOW:] + [float(x) for x in steps["loss"]]
-            reason = divergence(step, steps, history=recent, max_loss=max_loss,
-                                window=GUARD_WINDOW)
-            if reason is not None:
-                raise DataError(desc, reason)
-            state = new
-            for i in range(k):
-                history.append(float(steps["loss"][i]))
-                done = step + i + 1
-                if log_file is not None and (done % log_every == 0 or done == total
-                                             or bool(steps["densify"]["refined"][i])):
-                    record = dict(step=done, elapsed_s=time.monotonic() - t0,
-                                  capacity=state.capacity,
-                                  max_intersections=state.max_intersections,
-                                  **_jsonable(jax.tree_util.tree_map(lambda a: a[i], steps)))
-                    log_file.write(json.dumps(record) + "\n")
-            if log_file is not None:
-                log_file.flush()
-            step += k
-            steps_done += k
-            if k < n:  # a step asked for more room: grow, then redo it in a new chunk
-                state = grow_for_redo(state, jax.tree_util.tree_map(lambda a: a[k], metrics))
-                ahead = None
-            if k:
-                if progress is not None:
-                    progress(TrainProgress(desc, step, total, float(steps["loss"][-1]),
-                                           float(steps["psnr"][-1]),
-                                           int(steps["num_gaussians"][-1])))
-                if callback is not None:
-                    callback(state, steps)
-                if ckpt_dir is not None and checkpoint_every and step % checkpoint_every == 0:
-                    save_checkpoint(ckpt_dir / checkpoint_name(step), state)
-                    prune_checkpoints(ckpt_dir, keep_checkpoints)
-            if should_stop is not None and step < total and should_stop(step, history):
-                break
-            if ahead is None and step < total:
-                ahead = launch(state, step)
-    finally:
-        if log_file is not None:
-            log_file.close()
-    if ckpt_dir is not None and steps_done:
-        save_checkpoint(ckpt_dir / checkpoint_name(step), state)
-        prune_checkpoints(ckpt_dir, keep_checkpoints)
+    if checkpoint is not None and steps_done and not (checkpoint_every
+                                                      and step % checkpoint_every == 0):
+        checkpoint(state)
     return state
