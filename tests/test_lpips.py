@@ -24,9 +24,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxedit.errors import DataError
-from jaxedit.lpips import (
-    load_lpips, load_lpips_params, lpips_distance, read_safetensors, write_safetensors,
-)
+from jaxedit.io.weights import read_safetensors, write_safetensors
+from jaxedit.lpips import load_lpips, load_lpips_params, lpips_distance
 
 torch = pytest.importorskip("torch")
 nn = torch.nn

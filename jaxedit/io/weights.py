@@ -228,24 +228,30 @@ _ST_DTYPES = {"F32": np.float32, "F16": np.float16, "F64": np.float64, "I64": np
 def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Read a .safetensors file (header + raw little-endian tensors) without torch.
 
-    Returns (name -> array, metadata). BF16 tensors are widened to float32.
+    Returns (name -> array, metadata). The file is memory-mapped: the arrays are
+    read-only views of it, paged in as they are used, so a multi-GB UNet costs no
+    second copy before it is cast to the dtype the model wants. BF16 tensors (which
+    NumPy lacks, and ``safetensors.numpy`` therefore refuses) are widened to float32.
     """
     path = Path(path)
     try:
-        data = path.read_bytes()
+        size = path.stat().st_size
+        data = np.memmap(path, dtype=np.uint8, mode="r") if size else np.zeros(0, np.uint8)
     except OSError as e:
         raise DataError(path, f"cannot read ({e.strerror or e})") from None
-    if len(data) < 8:
+    if size < 8:
         raise DataError(path, "not a safetensors file (shorter than its 8-byte header length)")
-    (hlen,) = struct.unpack("<Q", data[:8])
-    if hlen > len(data) - 8:
+    (hlen,) = struct.unpack("<Q", data[:8].tobytes())
+    if hlen > size - 8:
         raise DataError(path, "not a safetensors file (header length past the end of the file)")
     try:
-        header = json.loads(data[8:8 + hlen])
+        header = json.loads(data[8:8 + hlen].tobytes())
     except (json.JSONDecodeError, UnicodeDecodeError):
         raise DataError(path, "not a safetensors file (header is not JSON)") from None
+    if not isinstance(header, dict):
+        raise DataError(path, "not a safetensors file (header is not a JSON object)")
     meta = header.pop("__metadata__", None) or {}
-    body = memoryview(data)[8 + hlen:]
+    body = data[8 + hlen:]
     out = {}
     for name, info in header.items():
         try:
@@ -256,9 +262,13 @@ def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
             raise DataError(path, f"tensor {name!r} lies outside the file (truncated?)")
         raw = body[lo:hi]
         if dtype == "BF16":
-            arr = (np.frombuffer(raw, "<u2").astype(np.uint32) << 16).view(np.float32)
+            arr = (raw.view("<u2").astype(np.uint32) << 16).view(np.float32)
         elif dtype in _ST_DTYPES:
-            arr = np.frombuffer(raw, np.dtype(_ST_DTYPES[dtype]).newbyteorder("<"))
+            itemsize = np.dtype(_ST_DTYPES[dtype]).itemsize
+            if len(raw) % itemsize:
+                raise DataError(path, f"tensor {name!r}: {len(raw)} bytes is not a whole "
+                                      f"number of {dtype} values")
+            arr = raw.view(np.dtype(_ST_DTYPES[dtype]).newbyteorder("<"))
         else:
             raise DataError(path, f"tensor {name!r} has unsupported dtype {dtype}")
         if arr.size != int(np.prod(shape)):

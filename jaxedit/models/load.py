@@ -11,8 +11,8 @@ converting torch's layout. A missing, unexpected or mis-shaped tensor is a one-l
 
 Weights files, per sub-folder, in order of preference: ``model.safetensors`` /
 ``diffusion_pytorch_model.safetensors``, then their ``.fp16.safetensors`` variants
-(converted to the requested dtype), read with ``safetensors.numpy``; then legacy torch
-``.bin`` checkpoints (``diffusion_pytorch_model.bin``, ``pytorch_model.bin``), read by a
+(converted to the requested dtype), read by :func:`jaxedit.io.weights.read_safetensors`;
+then legacy torch ``.bin`` checkpoints (``diffusion_pytorch_model.bin``, ``pytorch_model.bin``), read by a
 restricted unpickler that rebuilds tensors as NumPy arrays and refuses anything else (a
 pickle can run code).
 """
@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from ..io.weights import load_torch_checkpoint, local_model_folder
+from ..io.weights import load_torch_checkpoint, local_model_folder, read_safetensors
 from .clip_text import CLIPTextEncoder, CLIPTokenizer
 from .layers import ParamLayer
 
@@ -107,16 +107,9 @@ def read_weights(path: Path) -> dict[str, np.ndarray]:
     """All tensors of a ``.safetensors`` file, or of a torch ``.bin`` state_dict (read without
     torch and without running code, :func:`jaxedit.io.weights.load_torch_checkpoint`), as
     NumPy arrays."""
-    from safetensors import SafetensorError
-    from safetensors.numpy import load_file
-
     if path.suffix == ".bin":
         return load_torch_checkpoint(path)
-    try:
-        return load_file(str(path))
-    except (SafetensorError, OSError, ValueError, TypeError) as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise DataError(path, f"unreadable safetensors file ({first})") from None
+    return read_safetensors(path)[0]
 
 
 # ----------------------------------------------------------------------------- name mapping
