@@ -42,7 +42,7 @@ Variants (one constant changed; with N ~ 8.5k, ceil(0.02 N) ~ 170):
   this scene; 256 is a round value above that.
 
 Scores (held-out test views, renders vs the editor's noise-free target at r = 1):
-``psnr_vs_target``, ``ssim_vs_target`` (from :func:`jaxedit.edit.progressive.run_edit`),
+``psnr_vs_target``, ``ssim_vs_target`` (from :func:`jaxedit.pipelines.edit.run_edit`),
 ``lpips_vs_target`` (LPIPS-VGG, when its weights are converted), ``multiview_consistency``,
 ``edit_fit_psnr``; the scene: ``final_gaussians``, ``created`` and ``culled`` (summed over
 every maintenance step of the edit), ``maintenance`` (maintenance steps), ``budget_bound``
@@ -135,7 +135,7 @@ def prepare(out: Path, *, size: int, views: int, test_views: int, iters: int, se
     with other sizes is an error.
     """
     from jaxedit import scenes
-    from jaxedit.edit.progressive import EditData
+    from jaxedit.edit import EditData
     from jaxedit.io import load_nerfstudio, load_ply
     from jaxedit.pipelines import reconstruct as recon_run
     from jaxedit.pipelines.cache import stamp_prepared
@@ -194,7 +194,9 @@ def run_one(editor, data, scene, *, variant: str, seed: int, sizes: dict, lpips=
     """One progressive edit of ``variant`` and ``seed`` -> its record (scores, counts, cost)."""
     import numpy as np
 
-    from jaxedit.edit.progressive import ProEditConfig, Renderer, TrainSettings, run_edit
+    from jaxedit.edit import ProEditConfig, TrainSettings
+    from jaxedit.edit.outputs import Renderer
+    from jaxedit.pipelines import run_edit
 
     overrides = dict(VARIANTS[variant])
     if sizes["refine_every"] is not None:  # smoke: a period short enough to fire at all

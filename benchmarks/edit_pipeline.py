@@ -49,7 +49,8 @@ def synthetic(size: int, views: int, points: int):
 
     from jaxedit import camera as cl
     from jaxedit import gaussians as gl
-    from jaxedit.edit.progressive import EditData, Renderer
+    from jaxedit.edit import EditData
+    from jaxedit.edit.outputs import Renderer
 
     rng = np.random.default_rng(0)
     d = rng.normal(size=(points, 3))
@@ -69,7 +70,8 @@ def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra)
     import jax
 
-    from jaxedit.edit.progressive import ProEditConfig, TrainSettings, run_edit
+    from jaxedit.edit import ProEditConfig, TrainSettings
+    from jaxedit.pipelines import run_edit
     from jaxedit.edit.simulated import SimulatedEditor
 
     if args.smoke:

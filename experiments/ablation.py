@@ -151,7 +151,7 @@ def stamp_prepared(out: Path, wanted: dict) -> None:
 def prepare(out: Path, *, scene_name: str, size: int, views: int, test_views: int,
             recon_iters: int, seed: int, log=print):
     """(EditData, reconstructed Gaussians, recon metrics): dataset + reconstruction, cached on disk."""
-    from jaxedit.edit.progressive import EditData
+    from jaxedit.edit import EditData
     from jaxedit.io import load_nerfstudio, load_ply
     from jaxedit.pipelines.reconstruct import reconstruct
     from jaxedit.scenes import make_scene
@@ -258,7 +258,7 @@ def _score(editor, prompt, data, gaussians, background) -> tuple[dict, object, o
     """(mode scores, renders [N, H, W, 3], mode targets [K, N, H, W, 3]) at the test views."""
     import numpy as np
 
-    from jaxedit.edit.progressive import Renderer
+    from jaxedit.edit.outputs import Renderer
     from jaxedit.metrics import mode_scores
 
     renderer = Renderer(background)
@@ -388,7 +388,7 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=PROMPTS, seeds=20, variant
     """Run the ablation into ``out``; returns the contents of ablation.json."""
     from jaxedit import DataError
     from jaxedit.edit.plan import anneal_horizon
-    from jaxedit.edit.progressive import TrainSettings
+    from jaxedit.edit import TrainSettings
     from jaxedit.edit.simulated import VOCABULARY, SimulatedEditor
     from jaxedit.io.files import atomic_write_text
     from jaxedit.scenes import list_scenes
@@ -513,7 +513,7 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=PROMPTS, seeds=20, variant
 def _run_one(editor: ModeLog, prompt, data, scene, cfg, settings, seed):
     """(record, test renders, mode targets) of one edit run."""
     t0, c0 = time.perf_counter(), time.process_time()
-    from jaxedit.edit.progressive import run_edit
+    from jaxedit.pipelines import run_edit
 
     res = run_edit(editor, prompt, data, scene, config=cfg, settings=settings, seed=seed,
                    run_dir=None, report=False)

@@ -162,7 +162,7 @@ def load_inputs(args, config):
     import numpy as np
 
     from jaxedit import DataError
-    from jaxedit.edit.progressive import EditData
+    from jaxedit.edit import EditData
     from jaxedit.io import load_nerfstudio, load_ply
 
     if args.data is None:
@@ -187,7 +187,7 @@ def load_inputs(args, config):
 def run_config(args):
     """The :class:`jaxedit.pipelines.edit.EditRunConfig` of ``args``: the flags given over
     ``--mode``'s defaults (DataErrors name its fields)."""
-    from jaxedit.edit.progressive import ProEditConfig
+    from jaxedit.edit import ProEditConfig
 
     return FLAGS[0].build(args, bases={"plan": ProEditConfig.for_mode(args.mode)})
 
@@ -238,7 +238,7 @@ def check_counts(args) -> None:
 
 def run(args) -> dict:
     from jaxedit import DataError
-    from jaxedit.edit.progressive import run_edit, select_snapshot
+    from jaxedit.pipelines import run_edit, select_snapshot
 
     if args.out is None:
         raise DataError("--out", "required (the run directory)")

@@ -113,7 +113,7 @@ class SnapshotViewer:
     and shows it when the slider was on the newest one (so a live view follows the
     edit unless the user went back). With a ``run_dir``, the button writes
     ``run_dir/selected.ply`` from the subtask on screen through
-    :func:`jaxedit.edit.select_snapshot`, the code path of ``edit --select-only``.
+    :func:`jaxedit.pipelines.select_snapshot`, the code path of ``edit --select-only``.
     """
 
     def __init__(self, run_dir: Path | None = None, *, port: int = DEFAULT_PORT):
@@ -188,7 +188,7 @@ class SnapshotViewer:
 
     def select(self) -> Path | None:
         """Write ``selected.ply`` from the subtask on screen (the button's action)."""
-        from jaxedit.edit import select_snapshot
+        from jaxedit.pipelines import select_snapshot
 
         with self._lock:
             if self._shown is None or self.run_dir is None:

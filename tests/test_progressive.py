@@ -16,9 +16,10 @@ from hypothesis import given, settings, strategies as st
 from jaxedit import DataError
 from jaxedit import camera as cl
 from jaxedit import gaussians as gl
-from jaxedit.edit.progressive import (EditData, LossTracker, ProEditConfig, Renderer, TrainSettings,
-                                      anneal_timestep, plan_subtasks, reprojection_consistency,
-                                      run_edit, select_snapshot, track_loss, train_view)
+from jaxedit.edit import EditData, ProEditConfig, TrainSettings, anneal_timestep, plan_subtasks
+from jaxedit.edit.driver import LossTracker, track_loss, train_view
+from jaxedit.edit.outputs import Renderer, reprojection_consistency
+from jaxedit.pipelines import run_edit, select_snapshot
 from jaxedit.edit.simulated import SimulatedEditor
 
 PROMPT = "turn him into a bronze statue"
@@ -363,8 +364,8 @@ def test_cli_edit_uses_lpips_difficulty_and_checks_real_model_flags(tiny, tmp_pa
 
 
 def test_edit_cap_defaults_to_twice_the_input_and_is_never_below_it():
-    from jaxedit.edit.progressive import (CAP_MIN_ROOM, SubtaskTrainer, default_max_gaussians,
-                                          resolve_max_gaussians)
+    from jaxedit.edit.trainer import (CAP_MIN_ROOM, SubtaskTrainer, default_max_gaussians,
+                                      resolve_max_gaussians)
 
     # Reconstructions of 0.3-3M Gaussians keep room to create (the old fixed 200k cap had none).
     assert default_max_gaussians(1_000_000) == 2_000_000
@@ -384,12 +385,12 @@ def test_edit_cap_defaults_to_twice_the_input_and_is_never_below_it():
 
 
 def test_difficulty_views_are_a_fixed_seeded_subset():
-    from jaxedit.edit.progressive import DIFFICULTY_VIEWS_DEFAULT_MAX, difficulty_view_subset
+    from jaxedit.edit.difficulty import DIFFICULTY_VIEWS, difficulty_view_subset
 
     key = jax.random.key(0)
     assert difficulty_view_subset(10, None, key) == tuple(range(10))  # all views when few
     many = difficulty_view_subset(40, None, key)
-    assert len(many) == DIFFICULTY_VIEWS_DEFAULT_MAX and list(many) == sorted(set(many))
+    assert len(many) == DIFFICULTY_VIEWS and list(many) == sorted(set(many))
     assert difficulty_view_subset(40, None, key) == many  # seeded: the same subset again
     assert difficulty_view_subset(40, 5, jax.random.key(1)) != difficulty_view_subset(40, 5, key)
     with pytest.raises(DataError):
@@ -568,7 +569,7 @@ def test_target_subtasks_gives_4_and_8_subtasks_on_the_demo_scene(tmp_path):
     from jaxedit import scenes
     from jaxedit.edit import schedule as sched
     from jaxedit.edit.difficulty import DifficultyOracle, lpips_weights_to_use
-    from jaxedit.edit.progressive import difficulty_view_subset
+    from jaxedit.edit.difficulty import difficulty_view_subset
     from jaxedit.io import load_nerfstudio
 
     path = scenes.make_scene("person", tmp_path / "person", downscale=4, views=32, test_views=4)

@@ -23,7 +23,7 @@ import pytest
 from experiments import view
 from experiments.cli import main
 from jaxedit import DataError
-from jaxedit.edit import select_snapshot
+from jaxedit.pipelines import select_snapshot
 from jaxedit.gaussians import covariance, from_points, grow, splat_arrays
 from jaxedit.io import save_ply
 

@@ -22,8 +22,6 @@ from .driver import DensityTally, DriverState, LossTracker
 
 KIND = "edit"
 
-CHECKPOINT_NAME = "checkpoint.npz"
-
 
 def save_checkpoint(path: str | os.PathLike, st: DriverState, meta: dict) -> None:
     """Write the driver state to ``path`` (npz, atomic: a crash never leaves half a file)."""

@@ -1,8 +1,19 @@
 """Pipelines: runs with a run directory, the library half of the commands that write one.
 
-:mod:`.reconstruct` (fit a dataset and write its run directory), :mod:`.edit` (the
-edit command's config tree), :mod:`.cache` (prepared inputs). ``experiments/`` is
-their thin edge (flags, progress bars, printing). Run-directory writing still inside
-lower modules (``train.fit``'s log and checkpoints, ``edit.progressive.run_edit``)
-is to move here.
+* :mod:`.reconstruct` -- fit a dataset and write its run directory;
+* :mod:`.edit` -- the edit command's config tree and :func:`run_edit`, a whole
+  progressive edit with its run directory;
+* :mod:`.snapshots` -- snapshot folders of scene states and the user's selection;
+* :mod:`.rundir` -- a training run's JSONL log and rolling checkpoints;
+* :mod:`.cache` -- prepared inputs.
+
+The library below this package writes no run directory: :func:`jaxedit.train.fit`
+and :func:`jaxedit.edit.driver.run_subtask` hand records and states to callbacks,
+and the pure pieces of an edit are :mod:`jaxedit.edit.progressive`.
+``experiments/`` is the thin edge above (flags, progress bars, printing).
 """
+
+from .edit import EditRunConfig, run_edit
+from .snapshots import select_snapshot
+
+__all__ = ["EditRunConfig", "run_edit", "select_snapshot"]

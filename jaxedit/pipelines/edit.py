@@ -1,17 +1,44 @@
-"""An edit run's config tree: the plan, the trainer and how the dataset is read.
+"""An edit run: its config tree, and :func:`run_edit`, which runs it with a run directory.
 
 ``python -m experiments edit`` generates its settings' flags from
-:class:`EditRunConfig`; :func:`jaxedit.edit.progressive.run_edit` runs the plan and the
-trainer settings it holds.
+:class:`EditRunConfig`; :func:`run_edit` runs the plan and the trainer settings it
+holds (the pure pieces are :mod:`jaxedit.edit.progressive` and
+:mod:`jaxedit.edit.driver`). The run directory::
+
+    RUN/schedule.json        the plan and every finished subtask's record
+    RUN/metrics.json         the final scene's numbers
+    RUN/checkpoint.npz       the driver state, rewritten every checkpoint_every steps
+    RUN/original/            snapshot of the input scene (:mod:`.snapshots`)
+    RUN/subtasks/NN_rX.XXX/  snapshot of each finished subtask
+    RUN/selected.ply         the chosen snapshot (``select``)
+    RUN/report.html          (``report``)
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+from typing import Callable
 
-from ..edit.plan import ProEditConfig
+import jax
+import numpy as np
+
+from ..edit import progressive as P
+from ..edit.buffer import pick_devices
+from ..edit.checkpoint import load_checkpoint, save_checkpoint
+from ..edit.driver import EditContext, EditData, finish_subtask, init_state, run_subtask
+from ..edit.outputs import Renderer
+from ..edit.plan import ProEditConfig, SubtaskSpec
 from ..edit.trainer import TrainSettings
 from ..errors import DataError
+from ..io.files import atomic_write_text
+from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
+
+#: The driver's checkpoint inside a run directory.
+CHECKPOINT_NAME = "checkpoint.npz"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,3 +63,128 @@ class EditRunConfig:
             raise DataError("downscale", f"must be >= 1, got {self.downscale}")
         if self.test_views is not None and self.test_views < 1:
             raise DataError("test_views", f"must be >= 1, got {self.test_views}")
+
+
+def _write_json(path: Path, data: dict) -> None:
+    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
+
+
+def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
+             settings: TrainSettings | None = None, seed: int = 0,
+             run_dir: str | os.PathLike | None = None, resume: bool = False,
+             resume_from: str | os.PathLike | None = None, select=None,
+             callback: Callable | None = None, progress: Callable | None = None,
+             report: bool = True, log: Callable[[str], None] | None = None,
+             distance: Callable | None = None) -> dict:
+    """Edit ``gaussians`` progressively (:mod:`jaxedit.edit.progressive`); returns the run summary.
+
+    Args:
+      editor, prompt: the 2D editor and the instruction.
+      data: original photos and cameras (train views edited, test views held out).
+      gaussians: the input scene (a reconstruction of ``data``).
+      config / settings: driver and trainer knobs.
+      seed: the run seed (every random draw derives from it).
+      run_dir: where schedule.json, metrics.json, snapshots and the checkpoint go
+        (None: in memory only, no files).
+      resume: continue the run in ``run_dir`` from its checkpoint (exactly, in
+        the deterministic mode).
+      resume_from: a snapshot directory (``subtasks/NN_rX.XXX``) to continue from
+        with this config's schedule (the ratios above the snapshot's).
+      select: ratio (float) or subtask index (int) whose snapshot becomes
+        ``run_dir/selected.ply``.
+      callback: ``callback(spec, step, loss)`` after every training step.
+      progress: ``progress(spec, step, loss, state)`` after every training step.
+      report: write ``run_dir/report.html`` at the end.
+      log: ``log(message)`` for what a person should read (warnings, resumption).
+      distance: perceptual distance of the difficulty (default multi-scale SSIM; pass
+        :func:`jaxedit.lpips.lpips_distance` for the paper's LPIPS).
+    Returns:
+      {"schedule": schedule.json contents, "metrics": metrics.json contents, "gaussians": final}.
+    """
+    log = log or (lambda msg: None)
+    if not str(prompt).strip() and config.mode != "in2n":
+        raise DataError("prompt", "empty instruction")
+    run_dir = None if run_dir is None else Path(run_dir)
+    trainer = P.make_trainer(config, settings or TrainSettings(), data, gaussians)
+    _, editor_device = pick_devices()
+    ctx = EditContext(editor, prompt, data, config, trainer, Renderer(config.background),
+                      jax.random.key(seed), editor_device)
+    wall0 = time.perf_counter()
+    ckpt = None if run_dir is None else run_dir / CHECKPOINT_NAME
+    if resume and (ckpt is None or not ckpt.exists()):
+        raise DataError(ckpt or "run_dir", "no checkpoint to resume from")
+
+    if resume:
+        st, meta = load_checkpoint(ckpt, trainer.init(gaussians))
+        plan = tuple(SubtaskSpec(**p) for p in meta["plan"])
+        header = meta["header"]
+        wall0 -= meta.get("wall_time_s", 0.0)
+        log(f"resuming subtask {st.subtask} at step {st.step} from {ckpt}")
+    else:
+        start_ratio, start_scene, images = 0.0, gaussians, None
+        if resume_from is not None:
+            from ..io import load_ply
+
+            snap = Path(resume_from)
+            start_ratio = snapshot_ratio(snap)
+            start_scene = load_ply(snap / "scene.ply")
+            # The dataset the snapshot was trained on is best approximated by its renders.
+            images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
+                               for i in range(len(data.train_images))])
+            log(f"continuing from {snap} (r = {start_ratio:.3f})")
+        plan, header = P.plan_edit(ctx, gaussians, seed=seed, distance=distance,
+                                   start_ratio=start_ratio, log=log,
+                                   resumed_from=None if resume_from is None else str(resume_from))
+        st = init_state(ctx, start_scene, images)
+        if run_dir is not None:
+            write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
+    if config.subtask_steps is not None and len(config.subtask_steps) != len(plan):
+        raise DataError("subtask_steps", f"{len(config.subtask_steps)} lengths for a plan of "
+                                         f"{len(plan)} subtasks")
+
+    def save(state):
+        if ckpt is not None:
+            save_checkpoint(ckpt, state, {"plan": [dataclasses.asdict(p) for p in plan],
+                                          "header": header,
+                                          "wall_time_s": time.perf_counter() - wall0})
+
+    def write_schedule(state):
+        if run_dir is not None:
+            _write_json(run_dir / "schedule.json", P.schedule_json(header, plan, state.records))
+            save(state)
+
+    def context_of(spec):
+        """The context a subtask runs in (a fixed length: its own step budget, no plateau)."""
+        if config.subtask_steps is None:
+            return ctx
+        return dataclasses.replace(ctx, config=dataclasses.replace(
+            ctx.config, max_steps=int(config.subtask_steps[spec.index]), stop_on_plateau=False))
+
+    write_schedule(st)
+    for spec in plan[st.subtask:]:
+        log(f"subtask {spec.index} {spec.name} ({spec.kind}) r = {spec.ratio:.3f}")
+        st, info = run_subtask(context_of(spec), st, spec, callback=callback, checkpoint=save,
+                               progress=progress)
+        g = trainer.gaussians(st.train)
+        alive = int(g.num_alive())
+        record = P.subtask_record(spec, info, alive)
+        for warning in P.subtask_warnings(ctx, spec, info, alive):
+            log(warning)
+        if run_dir is not None:
+            rel = Path("subtasks") / spec.dirname
+            record["metrics"] = write_scene_snapshot(ctx, run_dir / rel, g, ratio=spec.ratio)
+            record["snapshot"] = str(rel / "scene.ply")
+        st = finish_subtask(st, record)
+        write_schedule(st)
+
+    metrics = P.final_metrics(ctx, st, plan, time.perf_counter() - wall0)
+    if run_dir is not None:
+        _write_json(run_dir / "metrics.json", metrics)
+        if select is not None:
+            select_snapshot(run_dir, select)
+        if report:
+            from ..report import write_report
+
+            write_report(run_dir)
+    return {"schedule": P.schedule_json(header, plan, st.records), "metrics": metrics,
+            "gaussians": trainer.gaussians(st.train)}
