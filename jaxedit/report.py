@@ -46,11 +46,6 @@ from .io.files import atomic_write_text
 #: Default budget of the page; thumbnails shrink until it fits.
 MAX_BYTES = 10_000_000
 
-# Metric names whose direction is known, for highlighting the best mode.
-_HIGHER_IS_BETTER = ("psnr", "ssim", "clip", "consistency", "similarity")
-_LOWER_IS_BETTER = ("lpips", "time", "seconds", "error", "loss", "inconsistency",
-                    "mse", "rss", "memory")
-
 
 # ---------------------------------------------------------------------------
 # Reading the run directory
@@ -377,15 +372,6 @@ def _metric_names(rows) -> list[str]:
             if k not in names and (_is_number(v) or isinstance(v, (str, bool)) or v is None):
                 names.append(k)
     return names
-
-
-def _direction(name: str) -> int:
-    low = name.lower()
-    if any(t in low for t in _LOWER_IS_BETTER):
-        return -1
-    if any(t in low for t in _HIGHER_IS_BETTER):
-        return 1
-    return 0
 
 
 def _table(header: list[str], rows: list[list[str]], cls: str = "") -> str:
