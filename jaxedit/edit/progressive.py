@@ -376,9 +376,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             select_snapshot(run_dir, select)
         if report:
             try:
-                from ..report import write_report
+                from ..pipelines.report import write_report
             except ImportError:
-                log("jaxedit.report unavailable: no report.html")
+                log("jaxedit.pipelines.report unavailable: no report.html")
             else:
                 write_report(run_dir)
     return {"schedule": sched_json, "metrics": metrics, "gaussians": final}
