@@ -235,7 +235,7 @@ def tables(summary: list[dict], differences: list[dict], *,
            metrics=("psnr_best", "mode_mixing", "multiview_consistency")) -> str:
     """Markdown: per editor-modes setting and metric, (scene, instruction) x methods with
     mean ± 95% CI, then the paired differences proedit - other (``*``: CI excludes 0)."""
-    from jaxedit.report import ablation_table
+    from jaxedit.pipelines.report import ablation_table
 
     text = []
     for modes in sorted({r["editor_modes"] for r in summary}):
@@ -503,7 +503,7 @@ def run_ablation(out: Path, *, scenes=SCENES, prompts=PROMPTS, seeds=20, variant
     atomic_write_text(out / "ablation.md", "# Ablation (simulated editor)\n\n"
                       f"Settings: `{json.dumps(settings_json)}`\n" + tables(summary, differences))
     if report:
-        from jaxedit.report import write_report
+        from jaxedit.pipelines.report import write_report
 
         write_report(out)
     return {"settings": settings_json, "runs": runs, "summary": summary,

@@ -160,7 +160,7 @@ def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.edit.difficulty import lpips_weights_to_use
     from jaxedit.io.files import atomic_write_text
-    from jaxedit.report import read_json, write_report
+    from jaxedit.pipelines.report import read_json, write_report
 
     if args.out is None:  # the README's default; record its config like any run dir
         from experiments import cli

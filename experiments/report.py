@@ -27,7 +27,7 @@ def add_arguments(p) -> None:
 
 def run(args) -> dict:
     from jaxedit import DataError
-    from jaxedit.report import write_report
+    from jaxedit.pipelines.report import write_report
 
     if not 16 <= args.thumb_px <= 2048:
         raise DataError("--thumb-px", f"must be in [16, 2048], got {args.thumb_px}")

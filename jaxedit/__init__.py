@@ -8,7 +8,7 @@ real-model editors live behind optional extras.
 __version__ = "0.1.0"
 
 from . import (camera, clip_metrics, densify, edit, gaussians, io, losses, lpips, metrics, poses,
-               raster, report, scenes, sh, train, viz)
+               raster, scenes, sh, train, viz)
 from .camera import Camera
 from .errors import DataError
 from .gaussians import Gaussians
@@ -16,8 +16,8 @@ from .io import (Dataset, load_nerfstudio, load_ply, read_image, save_nerfstudio
                  write_image)
 from .edit import SimulatedEditor, decompose, decompose_root
 from .lpips import load_lpips, lpips_distance
+from .pipelines.report import write_report
 from .raster import RenderOutput, render, render_reference
-from .report import write_report
 from .scenes import make_scene
 from .train import TrainConfig, TrainState, evaluate, fit, init_state, train_step
 from .pipelines.rundir import resume
@@ -27,7 +27,7 @@ __all__ = [
     "Camera", "DataError", "Dataset", "Gaussians", "RenderOutput", "SimulatedEditor", "TrainConfig", "TrainState",
     "__version__", "camera", "clip_metrics", "colorize_depth", "decompose", "decompose_root", "densify", "edit", "evaluate", "fit", "init_state",
     "gaussians", "image_grid", "io", "lpips", "lpips_distance", "load_lpips", "load_nerfstudio", "load_ply", "losses", "make_scene",
-    "metrics", "poses", "raster", "read_image", "render", "render_reference", "report", "resume", "save_nerfstudio",
+    "metrics", "poses", "raster", "read_image", "render", "render_reference", "resume", "save_nerfstudio",
     "save_ply", "scenes", "sh", "train", "train_step", "turntable", "viz", "write_image", "write_report",
     "write_snapshot", "write_turntable",
 ]

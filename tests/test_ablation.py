@@ -13,7 +13,7 @@ from experiments import cli
 from experiments.ablation import METHODS, summarise, tables
 from jaxedit import DataError
 from jaxedit.metrics import mean_ci, mode_mixture, mode_scores, paired_differences
-from jaxedit.report import write_report
+from jaxedit.pipelines.report import write_report
 
 PROMPTS = ("make it look like autumn", "make his head bigger")
 

@@ -14,7 +14,7 @@ import pytest
 
 from jaxedit import DataError
 from jaxedit.io import write_image
-from jaxedit.report import write_report
+from jaxedit.pipelines.report import write_report
 from jaxedit.viz import colorize_depth, write_turntable
 
 SIZE = 48

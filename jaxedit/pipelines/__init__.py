@@ -5,6 +5,7 @@
   progressive edit with its run directory;
 * :mod:`.snapshots` -- snapshot folders of scene states and the user's selection;
 * :mod:`.rundir` -- a training run's JSONL log and rolling checkpoints;
+* :mod:`.report` -- a run directory's self-contained ``report.html``;
 * :mod:`.cache` -- prepared inputs.
 
 The library below this package writes no run directory: :func:`jaxedit.train.fit`

@@ -183,7 +183,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         if select is not None:
             select_snapshot(run_dir, select)
         if report:
-            from ..report import write_report
+            from .report import write_report
 
             write_report(run_dir)
     return {"schedule": P.schedule_json(header, plan, st.records), "metrics": metrics,

@@ -1,0 +1,103 @@
+"""``report.html``: one self-contained page per run directory.
+
+The page is what a person opens to judge an edit. It holds the instruction,
+the subtask schedule, a plot of the difficulty d(0, r) with the chosen ratios,
+an aggressivity gallery (a slider over subtasks showing the same test views
+under the original ones), the depth maps, the turntables and the metrics. For an
+ablation run directory (``ablation.json`` of ``python -m experiments ablation``) it
+shows the statistics: means with 95% confidence intervals per method and the
+paired differences, as tables and a plot.
+
+Self-contained: every image is inlined as a base64 ``data:`` URI, the only
+script is a dozen lines of inline JavaScript (the sliders), the only style is
+inline CSS, and nothing refers to the network, so the file can be mailed,
+archived or opened offline. Images are downscaled (thumbnails of at most
+``thumb_px`` pixels, JPEG) so the page stays small (a few MB).
+
+:mod:`.rundir` reads the run directory, :mod:`.images` turns views, turntables and figures
+into data URIs, :mod:`.plots` draws the plots, :mod:`.html` holds the HTML pieces and the
+page shell, :mod:`.sections` builds each kind of page's sections; :func:`write_report`
+(here) puts them together and writes ``report.html``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ...errors import DataError
+from ...io.files import atomic_write_text
+from .html import _e, _page
+from .images import image_uri
+from .plots import ablation_plot, difficulty_plot, training_plot
+from .rundir import _check_schedule, read_json, read_train_log
+from .sections import (SIMULATION_NOTE, _ablation_sections, _edit_sections, _generic_sections,
+                       ablation_table)
+
+#: Default budget of the page; thumbnails shrink until it fits.
+MAX_BYTES = 10_000_000
+
+
+def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | None = None,
+                 thumb_px: int = 192, max_views: int = 8, turntable_px: int = 192,
+                 max_frames: int = 48, max_bytes: int = MAX_BYTES,
+                 config_path=None) -> Path:
+    """Write the self-contained ``report.html`` of a run directory.
+
+    Args:
+      run_dir: an edit run directory (``schedule.json``), an ablation run
+        directory (``ablation.json``, ``views/``), or any run
+        directory with ``metrics.json`` and ``renders/``.
+      out: where to write (default ``run_dir/report.html``).
+      title: page title (default from the run).
+      notes: extra name -> value pairs shown with the instruction (e.g. timings).
+      thumb_px: longest side of each view in the galleries.
+      max_views: at most this many test views per row (evenly spread).
+      turntable_px, max_frames: turntables larger than this are re-encoded.
+      max_bytes: when the page exceeds it, thumbnails shrink and it is rebuilt.
+      config_path: the config.json whose command line the page shows as the way
+        to reproduce the run (default ``run_dir/config.json``; the demo points it
+        at its own).
+    Returns:
+      The path written.
+    Raises:
+      DataError: no run data in ``run_dir``, or malformed JSON files.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise DataError(run_dir, "run directory does not exist")
+    out = run_dir / "report.html" if out is None else Path(out)
+    ablation = read_json(run_dir / "ablation.json", required=False)
+    schedule_path = run_dir / "schedule.json"
+    if ablation is None and not schedule_path.is_file() and not (run_dir / "metrics.json").is_file():
+        raise DataError(run_dir, "not a run directory (no schedule.json, ablation.json or metrics.json)")
+
+    sizes = dict(thumb_px=thumb_px, max_views=max_views, turntable_px=turntable_px,
+                 max_frames=max_frames)
+    while True:
+        if ablation is not None:
+            sections = _ablation_sections(run_dir, ablation, **sizes)
+            page_title = title or f"jaxedit ablation: {run_dir.name}"
+        elif schedule_path.is_file():
+            schedule = _check_schedule(schedule_path, read_json(schedule_path))
+            sections = _edit_sections(run_dir, schedule, notes=notes,
+                                      config_path=None if config_path is None else Path(config_path),
+                                      **sizes)
+            page_title = title or f"jaxedit edit: {schedule.get('prompt', run_dir.name)}"
+        else:
+            sections = _generic_sections(run_dir, **sizes)
+            page_title = title or f"jaxedit run: {run_dir.name}"
+        body = "\n".join(f'<section id="{a}"><h2>{_e(t)}</h2>\n{h}\n</section>'
+                         for a, t, h in sections)
+        text = _page(page_title, [(a, t) for a, t, _ in sections], body)
+        if len(text) <= max_bytes or sizes["thumb_px"] <= 48:
+            break
+        # Too big: shrink every image by ~30% and try again (a handful of rounds at most).
+        sizes = {**sizes, "thumb_px": int(sizes["thumb_px"] * 0.7),
+                 "turntable_px": int(sizes["turntable_px"] * 0.7),
+                 "max_frames": max(12, int(sizes["max_frames"] * 0.7))}
+    atomic_write_text(out, text)
+    return out
+
+
+__all__ = ["MAX_BYTES", "SIMULATION_NOTE", "ablation_plot", "ablation_table", "difficulty_plot",
+           "image_uri", "read_json", "read_train_log", "training_plot", "write_report"]

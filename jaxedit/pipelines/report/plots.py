@@ -1,0 +1,146 @@
+"""The report's matplotlib plots, each as a PNG data URI: the difficulty d(0, r) with the
+chosen ratios (edit runs), the ablation's means and 95% CIs per method, the training curves
+(reconstructions)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .images import _figure_uri
+from .rundir import _is_number
+
+
+def difficulty_plot(schedule: dict) -> str:
+    """PNG data URI: d(0, r) over r with the chosen ratios marked, and the
+    difficulty of each subtask against the threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    curve = sorted((float(r), float(d)) for r, d in (schedule.get("difficulty_curve") or [])
+                   if r is not None and d is not None)
+    subtasks = schedule.get("subtasks", [])
+    ratios = [float(s["ratio"]) for s in subtasks]
+    threshold = schedule.get("threshold")
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.4), gridspec_kw={"width_ratios": [3, 2]})
+    if curve:
+        rs, ds = np.array(curve).T
+        ax0.plot(rs, ds, "-", color="#555555", lw=1.5, label="d(0, r) measured", zorder=1)
+        ax0.plot(rs, ds, ".", color="#555555", ms=5, zorder=1)
+        marks = np.interp(ratios, rs, ds) if ratios else []
+        ax0.scatter(ratios, marks, s=55, color="#d62728", zorder=3, label="chosen ratios r_i")
+        # One label per distinct ratio (r_n repeats r = 1 to consolidate).
+        groups: dict[float, list[str]] = {}
+        for s, r, d in zip(subtasks, ratios, marks):
+            groups.setdefault(round(r, 6), []).append(str(s.get("name", "")))
+        for r, names_at in groups.items():
+            ax0.annotate(", ".join(names_at), (r, float(np.interp(r, rs, ds))),
+                         textcoords="offset points", xytext=(-4 if r > 0.9 else 0, 7),
+                         ha="right" if r > 0.9 else "center", fontsize=8)
+    else:
+        ax0.text(0.5, 0.5, "no difficulty curve recorded\n(uniform or single-subtask schedule)",
+                 ha="center", va="center", transform=ax0.transAxes, color="#777777")
+    for r in ratios:
+        ax0.axvline(r, color="#d62728", ls=":", lw=0.8, zorder=0)
+    ax0.set_xlim(-0.02, 1.02)
+    ax0.set_xlabel("ratio r")
+    ax0.set_ylabel("difficulty $d(0, r)$")
+    ax0.set_title("Difficulty of reaching r from the original")
+    if curve:
+        ax0.legend(loc="upper left", fontsize=8)
+    diffs = [s.get("difficulty") for s in subtasks]
+    names = [str(s.get("name", i)) for i, s in enumerate(subtasks)]
+    xs = np.arange(len(subtasks))
+    ax1.bar(xs, [d if d is not None else 0.0 for d in diffs],
+            color=["#1f77b4" if d is not None else "#cccccc" for d in diffs])
+    if threshold is not None:
+        ax1.axhline(float(threshold), color="#d62728", ls="--", lw=1, label=f"threshold {threshold:g}")
+        ax1.legend(loc="best", fontsize=8)
+    ax1.set_xticks(xs, names, rotation=45 if len(xs) > 6 else 0, fontsize=8)
+    ax1.set_ylabel("$d(r_{i-1}, r_i)$")
+    ax1.set_title("Difficulty of each subtask")
+    fig.tight_layout()
+    return _figure_uri(fig)
+
+
+ABLATION_METHODS = ("proedit", "nd", "nd_equal", "nd_k", "uniform", "in2n", "nd_equal_steps")
+_METHOD_COLOURS = {"proedit": "#d62728", "nd": "#1f77b4", "nd_equal": "#2ca02c",
+                   "nd_k": "#17becf", "uniform": "#ff7f0e", "in2n": "#9467bd",
+                   "nd_equal_steps": "#8c564b"}
+
+
+def _summary_index(rows: list[dict]) -> dict:
+    return {(r["editor_modes"], r["scene"], r["prompt"], r["method"], r["metric"]): r
+            for r in rows}
+
+
+def ablation_plot(summary: list[dict], *, metrics=("psnr_best", "mode_mixing")) -> str | None:
+    """PNG data URI: per editor-modes setting (rows) and metric (columns), the mean and 95%
+    CI of every method per scene and instruction (error bars, methods side by side)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    index = _summary_index(summary)
+    modes = sorted({r["editor_modes"] for r in summary})
+    metrics = [m for m in metrics if any(r["metric"] == m for r in summary)]
+    if not modes or not metrics:
+        return None
+    groups = list(dict.fromkeys((r["scene"], r["prompt"]) for r in summary))
+    methods = [m for m in ABLATION_METHODS if any(r["method"] == m for r in summary)]
+    fig, axes = plt.subplots(len(modes), len(metrics), squeeze=False,
+                             figsize=(max(8.0, 0.55 * len(groups) * len(metrics) + 3),
+                                      2.9 * len(modes)))
+    width = 0.8 / max(len(methods), 1)
+    for i, k in enumerate(modes):
+        for j, metric in enumerate(metrics):
+            ax = axes[i][j]
+            for n, method in enumerate(methods):
+                xs, ys, es = [], [], []
+                for g, (scene, prompt) in enumerate(groups):
+                    r = index.get((k, scene, prompt, method, metric))
+                    if r is not None:
+                        xs.append(g + (n - (len(methods) - 1) / 2) * width)
+                        ys.append(r["mean"])
+                        es.append(r["ci"] or 0.0)
+                ax.errorbar(xs, ys, yerr=es, fmt="o", ms=4, capsize=2, lw=1,
+                            color=_METHOD_COLOURS.get(method, "#555555"), label=method)
+            ax.set_xticks(range(len(groups)),
+                          [f"{sc}: {pr[:18]}" for sc, pr in groups], rotation=40, ha="right",
+                          fontsize=7)
+            ax.set_title(f"editor modes = {k}: {metric}", fontsize=9)
+            ax.set_ylabel("0: one mode, 1: even blend" if metric == "mode_mixing"
+                          else "higher is better", fontsize=8)
+            ax.tick_params(axis="y", labelsize=8)
+            for g in range(1, len(groups)):
+                ax.axvline(g - 0.5, color="#eeeeee", lw=0.8, zorder=0)
+    axes[0][0].legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    return _figure_uri(fig)
+
+
+def training_plot(records: list[dict]) -> str | None:
+    """PNG data URI: loss, PSNR and Gaussian count over the training steps."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in ("loss", "psnr", "num_gaussians")
+            if any(_is_number(r.get(k)) for r in records)]
+    if not keys or not any(_is_number(r.get("step")) for r in records):
+        return None
+    fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys), 2.8), squeeze=False)
+    for ax, k in zip(axes[0], keys):
+        pts = [(r["step"], r[k]) for r in records if _is_number(r.get("step")) and _is_number(r.get(k))]
+        xs, ys = zip(*pts)
+        ax.plot(xs, ys, lw=1.2, color="#1f77b4")
+        ax.set_xlabel("step")
+        ax.set_title({"loss": "training loss", "psnr": "training PSNR (dB)",
+                      "num_gaussians": "Gaussians"}[k], fontsize=10)
+        if k == "loss" and min(ys) > 0:
+            ax.set_yscale("log")
+    fig.tight_layout()
+    return _figure_uri(fig)

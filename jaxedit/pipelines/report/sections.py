@@ -1,0 +1,287 @@
+"""The page's sections per kind of run directory, each a list of (anchor, title, html): an
+edit run (instruction, schedule, difficulty plot, aggressivity gallery, depth, turntables,
+metrics), an ablation run (settings, statistics tables and plot, views) and any other run
+(views, training curves, metrics). ``ablation_table`` is also the ablation's markdown
+(experiments/ablation.py)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ...errors import DataError
+from .html import _e, _fmt, _img, _kv_table, _metric_names, _reproduce, _slider, _table
+from .images import _grid_uri, _load_thumb, _turntable_uri, image_uri
+from .plots import ABLATION_METHODS, _summary_index, ablation_plot, difficulty_plot, training_plot
+from .rundir import _is_number, _pngs, _snapshot_dir, read_json, read_train_log
+
+
+# The last difficulty plot drawn: write_report rebuilds the page at smaller
+# image sizes when it is over budget, and the plot does not depend on them.
+_PLOT_MEMO: dict = {}
+
+
+# ---------------------------------------------------------------------------
+# Edit run
+# ---------------------------------------------------------------------------
+def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: int,
+                   turntable_px: int, max_frames: int, notes: dict | None,
+                   config_path: Path | None = None) -> list[tuple[str, str, str]]:
+    """[(anchor, title, html)] of an edit run directory."""
+    config = read_json(config_path or run_dir / "config.json", required=False)
+    metrics = read_json(run_dir / "metrics.json", required=False) or {}
+    subtasks = schedule.get("subtasks", [])
+    snap_dirs = [_snapshot_dir(run_dir, s, i) for i, s in enumerate(subtasks)]
+    labels = [f"{s.get('name', i)}  (r = {float(s['ratio']):.3f})" for i, s in enumerate(subtasks)]
+    sections = []
+
+    # Instruction ---------------------------------------------------------
+    info = {"editor": schedule.get("editor"), "mode": schedule.get("mode"),
+            "threshold": schedule.get("threshold"), "subtasks": len(subtasks)}
+    # The level of aggressivity the user picked (edit --select), if any: sliders start there.
+    selected = read_json(run_dir / "selected.json", required=False)
+    start = None
+    if isinstance(selected, dict):
+        positions = [i for i, s in enumerate(subtasks) if s.get("index", i) == selected.get("index")]
+        start = positions[-1] if positions else None
+        if start is not None:
+            info["selected (selected.ply)"] = labels[start]
+    if notes:
+        info.update(notes)
+    body = (f'<div class="instruction">&ldquo;{_e(schedule.get("prompt", "?"))}&rdquo;</div>'
+            + _kv_table(info) + _reproduce(config))
+    if str(schedule.get("editor", "")).startswith("simulated"):
+        body += ("<p>The edits come from the <b>simulated editor</b>: an offline test instrument "
+                 "with a known ground-truth target, not a diffusion model such as "
+                 "InstructPix2Pix.</p>")
+    sections.append(("instruction", "Instruction", body))
+
+    # Schedule ------------------------------------------------------------
+    rows, total_s, total_steps = [], 0.0, 0
+    for i, s in enumerate(subtasks):
+        total_s += float(s.get("seconds") or 0.0)
+        total_steps += int(s.get("steps") or 0)
+        snap = s.get("snapshot")
+        name = _e(s.get("name", "")) + (" &#9733;" if i == start else "")
+        rows.append([_e(s.get("index", i)), name, f"{float(s['ratio']):.4f}",
+                     _fmt(s.get("difficulty")), _fmt(s.get("steps")), _fmt(s.get("seconds")),
+                     _fmt(s.get("converged")), f"<code>{_e(snap)}</code>" if snap else "&mdash;"])
+    rows.append(["", "<b>total</b>", "", "", _fmt(total_steps), _fmt(round(total_s, 2)), "", ""])
+    body = _table(["#", "subtask", "ratio r", "difficulty d(r<sub>i-1</sub>, r<sub>i</sub>)",
+                   "iterations", "seconds", "converged", "snapshot"], rows, "schedule")
+    unconverged = [s.get("name", i) for i, s in enumerate(subtasks) if s.get("converged") is False]
+    if unconverged:
+        body += ("<p>Not converged (the max-steps guard fired before the loss plateaued): "
+                 f"{_e(', '.join(map(str, unconverged)))}.</p>")
+    sections.append(("schedule", "Schedule", body))
+
+    # Difficulty plot (the same at every size: drawn once per schedule) -------
+    key = json.dumps(schedule, sort_keys=True, default=str)
+    if _PLOT_MEMO.get("key") != key:
+        _PLOT_MEMO.update(key=key, uri=difficulty_plot(schedule))
+    sections.append(("difficulty", "Difficulty and chosen ratios",
+                     _img(_PLOT_MEMO["uri"], "difficulty plot", "plot")))
+
+    # Aggressivity gallery ----------------------------------------------------
+    original = _pngs(run_dir / "original" / "renders")
+    orig_uri = _grid_uri(original, thumb_px, max_views)
+    frames = []
+    for label, d in zip(labels, snap_dirs):
+        uri = _grid_uri(_pngs(d / "renders" if d else None), thumb_px, max_views)
+        # The snapshot's headline numbers help choose a level, next to its pictures.
+        snap_metrics = (read_json(d / "metrics.json", required=False) if d else None) or {}
+        headline = ", ".join(f"{k} {_fmt(snap_metrics[k])}" for k in
+                             ("psnr_vs_target", "ssim_vs_target", "multiview_consistency",
+                              "num_gaussians") if _is_number(snap_metrics.get(k)))
+        inner = ('<div class="row-label">original</div>' + _img(orig_uri, "original views")
+                 + f'<div class="row-label">after subtask {_e(label)}'
+                 + (f" &mdash; {headline}" if headline else "") + "</div>"
+                 + _img(uri, f"renders of {label}"))
+        frames.append((label, inner))
+    body = ("<p>Drag the slider to choose the level of aggressivity: each subtask's snapshot at "
+            "the same test views (bottom) under the original scene (top). Keep a level with "
+            "<code>python -m experiments edit --out RUN_DIR --select-only --select INDEX</code> "
+            "(writes <code>selected.ply</code>).</p>"
+            + _slider("gallery-slider", frames, start))
+    sections.append(("gallery", "Aggressivity gallery", body))
+
+    # Depth maps ----------------------------------------------------------
+    frames = []
+    orig_depth = _grid_uri(_pngs(run_dir / "original" / "depth"), thumb_px, max_views)
+    for label, d in zip(labels, snap_dirs):
+        uri = _grid_uri(_pngs(d / "depth" if d else None), thumb_px, max_views)
+        inner = ""
+        if orig_depth:
+            inner += '<div class="row-label">original</div>' + _img(orig_depth, "original depth")
+        inner += f'<div class="row-label">{_e(label)}</div>' + _img(uri, f"depth of {label}")
+        frames.append((label, inner))
+    body = ("<p>Expected depth, near = red, far = blue (one colour range per snapshot).</p>"
+            + _slider("depth-slider", frames, start))
+    sections.append(("depth", "Depth maps", body))
+
+    # Turntables ----------------------------------------------------------
+    cards = []
+    orig_tt = _turntable_uri(run_dir / "original" / "turntable.webp", turntable_px, max_frames)
+    if orig_tt:
+        cards.append(f'<figure class="card"><img src="{orig_tt}" alt="turntable original">'
+                     "<figcaption>original</figcaption></figure>")
+    for label, d in zip(labels, snap_dirs):
+        uri = _turntable_uri(d / "turntable.webp", turntable_px, max_frames) if d else None
+        if uri:
+            cards.append(f'<figure class="card"><img src="{uri}" alt="turntable {_e(label)}">'
+                         f"<figcaption>{_e(label)}</figcaption></figure>")
+    body = (f'<div class="cards">{"".join(cards)}</div>' if cards
+            else '<p class="missing">no turntables recorded</p>')
+    sections.append(("turntables", "Turntables", body))
+
+    # Metrics -------------------------------------------------------------
+    body = _kv_table(metrics) if metrics else '<p class="missing">no metrics.json</p>'
+    per = [(label, read_json(d / "metrics.json", required=False) if d else None)
+           for label, d in zip(labels, snap_dirs)]
+    per = [(label, m) for label, m in per if isinstance(m, dict) and m]
+    if per:
+        names = _metric_names(m for _, m in per)
+        body += "<h3>Per subtask</h3>" + _table(
+            ["subtask"] + [_e(n) for n in names],
+            [[_e(label)] + [_fmt(m.get(n)) for n in names] for label, m in per], "per-subtask")
+    sections.append(("metrics", "Metrics", body))
+    return sections
+
+
+# ---------------------------------------------------------------------------
+# Ablation run
+# ---------------------------------------------------------------------------
+def ablation_table(summary: list[dict], differences: list[dict], *, editor_modes: int,
+                   metric: str, digits: int = 2) -> tuple[list[str], list[list[str]]]:
+    """(header, rows) of plain-text cells: one row per (scene, instruction), the mean ± 95% CI
+    of every method, then the paired difference proedit - other (``*``: its CI excludes 0)."""
+    index, dindex = _summary_index(summary), _summary_index(differences)
+    groups = list(dict.fromkeys((r["scene"], r["prompt"]) for r in summary
+                                if r["editor_modes"] == editor_modes))
+    methods = [m for m in ABLATION_METHODS
+               if (editor_modes, *groups[0], m, metric) in index] if groups else []
+    others = [m for m in methods if m != "proedit"]
+
+    def cell(r, mark=False):
+        if r is None:
+            return "-"
+        ci = "" if r["ci"] is None else f" ± {r['ci']:.{digits}f}"
+        sig = mark and r["ci"] is not None and abs(r["mean"]) > r["ci"]
+        return f"{r['mean']:.{digits}f}{ci}" + (" *" if sig else "")
+
+    header = ["scene", "instruction"] + methods + [f"proedit − {m}" for m in others]
+    rows = [[scene, prompt] + [cell(index.get((editor_modes, scene, prompt, m, metric)))
+                               for m in methods]
+            + [cell(dindex.get((editor_modes, scene, prompt, m, metric)), True) for m in others]
+            for scene, prompt in groups]
+    return header, rows
+
+
+#: What the simulated ablation can and cannot show (shown on every ablation page).
+SIMULATION_NOTE = (
+    "The editor here is jaxedit's simulated editor, a test instrument with known noise-free "
+    "targets, not InstructPix2Pix. With <b>editor modes = 1</b> each instruction has one "
+    "outcome and views differ only by noise that shrinks as the render approaches the target; "
+    "with <b>editor modes = K &gt; 1</b> each edit call draws one of K discrete, individually "
+    "3D-consistent outcomes, with probabilities that follow how close the current render is "
+    "to each (jaxedit.edit.simulated, section 4). The ablation therefore tests how the editing "
+    "machinery (schedule, iterative dataset update, adaptive 3DGS) responds to divergent modes "
+    "of a known size. It cannot show how large a real diffusion model's feasible output space "
+    "is, how its modes are distributed, or how the difficulty measure tracks them; scores are "
+    "against the simulated targets only, on small CPU-sized scenes.")
+
+
+def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_views: int,
+                       turntable_px: int, max_frames: int) -> list[tuple[str, str, str]]:
+    path = run_dir / "ablation.json"
+    if not (isinstance(ablation, dict) and isinstance(ablation.get("runs"), list)
+            and isinstance(ablation.get("summary", []), list)
+            and isinstance(ablation.get("differences", []), list)):
+        raise DataError(path, "must be an object {settings, runs: [...], summary: [...], "
+                              "differences: [...]} (python -m experiments ablation)")
+    need = ("editor_modes", "scene", "prompt", "method", "metric", "mean", "ci")
+    for name in ("summary", "differences"):
+        for i, r in enumerate(ablation.get(name, [])):
+            if not isinstance(r, dict) or any(k not in r for k in need) \
+                    or not _is_number(r["mean"]) or not (r["ci"] is None or _is_number(r["ci"])):
+                raise DataError(path, f"{name}[{i}] needs {', '.join(need)} (numbers for "
+                                      f"mean and ci)")
+    summary, differences = ablation.get("summary", []), ablation.get("differences", [])
+    settings = ablation.get("settings") or {}
+    config = read_json(run_dir / "config.json", required=False)
+    body = (f"<p>{SIMULATION_NOTE}</p><p>{len(ablation['runs'])} edit runs; means and "
+            "Student-t 95% confidence intervals over seeds; differences are paired by seed "
+            "(proedit minus the other method); &ldquo;all&rdquo; averages the instructions of "
+            "a seed first.</p>" + _reproduce(config))
+    if settings:
+        body += "<h3>Settings</h3>" + _kv_table(settings)
+    sections = [("instruction", "Ablation", body)]
+    if not summary:
+        sections.append(("metrics", "Statistics", '<p class="missing">no summary yet (the run '
+                                                  "has not finished)</p>"))
+        return sections
+
+    body = ""
+    for k in sorted({r["editor_modes"] for r in summary}):
+        for metric, digits in (("psnr_best", 2), ("ssim_best", 3), ("mode_mixing", 3),
+                               ("multiview_consistency", 2), ("total_steps", 0)):
+            header, rows = ablation_table(summary, differences, editor_modes=k, metric=metric,
+                                          digits=digits)
+            if not rows or len(header) <= 2:
+                continue
+            body += (f"<h3>editor modes = {k}: {_e(metric)}</h3>"
+                     + _table([_e(h) for h in header], [[_e(c) for c in row] for row in rows],
+                              "ablation"))
+    body += ("<p>psnr_best / ssim_best: best over modes of the per-scene score against that "
+             "mode's noise-free target at r = 1 (higher is better); mode_mixing: 0 when the "
+             "result is one mode, 1 for an even blend of all; multiview_consistency: "
+             "reprojection PSNR between neighbouring test views (dB). <b>*</b>: the 95% CI of "
+             "the paired difference excludes 0.</p>")
+    plot = ablation_plot(summary)
+    if plot:
+        body += _img(plot, "means and 95% CIs per method", "plot")
+    sections.append(("metrics", "Statistics", body))
+
+    views = sorted((run_dir / "views").glob("*.png")) if (run_dir / "views").is_dir() else []
+    if views:
+        methods = settings.get("methods") or list(ABLATION_METHODS)
+        rows = [[f"<b>{_e(p.stem)}</b>",
+                 _img(image_uri(_load_thumb(p, 6 * thumb_px)), p.stem)] for p in views]
+        body = (f"<p>Seed 0, test views. Rows of each image: the noise-free target of every "
+                f"mode at r = 1, then the final scene of {_e(', '.join(methods))}.</p>"
+                + _table(["run", "targets, then methods"], rows, "compare"))
+        sections.append(("compare", "Views", body))
+    return sections
+
+
+# ---------------------------------------------------------------------------
+# Any other run (e.g. a reconstruction)
+# ---------------------------------------------------------------------------
+def _generic_sections(run_dir: Path, *, thumb_px: int, max_views: int,
+                      turntable_px: int, max_frames: int) -> list[tuple[str, str, str]]:
+    config = read_json(run_dir / "config.json", required=False)
+    metrics = read_json(run_dir / "metrics.json", required=False) or {}
+    sections = [("run", "Run", _reproduce(config))]
+    # Test-view renders: renders/ (snapshots, render command: frames/) or test/ (reconstruct).
+    folder = next((run_dir / f for f in ("renders", "test", "frames") if (run_dir / f).is_dir()),
+                  None)
+    views = _grid_uri(_pngs(folder), thumb_px, max_views)
+    depth = _grid_uri(_pngs(run_dir / "depth"), thumb_px, max_views)
+    body = _img(views, "test-view renders")
+    if (run_dir / "test_compare.png").is_file():
+        body += ('<div class="row-label">ground truth vs render</div>'
+                 + _img(image_uri(_load_thumb(run_dir / "test_compare.png", 4 * thumb_px)),
+                        "comparison"))
+    if depth:
+        body += '<div class="row-label">depth</div>' + _img(depth, "depth maps")
+    tt = _turntable_uri(run_dir / "turntable.webp", turntable_px, max_frames)
+    if tt:
+        body += '<div class="row-label">turntable</div>' + _img(tt, "turntable")
+    sections.append(("views", "Views", body))
+    if (run_dir / "train_log.jsonl").is_file():
+        plot = training_plot(read_train_log(run_dir / "train_log.jsonl"))
+        if plot:
+            sections.append(("training", "Training", _img(plot, "training curves", "plot")))
+    sections.append(("metrics", "Metrics",
+                     _kv_table(metrics) if metrics else '<p class="missing">no metrics.json</p>'))
+    return sections
