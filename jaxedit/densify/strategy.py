@@ -1,21 +1,11 @@
-"""Adaptive density control (densify / cull) as a pure, optax-shaped transformation.
+"""The density-control strategy: statistics, settings and the ``(init, update)`` pair.
 
-``strategy = adaptive(DensifyConfig(...), scene_extent=..., iterations=...)`` is a pair
-of pure functions::
-
-    stats = strategy.init(gaussians)
-    gaussians, opt_state, stats, info = strategy.update(
-        gaussians, opt_state, stats, render_aux, step, key)
-
-Everything works on the fixed-capacity ``alive`` layout of
-:class:`jaxedit.gaussians.Gaussians`: new Gaussians are written into free
-(dead) slots, culled ones are marked dead, no shape ever depends on data, so
-``update`` jit-compiles once and runs inside the compiled train step.
-
-The maintenance step is composed of named pure operations, each usable alone:
-:func:`cull_mask` + :func:`remove` (cull), :func:`select` (rank and budget),
-:func:`split`, :func:`place` (duplication: a copy, or a split's second child, into a
-free slot) and :func:`opacity_reset`.
+As gsplat's strategies next to ``strategy/ops.py``: this module keeps what is carried
+between steps and when to act, :mod:`jaxedit.densify.ops` what is done.
+:func:`adaptive` turns a :class:`DensifyConfig` into a :class:`Strategy`; the
+statistics are :class:`DensifyStats` (:func:`init_stats`, :func:`accumulate`, from a
+render's :class:`RenderAux`), each update reports a :class:`DensifyInfo`, and
+:func:`creation_budget` is ProEdit's t(n, N).
 
 What ``update`` does at every call: accumulate the 3DGS statistics of this
 step's render (norm of the 2D-mean gradient in NDC units, visibility count,
@@ -59,8 +49,9 @@ The number of Gaussians never exceeds ``max_gaussians`` (a hard cap). When the
 cap would allow more than the current capacity, ``update`` does not drop the
 excess silently: ``info.capacity_limited`` is set and ``info.slots_needed``
 says how many slots the step wanted; the caller (outside jit) grows the
-capacity with :func:`grow_state` / :func:`grown_capacity` and redoes the step
-(it is pure, so the redo gives the same result as if the room had been there).
+capacity with :func:`jaxedit.densify.ops.grow_state` /
+:func:`jaxedit.densify.ops.grown_capacity` and redoes the step (it is pure, so the
+redo gives the same result as if the room had been there).
 :func:`jaxedit.train.fit` does this automatically.
 
 Step numbering: ``step`` is the number of optimiser steps done including the
@@ -70,14 +61,13 @@ current one (1-based), as in INRIA's trainer.
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from . import gaussians as glib
-from .gaussians import Gaussians
+from ..gaussians import Gaussians
+from .ops import cull_mask, opacity_reset, place, remove, select, split, zero_moments
 
 BudgetFn = Callable[[jax.Array, jax.Array], jax.Array]
 
@@ -203,129 +193,6 @@ def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> Budg
 
 
 # --------------------------------------------------------------------------------------
-# Helpers on optimiser state
-# --------------------------------------------------------------------------------------
-
-def _is_gaussians(x) -> bool:
-    return isinstance(x, Gaussians)
-
-
-def _map_gaussian_nodes(fn, tree):
-    """Apply ``fn(name, array) -> array`` to every array field of every Gaussians node of ``tree``.
-
-    optax keeps its per-parameter state (Adam's mu, nu, ...) in trees shaped like
-    the parameters; with ``optax.partition`` the fields of other labels are
-    ``MaskedNode``s, which are left alone, as are non-Gaussians leaves (counts).
-    """
-
-    def on_node(node):
-        if not _is_gaussians(node):
-            return node
-        fields = {}
-        for f in dataclasses.fields(node):
-            value = getattr(node, f.name)
-            if isinstance(value, jax.Array) or hasattr(value, "shape"):
-                value = fn(f.name, value)
-            fields[f.name] = value
-        return dataclasses.replace(node, **fields)
-
-    return jax.tree_util.tree_map(on_node, tree, is_leaf=_is_gaussians)
-
-
-def zero_moments(opt_state, mask: jax.Array, fields=None):
-    """Zero the per-slot optimiser state where ``mask`` [C] is set.
-
-    Args:
-      opt_state: any optax state whose per-parameter parts are ``Gaussians``-shaped.
-      mask: bool [C].
-      fields: names of Gaussians fields to touch (default: all).
-    """
-
-    def fn(name, a):
-        if fields is not None and name not in fields:
-            return a
-        if a.ndim == 0 or a.shape[0] != mask.shape[0]:
-            return a
-        m = mask.reshape(mask.shape + (1,) * (a.ndim - 1))
-        return jnp.where(m, jnp.zeros_like(a), a)
-
-    return _map_gaussian_nodes(fn, opt_state)
-
-
-def opacity_reset(gaussians: Gaussians, opt_state, value: float, *, clamp: bool = False):
-    """Reset opacities to ``value`` and zero the opacity optimiser moments.
-
-    ProEdit sets every opacity to the cull threshold at the start of each
-    subtask (``clamp=False``); the periodic 3DGS reset lowers opacities to at
-    most ``value`` (``clamp=True``). Dead slots are left untouched.
-
-    Args:
-      gaussians: Gaussians, capacity C.
-      opt_state: optax state with Gaussians-shaped moments (or None).
-      value: opacity in (0, 1).
-    Returns:
-      (gaussians, opt_state).
-    """
-    value = jnp.asarray(value, gaussians.opacity_logits.dtype)
-    logit = jnp.log(value) - jnp.log1p(-value)
-    # Rounded, sigmoid(logit) can land one ulp below ``value`` (0.005 does in float32): the
-    # cull ``opacity < cull_alpha`` would then remove every Gaussian no view has updated yet.
-    logit = jnp.where(jax.nn.sigmoid(logit) < value, jnp.nextafter(logit, jnp.inf), logit)
-    new = jnp.minimum(gaussians.opacity_logits, logit) if clamp else jnp.full_like(
-        gaussians.opacity_logits, logit)
-    logits = jnp.where(gaussians.alive, new, gaussians.opacity_logits)
-    g = dataclasses.replace(gaussians, opacity_logits=logits)
-    if opt_state is not None:
-        all_slots = jnp.ones(gaussians.alive.shape, bool)
-        opt_state = zero_moments(opt_state, all_slots, fields=("opacity_logits",))
-    return g, opt_state
-
-
-# --------------------------------------------------------------------------------------
-# Capacity growth (outside jit)
-# --------------------------------------------------------------------------------------
-
-def grown_capacity(capacity: int, needed: int, max_gaussians: int) -> int:
-    """Smallest ``capacity * 2^m`` holding ``needed`` slots, clamped to ``max_gaussians``."""
-    needed = min(int(needed), int(max_gaussians))
-    new = max(int(capacity), 1)
-    while new < needed:
-        new *= 2
-    return max(int(capacity), min(new, int(max_gaussians)))
-
-
-def _pad_rows(a, extra: int):
-    pad = jnp.zeros((extra,) + tuple(a.shape[1:]), a.dtype)
-    return jnp.concatenate([a, pad], axis=0)
-
-
-def grow_state(gaussians: Gaussians, opt_state, stats: DensifyStats | None, capacity: int):
-    """Grow Gaussians, optimiser state and densify stats to ``capacity`` slots (outside jit).
-
-    New slots are dead, with zero moments and zero statistics.
-    """
-    old = gaussians.capacity
-    extra = capacity - old
-    if extra < 0:
-        raise ValueError(f"cannot shrink capacity {old} to {capacity}")
-    if extra == 0:
-        return gaussians, opt_state, stats
-    g = glib.grow(gaussians, capacity)
-
-    def fn(name, a):
-        return _pad_rows(a, extra) if a.ndim >= 1 and a.shape[0] == old else a
-
-    if opt_state is not None:
-        opt_state = _map_gaussian_nodes(fn, opt_state)
-    if stats is not None:
-        stats = DensifyStats(grad_sum=_pad_rows(stats.grad_sum, extra),
-                             count=_pad_rows(stats.count, extra),
-                             max_radius=_pad_rows(stats.max_radius, extra),
-                             last_culled=stats.last_culled)
-    return g, opt_state, stats
-
-
-# --------------------------------------------------------------------------------------
 # The strategy
 # --------------------------------------------------------------------------------------
 
@@ -413,115 +280,6 @@ class DensifyConfig:
     split_factor: float = 1.6
     cull_scale: float | None = 0.1
     cull_screen: float | None = 0.15
-
-
-# --------------------------------------------------------------------------------------
-# The operations of a maintenance step (pure; composed by :func:`adaptive`)
-# --------------------------------------------------------------------------------------
-
-def cull_mask(g: Gaussians, stats: DensifyStats, step, *, cull_alpha: float,
-              big_scale: float | None, cull_screen: float | None,
-              screen_from: int | None) -> jax.Array:
-    """bool [C]: the alive Gaussians to remove -- opacity below ``cull_alpha``, largest
-    world scale above ``big_scale``, or (from step ``screen_from`` on) a screen radius
-    that reached ``cull_screen`` of the image since the last maintenance step."""
-    culled = jax.nn.sigmoid(g.opacity_logits) < cull_alpha
-    if big_scale is not None:
-        culled |= jnp.exp(jnp.max(g.log_scales, axis=-1)) > big_scale
-    if cull_screen is not None and screen_from is not None:
-        culled |= (stats.max_radius > cull_screen) & (step > screen_from)
-    return culled & g.alive
-
-
-def remove(g: Gaussians, mask: jax.Array) -> Gaussians:
-    """``g`` with the slots of ``mask`` [C] dead (their parameters stay, unused)."""
-    return dataclasses.replace(g, alive=g.alive & ~mask)
-
-
-class Selection(NamedTuple):
-    """The Gaussians one maintenance step refines, best first.
-
-    Attributes:
-      candidates: bool [C], alive, seen, mean NDC gradient above the floor.
-      score: float [C], the mean gradient (-inf off the candidates).
-      order: int32 [C], slots by decreasing score (ties: lower slot first).
-      selected: bool [C], the first ``count`` of ``order``.
-      count: int32 [], k, how many are refined.
-      wanted: int32 [], min(budget, #candidates): what the step would create with room.
-      room_cap: int32 [], how many the hard cap still allows.
-    """
-
-    candidates: jax.Array
-    score: jax.Array
-    order: jax.Array
-    selected: jax.Array
-    count: jax.Array
-    wanted: jax.Array
-    room_cap: jax.Array
-
-
-def select(stats: DensifyStats, alive: jax.Array, *, floor: float, budget, max_gaussians: int
-           ) -> Selection:
-    """Rank the candidates by mean NDC gradient and take the first ``min(budget, #candidates,
-    max_gaussians - alive, free slots)`` (``budget`` None: every candidate)."""
-    capacity = alive.shape[0]
-    avg = stats.grad_sum / jnp.maximum(stats.count, 1).astype(jnp.float32)
-    cand = alive & (stats.count > 0) & (avg > floor)
-    n_cand = jnp.sum(cand.astype(jnp.int32))
-    score = jnp.where(cand, avg, -jnp.inf)
-    index = jnp.arange(capacity, dtype=jnp.int32)
-    _, order = jax.lax.sort((-score, index), num_keys=2)  # order[j]: j-th best slot
-    rank = jnp.zeros((capacity,), jnp.int32).at[order].set(index)
-    n_alive = jnp.sum(alive.astype(jnp.int32))
-    want = jnp.minimum(n_cand if budget is None else budget, n_cand)
-    room_cap = jnp.maximum(max_gaussians - n_alive, 0)
-    k = jnp.minimum(jnp.minimum(want, room_cap), capacity - n_alive)
-    return Selection(candidates=cand, score=score, order=order, selected=cand & (rank < k),
-                     count=k, wanted=want, room_cap=room_cap)
-
-
-def split(g: Gaussians, mask: jax.Array, key: jax.Array, factor: float
-          ) -> tuple[Gaussians, Gaussians]:
-    """Split the Gaussians of ``mask`` [C] in two, drawn from the parent's own distribution.
-
-    Returns:
-      (g with each split parent replaced by its first child, rows [C] whose split rows
-      are the second children -- to be placed in free slots -- and whose other rows
-      are ``g``'s own). Children's scales are the parent's divided by ``factor``.
-    """
-    eps = jax.random.normal(key, (g.capacity, 2, 3), g.means.dtype)
-    offsets = jnp.einsum("cij,ckj->cki", g.rotations(), eps * jnp.exp(g.log_scales)[:, None, :],
-                         precision=jax.lax.Precision.HIGHEST)  # no TF32 on GPUs
-    children = g.means[:, None, :] + offsets
-    m = mask[:, None]
-    log_scales = jnp.where(m, g.log_scales - math.log(factor), g.log_scales)
-    first = dataclasses.replace(g, means=jnp.where(m, children[:, 0], g.means),
-                                log_scales=log_scales)
-    second = dataclasses.replace(first, means=jnp.where(m, children[:, 1], g.means))
-    return first, second
-
-
-def place(g: Gaussians, rows: Gaussians, order: jax.Array, count) -> tuple[Gaussians, jax.Array]:
-    """Write ``rows[order[j]]`` into the j-th free slot of ``g`` for j < ``count`` (alive).
-
-    Duplication is placing a parent's own row; a split places its second child.
-
-    Returns:
-      (g, bool [C]: the slots written).
-    """
-    capacity = g.capacity
-    index = jnp.arange(capacity, dtype=jnp.int32)
-    _, free_order = jax.lax.sort((g.alive.astype(jnp.int32), index), num_keys=2)
-    dst = jnp.where(index < count, free_order, capacity)  # capacity = out of range: dropped
-
-    def put(a, new_rows):
-        return a.at[dst].set(new_rows[order], mode="drop")
-
-    placed = Gaussians(means=put(g.means, rows.means), log_scales=put(g.log_scales, rows.log_scales),
-                       quats=put(g.quats, rows.quats),
-                       opacity_logits=put(g.opacity_logits, rows.opacity_logits),
-                       sh=put(g.sh, rows.sh), alive=put(g.alive, jnp.ones_like(g.alive)))
-    return placed, jnp.zeros((capacity,), bool).at[dst].set(True, mode="drop")
 
 
 def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> Strategy:
