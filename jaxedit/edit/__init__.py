@@ -12,7 +12,8 @@ from .editors import Editor, interpolate_embedding
 from .progressive import (EditData, ProEditConfig, SubtaskSpec, TrainSettings, anneal_timestep,
                           plan_subtasks, run_edit, select_snapshot)
 from .schedule import Schedule, decompose, decompose_root, prune_ratios, spread, uniform
-from .simulated import VOCABULARY, SimulatedEditor, view_key
+from .keys import view_key
+from .simulated import VOCABULARY, SimulatedEditor
 
 __all__ = [
     "AsyncEditSource", "EditData", "EditJob", "EditedView", "EditorThreadError", "ProEditConfig",

@@ -118,7 +118,8 @@ produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
    ``modes=1`` skips the draw: bit for bit the editor before modes existed.
 
 Everything random comes from the ``key`` argument; equal inputs and key give equal bits. Use
-:func:`view_key` to derive per-view keys from (run key, view index, ratio, iteration).
+:func:`jaxedit.edit.keys.view_key` to derive per-view keys from (run key, view index, ratio,
+iteration).
 """
 
 from __future__ import annotations
@@ -134,35 +135,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
+from .keys import view_key
 
 EMBED_DIM = 8
-_RATIO_QUANTUM = 1_000_000  # ratios enter keys as round(r * 1e6)
-
-
-# --------------------------------------------------------------------------------------------
-# Seeding
-
-
-def quantize_ratio(ratio: float) -> int:
-    """The integer round(ratio * 1e6) used to seed and memoise per-ratio work."""
-    r = float(ratio)
-    if not math.isfinite(r) or r < 0.0 or r > 4000.0:
-        raise DataError("ratio", f"must be a finite number in [0, 1], got {ratio!r}")
-    return int(round(r * _RATIO_QUANTUM))
-
-
-def view_key(run_key: jax.Array, view_index: int, ratio: float, iteration: int) -> jax.Array:
-    """Key of one edit: fold_in of (view index, quantised ratio, iteration) into ``run_key``.
-
-    The ratio is quantised to 1e-6 (``quantize_ratio``) so that ratios read back from JSON or
-    recomputed in floating point give the same key.
-    """
-    if int(view_index) < 0 or int(iteration) < 0:
-        raise DataError("view_key", f"view index and iteration must be >= 0, got "
-                        f"{view_index}, {iteration}")
-    k = jax.random.fold_in(run_key, int(view_index))
-    k = jax.random.fold_in(k, quantize_ratio(ratio))
-    return jax.random.fold_in(k, int(iteration))
 
 
 # --------------------------------------------------------------------------------------------
