@@ -171,7 +171,7 @@ def _stays(editor, original, ratio, seeds, views):
     import jax
 
     from jaxedit.edit.editors import interpolate_embedding
-    from jaxedit.edit.simulated import view_key
+    from jaxedit.edit.keys import view_key
 
     prompt = "give him a marble texture"
     render = editor.target(original, 0.45, prompt, 0)

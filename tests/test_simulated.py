@@ -11,7 +11,8 @@ import skimage.transform
 from jaxedit.edit.difficulty import DifficultyOracle, l1_distance, ms_ssim_distance
 from jaxedit.edit.editors import Editor, interpolate_embedding
 from jaxedit.edit.schedule import decompose, decompose_root
-from jaxedit.edit.simulated import VOCABULARY, SimulatedEditor, view_key
+from jaxedit.edit.keys import view_key
+from jaxedit.edit.simulated import VOCABULARY, SimulatedEditor
 from jaxedit.errors import DataError
 
 S = 32

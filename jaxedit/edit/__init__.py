@@ -14,7 +14,8 @@ from .editors import Editor, interpolate_embedding
 from .driver import EditData
 from .plan import ProEditConfig, SubtaskSpec, anneal_timestep, plan_subtasks
 from .schedule import Schedule, decompose, decompose_root, prune_ratios, spread, uniform
-from .simulated import VOCABULARY, SimulatedEditor, view_key
+from .keys import view_key
+from .simulated import VOCABULARY, SimulatedEditor
 from .trainer import TrainSettings
 
 __all__ = [

@@ -30,7 +30,7 @@ from skimage.metrics import structural_similarity
 
 from ..errors import DataError
 from .editors import interpolate_embedding
-from .simulated import quantize_ratio, view_key
+from .keys import quantize_ratio, view_key
 
 Distance = Callable[[np.ndarray, np.ndarray], float]
 

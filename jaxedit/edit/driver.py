@@ -33,6 +33,7 @@ import numpy as np
 from ..errors import DataError
 from .buffer import EditJob, Utilisation, make_source, view_order
 from .editors import interpolate_embedding
+from .keys import edit_key
 from .outputs import Renderer
 from .plan import ProEditConfig, SubtaskSpec, anneal_horizon, anneal_timestep, subtask_guard
 from .trainer import SubtaskTrainer
@@ -54,15 +55,6 @@ def _view_at(key, step, num_views: int):
 def train_view(key: jax.Array, step: int, num_views: int) -> int:
     """The view trained at ``step``: epochs of seeded permutations (pure in (key, step))."""
     return int(_view_at(key, int(step), num_views))
-
-
-def edit_key(edit_stream: jax.Array, view: int, iteration: int) -> jax.Array:
-    """The key of the ``iteration``-th edit of ``view`` in a subtask whose edit stream is
-    ``edit_stream``: the driver's own draws (no editor's key scheme decides them), the
-    same in a seeded run, a resumed one and the asynchronous mode."""
-    if int(view) < 0 or int(iteration) < 0:
-        raise DataError("edit_key", f"view and iteration must be >= 0, got {view}, {iteration}")
-    return jax.random.fold_in(jax.random.fold_in(edit_stream, int(view)), int(iteration))
 
 
 class LossTracker(NamedTuple):

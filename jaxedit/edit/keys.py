@@ -1,0 +1,57 @@
+"""Seeding of edits: the ``jax.random`` key of every editor call, derived from a run's key.
+
+Every function that turns (run key, view, ratio, iteration) into the key of one edit lives
+here, so that the parts that need such keys (the difficulty oracle, the simulated editor's
+``edit_views``, the ProEdit driver) depend on this scheme and not on one another or on one
+particular editor:
+
+* :func:`view_key`: the key of an edit of a view at a subtask ratio (the difficulty oracle's
+  memoised edits, :func:`jaxedit.edit.simulated.edit_views`);
+* :func:`edit_key`: the key of the driver's edits within a subtask, from the subtask's edit
+  stream;
+* :func:`quantize_ratio`: the integer a ratio enters keys and memo tables as.
+
+All of them are pure ``fold_in`` chains: equal arguments give equal keys, in a seeded run, a
+resumed one and the asynchronous mode.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+
+from ..errors import DataError
+
+_RATIO_QUANTUM = 1_000_000  # ratios enter keys as round(r * 1e6)
+
+
+def quantize_ratio(ratio: float) -> int:
+    """The integer round(ratio * 1e6) used to seed and memoise per-ratio work."""
+    r = float(ratio)
+    if not math.isfinite(r) or r < 0.0 or r > 4000.0:
+        raise DataError("ratio", f"must be a finite number in [0, 1], got {ratio!r}")
+    return int(round(r * _RATIO_QUANTUM))
+
+
+def view_key(run_key: jax.Array, view_index: int, ratio: float, iteration: int) -> jax.Array:
+    """Key of one edit: fold_in of (view index, quantised ratio, iteration) into ``run_key``.
+
+    The ratio is quantised to 1e-6 (``quantize_ratio``) so that ratios read back from JSON or
+    recomputed in floating point give the same key.
+    """
+    if int(view_index) < 0 or int(iteration) < 0:
+        raise DataError("view_key", f"view index and iteration must be >= 0, got "
+                        f"{view_index}, {iteration}")
+    k = jax.random.fold_in(run_key, int(view_index))
+    k = jax.random.fold_in(k, quantize_ratio(ratio))
+    return jax.random.fold_in(k, int(iteration))
+
+
+def edit_key(edit_stream: jax.Array, view: int, iteration: int) -> jax.Array:
+    """The key of the ``iteration``-th edit of ``view`` in a subtask whose edit stream is
+    ``edit_stream``: the driver's own draws (no editor's key scheme decides them), the
+    same in a seeded run, a resumed one and the asynchronous mode."""
+    if int(view) < 0 or int(iteration) < 0:
+        raise DataError("edit_key", f"view and iteration must be >= 0, got {view}, {iteration}")
+    return jax.random.fold_in(jax.random.fold_in(edit_stream, int(view)), int(iteration))
