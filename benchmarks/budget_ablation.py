@@ -129,39 +129,25 @@ def prepare(out: Path, *, size: int, views: int, test_views: int, iters: int, se
             log=print):
     """(EditData, reconstructed Gaussians, recon metrics) of the person scene, cached in ``out``.
 
-    The stages are the library calls behind the demo's make-scene and reconstruct (the
-    reconstruct command's flags are generated from :class:`ReconstructConfig`, so its
-    defaults are these), so the reconstruction is the one the demo edits; a cache made
-    with other sizes is an error.
+    :func:`jaxedit.pipelines.cache.prepared_scene` with the reconstruct command's defaults
+    (its flags are generated from :class:`ReconstructConfig`), so the reconstruction is the
+    one the demo edits; a cache made with other sizes is an error.
     """
-    from jaxedit import scenes
     from jaxedit.edit import EditData
-    from jaxedit.io import load_nerfstudio, load_ply
+    from jaxedit.gaussians import from_points
     from jaxedit.pipelines import reconstruct as recon_run
-    from jaxedit.pipelines.cache import stamp_prepared
+    from jaxedit.pipelines.cache import prepared_scene
     from jaxedit.train import TrainConfig
 
-    data, recon = out / "data", out / "reconstruct"
-    wanted = {"scene": SCENE, "size": size, "views": views, "test_views": test_views,
-              "iters": iters, "seed": seed}
-    stamp_prepared(out, wanted)
-    if not (data / "transforms.json").exists():
-        log(f"making the {SCENE} scene ({views}+{test_views} views, {size} px)")
-        scenes.make_scene(SCENE, data, views=views, test_views=test_views, seed=seed,
-                          **scenes.size_arguments(SCENE, size))
-    if iters == 0:  # smoke: the dataset's initial cloud, no reconstruction to compile
-        from jaxedit.gaussians import from_points
-
-        dataset = load_nerfstudio(data)
+    config = recon_run.ReconstructConfig(train=TrainConfig(iterations=iters)) if iters else None
+    dataset, scene, metrics = prepared_scene(out, SCENE, size=size, views=views,
+                                             test_views=test_views, seed=seed, config=config,
+                                             log=log)
+    if scene is None:  # smoke: the dataset's initial cloud, no reconstruction to compile
         points, colors, _ = recon_run.capped_initial_points(dataset, SMOKE_POINTS,
                                                             SMOKE_POINTS, seed)
-        return EditData.from_dataset(dataset), from_points(points, colors, sh_degree=1), {}
-    if not (recon / "scene.ply").exists():
-        log(f"reconstructing {SCENE} ({iters} steps)")
-        config = recon_run.ReconstructConfig(train=TrainConfig(iterations=iters))
-        recon_run.run(data, recon, config, seed=seed)
-    metrics = json.loads((recon / "metrics.json").read_text())
-    return EditData.from_dataset(load_nerfstudio(data)), load_ply(recon / "scene.ply"), metrics
+        scene = from_points(points, colors, sh_degree=1)
+    return EditData.from_dataset(dataset), scene, metrics
 
 
 # ---------------------------------------------------------------------------

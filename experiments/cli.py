@@ -173,6 +173,11 @@ def config_value(sub: argparse.ArgumentParser, action: argparse.Action, value, p
             raise DataError(path, f"{action.dest}: {name} is a switch, expected true or false, "
                             f"got {value!r}")
         return value
+    from experiments.flags import comma_list
+
+    if action.type is comma_list and isinstance(value, list) and all(
+            isinstance(v, str) for v in value):
+        value = ",".join(value)  # config.json records a comma-separated flag as a list
     many = isinstance(action, argparse._AppendAction) or action.nargs in ("+", "*") or isinstance(
         action.nargs, int)
     values = value if many and isinstance(value, list) else [value]

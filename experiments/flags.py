@@ -131,14 +131,22 @@ def _default_instance(cls: type):
     return cls()
 
 
-def _value_type(hint) -> type:
-    """The scalar type of a field's annotation (``int | None`` -> int)."""
+def comma_list(text: str) -> tuple[str, ...]:
+    """A ``tuple[str, ...]`` field's flag value: comma-separated items, blanks dropped."""
+    return tuple(t.strip() for t in str(text).split(",") if t.strip())
+
+
+def _value_type(hint):
+    """The parser of a field's annotation: its scalar type (``int | None`` -> int), or
+    :func:`comma_list` for ``tuple[str, ...]``."""
     if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
         args = [a for a in typing.get_args(hint) if a is not type(None)]
         if len(args) == 1:
             return _value_type(args[0])
     if hint in (int, float, str, bool):
         return hint
+    if typing.get_origin(hint) is tuple and typing.get_args(hint) == (str, ...):
+        return comma_list
     raise TypeError(f"no flag for a field of type {hint!r}")
 
 
@@ -199,9 +207,10 @@ class FlagSet:
                                        default=default,
                                        help=f"not {flag.flag}{'' if default else ' (default)'}")
                 continue
+            shown = ",".join(default) if kind is comma_list else default
             parser.add_argument(flag.flag, dest=flag.dest, action=_Given, type=kind,
                                 default=default, choices=flag.choices,
-                                help=f"{text} (default: {default})")
+                                help=f"{text} (default: {shown})")
 
     def check(self, args: argparse.Namespace) -> None:
         """DataError naming the field of the first flag outside its range."""

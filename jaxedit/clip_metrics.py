@@ -25,7 +25,6 @@ bicubic resampling, centre crop, ImageNet-CLIP mean/std) but on float tensors, w
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np

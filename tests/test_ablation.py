@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 
 from experiments import cli
-from experiments.ablation import METHODS, summarise, tables
+from jaxedit.pipelines.ablation import METHODS, summarise, tables
 from jaxedit import DataError
 from jaxedit.metrics import mean_ci, mode_mixture, mode_scores, paired_differences
 from jaxedit.pipelines.report import write_report
@@ -119,7 +119,7 @@ def test_report_shows_the_statistics(tmp_path):
     (["--scenes", "moon"], "--scenes"),
     (["--variants", "1,7"], "--variants"),
     (["--variants", "3:x"], "--variants"),
-    (["--max-steps", "20", "--refine-every", "10"], "3 x --refine-every"),
+    (["--max-steps", "20", "--refine-every", "10"], "--max-steps: must be at least 3 x refine_every"),
     (["--methods", "nd,in2n"], "include proedit"),
     (["--prompts", "make it a dragon"], "unknown instruction"),
     (["--seeds", "0"], "--seeds"),
@@ -146,7 +146,8 @@ def test_an_interrupted_run_summarises_what_finished():
 # ---- the run's bookkeeping (pure) and the mechanism's planted effect -------------------------
 
 def test_edit_counts_follow_the_deterministic_source():
-    from experiments.ablation import edits_per_subtask, match_edit_every, sweep_agreement
+    from jaxedit.pipelines.ablation.methods import (edits_per_subtask, match_edit_every,
+                                                    sweep_agreement)
 
     # exchanges at steps W, W + E, ... below the subtask's length; the first edits every view
     assert edits_per_subtask(30, warmup=4, every=3, views=6, initial_sweep=True) == 6 + 8

@@ -158,3 +158,22 @@ def test_attribute_docs_reads_grouped_and_continued_entries():
     docs = flags.attribute_docs(Knobs)
     assert docs == {"a": "shared text continued here.", "b": "shared text continued here.",
                     "c": "c's text, see jaxedit.train.fit."}
+
+
+def test_a_comma_list_field_from_the_command_line_and_from_config_json(tmp_path):
+    """A tuple[str, ...] field is a comma-separated flag; config.json records it as a list,
+    which --config reads back to the same tuple."""
+    import json
+
+    from experiments import ablation
+
+    args = _parse("ablation", "--prompts", "make his head bigger, give him a marble texture")
+    assert ablation.run_config(args).prompts == ("make his head bigger",
+                                                 "give him a marble texture")
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"prompts": ["make his head bigger"], "variants": ["3", "3:0"]}))
+    config = ablation.run_config(cli.parse(["ablation", "--config", str(path)]))
+    assert (config.prompts, config.variants) == (("make his head bigger",), ("3", "3:0"))
+    path.write_text(json.dumps({"prompts": [1, 2]}))
+    with pytest.raises(DataError, match="prompts"):
+        cli.parse(["ablation", "--config", str(path)])

@@ -167,7 +167,7 @@ def test_sync_edit_writes_the_run_directory(sync_run):
     assert sched["target_subtasks"] == 2 and sched["schedule_method"] == "bisection"
     if not sched["depth_limit_hit"]:
         assert all(0 < s["difficulty"] <= sched["threshold"] for s in subs[1:])
-    from experiments.ablation import edits_per_subtask
+    from jaxedit.pipelines.ablation.methods import edits_per_subtask
 
     for s in subs:
         for key in ("index", "name", "ratio", "difficulty", "steps", "seconds", "converged",

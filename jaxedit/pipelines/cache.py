@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -21,3 +22,39 @@ def stamp_prepared(out: Path, wanted: dict) -> None:
                                "use another output folder")
     Path(out).mkdir(parents=True, exist_ok=True)
     atomic_write_text(stamp, json.dumps(wanted) + "\n")
+
+
+def prepared_scene(out: Path, scene: str, *, size: int, views: int, test_views: int,
+                   seed: int, config=None, log=lambda msg: None):
+    """A built-in scene's dataset (``out/data``) and its reconstruction (``out/reconstruct``),
+    made once and reused: (the :class:`jaxedit.io.Dataset`, Gaussians, the reconstruction's
+    metrics).
+
+    ``config`` is the reconstruction's :class:`jaxedit.pipelines.reconstruct.ReconstructConfig`;
+    None makes the dataset only (and returns None for the Gaussians and {} for the
+    metrics). The folder is stamped with every setting, so a cache made with others is a
+    DataError (:func:`stamp_prepared`), never silently reused.
+    """
+    from ..io import load_ply
+    from ..scenes import make_scene, size_arguments
+    from . import reconstruct as recon
+
+    out = Path(out)
+    data_dir, recon_dir = out / "data", out / "reconstruct"
+    stamp_prepared(out, {"scene": scene, "size": size, "views": views, "test_views": test_views,
+                         "seed": seed, "reconstruct": None if config is None
+                         else dataclasses.asdict(config)})
+    if not (data_dir / "transforms.json").exists():
+        log(f"making the {scene} scene ({views}+{test_views} views, {size} px)")
+        make_scene(scene, data_dir, views=views, test_views=test_views, seed=seed,
+                   **size_arguments(scene, size))
+    dataset = recon.load_dataset(data_dir, config or recon.ReconstructConfig())
+    if config is None:
+        return dataset, None, {}
+    if not (recon_dir / "scene.ply").exists():
+        log(f"reconstructing {scene} ({config.train.iterations} steps)")
+        recon.reconstruct(dataset, recon_dir, config.train, seed=seed,
+                          checkpoint_every=config.checkpoint_every, log_every=config.log_every,
+                          random_points=config.random_points)
+    metrics = json.loads((recon_dir / "metrics.json").read_text())
+    return dataset, load_ply(recon_dir / "scene.ply"), metrics

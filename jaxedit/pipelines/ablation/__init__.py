@@ -1,0 +1,390 @@
+"""The ablation: ProEdit vs its controls as paired statistics over seeds.
+
+``python -m experiments ablation`` and ``benchmarks/ablation.py`` run :func:`run_ablation`
+with an :class:`AblationConfig` (the command's flags are generated from its fields).
+
+With the simulated editor (a test instrument whose noise-free targets are known; not
+InstructPix2Pix) on built-in scenes: make each scene's dataset and reconstruct it once, then
+edit the reconstruction with every method, for every instruction, for every seed, and for every
+editor variant. An editor variant (``variants``) is ``K`` or ``K:GAIN``: K divergent modes per
+instruction and the mode draw's ``mode_step_gain`` (default 1; see
+:mod:`jaxedit.edit.simulated`, section 4). The mechanism test is variant ``3``; ``1`` (one
+outcome: nothing to keep consistent) and ``3:0`` (holding a mode does not depend on the step
+size) are the negative controls, run with ``control_methods``.
+
+Methods (rows), every one with the same trainer, W, patience, ``edit_every``, ``refine_every``
+and a step guard of at least 3 x ``refine_every`` (so adaptive density control runs in every
+subtask of every method):
+
+- ``proedit``: the difficulty-aware schedule, ``target_subtasks`` by instruction kind
+  (:data:`.methods.TARGET_SUBTASKS`: about 8 for geometry, 4 otherwise, the paper's figures);
+- ``nd``: no decomposition, one edit subtask 0 -> 1 with its own plateau and guard;
+- ``nd_equal``: ND with ProEdit's steps (r0 / the sum of ProEdit's edit subtasks / rn, the same
+  seed) AND ProEdit's training editor calls (``edit_every`` chosen to match them);
+- ``nd_k``: ProEdit's n edit subtasks all at r = 1, each as long as ProEdit's: the same opacity
+  resets, initial sweeps, steps and editor calls, only the ratios differ (progression itself);
+- ``uniform``: n uniform ratios i / n (ProEdit's n), plateau and guard as ProEdit's (does the
+  difficulty-aware placement matter);
+- ``in2n``: IN2N on 3DGS, ProEdit's total step count, one view every ``edit_every`` steps.
+
+Scores at the held-out views (:func:`jaxedit.metrics.mode_scores`): ``psnr_best`` (best over modes
+of the PSNR against the mode's noise-free target at r = 1), ``mode_mixing`` (0: one mode, 1: an
+even blend), ``multiview_consistency``. Per run also: ``editor_calls`` (training edits; the
+schedule's difficulty calls separately as ``schedule_calls``), ``sweeps`` (complete passes over
+the views), ``total_steps``, ``guard_ended`` (subtasks the step guard, not the plateau, ended),
+``maintenance`` (density-control steps), ``agreement`` (per sweep, the fraction of views whose
+drawn mode is the sweep's most common one; ``agreement_final`` the last sweep's).
+
+Writes ``RUN_DIR/ablation.json``::
+
+    {"settings": {...}, "runs": [one record per (variant, scene, prompt, seed, method)],
+     "summary": [{"editor_modes" (the variant), "scene", "prompt", "method", "metric",
+                  "mean", "ci", "low", "high", "n"}],   # Student-t 95% CI over seeds
+     "differences": [{..., "method": other, ...}]}     # proedit - other, paired t 95% CI,
+                                                        # paired by (scene, instruction, seed)
+
+(``prompt`` "all" averages the instructions per seed first), ``RUN_DIR/ablation.md`` and
+``RUN_DIR/views/*.png`` (seed 0). The file is rewritten after every run; a run with the same
+settings resumes from it.
+
+Cost. The defaults (face, 20 px, 6 + 2 views; texture and shape; 20 seeds; variant 3 with five
+methods, 1 and 3:0 with proedit and nd) are 360 edit runs, about 8 s each for texture and 13 s
+for shape on the shared 2-core machine: 43 minutes of wall time with the gain-0 control in a
+second process (the record ``benchmarks/results/cpu/mechanism_ablation.json``; README, "What
+the mechanism test shows").
+
+Modules: :mod:`.methods` (the rows and their budgets), :mod:`.summary` (the statistics
+and tables); this one holds the settings and the runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ...edit import EditData, TrainSettings
+from ...edit.outputs import Renderer
+from ...edit.plan import anneal_horizon
+from ...edit.simulated import VOCABULARY, SimulatedEditor
+from ...edit.simulated_targets import MAX_MODES
+from ...errors import DataError
+from ...io import write_image
+from ...io.files import atomic_write_text
+from ...metrics import mode_scores
+from ...viz import image_grid
+from ..cache import prepared_scene
+from ..edit import run_edit
+from .methods import (CONTROL_METHODS, FOLLOWERS, MAIN_METHODS, METHODS, TARGET_SUBTASKS,
+                      TARGET_SUBTASKS_DEFAULT, ModeLog, edits_per_subtask, method_config,
+                      sweep_agreement)
+from .summary import ALL, METRICS, summarise, tables
+
+__all__ = ["ALL", "AblationConfig", "CONTROL_METHODS", "MAIN_METHODS", "METHODS", "METRICS",
+           "PROMPTS", "SCENES", "VARIANTS", "parse_variant", "recon_config", "run_ablation",
+           "summarise", "tables"]
+
+SCENES = ("face",)
+PROMPTS = ("give him a marble texture", "make his head bigger")
+VARIANTS = ("3", "1", "3:0")
+
+
+def parse_variant(text: str) -> tuple[int, float]:
+    """``"K"`` or ``"K:GAIN"`` -> (modes, mode_step_gain); a DataError naming ``variants``."""
+    parts = str(text).split(":")
+    try:
+        modes, gain = int(parts[0]), (float(parts[1]) if len(parts) == 2 else 1.0)
+    except (ValueError, IndexError):
+        modes, gain = 0, -1.0
+    if len(parts) > 2 or not 1 <= modes <= MAX_MODES or not gain >= 0:
+        raise DataError("variants", f"expected K or K:GAIN with K in 1..{MAX_MODES} and "
+                                    f"GAIN >= 0 (like 3,1,3:0), got {text!r}")
+    return modes, gain
+
+
+@dataclasses.dataclass(frozen=True)
+class AblationConfig:
+    """The ablation's settings (the defaults are the committed mechanism ablation's).
+
+    Attributes:
+      scenes: built-in scenes (jaxedit.scenes.list_scenes()).
+      prompts: instructions of the simulated editor.
+      seeds: seeds per instruction (0 .. N-1).
+      variants: editor variants K or K:GAIN (modes, mode_step_gain); the first runs
+        methods, the others control_methods.
+      methods: rows of the first variant: proedit, nd, nd_equal, nd_k, uniform, in2n (all
+        but nd follow proedit's budget, so need proedit).
+      control_methods: rows of the other variants (the negative controls).
+      size: image size in pixels.
+      views: training views.
+      test_views: held-out views (scored).
+      recon_iters: reconstruction steps.
+      refine_every: density-control period of the editing trainer (steps).
+      max_steps: per-subtask step guard (at least 3 x refine_every, so density control
+        runs in every subtask of every method).
+      warmup: W after each opacity reset.
+      patience: plateau length ending a subtask.
+      edit_every: steps between edits.
+      lr_sh_dc: colour learning rate of the editing trainer (same for every method).
+    """
+
+    scenes: tuple[str, ...] = SCENES
+    prompts: tuple[str, ...] = PROMPTS
+    seeds: int = 20
+    variants: tuple[str, ...] = VARIANTS
+    methods: tuple[str, ...] = MAIN_METHODS
+    control_methods: tuple[str, ...] = CONTROL_METHODS
+    size: int = 20
+    views: int = 6
+    test_views: int = 2
+    recon_iters: int = 400
+    refine_every: int = 10
+    max_steps: int = 30
+    warmup: int = 4
+    patience: int = 6
+    edit_every: int = 3
+    lr_sh_dc: float = 0.025
+
+    def __post_init__(self):
+        from ...scenes import list_scenes
+
+        for name, low in (("seeds", 1), ("size", 8), ("views", 1), ("test_views", 1),
+                          ("recon_iters", 1), ("refine_every", 1), ("max_steps", 1),
+                          ("warmup", 0), ("patience", 1), ("edit_every", 1)):
+            if getattr(self, name) < low:
+                raise DataError(name, f"must be >= {low}, got {getattr(self, name)}")
+        if not self.lr_sh_dc > 0:
+            raise DataError("lr_sh_dc", f"must be > 0, got {self.lr_sh_dc}")
+        bad = [s for s in self.scenes if s not in list_scenes()]
+        if bad or not self.scenes:
+            raise DataError("scenes", f"unknown scene(s) {bad}; built-in: "
+                            f"{', '.join(list_scenes())}" if bad else
+                            f"no scene given; built-in: {', '.join(list_scenes())}")
+        if not self.prompts:
+            raise DataError("prompts", "no instruction given")
+        for name in ("methods", "control_methods"):
+            rows = getattr(self, name)
+            bad = [m for m in rows if m not in METHODS]
+            if bad or not rows:
+                raise DataError(name, f"unknown method(s) {bad}; choose from "
+                                f"{', '.join(METHODS)}" if bad else
+                                f"no method given; choose from {', '.join(METHODS)}")
+            if any(m in FOLLOWERS for m in rows) and "proedit" not in rows:
+                raise DataError(name, f"{', '.join(FOLLOWERS)} take ProEdit's budget: "
+                                      f"include proedit")
+        if not self.variants:
+            raise DataError("variants", "need at least one editor variant")
+        for v in self.variants:
+            parse_variant(v)
+        if self.max_steps < 3 * self.refine_every:
+            raise DataError("max_steps", f"must be at least 3 x refine_every "
+                                         f"({self.refine_every}) so density control runs in "
+                                         f"every subtask, got {self.max_steps}")
+
+    @classmethod
+    def smoke(cls) -> "AblationConfig":
+        """Tiny sizes for CI: one instruction, two seeds, the mechanism variant and one
+        control, no in2n (one more trainer compile)."""
+        return cls(scenes=("ball",), prompts=("make it look like autumn",), seeds=2,
+                   variants=("3", "3:0"), methods=("proedit", "nd", "nd_equal", "nd_k"),
+                   control_methods=("proedit", "nd"), size=16, views=4, test_views=2,
+                   recon_iters=30, refine_every=4, max_steps=12, warmup=2, patience=3,
+                   edit_every=2)
+
+    def settings_json(self, kinds: dict[str, str], recon_seed: int) -> dict:
+        """ablation.json's ``settings``: what a resumed run must match."""
+        editors = [_variant_label(*parse_variant(v)) for v in self.variants]
+        return {"scenes": list(self.scenes), "prompts": list(self.prompts), "seeds": self.seeds,
+                "variants": editors, "methods": self.rows_of(),
+                "size": self.size, "views": self.views, "test_views": self.test_views,
+                "recon_iters": self.recon_iters, "refine_every": self.refine_every,
+                "max_steps": self.max_steps, "warmup": self.warmup, "patience": self.patience,
+                "edit_every": self.edit_every, "lr_sh_dc": self.lr_sh_dc,
+                "recon_seed": recon_seed,
+                "target_subtasks": {k: TARGET_SUBTASKS.get(k, TARGET_SUBTASKS_DEFAULT)
+                                    for k in sorted(set(kinds.values()))}}
+
+    def rows_of(self) -> dict[str, list[str]]:
+        """{variant label: its methods, in the order of METHODS}."""
+        labels = [_variant_label(*parse_variant(v)) for v in self.variants]
+        return {label: [m for m in METHODS if m in (self.methods if i == 0
+                                                    else self.control_methods)]
+                for i, label in enumerate(labels)}
+
+
+def _variant_label(modes: int, gain: float) -> str:
+    return str(modes) if gain == 1.0 else f"{modes}:{gain:g}"
+
+
+def recon_config(iters: int):
+    """The reconstruction each scene's edits start from (SH degree 1, a 50k cap)."""
+    from ...densify import DensifyConfig
+    from ...train import TrainConfig
+    from ..reconstruct import ReconstructConfig
+
+    dens = DensifyConfig(refine_every=100, warmup=min(500, iters // 5),
+                         reset_every=max(iters // 2, 1), max_gaussians=50_000)
+    train = TrainConfig(iterations=iters, sh_degree=1, sh_degree_interval=max(iters // 4, 1),
+                        densify=dens)
+    return ReconstructConfig(train=train, checkpoint_every=0)
+
+
+def _score(editor, prompt, data, gaussians, background) -> tuple[dict, object, object]:
+    """(mode scores, renders [N, H, W, 3], mode targets [K, N, H, W, 3]) at the test views."""
+    renderer = Renderer(background)
+    rgb = np.stack([renderer.rgb(gaussians, data.test_cameras[i])
+                    for i in range(len(data.test_images))])
+    targets = np.stack([editor.mode_targets(o, 1.0, prompt) for o in data.test_images], axis=1)
+    return mode_scores(rgb, targets), rgb, targets
+
+
+def _write_views(path: Path, targets, renders: dict) -> None:
+    """One PNG: a row per mode target, then a row per method's final test views."""
+    rows = list(targets) + [renders[m] for m in renders]
+    grid = image_grid(np.concatenate(rows), ncols=len(rows[0]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_image(path, np.ascontiguousarray(np.clip(grid, 0.0, 1.0)))
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in text.lower()).strip("_")[:40]
+
+
+def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_seed: int = 0,
+                 report: bool = True, log=print) -> dict:
+    """Run the ablation into ``out``; returns the contents of ablation.json.
+
+    ``out/ablation.json`` is rewritten after every run, and a call with the same
+    settings resumes from it; each scene's dataset and reconstruction are made once
+    in ``out/SCENE`` (:func:`jaxedit.pipelines.cache.prepared_scene`).
+    """
+    out = Path(out)
+    editors = {_variant_label(k, g): SimulatedEditor(modes=k, mode_step_gain=g)
+               for k, g in map(parse_variant, config.variants)}
+    rows_of = config.rows_of()
+    first = next(iter(editors.values()))
+    prompts = tuple(config.prompts)
+    kinds = {}
+    for p in prompts:
+        try:
+            first.encode(p)  # unknown instructions fail here
+        except DataError as e:
+            raise DataError("prompts", e.problem) from None
+        kinds[p] = VOCABULARY[first._index(p)].kind
+    settings_json = config.settings_json(kinds, recon_seed)
+    scenes, seeds = config.scenes, config.seeds
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "ablation.json"
+    runs: list[dict] = []
+    if path.exists():
+        old = json.loads(path.read_text())
+        if isinstance(old, dict) and old.get("settings") == settings_json:
+            runs = list(old.get("runs", []))
+            log(f"resuming: {len(runs)} finished runs in {path}")
+    elapsed0 = sum(r.get("seconds", 0.0) for r in runs)
+
+    def save(extra=None):
+        payload = {"settings": settings_json, "runs": runs} | (extra or {})
+        atomic_write_text(path, json.dumps(payload, indent=2) + "\n")
+
+    total = len(scenes) * len(prompts) * seeds * sum(len(r) for r in rows_of.values())
+    t_start = time.perf_counter()
+    for scene_name in scenes:
+        dataset, scene, _ = prepared_scene(out / scene_name, scene_name, size=config.size,
+                                           views=config.views, test_views=config.test_views,
+                                           seed=recon_seed,
+                                           config=recon_config(config.recon_iters), log=log)
+        data = EditData.from_dataset(dataset)
+        settings = TrainSettings(lr_sh_dc=config.lr_sh_dc, sh_degree=scene.sh_degree
+                                 ).replace_densify(refine_every=config.refine_every)
+        n_views = len(data.train_images)
+        for label, editor in editors.items():
+            for prompt in prompts:
+                for seed in range(seeds):
+                    renders, lead = {}, None
+                    for method in rows_of[label]:
+                        tag = (label, scene_name, prompt, seed, method)
+                        prior = next((r for r in runs if (r["editor_modes"], r["scene"],
+                                                          r["prompt"], r["seed"],
+                                                          r["method"]) == tag), None)
+                        if prior is None:
+                            cfg = method_config(method, kind=kinds[prompt], lead=lead,
+                                                warmup=config.warmup, patience=config.patience,
+                                                max_steps=config.max_steps, edit_every=config.edit_every,
+                                                views=n_views)
+                            record, rgb, targets = _run_one(
+                                ModeLog(editor), prompt, data, scene, cfg, settings, seed)
+                            record.update(editor_modes=label, modes=editor.modes,
+                                          step_gain=editor.params.mode_step_gain,
+                                          scene=scene_name, prompt=prompt, kind=kinds[prompt],
+                                          seed=seed, method=method)
+                            runs.append(record)
+                            renders[method] = rgb
+                            save()
+                            prior = record
+                            log(f"[{len(runs)}/{total}] {label} {scene_name} {kinds[prompt]} "
+                                f"seed {seed} {method}: psnr_best {record['psnr_best']:.2f}, "
+                                f"mixing {record['mode_mixing']:.2f}, agreement "
+                                f"{record['agreement_final']}, {record['total_steps']} steps, "
+                                f"{record['editor_calls']} calls, "
+                                f"{elapsed0 + time.perf_counter() - t_start:.0f} s so far")
+                        if method == "proedit":
+                            cfg = method_config("proedit", kind=kinds[prompt], lead=None,
+                                                warmup=config.warmup, patience=config.patience,
+                                                max_steps=config.max_steps, edit_every=config.edit_every,
+                                                views=n_views)
+                            lead = {"steps": prior["subtask_steps"],
+                                    "edits": prior["editor_calls"],
+                                    "horizon": anneal_horizon(cfg, config.warmup)}
+                    if seed == 0 and renders:
+                        _write_views(out / "views" / f"m{_slug(label)}_{scene_name}_"
+                                     f"{_slug(prompt)}.png", targets, renders)
+    summary, differences = summarise(runs)
+    save({"summary": summary, "differences": differences,
+          "wall_time_s": elapsed0 + time.perf_counter() - t_start})
+    atomic_write_text(out / "ablation.md", "# Ablation (simulated editor)\n\n"
+                      f"Settings: `{json.dumps(settings_json)}`\n" + tables(summary, differences))
+    if report:
+        from ..report import write_report
+
+        write_report(out)
+    return {"settings": settings_json, "runs": runs, "summary": summary,
+            "differences": differences}
+
+
+def _run_one(editor: ModeLog, prompt, data, scene, cfg, settings, seed):
+    """(record, test renders, mode targets) of one edit run."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = run_edit(editor, prompt, data, scene, config=cfg, settings=settings, seed=seed,
+                   run_dir=None, report=False)
+    scores, rgb, targets = _score(editor.editor, prompt, data, res["gaussians"], cfg.background)
+    m, subtasks = res["metrics"], res["schedule"]["subtasks"]
+    n_views = len(data.train_images)
+    warmup = 0 if cfg.mode == "in2n" else cfg.warmup
+    edits = [edits_per_subtask(s["steps"], warmup=warmup, every=cfg.edit_every, views=n_views,
+                               initial_sweep=cfg.initial_sweep) for s in subtasks]
+    calls = int(m["utilisation"]["edits"])
+    if sum(edits) != calls:
+        raise RuntimeError(f"counted {sum(edits)} training edits, the driver made {calls}")
+    agreement = sweep_agreement(editor.modes[len(editor.modes) - calls:], edits, n_views)
+    sweeps = sum(len(a) for a in agreement)
+    # the refine subtask edits with e(0): every mode's target is the original, its draws mean
+    # nothing
+    agreement = [[] if s["kind"] == "refine" else a for s, a in zip(subtasks, agreement)]
+    flat = [a for sub in agreement for a in sub]
+    return ({**scores, "psnr_vs_target": m.get("psnr_vs_target"),
+             "multiview_consistency": m.get("multiview_consistency"),
+             "total_steps": int(m["total_steps"]), "subtasks": len(subtasks),
+             "subtask_steps": [int(s["steps"]) for s in subtasks],
+             "ratios": [s["ratio"] for s in subtasks],
+             "editor_calls": calls, "schedule_calls": len(editor.modes) - calls,
+             "edits_per_subtask": edits, "edit_every": cfg.edit_every,
+             "sweeps": sweeps,
+             "guard_ended": sum(s["guard"] is not None for s in subtasks),
+             "maintenance": sum(int(s["density"]["refinements"]) for s in subtasks),
+             "agreement": agreement, "agreement_final": flat[-1] if flat else None,
+             "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0},
+            rgb, targets)
