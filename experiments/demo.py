@@ -43,6 +43,9 @@ DIFFICULTY_VIEWS = 8
 
 
 def add_arguments(p) -> None:
+    from jaxedit.edit.plan import MODES, ProEditConfig
+
+    plan = ProEditConfig()  # the flags passed on to the edit stage keep the edit's defaults
     p.add_argument("--scene-name", default="person",
                    help="built-in scene to use (person, or a procedural one: face, tabletop, ...)")
     p.add_argument("--prompt", default=None,
@@ -60,12 +63,11 @@ def add_arguments(p) -> None:
                         "converted, else MS-SSIM)")
     p.add_argument("--subtasks", type=int, default=None,
                    help="uniform schedule of N subtasks instead of the difficulty-aware one")
-    p.add_argument("--mode", choices=["proedit", "nd", "in2n"], default="proedit",
-                   help="editing mode")
+    p.add_argument("--mode", choices=MODES, default=plan.mode, help="editing mode")
     p.add_argument("--max-steps", type=int, default=None,
                    help="per-subtask training step guard of the edit (default: the edit's, "
                         "scaled with the views and resolution)")
-    p.add_argument("--turntable-frames", type=int, default=24,
+    p.add_argument("--turntable-frames", type=int, default=plan.turntable_frames,
                    help="frames of each snapshot's turntable (0: none)")
     p.add_argument("--edit-arg", action="append", default=[], metavar="FLAG=VALUE",
                    help="extra flag for the edit stage, e.g. --edit-arg patience=30 (repeatable)")

@@ -30,36 +30,59 @@ RECORD_CONFIG_AFTER_RUN = True
 
 
 #: Library arguments named unlike their flags (for error messages).
-FIELD_FLAGS = {"min_fraction": "--min-registered"}
+FIELD_FLAGS = {"min_fraction": "--min-registered", "camera_params": "--camera-params"}
+
+
+def _config_flags():
+    from jaxedit.capture import CaptureConfig
+    from jaxedit.capture.sfm import CAMERA_MODELS
+
+    from .flags import Flag, FlagSet
+
+    # Ranges only where the owning dataclass does not check the field itself (SfmOptions
+    # checks its fields in .check(), which run() calls).
+    return FlagSet(CaptureConfig, (
+        Flag("num_frames"),
+        Flag("sfm.overlap"),
+        Flag("sfm.camera_model", choices=CAMERA_MODELS),
+        Flag("sfm.max_features"),
+        Flag("sfm.max_image_size"),
+        Flag("min_registered"),
+        Flag("sfm.num_threads", "--threads"),
+        Flag("sfm.focal_px"),
+        Flag("sfm.refine_intrinsics"),
+    ))
+
+
+#: The command's settings' flags, generated from :class:`jaxedit.capture.CaptureConfig`.
+FLAGS = (_config_flags(),)
+
 
 def add_arguments(p) -> None:
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--images", type=Path, help="folder of photos (png, jpg, tif)")
     source.add_argument("--video", type=Path, help="video file (anything ffmpeg reads)")
-    p.add_argument("--num-frames", type=int, default=300,
-                   help="video: frames to keep, the sharpest of each of this many windows")
     p.add_argument("--matching", choices=["auto", "exhaustive", "sequential"], default="auto",
                    help="image pairs to match (auto: exhaustive for photos, sequential for video)")
-    p.add_argument("--overlap", type=int, default=10,
-                   help="sequential matching: successors matched to each frame")
-    p.add_argument("--camera-model", default="SIMPLE_RADIAL",
-                   choices=["SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL"],
-                   help="COLMAP camera model shared by all images")
-    p.add_argument("--max-features", type=int, default=8192, help="SIFT features per image")
-    p.add_argument("--max-image-size", type=int, default=3200,
-                   help="longer image side for SIFT (larger images are downscaled for it)")
-    p.add_argument("--min-registered", type=float, default=0.5,
-                   help="fail when SfM registers fewer than this fraction of the images")
-    p.add_argument("--threads", type=int, default=-1, help="COLMAP threads (-1: all cores)")
-    known = p.add_mutually_exclusive_group()
-    known.add_argument("--focal-px", type=float, default=None,
-                       help="known focal length in pixels (principal point at the centre); "
-                            "held fixed unless --refine-intrinsics")
-    known.add_argument("--camera-params", default=None, metavar="FX,FY,CX,CY[,K1,K2,P1,P2]",
-                       help="known intrinsics in pixels (nerfstudio's fl_x,fl_y,cx,cy,k1,...), "
-                            "in --camera-model's terms; held fixed unless --refine-intrinsics")
-    p.add_argument("--refine-intrinsics", action="store_true",
-                   help="refine --focal-px / --camera-params in bundle adjustment (a start only)")
+    FLAGS[0].add_to(p)
+    p.add_argument("--camera-params", default=None, metavar="FX,FY,CX,CY[,K1,K2,P1,P2]",
+                   help="known intrinsics in pixels (nerfstudio's fl_x,fl_y,cx,cy,k1,...), "
+                        "in --camera-model's terms; held fixed unless --refine-intrinsics "
+                        "(excludes --focal-px)")
+
+
+def run_config(args):
+    """The :class:`jaxedit.capture.CaptureConfig` of ``args`` (DataErrors name its fields);
+    ``--matching auto`` picks sequential matching for a video, exhaustive for photos."""
+    from jaxedit.capture.sfm import parse_camera_params
+
+    matching = args.matching
+    if matching == "auto":
+        matching = "sequential" if getattr(args, "video", None) is not None else "exhaustive"
+    return FLAGS[0].build(args, derived={
+        "sfm.matching": matching, "sfm.seed": args.seed,
+        "sfm.camera_params": (None if args.camera_params is None
+                              else parse_camera_params(args.camera_params))})
 
 
 def stage_reporter(root):
@@ -90,7 +113,7 @@ def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.capture import frames
     from jaxedit.capture.dataset import check_out_dir, process_capture
-    from jaxedit.capture.sfm import SfmOptions, parse_camera_params, quiet_colmap
+    from jaxedit.capture.sfm import quiet_colmap
 
     from experiments.progress import Progress, configure
 
@@ -102,15 +125,8 @@ def run(args) -> dict:
         raise DataError("pycolmap", 'not installed; pip install -e ".[capture]"') from None
     configure(quiet=args.quiet)
     quiet_colmap(True)
-    matching = args.matching
-    if matching == "auto":
-        matching = "sequential" if args.video is not None else "exhaustive"
-    options = SfmOptions(camera_model=args.camera_model, matching=matching, overlap=args.overlap,
-                         max_features=args.max_features, max_image_size=args.max_image_size,
-                         num_threads=args.threads, seed=args.seed, focal_px=args.focal_px,
-                         camera_params=(None if args.camera_params is None
-                                        else parse_camera_params(args.camera_params)),
-                         refine_intrinsics=args.refine_intrinsics).check()
+    config = run_config(args)
+    options = config.sfm.check()
     check_out_dir(args.out)  # before decoding anything
     extra = {}
     if args.images is not None:
@@ -121,12 +137,12 @@ def run(args) -> dict:
             import imageio_ffmpeg  # noqa: F401
         except ImportError:
             raise DataError("imageio-ffmpeg", 'not installed; pip install -e ".[capture]"') from None
-        sampled, index, scores = frames.sample_video(args.video, args.num_frames)
+        sampled, index, scores = frames.sample_video(args.video, config.num_frames)
         sources = list(sampled)
         extra = {"video_frames": index.tolist(), "blur_scores": [round(float(s), 6) for s in scores]}
     with Progress(4, "process-data") as root:
         report = stage_reporter(root)
         summary = process_capture(args.out, sources, options=options,
-                                  min_fraction=args.min_registered, report=report)
+                                  min_fraction=config.min_registered, report=report)
         report.close()
-    return summary | {"matching": matching} | extra
+    return summary | {"matching": options.matching} | extra

@@ -31,13 +31,14 @@ GENERATED = _generated()
 
 
 def _parse(command: str, *argv: str) -> argparse.Namespace:
-    required = ["--data", "unchecked"] if command == "reconstruct" else []
+    required = {"reconstruct": ["--data", "unchecked"],
+                "process-data": ["--images", "unchecked"]}.get(command, [])
     return cli.parse([command, *required, *argv])
 
 
 def test_the_commands_with_settings_generate_their_flags():
     commands = {c for c, _, _ in GENERATED}
-    assert {"reconstruct", "edit"} <= commands
+    assert {"reconstruct", "edit", "ablation", "process-data"} <= commands
 
 
 @pytest.mark.parametrize("command, flag_set, flag", GENERATED,

@@ -13,12 +13,12 @@ videos); the rest (alignment, frame scores) needs only the core dependencies.
 
 from . import points
 from .align import camera_extent, pose_errors, umeyama
-from .dataset import (APPLIED_TRANSFORM, colmap_intrinsics, process_capture,
+from .dataset import (APPLIED_TRANSFORM, CaptureConfig, colmap_intrinsics, process_capture,
                       reconstruction_points, reconstruction_views, transforms_meta)
 from .frames import blur_score, check_images, list_images, sample_video, windows
 from .sfm import SfmOptions, image_pairs, quiet_colmap, run_sfm
 
 __all__ = ["APPLIED_TRANSFORM", "points", "SfmOptions", "blur_score", "camera_extent", "check_images",
-           "colmap_intrinsics", "image_pairs", "list_images", "pose_errors", "process_capture",
+           "CaptureConfig", "colmap_intrinsics", "image_pairs", "list_images", "pose_errors", "process_capture",
            "quiet_colmap", "reconstruction_points", "reconstruction_views", "run_sfm",
            "sample_video", "transforms_meta", "umeyama", "windows"]

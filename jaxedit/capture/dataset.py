@@ -23,6 +23,7 @@ place when complete: a failure leaves nothing behind.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -141,8 +142,31 @@ def min_registered(num_images: int, fraction: float) -> int:
     return max(3, math.ceil(fraction * num_images - 1e-9))
 
 
+@dataclasses.dataclass(frozen=True)
+class CaptureConfig:
+    """``process-data``'s settings: structure from motion, a video's frames, the floor of
+    registered views.
+
+    Attributes:
+      sfm: structure-from-motion settings (:class:`~jaxedit.capture.sfm.SfmOptions`).
+      num_frames: a video is cut into this many windows and the sharpest frame of each is kept.
+      min_registered: fewer registered views than this fraction of the images (or fewer than
+        3) is an error: such a model covers too little of the capture.
+    """
+
+    sfm: SfmOptions = SfmOptions()
+    num_frames: int = 300
+    min_registered: float = 0.5
+
+    def __post_init__(self):
+        if self.num_frames < 1:
+            raise DataError("num_frames", f"must be >= 1, got {self.num_frames}")
+        if not 0.0 <= self.min_registered <= 1.0:
+            raise DataError("min_registered", f"must be in [0, 1], got {self.min_registered}")
+
+
 def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOptions = SfmOptions(),
-                    min_fraction: float = 0.5, downscales=DOWNSCALES,
+                    min_fraction: float = CaptureConfig.min_registered, downscales=DOWNSCALES,
                     report: Report | None = None) -> dict:
     """Make a nerfstudio dataset in ``out_dir`` from images, by structure from motion.
 

@@ -87,7 +87,7 @@ class SfmOptions:
             if getattr(self, name) < 1:
                 raise DataError(name, f"must be >= 1, got {getattr(self, name)}")
         if self.focal_px is not None and self.camera_params is not None:
-            raise DataError("focal_px", "give either focal_px or camera_params, not both")
+            raise DataError("camera_params", "give either focal_px or camera_params, not both")
         if self.focal_px is not None and not (math.isfinite(self.focal_px) and self.focal_px > 0):
             raise DataError("focal_px", f"must be a finite number > 0, got {self.focal_px}")
         if self.camera_params is not None:
