@@ -21,7 +21,8 @@ from .raster import RenderOutput, render, render_reference
 from .scenes import make_scene
 from .train import TrainConfig, TrainState, evaluate, fit, init_state, train_step
 from .pipelines.rundir import resume
-from .viz import colorize_depth, image_grid, turntable, write_snapshot, write_turntable
+from .viz import colorize_depth, image_grid, turntable, write_turntable
+from .pipelines.snapshots import write_snapshot
 
 __all__ = [
     "Camera", "DataError", "Dataset", "Gaussians", "RenderOutput", "SimulatedEditor", "TrainConfig", "TrainState",

@@ -1,7 +1,7 @@
-"""Outputs people look at: coloured depth maps, snapshots, turntables, image grids.
+"""Outputs people look at: coloured depth maps, turntables, image grids, camera paths.
 
-Everything here sits at the edge of the library: it renders Gaussians with the
-splatter and writes files (atomically). The numerical pieces (:func:`colorize_depth`,
+It renders Gaussians with the splatter and writes single files (atomically); the
+snapshot folders that gather them are :mod:`jaxedit.pipelines.snapshots`. The numerical pieces (:func:`colorize_depth`,
 :func:`depth_range`, :func:`image_grid`, :func:`frame_cameras`) are pure NumPy
 functions of their inputs.
 
@@ -191,69 +191,6 @@ def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: i
         alphas.append(np.asarray(out.alpha, np.float32))
         depths.append(np.asarray(out.depth, np.float32))
     return np.stack(rgbs), np.stack(alphas), np.stack(depths)
-
-
-def _write_png(path: Path, image) -> None:
-    from .io import write_image
-
-    # C order: OpenImageIO refuses arrays with strided channels (np.clip keeps the layout).
-    write_image(path, np.ascontiguousarray(np.clip(np.asarray(image, np.float32), 0.0, 1.0)))
-
-
-def write_snapshot(directory, gaussians, cameras, *, background=(1.0, 1.0, 1.0),
-                   prefix: str = "view", sh_degree: int | None = None, ply: bool = True,
-                   depth: bool = True, depth_percentiles=(2.0, 98.0),
-                   turntable_frames: int = 0, turntable_size: int | None = None,
-                   render_fn: Callable | None = None) -> dict:
-    """Write what a person looks at for one state of the scene.
-
-    Layout (all files written atomically)::
-
-        directory/scene.ply                   (ply=True; the standard 3DGS layout)
-        directory/renders/{prefix}_000.png    one per camera
-        directory/depth/{prefix}_000.png      coloured depth (depth=True), one shared
-                                              near/far for all views so colours compare
-        directory/turntable.webp [.mp4]       (turntable_frames > 0), an orbit matched
-                                              to the cameras (see :func:`frame_cameras`)
-
-    Args:
-      directory: output folder (created).
-      gaussians: the scene.
-      cameras: batched :class:`jaxedit.Camera` [N], e.g. the test views.
-      background: float [3] render background.
-    Returns:
-      {"ply": str|None, "renders": [str], "depth": [str], "depth_range": [near, far],
-       "turntable": [str]} with paths relative to ``directory``.
-    """
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    record: dict = {"ply": None, "renders": [], "depth": [], "depth_range": None, "turntable": []}
-    if ply:
-        from .io import save_ply
-
-        save_ply(directory / "scene.ply", gaussians)
-        record["ply"] = "scene.ply"
-    rgb, alpha, dep = render_views(gaussians, cameras, background=background,
-                                   sh_degree=sh_degree, render_fn=render_fn)
-    for i, image in enumerate(rgb):
-        rel = f"renders/{prefix}_{i:03d}.png"
-        _write_png(directory / rel, image)
-        record["renders"].append(rel)
-    if depth:
-        near, far = depth_range(dep, alpha, percentiles=depth_percentiles)
-        record["depth_range"] = [near, far]
-        for i in range(len(dep)):
-            rel = f"depth/{prefix}_{i:03d}.png"
-            _write_png(directory / rel, colorize_depth(dep[i], alpha[i], near=near, far=far,
-                                                       background=background))
-            record["depth"].append(rel)
-    if turntable_frames > 0:
-        frames = turntable(gaussians, n_frames=turntable_frames, cameras=cameras,
-                           size=turntable_size, background=background, sh_degree=sh_degree,
-                           render_fn=render_fn)
-        written = write_turntable(directory / "turntable.webp", frames)
-        record["turntable"] = [p.name for p in written]
-    return record
 
 
 # ---------------------------------------------------------------------------
@@ -529,6 +466,6 @@ def read_webp_frames(path) -> np.ndarray:
 
 __all__ = ["colorize_depth", "depth_range", "encode_webp", "frame_cameras", "frame_gaussians",
            "image_grid", "load_camera_path", "mp4_available", "read_webp", "read_webp_frames",
-           "render_views", "save_camera_path", "to_uint8", "turntable", "write_snapshot",
+           "render_views", "save_camera_path", "to_uint8", "turntable",
            "write_turntable"]
 

@@ -9,6 +9,7 @@ from hypothesis.extra import numpy as hnp
 
 from jaxedit import DataError, camera as camlib, gaussians as G, viz
 from jaxedit.io import load_ply, read_image
+from jaxedit.pipelines.snapshots import write_snapshot
 
 H = W = 8
 
@@ -98,7 +99,7 @@ def sphere_scene(n=48, seed=0):
 def test_write_snapshot_and_turntable_with_the_renderer(tmp_path):
     g = sphere_scene()
     cams = camlib.hemisphere(2, radius=2.2, width=24, height=24, fov_deg=50.0)
-    rec = viz.write_snapshot(tmp_path / "snap", g, cams, turntable_frames=4, turntable_size=24,
+    rec = write_snapshot(tmp_path / "snap", g, cams, turntable_frames=4, turntable_size=24,
                              background=(1.0, 1.0, 1.0))
     assert rec["ply"] == "scene.ply" and rec["renders"] == ["renders/view_000.png",
                                                               "renders/view_001.png"]

@@ -1,7 +1,8 @@
-"""Snapshot folders of an edit run: one per scene state, and the user's selection.
+"""Snapshot folders: what a person looks at for one scene state, and the user's selection.
 
-``RUN/original`` and ``RUN/subtasks/NN_rX.XXX`` each hold scene.ply, renders/,
-depth/, (turntable.webp) and metrics.json (:func:`write_scene_snapshot`);
+:func:`write_snapshot` writes any scene state's folder (scene.ply, renders/, depth/,
+turntable.webp). An edit run's ``RUN/original`` and ``RUN/subtasks/NN_rX.XXX`` are
+such folders with their metrics.json (:func:`write_scene_snapshot`);
 :func:`select_snapshot` makes one of them ``RUN/selected.ply``, the user's choice
 of the edit's aggressivity.
 """
@@ -12,20 +13,80 @@ import json
 import os
 import shutil
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
+from .. import viz
 from ..edit.outputs import scene_metrics
 from ..errors import DataError
+from ..io import save_ply, write_image
 from ..io.files import atomic_path, atomic_write_text
+
+
+def _write_png(path: Path, image) -> None:
+    # C order: OpenImageIO refuses arrays with strided channels (np.clip keeps the layout).
+    write_image(path, np.ascontiguousarray(np.clip(np.asarray(image, np.float32), 0.0, 1.0)))
+
+
+def write_snapshot(directory, gaussians, cameras, *, background=(1.0, 1.0, 1.0),
+                   prefix: str = "view", sh_degree: int | None = None, ply: bool = True,
+                   depth: bool = True, depth_percentiles=(2.0, 98.0),
+                   turntable_frames: int = 0, turntable_size: int | None = None,
+                   render_fn: Callable | None = None) -> dict:
+    """Write what a person looks at for one state of the scene.
+
+    Layout (all files written atomically)::
+
+        directory/scene.ply                   (ply=True; the standard 3DGS layout)
+        directory/renders/{prefix}_000.png    one per camera
+        directory/depth/{prefix}_000.png      coloured depth (depth=True), one shared
+                                              near/far for all views so colours compare
+        directory/turntable.webp [.mp4]       (turntable_frames > 0), an orbit matched
+                                              to the cameras (:func:`jaxedit.viz.frame_cameras`)
+
+    Args:
+      directory: output folder (created).
+      gaussians: the scene.
+      cameras: batched :class:`jaxedit.Camera` [N], e.g. the test views.
+      background: float [3] render background.
+    Returns:
+      {"ply": str|None, "renders": [str], "depth": [str], "depth_range": [near, far],
+       "turntable": [str]} with paths relative to ``directory``.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    record: dict = {"ply": None, "renders": [], "depth": [], "depth_range": None, "turntable": []}
+    if ply:
+        save_ply(directory / "scene.ply", gaussians)
+        record["ply"] = "scene.ply"
+    rgb, alpha, dep = viz.render_views(gaussians, cameras, background=background,
+                                       sh_degree=sh_degree, render_fn=render_fn)
+    for i, image in enumerate(rgb):
+        rel = f"renders/{prefix}_{i:03d}.png"
+        _write_png(directory / rel, image)
+        record["renders"].append(rel)
+    if depth:
+        near, far = viz.depth_range(dep, alpha, percentiles=depth_percentiles)
+        record["depth_range"] = [near, far]
+        for i in range(len(dep)):
+            rel = f"depth/{prefix}_{i:03d}.png"
+            _write_png(directory / rel, viz.colorize_depth(dep[i], alpha[i], near=near,
+                                                           far=far, background=background))
+            record["depth"].append(rel)
+    if turntable_frames > 0:
+        frames = viz.turntable(gaussians, n_frames=turntable_frames, cameras=cameras,
+                               size=turntable_size, background=background,
+                               sh_degree=sh_degree, render_fn=render_fn)
+        written = viz.write_turntable(directory / "turntable.webp", frames)
+        record["turntable"] = [p.name for p in written]
+    return record
 
 
 def write_scene_snapshot(ctx, directory: Path, gaussians, *, ratio: float) -> dict:
     """scene.ply, renders/, depth/, (turntable.webp) and metrics.json of one scene state."""
-    from .. import viz
-
     directory = Path(directory)
-    viz.write_snapshot(directory, gaussians, ctx.data.test_cameras,
+    write_snapshot(directory, gaussians, ctx.data.test_cameras,
                        background=tuple(ctx.config.background),
                        turntable_frames=ctx.config.turntable_frames,
                        render_fn=lambda g, cam, **kw: ctx.renderer(g, cam))
