@@ -19,7 +19,7 @@ HELP = "progressively edit a 3DGS scene with an instruction (ProEdit)"
 
 
 #: Library arguments named unlike their flags (for error messages).
-FIELD_FLAGS = {"run_dir": "--out"}
+FIELD_FLAGS = {"run_dir": "--out", "batch": "--ip2p-batch"}
 
 def _config_flags():
     from jaxedit.edit.plan import MODES
@@ -83,6 +83,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                            "float16 (torch) on accelerators)")
     real.add_argument("--ip2p-size", type=int, default=512, help="IP2P working resolution (px)")
     real.add_argument("--ip2p-steps", type=int, default=20, help="DDIM steps per IP2P edit")
+    real.add_argument("--ip2p-batch", type=int, default=None,
+                      help="--editor ip2p: most views per editor call when several are due at "
+                           "once (a subtask's initial sweep, the difficulty's views); default 8 "
+                           "per accelerator, 1 on the CPU")
     real.add_argument("--distance", default="auto", choices=["auto", "lpips", "ms-ssim"],
                       help="difficulty distance; auto (default): LPIPS-VGG as in the paper when "
                            "its weights are there (convert-lpips), else MS-SSIM")
@@ -109,7 +113,8 @@ def make_editor(args):
 
         # The editor's device of pick_devices, the one run_edit gives the editor.
         return load_editor(args.ip2p_weights or DEFAULT_MODEL, devices=[pick_devices()[1]],
-                           dtype=args.ip2p_dtype, size=args.ip2p_size, steps=args.ip2p_steps)
+                           dtype=args.ip2p_dtype, size=args.ip2p_size, steps=args.ip2p_steps,
+                           batch=args.ip2p_batch)
     try:
         from jaxedit.edit.ip2p import DEFAULT_MODEL, load_editor
     except ImportError as e:  # torch / diffusers are optional extras
@@ -233,7 +238,7 @@ def check_counts(args) -> None:
     """The editor's counts in range (the config tree's are checked as it is built)."""
     from .cli import check_minimums
 
-    check_minimums(args, {"ip2p_size": 8, "ip2p_steps": 1})
+    check_minimums(args, {"ip2p_size": 8, "ip2p_steps": 1, "ip2p_batch": 1})
 
 
 def run(args) -> dict:

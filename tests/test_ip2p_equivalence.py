@@ -78,6 +78,31 @@ def test_whole_edit_matches_torch_editor(editors, shape, t_start):
 
 
 
+def test_batched_edits_are_the_single_edits(editors):
+    """edit_views in the editor's batches (a sweep, the difficulty's views) gives each view's
+    own edit: 3 views at batch 2 (a full and a partial batch) against 3 edit calls."""
+    import jax
+
+    from jaxedit.edit.editors import edit_views
+
+    _, ours = editors
+    batched = jx.JaxIP2PEditor(ours.nets.unet, ours.nets.vae, ours.text_encoder, ours.tokenize,
+                               ours.schedule, size=64, steps=STEPS, batch=2)
+    images = [_image(10 + i, (48, 40, 3)) for i in range(3)]
+    originals = [_image(20 + i, (48, 40, 3)) for i in range(3)]
+    keys = [jax.random.key(i) for i in range(3)]
+    emb = ours.encode(PROMPT)
+    kw = dict(timestep_range=(0.5, 0.5), guidance=(7.5, 1.5))
+    together = edit_views(batched, images, originals, emb, keys, **kw)
+    one_by_one = edit_views(ours, images, originals, emb, keys, **kw)
+    assert ours.batch == 1 and len(together) == len(one_by_one) == 3
+    for a, b in zip(together, one_by_one):
+        assert_close(a, b)
+    with pytest.raises(jx.DataError, match="batch"):
+        jx.JaxIP2PEditor(ours.nets.unet, ours.nets.vae, ours.text_encoder, ours.tokenize,
+                         ours.schedule, batch=0)
+
+
 @pytest.mark.slow
 def test_cli_edit_with_the_jax_editor_runs_without_torch(weights, tmp_path):
     """`python -m experiments edit --editor ip2p --ip2p-weights DIR` in a child process where
@@ -94,7 +119,7 @@ def test_cli_edit_with_the_jax_editor_runs_without_torch(weights, tmp_path):
                                   sh_degree=0))
     out = tmp_path / "run"
     argv = ["edit", "--editor", "ip2p", "--ip2p-weights", str(weights), "--ip2p-size", "16",
-            "--ip2p-steps", "1", "--data", str(data), "--scene", str(scene), "--prompt",
+            "--ip2p-steps", "1", "--ip2p-batch", "3", "--data", str(data), "--scene", str(scene), "--prompt",
             "make it red", "--mode", "nd", "--sync", "--max-steps", "12", "--warmup", "2",
             "--edit-every", "4", "--test-views", "1", "--turntable-frames", "0", "--no-report",
             "--quiet", "--out", str(out)]

@@ -109,6 +109,8 @@ class Utilisation:
 
 
 EditFn = Callable[[EditJob, Any], Any]
+#: ``(jobs, scene) -> edited views``: the jobs due at one step, edited together.
+EditManyFn = Callable[[list[EditJob], Any], list]
 
 
 def as_view(image, device: jax.Device | None = None):
@@ -149,15 +151,20 @@ class SyncEditSource:
       initial_sweep: when True, step 0 edits every view once (in ``order``), so
         the subtask starts on a dataset fully edited with the new embedding.
       trainer_device: where JAX results go (``None``: left where the editor made them).
+      edit_many: ``(jobs, scene) -> views``, used when several edits are due at one step
+        (the initial sweep) so that an editor that batches views edits them together
+        (``edit_fn`` then serves single edits); each edit's seconds are the batch's share.
     """
 
     deterministic = True
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int = 10,
-                 initial_sweep: bool = False, trainer_device: jax.Device | None = None):
+                 initial_sweep: bool = False, trainer_device: jax.Device | None = None,
+                 edit_many: EditManyFn | None = None):
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
         self.edit_fn = edit_fn
+        self.edit_many = edit_many
         self.order = np.asarray(order)
         self.every = int(every)
         self.initial_sweep = initial_sweep
@@ -191,17 +198,23 @@ class SyncEditSource:
 
     def exchange(self, step: int, scene) -> list[EditedView]:
         """Perform the edits due at ``step`` on ``scene`` and return them."""
+        jobs = self.jobs_at(step)
+        together = self.edit_many is not None and len(jobs) > 1
+        groups = [jobs] if together else [[job] for job in jobs]
         out = []
-        for job in self.jobs_at(step):
+        for group in groups:
             t0 = time.perf_counter()
-            image = as_view(self.edit_fn(job, scene), self.trainer_device)
-            dt = time.perf_counter() - t0
-            self.utilisation.edits += 1
-            self.utilisation.consumed += 1
-            self.utilisation.editor_seconds += dt
-            self.utilisation.trainer_waits += 1
-            self.utilisation.trainer_wait_s += dt
-            out.append(EditedView(job, image, dt, step))
+            images = (self.edit_many(group, scene) if together
+                      else [self.edit_fn(group[0], scene)])
+            images = [as_view(image, self.trainer_device) for image in images]
+            dt = (time.perf_counter() - t0) / len(group)
+            for job, image in zip(group, images):
+                self.utilisation.edits += 1
+                self.utilisation.consumed += 1
+                self.utilisation.editor_seconds += dt
+                self.utilisation.trainer_waits += 1
+                self.utilisation.trainer_wait_s += dt
+                out.append(EditedView(job, image, dt, step))
         self.utilisation.polls += 1
         self.utilisation.empty_polls += not out
         return out
@@ -408,10 +421,11 @@ class AsyncEditSource:
 
 def make_source(edit_fn: EditFn, order: np.ndarray, *, asynchronous: bool, every: int = 10,
                 initial_sweep: bool = False, device=None, capacity: int = 4,
-                trainer_device=None):
-    """The sync (deterministic) or async (threaded) edit source with one call."""
+                trainer_device=None, edit_many: EditManyFn | None = None):
+    """The sync (deterministic) or async (threaded) edit source with one call (the
+    asynchronous producer edits one view at a time, each from the newest scene)."""
     if asynchronous:
         return AsyncEditSource(edit_fn, order, device=device, capacity=capacity,
                                trainer_device=trainer_device)
     return SyncEditSource(edit_fn, order, every=every, initial_sweep=initial_sweep,
-                          trainer_device=trainer_device)
+                          trainer_device=trainer_device, edit_many=edit_many)

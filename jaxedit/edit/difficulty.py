@@ -29,7 +29,7 @@ import numpy as np
 from skimage.metrics import structural_similarity
 
 from ..errors import DataError
-from .editors import interpolate_embedding
+from .editors import edit_views, interpolate_embedding
 from .keys import quantize_ratio, view_key
 
 Distance = Callable[[np.ndarray, np.ndarray], float]
@@ -171,7 +171,8 @@ class DifficultyOracle:
         use it) or "sum" (eq. 3 as printed).
 
     Attributes:
-      editor_calls: number of ``editor.edit`` calls so far (= distinct (ratio, view) pairs).
+      editor_calls: views edited so far (= distinct (ratio, view) pairs; an editor that
+        batches makes fewer calls).
       evaluations: number of distinct (r_a, r_b) pairs evaluated.
     """
 
@@ -211,23 +212,27 @@ class DifficultyOracle:
     def evaluations(self) -> int:
         return len(self._pairs)
 
+    def _edit(self, q: int, views) -> None:
+        """Edit the ``views`` not yet edited at ratio ``q`` / 1e6 (in the editor's batches,
+        :func:`jaxedit.edit.editors.edit_views`) into the memo."""
+        missing = [int(k) for k in dict.fromkeys(views) if (q, int(k)) not in self._images]
+        if not missing:
+            return
+        r = q / 1e6
+        emb = interpolate_embedding(self._e_prompt, self._e_null, r)
+        keys = [view_key(self._run_key, k, 0.0 if self.common_noise else r, 0) for k in missing]
+        photos = [self.originals[k] for k in missing]
+        edited = edit_views(self.editor, photos, photos, emb, keys,
+                            timestep_range=self.timestep_range, guidance=self.guidance)
+        for k, image in zip(missing, edited):
+            self._images[(q, k)] = np.asarray(image, np.float32)
+        self.editor_calls += len(missing)
+
     def edited(self, ratio: float, view: int) -> np.ndarray:
         """T2D(v_k(s), e(r)) for view index ``view``, edited at most once (memoised)."""
         q = quantize_ratio(ratio)
-        key = (q, int(view))
-        hit = self._images.get(key)
-        if hit is None:
-            r = q / 1e6
-            emb = interpolate_embedding(self._e_prompt, self._e_null, r)
-            original = self.originals[view]
-            hit = np.asarray(self.editor.edit(original, original, emb,
-                                              view_key(self._run_key, view,
-                                                       0.0 if self.common_noise else r, 0),
-                                              timestep_range=self.timestep_range,
-                                              guidance=self.guidance), np.float32)
-            self._images[key] = hit
-            self.editor_calls += 1
-        return hit
+        self._edit(q, [view])
+        return self._images[(q, int(view))]
 
     def __call__(self, r_a: float, r_b: float) -> float:
         """d(r_a, r_b) >= 0, symmetric, d(r, r) = 0."""
@@ -236,6 +241,8 @@ class DifficultyOracle:
             return 0.0
         hit = self._pairs.get((qa, qb))
         if hit is None:
+            for q in (qa, qb):  # every view of a ratio in one go: the editor may batch them
+                self._edit(q, self.views)
             ds = [float(self.distance(self.edited(qa / 1e6, k), self.edited(qb / 1e6, k)))
                   for k in self.views]
             hit = float(np.sum(ds) if self.reduction == "sum" else np.mean(ds))

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import DataError
 from .buffer import EditJob, Utilisation, make_source, view_order
-from .editors import interpolate_embedding
+from .editors import edit_views, interpolate_embedding
 from .keys import edit_key
 from .outputs import Renderer
 from .plan import ProEditConfig, SubtaskSpec, anneal_horizon, anneal_timestep, subtask_guard
@@ -243,14 +243,17 @@ class EditContext:
         object.__setattr__(self, "e_null", np.asarray(self.editor.encode("")))
 
 
-def make_edit_fn(ctx: EditContext, spec: SubtaskSpec,
-                 horizon: int) -> Callable[[EditJob, Any], np.ndarray]:
-    """``(job, scene) -> edited view`` of subtask ``spec``: render the view, edit it with e(r).
+def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
+        Callable[[EditJob, Any], Any], Callable[[list[EditJob], Any], list]]:
+    """``(edit_one(job, scene) -> view, edit_many(jobs, scene) -> views)`` of subtask ``spec``:
+    render the views, edit them with e(r).
 
     The editor sees ``image`` = the current render, ``original`` = the original
     photo, embedding e(r); the key is :func:`edit_key` of (run key | subtask, view, iteration);
     the timestep follows HiFA's annealing over ``horizon`` steps after the warm-up
     (:func:`anneal_horizon`; IN2N mode: the fixed range, from which the editor draws).
+    ``edit_many`` takes jobs of one step (one timestep) and edits them in the editor's
+    batches (:func:`jaxedit.edit.editors.edit_views`).
     """
     cfg = ctx.config
     ratio = 0.0 if spec.kind == "refine" else spec.ratio
@@ -260,21 +263,26 @@ def make_edit_fn(ctx: EditContext, spec: SubtaskSpec,
     # The original photos once on the editor's device (the default one when it has none).
     originals = jax.device_put(ctx.data.train_images, ctx.editor_device)
 
-    def edit_fn(job: EditJob, scene):
-        camera = ctx.data.train_cameras[job.view]
-        # A device array where the scene is (the editor's device in async mode): an editor
-        # in JAX takes it as it is; the torch reference copies it to its own device.
-        render = renderer(scene, camera).rgb
+    def t_range(step: int) -> tuple[float, float]:
         if cfg.mode == "in2n":
-            t_range = tuple(cfg.timestep_range)
-        else:
-            t = anneal_timestep(job.step, horizon, *cfg.timestep_range)
-            t_range = (t, t)
-        key = edit_key(sub_key, job.view, job.iteration)
-        return ctx.editor.edit(render, originals[job.view], embedding, key,
-                               timestep_range=t_range, guidance=tuple(cfg.guidance))
+            return tuple(cfg.timestep_range)
+        t = anneal_timestep(step, horizon, *cfg.timestep_range)
+        return (t, t)
 
-    return edit_fn
+    def edit_many(jobs: list[EditJob], scene) -> list:
+        if len({job.step for job in jobs}) != 1:
+            raise ValueError("edit_many takes the jobs of one step")
+        # Device arrays where the scene is (the editor's device in async mode): an editor
+        # in JAX takes them as they are; the torch reference copies them to its own device.
+        renders = [renderer(scene, ctx.data.train_cameras[job.view]).rgb for job in jobs]
+        return edit_views(ctx.editor, renders, [originals[job.view] for job in jobs], embedding,
+                          [edit_key(sub_key, job.view, job.iteration) for job in jobs],
+                          timestep_range=t_range(jobs[0].step), guidance=tuple(cfg.guidance))
+
+    def edit_one(job: EditJob, scene):
+        return edit_many([job], scene)[0]
+
+    return edit_one, edit_many
 
 
 def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) -> DriverState:
@@ -476,9 +484,10 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     key_sub = jax.random.fold_in(ctx.key, spec.index)
     order = view_order(n, jax.random.fold_in(key_sub, _ORDER))
     horizon = anneal_horizon(cfg, warmup)
+    edit_one, edit_many = make_edit_fns(ctx, spec, horizon)
     # Room for two chunks' worth of edits, so a fast editor is never held up between
     # the trainer's collections.
-    source = make_source(make_edit_fn(ctx, spec, horizon), order, asynchronous=cfg.asynchronous,
+    source = make_source(edit_one, order, asynchronous=cfg.asynchronous, edit_many=edit_many,
                          every=cfg.edit_every, initial_sweep=cfg.initial_sweep,
                          device=ctx.editor_device, capacity=2 * CHUNK,
                          trainer_device=next(iter(st.images.devices())))

@@ -10,6 +10,10 @@ current render of a view, ``original`` the original photo of that view (IP2P
 conditions on it). ``timestep_range`` is (t_min, t_max) as fractions of the
 diffusion schedule in [0, 1] (the paper: 0.45-0.85, annealed by the driver);
 ``guidance`` is (text_scale, image_scale).
+
+An editor that can edit several views in one call (the JAX InstructPix2Pix) also has
+``edit_many(images, originals, embeddings, keys, ...)`` and ``batch``, its most views per
+call; :func:`edit_views` uses it wherever several views are due at once.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 from typing import Any, Protocol, runtime_checkable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -41,3 +46,31 @@ def interpolate_embedding(e_prompt, e_null, ratio: float):
     if tuple(e_prompt.shape) != tuple(e_null.shape):
         raise ValueError(f"embedding shapes differ: {tuple(e_prompt.shape)} vs {tuple(e_null.shape)}")
     return ratio * e_prompt + (1.0 - ratio) * e_null
+
+
+def edit_views(editor, images, originals, embedding, keys, *,
+               timestep_range: tuple[float, float] = (0.02, 0.98),
+               guidance: tuple[float, float] = (7.5, 1.5)) -> list:
+    """Edit views [B] with their keys [B]: ``editor.edit_many`` in chunks of
+    ``editor.batch`` where the editor has it, else one ``edit`` per view.
+
+    ``images``, ``originals``: [B, H, W, 3] (or sequences of [H, W, 3]); ``embedding``
+    one [...] for all views; ``keys``: B typed keys. Returns B edited views (each as
+    ``edit`` returns it), in order. One view per call gives ``edit``'s own result,
+    so an editor without ``edit_many``, or with ``batch`` 1, edits exactly as before.
+    """
+    count = len(images)
+    batch = int(getattr(editor, "batch", 1)) if hasattr(editor, "edit_many") else 1
+    if batch <= 1 or count == 1:
+        return [editor.edit(images[i], originals[i], embedding, keys[i],
+                            timestep_range=timestep_range, guidance=guidance)
+                for i in range(count)]
+    out = []
+    for lo in range(0, count, batch):
+        hi = min(lo + batch, count)
+        edited = editor.edit_many(jnp.stack([jnp.asarray(x) for x in images[lo:hi]]),
+                                  jnp.stack([jnp.asarray(x) for x in originals[lo:hi]]),
+                                  embedding, jnp.stack(list(keys[lo:hi])),
+                                  timestep_range=timestep_range, guidance=guidance)
+        out += [edited[i] for i in range(hi - lo)]
+    return out

@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["DiffusionSchedule", "EditConfig", "JaxIP2PEditor", "Networks", "decode",
            "denoise", "draw_noise", "edit_batch", "edit_with_noise", "encode_latents",
-           "load_editor", "resize_images"]
+           "default_batch", "load_editor", "resize_images"]
 
 #: Name of the mesh axis a batch of views is sharded along.
 VIEWS = "views"
@@ -274,6 +274,9 @@ class JaxIP2PEditor:
       devices: the editor's devices (default: the first JAX device); several shard batches.
       size: model resolution of the longer side (multiple of 8; None keeps the view's size).
       steps: DDIM steps from T to 0.
+      batch: most views per :meth:`edit_many` call when several are due at once (a
+        subtask's initial sweep, the difficulty's views; :func:`jaxedit.edit.edit_views`).
+        Default: :func:`default_batch` of the devices.
     """
 
     name = "ip2p"
@@ -282,8 +285,12 @@ class JaxIP2PEditor:
                  schedule: DiffusionSchedule, *, prediction_type: str = "epsilon",
                  clip_sample: float | None = None, scaling_factor: float = 0.18215,
                  devices: Sequence[jax.Device] | None = None,
-                 size: int | None = 512, steps: int = 20, source: str = ""):
+                 size: int | None = 512, steps: int = 20, source: str = "",
+                 batch: int | None = None):
         self.devices = list(devices) if devices else [jax.devices()[0]]
+        self.batch = default_batch(self.devices) if batch is None else int(batch)
+        if self.batch < 1:
+            raise DataError("batch", f"must be >= 1, got {batch}")
         self.dtype = _float_dtype(unet)
         if size is not None and size % 8:
             raise DataError("size", f"model size {size} is not a multiple of 8")
@@ -308,7 +315,8 @@ class JaxIP2PEditor:
 
     @classmethod
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, devices=None,
-                        dtype=None, size: int | None = 512, steps: int = 20) -> "JaxIP2PEditor":
+                        dtype=None, size: int | None = 512, steps: int = 20,
+                        batch: int | None = None) -> "JaxIP2PEditor":
         """Load a local diffusers folder (or a Hub id in the local cache) into JAX, no torch.
 
         ``path`` as :func:`jaxedit.edit.diffusion.resolve_weights`; the scheduler config is
@@ -328,14 +336,14 @@ class JaxIP2PEditor:
                      prediction_type=str(models.scheduler.prediction_type),
                      clip_sample=settings["clip_sample"],
                      scaling_factor=float(models.vae.scaling_factor), devices=devices,
-                     size=size, steps=steps, source=str(root))
-        log.info("InstructPix2Pix (JAX) loaded from %s on %s (%s), size %s, %d DDIM steps", root,
-                 editor.devices, editor.dtype, size, steps)
+                     size=size, steps=steps, source=str(root), batch=batch)
+        log.info("InstructPix2Pix (JAX) loaded from %s on %s (%s), size %s, %d DDIM steps, "
+                 "batches of %d", root, editor.devices, editor.dtype, size, steps, editor.batch)
         return editor
 
     def __repr__(self):
         return (f"JaxIP2PEditor({self.source!r}, devices={self.devices}, dtype={self.dtype}, "
-                f"size={self.size}, steps={self.steps})")
+                f"size={self.size}, steps={self.steps}, batch={self.batch})")
 
     def config(self, guidance=(7.5, 1.5)) -> EditConfig:
         return EditConfig(steps=self.steps, prediction_type=self.prediction_type,
@@ -421,8 +429,21 @@ class JaxIP2PEditor:
         """What a run log / report records about this editor."""
         return {"editor": self.name, "framework": "jax", "weights": self.source,
                 "devices": [str(d) for d in self.devices], "dtype": self.dtype,
-                "size": self.size, "steps": self.steps, "clip_sample": self.clip_sample,
+                "size": self.size, "steps": self.steps, "batch": self.batch,
+                "clip_sample": self.clip_sample,
                 "prediction_type": self.prediction_type}
+
+
+#: Views per device in one edit on an accelerator (512 px, bf16: a few GB of activations
+#: with the three guidance branches; one view leaves an H100 mostly idle).
+ACCELERATOR_BATCH = 8
+
+
+def default_batch(devices: Sequence[jax.Device]) -> int:
+    """Views per :meth:`JaxIP2PEditor.edit_many` call: :data:`ACCELERATOR_BATCH` per
+    accelerator; one per CPU device (a batch there costs memory and saves little time)."""
+    per_device = 1 if devices[0].platform == "cpu" else ACCELERATOR_BATCH
+    return per_device * len(devices)
 
 
 def _float_dtype(module) -> str:
@@ -433,9 +454,10 @@ def _float_dtype(module) -> str:
 
 
 def load_editor(path: str | os.PathLike = DEFAULT_MODEL, *, devices=None, dtype=None,
-                size: int | None = 512, steps: int = 20) -> JaxIP2PEditor:
+                size: int | None = 512, steps: int = 20,
+                batch: int | None = None) -> JaxIP2PEditor:
     """Factory for the CLI (``--editor ip2p --ip2p-weights DIR``):
     :meth:`JaxIP2PEditor.from_pretrained`."""
     return JaxIP2PEditor.from_pretrained(path, devices=devices, dtype=dtype, size=size,
-                                         steps=steps)
+                                         steps=steps, batch=batch)
 

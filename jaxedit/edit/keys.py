@@ -1,12 +1,11 @@
 """Seeding of edits: the ``jax.random`` key of every editor call, derived from a run's key.
 
 Every function that turns (run key, view, ratio, iteration) into the key of one edit lives
-here, so that the parts that need such keys (the difficulty oracle, the simulated editor's
-``edit_views``, the ProEdit driver) depend on this scheme and not on one another or on one
-particular editor:
+here, so that the parts that need such keys (the difficulty oracle, the ProEdit driver)
+depend on this scheme and not on one another or on one particular editor:
 
 * :func:`view_key`: the key of an edit of a view at a subtask ratio (the difficulty oracle's
-  memoised edits, :func:`jaxedit.edit.simulated.edit_views`);
+  memoised edits);
 * :func:`edit_key`: the key of the driver's edits within a subtask, from the subtask's edit
   stream;
 * :func:`quantize_ratio`: the integer a ratio enters keys and memo tables as.

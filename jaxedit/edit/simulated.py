@@ -130,7 +130,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
@@ -138,7 +137,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from .keys import view_key
 from .simulated_targets import (BULGE_MAX, MAX_MODES, _MODE_ASPECTS, _blur, _bulge, _sample,
                                 _target_family, foreground)
 
@@ -627,16 +625,3 @@ class SimulatedEditor:
                                jnp.asarray([t0, t1], jnp.float32), jnp.float32(gscale),
                                self._points(original), kind=kind, params=self.params)
         return np.asarray(out), int(mode)
-
-
-def edit_views(editor, images: Sequence, originals: Sequence, embedding, run_key, ratio: float,
-               iteration: int = 0, *, view_indices: Sequence[int] | None = None,
-               timestep_range=(0.02, 0.98), guidance=(7.5, 1.5)) -> np.ndarray:
-    """Edit several views with per-view keys ``view_key(run_key, k, ratio, iteration)``.
-
-    Returns float32 [N, H, W, 3]. Works with any :class:`Editor`.
-    """
-    idx = range(len(images)) if view_indices is None else view_indices
-    return np.stack([editor.edit(img, orig, embedding, view_key(run_key, k, ratio, iteration),
-                                 timestep_range=timestep_range, guidance=guidance)
-                     for k, img, orig in zip(idx, images, originals)])
