@@ -379,6 +379,26 @@ def test_torch_bin_checkpoint_loads_without_running_code(tiny, tmp_path, models)
         load_module(folder, CLIPTextEncoder.from_config, prefix="text_model.")
 
 
+@pytest.mark.parametrize("batch, h, w, c_in, c_out, kernel, stride, padding", [
+    (3, 2, 2, 16, 8, 3, 1, 1),    # SD's lowest UNet level at 128 px
+    (2, 4, 3, 8, 8, 3, 2, 1),     # a downsampling conv, odd width
+    (1, 3, 3, 8, 4, 1, 1, 0),     # a 1x1 projection
+    (2, 5, 3, 4, 4, 3, 2, 0),     # no padding
+])
+def test_small_maps_convolve_as_a_patch_matmul(batch, h, w, c_in, c_out, kernel, stride, padding):
+    """Maps of at most SMALL_CONV_POSITIONS positions take the patch-matmul path (XLA:CPU's
+    convolution is 18x slower than torch's there); it is the same convolution."""
+    from jaxedit.models.layers import SMALL_CONV_POSITIONS, Conv2d
+
+    assert h * w <= SMALL_CONV_POSITIONS
+    conv = Conv2d.init(jax.random.key(0), c_in, c_out, kernel, stride=stride, padding=padding)
+    x = jax.random.normal(jax.random.key(1), (batch, h, w, c_in))
+    want = jax.lax.conv_general_dilated(x, conv.weight, (stride, stride),
+                                        ((padding, padding), (padding, padding)),
+                                        dimension_numbers=("NHWC", "HWIO", "NHWC")) + conv.bias
+    np.testing.assert_allclose(conv(x), want, rtol=1e-5, atol=1e-5)
+
+
 def test_torch_checkpoint_reader_rebuilds_views_and_dtypes(tmp_path):
     """Transposed and offset views of a shared storage, fp16, bf16 (widened to fp32), ints,
     empty tensors: each as torch holds it."""
