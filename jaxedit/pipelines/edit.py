@@ -34,6 +34,7 @@ from ..edit.outputs import Renderer
 from ..edit.plan import ProEditConfig, SubtaskSpec
 from ..edit.trainer import TrainSettings
 from ..errors import DataError
+from ..io import load_ply
 from ..io.files import atomic_write_text
 from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
 
@@ -123,8 +124,6 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     else:
         start_ratio, start_scene, images = 0.0, gaussians, None
         if resume_from is not None:
-            from ..io import load_ply
-
             snap = Path(resume_from)
             start_ratio = snapshot_ratio(snap)
             start_scene = load_ply(snap / "scene.ply")
@@ -136,11 +135,11 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                                    start_ratio=start_ratio, log=log,
                                    resumed_from=None if resume_from is None else str(resume_from))
         st = init_state(ctx, start_scene, images)
-        if run_dir is not None:
-            write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
     if config.subtask_steps is not None and len(config.subtask_steps) != len(plan):
         raise DataError("subtask_steps", f"{len(config.subtask_steps)} lengths for a plan of "
                                          f"{len(plan)} subtasks")
+    if run_dir is not None and not resume:
+        write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
 
     def save(state):
         if ckpt is not None:
