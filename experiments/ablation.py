@@ -25,8 +25,6 @@ def _config_flags():
 
 #: The command's flags, generated from :class:`jaxedit.pipelines.ablation.AblationConfig`.
 FLAGS = (_config_flags(),)
-#: Library arguments named unlike their flags (for error messages).
-FIELD_FLAGS = {"out": "--out"}
 
 
 def add_arguments(p) -> None:
