@@ -26,7 +26,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-from ..edit import progressive as P
+from ..edit import progressive
 from ..edit.buffer import pick_devices
 from ..edit.checkpoint import load_checkpoint, save_checkpoint
 from ..edit.driver import EditContext, EditData, finish_subtask, init_state, run_subtask
@@ -106,7 +106,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     if not str(prompt).strip() and config.mode != "in2n":
         raise DataError("prompt", "empty instruction")
     run_dir = None if run_dir is None else Path(run_dir)
-    trainer = P.make_trainer(config, settings or TrainSettings(), data, gaussians)
+    trainer = progressive.make_trainer(config, settings or TrainSettings(), data, gaussians)
     _, editor_device = pick_devices()
     ctx = EditContext(editor, prompt, data, config, trainer, Renderer(config.background),
                       jax.random.key(seed), editor_device)
@@ -131,9 +131,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
                                for i in range(len(data.train_images))])
             log(f"continuing from {snap} (r = {start_ratio:.3f})")
-        plan, header = P.plan_edit(ctx, gaussians, seed=seed, distance=distance,
-                                   start_ratio=start_ratio, log=log,
-                                   resumed_from=None if resume_from is None else str(resume_from))
+        plan, header = progressive.plan_edit(
+            ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio, log=log,
+            resumed_from=None if resume_from is None else str(resume_from))
         st = init_state(ctx, start_scene, images)
     if config.subtask_steps is not None and len(config.subtask_steps) != len(plan):
         raise DataError("subtask_steps", f"{len(config.subtask_steps)} lengths for a plan of "
@@ -149,7 +149,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
 
     def write_schedule(state):
         if run_dir is not None:
-            _write_json(run_dir / "schedule.json", P.schedule_json(header, plan, state.records))
+            _write_json(run_dir / "schedule.json",
+                        progressive.schedule_json(header, plan, state.records))
             save(state)
 
     def context_of(spec):
@@ -166,8 +167,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                                progress=progress)
         g = trainer.gaussians(st.train)
         alive = int(g.num_alive())
-        record = P.subtask_record(spec, info, alive)
-        for warning in P.subtask_warnings(ctx, spec, info, alive):
+        record = progressive.subtask_record(spec, info, alive)
+        for warning in progressive.subtask_warnings(ctx, spec, info, alive):
             log(warning)
         if run_dir is not None:
             rel = Path("subtasks") / spec.dirname
@@ -176,7 +177,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         st = finish_subtask(st, record)
         write_schedule(st)
 
-    metrics = P.final_metrics(ctx, st, plan, time.perf_counter() - wall0)
+    metrics = progressive.final_metrics(ctx, st, plan, time.perf_counter() - wall0)
     if run_dir is not None:
         _write_json(run_dir / "metrics.json", metrics)
         if select is not None:
@@ -185,5 +186,5 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             from .report import write_report
 
             write_report(run_dir)
-    return {"schedule": P.schedule_json(header, plan, st.records), "metrics": metrics,
+    return {"schedule": progressive.schedule_json(header, plan, st.records), "metrics": metrics,
             "gaussians": trainer.gaussians(st.train)}
