@@ -12,9 +12,9 @@ converting torch's layout. A missing, unexpected or mis-shaped tensor is a one-l
 Weights files, per sub-folder, in order of preference: ``model.safetensors`` /
 ``diffusion_pytorch_model.safetensors``, then their ``.fp16.safetensors`` variants
 (converted to the requested dtype), read by :func:`jaxedit.io.weights.read_safetensors`;
-then legacy torch ``.bin`` checkpoints (``diffusion_pytorch_model.bin``, ``pytorch_model.bin``), read by a
-restricted unpickler that rebuilds tensors as NumPy arrays and refuses anything else (a
-pickle can run code).
+then legacy torch ``.bin`` checkpoints (``diffusion_pytorch_model.bin``,
+``pytorch_model.bin``), read by a restricted unpickler that rebuilds tensors as NumPy
+arrays and refuses anything else (a pickle can run code).
 """
 
 from __future__ import annotations

@@ -53,8 +53,6 @@ def prepared_scene(out: Path, scene: str, *, size: int, views: int, test_views: 
         return dataset, None, {}
     if not (recon_dir / "scene.ply").exists():
         log(f"reconstructing {scene} ({config.train.iterations} steps)")
-        recon.reconstruct(dataset, recon_dir, config.train, seed=seed,
-                          checkpoint_every=config.checkpoint_every, log_every=config.log_every,
-                          random_points=config.random_points)
+        recon.run_loaded(dataset, recon_dir, config, seed=seed)
     metrics = json.loads((recon_dir / "metrics.json").read_text())
     return dataset, load_ply(recon_dir / "scene.ply"), metrics

@@ -103,7 +103,13 @@ def run(data_path, out, config: ReconstructConfig, *, seed: int = 0, resume: boo
         progress: Callable | None = None) -> dict:
     """Read the dataset at ``data_path`` and reconstruct it into ``out`` (see
     :func:`reconstruct`); returns the metrics."""
-    data = load_dataset(data_path, config)
+    return run_loaded(load_dataset(data_path, config), out, config, seed=seed, resume=resume,
+                      progress=progress)
+
+
+def run_loaded(data, out, config: ReconstructConfig, *, seed: int = 0, resume: bool = False,
+               progress: Callable | None = None) -> dict:
+    """:func:`run` of a dataset already read by :func:`load_dataset` with ``config``."""
     return reconstruct(data, out, config.train, seed=seed, resume=resume,
                        checkpoint_every=config.checkpoint_every, log_every=config.log_every,
                        random_points=config.random_points, progress=progress)

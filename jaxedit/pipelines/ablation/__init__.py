@@ -196,9 +196,9 @@ class AblationConfig:
 
     def settings_json(self, kinds: dict[str, str], recon_seed: int) -> dict:
         """ablation.json's ``settings``: what a resumed run must match."""
-        editors = [_variant_label(*parse_variant(v)) for v in self.variants]
+        rows = self.rows_of()
         return {"scenes": list(self.scenes), "prompts": list(self.prompts), "seeds": self.seeds,
-                "variants": editors, "methods": self.rows_of(),
+                "variants": list(rows), "methods": rows,
                 "size": self.size, "views": self.views, "test_views": self.test_views,
                 "recon_iters": self.recon_iters, "refine_every": self.refine_every,
                 "max_steps": self.max_steps, "warmup": self.warmup, "patience": self.patience,
