@@ -12,13 +12,17 @@ Gaussian that would drop its transmittance below 1e-4.
   caller's jit/vmap pass ``max_intersections`` and check ``out.overflow``.
 * ``render_tiles(..., capacity=n)``: the pure jittable core.
 * ``next_capacity(needed)``: the buffer size ladder (for callers that manage it).
+* ``accumulate_weights(gaussians, camera, values)`` (oracle:
+  ``accumulate_weights_reference``): per Gaussian, sum over pixels of its blending
+  weight T_i alpha_i times per-pixel values [H, W, F] -> [C, F] (relevance lifting).
 
 The 2D-mean gradient (``means2d_delta``) times (W/2, H/2) is INRIA's NDC
 densification statistic.
 """
 
-from .reference import render_reference
-from .render import next_capacity, render, render_tiles
+from .reference import accumulate_weights_reference, render_reference
+from .render import accumulate_weights, next_capacity, render, render_tiles
 from .types import RenderOutput
 
-__all__ = ["RenderOutput", "next_capacity", "render", "render_reference", "render_tiles"]
+__all__ = ["RenderOutput", "accumulate_weights", "accumulate_weights_reference", "next_capacity",
+           "render", "render_reference", "render_tiles"]

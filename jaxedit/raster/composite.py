@@ -320,3 +320,62 @@ def _composite_bwd(width, height, tile, block, res, cts):
 
 
 composite.defvjp(_composite_fwd, _composite_bwd)
+
+
+# --------------------------------------------------------------------------------------
+# Per-Gaussian accumulation of blending weights (no gradient: relevance lifting)
+# --------------------------------------------------------------------------------------
+
+def _weigh_block(xs):
+    """One block: per pair, sum over its tile's pixels of w_i(p) v_j(p), [K, NB, F].
+
+    The blend of :func:`_blend` (same alpha, transmittance and INRIA stop rule), but
+    what it sums per pair instead of per pixel is the pair's weight w = T alpha times
+    the per-pixel values.
+    """
+    m, con, op, px, py, carry, vals = xs  # vals [NB, P, F]
+    nf = vals.shape[-1]
+
+    def step(t, x):
+        mk, ck, ok = x
+        alpha = _alpha(mk, ck, ok, px, py)[4]
+        t_after = t * (1.0 - alpha)
+        w = jnp.where(t_after >= T_MIN, alpha * t, 0.0)
+        return t_after, jnp.stack([jnp.sum(w * vals[..., j], -1) for j in range(nf)], -1)
+
+    _, sums = jax.lax.scan(step, carry, (m, con, op))
+    return sums
+
+
+def accumulate_weights(means2d, conics, opacities, values, gids, tile_of, first, width, height,
+                       tile, block=BLOCK_ELEMENTS):
+    """Per Gaussian, sum over pixels of its blending weight times per-pixel values.
+
+    Args:
+      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C] (0 for culled).
+      values: float [H, W, F], per-pixel values v (e.g. a mask and ones).
+      gids, tile_of, first: the chunk layout from :func:`make_chunks`.
+      width, height, tile, block: as :func:`composite`.
+    Returns:
+      float [C, F]: sum_p T_i(p) alpha_i(p) v(p) (0 for Gaussians not drawn).
+    """
+    tiles_x, tiles_y = grid_shape(width, height, tile)
+    num_tiles = tiles_x * tiles_y
+    c = means2d.shape[0]
+    nb = layout_blocks(gids, tile, block)
+    px, py = _pixel_centres(tile_of, tiles_x, tile, means2d.dtype)
+    feats = jnp.zeros((c, 1), means2d.dtype)
+    m, con, op, _ = _block_params(means2d, conics, opacities, feats, gids, nb)
+    pxb, pyb = _blocks(px, nb), _blocks(py, nb)
+    used = _used_blocks(tile_of, nb, num_tiles)
+    prod = _map_used(_local_products, (m, con, op, pxb, pyb), used, jnp.ones_like(pxb))
+    carry = _seg_scan(prod.reshape(px.shape), first, jnp.multiply, 1.0)
+    t = image_to_tiles(jnp.asarray(values, means2d.dtype), width, height, tile)
+    vals = jnp.concatenate([t, jnp.zeros_like(t[:1])], 0)[tile_of]  # [NC, P, F]
+    nf = vals.shape[-1]
+    init = jnp.zeros(m.shape[:3] + (nf,), means2d.dtype)
+    sums = _map_used(_weigh_block, (m, con, op, pxb, pyb, _blocks(carry, nb), _blocks(vals, nb)),
+                     used, init)  # [nb, K, NB, F]
+    gb = jnp.swapaxes(_blocks(gids, nb), 1, 2)
+    seg = jnp.where(gb >= 0, gb, c).reshape(-1)
+    return jax.ops.segment_sum(sums.reshape(-1, nf), seg, num_segments=c + 1)[:c]

@@ -128,3 +128,38 @@ def render_reference(gaussians: Gaussians, camera: Camera, *, background=None,
         return jax.vmap(lambda cam, d: fn(gaussians, cam, bg, near=near, far=far, means2d_delta=d),
                         in_axes=(0, d_axis))(camera, means2d_delta)
     return fn(gaussians, camera, bg, near=near, far=far, means2d_delta=means2d_delta)
+
+
+@jax.jit
+def _weights_one(gaussians, camera, values, near, far):
+    proj = P.project(gaussians, camera, sh_degree=0, near=near, far=far)
+    order = jnp.argsort(jnp.where(proj.visible, proj.depths, jnp.inf), stable=True)
+    m2, con, op = proj.means2d[order], proj.conics[order], proj.opacities[order]
+    width, height = camera.width, camera.height
+    vals = values.reshape(width * height, -1)
+    alpha = pixel_alpha(m2[None], con[None], op[None],
+                        (jnp.arange(width * height) % width).astype(m2.dtype)[:, None] + 0.5,
+                        (jnp.arange(width * height) // width).astype(m2.dtype)[:, None] + 0.5)
+    t_after = jnp.cumprod(1.0 - alpha, axis=-1)  # [P, C]
+    t_before = jnp.concatenate([jnp.ones_like(t_after[:, :1]), t_after[:, :-1]], -1)
+    w = jnp.where(t_after >= P.T_MIN, alpha * t_before, 0.0)
+    sums = P.matmul_exact(w.T, vals)  # [C, F], depth order
+    return jnp.zeros_like(sums).at[order].set(sums)
+
+
+def accumulate_weights_reference(gaussians: Gaussians, camera: Camera, values, *,
+                                 near: float = 0.01, far: float = 1e10) -> jax.Array:
+    """Dense oracle of :func:`jaxedit.raster.render.accumulate_weights` (same signature).
+
+    Args:
+      gaussians: capacity C; camera: one Camera or a batch [B].
+      values: float [H, W, F] ([B, H, W, F] for a batch).
+    Returns:
+      float [C, F]: sum over views and pixels of T_i alpha_i v. Every pixel against
+      every Gaussian at once: small images only.
+    """
+    values = jnp.asarray(values, gaussians.means.dtype)
+    if camera.batch_shape:
+        return sum(_weights_one(gaussians, camera[i], values[i], near, far)
+                   for i in range(camera.batch_shape[0]))
+    return _weights_one(gaussians, camera, values, near, far)

@@ -244,3 +244,50 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
         log.warning("render: intersection buffer overflowed (%d > %d), re-rendering with %d",
                     need, cap, new)
         cap = new
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "sh_degree"))
+def _weights_one(gaussians, camera, values, near, far, *, capacity, sh_degree):
+    proj = P.project(gaussians, camera, sh_degree=sh_degree, near=near, far=far)
+    w, h = camera.width, camera.height
+    bins = B.bin_gaussians(proj, w, h, capacity, TILE)
+    tiles_x, tiles_y = B.grid_shape(w, h, TILE)
+    block = CP.block_elements(jax.default_backend())
+    gids, tile_of, first = CP.make_chunks(bins, tiles_x * tiles_y, capacity, TILE,
+                                          block_elements=block)
+    return CP.accumulate_weights(proj.means2d, proj.conics, proj.opacities, values, gids,
+                                 tile_of, first, w, h, TILE, block)
+
+
+def accumulate_weights(gaussians: Gaussians, camera: Camera, values, *, near: float = 0.01,
+                       far: float = 1e10) -> jax.Array:
+    """Per Gaussian, its alpha-blending weights times per-pixel values, summed over pixels
+    (and views): the splatter pass behind per-Gaussian relevance (no gradient).
+
+    Args:
+      gaussians: the scene, capacity C.
+      camera: one Camera, or a batch [B] (summed over the views, one at a time).
+      values: float [H, W, F] ([B, H, W, F] for a batch), per-pixel values v.
+    Returns:
+      float [C, F]: sum over views and pixels of T_i alpha_i v (INRIA's weights, the
+      ones the colour is blended with); 0 for dead or never-drawn Gaussians.
+    Outside a trace only (it sizes its own intersection buffer); the XLA compositor
+    on every platform.
+    """
+    values = jnp.asarray(values, gaussians.means.dtype)
+    if camera.batch_shape:
+        total = jnp.zeros((gaussians.capacity, values.shape[-1]), values.dtype)
+        for i in range(camera.batch_shape[0]):
+            total = total + accumulate_weights(gaussians, camera[i], values[i], near=near, far=far)
+        return total
+    if values.shape[:2] != (camera.height, camera.width) or values.ndim != 3:
+        raise DataError("values", f"need float [{camera.height}, {camera.width}, F], "
+                                  f"got {tuple(values.shape)}")
+    zero = jnp.zeros((gaussians.capacity, values.shape[-1]), values.dtype)
+    if gaussians.capacity == 0:
+        return zero
+    needed = int(_count(gaussians, camera, near, far, None, sh_degree=0, tile=TILE))
+    if needed == 0:
+        return zero
+    return _weights_one(gaussians, camera, values, near, far,
+                        capacity=next_capacity(needed), sh_degree=0)
