@@ -45,3 +45,113 @@ def test_per_gaussian_weights_match_the_dense_oracle():
     one = accumulate_weights(g, cams[0], jnp.ones((H, W, 1)))
     alpha = render(g, cams[0]).alpha
     np.testing.assert_allclose(float(one.sum()), float(alpha.sum()), rtol=1e-4)
+
+
+# ---------------------------------------------------------------------------
+# Relevance, regions, masks (item 1 and 3)
+# ---------------------------------------------------------------------------
+from jaxedit.edit import local as L  # noqa: E402
+from jaxedit.errors import DataError  # noqa: E402
+
+
+def test_relevance_mask_keeps_the_changed_blob_and_nothing_for_no_change():
+    d = np.zeros((2, 20, 24), np.float32)
+    d[0, 5:10, 6:12] = 3.0
+    m = np.asarray(L.relevance_mask(d))
+    assert m.shape == (2, 20, 24) and set(np.unique(m)) <= {0.0, 1.0}
+    assert m[0, 7, 9] == 1 and m[0, 0, 0] == 0 and m[0, 18, 20] == 0
+    assert not m[1].any()
+
+
+def test_lifted_relevance_is_the_weighted_mean_of_the_mask():
+    g = make_scene(0)
+    cams = make_cameras()
+    alive = np.asarray(g.alive)
+    ones = np.asarray(L.lift_relevance(g, cams, jnp.ones((2, H, W))))
+    drawn = np.asarray(accumulate_weights(g, cams, jnp.ones((2, H, W, 1))))[:, 0] > 1e-8
+    np.testing.assert_allclose(ones[drawn], 1.0, rtol=1e-5)
+    assert np.all(ones[~drawn] == 0) and np.all(ones[~alive] == 0)
+    half = np.zeros((2, H, W), np.float32)
+    half[:, :, : W // 2] = 1.0
+    rel = np.asarray(L.lift_relevance(g, cams, half))
+    assert np.all((rel >= 0) & (rel <= 1 + 1e-6)) and 0 < rel[drawn].mean() < 1
+
+
+def test_regions_parse_and_contain():
+    box = L.parse_region("box:-1,-1,-1,0,0,0")
+    ball = L.parse_region("sphere: 1, 1, 1, 0.5")
+    means = jnp.asarray([[-0.5, -0.5, -0.5], [1.2, 1.0, 1.0], [0.5, 0.5, 0.5]])
+    assert list(np.asarray(L.in_regions([box], means))) == [True, False, False]
+    assert list(np.asarray(L.in_regions([box, ball], means))) == [True, True, False]
+    assert np.asarray(L.in_regions([], means)).all()
+    for bad in ("cube:1,2,3", "box:1,2,3", "box:0,0,0,1,1,x", "box:1,0,0,0,1,1",
+                "sphere:0,0,0,0", "sphere:0,0,0,nan", "box"):
+        with pytest.raises(DataError):
+            L.parse_region(bad)
+
+
+def test_editable_refuses_an_empty_region_and_freezes_the_rest():
+    g = make_scene(0)
+    with pytest.raises(DataError, match="contains no Gaussian"):
+        L.editable(g, regions=[L.parse_region("sphere:50,50,50,1")])
+    ed = L.editable(g, regions=[L.parse_region("box:-10,-10,-10,0,10,10")])
+    frozen = np.asarray(L.frozen_of(g, ed))
+    x = np.asarray(g.means)[:, 0]
+    alive = np.asarray(g.alive)
+    assert np.array_equal(np.asarray(ed), alive & (x <= 0))
+    assert np.array_equal(frozen, alive & (x > 0))
+    with pytest.raises(DataError, match="relevance"):
+        L.editable(g, relevance=jnp.zeros(N))
+
+
+def test_masks_by_frame_name_and_their_bad_inputs(tmp_path):
+    from jaxedit.io.images import write_image
+
+    names = ["images/frame_00001.png", "images/frame_00002.png"]
+    d = tmp_path / "masks"
+    d.mkdir()
+    m = np.zeros((6, 8, 3), np.float32)
+    m[2:4, 3:6] = 1.0
+    write_image(d / "frame_00001.png", m)
+    with pytest.raises(DataError, match="no mask for frame 'frame_00002'"):
+        L.load_masks(d, names, (6, 8))
+    write_image(d / "frame_00002.png", np.zeros((6, 8, 3), np.float32))
+    masks = L.load_masks(d, names, (6, 8))
+    assert masks.shape == (2, 6, 8) and masks[0, 2, 3] == 1 and masks[1].sum() == 0
+    with pytest.raises(DataError, match="mask is 8x6 px, its view 10x6"):
+        L.load_masks(d, names, (6, 10))
+    with pytest.raises(DataError, match="empty"):
+        L.load_masks(d, names[1:], (6, 8))
+    with pytest.raises(DataError, match="not a folder"):
+        L.load_masks(tmp_path / "nope", names, (6, 8))
+
+
+def test_simulated_editor_relevance_follows_its_target():
+    from jaxedit.edit import SimulatedEditor
+    from jaxedit.edit.editors import relevance
+
+    ed = SimulatedEditor()
+    rng = np.random.default_rng(0)
+    original = rng.uniform(0, 1, (16, 20, 3)).astype(np.float32)
+    key = jax.random.key(0)
+    m = np.asarray(relevance(ed, original, original, ed.encode(ed.instructions[1]), key))
+    assert m.shape == (16, 20) and set(np.unique(m)) <= {0.0, 1.0} and m.any()
+    assert not np.asarray(relevance(ed, original, original, ed.encode(""), key)).any()
+    with pytest.raises(DataError, match="no relevance"):
+        relevance(object(), original, original, None, key)
+
+
+def test_jax_ip2p_relevance_one_batched_unet_call():
+    from ip2p_standins import standin_editor
+
+    from jaxedit.edit.editors import relevance
+
+    ed = standin_editor(size=32, steps=2)
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0, 1, (24, 20, 3)).astype(np.float32)
+    e = ed.encode("turn the bear into a panda")
+    a = np.asarray(relevance(ed, image, image, e, jax.random.key(3)))
+    b = np.asarray(relevance(ed, image, image, e, jax.random.key(3)))
+    assert a.shape == (24, 20) and np.array_equal(a, b) and a.any()
+    assert set(np.unique(a)) <= {0.0, 1.0}
+    assert not np.asarray(relevance(ed, image, image, ed.encode(""), jax.random.key(3))).any()

@@ -14,6 +14,10 @@ diffusion schedule in [0, 1] (the paper: 0.45-0.85, annealed by the driver);
 An editor that can edit several views in one call (the JAX InstructPix2Pix) also has
 ``edit_many(images, originals, embeddings, keys, ...)`` and ``batch``, its most views per
 call; :func:`edit_views` uses it wherever several views are due at once.
+
+Local edits (issue 35) ask an editor where an instruction acts: ``relevance(image,
+original, embedding, key, ...)`` -> float32 [H, W] mask in [0, 1]; :func:`relevance`
+calls it (for the JAX InstructPix2Pix, :func:`jaxedit.edit.ip2p_relevance.relevance`).
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ from typing import Any, Protocol, runtime_checkable
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ..errors import DataError
 
 
 @runtime_checkable
@@ -39,6 +45,28 @@ class Editor(Protocol):
         """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key`` (NumPy, or a
         JAX array on the editor's device: the JAX editor's result stays on the device)."""
         ...
+
+
+def relevance(editor, image, original, embedding, key: jax.Array, *,
+              timestep_range: tuple[float, float] = (0.02, 0.98),
+              guidance: tuple[float, float] = (7.5, 1.5)):
+    """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant).
+
+    ``editor.relevance`` where the editor has it; the JAX InstructPix2Pix's is
+    :func:`jaxedit.edit.ip2p_relevance.relevance`. An editor without one is a DataError
+    (``--local auto`` needs it; ``--region`` / ``--masks`` do not).
+    """
+    fn = getattr(editor, "relevance", None)
+    if fn is None and type(editor).__name__ == "JaxIP2PEditor":
+        from . import ip2p_relevance
+
+        return ip2p_relevance.relevance(editor, image, original, embedding, key,
+                                        timestep_range=timestep_range, guidance=guidance)
+    if fn is None:
+        raise DataError("--local", f"editor {getattr(editor, 'name', type(editor).__name__)!r} "
+                                   "gives no relevance map: use --local off with --region or "
+                                   "--masks")
+    return fn(image, original, embedding, key, timestep_range=timestep_range, guidance=guidance)
 
 
 def interpolate_embedding(e_prompt, e_null, ratio: float):

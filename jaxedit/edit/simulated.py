@@ -582,6 +582,22 @@ class SimulatedEditor:
         original = _as_image(original, "original")
         return original.copy() if i is None else self.target(original, r, i)
 
+    def relevance(self, image, original, embedding, key: jax.Array, *,
+                  timestep_range: tuple[float, float] = (0.02, 0.98),
+                  guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
+        """Where the instruction changes the view: float32 [H, W] in {0, 1}.
+
+        From the noise-free target: |target - original| (channel mean), normalised,
+        smoothed and thresholded (:func:`jaxedit.edit.local.relevance_mask`). ``image``,
+        ``key``, ``timestep_range`` and ``guidance`` are the protocol's; the target does
+        not depend on them.
+        """
+        from .local import relevance_mask
+
+        original = _as_image(original, "original")
+        target = self.target_of_embedding(original, embedding)
+        return np.asarray(relevance_mask(np.abs(target - original).mean(-1)))
+
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
              guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:

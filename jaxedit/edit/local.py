@@ -1,0 +1,214 @@
+"""Local edits (issue 35): what the instruction touches, per pixel and per Gaussian.
+
+* :func:`relevance_mask`: a per-view difference map (the editor's, e.g. |target - original|
+  or |eps(e) - eps(E(""))|) normalised, smoothed and thresholded into a mask.
+* :func:`lift_relevance`: each Gaussian's blending-weight mean of a mask over views (the
+  splatter pass :func:`jaxedit.raster.accumulate_weights`).
+* :func:`parse_region` / :func:`in_regions`: ``box:xmin,ymin,zmin,xmax,ymax,zmax`` and
+  ``sphere:cx,cy,cz,r`` in scene coordinates (a union of several).
+* :func:`load_masks`: one mask image per frame from a folder, matched by frame name.
+* :func:`editable`: the per-Gaussian ``editable`` mask these compose into; its complement
+  on the alive Gaussians is what the trainer freezes (:func:`frozen_of`).
+
+Every error is a :class:`jaxedit.errors.DataError` (one line, exit 2 on the CLI).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import DataError
+
+#: ``--local`` values: ``auto`` takes the editor's relevance (within any region/masks),
+#: ``off`` edits the whole scene (regions and masks still restrict it when given).
+LOCAL_MODES = ("auto", "off")
+#: A Gaussian is editable when its lifted relevance reaches this.
+GAUSSIAN_THRESHOLD = 0.5
+#: Extensions a mask file may have.
+MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
+
+
+# ---------------------------------------------------------------------------
+# Per-pixel relevance
+# ---------------------------------------------------------------------------
+def _blur(x, sigma: float):
+    """Separable Gaussian blur of float [B, H, W] (edges clamped)."""
+    if sigma <= 0:
+        return x
+    r = max(1, int(math.ceil(3 * sigma)))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    k = jnp.asarray(k / k.sum(), x.dtype)
+    pad = jnp.pad(x, ((0, 0), (r, r), (0, 0)), mode="edge")
+    x = sum(k[i] * pad[:, i:i + x.shape[1]] for i in range(2 * r + 1))
+    pad = jnp.pad(x, ((0, 0), (0, 0), (r, r)), mode="edge")
+    return sum(k[i] * pad[:, :, i:i + x.shape[2]] for i in range(2 * r + 1))
+
+
+def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
+    """A difference map turned into a relevance mask.
+
+    Args:
+      difference: float [H, W] or [B, H, W], >= 0 (how much the instruction changes a pixel).
+      sigma: blur in pixels; threshold: on the map normalised to [0, 1] per view.
+    Returns:
+      float32 of the input's shape, 1 where relevant, else 0 (all 0 for a view with no
+      difference).
+    """
+    d = jnp.asarray(difference, jnp.float32)
+    single = d.ndim == 2
+    d = d[None] if single else d
+    peak = jnp.max(d, axis=(1, 2), keepdims=True)
+    d = _blur(d / jnp.maximum(peak, 1e-12), sigma)
+    peak = jnp.max(d, axis=(1, 2), keepdims=True)
+    m = ((d >= threshold * peak) & (peak > 1e-6)).astype(jnp.float32)
+    return m[0] if single else m
+
+
+# ---------------------------------------------------------------------------
+# Lifting to the Gaussians
+# ---------------------------------------------------------------------------
+def lift_relevance(gaussians, cameras, masks) -> jax.Array:
+    """Each Gaussian's weighted mean of ``masks`` over the views it is drawn in.
+
+    Args:
+      gaussians: capacity C; cameras: a batch [B]; masks: float [B, H, W] in [0, 1].
+    Returns:
+      float32 [C]: sum_v,p w_i m / sum_v,p w_i (w_i = T_i alpha_i, the blending weights),
+      0 for Gaussians never drawn.
+    """
+    from ..raster import accumulate_weights
+
+    m = jnp.asarray(masks, jnp.float32)[..., None]
+    sums = accumulate_weights(gaussians, cameras, jnp.concatenate([m, jnp.ones_like(m)], -1))
+    return jnp.where(sums[:, 1] > 1e-8, sums[:, 0] / jnp.maximum(sums[:, 1], 1e-8), 0.0)
+
+
+# ---------------------------------------------------------------------------
+# Regions in scene coordinates
+# ---------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Region:
+    """A box (``values`` = xmin, ymin, zmin, xmax, ymax, zmax) or a sphere (cx, cy, cz, r)."""
+
+    kind: str
+    values: tuple[float, ...]
+
+    def spec(self) -> str:
+        return f"{self.kind}:" + ",".join(f"{v:g}" for v in self.values)
+
+
+_ARITY = {"box": 6, "sphere": 4}
+
+
+def parse_region(text: str, where: str = "--region") -> Region:
+    """``box:xmin,ymin,zmin,xmax,ymax,zmax`` or ``sphere:cx,cy,cz,r`` -> :class:`Region`."""
+    kind, sep, rest = str(text).partition(":")
+    kind = kind.strip().lower()
+    if not sep or kind not in _ARITY:
+        raise DataError(where, f"{text!r}: expected box:xmin,ymin,zmin,xmax,ymax,zmax or "
+                               "sphere:cx,cy,cz,r")
+    try:
+        values = tuple(float(v) for v in rest.split(","))
+    except ValueError:
+        raise DataError(where, f"{text!r}: the values must be numbers") from None
+    if len(values) != _ARITY[kind]:
+        raise DataError(where, f"{text!r}: {kind} takes {_ARITY[kind]} numbers, "
+                               f"got {len(values)}")
+    if not all(math.isfinite(v) for v in values):
+        raise DataError(where, f"{text!r}: the values must be finite")
+    if kind == "box" and not all(values[i] < values[i + 3] for i in range(3)):
+        raise DataError(where, f"{text!r}: each min must be below its max")
+    if kind == "sphere" and values[3] <= 0:
+        raise DataError(where, f"{text!r}: the radius must be positive")
+    return Region(kind, values)
+
+
+def in_regions(regions, means) -> jax.Array:
+    """bool [C]: the means [C, 3] inside the union of ``regions`` (all True for none)."""
+    means = jnp.asarray(means)
+    if not regions:
+        return jnp.ones(means.shape[:1], bool)
+    inside = jnp.zeros(means.shape[:1], bool)
+    for r in regions:
+        v = jnp.asarray(r.values, means.dtype)
+        if r.kind == "box":
+            inside |= jnp.all((means >= v[:3]) & (means <= v[3:]), -1)
+        else:
+            inside |= jnp.sum((means - v[:3]) ** 2, -1) <= v[3] ** 2
+    return inside
+
+
+# ---------------------------------------------------------------------------
+# Masks from a folder
+# ---------------------------------------------------------------------------
+def _mask_files(directory: Path) -> dict[str, Path]:
+    files: dict[str, Path] = {}
+    for p in sorted(directory.iterdir()):
+        if p.is_file() and p.suffix.lower() in MASK_SUFFIXES:
+            files.setdefault(p.stem, p)
+    return files
+
+
+def load_masks(directory, filenames, hw: tuple[int, int]) -> np.ndarray:
+    """One mask per frame, float32 [N, H, W] in [0, 1] (the mean of its channels).
+
+    ``filenames``: the frames' ``file_path`` strings (:attr:`jaxedit.io.nerfstudio.Dataset.
+    filenames`); frame ``images/frame_00001.png`` takes ``DIR/frame_00001.<png|jpg|...>``,
+    as nerfstudio's ``masks/`` folder names them. A missing folder or frame, a mask of
+    another size than its view ``hw`` = (H, W), or an all-zero mask set is a DataError.
+    """
+    from ..io.images import read_image
+
+    directory = Path(os.fspath(directory))
+    if not directory.is_dir():
+        raise DataError("--masks", f"{directory}: not a folder")
+    files = _mask_files(directory)
+    missing = [Path(f).stem for f in filenames if Path(f).stem not in files]
+    if missing:
+        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+        raise DataError("--masks", f"{directory}: no mask for frame {missing[0]!r}{more}")
+    out = np.zeros((len(filenames), *hw), np.float32)
+    for i, f in enumerate(filenames):
+        path = files[Path(f).stem]
+        img = read_image(path, background=(0.0, 0.0, 0.0))
+        if img.shape[:2] != tuple(hw):
+            raise DataError(path, f"mask is {img.shape[1]}x{img.shape[0]} px, its view "
+                                  f"{hw[1]}x{hw[0]}")
+        out[i] = np.asarray(img, np.float32).reshape(*hw, -1).mean(-1)
+    if not np.any(out > 0.5):
+        raise DataError("--masks", f"{directory}: every mask is empty (nothing to edit)")
+    return out
+
+
+# ---------------------------------------------------------------------------
+# The per-Gaussian editable mask
+# ---------------------------------------------------------------------------
+def editable(gaussians, *, regions=(), relevance=None,
+             threshold: float = GAUSSIAN_THRESHOLD) -> jax.Array:
+    """bool [C]: alive, inside the regions (if any) and relevant (if ``relevance`` [C]).
+
+    Raises a DataError when that leaves no Gaussian (a region that holds none, or no
+    Gaussian relevant enough).
+    """
+    inside = in_regions(regions, gaussians.means) & gaussians.alive
+    if regions and not bool(jnp.any(inside)):
+        raise DataError("--region", f"{' '.join(r.spec() for r in regions)}: contains no "
+                                    "Gaussian of the scene")
+    if relevance is not None:
+        inside &= jnp.asarray(relevance) >= threshold
+        if not bool(jnp.any(inside)):
+            raise DataError("--local", f"no Gaussian has a relevance of {threshold:g} or more "
+                                       "(inside the region)")
+    return inside
+
+
+def frozen_of(gaussians, editable_mask) -> jax.Array:
+    """bool [C]: the alive Gaussians outside ``editable_mask`` (what the trainer freezes)."""
+    return gaussians.alive & ~jnp.asarray(editable_mask, bool)
