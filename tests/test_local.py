@@ -155,3 +155,72 @@ def test_jax_ip2p_relevance_one_batched_unet_call():
     assert a.shape == (24, 20) and np.array_equal(a, b) and a.any()
     assert set(np.unique(a)) <= {0.0, 1.0}
     assert not np.asarray(relevance(ed, image, image, ed.encode(""), jax.random.key(3))).any()
+
+
+# ---------------------------------------------------------------------------
+# The trainer honours the frozen Gaussians (item 4)
+# ---------------------------------------------------------------------------
+def _densifying_state(frozen):
+    import dataclasses
+
+    from jaxedit import densify, train
+
+    g = make_scene(2)
+    g = dataclasses.replace(g, sh=jnp.concatenate([g.sh, jnp.zeros((N, 3, 3))], 1),
+                            alive=jnp.ones(N, bool))
+    from jaxedit.gaussians import grow
+
+    g = grow(g, 2 * N)
+    dens = densify.DensifyConfig(max_gaussians=2 * N, budget=True, budget_min_new=4,
+                                 refine_every=2, warmup=1, refine_from_warmup=True,
+                                 reset_every=3, cull_alpha=0.3, grad_floor=0.0,
+                                 stop_at=100)
+    cfg = train.TrainConfig(iterations=100, sh_degree=1, background="white", densify=dens,
+                            lr_sh_dc=0.05)
+    state = train.init_state(g, cfg, 1.0, max_intersections=8192)
+    if frozen is not None:
+        state = dataclasses.replace(state, frozen=jnp.asarray(frozen))
+    return state
+
+
+def test_frozen_gaussians_stay_bit_identical_and_new_ones_come_from_the_editable():
+    from jaxedit import train
+
+    cams = make_cameras()
+    target = jnp.full((H, W, 3), 0.2)
+    x = np.asarray(make_scene(2).means)[:, 0]
+    frozen = np.zeros(2 * N, bool)
+    frozen[:N] = x > 0
+    state = _densifying_state(frozen)
+    g0 = state.gaussians
+    created = culled = 0
+    for s in range(6):
+        state, m = train.step_with_retry(state, train.Batch(target, cams[s % 2]),
+                                         jax.random.key(s))
+        created += int(m["densify"]["created"])
+        culled += int(m["densify"]["culled"])
+        assert bool(m["densify"]["refined"]) or s % 2 == 1 or s == 0
+    g1 = state.gaussians
+    f = np.asarray(frozen)
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh", "alive"):
+        a, b = np.asarray(getattr(g0, name))[f], np.asarray(getattr(g1, name))[f]
+        assert np.array_equal(a, b), name  # bit-identical, still alive
+    editable = ~f & np.asarray(g0.alive)
+    assert not np.allclose(np.asarray(g0.sh)[editable], np.asarray(g1.sh)[editable])
+    assert created > 0 and culled > 0  # density control ran, on the editable part only
+    # (new Gaussians took freed or dead slots, never a frozen one: those are unchanged above)
+
+
+def test_without_frozen_the_step_is_unchanged():
+    from jaxedit import train
+
+    cams = make_cameras()
+    target = jnp.full((H, W, 3), 0.2)
+    a = _densifying_state(None)
+    b = _densifying_state(np.zeros(2 * N, bool))
+    for s in range(3):
+        a, _ = train.step_with_retry(a, train.Batch(target, cams[s % 2]), jax.random.key(s))
+        b, _ = train.step_with_retry(b, train.Batch(target, cams[s % 2]), jax.random.key(s))
+    for name in ("means", "sh", "opacity_logits", "alive"):
+        assert np.array_equal(np.asarray(getattr(a.gaussians, name)),
+                              np.asarray(getattr(b.gaussians, name))), name

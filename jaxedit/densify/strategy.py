@@ -320,15 +320,18 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
     def init(gaussians: Gaussians) -> DensifyStats:
         return init_stats(gaussians.capacity)
 
-    def refine(gaussians, opt_state, stats, step, key):
+    def refine(gaussians, opt_state, stats, step, key, frozen):
         n_alive0 = gaussians.num_alive()
         culled = cull_mask(gaussians, stats, step, cull_alpha=cull_alpha, big_scale=big_scale,
-                           cull_screen=cull_screen, screen_from=screen_from)
+                           cull_screen=cull_screen, screen_from=screen_from) & ~frozen
         g = remove(gaussians, culled)
         n_alive1 = g.num_alive()
         t = None if budget is None else jnp.maximum(
             jnp.asarray(budget(stats.last_culled, n_alive0), jnp.int32), 0)
-        sel = select(stats, g.alive, floor=floor, budget=t, max_gaussians=max_gaussians)
+        # Frozen Gaussians are never candidates (no split, no clone): only the editable
+        # ones, and hence only their neighbourhood, get new Gaussians.
+        seen = stats._replace(count=jnp.where(frozen, 0, stats.count))
+        sel = select(seen, g.alive, floor=floor, budget=t, max_gaussians=max_gaussians)
         small = jnp.exp(jnp.max(g.log_scales, axis=-1)) <= dup_scale
         splits, dups = sel.selected & ~small, sel.selected & small
         g, second = split(g, splits, key, config.split_factor)
@@ -356,11 +359,11 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
             slots_needed=(n_alive1 + want_in_cap).astype(jnp.int32))
         return g, opt_state, new_stats, info
 
-    def skip(gaussians, opt_state, stats, step, key):
+    def skip(gaussians, opt_state, stats, step, key, frozen):
         return gaussians, opt_state, stats, _empty_info(gaussians.capacity, gaussians.num_alive())
 
     def update(gaussians: Gaussians, opt_state, stats: DensifyStats, aux: RenderAux | None,
-               step, key: jax.Array):
+               step, key: jax.Array, frozen: jax.Array | None = None):
         """One step of density control; see the module docstring.
 
         Args:
@@ -370,10 +373,14 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
           aux: this step's RenderAux, or None to accumulate nothing.
           step: int, 1-based optimiser step count.
           key: PRNG key (split children).
+          frozen: bool [C] or None: alive Gaussians never culled, split, cloned or
+            reset (a local edit's outside; None: none).
         Returns:
           (gaussians, opt_state, stats, info: DensifyInfo).
         """
         step = jnp.asarray(step, jnp.int32)
+        frozen = (jnp.zeros(gaussians.alive.shape, bool) if frozen is None
+                  else jnp.asarray(frozen, bool))
         if aux is not None:
             stats = accumulate(stats, aux)
         if from_warmup:
@@ -382,12 +389,14 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
             due = (step > warmup) & (step % refine_every == 0)
         due = due & (step <= stop_at)
         gaussians, opt_state, stats, info = jax.lax.cond(
-            due, refine, skip, gaussians, opt_state, stats, step, key)
+            due, refine, skip, gaussians, opt_state, stats, step, key, frozen)
         if reset_every > 0:
             do_reset = (step % reset_every == 0) & (step <= stop_at)
 
             def reset(g, o):
-                return opacity_reset(g, o, reset_value, clamp=True)
+                r, o = opacity_reset(g, o, reset_value, clamp=True)
+                return dataclasses.replace(r, opacity_logits=jnp.where(
+                    frozen, g.opacity_logits, r.opacity_logits)), o
 
             gaussians, opt_state = jax.lax.cond(do_reset, reset, lambda g, o: (g, o),
                                                 gaussians, opt_state)

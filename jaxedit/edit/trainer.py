@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax.numpy as jnp
+import numpy as np
 
 from ..background import background_name
 from ..densify import DensifyConfig
@@ -125,9 +126,12 @@ class SubtaskTrainer:
     """
 
     def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None,
-                 *, background=ProEditConfig.background):
+                 *, background=ProEditConfig.background, editable=None):
         """``num_input``: the input scene's Gaussian count, to resolve a cap left as None;
-        ``background``: the plan's (RGB)."""
+        ``background``: the plan's (RGB); ``editable``: bool [C0] over the input scene's
+        slots for a local edit (:func:`jaxedit.edit.local.editable`): the other alive
+        Gaussians are frozen (None: a global edit, nothing frozen)."""
+        self.editable = None if editable is None else np.asarray(editable, bool)
         if settings.densify.max_gaussians is None:
             if num_input is None:
                 raise DataError("max_gaussians", "unresolved: pass num_input or a cap")
@@ -153,14 +157,23 @@ class SubtaskTrainer:
             needed = max(int(render(gaussians, cameras[i]).num_intersections)
                          for i in range(len(cameras)))
             cap = next_capacity(max(int(needed * 1.5), 1024))
-        return train.init_state(gaussians, config, self.settings.scene_extent,
-                                max_intersections=cap)
+        state = train.init_state(gaussians, config, self.settings.scene_extent,
+                                 max_intersections=cap)
+        if self.editable is None:
+            return state
+        editable = np.zeros((gaussians.capacity,), bool)
+        editable[:len(self.editable)] = self.editable[:gaussians.capacity]
+        return dataclasses.replace(state, frozen=jnp.asarray(np.asarray(gaussians.alive)
+                                                             & ~editable))
 
     def restart(self, state):
         from .. import densify
 
         g, opt = densify.opacity_reset(state.gaussians, state.opt_state,
                                         self.settings.densify.cull_alpha)
+        if state.frozen is not None:  # a local edit's frozen Gaussians keep their opacity
+            g = dataclasses.replace(g, opacity_logits=jnp.where(
+                state.frozen, state.gaussians.opacity_logits, g.opacity_logits))
         strategy = densify.adaptive(state.config.densify, scene_extent=state.scene_extent,
                                     iterations=state.config.iterations)
         return dataclasses.replace(state, gaussians=g, opt_state=opt,

@@ -87,10 +87,20 @@ def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
             raise RuntimeError(f"capacity {state.capacity} cannot grow to hold {needed}")
         log.info("train: capacity %d -> %d Gaussians (density control needed %d, cap %d)",
                  state.capacity, new_cap, needed, cap)
-        g, opt_state, stats = dens.grow_state(state.gaussians, state.opt_state,
-                                               state.densify_stats, new_cap)
-        state = dataclasses.replace(state, gaussians=g, opt_state=opt_state, densify_stats=stats)
+        state = grown(state, new_cap)
     return state
+
+
+def grown(state: TrainState, capacity: int) -> TrainState:
+    """``state`` with ``capacity`` slots (outside jit): the new slots dead, zeroed and never
+    frozen."""
+    g, opt_state, stats = dens.grow_state(state.gaussians, state.opt_state,
+                                           state.densify_stats, capacity)
+    frozen = state.frozen
+    if frozen is not None and frozen.shape[0] < capacity:
+        frozen = jnp.concatenate([frozen, jnp.zeros((capacity - frozen.shape[0],), bool)])
+    return dataclasses.replace(state, gaussians=g, opt_state=opt_state, densify_stats=stats,
+                               frozen=frozen)
 
 
 #: On a capacity redo, the capacity grows to hold this many times the slots the step needed.
@@ -159,9 +169,7 @@ def plan_room(state: TrainState, room: float | None) -> TrainState:
         return state
     log.info("train: capacity %d -> %d Gaussians (room planned for density control)",
              state.capacity, new_cap)
-    g, opt_state, stats = dens.grow_state(state.gaussians, state.opt_state,
-                                           state.densify_stats, new_cap)
-    return dataclasses.replace(state, gaussians=g, opt_state=opt_state, densify_stats=stats)
+    return grown(state, new_cap)
 
 
 def step_with_retry(state: TrainState, batch: Batch, key, *, max_retries: int = 8):

@@ -44,6 +44,9 @@ class TrainState:
       max_intersections: int (static), the tile splatter's buffer size (0: not
         sized yet, see :func:`size_buffer`). Every step pays for the whole buffer
         (it is sorted), so it is measured rather than guessed.
+      frozen: bool [C] or None: alive Gaussians a local edit keeps as they are (no
+        gradient update, no split/clone/cull, no opacity reset); None (the default):
+        every Gaussian is trained, as before local edits existed.
     """
 
     gaussians: Gaussians
@@ -56,6 +59,7 @@ class TrainState:
     config: TrainConfig = dataclasses.field(metadata=dict(static=True))
     scene_extent: float = dataclasses.field(metadata=dict(static=True))
     max_intersections: int = dataclasses.field(metadata=dict(static=True))
+    frozen: Any = None
 
     @property
     def capacity(self) -> int:

@@ -80,6 +80,7 @@ def apply_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
         return photometric_loss(out.rgb, target, cfg.lambda_dssim), out
 
     params = params_of(g)
+    frozen = state.frozen  # None: a static branch, the step is as before local edits
     delta = jnp.zeros((g.capacity, 2), g.means.dtype)
     pose = corr.delta[view] if learn_pose else jnp.zeros((6,), g.means.dtype)
     (loss, out), (grads, grad2d, grad_pose) = jax.value_and_grad(
@@ -87,8 +88,13 @@ def apply_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
     if learn_pose:
         corr = poses.update_correction(corr, view, grad_pose, camera_lr(cfg, state.step))
     tx = optimizer(cfg, state.scene_extent)
+    if frozen is not None:
+        grads = keep_rows(frozen, jax.tree_util.tree_map(jnp.zeros_like, grads), grads)
     updates, opt_state = tx.update(grads, state.opt_state, params)
-    params = optax.apply_updates(params, updates)
+    if frozen is not None:  # bit-identical: Adam's moments alone would still move them
+        params = keep_rows(frozen, params, optax.apply_updates(params, updates))
+    else:
+        params = optax.apply_updates(params, updates)
     g1 = dataclasses.replace(params, alive=g.alive)
 
     step = state.step + 1
@@ -96,7 +102,8 @@ def apply_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
                              iterations=cfg.iterations)
     aux = dens.render_aux(grad2d, out, batch.camera.width, batch.camera.height)
     g2, opt_state, stats, info = strategy.update(g1, opt_state, state.densify_stats, aux,
-                                                 step - state.densify_origin, k_dens)
+                                                 step - state.densify_origin, k_dens,
+                                                 frozen=frozen)
     new = dataclasses.replace(state, gaussians=g2, opt_state=opt_state, densify_stats=stats,
                               step=step, cameras=corr)
     redo = out.overflow | info.capacity_limited
@@ -111,6 +118,15 @@ def apply_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
                    lr_means=means_lr(cfg, state.scene_extent, state.step),
                    densify=info._asdict())
     return new, metrics
+
+
+def keep_rows(rows, old, new):
+    """``new`` with the slots of ``rows`` (bool [C]) taken from ``old``, leaf by leaf
+    (pytrees of [C, ...] arrays, e.g. Gaussians or their gradients)."""
+    def pick(a, b):
+        return jnp.where(rows.reshape(rows.shape + (1,) * (a.ndim - 1)), a, b)
+
+    return jax.tree_util.tree_map(pick, old, new)
 
 
 #: Fields checked by the divergence guard, in the order its message names them.
