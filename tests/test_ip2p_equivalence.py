@@ -9,6 +9,7 @@ resizing, VAE, three-branch guidance, the DDIM schedule and update, decoding.
 from __future__ import annotations
 
 import json
+import shutil
 
 import jax.numpy as jnp
 import numpy as np
@@ -19,7 +20,7 @@ pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
 from test_ip2p import PROMPT, weights  # noqa: E402,F401 - the one tiny pipeline (fixture)
-from test_models import assert_close  # noqa: E402 - the issue's "1e-4 relative"
+from test_models import assert_close, perturb  # noqa: E402 - the issue's "1e-4 relative"
 from without_torch import run_without_torch  # noqa: E402
 
 from jaxedit.edit import ip2p  # noqa: E402
@@ -101,6 +102,64 @@ def test_batched_edits_are_the_single_edits(editors):
     with pytest.raises(jx.DataError, match="batch"):
         jx.JaxIP2PEditor(ours.nets.unet, ours.nets.vae, ours.text_encoder, ours.tokenize,
                          ours.schedule, batch=0)
+
+
+# ----------------------------------------------------------------------------- other configs
+
+@pytest.fixture(scope="module")
+def x4_weights(weights, tmp_path_factory):
+    """The tiny pipeline with a 3-level VAE (downsampling x4, not SD's x8) and a UNet with
+    norm_eps = 1e-2 (diffusers gives it to the resnets, not to the transformer LayerNorms);
+    weights perturbed so no norm is (1, 0). Text encoder, tokenizer and scheduler shared."""
+    from diffusers import AutoencoderKL, UNet2DConditionModel
+
+    root = tmp_path_factory.mktemp("ip2p-x4") / "tiny-ip2p-x4"
+    shutil.copytree(weights, root, ignore=shutil.ignore_patterns("unet", "vae"))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    torch.manual_seed(8)
+    perturb(UNet2DConditionModel(
+        sample_size=8, in_channels=8, out_channels=4, layers_per_block=1,
+        block_out_channels=(16, 32), down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"), cross_attention_dim=32,
+        attention_head_dim=4, norm_num_groups=8, norm_eps=1e-2), 9).save_pretrained(root / "unet")
+    perturb(AutoencoderKL(
+        in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(8, 8, 8),
+        layers_per_block=1, down_block_types=("DownEncoderBlock2D",) * 3,
+        up_block_types=("UpDecoderBlock2D",) * 3, norm_num_groups=4,
+        sample_size=32), 10).save_pretrained(root / "vae")
+    yield root
+    torch.set_num_threads(threads)
+
+
+def test_x4_vae_and_unet_norm_eps_match_torch_editor(x4_weights):
+    """With a x4 VAE the model size is a multiple of 4, not 8 (44 x 36 for a 48 x 40 view at
+    size 44: latents 11 x 9), in both editors; the JAX editor's batched path (edit_many:
+    model_hw, edit_batch's latent size, edit_with_noise's model size) gives the torch
+    editor's edit from the same T and noises, drawn as edit_batch draws them."""
+    import jax
+
+    ref = ip2p.InstructPix2PixEditor.from_pretrained(x4_weights, device="cpu", size=44,
+                                                     steps=STEPS)
+    ours = jx.JaxIP2PEditor.from_pretrained(x4_weights, size=44, steps=STEPS)
+    assert ours.nets.vae.downsample_factor == ours.latent_factor == ref.vae_factor == 4
+    assert ours.model_hw(48, 40) == (44, 36)
+    with pytest.raises(jx.DataError, match="multiple of 4"):
+        jx.JaxIP2PEditor(ours.nets.unet, ours.nets.vae, ours.text_encoder, ours.tokenize,
+                         ours.schedule, size=42)
+    image, original = _image(4, (48, 40, 3)), _image(5, (48, 40, 3))
+    emb = ref.encode(PROMPT)
+    assert_close(ours.encode(PROMPT), emb)
+    keys = jax.random.split(jax.random.key(7), 1)
+    span = (0.7, 0.7)
+    got = ours.edit_many(image[None], original[None], emb, keys, timestep_range=span)
+    t_start, vae_noise, sde_noise = jx.draw_noise(
+        keys, jnp.asarray(jx.timestep_bounds(span, ours.num_train_timesteps)), (11, 9))
+    nchw = lambda x: torch.from_numpy(np.asarray(x).transpose(0, 3, 1, 2).copy())  # noqa: E731
+    expected = ref.edit_with_noise(image, original, emb, int(t_start[0]), nchw(vae_noise),
+                                   nchw(sde_noise))
+    assert_close(got[0], expected)
+    assert np.abs(expected - image).mean() > 1e-2
 
 
 @pytest.mark.slow

@@ -178,6 +178,31 @@ def test_unet_linear_projection_matches_diffusers(tmp_path):
     assert_close(jax.jit(lambda m, x, c: m(x, 250, c))(unet, sample, context), nhwc(ref))
 
 
+def test_unet_norm_eps_reaches_only_what_diffusers_gives_it(tmp_path):
+    """norm_eps = 1e-2 (far from every default): diffusers passes it to the resnets and
+    conv_norm_out, never to the transformer blocks' LayerNorms (they keep 1e-5) nor to
+    Transformer2DModel's GroupNorm (1e-6). Passing it there too was off by ~1e-2 relative."""
+    from diffusers import UNet2DConditionModel
+
+    from jaxedit.models.layers import LayerNorm
+    torch.manual_seed(6)
+    ref_model = perturb(UNet2DConditionModel(**{**TINY_UNET, "block_out_channels": (16, 16)},
+                                             norm_eps=1e-2), 7)
+    ref_model.save_pretrained(tmp_path / "unet")
+    unet = load_module(tmp_path / "unet", UNet2DCondition.from_config)
+    block = unet.down_blocks[0].attentions[0]
+    is_ln = lambda x: isinstance(x, LayerNorm)  # noqa: E731
+    assert {n.eps for n in jax.tree_util.tree_leaves(unet, is_leaf=is_ln) if is_ln(n)} == {1e-5}
+    assert block.norm.eps == 1e-6 and unet.conv_norm_out.eps == 1e-2
+    assert unet.down_blocks[0].resnets[0].norm1.eps == 1e-2
+    rng = np.random.default_rng(5)
+    sample = rng.standard_normal((1, 8, 8, 8)).astype(np.float32)
+    context = rng.standard_normal((1, 5, 24)).astype(np.float32)
+    with torch.no_grad():
+        ref = ref_model(nchw(sample), 420, torch.from_numpy(context)).sample
+    assert_close(jax.jit(lambda m, x, c: m(x, 420, c))(unet, sample, context), nhwc(ref))
+
+
 def test_vae_matches_diffusers(tiny, models):
     from diffusers import AutoencoderKL as TorchVAE
     ref_model = TorchVAE.from_pretrained(tiny / "vae").eval()

@@ -3,7 +3,8 @@
 The edit of one view follows Instruct-NeRF2NeRF's use of InstructPix2Pix (IP2P):
 
 1. resize the current render and the original photo to the model size (the longer side
-   becomes ``size``, default 512, both sides rounded to multiples of the VAE factor 8);
+   becomes ``size``, default 512, both sides rounded to multiples of the VAE's downsampling
+   factor f = 2^(len(block_out_channels) - 1), diffusers' ``vae_scale_factor``: 8 for SD);
 2. encode the render to a latent (VAE posterior sample x ``scaling_factor``) and the original
    to the conditioning latent (VAE posterior mode, unscaled, as IP2P was trained);
 3. draw a timestep T uniformly in ``timestep_range`` x 1000 (from the JAX key) and noise the
@@ -171,7 +172,8 @@ class InstructPix2PixEditor:
         save_pretrained layout, e.g. timbrooks/instruct-pix2pix), or that Hub id when it is in
         the local cache. ``device``: torch device string (default ``cuda:0`` if available, else
         ``cpu``); ``dtype``: torch dtype (default fp16 off-CPU, fp32 on CPU); ``size``: model
-        resolution of the longer side (multiple of 8; None keeps the view's size); ``steps``:
+        resolution of the longer side (a multiple of the VAE's factor ``vae_factor``, 8 for
+        SD; None keeps the view's size); ``steps``:
         DDIM steps from T to 0; ``variant``: diffusers weight variant (e.g. ``"fp16"``).
         """
         root = resolve_weights(path)
@@ -279,7 +281,8 @@ class InstructPix2PixEditor:
                         guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
         """:meth:`edit` with its random draws given: the timestep ``t_start`` and the standard
         normal ``vae_noise`` (the posterior sample's) and ``sde_noise`` (SDEdit's), each
-        [1, 4, h/8, w/8] at the model size; :meth:`edit` draws them from its key."""
+        [1, 4, h/f, w/f] at the model size (f = ``vae_factor``); :meth:`edit` draws them
+        from its key."""
         render = self._image(image, "image")
         orig = self._image(original, "original")
         height, width = render.shape[-2:]

@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["DiffusionSchedule", "EditConfig", "JaxIP2PEditor", "Networks", "decode",
            "denoise", "draw_noise", "edit_batch", "edit_with_noise", "encode_latents",
-           "default_batch", "load_editor", "resize_images"]
+           "default_batch", "latent_factor", "load_editor", "resize_images"]
 
 #: Name of the mesh axis a batch of views is sharded along.
 VIEWS = "views"
@@ -61,8 +61,9 @@ class Networks(eqx.Module):
     """The two networks an edit runs: the 8-channel conditional UNet and the VAE.
 
     ``unet(sample [B, h, w, 8], timestep [B], context [B, 77, D]) -> eps [B, h, w, 4]``;
-    ``vae.encode(x [B, H, W, 3] in [-1, 1]) -> (mean, logvar)`` [B, H/8, W/8, 4] each;
-    ``vae.decode(z) -> [B, H, W, 3]`` (see :mod:`jaxedit.models`).
+    ``vae.encode(x [B, H, W, 3] in [-1, 1]) -> (mean, logvar)`` [B, H/f, W/f, 4] each;
+    ``vae.decode(z) -> [B, H, W, 3]`` (see :mod:`jaxedit.models`), f the VAE's downsampling
+    factor (:func:`latent_factor`: 8 for Stable Diffusion's VAE, 4 for a 3-level one).
     """
 
     unet: Any
@@ -100,6 +101,14 @@ class EditConfig:
 
 # ----------------------------------------------------------------------------- pure pieces
 
+def latent_factor(vae) -> int:
+    """The VAE's downsampling factor f (image side / latent side): its ``downsample_factor``
+    (:class:`jaxedit.models.AutoencoderKL`: 2^(levels-1) from its blocks, as diffusers'
+    ``vae_scale_factor`` is from ``block_out_channels``); 8, Stable Diffusion's, for a VAE
+    that does not state one. Static: it is read from the module's structure, never traced."""
+    return int(getattr(vae, "downsample_factor", 8))
+
+
 def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
     """[B, H, W, C] -> [B, h, w, C]: bilinear, antialiased when shrinking (as torch's
     ``interpolate(mode="bilinear", antialias=True)``); the same size is returned as is."""
@@ -111,7 +120,8 @@ def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
 
 def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.Array,
                    cfg: EditConfig) -> tuple[jax.Array, jax.Array]:
-    """(latents, cond), float32 [B, h/8, w/8, 4] each, from images in [0, 1] at model size.
+    """(latents, cond), float32 [B, h/f, w/f, 4] each, from images in [0, 1] at model size
+    (f: :func:`latent_factor`).
 
     One VAE pass over both: the render's posterior sample mean + std * ``vae_noise`` times
     the scaling factor, and the original's posterior mode (its mean), unscaled.
@@ -163,7 +173,8 @@ def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, nu
 
 
 def decode(vae, latents: jax.Array, cfg: EditConfig) -> jax.Array:
-    """Latents [B, h, w, 4] -> images float32 [B, 8h, 8w, 3] in [0, 1]."""
+    """Latents [B, h, w, 4] -> images float32 [B, f h, f w, 3] in [0, 1] (f:
+    :func:`latent_factor`)."""
     decoded = vae.decode((latents / cfg.scaling_factor).astype(cfg.dtype)).astype(jnp.float32)
     return jnp.clip((decoded + 1) / 2, 0, 1)
 
@@ -178,13 +189,14 @@ def edit_with_noise(nets: Networks, images: jax.Array, originals: jax.Array,
     Args:
       images, originals: float [B, H, W, 3] in [0, 1], renders and original photos.
       embeddings: float [B, 77, D] or [77, D] (one for all views); null: [77, D].
-      t_start: int32 [B]; vae_noise, sde_noise: float32 [B, h/8, w/8, 4] standard normals
-        at the model size (h, w) = latent size x 8.
+      t_start: int32 [B]; vae_noise, sde_noise: float32 [B, h/f, w/f, 4] standard normals
+        at the model size (h, w) = latent size x f, f the VAE's :func:`latent_factor`.
     Returns:
       float32 [B, H, W, 3] in [0, 1].
     """
     b, height, width = images.shape[:3]
-    hw = (vae_noise.shape[1] * 8, vae_noise.shape[2] * 8)
+    f = latent_factor(nets.vae)
+    hw = (vae_noise.shape[1] * f, vae_noise.shape[2] * f)
     embeddings = jnp.broadcast_to(embeddings, (b, *null.shape))
     latents, cond = encode_latents(nets.vae, resize_images(images.astype(jnp.float32), hw),
                                    resize_images(originals.astype(jnp.float32), hw),
@@ -216,10 +228,12 @@ def edit_batch(nets: Networks, images: jax.Array, originals: jax.Array, embeddin
                schedule: DiffusionSchedule, cfg: EditConfig, model_hw: tuple[int, int]):
     """Edit B views, float32 [B, H, W, 3], T and noises drawn from ``keys`` [B] (typed keys).
 
-    ``model_hw``: the networks' (h, w), multiples of 8 (:func:`model_size`).
+    ``model_hw``: the networks' (h, w), multiples of the VAE's :func:`latent_factor` f
+    (:func:`model_size`); the latents are (h/f, w/f).
     """
-    t_start, vae_noise, sde_noise = draw_noise(keys, t_bounds, (model_hw[0] // 8,
-                                                                model_hw[1] // 8))
+    f = latent_factor(nets.vae)
+    t_start, vae_noise, sde_noise = draw_noise(keys, t_bounds, (model_hw[0] // f,
+                                                                model_hw[1] // f))
     return edit_with_noise(nets, images, originals, embeddings, null, t_start, vae_noise,
                            sde_noise, schedule, cfg)
 
@@ -272,7 +286,8 @@ class JaxIP2PEditor:
       tokenize: ``list[str] -> int32 [B, 77]`` CLIP token ids.
       schedule: :class:`DiffusionSchedule`; prediction_type, clip_sample: the DDIM update's.
       devices: the editor's devices (default: the first JAX device); several shard batches.
-      size: model resolution of the longer side (multiple of 8; None keeps the view's size).
+      size: model resolution of the longer side (a multiple of the VAE's downsampling factor,
+        ``latent_factor``: 8 for Stable Diffusion; None keeps the view's size).
       steps: DDIM steps from T to 0.
       batch: most views per :meth:`edit_many` call when several are due at once (a
         subtask's initial sweep, the difficulty's views; :func:`jaxedit.edit.edit_views`).
@@ -292,8 +307,12 @@ class JaxIP2PEditor:
         if self.batch < 1:
             raise DataError("batch", f"must be >= 1, got {batch}")
         self.dtype = _float_dtype(unet)
-        if size is not None and size % 8:
-            raise DataError("size", f"model size {size} is not a multiple of 8")
+        #: image side / latent side of the VAE (:func:`latent_factor`): model sizes are
+        #: multiples of it.
+        self.latent_factor = latent_factor(vae)
+        if size is not None and size % self.latent_factor:
+            raise DataError("size", f"model size {size} is not a multiple of "
+                            f"{self.latent_factor} (the VAE's downsampling factor)")
         if int(steps) < 1:
             raise DataError("steps", f"must be >= 1, got {steps}")
         self.size, self.steps, self.source = size, int(steps), source
@@ -373,7 +392,7 @@ class JaxIP2PEditor:
     # -- the edit -------------------------------------------------------------------------
 
     def model_hw(self, height: int, width: int) -> tuple[int, int]:
-        return model_size(height, width, self.size)
+        return model_size(height, width, self.size, self.latent_factor)
 
     def edit_many(self, images, originals, embeddings, keys: jax.Array, *,
                   timestep_range: tuple[float, float] = (0.02, 0.98),

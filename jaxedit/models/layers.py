@@ -339,7 +339,9 @@ class Transformer2DModel(eqx.Module):
     """GroupNorm, proj_in, transformer blocks over the H*W tokens, proj_out, plus the input.
 
     ``proj_in`` / ``proj_out`` are 1x1 convolutions (SD 1.x) or linear layers
-    (``use_linear_projection``, SD 2.x); both are the same map on the channels.
+    (``use_linear_projection``, SD 2.x); both are the same map on the channels. ``eps`` is
+    the blocks' LayerNorm epsilon (diffusers' Transformer2DModel ``norm_eps``, 1e-5: the
+    UNet's blocks never pass the UNet's own ``norm_eps`` to it); the GroupNorm's is 1e-6.
     """
 
     norm: GroupNorm

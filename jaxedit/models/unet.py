@@ -150,9 +150,12 @@ class UNet2DCondition(eqx.Module):
         nk = lambda: next(keys)  # noqa: E731
         res = lambda a, b, scale=1.0: ResnetBlock2D.init(  # noqa: E731
             nk(), a, b, temb=temb, groups=groups, eps=eps, output_scale=scale, dtype=dtype)
+        # norm_eps reaches the resnets and conv_norm_out only: diffusers' cross-attention
+        # blocks build Transformer2DModel without it, so its LayerNorms keep the default 1e-5
+        # (and its GroupNorm 1e-6) whatever the config says.
         xf = lambda c, i, nl: Transformer2DModel.init(  # noqa: E731
             nk(), c, heads[i], context[i], groups=groups, layers=nl, linear_projection=linear,
-            eps=eps, dtype=dtype)
+            dtype=dtype)
         pad = int(config.get("downsample_padding", 1))
         if pad != 1:
             raise DataError(where, f"downsample_padding={pad} is not supported (SD uses 1)")
@@ -181,7 +184,7 @@ class UNet2DCondition(eqx.Module):
             resnets = tuple(res((prev_c if j == 0 else out_c) + (in_c if j == nl - 1 else out_c), out_c)
                             for j in range(nl))
             attns = (tuple(Transformer2DModel.init(nk(), out_c, rev_heads[i], rev_ctx[i], groups=groups,
-                                                   layers=rev_tl[i], linear_projection=linear, eps=eps,
+                                                   layers=rev_tl[i], linear_projection=linear,
                                                    dtype=dtype) for _ in range(nl))
                      if kind == "CrossAttnUpBlock2D" else ())
             usamp = () if i == n - 1 else (Upsample2D.init(nk(), out_c, dtype),)

@@ -167,6 +167,13 @@ class AutoencoderKL(eqx.Module):
         scaling = config.get("scaling_factor", 0.18215)
         return AutoencoderKL(encoder, decoder, quant, post, float(scaling))
 
+    @property
+    def downsample_factor(self) -> int:
+        """f = 2^(levels-1): image side / latent side (8 for Stable Diffusion's 4 levels, 4 for
+        3), from the encoder's blocks as diffusers' ``vae_scale_factor`` is from
+        ``block_out_channels``."""
+        return 2 ** (len(self.encoder.down_blocks) - 1)
+
     def encode(self, x: Array) -> tuple[Array, Array]:
         """Images [B, H, W, C] in [-1, 1] -> the posterior's (mean, logvar), each
         [B, H/f, W/f, latent] (f = 2^(levels-1), 8 for SD); logvar clamped to [-30, 20]
