@@ -97,6 +97,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                       help="transformers CLIP folder: add IN2N's CLIP metrics to metrics.json")
     real.add_argument("--caption-orig", default=None, help="caption of the original (CLIP metrics)")
     real.add_argument("--caption-edit", default=None, help="caption of the edit (CLIP metrics)")
+    from .local_flags import add_local_arguments  # issue 35: --local, --region, --masks
+
+    add_local_arguments(p)
 
 
 def make_editor(args):
@@ -266,6 +269,9 @@ def run(args) -> dict:
     if not args.prompt and args.mode != "in2n":
         raise DataError("--prompt", "required (the editing instruction)")
     data, scene = load_inputs(args, run_cfg)
+    from .local_flags import local_spec
+
+    local = local_spec(args, run_cfg, data)
     config, settings = run_cfg.plan, run_cfg.train
     watcher = None
     if args.view:
@@ -279,7 +285,7 @@ def run(args) -> dict:
                        seed=args.seed,
                        run_dir=args.out, resume=args.resume, resume_from=args.resume_from,
                        select=args.select, progress=progress, report=not args.no_report, log=log,
-                       distance=distance)
+                       distance=distance, local=local)
     finally:
         progress.close()
         if watcher is not None:

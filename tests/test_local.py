@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from pathlib import Path
 
 from jaxedit import camera as cam_lib
 from jaxedit.gaussians import Gaussians
@@ -224,3 +225,34 @@ def test_without_frozen_the_step_is_unchanged():
     for name in ("means", "sh", "opacity_logits", "alive"):
         assert np.array_equal(np.asarray(getattr(a.gaussians, name)),
                               np.asarray(getattr(b.gaussians, name))), name
+
+
+# ---------------------------------------------------------------------------
+# Bad input on the command line: one line, exit 2 (item 6)
+# ---------------------------------------------------------------------------
+def test_edit_cli_refuses_bad_regions_and_masks(tmp_path, capfd):
+    from test_cli_bad_inputs import _dataset, _fails
+
+    from jaxedit import gaussians as G
+    from jaxedit.io import load_nerfstudio, save_ply, write_image
+
+    data = _dataset(tmp_path / "data")
+    rng = np.random.default_rng(1)
+    scene = tmp_path / "scene.ply"
+    save_ply(scene, G.from_points(rng.normal(scale=0.3, size=(30, 3)),
+                                  rng.uniform(size=(30, 3)), sh_degree=0))
+    ds = load_nerfstudio(data)
+    train = [Path(ds.filenames[i]).stem for i in np.asarray(ds.train_indices)]
+    base = ["edit", "--data", data, "--scene", scene, "--prompt", "x", "--out", tmp_path / "o"]
+    _fails(capfd, base + ["--region", "sphere:50,50,50,1"], "contains no Gaussian")
+    _fails(capfd, base + ["--region", "cube:1,2,3"], "--region")
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    write_image(masks / f"{train[0]}.png", np.ones((16, 16, 3), np.float32))
+    _fails(capfd, base + ["--masks", masks], f"no mask for frame {train[1]!r}")
+    for name in train[1:]:
+        write_image(masks / f"{name}.png", np.ones((8, 8, 3), np.float32))
+    _fails(capfd, base + ["--masks", masks], "mask is 8x8 px, its view 16x16")
+    for name in train:
+        write_image(masks / f"{name}.png", np.zeros((16, 16, 3), np.float32))
+    _fails(capfd, base + ["--masks", masks], "every mask is empty")

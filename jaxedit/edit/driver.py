@@ -223,6 +223,10 @@ class EditContext:
       renderer: :class:`Renderer` used for the editor's inputs and the snapshots.
       key: the run key (``jax.random.key(seed)``).
       editor_device: device of the editor (async mode), see :func:`pick_devices`.
+      masks: float [N, H, W] per training view, a local edit's rendered relevance
+        (:func:`jaxedit.edit.local.prepare`), or None (a global edit): the editor's
+        output is blended with the render outside it, and the training image of an
+        edited view with the original photo.
     """
 
     editor: Any
@@ -233,6 +237,7 @@ class EditContext:
     renderer: Renderer
     key: jax.Array
     editor_device: Any = None
+    masks: Any = None
 
     def __post_init__(self):
         if self.config.max_steps is None:
@@ -275,9 +280,14 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
         # Device arrays where the scene is (the editor's device in async mode): an editor
         # in JAX takes them as they are; the torch reference copies them to its own device.
         renders = [renderer(scene, ctx.data.train_cameras[job.view]).rgb for job in jobs]
-        return edit_views(ctx.editor, renders, [originals[job.view] for job in jobs], embedding,
-                          [edit_key(sub_key, job.view, job.iteration) for job in jobs],
-                          timestep_range=t_range(jobs[0].step), guidance=tuple(cfg.guidance))
+        out = edit_views(ctx.editor, renders, [originals[job.view] for job in jobs], embedding,
+                         [edit_key(sub_key, job.view, job.iteration) for job in jobs],
+                         timestep_range=t_range(jobs[0].step), guidance=tuple(cfg.guidance))
+        if ctx.masks is None:
+            return out
+        from .local import blend  # a local edit: outside the mask the render stays
+
+        return [blend(e, r, ctx.masks[job.view]) for e, r, job in zip(out, renders, jobs)]
 
     def edit_one(job: EditJob, scene):
         return edit_many([job], scene)[0]
@@ -497,8 +507,13 @@ def run_subtask(ctx: EditContext, st: DriverState, spec: SubtaskSpec, *,
     exchanged_at = None  # a chunk redone (larger buffers) must not edit the same views again
 
     def take(arrivals):
-        holder[0] = apply_edits(holder[0], [e.job.view for e in arrivals],
-                                [e.image for e in arrivals],
+        images = [e.image for e in arrivals]
+        if ctx.masks is not None:  # a local edit trains outside the mask on the originals
+            from .local import blend
+
+            images = [blend(im, ctx.data.train_images[e.job.view], ctx.masks[e.job.view])
+                      for im, e in zip(images, arrivals)]
+        holder[0] = apply_edits(holder[0], [e.job.view for e in arrivals], images,
                                 [e.job.step >= horizon for e in arrivals])
 
     with source:

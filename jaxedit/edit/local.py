@@ -212,3 +212,80 @@ def editable(gaussians, *, regions=(), relevance=None,
 def frozen_of(gaussians, editable_mask) -> jax.Array:
     """bool [C]: the alive Gaussians outside ``editable_mask`` (what the trainer freezes)."""
     return gaussians.alive & ~jnp.asarray(editable_mask, bool)
+
+
+# ---------------------------------------------------------------------------
+# A run's local edit: what is editable, and each view's rendered relevance
+# ---------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class LocalSpec:
+    """The ``--local`` / ``--region`` / ``--masks`` of a run.
+
+    mode: ``auto`` (the editor's relevance) or ``off``; regions: :class:`Region` s (a
+    union); masks: float [N, H, W] of the training views, or None.
+    """
+
+    mode: str = "off"
+    regions: tuple = ()
+    masks: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.mode not in LOCAL_MODES:
+            raise DataError("--local", f"must be one of {', '.join(LOCAL_MODES)}, "
+                                       f"got {self.mode!r}")
+
+    @property
+    def active(self) -> bool:
+        return self.mode == "auto" or bool(self.regions) or self.masks is not None
+
+
+def render_editable(gaussians, cameras, editable_mask) -> np.ndarray:
+    """The rendered relevance: each pixel's blending weight on editable Gaussians,
+    float32 [B, H, W] in [0, 1] (cameras [B]; black background, colour = editable)."""
+    from ..raster import render
+    from ..sh import C0
+
+    e = jnp.asarray(editable_mask, gaussians.means.dtype)
+    sh = jnp.zeros_like(gaussians.sh).at[:, 0, :].set(((e - 0.5) / C0)[:, None])
+    g = dataclasses.replace(gaussians, sh=sh)
+    out = [np.asarray(render(g, cameras[i], background=jnp.zeros(3)).rgb[..., 0])
+           for i in range(len(cameras))]
+    return np.clip(np.stack(out), 0.0, 1.0).astype(np.float32)
+
+
+def prepare(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, embedding=None,
+            key=None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(editable bool [C], view masks float [N, H, W], figures) of a local edit.
+
+    The editor's relevance per training view (``auto``: image = original, the
+    instruction's full ``embedding``, keys folded from ``key``) times any user masks is
+    lifted to the Gaussians; those inside the regions with a lifted relevance of
+    :data:`GAUSSIAN_THRESHOLD` or more are editable. The view masks are the rendered
+    relevance of the editable Gaussians (:func:`render_editable`).
+    """
+    import time
+
+    from .editors import relevance
+
+    t0 = time.perf_counter()
+    pixel = None if spec.masks is None else np.asarray(spec.masks, np.float32)
+    if spec.mode == "auto":
+        maps = np.stack([np.asarray(relevance(editor, originals[i], originals[i], embedding,
+                                              jax.random.fold_in(key, i)), np.float32)
+                         for i in range(len(originals))])
+        pixel = maps if pixel is None else pixel * maps
+    rel = None if pixel is None else lift_relevance(gaussians, cameras, pixel)
+    ed = np.asarray(editable(gaussians, regions=spec.regions, relevance=rel))
+    masks = render_editable(gaussians, cameras, ed)
+    figures = {"mode": spec.mode, "regions": [r.spec() for r in spec.regions],
+               "user_masks": spec.masks is not None, "editable": int(ed.sum()),
+               "frozen": int(np.sum(np.asarray(gaussians.alive) & ~ed)),
+               "mask_fraction": float(masks.mean()),
+               "seconds": time.perf_counter() - t0}
+    return ed, masks, figures
+
+
+def blend(inside, outside, mask):
+    """``mask`` [H, W] * inside + (1 - mask) * outside, images [H, W, 3]."""
+    m = jnp.asarray(mask)[..., None]
+    return m * jnp.asarray(inside) + (1.0 - m) * jnp.asarray(outside)

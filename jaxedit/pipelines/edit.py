@@ -76,7 +76,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
              resume_from: str | os.PathLike | None = None, select=None,
              callback: Callable | None = None, progress: Callable | None = None,
              report: bool = True, log: Callable[[str], None] | None = None,
-             distance: Callable | None = None) -> dict:
+             distance: Callable | None = None, local=None) -> dict:
     """Edit ``gaussians`` progressively (:mod:`jaxedit.edit.progressive`); returns the run summary.
 
     Args:
@@ -99,6 +99,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
       log: ``log(message)`` for what a person should read (warnings, resumption).
       distance: perceptual distance of the difficulty (default multi-scale SSIM; pass
         :func:`jaxedit.lpips.lpips_distance` for the paper's LPIPS).
+      local: a :class:`jaxedit.edit.local.LocalSpec` (None or inactive: a global edit):
+        Gaussians outside it are frozen, the views blended outside its rendered relevance;
+        its figures go to schedule.json's ``"local"``.
     Returns:
       {"schedule": schedule.json contents, "metrics": metrics.json contents, "gaussians": final}.
     """
@@ -108,8 +111,22 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     run_dir = None if run_dir is None else Path(run_dir)
     trainer = progressive.make_trainer(config, settings or TrainSettings(), data, gaussians)
     _, editor_device = pick_devices()
+    masks, local_figures = None, None
+    if local is not None and local.active and resume_from is not None:
+        raise DataError("--local", "a local edit starts from the input scene, not --resume-from")
+    if local is not None and local.active:
+        from ..edit import local as local_lib
+
+        editable, masks, local_figures = local_lib.prepare(
+            local, gaussians, data.train_cameras, data.train_images, editor=editor,
+            embedding=None if local.mode != "auto" else editor.encode(prompt),
+            key=jax.random.fold_in(jax.random.key(seed), 35))
+        trainer.editable = editable
+        log(f"local edit: {local_figures['editable']} Gaussians editable, "
+            f"{local_figures['frozen']} frozen, {100 * local_figures['mask_fraction']:.1f}% "
+            f"of the pixels inside ({local_figures['seconds']:.1f} s)")
     ctx = EditContext(editor, prompt, data, config, trainer, Renderer(config.background),
-                      jax.random.key(seed), editor_device)
+                      jax.random.key(seed), editor_device, masks=masks)
     wall0 = time.perf_counter()
     ckpt = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if resume and (ckpt is None or not ckpt.exists()):
@@ -134,6 +151,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         plan, header = progressive.plan_edit(
             ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio, log=log,
             resumed_from=None if resume_from is None else str(resume_from))
+        if local_figures is not None:
+            header = dict(header, local=local_figures)
         st = init_state(ctx, start_scene, images)
     if config.subtask_steps is not None and len(config.subtask_steps) != len(plan):
         raise DataError("subtask_steps", f"{len(config.subtask_steps)} lengths for a plan of "

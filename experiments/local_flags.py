@@ -1,0 +1,42 @@
+"""``edit``'s local-edit flags (issue 35): --local, --region, --masks."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_local_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("local edits (only what the instruction touches changes)")
+    g.add_argument("--local", default="off", choices=["auto", "off"],
+                   help="auto: edit only the Gaussians the editor's relevance map lifts to "
+                        "(within --region / --masks); off: the whole scene (or only "
+                        "--region / --masks when given)")
+    g.add_argument("--region", action="append", default=[], metavar="SPEC",
+                   help="box:xmin,ymin,zmin,xmax,ymax,zmax or sphere:cx,cy,cz,r in scene "
+                        "coordinates (repeatable: their union); outside it nothing changes")
+    g.add_argument("--masks", type=Path, default=None, metavar="DIR",
+                   help="one mask image per frame (named as the frame: images/frame_00001.png "
+                        "takes DIR/frame_00001.png), white = editable")
+
+
+def local_spec(args, config, data):
+    """The run's :class:`jaxedit.edit.local.LocalSpec` from the flags (None: a global edit).
+
+    ``config``: the EditRunConfig (its downscale reads the frames as the run does);
+    ``data``: the run's EditData (the masks are matched to its training views).
+    """
+    from jaxedit.edit import local as L
+
+    regions = tuple(L.parse_region(r) for r in getattr(args, "region", []) or [])
+    masks = None
+    if getattr(args, "masks", None) is not None:
+        import numpy as np
+
+        from jaxedit.io import load_nerfstudio
+
+        dataset = load_nerfstudio(args.data, downscale=config.downscale)
+        names = [dataset.filenames[i] for i in np.asarray(dataset.train_indices)]
+        masks = L.load_masks(args.masks, names, tuple(data.train_images.shape[1:3]))
+    spec = L.LocalSpec(mode=getattr(args, "local", "off"), regions=regions, masks=masks)
+    return spec if spec.active else None
