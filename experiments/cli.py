@@ -20,6 +20,11 @@ every config-file value through its flag's own argparse conversion, so a config
 file gets exactly the validation the command line gets. While a command runs it
 holds a lock on ``--out`` (a second process on the same folder is refused), and a
 run that ends in a DataError removes what it had created there.
+
+``edit`` and ``reconstruct`` also take ``--coordinator HOST:PORT --num-processes N
+--process-id I`` (:class:`jaxedit.distributed.DistributedConfig`): each process then runs
+as a supervised worker (:func:`supervised`), joins ``jax.distributed``, and only process 0
+checks, locks and writes ``--out``.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ import tomllib
 from pathlib import Path
 
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
-            "report", "convert-lpips", "clip-metrics", "view", "process-data"]
+            "report", "convert-lpips", "clip-metrics", "view", "process-data", "train-editor"]
 
 
 def finite_float(text: str) -> float:
@@ -293,14 +298,17 @@ def check_input_path(path: Path, name: str) -> None:
         raise DataError(path, f"is not readable (given as {name})")
 
 
-def check_paths(args: argparse.Namespace) -> None:
-    """Check every path flag of the command (inputs exist, outputs can be made) up front."""
+def check_paths(args: argparse.Namespace, *, outputs: bool = True) -> None:
+    """Check every path flag of the command (inputs exist, outputs can be made) up front;
+    ``outputs`` False: inputs only (a process that writes nothing, :func:`writes`)."""
     sub = build_parser()._subparsers._group_actions[0].choices[args.command]
     for action in sub._actions:
         value = getattr(args, action.dest, None)
         if action.type is not Path or value is None or action.dest == "config":
             continue
         name = _flag_name(action)
+        if action.dest in OUTPUT_DIRS + OUTPUT_FILES and not outputs:
+            continue
         if action.dest in OUTPUT_DIRS:
             check_output_path(value, name)
         elif action.dest in OUTPUT_FILES:
@@ -363,16 +371,24 @@ def claimed_out(out: Path | None):
                     raise
                 raise refused from None
         except DataError:
-            if created is not None:
-                shutil.rmtree(created, ignore_errors=True)
-            else:
-                for name in set(os.listdir(out)) - before - {LOCK_NAME, KEPT_RECORD}:
-                    target = Path(out) / name
-                    if target.is_dir() and not target.is_symlink():
-                        shutil.rmtree(target, ignore_errors=True)
-                    else:
-                        target.unlink(missing_ok=True)
+            remove_created(out, created, before, keep={LOCK_NAME, KEPT_RECORD})
             raise
+
+
+def remove_created(out: Path, created: Path | None, before: set | None, *,
+                   keep: set = frozenset()) -> None:
+    """Remove what a failed command created under ``out``: ``created`` (the outermost
+    folder it made, :func:`_first_missing`), else the entries not in ``before`` (the
+    listing before it ran) nor in ``keep``."""
+    if created is not None:
+        shutil.rmtree(created, ignore_errors=True)
+        return
+    for name in set(os.listdir(out)) - before - set(keep):
+        target = Path(out) / name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target, ignore_errors=True)
+        else:
+            target.unlink(missing_ok=True)
 
 
 KEPT_RECORD = ".config.json.kept"
@@ -408,37 +424,123 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = sys.argv[1:] if argv is None else argv
     args = None
+    dist = None
     try:
         args = parse(argv)
-        check_paths(args)
+        dist = distributed_config(args)
+        if dist is not None and not _is_worker():
+            return supervised(argv, args, dist)
         if args.device:
             import jax
             jax.config.update("jax_platforms", args.device)
+        if dist is not None:
+            from jaxedit.distributed import initialize, is_writer
+
+            initialize(dist)
+            args._writer = is_writer()
+            args.quiet = args.quiet or not args._writer  # one process reports progress
+        check_paths(args, outputs=writes(args))
         # A command that builds its output folder whole (staged beside it, renamed into
         # place: process-data) must find it absent or empty: it takes no lock inside it
         # and records its config once it succeeded.
         whole = getattr(args._module, "RECORD_CONFIG_AFTER_RUN", False)
-        with claimed_out(None if whole else args.out):
-            if not whole:
+        with claimed_out(None if whole or not writes(args) else args.out):
+            if not whole and writes(args):
                 write_run_config(args)
             result = args._module.run(args)
         if whole:
             write_run_config(args)
+        if dist is not None:
+            from jaxedit.distributed import barrier
+
+            barrier("jaxedit-command-done")  # the others wait for the writer's last files
     except DataError as e:
         print(f"error: {named_by_flag(e, args)}", file=sys.stderr)
-        return 2
+        return _failed(dist)
     except OSError as e:
         refused = write_refused(e, getattr(args, "out", None))
         if refused is None:
             raise
         print(f"error: {refused}", file=sys.stderr)
-        return 2
+        return _failed(dist)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    if result:
+    if result and writes(args):
         print(json.dumps(jsonable(result), indent=2))
     return 0
+
+
+# --- several processes (jaxedit.distributed) -------------------------------------------
+
+def distributed_flags():
+    """The flags of :class:`jaxedit.distributed.DistributedConfig` (``--coordinator``,
+    ``--num-processes``, ``--process-id``, ``--init-timeout``, ``--heartbeat-timeout``),
+    for a command's ``FLAGS``."""
+    from jaxedit.distributed import DistributedConfig
+
+    from experiments.flags import Flag, FlagSet
+
+    return FlagSet(DistributedConfig, (
+        Flag("coordinator"), Flag("num_processes"), Flag("process_id"),
+        Flag("init_timeout"), Flag("heartbeat_timeout")))
+
+
+def distributed_config(args: argparse.Namespace):
+    """The command's :class:`jaxedit.distributed.DistributedConfig` when it joins a
+    multi-process run (``--coordinator`` given), else None."""
+    from jaxedit.distributed import DistributedConfig
+
+    for flags in getattr(args._module, "FLAGS", ()):
+        if flags.root is DistributedConfig:
+            config = flags.build(args)
+            return config if config.active else None
+    return None
+
+
+def _is_worker() -> bool:
+    from jaxedit.distributed import WORKER_ENV
+
+    return os.environ.get(WORKER_ENV) == "1"
+
+
+def writes(args: argparse.Namespace) -> bool:
+    """Whether this process writes the command's outputs (in a multi-process run only
+    process 0 does; the others write nothing)."""
+    return getattr(args, "_writer", True)
+
+
+def supervised(argv: list[str], args: argparse.Namespace, dist) -> int:
+    """Run this command as a worker (:func:`jaxedit.distributed.supervise`): a lost peer or
+    coordinator, which the runtime answers with an abort, becomes one line and status 2,
+    and the writer's supervisor removes what the run created in ``--out``."""
+    from jaxedit.distributed import supervise
+
+    out = args.out if dist.process_id == 0 and dist.coordinator != "auto" else None
+    created = before = None
+    if out is not None:
+        created = _first_missing(out)
+        before = None if created is not None else set(os.listdir(out))
+
+    def cleanup():
+        if out is None or not Path(out).exists():
+            return
+        kept = Path(out) / KEPT_RECORD
+        if kept.exists():  # the worker's config.json replaced the record: put it back
+            os.replace(kept, Path(out) / "config.json")
+        remove_created(out, created, before)
+
+    return supervise([sys.executable, "-m", "experiments", *argv], dist, cleanup=cleanup)
+
+
+def _failed(dist) -> int:
+    """Exit status 2; a worker of a multi-process run leaves at once (its peers learn of it
+    from the runtime's heartbeats) rather than wait at the runtime's shutdown barrier."""
+    if dist is not None:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(2)
+    return 2
 
 
 def named_by_flag(error, args: argparse.Namespace | None):

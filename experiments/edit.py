@@ -48,8 +48,15 @@ def _config_flags():
     ))
 
 
-#: The command's settings' flags, generated from :class:`jaxedit.pipelines.edit.EditRunConfig`.
-FLAGS = (_config_flags(),)
+def _flag_sets():
+    from .cli import distributed_flags
+
+    return _config_flags(), distributed_flags()
+
+
+#: The command's settings' flags, generated from :class:`jaxedit.pipelines.edit.EditRunConfig`,
+#: and the multi-process run's (:class:`jaxedit.distributed.DistributedConfig`).
+FLAGS = _flag_sets()
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -62,6 +69,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ip2p-weights", type=Path, default=None,
                    help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p, ip2p-torch)")
     FLAGS[0].add_to(p)
+    FLAGS[1].add_to(p.add_argument_group(
+        "several processes (jax.distributed; see the README's multi-host section)"))
     p.add_argument("--select", default=None,
                    help="subtask index (int) or ratio (float) to export as selected.ply")
     p.add_argument("--select-only", action="store_true",
@@ -244,12 +253,35 @@ def check_counts(args) -> None:
     check_minimums(args, {"ip2p_size": 8, "ip2p_steps": 1, "ip2p_batch": 1})
 
 
+def check_processes(args, run_cfg) -> None:
+    """Refuse what a multi-process edit cannot do: every process must run the same steps
+    (no --async, whose edits depend on timing) from the same state (no resuming: only
+    process 0 has the run directory)."""
+    from jaxedit import DataError
+    from jaxedit.distributed import process_count
+
+    if process_count() == 1:
+        return
+    if run_cfg.plan.asynchronous:
+        raise DataError("--async", "not with several processes: their edits would depend on "
+                                   "timing and the processes' scenes drift apart; use --sync")
+    for flag, value in (("--resume", args.resume), ("--resume-from", args.resume_from),
+                        ("--view", args.view), ("--clip-weights", args.clip_weights)):
+        if value:
+            raise DataError(flag, "not with several processes yet (one process only)")
+
+
 def run(args) -> dict:
     from jaxedit import DataError
+    from jaxedit.distributed import split_edits
     from jaxedit.pipelines import run_edit, select_snapshot
+
+    from .cli import writes
 
     if args.out is None:
         raise DataError("--out", "required (the run directory)")
+    if args.select_only and not writes(args):
+        return {}
     if args.select_only:
         if args.select is None:
             raise DataError("--select", "required with --select-only")
@@ -264,7 +296,8 @@ def run(args) -> dict:
                                           f"editor is {args.editor})")
     if args.clip_weights is not None and not (args.caption_orig and args.caption_edit):
         raise DataError("--clip-weights", "needs --caption-orig and --caption-edit")
-    editor = make_editor(args)
+    check_processes(args, run_cfg)
+    editor = split_edits(make_editor(args))  # views due at once: split over the processes
     distance = make_distance(args)
     if not args.prompt and args.mode != "in2n":
         raise DataError("--prompt", "required (the editing instruction)")
@@ -282,15 +315,17 @@ def run(args) -> dict:
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     try:
         out = run_edit(editor, args.prompt or "", data, scene, config=config, settings=settings,
-                       seed=args.seed,
-                       run_dir=args.out, resume=args.resume, resume_from=args.resume_from,
-                       select=args.select, progress=progress, report=not args.no_report, log=log,
-                       distance=distance, local=local)
+                       seed=args.seed, run_dir=args.out if writes(args) else None,
+                       resume=args.resume, resume_from=args.resume_from,
+                       select=args.select if writes(args) else None, progress=progress,
+                       report=not args.no_report, log=log, distance=distance, local=local)
     finally:
         progress.close()
         if watcher is not None:
             watcher.stop()
     m = out["metrics"]
+    if not writes(args):
+        return {}
     clip = add_clip_metrics(args)
     if clip is not None:
         m = m | {"clip_direction_similarity": clip.get("direction_similarity"),

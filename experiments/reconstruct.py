@@ -48,14 +48,23 @@ def _config_flags() -> FlagSet:
     ))
 
 
-#: The command's flags, generated from :class:`jaxedit.pipelines.reconstruct.ReconstructConfig`.
-FLAGS = (_config_flags(),)
+def _flag_sets():
+    from experiments.cli import distributed_flags
+
+    return _config_flags(), distributed_flags()
+
+
+#: The command's flags, generated from :class:`jaxedit.pipelines.reconstruct.ReconstructConfig`,
+#: and the multi-process run's (:class:`jaxedit.distributed.DistributedConfig`).
+FLAGS = _flag_sets()
 
 
 def add_arguments(p) -> None:
     p.add_argument("--data", type=Path, required=True,
                    help="nerfstudio dataset folder (or its transforms.json)")
     FLAGS[0].add_to(p)
+    FLAGS[1].add_to(p.add_argument_group(
+        "several processes (jax.distributed; see the README's multi-host section)"))
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest checkpoint in RUN_DIR/checkpoints")
 
@@ -99,11 +108,22 @@ def run(args) -> dict:
 
     from experiments.progress import configure, training_bar
 
+    from jaxedit import DataError
+    from jaxedit.distributed import process_count
+
+    from experiments.cli import writes
+
     config = run_config(args)
     _check(args, config)
+    if args.resume and process_count() > 1:
+        raise DataError("--resume", "not with several processes yet (only process 0 has the "
+                                    "checkpoints)")
     configure(quiet=args.quiet)
-    metrics = runs.run(args.data, args.out, config, seed=args.seed, resume=args.resume,
-                       progress=training_bar())
+    # Every process trains the same scene; only process 0 writes the run directory.
+    metrics = runs.run(args.data, args.out if writes(args) else None, config, seed=args.seed,
+                       resume=args.resume, progress=training_bar())
+    if not writes(args):
+        return {}
     keys = ("test_psnr", "test_ssim", "num_gaussians", "iterations", "wall_time_s", "steps_per_s")
     return {k: metrics[k] for k in keys} | {"out": str(args.out)}
 

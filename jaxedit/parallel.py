@@ -15,8 +15,13 @@ Two batched computations of a ProEdit run split over views:
 optimisation, whose statistics are per view; a step whose tile buffer overflowed in any
 view leaves the state as it was and says so (``overflow``), as the single-view step does.
 
-On several hosts (``jax.distributed.initialize()`` first, one process per host) the same
-code runs unchanged with a mesh over ``jax.devices()``, the global device list.
+On several processes (:func:`jaxedit.distributed.initialize` first, one process per host
+or GPU) the same code runs unchanged with a mesh over ``jax.devices()``, the global device
+list: :func:`shard_views` of the same host data on every process places each process's
+views on its own devices (:func:`shard_local_views` when each process holds only its own),
+the gradient all-reduce crosses processes (gloo on CPUs, NCCL on GPUs, ICI on a TPU slice),
+and :func:`fetch` reads a result that is sharded across processes on every process
+(``tests/test_distributed.py`` runs it on 2 processes x 2 CPU devices).
 """
 
 from __future__ import annotations
@@ -50,6 +55,28 @@ def shard_views(tree, mesh: Mesh):
     """``tree``'s arrays split along their first (view) axis over ``mesh``; that axis must be
     a multiple of the mesh size."""
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(VIEWS)))
+
+
+def shard_local_views(local, mesh: Mesh):
+    """Global arrays of each process's own views: ``local``'s arrays [v, ...] (this
+    process's v views, the same v on every process) become [v x processes, ...] split along
+    the views over ``mesh``, each process's on its devices."""
+    sharding = NamedSharding(mesh, PartitionSpec(VIEWS))
+    return jax.tree_util.tree_map(
+        lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), local)
+
+
+def fetch(tree):
+    """``tree``'s arrays as NumPy on this process, whole: an array sharded across processes
+    is all-gathered (every process must call it then), any other is read where it is."""
+    from jax.experimental import multihost_utils
+
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable and not x.is_fully_replicated:
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return np.asarray(x)
+
+    return jax.tree_util.tree_map(one, tree)
 
 
 def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):

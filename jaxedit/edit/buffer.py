@@ -132,8 +132,9 @@ def view_order(num_views: int, key: jax.Array) -> np.ndarray:
 
 
 def pick_devices() -> tuple[jax.Device, jax.Device]:
-    """(trainer device, editor device): different devices when JAX has two or more."""
-    devices = jax.devices()
+    """(trainer device, editor device) of this process: different devices when it has two or
+    more (its local devices: in a multi-process run every process trains and edits on its own)."""
+    devices = jax.local_devices()
     return devices[0], devices[1] if len(devices) > 1 else devices[0]
 
 

@@ -181,7 +181,8 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
 
     Args:
       data: a :class:`jaxedit.io.Dataset`.
-      out: run directory.
+      out: run directory (None: write nothing, as the processes other than 0 of a
+        multi-process run, :mod:`jaxedit.distributed`).
       config: :class:`jaxedit.train.TrainConfig`.
       seed, resume, checkpoint_every, log_every, random_points: as
         :class:`ReconstructConfig` (``resume``: continue from the newest checkpoint).
@@ -190,14 +191,15 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     Returns:
       the metrics dict (also written to ``out/metrics.json``).
     """
+    import contextlib
 
     from .. import train as T
-    from ..io import save_ply, write_image
     from ..io.files import atomic_write_text
 
     t_start = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = None if out is None else Path(out)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
     train_images, train_cams = data.train()
     if len(data.test_indices):
         test_images, test_cams = data.test()
@@ -206,10 +208,10 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
         test_images, test_cams = train_images, train_cams
         test_idx, eval_split = data.train_indices, "train"
     extent = T.scene_extent(train_cams)
-    ckpt_dir = out / "checkpoints"
+    ckpt_dir = None if out is None else out / "checkpoints"
 
     state = None
-    if resume:
+    if resume and ckpt_dir is not None:
         latest = latest_checkpoint(ckpt_dir)
         if latest is not None:
             state = T.load_checkpoint(latest)
@@ -240,9 +242,10 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     last[0] = t_train
     bar = progress or None  # False: no progress (the earlier boolean)
     try:
-        with JsonlLog(out / "train_log.jsonl") as log_record:
+        with (contextlib.nullcontext() if out is None
+              else JsonlLog(out / "train_log.jsonl")) as log_record:
             state = T.fit(state, train_images, train_cams, log=log_record, log_every=log_every,
-                          checkpoint=RollingCheckpoints(ckpt_dir),
+                          checkpoint=None if out is None else RollingCheckpoints(ckpt_dir),
                           checkpoint_every=checkpoint_every or None, progress=bar,
                           callback=timer, desc="reconstruct")
     finally:
@@ -258,18 +261,10 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
 
     t_write = time.perf_counter()
     renders = result.pop("renders")
-    for k, (i, r) in enumerate(zip(test_idx, renders)):
-        name = Path(data.filenames[int(i)]).stem
-        write_image(out / eval_split / f"{k:03d}_{name}.png", r)
-    columns = min(len(renders), 8)
-    if columns:
-        top = np.concatenate(list(np.asarray(test_images[:columns])), axis=1)
-        bottom = np.concatenate(list(renders[:columns]), axis=1)
-        write_image(out / f"{eval_split}_compare.png", np.concatenate([top, bottom], axis=0))
-    save_ply(out / "scene.ply", state.gaussians)
     corrections = None
-    if config.camera_opt:
-        corrections = write_corrected_dataset(out / "dataset", data, state.cameras)
+    if out is not None:
+        corrections = write_outputs(out, data, renders, test_images, test_idx, eval_split,
+                                    state, config)
     write_s = time.perf_counter() - t_write
 
     seconds = np.asarray([t for t, _ in chunk_times], np.float64)
@@ -300,8 +295,30 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     }
     if corrections is not None:
         metrics["camera_corrections"] = corrections
-    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    if out is not None:
+        atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def write_outputs(out: Path, data, renders, test_images, test_idx, eval_split: str, state,
+                  config) -> dict | None:
+    """Write a finished reconstruction's files (test renders [V, H, W, 3] and their
+    comparison strip, scene.ply, with ``camera_opt`` the corrected dataset) into ``out``;
+    returns the camera corrections' summary (None without ``camera_opt``)."""
+    from ..io import save_ply, write_image
+
+    for k, (i, r) in enumerate(zip(test_idx, renders)):
+        name = Path(data.filenames[int(i)]).stem
+        write_image(out / eval_split / f"{k:03d}_{name}.png", r)
+    columns = min(len(renders), 8)
+    if columns:
+        top = np.concatenate(list(np.asarray(test_images[:columns])), axis=1)
+        bottom = np.concatenate(list(renders[:columns]), axis=1)
+        write_image(out / f"{eval_split}_compare.png", np.concatenate([top, bottom], axis=0))
+    save_ply(out / "scene.ply", state.gaussians)
+    if config.camera_opt:
+        return write_corrected_dataset(out / "dataset", data, state.cameras)
+    return None
 
 
 def write_corrected_dataset(folder: Path, data, corrections) -> dict:
@@ -331,4 +348,4 @@ def write_corrected_dataset(folder: Path, data, corrections) -> dict:
 
 __all__ = ["NORMALIZE", "ReconstructConfig", "capped_initial_points", "check_image_size",
            "composite_background", "initial_points", "load_dataset", "reconstruct", "run",
-           "write_corrected_dataset"]
+           "write_corrected_dataset", "write_outputs"]

@@ -1,0 +1,351 @@
+"""Several processes on JAX's distributed runtime: joining it, splitting edits, failing cleanly.
+
+A multi-process run starts the same command once per host (or per GPU), each with
+``--coordinator HOST:PORT --num-processes N --process-id I``. :func:`initialize` joins
+``jax.distributed`` (CPU collectives through gloo, the runtime's default), after which
+``jax.devices()`` lists every process's devices and ``jax.local_devices()`` this one's.
+
+What runs where in an edit (``experiments/edit.py``):
+
+* every process runs the same deterministic program (the trainer on its first local
+  device, the editor on its second), so every process holds the same scene;
+* the views due at one step (a subtask's initial sweep, the difficulty's views) are
+  split over the processes by :class:`SplitEditor`: process ``p`` edits the contiguous
+  slice :func:`process_slice` gives it with its own editor on its local devices, and
+  :func:`gather_views` all-gathers the results, so every process continues with the same
+  bits (one edit at a time is edited by every process: no traffic);
+* only process 0 (:func:`is_writer`) writes the run directory; the others write nothing.
+
+The library's data-parallel pieces (:mod:`jaxedit.parallel`, the JAX editor's mesh) take a
+mesh over ``jax.devices()`` and then span every process unchanged.
+
+Failure. The runtime ends a process whose peer stopped sending heartbeats, or whose
+coordinator cannot be reached, with a fatal C++ log and ``abort()``: nothing Python can
+catch. The command line therefore runs each process as a child of a small supervisor
+(:func:`supervise`) that passes its output through, drops the runtime's log noise
+(:func:`is_runtime_noise`), and turns an abnormal end into one line
+(:func:`fatal_reason`) and exit status 2, within ``heartbeat_timeout`` (a lost peer) or
+``init_timeout`` (no coordinator) seconds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+from typing import Any, Sequence
+
+import numpy as np
+
+from .errors import DataError
+
+#: Environment variable that marks a supervised worker process (:func:`supervise`).
+WORKER_ENV = "JAXEDIT_DISTRIBUTED_WORKER"
+
+#: ``--coordinator`` value that lets JAX find the cluster itself (TPU slices, SLURM, Open MPI).
+AUTO = "auto"
+
+
+@dataclasses.dataclass(frozen=True)
+class DistributedConfig:
+    """How this process joins a multi-process run (one process: the defaults).
+
+    Attributes:
+      coordinator: HOST:PORT where process 0 serves JAX's coordinator (every process gives
+        the same); auto: detected on TPU slices, SLURM and Open MPI jobs; unset: one process.
+      num_processes: processes in the run (one per host, or one per GPU).
+      process_id: this process's index, 0 .. num_processes - 1; process 0 writes the outputs.
+      init_timeout: seconds to wait for every process to reach the coordinator.
+      heartbeat_timeout: seconds without a heartbeat after which a process counts as dead
+        and every process stops.
+    """
+
+    coordinator: str | None = None
+    num_processes: int = 1
+    process_id: int = 0
+    init_timeout: int = 120
+    heartbeat_timeout: int = 30
+
+    def __post_init__(self):
+        if self.num_processes < 1:
+            raise DataError("num_processes", f"must be >= 1, got {self.num_processes}")
+        if not 0 <= self.process_id < self.num_processes:
+            raise DataError("process_id", f"must be in 0 .. {self.num_processes - 1} "
+                                          f"(num_processes), got {self.process_id}")
+        for name in ("init_timeout", "heartbeat_timeout"):
+            if getattr(self, name) < 1:
+                raise DataError(name, f"must be >= 1 (seconds), got {getattr(self, name)}")
+        if self.coordinator is None:
+            if self.num_processes > 1 or self.process_id:
+                raise DataError("coordinator", "required with num_processes > 1 (HOST:PORT "
+                                               "of process 0, or auto)")
+        elif self.coordinator != AUTO:
+            parse_address(self.coordinator)
+
+    @property
+    def active(self) -> bool:
+        """Whether this process joins a distributed runtime at all."""
+        return self.coordinator is not None
+
+
+def parse_address(address: str) -> tuple[str, int]:
+    """(host, port) of ``HOST:PORT`` (IPv6 hosts in brackets); DataError if malformed."""
+    host, sep, port = str(address).rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise DataError("coordinator", f"expected HOST:PORT (port 1-65535), got {address!r}")
+    return host, int(port)
+
+
+def initialize(config: DistributedConfig) -> None:
+    """Join the distributed runtime (a no-op for one process). Call before anything else
+    touches JAX.
+
+    CPU collectives go through gloo (set explicitly, JAX's default). A coordinator that
+    cannot be reached within ``init_timeout`` seconds is a DataError where the runtime
+    reports it to Python (when it aborts instead, :func:`supervise` reports it).
+    """
+    if not config.active:
+        return
+    import jax
+    from jax._src import distributed as _dist  # the client, to leave no half-joined state
+
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    manual = {} if config.coordinator == AUTO else dict(
+        coordinator_address=config.coordinator, num_processes=config.num_processes,
+        process_id=config.process_id)
+    try:
+        jax.distributed.initialize(**manual, initialization_timeout=config.init_timeout,
+                                   heartbeat_timeout_seconds=config.heartbeat_timeout,
+                                   shutdown_timeout_seconds=config.heartbeat_timeout)
+    except RuntimeError as e:  # JaxRuntimeError, and "called after the backend started"
+        state = _dist.global_state
+        state.client = None  # its atexit shutdown would raise again, with a traceback
+        if state.service is not None:
+            state.service.shutdown()
+            state.service = None
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise DataError("coordinator", f"cannot join {config.coordinator} as process "
+                        f"{config.process_id} of {config.num_processes} within "
+                        f"{config.init_timeout} s ({first[:160]})") from None
+    except ValueError as e:  # auto: no cluster environment found
+        raise DataError("coordinator", str(e).splitlines()[0]) from None
+
+
+def process_index() -> int:
+    """This process's index (0 without a distributed runtime)."""
+    import jax
+
+    return jax.process_index()
+
+
+def process_count() -> int:
+    """Processes in the run (1 without a distributed runtime)."""
+    import jax
+
+    return jax.process_count()
+
+
+def is_writer() -> bool:
+    """Whether this process writes the outputs: process 0, the only one."""
+    return process_index() == 0
+
+
+def process_slice(count: int, process: int, processes: int) -> slice:
+    """The views [count] that ``process`` of ``processes`` edits: a contiguous slice of
+    ``ceil(count / processes)`` views (the last processes' may be shorter or empty)."""
+    per = -(-count // processes)
+    lo = min(process * per, count)
+    return slice(lo, min(lo + per, count))
+
+
+def gather_views(local, count: int) -> np.ndarray:
+    """Every process's views, in process order: float32 [count, H, W, 3] on every process.
+
+    ``local``: this process's views [b, H, W, 3], its :func:`process_slice` of ``count``
+    (``b`` may be 0: nothing was left for it). Every process must call it (a collective)."""
+    from jax.experimental import multihost_utils
+
+    processes = process_count()
+    per = -(-count // processes)
+    local = np.asarray(local, np.float32)
+    padded = np.zeros((per,) + local.shape[1:], np.float32)
+    padded[:len(local)] = local
+    stacked = multihost_utils.process_allgather(padded)  # [processes, per, H, W, 3]
+    return np.asarray(stacked).reshape((processes * per,) + local.shape[1:])[:count]
+
+
+def barrier(name: str) -> None:
+    """Wait until every process reaches ``name`` (a no-op for one process)."""
+    if process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
+class SplitEditor:
+    """An editor whose multi-view edits are split over the processes (module docstring).
+
+    ``edit_many(images [B, H, W, 3], originals [B, H, W, 3], embedding, keys [B])`` edits
+    this process's :func:`process_slice` with the wrapped editor (in its own batches,
+    :func:`jaxedit.edit.editors.edit_views`) and returns all B views, gathered: float32
+    NumPy [B, H, W, 3], the same bits on every process. ``edit`` (one view) runs the
+    wrapped editor on every process. Everything else is the wrapped editor's.
+    """
+
+    def __init__(self, editor):
+        self.inner = editor
+        #: Views :func:`jaxedit.edit.editors.edit_views` hands over at once: every process's batch.
+        self.batch = max(int(getattr(editor, "batch", 1)), 1) * process_count()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def edit(self, image, original, embedding, key, **kwargs):
+        return self.inner.edit(image, original, embedding, key, **kwargs)
+
+    def edit_many(self, images, originals, embeddings, keys, **kwargs) -> np.ndarray:
+        from .edit.editors import edit_views
+
+        count = len(images)
+        part = process_slice(count, process_index(), process_count())
+        mine = edit_views(self.inner, images[part], originals[part], embeddings,
+                          keys[part], **kwargs) if part.stop > part.start else []
+        shape = tuple(np.shape(images[0]))
+        local = np.stack([np.asarray(v, np.float32) for v in mine]) if mine else np.zeros(
+            (0,) + shape, np.float32)
+        return gather_views(local, count)
+
+    def relevance(self, *args, **kwargs):
+        from .edit.editors import relevance
+
+        return relevance(self.inner, *args, **kwargs)
+
+
+def split_edits(editor):
+    """``editor`` as a :class:`SplitEditor` when there are several processes, else itself."""
+    return SplitEditor(editor) if process_count() > 1 else editor
+
+
+# --- supervision -----------------------------------------------------------------------
+
+#: A glog / absl line: severity, date, time, thread, file:line].
+_LOG_LINE = re.compile(r"[IWEF]\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+ [^\]]+\] ")
+_FATAL = re.compile(r"F\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+ [^\]]+\] ")
+
+
+def is_runtime_noise(line: str) -> bool:
+    """Whether a worker's stderr line is the runtime's own logging (glog lines, gloo's
+    connection notices, a fatal error's stack trace), not jaxedit's output."""
+    return bool(_LOG_LINE.search(line) or line.startswith(("[Gloo] ", "*** Check failure"))
+                or re.match(r"\s+@\s+0x", line))
+
+
+def fatal_reason(message: str, returncode: int, config: DistributedConfig) -> str:
+    """The one-line reason a worker ended abnormally.
+
+    Args:
+      message: the runtime's fatal log message (empty when there was none).
+      returncode: the worker's exit status (negative: killed by that signal).
+      config: the run's settings (for the coordinator and the timeouts).
+    """
+    text = " ".join(message.split())
+    if "stopped sending heartbeats" in text or "heartbeat" in text.lower():
+        tasks = re.search(r"heartbeats\):\s*([\d ,]+)", text)
+        who = f"process {tasks.group(1).strip()}" if tasks else "another process"
+        return (f"{who} stopped answering for {config.heartbeat_timeout} s "
+                "(it died or its host is unreachable)")
+    if "RegisterTask" in text or ("DEADLINE_EXCEEDED" in text and "Connect" in text):
+        return (f"cannot reach the coordinator {config.coordinator} within "
+                f"{config.init_timeout} s")
+    if text:
+        status = text.split("absl::Status: ", 1)[-1]
+        if "UNAVAILABLE" in status or "coordination" in text.lower():
+            return f"lost the distributed runtime ({status[:200]})"
+        return status[:240]
+    if returncode < 0:
+        try:
+            name = signal.Signals(-returncode).name
+        except ValueError:
+            name = f"signal {-returncode}"
+        return f"killed by {name}"
+    return f"exited with status {returncode}"
+
+
+def supervise(command: Sequence[str], config: DistributedConfig, *, cleanup=None,
+              stderr=None) -> int:
+    """Run ``command`` (this command as a worker) and map an abnormal end to one line + 2.
+
+    The worker's stdout and stderr are passed through except the runtime's noise
+    (:func:`is_runtime_noise`; gloo prints to stdout). Exit statuses 0, 2 (a one-line error the
+    worker printed itself) and 130 (interrupted) are passed on; anything else (an abort
+    by the runtime, a signal) prints ``error: process I of N stopped: REASON`` and
+    returns 2, after ``cleanup()`` (the writer removes what the run created).
+    """
+    stderr = stderr or sys.stderr
+    env = {**os.environ, WORKER_ENV: "1"}
+    env.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # the runtime's info/warning lines
+    child = subprocess.Popen(list(command), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             env=env)
+    fatal: list[str] = []
+    pumps = [threading.Thread(target=_pump, args=(child.stdout, sys.stdout, None), daemon=True),
+             threading.Thread(target=_pump, args=(child.stderr, stderr, fatal), daemon=True)]
+    for pump in pumps:
+        pump.start()
+    code = _wait(child)  # the worker gets Ctrl-C's SIGINT too and ends itself
+    for pump in pumps:
+        pump.join(timeout=5)
+    if code in (0, 2, 130):
+        return code
+    if cleanup is not None:
+        cleanup()
+    who = f"process {config.process_id} of {config.num_processes}"
+    stderr.write(f"error: {who} stopped: {fatal_reason(''.join(fatal), code, config)}\n")
+    stderr.flush()
+    return 2
+
+
+def _wait(child: subprocess.Popen) -> int:
+    while True:
+        try:
+            return child.wait()
+        except KeyboardInterrupt:
+            continue
+
+
+def _pump(source, sink, fatal: list[str] | None) -> None:
+    """Copy a worker's output stream to ``sink`` line by line (``\r`` ends a line too),
+    through :func:`_route`; ``fatal`` None: only drop the runtime's noise."""
+    pending = b""
+    while True:
+        chunk = os.read(source.fileno(), 65536)
+        if not chunk:
+            break
+        pending += chunk
+        *lines, pending = re.split(rb"(?<=[\n\r])", pending)
+        for raw in lines:
+            _route(raw.decode("utf-8", "replace"), fatal, sink)
+    if pending:
+        _route(pending.decode("utf-8", "replace"), fatal, sink)
+
+
+def _route(line: str, fatal: list[str] | None, stderr) -> None:
+    """Pass a worker's stderr ``line`` on, or keep it as the fatal message, or drop it."""
+    match = _FATAL.search(line) if fatal is not None else None
+    if match or fatal:  # everything from a fatal log on is the dying runtime's
+        if not is_runtime_noise(line) or match:
+            fatal.append(line[match.end():] if match else line)
+        if match and line[:match.start()].strip():
+            stderr.write(line[:match.start()] + "\n")
+        return
+    if not is_runtime_noise(line):
+        stderr.write(line)
+        stderr.flush()
+
+
+__all__ = ["AUTO", "DistributedConfig", "SplitEditor", "WORKER_ENV", "barrier", "fatal_reason",
+           "gather_views", "initialize", "is_runtime_noise", "is_writer", "parse_address",
+           "process_count", "process_index", "process_slice", "split_edits", "supervise"]
