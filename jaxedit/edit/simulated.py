@@ -20,7 +20,16 @@ produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
    ``give him a marble texture``             texture     veins stamped as a function of colour
                                                          (or of world position, see ``surfaces``)
    ``make his head bigger``                  shape       radial bulge around the head's centroid
+   ``paint the orange parts blue``           local       the warm, coloured pixels only (chroma
+                                                         0.12-0.24 ramp, red above blue) swap red
+                                                         and blue; grey, white, black and cool
+                                                         pixels keep their colour exactly
    ========================================  ==========  ===========================================
+
+   The last is the *local* instruction (issue 35, :data:`LOCAL_VOCABULARY`): one part of the
+   scene changes (the person's hair and skin, the tabletop's red ball and boxes, the face's
+   orange suit) and the rest of every view is the original, bit for bit, so a local edit
+   (``edit --local auto``) can be scored on what it must leave alone.
 
    The foreground is the set of pixels whose colour differs from the background colour, taken as
    the per-channel median of the image border of the original (a soft mask). The bulge is centred
@@ -153,7 +162,7 @@ class Instruction:
 
     Attributes:
       prompt: the text, matched after lower-casing and collapsing white space.
-      kind: "colour", "material", "style", "texture" or "shape".
+      kind: "colour", "material", "style", "texture", "shape" or "local".
       midpoint, steepness: of the logistic strength curve s(r) (see the module docstring).
     """
 
@@ -170,6 +179,13 @@ VOCABULARY: tuple[Instruction, ...] = (
     Instruction("give him a marble texture", "texture", 0.45, 10.0),
     Instruction("make his head bigger", "shape", 0.5, 12.0),
 )
+#: Instructions that change one part of the scene only (issue 35), after :data:`VOCABULARY`
+#: in the editor's embedding basis, so the global instructions keep their embeddings and bits.
+LOCAL_VOCABULARY: tuple[Instruction, ...] = (
+    Instruction("paint the orange parts blue", "local", 0.5, 8.0),
+)
+#: Every instruction the editor knows, in index order.
+INSTRUCTIONS: tuple[Instruction, ...] = VOCABULARY + LOCAL_VOCABULARY
 
 
 def _normalise_prompt(prompt: str) -> str:
@@ -474,16 +490,16 @@ class SimulatedEditor:
 
     @property
     def instructions(self) -> tuple[str, ...]:
-        return tuple(i.prompt for i in VOCABULARY)
+        return tuple(i.prompt for i in INSTRUCTIONS)
 
     def _index(self, instruction) -> int:
         if isinstance(instruction, (int, np.integer)):
-            if 0 <= int(instruction) < len(VOCABULARY):
+            if 0 <= int(instruction) < len(INSTRUCTIONS):
                 return int(instruction)
             raise DataError("instruction",
-                            f"index {instruction} out of range 0..{len(VOCABULARY) - 1}")
+                            f"index {instruction} out of range 0..{len(INSTRUCTIONS) - 1}")
         key = _normalise_prompt(instruction)
-        for i, ins in enumerate(VOCABULARY):
+        for i, ins in enumerate(INSTRUCTIONS):
             if ins.prompt == key:
                 return i
         raise DataError("prompt", f"unknown instruction {instruction!r} for the simulated editor; "
@@ -504,8 +520,9 @@ class SimulatedEditor:
             raise DataError("embedding", f"expected a finite float [{EMBED_DIM}] embedding of the "
                             f"simulated editor, got shape {np.shape(embedding)}")
         z = self._basis.T.astype(np.float64) @ e
-        coords = z[1:1 + len(VOCABULARY)]
-        residual = np.abs(np.concatenate([[z[0] - 1.0], z[1 + len(VOCABULARY):]])).max(initial=0.0)
+        coords = z[1:1 + len(INSTRUCTIONS)]
+        residual = np.abs(np.concatenate([[z[0] - 1.0],
+                                          z[1 + len(INSTRUCTIONS):]])).max(initial=0.0)
         active = np.flatnonzero(np.abs(coords) > 1e-4)
         if residual > 1e-3 or len(active) > 1:
             raise DataError("embedding", "not an interpolation r E(p) + (1 - r) E('') of one "
@@ -520,7 +537,7 @@ class SimulatedEditor:
 
     def strength(self, ratio: float, instruction) -> float:
         """s(r) of the instruction: the fraction of the full edit present in the r-target."""
-        ins = VOCABULARY[self._index(instruction)]
+        ins = INSTRUCTIONS[self._index(instruction)]
         return float(strength(float(ratio), ins.midpoint, ins.steepness))
 
     # ---- images -----------------------------------------------------------------------------
@@ -554,7 +571,7 @@ class SimulatedEditor:
         if isinstance(mode, bool) or not isinstance(mode, (int, np.integer)) \
                 or not 0 <= mode < self.modes:
             raise DataError("mode", f"must be an integer in 0..{self.modes - 1}, got {mode!r}")
-        ins = VOCABULARY[i]
+        ins = INSTRUCTIONS[i]
         s = strength(float(ratio), ins.midpoint, ins.steepness)
         return np.asarray(_target_impl(jnp.asarray(original), jnp.float32(s),
                                        self._points(original), kind=ins.kind, mode=int(mode)))
@@ -570,7 +587,7 @@ class SimulatedEditor:
         if not 0.0 <= float(timestep) <= 1.0:
             raise DataError("timestep", f"must be in [0, 1], got {timestep!r}")
         i, r = self.decode(embedding)
-        kind, s = ("colour", 0.0) if i is None else (VOCABULARY[i].kind, self.strength(r, i))
+        kind, s = ("colour", 0.0) if i is None else (INSTRUCTIONS[i].kind, self.strength(r, i))
         return np.asarray(_probabilities_impl(jnp.asarray(image), jnp.asarray(original),
                                               jnp.float32(s), jnp.float32(timestep),
                                               self._points(original), kind=kind,
@@ -635,7 +652,7 @@ class SimulatedEditor:
         if not (gt >= 0 and gi > 0 and math.isfinite(gt) and math.isfinite(gi)):
             raise DataError("guidance", f"need text >= 0 and image > 0 scales, got {guidance!r}")
         i, r = self.decode(embedding)
-        kind, s = ("colour", 0.0) if i is None else (VOCABULARY[i].kind, self.strength(r, i))
+        kind, s = ("colour", 0.0) if i is None else (INSTRUCTIONS[i].kind, self.strength(r, i))
         gscale = (gt / 7.5) * math.sqrt(1.5 / gi)
         out, mode = _edit_impl(jnp.asarray(image), jnp.asarray(original), jnp.float32(s), key,
                                jnp.asarray([t0, t1], jnp.float32), jnp.float32(gscale),

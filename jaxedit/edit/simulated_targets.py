@@ -17,6 +17,8 @@ texture    veins stamped as a function of colour, or of the world point seen by 
            (``_marble``), at phase offsets 0, 1/3, 2/3 in white, blue-grey and pink marble
 shape      radial bulge of the head around its centroid (``_bulge``), amplitude s BULGE_MAX:
            round, taller, wider
+local      the warm, coloured pixels only (:func:`orange_weight`) get their channels permuted
+           (``_recolour``): blue (red and blue swapped), violet, green; the rest is the original
 =========  ===================================================================================
 
 Every target is a function of the content (colour) of each pixel through smooth functions, of
@@ -245,6 +247,29 @@ def _bulge(original, mask, amount, aspect=(1.0, 1.0)):
 
 BULGE_MAX = 0.35
 
+# The local instruction's modes: channel orders of the recoloured part (orange (0.87, 0.46,
+# 0.32) becomes blue (0.32, 0.46, 0.87), violet (0.46, 0.32, 0.87) or green (0.32, 0.87, 0.46)).
+_MODE_PERMUTATIONS = ((2, 1, 0), (1, 2, 0), (2, 0, 1))
+
+
+def orange_weight(original):
+    """How much a pixel belongs to the local instruction's part, float [H, W] in [0, 1].
+
+    A function of the pixel's colour alone (so of the surface, in every view): coloured
+    (chroma max - min from 0.12 to 0.24) and warm (red above blue by 0.02 to 0.08). Grey,
+    white, black and cool pixels weigh exactly 0.
+    """
+    chroma = jnp.max(original, axis=-1) - jnp.min(original, axis=-1)
+    warm = original[..., 0] - original[..., 2]
+    return _smoothstep(0.12, 0.24, chroma) * _smoothstep(0.02, 0.08, warm)
+
+
+def _recolour(original, order=_MODE_PERMUTATIONS[0]):
+    """The local instruction's full target: the :func:`orange_weight` part of float
+    [H, W, 3] with its channels in ``order``, the other pixels unchanged."""
+    w = orange_weight(original)[..., None]
+    return w * original[..., jnp.asarray(order)] + (1.0 - w) * original
+
 
 def _target_family(original, kind: str, points=None, mode: int = 0):
     """s -> target of strength s (s = 0: the original, s = 1: the full target) for one kind
@@ -266,6 +291,8 @@ def _target_family(original, kind: str, points=None, mode: int = 0):
     elif kind == "texture":
         offset, base = _MODE_MARBLES[mode]
         full = _marble(original, foreground(original), points, offset, base)
+    elif kind == "local":
+        full = _recolour(original, _MODE_PERMUTATIONS[mode])
     else:
         raise ValueError(kind)
     return lambda s: jnp.clip(original + s * (full - original), 0.0, 1.0)

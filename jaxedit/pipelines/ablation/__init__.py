@@ -69,7 +69,7 @@ import numpy as np
 from ...edit import EditData, TrainSettings
 from ...edit.outputs import Renderer
 from ...edit.plan import anneal_horizon
-from ...edit.simulated import VOCABULARY, SimulatedEditor
+from ...edit.simulated import INSTRUCTIONS, SimulatedEditor
 from ...edit.simulated_targets import MAX_MODES
 from ...errors import DataError
 from ...io import write_image
@@ -273,7 +273,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
             first.encode(p)  # unknown instructions fail here
         except DataError as e:
             raise DataError("prompts", e.problem) from None
-        kinds[p] = VOCABULARY[first._index(p)].kind
+        kinds[p] = INSTRUCTIONS[first._index(p)].kind
     settings_json = config.settings_json(kinds, recon_seed)
     scenes, seeds = config.scenes, config.seeds
     out.mkdir(parents=True, exist_ok=True)
