@@ -19,25 +19,27 @@ The package is split as gsplat's ``strategy/``:
   :func:`place` (duplication: a copy, or a split's second child, into a free slot),
   :func:`opacity_reset` and :func:`zero_moments` (reset), and the capacity growth
   outside jit (:func:`grown_capacity`, :func:`grow_state`);
-* :mod:`.strategy` -- the statistics (:class:`DensifyStats`, :func:`init_stats`,
-  :func:`accumulate` of a :class:`RenderAux`), the settings (:class:`DensifyConfig`),
+* :mod:`.stats` -- the statistics both read (:class:`DensifyStats`, :func:`init_stats`,
+  :func:`accumulate` of a :class:`RenderAux`);
+* :mod:`.strategy` -- the settings (:class:`DensifyConfig`),
   ProEdit's creation budget t(n, N) (:func:`creation_budget`) and :func:`adaptive`,
   which composes the operations into the :class:`Strategy`; its docstring says what
   ``update`` does, step by step.
 
-Every public name of both is re-exported here: ``from jaxedit.densify import X``.
+Every public name of the three is re-exported here: ``from jaxedit.densify import X``.
 """
 
 from .ops import (Selection, cull_mask, grow_state, grown_capacity, opacity_reset, place, remove,
                   select, split, zero_moments)
-from .strategy import (BudgetFn, DensifyConfig, DensifyInfo, DensifyStats, RenderAux, Strategy,
-                       accumulate, adaptive, creation_budget, init_stats, render_aux)
+from .stats import DensifyStats, RenderAux, accumulate, init_stats, render_aux
+from .strategy import BudgetFn, DensifyConfig, DensifyInfo, Strategy, adaptive, creation_budget
 
 __all__ = [
     # ops
     "Selection", "cull_mask", "grow_state", "grown_capacity", "opacity_reset", "place", "remove",
     "select", "split", "zero_moments",
+    # stats
+    "DensifyStats", "RenderAux", "accumulate", "init_stats", "render_aux",
     # strategy
-    "BudgetFn", "DensifyConfig", "DensifyInfo", "DensifyStats", "RenderAux", "Strategy",
-    "accumulate", "adaptive", "creation_budget", "init_stats", "render_aux",
+    "BudgetFn", "DensifyConfig", "DensifyInfo", "Strategy", "adaptive", "creation_budget",
 ]

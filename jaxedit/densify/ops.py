@@ -27,16 +27,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from .. import gaussians as glib
 from ..gaussians import Gaussians
-
-if TYPE_CHECKING:  # the statistics are the strategy's; the operations only read them
-    from .strategy import DensifyStats
+from .stats import DensifyStats
 
 
 # --------------------------------------------------------------------------------------
@@ -155,10 +153,10 @@ def grow_state(gaussians: Gaussians, opt_state, stats: DensifyStats | None, capa
     if opt_state is not None:
         opt_state = _map_gaussian_nodes(fn, opt_state)
     if stats is not None:
-        # _replace, not DensifyStats(...): the class lives in .strategy, which imports this
-        stats = stats._replace(grad_sum=_pad_rows(stats.grad_sum, extra),
-                               count=_pad_rows(stats.count, extra),
-                               max_radius=_pad_rows(stats.max_radius, extra))
+        stats = DensifyStats(grad_sum=_pad_rows(stats.grad_sum, extra),
+                             count=_pad_rows(stats.count, extra),
+                             max_radius=_pad_rows(stats.max_radius, extra),
+                             last_culled=stats.last_culled)
     return g, opt_state, stats
 
 

@@ -3,9 +3,8 @@
 As gsplat's strategies next to ``strategy/ops.py``: this module keeps what is carried
 between steps and when to act, :mod:`jaxedit.densify.ops` what is done.
 :func:`adaptive` turns a :class:`DensifyConfig` into a :class:`Strategy`; the
-statistics are :class:`DensifyStats` (:func:`init_stats`, :func:`accumulate`, from a
-render's :class:`RenderAux`), each update reports a :class:`DensifyInfo`, and
-:func:`creation_budget` is ProEdit's t(n, N).
+statistics it carries are :mod:`jaxedit.densify.stats`' :class:`DensifyStats`, each
+update reports a :class:`DensifyInfo`, and :func:`creation_budget` is ProEdit's t(n, N).
 
 What ``update`` does at every call: accumulate the 3DGS statistics of this
 step's render (norm of the 2D-mean gradient in NDC units, visibility count,
@@ -68,47 +67,9 @@ import jax.numpy as jnp
 
 from ..gaussians import Gaussians
 from .ops import cull_mask, opacity_reset, place, remove, select, split, zero_moments
+from .stats import DensifyStats, RenderAux, accumulate, init_stats
 
 BudgetFn = Callable[[jax.Array, jax.Array], jax.Array]
-
-
-class RenderAux(NamedTuple):
-    """What densification needs from one training render.
-
-    Attributes:
-      grad_means2d: float [C, 2], gradient of the loss w.r.t. the projected
-        means in pixels (the gradient of ``means2d_delta``).
-      radii: float or int [C], screen-space radius in pixels (0 if not drawn).
-      visible: bool [C], drawn in this view.
-      image_size: float [2], (width, height) in pixels.
-    """
-
-    grad_means2d: jax.Array
-    radii: jax.Array
-    visible: jax.Array
-    image_size: jax.Array
-
-
-def render_aux(grad_means2d, out, width: int, height: int) -> RenderAux:
-    """A :class:`RenderAux` from a render output ``out`` and its 2D-mean gradient [C, 2]."""
-    return RenderAux(grad_means2d=grad_means2d, radii=out.radii, visible=out.visible,
-                     image_size=jnp.asarray([width, height], jnp.float32))
-
-
-class DensifyStats(NamedTuple):
-    """Running statistics between maintenance steps (all [C] per slot).
-
-    Attributes:
-      grad_sum: float [C], sum over views of the NDC 2D-mean gradient norm.
-      count: int32 [C], number of views in which the Gaussian was drawn.
-      max_radius: float [C], largest screen radius as a fraction of max(W, H).
-      last_culled: int32 [], n: how many were culled at the previous maintenance step.
-    """
-
-    grad_sum: jax.Array
-    count: jax.Array
-    max_radius: jax.Array
-    last_culled: jax.Array
 
 
 class DensifyInfo(NamedTuple):
@@ -195,25 +156,6 @@ def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> Budg
 # --------------------------------------------------------------------------------------
 # The strategy
 # --------------------------------------------------------------------------------------
-
-def init_stats(capacity: int) -> DensifyStats:
-    return DensifyStats(grad_sum=jnp.zeros((capacity,), jnp.float32),
-                        count=jnp.zeros((capacity,), jnp.int32),
-                        max_radius=jnp.zeros((capacity,), jnp.float32),
-                        last_culled=jnp.zeros((), jnp.int32))
-
-
-def accumulate(stats: DensifyStats, aux: RenderAux) -> DensifyStats:
-    """Add one view's NDC gradient norms, visibility and screen radii to ``stats``."""
-    ndc = aux.grad_means2d * (0.5 * aux.image_size)  # pixel gradient -> NDC (INRIA's units)
-    norm = jnp.sqrt(jnp.sum(ndc * ndc, axis=-1))
-    vis = aux.visible.astype(bool)
-    radius = aux.radii.astype(jnp.float32) / jnp.max(aux.image_size)
-    return DensifyStats(grad_sum=stats.grad_sum + jnp.where(vis, norm, 0.0),
-                        count=stats.count + vis.astype(jnp.int32),
-                        max_radius=jnp.maximum(stats.max_radius, jnp.where(vis, radius, 0.0)),
-                        last_culled=stats.last_culled)
-
 
 def _empty_info(capacity: int, alive) -> DensifyInfo:
     z = jnp.zeros((), jnp.int32)
