@@ -33,6 +33,7 @@ import argparse
 import contextlib
 import importlib
 import errno
+import functools
 import json
 import math
 import os
@@ -57,16 +58,60 @@ def finite_float(text: str) -> float:
     return value
 
 
+class _RecordingGroup:
+    """An argument group (or mutually exclusive group) of a :class:`OneLineParser` that
+    records in its parser's ``arguments`` what is added through it; the rest is the group's."""
+
+    def __init__(self, group, arguments: list):
+        self._group, self._arguments = group, arguments
+
+    def add_argument(self, *args, **kwargs) -> argparse.Action:
+        action = self._group.add_argument(*args, **kwargs)
+        self._arguments.append(action)
+        return action
+
+    def add_mutually_exclusive_group(self, **kwargs) -> "_RecordingGroup":
+        return _RecordingGroup(self._group.add_mutually_exclusive_group(**kwargs), self._arguments)
+
+    def __getattr__(self, name):
+        return getattr(self._group, name)
+
+
 class OneLineParser(argparse.ArgumentParser):
     """argparse, but errors are one line and exit with status 2.
 
     Every ``type=float`` flag of every command (and its config-file value) is read by
     :func:`finite_float`: no command has a use for an infinite or NaN number.
+
+    Attributes:
+      arguments: every argument added (on the parser or through its groups), in order
+        (argparse keeps its own list private); ``-h`` is not among them.
+      commands: {command: its parser}, the subcommands :func:`build_parser` added.
     """
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.register("type", float, finite_float)
+        # Set after argparse's own construction (its -h and its two default groups).
+        self.arguments: list[argparse.Action] = []
+        self.commands: dict[str, OneLineParser] = {}
+
+    def _recording(self) -> bool:
+        return hasattr(self, "arguments")
+
+    def add_argument(self, *args, **kwargs) -> argparse.Action:
+        action = super().add_argument(*args, **kwargs)
+        if self._recording():
+            self.arguments.append(action)
+        return action
+
+    def add_argument_group(self, *args, **kwargs):
+        group = super().add_argument_group(*args, **kwargs)
+        return _RecordingGroup(group, self.arguments) if self._recording() else group
+
+    def add_mutually_exclusive_group(self, **kwargs):
+        group = super().add_mutually_exclusive_group(**kwargs)
+        return _RecordingGroup(group, self.arguments) if self._recording() else group
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -109,7 +154,12 @@ def load_config(path: Path) -> dict:
     return {k.replace("-", "_"): v for k, v in data.items()}
 
 
+@functools.cache
 def build_parser() -> OneLineParser:
+    """The command line's parser, built once per process (every command module imported,
+    every flag generated); its ``commands`` are the subcommands' parsers.
+
+    :func:`parse` reads a config file into it only for the length of one parse."""
     parser = OneLineParser(prog="python -m experiments",
                            description="jaxedit: progressive 3DGS scene editing (ProEdit) in JAX")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
@@ -124,7 +174,13 @@ def build_parser() -> OneLineParser:
         add_shared_arguments(p)
         mod.add_arguments(p)
         p.set_defaults(_module=mod)
+        parser.commands[name] = p
     return parser
+
+
+def command_parser(command: str) -> OneLineParser:
+    """The parser of subcommand ``command`` (of the process's one :func:`build_parser`)."""
+    return build_parser().commands[command]
 
 
 def jsonable(value):
@@ -210,7 +266,7 @@ def config_values(sub: argparse.ArgumentParser, config: dict, path: Path) -> dic
     from jaxedit import DataError
 
     actions = {}
-    for a in sub._actions:
+    for a in sub.arguments:
         if a.dest not in ("help", "config"):
             actions.setdefault(a.dest, a)
     unknown = sorted(set(config) - set(actions))
@@ -220,24 +276,40 @@ def config_values(sub: argparse.ArgumentParser, config: dict, path: Path) -> dic
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
+    """The flags of ``argv``, over ``--config``'s values, over the command's defaults.
+
+    The process's one parser (:func:`build_parser`) is left as it was found: a config
+    file's values are its defaults, and the required flags it sets are not required, only
+    for the length of this parse (so a parse is not to run on two threads at once).
+    """
     parser = build_parser()
-    subs = parser._subparsers._group_actions[0].choices
     # First pass without required flags: the config file may be the one that sets them.
-    required = [a for sub in subs.values() for a in sub._actions if a.required and a.option_strings]
-    for action in required:
-        action.required = False
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
-        parser.exit(2)
-    values = {}
-    if args.config is not None:
-        sub = subs[args.command]
-        values = config_values(sub, load_config(args.config), args.config)
-        sub.set_defaults(**values)
-    for action in required:
-        action.required = action.dest not in values
-    args = parser.parse_args(argv)
+    required = [a for sub in parser.commands.values() for a in sub.arguments
+                if a.required and a.option_strings]
+    defaults: dict[argparse.Action, object] = {}
+    try:
+        for action in required:
+            action.required = False
+        args = parser.parse_args(argv)
+        if args.command is None:
+            parser.print_help()
+            parser.exit(2)
+        values = {}
+        if args.config is not None:
+            sub = parser.commands[args.command]
+            values = config_values(sub, load_config(args.config), args.config)
+            for action in sub.arguments:  # as set_defaults, undone below
+                if action.dest in values:
+                    defaults.setdefault(action, action.default)
+                    action.default = values[action.dest]
+        for action in required:
+            action.required = action.dest not in values
+        args = parser.parse_args(argv)
+    finally:
+        for action in required:
+            action.required = True
+        for action, default in defaults.items():
+            action.default = default
     # Flags set by the config file count as given (experiments/flags.py builds the config
     # tree from the given flags over the command's own defaults).
     args._given = set(getattr(args, "_given", ())) | set(values)
@@ -301,8 +373,7 @@ def check_input_path(path: Path, name: str) -> None:
 def check_paths(args: argparse.Namespace, *, outputs: bool = True) -> None:
     """Check every path flag of the command (inputs exist, outputs can be made) up front;
     ``outputs`` False: inputs only (a process that writes nothing, :func:`writes`)."""
-    sub = build_parser()._subparsers._group_actions[0].choices[args.command]
-    for action in sub._actions:
+    for action in command_parser(args.command).arguments:
         value = getattr(args, action.dest, None)
         if action.type is not Path or value is None or action.dest == "config":
             continue
@@ -558,12 +629,12 @@ def named_by_flag(error, args: argparse.Namespace | None):
 
     if args is None or getattr(args, "command", None) is None:
         return error
-    sub = build_parser()._subparsers._group_actions[0].choices[args.command]
-    names = flag_names(*getattr(args._module, "FLAGS", ()), parser=sub)
+    sub = command_parser(args.command)
+    names = flag_names(*getattr(args._module, "FLAGS", ()), actions=sub.arguments)
     named = as_flags(error, names | getattr(args._module, "FIELD_FLAGS", {}))
     if named is not error or error.where is None:
         return named
-    for action in sub._actions:
+    for action in sub.arguments:
         value = getattr(args, action.dest, None)
         if (action.option_strings and isinstance(value, (str, Path)) and str(value) == error.where
                 and action.option_strings[-1] not in error.problem):

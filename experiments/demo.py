@@ -89,9 +89,7 @@ def _stage_argv(command: str, flags: dict) -> list[str]:
     from experiments import cli
     from jaxedit import DataError
 
-    parser = cli.build_parser()
-    sub = parser._subparsers._group_actions[0].choices[command]
-    known = {s for a in sub._actions for s in a.option_strings}
+    known = {s for a in cli.command_parser(command).arguments for s in a.option_strings}
     argv = [command]
     for flag, value in flags.items():
         if value is None or value is False:

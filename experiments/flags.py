@@ -284,13 +284,13 @@ def _replace(instance, changes: dict, bases: dict):
     return dataclasses.replace(instance, **updates)
 
 
-def flag_names(*sets: FlagSet, parser: argparse.ArgumentParser | None = None) -> dict[str, str]:
-    """{field: flag} of ``sets``, and {dest: flag} of every other flag of ``parser``."""
+def flag_names(*sets: FlagSet, actions: Sequence[argparse.Action] = ()) -> dict[str, str]:
+    """{field: flag} of ``sets``, and {dest: flag} of every other flag of ``actions`` (a
+    command's parser's arguments, :attr:`experiments.cli.OneLineParser.arguments`)."""
     out: dict[str, str] = {}
-    if parser is not None:
-        for action in parser._actions:
-            if action.option_strings and action.dest not in (argparse.SUPPRESS, "help"):
-                out.setdefault(action.dest, action.option_strings[-1])
+    for action in actions:
+        if action.option_strings and action.dest not in (argparse.SUPPRESS, "help"):
+            out.setdefault(action.dest, action.option_strings[-1])
     for s in sets:
         out.update(s.flag_of())
     return out
@@ -304,7 +304,3 @@ def as_flags(error, names: dict[str, str]):
     if where is None or where not in names:
         return error
     return DataError(names[where], error.problem)
-
-
-def every_flag(sets: Sequence[FlagSet]) -> list[tuple[FlagSet, Flag]]:
-    return [(s, f) for s in sets for f in s.flags]

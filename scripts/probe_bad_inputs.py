@@ -114,11 +114,11 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
     from experiments import cli
 
     out_rel = os.path.relpath(root / "o", Path.cwd())
-    subs = cli.build_parser()._subparsers._group_actions[0].choices
+    subs = cli.build_parser().commands
     found = []
     for command, sub in subs.items():
         base = _base(command, inp, out_rel)
-        for action in sub._actions:
+        for action in sub.arguments:
             if not action.option_strings or action.dest in ("help", "out", "output"):
                 continue
             flag = action.option_strings[-1]
@@ -160,7 +160,7 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
                 found.append((f"{command} --out {kind}", args, where, None))
         # Config files: missing, non-finite values.
         cfg = root / f"cfg_{command}.json"
-        float_flags = [a for a in sub._actions if a.type is float and a.nargs is None]
+        float_flags = [a for a in sub.arguments if a.type is float and a.nargs is None]
         if float_flags:
             cfg.write_text('{"%s": Infinity}' % float_flags[0].dest)
             found.append((f"{command} --config Infinity", base + ["--config", str(cfg)],

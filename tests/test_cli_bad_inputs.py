@@ -540,9 +540,9 @@ def test_check_cameras_explains_unusable_cameras(change, needle):
 
 def _float_flags() -> list[tuple[str, str, int]]:
     """(command, flag, values it takes) of every float flag of every command."""
-    subs = cli.build_parser()._subparsers._group_actions[0].choices
+    subs = cli.build_parser().commands
     return [(command, a.option_strings[-1], a.nargs if isinstance(a.nargs, int) else 1)
-            for command, sub in subs.items() for a in sub._actions if a.type is float]
+            for command, sub in subs.items() for a in sub.arguments if a.type is float]
 
 
 class TestNonFiniteNumbers:

@@ -54,8 +54,7 @@ def test_every_cli_default_is_its_fields_default(command, flag_set, flag):
                          ids=[f"{c}{f.flag}" for c, _, f in GENERATED])
 def test_help_is_the_fields_docstring(command, flag_set, flag):
     cls, field, _ = flag_set.owner(flag)
-    sub = cli.build_parser()._subparsers._group_actions[0].choices[command]
-    action = next(a for a in sub._actions if flag.flag in a.option_strings)
+    action = next(a for a in cli.command_parser(command).arguments if flag.flag in a.option_strings)
     doc = flags.attribute_docs(cls)[field.name]
     assert action.help.startswith(doc.replace("%", "%%"))
 
