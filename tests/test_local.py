@@ -256,3 +256,173 @@ def test_edit_cli_refuses_bad_regions_and_masks(tmp_path, capfd):
     for name in train:
         write_image(masks / f"{name}.png", np.zeros((16, 16, 3), np.float32))
     _fails(capfd, base + ["--masks", masks], "every mask is empty")
+
+
+# ---------------------------------------------------------------------------
+# The simulated editor's local instruction (the benchmark's ground truth)
+# ---------------------------------------------------------------------------
+LOCAL_PROMPT = "paint the orange parts blue"
+
+
+def test_local_instruction_changes_the_orange_part_only():
+    from jaxedit.edit.simulated import INSTRUCTIONS, LOCAL_VOCABULARY, VOCABULARY, SimulatedEditor
+    from jaxedit.edit.simulated_targets import orange_weight
+
+    assert INSTRUCTIONS[:len(VOCABULARY)] == VOCABULARY and LOCAL_VOCABULARY[0].kind == "local"
+    ed = SimulatedEditor()
+    img = np.zeros((12, 16, 3), np.float32)
+    img[:] = (0.5, 0.5, 0.5)             # grey: untouched
+    img[2:6, 3:8] = (0.87, 0.46, 0.32)   # orange: turns blue
+    img[7:10, 9:14] = (0.2, 0.4, 0.8)    # blue (cool): untouched
+    img[0, :] = (1.0, 1.0, 1.0)          # white: untouched
+    w = np.asarray(orange_weight(jnp.asarray(img)))
+    assert w[3, 4] == 1.0 and w[8, 10] == 0.0 and w[5, 12] == 0.0 and w[0, 0] == 0.0
+    full = ed.target(img, 1.0, LOCAL_PROMPT)
+    np.testing.assert_allclose(full[3, 4], (0.32, 0.46, 0.87), atol=1e-6)
+    outside = w == 0
+    assert np.array_equal(full[outside], img[outside])  # bit for bit the original
+    half = ed.target(img, 0.5, LOCAL_PROMPT)
+    assert np.array_equal(half[outside], img[outside]) and 0.32 < half[3, 4, 0] < 0.87
+    rel = ed.relevance(img, img, ed.encode(LOCAL_PROMPT), jax.random.key(0))
+    assert rel[3, 4] == 1 and rel[8, 11] == 0 and rel[0, 15] == 0
+    assert ed.decode(ed.encode(LOCAL_PROMPT)) == (len(VOCABULARY), 1.0)
+    modal = SimulatedEditor(modes=3).mode_targets(img, 1.0, LOCAL_PROMPT)
+    assert len({tuple(np.round(t[3, 4], 3)) for t in modal}) == 3  # blue, violet, green
+    assert all(np.array_equal(t[outside], img[outside]) for t in modal)
+
+
+# ---------------------------------------------------------------------------
+# A local edit end to end (library): frozen bits, resume after a crash
+# ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ball():
+    """8 train + 2 held-out views (32 px) of a ball of coloured Gaussians, some orange."""
+    import dataclasses
+
+    from jaxedit import gaussians as gl
+    from jaxedit.edit import EditData
+    from jaxedit.edit.outputs import Renderer
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    colours = np.where(d[:, :1] > 0.3, (0.9, 0.45, 0.2), (0.45, 0.5, 0.55))
+    g = gl.from_points(d * 0.5, colours, sh_degree=1, init_opacity=0.8)
+    g = dataclasses.replace(g, log_scales=g.log_scales + 0.3)
+    cams = cam_lib.orbit(10, radius=2.5, width=32, height=32, elevation_deg=15)
+    images = np.stack([Renderer().rgb(g, cams[i]) for i in range(10)])
+    return g, EditData(images[:8], cams[np.arange(8)], images[8:], cams[np.arange(8, 10)])
+
+
+LOCAL_RUN = dict(warmup=6, patience=8, loss_window=4, max_steps=24, edit_every=3,
+                 checkpoint_every=5, subtasks=2, consolidate=False, asynchronous=False,
+                 turntable_frames=0)
+
+
+class Crash(RuntimeError):
+    pass
+
+
+def _local_edit(ball, run_dir, **kw):
+    from jaxedit.edit import ProEditConfig, SimulatedEditor, TrainSettings
+    from jaxedit.pipelines import run_edit
+
+    g, data = ball
+    return run_edit(SimulatedEditor(), LOCAL_PROMPT, data, g,
+                    config=ProEditConfig.for_mode("proedit", **LOCAL_RUN),
+                    settings=TrainSettings(lr_sh_dc=0.05), seed=3, run_dir=run_dir,
+                    report=False, local=L.LocalSpec("auto"), **kw)
+
+
+def test_local_edit_keeps_the_frozen_bits_and_resumes_exactly(ball, tmp_path):
+    import json
+
+    g, data = ball
+    whole = _local_edit(ball, tmp_path / "whole")
+    figures = json.loads((tmp_path / "whole" / "schedule.json").read_text())["local"]
+    assert figures["mode"] == "auto" and figures["editable"] > 0 and figures["frozen"] > 0
+    out = whole["gaussians"]
+    # Slots keep their place through the edit: the input's Gaussians whose every field
+    # kept its bits include (at least) every frozen one, still alive.
+    kept = np.asarray(g.alive).copy()
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        a, b = np.asarray(getattr(g, name)), np.asarray(getattr(out, name))[:g.capacity]
+        kept &= np.all((a == b).reshape(len(a), -1), -1)
+    assert figures["frozen"] <= kept.sum() < int(g.num_alive())
+    assert np.asarray(out.alive)[:g.capacity][kept].all()
+    # the report shows the region over the held-out views and the figures
+    from jaxedit.pipelines.report import write_report
+
+    assert len(sorted((tmp_path / "whole" / "local").glob("view_*.png"))) == len(data.test_images)
+    page = write_report(tmp_path / "whole")
+    html = __import__("pathlib").Path(page).read_text()
+    assert 'id="local"' in html and "Local edit" in html and "frozen" in html
+
+    def crash(spec, step, loss):
+        if spec.index == 1 and step == 13:  # last checkpoint at step 10 of subtask 1
+            raise Crash
+
+    with pytest.raises(Crash):
+        _local_edit(ball, tmp_path / "killed", callback=crash)
+    resumed = _local_edit(ball, tmp_path / "killed", resume=True)  # rebuilds frozen
+    for a, b in zip(jax.tree_util.tree_leaves(whole["gaussians"]),
+                    jax.tree_util.tree_leaves(resumed["gaussians"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+# ---------------------------------------------------------------------------
+# The CLI on a built-in scene: make-scene, reconstruct, edit --local / --region / --masks
+# ---------------------------------------------------------------------------
+@pytest.mark.slow
+def test_cli_local_region_and_masks_on_a_built_in_scene(tmp_path):
+    import json
+
+    from experiments import cli
+    from jaxedit.io import load_nerfstudio, load_ply, write_image
+
+    data, recon = tmp_path / "data", tmp_path / "recon"
+    assert cli.main(["make-scene", "tabletop", "--out", str(data), "--size", "24", "--views", "6",
+                     "--test-views", "2", "--quiet"]) == 0
+    assert cli.main(["reconstruct", "--data", str(data), "--out", str(recon), "--iters", "80",
+                     "--quiet"]) == 0
+    scene = load_ply(recon / "scene.ply")
+    base = ["edit", "--data", str(data), "--scene", str(recon / "scene.ply"), "--prompt",
+            LOCAL_PROMPT, "--mode", "nd", "--sync", "--max-steps", "12", "--warmup", "2",
+            "--patience", "4", "--turntable-frames", "0", "--no-report", "--quiet"]
+
+    def run(name, *flags):
+        out = tmp_path / name
+        assert cli.main([*base, "--out", str(out), *flags]) == 0
+        figures = json.loads((out / "schedule.json").read_text())["local"]
+        final = load_ply(sorted(out.glob("subtasks/*/scene.ply"))[-1])
+        # every frozen Gaussian of the input is in the output bit for bit (PLYs hold the
+        # alive ones only, so compare rows as sets)
+        rows = lambda g: {np.concatenate([np.asarray(getattr(g, f)).reshape(g.capacity, -1)  # noqa: E731
+                                          for f in ("means", "sh", "opacity_logits")], 1)[i]
+                          .tobytes() for i in range(g.capacity)}
+        assert len(rows(scene) & rows(final)) >= figures["frozen"] > 0
+        return out, figures
+
+    out, auto = run("auto", "--local", "auto")
+    assert auto["mode"] == "auto" and 0 < auto["editable"] < int(scene.num_alive())
+    flags = json.loads((out / "config.json").read_text())["flags"]
+    assert flags["local"] == "auto" and flags["region"] == [] and flags["masks"] is None
+    # a region (half the table, scene coordinates) and masks (the left half of every frame)
+    means = np.asarray(scene.means)
+    mid = float(np.median(means[:, 0]))
+    lo, hi = means.min(0) - 1, means.max(0) + 1
+    box = f"box:{lo[0]:.3f},{lo[1]:.3f},{lo[2]:.3f},{mid:.3f},{hi[1]:.3f},{hi[2]:.3f}"
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    ds = load_nerfstudio(data)
+    m = np.zeros((24, 24, 3), np.float32)
+    m[:, :12] = 1.0
+    for f in ds.filenames:
+        write_image(masks / (Path(f).stem + ".png"), m)
+    config = tmp_path / "local.json"
+    config.write_text(json.dumps({"region": [box], "masks": str(masks)}))
+    out, both = run("region", "--config", str(config))
+    assert both["mode"] == "off" and both["regions"] and both["user_masks"]
+    assert both["editable"] < int(scene.num_alive())
+    flags = json.loads((out / "config.json").read_text())["flags"]
+    assert flags["region"] == [box] and flags["masks"] == str(masks) and flags["local"] == "off"

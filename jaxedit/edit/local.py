@@ -285,6 +285,30 @@ def prepare(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, embe
     return ed, masks, figures
 
 
+def heat_overlay(image, weight, colour=(1.0, 0.15, 0.0), strength: float = 0.6) -> np.ndarray:
+    """``image`` float [H, W, 3] in [0, 1] with ``weight`` [H, W] in [0, 1] laid over it in
+    ``colour`` (at most ``strength`` of it), float32 [H, W, 3]: a relevance heat map."""
+    w = strength * np.clip(np.asarray(weight, np.float32), 0.0, 1.0)[..., None]
+    return ((1.0 - w) * np.asarray(image, np.float32)
+            + w * np.asarray(colour, np.float32)).astype(np.float32)
+
+
+def write_overlays(folder, gaussians, cameras, images, editable_mask) -> list:
+    """The rendered relevance of the editable Gaussians over ``images`` float [B, H, W, 3]
+    of ``cameras`` [B], written as ``folder/view_XX.png`` (the report's local-edit section);
+    returns the paths."""
+    from ..io import write_image
+
+    folder = Path(os.fspath(folder))
+    folder.mkdir(parents=True, exist_ok=True)
+    weights = render_editable(gaussians, cameras, editable_mask)
+    paths = []
+    for i, (image, w) in enumerate(zip(images, weights)):
+        paths.append(folder / f"view_{i:02d}.png")
+        write_image(paths[-1], heat_overlay(image, w))
+    return paths
+
+
 def blend(inside, outside, mask):
     """``mask`` [H, W] * inside + (1 - mask) * outside, images [H, W, 3]."""
     m = jnp.asarray(mask)[..., None]

@@ -70,6 +70,10 @@ def _write_json(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=2) + "\n")
 
 
+#: A local edit's folder in the run directory: its relevance over the held-out views.
+LOCAL_DIR = "local"
+
+
 def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
              settings: TrainSettings | None = None, seed: int = 0,
              run_dir: str | os.PathLike | None = None, resume: bool = False,
@@ -159,6 +163,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                                          f"{len(plan)} subtasks")
     if run_dir is not None and not resume:
         write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
+        if local_figures is not None:  # the region at the held-out views, for the report
+            local_lib.write_overlays(run_dir / LOCAL_DIR, gaussians, data.test_cameras,
+                                     data.test_images, editable)
 
     def save(state):
         if ckpt is not None:

@@ -56,6 +56,12 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
                  "InstructPix2Pix.</p>")
     sections.append(("instruction", "Instruction", body))
 
+    # Local edit (issue 35) ---------------------------------------------------
+    local = schedule.get("local")
+    if isinstance(local, dict):
+        sections.append(("local", "Local edit", _local_body(run_dir, local, thumb_px=thumb_px,
+                                                             max_views=max_views)))
+
     # Schedule ------------------------------------------------------------
     rows, total_s, total_steps = [], 0.0, 0
     for i, s in enumerate(subtasks):
@@ -146,6 +152,18 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
             [[_e(label)] + [_fmt(m.get(n)) for n in names] for label, m in per], "per-subtask")
     sections.append(("metrics", "Metrics", body))
     return sections
+
+
+def _local_body(run_dir: Path, local: dict, *, thumb_px: int, max_views: int) -> str:
+    """A local edit's figures (schedule.json's ``"local"``) and its region over the held-out
+    views (``local/view_XX.png``, red: the rendered relevance of the editable Gaussians)."""
+    uri = _grid_uri(_pngs(run_dir / "local"), thumb_px, max_views)
+    figures = {k: (", ".join(v) if isinstance(v, list) else v) for k, v in local.items()}
+    body = ("<p>Only the editable Gaussians changed; the others were frozen (bit for bit the "
+            "input). Red: the region, the rendered relevance of the editable Gaussians at the "
+            "held-out views.</p>" + _kv_table(figures))
+    return body + (_img(uri, "relevance over the held-out views") if uri
+                   else '<p class="missing">no relevance images recorded</p>')
 
 
 # ---------------------------------------------------------------------------
