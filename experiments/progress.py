@@ -4,7 +4,11 @@ One :class:`Progress` per unit of long work; a child (``parent=...``) is a
 stage inside its parent (a subtask inside an edit, the steps inside a subtask).
 This module keeps the tree (counts, fractions, ETA, weights of unequal stages) and
 leaves the drawing to ``rich.progress``. The parent's fraction includes the
-running child's, so the overall ETA moves smoothly. How it is shown depends on
+running child's, so the overall ETA moves smoothly. Rates and ETAs are measured from
+a bar's first advance on (its own or a child's), not from its creation: the first
+unit's time (compilation, loading) and the units done before the bar opened (a
+resumed run's, ``initial``) say nothing of the pace, so until a second advance, at
+least :data:`MIN_SPAN` later, the ETA and rate read ``?``. How it is shown depends on
 the mode:
 
 - ``"bar"`` (default when stderr is a terminal): one live ``rich`` bar per open
@@ -37,6 +41,9 @@ import time
 from typing import Callable, Iterable, TextIO
 
 MODES = ("bar", "log", "off")
+#: Seconds of work a rate must be measured over before it (and an ETA) is shown: two
+#: updates close together would otherwise read as an absurd rate.
+MIN_SPAN = 0.5
 
 _settings = {"mode": None, "stream": None, "log_interval": None, "quiet": False}
 # Bars that new parentless bars nest under (see :func:`nested`): lets a command that
@@ -87,6 +94,8 @@ class Progress:
       clock: a monotonic clock (tests inject a fake one).
       weights: expected relative cost of each unit (``total`` of them), so the
         fraction and ETA of stages of unequal length are not skewed.
+      initial: units already done when the bar opens (a resumed run's): counted in
+        ``n``, not in the rate.
 
     Use as a context manager, or call :meth:`close`. ``update(n, **postfix)``
     advances and sets the key=value fields shown after the bar.
@@ -96,7 +105,7 @@ class Progress:
                  mode: str | None = None, stream: TextIO | None = None,
                  log_interval: float | None = None, refresh: float = 0.1,
                  clock: Callable[[], float] = time.monotonic,
-                 weights: list[float] | None = None):
+                 weights: list[float] | None = None, initial: int = 0):
         if total is not None and total < 0:
             raise ValueError(f"total must be >= 0, got {total}")
         if weights is not None and (total is None or len(weights) != total
@@ -108,7 +117,7 @@ class Progress:
         if parent is None and _ambient and not _ambient[-1].closed:
             parent = _ambient[-1]
         self.parent = parent
-        self.n = 0
+        self.n = int(initial)
         self.postfix: dict = {}
         self.closed = False
         self._child: Progress | None = None
@@ -132,6 +141,8 @@ class Progress:
             with self._lock:
                 parent._child = self
         self.start = self._clock()
+        # (time, work done) at the first advance: where the measured rate starts.
+        self._first: tuple[float, float] | None = None
         root = self._root()
         if root._display is not None:
             self._task = root._display.add(self)
@@ -180,12 +191,34 @@ class Progress:
             return min(done / sum(self.weights), 1.0)
         return min((self.n + partial) / self.total, 1.0)
 
-    def eta(self) -> float | None:
-        """Seconds left at the average rate so far; None until some work is done."""
+    def _done(self) -> float:
+        """Work done, as the rate measures it: the fraction, or the count without a total."""
         f = self.fraction
-        if f is None or f <= 0.0:
+        return float(self.n) if f is None else f
+
+    def _measured(self) -> tuple[float, float] | None:
+        """(work, seconds) since the first advance; None before a second advance at least
+        :data:`MIN_SPAN` seconds after it."""
+        if self._first is None:
             return None
-        return self.elapsed * (1.0 - f) / f
+        t0, done0 = self._first
+        seconds, work = self._clock() - t0, self._done() - done0
+        if seconds < MIN_SPAN or work <= 0.0:
+            return None
+        return work, seconds
+
+    def rate(self) -> float | None:
+        """Units per second since the first advance (fraction per second with a total);
+        None until measured (:meth:`_measured`)."""
+        measured = self._measured()
+        return None if measured is None else measured[0] / measured[1]
+
+    def eta(self) -> float | None:
+        """Seconds left at the rate measured since the first advance; None until measured."""
+        rate = self.rate()
+        if rate is None or self.total is None:
+            return None
+        return (1.0 - self.fraction) / rate
 
     # -- updates -------------------------------------------------------------
     def update(self, n: int = 1, **postfix) -> None:
@@ -194,6 +227,12 @@ class Progress:
             self.n += n
             if postfix:
                 self.postfix.update(postfix)
+            if n > 0:  # this bar and its parents have advanced: their rates start here
+                now, node = self._clock(), self
+                while node is not None:
+                    if node._first is None:
+                        node._first = (now, node._done())
+                    node = node.parent
         self._root()._draw()
 
     def set_postfix(self, **postfix) -> None:
@@ -233,8 +272,9 @@ class Progress:
         parts = [self.desc] if self.desc else []
         f = self.fraction
         if self.total is None:
-            rate = self.n / self.elapsed if self.elapsed > 0 else 0.0
-            speed = f"{rate:.3g}/s" if rate >= 1.0 or rate == 0.0 else f"{1.0 / rate:.3g}s/it"
+            rate = self.rate()
+            speed = ("?/s" if rate is None else f"{rate:.3g}/s" if rate >= 1.0
+                     else f"{1.0 / rate:.3g}s/it")
             parts.append(f"{self.n} [{format_seconds(self.elapsed)}, {speed}]")
         else:
             filled = int(round(width * (f or 0.0)))
@@ -310,13 +350,13 @@ class _RichDisplay:
     def __init__(self, stream: TextIO, refresh: float):
         from rich.console import Console
         from rich.progress import (BarColumn, Progress as RichProgress, TaskProgressColumn,
-                                   TextColumn, TimeElapsedColumn, TimeRemainingColumn)
+                                   TextColumn, TimeElapsedColumn)
 
         self.console = Console(file=stream, highlight=False)
         self.rich = RichProgress(
             TextColumn("{task.description}"), BarColumn(bar_width=24), TaskProgressColumn(),
             TextColumn("{task.fields[count]}"), TimeElapsedColumn(), TextColumn("<"),
-            TimeRemainingColumn(), TextColumn("{task.fields[postfix]}"),
+            TextColumn("{task.fields[eta]}"), TextColumn("{task.fields[postfix]}"),
             console=self.console, refresh_per_second=max(1.0, 1.0 / max(refresh, 1e-3)),
             transient=False)
 
@@ -330,15 +370,16 @@ class _RichDisplay:
     def add(self, node: Progress):
         return self.rich.add_task("  " * self._depth(node) + (node.desc or "work"),
                                   total=None if node.total is None else 1.0, count="",
-                                  postfix="")
+                                  eta="?", postfix="")
 
     def show(self, node: Progress) -> None:
-        """Set the node's task from the tree (its fraction counts the running child)."""
+        """Set the node's task from the tree (its fraction counts the running child; the
+        ETA is the node's own, :meth:`Progress.eta`, not rich's estimate)."""
         count = f"{node.n}" + (f"/{node.total}" if node.total is not None else "")
         postfix = " ".join(f"{k}={_format_value(v)}" for k, v in node.postfix.items())
         fraction = node.fraction
         self.rich.update(node._task, completed=fraction if fraction is not None else node.n,
-                         count=count, postfix=postfix)
+                         count=count, eta=format_seconds(node.eta()), postfix=postfix)
 
     def finish(self, node: Progress, line: str) -> None:
         """A finished node leaves one line (above the live bars) and its bar goes."""
@@ -356,15 +397,16 @@ def training_bar(parent: Progress | None = None) -> Callable:
     """A ``progress`` callback for :func:`jaxedit.train.fit`: its events drive one bar.
 
     The bar opens on the first event (at the run's total and starting step, nested
-    under ``parent`` or the ambient bar) and closes when the run reaches its total.
+    under ``parent`` or the ambient bar; a resumed run's steps are its ``initial``, not
+    work timed) and closes when the run reaches its total.
     """
     state: dict = {}
 
     def on_event(event) -> None:
         bar = state.get("bar")
         if bar is None:
-            bar = state["bar"] = Progress(event.total, event.desc, parent=parent)
-            bar.update(event.step)
+            bar = state["bar"] = Progress(event.total, event.desc, parent=parent,
+                                          initial=event.step)
         elif event.step > bar.n:
             bar.update(event.step - bar.n, loss=event.loss, psnr=event.psnr,
                        gaussians=event.gaussians)

@@ -29,11 +29,14 @@ def test_nested_fraction_and_eta_in_log_mode():
     clock, out = Clock(), io.StringIO()
     with P.Progress(4, "edit", mode="log", stream=out, log_interval=5.0, clock=clock) as root:
         with root.child(10, "r0") as sub:
-            clock.t += 6.0
-            sub.update(5, loss=0.5)  # half of the first of 4 subtasks after 6 s
+            clock.t += 2.0
+            sub.update(1)  # the first step (compiling, say): the rates are measured from here
+            assert sub.eta() is None and root.eta() is None
+            clock.t += 4.0
+            sub.update(4, loss=0.5)  # half of the first of 4 subtasks after 6 s, 4 s measured
             assert root.fraction == pytest.approx(0.125)
-            assert root.eta() == pytest.approx(6.0 * 0.875 / 0.125)
-            assert sub.eta() == pytest.approx(6.0)
+            assert root.eta() == pytest.approx(4.0 * 0.875 / 0.1)
+            assert sub.eta() == pytest.approx(4.0 * 0.5 / 0.4)
             clock.t += 6.0
             sub.update(5)
         root.update(1)
@@ -42,7 +45,7 @@ def test_nested_fraction_and_eta_in_log_mode():
     lines = text.splitlines()
     assert lines[0] == "start edit (4 steps)"
     # The periodic line shows the tree: parent then child with postfix.
-    assert re.search(r"edit 0/4 \[#+-+\]\s+12% 0:06<0:42 \| r0 5/10 .* loss=0.5", text)
+    assert re.search(r"edit 0/4 \[#+-+\]\s+12% 0:06<0:35 \| r0 5/10 .* loss=0.5", text)
     assert "done r0 10/10 in 0:12 loss=0.5" in lines
     assert lines[-1] == "done edit 1/4 in 0:12"
     assert "\r" not in text  # log mode never uses carriage returns
@@ -92,9 +95,12 @@ def test_ambient_nesting_unknown_total_and_errors():
             assert inner.parent is demo and inner.mode == "log"
             clock.t += 4.0
             inner.update(8)
-            assert "stage 8 [0:04, 2/s]" in demo.line()
+            assert "stage 8 [0:04, ?/s]" in demo.line()  # one advance: no rate yet
+            clock.t += 4.0
+            inner.update(8)
+            assert "stage 16 [0:08, 2/s]" in demo.line()
             clock.t += 28.0
-            assert "stage 8 [0:32, 4s/it]" in demo.line()  # slow work reads as s/it
+            assert "stage 16 [0:36, 4s/it]" in demo.line()  # slow work reads as s/it
             inner.close()
         assert P.Progress(1, "after", mode="off").parent is None
     assert P.format_seconds(3725) == "1:02:05" and P.format_seconds(None) == "?"
@@ -136,3 +142,62 @@ def test_weighted_units_give_a_fair_fraction():
         assert bar.fraction == 1.0
     with pytest.raises(ValueError, match="weights"):
         P.Progress(2, weights=[1.0])
+
+
+# ---------------------------------------------------------------- issue 36: honest ETAs
+
+
+def test_eta_and_rate_are_measured_after_the_first_advance():
+    """The first unit's time (compilation) and work reported at once do not make the rate."""
+    clock = Clock()
+    with P.Progress(10, "steps", mode="off", clock=clock) as bar:
+        clock.t += 100.0  # the first step compiles
+        bar.update(1)
+        assert bar.eta() is None and "<?" in bar.segment()  # not 100 s * 9
+        clock.t += 0.1
+        bar.update(1)
+        assert bar.eta() is None  # under MIN_SPAN: no rate from two updates close together
+        clock.t += 1.9
+        bar.update(2)  # 3 steps in 2 s since the first
+        assert bar.eta() == pytest.approx(6 * 2.0 / 3)
+        assert "0:04" in bar.segment()
+    with P.Progress(None, "edit", mode="off", clock=clock) as edit:
+        clock.t += 140.0
+        sub = edit.child(None, "s1")
+        sub.update(16)  # a subtask's bar opens with the steps its first chunk ran
+        assert "?/s" in sub.segment() and "e+" not in sub.segment()
+        clock.t += 8.0
+        sub.update(16)
+        assert "s1 32 [0:08, 2/s]" in sub.segment()
+
+
+def test_training_bar_starts_a_resumed_run_at_its_step_untimed():
+    from collections import namedtuple
+
+    Event = namedtuple("Event", "desc step total loss psnr gaussians")
+    clock, out = Clock(), io.StringIO()
+    with P.Progress(1, "run", mode="log", stream=out, log_interval=1e9, clock=clock) as root, \
+            P.nested(root):
+        on_event = P.training_bar()
+        on_event(Event("reconstruct", 500, 1000, float("nan"), float("nan"), 10))
+        bar = root._child
+        assert bar.n == 500 and bar.eta() is None and root.eta() is None
+        clock.t += 30.0  # the first chunk after the resume compiles
+        on_event(Event("reconstruct", 516, 1000, 0.1, 20.0, 10))
+        assert bar.eta() is None
+        clock.t += 2.0
+        on_event(Event("reconstruct", 532, 1000, 0.1, 20.0, 10))
+        assert bar.eta() == pytest.approx(468 * 2.0 / 16)
+        on_event.close()
+
+
+def test_bar_mode_shows_the_measured_eta():
+    clock, out = Clock(), io.StringIO()
+    with P.Progress(10, "steps", mode="bar", stream=out, clock=clock) as bar:
+        (task,) = bar._display.rich.tasks
+        clock.t += 50.0
+        bar.update(1)
+        assert task.fields["eta"] == "?"
+        clock.t += 1.0
+        bar.update(1)
+        assert task.fields["eta"] == "0:08"
