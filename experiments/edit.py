@@ -209,11 +209,6 @@ def run_config(args):
     return FLAGS[0].build(args, bases={"plan": ProEditConfig.for_mode(args.mode)})
 
 
-def config_from_args(args):
-    """The :class:`jaxedit.edit.plan.ProEditConfig` of ``args``."""
-    return run_config(args).plan
-
-
 def progress_callback(quiet: bool):
     """A progress(spec, step, loss, state) that drives nested bars (overall + subtask).
 

@@ -84,11 +84,6 @@ def run_config(args):
     return FLAGS[0].build(args, derived=derived)
 
 
-def config_from_args(args):
-    """The :class:`jaxedit.train.TrainConfig` of ``args``."""
-    return run_config(args).train
-
-
 def _check(args, config) -> None:
     from jaxedit import DataError
 
@@ -128,5 +123,4 @@ def run(args) -> dict:
     return {k: metrics[k] for k in keys} | {"out": str(args.out)}
 
 
-__all__ = ["reconstruct", "config_from_args", "run_config", "initial_points",
-           "capped_initial_points"]
+__all__ = ["reconstruct", "run_config", "initial_points", "capped_initial_points"]

@@ -55,7 +55,9 @@ import math
 import jax
 import numpy as np
 
-from .difficulty import difficulty_view_subset
+from ..train import scene_extent
+from . import schedule as sched
+from .difficulty import DifficultyOracle, difficulty_view_subset, ms_ssim_distance
 from .driver import DriverState, EditContext, EditData
 from .outputs import image_scores, scene_metrics
 from .plan import ProEditConfig, SubtaskSpec, plan_subtasks
@@ -72,8 +74,6 @@ def make_trainer(config: ProEditConfig, settings: TrainSettings, data: EditData,
     The plan owns W, the mode and the background; the scene extent (when unset)
     comes from the training cameras and the hard cap from the input's Gaussians.
     """
-    from ..train import scene_extent
-
     if settings.scene_extent is None:
         # Rounded: the extent is a static field of the train state, and cameras that went
         # through a file differ in the last bits; equal rigs should share one compiled step.
@@ -92,8 +92,6 @@ def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distan
     None is the oracle's default (multi-scale SSIM). The reduction over views is the
     oracle's default, the mean (eq. 3's sum / |V|), so thresholds are per view.
     """
-    from .difficulty import DifficultyOracle
-
     views = difficulty_view_subset(len(originals), ctx.config.difficulty_views, ctx.key)
     return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
                             guidance=tuple(ctx.config.guidance), seed=seed)
@@ -101,16 +99,12 @@ def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distan
 
 def distance_name(distance) -> str:
     """What schedule.json and the log call a difficulty distance."""
-    from .difficulty import ms_ssim_distance
-
     distance = ms_ssim_distance if distance is None else distance
     return getattr(distance, "name", getattr(distance, "__name__", type(distance).__name__))
 
 
 def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
     """(Schedule, plan ratios from ``start_ratio``, their difficulties) per the config."""
-    from . import schedule as sched
-
     cfg = ctx.config
     if cfg.mode == "nd":
         s = sched.uniform(1, oracle)

@@ -11,9 +11,12 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from .. import densify, train
 from ..background import background_name
 from ..densify import DensifyConfig
 from ..errors import DataError
+from ..raster import render
+from ..raster.render import next_capacity
 from ..train import TrainConfig
 from .plan import ProEditConfig
 
@@ -115,14 +118,14 @@ def resolve_max_gaussians(settings: TrainSettings, num_input: int) -> TrainSetti
 
 
 class SubtaskTrainer:
-    """The driver's view of :mod:`jaxedit.train`: init, subtask restart, one step.
+    """The driver's view of :mod:`jaxedit.train`: the settings, init and subtask restart.
 
-    ``step`` is :func:`jaxedit.train.step_with_retry` (a pure jitted step, redone
-    with a larger intersection buffer or capacity when it asks for it), on the
-    view and key the driver chose. ``restart`` is paper 3.3 (1): every opacity to
-    the cull threshold (moments zeroed), fresh density statistics, and the
-    density-control clock restarted so that the first ``warmup`` steps of the
-    subtask have no densify/cull.
+    The steps themselves are the driver's (:func:`jaxedit.edit.driver.step_chunk`:
+    :mod:`jaxedit.train`'s pure step scanned over a chunk, redone with a larger
+    intersection buffer or capacity when it asks for it) on the train state made
+    here. ``restart`` is paper 3.3 (1): every opacity to the cull threshold (moments
+    zeroed), fresh density statistics, and the density-control clock restarted so
+    that the first ``warmup`` steps of the subtask have no densify/cull.
     """
 
     def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None,
@@ -146,10 +149,6 @@ class SubtaskTrainer:
         step), so measure the views instead of guessing from the capacity; a
         scene that grows later overflows once and the step is redone larger.
         """
-        from .. import train
-        from ..raster import render
-        from ..raster.render import next_capacity
-
         sh = min(self.settings.sh_degree, gaussians.sh_degree)
         config = dataclasses.replace(self.config, sh_degree=sh)
         cap = None
@@ -167,8 +166,6 @@ class SubtaskTrainer:
                                                              & ~editable))
 
     def restart(self, state):
-        from .. import densify
-
         g, opt = densify.opacity_reset(state.gaussians, state.opt_state,
                                         self.settings.densify.cull_alpha)
         if state.frozen is not None:  # a local edit's frozen Gaussians keep their opacity
@@ -182,11 +179,3 @@ class SubtaskTrainer:
     @staticmethod
     def gaussians(state):
         return state.gaussians
-
-    def step(self, state, image, camera, key):
-        """(state, loss float, metrics) after one optimiser + density-control step."""
-        from .. import train
-
-        batch = train.Batch(image=jnp.asarray(image, jnp.float32), camera=camera)
-        state, metrics = train.step_with_retry(state, batch, key)
-        return state, float(metrics["loss"]), metrics
