@@ -5,7 +5,8 @@ reference (:mod:`jaxedit.edit.ip2p`) have in common: the timestep draw, the DDIM
 timestep schedule (as a host list and as fixed-length arrays for ``jit``), the model
 size, dual classifier-free guidance and the deterministic DDIM update. The guidance and
 the DDIM update are written with arithmetic only, so they work on torch tensors and on
-JAX arrays alike; nothing here imports torch.
+JAX arrays alike; nothing here imports torch. Both take the same names for their networks' dtype
+(:func:`dtype_name`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,16 @@ from ..models.load import check_layout as resolve_weights  # noqa: F401 - re-exp
 DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
 #: The diffusion timesteps Stable Diffusion is trained with.
 NUM_TRAIN_TIMESTEPS = 1000
+#: The short names both editors' ``dtype`` takes for float16, bfloat16 and float32.
+DTYPE_ALIASES = {"fp16": "float16", "half": "float16", "fp32": "float32", "float": "float32",
+                 "bf16": "bfloat16"}
+
+
+def dtype_name(dtype) -> str:
+    """The name of an editor's ``dtype`` given by name: an alias of :data:`DTYPE_ALIASES`
+    spelled out ("fp16" -> "float16"), any other name as given (each editor checks it
+    against its own framework's floating dtypes)."""
+    return DTYPE_ALIASES.get(str(dtype), str(dtype))
 
 
 def check_timestep_range(timestep_range) -> tuple[float, float]:

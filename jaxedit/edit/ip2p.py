@@ -64,8 +64,8 @@ import numpy as np
 from ..errors import DataError
 # The shared diffusion arithmetic; re-exported here, where it used to live.
 from .diffusion import (DEFAULT_MODEL, HOW_TO_GET, check_timestep_range,  # noqa: F401
-                        ddim_overrides, ddim_step, draw_timestep, dual_guidance, model_size,
-                        resolve_weights, timestep_schedule)
+                        ddim_overrides, ddim_step, draw_timestep, dtype_name, dual_guidance,
+                        model_size, resolve_weights, timestep_schedule)
 
 log = logging.getLogger(__name__)
 
@@ -105,9 +105,7 @@ def _dtype(dtype):
     """None, a torch dtype, or its name ("float16", "fp16", "bfloat16", "float32")."""
     if dtype is None or isinstance(dtype, torch.dtype):
         return dtype
-    names = {"fp16": "float16", "half": "float16", "fp32": "float32", "float": "float32",
-             "bf16": "bfloat16"}
-    value = getattr(torch, names.get(str(dtype), str(dtype)), None)
+    value = getattr(torch, dtype_name(dtype), None)
     if not isinstance(value, torch.dtype) or not value.is_floating_point:
         raise DataError("dtype", f"unknown floating point dtype {dtype!r}")
     return value

@@ -44,8 +44,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..errors import DataError
-from .diffusion import (DEFAULT_MODEL, ddim_step, dual_guidance, model_size, timestep_bounds,
-                        timestep_table)
+from .diffusion import (DEFAULT_MODEL, ddim_step, dtype_name, dual_guidance, model_size,
+                        timestep_bounds, timestep_table)
 
 log = logging.getLogger(__name__)
 
@@ -250,10 +250,9 @@ def default_dtype(device: jax.Device) -> str:
     return "float32" if device.platform == "cpu" else "bfloat16"
 
 
-def _dtype_name(dtype) -> str:
-    names = {"fp16": "float16", "half": "float16", "fp32": "float32", "float": "float32",
-             "bf16": "bfloat16"}
-    name = names.get(str(dtype), str(dtype))
+def _float_dtype_name(dtype) -> str:
+    """``dtype``'s name (an alias spelled out) if JAX has it as a floating dtype."""
+    name = dtype_name(dtype)
     try:
         ok = jnp.issubdtype(jnp.dtype(name), jnp.floating)
     except TypeError:
@@ -346,7 +345,7 @@ class JaxIP2PEditor:
 
         root = resolve_weights(path)
         devices = list(devices) if devices else [jax.devices()[0]]
-        name = _dtype_name(dtype) if dtype is not None else default_dtype(devices[0])
+        name = _float_dtype_name(dtype) if dtype is not None else default_dtype(devices[0])
         models = load_ip2p(root, dtype=jnp.dtype(name))
         settings = ddim_settings(root / "scheduler", models.scheduler.alphas_cumprod)
         editor = cls(models.unet, models.vae, models.text_encoder, models.tokenizer.ids,
