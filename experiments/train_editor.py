@@ -1,0 +1,94 @@
+"""``python -m experiments train-editor --out DIR``: train the small InstructPix2Pix.
+
+The edge of :mod:`jaxedit.pipelines.train_editor` (whose docstring lists what DIR receives):
+the edit dataset from the built-in scenes, the autoencoder, the tokenizer, the UNet and the
+text encoder, then ``DIR/model``, a diffusers folder that ``--editor ip2p --ip2p-weights
+DIR/model`` and diffusers' ``StableDiffusionInstructPix2PixPipeline`` load. The flags are
+generated from :class:`jaxedit.editors.tiny_ip2p.EditorTrainConfig`; ``--smoke`` is
+:meth:`~jaxedit.editors.tiny_ip2p.EditorTrainConfig.smoke` (CI: a couple of minutes);
+``--seed`` seeds every draw. The weights bundled with jaxedit were made by::
+
+    python -m experiments train-editor --out runs/editor --seed 0
+    python scripts/bundle_editor.py runs/editor/model
+"""
+
+from __future__ import annotations
+
+HELP = ("train the small InstructPix2Pix on edits of the built-in scenes (VAE, text encoder, "
+        "UNet) and write it as a diffusers folder")
+
+
+def _config_flags():
+    from jaxedit.editors.tiny_ip2p import EditorTrainConfig
+
+    from .flags import Flag, FlagSet
+
+    return FlagSet(EditorTrainConfig, tuple(Flag(name) for name in (
+        "size", "procedural_views", "scenes", "vae_steps", "vae_batch", "vae_crop", "vae_lr",
+        "steps", "batch", "lr", "ema", "identity_share", "drop", "degrade", "text_width",
+        "text_layers")))
+
+
+#: The command's flags, generated from :class:`jaxedit.editors.tiny_ip2p.EditorTrainConfig`.
+FLAGS = (_config_flags(),)
+
+
+def add_arguments(p) -> None:
+    FLAGS[0].add_to(p)
+    p.add_argument("--smoke", action="store_true",
+                   help="tiny sizes (CI): a couple of minutes; sets every setting itself")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its checkpoints")
+
+
+def run_config(args):
+    """The :class:`EditorTrainConfig` of ``args`` (DataErrors name its fields)."""
+    import dataclasses
+
+    from jaxedit import DataError
+    from jaxedit.editors.tiny_ip2p import EditorTrainConfig
+
+    if not args.smoke:
+        config = FLAGS[0].build(args)
+    else:
+        given = FLAGS[0].values(args)
+        if given:  # a value given beside --smoke would be silently dropped
+            flags = [FLAGS[0].flag_of()[field] for field in given]
+            raise DataError(flags[0], f"--smoke sets {', '.join(flags)} itself; give either "
+                                      f"--smoke or {', '.join(flags)}")
+        config = EditorTrainConfig.smoke()
+    return dataclasses.replace(config, seed=int(args.seed)).check()
+
+
+def run(args) -> dict:
+    import math
+
+    from jaxedit import DataError
+    from jaxedit.pipelines.train_editor import train_editor
+
+    from experiments.progress import Progress, configure
+
+    if args.out is None:
+        raise DataError("--out", "required (the training run directory)")
+    config = run_config(args)
+    configure(quiet=args.quiet)
+    bars: list = []
+
+    def stage(name: str, total: int):
+        for bar in bars:
+            bar.close()
+        bars[:] = [Progress(total, f"train-editor {name}")]
+
+        def on_progress(done: int, loss: float) -> None:
+            postfix = {"loss": round(loss, 4)} if math.isfinite(loss) else {}
+            bars[0].update(done - bars[0].n, **postfix)
+        return on_progress
+
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    try:
+        summary = train_editor(config, args.out, resume=args.resume, stage=stage, log=log)
+    finally:
+        for bar in bars:
+            bar.close()
+    return {"model": str(args.out / "model"), "seconds": summary["seconds"],
+            "vae_loss": summary["vae_loss_last100"], "unet_loss": summary["unet_loss_last100"]}

@@ -1,0 +1,152 @@
+"""How good a trained editor is, on the dataset's held-out cameras (never trained on).
+
+Every figure is measured by editing with an :class:`~jaxedit.edit.editors.Editor` that has
+``edit_many`` (the JAX InstructPix2Pix) and comparing with the dataset's own outcomes:
+
+- ``full_edit``: PSNR of the edit of the input view (T = ``t_full`` of the schedule, nearly
+  pure noise, as IP2P edits a photo) against its target, the nearest outcome for a divergent
+  instruction; per instruction, over views and draws.
+- ``identity``: the edit with E("") (no instruction) against the input view, PSNR.
+- ``outcomes``: for each divergent instruction, the share of fresh-noise edits nearest to
+  each outcome, and ``mixing``: the share of edits nearer the *average* of the outcomes than
+  to any one of them (an editor that averages its modes, rather than picking one, mixes).
+- ``holding``: SDEdit from a view already halfway into outcome c (0.5 input + 0.5 target c):
+  the share of edits that stay nearest to c, at T = 0.45 and 0.85, for a small ratio step
+  (e(0.625), the next subtask) and for the jump to e(1).
+- ``interpolation``: d(input, edit with e(r)) at r = 0, 0.125, ..., 1, by the difficulty's
+  distance: ProEdit's premise is that the edit grows with r.
+
+Each draw's key is ``fold_in`` of the run's key by a counter, so a figure is reproducible.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..edit.editors import interpolate_embedding
+from .edit_data import EditDataset, outcome_targets
+
+#: Views per editor call (a fixed batch: one compiled program).
+CHUNK = 16
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """PSNR (dB) of images [..., H, W, 3] in [0, 1], over the last three axes."""
+    mse = np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2, axis=(-3, -2, -1))
+    return -10 * np.log10(np.maximum(mse, 1e-10))
+
+
+def nearest(images: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For images [B, H, W, 3] and each one's outcomes targets [B, K, H, W, 3]: (index of the
+    nearest outcome [B], PSNR to it [B], whether the outcomes' average is nearer [B])."""
+    mse = np.mean((images[:, None] - targets) ** 2, axis=(-3, -2, -1))  # [B, K]
+    k = np.argmin(mse, axis=1)
+    best = mse[np.arange(len(k)), k]
+    mean_mse = np.mean((images - targets.mean(1)) ** 2, axis=(-3, -2, -1))
+    return k, -10 * np.log10(np.maximum(best, 1e-10)), mean_mse < best
+
+
+def run_edits(editor, images: np.ndarray, originals: np.ndarray, embeddings: np.ndarray,
+              key: jax.Array, t: float, guidance=(7.5, 1.5)) -> np.ndarray:
+    """Edit B views (images, originals [B, H, W, 3]; embeddings [B, L, D]) at T = t, in
+    chunks of CHUNK (the last one padded), each view with its own key: float32 [B, H, W, 3]."""
+    b = len(images)
+    keys = jax.random.split(key, b)
+    out = []
+    for lo in range(0, b, CHUNK):
+        idx = np.minimum(np.arange(lo, lo + CHUNK), b - 1)
+        edited = editor.edit_many(jnp.asarray(images[idx]), jnp.asarray(originals[idx]),
+                                  jnp.asarray(embeddings[idx]), keys[idx],
+                                  timestep_range=(t, t), guidance=guidance)
+        out.append(np.asarray(edited)[: min(CHUNK, b - lo)])
+    return np.concatenate(out)
+
+
+def _views_of(data: EditDataset, i: int, views: Sequence[int]) -> list[int]:
+    ins = data.instructions[i]
+    return [int(v) for v in views if ins.applies_to(data.scenes[data.scene[v]])]
+
+
+def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
+             distance: Callable | None = None, draws: int = 4, t_full: float = 0.98,
+             hold_views: int = 16, interp_views: int = 8,
+             ratios: Sequence[float] = tuple(np.linspace(0, 1, 9)),
+             log: Callable[[str], None] = lambda s: None) -> dict:
+    """All the figures of the module docstring, over the held-out ``views`` (rows of
+    ``data.inputs``). ``distance(a, b) -> float`` is the difficulty's (interpolation only;
+    None skips it)."""
+    inputs = data.inputs.astype(np.float32) / 255
+    null = editor.encode("")
+    counter = iter(range(1 << 30))
+
+    def edits(images, originals, embedding_list, t):
+        return run_edits(editor, images, originals, np.stack(embedding_list),
+                         jax.random.fold_in(key, next(counter)), t)
+
+    result: dict = {"t_full": t_full, "draws": draws, "views": len(views), "instructions": {}}
+    ident = edits(inputs[list(views)], inputs[list(views)], [null] * len(views), t_full)
+    result["identity_psnr"] = float(np.mean(psnr(ident, inputs[list(views)])))
+    log(f"identity: {result['identity_psnr']:.2f} dB")
+
+    for i, ins in enumerate(data.instructions):
+        vs = _views_of(data, i, views)
+        if not vs:
+            continue
+        e = editor.encode(ins.prompt)
+        k_out = len(ins.outcomes)
+        n = draws if k_out > 1 else max(1, draws // 2)
+        rows = [v for v in vs for _ in range(n)]
+        out = edits(inputs[rows], inputs[rows], [e] * len(rows), t_full)
+        targets = np.stack([outcome_targets(data, v, i) for v in rows])  # [B, K, H, W, 3]
+        which, best_psnr, mixed = nearest(out, targets)
+        entry = {"kind": ins.kind, "outcomes": list(ins.outcomes), "views": len(vs),
+                 "edits": len(rows), "psnr": float(np.mean(best_psnr)),
+                 "psnr_unedited": float(np.mean(nearest(inputs[rows], targets)[1]))}
+        if k_out > 1:
+            entry["frequencies"] = [float(np.mean(which == k)) for k in range(k_out)]
+            entry["mixing"] = float(np.mean(mixed))
+            entry["holding"] = _holding(edits, inputs, data, i, vs[:hold_views], e, null)
+        if distance is not None:
+            entry["interpolation"] = _interpolation(edits, inputs, vs[:interp_views], e, null,
+                                                    ratios, distance, t_full)
+        result["instructions"][ins.prompt] = entry
+        log(f"{ins.prompt}: {entry['psnr']:.2f} dB"
+            + (f", outcomes {np.round(entry['frequencies'], 2).tolist()}, mixing "
+               f"{entry['mixing']:.2f}" if k_out > 1 else ""))
+    return result
+
+
+def _holding(edits, inputs, data, i, vs, e, null) -> dict:
+    """P(stay in c) from a view halfway into outcome c, per T and step (see the docstring)."""
+    k_out = len(data.instructions[i].outcomes)
+    start, targets, wanted = [], [], []
+    for v in vs:
+        outs = outcome_targets(data, v, i)
+        for c in range(k_out):
+            start.append(0.5 * inputs[v] + 0.5 * outs[c])
+            targets.append(outs)
+            wanted.append(c)
+    start, targets, wanted = np.stack(start), np.stack(targets), np.asarray(wanted)
+    originals = np.stack([inputs[v] for v in vs for _ in range(k_out)])
+    out = {}
+    for t in (0.45, 0.85):
+        for name, ratio in (("small_step", 0.625), ("jump", 1.0)):
+            emb = interpolate_embedding(e, null, ratio)
+            edited = edits(start, originals, [emb] * len(start), t)
+            out[f"t{t}_{name}"] = float(np.mean(nearest(edited, targets)[0] == wanted))
+    return out
+
+
+def _interpolation(edits, inputs, vs, e, null, ratios, distance, t) -> list[list[float]]:
+    """[[r, mean d(input, edit with e(r))]] over ``vs``."""
+    curve = []
+    for r in ratios:
+        emb = interpolate_embedding(e, null, float(r))
+        edited = edits(inputs[vs], inputs[vs], [emb] * len(vs), t)
+        curve.append([float(r), float(np.mean([distance(inputs[v], x)
+                                               for v, x in zip(vs, edited)]))])
+    return curve
