@@ -1,0 +1,102 @@
+"""Quality of the bundled InstructPix2Pix on held-out cameras (:mod:`jaxedit.editors.quality`).
+
+Rebuilds the edit dataset with the settings the model lists in its ``instructions.json``,
+keeps the held-out cameras only, and measures per instruction: the full edit's PSNR against
+its target (nearest outcome), identity with E(""), the outcome frequencies and mixing of the
+divergent instructions from fresh noise, SDEdit holding at T = 0.45 / 0.85 for a small ratio
+step and for the jump to r = 1, and d(0, r) along the text interpolation (the difficulty's
+distance: LPIPS where its weights are, else MS-SSIM). Also writes ``editor_quality.png``:
+per held-out view, the input, each outcome's target and four edits.
+
+    python benchmarks/editor_quality.py                 # the committed record (CPU, minutes)
+    python benchmarks/editor_quality.py --smoke         # CI: two views, two DDIM steps
+    python benchmarks/editor_quality.py --weights runs/editor/model
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from common import parse_args, peak_rss_mb, write_json
+
+import jax
+
+
+def _extra(p):
+    p.add_argument("--weights", type=Path, default=None,
+                   help="diffusers folder (default: the bundled editor)")
+    p.add_argument("--steps", type=int, default=20, help="DDIM steps per edit")
+    p.add_argument("--draws", type=int, default=4, help="edits per view (divergent)")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def contact_sheet(editor, data, views, key, path: Path) -> None:
+    """A PNG: one row per (held-out view, instruction): input, outcome targets, 4 edits."""
+    from jaxedit.editors.edit_data import outcome_targets
+    from jaxedit.editors.quality import run_edits
+    from jaxedit.io.images import write_image
+
+    inputs = data.inputs.astype(np.float32) / 255
+    rows = []
+    for v in views:
+        for i, ins in enumerate(data.instructions):
+            if not ins.applies_to(data.scenes[data.scene[v]]):
+                continue
+            e = editor.encode(ins.prompt)
+            edited = run_edits(editor, inputs[[v] * 4], inputs[[v] * 4], np.stack([e] * 4),
+                               jax.random.fold_in(key, 1000 * v + i), 0.98)
+            targets = list(outcome_targets(data, v, i))
+            blank = np.ones_like(inputs[v])
+            cells = [inputs[v], *targets, *[blank] * (3 - len(targets)), blank, *edited]
+            rows.append(np.concatenate(cells, 1))
+    write_image(path, np.concatenate(rows, 0))
+
+
+def main(argv=None):
+    args = parse_args(__doc__.splitlines()[0], argv, _extra)
+    from jaxedit.edit.difficulty import default_distance
+    from jaxedit.edit.jax_ip2p import JaxIP2PEditor
+    from jaxedit.editors import bundled_editor
+    from jaxedit.editors.edit_data import HOLDOUT_EVERY, build_dataset
+    from jaxedit.editors.quality import evaluate
+
+    folder = args.weights or bundled_editor()
+    import json
+
+    listing = json.loads((folder / "instructions.json").read_text())
+    settings = listing.get("dataset", {"size": 64, "procedural_views": 100,
+                                       "scenes": ["person", "face", "tabletop", "fence", "ball"],
+                                       "holdout_every": HOLDOUT_EVERY})
+    size = int(settings["size"])
+    steps = 2 if args.smoke else args.steps
+    t0 = time.perf_counter()
+    data = build_dataset(size, int(settings["procedural_views"]), tuple(settings["scenes"]))
+    held = np.flatnonzero(data.held_out)
+    if args.smoke:  # one held-out view of each scene
+        held = np.array([held[data.scene[held] == s][0] for s in range(len(data.scenes))])
+    dataset_s = time.perf_counter() - t0
+    editor = JaxIP2PEditor.from_pretrained(folder, size=size, steps=steps)
+    distance = default_distance("auto")
+    key = jax.random.key(args.seed)
+    t0 = time.perf_counter()
+    result = evaluate(editor, data, held, key, distance=distance,
+                      draws=1 if args.smoke else args.draws,
+                      hold_views=2 if args.smoke else 16, interp_views=1 if args.smoke else 8,
+                      ratios=(0.0, 0.5, 1.0) if args.smoke else tuple(np.linspace(0, 1, 9)),
+                      log=print)
+    seconds = time.perf_counter() - t0
+    args.out.mkdir(parents=True, exist_ok=True)
+    contact_sheet(editor, data, held[:: max(1, len(held) // 6)][:6], jax.random.fold_in(key, 7),
+                  args.out / "editor_quality.png")
+    write_json(args.out, "editor_quality", {
+        "weights": str(folder), "smoke": args.smoke, "size": size, "ddim_steps": steps,
+        "distance": getattr(distance, "name", getattr(distance, "__name__", str(distance))),
+        "dataset": settings, "held_out_views": int(len(held)),
+        "seconds": {"dataset": round(dataset_s, 1), "evaluation": round(seconds, 1)},
+        "peak_rss_mb": round(peak_rss_mb(), 1), **result})
+
+
+if __name__ == "__main__":
+    main()

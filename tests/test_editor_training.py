@@ -1,0 +1,211 @@
+"""The small InstructPix2Pix: its dataset, its export, its training command and the bundled
+weights (jaxedit.editors, jaxedit.pipelines.train_editor, experiments/train_editor.py).
+
+The whole training run is the CLI's ``--smoke`` (a couple of minutes: compiling the UNet's
+step dominates); the bundled folder is checked against diffusers where torch is installed.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from experiments import cli
+from jaxedit.edit.jax_ip2p import JaxIP2PEditor
+from jaxedit.editors import bundled_editor, edit_data, instructions, native_size, tiny_ip2p
+from jaxedit.editors.export import module_tensors, write_pipeline
+from jaxedit.models import load_ip2p
+
+
+def test_the_instructions_cover_what_the_editor_must_learn():
+    kinds = [(i.kind, len(i.outcomes)) for i in edit_data.INSTRUCTIONS]
+    single = [k for k, n in kinds if n == 1 and k in ("colour", "material")]
+    divergent = [n for _, n in kinds if n > 1]
+    assert len(edit_data.INSTRUCTIONS) >= 6 and len(single) >= 2
+    assert len(divergent) >= 2 and min(divergent) >= 3
+    assert ("local", 1) in kinds and ("geometry", 1) in kinds
+
+
+def test_the_local_edit_changes_the_shirt_only():
+    """One ray per pixel: the re-rendered view differs exactly where the shirt is seen."""
+    from jaxedit.scenes import get_scene, render_scene, rig_cameras, surface_points_and_ids
+
+    scene = get_scene("face")
+    cams = rig_cameras(scene.rig, 3, width=24)
+    edited = edit_data._edited_scene(scene, "make his shirt blue")
+    before = render_scene(scene, cams, supersample=1)
+    after = render_scene(edited, cams, supersample=1)
+    _, ids, _ = surface_points_and_ids(scene, cams)
+    shirt = ids == scene.object_names.index("shoulders")
+    changed = np.abs(after - before).max(-1) > 1e-6
+    assert shirt.any() and changed[shirt].mean() > 0.9
+    assert not changed[~shirt].any()
+
+
+def test_divergent_outcomes_are_separated_and_as_far_from_the_original():
+    from jaxedit.edit.difficulty import default_distance
+
+    # The shipped dataset's own held-out views (its cameras are those of the defaults).
+    cfg = tiny_ip2p.EditorTrainConfig()
+    data = edit_data.build_dataset(cfg.size, cfg.procedural_views, cfg.scenes)
+    views = np.flatnonzero(data.held_out)
+    for prompt, s in edit_data.separation(data, default_distance("auto"), views).items():
+        assert s["separated"], (prompt, s)
+        assert max(s["to_original"]) < 1.5 * min(s["to_original"]), (prompt, s)
+
+
+def test_an_outcome_is_a_function_of_the_colour_only():
+    """The same colour gives the same edit wherever it is (so views agree)."""
+    rgb = np.random.default_rng(0).uniform(size=(8, 8, 3)).astype(np.float32)
+    moved = np.roll(rgb, (3, 5), axis=(0, 1))
+    for (prompt, outcome) in edit_data.IMAGE_OUTCOMES:
+        a = edit_data.apply_image_outcome(prompt, outcome, rgb, np.ones((8, 8)), (0.3, 0.6))
+        b = edit_data.apply_image_outcome(prompt, outcome, moved, np.ones((8, 8)), (0.3, 0.6))
+        np.testing.assert_array_equal(np.roll(a, (3, 5), axis=(0, 1)), b)
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    """Random networks of the smoke architecture written as a diffusers folder."""
+    cfg = tiny_ip2p.EditorTrainConfig.smoke()
+    vocab, merges = tiny_ip2p.train_tokenizer([i.prompt for i in edit_data.INSTRUCTIONS])
+    bos, eos = vocab[tiny_ip2p.BOS], vocab[tiny_ip2p.EOS]
+    unet, text = tiny_ip2p.build_networks(cfg, len(vocab), bos, eos, jax.random.key(1))
+    vae = tiny_ip2p.AutoencoderKL.from_config(tiny_ip2p.vae_config(cfg), key=jax.random.key(2))
+    out = write_pipeline(
+        tmp_path_factory.mktemp("pipe") / "model", unet=unet,
+        unet_config=tiny_ip2p.unet_config(cfg), vae=vae,
+        vae_config=tiny_ip2p.vae_config(cfg, 0.5), text_encoder=text,
+        text_config=tiny_ip2p.text_config(cfg, len(vocab), bos, eos), vocab=vocab,
+        merges=merges, bos=tiny_ip2p.BOS, eos=tiny_ip2p.EOS, max_length=tiny_ip2p.MAX_LENGTH,
+        scheduler_config=tiny_ip2p.SCHEDULER_CONFIG,
+        instructions=[i.describe() for i in edit_data.INSTRUCTIONS])
+    return out, (unet, vae, text)
+
+
+def test_the_written_folder_loads_back_bit_for_bit(written):
+    folder, (unet, vae, text) = written
+    models = load_ip2p(folder)
+    for ours, back in ((unet, models.unet), (vae, models.vae), (text, models.text_encoder)):
+        a, b = module_tensors(ours), module_tensors(back)
+        assert a.keys() == b.keys()
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    assert [i["prompt"] for i in instructions(folder)] == [
+        i.prompt for i in edit_data.INSTRUCTIONS]
+
+
+def test_the_tokenizer_reads_the_same_in_transformers(written):
+    transformers = pytest.importorskip("transformers")
+    folder, _ = written
+    theirs = transformers.CLIPTokenizer.from_pretrained(folder / "tokenizer")
+    ours = load_ip2p(folder).tokenizer
+    for text in ["", *[i.prompt for i in edit_data.INSTRUCTIONS], "Make it  BLUE, please!",
+                 "an unseen word: zebra"]:
+        expected = theirs(text, padding="max_length", max_length=77, truncation=True).input_ids
+        assert ours([text])[0].tolist() == expected, text
+
+
+def _main(argv, capfd):
+    code = cli.main([str(a) for a in argv])
+    return code, capfd.readouterr()
+
+
+@pytest.mark.slow
+def test_train_editor_smoke_writes_a_working_editor_and_resumes(tmp_path, capfd):
+    out = tmp_path / "run"
+    code, _ = _main(["train-editor", "--smoke", "--out", out, "--quiet"], capfd)
+    assert code == 0
+    summary = json.loads((out / "training.json").read_text())
+    assert summary["dataset"]["held_out_views"] > 0
+    editor = JaxIP2PEditor.from_pretrained(out / "model", size=32, steps=2)
+    assert editor.latent_factor == 4
+    view = np.full((32, 32, 3), 0.5, np.float32)
+    edited = editor.edit(view, view, editor.encode("make it black and white"), jax.random.key(0))
+    assert edited.shape == (32, 32, 3) and bool(jnp.isfinite(edited).all())
+    listed = json.loads((out / "model" / "instructions.json").read_text())
+    assert listed["dataset"]["size"] == 32
+
+    # A second run into the same folder must say --resume; a resumed finished run is a no-op.
+    code, err = _main(["train-editor", "--smoke", "--out", out], capfd)
+    assert code == 2 and err.err.count("\n") == 1 and "--resume" in err.err
+    before = (out / "model" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes()
+    code, _ = _main(["train-editor", "--smoke", "--out", out, "--resume", "--quiet"], capfd)
+    assert code == 0
+    assert (out / "model" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes() == before
+
+    # A corrupt checkpoint on resume: one line, exit 2, and the checkpoint is left as it was.
+    (out / "checkpoints" / "unet.npz").write_bytes(b"not a checkpoint")
+    code, err = _main(["train-editor", "--smoke", "--out", out, "--resume"], capfd)
+    assert code == 2 and err.err.count("\n") == 1 and "unet.npz" in err.err, err.err
+    assert (out / "checkpoints" / "unet.npz").read_bytes() == b"not a checkpoint"
+
+
+def test_train_editor_refuses_an_unknown_scene_before_any_work(tmp_path, capfd):
+    code, err = _main(["train-editor", "--scenes", "person,moon", "--out", tmp_path / "r"],
+                      capfd)
+    assert code == 2 and err.err.count("\n") == 1
+    assert "--scenes" in err.err and "moon" in err.err
+    assert not (tmp_path / "r" / "checkpoints").exists()
+
+
+# ----------------------------------------------------------------------------- the bundled model
+
+def test_the_bundled_editor_is_small_complete_and_edits():
+    folder = bundled_editor()
+    size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+    assert size <= 20 * 2 ** 20
+    assert native_size(folder) == 64
+    assert len(instructions(folder)) == len(edit_data.INSTRUCTIONS)
+    assert (folder / "README.md").is_file()
+
+
+def test_diffusers_pipeline_gives_the_jax_editors_edit():
+    """StableDiffusionInstructPix2PixPipeline.from_pretrained on the bundled folder, run from
+    the JAX editor's noised latent over the JAX editor's timesteps, gives its edit."""
+    torch = pytest.importorskip("torch")
+    diffusers = pytest.importorskip("diffusers")
+    from jaxedit.edit import jax_ip2p as jx
+    from jaxedit.edit.diffusion import timestep_schedule
+
+    folder = bundled_editor()
+    steps, t_start = 4, 800
+    editor = JaxIP2PEditor.from_pretrained(folder, size=64, steps=steps)
+    data = edit_data.person_views(64)
+    view = edit_data.composite(data.rgba[5])[None]
+    prompt = "splash some colour on it"
+    rng = np.random.default_rng(0)
+    vae_noise = rng.standard_normal((1, 16, 16, 4)).astype(np.float32)
+    sde_noise = rng.standard_normal((1, 16, 16, 4)).astype(np.float32)
+    cfg = editor.config()
+    ours = np.asarray(jx.edit_with_noise(
+        editor.nets, jnp.asarray(view), jnp.asarray(view), jnp.asarray(editor.encode(prompt)),
+        jnp.asarray(editor.encode("")), jnp.asarray([t_start], jnp.int32),
+        jnp.asarray(vae_noise), jnp.asarray(sde_noise), editor.schedule, cfg))
+    latents, _ = jx.encode_latents(editor.nets.vae, jnp.asarray(view), jnp.asarray(view),
+                                   jnp.asarray(vae_noise), cfg)
+    a = float(editor.schedule.alphas_cumprod[t_start])
+    x_t = np.sqrt(a) * np.asarray(latents) + np.sqrt(1 - a) * sde_noise
+
+    pipe = diffusers.StableDiffusionInstructPix2PixPipeline.from_pretrained(
+        folder, safety_checker=None, requires_safety_checker=False)
+    scheduler = pipe.scheduler
+    ours_ts = timestep_schedule(t_start, steps)
+    original = scheduler.set_timesteps
+
+    def set_ours(n, device=None):  # the pipeline's loop over the JAX editor's timesteps
+        original(n, device=device)
+        scheduler.timesteps = torch.tensor(ours_ts, dtype=torch.long)
+    scheduler.set_timesteps = set_ours
+    # DDIM steps from t to t - N // n: n = N / spacing makes that the next of ours_ts.
+    n = scheduler.config.num_train_timesteps // (ours_ts[0] - ours_ts[1])
+    image = torch.from_numpy(view.transpose(0, 3, 1, 2))  # [0, 1]: the pipeline normalises
+    theirs = pipe(prompt, image=image, num_inference_steps=n, guidance_scale=7.5,
+                  image_guidance_scale=1.5, latents=torch.from_numpy(x_t.transpose(0, 3, 1, 2)),
+                  output_type="np").images
+    np.testing.assert_allclose(theirs, ours, atol=2e-4)
