@@ -65,9 +65,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prompt", default=None, help="the editing instruction")
     p.add_argument("--editor", default="simulated", choices=["simulated", "ip2p", "ip2p-torch"],
                    help="2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix "
-                        "in JAX; ip2p-torch: the torch + diffusers reference)")
+                        "in JAX, the small model bundled with jaxedit unless --ip2p-weights; "
+                        "ip2p-torch: the torch + diffusers reference)")
     p.add_argument("--ip2p-weights", type=Path, default=None,
-                   help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p, ip2p-torch)")
+                   help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p, "
+                        "ip2p-torch; default: the bundled small model)")
     FLAGS[0].add_to(p)
     FLAGS[1].add_to(p.add_argument_group(
         "several processes (jax.distributed; see the README's multi-host section)"))
@@ -90,7 +92,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     real.add_argument("--ip2p-dtype", default=None,
                       help="networks' dtype (default float32 on the CPU; bfloat16 (JAX) or "
                            "float16 (torch) on accelerators)")
-    real.add_argument("--ip2p-size", type=int, default=512, help="IP2P working resolution (px)")
+    real.add_argument("--ip2p-size", type=int, default=None,
+                      help="IP2P working resolution (px; default: the bundled editor's 64, "
+                           "512 for other weights)")
     real.add_argument("--ip2p-steps", type=int, default=20, help="DDIM steps per IP2P edit")
     real.add_argument("--ip2p-batch", type=int, default=None,
                       help="--editor ip2p: most views per editor call when several are due at "
@@ -118,21 +122,24 @@ def make_editor(args):
         from jaxedit.edit.simulated import SimulatedEditor
 
         return SimulatedEditor()
+    from jaxedit.editors import bundled_editor, native_size
+
+    # Without --ip2p-weights: the small InstructPix2Pix shipped in the package.
+    weights = args.ip2p_weights or bundled_editor()
+    size = args.ip2p_size or native_size(weights)
     if args.editor == "ip2p":
         from jaxedit.edit.buffer import pick_devices
-        from jaxedit.edit.diffusion import DEFAULT_MODEL
         from jaxedit.edit.jax_ip2p import load_editor
 
         # The editor's device of pick_devices, the one run_edit gives the editor.
-        return load_editor(args.ip2p_weights or DEFAULT_MODEL, devices=[pick_devices()[1]],
-                           dtype=args.ip2p_dtype, size=args.ip2p_size, steps=args.ip2p_steps,
-                           batch=args.ip2p_batch)
+        return load_editor(weights, devices=[pick_devices()[1]], dtype=args.ip2p_dtype,
+                           size=size, steps=args.ip2p_steps, batch=args.ip2p_batch)
     try:
-        from jaxedit.edit.ip2p import DEFAULT_MODEL, load_editor
+        from jaxedit.edit.ip2p import load_editor
     except ImportError as e:  # torch / diffusers are optional extras
         raise DataError("--editor", f"ip2p-torch is unavailable ({e})") from None
-    return load_editor(args.ip2p_weights or DEFAULT_MODEL, device=args.ip2p_device,
-                       dtype=args.ip2p_dtype, size=args.ip2p_size, steps=args.ip2p_steps)
+    return load_editor(weights, device=args.ip2p_device, dtype=args.ip2p_dtype, size=size,
+                       steps=args.ip2p_steps)
 
 
 def make_distance(args):
