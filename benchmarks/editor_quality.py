@@ -59,7 +59,7 @@ def main(argv=None):
     from jaxedit.edit.difficulty import default_distance
     from jaxedit.edit.jax_ip2p import JaxIP2PEditor
     from jaxedit.editors import bundled_editor
-    from jaxedit.editors.edit_data import HOLDOUT_EVERY, build_dataset
+    from jaxedit.editors.edit_data import HOLDOUT_EVERY, build_dataset, separation
     from jaxedit.editors.quality import evaluate
 
     folder = args.weights or bundled_editor()
@@ -87,6 +87,8 @@ def main(argv=None):
                       ratios=(0.0, 0.5, 1.0) if args.smoke else tuple(np.linspace(0, 1, 9)),
                       log=print)
     seconds = time.perf_counter() - t0
+    # The dataset's own property: how far apart the divergent outcomes are on these views.
+    result["separation"] = separation(data, distance, held)
     args.out.mkdir(parents=True, exist_ok=True)
     contact_sheet(editor, data, held[:: max(1, len(held) // 6)][:6], jax.random.fold_in(key, 7),
                   args.out / "editor_quality.png")

@@ -74,10 +74,10 @@ def run(args) -> dict:
     configure(quiet=args.quiet)
     bars: list = []
 
-    def stage(name: str, total: int):
+    def stage(name: str, total: int, done: int):
         for bar in bars:
             bar.close()
-        bars[:] = [Progress(total, f"train-editor {name}")]
+        bars[:] = [Progress(total, f"train-editor {name}", initial=min(done, total))]
 
         def on_progress(done: int, loss: float) -> None:
             postfix = {"loss": round(loss, 4)} if math.isfinite(loss) else {}

@@ -8,7 +8,6 @@ step dominates); the bundled folder is checked against diffusers where torch is 
 from __future__ import annotations
 
 import json
-import shutil
 
 import jax
 import jax.numpy as jnp

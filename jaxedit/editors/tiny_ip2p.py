@@ -84,7 +84,7 @@ class EditorTrainConfig:
     vae_batch: int = 16
     vae_crop: int = 32
     vae_lr: float = 1e-3
-    steps: int = 3000
+    steps: int = 2000
     batch: int = 32
     lr: float = 5e-4
     ema: float = 0.999
@@ -474,14 +474,15 @@ def latent_scaling(mean: np.ndarray, std: np.ndarray, key: Array) -> float:
     return float(1.0 / np.std(z))
 
 
-def run_steps(step: Callable, state, total: int, *, every: int, on_progress=None,
+def run_steps(step: Callable, state, total: int, *, every: int, losses=(), on_progress=None,
               checkpoint=None):
     """Advance ``state`` with ``step`` until its ``step`` counter reaches ``total``.
 
-    ``on_progress(done, loss)`` after each step (loss a float, fetched every 10 steps);
-    ``checkpoint(state)`` every ``every`` steps and at the end. Returns (state, last losses).
+    ``losses``: the losses of the steps already done (a resumed stage's); ``on_progress(done,
+    loss)`` after each step (loss a float, fetched every 10 steps); ``checkpoint(state,
+    losses)`` every ``every`` steps and at the end. Returns (state, every step's loss).
     """
-    losses = []
+    losses = list(losses)
     pending = []
     while int(state.step) < total:
         state, loss = step(state)
@@ -495,5 +496,5 @@ def run_steps(step: Callable, state, total: int, *, every: int, on_progress=None
         if on_progress is not None:
             on_progress(done, losses[-1] if losses else float("nan"))
         if checkpoint is not None and (done % every == 0 or done == total):
-            checkpoint(state)
+            checkpoint(state, losses)
     return state, losses

@@ -26,7 +26,7 @@ import jax
 import numpy as np
 
 from ..editors import edit_data, tiny_ip2p
-from ..editors.export import write_pipeline
+from ..editors.export import write_pipeline, write_tokenizer
 from ..errors import DataError
 from ..io.checkpoint import read_pytree, restore, save_pytree
 from ..io.files import atomic_path, atomic_write_text, read_npz
@@ -39,6 +39,17 @@ CHECKPOINT_EVERY = 250
 
 def _config_record(cfg: tiny_ip2p.EditorTrainConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
+#: The settings the autoencoder's stage depends on: a run that changes only the UNet's
+#: settings resumes the finished autoencoder instead of training it again.
+VAE_SETTINGS = ("size", "procedural_views", "scenes", "vae_steps", "vae_batch", "vae_crop",
+                "vae_lr", "seed")
+
+
+def _stage_record(cfg, kind: str) -> dict:
+    record = _config_record(cfg)
+    return {k: record[k] for k in VAE_SETTINGS} if kind == "editor-vae" else record
 
 
 def load_or_build_dataset(cfg, out: Path, progress=None) -> edit_data.EditDataset:
@@ -62,27 +73,33 @@ def tokenizer_folder(out: Path) -> Path:
     return out / "model" / "tokenizer"
 
 
-def _resume_state(path: Path, template, kind: str, cfg) -> object:
+def _resume_state(path: Path, template, kind: str, cfg) -> tuple[object, list[float]]:
+    """(the stage's state, its losses so far) from its checkpoint; refuses other settings."""
     arrays, meta = read_pytree(path, kind=kind)
-    if meta.get("config") != _config_record(cfg):
+    stored = meta.get("config")
+    if stored is not None and kind == "editor-vae":
+        stored = {k: stored.get(k) for k in VAE_SETTINGS}
+    if stored != _stage_record(cfg, kind):
         raise DataError(path, "was written by a run with other settings; use its own flags "
                               "or another --out")
-    return restore(template, arrays, path)
+    losses = meta.get("losses", [])  # a checkpoint of an older run has none
+    return restore(template, arrays, path), [float(v) for v in losses]
 
 
 def _checkpointer(path: Path, kind: str, cfg):
-    def save(state):
-        save_pytree(path, state, kind=kind, meta={"config": _config_record(cfg),
-                                                  "step": int(state.step)})
+    def save(state, losses: list[float]):
+        save_pytree(path, state, kind=kind, meta={"config": _stage_record(cfg, kind),
+                                                  "step": int(state.step), "losses": losses})
     return save
 
 
 def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: bool = False,
-                 stage: Callable[[str, int], Callable[[int, float], None]] | None = None,
+                 stage: Callable[[str, int, int], Callable[[int, float], None]] | None = None,
                  log: Callable[[str], None] = lambda s: None) -> dict:
     """Train the small IP2P into ``out`` (see the module docstring); returns the summary.
 
-    ``stage(name, total)`` is called at each stage's start and returns the stage's
+    ``stage(name, total, done)`` is called at each stage's start (``done``: the units a
+    resumed stage had already done) and returns the stage's
     ``on_progress(done, loss)`` (a progress bar at the edge); ``log`` takes one-line notes.
     Without ``resume`` a folder that already holds checkpoints is refused.
     """
@@ -93,13 +110,13 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
         raise DataError(ckpt, "holds a previous run's checkpoints; pass --resume to continue "
                               "it or choose another --out")
     ckpt.mkdir(parents=True, exist_ok=True)
-    stage = stage or (lambda name, total: None)
+    stage = stage or (lambda name, total, done: None)
     seconds: dict[str, float] = {}
     key = jax.random.key(cfg.seed)
     k_vae, k_unet, k_scale, k_degrade, k_nets = jax.random.split(key, 5)
 
     t0 = time.perf_counter()
-    on_scene = stage("dataset", len(cfg.scenes))
+    on_scene = stage("dataset", len(cfg.scenes), 0)
     built: list[str] = []
 
     def scene_done(name: str) -> None:
@@ -115,8 +132,6 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
 
     # The tokenizer: learnt on the instructions, written where the model folder keeps it.
     vocab, merges = tiny_ip2p.train_tokenizer([i.prompt for i in data.instructions])
-    from ..editors.export import write_tokenizer
-
     write_tokenizer(tokenizer_folder(out), vocab, merges, bos=tiny_ip2p.BOS, eos=tiny_ip2p.EOS,
                     max_length=tiny_ip2p.MAX_LENGTH)
     tokenizer = CLIPTokenizer.from_folder(tokenizer_folder(out))
@@ -129,11 +144,13 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     state = tiny_ip2p.init_vae(cfg, k_vae)
     vae_static = eqx.filter(tiny_ip2p.AutoencoderKL.from_config(
         tiny_ip2p.vae_config(cfg), key=jax.random.key(0)), eqx.is_array, inverse=True)
+    vae_losses: list[float] = []
     if resume and (ckpt / "vae.npz").exists():
-        state = _resume_state(ckpt / "vae.npz", state, "editor-vae", cfg)
+        state, vae_losses = _resume_state(ckpt / "vae.npz", state, "editor-vae", cfg)
     step = tiny_ip2p.make_vae_step(cfg, vae_static, jax.numpy.asarray(vae_images))
     state, vae_losses = tiny_ip2p.run_steps(
-        step, state, cfg.vae_steps, every=CHECKPOINT_EVERY, on_progress=stage("vae", cfg.vae_steps),
+        step, state, cfg.vae_steps, every=CHECKPOINT_EVERY, losses=vae_losses,
+        on_progress=stage("vae", cfg.vae_steps, int(state.step)),
         checkpoint=_checkpointer(ckpt / "vae.npz", "editor-vae", cfg))
     vae = eqx.combine(state.vae, vae_static)
     seconds["vae"] = time.perf_counter() - t0
@@ -153,12 +170,14 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     statics = (eqx.filter(unet, eqx.is_array, inverse=True),
                eqx.filter(text, eqx.is_array, inverse=True))
     ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
+    unet_losses: list[float] = []
     if resume and (ckpt / "unet.npz").exists():
-        ustate = _resume_state(ckpt / "unet.npz", ustate, "editor-unet", cfg)
+        ustate, unet_losses = _resume_state(ckpt / "unet.npz", ustate, "editor-unet", cfg)
     schedule = DDPMSchedule.from_config(tiny_ip2p.SCHEDULER_CONFIG)
     ustep = tiny_ip2p.make_unet_step(cfg, statics, d, scaling, schedule)
     ustate, unet_losses = tiny_ip2p.run_steps(
-        ustep, ustate, cfg.steps, every=CHECKPOINT_EVERY, on_progress=stage("unet", cfg.steps),
+        ustep, ustate, cfg.steps, every=CHECKPOINT_EVERY, losses=unet_losses,
+        on_progress=stage("unet", cfg.steps, int(ustate.step)),
         checkpoint=_checkpointer(ckpt / "unet.npz", "editor-unet", cfg))
     seconds["unet"] = time.perf_counter() - t0
 
