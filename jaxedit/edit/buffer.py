@@ -59,11 +59,14 @@ class EditJob:
       iteration: how many edits this subtask issued before this one; it seeds the
         editor (with the view and ratio) and drives the timestep annealing.
       step: trainer step (within the subtask) at which the job was issued.
+      timestep: the SDEdit timestep the edit is made at, when the schedule fixes it
+        (:class:`ScheduledEditSource`); None: the driver's annealing of ``step``.
     """
 
     view: int
     iteration: int
     step: int
+    timestep: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,6 +200,14 @@ class SyncEditSource:
         i = n + k - 1
         return [EditJob(int(self.order[i % n]), i, step)]
 
+    def due(self, step: int) -> bool:
+        """Whether edits are due at ``step`` (the driver exchanges only then)."""
+        return step >= 0 and step % self.every == 0
+
+    def next_due(self, step: int) -> int | None:
+        """The first step after ``step`` with edits due (None: none left)."""
+        return (max(step, -1) // self.every + 1) * self.every
+
     def exchange(self, step: int, scene) -> list[EditedView]:
         """Perform the edits due at ``step`` on ``scene`` and return them."""
         jobs = self.jobs_at(step)
@@ -226,6 +237,50 @@ class SyncEditSource:
 
     def close(self) -> None:
         pass
+
+
+class ScheduledEditSource(SyncEditSource):
+    """Deterministic edits at an explicit list of exchanges instead of every ``every`` steps.
+
+    ``exchanges``: ``(step, count, timestep)`` triples with strictly increasing steps; at
+    ``step`` the next ``count`` views of the cyclic ``order`` are edited (edits are numbered
+    through the subtask, as :class:`SyncEditSource` numbers them), at ``timestep`` (None: the
+    driver's annealing of the step). The equal-budget controls of the ablation use it: a
+    fractional schedule (edit k at step round(k L / calls)) matches any number of editor
+    calls exactly, and ProEdit's own exchanges replayed in one subtask match its sweeps and
+    timesteps (:mod:`jaxedit.pipelines.ablation.methods`).
+    """
+
+    def __init__(self, edit_fn: EditFn, order: np.ndarray, *, exchanges, trainer_device=None,
+                 edit_many: EditManyFn | None = None):
+        super().__init__(edit_fn, order, every=1, initial_sweep=False,
+                         trainer_device=trainer_device, edit_many=edit_many)
+        self.exchanges = tuple((int(s), int(c), None if t is None else float(t))
+                               for s, c, t in exchanges)
+        steps = [s for s, _, _ in self.exchanges]
+        if any(b <= a for a, b in zip(steps, steps[1:])) or (steps and steps[0] < 0) or any(
+                c < 1 for _, c, _ in self.exchanges):
+            raise ValueError(f"exchanges need increasing steps >= 0 and counts >= 1, got "
+                             f"{self.exchanges}")
+        self._at = {}
+        first = 0
+        for s, c, t in self.exchanges:
+            self._at[s] = (first, c, t)
+            first += c
+
+    def due(self, step: int) -> bool:
+        return step in self._at
+
+    def next_due(self, step: int) -> int | None:
+        later = [s for s in self._at if s > step]
+        return min(later) if later else None
+
+    def jobs_at(self, step: int) -> list[EditJob]:
+        if step not in self._at:
+            return []
+        first, count, t = self._at[step]
+        n = len(self.order)
+        return [EditJob(int(self.order[i % n]), i, step, t) for i in range(first, first + count)]
 
 
 class EditorThreadError(RuntimeError):
@@ -422,9 +477,15 @@ class AsyncEditSource:
 
 def make_source(edit_fn: EditFn, order: np.ndarray, *, asynchronous: bool, every: int = 10,
                 initial_sweep: bool = False, device=None, capacity: int = 4,
-                trainer_device=None, edit_many: EditManyFn | None = None):
+                trainer_device=None, edit_many: EditManyFn | None = None, exchanges=None):
     """The sync (deterministic) or async (threaded) edit source with one call (the
-    asynchronous producer edits one view at a time, each from the newest scene)."""
+    asynchronous producer edits one view at a time, each from the newest scene);
+    ``exchanges`` (deterministic only): an explicit schedule, :class:`ScheduledEditSource`."""
+    if exchanges is not None:
+        if asynchronous:
+            raise ValueError("an explicit edit schedule is deterministic: not asynchronous")
+        return ScheduledEditSource(edit_fn, order, exchanges=exchanges,
+                                   trainer_device=trainer_device, edit_many=edit_many)
     if asynchronous:
         return AsyncEditSource(edit_fn, order, device=device, capacity=capacity,
                                trainer_device=trainer_device)

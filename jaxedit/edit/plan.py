@@ -70,6 +70,12 @@ class ProEditConfig:
       subtask_steps: fixed lengths of the subtasks in plan order (the equal-budget
         controls): each runs exactly that many steps, no plateau test, no guard (None:
         the plateau and ``max_steps`` decide).
+      edit_plan: explicit editor exchanges per subtask in plan order (the equal-budget
+        controls of the ablation): each entry None (every ``edit_every`` steps, as without
+        it) or a tuple of ``(step, count, timestep)``: at ``step`` steps after the warm-up
+        edit the next ``count`` views of the cyclic order, at ``timestep`` (None: annealed
+        by the step) (:class:`jaxedit.edit.buffer.ScheduledEditSource`; deterministic mode
+        only).
     """
 
     mode: str = "proedit"
@@ -100,6 +106,7 @@ class ProEditConfig:
     stop_on_plateau: bool = True
     nd_subtasks: int = 1
     subtask_steps: tuple[int, ...] | None = None
+    edit_plan: tuple | None = None
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -124,6 +131,17 @@ class ProEditConfig:
         if self.subtask_steps is not None and (
                 not len(self.subtask_steps) or min(self.subtask_steps) < 1):
             raise DataError("subtask_steps", f"need lengths >= 1, got {self.subtask_steps}")
+        if self.edit_plan is not None:
+            if self.asynchronous:
+                raise DataError("edit_plan", "an explicit edit schedule is deterministic: "
+                                             "not with asynchronous")
+            for entry in self.edit_plan:
+                steps = [] if entry is None else [int(x[0]) for x in entry]
+                if entry is not None and (not steps or steps[0] < 0 or any(
+                        b <= a for a, b in zip(steps, steps[1:])) or any(
+                        int(x[1]) < 1 for x in entry)):
+                    raise DataError("edit_plan", f"each subtask's exchanges need increasing "
+                                                 f"steps >= 0 and counts >= 1, got {entry}")
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise DataError("max_seconds", f"must be > 0, got {self.max_seconds}")
         for name in ("patience", "loss_window", "max_steps", "anneal_steps", "edit_every",

@@ -161,6 +161,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     if config.subtask_steps is not None and len(config.subtask_steps) != len(plan):
         raise DataError("subtask_steps", f"{len(config.subtask_steps)} lengths for a plan of "
                                          f"{len(plan)} subtasks")
+    if config.edit_plan is not None and len(config.edit_plan) != len(plan):
+        raise DataError("edit_plan", f"{len(config.edit_plan)} subtasks' exchanges for a plan "
+                                     f"of {len(plan)} subtasks")
     if run_dir is not None and not resume:
         write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
         if local_figures is not None:  # the region at the held-out views, for the report
