@@ -8,8 +8,9 @@ is :meth:`AblationConfig.smoke`, and ``--seed`` seeds the scenes and reconstruct
 
 from __future__ import annotations
 
-HELP = ("ablation: proedit vs nd, nd at equal steps and calls, nd-k, uniform and in2n over "
-        "seeds, with paired 95-percent confidence intervals (simulated editor)")
+HELP = ("ablation: proedit vs nd, nd at equal steps and calls (nd_equal, nd_replay), nd-k, "
+        "uniform and in2n over seeds, with reference levels and paired 95-percent confidence "
+        "intervals (simulated editor or the bundled ip2p); resumes from RUN_DIR/runs.jsonl")
 
 
 def _config_flags():
@@ -17,10 +18,13 @@ def _config_flags():
 
     from .flags import Flag, FlagSet
 
+    from jaxedit.pipelines.ablation import EDITORS
+
     return FlagSet(AblationConfig, tuple(Flag(name) for name in (
         "scenes", "prompts", "seeds", "variants", "methods", "control_methods", "size", "views",
         "test_views", "recon_iters", "refine_every", "max_steps", "warmup", "patience",
-        "edit_every", "lr_sh_dc")))
+        "edit_every", "lr_sh_dc")) + (Flag("editor", choices=EDITORS),
+                                      Flag("references", off="--no-references")))
 
 
 #: The command's flags, generated from :class:`jaxedit.pipelines.ablation.AblationConfig`.

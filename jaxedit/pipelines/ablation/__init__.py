@@ -74,20 +74,23 @@ from ...edit.simulated_targets import MAX_MODES
 from ...errors import DataError
 from ...io import write_image
 from ...io.files import atomic_write_text
-from ...metrics import mode_scores
 from ...viz import image_grid
 from ..cache import prepared_scene
 from ..edit import run_edit
-from .methods import (CONTROL_METHODS, FOLLOWERS, MAIN_METHODS, METHODS, TARGET_SUBTASKS,
-                      TARGET_SUBTASKS_DEFAULT, ModeLog, edits_per_subtask, method_config,
-                      sweep_agreement)
-from .summary import ALL, METRICS, summarise, tables
+from .methods import (BANDS, CONTROL_METHODS, FOLLOWERS, MAIN_METHODS, METHODS, TARGET_SUBTASKS,
+                      TARGET_SUBTASKS_DEFAULT, CallLog, ModeLog, edits_per_subtask,
+                      method_config, sweep_agreement, timestep_bands)
+from .outcomes import FixedTargets, outcome_scores, outcome_targets
+from .summary import ALL, METRICS, REFERENCES, expand_references, summarise, tables
 
-__all__ = ["ALL", "AblationConfig", "CONTROL_METHODS", "MAIN_METHODS", "METHODS", "METRICS",
+__all__ = ["ALL", "AblationConfig", "CONTROL_METHODS", "EDITORS", "MAIN_METHODS", "METHODS",
+           "METRICS", "REFERENCES",
            "PROMPTS", "SCENES", "VARIANTS", "parse_variant", "recon_config", "run_ablation",
            "summarise", "tables"]
 
 SCENES = ("face",)
+#: Editors of the ablation: the simulated test instrument and the bundled InstructPix2Pix.
+EDITORS = ("simulated", "ip2p")
 PROMPTS = ("give him a marble texture", "make his head bigger")
 VARIANTS = ("3", "1", "3:0")
 
@@ -129,6 +132,12 @@ class AblationConfig:
       patience: plateau length ending a subtask.
       edit_every: steps between edits.
       lr_sh_dc: colour learning rate of the editing trainer (same for every method).
+      editor: "simulated" (the test instrument, its variants) or "ip2p" (the bundled small
+        InstructPix2Pix, :func:`jaxedit.editors.bundled_editor`, at its own size; one
+        variant, ``methods`` only).
+      references: also score the reference levels of each (scene, instruction): the
+        unedited reconstruction and the ceiling (a scene trained directly on one outcome's
+        targets, the best of its outcomes).
     """
 
     scenes: tuple[str, ...] = SCENES
@@ -147,6 +156,8 @@ class AblationConfig:
     patience: int = 6
     edit_every: int = 3
     lr_sh_dc: float = 0.025
+    editor: str = "simulated"
+    references: bool = True
 
     def __post_init__(self):
         from ...scenes import list_scenes
@@ -156,6 +167,9 @@ class AblationConfig:
                           ("warmup", 0), ("patience", 1), ("edit_every", 1)):
             if getattr(self, name) < low:
                 raise DataError(name, f"must be >= {low}, got {getattr(self, name)}")
+        if self.editor not in EDITORS:
+            raise DataError("editor", f"unknown editor {self.editor!r}; choose from "
+                                      f"{', '.join(EDITORS)}")
         if not self.lr_sh_dc > 0:
             raise DataError("lr_sh_dc", f"must be > 0, got {self.lr_sh_dc}")
         bad = [s for s in self.scenes if s not in list_scenes()]
@@ -194,10 +208,13 @@ class AblationConfig:
                    recon_iters=30, refine_every=4, max_steps=12, warmup=2, patience=3,
                    edit_every=2)
 
-    def settings_json(self, kinds: dict[str, str], recon_seed: int) -> dict:
-        """ablation.json's ``settings``: what a resumed run must match."""
-        rows = self.rows_of()
-        return {"scenes": list(self.scenes), "prompts": list(self.prompts), "seeds": self.seeds,
+    def settings_json(self, kinds: dict[str, str], recon_seed: int, editor: str | None = None
+                      ) -> dict:
+        """ablation.json's ``settings``: what a resumed run must match (but ``seeds``: a
+        study may be extended by more seeds)."""
+        rows = self.rows_of(editor)
+        return {"editor": editor or self.editor, "references": self.references,
+                "scenes": list(self.scenes), "prompts": list(self.prompts), "seeds": self.seeds,
                 "variants": list(rows), "methods": rows,
                 "size": self.size, "views": self.views, "test_views": self.test_views,
                 "recon_iters": self.recon_iters, "refine_every": self.refine_every,
@@ -207,8 +224,12 @@ class AblationConfig:
                 "target_subtasks": {k: TARGET_SUBTASKS.get(k, TARGET_SUBTASKS_DEFAULT)
                                     for k in sorted(set(kinds.values()))}}
 
-    def rows_of(self) -> dict[str, list[str]]:
-        """{variant label: its methods, in the order of METHODS}."""
+    def rows_of(self, editor: str | None = None) -> dict[str, list[str]]:
+        """{variant label: its methods, in the order of METHODS}; an editor other than the
+        simulated one has one variant, its name, with ``methods``."""
+        editor = editor or self.editor
+        if editor != "simulated":
+            return {editor: [m for m in METHODS if m in self.methods]}
         labels = [_variant_label(*parse_variant(v)) for v in self.variants]
         return {label: [m for m in METHODS if m in (self.methods if i == 0
                                                     else self.control_methods)]
@@ -232,13 +253,11 @@ def recon_config(iters: int):
     return ReconstructConfig(train=train, checkpoint_every=0)
 
 
-def _score(editor, prompt, data, gaussians, background) -> tuple[dict, object, object]:
-    """(mode scores, renders [N, H, W, 3], mode targets [K, N, H, W, 3]) at the test views."""
+def _renders(data, gaussians, background) -> np.ndarray:
+    """float32 [M, H, W, 3]: the scene at the held-out views."""
     renderer = Renderer(background)
-    rgb = np.stack([renderer.rgb(gaussians, data.test_cameras[i])
-                    for i in range(len(data.test_images))])
-    targets = np.stack([editor.mode_targets(o, 1.0, prompt) for o in data.test_images], axis=1)
-    return mode_scores(rgb, targets), rgb, targets
+    return np.stack([np.asarray(renderer.rgb(gaussians, data.test_cameras[i]), np.float32)
+                     for i in range(len(data.test_images))])
 
 
 def _write_views(path: Path, targets, renders: dict) -> None:
@@ -253,42 +272,134 @@ def _slug(text: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in text.lower()).strip("_")[:40]
 
 
+def _editors(config: AblationConfig, editor=None) -> tuple[dict, str]:
+    """({variant label: editor}, the editor's name): the simulated editor's variants, the
+    bundled InstructPix2Pix, or ``editor`` (an object given by the caller, e.g. a test's;
+    its ``label`` attribute or "custom")."""
+    if editor is not None:
+        name = str(getattr(editor, "label", "custom"))
+        return {name: editor}, name
+    if config.editor == "ip2p":
+        from ...edit.buffer import pick_devices
+        from ...edit.jax_ip2p import load_editor
+        from ...editors import bundled_editor, native_size
+
+        weights = bundled_editor()
+        return {"ip2p": load_editor(weights, devices=[pick_devices()[1]],
+                                    size=native_size(weights))}, "ip2p"
+    return {_variant_label(k, g): SimulatedEditor(modes=k, mode_step_gain=g)
+            for k, g in map(parse_variant, config.variants)}, "simulated"
+
+
+def _kind(editor, prompt: str) -> str:
+    """The instruction's kind (it sets ProEdit's subtask count); unknown prompts: DataError."""
+    try:
+        if isinstance(editor, SimulatedEditor):
+            editor.encode(prompt)  # unknown instructions fail here
+            return INSTRUCTIONS[editor._index(prompt)].kind
+        if hasattr(editor, "kind"):
+            return str(editor.kind(prompt))
+        from ...editors import edit_data
+
+        return edit_data.instruction(prompt).kind
+    except DataError as e:
+        raise DataError("prompts", e.problem) from None
+
+
+def _key(r: dict) -> tuple:
+    return (str(r["editor_modes"]), r["scene"], r["prompt"], r["seed"], r["method"])
+
+
+RUNS_FILE = "runs.jsonl"
+SETTINGS_FILE = "settings.json"
+
+
+def _resume(out: Path, settings_json: dict, log) -> list[dict]:
+    """The records already in ``out/runs.jsonl`` (a truncated last line is dropped and the
+    file rewritten without it); a DataError when ``out`` holds a study of other settings
+    (the seed count may differ: a study is extended by more seeds)."""
+    path, spath = out / RUNS_FILE, out / SETTINGS_FILE
+    if spath.exists():
+        old = json.loads(spath.read_text())
+        same = {k: v for k, v in old.items() if k != "seeds"} == \
+            {k: v for k, v in settings_json.items() if k != "seeds"}
+        if not same:
+            raise DataError(spath, "this folder holds a study of other settings; use another "
+                                   "--out (or the same settings to resume it)")
+    atomic_write_text(spath, json.dumps(settings_json, indent=2) + "\n")
+    runs: list[dict] = []
+    if not path.exists():
+        return runs
+    lines = path.read_text().splitlines()
+    bad = 0
+    for line in lines:
+        try:
+            runs.append(json.loads(line))
+        except ValueError:
+            bad += 1
+    if bad:
+        log(f"dropping {bad} unreadable line(s) of {path} (an interrupted write)")
+        atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in runs))
+    log(f"resuming: {len(runs)} finished records in {path}")
+    return runs
+
+
+def _append(path: Path, record: dict) -> None:
+    """One record as one line of ``path``, flushed to disk before the next run starts."""
+    import os
+
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(json.dumps(record) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def finish(out: Path, runs: list[dict], settings_json: dict, *, wall_time_s: float | None = None
+           ) -> dict:
+    """ablation.json and ablation.md computed from the records (``runs.jsonl``)."""
+    summary, differences = summarise(runs)
+    payload = {"settings": settings_json, "runs": runs, "summary": summary,
+               "differences": differences}
+    if wall_time_s is not None:
+        payload["wall_time_s"] = wall_time_s
+    atomic_write_text(out / "ablation.json", json.dumps(payload, indent=2) + "\n")
+    title = "simulated editor" if settings_json.get("editor") == "simulated" else \
+        f"editor {settings_json.get('editor')}"
+    atomic_write_text(out / "ablation.md", f"# Ablation ({title})\n\n"
+                      f"Settings: `{json.dumps(settings_json)}`\n" + tables(summary, differences))
+    return payload
+
+
 def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_seed: int = 0,
-                 report: bool = True, log=print) -> dict:
+                 report: bool = True, log=print, editor=None) -> dict:
     """Run the ablation into ``out``; returns the contents of ablation.json.
 
-    ``out/ablation.json`` is rewritten after every run, and a call with the same
-    settings resumes from it; each scene's dataset and reconstruction are made once
-    in ``out/SCENE`` (:func:`jaxedit.pipelines.cache.prepared_scene`).
+    Every finished run (and reference level) is appended to ``out/runs.jsonl`` at once; a
+    call with the same settings skips the (variant, scene, instruction, seed, method)
+    records already there, so a study can be run in parts. ``ablation.json`` (records,
+    summary, paired differences) is computed from the JSONL at the end. Each scene's dataset
+    and reconstruction are made once in ``out/SCENE``
+    (:func:`jaxedit.pipelines.cache.prepared_scene`). ``editor``: an editor object to use
+    instead of ``config.editor`` (tests plant effects with one).
     """
     out = Path(out)
-    editors = {_variant_label(k, g): SimulatedEditor(modes=k, mode_step_gain=g)
-               for k, g in map(parse_variant, config.variants)}
-    rows_of = config.rows_of()
+    editors, name = _editors(config, editor)
+    rows_of = config.rows_of(name)
     first = next(iter(editors.values()))
     prompts = tuple(config.prompts)
-    kinds = {}
-    for p in prompts:
-        try:
-            first.encode(p)  # unknown instructions fail here
-        except DataError as e:
-            raise DataError("prompts", e.problem) from None
-        kinds[p] = INSTRUCTIONS[first._index(p)].kind
-    settings_json = config.settings_json(kinds, recon_seed)
+    kinds = {p: _kind(first, p) for p in prompts}
+    settings_json = config.settings_json(kinds, recon_seed, name)
     scenes, seeds = config.scenes, config.seeds
     out.mkdir(parents=True, exist_ok=True)
-    path = out / "ablation.json"
-    runs: list[dict] = []
-    if path.exists():
-        old = json.loads(path.read_text())
-        if isinstance(old, dict) and old.get("settings") == settings_json:
-            runs = list(old.get("runs", []))
-            log(f"resuming: {len(runs)} finished runs in {path}")
+    runs = _resume(out, settings_json, log)
+    done = {_key(r): r for r in runs}
+    jsonl = out / RUNS_FILE
     elapsed0 = sum(r.get("seconds", 0.0) for r in runs)
 
-    def save(extra=None):
-        payload = {"settings": settings_json, "runs": runs} | (extra or {})
-        atomic_write_text(path, json.dumps(payload, indent=2) + "\n")
+    def keep(record):
+        _append(jsonl, record)
+        runs.append(record)
+        done[_key(record)] = record
 
     total = len(scenes) * len(prompts) * seeds * sum(len(r) for r in rows_of.values())
     t_start = time.perf_counter()
@@ -298,93 +409,182 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                                            seed=recon_seed,
                                            config=recon_config(config.recon_iters), log=log)
         data = EditData.from_dataset(dataset)
+        test_idx = np.asarray(dataset.test_indices) if len(dataset.test_indices) else \
+            np.asarray(dataset.train_indices)
         settings = TrainSettings(lr_sh_dc=config.lr_sh_dc, sh_degree=scene.sh_degree
                                  ).replace_densify(refine_every=config.refine_every)
         n_views = len(data.train_images)
-        for label, editor in editors.items():
+        for label, ed in editors.items():
             for prompt in prompts:
+                where = dict(scene_name=scene_name, dataset=dataset, scene_seed=recon_seed)
+                targets = outcome_targets(ed, prompt, data.test_images, indices=test_idx,
+                                          **where)
+                tag = dict(editor_modes=label, modes=int(targets.shape[0]),
+                           step_gain=getattr(getattr(ed, "params", None), "mode_step_gain", None),
+                           scene=scene_name, prompt=prompt, kind=kinds[prompt])
+                if config.references:
+                    for record in _references(
+                            ed, prompt, data, scene, targets, config, settings, kinds[prompt],
+                            done=lambda m: (label, scene_name, prompt, -1, m) in done,
+                            train_targets=lambda: outcome_targets(
+                                ed, prompt, data.train_images,
+                                indices=np.asarray(dataset.train_indices), **where)):
+                        keep(record | tag | {"seed": -1})
+                        log(f"{label} {scene_name} {kinds[prompt]} reference {record['method']}: "
+                            f"psnr_best {record['psnr_best']:.2f}, agreement "
+                            f"{record['outcome_agreement']:.2f}")
                 for seed in range(seeds):
                     renders, lead = {}, None
                     for method in rows_of[label]:
-                        tag = (label, scene_name, prompt, seed, method)
-                        prior = next((r for r in runs if (r["editor_modes"], r["scene"],
-                                                          r["prompt"], r["seed"],
-                                                          r["method"]) == tag), None)
+                        prior = done.get((label, scene_name, prompt, seed, method))
                         if prior is None:
                             cfg = method_config(method, kind=kinds[prompt], lead=lead,
                                                 warmup=config.warmup, patience=config.patience,
-                                                max_steps=config.max_steps, edit_every=config.edit_every,
-                                                views=n_views)
-                            record, rgb, targets = _run_one(
-                                ModeLog(editor), prompt, data, scene, cfg, settings, seed)
-                            record.update(editor_modes=label, modes=editor.modes,
-                                          step_gain=editor.params.mode_step_gain,
-                                          scene=scene_name, prompt=prompt, kind=kinds[prompt],
-                                          seed=seed, method=method)
-                            runs.append(record)
+                                                max_steps=config.max_steps,
+                                                edit_every=config.edit_every, views=n_views)
+                            record, rgb = _run_one(CallLog(ed), prompt, data, scene, cfg,
+                                                   settings, seed, targets)
+                            record.update(tag, seed=seed, method=method)
+                            keep(record)
                             renders[method] = rgb
-                            save()
                             prior = record
-                            log(f"[{len(runs)}/{total}] {label} {scene_name} {kinds[prompt]} "
+                            log(f"[{len(done)}] {label} {scene_name} {kinds[prompt]} "
                                 f"seed {seed} {method}: psnr_best {record['psnr_best']:.2f}, "
-                                f"mixing {record['mode_mixing']:.2f}, agreement "
-                                f"{record['agreement_final']}, {record['total_steps']} steps, "
-                                f"{record['editor_calls']} calls, "
+                                f"agreement {record['outcome_agreement']:.2f}, mixing "
+                                f"{record['mode_mixing']:.2f}, {record['total_steps']} steps, "
+                                f"{record['editor_calls']} calls {record['calls_by_band']}, "
+                                f"plateau {record['plateau_share']}, "
                                 f"{elapsed0 + time.perf_counter() - t_start:.0f} s so far")
                         if method == "proedit":
                             cfg = method_config("proedit", kind=kinds[prompt], lead=None,
                                                 warmup=config.warmup, patience=config.patience,
-                                                max_steps=config.max_steps, edit_every=config.edit_every,
-                                                views=n_views)
+                                                max_steps=config.max_steps,
+                                                edit_every=config.edit_every, views=n_views)
                             lead = {"steps": prior["subtask_steps"],
-                                    "edits": prior["editor_calls"],
+                                    "edits": prior["edits_per_subtask"],
                                     "horizon": anneal_horizon(cfg, config.warmup)}
                     if seed == 0 and renders:
                         _write_views(out / "views" / f"m{_slug(label)}_{scene_name}_"
                                      f"{_slug(prompt)}.png", targets, renders)
-    summary, differences = summarise(runs)
-    save({"summary": summary, "differences": differences,
-          "wall_time_s": elapsed0 + time.perf_counter() - t_start})
-    atomic_write_text(out / "ablation.md", "# Ablation (simulated editor)\n\n"
-                      f"Settings: `{json.dumps(settings_json)}`\n" + tables(summary, differences))
+    payload = finish(out, runs, settings_json,
+                     wall_time_s=elapsed0 + time.perf_counter() - t_start)
     if report:
         from ..report import write_report
 
         write_report(out)
-    return {"settings": settings_json, "runs": runs, "summary": summary,
-            "differences": differences}
+    return payload
 
 
-def _run_one(editor: ModeLog, prompt, data, scene, cfg, settings, seed):
-    """(record, test renders, mode targets) of one edit run."""
+def _references(editor, prompt, data, scene, targets, config, settings, kind, *, done,
+                train_targets):
+    """The reference levels of one (scene, instruction) not yet ``done(method)``: the unedited
+    reconstruction, and the ceiling: the same editing trainer (ND, its own plateau and
+    guard) trained directly on one outcome's targets, the best outcome by ``psnr_best``
+    (every outcome's scores in ``per_outcome``)."""
+    background = method_config("nd", kind=kind, lead=None, warmup=config.warmup,
+                               patience=config.patience, max_steps=config.max_steps,
+                               edit_every=config.edit_every, views=1).background
+    if not done("unedited"):
+        t0 = time.perf_counter()
+        yield {**outcome_scores(_renders(data, scene, background), targets), "method": "unedited",
+               "reference": True, "seconds": time.perf_counter() - t0}
+    if not done("ceiling"):
+        t0 = time.perf_counter()
+        train = train_targets()
+        cfg = method_config("nd", kind=kind, lead=None, warmup=config.warmup,
+                            patience=config.patience, max_steps=config.max_steps,
+                            edit_every=config.edit_every, views=len(data.train_images))
+        per = []
+        for k in range(train.shape[0]):
+            fixed = FixedTargets(editor, data.train_images, train[k])
+            res = run_edit(fixed, prompt, data, scene, config=cfg, settings=settings, seed=0,
+                           run_dir=None, report=False)
+            rgb = _renders(data, res["gaussians"], cfg.background)
+            # scored against outcome k's own target: the ceiling of holding that outcome
+            own = outcome_scores(rgb, targets[k:k + 1])
+            per.append({**outcome_scores(rgb, targets), "psnr_own": own["psnr_best"],
+                        "plateau_share": _plateau(res["schedule"]["subtasks"])[1]})
+        best = max(range(len(per)), key=lambda k: per[k]["psnr_best"])
+        yield {**per[best], "method": "ceiling", "reference": True, "outcome": best,
+               "per_outcome": per, "seconds": time.perf_counter() - t0}
+
+
+def _plateau(subtasks) -> tuple[list, float | None]:
+    """(per subtask: ended on its loss plateau (True), on a guard (False), or a fixed budget
+    (None); the share of the subtasks that could plateau that did)."""
+    ended = [s["converged"] for s in subtasks]
+    could = [e for e in ended if e is not None]
+    return ended, (sum(bool(e) for e in could) / len(could) if could else None)
+
+
+def _edit_counts(cfg, subtasks, views: int) -> list[int]:
+    """Training edits per subtask: its explicit exchanges before its end, or the periodic
+    schedule's (:func:`.methods.edits_per_subtask`)."""
+    warmup = 0 if cfg.mode == "in2n" else cfg.warmup
+    out = []
+    for i, s in enumerate(subtasks):
+        plan = None if cfg.edit_plan is None else cfg.edit_plan[i]
+        if plan is not None:
+            out.append(sum(c for st, c, _ in plan if st < s["steps"] - warmup))
+        else:
+            out.append(edits_per_subtask(s["steps"], warmup=warmup, every=cfg.edit_every,
+                                         views=views, initial_sweep=cfg.initial_sweep))
+    return out
+
+
+def _run_one(editor: CallLog, prompt, data, scene, cfg, settings, seed, targets):
+    """(record, test renders) of one edit run; ``targets`` [K, M, H, W, 3] the outcomes'."""
     t0, c0 = time.perf_counter(), time.process_time()
     res = run_edit(editor, prompt, data, scene, config=cfg, settings=settings, seed=seed,
                    run_dir=None, report=False)
-    scores, rgb, targets = _score(editor.editor, prompt, data, res["gaussians"], cfg.background)
+    rgb = _renders(data, res["gaussians"], cfg.background)
+    scores = outcome_scores(rgb, targets)
     m, subtasks = res["metrics"], res["schedule"]["subtasks"]
     n_views = len(data.train_images)
-    warmup = 0 if cfg.mode == "in2n" else cfg.warmup
-    edits = [edits_per_subtask(s["steps"], warmup=warmup, every=cfg.edit_every, views=n_views,
-                               initial_sweep=cfg.initial_sweep) for s in subtasks]
+    edits = _edit_counts(cfg, subtasks, n_views)
     calls = int(m["utilisation"]["edits"])
-    if sum(edits) != calls:
-        raise RuntimeError(f"counted {sum(edits)} training edits, the driver made {calls}")
-    agreement = sweep_agreement(editor.modes[len(editor.modes) - calls:], edits, n_views)
-    sweeps = sum(len(a) for a in agreement)
-    # the refine subtask edits with e(0): every mode's target is the original, its draws mean
-    # nothing
-    agreement = [[] if s["kind"] == "refine" else a for s, a in zip(subtasks, agreement)]
-    flat = [a for sub in agreement for a in sub]
+    if sum(edits) != calls or editor.calls < calls:
+        raise RuntimeError(f"counted {sum(edits)} training edits ({editor.calls} logged), "
+                           f"the driver made {calls}")
+    times = editor.timesteps[editor.calls - calls:]
+    t_range = tuple(cfg.timestep_range)
+    agreement = None
+    if editor.modes is not None:
+        agreement = sweep_agreement(editor.modes[len(editor.modes) - calls:], edits, n_views)
+        # the refine subtask edits with e(0): every mode's target is the original, its draws
+        # mean nothing
+        agreement = [[] if s["kind"] == "refine" else a for s, a in zip(subtasks, agreement)]
+    flat = [a for sub in (agreement or []) for a in sub]
+    ended, share = _plateau(subtasks)
     return ({**scores, "psnr_vs_target": m.get("psnr_vs_target"),
              "multiview_consistency": m.get("multiview_consistency"),
              "total_steps": int(m["total_steps"]), "subtasks": len(subtasks),
              "subtask_steps": [int(s["steps"]) for s in subtasks],
              "ratios": [s["ratio"] for s in subtasks],
-             "editor_calls": calls, "schedule_calls": len(editor.modes) - calls,
+             "editor_calls": calls, "schedule_calls": editor.calls - calls,
              "edits_per_subtask": edits, "edit_every": cfg.edit_every,
-             "sweeps": sweeps,
+             "edit_schedule": "explicit" if cfg.edit_plan is not None else "periodic",
+             "calls_by_band": timestep_bands(times, t_range),
+             "hottest_calls": sum(t >= t_range[1] - 1e-9 for t in times),
+             "timestep_bands": BANDS,
+             "resets": sum(cfg.mode != "in2n" for _ in subtasks),
+             "sweeps": sum(e // n_views for e in edits),
+             "initial_sweeps": sum(1 for _ in _sweeps(cfg, subtasks, n_views)),
              "guard_ended": sum(s["guard"] is not None for s in subtasks),
+             "plateau_ended": ended, "plateau_share": share,
              "maintenance": sum(int(s["density"]["refinements"]) for s in subtasks),
              "agreement": agreement, "agreement_final": flat[-1] if flat else None,
              "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0},
-            rgb, targets)
+            rgb)
+
+
+def _sweeps(cfg, subtasks, views: int):
+    """The exchanges that edited every view at once (initial sweeps) of a run."""
+    warmup = 0 if cfg.mode == "in2n" else cfg.warmup
+    for i, s in enumerate(subtasks):
+        plan = None if cfg.edit_plan is None else cfg.edit_plan[i]
+        if plan is None:
+            if cfg.initial_sweep and s["steps"] > warmup:
+                yield i
+        else:
+            yield from (i for st, c, _ in plan if c >= views and st < s["steps"] - warmup)

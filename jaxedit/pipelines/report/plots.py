@@ -64,7 +64,8 @@ def difficulty_plot(schedule: dict) -> str:
     return _figure_uri(fig)
 
 
-ABLATION_METHODS = ("proedit", "nd", "nd_equal", "nd_k", "uniform", "in2n", "nd_equal_steps")
+ABLATION_METHODS = ("proedit", "nd", "nd_equal", "nd_replay", "nd_k", "uniform", "in2n", "nd_equal_steps",
+                    "unedited", "ceiling")
 _METHOD_COLOURS = {"proedit": "#d62728", "nd": "#1f77b4", "nd_equal": "#2ca02c",
                    "nd_k": "#17becf", "uniform": "#ff7f0e", "in2n": "#9467bd",
                    "nd_equal_steps": "#8c564b"}

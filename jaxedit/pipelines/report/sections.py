@@ -227,7 +227,10 @@ def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_view
     summary, differences = ablation.get("summary", []), ablation.get("differences", [])
     settings = ablation.get("settings") or {}
     config = read_json(run_dir / "config.json", required=False)
-    body = (f"<p>{SIMULATION_NOTE}</p><p>{len(ablation['runs'])} edit runs; means and "
+    note = SIMULATION_NOTE if settings.get("editor", "simulated") == "simulated" else (
+        f"The editor here is {_e(str(settings.get('editor')))}; outcomes are its instructions' "
+        "outcome targets (jaxedit.pipelines.ablation.outcomes).")
+    body = (f"<p>{note}</p><p>{len(ablation['runs'])} edit runs; means and "
             "Student-t 95% confidence intervals over seeds; differences are paired by seed "
             "(proedit minus the other method); &ldquo;all&rdquo; averages the instructions of "
             "a seed first.</p>" + _reproduce(config))
@@ -241,7 +244,8 @@ def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_view
 
     body = ""
     for k in sorted({r["editor_modes"] for r in summary}):
-        for metric, digits in (("psnr_best", 2), ("ssim_best", 3), ("mode_mixing", 3),
+        for metric, digits in (("psnr_best", 2), ("ssim_best", 3), ("outcome_agreement", 3),
+                               ("mode_mixing", 3), ("plateau_share", 3),
                                ("multiview_consistency", 2), ("total_steps", 0)):
             header, rows = ablation_table(summary, differences, editor_modes=k, metric=metric,
                                           digits=digits)
