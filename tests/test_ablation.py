@@ -201,3 +201,98 @@ def test_paired_intervals_detect_the_planted_step_size_effect_and_not_its_absenc
     off = SimulatedEditor(modes=3, mode_step_gain=0.0)
     d = paired_differences(_stays(off, original, 0.575, 16, 8), _stays(off, original, 1.0, 16, 8))
     assert d["low"] <= 0 <= d["high"] and d["mean"] == 0.0, d
+
+
+# ---- the runner end to end: equal budgets, JSONL and resume, a planted effect ---------------
+
+class PlantedEditor:
+    """Three outcomes (the view tinted red, green or blue at strength r). Planted: an edit
+    whose ratio is more than 0.5 above the strength the render shows draws its outcome from
+    its key (each view its own), a smaller step keeps the outcome the render shows with
+    certainty (outcome 0 while it shows none). Not planted: every edit is outcome 0."""
+
+    label = "planted"
+    COLOURS = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.2, 0.9]], np.float32)
+
+    def __init__(self, planted: bool):
+        self.planted = planted
+
+    def encode(self, prompt):
+        return np.array([0.0 if prompt == "" else 1.0], np.float32)
+
+    def kind(self, prompt):
+        return "texture"
+
+    @staticmethod
+    def _object(o):
+        """1 on the object, 0 on the white backdrop (which the Gaussians cannot paint)."""
+        return (o.min(-1, keepdims=True) < 0.95).astype(np.float32)
+
+    def mode_targets(self, original, ratio, prompt):
+        o = np.asarray(original, np.float32)
+        return np.stack([o + ratio * self._object(o) * (c - o) for c in self.COLOURS])
+
+    def edit(self, image, original, embedding, key, **kwargs):
+        import jax
+
+        r = float(np.asarray(embedding)[0])
+        image, o = np.asarray(image, np.float32), np.asarray(original, np.float32)
+        k = 0
+        if self.planted:
+            fits = []
+            for c in self.COLOURS:
+                d = self._object(o) * (c - o)
+                s = float(np.clip(np.sum((image - o) * d) / np.sum(d * d), 0, 1))
+                fits.append((float(np.sum((image - o - s * d) ** 2)), s))
+            k = int(np.argmin([f[0] for f in fits]))
+            shown = fits[k][1]
+            if shown < 0.15:
+                k, shown = 0, 0.0
+            if r - shown > 0.5:
+                k = int(jax.random.randint(key, (), 0, len(self.COLOURS)))
+        return o + r * self._object(o) * (self.COLOURS[k] - o)
+
+
+def _tiny(**kw):
+    from jaxedit.pipelines.ablation import AblationConfig
+
+    base = dict(scenes=("ball",), prompts=("make it look like autumn",), seeds=4,
+                methods=("proedit", "nd", "nd_equal", "nd_replay"), size=12, views=6,
+                test_views=3, recon_iters=30, refine_every=4, max_steps=16, warmup=2,
+                patience=3, edit_every=2)
+    return AblationConfig(**(base | kw))
+
+
+def test_planted_step_effect_is_found_through_the_runner_and_exactly_0_without(tmp_path):
+    # Planted: ND's one large step draws each view's outcome, ProEdit's small steps hold one:
+    # ND's scene mixes more (paired by seed). Not planted: every view is outcome 0 in every
+    # method, so the outcome agreement differences are exactly 0. The unplanted run also
+    # checks the equal budgets and the reference levels.
+    from jaxedit.pipelines.ablation import run_ablation
+
+    res = run_ablation(tmp_path / "planted", _tiny(seeds=5, methods=("proedit", "nd"),
+                                                   references=False),
+                       editor=PlantedEditor(True), report=False, log=lambda m: None)
+    d, = [r for r in res["differences"] if r["metric"] == "mode_mixing" and r["method"] == "nd"]
+    assert d["high"] < 0, d
+    res = run_ablation(tmp_path / "off", _tiny(seeds=2), editor=PlantedEditor(False),
+                       report=False, log=lambda m: None)
+    for d in res["differences"]:
+        if d["metric"] == "outcome_agreement" and d["method"] != "unedited":
+            assert d["mean"] == 0.0 and d["ci"] == 0.0, d
+    runs = [r for r in res["runs"] if not r.get("reference")]
+    for seed in range(2):  # equal budgets, exactly
+        mine = {r["method"]: r for r in runs if r["seed"] == seed}
+        for m in ("nd_equal", "nd_replay"):
+            assert mine[m]["total_steps"] == mine["proedit"]["total_steps"]
+            assert mine[m]["editor_calls"] == mine["proedit"]["editor_calls"]
+        assert mine["nd_replay"]["calls_by_band"] == mine["proedit"]["calls_by_band"]
+        assert mine["nd_replay"]["hottest_calls"] == mine["proedit"]["hottest_calls"]
+        assert mine["nd_replay"]["resets"] == 3 < mine["proedit"]["resets"]
+        assert mine["proedit"]["plateau_share"] is not None
+        assert mine["nd_equal"]["plateau_share"] is None  # a fixed budget
+    assert {r["method"] for r in res["runs"] if r.get("reference")} == {"unedited", "ceiling"}
+    # resumed: nothing runs again, the same records
+    again = run_ablation(tmp_path / "off", _tiny(seeds=2), editor=PlantedEditor(False),
+                         report=False, log=lambda m: None)
+    assert len(again["runs"]) == len(res["runs"])
