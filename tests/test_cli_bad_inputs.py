@@ -112,6 +112,7 @@ COMMANDS = {
     "bench": ["bench", "--out", "{out}"],
     "convert-lpips": ["convert-lpips", "--out", "{out}"],
     "report": ["report", "{data}", "--output", "{out}"],
+    "train-editor": ["train-editor", "--smoke", "--out", "{out}"],
 }
 
 
