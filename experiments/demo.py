@@ -11,7 +11,7 @@ stage directory is a complete, reproducible run directory of that command)::
 
     RUN_DIR/data/          make-scene person      (a nerfstudio dataset)
     RUN_DIR/reconstruct/   reconstruct            (scene.ply, test renders, metrics.json)
-    RUN_DIR/edit/          edit --editor simulated (schedule.json, subtasks/, report.html)
+    RUN_DIR/edit/          edit --editor ip2p     (schedule.json, subtasks/, report.html)
     RUN_DIR/report.html    the edit's report, with the demo's stage timings
     RUN_DIR/metrics.json   time of each stage, time per subtask, the edit's metrics
 
@@ -28,8 +28,8 @@ import sys
 import time
 from pathlib import Path
 
-HELP = ("make the person scene, reconstruct it, edit it progressively (simulated editor), "
-        "write the report")
+HELP = ("make the person scene, reconstruct it, edit it progressively (the bundled "
+        "InstructPix2Pix), write the report")
 
 STAGES = ("make-scene", "reconstruct", "edit")
 
@@ -38,6 +38,8 @@ STAGES = ("make-scene", "reconstruct", "edit")
 #: there, so 0.025 splits it into several subtasks. Under LPIPS the threshold is left to the edit
 #: command's default, a quarter of d(0, 1).
 MS_SSIM_THRESHOLD = 0.025
+#: The demo's instruction: a strong, easy-to-see material edit, known to both editors.
+DEFAULT_PROMPT = "turn him into a bronze statue"
 #: Views the demo's difficulty is taken over (a seeded subset of the training views).
 DIFFICULTY_VIEWS = 8
 
@@ -49,7 +51,10 @@ def add_arguments(p) -> None:
     p.add_argument("--scene-name", default="person",
                    help="built-in scene to use (person, or a procedural one: face, tabletop, ...)")
     p.add_argument("--prompt", default=None,
-                   help="instruction (default: the simulated editor's first instruction)")
+                   help=f"instruction (default: {DEFAULT_PROMPT!r}, one of the bundled editor's)")
+    p.add_argument("--editor", default="ip2p", choices=["ip2p", "simulated"],
+                   help="2D editor: ip2p, the small InstructPix2Pix bundled with jaxedit (JAX, "
+                        "64 px), or simulated, the offline test instrument")
     p.add_argument("--size", type=int, default=64, help="image size of the scene's views")
     p.add_argument("--views", type=int, default=32, help="training views")
     p.add_argument("--test-views", type=int, default=4, help="held-out test views")
@@ -125,15 +130,17 @@ def _run_stage(argv: list[str]) -> dict:
     return args._module.run(args) or {}
 
 
-#: The demo's instruction: a strong, easy-to-see texture edit of the face scene.
-DEFAULT_PROMPT = "turn him into a bronze statue"
+def _default_prompt(editor: str) -> str:
+    """DEFAULT_PROMPT where the editor knows it, else its first instruction."""
+    if editor == "simulated":
+        from jaxedit.edit.simulated import SimulatedEditor
 
+        vocabulary = list(SimulatedEditor().instructions)
+    else:
+        from jaxedit.editors import instructions
 
-def _default_prompt() -> str:
-    from jaxedit.edit.simulated import SimulatedEditor
-
-    vocabulary = SimulatedEditor().instructions
-    return DEFAULT_PROMPT if DEFAULT_PROMPT in vocabulary else vocabulary[0]
+        vocabulary = [i["prompt"] for i in instructions()]
+    return DEFAULT_PROMPT if DEFAULT_PROMPT in vocabulary or not vocabulary else vocabulary[0]
 
 
 def _scene_size(name: str, size: int) -> dict:
@@ -173,7 +180,7 @@ def run(args) -> dict:
             raise DataError(f"--{name.replace('_', '-')}", f"must be >= 1, got {getattr(args, name)}")
     _require_commands()
     configure(quiet=args.quiet)
-    prompt = args.prompt or _default_prompt()
+    prompt = args.prompt or _default_prompt(args.editor)
     threshold = args.threshold
     if threshold is None and lpips_weights_to_use(args.distance) is None:
         threshold = MS_SSIM_THRESHOLD
@@ -187,7 +194,7 @@ def run(args) -> dict:
             "--data": data, "--out": recon, "--iters": args.iters, **common})),
         ("edit", edit / "schedule.json", _stage_argv("edit", {
             "--data": data, "--scene": recon / "scene.ply", "--prompt": prompt,
-            "--editor": "simulated", "--mode": args.mode,
+            "--editor": args.editor, "--mode": args.mode,
             "--threshold": None if args.subtasks else threshold, "--distance": args.distance,
             "--subtasks": args.subtasks, "--max-steps": args.max_steps,
             # 8 of the 32 views for the difficulty: under LPIPS-VGG on a CPU each view costs
