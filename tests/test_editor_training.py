@@ -189,7 +189,7 @@ def test_diffusers_pipeline_gives_the_jax_editors_edit():
     latents, _ = jx.encode_latents(editor.nets.vae, jnp.asarray(view), jnp.asarray(view),
                                    jnp.asarray(vae_noise), cfg)
     a = float(editor.schedule.alphas_cumprod[t_start])
-    x_t = np.sqrt(a) * np.asarray(latents) + np.sqrt(1 - a) * sde_noise
+    x_t = (np.sqrt(a) * np.asarray(latents) + np.sqrt(1 - a) * sde_noise).astype(np.float32)
 
     pipe = diffusers.StableDiffusionInstructPix2PixPipeline.from_pretrained(
         folder, safety_checker=None, requires_safety_checker=False)
