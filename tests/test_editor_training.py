@@ -131,7 +131,7 @@ def test_train_editor_smoke_writes_a_working_editor_and_resumes(tmp_path, capfd)
     assert listed["dataset"]["size"] == 32
 
     # A second run into the same folder must say --resume; a resumed finished run is a no-op.
-    code, err = _main(["train-editor", "--smoke", "--out", out], capfd)
+    code, err = _main(["train-editor", "--smoke", "--out", out, "--quiet"], capfd)
     assert code == 2 and err.err.count("\n") == 1 and "--resume" in err.err
     before = (out / "model" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes()
     code, _ = _main(["train-editor", "--smoke", "--out", out, "--resume", "--quiet"], capfd)
@@ -140,7 +140,7 @@ def test_train_editor_smoke_writes_a_working_editor_and_resumes(tmp_path, capfd)
 
     # A corrupt checkpoint on resume: one line, exit 2, and the checkpoint is left as it was.
     (out / "checkpoints" / "unet.npz").write_bytes(b"not a checkpoint")
-    code, err = _main(["train-editor", "--smoke", "--out", out, "--resume"], capfd)
+    code, err = _main(["train-editor", "--smoke", "--out", out, "--resume", "--quiet"], capfd)
     assert code == 2 and err.err.count("\n") == 1 and "unet.npz" in err.err, err.err
     assert (out / "checkpoints" / "unet.npz").read_bytes() == b"not a checkpoint"
 
