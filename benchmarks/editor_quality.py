@@ -57,7 +57,7 @@ def contact_sheet(editor, data, views, key, path: Path) -> None:
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, _extra)
     from jaxedit.edit.difficulty import default_distance
-    from jaxedit.edit.jax_ip2p import JaxIP2PEditor
+    from jaxedit.editors.jax_ip2p import JaxIP2PEditor
     from jaxedit.editors import bundled_editor
     from jaxedit.editors.edit_data import HOLDOUT_EVERY, build_dataset, separation
     from jaxedit.editors.quality import evaluate

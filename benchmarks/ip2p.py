@@ -135,7 +135,7 @@ def _images(batch: int, hw) -> np.ndarray:
 
 def run_jax(args, folder: Path, size: int, steps: int, batches, hw) -> dict:
     """JAX editor: compile and steady-state time of edit_many per batch size, peak memory."""
-    from jaxedit.edit.jax_ip2p import JaxIP2PEditor
+    from jaxedit.editors.jax_ip2p import JaxIP2PEditor
 
     t0 = time.perf_counter()
     editor = JaxIP2PEditor.from_pretrained(folder, size=size, steps=steps)
@@ -171,7 +171,7 @@ def run_torch(args, folder: Path, size: int, steps: int, batches, hw) -> dict:
     """torch reference: B single-view edits per batch (it has no batched edit), peak memory."""
     import torch
 
-    from jaxedit.edit.ip2p import InstructPix2PixEditor
+    from jaxedit.editors.ip2p import InstructPix2PixEditor
 
     if args.smoke:
         torch.set_num_threads(1)  # toy tensors: extra threads only add contention

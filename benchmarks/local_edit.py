@@ -115,7 +115,8 @@ def prepare_scene(out: Path, scene: str, sizes: dict, seed: int, log=print):
 def run_scene(out: Path, scene: str, sizes: dict, seed: int) -> dict:
     import jax
 
-    from jaxedit.edit import ProEditConfig, SimulatedEditor, TrainSettings
+    from jaxedit.edit import ProEditConfig, TrainSettings
+    from jaxedit.editors import SimulatedEditor
     from jaxedit.edit import local as L
     from jaxedit.edit.outputs import Renderer
     from jaxedit.io import write_image

@@ -133,7 +133,7 @@ def _run_stage(argv: list[str]) -> dict:
 def _default_prompt(editor: str) -> str:
     """DEFAULT_PROMPT where the editor knows it, else its first instruction."""
     if editor == "simulated":
-        from jaxedit.edit.simulated import SimulatedEditor
+        from jaxedit.editors.simulated import SimulatedEditor
 
         vocabulary = list(SimulatedEditor().instructions)
     else:

@@ -119,7 +119,7 @@ def make_editor(args):
     from jaxedit import DataError
 
     if args.editor == "simulated":
-        from jaxedit.edit.simulated import SimulatedEditor
+        from jaxedit.editors.simulated import SimulatedEditor
 
         return SimulatedEditor()
     from jaxedit.editors import bundled_editor, native_size
@@ -129,13 +129,13 @@ def make_editor(args):
     size = args.ip2p_size or native_size(weights)
     if args.editor == "ip2p":
         from jaxedit.edit.buffer import pick_devices
-        from jaxedit.edit.jax_ip2p import load_editor
+        from jaxedit.editors.jax_ip2p import load_editor
 
         # The editor's device of pick_devices, the one run_edit gives the editor.
         return load_editor(weights, devices=[pick_devices()[1]], dtype=args.ip2p_dtype,
                            size=size, steps=args.ip2p_steps, batch=args.ip2p_batch)
     try:
-        from jaxedit.edit.ip2p import load_editor
+        from jaxedit.editors.ip2p import load_editor
     except ImportError as e:  # torch / diffusers are optional extras
         raise DataError("--editor", f"ip2p-torch is unavailable ({e})") from None
     return load_editor(weights, device=args.ip2p_device, dtype=args.ip2p_dtype, size=size,

@@ -7,14 +7,15 @@ real-model editors live behind optional extras.
 
 __version__ = "0.1.0"
 
-from . import (camera, clip_metrics, densify, edit, gaussians, io, losses, lpips, metrics, poses,
+from . import (camera, clip_metrics, densify, edit, editors, gaussians, io, losses, lpips, metrics, poses,
                raster, scenes, sh, train, viz)
 from .camera import Camera
 from .errors import DataError
 from .gaussians import Gaussians
 from .io import (Dataset, load_nerfstudio, load_ply, read_image, save_nerfstudio, save_ply,
                  write_image)
-from .edit import SimulatedEditor, decompose, decompose_root
+from .edit import decompose, decompose_root
+from .editors import SimulatedEditor
 from .lpips import load_lpips, lpips_distance
 from .pipelines.report import write_report
 from .raster import RenderOutput, render, render_reference
@@ -26,7 +27,7 @@ from .pipelines.snapshots import write_snapshot
 
 __all__ = [
     "Camera", "DataError", "Dataset", "Gaussians", "RenderOutput", "SimulatedEditor", "TrainConfig", "TrainState",
-    "__version__", "camera", "clip_metrics", "colorize_depth", "decompose", "decompose_root", "densify", "edit", "evaluate", "fit", "init_state",
+    "__version__", "camera", "clip_metrics", "colorize_depth", "decompose", "decompose_root", "densify", "edit", "editors", "evaluate", "fit", "init_state",
     "gaussians", "image_grid", "io", "lpips", "lpips_distance", "load_lpips", "load_nerfstudio", "load_ply", "losses", "make_scene",
     "metrics", "poses", "raster", "read_image", "render", "render_reference", "resume", "save_nerfstudio",
     "save_ply", "scenes", "sh", "train", "train_step", "turntable", "viz", "write_image", "write_report",

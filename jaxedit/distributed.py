@@ -191,14 +191,14 @@ class SplitEditor:
 
     ``edit_many(images [B, H, W, 3], originals [B, H, W, 3], embedding, keys [B])`` edits
     this process's :func:`process_slice` with the wrapped editor (in its own batches,
-    :func:`jaxedit.edit.editors.edit_views`) and returns all B views, gathered: float32
+    :func:`jaxedit.editors.base.edit_views`) and returns all B views, gathered: float32
     NumPy [B, H, W, 3], the same bits on every process. ``edit`` (one view) runs the
     wrapped editor on every process. Everything else is the wrapped editor's.
     """
 
     def __init__(self, editor):
         self.inner = editor
-        #: Views :func:`jaxedit.edit.editors.edit_views` hands over at once: every process's batch.
+        #: Views :func:`jaxedit.editors.base.edit_views` hands over at once: every process's batch.
         self.batch = max(int(getattr(editor, "batch", 1)), 1) * process_count()
 
     def __getattr__(self, name: str) -> Any:

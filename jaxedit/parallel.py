@@ -2,7 +2,7 @@
 
 Two batched computations of a ProEdit run split over views:
 
-* the edit of a batch of views (:meth:`jaxedit.edit.jax_ip2p.JaxIP2PEditor.edit_many`:
+* the edit of a batch of views (:meth:`jaxedit.editors.jax_ip2p.JaxIP2PEditor.edit_many`:
   the editor's own mesh), and
 * the training loss over a batch of views, :func:`views_step`: the mean photometric loss
   of V views rendered from one replicated scene. With the images and cameras placed by

@@ -31,7 +31,7 @@ def main(argv=None) -> int:
     p.add_argument("--card", type=Path, default=None, help="model card to ship as README.md")
     args = p.parse_args(argv)
 
-    from jaxedit.edit.jax_ip2p import JaxIP2PEditor
+    from jaxedit.editors.jax_ip2p import JaxIP2PEditor
     from jaxedit.editors import BUNDLED
 
     JaxIP2PEditor.from_pretrained(args.folder, size=None, steps=1)  # loads, or says why not

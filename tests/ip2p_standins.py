@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxedit.edit.jax_ip2p import DiffusionSchedule, JaxIP2PEditor
+from jaxedit.editors.jax_ip2p import DiffusionSchedule, JaxIP2PEditor
 
 D = 16  # embedding width
 

@@ -171,8 +171,8 @@ def _stays(editor, original, ratio, seeds, views):
     committed to mode 0 at r = 0.45 (the first sweep of the next subtask, t = t_max)."""
     import jax
 
-    from jaxedit.edit.editors import interpolate_embedding
-    from jaxedit.edit.keys import view_key
+    from jaxedit.editors.base import interpolate_embedding
+    from jaxedit.editors.keys import view_key
 
     prompt = "give him a marble texture"
     render = editor.target(original, 0.45, prompt, 0)
@@ -187,7 +187,7 @@ def test_paired_intervals_detect_the_planted_step_size_effect_and_not_its_absenc
     # vs 0.59 here), so a committed scene keeps its mode in more views when the next subtask is
     # a small step (0.45 -> 0.575) than when it jumps to r = 1. Same keys for both (paired by seed and view). Gain 0: the draw
     # does not depend on the step, the same keys draw the same modes, the difference is 0.
-    from jaxedit.edit.simulated import SimulatedEditor
+    from jaxedit.editors.simulated import SimulatedEditor
 
     yy, xx = np.mgrid[0:24, 0:24] + 0.5
     inside = ((yy - 12) / 9) ** 2 + ((xx - 12) / 7) ** 2 < 1

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from experiments import cli
-from jaxedit.edit.jax_ip2p import JaxIP2PEditor
+from jaxedit.editors.jax_ip2p import JaxIP2PEditor
 from jaxedit.editors import bundled_editor, edit_data, instructions, native_size, tiny_ip2p
 from jaxedit.editors.export import module_tensors, write_pipeline
 from jaxedit.models import load_ip2p
@@ -171,8 +171,8 @@ def test_diffusers_pipeline_gives_the_jax_editors_edit():
     the JAX editor's noised latent over the JAX editor's timesteps, gives its edit."""
     torch = pytest.importorskip("torch")
     diffusers = pytest.importorskip("diffusers")
-    from jaxedit.edit import jax_ip2p as jx
-    from jaxedit.edit.diffusion import timestep_schedule
+    from jaxedit.editors import jax_ip2p as jx
+    from jaxedit.editors.diffusion import timestep_schedule
 
     folder = bundled_editor()
     steps, t_start = 4, 800

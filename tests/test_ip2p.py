@@ -22,14 +22,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxedit.edit.editors import Editor, interpolate_embedding
+from jaxedit.editors.base import Editor, interpolate_embedding
 from jaxedit.errors import DataError
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
-from jaxedit.edit import ip2p  # noqa: E402
+from jaxedit.editors import ip2p  # noqa: E402
 
 PROMPT = "turn the bear into a panda"
 
@@ -341,9 +341,9 @@ def test_rejects_plain_stable_diffusion_unet(weights, tmp_path):
 
 def test_import_without_torch_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", None)
-    monkeypatch.delitem(sys.modules, "jaxedit.edit.ip2p")
+    monkeypatch.delitem(sys.modules, "jaxedit.editors.ip2p")
     with pytest.raises(ImportError, match=r"jaxedit\[ip2p\]"):
-        importlib.import_module("jaxedit.edit.ip2p")
+        importlib.import_module("jaxedit.editors.ip2p")
 
 
 def test_core_never_imports_torch():

@@ -23,8 +23,8 @@ from test_ip2p import PROMPT, weights  # noqa: E402,F401 - the one tiny pipeline
 from test_models import assert_close, perturb  # noqa: E402 - the issue's "1e-4 relative"
 from without_torch import run_without_torch  # noqa: E402
 
-from jaxedit.edit import ip2p  # noqa: E402
-from jaxedit.edit import jax_ip2p as jx  # noqa: E402
+from jaxedit.editors import ip2p  # noqa: E402
+from jaxedit.editors import jax_ip2p as jx  # noqa: E402
 
 STEPS = 2
 
@@ -84,7 +84,7 @@ def test_batched_edits_are_the_single_edits(editors):
     own edit: 3 views at batch 2 (a full and a partial batch) against 3 edit calls."""
     import jax
 
-    from jaxedit.edit.editors import edit_views
+    from jaxedit.editors.base import edit_views
 
     _, ours = editors
     batched = jx.JaxIP2PEditor(ours.nets.unet, ours.nets.vae, ours.text_encoder, ours.tokenize,

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from ip2p_standins import sd_schedule, standin_editor
 
-from jaxedit.edit import Editor
-from jaxedit.edit import diffusion as dm
-from jaxedit.edit import jax_ip2p as jx
+from jaxedit.editors import Editor
+from jaxedit.editors import diffusion as dm
+from jaxedit.editors import jax_ip2p as jx
 from jaxedit.errors import DataError
 
 PROMPT = "turn the bear into a panda"

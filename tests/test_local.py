@@ -52,13 +52,14 @@ def test_per_gaussian_weights_match_the_dense_oracle():
 # Relevance, regions, masks (item 1 and 3)
 # ---------------------------------------------------------------------------
 from jaxedit.edit import local as L  # noqa: E402
+from jaxedit.editors.base import relevance_mask  # noqa: E402
 from jaxedit.errors import DataError  # noqa: E402
 
 
 def test_relevance_mask_keeps_the_changed_blob_and_nothing_for_no_change():
     d = np.zeros((2, 20, 24), np.float32)
     d[0, 5:10, 6:12] = 3.0
-    m = np.asarray(L.relevance_mask(d))
+    m = np.asarray(relevance_mask(d))
     assert m.shape == (2, 20, 24) and set(np.unique(m)) <= {0.0, 1.0}
     assert m[0, 7, 9] == 1 and m[0, 0, 0] == 0 and m[0, 18, 20] == 0
     assert not m[1].any()
@@ -128,8 +129,8 @@ def test_masks_by_frame_name_and_their_bad_inputs(tmp_path):
 
 
 def test_simulated_editor_relevance_follows_its_target():
-    from jaxedit.edit import SimulatedEditor
-    from jaxedit.edit.editors import relevance
+    from jaxedit.editors import SimulatedEditor
+    from jaxedit.editors.base import relevance
 
     ed = SimulatedEditor()
     rng = np.random.default_rng(0)
@@ -145,7 +146,7 @@ def test_simulated_editor_relevance_follows_its_target():
 def test_jax_ip2p_relevance_one_batched_unet_call():
     from ip2p_standins import standin_editor
 
-    from jaxedit.edit.editors import relevance
+    from jaxedit.editors.base import relevance
 
     ed = standin_editor(size=32, steps=2)
     rng = np.random.default_rng(0)
@@ -265,8 +266,8 @@ LOCAL_PROMPT = "paint the orange parts blue"
 
 
 def test_local_instruction_changes_the_orange_part_only():
-    from jaxedit.edit.simulated import INSTRUCTIONS, LOCAL_VOCABULARY, VOCABULARY, SimulatedEditor
-    from jaxedit.edit.simulated_targets import orange_weight
+    from jaxedit.editors.simulated import INSTRUCTIONS, LOCAL_VOCABULARY, VOCABULARY, SimulatedEditor
+    from jaxedit.editors.simulated_targets import orange_weight
 
     assert INSTRUCTIONS[:len(VOCABULARY)] == VOCABULARY and LOCAL_VOCABULARY[0].kind == "local"
     ed = SimulatedEditor()
@@ -324,7 +325,8 @@ class Crash(RuntimeError):
 
 
 def _local_edit(ball, run_dir, **kw):
-    from jaxedit.edit import ProEditConfig, SimulatedEditor, TrainSettings
+    from jaxedit.edit import ProEditConfig, TrainSettings
+    from jaxedit.editors import SimulatedEditor
     from jaxedit.pipelines import run_edit
 
     g, data = ball

@@ -20,7 +20,7 @@ from jaxedit.edit import EditData, ProEditConfig, TrainSettings, anneal_timestep
 from jaxedit.edit.driver import LossTracker, track_loss, train_view
 from jaxedit.edit.outputs import Renderer, reprojection_consistency
 from jaxedit.pipelines import run_edit, select_snapshot
-from jaxedit.edit.simulated import SimulatedEditor
+from jaxedit.editors.simulated import SimulatedEditor
 
 PROMPT = "turn him into a bronze statue"
 

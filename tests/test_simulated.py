@@ -9,10 +9,10 @@ import skimage.data
 import skimage.transform
 
 from jaxedit.edit.difficulty import DifficultyOracle, l1_distance, ms_ssim_distance
-from jaxedit.edit.editors import Editor, interpolate_embedding
+from jaxedit.editors.base import Editor, interpolate_embedding
 from jaxedit.edit.schedule import decompose, decompose_root
-from jaxedit.edit.keys import view_key
-from jaxedit.edit.simulated import VOCABULARY, SimulatedEditor
+from jaxedit.editors.keys import view_key
+from jaxedit.editors.simulated import VOCABULARY, SimulatedEditor
 from jaxedit.errors import DataError
 
 S = 32
@@ -322,7 +322,7 @@ def _pair_distance(images):
 
 def test_mode_draw_follows_the_documented_equation(modal, img):
     # A NumPy oracle of section 4 for a cross-fade kind (material): T^k(s) = o + s (F_k - o).
-    from jaxedit.edit.simulated import mode_probabilities
+    from jaxedit.editors.simulated import mode_probabilities
 
     r, t = 0.7, 0.6
     e = emb(modal, VOCABULARY[1].prompt, r)

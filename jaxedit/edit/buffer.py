@@ -31,7 +31,7 @@ The source is generic: it never renders or edits itself; the driver passes an
 calls the editor with the job's seed and annealed timestep.
 
 Edited views stay where the editor made them when it returns a JAX array (the JAX
-editor, :mod:`jaxedit.edit.jax_ip2p`): the asynchronous source moves them to the
+editor, :mod:`jaxedit.editors.jax_ip2p`): the asynchronous source moves them to the
 trainer's device with ``jax.device_put`` (device to device, no host copy), so editor
 and trainer are two jitted programs on two device groups exchanging device arrays.
 NumPy results (the torch reference, the simulated editor) stay NumPy.

@@ -29,8 +29,8 @@ import numpy as np
 from skimage.metrics import structural_similarity
 
 from ..errors import DataError
-from .editors import edit_views, interpolate_embedding
-from .keys import quantize_ratio, view_key
+from ..editors.base import edit_views, interpolate_embedding
+from ..editors.keys import quantize_ratio, view_key
 
 Distance = Callable[[np.ndarray, np.ndarray], float]
 
@@ -147,7 +147,7 @@ class DifficultyOracle:
     """d(r_a, r_b) of one instruction over a subset of original views, memoised.
 
     Args:
-      editor: any :class:`jaxedit.edit.Editor`.
+      editor: any :class:`jaxedit.editors.Editor`.
       originals: float [N, H, W, 3], renders (or photos) of the original scene, v_k(s).
       prompt: the instruction p; e(r) = interpolate_embedding(E(p), E(""), r).
       views: indices of the views V to take the difficulty over; default
@@ -214,7 +214,7 @@ class DifficultyOracle:
 
     def _edit(self, q: int, views) -> None:
         """Edit the ``views`` not yet edited at ratio ``q`` / 1e6 (in the editor's batches,
-        :func:`jaxedit.edit.editors.edit_views`) into the memo."""
+        :func:`jaxedit.editors.base.edit_views`) into the memo."""
         missing = [int(k) for k in dict.fromkeys(views) if (q, int(k)) not in self._images]
         if not missing:
             return

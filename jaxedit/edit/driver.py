@@ -32,8 +32,8 @@ import numpy as np
 
 from ..errors import DataError
 from .buffer import EditJob, Utilisation, make_source, view_order
-from .editors import edit_views, interpolate_embedding
-from .keys import edit_key
+from ..editors.base import edit_views, interpolate_embedding
+from ..editors.keys import edit_key
 from .outputs import Renderer
 from .plan import ProEditConfig, SubtaskSpec, anneal_horizon, anneal_timestep, subtask_guard
 from .trainer import SubtaskTrainer
@@ -214,7 +214,7 @@ class EditContext:
     """Everything a run reads but never changes.
 
     Attributes:
-      editor: an :class:`jaxedit.edit.Editor`.
+      editor: an :class:`jaxedit.editors.Editor`.
       prompt: the instruction p.
       data: the views (:class:`EditData`).
       config: :class:`ProEditConfig`; a ``max_steps`` of None becomes the scene's
@@ -258,7 +258,7 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
     the timestep follows HiFA's annealing over ``horizon`` steps after the warm-up
     (:func:`anneal_horizon`; IN2N mode: the fixed range, from which the editor draws).
     ``edit_many`` takes jobs of one step (one timestep) and edits them in the editor's
-    batches (:func:`jaxedit.edit.editors.edit_views`).
+    batches (:func:`jaxedit.editors.base.edit_views`).
     """
     cfg = ctx.config
     ratio = 0.0 if spec.kind == "refine" else spec.ratio

@@ -1,7 +1,7 @@
 """Local edits (issue 35): what the instruction touches, per pixel and per Gaussian.
 
-* :func:`relevance_mask`: a per-view difference map (the editor's, e.g. |target - original|
-  or |eps(e) - eps(E(""))|) normalised, smoothed and thresholded into a mask.
+* per-view relevance masks come from the editor (:func:`jaxedit.editors.base.relevance`,
+  :func:`jaxedit.editors.base.relevance_mask`); this module lifts and composes them.
 * :func:`lift_relevance`: each Gaussian's blending-weight mean of a mask over views (the
   splatter pass :func:`jaxedit.raster.accumulate_weights`).
 * :func:`parse_region` / :func:`in_regions`: ``box:xmin,ymin,zmin,xmax,ymax,zmax`` and
@@ -33,42 +33,6 @@ LOCAL_MODES = ("auto", "off")
 GAUSSIAN_THRESHOLD = 0.5
 #: Extensions a mask file may have.
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
-
-
-# ---------------------------------------------------------------------------
-# Per-pixel relevance
-# ---------------------------------------------------------------------------
-def _blur(x, sigma: float):
-    """Separable Gaussian blur of float [B, H, W] (edges clamped)."""
-    if sigma <= 0:
-        return x
-    r = max(1, int(math.ceil(3 * sigma)))
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-    k = jnp.asarray(k / k.sum(), x.dtype)
-    pad = jnp.pad(x, ((0, 0), (r, r), (0, 0)), mode="edge")
-    x = sum(k[i] * pad[:, i:i + x.shape[1]] for i in range(2 * r + 1))
-    pad = jnp.pad(x, ((0, 0), (0, 0), (r, r)), mode="edge")
-    return sum(k[i] * pad[:, :, i:i + x.shape[2]] for i in range(2 * r + 1))
-
-
-def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
-    """A difference map turned into a relevance mask.
-
-    Args:
-      difference: float [H, W] or [B, H, W], >= 0 (how much the instruction changes a pixel).
-      sigma: blur in pixels; threshold: on the map normalised to [0, 1] per view.
-    Returns:
-      float32 of the input's shape, 1 where relevant, else 0 (all 0 for a view with no
-      difference).
-    """
-    d = jnp.asarray(difference, jnp.float32)
-    single = d.ndim == 2
-    d = d[None] if single else d
-    peak = jnp.max(d, axis=(1, 2), keepdims=True)
-    d = _blur(d / jnp.maximum(peak, 1e-12), sigma)
-    peak = jnp.max(d, axis=(1, 2), keepdims=True)
-    m = ((d >= threshold * peak) & (peak > 1e-6)).astype(jnp.float32)
-    return m[0] if single else m
 
 
 # ---------------------------------------------------------------------------
@@ -265,7 +229,7 @@ def prepare(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, embe
     """
     import time
 
-    from .editors import relevance
+    from ..editors.base import relevance
 
     t0 = time.perf_counter()
     pixel = None if spec.masks is None else np.asarray(spec.masks, np.float32)

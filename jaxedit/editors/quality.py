@@ -1,6 +1,6 @@
 """How good a trained editor is, on the dataset's held-out cameras (never trained on).
 
-Every figure is measured by editing with an :class:`~jaxedit.edit.editors.Editor` that has
+Every figure is measured by editing with an :class:`~jaxedit.editors.base.Editor` that has
 ``edit_many`` (the JAX InstructPix2Pix) and comparing with the dataset's own outcomes:
 
 - ``full_edit``: PSNR of the edit of the input view (T = ``t_full`` of the schedule, nearly
@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..edit.editors import interpolate_embedding
+from .base import interpolate_embedding
 from .edit_data import EditDataset, outcome_targets
 
 #: Views per editor call (a fixed batch: one compiled program).

@@ -8,7 +8,7 @@ InstructPix2Pix) on built-in scenes: make each scene's dataset and reconstruct i
 edit the reconstruction with every method, for every instruction, for every seed, and for every
 editor variant. An editor variant (``variants``) is ``K`` or ``K:GAIN``: K divergent modes per
 instruction and the mode draw's ``mode_step_gain`` (default 1; see
-:mod:`jaxedit.edit.simulated`, section 4). The mechanism test is variant ``3``; ``1`` (one
+:mod:`jaxedit.editors.simulated`, section 4). The mechanism test is variant ``3``; ``1`` (one
 outcome: nothing to keep consistent) and ``3:0`` (holding a mode does not depend on the step
 size) are the negative controls, run with ``control_methods``.
 
@@ -69,8 +69,8 @@ import numpy as np
 from ...edit import EditData, TrainSettings
 from ...edit.outputs import Renderer
 from ...edit.plan import anneal_horizon
-from ...edit.simulated import INSTRUCTIONS, SimulatedEditor
-from ...edit.simulated_targets import MAX_MODES
+from ...editors.simulated import INSTRUCTIONS, SimulatedEditor
+from ...editors.simulated_targets import MAX_MODES
 from ...errors import DataError
 from ...io import write_image
 from ...io.files import atomic_write_text
@@ -281,7 +281,7 @@ def _editors(config: AblationConfig, editor=None) -> tuple[dict, str]:
         return {name: editor}, name
     if config.editor == "ip2p":
         from ...edit.buffer import pick_devices
-        from ...edit.jax_ip2p import load_editor
+        from ...editors.jax_ip2p import load_editor
         from ...editors import bundled_editor, native_size
 
         weights = bundled_editor()

@@ -202,7 +202,7 @@ SIMULATION_NOTE = (
     "outcome and views differ only by noise that shrinks as the render approaches the target; "
     "with <b>editor modes = K &gt; 1</b> each edit call draws one of K discrete, individually "
     "3D-consistent outcomes, with probabilities that follow how close the current render is "
-    "to each (jaxedit.edit.simulated, section 4). The ablation therefore tests how the editing "
+    "to each (jaxedit.editors.simulated, section 4). The ablation therefore tests how the editing "
     "machinery (schedule, iterative dataset update, adaptive 3DGS) responds to divergent modes "
     "of a known size. It cannot show how large a real diffusion model's feasible output space "
     "is, how its modes are distributed, or how the difficulty measure tracks them; scores are "

@@ -25,7 +25,7 @@ last hidden state of the CLIP text encoder, as Stable Diffusion conditions on it
 keeps the framework side (``interpolate_embedding``, memo keys, checkpoints) free of torch;
 ``edit`` accepts NumPy, JAX or torch embeddings and moves them to the editor's device
 (77 x 768 floats, negligible next to the diffusion). ``r E(p) + (1 - r) E("")`` is formed
-by the framework with :func:`jaxedit.edit.interpolate_embedding`.
+by the framework with :func:`jaxedit.editors.interpolate_embedding`.
 
 Devices and precision: the editor runs on its own torch device (``cuda:0`` when available,
 else ``cpu``) while JAX may train on another; fp16 on accelerators, fp32 on the CPU. Images
@@ -53,7 +53,7 @@ try:
     from transformers import CLIPTextModel, CLIPTokenizer
 except ImportError as e:  # pragma: no cover - exercised by a test that hides torch
     raise ImportError(
-        f"jaxedit.edit.ip2p needs the optional extra 'ip2p' (torch, diffusers, transformers, "
+        f"jaxedit.editors.ip2p needs the optional extra 'ip2p' (torch, diffusers, transformers, "
         f"safetensors); {e.name or 'a dependency'} is missing. Install it with "
         f"`pip install torch==2.13.0` (CPU) or a CUDA build of torch, then "
         f"`pip install 'jaxedit[ip2p]'`.") from e
@@ -118,7 +118,7 @@ def _default_device() -> str:
 # ----------------------------------------------------------------------------- the editor
 
 class InstructPix2PixEditor:
-    """InstructPix2Pix implementing :class:`jaxedit.edit.Editor` (see the module docstring)."""
+    """InstructPix2Pix implementing :class:`jaxedit.editors.Editor` (see the module docstring)."""
 
     name = "ip2p"
 

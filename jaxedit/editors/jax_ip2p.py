@@ -1,17 +1,17 @@
-"""InstructPix2Pix in JAX: the edit of :mod:`jaxedit.edit.ip2p`, as one jit-compiled pure function.
+"""InstructPix2Pix in JAX: the edit of :mod:`jaxedit.editors.ip2p`, as one jit-compiled pure function.
 
-The edit is the torch reference's, step for step (see :mod:`jaxedit.edit.ip2p`): resize to
+The edit is the torch reference's, step for step (see :mod:`jaxedit.editors.ip2p`): resize to
 the model size, VAE-encode the render (posterior sample x ``scaling_factor``) and the
 original (posterior mode, unscaled), draw T in ``timestep_range`` from the key, noise the
 latent to T (SDEdit), deterministic DDIM (eta = 0) over :func:`timestep_schedule`'s steps
 with three-branch dual classifier-free guidance, decode, resize back, clamp. The shared
-arithmetic lives in :mod:`jaxedit.edit.diffusion`.
+arithmetic lives in :mod:`jaxedit.editors.diffusion`.
 
 The core, :func:`edit_with_noise`, is pure in (networks, images, originals, embeddings,
 T, noises) and batched: B views in one call, each with its own T. Its number of DDIM
 steps is static while T is traced: slot k of the schedule holds round(T (steps - k) /
 steps) and slots that repeat or reach 0 (T < steps) leave the latent as it is
-(:func:`jaxedit.edit.diffusion.timestep_table`), so one compiled program serves every
+(:func:`jaxedit.editors.diffusion.timestep_table`), so one compiled program serves every
 T. :func:`edit_batch` only draws T and the noises from per-view keys.
 
 Randomness: view key -> (k_t, k_n) by ``jax.random.split`` exactly as the torch editor
@@ -276,7 +276,7 @@ def _as_batch(x, field: str, ndim: int) -> jax.Array:
 
 
 class JaxIP2PEditor:
-    """InstructPix2Pix in JAX implementing :class:`jaxedit.edit.Editor` (module docstring).
+    """InstructPix2Pix in JAX implementing :class:`jaxedit.editors.Editor` (module docstring).
 
     Args:
       unet, vae, text_encoder: equinox modules (:mod:`jaxedit.models`); the UNet's parameter
@@ -289,7 +289,7 @@ class JaxIP2PEditor:
         ``latent_factor``: 8 for Stable Diffusion; None keeps the view's size).
       steps: DDIM steps from T to 0.
       batch: most views per :meth:`edit_many` call when several are due at once (a
-        subtask's initial sweep, the difficulty's views; :func:`jaxedit.edit.edit_views`).
+        subtask's initial sweep, the difficulty's views; :func:`jaxedit.editors.edit_views`).
         Default: :func:`default_batch` of the devices.
     """
 
@@ -337,8 +337,8 @@ class JaxIP2PEditor:
                         batch: int | None = None) -> "JaxIP2PEditor":
         """Load a local diffusers folder (or a Hub id in the local cache) into JAX, no torch.
 
-        ``path`` as :func:`jaxedit.edit.diffusion.resolve_weights`; the scheduler config is
-        read as Stable Diffusion 1.x's DDIM (:func:`jaxedit.edit.diffusion.ddim_settings`).
+        ``path`` as :func:`jaxedit.editors.diffusion.resolve_weights`; the scheduler config is
+        read as Stable Diffusion 1.x's DDIM (:func:`jaxedit.editors.diffusion.ddim_settings`).
         """
         from ..models import load_ip2p
         from .diffusion import ddim_settings, resolve_weights

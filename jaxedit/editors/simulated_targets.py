@@ -1,6 +1,6 @@
 """Target families of the simulated editor: the noise-free ground truth of every instruction.
 
-:mod:`jaxedit.edit.simulated` describes the model; this module is its part that says what each
+:mod:`jaxedit.editors.simulated` describes the model; this module is its part that says what each
 edit family *should* produce. ``_target_family(original, kind, points, mode)`` returns the map
 s -> T^k(s) from a strength s in [0, 1] (s = 0: the original, s = 1: the full target) to the
 target image of one instruction kind and one divergent mode k (0 .. MAX_MODES - 1; mode 0 is the
@@ -24,7 +24,7 @@ local      the warm, coloured pixels only (:func:`orange_weight`) get their chan
 Every target is a function of the content (colour) of each pixel through smooth functions, of
 the object's silhouette (:func:`foreground`, :func:`head_mask`) or of the surface point, never
 of the pixel position in the frame, so it is consistent across views. The image helpers they
-share with the editor's perturbation (``_blur``, ``_sample``) live here too. Everything is pure
+share with the editor's perturbation (``blur``, ``_sample``) live here too. Everything is pure
 JAX, traced inside the editor's compiled edit.
 """
 
@@ -58,7 +58,7 @@ def _gaussian_kernel(sigma: float) -> jnp.ndarray:
     return jnp.asarray(k / k.sum())
 
 
-def _blur(x, sigma: float):
+def blur(x, sigma: float):
     """Separable Gaussian blur of float [H, W] or [H, W, C] with edge padding."""
     if sigma <= 0:
         return x
@@ -99,7 +99,7 @@ def foreground(original, *, low: float = 0.03, high: float = 0.10):
     border = jnp.concatenate([original[0], original[-1], original[:, 0], original[:, -1]])
     bg = jnp.median(border, axis=0)
     dist = jnp.max(jnp.abs(original - bg), axis=-1)
-    return _smoothstep(low, high, _blur(dist, 0.7))
+    return _smoothstep(low, high, blur(dist, 0.7))
 
 
 def _centroid_radius(mask):
@@ -124,7 +124,7 @@ _AUTUMN = np.array([[0.55, 0.55, 0.00],
 _BRONZE = np.array([[0.16, 0.09, 0.04], [0.70, 0.43, 0.18], [1.00, 0.88, 0.60]], np.float32)
 _MARBLE_BASE = np.array([0.93, 0.92, 0.89], np.float32)
 
-# The divergent modes (jaxedit.edit.simulated, section 4). Mode 0 of every kind is the single
+# The divergent modes (jaxedit.editors.simulated, section 4). Mode 0 of every kind is the single
 # target of the editor with ``modes=1``; the others are equally plausible, individually
 # 3D-consistent alternatives (each is a function of the content, the silhouette or the surface
 # point, like mode 0).
@@ -162,7 +162,7 @@ def _bronze(original, mask, ramp_colours=_BRONZE):
     # drop most of its fine detail (a blur of a function of the content, so view-consistent up
     # to the blur's footprint)
     lum = _luma(original)
-    smooth = _blur(lum, max(h, w) / 40.0)
+    smooth = blur(lum, max(h, w) / 40.0)
     lum = _smoothstep(0.0, 1.0, 0.8 * smooth + 0.2 * lum)[..., None]
     c = ramp_colours
     lo = c[0] + (c[1] - c[0]) * jnp.clip(2 * lum, 0, 1)
@@ -185,7 +185,7 @@ def _cartoon(original, levels: int = 4, width: float = 0.2, gains=None):
     # a soft staircase keeps the target a continuous function of the colour
     step = _smoothstep(0.5 - width, 0.5 + width, y - base)
     poster = jnp.clip((base + step) / (levels - 1), 0.0, 1.0)
-    lum = _blur(_luma(original), 0.8)
+    lum = blur(_luma(original), 0.8)
     gy = jnp.pad(lum[2:] - lum[:-2], ((1, 1), (0, 0)), mode="edge") * 0.5
     gx = jnp.pad(lum[:, 2:] - lum[:, :-2], ((0, 0), (1, 1)), mode="edge") * 0.5
     edge = _smoothstep(0.04, 0.12, jnp.sqrt(gx * gx + gy * gy))

@@ -17,7 +17,7 @@ call; :func:`edit_views` uses it wherever several views are due at once.
 
 Local edits (issue 35) ask an editor where an instruction acts: ``relevance(image,
 original, embedding, key, ...)`` -> float32 [H, W] mask in [0, 1]; :func:`relevance`
-calls it (for the JAX InstructPix2Pix, :func:`jaxedit.edit.ip2p_relevance.relevance`).
+calls it (for the JAX InstructPix2Pix, :func:`jaxedit.editors.ip2p_relevance.relevance`).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
+from .simulated_targets import blur
 
 
 @runtime_checkable
@@ -53,7 +54,7 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
     """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant).
 
     ``editor.relevance`` where the editor has it; the JAX InstructPix2Pix's is
-    :func:`jaxedit.edit.ip2p_relevance.relevance`. An editor without one is a DataError
+    :func:`jaxedit.editors.ip2p_relevance.relevance`. An editor without one is a DataError
     (``--local auto`` needs it; ``--region`` / ``--masks`` do not).
     """
     fn = getattr(editor, "relevance", None)
@@ -67,6 +68,28 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
                                    "gives no relevance map: use --local off with --region or "
                                    "--masks")
     return fn(image, original, embedding, key, timestep_range=timestep_range, guidance=guidance)
+
+
+def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
+    """A difference map (how much an instruction changes each pixel) as a relevance mask.
+
+    Args:
+      difference: float [H, W] or [B, H, W], >= 0 (e.g. |target - original| or
+        |eps(e) - eps(E(""))|).
+      sigma: blur in pixels; threshold: on the map normalised to [0, 1] per view.
+    Returns:
+      float32 of the input's shape, 1 where relevant, else 0 (all 0 for a view with no
+      difference).
+    """
+    d = jnp.asarray(difference, jnp.float32)
+    single = d.ndim == 2
+    d = d[None] if single else d
+    peak = jnp.max(d, axis=(1, 2), keepdims=True)
+    # blur works on [H, W, C]: the views ride along as channels.
+    d = jnp.moveaxis(blur(jnp.moveaxis(d / jnp.maximum(peak, 1e-12), 0, -1), sigma), -1, 0)
+    peak = jnp.max(d, axis=(1, 2), keepdims=True)
+    m = ((d >= threshold * peak) & (peak > 1e-6)).astype(jnp.float32)
+    return m[0] if single else m
 
 
 def interpolate_embedding(e_prompt, e_null, ratio: float):

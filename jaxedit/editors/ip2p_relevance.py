@@ -3,9 +3,9 @@
 Per view: the difference between the UNet's noise prediction with the instruction's
 embedding e and with the null embedding E(""), the image conditioning kept in both,
 averaged over ``draws`` noise draws and timesteps, then normalised, smoothed and
-thresholded (:func:`jaxedit.edit.local.relevance_mask`). One batched UNet call on
-2 x B x draws samples. Kept apart from :mod:`jaxedit.edit.jax_ip2p` (it only reads its
-pure pieces); :func:`jaxedit.edit.editors.relevance` dispatches to it.
+thresholded (:func:`jaxedit.editors.base.relevance_mask`). One batched UNet call on
+2 x B x draws samples. Kept apart from :mod:`jaxedit.editors.jax_ip2p` (it only reads its
+pure pieces); :func:`jaxedit.editors.base.relevance` dispatches to it.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import DataError
 from . import jax_ip2p as jx
+from .base import relevance_mask
 from .diffusion import timestep_bounds
 
 #: Noise draws (each with its own timestep) averaged per view.
@@ -28,7 +29,7 @@ def noise_difference(nets, images, originals, embedding, null, keys, t_bounds, s
     """Mean |eps(x_t, c, e) - eps(x_t, c, E(""))| per latent pixel, float32 [B, h, w].
 
     Args:
-      nets: :class:`jaxedit.edit.jax_ip2p.Networks`.
+      nets: :class:`jaxedit.editors.jax_ip2p.Networks`.
       images, originals: float [B, H, W, 3] in [0, 1] (render, original photo).
       embedding: float [77, D], the instruction's; null: [77, D], E("").
       keys: B typed keys; each draws ``draws`` timesteps in ``t_bounds`` (int32 [2])
@@ -70,10 +71,8 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
 
     ``image``, ``original``: [H, W, 3] in [0, 1]; ``embedding``: [77, D] (e.g. e(r));
     ``key``: one typed key (timesteps and noises). The latent map is resized to the view
-    and put through :func:`jaxedit.edit.local.relevance_mask`.
+    and put through :func:`jaxedit.editors.base.relevance_mask`.
     """
-    from .local import relevance_mask
-
     image = jnp.asarray(image, jnp.float32)
     original = jnp.asarray(original, jnp.float32)
     if image.ndim != 3 or image.shape != original.shape:

@@ -1,6 +1,6 @@
 """A simulated instruction editor: an offline, deterministic stand-in for a 2D diffusion editor.
 
-:class:`SimulatedEditor` implements the :class:`jaxedit.edit.Editor` protocol without any
+:class:`SimulatedEditor` implements the :class:`jaxedit.editors.Editor` protocol without any
 neural network. It is a *test and benchmark instrument*, built so that ProEdit's claims can be
 checked against a known ground truth on a CPU; it is not InstructPix2Pix and does not pretend to
 produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
@@ -127,10 +127,10 @@ produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
    ``modes=1`` skips the draw: bit for bit the editor before modes existed.
 
 The target families of sections 1 and 4 (the noise-free ground truth, T^k(s)) are in
-:mod:`jaxedit.edit.simulated_targets`; this module holds the vocabulary and the editor.
+:mod:`jaxedit.editors.simulated_targets`; this module holds the vocabulary and the editor.
 
 Everything random comes from the ``key`` argument; equal inputs and key give equal bits. Use
-:func:`jaxedit.edit.keys.view_key` to derive per-view keys from (run key, view index, ratio,
+:func:`jaxedit.editors.keys.view_key` to derive per-view keys from (run key, view index, ratio,
 iteration).
 """
 
@@ -146,7 +146,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from .simulated_targets import (BULGE_MAX, MAX_MODES, _MODE_ASPECTS, _blur, _bulge, _sample,
+from .base import relevance_mask
+from .simulated_targets import (BULGE_MAX, MAX_MODES, _MODE_ASPECTS, blur, _bulge, _sample,
                                 _target_family, foreground)
 
 EMBED_DIM = 8
@@ -364,7 +365,7 @@ def _edit_impl(image, original, s, key, t_range, gscale, points, *, kind, params
                 mode, warps, jnp.clip((v - own) * BULGE_MAX, -BULGE_MAX, BULGE_MAX))
     diff = jnp.abs(image - target)
     gap = jnp.mean(diff)
-    local = _blur(jnp.mean(diff, axis=-1), max(h, w) / 16.0)
+    local = blur(jnp.mean(diff, axis=-1), max(h, w) / 16.0)
 
     # the edit of this view: a jittered strength, a displaced pattern, a colour cast
     s_view = s * (1.0 + params.jitter * gscale * gap * _normals(u_jit))
@@ -605,11 +606,10 @@ class SimulatedEditor:
         """Where the instruction changes the view: float32 [H, W] in {0, 1}.
 
         From the noise-free target: |target - original| (channel mean), normalised,
-        smoothed and thresholded (:func:`jaxedit.edit.local.relevance_mask`). ``image``,
+        smoothed and thresholded (:func:`jaxedit.editors.base.relevance_mask`). ``image``,
         ``key``, ``timestep_range`` and ``guidance`` are the protocol's; the target does
         not depend on them.
         """
-        from .local import relevance_mask
 
         original = _as_image(original, "original")
         target = self.target_of_embedding(original, embedding)

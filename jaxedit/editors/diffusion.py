@@ -1,7 +1,7 @@
 """The diffusion arithmetic of the InstructPix2Pix edit, shared by both editors.
 
-One definition of each piece the JAX editor (:mod:`jaxedit.edit.jax_ip2p`) and the torch
-reference (:mod:`jaxedit.edit.ip2p`) have in common: the timestep draw, the DDIM
+One definition of each piece the JAX editor (:mod:`jaxedit.editors.jax_ip2p`) and the torch
+reference (:mod:`jaxedit.editors.ip2p`) have in common: the timestep draw, the DDIM
 timestep schedule (as a host list and as fixed-length arrays for ``jit``), the model
 size, dual classifier-free guidance and the deterministic DDIM update. The guidance and
 the DDIM update are written with arithmetic only, so they work on torch tensors and on
