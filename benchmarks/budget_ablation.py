@@ -155,7 +155,7 @@ def prepare(out: Path, *, size: int, views: int, test_views: int, iters: int, se
 # ---------------------------------------------------------------------------
 def densify_totals(subtasks: list[dict]) -> dict:
     """The density counters of an edit: each subtask record's ``density`` tally
-    (:class:`jaxedit.edit.driver.DensityTally`) summed over the subtasks."""
+    (:class:`jaxedit.edit.state.DensityTally`) summed over the subtasks."""
     fields = {"created": "created", "culled": "culled", "maintenance": "refinements",
               "budget_bound": "budget_limited", "cap_hits": "cap_limited"}
     return {ours: sum(int(s["density"][theirs]) for s in subtasks)

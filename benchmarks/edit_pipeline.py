@@ -63,7 +63,7 @@ def synthetic(size: int, views: int, points: int):
     r = Renderer()
     images = np.stack([r.rgb(g, cams[i]) for i in range(n)])
     train, test = np.arange(views), np.arange(views, n)
-    return EditData(images[train], cams[train], images[test], cams[test]), g
+    return EditData.create(images[train], cams[train], images[test], cams[test]), g
 
 
 def main(argv=None):

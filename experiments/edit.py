@@ -203,8 +203,8 @@ def load_inputs(args, config):
     data = EditData.from_dataset(dataset)
     if config.test_views is not None and len(data.test_images) > config.test_views:
         keep = np.linspace(0, len(data.test_images) - 1, config.test_views).round().astype(int)
-        data = EditData(data.train_images, data.train_cameras, data.test_images[keep],
-                        data.test_cameras[keep])
+        data = EditData.create(data.train_images, data.train_cameras, data.test_images[keep],
+                               data.test_cameras[keep])
     return data, scene
 
 
@@ -219,7 +219,7 @@ def run_config(args):
 def progress_callback(quiet: bool):
     """A progress(spec, step, loss, state) that drives nested bars (overall + subtask).
 
-    The driver calls it after each chunk of steps with the subtask's step count so far.
+    The subtask loop calls it after each chunk of steps with the subtask's step count so far.
     """
     from experiments.progress import Progress, configure
 

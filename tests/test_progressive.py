@@ -1,4 +1,4 @@
-"""The ProEdit driver: plan, annealing, plateau, tiny end-to-end edits, exact resume, CLI."""
+"""A progressive edit: plan, annealing, plateau, tiny end-to-end edits, exact resume, CLI."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ from jaxedit import DataError
 from jaxedit import camera as cl
 from jaxedit import gaussians as gl
 from jaxedit.edit import EditData, ProEditConfig, TrainSettings, anneal_timestep, plan_subtasks
-from jaxedit.edit.driver import LossTracker, track_loss, train_view
+from jaxedit.edit.state import LossTracker, track_loss
+from jaxedit.edit.subtask import train_view
 from jaxedit.edit.outputs import Renderer, reprojection_consistency
 from jaxedit.pipelines import run_edit, select_snapshot
 from jaxedit.editors.simulated import SimulatedEditor
@@ -77,7 +78,7 @@ def test_loss_tracker_plateau():
 
 
 def test_density_tally_counts_completed_maintenance_steps_only():
-    from jaxedit.edit.driver import DensityTally, tally_density
+    from jaxedit.edit.state import DensityTally, tally_density
 
     completed = np.array([1, 0, 1, 1, 1], bool)  # step 1 was redone
     densify = {"refined": np.array([1, 1, 1, 1, 0], bool),
@@ -115,7 +116,7 @@ def tiny():
     cams = cl.orbit(10, radius=2.5, width=32, height=32, elevation_deg=15)
     renderer = Renderer()
     images = np.stack([renderer.rgb(g, cams[i]) for i in range(10)])
-    data = EditData(images[:8], cams[np.arange(8)], images[8:], cams[np.arange(8, 10)])
+    data = EditData.create(images[:8], cams[np.arange(8)], images[8:], cams[np.arange(8, 10)])
     return g, data, cams, images
 
 
@@ -429,12 +430,13 @@ def test_difficulty_views_are_a_fixed_seeded_subset():
 
 
 # ---------------------------------------------------------------------------
-# The driver's pure parts
+# A subtask's pure parts
 # ---------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def chunk_start(tiny):
     """A context and the state at the start of an edit subtask (the tiny scene)."""
-    from jaxedit.edit.driver import EditContext, begin_subtask, init_state
+    from jaxedit.edit.context import EditContext
+    from jaxedit.edit.state import begin_subtask, init_state
     from jaxedit.edit.plan import SubtaskSpec
     from jaxedit.edit.trainer import SubtaskTrainer
 
@@ -442,7 +444,8 @@ def chunk_start(tiny):
     cfg = ProEditConfig.for_mode("proedit", **TINY)
     settings = dataclasses.replace(FAST, scene_extent=3.0).replace_densify(warmup=cfg.warmup)
     trainer = SubtaskTrainer(settings, num_input=int(g.num_alive()))
-    ctx = EditContext(SimulatedEditor(), PROMPT, data, cfg, trainer, Renderer(), jax.random.key(3))
+    ctx = EditContext.create(SimulatedEditor(), PROMPT, data, cfg, trainer, Renderer(),
+                             jax.random.key(3))
     return ctx, begin_subtask(ctx, init_state(ctx, g)), SubtaskSpec(1, "r1", 0.5, None, "edit")
 
 
@@ -453,7 +456,7 @@ def _bits(tree):
 @settings(max_examples=4, deadline=None)
 @given(num_steps=st.integers(1, 16), stop_if_plateau=st.booleans(), skip=st.integers(0, 12))
 def test_step_chunk_is_a_pure_function_of_its_inputs(chunk_start, num_steps, stop_if_plateau, skip):
-    from jaxedit.edit.driver import step_chunk
+    from jaxedit.edit.subtask import step_chunk
 
     ctx, start, spec = chunk_start
     start = dataclasses.replace(start, step=skip)  # any point of the subtask
@@ -467,7 +470,7 @@ def test_step_chunk_is_a_pure_function_of_its_inputs(chunk_start, num_steps, sto
 
 
 def test_a_chunk_of_edit_steps_makes_no_implicit_host_transfer(chunk_start):
-    from jaxedit.edit.driver import step_chunk
+    from jaxedit.edit.subtask import step_chunk
 
     ctx, start, spec = chunk_start
     step_chunk(ctx, start, spec, 8, stop_if_plateau=False)  # compiled outside the guard
@@ -484,9 +487,9 @@ class SlowEditor(SimulatedEditor):
         return super().edit(*args, **kwargs)
 
 
-def test_async_driver_never_ends_a_subtask_on_edits_it_has_not_trained_on(tiny):
+def test_async_subtask_never_ends_on_edits_it_has_not_trained_on(tiny):
     g, data, _, _ = tiny
-    # A 12-step guard fires long before 8 slow edits arrive: the driver must wait for the
+    # A 12-step guard fires long before 8 slow edits arrive: the subtask must wait for the
     # missing views and then train `patience` steps on the complete dataset.
     cfg = ProEditConfig.for_mode("nd", **{**TINY, "subtasks": None, "asynchronous": True,
                                           "refine_first": False, "max_steps": 12})
@@ -571,7 +574,7 @@ def test_an_input_above_200k_gaussians_grows_up_to_its_cap_and_never_past_it():
     cams = cl.orbit(6, radius=2.5, width=16, height=16, elevation_deg=15)
     renderer = Renderer()
     images = np.stack([renderer.rgb(g, cams[i]) for i in range(6)])
-    data = EditData(images[:4], cams[np.arange(4)], images[4:], cams[np.arange(4, 6)])
+    data = EditData.create(images[:4], cams[np.arange(4)], images[4:], cams[np.arange(4, 6)])
     cap = n + 500
     # Opacities frozen: the cull removes nothing, so only the cap can bound the growth.
     settings = dataclasses.replace(FAST, lr_opacity=0.0).replace_densify(max_gaussians=cap,

@@ -7,8 +7,8 @@ the trainer keeps training on whatever the dataset currently holds, replacing a
 training image whenever a new edit of that view arrives (iterative dataset
 update).
 
-Two interchangeable sources implement that contract for the driver
-(:mod:`jaxedit.edit.progressive`):
+Two interchangeable sources implement that contract, :class:`EditSource`, for a
+subtask's loop (:mod:`jaxedit.edit.subtask`):
 
 * :class:`SyncEditSource`, fully deterministic: the edits due at trainer step
   ``s`` are fixed by a rule (one view every ``every`` steps, views in a seeded
@@ -26,7 +26,7 @@ Two interchangeable sources implement that contract for the driver
 Both record :class:`Utilisation`: editor time, how often and how long the
 trainer waited for the editor and the editor for the trainer.
 
-The source is generic: it never renders or edits itself; the driver passes an
+The source is generic: it never renders or edits itself; the subtask passes an
 ``edit_fn(job, scene) -> image`` that renders view ``job.view`` of ``scene`` and
 calls the editor with the job's seed and annealed timestep.
 
@@ -43,7 +43,7 @@ import dataclasses
 import queue
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -60,7 +60,7 @@ class EditJob:
         editor (with the view and ratio) and drives the timestep annealing.
       step: trainer step (within the subtask) at which the job was issued.
       timestep: the SDEdit timestep the edit is made at, when the schedule fixes it
-        (:class:`ScheduledEditSource`); None: the driver's annealing of ``step``.
+        (:class:`ScheduledEditSource`); None: the subtask's annealing of ``step``.
     """
 
     view: int
@@ -141,6 +141,42 @@ def pick_devices() -> tuple[jax.Device, jax.Device]:
     return devices[0], devices[1] if len(devices) > 1 else devices[0]
 
 
+class EditSource(Protocol):
+    """What a subtask's loop asks of its edits, whichever source makes them.
+
+    Steps are counted from the end of the subtask's warm-up. Use as a context manager
+    (``with source:``): the threaded source starts its thread on entry and joins it on
+    exit.
+
+    Attributes:
+      can_wait: whether waiting brings edits (a producer thread): a plateau or a guard
+        reached before every view was edited then waits for the missing ones. False: edits
+        arrive only at the exchanges due (the deterministic schedule, whose steps and bits
+        a seed fixes); waiting cannot help.
+      utilisation: who waited for whom (:class:`Utilisation`).
+    """
+
+    can_wait: bool
+    utilisation: Utilisation
+
+    def due(self, step: int) -> bool:
+        """Whether the trainer exchanges with the editor at ``step``."""
+
+    def next_due(self, step: int) -> int | None:
+        """The first step after ``step`` with an exchange (None: none left)."""
+
+    def exchange(self, step: int, scene) -> list[EditedView]:
+        """Hand over the trainer's ``scene`` at ``step``; the edits ready for it."""
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
+                 on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
+        """Block until ``predicate()`` holds, feeding arrivals to ``on_edits``; its value."""
+
+    def __enter__(self): ...
+
+    def __exit__(self, *exc): ...
+
+
 class SyncEditSource:
     """Deterministic edits: at step ``s`` (with ``s % every == offset``) edit one view.
 
@@ -160,7 +196,8 @@ class SyncEditSource:
         (``edit_fn`` then serves single edits); each edit's seconds are the batch's share.
     """
 
-    deterministic = True
+    #: Edits arrive only at :meth:`exchange`, at steps a rule fixes.
+    can_wait = False
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int = 10,
                  initial_sweep: bool = False, trainer_device: jax.Device | None = None,
@@ -201,7 +238,7 @@ class SyncEditSource:
         return [EditJob(int(self.order[i % n]), i, step)]
 
     def due(self, step: int) -> bool:
-        """Whether edits are due at ``step`` (the driver exchanges only then)."""
+        """Whether edits are due at ``step`` (the subtask exchanges only then)."""
         return step >= 0 and step % self.every == 0
 
     def next_due(self, step: int) -> int | None:
@@ -231,7 +268,8 @@ class SyncEditSource:
         self.utilisation.empty_polls += not out
         return out
 
-    def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
+    def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
+                 on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
         """Sync edits arrive only through :meth:`exchange`; waiting cannot help."""
         return predicate()
 
@@ -245,7 +283,7 @@ class ScheduledEditSource(SyncEditSource):
     ``exchanges``: ``(step, count, timestep)`` triples with strictly increasing steps; at
     ``step`` the next ``count`` views of the cyclic ``order`` are edited (edits are numbered
     through the subtask, as :class:`SyncEditSource` numbers them), at ``timestep`` (None: the
-    driver's annealing of the step). The equal-budget controls of the ablation use it: a
+    subtask's annealing of the step). The equal-budget controls of the ablation use it: a
     fractional schedule (edit k at step round(k L / calls)) matches any number of editor
     calls exactly, and ProEdit's own exchanges replayed in one subtask match its sweeps and
     timesteps (:mod:`jaxedit.pipelines.ablation.methods`).
@@ -303,7 +341,8 @@ class AsyncEditSource:
       poll_interval: seconds between checks of the stop flag while waiting.
     """
 
-    deterministic = False
+    #: Edits arrive whenever the editor thread finishes one.
+    can_wait = True
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, device: jax.Device | None = None,
                  capacity: int = 4, poll_interval: float = 0.02,
@@ -374,6 +413,14 @@ class AsyncEditSource:
         self.utilisation.empty_polls += not out
         self.utilisation.consumed += len(out)
         return out
+
+    def due(self, step: int) -> bool:
+        """Every step: the editor then always works from a fresh render (collecting its edits
+        once per 16-step chunk left it on stale renders and cost the demo 1.5 dB)."""
+        return step >= 0
+
+    def next_due(self, step: int) -> int:
+        return step + 1
 
     def exchange(self, step: int, scene) -> list[EditedView]:
         """Publish the trainer's scene at ``step`` and collect finished edits."""

@@ -1,4 +1,4 @@
-"""The edit driver's checkpoint: the whole driver state in one npz, atomically, bit-exact.
+"""An edit run's checkpoint: its whole :class:`EditState` in one npz, atomically, bit-exact.
 
 The format is :mod:`jaxedit.io.checkpoint`'s (versioned, fsync, atomic rename; the
 trainer's checkpoints use it too): the trainer state's leaves under their pytree
@@ -18,13 +18,13 @@ import numpy as np
 
 from ..io.checkpoint import read_pytree, restore, save_pytree
 from .buffer import Utilisation
-from .driver import DensityTally, DriverState, LossTracker
+from .state import DensityTally, EditState, LossTracker
 
 KIND = "edit"
 
 
-def save_checkpoint(path: str | os.PathLike, st: DriverState, meta: dict) -> None:
-    """Write the driver state to ``path`` (npz, atomic: a crash never leaves half a file)."""
+def save_checkpoint(path: str | os.PathLike, st: EditState, meta: dict) -> None:
+    """Write the edit state to ``path`` (npz, atomic: a crash never leaves half a file)."""
     tree = {"train": st.train, "images": st.images, "edited": np.asarray(st.edited),
             "tracker_recent": st.tracker.recent}
     info = {"subtask": st.subtask, "step": st.step, "records": list(st.records),
@@ -37,7 +37,7 @@ def save_checkpoint(path: str | os.PathLike, st: DriverState, meta: dict) -> Non
     save_pytree(path, tree, kind=KIND, meta=info)
 
 
-def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[DriverState, dict]:
+def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[EditState, dict]:
     """Read a checkpoint written by :func:`save_checkpoint` (state, meta).
 
     ``train_template`` is any trainer state of the same structure (shapes may
@@ -55,7 +55,7 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[DriverStat
     count, best, since = info["tracker"]
     tracker = LossTracker(tree["tracker_recent"], jnp.int32(count),
                           jnp.float32(best), jnp.int32(since))
-    st = DriverState(subtask=info["subtask"], step=info["step"], train=train,
+    st = EditState(subtask=info["subtask"], step=info["step"], train=train,
                      images=tree["images"], edited=np.asarray(tree["edited"]),
                      tracker=tracker, records=tuple(info["records"]), seconds=info["seconds"],
                      complete_at=int(info.get("complete_at", -1)),

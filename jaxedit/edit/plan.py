@@ -1,4 +1,4 @@
-"""The plan of a ProEdit run: the driver's configuration and its subtasks (paper 3.1, 3.3).
+"""The plan of a ProEdit run: its configuration and its subtasks (paper 3.1, 3.3).
 
 A run is the sequence r_0 (refine, e(0)) -> r_1 ... r_n -> consolidate (e(1));
 :func:`plan_subtasks` lays it out from the scheduler's ratios and
@@ -19,7 +19,7 @@ MODES = ("proedit", "nd", "in2n")
 
 @dataclasses.dataclass(frozen=True)
 class ProEditConfig:
-    """Knobs of the driver (defaults follow the paper where it gives a value).
+    """Knobs of a progressive edit (defaults follow the paper where it gives a value).
 
     Attributes:
       mode: "proedit" (the difficulty-aware schedule), "nd" (no decomposition: one
@@ -244,8 +244,8 @@ def anneal_horizon(config: ProEditConfig, warmup: int) -> int:
     """Steps after the warm-up at which a subtask's annealed timestep reaches t_min.
 
     HiFA anneals over the whole optimisation; a ProEdit subtask has no fixed length, its
-    plateau ends it, and the driver lets no plateau end it before an edit made at t_min
-    has trained ``patience`` steps (:func:`jaxedit.edit.driver.earliest_end`). The horizon
+    plateau ends it, and the subtask lets no plateau end it before an edit made at t_min
+    has trained ``patience`` steps (:func:`jaxedit.edit.subtask.earliest_end`). The horizon
     is half the room the step guard leaves for that (``max_steps - warmup - patience -
     edit_every``), so it grows with the scene as the guard does, and the second half of
     the room is for refining at t_min and the plateau. ``config.anneal_steps`` overrides

@@ -1,11 +1,11 @@
-"""The ProEdit driver: progressive editing through a schedule of subtasks.
+"""A whole progressive edit (paper 3.2-3.3): its plan, its run over the subtasks, its records.
 
-Paper sections 3.2-3.3 and appendices B, D. The scene goes through
+The scene goes through
 
     s_in --r_0 (refine, e(0))--> s_0 --r_1--> s_1 ... --r_n--> s_n --consolidate (e(1))--> s_out
 
 where every arrow is one *subtask*: a seeded, resumable transformation of the
-training state. A subtask with ratio r:
+training state (:mod:`jaxedit.edit.subtask`). A subtask with ratio r:
 
 1. sets every Gaussian's opacity to the cull threshold and trains ``warmup``
    steps without densify/cull, so Gaussians on the right surface earn opacity
@@ -37,31 +37,35 @@ purpose, step), so the deterministic mode reproduces bits, and a run resumed
 from the checkpoint written inside any subtask ends with the same bits as an
 uninterrupted run.
 
-Modules, one per concept: :mod:`.plan` (configuration and subtasks),
-:mod:`.schedule` (the difficulty-aware scheduler, 3.2), :mod:`.driver` (one
-subtask as a state machine of pure parts, 3.3), :mod:`.trainer` (the editing
-trainer's settings), :mod:`.checkpoint` (the driver state in a checkpoint) and
-:mod:`.outputs` (renders and scores). This module holds the pieces of a whole
-edit that write nothing: the trainer of a run, the difficulty oracle, the
-schedule and its plan, a subtask's record, the final metrics.
-:func:`jaxedit.pipelines.edit.run_edit` runs them with a run directory.
+Modules, one per concept, in the order an edit calls them: :mod:`.plan`
+(configuration and subtasks), :mod:`.schedule` (the difficulty-aware scheduler,
+3.2), :mod:`.trainer` (the editing trainer), :mod:`.context` (what a run reads),
+:mod:`.state` (where a run is, and its pure updates), this module (the plan of a
+whole edit and :func:`run_plan`, the one loop over its subtasks), :mod:`.subtask`
+(one subtask as a state machine, 3.3), :mod:`.buffer` (the edit sources),
+:mod:`.checkpoint` (the state in a checkpoint) and :mod:`.outputs` (renders and
+scores). Nothing here writes a file: :func:`jaxedit.pipelines.edit.run_edit` gives
+:func:`run_plan` its run directory through callbacks.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Callable
 
 import jax
 import numpy as np
 
 from ..train import scene_extent
 from . import schedule as sched
+from .context import EditContext, EditData
 from .difficulty import DifficultyOracle, difficulty_view_subset, ms_ssim_distance
-from .driver import DriverState, EditContext, EditData
 from .outputs import image_scores, scene_metrics
 from .plan import ProEditConfig, SubtaskSpec, plan_subtasks
-from .trainer import SubtaskTrainer, TrainSettings, resolve_max_gaussians
+from .state import EditState, finish_subtask
+from .subtask import run_subtask
+from .trainer import SubtaskTrainer, TrainSettings
 
 #: Default threshold = d(0, 1) / 4 (paper: ~4 subtasks for texture edits).
 DEFAULT_SUBTASKS = 4
@@ -71,8 +75,9 @@ def make_trainer(config: ProEditConfig, settings: TrainSettings, data: EditData,
                  gaussians) -> SubtaskTrainer:
     """The editing trainer of a run: ``settings`` completed by the plan and the scene.
 
-    The plan owns W, the mode and the background; the scene extent (when unset)
-    comes from the training cameras and the hard cap from the input's Gaussians.
+    The plan owns W (the trainer's density clock gets it here, and only here), the mode
+    and the background; the scene extent (when unset) comes from the training cameras;
+    the trainer resolves the hard cap from the input's Gaussians.
     """
     if settings.scene_extent is None:
         # Rounded: the extent is a static field of the train state, and cameras that went
@@ -81,8 +86,7 @@ def make_trainer(config: ProEditConfig, settings: TrainSettings, data: EditData,
         settings = dataclasses.replace(settings, scene_extent=extent)
     settings = dataclasses.replace(settings, adaptive=config.mode != "in2n"
                                    ).replace_densify(warmup=config.warmup)
-    settings = resolve_max_gaussians(settings, int(gaussians.num_alive()))
-    return SubtaskTrainer(settings, background=config.background)
+    return SubtaskTrainer(settings, int(gaussians.num_alive()), background=config.background)
 
 
 def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distance=None):
@@ -135,7 +139,7 @@ def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
     return s, ratios, diffs
 
 
-def edit_fit(ctx: EditContext, st: DriverState) -> float:
+def edit_fit(ctx: EditContext, st: EditState) -> float:
     """PSNR (dB) of the final renders against the last edited training images.
 
     How well one 3D scene explains all the edited views: low when the edits
@@ -256,7 +260,49 @@ def subtask_warnings(ctx: EditContext, spec: SubtaskSpec, info: dict,
     return out
 
 
-def final_metrics(ctx: EditContext, st: DriverState, plan, wall_time_s: float) -> dict:
+def subtask_context(ctx: EditContext, spec: SubtaskSpec) -> EditContext:
+    """The context subtask ``spec`` runs in: the run's, or with ``subtask_steps`` its own
+    fixed length (its step budget, no plateau)."""
+    steps = ctx.config.subtask_steps
+    if steps is None:
+        return ctx
+    return dataclasses.replace(ctx, config=dataclasses.replace(
+        ctx.config, max_steps=int(steps[spec.index]), stop_on_plateau=False))
+
+
+def run_plan(ctx: EditContext, st: EditState, plan: tuple[SubtaskSpec, ...], *,
+             on_subtask: Callable | None = None, checkpoint: Callable | None = None,
+             progress: Callable | None = None, callback: Callable | None = None,
+             log: Callable[[str], None] = lambda msg: None) -> EditState:
+    """Run the subtasks of ``plan`` from ``st`` (its ``st.subtask``-th on, possibly resumed
+    mid-way) in order; the state after the last one.
+
+    Args:
+      on_subtask: ``on_subtask(st, spec, record) -> record`` when a subtask ends (``st``:
+        the state at its end, ``record``: its :func:`subtask_record`): the record to keep
+        (a run directory adds its snapshot).
+      checkpoint: ``checkpoint(st)`` every ``checkpoint_every`` steps inside a subtask and
+        after each finished one.
+      progress, callback: as :func:`jaxedit.edit.subtask.run_subtask`'s.
+      log: ``log(message)``: each subtask's start and its warnings.
+    """
+    for spec in plan[st.subtask:]:
+        log(f"subtask {spec.index} {spec.name} ({spec.kind}) r = {spec.ratio:.3f}")
+        st, info = run_subtask(subtask_context(ctx, spec), st, spec, callback=callback,
+                               checkpoint=checkpoint, progress=progress)
+        alive = int(ctx.trainer.gaussians(st.train).num_alive())
+        record = subtask_record(spec, info, alive)
+        for warning in subtask_warnings(ctx, spec, info, alive):
+            log(warning)
+        if on_subtask is not None:
+            record = on_subtask(st, spec, record)
+        st = finish_subtask(st, record)
+        if checkpoint is not None:
+            checkpoint(st)
+    return st
+
+
+def final_metrics(ctx: EditContext, st: EditState, plan, wall_time_s: float) -> dict:
     """metrics.json: the final scene's scores, the edit fit, steps, convergence, utilisation."""
     final = ctx.trainer.gaussians(st.train)
     metrics = scene_metrics(ctx, final, 1.0 if plan else 0.0)

@@ -34,11 +34,12 @@ from .plan import ProEditConfig
 #:   gsplat's 0.005 would blank it); no periodic reset (``reset_every`` 0): the subtask
 #:   start is the reset.
 #: - ``max_gaussians`` None: :func:`default_max_gaussians` of the input scene.
-#: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig` owns it; ``run_edit``
-#:   sets it per run); ``refine_from_warmup``: the first maintenance (cull and create) comes
-#:   right after the W steps, then every ``refine_every`` (with INRIA's clock a W below
-#:   ``refine_every`` had no effect: the first maintenance was at step ``refine_every``
-#:   whatever W).
+#: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig` owns it and the
+#:   subtask loop reads it there; :func:`jaxedit.edit.progressive.make_trainer` gives it to
+#:   the density control's clock); ``refine_from_warmup``: the first maintenance (cull and
+#:   create) comes right after the W steps, then every ``refine_every`` (with INRIA's
+#:   clock a W below ``refine_every`` had no effect: the first maintenance was at step
+#:   ``refine_every`` whatever W).
 #: - ``stop_at``: never (a subtask has no fixed length).
 EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
                              budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
@@ -118,9 +119,9 @@ def resolve_max_gaussians(settings: TrainSettings, num_input: int) -> TrainSetti
 
 
 class SubtaskTrainer:
-    """The driver's view of :mod:`jaxedit.train`: the settings, init and subtask restart.
+    """An edit's view of :mod:`jaxedit.train`: the settings, init and subtask restart.
 
-    The steps themselves are the driver's (:func:`jaxedit.edit.driver.step_chunk`:
+    The steps themselves are the subtask's (:func:`jaxedit.edit.subtask.step_chunk`:
     :mod:`jaxedit.train`'s pure step scanned over a chunk, redone with a larger
     intersection buffer or capacity when it asks for it) on the train state made
     here. ``restart`` is paper 3.3 (1): every opacity to the cull threshold (moments
@@ -130,15 +131,16 @@ class SubtaskTrainer:
 
     def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None,
                  *, background=ProEditConfig.background, editable=None):
-        """``num_input``: the input scene's Gaussian count, to resolve a cap left as None;
-        ``background``: the plan's (RGB); ``editable``: bool [C0] over the input scene's
-        slots for a local edit (:func:`jaxedit.edit.local.editable`): the other alive
-        Gaussians are frozen (None: a global edit, nothing frozen)."""
+        """``num_input``: the input scene's Gaussian count, against which the cap is
+        resolved (:func:`resolve_max_gaussians`: the one place it is; None: the settings
+        must hold a cap); ``background``: the plan's (RGB); ``editable``: bool [C0] over the
+        input scene's slots for a local edit (:func:`jaxedit.edit.local.editable`): the
+        other alive Gaussians are frozen (None: a global edit, nothing frozen)."""
         self.editable = None if editable is None else np.asarray(editable, bool)
-        if settings.densify.max_gaussians is None:
-            if num_input is None:
-                raise DataError("max_gaussians", "unresolved: pass num_input or a cap")
+        if num_input is not None:
             settings = resolve_max_gaussians(settings, num_input)
+        elif settings.densify.max_gaussians is None:
+            raise DataError("max_gaussians", "unresolved: pass num_input or a cap")
         self.settings = settings
         self.config = settings.train_config(background)
 

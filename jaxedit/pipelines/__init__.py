@@ -9,8 +9,7 @@
 * :mod:`.cache` -- prepared inputs.
 
 The library below this package writes no run directory: :func:`jaxedit.train.fit`
-and :func:`jaxedit.edit.driver.run_subtask` hand records and states to callbacks,
-and the pure pieces of an edit are :mod:`jaxedit.edit.progressive`.
+and :func:`jaxedit.edit.progressive.run_plan` hand records and states to callbacks.
 ``experiments/`` is the thin edge above (flags, progress bars, printing).
 """
 

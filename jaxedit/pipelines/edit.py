@@ -1,13 +1,13 @@
 """An edit run: its config tree, and :func:`run_edit`, which runs it with a run directory.
 
 ``python -m experiments edit`` generates its settings' flags from
-:class:`EditRunConfig`; :func:`run_edit` runs the plan and the trainer settings it
-holds (the pure pieces are :mod:`jaxedit.edit.progressive` and
-:mod:`jaxedit.edit.driver`). The run directory::
+:class:`EditRunConfig`; :func:`run_edit` plans the edit and runs it
+(:func:`jaxedit.edit.progressive.run_plan`, which writes nothing) and owns only the run
+directory: resume, snapshots, the JSON files. The run directory::
 
     RUN/schedule.json        the plan and every finished subtask's record
     RUN/metrics.json         the final scene's numbers
-    RUN/checkpoint.npz       the driver state, rewritten every checkpoint_every steps
+    RUN/checkpoint.npz       the edit state, rewritten every checkpoint_every steps
     RUN/original/            snapshot of the input scene (:mod:`.snapshots`)
     RUN/subtasks/NN_rX.XXX/  snapshot of each finished subtask
     RUN/selected.ply         the chosen snapshot (``select``)
@@ -26,19 +26,22 @@ from typing import Callable
 import jax
 import numpy as np
 
+from ..edit import local as local_lib
 from ..edit import progressive
 from ..edit.buffer import pick_devices
 from ..edit.checkpoint import load_checkpoint, save_checkpoint
-from ..edit.driver import EditContext, EditData, finish_subtask, init_state, run_subtask
+from ..edit.context import EditContext, EditData
 from ..edit.outputs import Renderer
+from ..edit.state import init_state
 from ..edit.plan import ProEditConfig, SubtaskSpec
 from ..edit.trainer import TrainSettings
 from ..errors import DataError
 from ..io import load_ply
 from ..io.files import atomic_write_text
+from .report import write_report
 from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
 
-#: The driver's checkpoint inside a run directory.
+#: The edit state's checkpoint inside a run directory.
 CHECKPOINT_NAME = "checkpoint.npz"
 
 
@@ -47,7 +50,7 @@ class EditRunConfig:
     """An edit run's settings.
 
     Attributes:
-      plan: the driver's plan (:class:`jaxedit.edit.plan.ProEditConfig`; its mode's
+      plan: the edit's plan (:class:`jaxedit.edit.plan.ProEditConfig`; its mode's
         defaults from :meth:`ProEditConfig.for_mode`).
       train: the editing trainer (:class:`jaxedit.edit.trainer.TrainSettings`).
       downscale: image downscale factor of the dataset.
@@ -87,7 +90,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
       editor, prompt: the 2D editor and the instruction.
       data: original photos and cameras (train views edited, test views held out).
       gaussians: the input scene (a reconstruction of ``data``).
-      config / settings: driver and trainer knobs.
+      config / settings: plan and trainer knobs.
       seed: the run seed (every random draw derives from it).
       run_dir: where schedule.json, metrics.json, snapshots and the checkpoint go
         (None: in memory only, no files).
@@ -119,8 +122,6 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     if local is not None and local.active and resume_from is not None:
         raise DataError("--local", "a local edit starts from the input scene, not --resume-from")
     if local is not None and local.active:
-        from ..edit import local as local_lib
-
         editable, masks, local_figures = local_lib.prepare(
             local, gaussians, data.train_cameras, data.train_images, editor=editor,
             embedding=None if local.mode != "auto" else editor.encode(prompt),
@@ -129,8 +130,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         log(f"local edit: {local_figures['editable']} Gaussians editable, "
             f"{local_figures['frozen']} frozen, {100 * local_figures['mask_fraction']:.1f}% "
             f"of the pixels inside ({local_figures['seconds']:.1f} s)")
-    ctx = EditContext(editor, prompt, data, config, trainer, Renderer(config.background),
-                      jax.random.key(seed), editor_device, masks=masks)
+    ctx = EditContext.create(editor, prompt, data, config, trainer, Renderer(config.background),
+                             jax.random.key(seed), editor_device, masks=masks)
     wall0 = time.perf_counter()
     ckpt = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if resume and (ckpt is None or not ckpt.exists()):
@@ -176,35 +177,25 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                                           "header": header,
                                           "wall_time_s": time.perf_counter() - wall0})
 
-    def write_schedule(state):
+    def write_schedule(records):
         if run_dir is not None:
-            _write_json(run_dir / "schedule.json",
-                        progressive.schedule_json(header, plan, state.records))
-            save(state)
+            _write_json(run_dir / "schedule.json", progressive.schedule_json(header, plan, records))
 
-    def context_of(spec):
-        """The context a subtask runs in (a fixed length: its own step budget, no plateau)."""
-        if config.subtask_steps is None:
-            return ctx
-        return dataclasses.replace(ctx, config=dataclasses.replace(
-            ctx.config, max_steps=int(config.subtask_steps[spec.index]), stop_on_plateau=False))
+    def on_subtask(state, spec, record):
+        """A finished subtask's snapshot, and schedule.json with its record."""
+        if run_dir is None:
+            return record
+        rel = Path("subtasks") / spec.dirname
+        record = dict(record, metrics=write_scene_snapshot(
+            ctx, run_dir / rel, trainer.gaussians(state.train), ratio=spec.ratio),
+            snapshot=str(rel / "scene.ply"))
+        write_schedule(tuple(state.records) + (record,))
+        return record
 
-    write_schedule(st)
-    for spec in plan[st.subtask:]:
-        log(f"subtask {spec.index} {spec.name} ({spec.kind}) r = {spec.ratio:.3f}")
-        st, info = run_subtask(context_of(spec), st, spec, callback=callback, checkpoint=save,
-                               progress=progress)
-        g = trainer.gaussians(st.train)
-        alive = int(g.num_alive())
-        record = progressive.subtask_record(spec, info, alive)
-        for warning in progressive.subtask_warnings(ctx, spec, info, alive):
-            log(warning)
-        if run_dir is not None:
-            rel = Path("subtasks") / spec.dirname
-            record["metrics"] = write_scene_snapshot(ctx, run_dir / rel, g, ratio=spec.ratio)
-            record["snapshot"] = str(rel / "scene.ply")
-        st = finish_subtask(st, record)
-        write_schedule(st)
+    write_schedule(st.records)
+    save(st)
+    st = progressive.run_plan(ctx, st, plan, on_subtask=on_subtask, checkpoint=save,
+                              progress=progress, callback=callback, log=log)
 
     metrics = progressive.final_metrics(ctx, st, plan, time.perf_counter() - wall0)
     if run_dir is not None:
@@ -212,8 +203,6 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         if select is not None:
             select_snapshot(run_dir, select)
         if report:
-            from .report import write_report
-
             write_report(run_dir)
     return {"schedule": progressive.schedule_json(header, plan, st.records), "metrics": metrics,
             "gaussians": trainer.gaussians(st.train)}

@@ -34,8 +34,8 @@ from .checkpoint import (CHECKPOINT_VERSION, load_checkpoint, load_checkpoint_wi
                          save_checkpoint)
 from .config import BACKGROUNDS, TrainConfig
 from .evaluation import evaluate, render_views
-from .loop import (CHUNK, GUARD_WINDOW, TrainProgress, divergence, fit, put_image, scan_steps,
-                   select_batch, train_chunk, view_and_key)
+from .loop import (CHUNK, GUARD_WINDOW, TrainProgress, divergence, epoch_view, fit, put_image,
+                   scan_steps, select_batch, train_chunk, view_and_key)
 from .room import (GROWTH_ROOM, HEADROOM, ROOM, default_room, grow_for_redo,
                    measure_intersections, plan_room, planned_capacity, planned_headroom,
                    size_buffer, step_with_retry)
@@ -47,7 +47,7 @@ __all__ = [
     "BACKGROUNDS", "Batch", "CHECKPOINT_VERSION", "CHUNK", "DensifyConfig", "GROWTH_ROOM",
     "GUARDED", "GUARD_WINDOW", "HEADROOM", "ROOM", "TrainConfig", "TrainProgress", "TrainState",
     "active_sh_degree", "apply_step", "background_color", "camera_lr",
-    "default_room", "divergence", "evaluate", "fit", "grow_for_redo", "init_state",
+    "default_room", "divergence", "epoch_view", "evaluate", "fit", "grow_for_redo", "init_state",
     "load_checkpoint", "load_checkpoint_with_extra", "means_lr",
     "measure_intersections", "optimizer", "plan_room", "planned_capacity", "planned_headroom",
     "psnr_from_mse", "put_image", "render_views", "save_checkpoint", "scan_steps",

@@ -34,10 +34,19 @@ def _stream_keys(base_data):
     return jax.random.fold_in(base, 0), jax.random.fold_in(base, 1)
 
 
+def epoch_view(key: jax.Array, step, num_views: int):
+    """The view of 0-based ``step`` among ``num_views`` (static): entry ``step % N`` of a
+    permutation of the views seeded by ``key`` (typed) and the epoch ``step // N``.
+
+    The one data order of every trainer: :func:`fit`'s and the edit's subtasks
+    (:func:`jaxedit.edit.subtask.step_chunk`), each with its own key."""
+    epoch, i = step // num_views, step % num_views
+    return jax.random.permutation(jax.random.fold_in(key, epoch), num_views)[i]
+
+
 def _view_and_key(base_key_data, step, num_views: int):
     k_views, k_steps = _stream_keys(base_key_data)
-    epoch, i = step // num_views, step % num_views
-    view = jax.random.permutation(jax.random.fold_in(k_views, epoch), num_views)[i]
+    view = epoch_view(k_views, step, num_views)
     return view.astype(jnp.int32), jax.random.fold_in(k_steps, step)
 
 

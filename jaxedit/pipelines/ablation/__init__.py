@@ -545,7 +545,7 @@ def _run_one(editor: CallLog, prompt, data, scene, cfg, settings, seed, targets)
     calls = int(m["utilisation"]["edits"])
     if sum(edits) != calls or editor.calls < calls:
         raise RuntimeError(f"counted {sum(edits)} training edits ({editor.calls} logged), "
-                           f"the driver made {calls}")
+                           f"the subtasks made {calls}")
     times = editor.timesteps[editor.calls - calls:]
     t_range = tuple(cfg.timestep_range)
     agreement = None

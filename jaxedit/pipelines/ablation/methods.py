@@ -42,7 +42,7 @@ def periodic_exchanges(steps: int, *, warmup: int, every: int, views: int,
                        initial_sweep: bool, horizon: int | None = None,
                        timestep_range: tuple[float, float] | None = None) -> list[tuple]:
     """The ``(step after the warm-up, views edited, timestep)`` exchanges a periodic subtask
-    of ``steps`` steps makes (what the driver does with :class:`SyncEditSource`); the
+    of ``steps`` steps makes (what a subtask does with :class:`SyncEditSource`); the
     timestep is its annealing over ``horizon`` when given, else None."""
     source = SyncEditSource(lambda job, scene: None, list(range(views)), every=every,
                             initial_sweep=initial_sweep)
@@ -97,7 +97,7 @@ def timestep_bands(timesteps, timestep_range: tuple[float, float], bands: int = 
 
 def edits_per_subtask(steps: int, *, warmup: int, every: int, views: int,
                       initial_sweep: bool) -> int:
-    """Training edits of a deterministic subtask of ``steps`` steps: the driver exchanges with
+    """Training edits of a deterministic subtask of ``steps`` steps: the subtask exchanges with
     the editor at steps s >= W with (s - W) % every == 0 and s < steps
     (:class:`jaxedit.edit.buffer.SyncEditSource` decides how many views each exchange edits)."""
     source = SyncEditSource(lambda job, scene: None, list(range(views)), every=every,

@@ -1,0 +1,114 @@
+"""What an edit reads and never changes: its views (:class:`EditData`) and its run's
+context (:class:`EditContext`), each built by an explicit constructor.
+
+The constructors do the work (moving the cameras to the device once, encoding the
+prompt, resolving the step guard); the dataclasses only hold the results, so a
+``dataclasses.replace`` copies them as they are and never redoes it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import numpy as np
+
+from ..errors import DataError
+from .outputs import Renderer
+from .plan import ProEditConfig, subtask_guard
+from .trainer import SubtaskTrainer
+
+
+@dataclasses.dataclass(frozen=True)
+class EditData:
+    """Views of the scene being edited (build with :meth:`create` or :meth:`from_dataset`).
+
+    Attributes:
+      train_images: float32 [N, H, W, 3], the original photos of the training views.
+      train_cameras: batched Camera [N] (on the device: the training chunks read them
+        every step).
+      test_images: float32 [M, H, W, 3], held-out originals (never trained on).
+      test_cameras: batched Camera [M].
+    """
+
+    train_images: np.ndarray
+    train_cameras: Any
+    test_images: np.ndarray
+    test_cameras: Any
+
+    @staticmethod
+    def create(train_images: np.ndarray, train_cameras, test_images: np.ndarray,
+               test_cameras) -> "EditData":
+        """The views, checked, with the cameras put on the device once."""
+        if train_images.ndim != 4 or train_images.shape[-1] != 3:
+            raise DataError("train_images", f"need float [N, H, W, 3], got {train_images.shape}")
+        if len(train_cameras) != len(train_images):
+            raise DataError("train_cameras", f"{len(train_cameras)} cameras for "
+                                             f"{len(train_images)} images")
+        if len(test_cameras) != len(test_images):
+            raise DataError("test_cameras", f"{len(test_cameras)} cameras for "
+                                            f"{len(test_images)} images")
+        return EditData(train_images, jax.device_put(train_cameras), test_images,
+                        jax.device_put(test_cameras))
+
+    @staticmethod
+    def from_dataset(dataset) -> "EditData":
+        """From a :func:`jaxedit.io.load_nerfstudio` dataset (train/test split)."""
+        images = np.asarray(dataset.images, np.float32)
+        train = np.asarray(dataset.train_indices)
+        test = np.asarray(dataset.test_indices)
+        if len(test) == 0:  # no held-out split: score on the training views, say so
+            test = train
+        return EditData.create(images[train], dataset.cameras[train], images[test],
+                               dataset.cameras[test])
+
+
+@dataclasses.dataclass(frozen=True)
+class EditContext:
+    """Everything a run reads but never changes (build with :meth:`create`).
+
+    Attributes:
+      editor: an :class:`jaxedit.editors.Editor`.
+      prompt: the instruction p.
+      data: the views (:class:`EditData`).
+      config: :class:`ProEditConfig`, its ``max_steps`` resolved.
+      trainer: :class:`SubtaskTrainer`.
+      renderer: :class:`Renderer` used for the editor's inputs and the snapshots.
+      key: the run key (``jax.random.key(seed)``).
+      e_prompt: E(p), the editor's embedding of the prompt (NumPy).
+      e_null: E(""), its embedding of the empty prompt (NumPy); a subtask at ratio r
+        edits with e(r) = r E(p) + (1 - r) E("").
+      editor_device: device of the editor (async mode), see
+        :func:`jaxedit.edit.buffer.pick_devices`.
+      masks: float [N, H, W] per training view, a local edit's rendered relevance
+        (:func:`jaxedit.edit.local.prepare`), or None (a global edit): the editor's
+        output is blended with the render outside it, and the training image of an
+        edited view with the original photo.
+    """
+
+    editor: Any
+    prompt: str
+    data: EditData
+    config: ProEditConfig
+    trainer: SubtaskTrainer
+    renderer: Renderer
+    key: jax.Array
+    e_prompt: np.ndarray
+    e_null: np.ndarray
+    editor_device: Any = None
+    masks: Any = None
+
+    @staticmethod
+    def create(editor, prompt: str, data: EditData, config: ProEditConfig,
+               trainer: SubtaskTrainer, renderer: Renderer, key: jax.Array, editor_device=None,
+               masks=None) -> "EditContext":
+        """The context of a run: the prompt encoded once, a ``max_steps`` of None resolved
+        to the scene's :func:`jaxedit.edit.plan.subtask_guard`."""
+        if config.max_steps is None:
+            n, h, w = data.train_images.shape[:3]
+            config = dataclasses.replace(config, max_steps=subtask_guard(n, h, w))
+        return EditContext(editor, prompt, data, config, trainer, renderer, key,
+                           e_prompt=np.asarray(editor.encode(prompt)),
+                           e_null=np.asarray(editor.encode("")),
+                           editor_device=editor_device, masks=masks)

@@ -1,0 +1,187 @@
+"""Where an edit run is (:class:`EditState`) and the pure functions that advance it.
+
+A run's state is immutable; each function returns a new one (optax-style init/update):
+
+* :func:`init_state`: the input scene and the original photos;
+* :func:`begin_subtask`: paper 3.3 (1), every opacity to the cull threshold, fresh
+  density statistics, loss tracker and edit flags;
+* :func:`apply_edits`: edited views land in the device-resident training set;
+* :func:`finish_subtask`: the subtask's record appended, the clock moved on.
+
+Its parts advanced on the device, inside a chunk of steps
+(:func:`jaxedit.edit.subtask.step_chunk`): the :class:`LossTracker` (:func:`track_loss`);
+on the host from a chunk's metrics: the :class:`DensityTally` (:func:`tally_density`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..gaussians import grow
+from ..train import put_image
+from .buffer import Utilisation
+from .context import EditContext
+
+
+class LossTracker(NamedTuple):
+    """Running mean of the last ``window`` losses and steps since its last minimum.
+
+    recent: float32 [window] ring buffer; count: int32, losses seen; best:
+    float32, lowest running mean so far (inf before the window is full);
+    since_best: int32, steps since then. A pytree: it is advanced on the device.
+    """
+
+    recent: jax.Array
+    count: jax.Array
+    best: jax.Array
+    since_best: jax.Array
+
+    @staticmethod
+    def init(window: int) -> "LossTracker":
+        return LossTracker(jnp.zeros((window,), jnp.float32), jnp.int32(0),
+                           jnp.float32(math.inf), jnp.int32(0))
+
+    def mean(self) -> float:
+        n = min(int(self.count), len(self.recent))
+        return float(np.mean(np.asarray(self.recent)[:n])) if n else math.inf
+
+
+def track_loss(tracker: LossTracker, loss, *, min_delta: float) -> LossTracker:
+    """Add one loss; a running mean below best * (1 - min_delta) resets the patience counter."""
+    window = tracker.recent.shape[0]
+    recent = tracker.recent.at[tracker.count % window].set(jnp.asarray(loss, jnp.float32))
+    count = tracker.count + 1
+    full = count >= window
+    mean = jnp.mean(recent)
+    better = (mean < tracker.best * (1.0 - min_delta)) | ~jnp.isfinite(tracker.best)
+    best = jnp.where(full & better, mean, tracker.best)
+    since = jnp.where(full, jnp.where(better, 0, tracker.since_best + 1), tracker.since_best)
+    return LossTracker(recent, count, best.astype(jnp.float32), since.astype(jnp.int32))
+
+
+class DensityTally(NamedTuple):
+    """What density control did in a subtask (host ints, summed over its maintenance steps).
+
+    refinements: maintenance steps; created / culled: Gaussians; budget_limited:
+    maintenance steps whose creation the budget t(n) set (it created t(n), neither the
+    candidates nor the cap held it lower); cap_limited: maintenance steps where the hard
+    cap, not the budget t(n), bounded creation; shortfall: Gaussians those steps wanted
+    (min(t(n), candidates)) but had no room for.
+    """
+
+    refinements: int = 0
+    created: int = 0
+    culled: int = 0
+    budget_limited: int = 0
+    cap_limited: int = 0
+    shortfall: int = 0
+
+
+def tally_density(tally: DensityTally, densify: dict, completed: np.ndarray) -> DensityTally:
+    """``tally`` plus the maintenance steps among the ``completed`` steps of a chunk.
+
+    ``densify`` holds :class:`jaxedit.densify.DensifyInfo`'s fields as NumPy arrays [length].
+    """
+    ran = completed & np.asarray(densify["refined"], bool)
+    capped = ran & np.asarray(densify["cap_limited"], bool)
+    by_budget = ran & ~capped & (np.asarray(densify["created"]) >= np.asarray(densify["budget"]))
+    wanted = np.minimum(densify["budget"], densify["candidates"]).astype(np.int64)
+    short = np.maximum(wanted - np.asarray(densify["created"], np.int64), 0)
+    return DensityTally(tally.refinements + int(ran.sum()),
+                        tally.created + int(np.sum(densify["created"], where=ran)),
+                        tally.culled + int(np.sum(densify["culled"], where=ran)),
+                        tally.budget_limited + int(by_budget.sum()),
+                        tally.cap_limited + int(capped.sum()),
+                        tally.shortfall + int(np.sum(short, where=capped)))
+
+
+@dataclasses.dataclass(frozen=True)
+class EditState:
+    """Where a run is: everything needed to continue it exactly (never mutated).
+
+    Attributes:
+      subtask: index of the current subtask in the plan.
+      step: steps already taken inside it (0: not started, opacity not yet reset).
+      train: the trainer's state pytree (Gaussians, optimiser, densify stats).
+      images: float32 [N, H, W, 3] on the device, the training images as of now.
+      edited: bool [N] (host), views edited at least once in the current subtask.
+      tracker: the loss tracker of the current subtask.
+      records: one dict per finished subtask (schedule.json entries).
+      seconds: wall time spent in the current subtask before the last restart.
+      utilisation: buffer counters summed over the run.
+      complete_at: the subtask's step when every view had been edited (-1: not yet);
+        it may end no earlier than ``patience`` steps later, so it never ends on
+        edits it has not trained on.
+      annealed_at: the subtask's step when the first edit made at t_min arrived
+        (-1: not yet); a plateau ends the subtask no earlier than ``patience`` steps
+        later, so the annealing always reaches t_min.
+      density: the subtask's :class:`DensityTally`.
+    """
+
+    subtask: int
+    step: int
+    train: Any
+    images: jax.Array
+    edited: np.ndarray
+    tracker: LossTracker
+    records: tuple = ()
+    seconds: float = 0.0
+    utilisation: Utilisation = dataclasses.field(default_factory=Utilisation)
+    complete_at: int = -1
+    annealed_at: int = -1
+    density: DensityTally = DensityTally()
+
+
+def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) -> EditState:
+    """A run at its very beginning: the input scene, the original photos as training images."""
+    images = ctx.data.train_images if images is None else images
+    # Room to densify from the start (growth means a recompile), but not much more: the
+    # step's cost grows with the capacity. 1.5x, a multiple of 256.
+    want = -(-int(1.5 * int(gaussians.num_alive())) // 256) * 256
+    capacity = min(max(want, gaussians.capacity), max(ctx.trainer.settings.densify.max_gaussians,
+                                                     gaussians.capacity))
+    if capacity > gaussians.capacity:
+        gaussians = grow(gaussians, capacity)
+    return EditState(subtask=0, step=0, train=ctx.trainer.init(gaussians, ctx.data.train_cameras),
+                       images=jax.device_put(np.asarray(images, np.float32)),
+                       edited=np.zeros((len(images),), bool),
+                       tracker=LossTracker.init(ctx.config.loss_window))
+
+
+def begin_subtask(ctx: EditContext, st: EditState) -> EditState:
+    """The state at the start of a subtask: opacity reset (paper 3.3 (1); not in IN2N mode),
+    nothing edited yet, a fresh loss tracker."""
+    train = ctx.trainer.restart(st.train) if ctx.config.mode != "in2n" else st.train
+    return dataclasses.replace(st, step=0, train=train, edited=np.zeros(len(st.edited), bool),
+                               tracker=LossTracker.init(ctx.config.loss_window), seconds=0.0,
+                               complete_at=-1, annealed_at=-1, density=DensityTally())
+
+
+def apply_edits(st: EditState, views, images, annealed=()) -> EditState:
+    """``st`` with edited ``images`` [K, H, W, 3] as the training images of ``views`` [K].
+
+    ``annealed`` (bool [K], optional): the edit was made at t_min.
+    """
+    if not len(views):
+        return st
+    data, edited = st.images, st.edited.copy()
+    for v, image in zip(views, images):
+        data = put_image(data, int(v), image)
+        edited[int(v)] = True
+    complete_at = st.step if st.complete_at < 0 and edited.all() else st.complete_at
+    annealed_at = st.step if st.annealed_at < 0 and any(annealed) else st.annealed_at
+    return dataclasses.replace(st, images=data, edited=edited, complete_at=complete_at,
+                               annealed_at=annealed_at)
+
+
+def finish_subtask(st: EditState, record: dict) -> EditState:
+    """The state after a finished subtask: its record kept, the next subtask not begun."""
+    return dataclasses.replace(st, records=tuple(st.records) + (record,), subtask=st.subtask + 1,
+                               step=0, seconds=0.0, complete_at=-1, annealed_at=-1,
+                               density=DensityTally())
