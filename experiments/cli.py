@@ -43,6 +43,8 @@ import tempfile
 import tomllib
 from pathlib import Path
 
+from .flags import GIVEN, Flag, FlagSet, as_flags, comma_list, flag_names
+
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
             "report", "convert-lpips", "clip-metrics", "view", "process-data", "train-editor"]
 
@@ -58,20 +60,25 @@ def finite_float(text: str) -> float:
     return value
 
 
+#: How :class:`OneLineParser` reads a flag's ``type`` where it differs from the type itself
+#: (registered with argparse, and used by :func:`convert` for config-file values).
+TYPE_READERS = {float: finite_float}
+#: ``action=`` values whose flag collects a list of values.
+LIST_ACTIONS = ("append", "extend")
+
+
 class _RecordingGroup:
     """An argument group (or mutually exclusive group) of a :class:`OneLineParser` that
-    records in its parser's ``arguments`` what is added through it; the rest is the group's."""
+    records in its parser what is added through it; the rest is the group's."""
 
-    def __init__(self, group, arguments: list):
-        self._group, self._arguments = group, arguments
+    def __init__(self, group, parser: "OneLineParser"):
+        self._group, self._parser = group, parser
 
     def add_argument(self, *args, **kwargs) -> argparse.Action:
-        action = self._group.add_argument(*args, **kwargs)
-        self._arguments.append(action)
-        return action
+        return self._parser._record(self._group.add_argument(*args, **kwargs), kwargs)
 
     def add_mutually_exclusive_group(self, **kwargs) -> "_RecordingGroup":
-        return _RecordingGroup(self._group.add_mutually_exclusive_group(**kwargs), self._arguments)
+        return _RecordingGroup(self._group.add_mutually_exclusive_group(**kwargs), self._parser)
 
     def __getattr__(self, name):
         return getattr(self._group, name)
@@ -86,32 +93,39 @@ class OneLineParser(argparse.ArgumentParser):
     Attributes:
       arguments: every argument added (on the parser or through its groups), in order
         (argparse keeps its own list private); ``-h`` is not among them.
+      lists: those of them whose ``action`` collects a list (:data:`LIST_ACTIONS`).
       commands: {command: its parser}, the subcommands :func:`build_parser` added.
     """
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self.register("type", float, finite_float)
+        for kind, reader in TYPE_READERS.items():
+            self.register("type", kind, reader)
         # Set after argparse's own construction (its -h and its two default groups).
         self.arguments: list[argparse.Action] = []
+        self.lists: set[argparse.Action] = set()
         self.commands: dict[str, OneLineParser] = {}
 
     def _recording(self) -> bool:
         return hasattr(self, "arguments")
 
+    def _record(self, action: argparse.Action, kwargs: dict) -> argparse.Action:
+        self.arguments.append(action)
+        if kwargs.get("action") in LIST_ACTIONS:
+            self.lists.add(action)
+        return action
+
     def add_argument(self, *args, **kwargs) -> argparse.Action:
         action = super().add_argument(*args, **kwargs)
-        if self._recording():
-            self.arguments.append(action)
-        return action
+        return self._record(action, kwargs) if self._recording() else action
 
     def add_argument_group(self, *args, **kwargs):
         group = super().add_argument_group(*args, **kwargs)
-        return _RecordingGroup(group, self.arguments) if self._recording() else group
+        return _RecordingGroup(group, self) if self._recording() else group
 
     def add_mutually_exclusive_group(self, **kwargs):
         group = super().add_mutually_exclusive_group(**kwargs)
-        return _RecordingGroup(group, self.arguments) if self._recording() else group
+        return _RecordingGroup(group, self) if self._recording() else group
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -234,13 +248,10 @@ def config_value(sub: argparse.ArgumentParser, action: argparse.Action, value, p
             raise DataError(path, f"{action.dest}: {name} is a switch, expected true or false, "
                             f"got {value!r}")
         return value
-    from experiments.flags import comma_list
-
     if action.type is comma_list and isinstance(value, list) and all(
             isinstance(v, str) for v in value):
         value = ",".join(value)  # config.json records a comma-separated flag as a list
-    many = isinstance(action, argparse._AppendAction) or action.nargs in ("+", "*") or isinstance(
-        action.nargs, int)
+    many = action in sub.lists or action.nargs in ("+", "*") or isinstance(action.nargs, int)
     values = value if many and isinstance(value, list) else [value]
     if many and not isinstance(value, list):
         raise DataError(path, f"{action.dest}: {name} takes a list, got {value!r}")
@@ -255,10 +266,28 @@ def config_value(sub: argparse.ArgumentParser, action: argparse.Action, value, p
                             f"{'list of ' if many else ''}single value as typed on the "
                             f"command line, got {json.dumps(v)[:40]}")
     try:
-        converted = [sub._get_values(action, [str(v)]) for v in values]
+        converted = [convert(action, str(v)) for v in values]
     except argparse.ArgumentError as e:
         raise DataError(path, f"{action.dest}: {e}") from None
     return converted if many else converted[0]
+
+
+def convert(action: argparse.Action, text: str):
+    """``text`` read as one command-line value of ``action``: its type (as
+    :class:`OneLineParser` reads it, :data:`TYPE_READERS`) and its choices, refused with
+    argparse's own messages (an ``ArgumentError`` naming the flag)."""
+    reader = str if action.type is None else TYPE_READERS.get(action.type, action.type)
+    try:
+        value = reader(text)
+    except argparse.ArgumentTypeError as e:
+        raise argparse.ArgumentError(action, str(e)) from None
+    except (TypeError, ValueError):
+        name = getattr(action.type, "__name__", repr(action.type))
+        raise argparse.ArgumentError(action, f"invalid {name} value: {text!r}") from None
+    if action.choices is not None and value not in action.choices:
+        choices = ", ".join(map(repr, action.choices))
+        raise argparse.ArgumentError(action, f"invalid choice: {value!r} (choose from {choices})")
+    return value
 
 
 def config_values(sub: argparse.ArgumentParser, config: dict, path: Path) -> dict:
@@ -312,7 +341,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
             action.default = default
     # Flags set by the config file count as given (experiments/flags.py builds the config
     # tree from the given flags over the command's own defaults).
-    args._given = set(getattr(args, "_given", ())) | set(values)
+    setattr(args, GIVEN, set(getattr(args, GIVEN, ())) | set(values))
     return args
 
 
@@ -550,8 +579,6 @@ def distributed_flags():
     for a command's ``FLAGS``."""
     from jaxedit.distributed import DistributedConfig
 
-    from experiments.flags import Flag, FlagSet
-
     return FlagSet(DistributedConfig, (
         Flag("coordinator"), Flag("num_processes"), Flag("process_id"),
         Flag("init_timeout"), Flag("heartbeat_timeout")))
@@ -624,8 +651,6 @@ def named_by_flag(error, args: argparse.Namespace | None):
     error about a file or folder the user gave says with which flag.
     """
     from jaxedit import DataError
-
-    from experiments.flags import as_flags, flag_names
 
     if args is None or getattr(args, "command", None) is None:
         return error
