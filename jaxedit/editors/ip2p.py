@@ -325,10 +325,6 @@ class InstructPix2PixEditor:
 
 
 
-def load_editor(path: str | os.PathLike = DEFAULT_MODEL, *, device=None, dtype=None,
-                size: int | None = 512, steps: int = 20,
-                variant: str | None = None) -> InstructPix2PixEditor:
-    """Factory for the CLI (``--editor ip2p --ip2p-weights DIR``): see
-    :meth:`InstructPix2PixEditor.from_pretrained`."""
-    return InstructPix2PixEditor.from_pretrained(path, device=device, dtype=dtype, size=size,
-                                                 steps=steps, variant=variant)
+#: The CLI's factory (``--editor ip2p --ip2p-weights DIR``):
+#: :meth:`InstructPix2PixEditor.from_pretrained` itself, so its defaults have one owner.
+load_editor = InstructPix2PixEditor.from_pretrained

@@ -471,11 +471,7 @@ def _float_dtype(module) -> str:
     return jnp.dtype(leaves[0].dtype).name if leaves else "float32"
 
 
-def load_editor(path: str | os.PathLike = DEFAULT_MODEL, *, devices=None, dtype=None,
-                size: int | None = 512, steps: int = 20,
-                batch: int | None = None) -> JaxIP2PEditor:
-    """Factory for the CLI (``--editor ip2p --ip2p-weights DIR``):
-    :meth:`JaxIP2PEditor.from_pretrained`."""
-    return JaxIP2PEditor.from_pretrained(path, devices=devices, dtype=dtype, size=size,
-                                         steps=steps, batch=batch)
+#: The CLI's factory (``--editor ip2p --ip2p-weights DIR``):
+#: :meth:`JaxIP2PEditor.from_pretrained` itself, so its defaults have one owner.
+load_editor = JaxIP2PEditor.from_pretrained
 
