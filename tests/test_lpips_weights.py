@@ -241,7 +241,7 @@ def test_default_distance_is_lpips_vgg_where_the_weights_are(cache, tmp_path, mo
 
 
 def test_demo_threshold_default_follows_the_distance(cache, tmp_path, monkeypatch):
-    """Under LPIPS the demo leaves the threshold to the edit's d(0, 1) / 4; the MS-SSIM
+    """Under LPIPS the demo leaves the threshold to the edit's default; the MS-SSIM
     fallback keeps its absolute threshold."""
     from experiments import demo
 
@@ -260,7 +260,8 @@ def test_demo_threshold_default_follows_the_distance(cache, tmp_path, monkeypatc
     args = Namespace(out=tmp_path, size=8, views=2, test_views=1, iters=1, max_steps=1,
                      threshold=None, distance="auto", prompt="p", quiet=True, seed=0,
                      scene_name="face", mode="proedit", subtasks=None, turntable_frames=0,
-                     edit_arg=[], reuse=False, editor="ip2p")
+                     edit_arg=[], reuse=False, editor="ip2p", difficulty_views=4, patience=40,
+                     ip2p_steps=10)
     for root, want in ((cache, None), (tmp_path, demo.MS_SSIM_THRESHOLD)):
         monkeypatch.setenv("JAXEDIT_CACHE", str(root))
         seen.clear()
