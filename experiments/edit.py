@@ -36,6 +36,8 @@ def _config_flags():
         Flag("plan.difficulty_views"),
         Flag("train.densify.max_gaussians", low=1),
         Flag("plan.schedule_method", choices=("bisect", "root")),
+        Flag("plan.refine_first", off="--no-refine-first"),
+        Flag("plan.consolidate", off="--no-consolidate"),
         Flag("plan.asynchronous", "--async", off="--sync", key="asynchronous"),
         Flag("downscale"),
         Flag("plan.warmup"),

@@ -33,7 +33,9 @@ class ProEditConfig:
       subtasks: override with N uniform ratios (paper: ~4 texture, ~8 geometry).
       schedule_method: "bisect" (paper) or "root" (optimistix placement).
       max_depth: bisection depth limit (:data:`jaxedit.edit.schedule.MAX_DEPTH`).
-      refine_first / consolidate: the extra subtasks r_0 and r_n (appendix B).
+      refine_first: the extra subtask r_0 = 0 first, refining the scene with the editor at
+        r = 0 (appendix B).
+      consolidate: the extra subtask r_n = 1 last, consolidating the final edit (appendix B).
       warmup: W, steps after the opacity reset without densify/cull.
       patience: P, steps without a new minimum of the running mean loss.
       loss_window: length of the running mean.
