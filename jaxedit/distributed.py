@@ -208,7 +208,7 @@ class SplitEditor:
         return self.inner.edit(image, original, embedding, key, **kwargs)
 
     def edit_many(self, images, originals, embeddings, keys, **kwargs) -> np.ndarray:
-        from .edit.editors import edit_views
+        from .editors.base import edit_views
 
         count = len(images)
         part = process_slice(count, process_index(), process_count())
@@ -220,7 +220,7 @@ class SplitEditor:
         return gather_views(local, count)
 
     def relevance(self, *args, **kwargs):
-        from .edit.editors import relevance
+        from .editors.base import relevance
 
         return relevance(self.inner, *args, **kwargs)
 
