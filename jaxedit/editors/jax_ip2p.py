@@ -33,6 +33,7 @@ is a JAX array on the editor's device: the trainer takes it from there with
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import os
 from typing import Any, Callable, NamedTuple, Sequence
@@ -51,7 +52,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["DiffusionSchedule", "EditConfig", "JaxIP2PEditor", "Networks", "decode",
            "denoise", "draw_noise", "edit_batch", "edit_with_noise", "encode_latents",
-           "default_batch", "latent_factor", "load_editor", "resize_images"]
+           "default_batch", "in_chunks", "latent_factor", "load_editor", "load_text_encoder",
+           "resize_images"]
 
 #: Name of the mesh axis a batch of views is sharded along.
 VIEWS = "views"
@@ -88,7 +90,10 @@ class EditConfig:
 
     steps: DDIM slots; prediction_type: "epsilon", "v_prediction" or "sample";
     clip_sample: x0 clamp (None: none, SD 1.x); scaling_factor: the VAE latent scale;
-    dtype: the networks' dtype name; guidance: (text, image) scales.
+    dtype: the networks' dtype name; guidance: (text, image) scales; vae_chunk: views per
+    VAE pass (encode and decode run over the batch in chunks of this many, one after
+    another, so their activations are one chunk's; None: the whole batch at once). Every
+    view's VAE pass is independent of the others', so chunking changes memory, not results.
     """
 
     steps: int = 20
@@ -97,6 +102,7 @@ class EditConfig:
     scaling_factor: float = 0.18215
     dtype: str = "float32"
     guidance: tuple[float, float] = (7.5, 1.5)
+    vae_chunk: int | None = None
 
 
 # ----------------------------------------------------------------------------- pure pieces
@@ -118,17 +124,44 @@ def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
                             antialias=True)
 
 
+def in_chunks(fn: Callable, x: jax.Array, chunk: int | None):
+    """``fn(x)`` for a batch-wise ``fn`` (each example's output depends on that example
+    only), evaluated over chunks of ``chunk`` examples one after another (``lax.map``), so
+    the temporaries held at once are one chunk's. The batch is padded to a multiple of
+    ``chunk`` (with copies of its last example, dropped after). None, or a chunk not
+    smaller than the batch: one call."""
+    b = x.shape[0]
+    if chunk is None or chunk >= b:
+        return fn(x)
+    chunk = max(int(chunk), 1)
+    pad = -b % chunk
+    if pad:
+        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)])
+    out = jax.lax.map(fn, x.reshape(-1, chunk, *x.shape[1:]))
+    return jax.tree_util.tree_map(lambda y: y.reshape(-1, *y.shape[2:])[:b], out)
+
+
 def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.Array,
                    cfg: EditConfig) -> tuple[jax.Array, jax.Array]:
     """(latents, cond), float32 [B, h/f, w/f, 4] each, from images in [0, 1] at model size
     (f: :func:`latent_factor`).
 
     One VAE pass over both: the render's posterior sample mean + std * ``vae_noise`` times
-    the scaling factor, and the original's posterior mode (its mean), unscaled.
+    the scaling factor, and the original's posterior mode (its mean), unscaled. With
+    ``cfg.vae_chunk`` = c, c views (their renders and originals, 2c images) per pass
+    (:func:`in_chunks`).
     """
     b = images.shape[0]
-    pair = jnp.concatenate([images, originals]) * 2 - 1
-    mean, logvar = vae.encode(pair.astype(cfg.dtype))
+    if cfg.vae_chunk is None or cfg.vae_chunk >= b:
+        pair = jnp.concatenate([images, originals]) * 2 - 1
+        mean, logvar = vae.encode(pair.astype(cfg.dtype))
+    else:  # views [B, 2, H, W, 3]: each chunk encodes its renders and originals together
+        pairs = (jnp.stack([images, originals], 1) * 2 - 1).astype(cfg.dtype)
+        flat = lambda v: v.reshape(-1, *v.shape[2:])  # noqa: E731 - [c, 2, ...] -> [2c, ...]
+        both = in_chunks(lambda v: jax.tree_util.tree_map(
+            lambda y: y.reshape(v.shape[0], 2, *y.shape[1:]), vae.encode(flat(v))),
+            pairs, cfg.vae_chunk)
+        mean, logvar = (jnp.concatenate([y[:, 0], y[:, 1]]) for y in both)
     mean, logvar = mean.astype(jnp.float32), logvar.astype(jnp.float32)
     std = jnp.exp(0.5 * jnp.clip(logvar, -30.0, 20.0))  # diffusers' posterior clamps logvar
     latents = (mean[:b] + std[:b] * vae_noise) * cfg.scaling_factor
@@ -174,8 +207,9 @@ def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, nu
 
 def decode(vae, latents: jax.Array, cfg: EditConfig) -> jax.Array:
     """Latents [B, h, w, 4] -> images float32 [B, f h, f w, 3] in [0, 1] (f:
-    :func:`latent_factor`)."""
-    decoded = vae.decode((latents / cfg.scaling_factor).astype(cfg.dtype)).astype(jnp.float32)
+    :func:`latent_factor`), decoded ``cfg.vae_chunk`` views at a time (:func:`in_chunks`)."""
+    decoded = in_chunks(vae.decode, (latents / cfg.scaling_factor).astype(cfg.dtype),
+                        cfg.vae_chunk).astype(jnp.float32)
     return jnp.clip((decoded + 1) / 2, 0, 1)
 
 
@@ -243,6 +277,18 @@ edit_batch_jit = eqx.filter_jit(edit_batch)
 edit_with_noise_jit = eqx.filter_jit(edit_with_noise)
 
 
+def _edit_batch_into(kept: tuple, images: jax.Array, cfg: EditConfig, model_hw: tuple[int, int]):
+    nets, originals, embeddings, null, keys, t_bounds, schedule = kept
+    return edit_batch(nets, images, originals, embeddings, null, keys, t_bounds, schedule, cfg,
+                      model_hw)
+
+
+#: :data:`edit_batch_jit` with ``images`` donated: the output (float32, the images' shape)
+#: is written into the images' buffer instead of a new one. Only for an images buffer the
+#: caller no longer holds (:meth:`JaxIP2PEditor.edit_many` uses it for the copies it makes).
+edit_batch_donating_jit = eqx.filter_jit(_edit_batch_into, donate="all-except-first")
+
+
 # ----------------------------------------------------------------------------- the editor
 
 def default_dtype(device: jax.Device) -> str:
@@ -275,6 +321,30 @@ def _as_batch(x, field: str, ndim: int) -> jax.Array:
     return x
 
 
+#: Queries per attention chunk (:class:`JaxIP2PEditor`'s ``attention_chunk``): SD's first
+#: level at 512 px has 4096 positions, so 4 chunks there; 256 px and below, one.
+ATTENTION_CHUNK = 1024
+#: Views per VAE pass (:attr:`EditConfig.vae_chunk`): one 512 px view's decode already
+#: fills an accelerator, and a batch of 8 at once would hold 8 views' activations.
+VAE_CHUNK = 1
+#: Where the text encoder may live once the null prompt is encoded (:class:`JaxIP2PEditor`).
+TEXT_ENCODER_RESIDENCY = ("auto", "device", "host", "reload")
+
+
+def _residency(value: str, device: jax.Device, load: Callable | None) -> str:
+    if value not in TEXT_ENCODER_RESIDENCY:
+        raise DataError("text_encoder_residency", f"must be one of {TEXT_ENCODER_RESIDENCY}, "
+                        f"got {value!r}")
+    if value == "reload" and load is None:
+        raise DataError("text_encoder_residency", "'reload' needs load_text_encoder")
+    if value != "auto":
+        return value
+    if device.platform != "cpu":
+        return "host"
+    return "reload" if load is not None else "device"
+
+
+
 class JaxIP2PEditor:
     """InstructPix2Pix in JAX implementing :class:`jaxedit.editors.Editor` (module docstring).
 
@@ -291,6 +361,23 @@ class JaxIP2PEditor:
       batch: most views per :meth:`edit_many` call when several are due at once (a
         subtask's initial sweep, the difficulty's views; :func:`jaxedit.editors.edit_views`).
         Default: :func:`default_batch` of the devices.
+
+    Memory (what an edit at 512 px holds; ``benchmarks/memory.py`` measures it):
+      attention_chunk: queries per attention chunk in the UNet and the VAE
+        (:func:`jaxedit.models.set_query_chunk`): the float32 logits held at once are
+        [3B, heads, chunk, L] instead of [3B, heads, L, L] (L = 4096 at SD's first level at
+        512 px: 1.6 GB per view at once). Same results. None: no chunking.
+      vae_chunk: views per VAE pass (:attr:`EditConfig.vae_chunk`); same results. Default
+        :data:`VAE_CHUNK`; None: the whole batch at once.
+      text_encoder_residency: where the text encoder lives once the null prompt is
+        encoded (embeddings are cached per prompt, so it runs only for a new prompt):
+        "device" (kept on the editor's devices), "host" (a NumPy copy in host memory,
+        uploaded for a new prompt and freed after), "reload" (dropped; reloaded from
+        ``load_text_encoder`` for a new prompt) or "auto": "host" on accelerators, and on
+        the CPU (where host memory is the device's) "reload" when ``load_text_encoder`` is
+        given, else "device".
+      load_text_encoder: ``() -> module``, the text encoder as loaded (from_pretrained:
+        from the weights folder).
     """
 
     name = "ip2p"
@@ -300,7 +387,9 @@ class JaxIP2PEditor:
                  clip_sample: float | None = None, scaling_factor: float = 0.18215,
                  devices: Sequence[jax.Device] | None = None,
                  size: int | None = 512, steps: int = 20, source: str = "",
-                 batch: int | None = None):
+                 batch: int | None = None, attention_chunk: int | None = ATTENTION_CHUNK,
+                 vae_chunk: int | None = VAE_CHUNK, text_encoder_residency: str = "auto",
+                 load_text_encoder: Callable[[], Any] | None = None):
         self.devices = list(devices) if devices else [jax.devices()[0]]
         self.batch = default_batch(self.devices) if batch is None else int(batch)
         if self.batch < 1:
@@ -315,11 +404,23 @@ class JaxIP2PEditor:
         if int(steps) < 1:
             raise DataError("steps", f"must be >= 1, got {steps}")
         self.size, self.steps, self.source = size, int(steps), source
+        for name, value in (("attention_chunk", attention_chunk), ("vae_chunk", vae_chunk)):
+            if value is not None and int(value) < 1:
+                raise DataError(name, f"must be >= 1 or None, got {value}")
+        self.attention_chunk = None if attention_chunk is None else int(attention_chunk)
+        self.vae_chunk = None if vae_chunk is None else int(vae_chunk)
         self.mesh = Mesh(np.array(self.devices), (VIEWS,))
         self.replicated = NamedSharding(self.mesh, PartitionSpec())
         self.by_view = NamedSharding(self.mesh, PartitionSpec(VIEWS))
-        self.nets = jax.device_put(Networks(unet, vae), self.replicated)
-        self.text_encoder = jax.device_put(text_encoder, self.replicated)
+        from ..models import set_query_chunk
+        # A device_put to the device the weights are on shares their buffers (no copy).
+        self.nets = jax.device_put(set_query_chunk(Networks(unet, vae), self.attention_chunk),
+                                   self.replicated)
+        self.text_encoder_residency = _residency(text_encoder_residency, self.devices[0],
+                                                 load_text_encoder)
+        self._load_text_encoder = load_text_encoder
+        self._text_encoder = jax.device_put(text_encoder, self.replicated)
+        self._text_encoder_host = None
         self.tokenize = tokenize
         self.schedule = jax.device_put(DiffusionSchedule(
             jnp.asarray(schedule.alphas_cumprod, jnp.float32),
@@ -330,15 +431,23 @@ class JaxIP2PEditor:
         self.scaling_factor = float(scaling_factor)
         self._embeddings: dict[str, np.ndarray] = {}
         self._encode = eqx.filter_jit(lambda enc, ids: enc(ids).astype(jnp.float32))
+        if self.text_encoder_residency != "device":
+            self.encode("")  # the null prompt, always needed, while the encoder is at hand
+            if self.text_encoder_residency == "host":
+                self._text_encoder_host = jax.device_get(self._text_encoder)
+            self._text_encoder = None
 
     @classmethod
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, devices=None,
                         dtype=None, size: int | None = 512, steps: int = 20,
-                        batch: int | None = None) -> "JaxIP2PEditor":
+                        batch: int | None = None, **memory) -> "JaxIP2PEditor":
         """Load a local diffusers folder (or a Hub id in the local cache) into JAX, no torch.
 
         ``path`` as :func:`jaxedit.editors.diffusion.resolve_weights`; the scheduler config is
         read as Stable Diffusion 1.x's DDIM (:func:`jaxedit.editors.diffusion.ddim_settings`).
+        Each tensor is cast to ``dtype`` as it is read (a bfloat16 load never holds the
+        float32 networks). ``memory``: the constructor's ``attention_chunk``, ``vae_chunk``,
+        ``text_encoder_residency``; the text encoder is reloaded from ``path`` when released.
         """
         from ..models import load_ip2p
         from .diffusion import ddim_settings, resolve_weights
@@ -354,7 +463,10 @@ class JaxIP2PEditor:
                      prediction_type=str(models.scheduler.prediction_type),
                      clip_sample=settings["clip_sample"],
                      scaling_factor=float(models.vae.scaling_factor), devices=devices,
-                     size=size, steps=steps, source=str(root), batch=batch)
+                     size=size, steps=steps, source=str(root), batch=batch,
+                     load_text_encoder=functools.partial(load_text_encoder, root,
+                                                         jnp.dtype(name)), **memory)
+        del models  # the editor holds the networks (on its devices) and no second copy
         log.info("InstructPix2Pix (JAX) loaded from %s on %s (%s), size %s, %d DDIM steps, "
                  "batches of %d", root, editor.devices, editor.dtype, size, steps, editor.batch)
         return editor
@@ -366,7 +478,8 @@ class JaxIP2PEditor:
     def config(self, guidance=(7.5, 1.5)) -> EditConfig:
         return EditConfig(steps=self.steps, prediction_type=self.prediction_type,
                           clip_sample=self.clip_sample, scaling_factor=self.scaling_factor,
-                          dtype=self.dtype, guidance=tuple(float(g) for g in guidance))
+                          dtype=self.dtype, guidance=tuple(float(g) for g in guidance),
+                          vae_chunk=self.vae_chunk)
 
     # -- embeddings -----------------------------------------------------------------------
 
@@ -376,8 +489,10 @@ class JaxIP2PEditor:
             raise DataError("prompt", f"must be a string, got {type(prompt).__name__}")
         if prompt not in self._embeddings:
             ids = jnp.asarray(np.asarray(self.tokenize([prompt]), np.int32))
-            hidden = self._encode(self.text_encoder, jax.device_put(ids, self.replicated))
+            encoder = self.text_encoder  # a released one is fetched for this prompt only
+            hidden = self._encode(encoder, jax.device_put(ids, self.replicated))
             self._embeddings[prompt] = np.asarray(hidden[0], np.float32)
+            del encoder  # a released encoder's device copy goes with it
         return self._embeddings[prompt].copy()
 
     def _embedding(self, embedding) -> jax.Array:
@@ -387,6 +502,17 @@ class JaxIP2PEditor:
             raise DataError("embedding", f"expected shape {null.shape} or [B, *{null.shape}] "
                             f"(from encode), got {tuple(e.shape)}")
         return e
+
+    @property
+    def text_encoder(self):
+        """The text encoder on the editor's devices. Once released
+        (``text_encoder_residency`` "host" or "reload") each access uploads the host copy or
+        reloads it, and the editor keeps no reference: the caller's goes when it is done."""
+        if self._text_encoder is not None:
+            return self._text_encoder
+        source = (self._text_encoder_host if self.text_encoder_residency == "host"
+                  else self._load_text_encoder())
+        return jax.device_put(source, self.replicated)
 
     # -- the edit -------------------------------------------------------------------------
 
@@ -418,7 +544,10 @@ class JaxIP2PEditor:
             raise DataError("embedding", f"{emb.shape[0]} embeddings for {b} views")
         t_bounds = np.asarray(timestep_bounds(timestep_range, self.num_train_timesteps), np.int32)
         pad = -b % len(self.devices)
-        batched = [images, originals, keys] + ([emb] if emb.ndim == 3 else [])
+        # The images' buffer is donated to the output when it is a copy made here (from
+        # NumPy, padded or converted to float32); never the caller's own device array.
+        own = not isinstance(images, jax.Array) or bool(pad) or images.dtype != jnp.float32
+        batched = [images.astype(jnp.float32), originals, keys] + ([emb] if emb.ndim == 3 else [])
         if pad:  # repeat the last view; its copies are dropped below
             batched = [jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]) for x in batched]
         batched = [jax.device_put(x, self.by_view) for x in batched]
@@ -426,9 +555,11 @@ class JaxIP2PEditor:
             batched.append(jax.device_put(emb, self.replicated))
         images, originals, keys, emb = batched
         null = jax.device_put(self.encode(""), self.replicated)
-        out = edit_batch_jit(self.nets, images, originals, emb, null, keys,
-                             jax.device_put(t_bounds, self.replicated), self.schedule,
-                             self.config(guidance), self.model_hw(*images.shape[1:3]))
+        kept = (self.nets, originals, emb, null, keys, jax.device_put(t_bounds, self.replicated),
+                self.schedule)
+        cfg, hw = self.config(guidance), self.model_hw(*images.shape[1:3])
+        out = (edit_batch_donating_jit(kept, images, cfg, hw) if own
+               else edit_batch_jit(self.nets, images, *kept[1:], cfg, hw))
         return out[:b] if pad else out
 
     def edit(self, image, original, embedding, key: jax.Array, *,
@@ -449,7 +580,9 @@ class JaxIP2PEditor:
                 "devices": [str(d) for d in self.devices], "dtype": self.dtype,
                 "size": self.size, "steps": self.steps, "batch": self.batch,
                 "clip_sample": self.clip_sample,
-                "prediction_type": self.prediction_type}
+                "prediction_type": self.prediction_type,
+                "attention_chunk": self.attention_chunk, "vae_chunk": self.vae_chunk,
+                "text_encoder_residency": self.text_encoder_residency}
 
 
 #: Views per device in one edit on an accelerator (512 px, bf16: a few GB of activations
@@ -469,6 +602,16 @@ def _float_dtype(module) -> str:
     leaves = [x for x in jax.tree_util.tree_leaves(eqx.filter(module, eqx.is_array))
               if jnp.issubdtype(x.dtype, jnp.floating)]
     return jnp.dtype(leaves[0].dtype).name if leaves else "float32"
+
+
+def load_text_encoder(root: str | os.PathLike, dtype=jnp.float32):
+    """The text encoder of a diffusers folder, alone (a released encoder's reload)."""
+    from pathlib import Path
+
+    from ..models import CLIPTextEncoder, load_module
+
+    return load_module(Path(root) / "text_encoder", CLIPTextEncoder.from_config,
+                       prefix=CLIPTextEncoder.CHECKPOINT_PREFIX, dtype=dtype)
 
 
 #: The CLI's factory (``--editor ip2p --ip2p-weights DIR``):
