@@ -1,14 +1,21 @@
 """Local edits (issue 35): does ``edit --local auto`` leave the rest of the scene as it was?
 
-    python benchmarks/local_edit.py [--smoke] [--out DIR] [--scenes person,tabletop]
+    python benchmarks/local_edit.py [--smoke] [--out DIR] [--cases face,person]
 
-Per scene (the built-in ``person``, Blender renders, and the procedural ``tabletop``), made
-and reconstructed once (:func:`jaxedit.pipelines.cache.prepared_scene`, cached in
-``DIR/local_edit_run/SCENE``), the simulated editor's local instruction ``paint the orange
-parts blue`` (the warm, coloured pixels only swap red and blue: the person's hair and skin,
-the tabletop's red ball and boxes; every other pixel of the target is the original) is run
-twice with the same plan and seed: with ``local=LocalSpec("auto")`` (``edit --local auto``)
-and as a global edit (``--local off``).
+Two cases, each a built-in scene made and reconstructed once
+(:func:`jaxedit.pipelines.cache.prepared_scene`, cached in ``DIR/local_edit_run/SCENE``) and
+edited twice with the same plan and seed: with ``local=LocalSpec("auto")`` (``edit --local
+auto``) and as a global edit (``--local off``):
+
+- ``face``: the trained editor that ships with jaxedit (the bundled small InstructPix2Pix,
+  :func:`jaxedit.editors.bundled_editor`, JAX) with its local instruction ``make his shirt
+  blue`` on the scene it was trained for. Its relevance is the "Watch Your Steps" noise
+  difference (:mod:`jaxedit.editors.ip2p_relevance`). The target is the scene with the
+  shoulders' albedo changed, ray-cast again at the held-out cameras (what the editor was
+  trained to produce, :func:`jaxedit.editors.edit_data._edited_scene`).
+- ``person`` (Blender renders): the simulated editor's local instruction ``paint the orange
+  parts blue`` (the warm, coloured pixels swap red and blue: his hair and skin; every other
+  pixel of the target is the original); the target is the editor's noise-free r = 1 edit.
 
 The region is the editable Gaussians of the local edit (:func:`jaxedit.edit.local.prepare`,
 the same call and key as :func:`jaxedit.pipelines.run_edit`), rendered at the held-out
@@ -17,19 +24,19 @@ Scores at the held-out views:
 
 - ``psnr_untouched``: renders vs the original reconstruction's renders, outside the region
   (goal >= 35 dB for the local edit; the global edit's figure for contrast);
-- ``psnr_region_vs_target``: renders vs the editor's noise-free target (r = 1) inside the
-  region (the local edit should be no worse than the global one);
-- ``psnr_vs_target``: the whole view vs the target (``metrics.json``'s figure);
+- ``psnr_region_vs_target``: renders vs the target inside the region (the local edit should
+  be no worse than the global one);
+- ``psnr_vs_target``: the whole view vs the target;
 - ``frozen`` / ``frozen_bit_identical``: the input's Gaussians outside the editable set and
   how many of them the edit left bit for bit (means, scales, rotations, opacities, SH);
 - ``relevance_seconds``: the time ``prepare`` took inside the edit (the editor's relevance
-  per training view, the lifting, the rendered masks), beside the edits' wall times.
+  per training view, the lifting, the rendered masks), beside the edits' wall times;
+  ``relevance_seconds_alone``: the benchmark's own first call (cold: it compiles).
 
-Writes ``DIR/local_edit.json`` and ``DIR/local_edit_SCENE.png`` (rows: held-out views;
+Writes ``DIR/local_edit.json`` and ``DIR/local_edit_CASE.png`` (rows: held-out views;
 columns: the reconstruction, the target, the global edit, the local edit, the region as a
-heat overlay). ``--smoke``: the tabletop only, 32 px, 4 + 2 views, the dataset's initial cloud instead of
-a reconstruction, one subtask of a few steps (its time is compiling: the global and the
-local edit's trainers are compiled apart, the frozen mask being part of the state).
+heat overlay; 2x nearest-neighbour). ``--smoke``: the face case only, 32 px, 4 + 2 views, the
+dataset's initial cloud instead of a reconstruction, one subtask of a few steps, 2 DDIM steps.
 """
 
 from __future__ import annotations
@@ -40,21 +47,21 @@ from pathlib import Path
 import numpy as np
 from common import parse_args, peak_rss_mb, write_json
 
-PROMPT = "paint the orange parts blue"
-SCENES = ("person", "tabletop")
+#: case -> (scene, editor, instruction).
+CASES = {"face": ("face", "ip2p", "make his shirt blue"),
+         "person": ("person", "simulated", "paint the orange parts blue")}
 FULL = dict(size=64, views=24, test_views=4, iters=1500, max_steps=300, patience=40,
-            warmup=30, difficulty_views=8, subtasks=None)
-#: --smoke: the procedural scene only, one subtask of a few steps on the initial cloud.
-SMOKE = dict(size=32, views=4, test_views=2, iters=0, max_steps=8, patience=4, warmup=2,
-             difficulty_views=2, subtasks=1)
-SMOKE_POINTS = 2000
+            warmup=30, difficulty_views=8, subtasks=None, ip2p_steps=10)
+#: --smoke: the face case only, one subtask of a few steps on the initial cloud.
+SMOKE = dict(size=32, views=4, test_views=2, iters=0, max_steps=6, patience=3, warmup=2,
+             difficulty_views=2, subtasks=1, ip2p_steps=2)
+SMOKE_POINTS = 1000
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
 
 def extra(p):
-    p.add_argument("--scenes", default=None,
-                   help=f"comma-separated built-in scenes (default {','.join(SCENES)}; "
-                        "--smoke: tabletop)")
+    p.add_argument("--cases", default=None,
+                   help=f"comma-separated cases (default {','.join(CASES)}; --smoke: face)")
     p.add_argument("--seed", type=int, default=0, help="the edits' seed")
 
 
@@ -83,14 +90,8 @@ def bit_identical(before, after, rows) -> int:
     return int(same.sum())
 
 
-def heat(image, weight):
-    """``image`` float [H, W, 3] with ``weight`` [H, W] in [0, 1] as a red overlay."""
-    w = np.clip(np.asarray(weight), 0, 1)[..., None]
-    return (1 - 0.6 * w) * np.asarray(image) + 0.6 * w * np.array([1.0, 0.1, 0.0])
-
-
 # ---------------------------------------------------------------------------
-# One scene
+# One case
 # ---------------------------------------------------------------------------
 def prepare_scene(out: Path, scene: str, sizes: dict, seed: int, log=print):
     """(EditData, the reconstruction's Gaussians) of a built-in scene, cached in ``out``."""
@@ -112,18 +113,47 @@ def prepare_scene(out: Path, scene: str, sizes: dict, seed: int, log=print):
     return EditData.from_dataset(dataset), g
 
 
-def run_scene(out: Path, scene: str, sizes: dict, seed: int) -> dict:
+def make_editor(kind: str, sizes: dict):
+    if kind == "simulated":
+        from jaxedit.editors import SimulatedEditor
+
+        return SimulatedEditor()
+    from jaxedit.edit.buffer import pick_devices
+    from jaxedit.editors import bundled_editor, native_size
+    from jaxedit.editors.jax_ip2p import load_editor
+
+    weights = bundled_editor()
+    return load_editor(weights, devices=[pick_devices()[1]], size=native_size(weights),
+                       steps=sizes["ip2p_steps"])
+
+
+def targets(case: str, editor, prompt: str, data, sizes: dict) -> np.ndarray:
+    """float32 [T, H, W, 3]: what the edit should look like at the held-out views."""
+    if case == "person":
+        return np.stack([editor.target(o, 1.0, prompt) for o in data.test_images])
+    from jaxedit.editors.edit_data import _edited_scene
+    from jaxedit.scenes import get_scene, render_scene, scene_cameras
+    from jaxedit.scenes.dataset import PROCEDURAL_DEFAULTS
+
+    scene = get_scene(CASES[case][0], 0)  # prepared_scene's seed
+    cameras, _, test = scene_cameras(scene, views=sizes["views"], test_views=sizes["test_views"],
+                                     size=sizes["size"])
+    return np.asarray(render_scene(_edited_scene(scene, prompt), cameras[test],
+                                   supersample=PROCEDURAL_DEFAULTS["supersample"]), np.float32)
+
+
+def run_case(out: Path, case: str, sizes: dict, seed: int) -> dict:
     import jax
 
     from jaxedit.edit import ProEditConfig, TrainSettings
-    from jaxedit.editors import SimulatedEditor
     from jaxedit.edit import local as L
     from jaxedit.edit.outputs import Renderer
     from jaxedit.io import write_image
     from jaxedit.pipelines import run_edit
 
+    scene, kind, prompt = CASES[case]
     data, g = prepare_scene(out / "local_edit_run" / scene, scene, sizes, seed)
-    editor = SimulatedEditor()
+    editor = make_editor(kind, sizes)
     config = ProEditConfig.for_mode("proedit", max_steps=sizes["max_steps"],
                                     patience=sizes["patience"], warmup=sizes["warmup"],
                                     difficulty_views=sizes["difficulty_views"],
@@ -132,19 +162,19 @@ def run_scene(out: Path, scene: str, sizes: dict, seed: int) -> dict:
     spec = L.LocalSpec("auto")
     # The region as run_edit makes it (same call, same key).
     editable, _, figures = L.prepare(spec, g, data.train_cameras, data.train_images,
-                                     editor=editor, embedding=editor.encode(PROMPT),
+                                     editor=editor, embedding=editor.encode(prompt),
                                      key=jax.random.fold_in(jax.random.key(seed), 35))
     renderer = Renderer(config.background)
     n_test = len(data.test_images)
     base = np.stack([renderer.rgb(g, data.test_cameras[i]) for i in range(n_test)])
     region_w = L.render_editable(g, data.test_cameras, editable)
     region = region_w >= 0.5
-    target = np.stack([editor.target(o, 1.0, PROMPT) for o in data.test_images])
+    target = targets(case, editor, prompt, data, sizes)
     frozen = np.asarray(L.frozen_of(g, editable))
     runs, renders = {}, {}
     for name, local in (("global", None), ("local", spec)):
         t0 = time.perf_counter()
-        res = run_edit(editor, PROMPT, data, g, config=config,
+        res = run_edit(editor, prompt, data, g, config=config,
                        settings=TrainSettings(), seed=seed, run_dir=None, report=False,
                        local=local)
         wall = time.perf_counter() - t0
@@ -156,34 +186,42 @@ def run_scene(out: Path, scene: str, sizes: dict, seed: int) -> dict:
             "psnr_untouched": masked_psnr(rgb, base, ~region),
             "psnr_region_vs_target": masked_psnr(rgb, target, region),
             "psnr_region_vs_original": masked_psnr(rgb, base, region),
-            "psnr_vs_target": m["psnr_vs_target"],
+            "psnr_vs_target": masked_psnr(rgb, target, np.ones(region.shape, bool)),
             "frozen_bit_identical": bit_identical(g, out_g, frozen),
             "num_gaussians": m["num_gaussians"], "subtasks": m["subtasks"],
             "total_steps": m["total_steps"], "seconds": wall,
             "relevance_seconds": (res["schedule"].get("local") or {}).get("seconds")}
-        print(scene, name, {k: v for k, v in runs[name].items()})
+        print(case, name, runs[name], flush=True)
     rows = [np.concatenate([base[i], target[i], renders["global"][i], renders["local"][i],
-                            heat(base[i], region_w[i])], axis=1) for i in range(n_test)]
-    image = out / f"local_edit_{scene}.png"
-    write_image(image, np.clip(np.concatenate(rows, axis=0), 0, 1).astype(np.float32))
-    return {"scene": scene, "input_gaussians": int(g.num_alive()),
+                            L.heat_overlay(base[i], region_w[i])], axis=1)
+            for i in range(n_test)]
+    sheet = np.clip(np.concatenate(rows, axis=0), 0, 1).astype(np.float32)
+    image = out / f"local_edit_{case}.png"
+    write_image(image, np.repeat(np.repeat(sheet, 2, 0), 2, 1))
+    return {"case": case, "scene": scene, "editor": kind, "prompt": prompt,
+            "input_gaussians": int(g.num_alive()),
             "editable": figures["editable"], "frozen": int(frozen.sum()),
             "train_mask_fraction": figures["mask_fraction"],
             "test_region_fraction": float(region.mean()),
-            "target_unchanged_outside_region": masked_psnr(target, np.stack(data.test_images),
-                                                           ~region),
+            "target_vs_original_outside_region": masked_psnr(target, np.stack(data.test_images),
+                                                             ~region),
+            "target_vs_original_inside_region": masked_psnr(target, np.stack(data.test_images),
+                                                            region),
             "relevance_seconds_alone": figures["seconds"], "runs": runs, "image": image.name}
 
 
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra)
     sizes = SMOKE if args.smoke else FULL
-    text = args.scenes or ("tabletop" if args.smoke else ",".join(SCENES))
-    scenes = [s.strip() for s in text.split(",") if s.strip()]
+    text = args.cases or ("face" if args.smoke else ",".join(CASES))
+    cases = [s.strip() for s in text.split(",") if s.strip()]
+    unknown = [c for c in cases if c not in CASES]
+    if unknown:
+        raise SystemExit(f"unknown case {unknown[0]!r}; known: {', '.join(CASES)}")
     t0 = time.perf_counter()
-    results = [run_scene(args.out, s, sizes, args.seed) for s in scenes]
+    results = [run_case(args.out, c, sizes, args.seed) for c in cases]
     write_json(args.out, "local_edit", {
-        "prompt": PROMPT, "settings": {**sizes, "seed": args.seed, "scenes": scenes},
+        "settings": {**sizes, "seed": args.seed, "cases": cases}, "smoke": args.smoke,
         "results": results, "wall_s": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb(),
         "goal": "psnr_untouched >= 35 dB (local); psnr_region_vs_target local >= global"})
 

@@ -6,9 +6,14 @@ Serves, on 127.0.0.1 only, the snapshots an edit run wrote (``original/scene.ply
 then ``subtasks/NN_rX.XXX/scene.ply`` in schedule order) with viser, the viewer
 library nerfstudio uses. A slider picks the snapshot, i.e. the aggressivity of the
 edit; the button "write selected.ply" does what ``edit --select-only --select K``
-does for the subtask on screen. ``edit --view`` serves the run the same way while it
-is edited: a background thread polls the run directory and shows each snapshot as
-its subtask ends. To view a run on a remote machine, forward the port (``ssh -L``).
+does for the subtask on screen. A local edit's run (``edit --local`` / ``--region`` /
+``--masks``, issue 35) adds a checkbox "colour by relevance": the splats take the colour
+of their lifted relevance (``local/gaussians.npz``: blue 0 .. red 1, the editable
+Gaussians' set where the run kept only that; yellow: Gaussians the edit moved or created,
+all from editable ones), so the frozen part of the scene shows as what stayed bit for bit.
+``edit --view`` serves the run the same way while it is edited: a background thread
+polls the run directory and shows each snapshot as its subtask ends. To view a run on a
+remote machine, forward the port (``ssh -L``).
 
 Needs the optional extra ``viewer`` (``pip install 'jaxedit[viewer]'``).
 """
@@ -79,6 +84,15 @@ def run_snapshots(run_dir: Path) -> list[Snapshot]:
     return snaps
 
 
+def relevance_of_run(run_dir: Path) -> dict | None:
+    """A local edit's per-Gaussian relevance (``RUN_DIR/local/gaussians.npz``,
+    :func:`jaxedit.edit.local.load_gaussian_relevance`), None for a global edit's run."""
+    from jaxedit.edit.local import load_gaussian_relevance
+    from jaxedit.pipelines.edit import LOCAL_DIR
+
+    return load_gaussian_relevance(Path(run_dir) / LOCAL_DIR)
+
+
 def import_viser():
     """The viser module, or a one-line DataError naming the missing extra."""
     from jaxedit import DataError
@@ -132,6 +146,14 @@ class SnapshotViewer:
         self._status = gui.add_markdown("")
         self._slider.on_update(lambda _event: self._display(int(self._slider.value)))
         self._button.on_click(self._select_clicked)
+        # A local edit's per-Gaussian relevance (None: a global edit, no checkbox).
+        self._relevance = relevance_of_run(run_dir) if run_dir is not None else None
+        self._colour_by_relevance = None
+        if self._relevance is not None:
+            self._colour_by_relevance = gui.add_checkbox(
+                "colour by relevance", initial_value=False,
+                hint="blue: frozen (relevance 0) .. red: relevant; yellow: moved or new")
+            self._colour_by_relevance.on_update(lambda _event: self._redisplay())
 
     @property
     def url(self) -> str:
@@ -180,11 +202,22 @@ class SnapshotViewer:
             if index == self._shown or not 0 <= index < len(self._scenes):
                 return
             label, subtask, arrays = self._scenes[index]
+            if self._colour_by_relevance is not None and self._colour_by_relevance.value:
+                from jaxedit.edit.local import relevance_colours
+
+                arrays = dict(arrays, rgbs=relevance_colours(self._relevance, arrays["centers"]))
             # One node name: a new snapshot replaces the old one in every browser.
             self.server.scene.add_gaussian_splats("/scene", **arrays)
             self._caption.content = f"**{label}**  \n{len(arrays['centers'])} Gaussians"
             self._button.disabled = subtask is None or self.run_dir is None
             self._shown = index
+
+    def _redisplay(self) -> None:
+        """Draw the snapshot on screen again (the colouring changed)."""
+        with self._lock:
+            index, self._shown = self._shown, None
+            if index is not None:
+                self._display(index)
 
     def select(self) -> Path | None:
         """Write ``selected.ply`` from the subtask on screen (the button's action)."""

@@ -373,6 +373,64 @@ def test_local_edit_keeps_the_frozen_bits_and_resumes_exactly(ball, tmp_path):
 
 
 # ---------------------------------------------------------------------------
+# The viewer: the splats coloured by their saved relevance
+# ---------------------------------------------------------------------------
+def test_viewer_colours_the_gaussians_by_their_saved_relevance(tmp_path):
+    import dataclasses
+
+    from experiments import view
+    from jaxedit.io import save_ply
+
+    g = make_scene(5)
+    alive = np.asarray(g.alive)
+    rel = np.zeros(N, np.float32)
+    rel[alive] = np.linspace(0.0, 1.0, int(alive.sum()))
+    ed = alive & (rel >= L.GAUSSIAN_THRESHOLD)
+    run = tmp_path / "run"
+    L.save_gaussian_relevance(run / "local", g, ed, rel)
+    saved = view.relevance_of_run(run)
+    assert np.array_equal(saved["editable"], ed[alive]) and bool(saved["lifted"])
+    np.testing.assert_array_equal(saved["relevance"], rel[alive])
+    # an edited snapshot: one Gaussian moved, the rest (frozen ones among them) kept
+    moved = dataclasses.replace(g, means=g.means.at[int(np.flatnonzero(alive)[-1])].add(0.1))
+    colours = L.relevance_colours(saved, np.asarray(moved.means)[alive])
+    np.testing.assert_allclose(colours[0], L.COLD, atol=1e-6)  # relevance 0: frozen
+    np.testing.assert_allclose(colours[-1], L.CHANGED)  # moved by the edit
+    mid = colours[:-1]
+    assert np.all(np.diff(mid[:, 0]) >= 0) and np.all(np.diff(mid[:, 2]) <= 0)  # blue -> red
+    # without the lifted relevance (a region alone) the flags stand in for it
+    L.save_gaussian_relevance(tmp_path / "flags", g, ed)
+    assert np.array_equal(L.load_gaussian_relevance(tmp_path / "flags")["relevance"],
+                          ed[alive].astype(np.float32))
+    assert L.load_gaussian_relevance(tmp_path) is None  # a global edit's run
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / L.GAUSSIANS_FILE).write_bytes(b"not an npz")
+    with pytest.raises(DataError, match="unreadable"):
+        L.load_gaussian_relevance(tmp_path / "bad")
+    pytest.importorskip("viser", reason="the optional extra 'viewer' is not installed")
+    save_ply(run / "original" / "scene.ply", g)
+    viewer = view.open_run(run, port=0)
+    try:
+        drawn = []
+        viewer.server.scene.add_gaussian_splats = lambda name, **a: drawn.append(a["rgbs"])
+        toggle = viewer._colour_by_relevance
+        assert toggle is not None and not toggle.value
+        toggle.value = True  # what ticking the checkbox does
+        np.testing.assert_allclose(drawn[-1], L.relevance_colours(saved, saved["means"]))
+        toggle.value = False
+        assert not np.allclose(drawn[-1], L.relevance_colours(saved, saved["means"]))
+    finally:
+        viewer.close()
+    plain = tmp_path / "plain"
+    save_ply(plain / "original" / "scene.ply", g)
+    viewer = view.open_run(plain, port=0)
+    try:
+        assert viewer._colour_by_relevance is None  # a global edit: no checkbox
+    finally:
+        viewer.close()
+
+
+# ---------------------------------------------------------------------------
 # The CLI on a built-in scene: make-scene, reconstruct, edit --local / --region / --masks
 # ---------------------------------------------------------------------------
 @pytest.mark.slow
