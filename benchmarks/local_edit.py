@@ -17,7 +17,7 @@ auto``) and as a global edit (``--local off``):
   parts blue`` (the warm, coloured pixels swap red and blue: his hair and skin; every other
   pixel of the target is the original); the target is the editor's noise-free r = 1 edit.
 
-The region is the editable Gaussians of the local edit (:func:`jaxedit.edit.local.prepare`,
+The region is the editable Gaussians of the local edit (:func:`jaxedit.edit.local.plan_local`,
 the same call and key as :func:`jaxedit.pipelines.run_edit`), rendered at the held-out
 views (:func:`jaxedit.edit.local.render_editable`): inside where that weight is >= 0.5.
 Scores at the held-out views:
@@ -161,9 +161,10 @@ def run_case(out: Path, case: str, sizes: dict, seed: int) -> dict:
                                     turntable_frames=0)
     spec = L.LocalSpec("auto")
     # The region as run_edit makes it (same call, same key).
-    editable, _, figures = L.prepare(spec, g, data.train_cameras, data.train_images,
-                                     editor=editor, embedding=editor.encode(prompt),
-                                     key=jax.random.fold_in(jax.random.key(seed), 35))
+    plan = L.plan_local(spec, g, data.train_cameras, data.train_images, editor=editor,
+                        embedding=editor.encode(prompt),
+                        key=jax.random.fold_in(jax.random.key(seed), 35))
+    editable, figures = plan.editable, plan.figures
     renderer = Renderer(config.background)
     n_test = len(data.test_images)
     base = np.stack([renderer.rgb(g, data.test_cameras[i]) for i in range(n_test)])

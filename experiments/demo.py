@@ -58,10 +58,10 @@ class DemoConfig:
       editor: 2D editor: ip2p, the small InstructPix2Pix bundled with jaxedit (JAX, 64 px),
         or simulated, the offline test instrument.
       size: image size of the scene's views.
-      views: training views (24: every view is edited at the start of each subtask, so the
+      views: training views (16: every view is edited at the start of each subtask, so the
         views set the cost of a subtask's initial sweep).
       test_views: held-out test views.
-      iters: reconstruction iterations.
+      iters: reconstruction iterations (1000: about 35 dB on the held-out views).
       threshold: subtask difficulty threshold of the scheduler (ignored with --subtasks;
         None: the edit's default under LPIPS, 0.025 under the MS-SSIM fallback).
       distance: difficulty distance of the edit (auto: LPIPS-VGG when its weights are
@@ -74,7 +74,7 @@ class DemoConfig:
       difficulty_views: views the difficulty is taken over (a seeded subset of the training
         views; under LPIPS-VGG on a CPU each view costs about a second per ratio).
       patience: steps without a new minimum of the running mean loss that end a subtask
-        (the edit's 60 is sized for captures of hundreds of views; 24 views of 64 px reach
+        (the edit's 60 is sized for captures of hundreds of views; 16 views of 64 px reach
         their plateau sooner).
       ip2p_steps: DDIM steps per edit of the bundled editor (10: its edits at 10 and 20
         steps look alike, and the edits are most of the demo's time).
@@ -90,9 +90,9 @@ class DemoConfig:
     prompt: str | None = None
     editor: str = "ip2p"
     size: int = 64
-    views: int = 24
+    views: int = 16
     test_views: int = 4
-    iters: int = 1500
+    iters: int = 1000
     threshold: float | None = None
     distance: str = "auto"
     subtasks: int | None = None
@@ -100,7 +100,7 @@ class DemoConfig:
     max_steps: int | None = None
     turntable_frames: int = ProEditConfig.turntable_frames
     difficulty_views: int = 4
-    patience: int = 40
+    patience: int = 30
     ip2p_steps: int = 10
     refine_first: bool = False
     target_subtasks: int | None = 4

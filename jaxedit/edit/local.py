@@ -268,15 +268,6 @@ def plan_local(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, e
     return LocalPlan(ed, masks, figures, None if rel is None else np.asarray(rel, np.float32))
 
 
-def prepare(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, embedding=None,
-            key=None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(editable bool [C], view masks float [N, H, W], figures) of a local edit:
-    :func:`plan_local` without the lifted relevance."""
-    p = plan_local(spec, gaussians, cameras, originals, editor=editor, embedding=embedding,
-                   key=key)
-    return p.editable, p.masks, p.figures
-
-
 def heat_overlay(image, weight, colour=(1.0, 0.15, 0.0), strength: float = 0.6) -> np.ndarray:
     """``image`` float [H, W, 3] in [0, 1] with ``weight`` [H, W] in [0, 1] laid over it in
     ``colour`` (at most ``strength`` of it), float32 [H, W, 3]: a relevance heat map."""

@@ -118,15 +118,16 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     run_dir = None if run_dir is None else Path(run_dir)
     trainer = progressive.make_trainer(config, settings or TrainSettings(), data, gaussians)
     _, editor_device = pick_devices()
-    masks, local_figures = None, None
+    masks, local_figures, local_plan = None, None, None
     if local is not None and local.active and resume_from is not None:
         raise DataError("--local", "a local edit starts from the input scene, not --resume-from")
     if local is not None and local.active:
-        editable, masks, local_figures = local_lib.prepare(
+        local_plan = local_lib.plan_local(
             local, gaussians, data.train_cameras, data.train_images, editor=editor,
             embedding=None if local.mode != "auto" else editor.encode(prompt),
             key=jax.random.fold_in(jax.random.key(seed), 35))
-        trainer.editable = editable
+        masks, local_figures = local_plan.masks, local_plan.figures
+        trainer.editable = local_plan.editable
         log(f"local edit: {local_figures['editable']} Gaussians editable, "
             f"{local_figures['frozen']} frozen, {100 * local_figures['mask_fraction']:.1f}% "
             f"of the pixels inside ({local_figures['seconds']:.1f} s)")
@@ -169,7 +170,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
         if local_figures is not None:  # the region at the held-out views, for the report
             local_lib.write_overlays(run_dir / LOCAL_DIR, gaussians, data.test_cameras,
-                                     data.test_images, editable)
+                                     data.test_images, local_plan.editable,
+                                     relevance=local_plan.relevance)
 
     def save(state):
         if ckpt is not None:
