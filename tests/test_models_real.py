@@ -35,25 +35,12 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 
 from jaxedit.models import AutoencoderKL, CLIPTextEncoder, UNet2DCondition, load_module  # noqa: E402
+from jaxedit.models.memory import CLIP_L14_TEXT, SD15_UNET_IP2P, SD15_VAE  # noqa: E402
 from test_models import nchw, nhwc, perturb  # noqa: E402
 
-# Stable Diffusion 1.5 as timbrooks/instruct-pix2pix ships it (unet/vae/text_encoder config.json).
-SD15_UNET = dict(
-    sample_size=64, in_channels=8, out_channels=4, layers_per_block=2,
-    block_out_channels=(320, 640, 1280, 1280),
-    down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D",
-                      "DownBlock2D"),
-    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
-    cross_attention_dim=768, attention_head_dim=8, norm_num_groups=32, flip_sin_to_cos=True,
-    freq_shift=0)
-SD15_VAE = dict(
-    in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(128, 256, 512, 512),
-    layers_per_block=2, down_block_types=("DownEncoderBlock2D",) * 4,
-    up_block_types=("UpDecoderBlock2D",) * 4, norm_num_groups=32, sample_size=512)
-CLIP_L14_TEXT = dict(
-    vocab_size=49408, hidden_size=768, intermediate_size=3072, num_hidden_layers=12,
-    num_attention_heads=12, max_position_embeddings=77, hidden_act="quick_gelu",
-    bos_token_id=49406, eos_token_id=49407, pad_token_id=1, projection_dim=768)
+# Stable Diffusion 1.5 as timbrooks/instruct-pix2pix ships it: the configs the memory estimate
+# builds (jaxedit.models.memory), so both describe one architecture.
+SD15_UNET = SD15_UNET_IP2P
 REL_TOL = 1e-4
 # Noise on every parameter, kept small next to the real layers' weights (std ~ 0.005-0.02).
 NOISE = dict(scale=0.3, floor=0.002)
