@@ -260,8 +260,8 @@ def test_demo_threshold_default_follows_the_distance(cache, tmp_path, monkeypatc
     args = Namespace(out=tmp_path, size=8, views=2, test_views=1, iters=1, max_steps=1,
                      threshold=None, distance="auto", prompt="p", quiet=True, seed=0,
                      scene_name="face", mode="proedit", subtasks=None, turntable_frames=0,
-                     edit_arg=[], reuse=False, editor="ip2p", difficulty_views=4, patience=40,
-                     ip2p_steps=10)
+                     edit_arg=[], reuse=False, editor="ip2p", difficulty_views=4, patience=30,
+                     ip2p_steps=10, refine_first=False, target_subtasks=4)
     for root, want in ((cache, None), (tmp_path, demo.MS_SSIM_THRESHOLD)):
         monkeypatch.setenv("JAXEDIT_CACHE", str(root))
         seen.clear()
