@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import DataError
 from . import jax_ip2p as jx
-from .base import relevance_mask
+from .masks import relevance_mask
 from .diffusion import timestep_bounds
 
 #: Noise draws (each with its own timestep) averaged per view.

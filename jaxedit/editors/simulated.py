@@ -146,7 +146,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-from .base import relevance_mask
+from .masks import relevance_mask
 from .simulated_targets import (BULGE_MAX, MAX_MODES, _MODE_ASPECTS, blur, _bulge, _sample,
                                 _target_family, foreground)
 
