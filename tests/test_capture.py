@@ -290,11 +290,15 @@ def test_known_intrinsics_are_held_and_photo_names_kept(person_photos, tmp_path,
     summary = json.loads(proc.stdout)
     meta = json.loads((out / "transforms.json").read_text())
     if how == "exif":
-        # COLMAP reads the 35 mm equivalent against the diagonal and refines from there.
+        # COLMAP reads the 35 mm equivalent against the diagonal: the start is the truth up
+        # to the tag's whole millimetres. Bundle adjustment then trades focal length against
+        # k1 on 12 views of a small scene, and where it lands moves with COLMAP's thread
+        # timing (0.4 % to 7 % low over repeated runs), so the refined value gets 10 %.
         assert summary["focal_source"] == "exif"
-        assert abs(meta["fl_x"] / f - 1.0) < 0.05, meta["fl_x"]
+        assert abs(summary["focal_start_px"] / f - 1.0) < 0.01, summary["focal_start_px"]
+        assert abs(meta["fl_x"] / f - 1.0) < 0.10, meta["fl_x"]
     else:
-        assert summary["focal_source"] == "given"
+        assert summary["focal_source"] == "given" and summary["focal_start_px"] == f
         assert meta["fl_x"] == meta["fl_y"] == f and (meta["cx"], meta["cy"]) == (128.0, 128.0)
         assert meta.get("k1", 0.0) == 0.0
     # Every frame names its photo: frame_00001 is the first photo in sorted order.

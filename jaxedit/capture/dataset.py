@@ -181,8 +181,8 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
         "map", "write".
     Returns:
       a summary: ``num_images``, ``num_registered``, ``num_models``, ``num_points``,
-      ``seconds`` per stage, ``camera`` (the shared intrinsics), ``focal_source`` (see
-      :class:`~jaxedit.capture.sfm.SfmResult`), ``transforms`` (path).
+      ``seconds`` per stage, ``camera`` (the shared intrinsics), ``focal_source`` and
+      ``focal_start_px`` (see :class:`~jaxedit.capture.sfm.SfmResult`), ``transforms`` (path).
     """
     out_dir = Path(out_dir)
     check_out_dir(out_dir)
@@ -234,5 +234,5 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
     return {"num_images": len(names), "num_registered": sfm.num_registered,
             "num_models": sfm.num_models, "num_points": int(len(points)),
             "seconds": {k: round(v, 3) for k, v in sfm.seconds.items()}, "camera": camera,
-            "focal_source": sfm.focal_source,
+            "focal_source": sfm.focal_source, "focal_start_px": sfm.focal_start_px,
             "transforms": str(out_dir / "transforms.json")}

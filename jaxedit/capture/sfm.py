@@ -169,6 +169,7 @@ class SfmResult:
       seconds: wall seconds of each stage ("extract", "match", "map").
       focal_source: where the starting focal length came from: "given" (the options),
         "exif" (the photos' metadata, read by COLMAP) or "guess" (1.2 x the longer side).
+      focal_start_px: that starting focal length in pixels (before bundle adjustment).
     """
 
     reconstruction: object
@@ -177,6 +178,7 @@ class SfmResult:
     num_models: int
     seconds: dict
     focal_source: str = "guess"
+    focal_start_px: float | None = None
 
 
 def image_pairs(num_images: int, matching: str, overlap: int = 10) -> list[tuple[int, int]]:
@@ -240,8 +242,8 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
         done += len(chunk)
         report("extract", done, len(names))
     seconds["extract"] = time.perf_counter() - start
-    focal_source = "given" if known is not None else ("exif" if _has_prior_focal(database)
-                                                      else "guess")
+    has_prior, focal_start = _starting_focal(database)
+    focal_source = "given" if known is not None else ("exif" if has_prior else "guess")
 
     start = time.perf_counter()
     pairs = image_pairs(len(names), options.matching, options.overlap)
@@ -285,18 +287,23 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
     best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
     count = 0 if best is None else int(best.num_reg_images())
     report("map", count, len(names))
-    return SfmResult(best, len(names), count, len(models), seconds, focal_source)
+    return SfmResult(best, len(names), count, len(models), seconds, focal_source, focal_start)
 
 
-def _has_prior_focal(database: Path) -> bool:
-    """Whether COLMAP found a focal length in the photos' EXIF (the shared camera's prior)."""
+def _starting_focal(database: Path) -> tuple[bool, float | None]:
+    """(whether COLMAP found a focal length in the photos' EXIF, the shared camera's starting
+    focal length in pixels) as the extractor wrote them to ``database``."""
     import pycolmap
 
     db = pycolmap.Database.open(database)
     try:
-        return any(c.has_prior_focal_length for c in db.read_all_cameras())
+        cameras = db.read_all_cameras()
     finally:
         db.close()
+    if not cameras:
+        return False, None
+    return (any(c.has_prior_focal_length for c in cameras),
+            float(cameras[0].mean_focal_length()))
 
 
 def quiet_colmap(quiet: bool = True) -> None:
