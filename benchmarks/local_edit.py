@@ -10,7 +10,7 @@ auto``) and as a global edit (``--local off``):
 - ``face``: the trained editor that ships with jaxedit (the bundled small InstructPix2Pix,
   :func:`jaxedit.editors.bundled_editor`, JAX) with its local instruction ``make his shirt
   blue`` on the scene it was trained for. Its relevance is the "Watch Your Steps" noise
-  difference (:mod:`jaxedit.editors.ip2p_relevance`). The target is the scene with the
+  difference (:meth:`jaxedit.editors.jax_ip2p.JaxIP2PEditor.relevance`). The target is the scene with the
   shoulders' albedo changed, ray-cast again at the held-out cameras (what the editor was
   trained to produce, :func:`jaxedit.editors.edit_data._edited_scene`).
 - ``person`` (Blender renders): the simulated editor's local instruction ``paint the orange

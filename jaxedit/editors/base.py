@@ -17,7 +17,7 @@ call; :func:`edit_views` uses it wherever several views are due at once.
 
 Local edits (issue 35) ask an editor where an instruction acts: ``relevance(image,
 original, embedding, key, ...)`` -> float32 [H, W] mask in [0, 1]; :func:`relevance`
-calls it (for the JAX InstructPix2Pix, :func:`jaxedit.editors.ip2p_relevance.relevance`).
+calls it (the JAX InstructPix2Pix has it as a method: one batched UNet call).
 """
 
 from __future__ import annotations
@@ -53,16 +53,11 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
               guidance: tuple[float, float] = (7.5, 1.5)):
     """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant).
 
-    ``editor.relevance`` where the editor has it; the JAX InstructPix2Pix's is
-    :func:`jaxedit.editors.ip2p_relevance.relevance`. An editor without one is a DataError
-    (``--local auto`` needs it; ``--region`` / ``--masks`` do not).
+    ``editor.relevance`` (the JAX InstructPix2Pix's is
+    :meth:`jaxedit.editors.jax_ip2p.JaxIP2PEditor.relevance`). An editor without one is a
+    DataError (``--local auto`` needs it; ``--region`` / ``--masks`` do not).
     """
     fn = getattr(editor, "relevance", None)
-    if fn is None and type(editor).__name__ == "JaxIP2PEditor":
-        from . import ip2p_relevance
-
-        return ip2p_relevance.relevance(editor, image, original, embedding, key,
-                                        timestep_range=timestep_range, guidance=guidance)
     if fn is None:
         raise DataError("--local", f"editor {getattr(editor, 'name', type(editor).__name__)!r} "
                                    "gives no relevance map: use --local off with --region or "

@@ -47,6 +47,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..errors import DataError
 from .diffusion import (DEFAULT_MODEL, ddim_step, dtype_name, dual_guidance, model_size,
                         timestep_bounds, timestep_table)
+from .masks import relevance_mask
 
 log = logging.getLogger(__name__)
 
@@ -287,6 +288,49 @@ def _edit_batch_into(kept: tuple, images: jax.Array, cfg: EditConfig, model_hw: 
 #: is written into the images' buffer instead of a new one. Only for an images buffer the
 #: caller no longer holds (:meth:`JaxIP2PEditor.edit_many` uses it for the copies it makes).
 edit_batch_donating_jit = eqx.filter_jit(_edit_batch_into, donate="all-except-first")
+
+
+#: Noise draws (each with its own timestep) averaged per view by ``relevance``.
+RELEVANCE_DRAWS = 4
+
+
+def noise_difference(nets, images, originals, embedding, null, keys, t_bounds, schedule,
+                     cfg, model_hw: tuple[int, int], draws: int = RELEVANCE_DRAWS) -> jax.Array:
+    """Mean |eps(x_t, c, e) - eps(x_t, c, E(""))| per latent pixel, float32 [B, h, w].
+
+    Args:
+      nets: :class:`jaxedit.editors.jax_ip2p.Networks`.
+      images, originals: float [B, H, W, 3] in [0, 1] (render, original photo).
+      embedding: float [77, D], the instruction's; null: [77, D], E("").
+      keys: B typed keys; each draws ``draws`` timesteps in ``t_bounds`` (int32 [2])
+        and noises.
+      schedule, cfg: the editor's :class:`DiffusionSchedule` and :class:`EditConfig`.
+      model_hw: the networks' (h, w), multiples of the VAE's factor f.
+    Returns:
+      float32 [B, h/f, w/f], averaged over channels and draws.
+    """
+    b = images.shape[0]
+    f = latent_factor(nets.vae)
+    lat_hw = (model_hw[0] // f, model_hw[1] // f)
+    sub = jax.vmap(lambda k: jax.random.split(k, draws))(keys).reshape(-1)  # [B * draws]
+    t, vae_noise, sde_noise = draw_noise(sub, t_bounds, lat_hw)
+    rep = lambda x: jnp.repeat(x, draws, 0)  # noqa: E731 - [B, ...] -> [B * draws, ...]
+    latents, cond = encode_latents(
+        nets.vae, rep(resize_images(images.astype(jnp.float32), model_hw)),
+        rep(resize_images(originals.astype(jnp.float32), model_hw)), vae_noise, cfg)
+    a = schedule.alphas_cumprod[t][:, None, None, None]
+    x = a ** 0.5 * latents + (1 - a) ** 0.5 * sde_noise
+    n = b * draws
+    context = jnp.concatenate([jnp.broadcast_to(embedding, (n, *null.shape)),
+                               jnp.broadcast_to(null, (n, *null.shape))]).astype(cfg.dtype)
+    sample = jnp.concatenate([jnp.concatenate([x, x]), jnp.concatenate([cond, cond])], -1)
+    eps = nets.unet(sample.astype(cfg.dtype), jnp.concatenate([t, t]), context)
+    eps = eps.astype(jnp.float32)
+    diff = jnp.mean(jnp.abs(eps[:n] - eps[n:]), -1)  # [B * draws, h, w]
+    return jnp.mean(diff.reshape(b, draws, *diff.shape[1:]), 1)
+
+
+noise_difference_jit = eqx.filter_jit(noise_difference)
 
 
 # ----------------------------------------------------------------------------- the editor
@@ -573,6 +617,38 @@ class JaxIP2PEditor:
             jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
         return self.edit_many(image, original, embedding, key.reshape(1),
                               timestep_range=timestep_range, guidance=guidance)[0]
+
+    def relevance(self, image, original, embedding, key: jax.Array, *,
+                  timestep_range: tuple[float, float] = (0.02, 0.98),
+                  guidance: tuple[float, float] = (7.5, 1.5), draws: int = RELEVANCE_DRAWS,
+                  sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
+        """Where ``embedding`` changes the view, float32 [H, W] in {0, 1} (the Editor
+        protocol's relevance, "Watch Your Steps", ICCV 2023).
+
+        ``image``, ``original``: [H, W, 3] in [0, 1]; ``embedding``: [77, D] (e.g. e(r));
+        ``key``: one typed key (timesteps and noises). :func:`noise_difference` on one
+        batched UNet call, resized to the view and put through
+        :func:`jaxedit.editors.masks.relevance_mask`.
+        """
+        image = jnp.asarray(image, jnp.float32)
+        original = jnp.asarray(original, jnp.float32)
+        if image.ndim != 3 or image.shape != original.shape:
+            raise DataError("image", f"need [H, W, 3] image and original of one shape, got "
+                            f"{tuple(image.shape)} and {tuple(original.shape)}")
+        emb = self._embedding(embedding)
+        if emb.ndim != 2:
+            raise DataError("embedding", f"need one [77, D] embedding, got {tuple(emb.shape)}")
+        key = key if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else \
+            jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
+        height, width = image.shape[:2]
+        t_bounds = jnp.asarray(np.asarray(timestep_bounds(timestep_range,
+                                                          self.num_train_timesteps), np.int32))
+        diff = noise_difference_jit(self.nets, image[None], original[None], jnp.asarray(emb),
+                                    jnp.asarray(self.encode("")), key.reshape(1), t_bounds,
+                                    self.schedule, self.config(guidance),
+                                    self.model_hw(height, width), draws)
+        diff = jax.image.resize(diff[..., None], (1, height, width, 1), "linear")[0, ..., 0]
+        return relevance_mask(diff, sigma=sigma, threshold=threshold)
 
     def describe(self) -> dict:
         """What a run log / report records about this editor."""

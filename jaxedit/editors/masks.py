@@ -1,6 +1,6 @@
 """Relevance masks: how much an instruction changes each pixel, as a mask. Shared by the
 protocol (:mod:`.base`), the simulated editor and the JAX InstructPix2Pix's relevance
-(:mod:`.ip2p_relevance`), in a module of its own so that none of them imports another."""
+(:meth:`.jax_ip2p.JaxIP2PEditor.relevance`), in a module of its own so that none of them imports another."""
 
 from __future__ import annotations
 
