@@ -11,6 +11,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from ..raster.render import HEADROOM, next_capacity
+
 
 class Renderer:
     """Render single views over a fixed background, never truncated.
@@ -22,12 +24,20 @@ class Renderer:
 
     def __init__(self, background=(1.0, 1.0, 1.0)):
         self.background = jnp.asarray(background, jnp.float32)
+        # The largest intersection buffer a frame has needed so far: smaller frames reuse
+        # its compiled program instead of compiling one per size (a turntable's frames
+        # and a growing scene's snapshots need many sizes).
+        self.max_intersections: int | None = None
 
     def __call__(self, gaussians, camera):
         """RenderOutput of one camera."""
         from ..raster import render
 
-        return render(gaussians, camera, background=self.background)
+        out = render(gaussians, camera, background=self.background,
+                     max_intersections=self.max_intersections)
+        used = next_capacity(int(jnp.max(out.num_intersections)) * HEADROOM)
+        self.max_intersections = max(self.max_intersections or 0, used)
+        return out
 
     def rgb(self, gaussians, camera) -> np.ndarray:
         return np.asarray(self(gaussians, camera).rgb, np.float32)

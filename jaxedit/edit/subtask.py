@@ -33,6 +33,7 @@ import numpy as np
 
 from ..editors.base import edit_views, interpolate_embedding
 from ..editors.keys import edit_key
+from ..placement import commit
 from ..train import CHUNK, Batch, apply_step, epoch_view, grow_for_redo, scan_steps
 from .buffer import EditedView, EditJob, EditSource, make_source, view_order
 from .context import EditContext
@@ -183,7 +184,7 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, num_steps: in
     scalars = jax.device_put(np.array([spec.index, st.step, num_steps, stop_if_plateau,
                                        earliest_end(st, cfg)], np.int32))
     train, tracker, metrics = _edit_chunk(
-        st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.key, scalars,
+        *commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.key)), scalars,
         length=CHUNK, warmup=cfg.warmup, window=cfg.loss_window,
         patience=cfg.patience, min_delta=cfg.min_delta, stop_on_plateau=cfg.stop_on_plateau)
     metrics = jax.device_get(metrics)  # the one host read of the chunk

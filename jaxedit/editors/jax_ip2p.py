@@ -274,7 +274,6 @@ def edit_batch(nets: Networks, images: jax.Array, originals: jax.Array, embeddin
 
 
 #: Compiled: everything but the networks' arrays, the inputs and the schedule is static.
-edit_batch_jit = eqx.filter_jit(edit_batch)
 edit_with_noise_jit = eqx.filter_jit(edit_with_noise)
 
 
@@ -284,9 +283,9 @@ def _edit_batch_into(kept: tuple, images: jax.Array, cfg: EditConfig, model_hw: 
                       model_hw)
 
 
-#: :data:`edit_batch_jit` with ``images`` donated: the output (float32, the images' shape)
-#: is written into the images' buffer instead of a new one. Only for an images buffer the
-#: caller no longer holds (:meth:`JaxIP2PEditor.edit_many` uses it for the copies it makes).
+#: :func:`edit_batch`, jitted with ``images`` donated: the output (float32, the images'
+#: shape) is written into the images' buffer instead of a new one. Only for an images
+#: buffer the caller no longer holds (:meth:`JaxIP2PEditor.edit_many` gives it a copy).
 edit_batch_donating_jit = eqx.filter_jit(_edit_batch_into, donate="all-except-first")
 
 
@@ -588,10 +587,12 @@ class JaxIP2PEditor:
             raise DataError("embedding", f"{emb.shape[0]} embeddings for {b} views")
         t_bounds = np.asarray(timestep_bounds(timestep_range, self.num_train_timesteps), np.int32)
         pad = -b % len(self.devices)
-        # The images' buffer is donated to the output when it is a copy made here (from
-        # NumPy, padded or converted to float32); never the caller's own device array.
-        own = not isinstance(images, jax.Array) or bool(pad) or images.dtype != jnp.float32
-        batched = [images.astype(jnp.float32), originals, keys] + ([emb] if emb.ndim == 3 else [])
+        # The images' buffer is donated to the output, so it must be a copy made here, never
+        # the caller's own device array (copied when nothing else made one). One program for
+        # every caller: a second, non-donating one would be a second compile of the UNet.
+        copied = not isinstance(images, jax.Array) or bool(pad) or images.dtype != jnp.float32
+        images = images.astype(jnp.float32) if copied else jnp.copy(images)
+        batched = [images, originals, keys] + ([emb] if emb.ndim == 3 else [])
         if pad:  # repeat the last view; its copies are dropped below
             batched = [jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]) for x in batched]
         batched = [jax.device_put(x, self.by_view) for x in batched]
@@ -602,8 +603,7 @@ class JaxIP2PEditor:
         kept = (self.nets, originals, emb, null, keys, jax.device_put(t_bounds, self.replicated),
                 self.schedule)
         cfg, hw = self.config(guidance), self.model_hw(*images.shape[1:3])
-        out = (edit_batch_donating_jit(kept, images, cfg, hw) if own
-               else edit_batch_jit(self.nets, images, *kept[1:], cfg, hw))
+        out = edit_batch_donating_jit(kept, images, cfg, hw)
         return out[:b] if pad else out
 
     def edit(self, image, original, embedding, key: jax.Array, *,

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 from ..camera import Camera
 from ..errors import DataError
 from ..gaussians import Gaussians
+from ..placement import commit
 from . import binning as B
 from . import composite as CP
 from . import pallas as PK
@@ -213,6 +214,13 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
     """
     sh_degree = P.check_sh_degree(gaussians, sh_degree)
     backend = resolve_backend(backend)
+    # One program whatever the caller passes: black is an explicit background, and the
+    # arrays are committed where they are (a render sees a scene's fresh and trained
+    # leaves by turns; jit would compile each mix again).
+    background = jnp.zeros(3, gaussians.means.dtype) if background is None else \
+        jnp.asarray(background, gaussians.means.dtype)
+    gaussians, camera, background, means2d_delta = commit(
+        (gaussians, camera, background, means2d_delta))
     kwargs = dict(background=background, sh_degree=sh_degree, near=near, far=far,
                   means2d_delta=means2d_delta, backend=backend)
     if gaussians.capacity == 0:  # an empty scene (a PLY without vertices): only background
