@@ -296,3 +296,23 @@ def test_planted_step_effect_is_found_through_the_runner_and_exactly_0_without(t
     again = run_ablation(tmp_path / "off", _tiny(seeds=2), editor=PlantedEditor(False),
                          report=False, log=lambda m: None)
     assert len(again["runs"]) == len(res["runs"])
+
+
+def test_uniform_reuses_proedit_only_when_its_ratios_are_uniform():
+    # The study on the bundled editor found ProEdit's scheduler picking 0.25, 0.5, 0.75:
+    # its seed-0 ProEdit and uniform runs were then the same bit for bit (computed both
+    # ways, benchmarks/results/cpu/mechanism_ip2p/runs.jsonl), so later seeds reuse it.
+    from jaxedit.pipelines.ablation import _same_plan_as_uniform, _uniform_from
+
+    lead = {"method": "proedit", "ratios": [0.0, 0.25, 0.5, 0.75, 1.0, 1.0], "psnr_best": 17.5,
+            "total_steps": 1388, "seconds": 160.0, "cpu_seconds": 150.0, "schedule_calls": 51}
+    assert _same_plan_as_uniform(lead)
+    for ratios in ([0.0, 0.3, 0.5, 0.75, 1.0, 1.0], [0.0, 0.25, 0.5, 0.75, 1.0],
+                   [0.0, 0.5, 1.0, 1.0, 1.0]):
+        assert not _same_plan_as_uniform(dict(lead, ratios=ratios)), ratios
+    assert not _same_plan_as_uniform(None)
+    reused = _uniform_from(lead)
+    assert reused["method"] == "uniform" and reused["same_run_as"] == "proedit"
+    assert reused["psnr_best"] == 17.5 and reused["total_steps"] == 1388
+    assert reused["seconds"] == 0.0 and reused["cpu_seconds"] is None
+    assert reused["schedule_calls"] is None and lead["method"] == "proedit"

@@ -442,6 +442,13 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                     renders, lead = {}, None
                     for method in rows_of[label]:
                         prior = done.get((label, scene_name, prompt, seed, method))
+                        lead_run = done.get((label, scene_name, prompt, seed, "proedit"))
+                        if prior is None and method == "uniform" and _same_plan_as_uniform(
+                                lead_run):
+                            prior = _uniform_from(lead_run)
+                            keep(prior)
+                            log(f"[{len(done)}] {label} {scene_name} {kinds[prompt]} "
+                                f"seed {seed} uniform: ProEdit's own ratios, its run reused")
                         if prior is None:
                             cfg = method_config(method, kind=kinds[prompt], lead=lead,
                                                 warmup=config.warmup, patience=config.patience,
@@ -512,6 +519,27 @@ def _references(editor, prompt, data, scene, targets, config, settings, kind, *,
         best = max(range(len(per)), key=lambda k: per[k]["psnr_best"])
         yield {**per[best], "method": "ceiling", "reference": True, "outcome": best,
                "per_outcome": per, "seconds": time.perf_counter() - t0}
+
+
+def _same_plan_as_uniform(proedit: dict | None) -> bool:
+    """Whether ProEdit's scheduler picked uniform ratios (r_0 = 0, i / n, then the
+    consolidation at 1): then the uniform method's run is ProEdit's, bit for bit (the same
+    configuration, plan and seed; only the schedule's bookkeeping differs)."""
+    if proedit is None:
+        return False
+    ratios = list(proedit["ratios"])
+    n = len(ratios) - 2  # r0, n edit subtasks, rn
+    uniform = [0.0] + [i / n for i in range(1, n + 1)] + [1.0]
+    return n >= 1 and np.allclose(ratios, uniform, rtol=0.0, atol=1e-12)
+
+
+def _uniform_from(proedit: dict) -> dict:
+    """The uniform method's record when it is ProEdit's run (:func:`_same_plan_as_uniform`):
+    ProEdit's scores and training budget, marked ``same_run_as``; no seconds of its own
+    (``cpu_seconds`` None), and ``schedule_calls`` (the difficulty's bookkeeping, which a
+    uniform run measures on its own ratios) None: not run."""
+    return {**proedit, "method": "uniform", "same_run_as": "proedit", "seconds": 0.0,
+            "cpu_seconds": None, "schedule_calls": None}
 
 
 def _plateau(subtasks) -> tuple[list, float | None]:
