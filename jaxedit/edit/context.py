@@ -82,9 +82,9 @@ class EditContext:
       editor_device: device of the editor (async mode), see
         :func:`jaxedit.edit.buffer.pick_devices`.
       masks: float [N, H, W] per training view, a local edit's rendered relevance
-        (:func:`jaxedit.edit.local.plan_local`), or None (a global edit): the editor's
-        output is blended with the render outside it, and the training image of an
-        edited view with the original photo.
+        (:func:`jaxedit.edit.local.plan_local`), or None (a global edit): the training
+        image of an edited view is the editor's output inside it, blended with the
+        original photo outside.
     """
 
     editor: Any

@@ -89,13 +89,12 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
         # Device arrays where the scene is (the editor's device in async mode): an editor
         # in JAX takes them as they are; the torch reference copies them to its own device.
         renders = [renderer(scene, ctx.data.train_cameras[job.view]).rgb for job in jobs]
-        out = edit_views(ctx.editor, renders, [originals[job.view] for job in jobs], embedding,
-                         [edit_key(sub_key, job.view, job.iteration) for job in jobs],
-                         timestep_range=t_range(jobs[0]), guidance=tuple(cfg.guidance))
-        if ctx.masks is None:
-            return out
-        # a local edit: outside the mask the render stays
-        return [blend(e, r, ctx.masks[job.view]) for e, r, job in zip(out, renders, jobs)]
+        # A local edit's mask is applied once, where the edits become training images
+        # (take_edits): blending here with the render as well weighted the edit by the
+        # mask's square (0.49 at a border pixel of 0.7).
+        return edit_views(ctx.editor, renders, [originals[job.view] for job in jobs], embedding,
+                          [edit_key(sub_key, job.view, job.iteration) for job in jobs],
+                          timestep_range=t_range(jobs[0]), guidance=tuple(cfg.guidance))
 
     def edit_one(job: EditJob, scene):
         return edit_many([job], scene)[0]
@@ -106,7 +105,8 @@ def take_edits(ctx: EditContext, st: EditState, arrivals: list[EditedView],
                horizon: int) -> EditState:
     """``st`` with the edited views ``arrivals`` as training images (in arrival order).
 
-    A local edit trains on the original photo outside its mask. An edit counts as made at
+    A local edit's training image is ``mask * edit + (1 - mask) * original photo``: inside
+    its rendered relevance the edit, outside it the photo. An edit counts as made at
     t_min when its step is past the annealing ``horizon`` (or its explicit timestep is at
     most t_min): the plateau may end the subtask ``patience`` steps after the first one.
     """
