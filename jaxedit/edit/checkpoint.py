@@ -18,7 +18,7 @@ import numpy as np
 
 from ..io.checkpoint import read_pytree, restore, save_pytree
 from .buffer import Utilisation
-from .state import DensityTally, EditState, LossTracker, training_images
+from .state import DensityTally, EditState, LossTracker
 
 KIND = "edit"
 
@@ -56,7 +56,7 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[EditState,
     tracker = LossTracker(tree["tracker_recent"], jnp.int32(count),
                           jnp.float32(best), jnp.int32(since))
     st = EditState(subtask=info["subtask"], step=info["step"], train=train,
-                     images=training_images(tree["images"]), edited=np.asarray(tree["edited"]),
+                     images=tree["images"], edited=np.asarray(tree["edited"]),
                      tracker=tracker, records=tuple(info["records"]), seconds=info["seconds"],
                      complete_at=int(info.get("complete_at", -1)),
                      annealed_at=int(info.get("annealed_at", -1)),

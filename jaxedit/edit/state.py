@@ -25,7 +25,7 @@ import numpy as np
 
 from ..gaussians import grow
 from ..train import put_image
-from .buffer import Utilisation, pick_devices
+from .buffer import Utilisation
 from .context import EditContext
 
 
@@ -138,13 +138,6 @@ class EditState:
     density: DensityTally = DensityTally()
 
 
-def training_images(images) -> jax.Array:
-    """float32 [N, H, W, 3] committed to the trainer's device (:func:`pick_devices`). The
-    edited views arrive committed there, and a training chunk compiled for uncommitted
-    images would compile again (about 10 s on a CPU) once the first edit lands."""
-    return jax.device_put(np.asarray(images, np.float32), pick_devices()[0])
-
-
 def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) -> EditState:
     """A run at its very beginning: the input scene, the original photos as training images."""
     images = ctx.data.train_images if images is None else images
@@ -156,7 +149,7 @@ def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) ->
     if capacity > gaussians.capacity:
         gaussians = grow(gaussians, capacity)
     return EditState(subtask=0, step=0, train=ctx.trainer.init(gaussians, ctx.data.train_cameras),
-                       images=training_images(images),
+                       images=jax.device_put(np.asarray(images, np.float32)),
                        edited=np.zeros((len(images),), bool),
                        tracker=LossTracker.init(ctx.config.loss_window))
 

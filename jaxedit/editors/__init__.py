@@ -9,8 +9,8 @@ where an instruction acts.
 - :mod:`.simulated` (+ :mod:`.simulated_targets`): the simulated editor, the test instrument
   whose targets are known exactly.
 - :mod:`.jax_ip2p`: InstructPix2Pix in JAX (no torch); :mod:`.ip2p`: its torch + diffusers
-  reference; :mod:`.diffusion`: the arithmetic both share (the JAX
-  editor also gives the relevance map of "Watch Your Steps"); :mod:`.keys`: per-view edit seeding.
+  reference (the JAX one also gives the relevance map of "Watch Your Steps");
+  :mod:`.diffusion`: the arithmetic both share; :mod:`.keys`: per-view edit seeding.
 - The small InstructPix2Pix that ships with jaxedit: :mod:`.edit_data` (its dataset),
   :mod:`.tiny_ip2p` (its networks and training steps), :mod:`.export` (the diffusers
   folder), :mod:`.quality` (its evaluation), :mod:`.bundled` (the folder inside the
