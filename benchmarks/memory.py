@@ -371,16 +371,14 @@ def worker_demo(smoke: bool) -> dict:
     import jax
     import numpy as np
 
-    from jaxedit.editors import bundled_editor, native_size
-    from jaxedit.editors.jax_ip2p import load_editor
+    from jaxedit.editors.jax_ip2p import load_bundled
 
     phases = {"import": _rss_now_mb()}
     jax.devices()
-    folder = bundled_editor()
-    size = native_size(folder)
     steps = 2 if smoke else 20
     t0 = time.perf_counter()
-    editor = load_editor(folder, size=size, steps=steps)
+    editor = load_bundled(steps=steps)
+    size = editor.size
     load_s = time.perf_counter() - t0
     phases["loaded"] = _rss_now_mb()
     emb = editor.encode("turn him into a bronze statue")

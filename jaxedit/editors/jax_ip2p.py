@@ -53,8 +53,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["DiffusionSchedule", "EditConfig", "JaxIP2PEditor", "Networks", "decode",
            "denoise", "draw_noise", "edit_batch", "edit_with_noise", "encode_latents",
-           "default_batch", "in_chunks", "latent_factor", "load_editor", "load_text_encoder",
-           "resize_images"]
+           "default_batch", "in_chunks", "latent_factor", "load_bundled", "load_editor",
+           "load_text_encoder", "resize_images"]
 
 #: Name of the mesh axis a batch of views is sharded along.
 VIEWS = "views"
@@ -514,6 +514,17 @@ class JaxIP2PEditor:
                  "batches of %d", root, editor.devices, editor.dtype, size, steps, editor.batch)
         return editor
 
+    @classmethod
+    def bundled(cls, *, devices=None, steps: int = 20, **kwargs) -> "JaxIP2PEditor":
+        """The small InstructPix2Pix shipped in the package
+        (:func:`jaxedit.editors.bundled_editor`) at the size it was trained at;
+        ``devices``, ``steps`` and ``kwargs`` as :meth:`from_pretrained`."""
+        from .bundled import bundled_editor, native_size
+
+        folder = bundled_editor()
+        return cls.from_pretrained(folder, devices=devices, size=native_size(folder),
+                                   steps=steps, **kwargs)
+
     def __repr__(self):
         return (f"JaxIP2PEditor({self.source!r}, devices={self.devices}, dtype={self.dtype}, "
                 f"size={self.size}, steps={self.steps}, batch={self.batch})")
@@ -693,4 +704,5 @@ def load_text_encoder(root: str | os.PathLike, dtype=jnp.float32):
 #: The CLI's factory (``--editor ip2p --ip2p-weights DIR``):
 #: :meth:`JaxIP2PEditor.from_pretrained` itself, so its defaults have one owner.
 load_editor = JaxIP2PEditor.from_pretrained
+load_bundled = JaxIP2PEditor.bundled
 

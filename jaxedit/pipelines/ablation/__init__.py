@@ -78,10 +78,10 @@ from ...viz import image_grid
 from ..cache import prepared_scene
 from ..edit import run_edit
 from .methods import (BANDS, CONTROL_METHODS, FOLLOWERS, MAIN_METHODS, METHODS, TARGET_SUBTASKS,
-                      TARGET_SUBTASKS_DEFAULT, CallLog, ModeLog, edits_per_subtask,
+                      TARGET_SUBTASKS_DEFAULT, CallLog, edits_per_subtask,
                       method_config, sweep_agreement, timestep_bands)
 from .outcomes import FixedTargets, outcome_scores, outcome_targets
-from .summary import ALL, METRICS, REFERENCES, expand_references, summarise, tables
+from .summary import ALL, METRICS, REFERENCES, summarise, tables
 
 __all__ = ["ALL", "AblationConfig", "CONTROL_METHODS", "EDITORS", "MAIN_METHODS", "METHODS",
            "METRICS", "REFERENCES",
@@ -286,12 +286,9 @@ def _editors(config: AblationConfig, editor=None) -> tuple[dict, str]:
         return {name: editor}, name
     if config.editor == "ip2p":
         from ...edit.buffer import pick_devices
-        from ...editors.jax_ip2p import load_editor
-        from ...editors import bundled_editor, native_size
+        from ...editors.jax_ip2p import load_bundled
 
-        weights = bundled_editor()
-        return {"ip2p": load_editor(weights, devices=[pick_devices()[1]],
-                                    size=native_size(weights), steps=config.ip2p_steps)}, "ip2p"
+        return {"ip2p": load_bundled(devices=[pick_devices()[1]], steps=config.ip2p_steps)}, "ip2p"
     return {_variant_label(k, g): SimulatedEditor(modes=k, mode_step_gain=g)
             for k, g in map(parse_variant, config.variants)}, "simulated"
 
@@ -406,7 +403,10 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
         runs.append(record)
         done[_key(record)] = record
 
-    total = len(scenes) * len(prompts) * seeds * sum(len(r) for r in rows_of.values())
+    # Every run of the study, the references included: the progress lines count to it.
+    total = len(scenes) * len(prompts) * sum(
+        seeds * len(rows) + (len(REFERENCES) if config.references else 0)
+        for rows in rows_of.values())
     t_start = time.perf_counter()
     for scene_name in scenes:
         dataset, scene, _ = prepared_scene(out / scene_name, scene_name, size=config.size,
@@ -447,7 +447,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                                 lead_run):
                             prior = _uniform_from(lead_run)
                             keep(prior)
-                            log(f"[{len(done)}] {label} {scene_name} {kinds[prompt]} "
+                            log(f"[{len(done)}/{total}] {label} {scene_name} {kinds[prompt]} "
                                 f"seed {seed} uniform: ProEdit's own ratios, its run reused")
                         if prior is None:
                             cfg = method_config(method, kind=kinds[prompt], lead=lead,
@@ -460,7 +460,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                             keep(record)
                             renders[method] = rgb
                             prior = record
-                            log(f"[{len(done)}] {label} {scene_name} {kinds[prompt]} "
+                            log(f"[{len(done)}/{total}] {label} {scene_name} {kinds[prompt]} "
                                 f"seed {seed} {method}: psnr_best {record['psnr_best']:.2f}, "
                                 f"agreement {record['outcome_agreement']:.2f}, mixing "
                                 f"{record['mode_mixing']:.2f}, {record['total_steps']} steps, "

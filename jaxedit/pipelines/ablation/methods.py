@@ -167,9 +167,6 @@ class CallLog:
         return out
 
 
-#: The name the ablation used for :class:`CallLog` before it logged timesteps.
-ModeLog = CallLog
-
 
 def method_config(method: str, *, kind: str, lead: dict | None, warmup: int, patience: int,
                   max_steps: int, edit_every: int, views: int):
