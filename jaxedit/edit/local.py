@@ -38,6 +38,9 @@ LOCAL_MODES = ("auto", "off")
 #: global one inside the region. The Gaussians between 0.1 and 0.5 are that border (4.5 % of
 #: the person's Gaussians).
 GAUSSIAN_THRESHOLD = 0.1
+#: A pixel is the edit's own when the editable Gaussians hold at least this share of its
+#: blending weight: its training image takes the edit whole (:func:`training_masks`).
+OWNED = 0.5
 #: Extensions a mask file may have.
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
 
@@ -224,6 +227,23 @@ def render_editable(gaussians, cameras, editable_mask) -> np.ndarray:
     return np.clip(np.stack(out), 0.0, 1.0).astype(np.float32)
 
 
+def training_masks(weights, owned: float = OWNED) -> np.ndarray:
+    """Which pixels' training images are the edit, float32 [B, H, W] of 0 / 1, from the
+    rendered relevance ``weights`` [B, H, W] (:func:`render_editable`): those where the
+    editable Gaussians hold ``owned`` of the blending weight or more; the rest keep the photo.
+
+    A pixel goes whole to the Gaussians that hold most of it. The weight itself as a soft
+    blend, ``w * edit + (1 - w) * photo``, asks the pixels the edit owns to keep ``1 - w``
+    of the photo (``benchmarks/local_edit.py``, person, seeds 0-2, local minus global inside
+    the region: -0.54 dB on average with the blend, -0.15 dB with this mask; at seed 0 the
+    blend cost 0.45 dB with every Gaussian editable, so it is the blend, not the freezing).
+    A fade to ``w / owned`` instead brings the edit into pixels the frozen part holds: on the
+    face, InstructPix2Pix's smear of the face then reaches the untouched part (36.6 dB
+    against 40.0 dB); the edit in every pixel, 27.9 dB.
+    """
+    return (np.asarray(weights, np.float32) >= owned).astype(np.float32)
+
+
 @dataclasses.dataclass(frozen=True)
 class LocalPlan:
     """What :func:`plan_local` decides: ``editable`` bool [C], the training views' ``masks``
@@ -243,8 +263,9 @@ def plan_local(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, e
     The editor's relevance per training view (``auto``: image = original, the
     instruction's full ``embedding``, keys folded from ``key``) times any user masks is
     lifted to the Gaussians; those inside the regions with a lifted relevance of
-    :data:`GAUSSIAN_THRESHOLD` or more are editable. The view masks are the rendered
-    relevance of the editable Gaussians (:func:`render_editable`).
+    :data:`GAUSSIAN_THRESHOLD` or more are editable. The view masks are
+    :func:`training_masks` of the editable Gaussians' rendered relevance
+    (:func:`render_editable`).
     """
     import time
 
@@ -259,7 +280,7 @@ def plan_local(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, e
         pixel = maps if pixel is None else pixel * maps
     rel = None if pixel is None else lift_relevance(gaussians, cameras, pixel)
     ed = np.asarray(editable(gaussians, regions=spec.regions, relevance=rel))
-    masks = render_editable(gaussians, cameras, ed)
+    masks = training_masks(render_editable(gaussians, cameras, ed))
     figures = {"mode": spec.mode, "regions": [r.spec() for r in spec.regions],
                "user_masks": spec.masks is not None, "editable": int(ed.sum()),
                "frozen": int(np.sum(np.asarray(gaussians.alive) & ~ed)),
