@@ -141,14 +141,29 @@ def mse(a, b):
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
-def photometric_loss(render, target, lambda_dssim: float = 0.2, *, window: int = 11,
-                     sigma: float = 1.5, data_range: float = 1.0):
+def photometric_loss(render, target, lambda_dssim: float = 0.2, *, weight=None,
+                     window: int = 11, sigma: float = 1.5, data_range: float = 1.0):
     """The 3DGS / Splatfacto training loss ``(1 - l) L1 + l (1 - SSIM)``, a float scalar.
 
     Args:
       render, target: float [..., H, W, 3] in [0, 1]; batches are averaged.
       lambda_dssim: l, the D-SSIM weight (0.2 in 3DGS); may be traced.
+      weight: float [..., H, W] or None: the loss over these pixels only, each term a
+        ``weight``-weighted mean (D-SSIM over its valid part, where the window fits); 0 for
+        an all-zero weight.
       window, sigma, data_range: SSIM settings (static).
     """
-    d = dssim(render, target, window=window, sigma=sigma, data_range=data_range)
-    return (1.0 - lambda_dssim) * l1(render, target) + lambda_dssim * jnp.mean(d)
+    if weight is None:
+        d = dssim(render, target, window=window, sigma=sigma, data_range=data_range)
+        return (1.0 - lambda_dssim) * l1(render, target) + lambda_dssim * jnp.mean(d)
+    w = jnp.asarray(weight, jnp.float32)
+    r = window // 2
+    w_valid = w[..., r:w.shape[-2] - r, r:w.shape[-1] - r]
+    err = jnp.mean(jnp.abs(jnp.asarray(render) - jnp.asarray(target)), axis=-1)
+    d = 1.0 - jnp.mean(ssim_map(render, target, window=window, sigma=sigma,
+                                data_range=data_range), axis=-1)
+
+    def mean(x, v):
+        return jnp.sum(x * v) / jnp.maximum(jnp.sum(v), 1e-12)
+
+    return (1.0 - lambda_dssim) * mean(err, w) + lambda_dssim * mean(d, w_valid)

@@ -106,6 +106,18 @@ def test_editable_refuses_an_empty_region_and_freezes_the_rest():
         L.editable(g, relevance=jnp.zeros(N))
 
 
+def test_the_training_masks_take_the_edit_whole_where_the_editable_gaussians_own_the_pixel():
+    g = make_scene(0)
+    cams = make_cameras()
+    plan = L.plan_local(L.LocalSpec("off", regions=(L.parse_region("box:-10,-10,-10,0,10,10"),)),
+                        g, cams, np.zeros((2, H, W, 3), np.float32))
+    weights = L.render_editable(g, cams, plan.editable)
+    owned = weights >= L.OWNED
+    assert owned.any() and (~owned & (weights > 0.05)).any()  # both kinds of pixel are here
+    assert np.all(plan.masks[owned] == 1.0)  # the edit whole, no share of the photo
+    assert np.all(plan.masks[~owned] == 0.0)  # the photo where frozen Gaussians hold most
+
+
 def test_masks_by_frame_name_and_their_bad_inputs(tmp_path):
     from jaxedit.io.images import write_image
 
@@ -226,6 +238,27 @@ def test_without_frozen_the_step_is_unchanged():
     for name in ("means", "sh", "opacity_logits", "alive"):
         assert np.array_equal(np.asarray(getattr(a.gaussians, name)),
                               np.asarray(getattr(b.gaussians, name))), name
+
+
+def test_a_region_adds_its_loss_to_the_metrics_and_trains_the_same():
+    from jaxedit import train
+    from jaxedit.losses import photometric_loss
+
+    cams = make_cameras()
+    target = jnp.full((H, W, 3), 0.2)
+    region = jnp.zeros((H, W)).at[:, : W // 2].set(1.0)
+    a, ma = train.apply_step(_densifying_state(None), train.Batch(target, cams[0]),
+                             jax.random.key(0))
+    b, mb = train.apply_step(_densifying_state(None), train.Batch(target, cams[0], region=region),
+                             jax.random.key(0))
+    assert "region_loss" not in ma
+    for name in ("means", "sh", "opacity_logits"):  # what is trained does not change
+        assert np.array_equal(np.asarray(getattr(a.gaussians, name)),
+                              np.asarray(getattr(b.gaussians, name))), name
+    render_before = render(_densifying_state(None).gaussians, cams[0], background=jnp.ones(3))
+    want = photometric_loss(render_before.rgb, target, 0.2, weight=region)
+    assert float(mb["region_loss"]) == pytest.approx(float(want), rel=1e-4)
+    assert float(mb["region_loss"]) != pytest.approx(float(mb["loss"]), rel=1e-3)
 
 
 # ---------------------------------------------------------------------------

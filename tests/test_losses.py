@@ -91,6 +91,23 @@ def test_photometric_loss_value_and_batching():
         float(losses.l1(r, t)), abs=1e-6)
 
 
+def test_photometric_loss_within_a_weight():
+    rng = np.random.default_rng(3)
+    r = rng.uniform(size=SHAPE).astype(np.float32)
+    t = np.clip(r + rng.normal(scale=0.1, size=SHAPE), 0, 1).astype(np.float32)
+    ones = np.ones(SHAPE[:2], np.float32)
+    assert float(losses.photometric_loss(r, t, weight=ones)) == pytest.approx(
+        float(losses.photometric_loss(r, t)), abs=1e-6)
+    # Half the view: its L1 is that half's, whatever the other half holds.
+    half = ones.copy()
+    half[:, SHAPE[1] // 2:] = 0.0
+    t2 = t.copy()
+    t2[:, SHAPE[1] // 2:] = 1.0 - t2[:, SHAPE[1] // 2:]
+    got = float(losses.photometric_loss(r, t2, lambda_dssim=0.0, weight=half))
+    assert got == pytest.approx(float(np.abs(r - t)[:, : SHAPE[1] // 2].mean()), abs=1e-6)
+    assert float(losses.photometric_loss(r, t, weight=0 * ones)) == 0.0
+
+
 def test_loss_gradient_is_finite_and_correct():
     rng = np.random.default_rng(2)
     t = jnp.asarray(rng.uniform(size=SHAPE).astype(np.float32))

@@ -12,6 +12,7 @@ import dataclasses
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
@@ -81,10 +82,10 @@ class EditContext:
         edits with e(r) = r E(p) + (1 - r) E("").
       editor_device: device of the editor (async mode), see
         :func:`jaxedit.edit.buffer.pick_devices`.
-      masks: float [N, H, W] per training view, a local edit's rendered relevance
-        (:func:`jaxedit.edit.local.plan_local`), or None (a global edit): the training
-        image of an edited view is the editor's output inside it, blended with the
-        original photo outside.
+      masks: float [N, H, W] per training view (a device array), a local edit's
+        training masks (:func:`jaxedit.edit.local.plan_local`), or None (a global edit):
+        the training image of an edited view is the editor's output inside the mask and the
+        original photo outside it, and the plateau test watches the loss inside it.
     """
 
     editor: Any
@@ -111,4 +112,5 @@ class EditContext:
         return EditContext(editor, prompt, data, config, trainer, renderer, key,
                            e_prompt=np.asarray(editor.encode(prompt)),
                            e_null=np.asarray(editor.encode("")),
-                           editor_device=editor_device, masks=masks)
+                           editor_device=editor_device,
+                           masks=None if masks is None else jnp.asarray(masks, jnp.float32))

@@ -140,8 +140,8 @@ class ChunkResult(NamedTuple):
 
 @functools.partial(jax.jit, static_argnames=("length", "warmup", "window", "patience",
                                              "min_delta", "stop_on_plateau"))
-def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, length, warmup,
-                window, patience, min_delta, stop_on_plateau):
+def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars, *, length,
+                warmup, window, patience, min_delta, stop_on_plateau):
     subtask, step0, n_active = scalars[0], scalars[1], scalars[2]
     stop_if_plateau, earliest_end = scalars[3] > 0, scalars[4]
     key_sub = jax.random.fold_in(run_key, subtask)
@@ -153,11 +153,20 @@ def _edit_chunk(train_state, tracker, images, cameras, run_key, scalars, *, leng
         st, tr = carry
         s = step0 + i
         view = epoch_view(views_key, s, num_views)
-        st, m = apply_step(st, Batch(image=images[view], camera=cameras[view]),
+        region = None if regions is None else regions[view]
+        st, m = apply_step(st, Batch(image=images[view], camera=cameras[view], region=region),
                             jax.random.fold_in(train_key, s))
         tracked = ~m["redo"] & (s >= warmup)
+        loss = m["loss"]
+        if region is not None:
+            # A local edit's plateau is that of the loss where it edits: the frozen rest
+            # of the view adds a loss no step can lower, which flattens the relative test.
+            # (Person, seeds 0-4, local minus global inside the region: -0.22 dB on
+            # average with it, -0.38 dB without; the seeds spread by 0.3 dB.)
+            tracked &= jnp.any(region > 0)
+            loss = m["region_loss"]
         tr = jax.tree_util.tree_map(functools.partial(jnp.where, tracked),
-                                    track_loss(tr, m["loss"], min_delta=min_delta), tr)
+                                    track_loss(tr, loss, min_delta=min_delta), tr)
         return (st, tr), m
 
     def after(carry, m, i):
@@ -184,7 +193,8 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, num_steps: in
     scalars = jax.device_put(np.array([spec.index, st.step, num_steps, stop_if_plateau,
                                        earliest_end(st, cfg)], np.int32))
     train, tracker, metrics = _edit_chunk(
-        *commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.key)), scalars,
+        *commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
+                 ctx.key)), scalars,
         length=CHUNK, warmup=cfg.warmup, window=cfg.loss_window,
         patience=cfg.patience, min_delta=cfg.min_delta, stop_on_plateau=cfg.stop_on_plateau)
     metrics = jax.device_get(metrics)  # the one host read of the chunk

@@ -68,11 +68,17 @@ class TrainState:
 
 class Batch(NamedTuple):
     """One training view: image float [H, W, 3] in [0, 1], its (single) Camera, and its
-    index among the training views (int32 []; needed only with ``config.camera_opt``)."""
+    index among the training views (int32 []; needed only with ``config.camera_opt``).
+
+    ``region``: float [H, W] or None, the pixels a local edit changes: the step then also
+    reports the loss inside them (``region_loss``), for the edit's plateau test. It does not
+    change what is trained.
+    """
 
     image: jax.Array
     camera: Camera
     view: jax.Array | None = None
+    region: jax.Array | None = None
 
 
 def params_of(g: Gaussians) -> Gaussians:

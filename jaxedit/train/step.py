@@ -117,6 +117,9 @@ def apply_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
                    sh_degree=active_sh_degree(state.step, cfg),
                    lr_means=means_lr(cfg, state.scene_extent, state.step),
                    densify=info._asdict())
+    if batch.region is not None:  # a static branch: only a local edit's chunk passes one
+        metrics["region_loss"] = photometric_loss(out.rgb, target, cfg.lambda_dssim,
+                                                  weight=batch.region)
     return new, metrics
 
 
