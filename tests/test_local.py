@@ -247,9 +247,9 @@ def test_a_region_adds_its_loss_to_the_metrics_and_trains_the_same():
     cams = make_cameras()
     target = jnp.full((H, W, 3), 0.2)
     region = jnp.zeros((H, W)).at[:, : W // 2].set(1.0)
-    a, ma = train.apply_step(_densifying_state(None), train.Batch(target, cams[0]),
+    a, ma = train.train_step(_densifying_state(None), train.Batch(target, cams[0]),
                              jax.random.key(0))
-    b, mb = train.apply_step(_densifying_state(None), train.Batch(target, cams[0], region=region),
+    b, mb = train.train_step(_densifying_state(None), train.Batch(target, cams[0], region=region),
                              jax.random.key(0))
     assert "region_loss" not in ma
     for name in ("means", "sh", "opacity_logits"):  # what is trained does not change
