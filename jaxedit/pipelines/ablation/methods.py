@@ -167,7 +167,6 @@ class CallLog:
         return out
 
 
-
 def method_config(method: str, *, kind: str, lead: dict | None, warmup: int, patience: int,
                   max_steps: int, edit_every: int, views: int):
     """The :class:`ProEditConfig` of ``method``; ``lead`` is ProEdit's run of the same seed
