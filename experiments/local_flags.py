@@ -16,8 +16,10 @@ def add_local_arguments(p: argparse.ArgumentParser) -> None:
                    help="box:xmin,ymin,zmin,xmax,ymax,zmax or sphere:cx,cy,cz,r in scene "
                         "coordinates (repeatable: their union); outside it nothing changes")
     g.add_argument("--masks", type=Path, default=None, metavar="DIR",
-                   help="one mask image per frame (named as the frame: images/frame_00001.png "
-                        "takes DIR/frame_00001.png), white = editable")
+                   help="one mask image per frame, named as the frame (images/frame_00001.png "
+                        "takes DIR/frame_00001.png) or as its photo (process-data's "
+                        "original_file_path), at the view's size or a whole multiple of it; "
+                        "white = editable")
 
 
 def local_spec(args, config, data):
@@ -37,6 +39,17 @@ def local_spec(args, config, data):
 
         dataset = load_nerfstudio(args.data, downscale=config.downscale)
         names = [dataset.filenames[i] for i in np.asarray(dataset.train_indices)]
-        masks = L.load_masks(args.masks, names, tuple(data.train_images.shape[1:3]))
+        masks = L.load_masks(args.masks, names, tuple(data.train_images.shape[1:3]),
+                             originals=_photo_names(dataset.path, names))
     spec = L.LocalSpec(mode=getattr(args, "local", "off"), regions=regions, masks=masks)
     return spec if spec.active else None
+
+
+def _photo_names(transforms, names: list[str]) -> list[str | None]:
+    """Each frame's own photo (``original_file_path``, kept by process-data) or None."""
+    import json
+
+    frames = json.loads(Path(transforms).read_text()).get("frames", [])
+    photo = {f.get("file_path"): f.get("original_file_path") for f in frames
+             if isinstance(f, dict)}
+    return [photo.get(n) for n in names]

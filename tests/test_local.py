@@ -134,6 +134,17 @@ def test_masks_by_frame_name_and_their_bad_inputs(tmp_path):
     assert masks.shape == (2, 6, 8) and masks[0, 2, 3] == 1 and masks[1].sum() == 0
     with pytest.raises(DataError, match="mask is 8x6 px, its view 10x6"):
         L.load_masks(d, names, (6, 10))
+    # masks named as the frames' photos, drawn at twice the view's size (a downscaled run)
+    photos = tmp_path / "photo_masks"
+    photos.mkdir()
+    write_image(photos / "IMG_0007.png", np.repeat(np.repeat(m, 2, 0), 2, 1))
+    write_image(photos / "IMG_0008.jpg", np.zeros((12, 16, 3), np.float32))
+    originals = ["IMG_0007.JPG", "IMG_0008.JPG"]
+    np.testing.assert_array_equal(L.load_masks(photos, names, (6, 8), originals), masks)
+    with pytest.raises(DataError, match="frame 'frame_00002' or its photo 'IMG_0009'"):
+        L.load_masks(photos, names, (6, 8), ["IMG_0007.JPG", "IMG_0009.JPG"])
+    with pytest.raises(DataError, match="mask is 16x12 px, its view 7x6"):
+        L.load_masks(photos, names, (6, 7), originals)
     with pytest.raises(DataError, match="empty"):
         L.load_masks(d, names[1:], (6, 8))
     with pytest.raises(DataError, match="not a folder"):
@@ -505,13 +516,20 @@ def test_cli_local_region_and_masks_on_a_built_in_scene(tmp_path):
     mid = float(np.median(means[:, 0]))
     lo, hi = means.min(0) - 1, means.max(0) + 1
     box = f"box:{lo[0]:.3f},{lo[1]:.3f},{lo[2]:.3f},{mid:.3f},{hi[1]:.3f},{hi[2]:.3f}"
+    # masks named as each frame's photo (process-data's original_file_path), drawn at twice
+    # the views' size: the run matches them by photo name and box-averages them down
     masks = tmp_path / "masks"
     masks.mkdir()
+    meta_path = data / "transforms.json"
+    meta = json.loads(meta_path.read_text())
+    for k, frame in enumerate(meta["frames"]):
+        frame["original_file_path"] = f"IMG_{k:04d}.JPG"
+    meta_path.write_text(json.dumps(meta))
     ds = load_nerfstudio(data)
-    m = np.zeros((24, 24, 3), np.float32)
-    m[:, :12] = 1.0
-    for f in ds.filenames:
-        write_image(masks / (Path(f).stem + ".png"), m)
+    m = np.zeros((48, 48, 3), np.float32)
+    m[:, :24] = 1.0
+    for k in range(len(ds.filenames)):
+        write_image(masks / f"IMG_{k:04d}.png", m)
     config = tmp_path / "local.json"
     config.write_text(json.dumps({"region": [box], "masks": str(masks)}))
     out, both = run("region", "--config", str(config))

@@ -130,13 +130,17 @@ def _mask_files(directory: Path) -> dict[str, Path]:
     return files
 
 
-def load_masks(directory, filenames, hw: tuple[int, int]) -> np.ndarray:
+def load_masks(directory, filenames, hw: tuple[int, int], originals=None) -> np.ndarray:
     """One mask per frame, float32 [N, H, W] in [0, 1] (the mean of its channels).
 
     ``filenames``: the frames' ``file_path`` strings (:attr:`jaxedit.io.nerfstudio.Dataset.
     filenames`); frame ``images/frame_00001.png`` takes ``DIR/frame_00001.<png|jpg|...>``,
-    as nerfstudio's ``masks/`` folder names them. A missing folder or frame, a mask of
-    another size than its view ``hw`` = (H, W), or an all-zero mask set is a DataError.
+    as nerfstudio's ``masks/`` folder names them, or else the mask named as the frame's own
+    photo (``originals``: per frame its ``original_file_path``, e.g. ``IMG_0001.jpg``, or
+    None; ``process-data`` records it), so masks drawn on the photos need no renaming. A
+    mask at an integer multiple of its view's size ``hw`` = (H, W) (drawn on the full-size
+    photo of a ``--downscale``d run) is box-averaged down to it. A missing folder or frame, a
+    mask of any other size, or an all-zero mask set is a DataError.
     """
     from ..io.images import read_image
 
@@ -144,21 +148,40 @@ def load_masks(directory, filenames, hw: tuple[int, int]) -> np.ndarray:
     if not directory.is_dir():
         raise DataError("--masks", f"{directory}: not a folder")
     files = _mask_files(directory)
-    missing = [Path(f).stem for f in filenames if Path(f).stem not in files]
+    originals = list(originals) if originals is not None else [None] * len(filenames)
+
+    def mask_of(frame, photo):
+        for name in (frame, photo):
+            if name is not None and Path(name).stem in files:
+                return files[Path(name).stem]
+        return None
+
+    paths = [mask_of(f, o) for f, o in zip(filenames, originals)]
+    missing = [(f, o) for f, o, p in zip(filenames, originals, paths) if p is None]
     if missing:
-        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
-        raise DataError("--masks", f"{directory}: no mask for frame {missing[0]!r}{more}")
+        (frame, photo), more = missing[0], len(missing) - 1
+        also = f" or its photo {Path(photo).stem!r}" if photo else ""
+        raise DataError("--masks", f"{directory}: no mask for frame {Path(frame).stem!r}{also}"
+                                   + (f" and {more} more" if more else ""))
     out = np.zeros((len(filenames), *hw), np.float32)
-    for i, f in enumerate(filenames):
-        path = files[Path(f).stem]
-        img = read_image(path, background=(0.0, 0.0, 0.0))
-        if img.shape[:2] != tuple(hw):
-            raise DataError(path, f"mask is {img.shape[1]}x{img.shape[0]} px, its view "
-                                  f"{hw[1]}x{hw[0]}")
-        out[i] = np.asarray(img, np.float32).reshape(*hw, -1).mean(-1)
+    for i, path in enumerate(paths):
+        img = np.asarray(read_image(path, background=(0.0, 0.0, 0.0)), np.float32)
+        out[i] = _to_view_size(img.reshape(*img.shape[:2], -1).mean(-1), hw, path)
     if not np.any(out > 0.5):
         raise DataError("--masks", f"{directory}: every mask is empty (nothing to edit)")
     return out
+
+
+def _to_view_size(mask: np.ndarray, hw: tuple[int, int], path) -> np.ndarray:
+    """``mask`` float [h, w] at its view's size (H, W): as it is, or box-averaged from an
+    integer multiple k (h, w) = (k H, k W)."""
+    (h, w), (H, W) = mask.shape, hw
+    k = h // H if H else 0
+    if (h, w) == (H, W):
+        return mask
+    if k > 1 and (h, w) == (k * H, k * W):
+        return mask.reshape(H, k, W, k).mean(axis=(1, 3))
+    raise DataError(path, f"mask is {w}x{h} px, its view {W}x{H} (or a whole multiple of it)")
 
 
 # ---------------------------------------------------------------------------
