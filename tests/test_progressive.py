@@ -17,7 +17,7 @@ from jaxedit import DataError
 from jaxedit import camera as cl
 from jaxedit import gaussians as gl
 from jaxedit.edit import EditData, ProEditConfig, TrainSettings, anneal_timestep, plan_subtasks
-from jaxedit.edit.state import LossTracker, track_loss
+from jaxedit.edit.state import EditState, LossTracker, apply_edits, track_loss
 from jaxedit.edit.subtask import train_view
 from jaxedit.edit.outputs import Renderer, reprojection_consistency
 from jaxedit.pipelines import run_edit, select_snapshot
@@ -75,6 +75,26 @@ def test_loss_tracker_plateau():
     assert t.since_best == 3
     t = track_loss(t, -10.0, min_delta=0.0)
     assert t.since_best == 0
+
+
+def test_the_loss_tracker_starts_afresh_once_the_training_images_are_final():
+    # Every view edited and an edit made at t_min: from there on the plateau test measures
+    # the loss against the final training images, not a best taken against older ones.
+    t = LossTracker.init(2)
+    for loss in [1.0, 1.0, 1.0]:
+        t = track_loss(t, loss, min_delta=0.0)
+    st = EditState(subtask=0, step=40, train=None, images=jax.numpy.zeros((2, 1, 1, 3)),
+                   edited=np.zeros(2, bool), tracker=t)
+    image = np.ones((1, 1, 3), np.float32)
+    st = apply_edits(st, [0], [image], [True])     # annealed, not every view edited
+    assert st.annealed_at == 40 and st.complete_at < 0 and int(st.tracker.count) == 3
+    st = dataclasses.replace(st, step=45)
+    st = apply_edits(st, [1], [image], [False])    # now both: a fresh tracker
+    assert st.complete_at == 45 and int(st.tracker.count) == 0
+    assert not np.isfinite(float(st.tracker.best)) and st.tracker.recent.shape == (2,)
+    st = dataclasses.replace(st, tracker=track_loss(st.tracker, 3.0, min_delta=0.0), step=50)
+    st = apply_edits(st, [0], [image], [True])     # later edits keep it
+    assert int(st.tracker.count) == 1
 
 
 def test_density_tally_counts_completed_maintenance_steps_only():
@@ -557,7 +577,9 @@ def test_the_anneal_reaches_t_min_in_subtasks_that_end_on_their_plateau(tiny):
     assert len(runs) == 2
     for run, sub in zip(runs, subs):
         assert run[0] == pytest.approx(t_max) and run[-1] == pytest.approx(t_min)
-        assert sub["annealed_at"] + cfg.patience <= sub["steps"] < cfg.max_steps
+        # the plateau is judged on the final images only: a full window, then patience
+        ready = max(sub["annealed_at"], sub["edits_complete_at"])
+        assert ready + cfg.loss_window + cfg.patience - 1 <= sub["steps"] < cfg.max_steps
     room = cfg.max_steps - cfg.warmup - cfg.patience - cfg.edit_every
     assert all(s["anneal_horizon"] == cfg.warmup + room // 2 for s in subs)
 

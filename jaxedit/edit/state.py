@@ -120,7 +120,8 @@ class EditState:
         edits it has not trained on.
       annealed_at: the subtask's step when the first edit made at t_min arrived
         (-1: not yet); a plateau ends the subtask no earlier than ``patience`` steps
-        later, so the annealing always reaches t_min.
+        later, so the annealing always reaches t_min. When both are set the loss tracker
+        starts afresh: the plateau is that of the loss against the final training images.
       density: the subtask's :class:`DensityTally`.
     """
 
@@ -176,8 +177,16 @@ def apply_edits(st: EditState, views, images, annealed=()) -> EditState:
         edited[int(v)] = True
     complete_at = st.step if st.complete_at < 0 and edited.all() else st.complete_at
     annealed_at = st.step if st.annealed_at < 0 and any(annealed) else st.annealed_at
+    tracker = st.tracker
+    if min(complete_at, annealed_at) >= 0 > min(st.complete_at, st.annealed_at):
+        # The plateau test starts here: every view edited and the annealing at t_min. A best
+        # running mean from before was taken against other training images (edits made at
+        # higher timesteps, or the photos), often lower than the loss against the final ones
+        # can reach for a while: kept, it ended the subtask at the earliest step allowed,
+        # while the loss was still falling (person, local edit: 3 of 6 subtasks).
+        tracker = LossTracker.init(len(tracker.recent))
     return dataclasses.replace(st, images=data, edited=edited, complete_at=complete_at,
-                               annealed_at=annealed_at)
+                               annealed_at=annealed_at, tracker=tracker)
 
 
 def finish_subtask(st: EditState, record: dict) -> EditState:
