@@ -5,8 +5,10 @@
 
 Two cases, each a built-in scene made and reconstructed once
 (:func:`jaxedit.pipelines.cache.prepared_scene`, cached in ``DIR/local_edit_run/SCENE``) and
-edited twice with the same plan and seed: with ``local=LocalSpec("auto")`` (``edit --local
-auto``) and as a global edit (``--local off``):
+edited with the same plan and seed: with ``local=LocalSpec("auto")`` (``edit --local
+auto``), as a global edit (``--local off``), and locally again with each subtask as long as
+the global edit's (``local_global_steps``: the control that takes the plateau test's say
+over the lengths away; skipped, with the reason, when the two plans differ in length):
 
 - ``face``: the trained editor that ships with jaxedit (the bundled small InstructPix2Pix,
   :func:`jaxedit.editors.bundled_editor`, JAX) with its local instruction ``make his shirt
@@ -38,7 +40,8 @@ Scores at the held-out views:
 With ``--seeds N`` each case is edited at seeds S .. S + N - 1 (one reconstruction; the
 seed keys the relevance, the edits and their training) and ``paired`` gives local minus
 global per seed with a 95 % interval: one seed's difference inside the region is within
-the edits' own seed-to-seed spread (about 0.3 dB on the person).
+the edits' own seed-to-seed spread (about 0.3 dB on the person). ``paired`` also gives the
+steps local minus global and the equal-steps control minus global.
 
 Writes ``DIR/local_edit.json`` and ``DIR/local_edit_CASE.png`` (rows: held-out views;
 columns: the reconstruction, the target, the global edit, the local edit, the region as a
@@ -48,6 +51,7 @@ dataset's initial cloud instead of a reconstruction, one subtask of a few steps,
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -155,6 +159,7 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
 
     from jaxedit.edit import TrainSettings
     from jaxedit.edit import local as L
+    from jaxedit.errors import DataError
     from jaxedit.pipelines import run_edit
 
     prompt = CASES[case][2]
@@ -168,11 +173,22 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
     region = region_w >= L.OWNED
     frozen = np.asarray(L.frozen_of(g, plan.editable))
     runs, renders = {}, {"region_weight": region_w}
-    for name, local in (("global", None), ("local", spec)):
+    arms = (("global", None, config), ("local", spec, config),
+            # the local edit at the global edit's step count per subtask: what is left of
+            # the difference once the plateau test no longer decides the lengths
+            ("local_global_steps", spec, None))
+    for name, local, arm_config in arms:
+        if arm_config is None:
+            steps = tuple(r["steps"] for r in runs["global"].pop("_subtasks"))
+            arm_config = dataclasses.replace(config, subtask_steps=steps)
         t0 = time.perf_counter()
-        res = run_edit(editor, prompt, data, g, config=config,
-                       settings=TrainSettings(), seed=seed, run_dir=None, report=False,
-                       local=local)
+        try:
+            res = run_edit(editor, prompt, data, g, config=arm_config,
+                           settings=TrainSettings(), seed=seed, run_dir=None, report=False,
+                           local=local)
+        except DataError as e:   # the local plan has another subtask count than the global
+            runs[name] = {"skipped": str(e)}
+            continue
         wall = time.perf_counter() - t0
         out_g = res["gaussians"]
         rgb = np.stack([renderer.rgb(out_g, data.test_cameras[i]) for i in range(n_test)])
@@ -185,9 +201,15 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
             "psnr_vs_target": masked_psnr(rgb, target, np.ones(region.shape, bool)),
             "frozen_bit_identical": bit_identical(g, out_g, frozen),
             "num_gaussians": m["num_gaussians"], "subtasks": m["subtasks"],
-            "total_steps": m["total_steps"], "seconds": wall,
-            "relevance_seconds": (res["schedule"].get("local") or {}).get("seconds")}
-        print(case, f"seed {seed}", name, runs[name], flush=True)
+            "total_steps": m["total_steps"],
+            "subtask_steps": [r["steps"] for r in res["schedule"]["subtasks"]],
+            "seconds": wall,
+            "relevance_seconds": (res["schedule"].get("local") or {}).get("seconds"),
+            "_subtasks": res["schedule"]["subtasks"]}
+        print(case, f"seed {seed}", name,
+              {k: v for k, v in runs[name].items() if k != "_subtasks"}, flush=True)
+    for r in runs.values():
+        r.pop("_subtasks", None)
     record = {"seed": seed, "editable": plan.figures["editable"], "frozen": int(frozen.sum()),
               "train_mask_fraction": plan.figures["mask_fraction"],
               "test_region_fraction": float(region.mean()),
@@ -208,9 +230,17 @@ def paired(records: list[dict]) -> dict:
     def of(name, key):
         return [r["runs"][name][key] for r in records]
 
+    equal = [r for r in records if "skipped" not in r["runs"]["local_global_steps"]]
     return {"seeds": [r["seed"] for r in records],
             "region_local_minus_global": paired_differences(
                 of("local", "psnr_region_vs_target"), of("global", "psnr_region_vs_target")),
+            "steps_local_minus_global": paired_differences(
+                of("local", "total_steps"), of("global", "total_steps")),
+            "region_local_global_steps_minus_global": paired_differences(
+                [r["runs"]["local_global_steps"]["psnr_region_vs_target"] for r in equal],
+                [r["runs"]["global"]["psnr_region_vs_target"] for r in equal])
+            if equal else None,
+            "seeds_local_global_steps": [r["seed"] for r in equal],
             "untouched_local_minus_global": paired_differences(
                 of("local", "psnr_untouched"), of("global", "psnr_untouched")),
             "untouched_local_min": min(of("local", "psnr_untouched")),
