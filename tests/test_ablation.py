@@ -296,6 +296,13 @@ def test_planted_step_effect_is_found_through_the_runner_and_exactly_0_without(t
     again = run_ablation(tmp_path / "off", _tiny(seeds=2), editor=PlantedEditor(False),
                          report=False, log=lambda m: None)
     assert len(again["runs"]) == len(res["runs"])
+    # a study merged from two folders may hold a run twice: it counts once
+    jsonl = tmp_path / "off" / "runs.jsonl"
+    lines = jsonl.read_text().splitlines()
+    jsonl.write_text("\n".join(lines + lines[:3]) + "\n")
+    merged = run_ablation(tmp_path / "off", _tiny(seeds=2), editor=PlantedEditor(False),
+                          report=False, log=lambda m: None)
+    assert merged["runs"] == again["runs"] and len(jsonl.read_text().splitlines()) == len(lines)
 
 
 def test_uniform_reuses_proedit_only_when_its_ratios_are_uniform():

@@ -317,9 +317,10 @@ SETTINGS_FILE = "settings.json"
 
 
 def _resume(out: Path, settings_json: dict, log) -> list[dict]:
-    """The records already in ``out/runs.jsonl`` (a truncated last line is dropped and the
-    file rewritten without it); a DataError when ``out`` holds a study of other settings
-    (the seed count may differ: a study is extended by more seeds)."""
+    """The records already in ``out/runs.jsonl`` (a truncated last line, or a second record
+    of the same run, is dropped and the file rewritten without it); a DataError when ``out``
+    holds a study of other settings (the seed count may differ: a study is extended by more
+    seeds)."""
     path, spath = out / RUNS_FILE, out / SETTINGS_FILE
     if spath.exists():
         old = json.loads(spath.read_text())
@@ -333,14 +334,23 @@ def _resume(out: Path, settings_json: dict, log) -> list[dict]:
     if not path.exists():
         return runs
     lines = path.read_text().splitlines()
-    bad = 0
+    bad, seen, repeated = 0, set(), 0
     for line in lines:
         try:
-            runs.append(json.loads(line))
+            record = json.loads(line)
         except ValueError:
             bad += 1
-    if bad:
-        log(f"dropping {bad} unreadable line(s) of {path} (an interrupted write)")
+            continue
+        # A study run in parts and merged (two folders' runs.jsonl concatenated) may hold a
+        # run twice; the runs are seeded, so the first copy stands for both.
+        if _key(record) in seen:
+            repeated += 1
+            continue
+        seen.add(_key(record))
+        runs.append(record)
+    if bad or repeated:
+        log(f"dropping {bad} unreadable line(s) (an interrupted write) and {repeated} "
+            f"repeated run(s) of {path}")
         atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in runs))
     log(f"resuming: {len(runs)} finished records in {path}")
     return runs
