@@ -125,6 +125,18 @@ def test_budgeted_update_obeys_cap_budget_and_culls_exactly(seed, n_alive, last)
     assert float(jnp.sum(s2.grad_sum)) == 0.0 and int(jnp.sum(s2.count)) == 0
 
 
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n_alive=st.integers(1, C), last=st.integers(0, 30))
+def test_a_local_edits_budget_counts_the_gaussians_it_may_change(seed, n_alive, last):
+    # t(n, N) of a local edit: N is the editable Gaussians alive, not the frozen ones too
+    g, opt_state, stats, aux = random_case(seed, n_alive, last_culled=last)
+    frozen = np.asarray(g.alive) & (np.random.default_rng(seed).uniform(size=C) < 0.6)
+    *_, info = UPD_BUDGETED(g, opt_state, stats, aux, 10, jax.random.key(seed),
+                            jnp.asarray(frozen))
+    editable = int(np.asarray(g.alive).sum() - frozen.sum())
+    assert int(info.budget) == int(BUDGET(jnp.int32(last), jnp.int32(editable)))
+
+
 @settings_
 @given(seed=st.integers(0, 2**31 - 1), n_alive=st.integers(0, C))
 def test_cull_removes_exactly_the_failing_gaussians(seed, n_alive):

@@ -268,8 +268,12 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
                            cull_screen=cull_screen, screen_from=screen_from) & ~frozen
         g = remove(gaussians, culled)
         n_alive1 = g.num_alive()
-        t = None if budget is None else jnp.maximum(
-            jnp.asarray(budget(stats.last_culled, n_alive0), jnp.int32), 0)
+        # t(n, N) over the Gaussians the edit may change: a local edit's frozen ones are
+        # never culled nor candidates, and counted in N they let the editable part grow by
+        # 0.02 of the whole scene per step (person: a third more Gaussians in the region
+        # than the global edit left there).
+        t = None if budget is None else jnp.maximum(jnp.asarray(budget(
+            stats.last_culled, n_alive0 - jnp.sum(gaussians.alive & frozen)), jnp.int32), 0)
         # Frozen Gaussians are never candidates (no split, no clone): only the editable
         # ones, and hence only their neighbourhood, get new Gaussians.
         seen = stats._replace(count=jnp.where(frozen, 0, stats.count))
