@@ -179,8 +179,8 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
             ("local_global_steps", spec, None))
     for name, local, arm_config in arms:
         if arm_config is None:
-            steps = tuple(r["steps"] for r in runs["global"].pop("_subtasks"))
-            arm_config = dataclasses.replace(config, subtask_steps=steps)
+            arm_config = dataclasses.replace(
+                config, subtask_steps=tuple(runs["global"]["subtask_steps"]))
         t0 = time.perf_counter()
         try:
             res = run_edit(editor, prompt, data, g, config=arm_config,
@@ -204,12 +204,8 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
             "total_steps": m["total_steps"],
             "subtask_steps": [r["steps"] for r in res["schedule"]["subtasks"]],
             "seconds": wall,
-            "relevance_seconds": (res["schedule"].get("local") or {}).get("seconds"),
-            "_subtasks": res["schedule"]["subtasks"]}
-        print(case, f"seed {seed}", name,
-              {k: v for k, v in runs[name].items() if k != "_subtasks"}, flush=True)
-    for r in runs.values():
-        r.pop("_subtasks", None)
+            "relevance_seconds": (res["schedule"].get("local") or {}).get("seconds")}
+        print(case, f"seed {seed}", name, runs[name], flush=True)
     record = {"seed": seed, "editable": plan.figures["editable"], "frozen": int(frozen.sum()),
               "train_mask_fraction": plan.figures["mask_fraction"],
               "test_region_fraction": float(region.mean()),
