@@ -35,6 +35,27 @@ def add_arguments(p) -> None:
     FLAGS[0].add_to(p)
     p.add_argument("--smoke", action="store_true",
                    help="tiny sizes (CI): seconds, not minutes; sets every setting itself")
+    p.add_argument("--seed-range", metavar="A:B", default=None,
+                   help="run only seeds A .. B-1 of the study's --seeds (a part of the study, "
+                        "in a folder of its own; the part holding seed 0 runs the reference "
+                        "levels); parts merge by concatenating their runs.jsonl")
+
+
+def seed_range(text: str | None, seeds: int) -> range | None:
+    """``--seed-range A:B`` as ``range(A, B)`` within ``0 .. seeds``; None when not given."""
+    from jaxedit import DataError
+
+    if text is None:
+        return None
+    try:
+        start, stop = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise DataError("--seed-range", f"expected A:B (two whole numbers), got {text!r}"
+                        ) from None
+    if not 0 <= start < stop <= seeds:
+        raise DataError("--seed-range", f"{text} is not a non-empty range within 0:{seeds} "
+                                        f"(--seeds {seeds})")
+    return range(start, stop)
 
 
 def run_config(args):
@@ -59,8 +80,9 @@ def run(args) -> dict:
     if args.out is None:
         raise DataError("--out", "required (the ablation run directory)")
     config = run_config(args)
+    part = seed_range(args.seed_range, config.seeds)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
-    result = run_ablation(args.out, config, recon_seed=args.seed, log=log)
+    result = run_ablation(args.out, config, recon_seed=args.seed, log=log, seeds=part)
     return {f"m{r['editor_modes']} {r['scene']} {r['method']} {r['metric']}":
             round(r["mean"], 4) for r in result["summary"]
             if r["prompt"] in (ALL, result["settings"]["prompts"][0])

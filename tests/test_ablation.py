@@ -123,6 +123,8 @@ def test_report_shows_the_statistics(tmp_path):
     (["--methods", "nd,in2n"], "include proedit"),
     (["--prompts", "make it a dragon"], "unknown instruction"),
     (["--seeds", "0"], "--seeds"),
+    (["--seeds", "4", "--seed-range", "2:5"], "--seed-range: 2:5 is not a non-empty range"),
+    (["--seed-range", "3"], "--seed-range: expected A:B"),
 ])
 def test_bad_flags_fail_in_one_line(tmp_path, capsys, argv, needle):
     assert cli.main(["ablation", "--out", str(tmp_path / "run"), *argv]) == 2
@@ -303,6 +305,19 @@ def test_planted_step_effect_is_found_through_the_runner_and_exactly_0_without(t
     merged = run_ablation(tmp_path / "off", _tiny(seeds=2), editor=PlantedEditor(False),
                           report=False, log=lambda m: None)
     assert merged["runs"] == again["runs"] and len(jsonl.read_text().splitlines()) == len(lines)
+    # a part of the study (seed 1 alone, in a folder of its own) makes seed 1's records of
+    # the whole study, and leaves the references to the part holding seed 0
+    part = run_ablation(tmp_path / "part", _tiny(seeds=2), editor=PlantedEditor(False),
+                        report=False, log=lambda m: None, seeds=range(1, 2))
+
+    def timeless(records):
+        return [{k: v for k, v in r.items() if k not in ("seconds", "cpu_seconds")}
+                for r in records]
+
+    assert timeless(part["runs"]) == timeless([r for r in res["runs"] if r["seed"] == 1])
+    with pytest.raises(DataError, match="seeds"):
+        run_ablation(tmp_path / "part", _tiny(seeds=2), editor=PlantedEditor(False),
+                     report=False, log=lambda m: None, seeds=range(1, 3))
 
 
 def test_uniform_reuses_proedit_only_when_its_ratios_are_uniform():

@@ -383,7 +383,8 @@ def finish(out: Path, runs: list[dict], settings_json: dict, *, wall_time_s: flo
 
 
 def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_seed: int = 0,
-                 report: bool = True, log=print, editor=None) -> dict:
+                 report: bool = True, log=print, editor=None, seeds: range | None = None
+                 ) -> dict:
     """Run the ablation into ``out``; returns the contents of ablation.json.
 
     Every finished run (and reference level) is appended to ``out/runs.jsonl`` at once; a
@@ -393,6 +394,12 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
     and reconstruction are made once in ``out/SCENE``
     (:func:`jaxedit.pipelines.cache.prepared_scene`). ``editor``: an editor object to use
     instead of ``config.editor`` (tests plant effects with one).
+
+    ``seeds``: the part of the study this call runs (default ``range(config.seeds)``), so
+    that a study can be split across processes or machines, each part in its own folder,
+    and merged by concatenating their ``runs.jsonl`` (a run recorded twice counts once).
+    The reference levels do not depend on the seed: the part holding seed 0 runs them.
+    ``ablation.json`` then summarises the records of this folder alone.
     """
     out = Path(out)
     editors, name = _editors(config, editor)
@@ -401,21 +408,29 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
     prompts = tuple(config.prompts)
     kinds = {p: _kind(first, p) for p in prompts}
     settings_json = config.settings_json(kinds, recon_seed, name)
-    scenes, seeds = config.scenes, config.seeds
+    scenes = config.scenes
+    seeds = range(config.seeds) if seeds is None else seeds
+    if seeds.step != 1 or not 0 <= seeds.start < seeds.stop <= config.seeds:
+        raise DataError("seeds", f"the part {seeds.start}:{seeds.stop} is not a range of "
+                                 f"seeds within 0:{config.seeds}")
+    references = config.references and 0 in seeds
     out.mkdir(parents=True, exist_ok=True)
     runs = _resume(out, settings_json, log)
     done = {_key(r): r for r in runs}
     jsonl = out / RUNS_FILE
     elapsed0 = sum(r.get("seconds", 0.0) for r in runs)
 
+    device = _device()
+
     def keep(record):
+        record.setdefault("device", device)  # a run reused from ProEdit keeps ProEdit's
         _append(jsonl, record)
         runs.append(record)
         done[_key(record)] = record
 
     # Every run of the study, the references included: the progress lines count to it.
     total = len(scenes) * len(prompts) * sum(
-        seeds * len(rows) + (len(REFERENCES) if config.references else 0)
+        len(seeds) * len(rows) + (len(REFERENCES) if references else 0)
         for rows in rows_of.values())
     t_start = time.perf_counter()
     for scene_name in scenes:
@@ -437,7 +452,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                 tag = dict(editor_modes=label, modes=int(targets.shape[0]),
                            step_gain=getattr(getattr(ed, "params", None), "mode_step_gain", None),
                            scene=scene_name, prompt=prompt, kind=kinds[prompt])
-                if config.references:
+                if references:
                     for record in _references(
                             ed, prompt, data, scene, targets, config, settings, kinds[prompt],
                             done=lambda m: (label, scene_name, prompt, -1, m) in done,
@@ -448,7 +463,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                         log(f"{label} {scene_name} {kinds[prompt]} reference {record['method']}: "
                             f"psnr_best {record['psnr_best']:.2f}, agreement "
                             f"{record['outcome_agreement']:.2f}")
-                for seed in range(seeds):
+                for seed in seeds:
                     renders, lead = {}, None
                     for method in rows_of[label]:
                         prior = done.get((label, scene_name, prompt, seed, method))
@@ -495,6 +510,16 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
 
         write_report(out)
     return payload
+
+
+def _device() -> str:
+    """What computed the runs, e.g. ``"cpu"`` or ``"gpu NVIDIA H200"``: a study run in parts
+    on several machines says which part ran where (float rounding differs between them, so
+    a run is reproducible bit for bit only on its own kind of device)."""
+    import jax
+
+    d = jax.devices()[0]
+    return d.platform if d.platform == "cpu" else f"{d.platform} {d.device_kind}"
 
 
 def _references(editor, prompt, data, scene, targets, config, settings, kind, *, done,
