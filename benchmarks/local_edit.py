@@ -30,6 +30,11 @@ Scores at the held-out views:
   (goal >= 35 dB for the local edit; the global edit's figure for contrast);
 - ``psnr_region_vs_target``: renders vs the target inside the region (the local edit should
   be no worse than the global one);
+- ``psnr_region_core_vs_target`` / ``psnr_region_border_vs_target``: the same over the
+  region's core (the editable Gaussians hold at least :data:`CORE` of the pixel) and over
+  its border (frozen Gaussians hold the rest, which the local edit cannot change and the
+  global one can): where a difference between the two sits (``test_region_border_share``:
+  the border's share of the region's pixels);
 - ``psnr_vs_target``: the whole view vs the target;
 - ``frozen`` / ``frozen_bit_identical``: the input's Gaussians outside the editable set and
   how many of them the edit left bit for bit (means, scales, rotations, opacities, SH);
@@ -67,6 +72,8 @@ FULL = dict(size=64, views=24, test_views=4, iters=1500, max_steps=300, patience
 SMOKE = dict(size=32, views=4, test_views=2, iters=0, max_steps=6, patience=3, warmup=2,
              difficulty_views=2, subtasks=1, ip2p_steps=2)
 SMOKE_POINTS = 1000
+#: A region pixel is in its core when the editable Gaussians hold this much of its weight.
+CORE = 0.95
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
 
@@ -171,6 +178,10 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
     n_test = len(data.test_images)
     region_w = L.render_editable(g, data.test_cameras, plan.editable)
     region = region_w >= L.OWNED
+    # The region's core (the editable Gaussians hold nearly all of the pixel) and its
+    # border (frozen Gaussians hold a share the edit cannot change): where a difference
+    # between the local and the global edit sits.
+    core, border = region_w >= CORE, region & (region_w < CORE)
     frozen = np.asarray(L.frozen_of(g, plan.editable))
     runs, renders = {}, {"region_weight": region_w}
     arms = (("global", None, config), ("local", spec, config),
@@ -197,6 +208,8 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
         runs[name] = {
             "psnr_untouched": masked_psnr(rgb, base, ~region),
             "psnr_region_vs_target": masked_psnr(rgb, target, region),
+            "psnr_region_core_vs_target": masked_psnr(rgb, target, core),
+            "psnr_region_border_vs_target": masked_psnr(rgb, target, border),
             "psnr_region_vs_original": masked_psnr(rgb, base, region),
             "psnr_vs_target": masked_psnr(rgb, target, np.ones(region.shape, bool)),
             "frozen_bit_identical": bit_identical(g, out_g, frozen),
@@ -209,6 +222,7 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
     record = {"seed": seed, "editable": plan.figures["editable"], "frozen": int(frozen.sum()),
               "train_mask_fraction": plan.figures["mask_fraction"],
               "test_region_fraction": float(region.mean()),
+              "test_region_border_share": float(border.sum() / max(region.sum(), 1)),
               "target_vs_original_outside_region": masked_psnr(
                   target, np.stack(data.test_images), ~region),
               "target_vs_original_inside_region": masked_psnr(
