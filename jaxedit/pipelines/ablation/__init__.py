@@ -33,7 +33,8 @@ even blend), ``multiview_consistency``. Per run also: ``editor_calls`` (training
 schedule's difficulty calls separately as ``schedule_calls``), ``sweeps`` (complete passes over
 the views), ``total_steps``, ``guard_ended`` (subtasks the step guard, not the plateau, ended),
 ``maintenance`` (density-control steps), ``agreement`` (per sweep, the fraction of views whose
-drawn mode is the sweep's most common one; ``agreement_final`` the last sweep's).
+drawn mode is the sweep's most common one; ``agreement_final`` the last sweep's), ``device``
+(what ran it: a study may be run in parts, ``run_ablation(seeds=...)``, on several machines).
 
 Writes ``RUN_DIR/ablation.json``::
 
