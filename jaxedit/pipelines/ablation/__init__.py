@@ -3,38 +3,53 @@
 ``python -m experiments ablation`` and ``benchmarks/ablation.py`` run :func:`run_ablation`
 with an :class:`AblationConfig` (the command's flags are generated from its fields).
 
-With the simulated editor (a test instrument whose noise-free targets are known; not
-InstructPix2Pix) on built-in scenes: make each scene's dataset and reconstruct it once, then
-edit the reconstruction with every method, for every instruction, for every seed, and for every
-editor variant. An editor variant (``variants``) is ``K`` or ``K:GAIN``: K divergent modes per
-instruction and the mode draw's ``mode_step_gain`` (default 1; see
-:mod:`jaxedit.editors.simulated`, section 4). The mechanism test is variant ``3``; ``1`` (one
-outcome: nothing to keep consistent) and ``3:0`` (holding a mode does not depend on the step
-size) are the negative controls, run with ``control_methods``.
+Make each built-in scene's dataset and reconstruct it once, then edit the reconstruction with
+every method, for every instruction and every seed. Two editors (``editor``):
+
+- ``ip2p``, the mechanism test: the bundled small InstructPix2Pix
+  (:func:`jaxedit.editors.bundled_editor`), whose outcomes, their separation and whether a
+  view keeps one are the network's; one variant, its name, with ``methods``.
+- ``simulated``, the test instrument (noise-free targets known; not InstructPix2Pix): an
+  editor variant (``variants``) is ``K`` or ``K:GAIN``, K divergent modes per instruction and
+  the mode draw's ``mode_step_gain`` (default 1; :mod:`jaxedit.editors.simulated`, section
+  4). ``3`` runs ``methods``; ``1`` (one outcome: nothing to keep consistent) and ``3:0``
+  (holding a mode does not depend on the step size) run ``control_methods``.
 
 Methods (rows), every one with the same trainer, W, patience, ``edit_every``, ``refine_every``
 and a step guard of at least 3 x ``refine_every`` (so adaptive density control runs in every
-subtask of every method):
+subtask of every method); :mod:`.methods` builds them:
 
 - ``proedit``: the difficulty-aware schedule, ``target_subtasks`` by instruction kind
   (:data:`.methods.TARGET_SUBTASKS`: about 8 for geometry, 4 otherwise, the paper's figures);
 - ``nd``: no decomposition, one edit subtask 0 -> 1 with its own plateau and guard;
-- ``nd_equal``: ND with ProEdit's steps (r0 / the sum of ProEdit's edit subtasks / rn, the same
-  seed) AND ProEdit's training editor calls (``edit_every`` chosen to match them);
+- ``nd_equal``: ND with exactly ProEdit's steps (r0 / the sum of ProEdit's edit subtasks / rn,
+  the same seed) and exactly its training editor calls, spread by a fractional schedule
+  (:func:`.methods.fractional_exchanges`), not an integer ``edit_every``;
+- ``nd_replay``: ProEdit's own exchanges (its sweeps, calls and timesteps, so as many
+  hottest-timestep edits) replayed in one subtask at r = 1, without its opacity resets;
 - ``nd_k``: ProEdit's n edit subtasks all at r = 1, each as long as ProEdit's: the same opacity
   resets, initial sweeps, steps and editor calls, only the ratios differ (progression itself);
 - ``uniform``: n uniform ratios i / n (ProEdit's n), plateau and guard as ProEdit's (does the
-  difficulty-aware placement matter);
+  difficulty-aware placement matter); where ProEdit's own ratios are uniform, its run is
+  reused (``same_run_as``: the same run bit for bit);
 - ``in2n``: IN2N on 3DGS, ProEdit's total step count, one view every ``edit_every`` steps.
 
-Scores at the held-out views (:func:`jaxedit.metrics.mode_scores`): ``psnr_best`` (best over modes
-of the PSNR against the mode's noise-free target at r = 1), ``mode_mixing`` (0: one mode, 1: an
-even blend), ``multiview_consistency``. Per run also: ``editor_calls`` (training edits; the
-schedule's difficulty calls separately as ``schedule_calls``), ``sweeps`` (complete passes over
-the views), ``total_steps``, ``guard_ended`` (subtasks the step guard, not the plateau, ended),
-``maintenance`` (density-control steps), ``agreement`` (per sweep, the fraction of views whose
-drawn mode is the sweep's most common one; ``agreement_final`` the last sweep's), ``device``
-(what ran it: a study may be run in parts, ``run_ablation(seeds=...)``, on several machines).
+With ``references``, each (scene, instruction) also scores two reference levels in the same
+run (``seed`` -1): the unedited reconstruction and the ceiling, the same trainer fitted
+directly to each outcome's targets (the best outcome).
+
+Scores at the held-out views (:func:`.outcomes.outcome_scores`): ``psnr_best`` (best over the
+outcomes of the PSNR against the outcome's target), ``outcome_agreement`` (each view classified
+to its nearest outcome target), ``mode_mixing`` (0: one outcome, 1: an even blend),
+``multiview_consistency``. Per run also: ``plateau_share`` (the edit subtasks that ended on
+their loss plateau, not on the guard; ``guard_ended`` counts the others), ``editor_calls``
+(training edits; the schedule's difficulty calls separately as ``schedule_calls``),
+``hottest_calls`` (at the hottest timestep, t_max), ``calls_by_band`` (per timestep band,
+:data:`.methods.BANDS` of them, band 0 the hottest), ``resets``, ``sweeps`` (complete passes
+over the views), ``total_steps``, ``maintenance`` (density-control steps), ``agreement`` (the
+simulated editor: per sweep, the fraction of views whose drawn mode is the sweep's most common
+one), ``device`` (what ran it: a study may be run in parts, ``run_ablation(seeds=...)``, on
+several machines).
 
 Writes ``RUN_DIR/ablation.json``::
 
@@ -44,15 +59,16 @@ Writes ``RUN_DIR/ablation.json``::
      "differences": [{..., "method": other, ...}]}     # proedit - other, paired t 95% CI,
                                                         # paired by (scene, instruction, seed)
 
-(``prompt`` "all" averages the instructions per seed first), ``RUN_DIR/ablation.md`` and
-``RUN_DIR/views/*.png`` (seed 0). The file is rewritten after every run; a run with the same
-settings resumes from it.
+(``prompt`` "all" averages the complete instructions per seed first), ``RUN_DIR/ablation.md``
+and ``RUN_DIR/views/*.png`` (seed 0). Every run is appended to ``RUN_DIR/runs.jsonl`` as it
+ends and a run with the same settings resumes from it.
 
-Cost. The defaults (face, 20 px, 6 + 2 views; texture and shape; 20 seeds; variant 3 with five
-methods, 1 and 3:0 with proedit and nd) are 360 edit runs, about 8 s each for texture and 13 s
-for shape on the shared 2-core machine: 43 minutes of wall time with the gain-0 control in a
-second process (the record ``benchmarks/results/cpu/mechanism_ablation.json``; README, "What
-the mechanism test shows").
+Cost. The bundled editor's study (``benchmarks/results/cpu/mechanism_ip2p/``: face, 48 px,
+16 + 4 views, four instructions, six methods, 20 seeds) takes about 12 minutes of the 2-core
+CPU per (instruction, seed), 16 hours in all, run in parts. The simulated defaults (face,
+20 px, 6 + 2 views; texture and shape; 20 seeds; variant 3 with five methods, 1 and 3:0 with
+proedit and nd) are 360 edit runs, 43 minutes of wall time (the old instrument's record
+``benchmarks/results/cpu/mechanism_ablation.json``; README, "What the mechanism test shows").
 
 Modules: :mod:`.methods` (the rows and their budgets), :mod:`.summary` (the statistics
 and tables); this one holds the settings and the runs.
@@ -119,8 +135,8 @@ class AblationConfig:
       seeds: seeds per instruction (0 .. N-1).
       variants: editor variants K or K:GAIN (modes, mode_step_gain); the first runs
         methods, the others control_methods.
-      methods: rows of the first variant: proedit, nd, nd_equal, nd_k, uniform, in2n (all
-        but nd follow proedit's budget, so need proedit).
+      methods: rows of the first variant: proedit, nd, nd_equal, nd_replay, nd_k, uniform,
+        in2n (all but nd follow proedit's budget, so need proedit).
       control_methods: rows of the other variants (the negative controls).
       size: image size in pixels.
       views: training views.
