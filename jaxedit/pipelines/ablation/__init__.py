@@ -41,8 +41,9 @@ directly to each outcome's targets (the best outcome).
 Scores at the held-out views (:func:`.outcomes.outcome_scores`): ``psnr_best`` (best over the
 outcomes of the PSNR against the outcome's target), ``outcome_agreement`` (each view classified
 to its nearest outcome target), ``mode_mixing`` (0: one outcome, 1: an even blend),
-``multiview_consistency``. Per run also: ``plateau_share`` (the edit subtasks that ended on
-their loss plateau, not on the guard; ``guard_ended`` counts the others), ``editor_calls``
+``multiview_consistency``. Per run also: ``plateau_share`` (of the subtasks that can plateau,
+the share that ended on their loss plateau, not on the guard; ``guard_ended`` counts the
+others; fixed-length subtasks, as ``nd_equal``'s, have none), ``editor_calls``
 (training edits; the schedule's difficulty calls separately as ``schedule_calls``),
 ``hottest_calls`` (at the hottest timestep, t_max), ``calls_by_band`` (per timestep band,
 :data:`.methods.BANDS` of them, band 0 the hottest), ``resets``, ``sweeps`` (complete passes
@@ -60,8 +61,8 @@ Writes ``RUN_DIR/ablation.json``::
                                                         # paired by (scene, instruction, seed)
 
 (``prompt`` "all" averages the complete instructions per seed first), ``RUN_DIR/ablation.md``
-and ``RUN_DIR/views/*.png`` (seed 0). Every run is appended to ``RUN_DIR/runs.jsonl`` as it
-ends and a run with the same settings resumes from it.
+and ``RUN_DIR/views/*.png`` (seed 0), once the study ends. Every run is appended to
+``RUN_DIR/runs.jsonl`` as it ends, and a run with the same settings resumes from it.
 
 Cost. The bundled editor's study (``benchmarks/results/cpu/mechanism_ip2p/``: face, 48 px,
 16 + 4 views, four instructions, six methods, 20 seeds) takes about 12 minutes of the 2-core
