@@ -60,9 +60,10 @@ Writes ``RUN_DIR/ablation.json``::
      "differences": [{..., "method": other, ...}]}     # proedit - other, paired t 95% CI,
                                                         # paired by (scene, instruction, seed)
 
-(``prompt`` "all" averages the complete instructions per seed first), ``RUN_DIR/ablation.md``
-and ``RUN_DIR/views/*.png`` (seed 0), once the study ends. Every run is appended to
-``RUN_DIR/runs.jsonl`` as it ends, and a run with the same settings resumes from it.
+(``prompt`` "all" averages the complete instructions per seed first) and
+``RUN_DIR/ablation.md`` once the study ends, and ``RUN_DIR/views/*.png`` as seed 0's runs
+end. Every run is appended to ``RUN_DIR/runs.jsonl`` as it ends, and a run with the same
+settings resumes from it.
 
 Cost. The bundled editor's study (``benchmarks/results/cpu/mechanism_ip2p/``: face, 48 px,
 16 + 4 views, four instructions, six methods, 20 seeds) takes about 12 minutes of the 2-core
