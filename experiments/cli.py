@@ -667,36 +667,12 @@ def named_by_flag(error, args: argparse.Namespace | None):
     return error
 
 
-def available_memory() -> int:
-    """Bytes of memory a new allocation can get now (MemAvailable; else physical memory)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
 def require_memory(flag: str, needed: float, what: str) -> None:
-    """Refuse up front a run whose estimated working set exceeds the free memory.
+    """Refuse up front a run whose estimated working set exceeds the free memory: the
+    library's one check (:func:`jaxedit.memory.require_memory`), which its readers use too."""
+    from jaxedit.memory import require_memory as check
 
-    Args:
-      flag: the flag(s) that set the size, for the message.
-      needed: estimated bytes.
-      what: what the bytes are for, in words.
-    """
-    from jaxedit import DataError
-
-    free = available_memory()
-    if needed > free:
-        raise DataError(flag, f"{what} would need about {_gib(needed)} of memory, "
-                        f"this machine has {_gib(free)} free")
-
-
-def _gib(nbytes: float) -> str:
-    return f"{nbytes / 2**30:.3g} GiB"
+    check(flag, needed, what)
 
 
 def check_minimums(args: argparse.Namespace, minimums: dict) -> None:
