@@ -105,25 +105,76 @@ class EditorTrainConfig:
                                  text_width=32, text_layers=1)
 
     def check(self) -> "EditorTrainConfig":
+        """This config, or a DataError naming the flag of the first setting that is out of
+        range, inconsistent, or whose working set exceeds the free memory (checked here,
+        before any work: :func:`train_memory`, :func:`jaxedit.memory.require_memory`)."""
         for name in ("size", "procedural_views", "vae_steps", "vae_batch", "vae_crop", "steps",
                      "batch", "text_width", "text_layers"):
-            if int(getattr(self, name)) < 1:
-                raise DataError(f"--{name.replace('_', '-')}", f"must be >= 1, got "
-                                f"{getattr(self, name)}")
-        if self.size % 4 or self.vae_crop % 4 or self.vae_crop > self.size:
-            raise DataError("--size", f"size and crop must be multiples of 4 with crop <= size, "
-                            f"got {self.size} and {self.vae_crop}")
+            value, most = getattr(self, name), MAXIMA[name]
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise DataError(_flag(name), f"must be a whole number, got {value!r}")
+            if not 1 <= value <= most:
+                raise DataError(_flag(name), f"must be in 1 .. {most}, got {value}")
+        if self.size % 16 or self.vae_crop % 4 or self.vae_crop > self.size:
+            # The UNet halves the latent (size / 4) twice: size must be a multiple of 16.
+            raise DataError("--size", f"size must be a multiple of 16 and the crop a multiple "
+                            f"of 4 with crop <= size, got {self.size} and {self.vae_crop}")
+        if self.text_width % 2:  # the text encoder's two attention heads split it
+            raise DataError("--text-width", f"must be even, got {self.text_width}")
         from ..scenes import list_scenes
 
         unknown = [s for s in self.scenes if s not in list_scenes()]
         if unknown or not self.scenes:
             what = f"unknown scene {unknown[0]!r}" if unknown else "no scene given"
             raise DataError("--scenes", f"{what}; built-in scenes: {', '.join(list_scenes())}")
+        if "person" in self.scenes and 256 % self.size:  # person's renders are 256 px
+            raise DataError("--size", f"256 / size must be an integer with the person scene, "
+                            f"got {self.size}")
         for name in ("ema", "identity_share", "drop", "degrade"):
             if not 0 <= float(getattr(self, name)) < 1:
-                raise DataError(f"--{name.replace('_', '-')}", f"must be in [0, 1), got "
-                                f"{getattr(self, name)}")
+                raise DataError(_flag(name), f"must be in [0, 1), got {getattr(self, name)}")
+        for name in ("lr", "vae_lr"):
+            if not 0 < float(getattr(self, name)) <= 1:
+                raise DataError(_flag(name), f"must be in (0, 1], got {getattr(self, name)}")
+        if not -2**63 <= int(self.seed) < 2**63:  # jax.random.key takes a 64-bit integer
+            raise DataError("--seed", f"must fit in 64 bits (|seed| < 2^63), got {self.seed}")
+        from ..memory import require_memory
+
+        require_memory("--size/--procedural-views/--batch/--vae-batch", train_memory(self),
+                       f"training at {self.size} px on {self.procedural_views} views per scene")
         return self
+
+
+#: The largest value of each count of :class:`EditorTrainConfig` (a hundred times or more the
+#: shipped run's, which takes an hour on a 2-core CPU): beyond it a typo, not a plan, which
+#: would otherwise run for days or fail deep inside the work.
+MAXIMA = {"size": 1024, "procedural_views": 10_000, "vae_steps": 250_000, "vae_batch": 4096,
+          "vae_crop": 1024, "steps": 200_000, "batch": 4096, "text_width": 4096,
+          "text_layers": 48}
+
+
+def _flag(field: str) -> str:
+    return f"--{field.replace('_', '-')}"
+
+
+#: Edited views per input view at most (every outcome of every instruction: 1+1+3+3+1+1).
+TARGETS_PER_VIEW = 10
+
+
+def train_memory(cfg: EditorTrainConfig) -> float:
+    """Bytes a training run holds at least: the dataset (uint8 inputs and targets, held three
+    times: as built, as the VAE's training set and on the device) plus one scene's float32
+    renders while it is built, plus one step's activations of the VAE and of the UNet
+    (a few dozen feature maps of the first level kept for the backward pass). A low estimate:
+    it refuses only what surely cannot fit."""
+    views = cfg.procedural_views * len(cfg.scenes)
+    pixels = float(cfg.size) ** 2
+    dataset = 3 * views * (1 + TARGETS_PER_VIEW) * pixels * 3
+    render = cfg.procedural_views * (1 + TARGETS_PER_VIEW) * pixels * 4 * 4
+    kept = 32  # feature maps of the first level a step keeps for its gradient
+    vae_step = cfg.vae_batch * float(cfg.vae_crop) ** 2 * 16 * 4 * kept
+    unet_step = 3 * cfg.batch * pixels / 16 * cfg.width[0] * 4 * kept
+    return dataset + render + max(vae_step, unet_step)
 
 
 # ----------------------------------------------------------------------------- architectures

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 from typing import Callable
@@ -52,16 +53,108 @@ def _stage_record(cfg, kind: str) -> dict:
     return {k: record[k] for k in VAE_SETTINGS} if kind == "editor-vae" else record
 
 
-def load_or_build_dataset(cfg, out: Path, progress=None) -> edit_data.EditDataset:
-    """OUT/dataset.npz when it holds this config's dataset, else built and written."""
+#: What a run directory holds, by kind ("dir" / "file"): each is checked before any work, so
+#: a name taken by the wrong kind of thing is one line, not a traceback at the end of a run.
+RUN_LAYOUT = {"dataset.npz": "file", "training.json": "file", "checkpoints": "dir",
+              "checkpoints/vae.npz": "file", "checkpoints/unet.npz": "file", "model": "dir",
+              "model/tokenizer": "dir"}
+
+
+def check_run_folder(out: Path) -> None:
+    """Refuse, before any work, a run directory where a name the run writes (:data:`RUN_LAYOUT`)
+    is taken by the wrong kind of thing (a file where a folder goes, or the reverse)."""
+    for name, kind in RUN_LAYOUT.items():
+        p = out / name
+        if p.exists() and p.is_dir() != (kind == "dir"):
+            what = "a folder" if kind == "dir" else "a file"
+            raise DataError(p, f"must be {what} of the training run; move it or choose "
+                               f"another --out")
+
+
+def _dataset_record(cfg) -> dict:
+    return {"size": cfg.size, "procedural_views": cfg.procedural_views,
+            "scenes": list(cfg.scenes)}
+
+
+#: dataset.npz's arrays: (dtype kind, number of dimensions); images are [N, size, size, 3].
+DATASET_ARRAYS = {"inputs": ("u", 4), "scene": ("i", 1), "held_out": ("b", 1),
+                  "targets": ("u", 4), "target_view": ("i", 1), "target_instruction": ("i", 1),
+                  "target_outcome": ("i", 1)}
+
+
+def read_dataset(path: Path) -> tuple[dict, edit_data.EditDataset]:
+    """(the settings it was built with, the dataset) of a ``dataset.npz``: the one reader of
+    the file, which checks its record, every array's dtype and rank, that the images are
+    square RGB of the recorded size, and that every index points inside its table.
+
+    Raises:
+      DataError naming ``path``.
+    """
+    arrays = read_npz(path)
+    try:
+        record = json.loads(str(arrays.pop("meta")))
+    except (KeyError, json.JSONDecodeError):
+        raise DataError(path, "not a train-editor dataset (no readable settings record); "
+                              "delete it to rebuild it") from None
+    keys = {"size", "procedural_views", "scenes"}
+    if (not isinstance(record, dict) or set(record) != keys
+            or not all(isinstance(record[k], int) for k in ("size", "procedural_views"))
+            or not isinstance(record["scenes"], list)
+            or not all(isinstance(x, str) for x in record["scenes"])):
+        raise DataError(path, f"its settings record is not {{size, procedural_views, scenes}}: "
+                              f"{json.dumps(record)[:120]}; delete it to rebuild it")
+    if set(arrays) != set(DATASET_ARRAYS):
+        raise DataError(path, f"holds arrays {sorted(arrays)}, expected "
+                              f"{sorted(DATASET_ARRAYS)}; delete it to rebuild it")
+    for name, (kind, ndim) in DATASET_ARRAYS.items():
+        a = arrays[name]
+        if a.dtype.kind != kind or a.ndim != ndim:
+            raise DataError(path, f"array {name} is {a.dtype} with {a.ndim} dimensions, "
+                                  f"expected kind {kind!r} with {ndim}; delete it to rebuild it")
+    size, n, m = record["size"], len(arrays["inputs"]), len(arrays["targets"])
+    problem = None
+    for name in ("inputs", "targets"):
+        if arrays[name].shape[1:] != (size, size, 3):
+            problem = f"{name} are {list(arrays[name].shape[1:])}, expected [{size}, {size}, 3]"
+    if len(arrays["scene"]) != n or len(arrays["held_out"]) != n:
+        problem = "scene / held_out do not have one entry per input view"
+    elif any(len(arrays[k]) != m for k in ("target_view", "target_instruction",
+                                           "target_outcome")):
+        problem = "target_view / target_instruction / target_outcome do not match targets"
+    elif m and not (0 <= arrays["target_view"].min() and arrays["target_view"].max() < n):
+        problem = "target_view points outside the input views"
+    elif m and not (0 <= arrays["target_instruction"].min()
+                    and arrays["target_instruction"].max() < len(edit_data.INSTRUCTIONS)):
+        problem = "target_instruction points outside the instructions"
+    elif n and not (0 <= arrays["scene"].min() and arrays["scene"].max() < len(record["scenes"])):
+        problem = "scene points outside the scenes"
+    if problem:
+        raise DataError(path, f"{problem}; delete it to rebuild it")
+    return record, edit_data.EditDataset(tuple(record["scenes"]), edit_data.INSTRUCTIONS,
+                                         **arrays)
+
+
+def load_or_build_dataset(cfg, out: Path, progress=None, *,
+                          resume: bool = False) -> edit_data.EditDataset:
+    """OUT/dataset.npz when it holds this config's dataset, else built and written.
+
+    On ``resume`` an existing dataset that is damaged or was built with other settings is
+    refused (the run's checkpoints were trained on it; it is left as it is), not rebuilt.
+    """
     path = out / "dataset.npz"
-    record = {"size": cfg.size, "procedural_views": cfg.procedural_views,
-              "scenes": list(cfg.scenes)}
+    record = _dataset_record(cfg)
     if path.exists():
-        arrays = read_npz(path)
-        meta = json.loads(str(arrays.pop("meta", "{}")))
-        if meta == record:
-            return edit_data.EditDataset(tuple(cfg.scenes), edit_data.INSTRUCTIONS, **arrays)
+        try:
+            stored, data = read_dataset(path)
+        except DataError:
+            if resume:
+                raise
+            stored = None
+        if stored == record:
+            return data
+        if resume and stored is not None:
+            raise DataError(path, f"was built with other settings ({json.dumps(stored)[:160]}); "
+                                  f"use its flags or another --out")
     data = edit_data.build_dataset(cfg.size, cfg.procedural_views, tuple(cfg.scenes), progress)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
@@ -73,17 +166,55 @@ def tokenizer_folder(out: Path) -> Path:
     return out / "model" / "tokenizer"
 
 
-def _resume_state(path: Path, template, kind: str, cfg) -> tuple[object, list[float]]:
-    """(the stage's state, its losses so far) from its checkpoint; refuses other settings."""
+#: The record each stage's checkpoint carries beside its state (all required, no others).
+CHECKPOINT_META = {"config": dict, "step": int, "losses": list}
+
+
+def read_stage_checkpoint(path: Path, kind: str, cfg) -> tuple[dict, int, list[float]]:
+    """(arrays, step, losses) of a stage's checkpoint: the one reader of ``vae.npz`` /
+    ``unet.npz``, which checks its record's keys and types, that it was written by a run
+    with this config's settings of the stage, and that its step and losses agree with each
+    other, with the stored state's step and with the stage's length.
+
+    Raises:
+      DataError naming ``path``.
+    """
     arrays, meta = read_pytree(path, kind=kind)
-    stored = meta.get("config")
-    if stored is not None and kind == "editor-vae":
+    older = isinstance(meta, dict) and set(meta) == {"config", "step"}
+    if older:
+        meta = dict(meta, losses=[])  # a checkpoint of an older run has no losses
+    if not isinstance(meta, dict) or set(meta) != set(CHECKPOINT_META):
+        keys = sorted(meta) if isinstance(meta, dict) else type(meta).__name__
+        raise DataError(path, f"checkpoint record has keys {keys}, expected "
+                              f"{sorted(CHECKPOINT_META)}; delete it to start the stage over")
+    for key, kind_ in CHECKPOINT_META.items():
+        if not isinstance(meta[key], kind_) or isinstance(meta[key], bool):
+            raise DataError(path, f"checkpoint record's {key} is a {type(meta[key]).__name__}, "
+                                  f"expected a {kind_.__name__}")
+    stored = meta["config"]
+    if kind == "editor-vae":
         stored = {k: stored.get(k) for k in VAE_SETTINGS}
     if stored != _stage_record(cfg, kind):
         raise DataError(path, "was written by a run with other settings; use its own flags "
                               "or another --out")
-    losses = meta.get("losses", [])  # a checkpoint of an older run has none
-    return restore(template, arrays, path), [float(v) for v in losses]
+    step, losses = meta["step"], meta["losses"]
+    total = cfg.vae_steps if kind == "editor-vae" else cfg.steps
+    state_step = arrays.get(".step")
+    if (not 0 <= step <= total or (len(losses) != step and not older)
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                       and math.isfinite(v) for v in losses)
+            or state_step is None or state_step.shape != () or int(state_step) != step):
+        raise DataError(path, f"checkpoint record is inconsistent (step {step} of {total}, "
+                              f"{len(losses)} losses, state at step "
+                              f"{None if state_step is None else state_step.tolist()}); "
+                              f"delete it to start the stage over")
+    return arrays, step, [float(v) for v in losses]
+
+
+def _resume_state(path: Path, template, kind: str, cfg) -> tuple[object, list[float]]:
+    """(the stage's state, its losses so far) from its checkpoint; refuses other settings."""
+    arrays, _, losses = read_stage_checkpoint(path, kind, cfg)
+    return restore(template, arrays, path), losses
 
 
 def _checkpointer(path: Path, kind: str, cfg):
@@ -106,14 +237,34 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     cfg = cfg.check()
     out = Path(out)
     ckpt = out / "checkpoints"
+    check_run_folder(out)
+    stages = {"editor-vae": ckpt / "vae.npz", "editor-unet": ckpt / "unet.npz"}
     if not resume and ckpt.exists() and any(ckpt.iterdir()):
         raise DataError(ckpt, "holds a previous run's checkpoints; pass --resume to continue "
                               "it or choose another --out")
-    ckpt.mkdir(parents=True, exist_ok=True)
+    if resume and not any(p.exists() for p in stages.values()) and not (
+            out / "dataset.npz").exists():
+        raise DataError(out, "nothing to resume (no checkpoints/vae.npz, checkpoints/unet.npz "
+                             "or dataset.npz); run without --resume to start a new run")
     stage = stage or (lambda name, total, done: None)
     seconds: dict[str, float] = {}
     key = jax.random.key(cfg.seed)
     k_vae, k_unet, k_scale, k_degrade, k_nets = jax.random.split(key, 5)
+
+    # Everything a resume reads is read and checked before anything is written: a refused
+    # resume leaves the run directory as it was. The tokenizer is a pure function of the
+    # instructions, so the networks' shapes are known before the dataset is.
+    vocab, merges = tiny_ip2p.train_tokenizer([i.prompt for i in edit_data.INSTRUCTIONS])
+    state = tiny_ip2p.init_vae(cfg, k_vae)
+    unet, text = tiny_ip2p.build_networks(cfg, len(vocab), vocab[tiny_ip2p.BOS],
+                                          vocab[tiny_ip2p.EOS], k_nets)
+    ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
+    vae_losses: list[float] = []
+    unet_losses: list[float] = []
+    if resume and stages["editor-vae"].exists():
+        state, vae_losses = _resume_state(stages["editor-vae"], state, "editor-vae", cfg)
+    if resume and stages["editor-unet"].exists():
+        ustate, unet_losses = _resume_state(stages["editor-unet"], ustate, "editor-unet", cfg)
 
     t0 = time.perf_counter()
     on_scene = stage("dataset", len(cfg.scenes), 0)
@@ -124,14 +275,14 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
         if on_scene is not None:
             on_scene(len(built), float("nan"))
 
-    data = load_or_build_dataset(cfg, out, scene_done)
+    data = load_or_build_dataset(cfg, out, scene_done, resume=resume)
+    ckpt.mkdir(parents=True, exist_ok=True)
     seconds["dataset"] = time.perf_counter() - t0
     train_views = np.flatnonzero(~data.held_out)
     log(f"dataset: {len(data.inputs)} views ({int(data.held_out.sum())} held out), "
         f"{len(data.targets)} edited views, {len(data.instructions)} instructions")
 
     # The tokenizer: learnt on the instructions, written where the model folder keeps it.
-    vocab, merges = tiny_ip2p.train_tokenizer([i.prompt for i in data.instructions])
     write_tokenizer(tokenizer_folder(out), vocab, merges, bos=tiny_ip2p.BOS, eos=tiny_ip2p.EOS,
                     max_length=tiny_ip2p.MAX_LENGTH)
     tokenizer = CLIPTokenizer.from_folder(tokenizer_folder(out))
@@ -141,17 +292,13 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     t0 = time.perf_counter()
     train_rows = data.split(held_out=False)
     vae_images = np.concatenate([data.inputs[train_views], data.targets[train_rows]])
-    state = tiny_ip2p.init_vae(cfg, k_vae)
     vae_static = eqx.filter(tiny_ip2p.AutoencoderKL.from_config(
         tiny_ip2p.vae_config(cfg), key=jax.random.key(0)), eqx.is_array, inverse=True)
-    vae_losses: list[float] = []
-    if resume and (ckpt / "vae.npz").exists():
-        state, vae_losses = _resume_state(ckpt / "vae.npz", state, "editor-vae", cfg)
     step = tiny_ip2p.make_vae_step(cfg, vae_static, jax.numpy.asarray(vae_images))
     state, vae_losses = tiny_ip2p.run_steps(
         step, state, cfg.vae_steps, every=CHECKPOINT_EVERY, losses=vae_losses,
         on_progress=stage("vae", cfg.vae_steps, int(state.step)),
-        checkpoint=_checkpointer(ckpt / "vae.npz", "editor-vae", cfg))
+        checkpoint=_checkpointer(stages["editor-vae"], "editor-vae", cfg))
     vae = eqx.combine(state.vae, vae_static)
     seconds["vae"] = time.perf_counter() - t0
 
@@ -165,20 +312,14 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
 
     # The UNet and the text encoder.
     t0 = time.perf_counter()
-    unet, text = tiny_ip2p.build_networks(cfg, len(vocab), tokenizer.bos_id, tokenizer.eos_id,
-                                          k_nets)
     statics = (eqx.filter(unet, eqx.is_array, inverse=True),
                eqx.filter(text, eqx.is_array, inverse=True))
-    ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
-    unet_losses: list[float] = []
-    if resume and (ckpt / "unet.npz").exists():
-        ustate, unet_losses = _resume_state(ckpt / "unet.npz", ustate, "editor-unet", cfg)
     schedule = DDPMSchedule.from_config(tiny_ip2p.SCHEDULER_CONFIG)
     ustep = tiny_ip2p.make_unet_step(cfg, statics, d, scaling, schedule)
     ustate, unet_losses = tiny_ip2p.run_steps(
         ustep, ustate, cfg.steps, every=CHECKPOINT_EVERY, losses=unet_losses,
         on_progress=stage("unet", cfg.steps, int(ustate.step)),
-        checkpoint=_checkpointer(ckpt / "unet.npz", "editor-unet", cfg))
+        checkpoint=_checkpointer(stages["editor-unet"], "editor-unet", cfg))
     seconds["unet"] = time.perf_counter() - t0
 
     summary = {
