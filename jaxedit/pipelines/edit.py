@@ -29,7 +29,8 @@ import numpy as np
 from ..edit import local as local_lib
 from ..edit import progressive
 from ..edit.buffer import pick_devices
-from ..edit.checkpoint import load_checkpoint, save_checkpoint
+from ..edit.checkpoint import (check_resume, load_checkpoint, save_checkpoint,
+                               snapshot_fingerprint)
 from ..edit.context import EditContext, EditData
 from ..edit.outputs import Renderer
 from ..edit.state import init_state
@@ -140,6 +141,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
 
     if resume:
         st, meta = load_checkpoint(ckpt, trainer.init(gaussians))
+        check_resume(ckpt, st, data.train_images.shape, run_dir)  # before anything is written
         plan = tuple(SubtaskSpec(**p) for p in meta["plan"])
         header = meta["header"]
         wall0 -= meta.get("wall_time_s", 0.0)
@@ -190,7 +192,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         rel = Path("subtasks") / spec.dirname
         record = dict(record, metrics=write_scene_snapshot(
             ctx, run_dir / rel, trainer.gaussians(state.train), ratio=spec.ratio),
-            snapshot=str(rel / "scene.ply"))
+            snapshot=str(rel / "scene.ply"), **snapshot_fingerprint(run_dir / rel / "scene.ply"))
         write_schedule(tuple(state.records) + (record,))
         return record
 
