@@ -5,17 +5,26 @@ trainer's checkpoints use it too): the trainer state's leaves under their pytree
 paths (typed PRNG keys as raw key data), the training images, the edit flags and
 the loss tracker as arrays, and everything else as the file's JSON meta record,
 so a resumed run continues with the same bits.
+
+:func:`read_record` is the one reader of that meta record (every key, its type and its
+range checked, unknown keys refused), and :func:`check_resume` checks, before a resumed
+run writes anything, that the checkpoint fits the data it is resumed with and that every
+snapshot its run's records (and ``schedule.json``) name is still there, loads, and has the
+size and hash recorded when it was written (:func:`snapshot_fingerprint`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import DataError
 from ..io.checkpoint import read_pytree, restore, save_pytree
 from .buffer import Utilisation
 from .state import DensityTally, EditState, LossTracker
@@ -37,14 +46,88 @@ def save_checkpoint(path: str | os.PathLike, st: EditState, meta: dict) -> None:
     save_pytree(path, tree, kind=KIND, meta=info)
 
 
+#: The checkpoint's meta record: key -> (types, required). A key of an older version's
+#: checkpoint that it may lack is not required (its default is the fresh state's).
+_NUMBER = (int, float)
+RECORD = {"subtask": (int, True), "step": (int, True), "records": (list, True),
+          "seconds": (_NUMBER, True), "utilisation": (dict, True),
+          "complete_at": (int, False), "annealed_at": (int, False), "density": (dict, False),
+          "tracker": (list, True), "max_intersections": ((int, type(None)), False),
+          "meta": (dict, True)}
+#: The run's own part of it (:func:`jaxedit.pipelines.edit.run_edit` writes it).
+RUN_META = {"plan": (list, True), "header": (dict, True), "wall_time_s": (_NUMBER, False)}
+
+
+def _check_keys(record, schema: dict, path, what: str) -> None:
+    """Refuse a record that is not a dict, lacks a required key, has an unknown one, or
+    holds a value of the wrong type (bools are not numbers here)."""
+    if not isinstance(record, dict):
+        raise DataError(path, f"{what} is a {type(record).__name__}, expected an object")
+    missing = [k for k, (_, required) in schema.items() if required and k not in record]
+    unknown = sorted(set(record) - set(schema))
+    if missing or unknown:
+        parts = ([f"lacks {', '.join(missing)}"] if missing else []) + (
+            [f"has unknown {', '.join(unknown)}"] if unknown else [])
+        raise DataError(path, f"{what} {' and '.join(parts)} (damaged, or written by "
+                              f"another version); delete it to start the edit over")
+    for key, (types, _) in schema.items():
+        value, types = record.get(key), types if isinstance(types, tuple) else (types,)
+        if key in record and (not isinstance(value, types)
+                              or (isinstance(value, bool) and bool not in types)):
+            raise DataError(path, f"{what}'s {key} is {json.dumps(value)[:40]}, of the "
+                                  f"wrong type")
+
+
+def _fields(kind) -> set[str]:
+    return set(getattr(kind, "_fields", ())) or {f.name for f in dataclasses.fields(kind)}
+
+
+def read_record(path, info) -> dict:
+    """The checkpoint's meta record ``info``, checked: every key of :data:`RECORD` and
+    :data:`RUN_META`, their types and ranges, the counters' fields and each plan entry's.
+
+    Raises:
+      DataError naming ``path``.
+    """
+    from .plan import SubtaskSpec
+
+    _check_keys(info, RECORD, path, "checkpoint record")
+    _check_keys(info["meta"], RUN_META, path, "checkpoint record's meta")
+    if info["subtask"] < 0 or info["step"] < 0:
+        raise DataError(path, f"checkpoint record is at subtask {info['subtask']}, step "
+                              f"{info['step']}: negative")
+    tracker = info["tracker"]
+    if len(tracker) != 3 or not all(isinstance(v, _NUMBER) and not isinstance(v, bool)
+                                    for v in tracker):
+        raise DataError(path, f"checkpoint record's tracker is {json.dumps(tracker)[:60]}, "
+                              f"expected [count, best, since_best]")
+    for key, kind in (("utilisation", Utilisation), ("density", DensityTally)):
+        if key in info and not set(info[key]) <= _fields(kind):
+            raise DataError(path, f"checkpoint record's {key} has unknown "
+                                  f"{', '.join(sorted(set(info[key]) - _fields(kind)))}")
+    spec_fields = _fields(SubtaskSpec)
+    plan = info["meta"]["plan"]
+    if not plan or not all(isinstance(p, dict) and set(p) == spec_fields for p in plan):
+        raise DataError(path, f"checkpoint record's plan is not a list of subtasks with "
+                              f"{', '.join(sorted(spec_fields))}")
+    if info["subtask"] > len(plan):
+        raise DataError(path, f"checkpoint record is at subtask {info['subtask']} of a plan "
+                              f"of {len(plan)}")
+    if not all(isinstance(r, dict) for r in info["records"]):
+        raise DataError(path, "checkpoint record's records are not objects")
+    return info
+
+
 def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[EditState, dict]:
     """Read a checkpoint written by :func:`save_checkpoint` (state, meta).
 
     ``train_template`` is any trainer state of the same structure (shapes may
-    differ: capacity grows during a run); its typed PRNG keys are restored.
+    differ: capacity grows during a run); its typed PRNG keys are restored. The meta
+    record is checked by :func:`read_record` before anything is built from it.
     """
     path = Path(path)
     arrays, info = read_pytree(path, kind=KIND)
+    info = read_record(path, info)
     template = {"train": train_template, "images": np.zeros((0,), np.float32),
                 "edited": np.zeros((0,), bool), "tracker_recent": np.zeros((0,), np.float32)}
     # The capacity grows during a run: the stored shapes win over the template's.
@@ -63,3 +146,81 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[EditState,
                      density=DensityTally(**info.get("density", {})),
                      utilisation=Utilisation(**info["utilisation"]))
     return st, info["meta"]
+
+
+# ----------------------------------------------------------------------------- resuming
+
+
+def snapshot_fingerprint(path: str | os.PathLike) -> dict:
+    """``{"snapshot_bytes", "snapshot_sha256"}`` of a snapshot's scene file, recorded in its
+    subtask's record so that a resumed run can tell a truncated or replaced one."""
+    data = Path(path).read_bytes()
+    return {"snapshot_bytes": len(data), "snapshot_sha256": hashlib.sha256(data).hexdigest()}
+
+
+def _named_snapshots(run_dir: Path, records) -> dict[str, dict]:
+    """{snapshot path as recorded: its record} of the checkpoint's records and of
+    ``schedule.json``'s finished subtasks (the checkpoint's win: they rewrite the file)."""
+    named: dict[str, dict] = {}
+    schedule = run_dir / "schedule.json"
+    if schedule.is_file():
+        try:
+            subtasks = json.loads(schedule.read_text(encoding="utf-8")).get("subtasks", [])
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError) as e:
+            raise DataError(schedule, f"unreadable run record ({type(e).__name__}); the run "
+                                      f"cannot be resumed as it is") from None
+        for r in subtasks if isinstance(subtasks, list) else []:
+            if isinstance(r, dict) and isinstance(r.get("snapshot"), str):
+                named[r["snapshot"]] = r
+    for r in records:
+        if isinstance(r.get("snapshot"), str):
+            named[r["snapshot"]] = r
+    return named
+
+
+def verify_snapshots(run_dir: str | os.PathLike, records) -> None:
+    """Refuse a resume whose finished subtasks' snapshots are not as they were written:
+    every one the records or ``schedule.json`` name must be present, load as a scene, and
+    have its recorded size and hash (records of older runs have neither: present and
+    loading then suffice).
+
+    Raises:
+      DataError naming the snapshot.
+    """
+    from ..io import load_ply
+
+    run_dir = Path(run_dir)
+    for rel, record in _named_snapshots(run_dir, records).items():
+        path = run_dir / rel
+        if not path.is_file():
+            raise DataError(path, "the snapshot of a finished subtask is missing; the run "
+                                  "cannot be resumed (start it over, or --resume-from an "
+                                  "intact snapshot)")
+        size, digest = record.get("snapshot_bytes"), record.get("snapshot_sha256")
+        if size is not None or digest is not None:
+            found = snapshot_fingerprint(path)
+            if (size is not None and found["snapshot_bytes"] != size) or (
+                    digest is not None and found["snapshot_sha256"] != digest):
+                raise DataError(path, f"the snapshot is not the one the run wrote "
+                                      f"({found['snapshot_bytes']} bytes, recorded {size}); "
+                                      f"it was truncated or replaced")
+        load_ply(path)  # a DataError naming it when it does not load
+
+
+def check_resume(path, st: EditState, images_shape: tuple, run_dir=None) -> None:
+    """Before a resumed run writes anything: the checkpoint's training images must be of
+    the data's shape ``images_shape`` [N, H, W, 3] (a checkpoint of other data would be
+    rewritten and then fail), and every snapshot must be intact (:func:`verify_snapshots`).
+
+    Raises:
+      DataError naming the checkpoint ``path`` or the snapshot.
+    """
+    stored = tuple(np.shape(st.images))
+    if stored != tuple(images_shape) or len(st.edited) != images_shape[0]:
+        raise DataError(path, f"was written for {stored[0] if stored else 0} training views "
+                              f"of {'x'.join(map(str, stored[1:3][::-1]))} px, the data has "
+                              f"{images_shape[0]} of "
+                              f"{'x'.join(map(str, tuple(images_shape)[1:3][::-1]))} px; "
+                              f"resume with the run's own --data and --downscale")
+    if run_dir is not None:
+        verify_snapshots(run_dir, st.records)
