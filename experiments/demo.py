@@ -63,9 +63,8 @@ class DemoConfig:
       test_views: held-out test views.
       iters: reconstruction iterations (1000: about 35 dB on the held-out views).
       threshold: subtask difficulty threshold of the scheduler (ignored with --subtasks;
-        None: the edit's default under LPIPS, 0.025 under the MS-SSIM fallback).
-      distance: difficulty distance of the edit (auto: LPIPS-VGG when its weights are
-        converted, else MS-SSIM).
+        None: the edit's default under LPIPS, 0.025 under MS-SSIM).
+      distance: difficulty distance of the edit (auto: LPIPS with the bundled AlexNet).
       subtasks: uniform schedule of N subtasks instead of the difficulty-aware one.
       mode: editing mode.
       max_steps: per-subtask training step guard of the edit (None: the edit's, scaled with

