@@ -337,6 +337,10 @@ def test_person_copy_downscales_and_subsets(person_full, person_small):
     credits = (person_small / "CREDITS.txt").read_text()
     assert "Reallusion" in credits and "Attribution 3.0" in credits
     assert "Creative Commons" in (person_small / "LICENSE-Reallusion.txt").read_text()
+    # the renders' own licence note sits beside them, in the copy as in the package
+    for root in (scenes.dataset_path("person"), person_small):
+        note = (root / "images" / "LICENSE.txt").read_text()
+        assert "CC BY 3.0 US" in note and "Reallusion" in note and "NOT under" in note
 
 
 def test_cli_make_scene_person(tmp_path, capsys):

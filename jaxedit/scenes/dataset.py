@@ -177,6 +177,8 @@ def copy_rendered_scene(name: str, out_dir: str | os.PathLike, *, downscale: int
     atomic_write_text(out_dir / SCENE_INFO, json.dumps(info, indent=1) + "\n")
     for extra in sorted(src.glob("*.txt")):  # credits and licence travel with the images
         atomic_write_bytes(out_dir / extra.name, extra.read_bytes())
+    for extra in sorted((src / "images").glob("*.txt")):  # the renders' own licence note
+        atomic_write_bytes(out_dir / "images" / extra.name, extra.read_bytes())
     return path
 
 
