@@ -11,7 +11,6 @@ JAX arrays alike; nothing here imports torch. Both take the same names for their
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax
@@ -153,10 +152,9 @@ def ddim_overrides(folder: Path) -> dict:
     (and IN2N, which takes its DDIM config from CompVis/stable-diffusion-v1-4) uses
     neither. The betas always come from the folder; an explicit DDIM config is kept as is.
     """
-    try:
-        config = json.loads((folder / "scheduler_config.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        raise DataError(folder / "scheduler_config.json", "unreadable scheduler config") from None
+    from ..models.load import read_scheduler_config
+
+    config = read_scheduler_config(folder / "scheduler_config.json")
     if config.get("_class_name") == "DDIMScheduler":
         return {}
     return {"clip_sample": False, "set_alpha_to_one": False}
@@ -170,7 +168,9 @@ def ddim_settings(folder: Path, alphas_cumprod) -> dict:
     DDIMScheduler's defaults (clip_sample True, range 1, set_alpha_to_one True) for keys an
     explicit DDIM config leaves out.
     """
-    config = {**json.loads((folder / "scheduler_config.json").read_text()),
+    from ..models.load import read_scheduler_config
+
+    config = {**read_scheduler_config(folder / "scheduler_config.json"),
               **ddim_overrides(folder)}
     if config.get("thresholding", False):
         raise DataError(folder, "dynamic thresholding schedulers are not supported by the "

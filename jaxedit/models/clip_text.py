@@ -146,6 +146,11 @@ def _read_json(path: Path) -> dict:
     return data
 
 
+#: The largest token id a vocabulary may hold (CLIP's is 49407): ids set the rows of the
+#: text encoder's embedding table.
+MAX_VOCAB = 2_000_000
+
+
 class CLIPTokenizer:
     """Prompts -> CLIP token ids int32 [B, max_length], as ``CLIPTokenizer(prompts,
     padding="max_length", max_length=77, truncation=True)`` gives them.
@@ -198,6 +203,10 @@ class CLIPTokenizer:
                     raise DataError(p, "missing (a CLIP tokenizer needs vocab.json and merges.txt, "
                                     "or tokenizer.json)")
             vocab = _read_json(vocab_path)
+            if not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v < MAX_VOCAB
+                       for v in vocab.values()) or len(set(vocab.values())) != len(vocab):
+                raise DataError(vocab_path, f"must map each token to its own id in 0 .. "
+                                            f"{MAX_VOCAB - 1}")
             try:
                 lines = merges_path.read_text(encoding="utf-8").splitlines()
             except (OSError, UnicodeDecodeError) as e:

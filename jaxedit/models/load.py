@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import re
 from pathlib import Path
@@ -74,15 +75,166 @@ def check_layout(path: str | os.PathLike) -> Path:
 
 
 def read_config(path: Path) -> dict:
+    """A JSON object from ``path`` (any config of the folder), or a DataError naming it."""
     try:
         config = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise DataError(path, "missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DataError(path, f"unreadable JSON ({e})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+        raise DataError(path, f"unreadable JSON ({type(e).__name__}: {str(e)[:120]})") from None
     if not isinstance(config, dict):
         raise DataError(path, "expected a JSON object")
     return config
+
+
+# ----------------------------------------------------------------------------- config schemas
+
+#: Per network, the config entries that set its architecture: name -> (kind, least, most).
+#: kind "int" / "ints" (an int or a list of ints, one per block) / "float" / "bool" / "strs".
+#: The bounds hold every released Stable Diffusion 1.x / 2.x / XL network with room to spare;
+#: beyond them a config builds a network no machine holds (or that takes minutes to describe).
+#: Entries not listed are left to the builders; an entry absent takes the builder's default.
+CONFIG_SCHEMA = {
+    "unet": {"block_out_channels": ("ints", 1, 16384), "layers_per_block": ("ints", 1, 16),
+             "in_channels": ("int", 1, 1024), "out_channels": ("int", 1, 1024),
+             "cross_attention_dim": ("ints", 1, 16384), "attention_head_dim": ("ints", 1, 4096),
+             "num_attention_heads": ("ints", 1, 4096),
+             "transformer_layers_per_block": ("ints", 1, 16),
+             "norm_num_groups": ("int", 1, 16384), "norm_eps": ("float", 0, 1),
+             "sample_size": ("int", 1, 16384), "down_block_types": ("strs", 1, 8),
+             "up_block_types": ("strs", 1, 8), "flip_sin_to_cos": ("bool", 0, 1),
+             "freq_shift": ("float", -1e6, 1e6), "mid_block_scale_factor": ("float", -1e6, 1e6),
+             "downsample_padding": ("int", 0, 16), "use_linear_projection": ("bool", 0, 1)},
+    "vae": {"block_out_channels": ("ints", 1, 16384), "layers_per_block": ("int", 1, 16),
+            "in_channels": ("int", 1, 1024), "out_channels": ("int", 1, 1024),
+            "latent_channels": ("int", 1, 1024), "norm_num_groups": ("int", 1, 16384),
+            "sample_size": ("int", 1, 16384), "scaling_factor": ("float", 1e-6, 1e6),
+            "down_block_types": ("strs", 1, 8), "up_block_types": ("strs", 1, 8),
+            "mid_block_add_attention": ("bool", 0, 1), "double_z": ("bool", 0, 1)},
+    "text_encoder": {"hidden_size": ("int", 1, 16384), "num_hidden_layers": ("int", 1, 96),
+                     "num_attention_heads": ("int", 1, 1024),
+                     "intermediate_size": ("int", 1, 65536), "vocab_size": ("int", 1, 2_000_000),
+                     "max_position_embeddings": ("int", 2, 8192),
+                     "layer_norm_eps": ("float", 0, 1), "hidden_act": ("strs", 1, 1)},
+}
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _entry_problem(value, kind: str, low: float, high: float) -> str | None:
+    """What is wrong with one config entry (None: nothing)."""
+    if kind == "bool":
+        return None if isinstance(value, bool) else "must be true or false"
+    if kind == "strs":
+        values = [value] if isinstance(value, str) and high == 1 else value
+        ok = (isinstance(values, (list, tuple)) and low <= len(values) <= high
+              and all(isinstance(v, str) for v in values))
+        return None if ok else (f"must be a list of {low} .. {high} names" if high > 1
+                                else "must be a name")
+    if kind == "float":
+        ok = _number(value) and math.isfinite(value) and low <= value <= high
+        return None if ok else f"must be a number in [{low:g}, {high:g}]"
+    values = value if kind == "ints" and isinstance(value, (list, tuple)) else [value]
+    ok = (len(values) >= 1 and len(values) <= 8 and all(
+        isinstance(v, int) and not isinstance(v, bool) and low <= v <= high for v in values))
+    what = "a whole number" + (" (or a list of up to 8, one per block)" if kind == "ints" else "")
+    return None if ok else f"must be {what} in {low} .. {high}"
+
+
+def check_network_config(kind: str, config: dict, where) -> dict:
+    """``config`` (a network's config.json) with every entry of :data:`CONFIG_SCHEMA` of the
+    right type and in range, and consistent (channels divisible by the norm groups, the text
+    encoder's width by its heads), before anything is built from it.
+
+    Raises:
+      DataError naming ``where`` and the entry.
+    """
+    for name, (entry, low, high) in CONFIG_SCHEMA[kind].items():
+        if config.get(name) is None:
+            continue
+        problem = _entry_problem(config[name], entry, low, high)
+        if problem:
+            raise DataError(where, f"{name} {problem}, got {json.dumps(config[name])[:60]}")
+    if kind in ("unet", "vae"):
+        groups = config.get("norm_num_groups", 32)
+        channels = list(config.get("block_out_channels", (320, 640, 1280, 1280)))
+        if any(c % groups for c in channels):
+            raise DataError(where, f"block_out_channels {channels} are not all divisible by "
+                                   f"norm_num_groups {groups}")
+    if kind == "text_encoder":
+        width, heads = config.get("hidden_size"), config.get("num_attention_heads")
+        if width is not None and heads is not None and width % heads:
+            raise DataError(where, f"hidden_size {width} is not divisible by "
+                                   f"num_attention_heads {heads}")
+    return config
+
+
+#: scheduler_config.json's entries: name -> (kind, least, most), as :data:`CONFIG_SCHEMA`.
+#: The timestep count sets the length of every table of the schedule (and of the DDIM
+#: steps' tables), so it is bounded as a size is.
+SCHEDULER_SCHEMA = {
+    "num_train_timesteps": ("int", 1, 100_000), "beta_start": ("float", 0, 1),
+    "beta_end": ("float", 0, 1), "beta_schedule": ("strs", 1, 1),
+    "prediction_type": ("strs", 1, 1), "clip_sample": ("bool", 0, 1),
+    "clip_sample_range": ("float", 1e-6, 1e6), "set_alpha_to_one": ("bool", 0, 1),
+    "thresholding": ("bool", 0, 1), "steps_offset": ("int", 0, 100_000),
+    "_class_name": ("strs", 1, 1),
+}
+
+
+def check_scheduler_config(config: dict, where) -> dict:
+    """A scheduler config with every entry of :data:`SCHEDULER_SCHEMA` of the right type and
+    in range, beta_start <= beta_end, and ``trained_betas`` (when given) one value in (0, 1)
+    per timestep.
+
+    Raises:
+      DataError naming ``where`` and the entry.
+    """
+    for name, (entry, low, high) in SCHEDULER_SCHEMA.items():
+        if config.get(name) is None:
+            continue
+        problem = _entry_problem(config[name], entry, low, high)
+        if problem:
+            raise DataError(where, f"{name} {problem}, got {json.dumps(config[name])[:60]}")
+    if config.get("beta_start", 0.0001) > config.get("beta_end", 0.02):
+        raise DataError(where, f"beta_start {config.get('beta_start')} is above beta_end "
+                               f"{config.get('beta_end')}")
+    betas = config.get("trained_betas")
+    if betas is not None:
+        n = config.get("num_train_timesteps", 1000)
+        if (not isinstance(betas, list) or len(betas) != n
+                or not all(_number(b) and 0 < b < 1 for b in betas)):
+            raise DataError(where, f"trained_betas must be {n} numbers in (0, 1) "
+                                   f"(num_train_timesteps)")
+    return config
+
+
+def read_scheduler_config(path: Path) -> dict:
+    """``scheduler_config.json``, read and checked (:func:`check_scheduler_config`): the one
+    reader of the file, whoever needs its schedule or its DDIM settings."""
+    return check_scheduler_config(read_config(path), path)
+
+
+def _per(value, n: int) -> list:
+    return list(value) if isinstance(value, (list, tuple)) else [value] * n
+
+
+def weight_bytes_at_least(kind: str, config: dict, itemsize: int) -> float:
+    """A lower bound of a checked config's weight bytes, from its largest layers alone (the
+    3x3 convolutions of its resnets; the text encoder's projections and embeddings), so that
+    a config whose weights cannot fit is refused before its network is described at all."""
+    if kind == "text_encoder":
+        d, layers = config.get("hidden_size", 768), config.get("num_hidden_layers", 12)
+        inner = config.get("intermediate_size", 4 * d)
+        values = layers * (4 * d * d + 2 * d * inner) + config.get("vocab_size", 49408) * d
+    else:
+        channels = list(config.get("block_out_channels", (320, 640, 1280, 1280)))
+        layers = _per(config.get("layers_per_block", 2), len(channels))
+        # Each resnet holds two 3x3 convolutions; the decoder (VAE) or up path (UNet) again.
+        values = 2 * sum(n * 2 * 9 * c * c for n, c in zip(layers, channels))
+    return float(values) * itemsize
 
 
 def weights_file(folder: Path) -> Path:
@@ -192,12 +344,21 @@ def module_from_tensors(skeleton, tensors: dict[str, np.ndarray], where: str | o
 
 
 def load_module(folder: str | os.PathLike, build: Callable[..., Any], *, prefix: str = "",
-                dtype=jnp.float32):
+                dtype=jnp.float32, kind: str | None = None):
     """A module from one component folder: ``build(config, key=..., dtype=...)`` gives its
-    architecture (only its shapes are evaluated), the weights file fills it."""
+    architecture (only its shapes are evaluated), the weights file fills it. Its
+    config.json is checked first (:func:`check_network_config` for ``kind``, default the
+    folder's name: "unet", "vae" or "text_encoder"), and weights that cannot fit in the free
+    memory are refused before any is read."""
+    from ..memory import require_memory
+
     folder = Path(folder)
-    config = read_config(folder / "config.json")
+    kind = kind or folder.name
+    where = folder / "config.json"
+    config = check_network_config(kind, read_config(where), where)
     path = weights_file(folder)
+    require_memory(where, weight_bytes_at_least(kind, config, jnp.dtype(dtype).itemsize),
+                   f"the {kind} this config describes")
     skeleton = eqx.filter_eval_shape(build, config, key=jax.random.key(0), dtype=dtype)
     return module_from_tensors(skeleton, read_weights(path), path, prefix=prefix, dtype=dtype)
 
@@ -221,6 +382,7 @@ class DDPMSchedule:
     def from_config(config: dict, where: str | os.PathLike = "scheduler_config.json") -> "DDPMSchedule":
         """Betas as diffusers' schedulers make them: "linear", "scaled_linear" (linear in
         sqrt(beta)) or "squaredcos_cap_v2"; alphas_cumprod = prod(1 - beta)."""
+        check_scheduler_config(config, where)
         n = int(config.get("num_train_timesteps", 1000))
         b0, b1 = float(config.get("beta_start", 0.0001)), float(config.get("beta_end", 0.02))
         kind = config.get("beta_schedule", "linear")
@@ -280,9 +442,23 @@ def load_ip2p(folder: str | os.PathLike, *, dtype=jnp.float32) -> IP2PModels:
                                  prefix=CLIPTextEncoder.CHECKPOINT_PREFIX, dtype=dtype),
         tokenizer=CLIPTokenizer.from_folder(root / "tokenizer"),
         scheduler=DDPMSchedule.from_config(
-            read_config(root / "scheduler" / "scheduler_config.json"),
+            read_scheduler_config(root / "scheduler" / "scheduler_config.json"),
             root / "scheduler" / "scheduler_config.json"))
+    check_tokenizer_fits(models.tokenizer, models.text_encoder, root / "tokenizer")
     return models
+
+
+def check_tokenizer_fits(tokenizer: CLIPTokenizer, text_encoder, where) -> None:
+    """Refuse a tokenizer whose ids or length the text encoder has no rows for (JAX would
+    clamp the out-of-range lookups silently: wrong embeddings, no error)."""
+    rows = text_encoder.embeddings.token_embedding.weight.shape[0]
+    positions = text_encoder.embeddings.position_embedding.weight.shape[0]
+    vocab = tokenizer._tokenizer.get_vocab_size()
+    if vocab > rows:
+        raise DataError(where, f"has {vocab} tokens, the text encoder's vocab_size is {rows}")
+    if tokenizer.max_length > positions:
+        raise DataError(where, f"model_max_length {tokenizer.max_length} is above the text "
+                               f"encoder's max_position_embeddings {positions}")
 
 
 def cast(models, dtype):
