@@ -71,7 +71,7 @@ def reconstruction_views(reconstruction) -> tuple[list[str], np.ndarray, list[di
 
     Returns:
       (names, world_to_camera float64 [N, 4, 4] OpenCV in COLMAP's world,
-       transforms.json intrinsics of each image, COLMAP image ids).
+        transforms.json intrinsics of each image, COLMAP image ids).
     """
     rows = []
     for image_id, image in reconstruction.images.items():

@@ -75,7 +75,7 @@ def read_image_with_alpha(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarr
 
     Returns:
       (straight (unpremultiplied) RGB float32 [H, W, 3] in [0, 1],
-       alpha float32 [H, W] in [0, 1], or None when the file has no alpha channel).
+        alpha float32 [H, W] in [0, 1], or None when the file has no alpha channel).
       Fully transparent pixels of an associated-alpha file come back black.
     """
     path = Path(path)

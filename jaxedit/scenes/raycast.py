@@ -77,7 +77,7 @@ class Shape:
       center: (x, y, z) world position.
       size: ellipsoid radii, box half-extents, or plane half-extents (x, y, ignored z),
         all along the local axes.
-      rotation: float [3][3] local->world rotation (rows of a matrix; see rotation_xyz).
+      rotation: float ``[3][3]`` local->world rotation (rows of a matrix; see rotation_xyz).
       color: RGB albedo when there is no texture.
       texture: optional picture for the albedo (spheres: equirectangular; boxes: per face;
         planes: local xy).
