@@ -26,14 +26,20 @@ def bundled_editor() -> Path:
 
 
 def native_size(folder: str | Path) -> int:
-    """The resolution a diffusers folder was trained at: the bundled model's own (its VAE's
-    ``sample_size``), Stable Diffusion's 512 for any other folder, whose VAE config often
-    states a size it was not trained at."""
+    """The resolution a diffusers folder works at, as diffusers' pipelines default to it: the
+    UNet's ``sample_size`` times the VAE's scale factor, 2^(len(block_out_channels) - 1)
+    (64 x 8 = 512 for Stable Diffusion 1.x and InstructPix2Pix, 16 x 4 = 64 for the bundled
+    model); Stable Diffusion's 512 for a folder whose configs do not say. (The VAE's own
+    ``sample_size`` is not what diffusers uses.)"""
     folder = Path(folder)
-    if folder.resolve() != BUNDLED.resolve():
+    try:
+        unet = json.loads((folder / "unet" / "config.json").read_text())
+        vae = json.loads((folder / "vae" / "config.json").read_text())
+        side = unet["sample_size"]
+        side = side[0] if isinstance(side, (list, tuple)) else side
+        return int(side) * 2 ** (len(vae["block_out_channels"]) - 1)
+    except (OSError, ValueError, KeyError, TypeError, IndexError):
         return DEFAULT_SIZE
-    config = json.loads((folder / "vae" / "config.json").read_text())
-    return int(config.get("sample_size", DEFAULT_SIZE))
 
 
 def instructions(folder: str | Path | None = None) -> list[dict]:

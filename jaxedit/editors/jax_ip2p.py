@@ -334,6 +334,54 @@ noise_difference_jit = eqx.filter_jit(noise_difference)
 
 # ----------------------------------------------------------------------------- the editor
 
+def check_prompt(prompt) -> str:
+    """``prompt`` when it is text the tokenizer takes: a string of valid UTF-8 (a command
+    line's stray bytes arrive as lone surrogates, on which the tokenizer fails). The
+    message shows where, not the prompt: a prompt may be pages long."""
+    if not isinstance(prompt, str):
+        raise DataError("prompt", f"must be a string, got {type(prompt).__name__}")
+    try:
+        prompt.encode("utf-8")
+    except UnicodeEncodeError as e:
+        raise DataError("prompt", f"is not valid UTF-8 text (a stray byte "
+                                  f"{os.fsencode(prompt[e.start])!r} at character {e.start}); "
+                                  f"give the instruction as UTF-8") from None
+    return prompt
+
+
+#: Feature maps of the UNet's first level an edit holds at once (its skips, attention and
+#: resnet temporaries), per sample: the factor of :func:`edit_memory_at_least`.
+HELD_MAPS = 8
+
+
+def edit_memory_at_least(size: int, steps: int, batch: int, factor: int, width: int,
+                         itemsize: int) -> float:
+    """Bytes one batch of edits holds at least: its timestep tables (int32 [3, batch, steps]),
+    the images and their float32 copies at model size, and the UNet's first-level feature
+    maps of its three guidance branches (:data:`HELD_MAPS` of them)."""
+    latent = (size / factor) ** 2
+    return (3 * batch * steps * 4 + 4 * batch * size * size * 3 * 4
+            + 3 * batch * latent * width * itemsize * HELD_MAPS)
+
+
+def check_edit_sizes(size: int | None, steps: int, batch: int, timesteps: int, factor: int,
+                     width: int, itemsize: int) -> None:
+    """Refuse, before any edit, DDIM steps beyond the schedule's timesteps (every step past
+    them repeats a timestep and changes nothing, at the cost of a UNet call) and a model size,
+    step count and batch whose edit cannot fit in the free memory
+    (:func:`jaxedit.memory.require_memory`). ``size`` None: the views' own size, unknown
+    until they come."""
+    from ..memory import require_memory
+
+    if steps > timesteps:
+        raise DataError("steps", f"{steps} DDIM steps, but the schedule has {timesteps} "
+                                 f"timesteps (at most one step each)")
+    if size is not None:
+        require_memory("--ip2p-size/--ip2p-steps/--ip2p-batch",
+                       edit_memory_at_least(size, steps, batch, factor, width, itemsize),
+                       f"editing {batch} view(s) at {size} px")
+
+
 def default_dtype(device: jax.Device) -> str:
     """float32 on the CPU, bfloat16 on accelerators."""
     return "float32" if device.platform == "cpu" else "bfloat16"
@@ -446,6 +494,9 @@ class JaxIP2PEditor:
                             f"{self.latent_factor} (the VAE's downsampling factor)")
         if int(steps) < 1:
             raise DataError("steps", f"must be >= 1, got {steps}")
+        check_edit_sizes(size, int(steps), self.batch, int(np.shape(schedule.alphas_cumprod)[0]),
+                         self.latent_factor, int(unet.conv_in.weight.shape[-1]),
+                         jnp.dtype(self.dtype).itemsize)
         self.size, self.steps, self.source = size, int(steps), source
         for name, value in (("attention_chunk", attention_chunk), ("vae_chunk", vae_chunk)):
             if value is not None and int(value) < 1:
@@ -482,7 +533,7 @@ class JaxIP2PEditor:
 
     @classmethod
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, devices=None,
-                        dtype=None, size: int | None = 512, steps: int = 20,
+                        dtype=None, size: int | None | str = "native", steps: int = 20,
                         batch: int | None = None, **memory) -> "JaxIP2PEditor":
         """Load a local diffusers folder (or a Hub id in the local cache) into JAX, no torch.
 
@@ -491,11 +542,15 @@ class JaxIP2PEditor:
         Each tensor is cast to ``dtype`` as it is read (a bfloat16 load never holds the
         float32 networks). ``memory``: the constructor's ``attention_chunk``, ``vae_chunk``,
         ``text_encoder_residency``; the text encoder is reloaded from ``path`` when released.
+        ``size`` "native" (the default): the folder's own, as diffusers defaults to it
+        (:func:`jaxedit.editors.bundled.native_size`: 64 px for the bundled model, 512 for SD).
         """
         from ..models import load_ip2p
+        from .bundled import native_size
         from .diffusion import ddim_settings, resolve_weights
 
         root = resolve_weights(path)
+        size = native_size(root) if size == "native" else size
         devices = list(devices) if devices else [jax.devices()[0]]
         name = _float_dtype_name(dtype) if dtype is not None else default_dtype(devices[0])
         models = load_ip2p(root, dtype=jnp.dtype(name))
@@ -539,8 +594,7 @@ class JaxIP2PEditor:
 
     def encode(self, prompt: str) -> np.ndarray:
         """CLIP text embedding E(prompt): NumPy float32 [77, D]; E("") is the null embedding."""
-        if not isinstance(prompt, str):
-            raise DataError("prompt", f"must be a string, got {type(prompt).__name__}")
+        check_prompt(prompt)
         if prompt not in self._embeddings:
             ids = jnp.asarray(np.asarray(self.tokenize([prompt]), np.int32))
             encoder = self.text_encoder  # a released one is fetched for this prompt only
