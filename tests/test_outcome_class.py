@@ -1,0 +1,80 @@
+"""The outcome measure with an "unedited" class (jaxedit.editors.outcome_class, issue 51):
+the unedited input scores "unedited", a pure outcome target its outcome, a 50/50 blend of two
+outcomes "mixed", for every divergent instruction the bundled editor was trained on."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from jaxedit.editors import outcome_class as oc
+
+
+@pytest.fixture(scope="module")
+def divergent():
+    """(input, targets [K, H, W, 3], prompt) of every divergent instruction on a few views."""
+    from jaxedit.editors.edit_data import build_dataset, outcome_targets
+
+    data = build_dataset(32, 4, ("face",))
+    out = []
+    for i, ins in enumerate(data.instructions):
+        if len(ins.outcomes) < 2:
+            continue
+        for v in range(len(data.inputs)):
+            if ins.applies_to(data.scenes[data.scene[v]]):
+                out.append((data.inputs[v].astype(np.float32) / 255,
+                            outcome_targets(data, v, i), ins.prompt))
+    assert {p for *_, p in out} == {"splash some colour on it", "add a neon accent"}
+    return out
+
+
+def test_input_target_and_blend_classes_for_every_divergent_instruction(divergent):
+    for u, t, prompt in divergent:
+        assert oc.classify(u, u, t)["label"] == oc.UNEDITED, prompt
+        for k in range(len(t)):
+            c = oc.classify(t[k], u, t)
+            assert c["label"] == k and c["weights"][k] == pytest.approx(1.0, abs=1e-6), prompt
+        for j, k in itertools.combinations(range(len(t)), 2):
+            c = oc.classify(0.5 * t[j] + 0.5 * t[k], u, t)
+            assert c["label"] == oc.MIXED and c["purity"] == pytest.approx(0.5, abs=1e-6), prompt
+        # an even blend of all of them mixes too (the old measure's "average" case)
+        assert oc.classify(t.mean(0), u, t)["label"] == oc.MIXED
+        # a quarter of the way to an outcome is not yet an edit; three quarters is one
+        assert oc.classify(0.75 * u + 0.25 * t[0], u, t)["label"] == oc.UNEDITED
+        assert oc.classify(0.25 * u + 0.75 * t[0], u, t)["label"] == 0
+
+
+def test_changes_no_outcome_explains_are_other_and_small_noise_is_not(divergent):
+    rng = np.random.default_rng(0)
+    for u, t, prompt in divergent:
+        scale = np.sqrt(np.mean((t - u) ** 2))
+        # a colour cast over the whole view, twice a typical outcome's change: other
+        cast = np.clip(u + 2 * scale * np.array([1.0, -1.0, 1.0], np.float32), 0, 1)
+        assert oc.classify(cast, u, t)["label"] == oc.OTHER, prompt
+        # ... unless the gate is off: then it is wherever it leans
+        assert oc.classify(cast, u, t, other_gate=False)["label"] != oc.OTHER
+        # noise at a fifth of an outcome's change on the input: still unedited; on a target:
+        # still that outcome
+        noise = rng.normal(0, 0.2 * scale, u.shape).astype(np.float32)
+        assert oc.classify(u + noise, u, t)["label"] == oc.UNEDITED, prompt
+        assert oc.classify(t[1] + noise, u, t)["label"] == 1, prompt
+
+
+def test_summary_counts_over_edited_draws_only():
+    labels = [oc.UNEDITED, oc.UNEDITED, 0, 0, 1, 2, oc.MIXED, oc.OTHER]
+    s = oc.summarise(labels, 3)
+    assert s["draws"] == 8 and s["edited"] == 6
+    assert s["unedited_fraction"] == pytest.approx(2 / 8)
+    assert s["single_outcome_fraction"] == pytest.approx(4 / 6)
+    assert s["outcome_frequencies"] == pytest.approx([2 / 6, 1 / 6, 1 / 6])
+    assert s["mixed_fraction"] == pytest.approx(1 / 6) and s["other_fraction"] == pytest.approx(1 / 6)
+    none = oc.summarise([oc.UNEDITED] * 3, 3)
+    assert none["unedited_fraction"] == 1.0 and none["single_outcome_fraction"] is None
+
+
+def test_an_outcome_equal_to_the_input_is_refused():
+    u = np.full((4, 4, 3), 0.5, np.float32)
+    with pytest.raises(ValueError, match="equals the input"):
+        oc.classify(u, u, np.stack([u, u + 0.1]))
