@@ -454,19 +454,21 @@ def test_difficulty_views_are_a_fixed_seeded_subset():
 # ---------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def chunk_start(tiny):
-    """A context and the state at the start of an edit subtask (the tiny scene)."""
+    """A context, the state at the start of an edit subtask (the tiny scene), the subtask
+    and its limits."""
     from jaxedit.edit.context import EditContext
     from jaxedit.edit.state import begin_subtask, init_state
-    from jaxedit.edit.plan import SubtaskSpec
+    from jaxedit.edit.plan import SubtaskSpec, subtask_limits
     from jaxedit.edit.trainer import SubtaskTrainer
 
     g, data, _, _ = tiny
     cfg = ProEditConfig.for_mode("proedit", **TINY)
-    settings = dataclasses.replace(FAST, scene_extent=3.0).replace_densify(warmup=cfg.warmup)
-    trainer = SubtaskTrainer(settings, num_input=int(g.num_alive()))
+    settings = dataclasses.replace(FAST, scene_extent=3.0)
+    trainer = SubtaskTrainer(settings, num_input=int(g.num_alive()), warmup=cfg.warmup)
     ctx = EditContext.create(SimulatedEditor(), PROMPT, data, cfg, trainer, Renderer(),
                              jax.random.key(3))
-    return ctx, begin_subtask(ctx, init_state(ctx, g)), SubtaskSpec(1, "r1", 0.5, None, "edit")
+    return (ctx, begin_subtask(ctx, init_state(ctx, g)), SubtaskSpec(1, "r1", 0.5, None, "edit"),
+            subtask_limits(cfg, data.train_images.shape, 1))
 
 
 def _bits(tree):
@@ -478,11 +480,11 @@ def _bits(tree):
 def test_step_chunk_is_a_pure_function_of_its_inputs(chunk_start, num_steps, stop_if_plateau, skip):
     from jaxedit.edit.subtask import step_chunk
 
-    ctx, start, spec = chunk_start
+    ctx, start, spec, limits = chunk_start
     start = dataclasses.replace(start, step=skip)  # any point of the subtask
     before = _bits((start.train, start.tracker, start.images))
-    a, ra = step_chunk(ctx, start, spec, num_steps, stop_if_plateau=stop_if_plateau)
-    b, rb = step_chunk(ctx, start, spec, num_steps, stop_if_plateau=stop_if_plateau)
+    a, ra = step_chunk(ctx, start, spec, limits, num_steps, stop_if_plateau=stop_if_plateau)
+    b, rb = step_chunk(ctx, start, spec, limits, num_steps, stop_if_plateau=stop_if_plateau)
     assert _bits((a.train, a.tracker, a.images)) == _bits((b.train, b.tracker, b.images))
     assert a.step == b.step == skip + len(ra.losses) and ra.losses.tobytes() == rb.losses.tobytes()
     assert _bits((start.train, start.tracker, start.images)) == before  # the input is untouched
@@ -492,10 +494,10 @@ def test_step_chunk_is_a_pure_function_of_its_inputs(chunk_start, num_steps, sto
 def test_a_chunk_of_edit_steps_makes_no_implicit_host_transfer(chunk_start):
     from jaxedit.edit.subtask import step_chunk
 
-    ctx, start, spec = chunk_start
-    step_chunk(ctx, start, spec, 8, stop_if_plateau=False)  # compiled outside the guard
+    ctx, start, spec, limits = chunk_start
+    step_chunk(ctx, start, spec, limits, 8, stop_if_plateau=False)  # compiled outside the guard
     with jax.transfer_guard("disallow"):
-        st, result = step_chunk(ctx, start, spec, 8, stop_if_plateau=False)
+        st, result = step_chunk(ctx, start, spec, limits, 8, stop_if_plateau=False)
     assert st.step == 8 and len(result.losses) == 8 and np.all(np.isfinite(result.losses))
 
 
@@ -544,6 +546,76 @@ def test_subtask_guard_scales_with_views_and_resolution():
     assert subtask_guard(64, 64, 64) == 2 * subtask_guard(32, 64, 64)
     assert subtask_guard(100, 512, 512) == 4000  # twice the passes at twice the side
     assert subtask_guard(100, 540, 960) > subtask_guard(100, 256, 256)
+
+
+def test_the_subtask_limits_resolve_the_users_config_without_changing_it():
+    from jaxedit.edit.plan import SubtaskLimits, step_guard, subtask_guard, subtask_limits
+
+    shape = (8, 32, 32, 3)
+    scaled = ProEditConfig.for_mode("proedit", max_steps=None)
+    assert step_guard(scaled, shape) == subtask_guard(8, 32, 32)
+    assert subtask_limits(scaled, shape, 2) == SubtaskLimits(subtask_guard(8, 32, 32), True)
+    assert scaled.max_steps is None  # still the user's: "scaled with the scene"
+    given = ProEditConfig.for_mode("proedit", max_steps=77)
+    assert subtask_limits(given, shape, 0) == SubtaskLimits(77, True)
+    fixed = ProEditConfig.for_mode("nd", subtask_steps=(5, 9, 4))
+    assert [subtask_limits(fixed, shape, i) for i in range(3)] == [
+        SubtaskLimits(5, False), SubtaskLimits(9, False), SubtaskLimits(4, False)]
+    assert subtask_limits(ProEditConfig.for_mode("in2n", max_steps=40), shape, 0) == \
+        SubtaskLimits(40, False)
+
+
+def test_the_run_keeps_the_users_config_and_records_the_scaled_guard(tiny):
+    from jaxedit.edit import progressive
+    from jaxedit.edit.context import EditContext
+    from jaxedit.edit.plan import subtask_guard
+
+    g, data, _, _ = tiny
+    cfg = ProEditConfig.for_mode("in2n", max_steps=None, turntable_frames=0)
+    trainer = progressive.make_trainer(cfg, FAST, data, g)
+    ctx = EditContext.create(SimulatedEditor(), PROMPT, data, cfg, trainer, Renderer(),
+                             jax.random.key(0))
+    assert ctx.config is cfg
+    _, header = progressive.plan_edit(ctx, g, seed=0)
+    assert header["config"]["max_steps"] is None
+    assert header["guard"]["max_steps"] == subtask_guard(8, 32, 32)
+    assert header["guard"]["max_steps_scaled"] is True
+    ctx = dataclasses.replace(ctx, config=dataclasses.replace(cfg, max_steps=50))
+    assert progressive.plan_edit(ctx, g, seed=0)[1]["guard"] == {
+        "max_steps": 50, "max_steps_scaled": False, "max_seconds": None}
+
+
+def test_the_plan_owns_the_density_warmup(tiny):
+    from jaxedit.edit import progressive
+
+    g, data, _, _ = tiny
+    with pytest.raises(DataError, match="warmup"):
+        TrainSettings().replace_densify(warmup=5)  # set it on the plan, not here
+    cfg = ProEditConfig.for_mode("proedit", warmup=7)
+    trainer = progressive.make_trainer(cfg, FAST, data, g)
+    assert trainer.config.densify.warmup == 7
+
+
+class CountingEditor(SimulatedEditor):
+    """The simulated editor, counting its encoder calls per prompt."""
+
+    def __init__(self):
+        super().__init__()
+        self.encoded = {}
+
+    def encode(self, prompt):
+        self.encoded[prompt] = self.encoded.get(prompt, 0) + 1
+        return super().encode(prompt)
+
+
+def test_a_run_encodes_its_prompt_once(tiny):
+    # the context, the difficulty oracle (and a local edit's relevance) share one encoding
+    g, data, _, _ = tiny
+    cfg = ProEditConfig.for_mode("proedit", **{**TINY, "max_steps": 8, "patience": 2,
+                                               "warmup": 2, "difficulty_views": 2})
+    editor = CountingEditor()
+    run_edit(editor, PROMPT, data, g, config=cfg, settings=FAST, seed=1, run_dir=None)
+    assert editor.encoded == {PROMPT: 1, "": 1}
 
 
 class RecordingEditor(SimulatedEditor):

@@ -2,8 +2,10 @@
 context (:class:`EditContext`), each built by an explicit constructor.
 
 The constructors do the work (moving the cameras to the device once, encoding the
-prompt, resolving the step guard); the dataclasses only hold the results, so a
-``dataclasses.replace`` copies them as they are and never redoes it.
+prompt); the dataclasses only hold the results, so a
+``dataclasses.replace`` copies them as they are and never redoes it. The prompt is
+encoded once per run (:func:`encode_prompt`): the context, the difficulty oracle and a
+local edit's relevance all read these embeddings.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 
 from ..errors import DataError
 from .outputs import Renderer
-from .plan import ProEditConfig, subtask_guard
+from .plan import ProEditConfig
 from .trainer import SubtaskTrainer
 
 
@@ -65,6 +67,13 @@ class EditData:
                                dataset.cameras[test])
 
 
+def encode_prompt(editor, prompt: str) -> tuple[np.ndarray, np.ndarray]:
+    """(E(p), E("")): the editor's embeddings of ``prompt`` and of the empty prompt, as
+    NumPy arrays of the editor's shape ([77, D] for InstructPix2Pix). The one place a run
+    encodes its prompt."""
+    return np.asarray(editor.encode(prompt)), np.asarray(editor.encode(""))
+
+
 @dataclasses.dataclass(frozen=True)
 class EditContext:
     """Everything a run reads but never changes (build with :meth:`create`).
@@ -73,7 +82,8 @@ class EditContext:
       editor: an :class:`jaxedit.editors.Editor`.
       prompt: the instruction p.
       data: the views (:class:`EditData`).
-      config: :class:`ProEditConfig`, its ``max_steps`` resolved.
+      config: :class:`ProEditConfig`, the user's as given (a subtask's resolved step guard
+        and plateau test: :func:`jaxedit.edit.plan.subtask_limits`).
       trainer: :class:`SubtaskTrainer`.
       renderer: :class:`Renderer` used for the editor's inputs and the snapshots.
       key: the run key (``jax.random.key(seed)``).
@@ -103,14 +113,16 @@ class EditContext:
     @staticmethod
     def create(editor, prompt: str, data: EditData, config: ProEditConfig,
                trainer: SubtaskTrainer, renderer: Renderer, key: jax.Array, editor_device=None,
-               masks=None) -> "EditContext":
-        """The context of a run: the prompt encoded once, a ``max_steps`` of None resolved
-        to the scene's :func:`jaxedit.edit.plan.subtask_guard`."""
-        if config.max_steps is None:
-            n, h, w = data.train_images.shape[:3]
-            config = dataclasses.replace(config, max_steps=subtask_guard(n, h, w))
+               masks=None, embeddings: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> "EditContext":
+        """The context of a run: the prompt encoded once.
+
+        ``embeddings``: (E(p), E("")) of :func:`encode_prompt` when the caller has already
+        encoded the prompt (``run_edit`` does, for a local edit's relevance); None: encoded
+        here.
+        """
+        e_prompt, e_null = encode_prompt(editor, prompt) if embeddings is None else embeddings
         return EditContext(editor, prompt, data, config, trainer, renderer, key,
-                           e_prompt=np.asarray(editor.encode(prompt)),
-                           e_null=np.asarray(editor.encode("")),
+                           e_prompt=e_prompt, e_null=e_null,
                            editor_device=editor_device,
                            masks=None if masks is None else jnp.asarray(masks, jnp.float32))

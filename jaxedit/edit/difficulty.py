@@ -166,6 +166,9 @@ class DifficultyOracle:
       reduction: "mean" over views (default: eq. 3's sum / |V|, a threshold per view that
         does not change with the number of views, as ``run_edit`` and ``edit --threshold``
         use it) or "sum" (eq. 3 as printed).
+      embeddings: (E(p), E("")) already encoded (a run's, from
+        :func:`jaxedit.edit.context.encode_prompt`: the prompt is encoded once per run);
+        None: the oracle encodes ``prompt`` itself.
 
     Attributes:
       editor_calls: views edited so far (= distinct (ratio, view) pairs; an editor that
@@ -177,7 +180,7 @@ class DifficultyOracle:
                  distance: Distance | None = None,
                  timestep_range: tuple[float, float] = (0.98, 0.98),
                  guidance: tuple[float, float] = (7.5, 1.5), seed: int = 0,
-                 reduction: str = "mean", common_noise: bool = True):
+                 reduction: str = "mean", common_noise: bool = True, embeddings=None):
         originals = np.asarray(originals, np.float32)
         if originals.ndim != 4 or originals.shape[-1] != 3:
             raise DataError("originals",
@@ -199,8 +202,8 @@ class DifficultyOracle:
         self.reduction = reduction
         self.common_noise = bool(common_noise)
         self._run_key = jax.random.key(int(seed))
-        self._e_prompt = editor.encode(prompt)
-        self._e_null = editor.encode("")
+        self._e_prompt, self._e_null = ((editor.encode(prompt), editor.encode(""))
+                                        if embeddings is None else embeddings)
         self._images: dict[tuple[int, int], np.ndarray] = {}
         self._pairs: dict[tuple[int, int], float] = {}
         self.editor_calls = 0

@@ -242,16 +242,51 @@ def subtask_guard(num_views: int, height: int, width: int) -> int:
     return max(GUARD_MIN_STEPS, int(math.ceil(GUARD_EPOCHS * num_views * max(1.0, side))))
 
 
-def anneal_horizon(config: ProEditConfig, warmup: int) -> int:
+@dataclasses.dataclass(frozen=True)
+class SubtaskLimits:
+    """How long one subtask may train: the user's :class:`ProEditConfig` resolved for a
+    scene and a subtask (:func:`subtask_limits`). The config itself stays as given, so a
+    ``max_steps`` of None still says "scaled with the scene" after the run resolved it.
+
+    Attributes:
+      max_steps: the step guard (the config's, or :func:`subtask_guard` of the scene when
+        it is None; a ``subtask_steps`` entry for a subtask of fixed length).
+      stop_on_plateau: the loss plateau ends the subtask (False: exactly ``max_steps``).
+    """
+
+    max_steps: int
+    stop_on_plateau: bool
+
+
+def step_guard(config: ProEditConfig, views_shape: Sequence[int]) -> int:
+    """The run's step guard: ``config.max_steps``, or :func:`subtask_guard` of training
+    views of shape ``views_shape`` (N, H, W, ...) when it is None."""
+    if config.max_steps is not None:
+        return int(config.max_steps)
+    n, h, w = views_shape[:3]
+    return subtask_guard(n, h, w)
+
+
+def subtask_limits(config: ProEditConfig, views_shape: Sequence[int],
+                   index: int) -> SubtaskLimits:
+    """The limits of subtask ``index`` of a run on training views of shape ``views_shape``
+    (N, H, W, ...): the run's guard and plateau test, or with ``subtask_steps`` its own
+    fixed length (its step budget, no plateau)."""
+    if config.subtask_steps is not None:
+        return SubtaskLimits(int(config.subtask_steps[index]), False)
+    return SubtaskLimits(step_guard(config, views_shape), config.stop_on_plateau)
+
+
+def anneal_horizon(config: ProEditConfig, max_steps: int) -> int:
     """Steps after the warm-up at which a subtask's annealed timestep reaches t_min.
 
     HiFA anneals over the whole optimisation; a ProEdit subtask has no fixed length, its
     plateau ends it, and the subtask lets no plateau end it before an edit made at t_min
     has trained ``patience`` steps (:func:`jaxedit.edit.subtask.earliest_end`). The horizon
-    is half the room the step guard leaves for that (``max_steps - warmup - patience -
-    edit_every``), so it grows with the scene as the guard does, and the second half of
-    the room is for refining at t_min and the plateau. ``config.anneal_steps`` overrides
-    (clamped to the room).
+    is half the room the step guard ``max_steps`` (:attr:`SubtaskLimits.max_steps`) leaves
+    for that (``max_steps - warmup - patience - edit_every``), so it grows with the scene as
+    the guard does, and the second half of the room is for refining at t_min and the
+    plateau. ``config.anneal_steps`` overrides (clamped to the room).
 
     Why not the length of the subtasks already run: that estimate fulfils itself. A
     subtask annealed over half its predecessor's length ends soon after the t_min gate
@@ -259,6 +294,6 @@ def anneal_horizon(config: ProEditConfig, warmup: int) -> int:
     subtasks went from ~450 to ~250 steps) and the async demo lost 1.5 dB against the
     editor's target (37.5 dB; 39.1 dB with this horizon, 38.7 dB either way in sync).
     """
-    room = config.max_steps - warmup - config.patience - config.edit_every
+    room = max_steps - config.warmup - config.patience - config.edit_every
     horizon = config.anneal_steps if config.anneal_steps is not None else room // 2
     return int(max(1, min(horizon, room)))

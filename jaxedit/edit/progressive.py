@@ -62,7 +62,7 @@ from . import schedule as sched
 from .context import EditContext, EditData
 from .difficulty import DifficultyOracle, difficulty_view_subset, ms_ssim_distance
 from .outputs import image_scores, scene_metrics
-from .plan import ProEditConfig, SubtaskSpec, plan_subtasks
+from .plan import ProEditConfig, SubtaskSpec, plan_subtasks, step_guard, subtask_limits
 from .state import EditState, finish_subtask
 from .subtask import run_subtask
 from .trainer import SubtaskTrainer, TrainSettings
@@ -84,9 +84,9 @@ def make_trainer(config: ProEditConfig, settings: TrainSettings, data: EditData,
         # through a file differ in the last bits; equal rigs should share one compiled step.
         extent = float(f"{scene_extent(data.train_cameras):.4g}")
         settings = dataclasses.replace(settings, scene_extent=extent)
-    settings = dataclasses.replace(settings, adaptive=config.mode != "in2n"
-                                   ).replace_densify(warmup=config.warmup)
-    return SubtaskTrainer(settings, int(gaussians.num_alive()), background=config.background)
+    settings = dataclasses.replace(settings, adaptive=config.mode != "in2n")
+    return SubtaskTrainer(settings, int(gaussians.num_alive()), background=config.background,
+                          warmup=config.warmup)
 
 
 def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distance=None):
@@ -98,7 +98,8 @@ def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distan
     """
     views = difficulty_view_subset(len(originals), ctx.config.difficulty_views, ctx.key)
     return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
-                            guidance=tuple(ctx.config.guidance), seed=seed)
+                            guidance=tuple(ctx.config.guidance), seed=seed,
+                            embeddings=(ctx.e_prompt, ctx.e_null))
 
 
 def distance_name(distance) -> str:
@@ -215,7 +216,7 @@ def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ra
               "distance": None if oracle is None else distance_name(distance),
               "resumed_from": resumed_from, "start_ratio": start_ratio, "asynchronous": config.asynchronous,
               "config": dataclasses.asdict(config),
-              "guard": {"max_steps": config.max_steps,
+              "guard": {"max_steps": step_guard(config, data.train_images.shape),
                         "max_steps_scaled": config.max_steps is None,
                         "max_seconds": config.max_seconds},
               "max_gaussians": ctx.trainer.settings.densify.max_gaussians,
@@ -248,7 +249,8 @@ def subtask_warnings(ctx: EditContext, spec: SubtaskSpec, info: dict,
     """What the log should say of a finished subtask: a guard that fired, a cap that bit."""
     out = []
     if info["guard"] == "steps":
-        out.append(f"subtask {spec.name}: max_steps guard ({ctx.config.max_steps}) fired "
+        guard = subtask_limits(ctx.config, ctx.data.train_images.shape, spec.index).max_steps
+        out.append(f"subtask {spec.name}: max_steps guard ({guard}) fired "
                    f"before the loss plateaued")
     elif info["guard"] == "seconds":
         out.append(f"subtask {spec.name}: max_seconds guard ({ctx.config.max_seconds:g} s) "
@@ -258,16 +260,6 @@ def subtask_warnings(ctx: EditContext, spec: SubtaskSpec, info: dict,
     if warning:
         out.append(warning)
     return out
-
-
-def subtask_context(ctx: EditContext, spec: SubtaskSpec) -> EditContext:
-    """The context subtask ``spec`` runs in: the run's, or with ``subtask_steps`` its own
-    fixed length (its step budget, no plateau)."""
-    steps = ctx.config.subtask_steps
-    if steps is None:
-        return ctx
-    return dataclasses.replace(ctx, config=dataclasses.replace(
-        ctx.config, max_steps=int(steps[spec.index]), stop_on_plateau=False))
 
 
 def run_plan(ctx: EditContext, st: EditState, plan: tuple[SubtaskSpec, ...], *,
@@ -288,8 +280,8 @@ def run_plan(ctx: EditContext, st: EditState, plan: tuple[SubtaskSpec, ...], *,
     """
     for spec in plan[st.subtask:]:
         log(f"subtask {spec.index} {spec.name} ({spec.kind}) r = {spec.ratio:.3f}")
-        st, info = run_subtask(subtask_context(ctx, spec), st, spec, callback=callback,
-                               checkpoint=checkpoint, progress=progress)
+        st, info = run_subtask(ctx, st, spec, callback=callback, checkpoint=checkpoint,
+                               progress=progress)
         alive = int(ctx.trainer.gaussians(st.train).num_alive())
         record = subtask_record(spec, info, alive)
         for warning in subtask_warnings(ctx, spec, info, alive):

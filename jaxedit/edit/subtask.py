@@ -38,7 +38,8 @@ from ..train import CHUNK, Batch, apply_step, epoch_view, grow_for_redo, scan_st
 from .buffer import EditedView, EditJob, EditSource, make_source, view_order
 from .context import EditContext
 from .local import blend
-from .plan import ProEditConfig, SubtaskSpec, anneal_horizon, anneal_timestep
+from .plan import (ProEditConfig, SubtaskLimits, SubtaskSpec, anneal_horizon, anneal_timestep,
+                   subtask_limits)
 from .state import EditState, apply_edits, begin_subtask, tally_density, track_loss
 
 # fold_in "purposes" of the per-subtask key: one stream per use, never shared.
@@ -180,13 +181,14 @@ def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars
     return train_state, tracker, metrics
 
 
-def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, num_steps: int, *,
-               stop_if_plateau: bool) -> tuple[EditState, ChunkResult]:
-    """Up to ``num_steps`` (<= CHUNK) steps of subtask ``spec``: a pure function of its inputs.
+def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: SubtaskLimits,
+               num_steps: int, *, stop_if_plateau: bool) -> tuple[EditState, ChunkResult]:
+    """Up to ``num_steps`` (<= CHUNK) steps of subtask ``spec`` (its ``limits``): a pure
+    function of its inputs.
 
     Stops early after a step that asks for a redo (not counted) or, when
     ``stop_if_plateau``, at the step where the loss plateaus (a plateau counts
-    only from :func:`earliest_end` on).
+    only from :func:`earliest_end` on; never without ``limits.stop_on_plateau``).
     """
     cfg = ctx.config
     # The chunk's only upload: five int32 (explicit; images and state stay on the device).
@@ -196,7 +198,7 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, num_steps: in
         *commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
                  ctx.key)), scalars,
         length=CHUNK, warmup=cfg.warmup, window=cfg.loss_window,
-        patience=cfg.patience, min_delta=cfg.min_delta, stop_on_plateau=cfg.stop_on_plateau)
+        patience=cfg.patience, min_delta=cfg.min_delta, stop_on_plateau=limits.stop_on_plateau)
     metrics = jax.device_get(metrics)  # the one host read of the chunk
     completed = metrics["ran"] & ~metrics["redo"]
     k = int(np.sum(completed))
@@ -227,13 +229,13 @@ def earliest_end(st: EditState, cfg: ProEditConfig) -> int:
     return max(st.complete_at, st.annealed_at) + cfg.patience
 
 
-def last_step(st: EditState, cfg: ProEditConfig, can_wait: bool,
+def last_step(st: EditState, cfg: ProEditConfig, max_steps: int, can_wait: bool,
               guard: int | None = None) -> int:
     """Where the guard (``max_steps``, or ``guard`` when the time guard fired there) ends
     the subtask. With edits from a thread (``can_wait``), a guard that fired before every
     view was edited waits for them and then trains ``patience`` more steps on them; the
     deterministic schedule is a fixed budget (IN2N) and ends at the guard."""
-    guard = cfg.max_steps if guard is None else min(guard, cfg.max_steps)
+    guard = max_steps if guard is None else min(guard, max_steps)
     if not can_wait or st.complete_at < 0:
         return guard
     return max(guard, st.complete_at + cfg.patience)
@@ -260,8 +262,9 @@ class Subtask:
     """What one subtask's loop reads and never changes.
 
     Attributes:
-      ctx: the run's context (``config.max_steps`` already the subtask's).
+      ctx: the run's context.
       spec: the subtask.
+      limits: its step guard and plateau test (:func:`jaxedit.edit.plan.subtask_limits`).
       source: its edits' :class:`jaxedit.edit.buffer.EditSource` (entered by the caller).
       horizon: steps after the warm-up at which the annealed timestep reaches t_min
         (:func:`jaxedit.edit.plan.anneal_horizon`).
@@ -271,6 +274,7 @@ class Subtask:
 
     ctx: EditContext
     spec: SubtaskSpec
+    limits: SubtaskLimits
     source: Any
     horizon: int
     started: float
@@ -293,12 +297,13 @@ class SubtaskLoop(NamedTuple):
 
 
 def prepare(ctx: EditContext, st: EditState, spec: SubtaskSpec) -> Subtask:
-    """Subtask ``spec``'s fixed parts: its edit source (the views in a seeded cyclic order,
-    each edited from the current render with e(r)) and its annealing horizon."""
+    """Subtask ``spec``'s fixed parts: its limits, its edit source (the views in a seeded
+    cyclic order, each edited from the current render with e(r)) and its annealing horizon."""
     cfg = ctx.config
+    limits = subtask_limits(cfg, ctx.data.train_images.shape, spec.index)
     key_sub = jax.random.fold_in(ctx.key, spec.index)
     order = view_order(len(ctx.data.train_images), jax.random.fold_in(key_sub, _ORDER))
-    horizon = anneal_horizon(cfg, cfg.warmup)
+    horizon = anneal_horizon(cfg, limits.max_steps)
     edit_one, edit_many = make_edit_fns(ctx, spec, horizon)
     # Room for two chunks' worth of edits, so a fast editor is never held up between
     # the trainer's collections.
@@ -307,7 +312,7 @@ def prepare(ctx: EditContext, st: EditState, spec: SubtaskSpec) -> Subtask:
                          device=ctx.editor_device, capacity=2 * CHUNK,
                          trainer_device=next(iter(st.images.devices())),
                          exchanges=None if cfg.edit_plan is None else cfg.edit_plan[spec.index])
-    return Subtask(ctx, spec, source, horizon, time.perf_counter() - st.seconds)
+    return Subtask(ctx, spec, limits, source, horizon, time.perf_counter() - st.seconds)
 
 
 def init(sub: Subtask, st: EditState) -> SubtaskLoop:
@@ -328,8 +333,8 @@ def step(sub: Subtask, loop: SubtaskLoop) -> tuple[SubtaskLoop, ChunkResult]:
     # A plateau before every view is edited: the deterministic source edits the missing
     # views at its own steps, so training goes on; a thread's edits are waited for.
     stop_if_plateau = bool(st.edited.all()) or source.can_wait
-    last = last_step(st, cfg, source.can_wait, loop.timed_out_at)
-    st, chunk = step_chunk(ctx, st, sub.spec, next_stop(s, cfg, last, source) - s,
+    last = last_step(st, cfg, sub.limits.max_steps, source.can_wait, loop.timed_out_at)
+    st, chunk = step_chunk(ctx, st, sub.spec, sub.limits, next_stop(s, cfg, last, source) - s,
                            stop_if_plateau=stop_if_plateau)
     if chunk.redo:
         k = len(chunk.losses)
@@ -372,7 +377,8 @@ def settle(sub: Subtask, loop: SubtaskLoop, chunk: ChunkResult) -> tuple[Subtask
         return loop._replace(st=st), False
     if chunk.plateau and st.edited.all():
         return loop._replace(converged=True, done=True), False
-    if st.step >= last_step(st, cfg, sub.source.can_wait, loop.timed_out_at):
+    if st.step >= last_step(st, cfg, sub.limits.max_steps, sub.source.can_wait,
+                            loop.timed_out_at):
         if not st.edited.all():
             # Never end a subtask on a dataset the editor has not fully updated to e(r_i):
             # a slow editor makes the trainer wait here (counted).
@@ -390,13 +396,13 @@ def terminate(loop: SubtaskLoop) -> bool:
 def postprocess(sub: Subtask, loop: SubtaskLoop) -> tuple[EditState, dict]:
     """(the state at the end of the subtask, its info); after the source is closed, so its
     utilisation includes the final join."""
-    cfg, source = sub.ctx.config, sub.source
+    cfg, source, plateau = sub.ctx.config, sub.source, sub.limits.stop_on_plateau
     st = dataclasses.replace(loop.st, seconds=time.perf_counter() - sub.started,
                              utilisation=loop.st.utilisation.add(source.utilisation))
-    guard = None if loop.converged or not cfg.stop_on_plateau else (
+    guard = None if loop.converged or not plateau else (
         "seconds" if loop.timed_out_at is not None else "steps")
     # a fixed budget (IN2N, the equal-budget controls) has no plateau to reach: None, not True
-    return st, {"steps": st.step, "converged": loop.converged if cfg.stop_on_plateau else None,
+    return st, {"steps": st.step, "converged": loop.converged if plateau else None,
                 "guard": guard, "seconds": st.seconds,
                 "edits_complete_at": None if st.complete_at < 0 else st.complete_at,
                 "anneal_horizon": None if cfg.mode == "in2n" else cfg.warmup + sub.horizon,

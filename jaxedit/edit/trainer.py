@@ -35,8 +35,9 @@ from .plan import ProEditConfig
 #:   start is the reset.
 #: - ``max_gaussians`` None: :func:`default_max_gaussians` of the input scene.
 #: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig` owns it and the
-#:   subtask loop reads it there; :func:`jaxedit.edit.progressive.make_trainer` gives it to
-#:   the density control's clock); ``refine_from_warmup``: the first maintenance (cull and
+#:   subtask loop reads it there; :class:`SubtaskTrainer` gets it from
+#:   :func:`jaxedit.edit.progressive.make_trainer` and gives it to the density control's
+#:   clock; :class:`TrainSettings` refuses another); ``refine_from_warmup``: the first maintenance (cull and
 #:   create) comes right after the W steps, then every ``refine_every`` (with INRIA's
 #:   clock a W below ``refine_every`` had no effect: the first maintenance was at step
 #:   ``refine_every`` whatever W).
@@ -58,14 +59,17 @@ class TrainSettings:
       adaptive: ProEdit's budgeted creation (True) or classic 3DGS thresholds with a
         periodic opacity reset (False, IN2N); ``run_edit`` sets it from the mode.
       densify: the density control (:data:`EDIT_DENSIFY`); in classic mode its budget
-        is off and it resets opacities every :data:`CLASSIC_RESET_EVERY` steps.
+        is off and it resets opacities every :data:`CLASSIC_RESET_EVERY` steps. Its
+        ``warmup`` is the plan's W (:attr:`ProEditConfig.warmup`, given to
+        :meth:`train_config`): another value here is a DataError, not silently replaced.
       sh_degree: SH degree trained (the input scene's, all degrees on from the start).
       lr_means, lr_sh_dc, lr_opacity: Adam learning rates (TrainConfig's, Splatfacto's,
         by default; the higher-order SH get lr_sh_dc / 20). Splatfacto's are tuned for
         ~30k steps; short CPU runs of a few hundred steps per subtask need a larger
         colour rate to follow the edits at all (the ablation uses 10x).
 
-    The background is the plan's (:class:`ProEditConfig`), given to :meth:`train_config`.
+    The background and the warm-up are the plan's (:class:`ProEditConfig`), given to
+    :meth:`train_config`.
     """
 
     scene_extent: float | None = None
@@ -76,15 +80,23 @@ class TrainSettings:
     lr_sh_dc: float = TrainConfig.lr_sh_dc
     lr_opacity: float = TrainConfig.lr_opacity
 
+    def __post_init__(self):
+        if self.densify.warmup != EDIT_DENSIFY.warmup:
+            raise DataError("densify.warmup", f"{self.densify.warmup}: the plan owns the "
+                            "warm-up W; set ProEditConfig.warmup (edit --warmup) instead")
+
     def replace_densify(self, **changes) -> "TrainSettings":
         """These settings with ``densify``'s fields ``changes`` replaced."""
         return dataclasses.replace(self, densify=dataclasses.replace(self.densify, **changes))
 
-    def train_config(self, background=ProEditConfig.background) -> TrainConfig:
+    def train_config(self, background=ProEditConfig.background,
+                     warmup: int = ProEditConfig.warmup) -> TrainConfig:
         """The :class:`jaxedit.train.TrainConfig` these settings describe, rendering on
-        ``background`` (RGB, the plan's; white or black)."""
-        dens = self.densify if self.adaptive else dataclasses.replace(
-            self.densify, budget=False, reset_every=CLASSIC_RESET_EVERY)
+        ``background`` (RGB, the plan's; white or black), its density clock warming up for
+        ``warmup`` steps (the plan's W)."""
+        dens = dataclasses.replace(self.densify, warmup=int(warmup))
+        dens = dens if self.adaptive else dataclasses.replace(
+            dens, budget=False, reset_every=CLASSIC_RESET_EVERY)
         background = background_name(background)
         # Constant means learning rate (no decay across subtasks), every SH degree from step 1.
         return TrainConfig(iterations=2 ** 30, lr_means=self.lr_means,
@@ -130,10 +142,11 @@ class SubtaskTrainer:
     """
 
     def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None,
-                 *, background=ProEditConfig.background, editable=None):
+                 *, background=ProEditConfig.background, warmup: int = ProEditConfig.warmup,
+                 editable=None):
         """``num_input``: the input scene's Gaussian count, against which the cap is
         resolved (:func:`resolve_max_gaussians`: the one place it is; None: the settings
-        must hold a cap); ``background``: the plan's (RGB); ``editable``: bool [C0] over the
+        must hold a cap); ``background``, ``warmup``: the plan's (RGB; W); ``editable``: bool [C0] over the
         input scene's slots for a local edit (:func:`jaxedit.edit.local.editable`): the
         other alive Gaussians are frozen (None: a global edit, nothing frozen)."""
         self.editable = None if editable is None else np.asarray(editable, bool)
@@ -142,7 +155,7 @@ class SubtaskTrainer:
         elif settings.densify.max_gaussians is None:
             raise DataError("max_gaussians", "unresolved: pass num_input or a cap")
         self.settings = settings
-        self.config = settings.train_config(background)
+        self.config = settings.train_config(background, warmup)
 
     def init(self, gaussians, cameras=None):
         """A fresh train state; with ``cameras``, its tile buffer is sized to what they need.

@@ -31,7 +31,7 @@ from ..edit import progressive
 from ..edit.buffer import pick_devices
 from ..edit.checkpoint import (check_resume, load_checkpoint, save_checkpoint,
                                snapshot_fingerprint)
-from ..edit.context import EditContext, EditData
+from ..edit.context import EditContext, EditData, encode_prompt
 from ..edit.outputs import Renderer
 from ..edit.state import init_state
 from ..edit.plan import ProEditConfig, SubtaskSpec
@@ -119,13 +119,14 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     run_dir = None if run_dir is None else Path(run_dir)
     trainer = progressive.make_trainer(config, settings or TrainSettings(), data, gaussians)
     _, editor_device = pick_devices()
+    embeddings = encode_prompt(editor, prompt)  # once per run: every reader gets these
     masks, local_figures, local_plan = None, None, None
     if local is not None and local.active and resume_from is not None:
         raise DataError("--local", "a local edit starts from the input scene, not --resume-from")
     if local is not None and local.active:
         local_plan = local_lib.plan_local(
             local, gaussians, data.train_cameras, data.train_images, editor=editor,
-            embedding=None if local.mode != "auto" else editor.encode(prompt),
+            embedding=None if local.mode != "auto" else embeddings[0],
             key=jax.random.fold_in(jax.random.key(seed), 35))
         masks, local_figures = local_plan.masks, local_plan.figures
         trainer.editable = local_plan.editable
@@ -133,7 +134,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             f"{local_figures['frozen']} frozen, {100 * local_figures['mask_fraction']:.1f}% "
             f"of the pixels inside ({local_figures['seconds']:.1f} s)")
     ctx = EditContext.create(editor, prompt, data, config, trainer, Renderer(config.background),
-                             jax.random.key(seed), editor_device, masks=masks)
+                             jax.random.key(seed), editor_device, masks=masks,
+                             embeddings=embeddings)
     wall0 = time.perf_counter()
     ckpt = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if resume and (ckpt is None or not ckpt.exists()):

@@ -518,7 +518,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                                                 edit_every=config.edit_every, views=n_views)
                             lead = {"steps": prior["subtask_steps"],
                                     "edits": prior["edits_per_subtask"],
-                                    "horizon": anneal_horizon(cfg, config.warmup)}
+                                    "horizon": anneal_horizon(cfg, cfg.max_steps)}
                     if seed == 0 and renders:
                         _write_views(out / "views" / f"m{_slug(label)}_{scene_name}_"
                                      f"{_slug(prompt)}.png", targets, renders)
@@ -607,7 +607,7 @@ def _plateau(subtasks) -> tuple[list, float | None]:
 def _edit_counts(cfg, subtasks, views: int) -> list[int]:
     """Training edits per subtask: its explicit exchanges before its end, or the periodic
     schedule's (:func:`.methods.edits_per_subtask`)."""
-    warmup = 0 if cfg.mode == "in2n" else cfg.warmup
+    warmup = cfg.warmup  # the plan's W (IN2N's is 0: ProEditConfig.for_mode)
     out = []
     for i, s in enumerate(subtasks):
         plan = None if cfg.edit_plan is None else cfg.edit_plan[i]
@@ -667,7 +667,7 @@ def _run_one(editor: CallLog, prompt, data, scene, cfg, settings, seed, targets)
 
 def _sweeps(cfg, subtasks, views: int):
     """The exchanges that edited every view at once (initial sweeps) of a run."""
-    warmup = 0 if cfg.mode == "in2n" else cfg.warmup
+    warmup = cfg.warmup  # the plan's W (IN2N's is 0: ProEditConfig.for_mode)
     for i, s in enumerate(subtasks):
         plan = None if cfg.edit_plan is None else cfg.edit_plan[i]
         if plan is None:
