@@ -19,3 +19,11 @@ class DataError(ValueError):
         self.problem = problem
         message = problem if where is None else f"{where}: {problem}"
         super().__init__(message.replace("\n", " "))
+
+
+def quoted(text: str, limit: int = 80) -> str:
+    """``repr(text)`` for an error line, cut to about ``limit`` characters: a message names
+    what the user gave (a prompt may be pages long) without echoing all of it."""
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}... ({len(text)} characters)"

@@ -42,7 +42,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, quoted
 
 #: Every HOLDOUT_EVERY-th camera of a procedural scene's spiral is held out (person: its own
 #: test split).
@@ -91,7 +91,7 @@ def instruction(prompt: str) -> Instruction:
     for ins in INSTRUCTIONS:
         if ins.prompt == prompt:
             return ins
-    raise DataError("prompt", f"not an instruction of the dataset: {prompt!r}")
+    raise DataError("prompt", f"not an instruction of the dataset: {quoted(prompt)}")
 
 
 # ----------------------------------------------------------------------------- image outcomes
@@ -203,7 +203,7 @@ def _edited_scene(scene, prompt: str):
             if s.name == "red_ball" else s.center
         shapes[i] = dataclasses.replace(s, size=size, center=center)
     else:
-        raise DataError("prompt", f"{prompt!r} is not a scene edit")
+        raise DataError("prompt", f"{quoted(prompt)} is not a scene edit")
     return dataclasses.replace(scene, shapes=tuple(shapes))
 
 

@@ -374,8 +374,8 @@ def check_edit_sizes(size: int | None, steps: int, batch: int, timesteps: int, f
     from ..memory import require_memory
 
     if steps > timesteps:
-        raise DataError("steps", f"{steps} DDIM steps, but the schedule has {timesteps} "
-                                 f"timesteps (at most one step each)")
+        raise DataError("--ip2p-steps", f"{steps} DDIM steps, but the schedule has {timesteps} "
+                                      f"timesteps (at most one step each)")
     if size is not None:
         require_memory("--ip2p-size/--ip2p-steps/--ip2p-batch",
                        edit_memory_at_least(size, steps, batch, factor, width, itemsize),

@@ -145,7 +145,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, quoted
 from .masks import relevance_mask
 from .simulated_targets import (BULGE_MAX, MAX_MODES, _MODE_ASPECTS, blur, _bulge, _sample,
                                 _target_family, foreground)
@@ -503,7 +503,7 @@ class SimulatedEditor:
         for i, ins in enumerate(INSTRUCTIONS):
             if ins.prompt == key:
                 return i
-        raise DataError("prompt", f"unknown instruction {instruction!r} for the simulated editor; "
+        raise DataError("prompt", f"unknown instruction {quoted(instruction)} for the simulated editor; "
                         f"known: {', '.join(repr(p) for p in self.instructions)}")
 
     def encode(self, prompt: str) -> np.ndarray:
