@@ -142,6 +142,7 @@ def load_masks(directory, filenames, hw: tuple[int, int], originals=None) -> np.
     photo of a ``--downscale``d run) is box-averaged down to it. A missing folder or frame, a
     mask of any other size, or an all-zero mask set is a DataError.
     """
+    from ..editors.masks import check_mask_file
     from ..io.images import read_image
 
     directory = Path(os.fspath(directory))
@@ -164,6 +165,8 @@ def load_masks(directory, filenames, hw: tuple[int, int], originals=None) -> np.
         raise DataError("--masks", f"{directory}: no mask for frame {Path(frame).stem!r}{also}"
                                    + (f" and {more} more" if more else ""))
     out = np.zeros((len(filenames), *hw), np.float32)
+    for path in paths:  # every file's size from its header, before any is decoded
+        check_mask_file(path, hw)
     for i, path in enumerate(paths):
         img = np.asarray(read_image(path, background=(0.0, 0.0, 0.0)), np.float32)
         out[i] = _to_view_size(img.reshape(*img.shape[:2], -1).mean(-1), hw, path)

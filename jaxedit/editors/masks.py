@@ -1,13 +1,19 @@
 """Relevance masks: how much an instruction changes each pixel, as a mask. Shared by the
 protocol (:mod:`.base`), the simulated editor and the JAX InstructPix2Pix's relevance
-(:meth:`.jax_ip2p.JaxIP2PEditor.relevance`), in a module of its own so that none of them imports another."""
+(:meth:`.jax_ip2p.JaxIP2PEditor.relevance`), in a module of its own so that none of them imports another;
+and the check of a mask file's size before it is decoded (:func:`check_mask_file`)."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 
+from ..errors import DataError
 from .simulated_targets import blur
+
+#: Bytes a decoded pixel channel takes while a mask is read: float32, as decoded and as
+#: the RGB image the reader makes of it (at least three channels).
+_DECODED_BYTES = 4 * 2
 
 
 def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
@@ -30,3 +36,23 @@ def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) ->
     peak = jnp.max(d, axis=(1, 2), keepdims=True)
     m = ((d >= threshold * peak) & (peak > 1e-6)).astype(jnp.float32)
     return m[0] if single else m
+
+
+def check_mask_file(path, hw: tuple[int, int]) -> tuple[int, int]:
+    """The (height, width) of a mask file drawn for a view of size ``hw`` = (H, W), from its
+    header, before anything is decoded: it must be the view's size or a whole multiple of it,
+    and its decoded pixels must fit in the free memory (a small PNG can decode to gigabytes).
+
+    Raises:
+      DataError naming ``path``.
+    """
+    from ..io.images import image_header
+    from ..memory import require_memory
+
+    h, w, channels = image_header(path)
+    (H, W) = hw
+    k = h // H if H else 0
+    if (h, w) != (H, W) and not (k > 1 and (h, w) == (k * H, k * W)):
+        raise DataError(path, f"mask is {w}x{h} px, its view {W}x{H} (or a whole multiple of it)")
+    require_memory(path, float(h) * w * max(channels, 3) * _DECODED_BYTES, f"decoding a {w}x{h} px mask")
+    return h, w

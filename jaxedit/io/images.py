@@ -87,6 +87,29 @@ def read_image_with_alpha(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarr
     return np.clip(colour, 0.0, 1.0).astype(np.float32), alpha[..., 0].astype(np.float32)
 
 
+def image_header(path: str | os.PathLike) -> tuple[int, int, int]:
+    """(height, width, channels) of an image file from its header alone, nothing decoded:
+    what a caller checks before decoding a file that may be small on disk and gigabytes
+    in memory.
+
+    Raises:
+      DataError: missing, unreadable file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "image file not found" if not path.exists() else "not a file")
+    utf8_name(path)
+    with _c_stderr_held_back():
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise DataError(path, f"cannot open image ({_oiio_error()})")
+        try:
+            spec = inp.spec()
+            return int(spec.height), int(spec.width), int(spec.nchannels)
+        finally:
+            inp.close()
+
+
 def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
     """(colour float32 [H, W, 3], alpha [H, W, 1] in [0, 1] or None, alpha is straight)."""
     if not path.is_file():
