@@ -97,7 +97,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     real.add_argument("--ip2p-size", type=int, default=None,
                       help="IP2P working resolution (px; default: the bundled editor's 64, "
                            "512 for other weights)")
-    real.add_argument("--ip2p-steps", type=int, default=20, help="DDIM steps per IP2P edit")
+    from jaxedit.editors.diffusion import DDIM_STEPS
+
+    real.add_argument("--ip2p-steps", type=int, default=DDIM_STEPS,
+                      help="DDIM steps per IP2P edit (default %(default)s)")
     real.add_argument("--ip2p-batch", type=int, default=None,
                       help="--editor ip2p: most views per editor call when several are due at "
                            "once (a subtask's initial sweep, the difficulty's views); default 8 "

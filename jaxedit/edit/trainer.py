@@ -146,9 +146,10 @@ class SubtaskTrainer:
                  editable=None):
         """``num_input``: the input scene's Gaussian count, against which the cap is
         resolved (:func:`resolve_max_gaussians`: the one place it is; None: the settings
-        must hold a cap); ``background``, ``warmup``: the plan's (RGB; W); ``editable``: bool [C0] over the
-        input scene's slots for a local edit (:func:`jaxedit.edit.local.editable`): the
-        other alive Gaussians are frozen (None: a global edit, nothing frozen)."""
+        must hold a cap); ``background``, ``warmup``: the plan's (RGB; W); ``editable``:
+        bool [C0] over the input scene's slots for a local edit
+        (:func:`jaxedit.edit.local.editable`): the other alive Gaussians are frozen (None: a
+        global edit, nothing frozen)."""
         self.editable = None if editable is None else np.asarray(editable, bool)
         if num_input is not None:
             settings = resolve_max_gaussians(settings, num_input)

@@ -25,6 +25,9 @@ from ..models.load import check_layout as resolve_weights  # noqa: F401 - re-exp
 DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
 #: The diffusion timesteps Stable Diffusion is trained with.
 NUM_TRAIN_TIMESTEPS = 1000
+#: DDIM steps per edit, both editors' default (InstructPix2Pix's pipelines use 10-100; 20
+#: is IN2N's). The one place it is written: editors, commands and studies read it here.
+DDIM_STEPS = 20
 #: The short names both editors' ``dtype`` takes for float16, bfloat16 and float32.
 DTYPE_ALIASES = {"fp16": "float16", "half": "float16", "fp32": "float32", "float": "float32",
                  "bf16": "bfloat16"}

@@ -9,8 +9,8 @@ The edit of one view follows Instruct-NeRF2NeRF's use of InstructPix2Pix (IP2P):
    to the conditioning latent (VAE posterior mode, unscaled, as IP2P was trained);
 3. draw a timestep T uniformly in ``timestep_range`` x 1000 (from the JAX key) and noise the
    latent to T (SDEdit);
-4. run deterministic DDIM (eta = 0) with ``steps`` (default 20) evenly spaced timesteps from
-   T down to 0; each step evaluates the UNet once on a batch of three branches
+4. run deterministic DDIM (eta = 0) with ``steps`` (default ``DDIM_STEPS``) evenly spaced
+   timesteps from T down to 0; each step evaluates the UNet once on a batch of three branches
    (text+image, image only, unconditional) and combines them with dual classifier-free
    guidance ``eps = eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u)``. The noise schedule
    comes from the weights' scheduler config; IP2P ships an Euler-ancestral config, which is
@@ -63,9 +63,10 @@ import numpy as np
 
 from ..errors import DataError
 # The shared diffusion arithmetic; re-exported here, where it used to live.
-from .diffusion import (DEFAULT_MODEL, HOW_TO_GET, check_timestep_range,  # noqa: F401
-                        ddim_overrides, ddim_step, draw_timestep, dtype_name, dual_guidance,
-                        model_size, resolve_weights, timestep_schedule)
+from .diffusion import (DDIM_STEPS, DEFAULT_MODEL, HOW_TO_GET,  # noqa: F401
+                        check_timestep_range, ddim_overrides, ddim_step, draw_timestep,
+                        dtype_name, dual_guidance, model_size, resolve_weights,
+                        timestep_schedule)
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +124,7 @@ class InstructPix2PixEditor:
     name = "ip2p"
 
     def __init__(self, unet, vae, text_encoder, tokenizer, scheduler, *, device=None, dtype=None,
-                 size: int | None = 512, steps: int = 20, source: str = ""):
+                 size: int | None = 512, steps: int = DDIM_STEPS, source: str = ""):
         self.device = torch.device(device or _default_device())
         on_cpu = self.device.type == "cpu"
         self.dtype = _dtype(dtype) or (torch.float32 if on_cpu else torch.float16)
@@ -163,7 +164,8 @@ class InstructPix2PixEditor:
 
     @classmethod
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, device=None, dtype=None,
-                        size: int | None = 512, steps: int = 20, variant: str | None = None):
+                        size: int | None = 512, steps: int = DDIM_STEPS,
+                        variant: str | None = None):
         """Load from a local diffusers folder (or the local HF cache) with no network access.
 
         ``path``: folder with unet/ vae/ text_encoder/ tokenizer/ scheduler/ (diffusers'

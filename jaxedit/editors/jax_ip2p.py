@@ -45,8 +45,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..errors import DataError
-from .diffusion import (DEFAULT_MODEL, ddim_step, dtype_name, dual_guidance, model_size,
-                        timestep_bounds, timestep_table)
+from .diffusion import (DDIM_STEPS, DEFAULT_MODEL, ddim_step, dtype_name, dual_guidance,
+                        model_size, timestep_bounds, timestep_table)
 from .masks import relevance_mask
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,7 @@ class EditConfig:
     view's VAE pass is independent of the others', so chunking changes memory, not results.
     """
 
-    steps: int = 20
+    steps: int = DDIM_STEPS
     prediction_type: str = "epsilon"
     clip_sample: float | None = None
     scaling_factor: float = 0.18215
@@ -477,7 +477,7 @@ class JaxIP2PEditor:
                  schedule: DiffusionSchedule, *, prediction_type: str = "epsilon",
                  clip_sample: float | None = None, scaling_factor: float = 0.18215,
                  devices: Sequence[jax.Device] | None = None,
-                 size: int | None = 512, steps: int = 20, source: str = "",
+                 size: int | None = 512, steps: int = DDIM_STEPS, source: str = "",
                  batch: int | None = None, attention_chunk: int | None = ATTENTION_CHUNK,
                  vae_chunk: int | None = VAE_CHUNK, text_encoder_residency: str = "auto",
                  load_text_encoder: Callable[[], Any] | None = None):
@@ -533,7 +533,7 @@ class JaxIP2PEditor:
 
     @classmethod
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, devices=None,
-                        dtype=None, size: int | None | str = "native", steps: int = 20,
+                        dtype=None, size: int | None | str = "native", steps: int = DDIM_STEPS,
                         batch: int | None = None, **memory) -> "JaxIP2PEditor":
         """Load a local diffusers folder (or a Hub id in the local cache) into JAX, no torch.
 
@@ -570,7 +570,7 @@ class JaxIP2PEditor:
         return editor
 
     @classmethod
-    def bundled(cls, *, devices=None, steps: int = 20, **kwargs) -> "JaxIP2PEditor":
+    def bundled(cls, *, devices=None, steps: int = DDIM_STEPS, **kwargs) -> "JaxIP2PEditor":
         """The small InstructPix2Pix shipped in the package
         (:func:`jaxedit.editors.bundled_editor`) at the size it was trained at;
         ``devices``, ``steps`` and ``kwargs`` as :meth:`from_pretrained`."""

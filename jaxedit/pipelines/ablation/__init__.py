@@ -88,6 +88,7 @@ import numpy as np
 from ...edit import EditData, TrainSettings
 from ...edit.outputs import Renderer
 from ...edit.plan import anneal_horizon
+from ...editors.diffusion import DDIM_STEPS
 from ...editors.simulated import INSTRUCTIONS, SimulatedEditor
 from ...editors.simulated_targets import MAX_MODES
 from ...errors import DataError
@@ -178,7 +179,7 @@ class AblationConfig:
     edit_every: int = 3
     lr_sh_dc: float = 0.025
     editor: str = "simulated"
-    ip2p_steps: int = 20
+    ip2p_steps: int = DDIM_STEPS
     references: bool = True
 
     def __post_init__(self):
