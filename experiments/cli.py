@@ -534,9 +534,14 @@ def main(argv: list[str] | None = None) -> int:
             import jax
             jax.config.update("jax_platforms", args.device)
         if dist is not None:
-            from jaxedit.distributed import initialize, is_writer
+            from jaxedit.distributed import check_agreement, initialize, is_writer
 
             initialize(dist)
+            # Before any work, every process must have been given the same run (process 0
+            # checks and writes --out for all): one line where they differ, not a silent run.
+            check_agreement({k: jsonable(v) for k, v in vars(args).items() if not
+                             k.startswith("_") and k not in ("process_id", "quiet", "config")},
+                            dist.init_timeout)
             args._writer = is_writer()
             args.quiet = args.quiet or not args._writer  # one process reports progress
         check_paths(args, outputs=writes(args))

@@ -382,6 +382,7 @@ def home() -> str:
     """docs/index.md: the README, its links into docs/ made relative to docs/."""
     text = (ROOT / "README.md").read_text()
     text = text.replace("](docs/", "](")
+    text = text.replace("are in [docs/](index.md)\n(a mkdocs site:", "are on this site\n(mkdocs:")
     return HEADER.replace("benchmarks/results/", "README.md") + text
 
 
