@@ -5,8 +5,12 @@ keeps the held-out cameras only, and measures per instruction: the full edit's P
 its target (nearest outcome), identity with E(""), the outcome frequencies and mixing of the
 divergent instructions from fresh noise, SDEdit holding at T = 0.45 / 0.85 for a small ratio
 step and for the jump to r = 1, and d(0, r) along the text interpolation (the difficulty's
-distance: LPIPS where its weights are, else MS-SSIM). Also writes ``editor_quality.png``:
-per held-out view, the input, each outcome's target and four edits.
+distance: LPIPS where its weights are, else MS-SSIM). The divergent instructions' outcomes
+are classed with :mod:`jaxedit.editors.outcome_class` (one outcome / unedited / mixed /
+other, against the unedited input); identity is measured at ProEdit's SDEdit range (T = 0.45,
+0.85) and at T = 0.98, beside the VAE round trip; ``goals`` checks issue 51's goals on
+these figures. Also writes ``editor_quality.png``: per held-out view and instruction, the
+input, each outcome's target and four edits at T = 0.98.
 
     python benchmarks/editor_quality.py                 # the committed record (CPU, minutes)
     python benchmarks/editor_quality.py --smoke         # CI: two views, two DDIM steps
@@ -54,6 +58,35 @@ def contact_sheet(editor, data, views, key, path: Path) -> None:
     write_image(path, np.concatenate(rows, 0))
 
 
+def goals(result: dict) -> dict:
+    """Issue 51's goals, each with the figures it is judged on and whether it is met."""
+    out = {}
+    divergent = {p: e for p, e in result["instructions"].items() if "outcome_frequencies" in e}
+    freq_ok = {p: e["outcome_frequencies"] is not None
+               and all(f is not None and 0.20 <= f <= 0.45 for f in e["outcome_frequencies"])
+               for p, e in divergent.items()}
+    out["single_outcome_fraction >= 0.8"] = {
+        p: {"value": e["single_outcome_fraction"],
+            "met": e["single_outcome_fraction"] is not None
+            and e["single_outcome_fraction"] >= 0.8} for p, e in divergent.items()}
+    out["each outcome 20-45 % of edited draws"] = {
+        p: {"value": e["outcome_frequencies"], "met": freq_ok[p]} for p, e in divergent.items()}
+    vae = result.get("vae_roundtrip_psnr_db")
+    ident = result["identity_psnr_db"]
+    low = {t: v for t, v in ident.items() if float(t) <= 0.85}
+    out["identity within 1 dB of the VAE round trip at T <= 0.85"] = {
+        "identity_psnr_db": low, "vae_roundtrip_psnr_db": vae,
+        "met": vae is not None and all(v >= vae - 1.0 for v in low.values())}
+    t98 = result.get("identity_t098_psnr_db")
+    out["identity >= 25 dB at T = 0.98 (no colour cast)"] = {
+        "value": t98, "met": t98 is not None and t98 >= 25.0}
+    single = {p: e for p, e in result["instructions"].items() if "outcome_frequencies" not in e}
+    out["one-outcome edit closer to its target than the input (all scenes pooled)"] = {
+        p: {"edit_psnr": e["psnr"], "input_psnr": e["psnr_unedited"],
+            "met": e["psnr"] > e["psnr_unedited"]} for p, e in single.items()}
+    return out
+
+
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, _extra)
     from jaxedit.edit.difficulty import default_distance
@@ -92,7 +125,23 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     contact_sheet(editor, data, held[:: max(1, len(held) // 6)][:6], jax.random.fold_in(key, 7),
                   args.out / "editor_quality.png")
-    write_json(args.out, "editor_quality", {
+    from jaxedit.editors import outcome_class as oc
+
+    result["outcome_measure"] = {
+        "module": "jaxedit.editors.outcome_class",
+        "classes": "outcome k / unedited / mixed / other, against the unedited input",
+        "edited_progress": oc.EDITED_PROGRESS, "pure_share": oc.PURE_SHARE,
+        "other_residual": oc.OTHER_RESIDUAL}
+    result["goals"] = goals(result)
+    result["held_out_note"] = ("held-out views are the dataset's held-out cameras (every "
+                               f"{settings['holdout_every']}th procedural camera, person's test "
+                               "views): near the training orbits, not novel cameras")
+    write_json(args.out, "editor_quality", {"command": " ".join(["python",
+                                                                 "benchmarks/editor_quality.py",
+                                                                 *(argv or __import__("sys")
+                                                                   .argv[1:])]),
+                                            "draws_per_view": args.draws,
+
         "weights": str(folder), "smoke": args.smoke, "size": size, "ddim_steps": steps,
         "distance": getattr(distance, "name", getattr(distance, "__name__", str(distance))),
         "dataset": settings, "held_out_views": int(len(held)),

@@ -6,10 +6,20 @@ Every figure is measured by editing with an :class:`~jaxedit.editors.base.Editor
 - ``full_edit``: PSNR of the edit of the input view (T = ``t_full`` of the schedule, nearly
   pure noise, as IP2P edits a photo) against its target, the nearest outcome for a divergent
   instruction; per instruction, over views and draws.
-- ``identity``: the edit with E("") (no instruction) against the input view, PSNR.
-- ``outcomes``: for each divergent instruction, the share of fresh-noise edits nearest to
-  each outcome, and ``mixing``: the share of edits nearer the *average* of the outcomes than
-  to any one of them (an editor that averages its modes, rather than picking one, mixes).
+- ``identity_psnr_db``: the edit with E("") (no instruction) against the input view, PSNR,
+  at T = 0.45 and 0.85 (the ends of ProEdit's SDEdit range) and at ``t_full``;
+  ``vae_roundtrip_psnr_db``: the VAE alone (encode to the posterior mean, decode), the best
+  any edit through the latent space can keep a view (:func:`vae_roundtrip`).
+- outcomes of each divergent instruction (:mod:`jaxedit.editors.outcome_class`): every
+  fresh-noise edit classed as one outcome, unedited, mixed or other against the unedited
+  input; ``unedited_fraction`` over all draws, ``single_outcome_fraction``,
+  ``outcome_frequencies``, ``mixed_fraction`` and ``other_fraction`` over the edited draws;
+  ``without_other_gate`` the same where an edit leans however much else it changed;
+  ``baseline``: the same measure on the unedited input itself, on the E("") edits and on the
+  VAE round trips of the same views (what an editor that does not edit scores).
+  ``nearest_target``: the old measure (the share of edits nearest each outcome target, and
+  ``mixing``, nearer the outcomes' average than any one), with what the unedited input
+  scores on it (``unedited_input``): it calls most unedited views one outcome or mixed.
 - ``holding``: SDEdit from a view already halfway into outcome c (0.5 input + 0.5 target c):
   the share of edits that stay nearest to c, at T = 0.45 and 0.85, for a small ratio step
   (e(0.625), the next subtask) and for the jump to e(1).
@@ -27,8 +37,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import outcome_class
 from .base import interpolate_embedding
 from .edit_data import EditDataset, outcome_targets
+
+#: SDEdit timesteps of ProEdit's range (:class:`jaxedit.edit.plan.ProEditConfig`'s
+#: ``timestep_range``, 0.45-0.85) at which identity is measured, besides ``t_full``.
+SDEDIT_RANGE = (0.45, 0.85)
 
 #: Views per editor call (a fixed batch: one compiled program).
 CHUNK = 16
@@ -48,6 +63,39 @@ def nearest(images: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.nda
     best = mse[np.arange(len(k)), k]
     mean_mse = np.mean((images - targets.mean(1)) ** 2, axis=(-3, -2, -1))
     return k, -10 * np.log10(np.maximum(best, 1e-10)), mean_mse < best
+
+
+def vae_roundtrip(editor, images: np.ndarray) -> np.ndarray | None:
+    """float32 [B, H, W, 3]: images [B, H, W, 3] in [0, 1] through the editor's VAE alone
+    (at its model size: encode, the posterior mean, decode, resized back), in chunks of
+    CHUNK; None for an editor without one."""
+    if not hasattr(editor, "nets") or not hasattr(editor, "model_hw"):
+        return None
+    from .jax_ip2p import decode, resize_images
+
+    cfg, out = editor.config(), []
+    hw = editor.model_hw(*images.shape[1:3])
+    for lo in range(0, len(images), CHUNK):
+        x = resize_images(jnp.asarray(images[lo:lo + CHUNK], jnp.float32), hw)
+        mean, _ = editor.nets.vae.encode((x * 2 - 1).astype(cfg.dtype))
+        y = decode(editor.nets.vae, mean.astype(jnp.float32) * cfg.scaling_factor, cfg)
+        out.append(np.asarray(jnp.clip(resize_images(y, images.shape[1:3]), 0, 1)))
+    return np.concatenate(out)
+
+
+def outcome_figures(images, originals, targets) -> dict:
+    """The outcome measure's figures (:mod:`.outcome_class`) of B edits: images, originals
+    [B, H, W, 3], targets [B, K, H, W, 3]; with ``without_other_gate`` and the medians of the
+    classification's ``progress`` and ``residual``."""
+    k = targets.shape[1]
+    full = [outcome_class.classify(x, u, t) for x, u, t in zip(images, originals, targets)]
+    lean = [outcome_class.classify(x, u, t, other_gate=False)["label"]
+            for x, u, t in zip(images, originals, targets)]
+    out = outcome_class.summarise([c["label"] for c in full], k)
+    out["without_other_gate"] = outcome_class.summarise(lean, k)
+    out["progress_median"] = float(np.median([c["progress"] for c in full]))
+    out["residual_median"] = float(np.median([c["residual"] for c in full]))
+    return out
 
 
 def run_edits(editor, images: np.ndarray, originals: np.ndarray, embeddings: np.ndarray,
@@ -88,9 +136,21 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
                          jax.random.fold_in(key, next(counter)), t)
 
     result: dict = {"t_full": t_full, "draws": draws, "views": len(views), "instructions": {}}
-    ident = edits(inputs[list(views)], inputs[list(views)], [null] * len(views), t_full)
-    result["identity_psnr"] = float(np.mean(psnr(ident, inputs[list(views)])))
-    log(f"identity: {result['identity_psnr']:.2f} dB")
+    vs_all = list(views)
+    identity = {}
+    for t in (*SDEDIT_RANGE, t_full):
+        identity[t] = edits(inputs[vs_all], inputs[vs_all], [null] * len(vs_all), t)
+    ident = identity[t_full]
+    result["identity_psnr"] = float(np.mean(psnr(ident, inputs[vs_all])))  # at t_full
+    result["identity_psnr_db"] = {f"{t:g}": float(np.mean(psnr(x, inputs[vs_all])))
+                                  for t, x in identity.items()}
+    result["identity_t098_psnr_db"] = result["identity_psnr_db"].get("0.98")
+    roundtrip = vae_roundtrip(editor, inputs[vs_all])
+    result["vae_roundtrip_psnr_db"] = None if roundtrip is None else \
+        float(np.mean(psnr(roundtrip, inputs[vs_all])))
+    log(f"identity (dB) {result['identity_psnr_db']}, VAE round trip "
+        f"{result['vae_roundtrip_psnr_db']}")
+    at = {v: j for j, v in enumerate(vs_all)}
 
     for i, ins in enumerate(data.instructions):
         vs = _views_of(data, i, views)
@@ -107,16 +167,32 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
                  "edits": len(rows), "psnr": float(np.mean(best_psnr)),
                  "psnr_unedited": float(np.mean(nearest(inputs[rows], targets)[1]))}
         if k_out > 1:
-            entry["frequencies"] = [float(np.mean(which == k)) for k in range(k_out)]
-            entry["mixing"] = float(np.mean(mixed))
+            entry.update(outcome_figures(out, inputs[rows], targets))
+            one = np.stack([outcome_targets(data, v, i) for v in vs])
+            rows_at = [at[v] for v in vs]
+            entry["baseline"] = {
+                "input": outcome_figures(inputs[vs], inputs[vs], one),
+                "identity_edit": outcome_figures(ident[rows_at], inputs[vs], one)}
+            if roundtrip is not None:
+                entry["baseline"]["vae_roundtrip"] = outcome_figures(roundtrip[rows_at],
+                                                                     inputs[vs], one)
+            u_which, _, u_mixed = nearest(inputs[vs], one)
+            entry["nearest_target"] = {
+                "frequencies": [float(np.mean(which == k)) for k in range(k_out)],
+                "mixing": float(np.mean(mixed)),
+                "unedited_input": {"frequencies": [float(np.mean(u_which == k))
+                                                   for k in range(k_out)],
+                                   "mixing": float(np.mean(u_mixed))}}
             entry["holding"] = _holding(edits, inputs, data, i, vs[:hold_views], e, null)
         if distance is not None:
             entry["interpolation"] = _interpolation(edits, inputs, vs[:interp_views], e, null,
                                                     ratios, distance, t_full)
         result["instructions"][ins.prompt] = entry
         log(f"{ins.prompt}: {entry['psnr']:.2f} dB"
-            + (f", outcomes {np.round(entry['frequencies'], 2).tolist()}, mixing "
-               f"{entry['mixing']:.2f}" if k_out > 1 else ""))
+            + (f", unedited {entry['unedited_fraction']:.2f}, of the edited: one outcome "
+               f"{entry['single_outcome_fraction']}, outcomes {entry['outcome_frequencies']}, "
+               f"mixed {entry['mixed_fraction']}, other {entry['other_fraction']}"
+               if k_out > 1 else ""))
     return result
 
 
