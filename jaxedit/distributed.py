@@ -14,7 +14,10 @@ What runs where in an edit (``experiments/edit.py``):
   slice :func:`process_slice` gives it with its own editor on its local devices, and
   :func:`gather_views` all-gathers the results, so every process continues with the same
   bits (one edit at a time is edited by every process: no traffic);
-* only process 0 (:func:`is_writer`) writes the run directory; the others write nothing.
+* only process 0 (:func:`is_writer`) writes the run directory; the others write nothing;
+* before any work, every process checks that all agree on the number of processes, the run
+  directory and every setting (:func:`check_agreement`): a run whose processes were given
+  different flags would otherwise succeed silently with wrong results, or hang.
 
 The library's data-parallel pieces (:mod:`jaxedit.parallel`, the JAX editor's mesh) take a
 mesh over ``jax.devices()`` and then span every process unchanged.
@@ -31,6 +34,7 @@ catch. The command line therefore runs each process as a child of a small superv
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import re
 import signal
@@ -133,6 +137,64 @@ def initialize(config: DistributedConfig) -> None:
                         f"{config.init_timeout} s ({first[:160]})") from None
     except ValueError as e:  # auto: no cluster environment found
         raise DataError("coordinator", str(e).splitlines()[0]) from None
+
+
+#: Where each process publishes its settings in the runtime's key-value store.
+AGREEMENT_KEY = "jaxedit/agreement/"
+#: The settings compared first (the message names the first that differs).
+AGREEMENT_FIRST = ("num_processes", "out")
+
+
+def disagreement(mine: dict, theirs: dict) -> str | None:
+    """The first setting on which two processes' records differ, as ``--flag`` (None: they
+    agree). Records are {setting: JSON value}: the number of processes, the run directory,
+    then every other flag in name order."""
+    keys = [k for k in AGREEMENT_FIRST if k in mine or k in theirs]
+    keys += sorted((set(mine) | set(theirs)) - set(keys))
+    for key in keys:
+        if mine.get(key) != theirs.get(key):
+            return key
+    return None
+
+
+def check_agreement(record: dict, timeout: int) -> None:
+    """Refuse to go on unless every process of the run gives the same ``record`` (its number
+    of processes, run directory and settings: {setting: JSON value}), each process's
+    published in the runtime's key-value store and compared here; a no-op for one process.
+
+    Every process reads process 0's record first (it always exists, so a process that
+    counts more processes than there are stops at once instead of waiting for one that
+    never comes), then the others'. Every process that sees a difference stops with the
+    same kind of line; the others then lose it as a peer and stop too (:func:`supervise`).
+
+    Raises:
+      DataError naming the first flag that differs, the two values and the processes.
+    """
+    import jax
+    from jax._src import distributed as _dist
+
+    client = _dist.global_state.client
+    if client is None or process_count() == 1:
+        return
+    me, count = process_index(), process_count()
+    client.key_value_set(f"{AGREEMENT_KEY}{me}", json.dumps(record, sort_keys=True))
+    for other in [0] + [p for p in range(1, count)]:
+        if other == me:
+            continue
+        try:
+            theirs = json.loads(client.blocking_key_value_get(f"{AGREEMENT_KEY}{other}",
+                                                              timeout * 1000))
+        except jax.errors.JaxRuntimeError:
+            raise DataError("--num-processes", f"process {me} of {count} found no process "
+                            f"{other} within {timeout} s: the processes disagree on their "
+                            f"number") from None
+        key = disagreement(record, theirs)
+        if key is not None:
+            flag = f"--{key.replace('_', '-')}"
+            raise DataError(flag, f"the processes disagree: process {me} has "
+                            f"{json.dumps(record.get(key))[:60]}, process {other} "
+                            f"{json.dumps(theirs.get(key))[:60]}; every process needs the same "
+                            f"{flag}")
 
 
 def process_index() -> int:
@@ -346,6 +408,7 @@ def _route(line: str, fatal: list[str] | None, stderr) -> None:
         stderr.flush()
 
 
-__all__ = ["AUTO", "DistributedConfig", "SplitEditor", "WORKER_ENV", "barrier", "fatal_reason",
+__all__ = ["AUTO", "DistributedConfig", "SplitEditor", "WORKER_ENV", "barrier", "check_agreement",
+           "disagreement", "fatal_reason",
            "gather_views", "initialize", "is_runtime_noise", "is_writer", "parse_address",
            "process_count", "process_index", "process_slice", "split_edits", "supervise"]

@@ -32,8 +32,8 @@ import numpy as np
 import pytest
 
 from jaxedit import DataError
-from jaxedit.distributed import (DistributedConfig, fatal_reason, is_runtime_noise,
-                                 parse_address, process_slice)
+from jaxedit.distributed import (DistributedConfig, disagreement, fatal_reason,
+                                 is_runtime_noise, parse_address, process_slice)
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}", "JAX_PLATFORMS": "cpu",
@@ -70,6 +70,28 @@ def test_config_checks_name_fields():
         with pytest.raises(DataError) as e:
             DistributedConfig(**kwargs)
         assert e.value.where == field
+
+
+def test_disagreement_names_the_count_and_run_dir_first():
+    base = {"num_processes": 2, "out": "run", "iters": 5, "seed": 0}
+    assert disagreement(base, dict(base)) is None
+    assert disagreement(base, dict(base, seed=1, num_processes=3)) == "num_processes"
+    assert disagreement(base, dict(base, seed=1, out="other")) == "out"
+    assert disagreement(base, dict(base, seed=1, iters=6)) == "iters"  # then by name
+    assert disagreement(base, {k: v for k, v in base.items() if k != "seed"}) == "seed"
+
+
+@pytest.mark.slow
+def test_processes_that_disagree_stop_with_one_line_before_any_work(tiny_inputs, tmp_path):
+    port = free_port()
+    procs, _ = start_pair(lambda i, out: edit_argv(tiny_inputs, out, *dist_argv(port, i, 5)),
+                          [tmp_path / "run", tmp_path / "elsewhere"], port=port)
+    results = finish(procs, timeout=120)
+    for rc, _, err in results:
+        ok, why = one_line_exit_2(rc, err)
+        assert ok, why
+        assert "--out" in err and "disagree" in err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "elsewhere").exists()
 
 
 def test_fatal_reasons_are_one_line():
@@ -205,7 +227,7 @@ def edit_runs(tiny_inputs, tmp_path_factory):
     single = subprocess.Popen(edit_argv(tiny_inputs, root / "one"), cwd=ROOT, env=ENV,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     procs, _ = start_pair(lambda i, out: edit_argv(tiny_inputs, out, *dist_argv(port, i, 30)),
-                          [root / "two", root / "two_p1"], port=port)
+                          [root / "two", root / "two"], port=port)  # every process: one --out
     results = finish([single] + procs, timeout=300)
     return root, results, time.perf_counter() - t0
 
@@ -216,8 +238,7 @@ def test_two_process_edit_matches_one_process(edit_runs):
     for rc, _, err in results:
         assert rc == 0, err[-3000:]
     one, two = root / "one", root / "two"
-    assert not (root / "two_p1").exists()  # process 1 wrote nothing
-    assert results[2][1].strip() == ""  # nor printed the result
+    assert results[2][1].strip() == ""  # process 1 did not print the result
     assert json.loads(results[1][1])["run_dir"] == str(two)
     m1, m2 = (json.loads((d / "metrics.json").read_text()) for d in (one, two))
     timing = {"wall_time_s", "editor_seconds", "trainer_seconds", "seconds"}
@@ -271,7 +292,7 @@ def _children(pid: int) -> list[int]:
 @pytest.mark.slow
 def test_a_dead_process_stops_every_process_with_one_line(tiny_inputs, tmp_path):
     port = free_port()
-    outs = [tmp_path / "run", tmp_path / "p1"]
+    outs = [tmp_path / "run", tmp_path / "run"]  # every process is given the run's --out
     procs, _ = start_pair(lambda i, out: edit_argv(tiny_inputs, out, *dist_argv(port, i, 5)),
                           outs, port=port)
     deadline = time.perf_counter() + 120
@@ -290,4 +311,4 @@ def test_a_dead_process_stops_every_process_with_one_line(tiny_inputs, tmp_path)
     assert "process 1 of 2 stopped: killed by SIGKILL" in results[1][2]
     assert "process 0 of 2 stopped: process 1 stopped answering" in results[0][2]
     assert seconds < 60, seconds  # heartbeat timeout 5 s, and the runtime's own polling
-    assert not outs[0].exists() and not outs[1].exists()  # nothing half-written left
+    assert not outs[0].exists()  # nothing half-written left
