@@ -62,45 +62,95 @@ def table(header: list[str], rows: list[list[str]]) -> str:
 # The bundled editor's quality
 
 
+def _nearest(i: dict, key: str):
+    """A nearest-target figure: top level (the first layout) or under ``nearest_target``."""
+    return i[key] if key in i else i.get("nearest_target", {}).get(key)
+
+
+def _fracs(x) -> str:
+    if x is None:
+        return "-"
+    return " / ".join(f(v) for v in x) if isinstance(x, list) else f(x)
+
+
 def editor_quality() -> str:
     rel = "cpu/editor_quality.json"
     d = load(rel)
     rows = []
     for name, i in d["instructions"].items():
-        freq = " / ".join(f(x) for x in i["frequencies"]) if "frequencies" in i else "-"
+        freq, mixing = _nearest(i, "frequencies"), _nearest(i, "mixing")
         hold = i.get("holding")
         h45 = f"{f(hold['t0.45_small_step'])} / {f(hold['t0.45_jump'])}" if hold else "-"
         h85 = f"{f(hold['t0.85_small_step'])} / {f(hold['t0.85_jump'])}" if hold else "-"
-        interp = dict((round(r, 3), v) for r, v in i["interpolation"])
+        interp = dict((round(r, 3), v) for r, v in i.get("interpolation", []))
         dr = ", ".join(f(interp.get(r)) for r in (0.0, 0.5, 1.0))
         rows.append([name, i["kind"], i["views"], i["edits"], f(i["psnr"]), f(i["psnr_unedited"]),
-                     freq, f(i["mixing"]) if "mixing" in i else "-", h45, h85, dr])
+                     _fracs(freq), f(mixing), h45, h85, dr])
+    seconds = d.get("seconds", {}).get("evaluation")
     s = [HEADER, "# Bundled editor: quality on held-out views\n\n",
          f"From {src(rel)} (`python benchmarks/editor_quality.py`): the bundled `tiny-ip2p` on "
-         f"{d['held_out_views']} held-out views at {d['size']} px, {d['ddim_steps']} DDIM steps, "
-         f"full edits from T = {d['t_full']}, {d['draws']} draws per view for the divergent "
-         f"instructions; distance for d(0, r): {d['distance']}. Evaluation took "
-         f"{d['seconds']['evaluation']:.0f} s, peak RSS {d['peak_rss_mb']:.0f} MB. "
-         "The reading of these figures is in [the bundled editor](../editor.md).\n\n",
+         f"{d.get('held_out_views', d.get('views'))} held-out views at {d['size']} px, {d['ddim_steps']} DDIM steps, "
+         f"full edits from T = {d['t_full']}, {d.get('draws')} draws per view for the divergent "
+         f"instructions; distance for d(0, r): {d.get('distance', '-')}."
+         + (f" Evaluation took {seconds:.0f} s." if seconds is not None else "")
+         + (f" Peak RSS {d['peak_rss_mb']:.0f} MB." if "peak_rss_mb" in d else "")
+         + " The reading of these figures is in [the bundled editor](../editor.md).\n\n",
          table(["instruction", "kind", "views", "edits", "edit vs target (dB)",
-                "input vs target (dB)", "outcomes (frequency)", "mixing",
-                "holding t=0.45 small / jump", "holding t=0.85 small / jump",
-                "d(0, r) at r = 0, 0.5, 1"], rows),
-         f"\nIdentity (E(\"\"), T = {d['t_full']}): {f(d['identity_psnr'])} dB against the input.\n\n",
-         "## Outcome separation (LPIPS-VGG, held-out views)\n\n"]
-    rows = []
-    for name, sep in d["separation"].items():
-        pair = [sep["pairwise"][a][b] for a in range(len(sep["outcomes"]))
-                for b in range(a + 1, len(sep["outcomes"]))]
-        rows.append([name, ", ".join(sep["outcomes"]), ", ".join(f(x, 3) for x in sep["to_original"]),
-                     f"{min(pair):.3f}-{max(pair):.3f}", f(sep["separated"])])
-    s.append(table(["instruction", "outcomes", "from the original", "pairwise", "separated"], rows))
-    s.append("\n## d(0, r) over r\n\n")
-    ratios = [r for r, _ in next(iter(d["instructions"].values()))["interpolation"]]
-    rows = [[name] + [f(v) for _, v in i["interpolation"]] for name, i in d["instructions"].items()]
-    s.append(table(["instruction"] + [f"r = {r:g}" for r in ratios], rows))
-    geo = RESULTS / "cpu" / "geometry_coverage.json"
-    if geo.is_file():
+                "input vs target (dB)", "outcomes (nearest target, frequency)",
+                "mixing (nearer the outcomes' average)", "holding t=0.45 small / jump",
+                "holding t=0.85 small / jump", "d(0, r) at r = 0, 0.5, 1"], rows)]
+    if "identity_psnr_db" in d:
+        ident = ", ".join(f"{f(v)} dB at T = {t}" for t, v in d["identity_psnr_db"].items())
+        s.append(f"\nIdentity (E(\"\") against the input): {ident}; the VAE round trip alone: "
+                 f"{f(d.get('vae_roundtrip_psnr_db'))} dB.\n")
+    elif "identity_psnr" in d:
+        s.append(f"\nIdentity (E(\"\"), T = {d['t_full']}): {f(d['identity_psnr'])} dB against "
+                 "the input.\n")
+    classed = {n: i for n, i in d["instructions"].items() if "outcome_frequencies" in i}
+    if classed:
+        s.append("\n## Outcomes, with an unedited class\n\n"
+                 "Each edit of a divergent instruction classed as one outcome, unedited, mixed or "
+                 "other against the unedited input (`jaxedit.editors.outcome_class`); the "
+                 "unedited fraction is over all draws, the rest over the edited draws. "
+                 "*Input* is the same measure on the unedited views themselves.\n\n")
+        rows = []
+        for n, i in classed.items():
+            base = i.get("baseline", {}).get("input", {})
+            rows.append([n, f(i.get("unedited_fraction")), f(i.get("single_outcome_fraction")),
+                         _fracs(i.get("outcome_frequencies")), f(i.get("mixed_fraction")),
+                         f(i.get("other_fraction")), f(base.get("unedited_fraction")),
+                         f(base.get("single_outcome_fraction"))])
+        s.append(table(["instruction", "unedited", "one outcome", "outcome frequencies", "mixed",
+                        "other", "input: unedited", "input: one outcome"], rows))
+    if "goals" in d:
+        s.append("\n## Issue 51's goals\n\n")
+        rows = []
+        for goal, v in d["goals"].items():
+            if isinstance(v, dict) and "met" in v:
+                rows.append([goal, "", f(v["met"])])
+            elif isinstance(v, dict):
+                for who, x in v.items():
+                    met = x.get("met") if isinstance(x, dict) else None
+                    rows.append([goal, who, f(met)])
+        s.append(table(["goal", "instruction", "met"], rows))
+    if "separation" in d:
+        s.append("\n## Outcome separation (LPIPS-VGG, held-out views)\n\n")
+        rows = []
+        for name, sep in d["separation"].items():
+            pair = [sep["pairwise"][a][b] for a in range(len(sep["outcomes"]))
+                    for b in range(a + 1, len(sep["outcomes"]))]
+            rows.append([name, ", ".join(sep["outcomes"]),
+                         ", ".join(f(x, 3) for x in sep["to_original"]),
+                         f"{min(pair):.3f}-{max(pair):.3f}", f(sep["separated"])])
+        s.append(table(["instruction", "outcomes", "from the original", "pairwise", "separated"],
+                       rows))
+    with_interp = {n: i for n, i in d["instructions"].items() if i.get("interpolation")}
+    if with_interp:
+        s.append("\n## d(0, r) over r\n\n")
+        ratios = [r for r, _ in next(iter(with_interp.values()))["interpolation"]]
+        rows = [[n] + [f(v) for _, v in i["interpolation"]] for n, i in with_interp.items()]
+        s.append(table(["instruction"] + [f"r = {r:g}" for r in ratios], rows))
+    if (RESULTS / "cpu" / "geometry_coverage.json").is_file():
         s.append(geometry_coverage())
     return "".join(s)
 
