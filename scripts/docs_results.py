@@ -1,7 +1,6 @@
-"""Write the docs' results pages (docs/results/*.md) from the committed JSON under benchmarks/results,
-and the docs' home page (docs/index.md) from README.md.
+"""Write the docs' results pages (docs/results/*.md) from the committed JSON under benchmarks/results.
 
-    python scripts/docs_results.py            # rewrite docs/results/ and docs/index.md
+    python scripts/docs_results.py            # rewrite docs/results/
     python scripts/docs_results.py --check    # exit 1 if a committed page differs from what it would write
 
 The pages are committed, so `mkdocs build` needs neither this script nor the benchmarks; run it
@@ -428,14 +427,6 @@ def record(machine: str) -> str:
     return "".join(s)
 
 
-def home() -> str:
-    """docs/index.md: the README, its links into docs/ made relative to docs/."""
-    text = (ROOT / "README.md").read_text()
-    text = text.replace("](docs/", "](")
-    text = text.replace("are in [docs/](index.md)\n(a mkdocs site:", "are on this site\n(mkdocs:")
-    return HEADER.replace("benchmarks/results/", "README.md") + text
-
-
 def pages() -> dict[str, str]:
     out = {"editor-quality.md": editor_quality(), "mechanism.md": mechanism(),
            "local-edit.md": local_edit(), "budget.md": budget(), "capture.md": capture()}
@@ -452,10 +443,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     stale = []
     OUT.mkdir(parents=True, exist_ok=True)
-    every = {f"results/{name}": text for name, text in pages().items()}
-    every["index.md"] = home()
-    for name, text in every.items():
-        path = OUT.parent / name
+    for name, text in pages().items():
+        path = OUT / name
         if args.check:
             if not path.is_file() or path.read_text() != text:
                 stale.append(name)
