@@ -225,6 +225,7 @@ def _edit_extra(pairs: list[str]) -> dict:
 
 def run(args) -> dict:
     from experiments.progress import Progress, configure, nested
+    from jaxedit.compilation import compile_stats
     from jaxedit.edit.difficulty import lpips_weights_to_use
     from jaxedit.io.files import atomic_write_text
     from jaxedit.pipelines.report import read_json, write_report
@@ -264,6 +265,7 @@ def run(args) -> dict:
             **_edit_extra(args.edit_arg)})),
     ]
     seconds: dict[str, float] = {}
+    compiles_before = compile_stats()
     t_start = time.perf_counter()
     # Relative stage costs measured on the default demo (make-scene is seconds), for the ETA.
     with Progress(len(plans), "demo", weights=[0.03, 0.47, 0.5]) as bar, nested(bar):
@@ -291,6 +293,7 @@ def run(args) -> dict:
         "reconstruct": {k: v for k, v in recon_metrics.items()
                         if k in ("test_psnr", "test_ssim", "num_gaussians", "wall_time_s")},
         "edit": edit_metrics,
+        "compiles": compile_stats(since=compiles_before),
     }
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     notes = {"demo total (s)": total,
@@ -303,5 +306,6 @@ def run(args) -> dict:
     headline = {k: edit_metrics.get(k) for k in ("psnr_vs_target", "ssim_vs_target",
                                                  "multiview_consistency", "num_gaussians")
                 if k in edit_metrics}
+    compiles = {k: metrics["compiles"][k] for k in ("count", "seconds", "cache_hits")}
     return {"report": str(report), "total_s": total, "stage_s": seconds,
-            "subtask_s": subtask_seconds, **headline}
+            "subtask_s": subtask_seconds, "compiles": compiles, **headline}

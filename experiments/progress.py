@@ -147,6 +147,8 @@ class Progress:
         if root._display is not None:
             self._task = root._display.add(self)
         self._emit_event(None)
+        if parent is None and self.mode != "off":
+            self._compile_watch = _CompileWatch(self)
 
     # -- the tree ------------------------------------------------------------
     def _root(self) -> "Progress":
@@ -251,6 +253,8 @@ class Progress:
             self.closed = True
             if self.parent is not None and self.parent._child is self:
                 self.parent._child = None
+        if getattr(self, "_compile_watch", None) is not None:
+            self._compile_watch.stop()
         self._emit_event(self)
 
     def __enter__(self) -> "Progress":
@@ -342,6 +346,54 @@ class Progress:
                     root._draw(force=True)
             else:
                 root._write(done + "\n")
+
+
+class _CompileWatch:
+    """While a root bar is open, says when XLA is compiling (the work stands still then, so
+    the bars alone would look hung): the deepest open bar shows ``compiling=NAME 12s`` while a
+    compile has run :data:`COMPILE_NOTICE` seconds or more, and log mode writes one line per
+    such compile. It reads :func:`jaxedit.compilation.compiling_now` from a daemon thread."""
+
+    #: Seconds a compile runs before it is shown (short ones would only flicker).
+    COMPILE_NOTICE = 1.0
+    POLL = 0.5
+
+    def __init__(self, root: Progress):
+        self.root = root
+        self.done = threading.Event()
+        self.logged: set[str] = set()
+        self.thread = threading.Thread(target=self._run, name="compile-watch", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        from jaxedit.compilation import compiling_now
+
+        shown = None
+        while not self.done.wait(self.POLL):
+            now = compiling_now()
+            with self.root._lock:
+                chain = self.root._chain()
+                if not chain:
+                    return
+                node = chain[-1]
+                if now is not None and now[1] >= self.COMPILE_NOTICE:
+                    name, seconds = now
+                    if self.root.mode == "log":
+                        if name not in self.logged:  # once per program, not per poll
+                            self.logged.add(name)
+                            self.root._write(f"compiling {name} (XLA; the persistent cache "
+                                             f"keeps it for the next run)\n")
+                    else:
+                        node.postfix["compiling"] = f"{name} {seconds:.0f}s"
+                        shown = node
+                        self.root._draw()
+                elif shown is not None:
+                    shown.postfix.pop("compiling", None)
+                    shown = None
+                    self.root._draw()
+
+    def stop(self) -> None:
+        self.done.set()
 
 
 class _RichDisplay:

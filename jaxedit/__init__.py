@@ -7,6 +7,17 @@ real-model editors live behind optional extras.
 
 __version__ = "0.1.0"
 
+from . import compilation as _compilation
+from .errors import DataError as _DataError
+
+# Compile once across runs, and count what compiles (jaxedit.compilation). A bad
+# JAXEDIT_COMPILE_CACHE_MB leaves the cache off here; the commands report it in one line.
+try:
+    _compilation.enable_persistent_cache()
+except _DataError:
+    pass
+_compilation.start_recording()
+
 from . import (camera, clip_metrics, densify, edit, editors, gaussians, io, losses, lpips, metrics, poses,
                raster, scenes, sh, train, viz)
 from .camera import Camera

@@ -1,4 +1,11 @@
-"""Suite-wide guard: keep the test process under the kernel's limit on memory mappings.
+"""Suite-wide settings: one compilation cache for the run, and a bound on memory mappings.
+
+Compile once: every test and every command the CLI tests start in a subprocess share one
+persistent compilation cache (``JAXEDIT_COMPILE_CACHE_DIR``, a fresh folder per run unless the
+caller sets one), so a program that one test compiled is read back, not compiled again, by
+the next process or by a test that builds the same program from a new closure.
+
+Memory mappings: keep the test process under the kernel's limit.
 
 XLA:CPU maps each compiled program's code and data sections separately, and JAX keeps every
 program compiled in the session alive in its caches. The whole suite compiles thousands of
@@ -13,8 +20,23 @@ use, and nothing else changes.
 from __future__ import annotations
 
 import gc
+import os
+import shutil
+import tempfile
 
 import pytest
+
+# Set before any test module imports jaxedit (which switches the cache on at import); the
+# subprocesses inherit it through the environment.
+_OWN_CACHE = None
+if not os.environ.get("JAXEDIT_COMPILE_CACHE_DIR"):
+    _OWN_CACHE = tempfile.mkdtemp(prefix="jaxedit-test-xla-")
+    os.environ["JAXEDIT_COMPILE_CACHE_DIR"] = _OWN_CACHE
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _OWN_CACHE is not None:
+        shutil.rmtree(_OWN_CACHE, ignore_errors=True)
 
 
 def _count_mappings() -> int:

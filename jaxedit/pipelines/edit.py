@@ -26,6 +26,7 @@ from typing import Callable
 import jax
 import numpy as np
 
+from ..compilation import compile_stats
 from ..edit import local as local_lib
 from ..edit import progressive
 from ..edit.buffer import pick_devices
@@ -114,6 +115,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
       {"schedule": schedule.json contents, "metrics": metrics.json contents, "gaussians": final}.
     """
     log = log or (lambda msg: None)
+    compiles_before = compile_stats()
     if not str(prompt).strip() and config.mode != "in2n":
         raise DataError("prompt", "empty instruction")
     run_dir = None if run_dir is None else Path(run_dir)
@@ -203,7 +205,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     st = progressive.run_plan(ctx, st, plan, on_subtask=on_subtask, checkpoint=save,
                               progress=progress, callback=callback, log=log)
 
-    metrics = progressive.final_metrics(ctx, st, plan, time.perf_counter() - wall0)
+    metrics = {**progressive.final_metrics(ctx, st, plan, time.perf_counter() - wall0),
+               "compiles": compile_stats(since=compiles_before)}
     if run_dir is not None:
         _write_json(run_dir / "metrics.json", metrics)
         if select is not None:

@@ -39,6 +39,7 @@ import jax
 import numpy as np
 
 from .. import gaussians as G
+from ..compilation import compile_stats
 from ..background import background_rgb
 from ..errors import DataError
 from ..train import TrainConfig
@@ -197,6 +198,7 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     from ..io.files import atomic_write_text
 
     t_start = time.perf_counter()
+    compiles_before = compile_stats()
     out = None if out is None else Path(out)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -292,6 +294,7 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
         "test_views": int(len(test_idx)), "image_size": [int(train_images.shape[2]),
                                                          int(train_images.shape[1])],
         "config": config.to_dict(),
+        "compiles": compile_stats(since=compiles_before),
     }
     if corrections is not None:
         metrics["camera_corrections"] = corrections

@@ -1,0 +1,222 @@
+"""Compiling once: JAX's persistent compilation cache, and a record of what a run compiled.
+
+On a GPU most of a first run is XLA compiling (the demo: two thirds of 179 s on an H100; an
+SD 1.5-size editor program about 45 s), and a second run compiled it all again. So ``import
+jaxedit`` switches on JAX's persistent compilation cache (:func:`enable_persistent_cache`):
+every program that took at least :data:`MIN_COMPILE_SECONDS` to compile is written to
+``$JAXEDIT_CACHE/xla`` (``~/.cache/jaxedit/xla``) and read back by later runs, bounded to
+:data:`DEFAULT_MAX_MB` (least recently used entries are evicted by JAX). Environment:
+
+* ``JAXEDIT_COMPILE_CACHE=0``: off (as does configuring JAX's own cache folder, which wins).
+* ``JAXEDIT_COMPILE_CACHE_DIR``: another folder (the test suite shares one across processes).
+* ``JAXEDIT_COMPILE_CACHE_MB``: the size bound in MiB.
+
+:func:`compile_stats` reads process-wide counters kept by listeners on ``jax.monitoring``:
+programs compiled, persistent-cache hits and seconds, per program name, so that a run can
+record ``"compiles": {"count": N, "seconds": S, "programs": {...}}`` in its ``metrics.json``
+(``compile_stats(since=before)`` gives what happened after ``before``), and
+:func:`compiling_now` names the program being compiled at this moment, for progress lines.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import threading
+import time
+from pathlib import Path
+
+#: Programs faster to compile than this are not written to the persistent cache: reading a
+#: file costs about as much as compiling them (JAX's default is 1 s; the demo's training and
+#: editor programs take 0.3-3 s on the CPU).
+MIN_COMPILE_SECONDS = 0.3
+#: The persistent cache's default bound (MiB). The 64 px demo writes about 15 MB; one SD
+#: 1.5-size editor program at 512 px is a few hundred MB on a GPU.
+DEFAULT_MAX_MB = 4096
+
+_BACKEND_COMPILE = "/jax/core/compile/backend_compile_duration"
+_TRACE = "/jax/core/compile/jaxpr_trace_duration"
+_LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+_CACHE_HIT = "/jax/compilation_cache/cache_hits"
+
+
+def persistent_cache_dir() -> Path | None:
+    """The folder :func:`enable_persistent_cache` uses by default, or None when the
+    environment switches the cache off (``JAXEDIT_COMPILE_CACHE=0``)."""
+    if os.environ.get("JAXEDIT_COMPILE_CACHE", "1").strip().lower() in ("0", "false", "no", "off"):
+        return None
+    explicit = os.environ.get("JAXEDIT_COMPILE_CACHE_DIR")
+    if explicit:
+        return Path(os.path.expanduser(explicit))
+    from .io.weights import cache_dir
+
+    return cache_dir() / "xla"
+
+
+def max_cache_bytes() -> int:
+    """The persistent cache's bound in bytes (``JAXEDIT_COMPILE_CACHE_MB``, else
+    :data:`DEFAULT_MAX_MB`); a value that is not a positive number is a DataError."""
+    text = os.environ.get("JAXEDIT_COMPILE_CACHE_MB")
+    if not text:
+        return DEFAULT_MAX_MB * 2 ** 20
+    try:
+        mb = float(text)
+    except ValueError:
+        mb = float("nan")
+    if not 0 < mb < float("inf"):
+        from .errors import DataError
+
+        raise DataError("JAXEDIT_COMPILE_CACHE_MB",
+                        f"must be a positive number of MiB, got {text[:40]!r}")
+    return int(mb * 2 ** 20)
+
+
+def enable_persistent_cache(path: str | os.PathLike | None = None) -> Path | None:
+    """Switch on JAX's persistent compilation cache -> its folder, or None when it stays off.
+
+    Args:
+      path: the folder (None: :func:`persistent_cache_dir`). A folder already configured in
+        JAX (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``) is left as it is and returned.
+
+    Only JAX's configuration changes here; the folder is created by JAX at the first write.
+    A bad ``JAXEDIT_COMPILE_CACHE_MB`` raises :class:`jaxedit.DataError` before anything
+    changes.
+    """
+    import jax
+
+    configured = jax.config.jax_compilation_cache_dir
+    if configured:
+        return Path(configured)
+    folder = Path(path) if path is not None else persistent_cache_dir()
+    if folder is None:
+        return None
+    max_bytes = max_cache_bytes()
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    # -1: no minimum entry size and no override of it by the file system's block size.
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    jax.config.update("jax_compilation_cache_max_size", max_bytes)
+    return folder
+
+
+# ----------------------------------------------------------------------------- what compiled
+
+@dataclasses.dataclass
+class _Program:
+    count: int = 0          # compiled by XLA in this process
+    cache_hits: int = 0     # read from the persistent cache instead
+    seconds: float = 0.0    # wall time of both (a hit costs the read)
+
+
+class _Counters:
+    """Process-wide counters fed by ``jax.monitoring`` listeners (registered once)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.programs: dict[str, _Program] = {}
+        self.trace_seconds = 0.0
+        self.lower_seconds = 0.0
+        self.in_flight: dict[int, tuple[str, float]] = {}  # thread id -> (program, start)
+        self.hit_in_flight: set[int] = set()
+
+    def on_start(self, event, value, **kwargs):
+        if event == _BACKEND_COMPILE:
+            with self.lock:
+                self.in_flight[threading.get_ident()] = (str(kwargs.get("fun_name", "?")),
+                                                         time.monotonic())
+
+    def on_event(self, event, **kwargs):
+        if event == _CACHE_HIT:
+            with self.lock:
+                self.hit_in_flight.add(threading.get_ident())
+
+    def on_duration(self, event, seconds, **kwargs):
+        with self.lock:
+            if event == _TRACE:
+                self.trace_seconds += seconds
+            elif event == _LOWER:
+                self.lower_seconds += seconds
+            elif event == _BACKEND_COMPILE:
+                me = threading.get_ident()
+                self.in_flight.pop(me, None)
+                program = self.programs.setdefault(_short(kwargs.get("fun_name", "?")), _Program())
+                if me in self.hit_in_flight:
+                    self.hit_in_flight.discard(me)
+                    program.cache_hits += 1
+                else:
+                    program.count += 1
+                program.seconds += seconds
+
+
+def _short(name) -> str:
+    # jit(<name>) / pjit(<name>): the function's own name is what a reader recognises.
+    name = str(name)
+    for prefix in ("jit(", "pjit("):
+        if name.startswith(prefix) and name.endswith(")"):
+            return name[len(prefix):-1]
+    return name
+
+
+_COUNTERS: _Counters | None = None
+_COUNTERS_LOCK = threading.Lock()
+
+
+def _counters() -> _Counters:
+    global _COUNTERS
+    with _COUNTERS_LOCK:
+        if _COUNTERS is None:
+            from jax import monitoring
+
+            counters = _Counters()
+            monitoring.register_scalar_listener(counters.on_start)
+            monitoring.register_event_listener(counters.on_event)
+            monitoring.register_event_duration_secs_listener(counters.on_duration)
+            _COUNTERS = counters
+        return _COUNTERS
+
+
+def start_recording() -> None:
+    """Register the listeners (idempotent); :func:`compile_stats` counts from then on.
+    ``import jaxedit`` calls it, so every compile of a run is seen."""
+    _counters()
+
+
+def compile_stats(since: dict | None = None) -> dict:
+    """What this process compiled -> ``{"count", "seconds", "cache_hits", "trace_seconds",
+    "lower_seconds", "programs": {name: {"count", "cache_hits", "seconds"}}}``.
+
+    Args:
+      since: an earlier result: the difference is returned (programs with nothing new are
+        left out), e.g. what one run compiled in a process that ran others before.
+
+    ``count`` is what XLA compiled, ``cache_hits`` what the persistent cache gave instead,
+    ``seconds`` the time of both (XLA's compile or the cache's read, not tracing/lowering).
+    """
+    c = _counters()
+    with c.lock:
+        programs = {name: dataclasses.asdict(p) for name, p in c.programs.items()}
+        trace, lower = c.trace_seconds, c.lower_seconds
+    if since is not None:
+        before = since.get("programs", {})
+        programs = {name: {k: v - before.get(name, {}).get(k, 0) for k, v in p.items()}
+                    for name, p in programs.items()}
+        programs = {n: p for n, p in programs.items() if p["count"] or p["cache_hits"]}
+        trace -= since.get("trace_seconds", 0.0)
+        lower -= since.get("lower_seconds", 0.0)
+    programs = {n: {**p, "seconds": round(p["seconds"], 4)}
+                for n, p in sorted(programs.items(), key=lambda kv: -kv[1]["seconds"])}
+    return {"count": sum(p["count"] for p in programs.values()),
+            "seconds": round(sum(p["seconds"] for p in programs.values()), 3),
+            "cache_hits": sum(p["cache_hits"] for p in programs.values()),
+            "trace_seconds": round(trace, 3), "lower_seconds": round(lower, 3),
+            "programs": programs}
+
+
+def compiling_now() -> tuple[str, float] | None:
+    """(program name, seconds so far) of a compile running in any thread now, else None."""
+    c = _counters()
+    with c.lock:
+        if not c.in_flight:
+            return None
+        name, start = min(c.in_flight.values(), key=lambda v: v[1])
+    return _short(name), time.monotonic() - start
