@@ -168,13 +168,25 @@ def load_config(path: Path) -> dict:
     return {k.replace("-", "_"): v for k, v in data.items()}
 
 
+PROG = "python -m experiments"
+
+
+def _add_command_arguments(p: OneLineParser, mod) -> OneLineParser:
+    """``p`` with command module ``mod``'s flags: the shared ones, then its own."""
+    add_shared_arguments(p)
+    mod.add_arguments(p)
+    p.set_defaults(_module=mod)
+    return p
+
+
 @functools.cache
 def build_parser() -> OneLineParser:
     """The command line's parser, built once per process (every command module imported,
     every flag generated); its ``commands`` are the subcommands' parsers.
 
-    :func:`parse` reads a config file into it only for the length of one parse."""
-    parser = OneLineParser(prog="python -m experiments",
+    Nothing changes it once built: :func:`parse` gives a config file's values to a parser
+    of the one command, built for that parse (:func:`_parser_with_config`)."""
+    parser = OneLineParser(prog=PROG,
                            description="jaxedit: progressive 3DGS scene editing (ProEdit) in JAX")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     for name in COMMANDS:
@@ -184,11 +196,8 @@ def build_parser() -> OneLineParser:
             if e.name != f"experiments.{name.replace('-', '_')}":
                 raise
             continue
-        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
-        add_shared_arguments(p)
-        mod.add_arguments(p)
-        p.set_defaults(_module=mod)
-        parser.commands[name] = p
+        parser.commands[name] = _add_command_arguments(
+            sub.add_parser(name, help=mod.HELP, description=mod.HELP), mod)
     return parser
 
 
@@ -304,41 +313,48 @@ def config_values(sub: argparse.ArgumentParser, config: dict, path: Path) -> dic
     return {k: config_value(sub, actions[k], v, path) for k, v in config.items()}
 
 
+def _config_file(argv: list[str]) -> Path | None:
+    """The ``--config`` of a command's flags ``argv`` (the last one given), read alone:
+    the full parse may need the file's values first (a required flag it sets)."""
+    pre = argparse.ArgumentParser(add_help=False)  # abbreviations as the full parse reads them
+    pre.add_argument("--config", type=Path, default=None)
+    return pre.parse_known_args(argv)[0].config
+
+
+def _parser_with_config(command: str, values: dict) -> OneLineParser:
+    """A parser of ``command`` alone, built for one parse, whose defaults are a config
+    file's ``values`` ({dest: value}) and whose flags those values set are not required.
+    Changing it changes no other parse (the process's :func:`build_parser` is untouched)."""
+    p = _add_command_arguments(OneLineParser(prog=f"{PROG} {command}",
+                                             description=_module(command).HELP),
+                               _module(command))
+    p.set_defaults(command=command, **values)
+    for action in p.arguments:
+        if action.dest in values:
+            action.required = False
+    return p
+
+
 def parse(argv: list[str]) -> argparse.Namespace:
     """The flags of ``argv``, over ``--config``'s values, over the command's defaults.
 
-    The process's one parser (:func:`build_parser`) is left as it was found: a config
-    file's values are its defaults, and the required flags it sets are not required, only
-    for the length of this parse (so a parse is not to run on two threads at once).
+    Without ``--config`` the process's one parser (:func:`build_parser`) reads ``argv``;
+    with it, the file's values (checked as their flags' command-line text would be,
+    :func:`config_values`) are the defaults of a parser of that command built for this
+    parse. No parser is changed after it is built, so parses never see each other's files.
     """
     parser = build_parser()
-    # First pass without required flags: the config file may be the one that sets them.
-    required = [a for sub in parser.commands.values() for a in sub.arguments
-                if a.required and a.option_strings]
-    defaults: dict[argparse.Action, object] = {}
-    try:
-        for action in required:
-            action.required = False
+    command = argv[0] if argv else None
+    config = _config_file(argv[1:]) if command in parser.commands else None
+    values = {}
+    if config is None:
         args = parser.parse_args(argv)
         if args.command is None:
             parser.print_help()
             parser.exit(2)
-        values = {}
-        if args.config is not None:
-            sub = parser.commands[args.command]
-            values = config_values(sub, load_config(args.config), args.config)
-            for action in sub.arguments:  # as set_defaults, undone below
-                if action.dest in values:
-                    defaults.setdefault(action, action.default)
-                    action.default = values[action.dest]
-        for action in required:
-            action.required = action.dest not in values
-        args = parser.parse_args(argv)
-    finally:
-        for action in required:
-            action.required = True
-        for action, default in defaults.items():
-            action.default = default
+    else:
+        values = config_values(parser.commands[command], load_config(config), config)
+        args = _parser_with_config(command, values).parse_args(argv[1:])
     # Flags set by the config file count as given (experiments/flags.py builds the config
     # tree from the given flags over the command's own defaults).
     setattr(args, GIVEN, set(getattr(args, GIVEN, ())) | set(values))

@@ -177,3 +177,18 @@ def test_a_comma_list_field_from_the_command_line_and_from_config_json(tmp_path)
     path.write_text(json.dumps({"prompts": [1, 2]}))
     with pytest.raises(DataError, match="prompts"):
         cli.parse(["ablation", "--config", str(path)])
+
+
+def test_a_config_file_changes_no_shared_parser(tmp_path):
+    """--config's values are the defaults of a parser built for that parse: the process's
+    parser (which check_paths and the demo read) keeps its defaults and required flags."""
+    path = tmp_path / "c.json"
+    path.write_text('{"scene": "elsewhere.ply", "size": 48}')
+    shared = cli.command_parser("render")
+    before = [(a.dest, a.default, a.required) for a in shared.arguments]
+    args = cli.parse(["render", "--config", str(path), "--size", "32"])
+    assert (str(args.scene), args.size, args.command) == ("elsewhere.ply", 32, "render")
+    assert args._module is cli._module("render") and {"scene", "size"} <= getattr(args, flags.GIVEN)
+    assert [(a.dest, a.default, a.required) for a in shared.arguments] == before
+    with pytest.raises(SystemExit):  # without the file, --scene is required again
+        cli.parse(["render", "--size", "32"])
