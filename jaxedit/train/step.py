@@ -8,7 +8,7 @@ needed more slots than the capacity has, it returns its *input* state with
 
 Numerics: no float32 dot in the step runs at DEFAULT precision (on NVIDIA GPUs
 that is TF32, a 10-bit mantissa, which made training diverge there, issue #18);
-``tests/test_backbone.py`` checks it with :mod:`jaxedit.tf32`.
+``tests/test_backbone.py`` checks it with ``tests/tf32.py`` (a CPU emulation of TF32).
 """
 
 from __future__ import annotations

@@ -11,7 +11,8 @@ its float32 operands to TF32 first (round to nearest even, as cuBLAS converts),
 while ops asking for ``Precision.HIGHEST`` (or an explicit algorithm) stay
 exact. Wrapped around a *differentiated* function it covers the backward dots
 too (JAX's transpose rules keep the forward op's precision). It is a
-diagnostic for tests and experiments; the library never calls it.
+diagnostic for the tests (``tests/test_backbone.py``); the library never calls it, so it
+lives here, not in the package.
 """
 
 from __future__ import annotations
