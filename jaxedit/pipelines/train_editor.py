@@ -134,31 +134,35 @@ def read_dataset(path: Path) -> tuple[dict, edit_data.EditDataset]:
                                          **arrays)
 
 
-def load_or_build_dataset(cfg, out: Path, progress=None, *,
-                          resume: bool = False) -> edit_data.EditDataset:
-    """OUT/dataset.npz when it holds this config's dataset, else built and written.
+def stored_dataset(cfg, out: Path, *, resume: bool = False) -> edit_data.EditDataset | None:
+    """OUT/dataset.npz when it holds this config's dataset; None when it must be built.
 
     On ``resume`` an existing dataset that is damaged or was built with other settings is
     refused (the run's checkpoints were trained on it; it is left as it is), not rebuilt.
     """
     path = out / "dataset.npz"
-    record = _dataset_record(cfg)
-    if path.exists():
-        try:
-            stored, data = read_dataset(path)
-        except DataError:
-            if resume:
-                raise
-            stored = None
-        if stored == record:
-            return data
-        if resume and stored is not None:
-            raise DataError(path, f"was built with other settings ({json.dumps(stored)[:160]}); "
-                                  f"use its flags or another --out")
+    if not path.exists():
+        return None
+    try:
+        stored, data = read_dataset(path)
+    except DataError:
+        if resume:
+            raise
+        return None
+    if stored == _dataset_record(cfg):
+        return data
+    if resume:
+        raise DataError(path, f"was built with other settings ({json.dumps(stored)[:160]}); "
+                              f"use its flags or another --out")
+    return None
+
+
+def build_dataset(cfg, out: Path, progress=None) -> edit_data.EditDataset:
+    """This config's dataset, built and written to OUT/dataset.npz (atomically)."""
     data = edit_data.build_dataset(cfg.size, cfg.procedural_views, tuple(cfg.scenes), progress)
-    with atomic_path(path) as tmp:
+    with atomic_path(out / "dataset.npz") as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, meta=np.asarray(json.dumps(record)), **data.arrays())
+            np.savez(f, meta=np.asarray(json.dumps(_dataset_record(cfg))), **data.arrays())
     return data
 
 
@@ -211,9 +215,9 @@ def read_stage_checkpoint(path: Path, kind: str, cfg) -> tuple[dict, int, list[f
     return arrays, step, [float(v) for v in losses]
 
 
-def _resume_state(path: Path, template, kind: str, cfg) -> tuple[object, list[float]]:
-    """(the stage's state, its losses so far) from its checkpoint; refuses other settings."""
-    arrays, _, losses = read_stage_checkpoint(path, kind, cfg)
+def _restored(stored: tuple, template, path: Path) -> tuple[object, list[float]]:
+    """(the stage's state, its losses so far) from :func:`read_stage_checkpoint`'s answer."""
+    arrays, _, losses = stored
     return restore(template, arrays, path), losses
 
 
@@ -251,21 +255,13 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     key = jax.random.key(cfg.seed)
     k_vae, k_unet, k_scale, k_degrade, k_nets = jax.random.split(key, 5)
 
-    # Everything a resume reads is read and checked before anything is written: a refused
-    # resume leaves the run directory as it was. The tokenizer is a pure function of the
-    # instructions, so the networks' shapes are known before the dataset is.
-    vocab, merges = tiny_ip2p.train_tokenizer([i.prompt for i in edit_data.INSTRUCTIONS])
-    state = tiny_ip2p.init_vae(cfg, k_vae)
-    unet, text = tiny_ip2p.build_networks(cfg, len(vocab), vocab[tiny_ip2p.BOS],
-                                          vocab[tiny_ip2p.EOS], k_nets)
-    ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
-    vae_losses: list[float] = []
-    unet_losses: list[float] = []
-    if resume and stages["editor-vae"].exists():
-        state, vae_losses = _resume_state(stages["editor-vae"], state, "editor-vae", cfg)
-    if resume and stages["editor-unet"].exists():
-        ustate, unet_losses = _resume_state(stages["editor-unet"], ustate, "editor-unet", cfg)
+    # Every record a resume reads is read and checked before anything is written: a refused
+    # resume leaves the run directory as it was. (The states are restored into their
+    # templates later, as each stage starts: building a template costs a minute.)
+    stored = {kind: read_stage_checkpoint(path, kind, cfg) for kind, path in stages.items()
+              if resume and path.exists()}
 
+    data = stored_dataset(cfg, out, resume=resume)  # checked before the stage is announced
     t0 = time.perf_counter()
     on_scene = stage("dataset", len(cfg.scenes), 0)
     built: list[str] = []
@@ -275,7 +271,8 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
         if on_scene is not None:
             on_scene(len(built), float("nan"))
 
-    data = load_or_build_dataset(cfg, out, scene_done, resume=resume)
+    if data is None:
+        data = build_dataset(cfg, out, scene_done)
     ckpt.mkdir(parents=True, exist_ok=True)
     seconds["dataset"] = time.perf_counter() - t0
     train_views = np.flatnonzero(~data.held_out)
@@ -283,6 +280,7 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
         f"{len(data.targets)} edited views, {len(data.instructions)} instructions")
 
     # The tokenizer: learnt on the instructions, written where the model folder keeps it.
+    vocab, merges = tiny_ip2p.train_tokenizer([i.prompt for i in data.instructions])
     write_tokenizer(tokenizer_folder(out), vocab, merges, bos=tiny_ip2p.BOS, eos=tiny_ip2p.EOS,
                     max_length=tiny_ip2p.MAX_LENGTH)
     tokenizer = CLIPTokenizer.from_folder(tokenizer_folder(out))
@@ -292,6 +290,10 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     t0 = time.perf_counter()
     train_rows = data.split(held_out=False)
     vae_images = np.concatenate([data.inputs[train_views], data.targets[train_rows]])
+    state = tiny_ip2p.init_vae(cfg, k_vae)
+    vae_losses: list[float] = []
+    if "editor-vae" in stored:
+        state, vae_losses = _restored(stored["editor-vae"], state, stages["editor-vae"])
     vae_static = eqx.filter(tiny_ip2p.AutoencoderKL.from_config(
         tiny_ip2p.vae_config(cfg), key=jax.random.key(0)), eqx.is_array, inverse=True)
     step = tiny_ip2p.make_vae_step(cfg, vae_static, jax.numpy.asarray(vae_images))
@@ -312,6 +314,12 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
 
     # The UNet and the text encoder.
     t0 = time.perf_counter()
+    unet, text = tiny_ip2p.build_networks(cfg, len(vocab), tokenizer.bos_id, tokenizer.eos_id,
+                                          k_nets)
+    ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
+    unet_losses: list[float] = []
+    if "editor-unet" in stored:
+        ustate, unet_losses = _restored(stored["editor-unet"], ustate, stages["editor-unet"])
     statics = (eqx.filter(unet, eqx.is_array, inverse=True),
                eqx.filter(text, eqx.is_array, inverse=True))
     schedule = DDPMSchedule.from_config(tiny_ip2p.SCHEDULER_CONFIG)
