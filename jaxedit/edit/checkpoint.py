@@ -93,6 +93,9 @@ def read_record(path, info) -> dict:
 
     _check_keys(info, RECORD, path, "checkpoint record")
     _check_keys(info["meta"], RUN_META, path, "checkpoint record's meta")
+    if info.get("max_intersections") is not None and info["max_intersections"] < 1:
+        raise DataError(path, f"checkpoint record's max_intersections is "
+                              f"{info['max_intersections']}, expected a positive size")
     if info["subtask"] < 0 or info["step"] < 0:
         raise DataError(path, f"checkpoint record is at subtask {info['subtask']}, step "
                               f"{info['step']}: negative")

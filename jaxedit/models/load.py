@@ -160,6 +160,12 @@ def check_network_config(kind: str, config: dict, where) -> dict:
     if kind in ("unet", "vae"):
         groups = config.get("norm_num_groups", 32)
         channels = list(config.get("block_out_channels", (320, 640, 1280, 1280)))
+        for name, (entry, _, _) in CONFIG_SCHEMA[kind].items():
+            value = config.get(name)
+            if entry in ("ints", "strs") and isinstance(value, list) and len(value) != len(
+                    channels):
+                raise DataError(where, f"{name} has {len(value)} entries for "
+                                       f"{len(channels)} blocks (block_out_channels)")
         if any(c % groups for c in channels):
             raise DataError(where, f"block_out_channels {channels} are not all divisible by "
                                    f"norm_num_groups {groups}")
