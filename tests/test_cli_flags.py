@@ -192,3 +192,26 @@ def test_a_config_file_changes_no_shared_parser(tmp_path):
     assert [(a.dest, a.default, a.required) for a in shared.arguments] == before
     with pytest.raises(SystemExit):  # without the file, --scene is required again
         cli.parse(["render", "--size", "32"])
+
+
+def test_the_ddim_step_default_is_read_from_one_place():
+    """Every DDIM step count default (both editors, the edit command, the ablation) is
+    jaxedit.editors.diffusion.DDIM_STEPS."""
+    import inspect
+
+    from jaxedit.editors import jax_ip2p
+    from jaxedit.editors.diffusion import DDIM_STEPS
+    from jaxedit.pipelines.ablation import AblationConfig
+
+    defaults = [jax_ip2p.EditConfig.steps, AblationConfig.ip2p_steps,
+                _parse("edit").ip2p_steps]
+    fns = [jax_ip2p.JaxIP2PEditor.__init__, jax_ip2p.JaxIP2PEditor.from_pretrained,
+           jax_ip2p.JaxIP2PEditor.bundled]
+    try:  # the torch reference, where its extra is installed
+        from jaxedit.editors import ip2p
+
+        fns += [ip2p.InstructPix2PixEditor.__init__, ip2p.InstructPix2PixEditor.from_pretrained]
+    except ImportError:
+        pass
+    defaults += [inspect.signature(fn).parameters["steps"].default for fn in fns]
+    assert defaults == [DDIM_STEPS] * len(defaults)
