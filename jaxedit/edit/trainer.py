@@ -37,10 +37,10 @@ from .plan import ProEditConfig
 #: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig` owns it and the
 #:   subtask loop reads it there; :class:`SubtaskTrainer` gets it from
 #:   :func:`jaxedit.edit.progressive.make_trainer` and gives it to the density control's
-#:   clock; :class:`TrainSettings` refuses another); ``refine_from_warmup``: the first maintenance (cull and
-#:   create) comes right after the W steps, then every ``refine_every`` (with INRIA's
-#:   clock a W below ``refine_every`` had no effect: the first maintenance was at step
-#:   ``refine_every`` whatever W).
+#:   clock; :class:`TrainSettings` refuses another); ``refine_from_warmup``: the first
+#:   maintenance (cull and create) comes right after the W steps, then every
+#:   ``refine_every`` (with INRIA's clock a W below ``refine_every`` had no effect: the
+#:   first maintenance was at step ``refine_every`` whatever W).
 #: - ``stop_at``: never (a subtask has no fixed length).
 EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
                              budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
