@@ -392,6 +392,9 @@ def check_output_path(path: Path, name: str, *, directory: bool = True) -> None:
             raise DataError(name, f"{path} exists and is not a directory")
         if not directory and path.is_dir():
             raise DataError(name, f"{path} is a directory, expected a file name")
+        if directory and (path / "config.json").is_dir():  # every run records itself there
+            raise DataError(name, f"{path / 'config.json'} is a folder, where the run records "
+                                  f"its settings; move it or choose another {name}")
     existing = path if directory and path.is_dir() else path.parent
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent

@@ -143,6 +143,7 @@ def _surface_inputs(root: Path, scene: Path) -> None:
     (te / "file_model").mkdir()
     (te / "file_model" / "model").write_text("a file\n")
     (te / "dir_dataset" / "dataset.npz").mkdir(parents=True)
+    (te / "dir_config" / "config.json").mkdir(parents=True)
     (te / "nothing" / "checkpoints").mkdir(parents=True)
     smoke = EditorTrainConfig.smoke()
     good = _stage_record(smoke, "editor-vae")
@@ -391,7 +392,7 @@ def surface_cases(inp: dict, root: Path) -> list[tuple]:
     found = []
     # train-editor: its run folder, absurd settings, resume of nothing or of damage.
     for name, needle in [("file_checkpoints", "checkpoints"), ("file_model", "model"),
-                         ("dir_dataset", "dataset.npz")]:
+                         ("dir_dataset", "dataset.npz"), ("dir_config", "config.json")]:
         found.append((f"train-editor --out with {name}", [*smoke, "--out", str(te / name)],
                       needle, te / name))
     for flags, needle in [(["--lr", "0"], "--lr"), (["--lr", "-1"], "--lr"),

@@ -121,10 +121,11 @@ def test_train_editor_refuses_a_run_folder_name_taken_by_a_file(tmp_path, capfd,
     _fails(capfd, [*TE, "--out", run], name, keep=run)
 
 
-def test_train_editor_refuses_a_folder_where_its_dataset_goes(tmp_path, capfd):
+@pytest.mark.parametrize("name", ["dataset.npz", "config.json"])
+def test_train_editor_refuses_a_folder_where_its_files_go(tmp_path, capfd, name):
     run = tmp_path / "run"
-    (run / "dataset.npz").mkdir(parents=True)
-    _fails(capfd, [*TE, "--out", run], "dataset.npz", keep=run)
+    (run / name).mkdir(parents=True)
+    _fails(capfd, [*TE, "--out", run], name, keep=run)
 
 
 @pytest.mark.parametrize("flags, needle", [
