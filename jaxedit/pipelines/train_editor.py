@@ -11,6 +11,12 @@ to a diffusers folder (:mod:`jaxedit.editors.tiny_ip2p` holds the training itsel
 Stages run in order and each resumes from its checkpoint: the dataset, the tokenizer (a
 pure function of the instructions), the VAE, the latents (a pure function of the VAE), the
 UNet. The same config and seed give the same weights on the same machine.
+
+A resume reads the run's files through one checked reader each (:func:`read_dataset`,
+:func:`read_stage_checkpoint`) and refuses, before anything is written, a folder with nothing
+to resume, a name taken by the wrong kind of thing (:data:`RUN_LAYOUT`), and a dataset or
+checkpoint that is damaged or was made with other settings: a refused resume leaves the run
+directory byte-identical.
 """
 
 from __future__ import annotations
