@@ -143,3 +143,44 @@ def test_a_second_process_reads_the_program_from_the_cache(tmp_path):
     assert (warm["program"]["count"], warm["program"]["cache_hits"]) == (0, 1)
     off = _child({**env, "JAXEDIT_COMPILE_CACHE": "0"})
     assert off["dir"] is None and off["program"]["count"] == 1
+
+
+def test_scenes_of_nearby_sizes_and_frames_share_one_render_program():
+    """A run renders its input PLY, each snapshot's alive Gaussians and the trained scene:
+    counts the user never chose. They share one program per buffer size, frames that fit an
+    already compiled buffer reuse it, and the pixels are those of the unpadded scene."""
+    import numpy as np
+
+    from jaxedit import camera as cl
+    from jaxedit import gaussians as gl
+    from jaxedit.raster import render, render_reference
+
+    render_module = importlib.import_module("jaxedit.raster.render")  # the module, not render()
+
+    rng = np.random.default_rng(0)
+    cams = cl.orbit(2, radius=3.0, width=24, height=20)
+
+    def scene(n):
+        d = rng.normal(size=(n, 3)) * 0.4
+        return gl.from_points(d, rng.uniform(size=(n, 3)), sh_degree=0, init_opacity=0.6)
+
+    before = compilation.compile_stats()
+    outs = {n: render(scene(n), cams, background=(1.0, 1.0, 1.0)) for n in (700, 850, 1000)}
+    programs = compilation.compile_stats(since=before)["programs"]
+    assert programs["render_tiles"]["count"] + programs["render_tiles"]["cache_hits"] <= 2
+    for n, out in outs.items():
+        assert out.means2d.shape == (2, n, 2) and out.radii.shape == (2, n)
+    # The padded frame is the unpadded one: the reference renderer of the same scene agrees.
+    g = scene(300)
+    out = render(g, cams[0], background=(1.0, 1.0, 1.0))
+    ref = render_reference(g, cams[0], background=(1.0, 1.0, 1.0))
+    np.testing.assert_allclose(np.asarray(out.rgb), np.asarray(ref.rgb), atol=2e-5)
+    # A buffer that fits is reused within REUSE_FRACTION, never one that is too small.
+    key = ("k",)
+    render_module._COMPILED_CAPACITIES[key] = {4096, 16384}
+    assert render_module._buffer_size(key, 3000, None) == 4096
+    assert render_module._buffer_size(key, 5000, None) == render_module.next_capacity(
+        5000 * render_module.HEADROOM)
+    assert render_module._buffer_size(key, 9000, None) == 16384
+    assert render_module._buffer_size(key, 9000, 10000) == 10000
+    del render_module._COMPILED_CAPACITIES[key]

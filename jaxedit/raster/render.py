@@ -25,6 +25,7 @@ were dropped, the image is incomplete).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -34,7 +35,7 @@ import jax.numpy as jnp
 
 from ..camera import Camera
 from ..errors import DataError
-from ..gaussians import Gaussians
+from ..gaussians import Gaussians, grow
 from ..placement import commit
 from . import binning as B
 from . import composite as CP
@@ -187,6 +188,59 @@ def _background_only(gaussians: Gaussians, camera: Camera, background) -> Render
                         overflow=jnp.zeros(batch, bool))
 
 
+#: Intersection buffer sizes ``render`` has compiled, per program shape (see
+#: :func:`_program_key`): a frame that fits one of them reuses it instead of compiling the
+#: size of its own ladder step (a run renders scenes of many sizes; each size was a compile,
+#: 10-40 s on a GPU).
+_COMPILED_CAPACITIES: dict[tuple, set[int]] = {}
+#: A compiled buffer is reused for a frame needing at least this fraction of it (compositing
+#: cost grows with the buffer, so a small frame does not take a huge one).
+REUSE_FRACTION = 0.5
+
+
+def _program_key(gaussians: Gaussians, camera: Camera, sh_degree: int, backend: str,
+                 means2d_delta) -> tuple:
+    """What, besides the buffer size, makes ``_render_tiles_jit`` another program."""
+    return (gaussians.capacity, gaussians.sh_degree, str(gaussians.means.dtype),
+            camera.batch_shape, camera.height, camera.width, sh_degree, backend,
+            means2d_delta is None)
+
+
+def _buffer_size(key: tuple, needed: int, given: int | None) -> int:
+    """The intersection buffer for a frame needing ``needed`` pairs: the caller's size when
+    it holds the frame, else the smallest already compiled size that fits it without waste
+    beyond :data:`REUSE_FRACTION`, else the ladder's (:func:`next_capacity`) with headroom."""
+    if given is not None and int(given) >= needed:
+        return int(given)
+    fresh = next_capacity(needed * HEADROOM)
+    fits = [c for c in _COMPILED_CAPACITIES.get(key, ()) if needed <= c <= needed / REUSE_FRACTION]
+    return min(fits) if fits else fresh
+
+
+def _bucketed(gaussians: Gaussians, means2d_delta):
+    """The scene padded with dead slots to its capacity's step on the buffer ladder
+    (:func:`next_capacity`), and ``means2d_delta`` padded with zeros to match: scenes of
+    nearby sizes (a PLY's exact count, each snapshot's alive Gaussians) share one program.
+    Dead slots draw nothing, so the frame is the same."""
+    n = gaussians.capacity
+    padded = next_capacity(n)
+    if padded == n:
+        return gaussians, means2d_delta
+    if means2d_delta is not None:
+        widths = [(0, 0)] * means2d_delta.ndim
+        widths[-2] = (0, padded - n)
+        means2d_delta = jnp.pad(means2d_delta, widths)
+    return grow(gaussians, padded), means2d_delta
+
+
+def _unpadded(out: RenderOutput, n: int) -> RenderOutput:
+    """``out`` with its per-Gaussian arrays cut back to the scene's ``n`` slots."""
+    if out.means2d.shape[-2] == n:
+        return out
+    return dataclasses.replace(out, means2d=out.means2d[..., :n, :], radii=out.radii[..., :n],
+                               visible=out.visible[..., :n])
+
+
 def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: int | None = None,
            near: float = 0.01, far: float = 1e10, means2d_delta: jax.Array | None = None,
            max_intersections: int | None = None, backend: str = "auto") -> RenderOutput:
@@ -225,28 +279,30 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
                   means2d_delta=means2d_delta, backend=backend)
     if gaussians.capacity == 0:  # an empty scene (a PLY without vertices): only background
         return _background_only(gaussians, camera, background)
+    n = gaussians.capacity
+    gaussians, means2d_delta = _bucketed(gaussians, means2d_delta)
+    kwargs["means2d_delta"] = means2d_delta
     try:
         needed = int(_count(gaussians, camera, near, far, means2d_delta, sh_degree=sh_degree,
                             tile=tile_size(backend)))
     except jax.errors.ConcretizationTypeError:
         needed = None
     if needed == 0:  # nothing alive on screen (all dead or culled): the frame is the background
-        return _background_only(gaussians, camera, background)
+        return _unpadded(_background_only(gaussians, camera, background), n)
     if needed is None:  # under the caller's jit / vmap: their buffer, their overflow check
         if max_intersections is None:
             raise DataError("max_intersections", "render() inside jit/vmap needs a static "
                             "max_intersections (and a check of out.overflow)")
-        return render_tiles(gaussians, camera, capacity=max_intersections, **kwargs)
+        return _unpadded(render_tiles(gaussians, camera, capacity=max_intersections, **kwargs), n)
 
-    if max_intersections is not None and int(max_intersections) >= needed:
-        cap = int(max_intersections)  # the caller's size, when it holds the frame
-    else:
-        cap = next_capacity(needed * HEADROOM)
+    key = _program_key(gaussians, camera, sh_degree, backend, means2d_delta)
+    cap = _buffer_size(key, needed, max_intersections)
     while True:
         out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
+        _COMPILED_CAPACITIES.setdefault(key, set()).add(cap)
         overflow = bool(jnp.any(out.overflow))
         if not overflow:
-            return out
+            return _unpadded(out, n)
         need = int(jnp.max(out.num_intersections))
         new = next_capacity(max(need * HEADROOM, 2 * cap))
         log.warning("render: intersection buffer overflowed (%d > %d), re-rendering with %d",
