@@ -7,6 +7,7 @@ reads it from the cache and compiles nothing of it.
 
 from __future__ import annotations
 
+import importlib
 import io
 import json
 import os
