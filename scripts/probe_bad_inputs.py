@@ -591,7 +591,8 @@ def run_case(argv: list[str], timeout: float) -> tuple[int | str, str]:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--only", default=None,
-                   help="run only cases whose name contains this (or one of these, comma-separated)")
+                   help="run only cases whose name contains this (or one of these, "
+                        "comma-separated)")
     p.add_argument("--list", action="store_true", help="list the cases and stop")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds per case")
     args = p.parse_args(argv)

@@ -1,7 +1,7 @@
 """Relevance masks: how much an instruction changes each pixel, as a mask. Shared by the
 protocol (:mod:`.base`), the simulated editor and the JAX InstructPix2Pix's relevance
-(:meth:`.jax_ip2p.JaxIP2PEditor.relevance`), in a module of its own so that none of them imports another;
-and the check of a mask file's size before it is decoded (:func:`check_mask_file`)."""
+(:meth:`.jax_ip2p.JaxIP2PEditor.relevance`), in a module of its own so that none of them imports
+another; and the check of a mask file's size before it is decoded (:func:`check_mask_file`)."""
 
 from __future__ import annotations
 
@@ -54,5 +54,6 @@ def check_mask_file(path, hw: tuple[int, int]) -> tuple[int, int]:
     k = h // H if H else 0
     if (h, w) != (H, W) and not (k > 1 and (h, w) == (k * H, k * W)):
         raise DataError(path, f"mask is {w}x{h} px, its view {W}x{H} (or a whole multiple of it)")
-    require_memory(path, float(h) * w * max(channels, 3) * _DECODED_BYTES, f"decoding a {w}x{h} px mask")
+    require_memory(path, float(h) * w * max(channels, 3) * _DECODED_BYTES,
+                   f"decoding a {w}x{h} px mask")
     return h, w
