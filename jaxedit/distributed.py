@@ -337,6 +337,12 @@ def fatal_reason(message: str, returncode: int, config: DistributedConfig) -> st
     return f"exited with status {returncode}"
 
 
+#: Seconds the supervisor waits for a finished worker's output to be passed on: the pipes
+#: end as soon as the worker is gone, but on a loaded machine the copying threads may need
+#: seconds to run (a 5 s wait lost workers' one-line errors under load).
+PUMP_DRAIN_S = 60
+
+
 def supervise(command: Sequence[str], config: DistributedConfig, *, cleanup=None,
               stderr=None) -> int:
     """Run ``command`` (this command as a worker) and map an abnormal end to one line + 2.
@@ -358,8 +364,8 @@ def supervise(command: Sequence[str], config: DistributedConfig, *, cleanup=None
     for pump in pumps:
         pump.start()
     code = _wait(child)  # the worker gets Ctrl-C's SIGINT too and ends itself
-    for pump in pumps:
-        pump.join(timeout=5)
+    for pump in pumps:  # its last lines (its one-line error) may still be in the pipes
+        pump.join(timeout=PUMP_DRAIN_S)
     if code in (0, 2, 130):
         return code
     if cleanup is not None:
