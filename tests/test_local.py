@@ -380,6 +380,30 @@ def _local_edit(ball, run_dir, **kw):
                     report=False, local=L.LocalSpec("auto"), **kw)
 
 
+def test_a_local_edit_encodes_its_prompt_once(ball):
+    # the relevance (--local auto), the context and the difficulty share one encoding
+    from jaxedit.edit import ProEditConfig, TrainSettings
+    from jaxedit.editors import SimulatedEditor
+    from jaxedit.pipelines import run_edit
+
+    class Counting(SimulatedEditor):
+        def __init__(self):
+            super().__init__()
+            self.encoded = {}
+
+        def encode(self, prompt):
+            self.encoded[prompt] = self.encoded.get(prompt, 0) + 1
+            return super().encode(prompt)
+
+    g, data = ball
+    editor = Counting()
+    run_edit(editor, LOCAL_PROMPT, data, g, seed=3, run_dir=None, report=False,
+             config=ProEditConfig.for_mode("proedit", **{**LOCAL_RUN, "subtasks": 1,
+                                                          "max_steps": 8, "warmup": 2}),
+             settings=TrainSettings(lr_sh_dc=0.05), local=L.LocalSpec("auto"))
+    assert editor.encoded == {LOCAL_PROMPT: 1, "": 1}
+
+
 def test_local_edit_keeps_the_frozen_bits_and_resumes_exactly(ball, tmp_path):
     import json
 

@@ -121,14 +121,18 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     run_dir = None if run_dir is None else Path(run_dir)
     trainer = progressive.make_trainer(config, settings or TrainSettings(), data, gaussians)
     _, editor_device = pick_devices()
-    embeddings = encode_prompt(editor, prompt)  # once per run: every reader gets these
+    # The prompt is encoded once per run: here when the local plan's relevance needs it
+    # first, else by EditContext.create (after the local plan, whose errors come first).
+    embeddings = None
     masks, local_figures, local_plan = None, None, None
     if local is not None and local.active and resume_from is not None:
         raise DataError("--local", "a local edit starts from the input scene, not --resume-from")
     if local is not None and local.active:
+        if local.mode == "auto":
+            embeddings = encode_prompt(editor, prompt)
         local_plan = local_lib.plan_local(
             local, gaussians, data.train_cameras, data.train_images, editor=editor,
-            embedding=None if local.mode != "auto" else embeddings[0],
+            embedding=None if embeddings is None else embeddings[0],
             key=jax.random.fold_in(jax.random.key(seed), 35))
         masks, local_figures = local_plan.masks, local_plan.figures
         trainer.editable = local_plan.editable
