@@ -503,8 +503,8 @@ class SimulatedEditor:
         for i, ins in enumerate(INSTRUCTIONS):
             if ins.prompt == key:
                 return i
-        raise DataError("prompt", f"unknown instruction {quoted(instruction)} for the simulated editor; "
-                        f"known: {', '.join(repr(p) for p in self.instructions)}")
+        raise DataError("prompt", f"unknown instruction {quoted(instruction)} for the simulated "
+                        f"editor; known: {', '.join(repr(p) for p in self.instructions)}")
 
     def encode(self, prompt: str) -> np.ndarray:
         """E(prompt), float32 [8]. E("") is the null embedding; unknown prompts raise DataError."""
