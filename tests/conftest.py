@@ -39,6 +39,28 @@ def pytest_sessionfinish(session, exitstatus):
         shutil.rmtree(_OWN_CACHE, ignore_errors=True)
 
 
+# The suite's own cost (benchmarks/test_suite.py): with JAXEDIT_TEST_PROFILE=FILE each test's
+# wall time and the XLA compiles it caused in this process go to FILE, one JSON line a test.
+_PROFILE = os.environ.get("JAXEDIT_TEST_PROFILE")
+if _PROFILE:
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        import json
+        import time
+
+        from jaxedit.compilation import compile_stats
+
+        before, t0 = compile_stats(), time.perf_counter()
+        yield
+        seconds = time.perf_counter() - t0
+        compiled = compile_stats(since=before)
+        with open(_PROFILE, "a") as f:
+            f.write(json.dumps({"test": item.nodeid, "seconds": round(seconds, 3),
+                                "compile_seconds": compiled["seconds"],
+                                "compiles": compiled["count"],
+                                "cache_hits": compiled["cache_hits"]}) + "\n")
+
+
 def _count_mappings() -> int:
     try:
         with open("/proc/self/maps") as f:
