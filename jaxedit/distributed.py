@@ -350,8 +350,9 @@ def supervise(command: Sequence[str], config: DistributedConfig, *, cleanup=None
     The worker's stdout and stderr are passed through except the runtime's noise
     (:func:`is_runtime_noise`; gloo prints to stdout). Exit statuses 0, 2 (a one-line error the
     worker printed itself) and 130 (interrupted) are passed on; anything else (an abort
-    by the runtime, a signal) prints ``error: process I of N stopped: REASON`` and
-    returns 2, after ``cleanup()`` (the writer removes what the run created).
+    by the runtime, a signal, or a status 2 whose line never came) prints ``error: process I
+    of N stopped: REASON`` and returns 2, after ``cleanup()`` (the writer removes what the run
+    created).
     """
     stderr = stderr or sys.stderr
     env = {**os.environ, WORKER_ENV: "1"}
@@ -359,14 +360,16 @@ def supervise(command: Sequence[str], config: DistributedConfig, *, cleanup=None
     child = subprocess.Popen(list(command), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              env=env)
     fatal: list[str] = []
+    said: list[str] = []  # the worker's own error lines, passed on
     pumps = [threading.Thread(target=_pump, args=(child.stdout, sys.stdout, None), daemon=True),
-             threading.Thread(target=_pump, args=(child.stderr, stderr, fatal), daemon=True)]
+             threading.Thread(target=_pump, args=(child.stderr, stderr, fatal, said),
+                              daemon=True)]
     for pump in pumps:
         pump.start()
     code = _wait(child)  # the worker gets Ctrl-C's SIGINT too and ends itself
     for pump in pumps:  # its last lines (its one-line error) may still be in the pipes
         pump.join(timeout=PUMP_DRAIN_S)
-    if code in (0, 2, 130):
+    if code in (0, 130) or (code == 2 and said):
         return code
     if cleanup is not None:
         cleanup()
@@ -384,9 +387,10 @@ def _wait(child: subprocess.Popen) -> int:
             continue
 
 
-def _pump(source, sink, fatal: list[str] | None) -> None:
+def _pump(source, sink, fatal: list[str] | None, said: list[str] | None = None) -> None:
     """Copy a worker's output stream to ``sink`` line by line (``\r`` ends a line too),
-    through :func:`_route`; ``fatal`` None: only drop the runtime's noise."""
+    through :func:`_route`; ``fatal`` None: only drop the runtime's noise; ``said`` collects
+    the worker's own ``error:`` lines."""
     pending = b""
     while True:
         chunk = os.read(source.fileno(), 65536)
@@ -395,13 +399,20 @@ def _pump(source, sink, fatal: list[str] | None) -> None:
         pending += chunk
         *lines, pending = re.split(rb"(?<=[\n\r])", pending)
         for raw in lines:
-            _route(raw.decode("utf-8", "replace"), fatal, sink)
+            _route(raw.decode("utf-8", "replace"), fatal, sink, said)
     if pending:
-        _route(pending.decode("utf-8", "replace"), fatal, sink)
+        _route(pending.decode("utf-8", "replace"), fatal, sink, said)
 
 
-def _route(line: str, fatal: list[str] | None, stderr) -> None:
-    """Pass a worker's stderr ``line`` on, or keep it as the fatal message, or drop it."""
+def _route(line: str, fatal: list[str] | None, stderr, said: list[str] | None = None) -> None:
+    """Pass a worker's stderr ``line`` on, or keep it as the fatal message, or drop it. The
+    worker's own one-line error (``error: ...``) is always passed on (and kept in ``said``),
+    even after the runtime's fatal log began."""
+    if said is not None and line.startswith("error: "):
+        said.append(line)
+        stderr.write(line)
+        stderr.flush()
+        return
     match = _FATAL.search(line) if fatal is not None else None
     if match or fatal:  # everything from a fatal log on is the dying runtime's
         if not is_runtime_noise(line) or match:

@@ -588,3 +588,23 @@ def test_snapshots_named_only_by_schedule_json_are_verified_too(corpus, tmp_path
     (run / rel).unlink()
     with pytest.raises(DataError, match="00_r1.000/scene.ply: the snapshot .* is missing"):
         verify_snapshots(run, [])
+
+
+# ----------------------------------------------------------------------------- multi-process
+
+@pytest.mark.parametrize("script, expected", [
+    # The worker's own line comes after the runtime's fatal log began: it is still shown.
+    ("import sys; sys.stderr.write('F1127 11:00:00.000000   1 client.cc:1] lost it\\n"
+     "error: --out: the processes disagree\\n'); sys.exit(2)",
+     "error: --out: the processes disagree"),
+    # Status 2 and no line at all: the supervisor says so, in one line.
+    ("import sys; sys.exit(2)", "error: process 0 of 2 stopped: exited with status 2")])
+def test_a_supervised_worker_ends_with_exactly_one_line(tmp_path, script, expected):
+    import io
+    import sys
+
+    from jaxedit.distributed import DistributedConfig, supervise
+
+    err = io.StringIO()
+    code = supervise([sys.executable, "-c", script], DistributedConfig("h:1", 2, 0), stderr=err)
+    assert code == 2 and err.getvalue().strip().splitlines() == [expected], err.getvalue()
