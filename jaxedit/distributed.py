@@ -184,10 +184,14 @@ def check_agreement(record: dict, timeout: int) -> None:
         try:
             theirs = json.loads(client.blocking_key_value_get(f"{AGREEMENT_KEY}{other}",
                                                               timeout * 1000))
-        except jax.errors.JaxRuntimeError:
-            raise DataError("--num-processes", f"process {me} of {count} found no process "
-                            f"{other} within {timeout} s: the processes disagree on their "
-                            f"number") from None
+        except jax.errors.JaxRuntimeError as e:
+            if "DEADLINE" in str(e).upper():  # it never came: there is no such process
+                raise DataError("--num-processes", f"process {me} of {count} found no "
+                                f"process {other} within {timeout} s: the processes "
+                                f"disagree on their number") from None
+            # The coordinator went away: process 0 stopped (it says why in its own line).
+            raise DataError(f"process {me} of {count}", f"process {other} stopped before "
+                            f"every process's settings were compared") from None
         key = disagreement(record, theirs)
         if key is not None:
             flag = f"--{key.replace('_', '-')}"
