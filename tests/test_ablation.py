@@ -338,3 +338,61 @@ def test_uniform_reuses_proedit_only_when_its_ratios_are_uniform():
     assert reused["psnr_best"] == 17.5 and reused["total_steps"] == 1388
     assert reused["seconds"] == 0.0 and reused["cpu_seconds"] is None
     assert reused["schedule_calls"] is None and lead["method"] == "proedit"
+
+
+class _RecordingPlanted(PlantedEditor):
+    """The planted editor, remembering each call's photo and which outcome (by exact equality
+    with o + r * object * (colour_k - o)) and strength it produced."""
+
+    def __init__(self, planted):
+        super().__init__(planted)
+        self.calls = []
+
+    def edit(self, image, original, embedding, key, **kwargs):
+        out = super().edit(image, original, embedding, key, **kwargs)
+        o, r = np.asarray(original, np.float32), float(np.asarray(embedding)[0])
+        ks = [k for k, c in enumerate(self.COLOURS)
+              if np.array_equal(out, o + r * self._object(o) * (c - o))]
+        self.calls.append((o.tobytes(), ks[0], r))
+        return out
+
+
+def test_every_training_edit_is_logged_with_its_view_step_and_outcome(tmp_path):
+    # issue 47: each record names its scene, prompt, method and seed and logs every training
+    # edit's outcome. The planted editor's edit is exactly r of the way to outcome k, so its
+    # class is known: k above r = 0.5, "unedited" below (the outcome measure's rule; at 0.5
+    # itself rounding decides). nd_equal's explicit exchanges and nd_k's periodic ones.
+    from jaxedit.editors.outcome_class import UNEDITED
+    from jaxedit.pipelines.ablation import run_ablation
+
+    editor = _RecordingPlanted(True)
+    config = _tiny(seeds=1, methods=("proedit", "nd_k", "nd_equal"), references=False)
+    res = run_ablation(tmp_path / "log", config, editor=editor, recon_seed=3, report=False,
+                       log=lambda m: None)
+    runs = {r["method"]: r for r in res["runs"]}
+    assert set(runs) == {"proedit", "nd_k", "nd_equal"}
+    photos = {}  # logged view -> the photo the editor was given
+    at = 0
+    for method in ("proedit", "nd_equal", "nd_k"):  # the order the runner makes them
+        r = runs[method]
+        assert (r["scene"], r["prompt"], r["method"], r["seed"], r["recon_seed"]) == \
+            ("ball", config.prompts[0], method, 0, 3)
+        log = r["edit_outcomes"]
+        assert len(log) == r["editor_calls"] > 0
+        # this run's calls: its schedule's (difficulty) first, then its training edits
+        made = r["schedule_calls"] + r["editor_calls"]
+        mine = editor.calls[at:at + made][r["schedule_calls"]:]
+        at += made
+        per_subtask = np.bincount([e["subtask"] for e in log], minlength=r["subtasks"])
+        assert per_subtask.tolist() == r["edits_per_subtask"]
+        for e, (photo, k, strength) in zip(log, mine):
+            assert photos.setdefault(e["view"], photo) == photo  # one view, one photo
+            assert e["ratio"] == pytest.approx(strength)
+            if abs(strength - 0.5) > 1e-6:
+                assert e["outcome"] == (k if strength > 0.5 else UNEDITED), (method, e)
+            assert 0 <= e["step"] < r["subtask_steps"][e["subtask"]]
+        steps = [(e["subtask"], e["step"]) for e in log]
+        assert steps == sorted(steps)  # in the order the subtasks made them
+        assert sum(r["edit_outcome_counts"].values()) == len(log)
+    assert at == len(editor.calls)  # every call accounted for
+    assert len(photos) == len(set(photos.values())) == config.views  # a view, its own photo

@@ -50,7 +50,16 @@ others; fixed-length subtasks, as ``nd_equal``'s, have none), ``editor_calls``
 over the views), ``total_steps``, ``maintenance`` (density-control steps), ``agreement`` (the
 simulated editor: per sweep, the fraction of views whose drawn mode is the sweep's most common
 one), ``device`` (what ran it: a study may be run in parts, ``run_ablation(seeds=...)``, on
-several machines).
+several machines). Every record names its ``scene``, ``prompt``, ``method``, ``seed``,
+``recon_seed`` (the scene's and reconstruction's seed: ``recon_seed=`` here, ``--seed`` on
+the command line, so a second reconstruction, or other views with ``views``/``test_views``,
+is a study of its own) and ``editor_weights`` (the bundled editor's UNet sha256, first 16
+digits; None for other editors). ``edit_outcomes``: every training edit of the run, in
+order, as ``{"subtask", "step" (from the subtask's start), "view", "t", "ratio",
+"outcome"}``, ``outcome`` the class of the edited image against the view's photo and its
+outcome targets (:mod:`jaxedit.editors.outcome_class`: the outcome's index, "unedited",
+"mixed" or "other"); ``edit_outcome_counts`` counts them. (The reference levels make no
+editor calls: ``edit_outcomes`` is None.)
 
 Writes ``RUN_DIR/ablation.json``::
 
@@ -81,6 +90,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +99,7 @@ from ...edit import EditData, TrainSettings
 from ...edit.outputs import Renderer
 from ...edit.plan import anneal_horizon
 from ...editors.diffusion import DDIM_STEPS
+from ...editors import outcome_class
 from ...editors.simulated import INSTRUCTIONS, SimulatedEditor
 from ...editors.simulated_targets import MAX_MODES
 from ...errors import DataError
@@ -99,7 +110,7 @@ from ..cache import prepared_scene
 from ..edit import run_edit
 from .methods import (BANDS, CONTROL_METHODS, FOLLOWERS, MAIN_METHODS, METHODS, TARGET_SUBTASKS,
                       TARGET_SUBTASKS_DEFAULT, CallLog, edits_per_subtask,
-                      method_config, sweep_agreement, timestep_bands)
+                      method_config, periodic_exchanges, sweep_agreement, timestep_bands)
 from .outcomes import FixedTargets, outcome_scores, outcome_targets
 from .summary import ALL, METRICS, REFERENCES, summarise, tables
 
@@ -441,6 +452,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
     elapsed0 = sum(r.get("seconds", 0.0) for r in runs)
 
     device = _device()
+    weights_id = _weights_id(name)
 
     def keep(record):
         record.setdefault("device", device)  # a run reused from ProEdit keeps ProEdit's
@@ -469,17 +481,19 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                 where = dict(scene_name=scene_name, dataset=dataset, scene_seed=recon_seed)
                 targets = outcome_targets(ed, prompt, data.test_images, indices=test_idx,
                                           **where)
+                train_targets = outcome_targets(ed, prompt, data.train_images,
+                                                indices=np.asarray(dataset.train_indices),
+                                                **where)
                 tag = dict(editor_modes=label, modes=int(targets.shape[0]),
                            step_gain=getattr(getattr(ed, "params", None), "mode_step_gain", None),
-                           scene=scene_name, prompt=prompt, kind=kinds[prompt])
+                           scene=scene_name, prompt=prompt, kind=kinds[prompt],
+                           recon_seed=recon_seed, editor_weights=weights_id)
                 if references:
                     for record in _references(
                             ed, prompt, data, scene, targets, config, settings, kinds[prompt],
                             done=lambda m: (label, scene_name, prompt, -1, m) in done,
-                            train_targets=lambda: outcome_targets(
-                                ed, prompt, data.train_images,
-                                indices=np.asarray(dataset.train_indices), **where)):
-                        keep(record | tag | {"seed": -1})
+                            train_targets=lambda: train_targets):
+                        keep(record | tag | {"seed": -1, "edit_outcomes": None})
                         log(f"{label} {scene_name} {kinds[prompt]} reference {record['method']}: "
                             f"psnr_best {record['psnr_best']:.2f}, agreement "
                             f"{record['outcome_agreement']:.2f}")
@@ -499,8 +513,9 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
                                                 warmup=config.warmup, patience=config.patience,
                                                 max_steps=config.max_steps,
                                                 edit_every=config.edit_every, views=n_views)
-                            record, rgb = _run_one(CallLog(ed), prompt, data, scene, cfg,
-                                                   settings, seed, targets)
+                            observer = _edit_observer(data.train_images, train_targets)
+                            record, rgb = _run_one(CallLog(ed, observer), prompt, data, scene,
+                                                   cfg, settings, seed, targets)
                             record.update(tag, seed=seed, method=method)
                             keep(record)
                             renders[method] = rgb
@@ -644,7 +659,21 @@ def _run_one(editor: CallLog, prompt, data, scene, cfg, settings, seed, targets)
         agreement = [[] if s["kind"] == "refine" else a for s, a in zip(subtasks, agreement)]
     flat = [a for sub in (agreement or []) for a in sub]
     ended, share = _plateau(subtasks)
-    return ({**scores, "psnr_vs_target": m.get("psnr_vs_target"),
+    outcomes = None
+    if editor.observe is not None:
+        seen = editor.observed[len(editor.observed) - calls:]
+        at = _edit_steps(cfg, subtasks, n_views)
+        if not len(at) == len(seen) == len(times) == calls:
+            raise RuntimeError(f"{len(at)} edit steps and {len(seen)} logged outcomes for "
+                               f"{calls} edits")
+        ratio = [0.0 if s["kind"] == "refine" else float(s["ratio"]) for s in subtasks]
+        outcomes = [{"subtask": i, "step": step, "view": view, "t": float(t),
+                     "ratio": ratio[i], "outcome": label}
+                    for (i, step), (view, label), t in zip(at, seen, times)]
+    counts = None if outcomes is None else \
+        dict(sorted(Counter(str(e["outcome"]) for e in outcomes).items()))
+    return ({**scores, "edit_outcomes": outcomes, "edit_outcome_counts": counts,
+             "psnr_vs_target": m.get("psnr_vs_target"),
              "multiview_consistency": m.get("multiview_consistency"),
              "total_steps": int(m["total_steps"]), "subtasks": len(subtasks),
              "subtask_steps": [int(s["steps"]) for s in subtasks],
@@ -664,6 +693,57 @@ def _run_one(editor: CallLog, prompt, data, scene, cfg, settings, seed, targets)
              "agreement": agreement, "agreement_final": flat[-1] if flat else None,
              "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0},
             rgb)
+
+
+def _edit_steps(cfg, subtasks, views: int) -> list[tuple[int, int]]:
+    """(subtask, step from the subtask's start) of every training edit, in the order the
+    subtasks made them (the exchanges :func:`_edit_counts` counts)."""
+    warmup = 0 if cfg.mode == "in2n" else cfg.warmup
+    out = []
+    for i, s in enumerate(subtasks):
+        plan = None if cfg.edit_plan is None else cfg.edit_plan[i]
+        if plan is not None:
+            out += [(i, warmup + st) for st, c, _ in plan if st < s["steps"] - warmup
+                    for _ in range(c)]
+        else:
+            for st, c, _ in periodic_exchanges(s["steps"], warmup=warmup, every=cfg.edit_every,
+                                               views=views, initial_sweep=cfg.initial_sweep):
+                out += [(i, warmup + st)] * c
+    return out
+
+
+def _edit_observer(originals, train_targets):
+    """``(original, edited) -> (view, outcome)`` for :class:`.methods.CallLog`: the training
+    view whose photo ``original`` is (the nearest: an editor may be handed a device copy) and
+    the class of ``edited`` against it and its outcome targets (``train_targets`` [K, N, H,
+    W, 3]; :func:`jaxedit.editors.outcome_class.classify`)."""
+    photos = np.asarray(originals, np.float32)
+    targets = np.asarray(train_targets, np.float32)
+
+    def observe(original, edited):
+        o = np.asarray(original, np.float32)
+        view = int(np.argmin(np.mean((photos - o) ** 2, axis=(1, 2, 3))))
+        label = outcome_class.classify(np.asarray(edited, np.float32), photos[view],
+                                       targets[:, view])["label"]
+        return view, label
+
+    return observe
+
+
+def _weights_id(name: str) -> str | None:
+    """The bundled editor's UNet weights, sha256's first 16 digits (the ``ip2p`` editor);
+    None for the others."""
+    if name != "ip2p":
+        return None
+    import hashlib
+
+    from ...editors import bundled_editor
+
+    files = sorted((bundled_editor() / "unet").glob("*.safetensors"))
+    digest = hashlib.sha256()
+    for f in files:
+        digest.update(f.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def _sweeps(cfg, subtasks, views: int):

@@ -135,12 +135,16 @@ class CallLog:
     """An editor that remembers every edit call: its timestep (the middle of the range it
     was given) and, where the editor draws modes (the simulated editor's
     :meth:`edit_with_mode`), the mode; everything else is the editor's. Batched calls
-    (``edit_many``) count one call per view."""
+    (``edit_many``) count one call per view. With ``observe`` (``(original, edited) ->
+    anything``), what it says of each call's result, in ``observed`` (the ablation: which
+    view and which outcome, :func:`jaxedit.pipelines.ablation._edit_observer`)."""
 
-    def __init__(self, editor):
+    def __init__(self, editor, observe=None):
         self.editor = editor
         self.modes: list[int] | None = [] if hasattr(editor, "edit_with_mode") else None
         self.timesteps: list[float] = []
+        self.observe = observe
+        self.observed: list = []
 
     def __getattr__(self, name):
         return getattr(self.editor, name)
@@ -153,17 +157,24 @@ class CallLog:
         lo, hi = kwargs.get("timestep_range", (0.02, 0.98))
         return 0.5 * (float(lo) + float(hi))
 
+    def _seen(self, originals, outputs) -> None:
+        if self.observe is not None:
+            self.observed += [self.observe(o, x) for o, x in zip(originals, outputs)]
+
     def edit(self, image, original, embedding, key, **kwargs):
         self.timesteps.append(self._t(kwargs))
         if self.modes is None:
-            return self.editor.edit(image, original, embedding, key, **kwargs)
-        out, mode = self.editor.edit_with_mode(image, original, embedding, key, **kwargs)
-        self.modes.append(mode)
+            out = self.editor.edit(image, original, embedding, key, **kwargs)
+        else:
+            out, mode = self.editor.edit_with_mode(image, original, embedding, key, **kwargs)
+            self.modes.append(mode)
+        self._seen([original], [out])
         return out
 
     def edit_many(self, images, originals, embedding, keys, **kwargs):
         out = self.editor.edit_many(images, originals, embedding, keys, **kwargs)
         self.timesteps += [self._t(kwargs)] * len(images)
+        self._seen(originals, out)
         return out
 
 
