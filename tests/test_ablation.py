@@ -396,3 +396,17 @@ def test_every_training_edit_is_logged_with_its_view_step_and_outcome(tmp_path):
         assert sum(r["edit_outcome_counts"].values()) == len(log)
     assert at == len(editor.calls)  # every call accounted for
     assert len(photos) == len(set(photos.values())) == config.views  # a view, its own photo
+
+
+def test_the_edit_observer_finds_the_view_and_cannot_class_an_outcome_it_cannot_see():
+    from jaxedit.editors.outcome_class import UNEDITED
+    from jaxedit.pipelines.ablation import _edit_observer
+
+    rng = np.random.default_rng(2)
+    photos = rng.uniform(0.2, 0.8, (3, 8, 8, 3)).astype(np.float32)
+    targets = np.stack([photos + 0.1, photos - 0.1])  # [K=2, N=3, ...]
+    targets[1, 2] = photos[2]  # outcome 1 leaves view 2 as it is
+    observe = _edit_observer(photos, targets)
+    assert observe(photos[1] + 1e-4, targets[1, 1]) == (1, 1)  # a copy of view 1's photo
+    assert observe(photos[0], photos[0]) == (0, UNEDITED)
+    assert observe(photos[2], targets[0, 2]) == (2, "undefined")

@@ -58,7 +58,7 @@ digits; None for other editors). ``edit_outcomes``: every training edit of the r
 order, as ``{"subtask", "step" (from the subtask's start), "view", "t", "ratio",
 "outcome"}``, ``outcome`` the class of the edited image against the view's photo and its
 outcome targets (:mod:`jaxedit.editors.outcome_class`: the outcome's index, "unedited",
-"mixed" or "other"); ``edit_outcome_counts`` counts them. (The reference levels make no
+"mixed" or "other"; "undefined" where an outcome leaves the view as it is); ``edit_outcome_counts`` counts them. (The reference levels make no
 editor calls: ``edit_outcomes`` is None.)
 
 Writes ``RUN_DIR/ablation.json``::
@@ -716,15 +716,20 @@ def _edit_observer(originals, train_targets):
     """``(original, edited) -> (view, outcome)`` for :class:`.methods.CallLog`: the training
     view whose photo ``original`` is (the nearest: an editor may be handed a device copy) and
     the class of ``edited`` against it and its outcome targets (``train_targets`` [K, N, H,
-    W, 3]; :func:`jaxedit.editors.outcome_class.classify`)."""
+    W, 3]; :func:`jaxedit.editors.outcome_class.classify`); "undefined" on a view where an
+    outcome's target is the photo itself (a local edit of a part the view does not show),
+    which cannot tell that outcome from no edit."""
     photos = np.asarray(originals, np.float32)
     targets = np.asarray(train_targets, np.float32)
 
     def observe(original, edited):
         o = np.asarray(original, np.float32)
         view = int(np.argmin(np.mean((photos - o) ** 2, axis=(1, 2, 3))))
-        label = outcome_class.classify(np.asarray(edited, np.float32), photos[view],
-                                       targets[:, view])["label"]
+        try:
+            label = outcome_class.classify(np.asarray(edited, np.float32), photos[view],
+                                           targets[:, view])["label"]
+        except ValueError:
+            label = "undefined"
         return view, label
 
     return observe
