@@ -188,35 +188,6 @@ def _background_only(gaussians: Gaussians, camera: Camera, background) -> Render
                         overflow=jnp.zeros(batch, bool))
 
 
-#: Intersection buffer sizes ``render`` has compiled, per program shape (see
-#: :func:`_program_key`): a frame that fits one of them reuses it instead of compiling the
-#: size of its own ladder step (a run renders scenes of many sizes; each size was a compile,
-#: 10-40 s on a GPU).
-_COMPILED_CAPACITIES: dict[tuple, set[int]] = {}
-#: A compiled buffer is reused for a frame needing at least this fraction of it (compositing
-#: cost grows with the buffer, so a small frame does not take a huge one).
-REUSE_FRACTION = 0.5
-
-
-def _program_key(gaussians: Gaussians, camera: Camera, sh_degree: int, backend: str,
-                 means2d_delta) -> tuple:
-    """What, besides the buffer size, makes ``_render_tiles_jit`` another program."""
-    return (gaussians.capacity, gaussians.sh_degree, str(gaussians.means.dtype),
-            camera.batch_shape, camera.height, camera.width, sh_degree, backend,
-            means2d_delta is None)
-
-
-def _buffer_size(key: tuple, needed: int, given: int | None) -> int:
-    """The intersection buffer for a frame needing ``needed`` pairs: the caller's size when
-    it holds the frame, else the smallest already compiled size that fits it without waste
-    beyond :data:`REUSE_FRACTION`, else the ladder's (:func:`next_capacity`) with headroom."""
-    if given is not None and int(given) >= needed:
-        return int(given)
-    fresh = next_capacity(needed * HEADROOM)
-    fits = [c for c in _COMPILED_CAPACITIES.get(key, ()) if needed <= c <= needed / REUSE_FRACTION]
-    return min(fits) if fits else fresh
-
-
 def _bucketed(gaussians: Gaussians, means2d_delta):
     """The scene padded with dead slots to its capacity's step on the buffer ladder
     (:func:`next_capacity`), and ``means2d_delta`` padded with zeros to match: scenes of
@@ -295,11 +266,12 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
                             "max_intersections (and a check of out.overflow)")
         return _unpadded(render_tiles(gaussians, camera, capacity=max_intersections, **kwargs), n)
 
-    key = _program_key(gaussians, camera, sh_degree, backend, means2d_delta)
-    cap = _buffer_size(key, needed, max_intersections)
+    if max_intersections is not None and int(max_intersections) >= needed:
+        cap = int(max_intersections)  # the caller's size, when it holds the frame
+    else:
+        cap = next_capacity(needed * HEADROOM)
     while True:
         out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
-        _COMPILED_CAPACITIES.setdefault(key, set()).add(cap)
         overflow = bool(jnp.any(out.overflow))
         if not overflow:
             return _unpadded(out, n)
