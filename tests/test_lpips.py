@@ -269,3 +269,19 @@ def test_bundled_alexnet_is_the_lpips_packages_network():
     distance = default_distance()
     assert distance.name == "lpips-alex"
     assert abs(distance(a[0], b[0]) - ref[0]) < 1e-5
+
+
+def test_difficulty_distance_compares_small_views_enlarged(reference):
+    """A capture smaller than AlexNet's 31 px is compared enlarged by the smallest integer
+    factor (bilinear), not refused: the difficulty of a small scene is defined."""
+    from jaxedit.lpips import upsampled_to
+
+    path = reference["alex"][1]
+    dist = lpips_distance(path, "alex")
+    a, b = _images(7, n=2)[:, :24, :20], _images(8, n=2)[:, :24, :20]
+    assert upsampled_to(a, 31).shape == (2, 48, 40, 3)
+    assert upsampled_to(_images(9, n=1), 31).shape == (1, SIZE, SIZE, 3)  # big enough: as is
+    expected = float(load_lpips(path)(upsampled_to(a[0], 31), upsampled_to(b[0], 31)))
+    assert dist(a[0], b[0]) == pytest.approx(expected, abs=1e-6) and expected > 0
+    with pytest.raises(DataError, match="at least 31 px"):
+        load_lpips(path)(a[0], b[0])  # the network itself still says what it cannot read
