@@ -364,6 +364,14 @@ def edit_memory_at_least(size: int, steps: int, batch: int, factor: int, width: 
             + 3 * batch * latent * width * itemsize * HELD_MAPS)
 
 
+def first_level_width(unet) -> int:
+    """Channels of the UNet's first level (its ``conv_in`` outputs); 0 for a network without
+    Stable Diffusion's ``conv_in`` (the tests' stand-ins), whose maps the bound then leaves out:
+    :func:`edit_memory_at_least` stays a lower bound."""
+    conv_in = getattr(unet, "conv_in", None)
+    return 0 if conv_in is None else int(conv_in.weight.shape[-1])
+
+
 def check_edit_sizes(size: int | None, steps: int, batch: int, timesteps: int, factor: int,
                      width: int, itemsize: int) -> None:
     """Refuse, before any edit, DDIM steps beyond the schedule's timesteps (every step past
@@ -495,7 +503,7 @@ class JaxIP2PEditor:
         if int(steps) < 1:
             raise DataError("steps", f"must be >= 1, got {steps}")
         check_edit_sizes(size, int(steps), self.batch, int(np.shape(schedule.alphas_cumprod)[0]),
-                         self.latent_factor, int(unet.conv_in.weight.shape[-1]),
+                         self.latent_factor, first_level_width(unet),
                          jnp.dtype(self.dtype).itemsize)
         self.size, self.steps, self.source = size, int(steps), source
         for name, value in (("attention_chunk", attention_chunk), ("vae_chunk", vae_chunk)):
@@ -633,8 +641,9 @@ class JaxIP2PEditor:
         """Edit B views in one call: float32 [B, H, W, 3] on the editor's devices.
 
         ``images``, ``originals``: [B, H, W, 3]; ``embeddings``: [B, 77, D] or one [77, D];
-        ``keys``: B typed keys (or raw uint32 [B, 2]). With several devices the batch is
-        padded to a multiple of their number and sharded over them.
+        ``keys``: B typed keys (or raw uint32 [B, 2]). The batch is padded (repeats of the
+        last view, dropped from the result) to :func:`padded_batch`'s size, a power of two
+        and a multiple of the devices, over which it is sharded.
         """
         images = _as_batch(images, "image", 4)
         originals = _as_batch(originals, "original", 4)
@@ -651,7 +660,7 @@ class JaxIP2PEditor:
         if emb.ndim == 3 and emb.shape[0] != b:
             raise DataError("embedding", f"{emb.shape[0]} embeddings for {b} views")
         t_bounds = np.asarray(timestep_bounds(timestep_range, self.num_train_timesteps), np.int32)
-        pad = -b % len(self.devices)
+        pad = padded_batch(b, len(self.devices)) - b
         # The images' buffer is donated to the output, so it must be a copy made here, never
         # the caller's own device array (copied when nothing else made one). One program for
         # every caller: a second, non-donating one would be a second compile of the UNet.
@@ -729,6 +738,15 @@ class JaxIP2PEditor:
 #: Views per device in one edit on an accelerator (512 px, bf16: a few GB of activations
 #: with the three guidance branches; one view leaves an H100 mostly idle).
 ACCELERATOR_BATCH = 8
+
+
+def padded_batch(views: int, devices: int) -> int:
+    """The batch a call of ``views`` views runs at: the next power of two, then a multiple of
+    the devices. A sweep's remainder (20 views in batches of 8 end with 4) or a single view
+    would otherwise be a UNet program of its own, about 45 s of compiling at SD 1.5's size;
+    so at most log2(batch) + 1 programs, for at most twice the work of a rare short call."""
+    size = 1 << max(int(views) - 1, 0).bit_length()
+    return -(-size // devices) * devices
 
 
 def default_batch(devices: Sequence[jax.Device]) -> int:
