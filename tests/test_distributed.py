@@ -243,7 +243,9 @@ def test_two_process_edit_matches_one_process(edit_runs):
     assert results[2][1].strip() == ""  # process 1 did not print the result
     assert json.loads(results[1][1])["run_dir"] == str(two)
     m1, m2 = (json.loads((d / "metrics.json").read_text()) for d in (one, two))
-    timing = {"wall_time_s", "editor_seconds", "trainer_seconds", "seconds"}
+    # what the machine and the process's history decide, not the edit: times, and what XLA
+    # compiled (the two-process run compiles other programs, and reads some from the cache)
+    timing = {"wall_time_s", "editor_seconds", "trainer_seconds", "seconds", "compiles"}
 
     def strip(x):
         if isinstance(x, dict):
