@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from experiments import cli
+from cli_expect import contents, fails
 from jaxedit import camera as camlib, gaussians as G
 from jaxedit.errors import DataError, quoted
 from jaxedit.io import save_nerfstudio, save_ply, write_image
@@ -33,28 +33,9 @@ from jaxedit.io import save_nerfstudio, save_ply, write_image
 PROMPT = "turn him into a bronze statue"
 
 
-def _snapshot(folder: Path) -> dict[str, bytes]:
-    """Every file under ``folder`` (relative name -> bytes): the user's files, to compare."""
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
-            if p.is_file()}
-
-
 def _fails(capfd, argv, needle: str, keep: Path | None = None) -> str:
-    """Run the CLI; assert exit 2, one stderr line holding ``needle``, ``keep`` byte-identical."""
-    before = _snapshot(keep) if keep is not None else None
-    capfd.readouterr()
-    try:
-        code = cli.main([str(a) for a in argv])
-    except SystemExit as e:  # argparse's own errors
-        code = e.code
-    err = capfd.readouterr().err
-    lines = err.strip().splitlines()
-    assert code == 2, (code, err[-2000:])
-    assert len(lines) == 1 and "Traceback" not in err, err[-2000:]
-    assert needle in lines[0], lines[0]
-    if keep is not None:
-        assert _snapshot(keep) == before, f"{keep} changed"
-    return lines[0]
+    """:func:`cli_expect.fails`, ``keep`` byte-identical afterwards."""
+    return fails(capfd, argv, needle, keep=keep, snapshot=contents)
 
 
 @pytest.fixture(scope="module")

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+from cli_expect import fails, listing
 from experiments import cli
 from jaxedit.pipelines.reconstruct import capped_initial_points
 from jaxedit import camera as camlib, gaussians as G
@@ -68,26 +69,9 @@ def corpus(tmp_path_factory) -> types.SimpleNamespace:
     return types.SimpleNamespace(dir=d, data=good, scene=scene, empty=empty, afile=d / "afile")
 
 
-def _listing(path: Path):
-    return sorted(str(p.relative_to(path)) for p in path.rglob("*")) if path.exists() else None
-
-
 def _fails(capfd, argv, needle: str, out: Path | None = None) -> str:
-    """Run the CLI; assert exit 2, one stderr line containing ``needle``, ``out`` untouched."""
-    before = _listing(out) if out is not None else None
-    capfd.readouterr()
-    try:
-        code = cli.main([str(a) for a in argv])
-    except SystemExit as e:  # argparse's own errors
-        code = e.code
-    err = capfd.readouterr().err
-    lines = err.strip().splitlines()
-    assert code == 2, (code, err[-2000:])
-    assert len(lines) == 1 and "Traceback" not in err, err[-2000:]
-    assert needle in lines[0], lines[0]
-    if out is not None:
-        assert _listing(out) == before, f"{out} changed: {_listing(out)}"
-    return lines[0]
+    """:func:`cli_expect.fails`, ``out`` kept by its listing (nothing created or removed)."""
+    return fails(capfd, argv, needle, keep=out)
 
 
 # ---------------------------------------------------------------- output locations
@@ -475,9 +459,9 @@ def test_kill_resume_and_lock_of_a_reconstruction(corpus, tmp_path, capfd):
     assert metrics["num_gaussians"] <= 40 and load_ply(whole / "scene.ply").capacity <= 40
 
     def second_process_is_refused(proc):
-        listing = _listing(killed)
+        names = listing(killed)
         line = _fails(capfd, [*base, "--out", killed, "--resume"], "in use by another", killed)
-        assert f"pid {proc.pid}" in line and _listing(killed) == listing
+        assert f"pid {proc.pid}" in line and listing(killed) == names
 
     _start_and_kill(base, killed, (killed / "checkpoints", "ckpt_*.npz"),
                     on_stopped=second_process_is_refused)
