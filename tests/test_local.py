@@ -383,20 +383,11 @@ def _local_edit(ball, run_dir, **kw):
 def test_a_local_edit_encodes_its_prompt_once(ball):
     # the relevance (--local auto), the context and the difficulty share one encoding
     from jaxedit.edit import ProEditConfig, TrainSettings
-    from jaxedit.editors import SimulatedEditor
+    from counting_editor import CountingEditor
     from jaxedit.pipelines import run_edit
 
-    class Counting(SimulatedEditor):
-        def __init__(self):
-            super().__init__()
-            self.encoded = {}
-
-        def encode(self, prompt):
-            self.encoded[prompt] = self.encoded.get(prompt, 0) + 1
-            return super().encode(prompt)
-
     g, data = ball
-    editor = Counting()
+    editor = CountingEditor()
     run_edit(editor, LOCAL_PROMPT, data, g, seed=3, run_dir=None, report=False,
              config=ProEditConfig.for_mode("proedit", **{**LOCAL_RUN, "subtasks": 1,
                                                           "max_steps": 8, "warmup": 2}),

@@ -22,6 +22,7 @@ from jaxedit.edit.subtask import train_view
 from jaxedit.edit.outputs import Renderer, reprojection_consistency
 from jaxedit.pipelines import run_edit, select_snapshot
 from jaxedit.editors.simulated import SimulatedEditor
+from counting_editor import CountingEditor
 
 PROMPT = "turn him into a bronze statue"
 
@@ -594,18 +595,6 @@ def test_the_plan_owns_the_density_warmup(tiny):
     cfg = ProEditConfig.for_mode("proedit", warmup=7)
     trainer = progressive.make_trainer(cfg, FAST, data, g)
     assert trainer.config.densify.warmup == 7
-
-
-class CountingEditor(SimulatedEditor):
-    """The simulated editor, counting its encoder calls per prompt."""
-
-    def __init__(self):
-        super().__init__()
-        self.encoded = {}
-
-    def encode(self, prompt):
-        self.encoded[prompt] = self.encoded.get(prompt, 0) + 1
-        return super().encode(prompt)
 
 
 def test_a_run_encodes_its_prompt_once(tiny):
