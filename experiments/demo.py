@@ -37,7 +37,7 @@ HELP = ("make the person scene, reconstruct it, edit it progressively (the bundl
 STAGES = ("make-scene", "reconstruct", "edit")
 
 
-#: The threshold under the MS-SSIM fallback: d(0, 1) of the bronze edit of face is ~0.07-0.11
+#: The threshold under --distance ms-ssim: d(0, 1) of the bronze edit of face is ~0.07-0.11
 #: there, so 0.025 splits it into several subtasks. Under LPIPS the threshold is left to the edit
 #: command's default, a fraction of d(0, 1).
 MS_SSIM_THRESHOLD = 0.025
