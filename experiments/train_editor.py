@@ -4,8 +4,9 @@ The edge of :mod:`jaxedit.pipelines.train_editor` (whose docstring lists what DI
 the edit dataset from the built-in scenes, the autoencoder, the tokenizer, the UNet and the
 text encoder, then ``DIR/model``, a diffusers folder that ``--editor ip2p --ip2p-weights
 DIR/model`` and diffusers' ``StableDiffusionInstructPix2PixPipeline`` load. The flags are
-generated from :class:`jaxedit.editors.tiny_ip2p.EditorTrainConfig`; ``--smoke`` is
-:meth:`~jaxedit.editors.tiny_ip2p.EditorTrainConfig.smoke` (CI: a couple of minutes);
+generated from :class:`jaxedit.pipelines.train_editor.tiny_ip2p.EditorTrainConfig`;
+``--smoke`` is :meth:`~jaxedit.pipelines.train_editor.tiny_ip2p.EditorTrainConfig.smoke`
+(CI: a couple of minutes);
 ``--seed`` seeds every draw. The weights bundled with jaxedit were made by::
 
     python -m experiments train-editor --out runs/editor --seed 0
@@ -19,7 +20,7 @@ HELP = ("train the small InstructPix2Pix on edits of the built-in scenes (VAE, t
 
 
 def _config_flags():
-    from jaxedit.editors.tiny_ip2p import EditorTrainConfig
+    from jaxedit.pipelines.train_editor.tiny_ip2p import EditorTrainConfig
 
     from .flags import Flag, FlagSet
 
@@ -29,7 +30,8 @@ def _config_flags():
         "text_layers")))
 
 
-#: The command's flags, generated from :class:`jaxedit.editors.tiny_ip2p.EditorTrainConfig`.
+#: The command's flags, generated from
+#: :class:`jaxedit.pipelines.train_editor.tiny_ip2p.EditorTrainConfig`.
 FLAGS = (_config_flags(),)
 
 
@@ -46,7 +48,7 @@ def run_config(args):
     import dataclasses
 
     from jaxedit import DataError
-    from jaxedit.editors.tiny_ip2p import EditorTrainConfig
+    from jaxedit.pipelines.train_editor.tiny_ip2p import EditorTrainConfig
 
     if not args.smoke:
         config = FLAGS[0].build(args)

@@ -39,10 +39,10 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
 
     from jaxedit.editors import bundled_editor
-    from jaxedit.editors.edit_data import (INSTRUCTIONS, _edited_scene, composite,
+    from jaxedit.pipelines.train_editor.edit_data import (INSTRUCTIONS, _edited_scene, composite,
                                            procedural_views, to_uint8)
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
-    from jaxedit.editors.quality import psnr, run_edits
+    from jaxedit.pipelines.train_editor.quality import psnr, run_edits
     from jaxedit.scenes import get_scene, render_scene
 
     prompt = "make the ball bigger"

@@ -56,7 +56,7 @@ def corpus(tmp_path_factory) -> types.SimpleNamespace:
 # ----------------------------------------------------------------------------- train-editor
 
 def _smoke_cfg():
-    from jaxedit.editors.tiny_ip2p import EditorTrainConfig
+    from jaxedit.pipelines.train_editor.tiny_ip2p import EditorTrainConfig
 
     return EditorTrainConfig.smoke()
 

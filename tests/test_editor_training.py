@@ -16,8 +16,9 @@ import pytest
 
 from experiments import cli
 from jaxedit.editors.jax_ip2p import JaxIP2PEditor
-from jaxedit.editors import bundled_editor, edit_data, instructions, native_size, tiny_ip2p
-from jaxedit.editors.export import module_tensors, write_pipeline
+from jaxedit.editors import bundled_editor, instructions, native_size
+from jaxedit.pipelines.train_editor import edit_data, tiny_ip2p
+from jaxedit.pipelines.train_editor.export import module_tensors, write_pipeline
 from jaxedit.models import load_ip2p
 
 

@@ -15,7 +15,7 @@ from jaxedit.editors import outcome_class as oc
 @pytest.fixture(scope="module")
 def divergent():
     """(input, targets [K, H, W, 3], prompt) of every divergent instruction on a few views."""
-    from jaxedit.editors.edit_data import build_dataset, outcome_targets
+    from jaxedit.pipelines.train_editor.edit_data import build_dataset, outcome_targets
 
     data = build_dataset(32, 4, ("face",))
     out = []

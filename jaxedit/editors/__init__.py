@@ -11,10 +11,13 @@ where an instruction acts.
 - :mod:`.jax_ip2p`: InstructPix2Pix in JAX (no torch); :mod:`.ip2p`: its torch + diffusers
   reference (the JAX one also gives the relevance map of "Watch Your Steps");
   :mod:`.diffusion`: the arithmetic both share; :mod:`.keys`: per-view edit seeding.
-- The small InstructPix2Pix that ships with jaxedit: :mod:`.edit_data` (its dataset),
-  :mod:`.tiny_ip2p` (its networks and training steps), :mod:`.export` (the diffusers
-  folder), :mod:`.quality` (its evaluation), :mod:`.bundled` (the folder inside the
-  package, which ``--editor ip2p`` loads when no ``--ip2p-weights`` is given).
+- :mod:`.bundled`: the small InstructPix2Pix that ships with jaxedit, a diffusers folder
+  inside the package, which ``--editor ip2p`` loads when no ``--ip2p-weights`` is given;
+  :mod:`.outcome_class`: the outcome measure of a divergent instruction's edits.
+
+How the bundled editor is made (its dataset from the built-in scenes, its training, the
+diffusers writer and its evaluation) is a training pipeline, not an editor:
+:mod:`jaxedit.pipelines.train_editor`.
 
 The two InstructPix2Pix editors are imported on demand (torch is optional; the JAX one
 loads equinox networks).

@@ -3,6 +3,8 @@
 * :mod:`.reconstruct` -- fit a dataset and write its run directory;
 * :mod:`.edit` -- the edit command's config tree and :func:`run_edit`, a whole
   progressive edit with its run directory;
+* :mod:`.train_editor` -- the bundled InstructPix2Pix's training: its dataset, networks,
+  diffusers writer, evaluation and run directory;
 * :mod:`.snapshots` -- snapshot folders of scene states and the user's selection;
 * :mod:`.rundir` -- a training run's JSONL log and rolling checkpoints;
 * :mod:`.report` -- a run directory's self-contained ``report.html``;

@@ -332,7 +332,7 @@ def _kind(editor, prompt: str) -> str:
             return INSTRUCTIONS[editor._index(prompt)].kind
         if hasattr(editor, "kind"):
             return str(editor.kind(prompt))
-        from ...editors import edit_data
+        from ..train_editor import edit_data
 
         return edit_data.instruction(prompt).kind
     except DataError as e:

@@ -42,7 +42,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import DataError, quoted
+from ...errors import DataError, quoted
 
 #: Every HOLDOUT_EVERY-th camera of a procedural scene's spiral is held out (person: its own
 #: test split).
@@ -224,8 +224,8 @@ def person_views(size: int) -> SceneViews:
     """The person renders at ``size`` px (256 / size must be an integer), its test split held out."""
     import json
 
-    from ..scenes import dataset_path
-    from ..scenes.dataset import _rgba_downscaled
+    from ...scenes import dataset_path
+    from ...scenes.dataset import _rgba_downscaled
 
     root = dataset_path("person")
     meta = json.loads((root / "transforms.json").read_text())
@@ -239,7 +239,7 @@ def person_views(size: int) -> SceneViews:
 
 def procedural_views(name: str, size: int, views: int, scene=None) -> SceneViews:
     """``views`` spiral cameras of a procedural scene, every HOLDOUT_EVERY-th held out."""
-    from ..scenes import get_scene, render_scene, rig_cameras
+    from ...scenes import get_scene, render_scene, rig_cameras
 
     scene = get_scene(name) if scene is None else scene
     cams = rig_cameras(scene.rig, views, width=size)
@@ -301,7 +301,7 @@ def scene_pairs(views: SceneViews, scene_obj=None):
             continue
         if ins.kind in ("local", "geometry"):
             edited = _edited_scene(scene_obj, ins.prompt)
-            from ..scenes import render_scene
+            from ...scenes import render_scene
 
             pairs.append((i, 0, render_scene(edited, views.cameras)))
             continue
@@ -317,7 +317,7 @@ def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
 
     ``progress(name)`` is called after each scene (for a progress bar). Deterministic.
     """
-    from ..scenes import get_scene, list_scenes
+    from ...scenes import get_scene, list_scenes
 
     for name in scenes:
         if name not in list_scenes():

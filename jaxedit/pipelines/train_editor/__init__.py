@@ -1,5 +1,10 @@
 """The run directory of ``train-editor``: the small InstructPix2Pix, from the built-in scenes
-to a diffusers folder (:mod:`jaxedit.editors.tiny_ip2p` holds the training itself).
+to a diffusers folder that :mod:`jaxedit.editors` loads like any other.
+
+The training pipeline of the bundled editor, beside the other pipelines: :mod:`.edit_data`
+(its dataset, from the built-in scenes), :mod:`.tiny_ip2p` (its networks' configs and
+training steps), :mod:`.export` (the diffusers folder), :mod:`.quality` (its evaluation on
+held-out cameras); this module writes the run directory:
 
     OUT/dataset.npz              the edit pairs (uint8), built once, reused on --resume
     OUT/checkpoints/vae.npz      the autoencoder's training state (every CHECKPOINT_EVERY steps)
@@ -32,13 +37,13 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ..editors import edit_data, tiny_ip2p
-from ..editors.export import write_pipeline, write_tokenizer
-from ..errors import DataError
-from ..io.checkpoint import read_pytree, restore, save_pytree
-from ..io.files import atomic_path, atomic_write_text, read_npz
-from ..models import CLIPTokenizer
-from ..models.load import DDPMSchedule
+from ...errors import DataError
+from ...io.checkpoint import read_pytree, restore, save_pytree
+from ...io.files import atomic_path, atomic_write_text, read_npz
+from ...models import CLIPTokenizer
+from ...models.load import DDPMSchedule
+from . import edit_data, tiny_ip2p
+from .export import write_pipeline, write_tokenizer
 
 #: Steps between checkpoints of either stage.
 CHECKPOINT_EVERY = 250

@@ -37,8 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import outcome_class
-from .base import interpolate_embedding
+from ...editors import outcome_class
+from ...editors.base import interpolate_embedding
 from .edit_data import EditDataset, outcome_targets
 
 #: SDEdit timesteps of ProEdit's range (:class:`jaxedit.edit.plan.ProEditConfig`'s
@@ -71,7 +71,7 @@ def vae_roundtrip(editor, images: np.ndarray) -> np.ndarray | None:
     CHUNK; None for an editor without one."""
     if not hasattr(editor, "nets") or not hasattr(editor, "model_hw"):
         return None
-    from .jax_ip2p import decode, resize_images
+    from ...editors.jax_ip2p import decode, resize_images
 
     cfg, out = editor.config(), []
     hw = editor.model_hw(*images.shape[1:3])

@@ -40,9 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ..errors import DataError
-from ..models import AutoencoderKL, CLIPTextEncoder, UNet2DCondition
-from ..models.load import DDPMSchedule
+from ...errors import DataError
+from ...models import AutoencoderKL, CLIPTextEncoder, UNet2DCondition
+from ...models.load import DDPMSchedule
 from . import edit_data
 from .edit_data import EditDataset
 
@@ -121,7 +121,7 @@ class EditorTrainConfig:
                             f"of 4 with crop <= size, got {self.size} and {self.vae_crop}")
         if self.text_width % 2:  # the text encoder's two attention heads split it
             raise DataError("--text-width", f"must be even, got {self.text_width}")
-        from ..scenes import list_scenes
+        from ...scenes import list_scenes
 
         unknown = [s for s in self.scenes if s not in list_scenes()]
         if unknown or not self.scenes:
@@ -138,7 +138,7 @@ class EditorTrainConfig:
                 raise DataError(_flag(name), f"must be in (0, 1], got {getattr(self, name)}")
         if not -2**63 <= int(self.seed) < 2**63:  # jax.random.key takes a 64-bit integer
             raise DataError("--seed", f"must fit in 64 bits (|seed| < 2^63), got {self.seed}")
-        from ..memory import require_memory
+        from ...memory import require_memory
 
         require_memory("--size/--procedural-views/--batch/--vae-batch", train_memory(self),
                        f"training at {self.size} px on {self.procedural_views} views per scene")
@@ -251,7 +251,7 @@ def train_tokenizer(texts: list[str], vocab_size: int = 1024) -> tuple[dict[str,
     from tokenizers import Regex, Tokenizer, normalizers, pre_tokenizers, trainers
     from tokenizers.models import BPE
 
-    from ..models.clip_text import _CLIP_SPLIT
+    from ...models.clip_text import _CLIP_SPLIT
 
     tok = Tokenizer(BPE(end_of_word_suffix="</w>"))
     tok.normalizer = normalizers.Sequence(
