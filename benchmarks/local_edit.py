@@ -15,7 +15,7 @@ over the lengths away; skipped, with the reason, when the two plans differ in le
   blue`` on the scene it was trained for. Its relevance is the "Watch Your Steps" noise
   difference (:meth:`jaxedit.editors.jax_ip2p.JaxIP2PEditor.relevance`). The target is the scene with the
   shoulders' albedo changed, ray-cast again at the held-out cameras (what the editor was
-  trained to produce, :func:`jaxedit.editors.edit_data._edited_scene`).
+  trained to produce, :func:`jaxedit.pipelines.train_editor.edit_data._edited_scene`).
 - ``person`` (Blender renders): the simulated editor's local instruction ``paint the orange
   parts blue`` (the warm, coloured pixels swap red and blue: his hair and skin; every other
   pixel of the target is the original); the target is the editor's noise-free r = 1 edit.
@@ -149,7 +149,7 @@ def targets(case: str, editor, prompt: str, data, sizes: dict) -> np.ndarray:
     """float32 [T, H, W, 3]: what the edit should look like at the held-out views."""
     if case == "person":
         return np.stack([editor.target(o, 1.0, prompt) for o in data.test_images])
-    from jaxedit.editors.edit_data import _edited_scene
+    from jaxedit.pipelines.train_editor.edit_data import _edited_scene
     from jaxedit.scenes import get_scene, render_scene, scene_cameras
     from jaxedit.scenes.dataset import PROCEDURAL_DEFAULTS
 
