@@ -1,4 +1,5 @@
-"""Quality of the bundled InstructPix2Pix on held-out cameras (:mod:`jaxedit.editors.quality`).
+"""Quality of the bundled InstructPix2Pix on held-out cameras
+(:mod:`jaxedit.pipelines.train_editor.quality`).
 
 Rebuilds the edit dataset with the settings the model lists in its ``instructions.json``,
 keeps the held-out cameras only, and measures per instruction: the full edit's PSNR against
@@ -38,8 +39,8 @@ def _extra(p):
 
 def contact_sheet(editor, data, views, key, path: Path) -> None:
     """A PNG: one row per (held-out view, instruction): input, outcome targets, 4 edits."""
-    from jaxedit.editors.edit_data import outcome_targets
-    from jaxedit.editors.quality import run_edits
+    from jaxedit.pipelines.train_editor.edit_data import outcome_targets
+    from jaxedit.pipelines.train_editor.quality import run_edits
     from jaxedit.io.images import write_image
 
     inputs = data.inputs.astype(np.float32) / 255
@@ -92,8 +93,8 @@ def main(argv=None):
     from jaxedit.edit.difficulty import default_distance
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
     from jaxedit.editors import bundled_editor
-    from jaxedit.editors.edit_data import HOLDOUT_EVERY, build_dataset, separation
-    from jaxedit.editors.quality import evaluate
+    from jaxedit.pipelines.train_editor.edit_data import HOLDOUT_EVERY, build_dataset, separation
+    from jaxedit.pipelines.train_editor.quality import evaluate
 
     folder = args.weights or bundled_editor()
     import json
