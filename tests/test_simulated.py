@@ -221,13 +221,13 @@ def test_oracle_memoises_per_ratio_and_view(editor):
         DifficultyOracle(editor, views, SHAPE, views=[5])
 
 
-def test_from_scene_stamps_texture_on_the_surface():
+def test_surface_views_stamp_texture_on_the_surface():
     from jaxedit import scenes
 
     scene = scenes.get_scene("face")
     cams, _, _ = scenes.scene_cameras(scene, views=2, test_views=0, size=S)
     images = scenes.render_scene(scene, cams, supersample=1)
-    geo = SimulatedEditor.from_scene(scene, cams, images)
+    geo = SimulatedEditor(surfaces=scenes.surface_views(scene, cams, images))
     marble = VOCABULARY[3].prompt
     png = np.round(images[1] * 255) / 255  # as read back from an 8-bit file
     a = geo.target(png, 1.0, marble)

@@ -421,10 +421,9 @@ class SimulatedEditor:
       jitter: relative per-view jitter of the edit strength per unit gap.
       surfaces: optional per-view geometry for a truly 3D texture: a pair
         ``(originals float [N, H, W, 3], points float [N, H, W, 3])`` of original views and the
-        world point seen by each pixel (e.g. from ``jaxedit.scenes.surface_points_and_ids``).
+        world point seen by each pixel (for a built-in scene: ``jaxedit.scenes.surface_views``).
         When ``edit``/``target`` receive an ``original`` equal to one of these views (up to 8-bit
         rounding), the marble veins are a function of the world position instead of the colour.
-        See :meth:`from_scene` for the built-in scenes.
       modes: number K of divergent outcomes per instruction, 1 .. MAX_MODES. 1 (default) is the
         single-outcome editor (bit for bit the editor before modes existed); K > 1 draws one of
         K modes per edit call (module docstring, section 4).
@@ -471,21 +470,6 @@ class SimulatedEditor:
             # background pixels have no surface point (NaN from the ray caster): any finite
             # value does, the foreground mask keeps the texture off the background
             self._surface_points = np.nan_to_num(points)
-
-    @classmethod
-    def from_scene(cls, scene, cameras, images=None, **kwargs) -> SimulatedEditor:
-        """An editor whose texture instruction is stamped on the 3D surface of a built-in scene.
-
-        ``images`` (float [N, H, W, 3]) are the original views of ``cameras``; default: the ray
-        caster's renders. Uses ``jaxedit.scenes.surface_points_and_ids``.
-        """
-        from .. import scenes
-
-        if images is None:
-            images = scenes.render_scene(scene, cameras)
-        points, ids, _ = scenes.surface_points_and_ids(scene, cameras)
-        points = np.where((np.asarray(ids) >= 0)[..., None], points, 0.0)
-        return cls(surfaces=(images, points), **kwargs)
 
     # ---- vocabulary and embeddings ----------------------------------------------------------
 

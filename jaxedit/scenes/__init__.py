@@ -27,6 +27,8 @@ The ray caster (:mod:`.raycast`) does not import the splatter; it shares only th
 camera convention, so reconstructing its images is a real test of the splatter.
 """
 
+import numpy as np
+
 from . import library, points, raycast, textures
 from .dataset import SCENE_INFO, copy_rendered_scene, make_scene, photo_capture, size_arguments
 from .library import (DATASETS, SCENES, dataset_path, get_scene, list_scenes, rig_cameras,
@@ -45,8 +47,19 @@ def render_scene(scene: Scene, cameras, *, supersample: int = 2, alpha: bool = F
     return raycast.render(scene, cameras, supersample=supersample, alpha=alpha)
 
 
+def surface_views(scene: Scene, cameras, images=None) -> tuple:
+    """The pair ``(images, points)`` that gives an editor the 3D surface of ``scene``'s views
+    (:class:`jaxedit.editors.SimulatedEditor`'s ``surfaces``): the views (float32
+    [N, H, W, 3]; default: :func:`render_scene` of ``cameras``) and the world point each pixel
+    centre sees (:func:`surface_points_and_ids`; 0 on the background)."""
+    if images is None:
+        images = render_scene(scene, cameras)
+    points, ids, _ = surface_points_and_ids(scene, cameras)
+    return images, np.where((np.asarray(ids) >= 0)[..., None], points, 0.0)
+
+
 __all__ = ["DATASETS", "Decal", "Light", "Rig", "SCENES", "SCENE_INFO", "Scene", "Shape",
            "Texture", "copy_rendered_scene", "dataset_path", "get_scene", "library", "list_scenes",
            "make_scene", "photo_capture", "points", "raycast", "render_scene", "rig_cameras",
            "sample_points", "scene_cameras", "size_arguments", "split_views",
-           "surface_points_and_ids", "textures"]
+           "surface_points_and_ids", "surface_views", "textures"]
