@@ -552,11 +552,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.device:
             import jax
             jax.config.update("jax_platforms", args.device)
-        # On at import; called again here so that a bad JAXEDIT_COMPILE_CACHE_MB is one line.
+        # On at import; called again here so that a bad JAXEDIT_COMPILE_CACHE_MB or _MIN_S is
+        # one line.
         from jaxedit.compilation import enable_persistent_cache
         enable_persistent_cache()
         if dist is not None:
-            from jaxedit.distributed import check_agreement, initialize, is_writer
+            from jaxedit.parallel.distributed import check_agreement, initialize, is_writer
 
             initialize(dist)
             # Before any work, every process must have been given the same run (process 0

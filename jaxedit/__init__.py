@@ -11,7 +11,8 @@ from . import compilation as _compilation
 from .errors import DataError as _DataError
 
 # Compile once across runs, and count what compiles (jaxedit.compilation). A bad
-# JAXEDIT_COMPILE_CACHE_MB leaves the cache off here; the commands report it in one line.
+# JAXEDIT_COMPILE_CACHE_MB or _MIN_S leaves the cache off here; the commands report it in
+# one line.
 try:
     _compilation.enable_persistent_cache()
 except _DataError:

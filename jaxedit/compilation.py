@@ -10,6 +10,9 @@ every program that took at least :data:`MIN_COMPILE_SECONDS` to compile is writt
 * ``JAXEDIT_COMPILE_CACHE=0``: off (as does configuring JAX's own cache folder, which wins).
 * ``JAXEDIT_COMPILE_CACHE_DIR``: another folder (the test suite shares one across processes).
 * ``JAXEDIT_COMPILE_CACHE_MB``: the size bound in MiB.
+* ``JAXEDIT_COMPILE_CACHE_MIN_S``: the shortest compile written to the cache (default
+  :data:`MIN_COMPILE_SECONDS`; the test suite writes every program, 0, since its processes
+  build the same small programs again and again).
 
 :func:`compile_stats` reads process-wide counters kept by listeners on ``jax.monitoring``:
 programs compiled, persistent-cache hits and seconds, per program name, so that a run can
@@ -53,22 +56,34 @@ def persistent_cache_dir() -> Path | None:
     return cache_dir() / "xla"
 
 
+def _env_number(name: str, default: float, *, zero_ok: bool) -> float:
+    """The number in environment variable ``name`` (``default`` when unset); a value that is
+    not a finite positive number (or zero, with ``zero_ok``) is a DataError naming it."""
+    text = os.environ.get(name)
+    if not text:
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (0 <= value if zero_ok else 0 < value) or value == float("inf"):
+        from .errors import DataError
+
+        kind = "a number of seconds, 0 or more" if zero_ok else "a positive number of MiB"
+        raise DataError(name, f"must be {kind}, got {text[:40]!r}")
+    return value
+
+
 def max_cache_bytes() -> int:
     """The persistent cache's bound in bytes (``JAXEDIT_COMPILE_CACHE_MB``, else
     :data:`DEFAULT_MAX_MB`); a value that is not a positive number is a DataError."""
-    text = os.environ.get("JAXEDIT_COMPILE_CACHE_MB")
-    if not text:
-        return DEFAULT_MAX_MB * 2 ** 20
-    try:
-        mb = float(text)
-    except ValueError:
-        mb = float("nan")
-    if not 0 < mb < float("inf"):
-        from .errors import DataError
+    return int(_env_number("JAXEDIT_COMPILE_CACHE_MB", DEFAULT_MAX_MB, zero_ok=False) * 2 ** 20)
 
-        raise DataError("JAXEDIT_COMPILE_CACHE_MB",
-                        f"must be a positive number of MiB, got {text[:40]!r}")
-    return int(mb * 2 ** 20)
+
+def min_compile_seconds() -> float:
+    """The shortest compile the persistent cache keeps (``JAXEDIT_COMPILE_CACHE_MIN_S``, else
+    :data:`MIN_COMPILE_SECONDS`); a value that is not a number >= 0 is a DataError."""
+    return _env_number("JAXEDIT_COMPILE_CACHE_MIN_S", MIN_COMPILE_SECONDS, zero_ok=True)
 
 
 def enable_persistent_cache(path: str | os.PathLike | None = None) -> Path | None:
@@ -79,8 +94,8 @@ def enable_persistent_cache(path: str | os.PathLike | None = None) -> Path | Non
         JAX (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``) is left as it is and returned.
 
     Only JAX's configuration changes here; the folder is created by JAX at the first write.
-    A bad ``JAXEDIT_COMPILE_CACHE_MB`` raises :class:`jaxedit.DataError` before anything
-    changes.
+    A bad ``JAXEDIT_COMPILE_CACHE_MB`` or ``_MIN_S`` raises :class:`jaxedit.DataError` before
+    anything changes.
     """
     import jax
 
@@ -90,9 +105,9 @@ def enable_persistent_cache(path: str | os.PathLike | None = None) -> Path | Non
     folder = Path(path) if path is not None else persistent_cache_dir()
     if folder is None:
         return None
-    max_bytes = max_cache_bytes()
+    max_bytes, min_seconds = max_cache_bytes(), min_compile_seconds()
     jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", min_seconds)
     # -1: no minimum entry size and no override of it by the file system's block size.
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
     jax.config.update("jax_compilation_cache_max_size", max_bytes)

@@ -109,6 +109,14 @@ def test_cache_switches_and_bound(monkeypatch, tmp_path):
         monkeypatch.setenv("JAXEDIT_COMPILE_CACHE_MB", bad)
         with pytest.raises(DataError, match="JAXEDIT_COMPILE_CACHE_MB"):
             compilation.max_cache_bytes()
+    monkeypatch.setenv("JAXEDIT_COMPILE_CACHE_MIN_S", "0")
+    assert compilation.min_compile_seconds() == 0.0
+    monkeypatch.delenv("JAXEDIT_COMPILE_CACHE_MIN_S")
+    assert compilation.min_compile_seconds() == compilation.MIN_COMPILE_SECONDS
+    for bad in ("-0.5", "nan", "inf", "soon"):
+        monkeypatch.setenv("JAXEDIT_COMPILE_CACHE_MIN_S", bad)
+        with pytest.raises(DataError, match="JAXEDIT_COMPILE_CACHE_MIN_S"):
+            compilation.min_compile_seconds()
 
 
 _CHILD = """
