@@ -1,4 +1,4 @@
-"""jaxedit.placement.commit, and the compiles it saves: one render program whether the
+"""jaxedit.raster.placement.commit, and the compiles it saves: one render program whether the
 scene's arrays are fresh (uncommitted), committed or NumPy, and whether the background is
 given or black."""
 
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxedit.edit.outputs import Renderer
-from jaxedit.placement import commit
+from jaxedit.raster.placement import commit
 from jaxedit.raster import render
 from jaxedit.raster.render import _render_tiles_jit
 from test_raster import CAM, make_scene

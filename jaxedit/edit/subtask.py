@@ -33,7 +33,7 @@ import numpy as np
 
 from ..editors.base import edit_views, interpolate_embedding
 from ..editors.keys import edit_key
-from ..placement import commit
+from ..raster.placement import commit
 from ..train import CHUNK, Batch, apply_step, epoch_view, grow_for_redo, scan_steps
 from .buffer import EditedView, EditJob, EditSource, make_source, view_order
 from .context import EditContext

@@ -15,6 +15,8 @@ Gaussian that would drop its transmittance below 1e-4.
 * ``accumulate_weights(gaussians, camera, values)`` (oracle:
   ``accumulate_weights_reference``): per Gaussian, sum over pixels of its blending
   weight T_i alpha_i times per-pixel values [H, W, F] -> [C, F] (relevance lifting).
+* ``placement.commit(tree)``: arrays committed where they are, so that jit compiles one
+  program per call site (the renderer's and the edit's training chunks).
 
 The 2D-mean gradient (``means2d_delta``) times (W/2, H/2) is INRIA's NDC
 densification statistic.

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from ..camera import Camera
 from ..errors import DataError
 from ..gaussians import Gaussians, grow
-from ..placement import commit
+from .placement import commit
 from . import binning as B
 from . import composite as CP
 from . import pallas as PK
