@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import densify, train
-from ..background import background_name
+from ..train.background import background_name
 from ..densify import DensifyConfig
 from ..errors import DataError
 from ..raster import render

@@ -40,7 +40,7 @@ import numpy as np
 
 from .. import gaussians as G
 from ..compilation import compile_stats
-from ..background import background_rgb
+from ..train.background import background_rgb
 from ..errors import DataError
 from ..train import TrainConfig
 from .rundir import JsonlLog, RollingCheckpoints, latest_checkpoint

@@ -5,7 +5,7 @@ One table, so that a name and an RGB triple are turned into each other in one pl
 
 from __future__ import annotations
 
-from .errors import DataError
+from ..errors import DataError
 
 #: The solid backgrounds by name; "random" (a colour per training step) has no one colour.
 SOLID_BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
