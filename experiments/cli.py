@@ -22,7 +22,7 @@ holds a lock on ``--out`` (a second process on the same folder is refused), and 
 run that ends in a DataError removes what it had created there.
 
 ``edit`` and ``reconstruct`` also take ``--coordinator HOST:PORT --num-processes N
---process-id I`` (:class:`jaxedit.distributed.DistributedConfig`): each process then runs
+--process-id I`` (:class:`jaxedit.parallel.distributed.DistributedConfig`): each process then runs
 as a supervised worker (:func:`supervised`), joins ``jax.distributed``, and only process 0
 checks, locks and writes ``--out``.
 """
@@ -579,7 +579,7 @@ def main(argv: list[str] | None = None) -> int:
         if whole:
             write_run_config(args)
         if dist is not None:
-            from jaxedit.distributed import barrier
+            from jaxedit.parallel.distributed import barrier
 
             barrier("jaxedit-command-done")  # the others wait for the writer's last files
     except DataError as e:
@@ -599,13 +599,13 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-# --- several processes (jaxedit.distributed) -------------------------------------------
+# --- several processes (jaxedit.parallel.distributed) -------------------------------------------
 
 def distributed_flags():
-    """The flags of :class:`jaxedit.distributed.DistributedConfig` (``--coordinator``,
+    """The flags of :class:`jaxedit.parallel.distributed.DistributedConfig` (``--coordinator``,
     ``--num-processes``, ``--process-id``, ``--init-timeout``, ``--heartbeat-timeout``),
     for a command's ``FLAGS``."""
-    from jaxedit.distributed import DistributedConfig
+    from jaxedit.parallel.distributed import DistributedConfig
 
     return FlagSet(DistributedConfig, (
         Flag("coordinator"), Flag("num_processes"), Flag("process_id"),
@@ -613,9 +613,9 @@ def distributed_flags():
 
 
 def distributed_config(args: argparse.Namespace):
-    """The command's :class:`jaxedit.distributed.DistributedConfig` when it joins a
+    """The command's :class:`jaxedit.parallel.distributed.DistributedConfig` when it joins a
     multi-process run (``--coordinator`` given), else None."""
-    from jaxedit.distributed import DistributedConfig
+    from jaxedit.parallel.distributed import DistributedConfig
 
     for flags in getattr(args._module, "FLAGS", ()):
         if flags.root is DistributedConfig:
@@ -625,7 +625,7 @@ def distributed_config(args: argparse.Namespace):
 
 
 def _is_worker() -> bool:
-    from jaxedit.distributed import WORKER_ENV
+    from jaxedit.parallel.distributed import WORKER_ENV
 
     return os.environ.get(WORKER_ENV) == "1"
 
@@ -637,10 +637,10 @@ def writes(args: argparse.Namespace) -> bool:
 
 
 def supervised(argv: list[str], args: argparse.Namespace, dist) -> int:
-    """Run this command as a worker (:func:`jaxedit.distributed.supervise`): a lost peer or
+    """Run this command as a worker (:func:`jaxedit.parallel.distributed.supervise`): a lost peer or
     coordinator, which the runtime answers with an abort, becomes one line and status 2,
     and the writer's supervisor removes what the run created in ``--out``."""
-    from jaxedit.distributed import supervise
+    from jaxedit.parallel.distributed import supervise
 
     out = args.out if dist.process_id == 0 and dist.coordinator != "auto" else None
     created = before = None

@@ -57,7 +57,7 @@ def _flag_sets():
 
 
 #: The command's settings' flags, generated from :class:`jaxedit.pipelines.edit.EditRunConfig`,
-#: and the multi-process run's (:class:`jaxedit.distributed.DistributedConfig`).
+#: and the multi-process run's (:class:`jaxedit.parallel.distributed.DistributedConfig`).
 FLAGS = _flag_sets()
 
 
@@ -258,7 +258,7 @@ def check_processes(args, run_cfg) -> None:
     (no --async, whose edits depend on timing) from the same state (no resuming: only
     process 0 has the run directory)."""
     from jaxedit import DataError
-    from jaxedit.distributed import process_count
+    from jaxedit.parallel.distributed import process_count
 
     if process_count() == 1:
         return
@@ -273,7 +273,7 @@ def check_processes(args, run_cfg) -> None:
 
 def run(args) -> dict:
     from jaxedit import DataError
-    from jaxedit.distributed import split_edits
+    from jaxedit.parallel.distributed import split_edits
     from jaxedit.pipelines import run_edit, select_snapshot
 
     from .cli import writes

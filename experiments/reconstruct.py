@@ -55,7 +55,7 @@ def _flag_sets():
 
 
 #: The command's flags, generated from :class:`jaxedit.pipelines.reconstruct.ReconstructConfig`,
-#: and the multi-process run's (:class:`jaxedit.distributed.DistributedConfig`).
+#: and the multi-process run's (:class:`jaxedit.parallel.distributed.DistributedConfig`).
 FLAGS = _flag_sets()
 
 
@@ -104,7 +104,7 @@ def run(args) -> dict:
     from experiments.progress import configure, training_bar
 
     from jaxedit import DataError
-    from jaxedit.distributed import process_count
+    from jaxedit.parallel.distributed import process_count
 
     from experiments.cli import writes
 

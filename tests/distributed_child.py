@@ -2,12 +2,12 @@
 
     python tests/distributed_child.py PORT PROCESS_ID OUT_DIR
 
-Joins the runtime (:func:`jaxedit.distributed.initialize`), then compares, on every process,
-the cross-process program with the same math on one local device:
+Joins the runtime (:func:`jaxedit.parallel.distributed.initialize`), then compares, on every
+process, the cross-process program with the same math on one local device:
 
 * a sharded edit batch: the JAX editor (stand-in networks) with a mesh over all 4 devices of
   both processes, gathered (:func:`jaxedit.parallel.fetch`), vs the same editor on 1 device;
-* the split edit of the pipeline (:class:`jaxedit.distributed.SplitEditor`): 5 views of the
+* the split edit of the pipeline (:class:`jaxedit.parallel.distributed.SplitEditor`): 5 views of the
   simulated editor, 3 edited by process 0 and 2 by process 1, gathered, vs one process's edits;
 * the data-parallel loss and gradient (:func:`jaxedit.parallel.views_loss_and_grad_jit`) over
   4 views sharded over the 4 devices vs 1 device.
@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from jaxedit import distributed
+from jaxedit.parallel import distributed
 
 T0 = time.perf_counter()
 PORT, PID, OUT = int(sys.argv[1]), int(sys.argv[2]), Path(sys.argv[3])

@@ -584,7 +584,7 @@ def test_a_supervised_worker_ends_with_exactly_one_line(tmp_path, script, expect
     import io
     import sys
 
-    from jaxedit.distributed import DistributedConfig, supervise
+    from jaxedit.parallel.distributed import DistributedConfig, supervise
 
     err = io.StringIO()
     code = supervise([sys.executable, "-c", script], DistributedConfig("h:1", 2, 0), stderr=err)

@@ -183,7 +183,7 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     Args:
       data: a :class:`jaxedit.io.Dataset`.
       out: run directory (None: write nothing, as the processes other than 0 of a
-        multi-process run, :mod:`jaxedit.distributed`).
+        multi-process run, :mod:`jaxedit.parallel.distributed`).
       config: :class:`jaxedit.train.TrainConfig`.
       seed, resume, checkpoint_every, log_every, random_points: as
         :class:`ReconstructConfig` (``resume``: continue from the newest checkpoint).

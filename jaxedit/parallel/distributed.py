@@ -45,7 +45,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .errors import DataError
+from ..errors import DataError
 
 #: Environment variable that marks a supervised worker process (:func:`supervise`).
 WORKER_ENV = "JAXEDIT_DISTRIBUTED_WORKER"
@@ -274,7 +274,7 @@ class SplitEditor:
         return self.inner.edit(image, original, embedding, key, **kwargs)
 
     def edit_many(self, images, originals, embeddings, keys, **kwargs) -> np.ndarray:
-        from .editors.base import edit_views
+        from ..editors.base import edit_views
 
         count = len(images)
         part = process_slice(count, process_index(), process_count())
@@ -286,7 +286,7 @@ class SplitEditor:
         return gather_views(local, count)
 
     def relevance(self, *args, **kwargs):
-        from .editors.base import relevance
+        from ..editors.base import relevance
 
         return relevance(self.inner, *args, **kwargs)
 

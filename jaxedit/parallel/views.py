@@ -15,7 +15,7 @@ Two batched computations of a ProEdit run split over views:
 optimisation, whose statistics are per view; a step whose tile buffer overflowed in any
 view leaves the state as it was and says so (``overflow``), as the single-view step does.
 
-On several processes (:func:`jaxedit.distributed.initialize` first, one process per host
+On several processes (:func:`jaxedit.parallel.distributed.initialize` first, one process per host
 or GPU) the same code runs unchanged with a mesh over ``jax.devices()``, the global device
 list: :func:`shard_views` of the same host data on every process places each process's
 views on its own devices (:func:`shard_local_views` when each process holds only its own),
@@ -34,8 +34,8 @@ import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .losses import photometric_loss
-from .raster.render import render_tiles
+from ..losses import photometric_loss
+from ..raster.render import render_tiles
 
 #: Name of the mesh axis views are sharded along (the editor's too).
 VIEWS = "views"
@@ -87,8 +87,8 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
       images: float [V, H, W, 3] targets; cameras: batched Camera [V].
       key: the step key (the background colour when it is random).
     """
-    from .train import active_sh_degree, background_color, sh_mask
-    from .train.state import params_of
+    from ..train import active_sh_degree, background_color, sh_mask
+    from ..train.state import params_of
 
     cfg, g = state.config, state.gaussians
     bg = background_color(cfg, jax.random.split(key)[0])
@@ -110,8 +110,8 @@ def views_step(state, images: jax.Array, cameras, key: jax.Array):
     Shard ``images`` / ``cameras`` over a mesh and replicate ``state`` to run it data
     parallel (module docstring); unsharded inputs give the one-device program.
     """
-    from .train import optimizer
-    from .train.state import params_of
+    from ..train import optimizer
+    from ..train.state import params_of
 
     loss, out, grads = views_loss_and_grad(state, images, cameras, key)
     params = params_of(state.gaussians)
