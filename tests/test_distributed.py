@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 from jaxedit import DataError
-from jaxedit.distributed import (DistributedConfig, disagreement, fatal_reason,
+from jaxedit.parallel.distributed import (DistributedConfig, disagreement, fatal_reason,
                                  is_runtime_noise, parse_address, process_slice)
 
 ROOT = Path(__file__).resolve().parents[1]
