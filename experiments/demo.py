@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 from jaxedit.edit.plan import ProEditConfig
+from jaxedit.errors import check_ranges, ranged
 
 HELP = ("make the person scene, reconstruct it, edit it progressively (the bundled "
         "InstructPix2Pix), write the report")
@@ -90,38 +91,38 @@ class DemoConfig:
     scene_name: str = "person"
     prompt: str | None = None
     editor: str = "ip2p"
-    size: int = 64
-    views: int = 16
-    test_views: int = 4
-    iters: int = 1000
-    threshold: float | None = None
+    size: int = ranged(64, low=1)
+    views: int = ranged(16, low=1)
+    test_views: int = ranged(4, low=1)
+    iters: int = ranged(1000, low=1)
+    threshold: float | None = ranged(None, low=0, open=True)
     distance: str = "auto"
-    subtasks: int | None = None
+    subtasks: int | None = ranged(None, low=1)
     mode: str = ProEditConfig.mode
-    max_steps: int | None = None
-    turntable_frames: int = ProEditConfig.turntable_frames
-    difficulty_views: int = 4
-    patience: int = 30
-    ip2p_steps: int = 5
+    max_steps: int | None = ranged(None, low=1)
+    turntable_frames: int = ranged(ProEditConfig.turntable_frames, low=0)
+    difficulty_views: int = ranged(4, low=1)
+    patience: int = ranged(30, low=1)
+    ip2p_steps: int = ranged(5, low=1)
     refine_first: bool = False
-    target_subtasks: int | None = 4
+    target_subtasks: int | None = ranged(4, low=1)
+
+    def __post_init__(self):
+        check_ranges(self)
 
 
 def _config_flags():
+    from jaxedit.edit.difficulty import DISTANCES
     from jaxedit.edit.plan import MODES
 
     from .flags import Flag, FlagSet
 
-    positive = {"low": 1}
     return FlagSet(DemoConfig, (
         Flag("scene_name"), Flag("prompt"), Flag("editor", choices=("ip2p", "simulated")),
-        Flag("size", **positive), Flag("views", **positive), Flag("test_views", **positive),
-        Flag("iters", **positive), Flag("threshold", low=0, open=True),
-        Flag("distance", choices=("auto", "lpips", "ms-ssim")), Flag("subtasks", **positive),
-        Flag("mode", choices=MODES), Flag("max_steps", **positive),
-        Flag("turntable_frames", low=0), Flag("difficulty_views", **positive),
-        Flag("patience", **positive), Flag("ip2p_steps", **positive), Flag("refine_first"),
-        Flag("target_subtasks", **positive)))
+        Flag("size"), Flag("views"), Flag("test_views"), Flag("iters"), Flag("threshold"),
+        Flag("distance", choices=DISTANCES), Flag("subtasks"), Flag("mode", choices=MODES),
+        Flag("max_steps"), Flag("turntable_frames"), Flag("difficulty_views"),
+        Flag("patience"), Flag("ip2p_steps"), Flag("refine_first"), Flag("target_subtasks")))
 
 
 #: The command's flags, generated from :class:`DemoConfig`.

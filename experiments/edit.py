@@ -27,14 +27,13 @@ def _config_flags():
 
     from .flags import Flag, FlagSet
 
-    # Ranges only where the owning dataclass does not check the field itself.
     return FlagSet(EditRunConfig, (
         Flag("plan.mode", choices=MODES),
         Flag("plan.threshold"),
         Flag("plan.target_subtasks"),
         Flag("plan.subtasks"),
         Flag("plan.difficulty_views"),
-        Flag("train.densify.max_gaussians", low=1),
+        Flag("train.densify.max_gaussians"),
         Flag("plan.schedule_method", choices=("bisect", "root")),
         Flag("plan.refine_first", off="--no-refine-first"),
         Flag("plan.consolidate", off="--no-consolidate"),

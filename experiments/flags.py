@@ -8,7 +8,8 @@ whose type, default and help come from the field (the help from the owner's docs
 ``Attributes:`` section), builds the tree back from the parsed flags, and maps the
 fields the library's errors name to the flags a user typed (:meth:`FlagSet.flag_of`).
 
-So a default changes in one place, the dataclass, and the command line follows.
+So a default or a range changes in one place, the dataclass (a range is the field's
+metadata, :func:`jaxedit.errors.ranged`), and the command line follows.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import re
 import types
 import typing
 from typing import Any, Sequence
+
+from jaxedit.errors import field_range
 
 #: Namespace attribute of the dests set on the command line or by ``--config``.
 GIVEN = "_given"
@@ -34,8 +37,6 @@ class Flag:
       name: the flag (default ``--`` and the field's own name with dashes).
       off: for a boolean field, the flag that sets it False (``--sync`` of ``--async``).
       choices: the values a string field takes.
-      low, high: range the command line accepts where the field's owner does not check
-        it itself (an error names the field); ``open``: the bounds are excluded.
       key: the name a ``--config`` file and config.json use (default: the flag's, with
         underscores).
     """
@@ -44,9 +45,6 @@ class Flag:
     name: str | None = None
     off: str | None = None
     choices: tuple | None = None
-    low: float | None = None
-    high: float | None = None
-    open: bool = False
     key: str | None = None
 
     @property
@@ -150,23 +148,6 @@ def _value_type(hint):
     raise TypeError(f"no flag for a field of type {hint!r}")
 
 
-def _bound_error(flag: Flag, value) -> str | None:
-    low, high = flag.low, flag.high
-    if flag.open:
-        bad = (low is not None and not value > low) or (high is not None and not value < high)
-        if low is not None and high is not None:
-            what = f"in ({low:g}, {high:g})"
-        else:
-            what = f"> {low:g}" if low is not None else f"< {high:g}"
-    else:
-        bad = (low is not None and not value >= low) or (high is not None and not value <= high)
-        if low is not None and high is not None:
-            what = f"in [{low:g}, {high:g}]"
-        else:
-            what = f">= {low:g}" if low is not None else f"<= {high:g}"
-    return f"must be {what}, got {value}" if bad else None
-
-
 @dataclasses.dataclass(frozen=True)
 class FlagSet:
     """The flags of one config tree ``root`` (a frozen dataclass whose fields may be
@@ -208,21 +189,11 @@ class FlagSet:
                                        help=f"not {flag.flag}{'' if default else ' (default)'}")
                 continue
             shown = ",".join(default) if kind is comma_list else default
+            bounds = field_range(field)
+            within = "" if bounds is None else f"; {bounds.describe()}"
             parser.add_argument(flag.flag, dest=flag.dest, action=_Given, type=kind,
                                 default=default, choices=flag.choices,
-                                help=f"{text} (default: {shown})")
-
-    def check(self, args: argparse.Namespace) -> None:
-        """DataError naming the field of the first flag outside its range."""
-        from jaxedit import DataError
-
-        for flag in self.flags:
-            value = getattr(args, flag.dest)
-            if value is None or (flag.low is None and flag.high is None):
-                continue
-            problem = _bound_error(flag, value)
-            if problem:
-                raise DataError(flag.field.rsplit(".", 1)[-1], problem)
+                                help=f"{text} (default: {shown}{within})")
 
     def values(self, args: argparse.Namespace) -> dict[str, Any]:
         """{field path: value} of the flags to apply: each one given (on the command line
@@ -242,10 +213,10 @@ class FlagSet:
         instance}, as the starting points of those subtrees) and the flags' values, plus
         ``derived`` {field path: value} that follow from them.
 
-        The flags' range checks (:meth:`check`) run first; the dataclasses' own checks
-        run as the tree is built. Both raise DataErrors that name fields.
+        The dataclasses check their fields as the tree is built (the ranges declared in
+        the fields' metadata, :func:`jaxedit.errors.ranged`, and their own rules), with
+        DataErrors that name fields.
         """
-        self.check(args)
         tree: dict = {}
         for path, value in (self.values(args) | (derived or {})).items():
             node = tree

@@ -25,18 +25,17 @@ HELP = "reconstruct a nerfstudio dataset with 3DGS: scene.ply, test renders, met
 def _config_flags() -> FlagSet:
     from jaxedit.pipelines.reconstruct import NORMALIZE, ReconstructConfig
 
-    # Ranges only where the owning dataclass does not check the field itself.
     return FlagSet(ReconstructConfig, (
-        Flag("train.iterations", "--iters", low=1),
+        Flag("train.iterations", "--iters"),
         Flag("train.sh_degree"),
         Flag("train.background", choices=BACKGROUNDS),
-        Flag("train.densify.max_gaussians", low=1),
+        Flag("train.densify.max_gaussians"),
         Flag("train.densify.budget", "--densify-budget"),
-        Flag("train.densify.refine_every", low=1),
-        Flag("train.densify.warmup", low=0),
-        Flag("train.densify.stop_at", "--densify-until", low=0),
-        Flag("train.densify.reset_every", low=0),
-        Flag("train.densify.cull_alpha", low=0.0, high=1.0, open=True),
+        Flag("train.densify.refine_every"),
+        Flag("train.densify.warmup"),
+        Flag("train.densify.stop_at", "--densify-until"),
+        Flag("train.densify.reset_every"),
+        Flag("train.densify.cull_alpha"),
         Flag("train.camera_opt"),
         Flag("train.lr_camera", "--camera-lr"),
         Flag("train.camera_opt_from"),

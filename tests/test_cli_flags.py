@@ -129,7 +129,7 @@ def test_errors_about_a_given_path_say_which_flag(tmp_path):
     (["edit", "--warmup", "-1"], "--warmup: must be >= 0"),
     (["edit", "--max-gaussians", "0"], "--max-gaussians: must be >= 1"),
     (["reconstruct", "--cull-alpha", "1.5"], "--cull-alpha: must be in (0, 1)"),
-    (["reconstruct", "--sh-degree", "4"], "--sh-degree: must be in 0..3"),
+    (["reconstruct", "--sh-degree", "4"], "--sh-degree: must be in [0, 3]"),
     (["reconstruct", "--iters", "0"], "--iters: must be >= 1"),
 ])
 def test_range_errors_name_the_flag(argv, needle):

@@ -65,6 +65,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..errors import check_ranges, ranged
 from ..gaussians import Gaussians
 from .ops import cull_mask, opacity_reset, place, remove, select, split, zero_moments
 from .stats import DensifyStats, RenderAux, accumulate, init_stats
@@ -204,24 +205,27 @@ class DensifyConfig:
     """
 
     enabled: bool = True
-    max_gaussians: int | None = 1_000_000
+    max_gaussians: int | None = ranged(1_000_000, low=1)
     budget: bool = False
     budget_min_new: int = 64
     budget_growth: float = 0.02
     budget_max_fraction: float = 0.1
     grad_threshold: float = 2e-4
     grad_floor: float = 0.0
-    refine_every: int = 100
-    warmup: int = 500
+    refine_every: int = ranged(100, low=1)
+    warmup: int = ranged(500, low=0)
     refine_from_warmup: bool = False
-    stop_at: int | None = None
-    reset_every: int = 3000
-    cull_alpha: float = 0.005
+    stop_at: int | None = ranged(None, low=0)
+    reset_every: int = ranged(3000, low=0)
+    cull_alpha: float = ranged(0.005, low=0.0, high=1.0, open=True)
     reset_value: float | None = None
     dense_percent: float = 0.01
     split_factor: float = 1.6
     cull_scale: float | None = 0.1
     cull_screen: float | None = 0.15
+
+    def __post_init__(self):
+        check_ranges(self)
 
 
 def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> Strategy:

@@ -11,7 +11,7 @@ import dataclasses
 import math
 from typing import Any, Sequence
 
-from ..errors import DataError
+from ..errors import DataError, check_ranges, ranged
 from .schedule import MAX_DEPTH
 
 MODES = ("proedit", "nd", "in2n")
@@ -81,29 +81,29 @@ class ProEditConfig:
     """
 
     mode: str = "proedit"
-    threshold: float | None = None
-    target_subtasks: int | None = None
-    subtasks: int | None = None
+    threshold: float | None = ranged(None, low=0, open=True)
+    target_subtasks: int | None = ranged(None, low=1)
+    subtasks: int | None = ranged(None, low=1)
     schedule_method: str = "bisect"
     max_depth: int = MAX_DEPTH
     refine_first: bool = True
     consolidate: bool = True
-    warmup: int = 30
-    patience: int = 60
-    loss_window: int = 20
+    warmup: int = ranged(30, low=0)
+    patience: int = ranged(60, low=1)
+    loss_window: int = ranged(20, low=1)
     min_delta: float = 1e-3
-    max_steps: int | None = None
-    max_seconds: float | None = None
-    anneal_steps: int | None = None
+    max_steps: int | None = ranged(None, low=1)
+    max_seconds: float | None = ranged(None, low=0, open=True)
+    anneal_steps: int | None = ranged(None, low=1)
     timestep_range: tuple[float, float] = (0.45, 0.85)
     guidance: tuple[float, float] = (7.5, 1.5)
-    edit_every: int = 10
+    edit_every: int = ranged(10, low=1)
     initial_sweep: bool = True
     asynchronous: bool = False
-    checkpoint_every: int = 50
-    difficulty_views: int | None = None
+    checkpoint_every: int = ranged(50, low=1)
+    difficulty_views: int | None = ranged(None, low=1)
     curve_points: int = 9
-    turntable_frames: int = 24
+    turntable_frames: int = ranged(24, low=0)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     stop_on_plateau: bool = True
     nd_subtasks: int = 1
@@ -113,20 +113,10 @@ class ProEditConfig:
     def __post_init__(self):
         if self.mode not in MODES:
             raise DataError("mode", f"unknown mode {self.mode!r}; choose from {', '.join(MODES)}")
-        if self.threshold is not None and not self.threshold > 0:
-            raise DataError("threshold", f"must be > 0, got {self.threshold}")
-        if self.subtasks is not None and self.subtasks < 1:
-            raise DataError("subtasks", f"must be >= 1, got {self.subtasks}")
-        if self.target_subtasks is not None and self.target_subtasks < 1:
-            raise DataError("target_subtasks", f"must be >= 1, got {self.target_subtasks}")
-        if self.difficulty_views is not None and self.difficulty_views < 1:
-            raise DataError("difficulty_views", f"must be >= 1, got {self.difficulty_views}")
+        check_ranges(self)
         lo, hi = self.timestep_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {lo}, {hi}")
-        for name in ("warmup", "turntable_frames"):
-            if getattr(self, name) < 0:
-                raise DataError(name, f"must be >= 0, got {getattr(self, name)}")
         if self.nd_subtasks < 1 or (self.nd_subtasks > 1 and self.mode != "nd"):
             raise DataError("nd_subtasks", f"must be >= 1, and 1 unless mode is nd, got "
                                            f"{self.nd_subtasks} ({self.mode})")
@@ -144,12 +134,6 @@ class ProEditConfig:
                         int(x[1]) < 1 for x in entry)):
                     raise DataError("edit_plan", f"each subtask's exchanges need increasing "
                                                  f"steps >= 0 and counts >= 1, got {entry}")
-        if self.max_seconds is not None and not self.max_seconds > 0:
-            raise DataError("max_seconds", f"must be > 0, got {self.max_seconds}")
-        for name in ("patience", "loss_window", "max_steps", "anneal_steps", "edit_every",
-                     "checkpoint_every"):
-            if getattr(self, name) is not None and getattr(self, name) < 1:
-                raise DataError(name, f"must be >= 1, got {getattr(self, name)}")
 
     @classmethod
     def for_mode(cls, mode: str, **overrides) -> "ProEditConfig":

@@ -45,7 +45,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, check_ranges, ranged
 
 #: Environment variable that marks a supervised worker process (:func:`supervise`).
 WORKER_ENV = "JAXEDIT_DISTRIBUTED_WORKER"
@@ -69,20 +69,16 @@ class DistributedConfig:
     """
 
     coordinator: str | None = None
-    num_processes: int = 1
+    num_processes: int = ranged(1, low=1)
     process_id: int = 0
-    init_timeout: int = 120
-    heartbeat_timeout: int = 30
+    init_timeout: int = ranged(120, low=1)
+    heartbeat_timeout: int = ranged(30, low=1)
 
     def __post_init__(self):
-        if self.num_processes < 1:
-            raise DataError("num_processes", f"must be >= 1, got {self.num_processes}")
+        check_ranges(self)
         if not 0 <= self.process_id < self.num_processes:
             raise DataError("process_id", f"must be in 0 .. {self.num_processes - 1} "
                                           f"(num_processes), got {self.process_id}")
-        for name in ("init_timeout", "heartbeat_timeout"):
-            if getattr(self, name) < 1:
-                raise DataError(name, f"must be >= 1 (seconds), got {getattr(self, name)}")
         if self.coordinator is None:
             if self.num_processes > 1 or self.process_id:
                 raise DataError("coordinator", "required with num_processes > 1 (HOST:PORT "

@@ -37,7 +37,7 @@ from ..edit.outputs import Renderer
 from ..edit.state import init_state
 from ..edit.plan import ProEditConfig, SubtaskSpec
 from ..edit.trainer import TrainSettings
-from ..errors import DataError
+from ..errors import DataError, check_ranges, ranged
 from ..io import load_ply
 from ..io.files import atomic_write_text
 from .report import write_report
@@ -61,14 +61,11 @@ class EditRunConfig:
 
     plan: ProEditConfig = ProEditConfig()
     train: TrainSettings = TrainSettings()
-    downscale: int = 1
-    test_views: int | None = None
+    downscale: int = ranged(1, low=1)
+    test_views: int | None = ranged(None, low=1)
 
     def __post_init__(self):
-        if self.downscale < 1:
-            raise DataError("downscale", f"must be >= 1, got {self.downscale}")
-        if self.test_views is not None and self.test_views < 1:
-            raise DataError("test_views", f"must be >= 1, got {self.test_views}")
+        check_ranges(self)
 
 
 def _write_json(path: Path, data: dict) -> None:

@@ -41,7 +41,7 @@ import numpy as np
 from .. import gaussians as G
 from ..compilation import compile_stats
 from ..train.background import background_rgb
-from ..errors import DataError
+from ..errors import DataError, check_ranges, ranged
 from ..train import TrainConfig
 from .rundir import JsonlLog, RollingCheckpoints, latest_checkpoint
 
@@ -67,17 +67,14 @@ class ReconstructConfig:
     """
 
     train: TrainConfig = TrainConfig()
-    downscale: int = 1
+    downscale: int = ranged(1, low=1)
     normalize: str = "none"
-    random_points: int = 20_000
-    checkpoint_every: int = 1000
-    log_every: int = 10
+    random_points: int = ranged(20_000, low=1)
+    checkpoint_every: int = ranged(1000, low=0)
+    log_every: int = ranged(10, low=1)
 
     def __post_init__(self):
-        for name, low in (("downscale", 1), ("random_points", 1), ("checkpoint_every", 0),
-                          ("log_every", 1)):
-            if getattr(self, name) < low:
-                raise DataError(name, f"must be >= {low}, got {getattr(self, name)}")
+        check_ranges(self)
         if self.normalize not in NORMALIZE:
             raise DataError("normalize", f"must be one of {', '.join(NORMALIZE)}, got "
                             f"{self.normalize!r}")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 from ..densify import DensifyConfig
-from ..errors import DataError
+from ..errors import DataError, check_ranges, ranged
 
 BACKGROUNDS = ("random", "white", "black")
 
@@ -40,7 +40,7 @@ class TrainConfig:
         too blurred for its photometric gradient to say where a camera points.
     """
 
-    iterations: int = 30_000
+    iterations: int = ranged(30_000, low=1)
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6
     lr_sh_dc: float = 2.5e-3
@@ -49,32 +49,23 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     adam_eps: float = 1e-15
-    lambda_dssim: float = 0.2
-    sh_degree: int = 3
-    sh_degree_interval: int = 1000
+    lambda_dssim: float = ranged(0.2, low=0.0, high=1.0)
+    sh_degree: int = ranged(3, low=0, high=3)
+    sh_degree_interval: int = ranged(1000, low=1)
     background: str = "white"
     densify: DensifyConfig = DensifyConfig()
     camera_opt: bool = False
     lr_camera: float = 1e-3
     lr_camera_final: float = 1e-5
-    camera_opt_from: int = 500
+    camera_opt_from: int = ranged(500, low=0)
 
     def __post_init__(self):
         if self.background not in BACKGROUNDS:
             raise DataError("background", f"must be one of {BACKGROUNDS}, got {self.background!r}")
-        if self.iterations < 0:
-            raise DataError("iterations", f"must be >= 0, got {self.iterations}")
-        if not 0 <= self.sh_degree <= 3:
-            raise DataError("sh_degree", f"must be in 0..3, got {self.sh_degree}")
-        if self.sh_degree_interval <= 0:
-            raise DataError("sh_degree_interval", "must be positive")
-        if not 0.0 <= self.lambda_dssim <= 1.0:
-            raise DataError("lambda_dssim", f"must be in [0, 1], got {self.lambda_dssim}")
+        check_ranges(self)
         if not (self.lr_camera > 0 and 0 < self.lr_camera_final <= self.lr_camera):
             raise DataError("lr_camera", f"need 0 < lr_camera_final <= lr_camera, got "
                                          f"{self.lr_camera_final}, {self.lr_camera}")
-        if self.camera_opt_from < 0:
-            raise DataError("camera_opt_from", f"must be >= 0, got {self.camera_opt_from}")
         if isinstance(self.densify, dict):
             object.__setattr__(self, "densify", _densify_from_dict(self.densify))
 
