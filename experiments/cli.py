@@ -35,7 +35,6 @@ import importlib
 import errno
 import functools
 import json
-import math
 import os
 import shutil
 import sys
@@ -43,26 +42,14 @@ import tempfile
 import tomllib
 from pathlib import Path
 
-from .flags import GIVEN, Flag, FlagSet, as_flags, comma_list, flag_names
+# finite_float (re-exported), TYPE_READERS: how a flag's type reads its text.
+from .flags import (GIVEN, TYPE_READERS, Flag, FlagSet, as_flags, comma_list,  # noqa: F401
+                    finite_float, flag_names)
 
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
             "report", "convert-lpips", "clip-metrics", "view", "process-data", "train-editor"]
 
 
-def finite_float(text: str) -> float:
-    """argparse's ``type=float``, refusing inf and nan (argparse then names the flag)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
-    return value
-
-
-#: How :class:`OneLineParser` reads a flag's ``type`` where it differs from the type itself
-#: (registered with argparse, and used by :func:`convert` for config-file values).
-TYPE_READERS = {float: finite_float}
 #: ``action=`` values whose flag collects a list of values.
 LIST_ACTIONS = ("append", "extend")
 
@@ -111,7 +98,7 @@ class OneLineParser(argparse.ArgumentParser):
 
     def _record(self, action: argparse.Action, kwargs: dict) -> argparse.Action:
         self.arguments.append(action)
-        if kwargs.get("action") in LIST_ACTIONS:
+        if kwargs.get("action") in LIST_ACTIONS or getattr(action, "collects", False):
             self.lists.add(action)
         return action
 
@@ -216,8 +203,9 @@ def jsonable(value):
     return value
 
 
-def write_run_config(args: argparse.Namespace) -> None:
-    """Record the resolved flags and version in ``args.out/config.json``."""
+def write_run_config(args: argparse.Namespace, argv: list[str] | None = None) -> None:
+    """Record the resolved flags, the command line ``argv`` (default: this process's) and
+    the version in ``args.out/config.json``."""
     import jaxedit
     from jaxedit.io.files import atomic_write_text
 
@@ -226,7 +214,7 @@ def write_run_config(args: argparse.Namespace) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     flags = {k: jsonable(v) for k, v in vars(args).items() if not k.startswith("_")}
     record = {"command": args.command, "jaxedit_version": jaxedit.__version__, "flags": flags,
-              "argv": sys.argv[1:]}
+              "argv": sys.argv[1:] if argv is None else [str(a) for a in argv]}
     atomic_write_text(args.out / "config.json", json.dumps(record, indent=2) + "\n")
 
 

@@ -13,17 +13,21 @@ snapshot with another schedule (more or fewer subtasks, another threshold).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
+
+from jaxedit.errors import ranged
 
 HELP = "progressively edit a 3DGS scene with an instruction (ProEdit)"
 
 
 #: Library arguments named unlike their flags (for error messages).
-FIELD_FLAGS = {"run_dir": "--out", "batch": "--ip2p-batch"}
+FIELD_FLAGS = {"run_dir": "--out"}
 
 def _config_flags():
     from jaxedit.edit.plan import MODES
-    from jaxedit.pipelines.edit import EditRunConfig
+    from jaxedit.edit.difficulty import DISTANCES
+    from jaxedit.pipelines.edit import EDITORS, EditRunConfig
 
     from .flags import Flag, FlagSet
 
@@ -46,112 +50,105 @@ def _config_flags():
         Flag("plan.edit_every"),
         Flag("plan.turntable_frames"),
         Flag("test_views"),
+        Flag("editor.kind", "--editor", choices=EDITORS),
+        Flag("editor.weights", "--ip2p-weights"),
+        Flag("editor.device", "--ip2p-device"),
+        Flag("editor.dtype", "--ip2p-dtype"),
+        Flag("editor.size", "--ip2p-size"),
+        Flag("editor.steps", "--ip2p-steps"),
+        Flag("editor.batch", "--ip2p-batch"),
+        Flag("distance", choices=DISTANCES),
+        Flag("lpips_weights"),
     ))
+
+
+@dataclasses.dataclass(frozen=True)
+class EditCommand:
+    """What one ``edit`` command works on and does besides the edit's settings
+    (:class:`jaxedit.pipelines.edit.EditRunConfig`).
+
+    Attributes:
+      data: nerfstudio dataset folder (the scene's photos).
+      scene: input 3DGS .ply (a reconstruction of --data).
+      prompt: the editing instruction.
+      select: subtask index (int) or ratio (float) to export as selected.ply.
+      select_only: only (re)select a snapshot of the finished run in --out.
+      resume: continue the interrupted run in --out from its checkpoint.
+      resume_from: snapshot dir (RUN/subtasks/NN_rX.XXX) to continue from, new schedule.
+      no_report: skip report.html.
+      view: serve the scene in the browser while it is edited (viser; see `view`).
+      view_port: port of --view on 127.0.0.1 (0: any free one).
+      clip_weights: transformers CLIP folder: add IN2N's CLIP metrics to metrics.json.
+      caption_orig: caption of the original (CLIP metrics).
+      caption_edit: caption of the edit (CLIP metrics).
+      local: auto: edit only the Gaussians the editor's relevance map lifts to (within
+        --region / --masks); off: the whole scene (or only --region / --masks when given).
+      region: box:xmin,ymin,zmin,xmax,ymax,zmax or sphere:cx,cy,cz,r in scene coordinates
+        (their union); outside it nothing changes.
+      masks: one mask image per frame, named as the frame (images/frame_00001.png takes
+        DIR/frame_00001.png) or as its photo (process-data's original_file_path), at the
+        view's size or a whole multiple of it; white = editable.
+    """
+
+    data: Path | None = None
+    scene: Path | None = None
+    prompt: str | None = None
+    select: str | None = None
+    select_only: bool = False
+    resume: bool = False
+    resume_from: Path | None = None
+    no_report: bool = False
+    view: bool = False
+    view_port: int = ranged(8080, low=0, high=65535)
+    clip_weights: str | None = None
+    caption_orig: str | None = None
+    caption_edit: str | None = None
+    local: str = "off"
+    region: tuple[str, ...] = ()
+    masks: Path | None = None
+
+    def __post_init__(self):
+        from jaxedit.errors import check_ranges
+
+        check_ranges(self)
+
+
+def _command_flags():
+    from .flags import Flag, FlagSet
+
+    clip = "CLIP metrics (local weights, see the README)"
+    local = "local edits (only what the instruction touches changes)"
+    return FlagSet(EditCommand, (
+        Flag("data"), Flag("scene"), Flag("prompt"), Flag("select"), Flag("select_only"),
+        Flag("resume"), Flag("resume_from"), Flag("no_report"), Flag("view"),
+        Flag("view_port"), Flag("clip_weights", group=clip), Flag("caption_orig", group=clip),
+        Flag("caption_edit", group=clip), Flag("local", choices=("auto", "off"), group=local),
+        Flag("region", repeat=True, group=local, metavar="SPEC"),
+        Flag("masks", group=local, metavar="DIR")))
 
 
 def _flag_sets():
     from .cli import distributed_flags
 
-    return _config_flags(), distributed_flags()
+    return _config_flags(), _command_flags(), distributed_flags()
 
 
-#: The command's settings' flags, generated from :class:`jaxedit.pipelines.edit.EditRunConfig`,
-#: and the multi-process run's (:class:`jaxedit.parallel.distributed.DistributedConfig`).
+#: The command's flags: its settings' (:class:`jaxedit.pipelines.edit.EditRunConfig`), its
+#: inputs' and actions' (:class:`EditCommand`) and the multi-process run's
+#: (:class:`jaxedit.parallel.distributed.DistributedConfig`), all generated from the trees.
 FLAGS = _flag_sets()
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, help="nerfstudio dataset folder (the scene's photos)")
-    p.add_argument("--scene", type=Path, help="input 3DGS .ply (a reconstruction of --data)")
-    p.add_argument("--prompt", default=None, help="the editing instruction")
-    p.add_argument("--editor", default="simulated", choices=["simulated", "ip2p", "ip2p-torch"],
-                   help="2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix "
-                        "in JAX, the small model bundled with jaxedit unless --ip2p-weights; "
-                        "ip2p-torch: the torch + diffusers reference)")
-    p.add_argument("--ip2p-weights", type=Path, default=None,
-                   help="local diffusers folder of the InstructPix2Pix weights (--editor ip2p, "
-                        "ip2p-torch; default: the bundled small model)")
+    FLAGS[1].add_to(p)
     FLAGS[0].add_to(p)
-    FLAGS[1].add_to(p.add_argument_group(
+    FLAGS[2].add_to(p.add_argument_group(
         "several processes (jax.distributed; see the README's multi-host section)"))
-    p.add_argument("--select", default=None,
-                   help="subtask index (int) or ratio (float) to export as selected.ply")
-    p.add_argument("--select-only", action="store_true",
-                   help="only (re)select a snapshot of the finished run in --out")
-    p.add_argument("--resume", action="store_true",
-                   help="continue the interrupted run in --out from its checkpoint")
-    p.add_argument("--resume-from", type=Path, default=None,
-                   help="snapshot dir (RUN/subtasks/NN_rX.XXX) to continue from, new schedule")
-    p.add_argument("--no-report", action="store_true", help="skip report.html")
-    p.add_argument("--view", action="store_true",
-                   help="serve the scene in the browser while it is edited (viser; see `view`)")
-    p.add_argument("--view-port", type=int, default=8080, help="port of --view on 127.0.0.1")
-    real = p.add_argument_group("real models (local weights, see the README)")
-    real.add_argument("--ip2p-device", default=None,
-                      help="torch device of --editor ip2p-torch (default cuda:0, else cpu); the "
-                           "JAX editor runs on the editor's JAX device (the second if any)")
-    real.add_argument("--ip2p-dtype", default=None,
-                      help="networks' dtype (default float32 on the CPU; bfloat16 (JAX) or "
-                           "float16 (torch) on accelerators)")
-    real.add_argument("--ip2p-size", type=int, default=None,
-                      help="IP2P working resolution (px; default: the bundled editor's 64, "
-                           "512 for other weights)")
-    from jaxedit.editors.diffusion import DDIM_STEPS
-
-    real.add_argument("--ip2p-steps", type=int, default=DDIM_STEPS,
-                      help="DDIM steps per IP2P edit (default %(default)s)")
-    real.add_argument("--ip2p-batch", type=int, default=None,
-                      help="--editor ip2p: most views per editor call when several are due at "
-                           "once (a subtask's initial sweep, the difficulty's views); default 8 "
-                           "per accelerator, 1 on the CPU")
-    real.add_argument("--distance", default="auto", choices=["auto", "lpips", "ms-ssim"],
-                      help="difficulty distance; auto/lpips (default): LPIPS as in the paper, "
-                           "with the bundled AlexNet weights or --lpips-weights; ms-ssim")
-    real.add_argument("--lpips-weights", type=Path, default=None,
-                      help="LPIPS .safetensors/.npz written by convert-lpips (e.g. --net vgg); "
-                           "default: the bundled LPIPS-AlexNet")
-    real.add_argument("--clip-weights", default=None,
-                      help="transformers CLIP folder: add IN2N's CLIP metrics to metrics.json")
-    real.add_argument("--caption-orig", default=None, help="caption of the original (CLIP metrics)")
-    real.add_argument("--caption-edit", default=None, help="caption of the edit (CLIP metrics)")
-    from .local_flags import add_local_arguments  # issue 35: --local, --region, --masks
-
-    add_local_arguments(p)
 
 
-def make_editor(args):
-    from jaxedit import DataError
-
-    if args.editor == "simulated":
-        from jaxedit.editors.simulated import SimulatedEditor
-
-        return SimulatedEditor()
-    from jaxedit.editors import bundled_editor, native_size
-
-    # Without --ip2p-weights: the small InstructPix2Pix shipped in the package.
-    weights = args.ip2p_weights or bundled_editor()
-    size = args.ip2p_size or native_size(weights)
-    if args.editor == "ip2p":
-        from jaxedit.edit.buffer import pick_devices
-        from jaxedit.editors.jax_ip2p import load_editor
-
-        # The editor's device of pick_devices, the one run_edit gives the editor.
-        return load_editor(weights, devices=[pick_devices()[1]], dtype=args.ip2p_dtype,
-                           size=size, steps=args.ip2p_steps, batch=args.ip2p_batch)
-    try:
-        from jaxedit.editors.ip2p import load_editor
-    except ImportError as e:  # torch / diffusers are optional extras
-        raise DataError("--editor", f"ip2p-torch is unavailable ({e})") from None
-    return load_editor(weights, device=args.ip2p_device, dtype=args.ip2p_dtype, size=size,
-                       steps=args.ip2p_steps)
-
-
-def make_distance(args):
-    """The difficulty's perceptual distance (--distance, --lpips-weights): LPIPS with the
-    bundled AlexNet or the given weights, or MS-SSIM when asked for."""
-    from jaxedit.edit.difficulty import default_distance
-
-    return default_distance(args.distance, args.lpips_weights)
+def command_config(args) -> EditCommand:
+    """The :class:`EditCommand` of ``args`` (range errors name the flag)."""
+    return FLAGS[1].build(args)
 
 
 def add_clip_metrics(args) -> dict | None:
@@ -177,37 +174,18 @@ def add_clip_metrics(args) -> dict | None:
     return clip
 
 
-def load_inputs(args, config):
-    """(EditData, input Gaussians) from --data and --scene, read as ``config`` (an
-    EditRunConfig) says, with one-line errors."""
-    import numpy as np
+def mode_defaults(mode: str):
+    """The :class:`jaxedit.pipelines.edit.EditRunConfig` the command runs for ``--mode``
+    without other flags: its plan is the mode's (:meth:`ProEditConfig.for_mode`)."""
+    from jaxedit.edit import ProEditConfig
+    from jaxedit.pipelines.edit import EditRunConfig
 
-    from jaxedit import DataError
-    from jaxedit.edit import EditData
-    from jaxedit.io import load_nerfstudio, load_ply
-
-    if args.data is None:
-        raise DataError("--data", "required (a nerfstudio dataset folder)")
-    if args.scene is None:
-        raise DataError("--scene", "required (the input 3DGS .ply)")
-    from jaxedit.pipelines.reconstruct import check_image_size
-
-    dataset = load_nerfstudio(args.data, downscale=config.downscale)
-    check_image_size(dataset, args.data)
-    scene = load_ply(args.scene)
-    if not np.asarray(scene.alive).any():
-        raise DataError(args.scene, "has no Gaussians (zero vertices): nothing to edit")
-    data = EditData.from_dataset(dataset)
-    if config.test_views is not None and len(data.test_images) > config.test_views:
-        keep = np.linspace(0, len(data.test_images) - 1, config.test_views).round().astype(int)
-        data = EditData.create(data.train_images, data.train_cameras, data.test_images[keep],
-                               data.test_cameras[keep])
-    return data, scene
+    return EditRunConfig(plan=ProEditConfig.for_mode(mode))
 
 
 def run_config(args):
     """The :class:`jaxedit.pipelines.edit.EditRunConfig` of ``args``: the flags given over
-    ``--mode``'s defaults (DataErrors name its fields)."""
+    ``--mode``'s defaults (:func:`mode_defaults`; DataErrors name its fields)."""
     from jaxedit.edit import ProEditConfig
 
     return FLAGS[0].build(args, bases={"plan": ProEditConfig.for_mode(args.mode)})
@@ -245,13 +223,6 @@ def progress_callback(quiet: bool):
     return progress
 
 
-def check_counts(args) -> None:
-    """The editor's counts in range (the config tree's are checked as it is built)."""
-    from .cli import check_minimums
-
-    check_minimums(args, {"ip2p_size": 8, "ip2p_steps": 1, "ip2p_batch": 1})
-
-
 def check_processes(args, run_cfg) -> None:
     """Refuse what a multi-process edit cannot do: every process must run the same steps
     (no --async, whose edits depend on timing) from the same state (no resuming: only
@@ -273,12 +244,14 @@ def check_processes(args, run_cfg) -> None:
 def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.parallel.distributed import split_edits
-    from jaxedit.pipelines import run_edit, select_snapshot
+    from jaxedit.pipelines import select_snapshot
+    from jaxedit.pipelines.edit import edit_files, make_editor
 
     from .cli import writes
 
     if args.out is None:
         raise DataError("--out", "required (the run directory)")
+    command_config(args)
     if args.select_only and not writes(args):
         return {}
     if args.select_only:
@@ -286,38 +259,36 @@ def run(args) -> dict:
             raise DataError("--select", "required with --select-only")
         path = select_snapshot(args.out, args.select)
         return {"selected": str(path)}
-    check_counts(args)
     run_cfg = run_config(args)
     if args.resume and args.resume_from is not None:
         raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
-    if args.ip2p_weights is not None and not args.editor.startswith("ip2p"):
-        raise DataError("--ip2p-weights", f"used only with --editor ip2p or ip2p-torch (the "
-                                          f"editor is {args.editor})")
     if args.clip_weights is not None and not (args.caption_orig and args.caption_edit):
         raise DataError("--clip-weights", "needs --caption-orig and --caption-edit")
     check_processes(args, run_cfg)
-    editor = split_edits(make_editor(args))  # views due at once: split over the processes
-    distance = make_distance(args)
+    # Views due at once are split over the processes.
+    editor = split_edits(make_editor(run_cfg.editor))
     if not args.prompt and args.mode != "in2n":
         raise DataError("--prompt", "required (the editing instruction)")
-    data, scene = load_inputs(args, run_cfg)
+    if args.data is None:
+        raise DataError("--data", "required (a nerfstudio dataset folder)")
+    if args.scene is None:
+        raise DataError("--scene", "required (the input 3DGS .ply)")
     from .local_flags import local_spec
 
-    local = local_spec(args, run_cfg, data)
-    config, settings = run_cfg.plan, run_cfg.train
     watcher = None
     if args.view:
-        from .view import check_port, watch_edit
+        from .view import watch_edit
 
-        watcher = watch_edit(args.out, port=check_port(args.view_port, "--view-port"))
+        watcher = watch_edit(args.out, port=args.view_port)
     progress = progress_callback(args.quiet)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     try:
-        out = run_edit(editor, args.prompt or "", data, scene, config=config, settings=settings,
-                       seed=args.seed, run_dir=args.out if writes(args) else None,
-                       resume=args.resume, resume_from=args.resume_from,
-                       select=args.select if writes(args) else None, progress=progress,
-                       report=not args.no_report, log=log, distance=distance, local=local)
+        out = edit_files(run_cfg, args.prompt or "", args.data, args.scene, editor=editor,
+                         local=lambda data: local_spec(args, run_cfg, data), seed=args.seed,
+                         run_dir=args.out if writes(args) else None, resume=args.resume,
+                         resume_from=args.resume_from,
+                         select=args.select if writes(args) else None, progress=progress,
+                         report=not args.no_report, log=log)
     finally:
         progress.close()
         if watcher is not None:

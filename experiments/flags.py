@@ -17,9 +17,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import inspect
+import math
 import re
 import types
 import typing
+from pathlib import Path
 from typing import Any, Sequence
 
 from jaxedit.errors import field_range
@@ -39,6 +41,10 @@ class Flag:
       choices: the values a string field takes.
       key: the name a ``--config`` file and config.json use (default: the flag's, with
         underscores).
+      repeat: for a ``tuple[str, ...]`` field: the flag is given once per item (a list in
+        a ``--config`` file), not as one comma-separated value.
+      group: title of the help section the flag is listed under (None: the command's).
+      metavar: the value's name in the help (default: the flag's in capitals).
     """
 
     field: str
@@ -46,6 +52,9 @@ class Flag:
     off: str | None = None
     choices: tuple | None = None
     key: str | None = None
+    repeat: bool = False
+    group: str | None = None
+    metavar: str | None = None
 
     @property
     def flag(self) -> str:
@@ -59,6 +68,9 @@ class Flag:
 class _Given(argparse.Action):
     """Store (or store a constant), and record that the flag was given."""
 
+    #: Whether the flag collects a list (one item each time it is given).
+    collects = False
+
     def __init__(self, option_strings, dest, const=None, nargs=None, **kwargs):
         self.switch = const is not None
         super().__init__(option_strings, dest, nargs=0 if self.switch else nargs, const=const,
@@ -68,6 +80,35 @@ class _Given(argparse.Action):
         setattr(namespace, self.dest, self.const if self.switch else values)
         given = set(getattr(namespace, GIVEN, ()))
         setattr(namespace, GIVEN, given | {self.dest})
+
+
+class _GivenEach(_Given):
+    """Add the value to the tuple of those given before (a new tuple: the default is
+    shared by every parse), and record that the flag was given."""
+
+    collects = True
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        super().__call__(parser, namespace, (*(getattr(namespace, self.dest) or ()), values),
+                         option_string)
+
+
+def finite_float(text: str) -> float:
+    """argparse's ``type=float``, refusing inf and nan (argparse then names the flag)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+#: How :class:`experiments.cli.OneLineParser` reads a flag's ``type`` where it differs from
+#: the type itself
+#: (registered with argparse by :class:`experiments.cli.OneLineParser`, and used by
+#: :func:`experiments.cli.convert` for config-file values and :meth:`FlagSet.field_value`).
+TYPE_READERS = {float: finite_float}
 
 
 def attribute_docs(cls: type) -> dict[str, str]:
@@ -135,13 +176,13 @@ def comma_list(text: str) -> tuple[str, ...]:
 
 
 def _value_type(hint):
-    """The parser of a field's annotation: its scalar type (``int | None`` -> int), or
-    :func:`comma_list` for ``tuple[str, ...]``."""
+    """The parser of a field's annotation: its scalar type (``int | None`` -> int, a
+    ``Path``), or :func:`comma_list` for ``tuple[str, ...]``."""
     if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
         args = [a for a in typing.get_args(hint) if a is not type(None)]
         if len(args) == 1:
             return _value_type(args[0])
-    if hint in (int, float, str, bool):
+    if hint in (int, float, str, bool, Path):
         return hint
     if typing.get_origin(hint) is tuple and typing.get_args(hint) == (str, ...):
         return comma_list
@@ -164,36 +205,53 @@ class FlagSet:
         return self.owner(flag)[2]
 
     def add_to(self, parser: argparse.ArgumentParser) -> None:
-        """Add every flag to ``parser`` (type, default, help from the field)."""
+        """Add every flag to ``parser`` (type, default, help from the field; a flag with a
+        ``group`` to that help section of it)."""
+        groups: dict[str, Any] = {}
         for flag in self.flags:
-            cls, field, default = self.owner(flag)
-            kind = _value_type(typing.get_type_hints(cls)[field.name])
-            doc = attribute_docs(cls).get(field.name)
-            if doc is None:
-                raise ValueError(f"{cls.__name__}.{field.name} has no entry in its docstring")
-            text = doc.replace("%", "%%")
-            if kind is bool:
-                if flag.off is None:
-                    if default:
-                        raise ValueError(f"{flag.flag}: a switch needs a default of False "
-                                         "or an off flag")
-                    parser.add_argument(flag.flag, dest=flag.dest, action=_Given, const=True,
-                                        default=False, help=text)
-                else:
-                    group = parser.add_mutually_exclusive_group()
-                    group.add_argument(flag.flag, dest=flag.dest, action=_Given, const=True,
-                                       default=default,
-                                       help=f"{text}{' (default)' if default else ''}")
-                    group.add_argument(flag.off, dest=flag.dest, action=_Given, const=False,
-                                       default=default,
-                                       help=f"not {flag.flag}{'' if default else ' (default)'}")
-                continue
-            shown = ",".join(default) if kind is comma_list else default
-            bounds = field_range(field)
-            within = "" if bounds is None else f"; {bounds.describe()}"
-            parser.add_argument(flag.flag, dest=flag.dest, action=_Given, type=kind,
-                                default=default, choices=flag.choices,
-                                help=f"{text} (default: {shown}{within})")
+            if flag.group is not None:
+                self._add(flag, groups.setdefault(flag.group,
+                                                  parser.add_argument_group(flag.group)))
+            else:
+                self._add(flag, parser)
+
+    def _add(self, flag: Flag, parser) -> None:
+        """Add one flag to ``parser`` (or a group of it)."""
+        cls, field, default = self.owner(flag)
+        kind = _value_type(typing.get_type_hints(cls)[field.name])
+        doc = attribute_docs(cls).get(field.name)
+        if doc is None:
+            raise ValueError(f"{cls.__name__}.{field.name} has no entry in its docstring")
+        text = doc.replace("%", "%%")
+        if kind is bool:
+            if flag.off is None:
+                if default:
+                    raise ValueError(f"{flag.flag}: a switch needs a default of False "
+                                     "or an off flag")
+                parser.add_argument(flag.flag, dest=flag.dest, action=_Given, const=True,
+                                    default=False, help=text)
+            else:
+                group = parser.add_mutually_exclusive_group()
+                group.add_argument(flag.flag, dest=flag.dest, action=_Given, const=True,
+                                   default=default,
+                                   help=f"{text}{' (default)' if default else ''}")
+                group.add_argument(flag.off, dest=flag.dest, action=_Given, const=False,
+                                   default=default,
+                                   help=f"not {flag.flag}{'' if default else ' (default)'}")
+            return
+        if flag.repeat:
+            if kind is not comma_list:
+                raise ValueError(f"{flag.flag}: only a tuple[str, ...] field repeats")
+            parser.add_argument(flag.flag, dest=flag.dest, action=_GivenEach, type=str,
+                                default=default, metavar=flag.metavar,
+                                help=f"{text} (repeatable)")
+            return
+        shown = ",".join(default) if kind is comma_list else default
+        bounds = field_range(field)
+        within = "" if bounds is None else f"; {bounds.describe()}"
+        parser.add_argument(flag.flag, dest=flag.dest, action=_Given, type=kind,
+                            default=default, choices=flag.choices, metavar=flag.metavar,
+                            help=f"{text} (default: {shown}{within})")
 
     def values(self, args: argparse.Namespace) -> dict[str, Any]:
         """{field path: value} of the flags to apply: each one given (on the command line
@@ -203,6 +261,8 @@ class FlagSet:
         out = {}
         for flag in self.flags:
             value = getattr(args, flag.dest)
+            if flag.repeat and value is not None:
+                value = tuple(value)  # a --config file's list
             if (flag.dest in given) if given is not None else value != self.default(flag):
                 out[flag.field] = value
         return out
@@ -217,14 +277,57 @@ class FlagSet:
         the fields' metadata, :func:`jaxedit.errors.ranged`, and their own rules), with
         DataErrors that name fields.
         """
-        tree: dict = {}
-        for path, value in (self.values(args) | (derived or {})).items():
-            node = tree
-            *parents, leaf = path.split(".")
-            for part in parents:
-                node = node.setdefault(part, {})
-            node[leaf] = value
-        return _replace(self.root(), tree, bases or {})
+        base = _replace(self.root(), {}, bases or {}) if bases else self.root()
+        return with_fields(base, self.values(args) | (derived or {}))
+
+    def field_value(self, name: str, text: str | None) -> tuple[str, Any]:
+        """(field path, value) of this set's flag ``name`` (dashes optional) as the command
+        line reads ``text`` (None: a switch given alone). ValueError with the reason if
+        there is no such flag or the text is not one of its values."""
+        wanted = "--" + name.lstrip("-")
+        for flag in self.flags:
+            cls, field, _ = self.owner(flag)
+            kind = _value_type(typing.get_type_hints(cls)[field.name])
+            if wanted not in (flag.flag, flag.off):
+                continue
+            if kind is bool:
+                if text is not None:
+                    raise ValueError(f"{wanted} is a switch and takes no value")
+                return flag.field, wanted == flag.flag
+            if text is None:
+                raise ValueError(f"{wanted} needs a value")
+            try:
+                value = TYPE_READERS.get(kind, kind)(text)
+            except (TypeError, ValueError, argparse.ArgumentTypeError) as e:
+                raise ValueError(f"{wanted}: {e}") from None
+            if flag.choices is not None and value not in flag.choices:
+                raise ValueError(f"{wanted}: {value!r} is not one of {', '.join(flag.choices)}")
+            return flag.field, value
+        raise ValueError(f"{wanted} is not a setting of this command")
+
+    def argv(self, config, base) -> list[str]:
+        """The flags that turn tree ``base`` (what the command builds when they are not
+        given) into tree ``config``: the command line of ``config``, for the record."""
+        out: list[str] = []
+        for flag in self.flags:
+            path = flag.field.split(".")
+            value, was = _get(config, path), _get(base, path)
+            if value == was:
+                continue
+            cls, field, _ = self.owner(flag)
+            kind = _value_type(typing.get_type_hints(cls)[field.name])
+            if kind is bool:
+                out.append(flag.flag if value else flag.off or "")
+            elif flag.repeat:
+                for item in value:
+                    out += [flag.flag, item]
+            elif value is None:
+                raise ValueError(f"{flag.flag}: no command line unsets it (from {was!r})")
+            else:
+                out += [flag.flag, ",".join(value) if kind is comma_list else str(value)]
+        if "" in out:
+            raise ValueError("a switch without an off flag cannot be turned off")
+        return out
 
     def flag_of(self) -> dict[str, str]:
         """{field name or dotted path: flag} for turning an error's field into a flag.
@@ -238,6 +341,25 @@ class FlagSet:
             short.setdefault(flag.field.rsplit(".", 1)[-1], set()).add(flag.flag)
         out.update({k: next(iter(v)) for k, v in short.items() if len(v) == 1})
         return out
+
+
+def _get(tree, path: list[str]):
+    for part in path:
+        tree = getattr(tree, part)
+    return tree
+
+
+def with_fields(tree, values: dict[str, Any]):
+    """``tree`` with ``values`` ({dotted field path: value}) set; the dataclasses check
+    the result as it is built."""
+    changes: dict = {}
+    for path, value in values.items():
+        node = changes
+        *parents, leaf = path.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return _replace(tree, changes, {})
 
 
 def _replace(instance, changes: dict, bases: dict):

@@ -1,25 +1,9 @@
-"""``edit``'s local-edit flags (issue 35): --local, --region, --masks."""
+"""``edit``'s local edit (issue 35) from its flags --local, --region, --masks (declared in
+:class:`experiments.edit.EditCommand`)."""
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
-
-
-def add_local_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("local edits (only what the instruction touches changes)")
-    g.add_argument("--local", default="off", choices=["auto", "off"],
-                   help="auto: edit only the Gaussians the editor's relevance map lifts to "
-                        "(within --region / --masks); off: the whole scene (or only "
-                        "--region / --masks when given)")
-    g.add_argument("--region", action="append", default=[], metavar="SPEC",
-                   help="box:xmin,ymin,zmin,xmax,ymax,zmax or sphere:cx,cy,cz,r in scene "
-                        "coordinates (repeatable: their union); outside it nothing changes")
-    g.add_argument("--masks", type=Path, default=None, metavar="DIR",
-                   help="one mask image per frame, named as the frame (images/frame_00001.png "
-                        "takes DIR/frame_00001.png) or as its photo (process-data's "
-                        "original_file_path), at the view's size or a whole multiple of it; "
-                        "white = editable")
 
 
 def local_spec(args, config, data):

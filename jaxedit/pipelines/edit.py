@@ -33,18 +33,87 @@ from ..edit.buffer import pick_devices
 from ..edit.checkpoint import (check_resume, load_checkpoint, save_checkpoint,
                                snapshot_fingerprint)
 from ..edit.context import EditContext, EditData, encode_prompt
+from ..edit.difficulty import default_distance
 from ..edit.outputs import Renderer
 from ..edit.state import init_state
 from ..edit.plan import ProEditConfig, SubtaskSpec
 from ..edit.trainer import TrainSettings
 from ..errors import DataError, check_ranges, ranged
-from ..io import load_ply
+from ..editors.diffusion import DDIM_STEPS
+from ..io import load_nerfstudio, load_ply
 from ..io.files import atomic_write_text
 from .report import write_report
 from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
 
 #: The edit state's checkpoint inside a run directory.
 CHECKPOINT_NAME = "checkpoint.npz"
+
+
+#: The 2D editors an edit run can use (:class:`EditorConfig`).
+EDITORS = ("simulated", "ip2p", "ip2p-torch")
+
+
+@dataclasses.dataclass(frozen=True)
+class EditorConfig:
+    """The 2D editor of an edit run (:func:`make_editor`).
+
+    Attributes:
+      kind: 2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix in JAX,
+        the small model bundled with jaxedit unless ``weights``; ip2p-torch: the torch +
+        diffusers reference).
+      weights: local diffusers folder of the InstructPix2Pix weights (ip2p, ip2p-torch;
+        None: the bundled small model).
+      device: torch device of ip2p-torch (None: cuda:0, else cpu); the JAX editor runs on
+        the editor's JAX device (the second if any).
+      dtype: networks' dtype (None: float32 on the CPU; bfloat16 (JAX) or float16 (torch)
+        on accelerators).
+      size: IP2P working resolution in px (None: the bundled editor's 64, 512 for other
+        weights).
+      steps: DDIM steps per IP2P edit.
+      batch: ip2p: most views per editor call when several are due at once (a subtask's
+        initial sweep, the difficulty's views; None: 8 per accelerator, 1 on the CPU).
+    """
+
+    kind: str = "simulated"
+    weights: Path | None = None
+    device: str | None = None
+    dtype: str | None = None
+    size: int | None = ranged(None, low=8)
+    steps: int = ranged(DDIM_STEPS, low=1)
+    batch: int | None = ranged(None, low=1)
+
+    def __post_init__(self):
+        if self.kind not in EDITORS:
+            raise DataError("kind", f"unknown editor {self.kind!r}; choose from "
+                                    f"{', '.join(EDITORS)}")
+        check_ranges(self)
+        if self.weights is not None and not self.kind.startswith("ip2p"):
+            raise DataError("weights", f"used only with the ip2p or ip2p-torch editor (the "
+                                       f"editor is {self.kind})")
+
+
+def make_editor(config: EditorConfig):
+    """The editor ``config`` describes (the bundled InstructPix2Pix without ``weights``)."""
+    if config.kind == "simulated":
+        from ..editors.simulated import SimulatedEditor
+
+        return SimulatedEditor()
+    from ..editors import bundled_editor, native_size
+
+    weights = config.weights or bundled_editor()
+    size = config.size or native_size(weights)
+    if config.kind == "ip2p":
+        from ..editors.jax_ip2p import load_editor
+
+        # The editor's device of pick_devices, the one run_edit gives the editor.
+        return load_editor(weights, devices=[pick_devices()[1]], dtype=config.dtype,
+                           size=size, steps=config.steps, batch=config.batch)
+    try:
+        from ..editors.ip2p import load_editor as load_torch_editor
+    except ImportError as e:  # torch / diffusers are optional extras
+        raise DataError("kind", f"ip2p-torch is unavailable ({e})") from None
+    return load_torch_editor(weights, device=config.device, dtype=config.dtype, size=size,
+                             steps=config.steps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,17 +124,66 @@ class EditRunConfig:
       plan: the edit's plan (:class:`jaxedit.edit.plan.ProEditConfig`; its mode's
         defaults from :meth:`ProEditConfig.for_mode`).
       train: the editing trainer (:class:`jaxedit.edit.trainer.TrainSettings`).
+      editor: the 2D editor (:class:`EditorConfig`).
+      distance: difficulty distance (auto or lpips: LPIPS as in the paper, with the bundled
+        AlexNet weights or ``lpips_weights``; ms-ssim).
+      lpips_weights: LPIPS .safetensors/.npz written by convert-lpips (e.g. --net vgg;
+        None: the bundled LPIPS-AlexNet).
       downscale: image downscale factor of the dataset.
       test_views: at most this many held-out views in snapshots and metrics (None: all).
     """
 
     plan: ProEditConfig = ProEditConfig()
     train: TrainSettings = TrainSettings()
+    editor: EditorConfig = EditorConfig()
+    distance: str = "auto"
+    lpips_weights: Path | None = None
     downscale: int = ranged(1, low=1)
     test_views: int | None = ranged(None, low=1)
 
     def __post_init__(self):
         check_ranges(self)
+
+
+def load_inputs(config: EditRunConfig, data_path, scene_path) -> tuple[EditData, object]:
+    """(EditData, input Gaussians) of the nerfstudio dataset ``data_path`` and the 3DGS
+    .ply ``scene_path``, read as ``config`` says (downscale, at most ``test_views``)."""
+    from .reconstruct import check_image_size
+
+    dataset = load_nerfstudio(data_path, downscale=config.downscale)
+    check_image_size(dataset, data_path)
+    scene = load_ply(scene_path)
+    if not np.asarray(scene.alive).any():
+        raise DataError(scene_path, "has no Gaussians (zero vertices): nothing to edit")
+    data = EditData.from_dataset(dataset)
+    if config.test_views is not None and len(data.test_images) > config.test_views:
+        keep = np.linspace(0, len(data.test_images) - 1, config.test_views).round().astype(int)
+        data = EditData.create(data.train_images, data.train_cameras, data.test_images[keep],
+                               data.test_cameras[keep])
+    return data, scene
+
+
+def edit_files(config: EditRunConfig, prompt: str, data_path, scene_path, *, editor=None,
+               local=None, **kwargs) -> dict:
+    """:func:`run_edit` of the scene and dataset on disk, with ``config``'s editor and
+    difficulty distance: what ``python -m experiments edit`` runs, as one call.
+
+    Args:
+      config: the run's settings.
+      prompt: the instruction.
+      data_path, scene_path: nerfstudio dataset folder and the input 3DGS .ply.
+      editor: the editor to use instead of ``make_editor(config.editor)`` (a wrapped one).
+      local: None, a :class:`jaxedit.edit.local.LocalSpec`, or a function of the loaded
+        :class:`EditData` returning one (masks matched to its views).
+      **kwargs: :func:`run_edit`'s (``seed``, ``run_dir``, ``resume``, ``progress``, ...).
+    """
+    editor = make_editor(config.editor) if editor is None else editor
+    distance = default_distance(config.distance, config.lpips_weights)
+    data, scene = load_inputs(config, data_path, scene_path)
+    if callable(local):
+        local = local(data)
+    return run_edit(editor, prompt, data, scene, config=config.plan, settings=config.train,
+                    distance=distance, local=local, **kwargs)
 
 
 def _write_json(path: Path, data: dict) -> None:
