@@ -13,6 +13,7 @@ the command exit with status 1 after the summary is written.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
@@ -21,20 +22,52 @@ import sys
 import time
 from pathlib import Path
 
+from jaxedit.errors import check_ranges, ranged
+
 HELP = "run the benchmarks in benchmarks/ (each --smoke-able) and write DIR/summary.md"
 
 BENCH_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
 SKIP = {"__init__", "common"}
 
 
+@dataclasses.dataclass(frozen=True)
+class BenchConfig:
+    """What ``bench`` runs and how much of it the summary shows.
+
+    Attributes:
+      smoke: tiny sizes (seconds per benchmark).
+      only: comma-separated benchmark names to run (None: all).
+      timeout: seconds allowed per benchmark before it is stopped.
+      max_rows: at most this many result rows per benchmark in the summary.
+    """
+
+    smoke: bool = False
+    only: str | None = None
+    timeout: float = ranged(1800.0, low=0, open=True)
+    max_rows: int = ranged(24, low=1)
+
+    def __post_init__(self):
+        check_ranges(self)
+
+
+def _config_flags():
+    from experiments.flags import Flag, FlagSet
+
+    return FlagSet(BenchConfig, (Flag("smoke"), Flag("only"), Flag("timeout"),
+                                 Flag("max_rows")))
+
+
+#: The command's flags, generated from :class:`BenchConfig`.
+FLAGS = (_config_flags(),)
+
+
 def add_arguments(p) -> None:
-    p.add_argument("--smoke", action="store_true", help="tiny sizes (seconds per benchmark)")
-    p.add_argument("--only", default=None,
-                   help="comma-separated benchmark names to run (default: all)")
-    p.add_argument("--timeout", type=float, default=1800.0,
-                   help="seconds allowed per benchmark before it is stopped")
-    p.add_argument("--max-rows", type=int, default=24,
-                   help="at most this many result rows per benchmark in the summary")
+    FLAGS[0].add_to(p)
+
+
+def run_config(args) -> BenchConfig:
+    """The :class:`BenchConfig` of ``args`` (range errors name the flag)."""
+    return FLAGS[0].build(args)
 
 
 def discover(bench_dir: Path = BENCH_DIR) -> list[str]:
@@ -151,15 +184,11 @@ def run(args) -> dict:
 
     if args.out is None:
         raise DataError("--out", "an output directory is required")
-    if args.timeout <= 0:
-        raise DataError("--timeout", f"must be > 0, got {args.timeout}")
-    from experiments.cli import check_minimums
-
-    check_minimums(args, {"max_rows": 1})
+    config = run_config(args)
     available = discover()
     names = available
-    if args.only:
-        names = [n.strip() for n in args.only.split(",") if n.strip()]
+    if config.only:
+        names = [n.strip() for n in config.only.split(",") if n.strip()]
         unknown = sorted(set(names) - set(available))
         if unknown:
             raise DataError("--only", f"unknown benchmark(s) {', '.join(unknown)}; "
@@ -173,14 +202,15 @@ def run(args) -> dict:
     with Progress(len(names), "bench") as bar:
         for name in names:
             bar.set_postfix(running=name)
-            records.append(run_one(name, out, smoke=args.smoke, timeout=args.timeout))
+            records.append(run_one(name, out, smoke=config.smoke, timeout=config.timeout))
             bar.update(1, last=f"{name}:{records[-1]['status']}")
         bar.postfix.pop("running", None)
     info = machine()
     atomic_write_text(out / "summary.md",
-                      summary_markdown(records, info, smoke=args.smoke, max_rows=args.max_rows))
+                      summary_markdown(records, info, smoke=config.smoke,
+                                       max_rows=config.max_rows))
     atomic_write_text(out / "bench.json", json.dumps(
-        {"machine": info, "smoke": args.smoke, "benchmarks": records}, indent=2, default=str) + "\n")
+        {"machine": info, "smoke": config.smoke, "benchmarks": records}, indent=2, default=str) + "\n")
     failed = [r["name"] for r in records if r["status"] != "ok"]
     result = {"summary": str(out / "summary.md"),
               "benchmarks": {r["name"]: {"status": r["status"], "seconds": r["seconds"]}

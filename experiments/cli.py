@@ -689,16 +689,3 @@ def require_memory(flag: str, needed: float, what: str) -> None:
     from jaxedit.memory import require_memory as check
 
     check(flag, needed, what)
-
-
-def check_minimums(args: argparse.Namespace, minimums: dict) -> None:
-    """Refuse a count below its minimum: ``{dest: least value}``; unset (None) flags pass.
-
-    Zero or negative counts otherwise fail deep inside the work, as tracebacks.
-    """
-    from jaxedit import DataError
-
-    for dest, low in minimums.items():
-        value = getattr(args, dest)
-        if value is not None and value < low:
-            raise DataError(f"--{dest.replace('_', '-')}", f"must be >= {low}, got {value}")

@@ -17,8 +17,11 @@ the dataset.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
+
+from jaxedit.errors import check_ranges, ranged
 
 HELP = "write a built-in scene (face, tabletop, fence, ball, person) as a nerfstudio dataset"
 
@@ -26,22 +29,51 @@ HELP = "write a built-in scene (face, tabletop, fence, ball, person) as a nerfst
 _PROCEDURAL_ONLY = {"size": "--size", "num_points": "--points", "supersample": "--supersample"}
 
 
+@dataclasses.dataclass(frozen=True)
+class SceneConfig:
+    """How a built-in scene is written (None: the scene's own default, see the module
+    docstring).
+
+    Attributes:
+      size: image width and height in pixels (procedural scenes; None: 128).
+      views: number of training views (None: 64; person: all 72).
+      test_views: number of held-out views (None: 8).
+      points: points in the initial cloud (procedural scenes; None: 4000).
+      supersample: rays per pixel along each axis (procedural scenes; None: 2).
+      downscale: image downscale factor of a rendered scene (person: 256 px / F).
+      preview: also write DIR/preview.png.
+    """
+
+    size: int | None = ranged(None, low=8)
+    views: int | None = ranged(None, low=1)
+    test_views: int | None = ranged(None, low=0)
+    points: int | None = ranged(None, low=1)
+    supersample: int | None = ranged(None, low=1)
+    downscale: int = ranged(1, low=1)
+    preview: bool = False
+
+    def __post_init__(self):
+        check_ranges(self)
+
+
+def _config_flags():
+    from experiments.flags import Flag, FlagSet
+
+    return FlagSet(SceneConfig, tuple(Flag(f.name) for f in dataclasses.fields(SceneConfig)))
+
+
+#: The command's flags, generated from :class:`SceneConfig`.
+FLAGS = (_config_flags(),)
+
+
 def add_arguments(p) -> None:
-    # None = the scene's own default (see the module docstring).
     p.add_argument("name", metavar="NAME", help="built-in scene name")
-    p.add_argument("--size", type=int, default=None,
-                   help="image width and height in pixels (procedural scenes; default 128)")
-    p.add_argument("--views", type=int, default=None,
-                   help="number of training views (default: 64; person: all 72)")
-    p.add_argument("--test-views", type=int, default=None,
-                   help="number of held-out views (default: 8)")
-    p.add_argument("--points", type=int, default=None,
-                   help="points in the initial cloud (procedural scenes; default 4000)")
-    p.add_argument("--supersample", type=int, default=None,
-                   help="rays per pixel along each axis (procedural scenes; default 2)")
-    p.add_argument("--downscale", type=int, default=1,
-                   help="image downscale factor of a rendered scene (person: 256 px / F)")
-    p.add_argument("--preview", action="store_true", help="also write DIR/preview.png")
+    FLAGS[0].add_to(p)
+
+
+def run_config(args) -> SceneConfig:
+    """The :class:`SceneConfig` of ``args`` (range errors name the flag)."""
+    return FLAGS[0].build(args)
 
 
 def contact_sheet(images, columns: int = 8):
@@ -59,12 +91,13 @@ def contact_sheet(images, columns: int = 8):
 
 
 def check_sizes(args) -> None:
-    """Counts in range, and the memory they imply within the machine's, before any work."""
+    """Counts in range (:class:`SceneConfig`), and the memory they imply within the
+    machine's, before any work."""
     from jaxedit.scenes.dataset import PROCEDURAL_DEFAULTS
 
-    from experiments.cli import check_minimums, require_memory
+    from experiments.cli import require_memory
 
-    check_minimums(args, {"size": 8, "views": 1, "test_views": 0, "points": 1, "supersample": 1})
+    run_config(args)
     if args.name in _rendered_scenes():
         return  # copied from the package: a few MB whatever the flags
     d = PROCEDURAL_DEFAULTS

@@ -31,14 +31,15 @@ GENERATED = _generated()
 
 
 def _parse(command: str, *argv: str) -> argparse.Namespace:
-    required = {"reconstruct": ["--data", "unchecked"],
+    required = {"reconstruct": ["--data", "unchecked"], "make-scene": ["face"],
                 "process-data": ["--images", "unchecked"]}.get(command, [])
     return cli.parse([command, *required, *argv])
 
 
 def test_the_commands_with_settings_generate_their_flags():
     commands = {c for c, _, _ in GENERATED}
-    assert {"reconstruct", "edit", "ablation", "process-data"} <= commands
+    assert {"reconstruct", "edit", "ablation", "process-data", "demo", "make-scene",
+            "bench"} <= commands
 
 
 @pytest.mark.parametrize("command, flag_set, flag", GENERATED,
