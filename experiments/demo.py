@@ -6,8 +6,10 @@
 ``--size``: 256 / --size must be an integer); the procedural scenes (face, tabletop,
 fence, ball) are rendered at ``--size`` by the ray caster.
 
-Stages (each the in-process call of the command of the same name, so each
-stage directory is a complete, reproducible run directory of that command)::
+Stages (make-scene and reconstruct are the in-process calls of those commands; the edit
+is the call the edit command makes, :func:`jaxedit.pipelines.edit.edit_files`, with a
+config tree, :func:`edit_config`; each stage directory is a complete, reproducible run
+directory of its command, whose config.json gives the command line)::
 
     RUN_DIR/data/          make-scene person      (a nerfstudio dataset)
     RUN_DIR/reconstruct/   reconstruct            (scene.ply, test renders, metrics.json)
@@ -25,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -86,6 +87,9 @@ class DemoConfig:
       target_subtasks: edit subtasks the scheduler is asked for (the paper's ~4 for a
         texture edit; None: the edit's threshold d(0, 1) / 4, which splits a d(0, r) that
         grows evenly into 4 to 8 subtasks depending on which side of it each quarter falls).
+      edit_arg: another setting of the edit stage as FLAG=VALUE (or FLAG, a switch), one of
+        the edit command's settings flags, e.g. warmup=20 or sync.
+      reuse: skip stages whose outputs already exist in RUN_DIR.
     """
 
     scene_name: str = "person"
@@ -106,6 +110,8 @@ class DemoConfig:
     ip2p_steps: int = ranged(5, low=1)
     refine_first: bool = False
     target_subtasks: int | None = ranged(4, low=1)
+    edit_arg: tuple[str, ...] = ()
+    reuse: bool = False
 
     def __post_init__(self):
         check_ranges(self)
@@ -122,7 +128,8 @@ def _config_flags():
         Flag("size"), Flag("views"), Flag("test_views"), Flag("iters"), Flag("threshold"),
         Flag("distance", choices=DISTANCES), Flag("subtasks"), Flag("mode", choices=MODES),
         Flag("max_steps"), Flag("turntable_frames"), Flag("difficulty_views"),
-        Flag("patience"), Flag("ip2p_steps"), Flag("refine_first"), Flag("target_subtasks")))
+        Flag("patience"), Flag("ip2p_steps"), Flag("refine_first"), Flag("target_subtasks"),
+        Flag("edit_arg", repeat=True, metavar="FLAG=VALUE"), Flag("reuse")))
 
 
 #: The command's flags, generated from :class:`DemoConfig`.
@@ -131,10 +138,6 @@ FLAGS = (_config_flags(),)
 
 def add_arguments(p) -> None:
     FLAGS[0].add_to(p)
-    p.add_argument("--edit-arg", action="append", default=[], metavar="FLAG=VALUE",
-                   help="extra flag for the edit stage, e.g. --edit-arg warmup=20 (repeatable)")
-    p.add_argument("--reuse", action="store_true",
-                   help="skip stages whose outputs already exist in RUN_DIR")
 
 
 def run_config(args) -> DemoConfig:
@@ -182,13 +185,9 @@ def _run_stage(argv: list[str]) -> dict:
         from jaxedit import DataError
 
         raise DataError(argv[0], f"bad flags for this stage: {' '.join(argv[1:])}") from e
-    # config.json records sys.argv: make it this stage's command line, not the demo's,
-    # so the stage directory alone tells how to reproduce it.
-    saved, sys.argv = sys.argv, [sys.argv[0], *argv]
-    try:
-        cli.write_run_config(args)
-    finally:
-        sys.argv = saved
+    # config.json records this stage's command line, not the demo's, so the stage
+    # directory alone tells how to reproduce it.
+    cli.write_run_config(args, argv=argv)
     return args._module.run(args) or {}
 
 
@@ -213,21 +212,87 @@ def _scene_size(name: str, size: int) -> dict:
 
 
 def _edit_extra(pairs: list[str]) -> dict:
+    """{field path of the edit's config tree: value} of ``--edit-arg`` FLAG=VALUE pairs
+    (a switch alone: FLAG), each read as the edit command reads that flag."""
     from jaxedit import DataError
+
+    from .edit import FLAGS
 
     extra = {}
     for pair in pairs:
         flag, sep, value = pair.partition("=")
-        if not flag:
+        if not flag.strip("-"):
             raise DataError("--edit-arg", f"expected FLAG=VALUE, got {pair!r}")
-        extra["--" + flag.lstrip("-")] = value if sep else True
+        try:
+            field, extra_value = FLAGS[0].field_value(flag, value if sep else None)
+        except ValueError as e:
+            raise DataError("--edit-arg", str(e)) from None
+        extra[field] = extra_value
     return extra
+
+
+def edit_config(config: DemoConfig):
+    """The edit stage's :class:`jaxedit.pipelines.edit.EditRunConfig`: the edit command's
+    defaults for the demo's mode, the demo's settings, then its ``edit_arg`` ones."""
+    from jaxedit.edit.difficulty import lpips_weights_to_use
+
+    from .edit import mode_defaults
+    from .flags import with_fields
+
+    threshold = config.threshold
+    if threshold is None and lpips_weights_to_use(config.distance) is None:
+        threshold = MS_SSIM_THRESHOLD
+    values = {
+        "editor.kind": config.editor, "distance": config.distance,
+        "plan.threshold": None if config.subtasks else threshold,
+        "plan.target_subtasks": (None if config.subtasks or threshold is not None
+                                 else config.target_subtasks),
+        "plan.refine_first": config.refine_first, "plan.subtasks": config.subtasks,
+        "plan.max_steps": config.max_steps, "plan.difficulty_views": config.difficulty_views,
+        "plan.patience": config.patience, "plan.turntable_frames": config.turntable_frames,
+        "editor.steps": config.ip2p_steps if config.editor == "ip2p" else None}
+    # None: the edit's own default, as a flag not given.
+    values = {k: v for k, v in values.items() if v is not None}
+    return with_fields(mode_defaults(config.mode), values | _edit_extra(list(config.edit_arg)))
+
+
+def _edit_argv(run_cfg, mode: str, inputs: dict) -> list[str]:
+    """The edit command line that runs ``run_cfg`` on ``inputs`` ({flag: value}), for the
+    edit folder's config.json (and its report's "reproduce with")."""
+    from .edit import FLAGS, mode_defaults
+
+    argv = ["edit", "--mode", mode]
+    for flag, value in inputs.items():
+        if value is True:
+            argv.append(flag)
+        elif value is not None and value is not False:
+            argv += [flag, str(value)]
+    return argv + FLAGS[0].argv(run_cfg, mode_defaults(mode))
+
+
+def _run_edit(run_cfg, argv: list[str], *, prompt: str, data: Path, scene: Path, out: Path,
+              seed: int, quiet: bool) -> None:
+    """The edit stage: :func:`jaxedit.pipelines.edit.edit_files`, the call the edit command
+    makes, with the edit command's progress bars; ``out`` gets the config.json the edit
+    command writes for ``argv``, the same run."""
+    from experiments import cli
+    from jaxedit.pipelines.edit import edit_files
+
+    from .edit import progress_callback
+
+    cli.write_run_config(cli.parse(argv), argv=argv)
+    progress = progress_callback(quiet)
+    log = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
+    try:
+        edit_files(run_cfg, prompt, data, scene, seed=seed, run_dir=out, progress=progress,
+                   log=log)
+    finally:
+        progress.close()
 
 
 def run(args) -> dict:
     from experiments.progress import Progress, configure, nested
     from jaxedit.compilation import compile_stats
-    from jaxedit.edit.difficulty import lpips_weights_to_use
     from jaxedit.io.files import atomic_write_text
     from jaxedit.pipelines.report import read_json, write_report
 
@@ -241,42 +306,38 @@ def run(args) -> dict:
     _require_commands()
     configure(quiet=args.quiet)
     prompt = config.prompt or _default_prompt(config.editor)
-    threshold = config.threshold
-    if threshold is None and lpips_weights_to_use(config.distance) is None:
-        threshold = MS_SSIM_THRESHOLD
     common = {"--seed": args.seed, "--quiet": args.quiet}
     data, recon, edit = out / "data", out / "reconstruct", out / "edit"
+    # The edit runs through the library's call with its config tree; the first two stages
+    # are their commands run in this process.
+    edit_cfg = edit_config(config)
+    edit_argv = _edit_argv(edit_cfg, config.mode, {
+        "--data": data, "--scene": recon / "scene.ply", "--prompt": prompt, "--out": edit,
+        **common})
+    make_argv = _stage_argv("make-scene", {
+        "name": config.scene_name, "--out": data, **_scene_size(config.scene_name, config.size),
+        "--views": config.views, "--test-views": config.test_views, **common})
+    recon_argv = _stage_argv("reconstruct", {
+        "--data": data, "--out": recon, "--iters": config.iters, **common})
     plans = [
-        ("make-scene", data / "transforms.json", _stage_argv("make-scene", {
-            "name": config.scene_name, "--out": data, **_scene_size(config.scene_name, config.size),
-            "--views": config.views, "--test-views": config.test_views, **common})),
-        ("reconstruct", recon / "scene.ply", _stage_argv("reconstruct", {
-            "--data": data, "--out": recon, "--iters": config.iters, **common})),
-        ("edit", edit / "schedule.json", _stage_argv("edit", {
-            "--data": data, "--scene": recon / "scene.ply", "--prompt": prompt,
-            "--editor": config.editor, "--mode": config.mode,
-            "--threshold": None if config.subtasks else threshold, "--distance": config.distance,
-            "--target-subtasks": (None if config.subtasks or threshold is not None
-                                  else config.target_subtasks),
-            "--refine-first" if config.refine_first else "--no-refine-first": True,
-            "--subtasks": config.subtasks, "--max-steps": config.max_steps,
-            "--difficulty-views": config.difficulty_views, "--patience": config.patience,
-            "--ip2p-steps": config.ip2p_steps if config.editor == "ip2p" else None,
-            "--turntable-frames": config.turntable_frames, "--out": edit, **common,
-            **_edit_extra(args.edit_arg)})),
+        ("make-scene", data / "transforms.json", lambda: _run_stage(make_argv)),
+        ("reconstruct", recon / "scene.ply", lambda: _run_stage(recon_argv)),
+        ("edit", edit / "schedule.json", lambda: _run_edit(
+            edit_cfg, edit_argv, prompt=prompt, data=data, scene=recon / "scene.ply", out=edit,
+            seed=args.seed, quiet=args.quiet)),
     ]
     seconds: dict[str, float] = {}
     compiles_before = compile_stats()
     t_start = time.perf_counter()
     # Relative stage costs measured on the default demo (make-scene is seconds), for the ETA.
     with Progress(len(plans), "demo", weights=[0.03, 0.47, 0.5]) as bar, nested(bar):
-        for name, product, argv in plans:
+        for name, product, stage in plans:
             bar.set_postfix(stage=name)
-            if args.reuse and product.exists():
+            if config.reuse and product.exists():
                 seconds[name] = 0.0
             else:
                 t0 = time.perf_counter()
-                _run_stage(argv)
+                stage()
                 seconds[name] = round(time.perf_counter() - t0, 2)
                 if not product.exists():
                     raise RuntimeError(f"stage {name} finished without writing {product}")

@@ -180,9 +180,27 @@ def test_demo_plumbing(tmp_path):
     assert argv == ["make-scene", "face", "--out", str(tmp_path), "--size", "16", "--quiet"]
     with pytest.raises(DataError, match="no such flag"):
         demo._stage_argv("make-scene", {"--no-such-flag": 1})
-    assert demo._edit_extra(["max-steps=30", "--sync"]) == {"--max-steps": "30", "--sync": True}
-    with pytest.raises(DataError):
-        demo._edit_extra(["=3"])
+    assert demo._edit_extra(["max-steps=30", "--sync"]) == {"plan.max_steps": 30,
+                                                            "plan.asynchronous": False}
+    for bad in (["=3"], ["max-steps=many"], ["no-such-flag=1"], ["sync=1"], ["editor=dall-e"]):
+        with pytest.raises(DataError, match="--edit-arg"):
+            demo._edit_extra(bad)
+
+
+def test_demo_edit_runs_the_config_tree_its_record_reproduces(tmp_path):
+    """The demo's edit stage is a config tree (no argv); the command line its config.json
+    records builds the same tree in the edit command."""
+    from experiments import edit
+
+    config = demo.run_config(cli.parse(["demo", "--out", str(tmp_path), "--mode", "in2n",
+                                        "--patience", "7", "--edit-arg", "warmup=20",
+                                        "--edit-arg", "ip2p-batch=2"]))
+    assert config.edit_arg == ("warmup=20", "ip2p-batch=2")
+    tree = demo.edit_config(config)
+    assert (tree.plan.mode, tree.plan.patience, tree.plan.warmup) == ("in2n", 7, 20)
+    assert (tree.editor.kind, tree.editor.steps, tree.editor.batch) == ("ip2p", 5, 2)
+    argv = demo._edit_argv(tree, "in2n", {"--data": tmp_path, "--quiet": True})
+    assert edit.run_config(cli.parse(argv)) == tree
 
 
 def test_report_command_rewrites_the_page(tmp_path):

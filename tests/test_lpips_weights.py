@@ -252,34 +252,13 @@ def test_demo_threshold_default_follows_the_distance(tmp_path, monkeypatch):
     keeps its absolute threshold."""
     from experiments import demo
 
-    seen = {}
-
-    def record(command, flags):
-        seen[command] = flags
-        return [command]
-
-    def stop(argv):
-        raise RuntimeError("stop")  # the plan is built before any stage runs
-
-    monkeypatch.setattr(demo, "_stage_argv", record)
-    monkeypatch.setattr(demo, "_run_stage", stop)
-    monkeypatch.setattr(demo, "_require_commands", lambda: None)
     monkeypatch.setenv("JAXEDIT_CACHE", str(tmp_path))  # an empty cache: LPIPS all the same
-    args = Namespace(out=tmp_path, size=8, views=2, test_views=1, iters=1, max_steps=1,
-                     threshold=None, distance="auto", prompt="p", quiet=True, seed=0,
-                     scene_name="face", mode="proedit", subtasks=None, turntable_frames=0,
-                     edit_arg=[], reuse=False, editor="ip2p", difficulty_views=4, patience=30,
-                     ip2p_steps=10, refine_first=False, target_subtasks=4)
     for distance, want in (("auto", None), ("ms-ssim", demo.MS_SSIM_THRESHOLD)):
-        seen.clear()
-        with pytest.raises(RuntimeError, match="stop"):
-            demo.run(Namespace(**{**vars(args), "distance": distance}))
-        assert seen["edit"]["--threshold"] == want and seen["edit"]["--distance"] == distance
+        plan = demo.edit_config(demo.DemoConfig(distance=distance)).plan
+        assert plan.threshold == want
+        assert plan.target_subtasks == (4 if want is None else None)
     # An explicit threshold always wins.
-    seen.clear()
-    with pytest.raises(RuntimeError, match="stop"):
-        demo.run(Namespace(**{**vars(args), "threshold": 0.5}))
-    assert seen["edit"]["--threshold"] == 0.5
+    assert demo.edit_config(demo.DemoConfig(threshold=0.5)).plan.threshold == 0.5
 
 
 # ----------------------------------------------------------------------------- the converter
