@@ -297,22 +297,27 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     tokenizer = CLIPTokenizer.from_folder(tokenizer_folder(out))
     tokens = tokenizer([i.prompt for i in data.instructions] + [""])
 
-    # The autoencoder, on the training views' inputs and targets.
+    # The autoencoder, on the training views' inputs and targets (or --init's, kept).
     t0 = time.perf_counter()
     train_rows = data.split(held_out=False)
-    vae_images = np.concatenate([data.inputs[train_views], data.targets[train_rows]])
-    state = tiny_ip2p.init_vae(cfg, k_vae)
-    vae_losses: list[float] = []
-    if "editor-vae" in stored:
-        state, vae_losses = _restored(stored["editor-vae"], state, stages["editor-vae"])
     vae_static = eqx.filter(tiny_ip2p.AutoencoderKL.from_config(
         tiny_ip2p.vae_config(cfg), key=jax.random.key(0)), eqx.is_array, inverse=True)
-    step = tiny_ip2p.make_vae_step(cfg, vae_static, jax.numpy.asarray(vae_images))
-    state, vae_losses = tiny_ip2p.run_steps(
-        step, state, cfg.vae_steps, every=CHECKPOINT_EVERY, losses=vae_losses,
-        on_progress=stage("vae", cfg.vae_steps, int(state.step)),
-        checkpoint=_checkpointer(stages["editor-vae"], "editor-vae", cfg))
-    vae = eqx.combine(state.vae, vae_static)
+    start = initial_networks(cfg, vocab) if cfg.init else None
+    vae_losses: list[float] = []
+    if start is not None:
+        vae = eqx.combine(start["vae"], vae_static)
+        log(f"autoencoder, UNet and text encoder start from {cfg.init}")
+    else:
+        vae_images = np.concatenate([data.inputs[train_views], data.targets[train_rows]])
+        state = tiny_ip2p.init_vae(cfg, k_vae)
+        if "editor-vae" in stored:
+            state, vae_losses = _restored(stored["editor-vae"], state, stages["editor-vae"])
+        step = tiny_ip2p.make_vae_step(cfg, vae_static, jax.numpy.asarray(vae_images))
+        state, vae_losses = tiny_ip2p.run_steps(
+            step, state, cfg.vae_steps, every=CHECKPOINT_EVERY, losses=vae_losses,
+            on_progress=stage("vae", cfg.vae_steps, int(state.step)),
+            checkpoint=_checkpointer(stages["editor-vae"], "editor-vae", cfg))
+        vae = eqx.combine(state.vae, vae_static)
     seconds["vae"] = time.perf_counter() - t0
 
     # The latents: every image encoded once; the scaling factor from the training targets.
@@ -327,6 +332,9 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     t0 = time.perf_counter()
     unet, text = tiny_ip2p.build_networks(cfg, len(vocab), tokenizer.bos_id, tokenizer.eos_id,
                                           k_nets)
+    if start is not None:
+        unet = eqx.combine(start["unet"], eqx.filter(unet, eqx.is_array, inverse=True))
+        text = eqx.combine(start["text"], eqx.filter(text, eqx.is_array, inverse=True))
     ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
     unet_losses: list[float] = []
     if "editor-unet" in stored:
@@ -364,6 +372,41 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
                  "scenes": list(cfg.scenes), "holdout_every": edit_data.HOLDOUT_EVERY})
     atomic_write_text(out / "training.json", json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def initial_networks(cfg, vocab: dict) -> dict:
+    """The arrays of ``cfg.init``'s autoencoder, UNet and text encoder ({"vae", "unet",
+    "text"}), checked to be this config's architecture (every array's path and shape) and
+    its tokenizer this run's (the same instructions give the same vocabulary).
+
+    Raises:
+      DataError naming ``--init``.
+    """
+    from ...models import load_ip2p
+
+    folder = Path(cfg.init)
+    stored_vocab = json.loads((folder / "tokenizer" / "vocab.json").read_text())
+    if stored_vocab != vocab:
+        raise DataError("--init", f"{cfg.init}: its tokenizer is not this run's (trained on "
+                                  f"other instructions)")
+    models = load_ip2p(folder)
+    key = jax.random.key(0)
+    fresh = {"vae": tiny_ip2p.AutoencoderKL.from_config(tiny_ip2p.vae_config(cfg), key=key),
+             **dict(zip(("unet", "text"), tiny_ip2p.build_networks(
+                 cfg, len(vocab), vocab[tiny_ip2p.BOS], vocab[tiny_ip2p.EOS], key)))}
+    loaded = {"vae": models.vae, "unet": models.unet, "text": models.text_encoder}
+    out = {}
+    for name, module in loaded.items():
+        want = eqx.filter(fresh[name], eqx.is_array)
+        got = eqx.filter(module, eqx.is_array)
+        shapes = lambda t: [(jax.tree_util.keystr(p), x.shape)  # noqa: E731
+                            for p, x in jax.tree_util.tree_leaves_with_path(t)]
+        if shapes(want) != shapes(got):
+            raise DataError("--init", f"{cfg.init}: its {name} is not this config's "
+                                      f"architecture (--size, --text-width, --text-layers)")
+        out[name] = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(want),
+                                                 jax.tree_util.tree_leaves(got))
+    return out
 
 
 def _mean_tail(losses: list[float], n: int = 100) -> float | None:

@@ -12,7 +12,10 @@ Three networks in Stable Diffusion's architecture, small enough for a 2-core CPU
 - the 8-channel conditional UNet, trained jointly with the text encoder on IP2P's objective:
   eps-prediction of the edited view's noised latent, conditioned on the instruction and on
   the input view's latent (posterior mode, unscaled), with IP2P's conditioning dropout (text
-  alone, image alone, both, 5 % each) so dual classifier-free guidance works.
+  alone, image alone, both, 5 % each) so dual classifier-free guidance works. The empty
+  prompt means "keep the view": an example whose text alone is dropped takes the input as
+  its target (``empty_is_identity``), so the branch E("") + image that identity, ProEdit's
+  e(0) and the image guidance read is the input, not a mixture of every instruction's edits.
 
 Training examples (all drawn inside the compiled step from the step's key): an instruction
 uniformly (plus the identity class: the empty prompt and the input itself as target), a
@@ -71,6 +74,16 @@ class EditorTrainConfig:
       ema: decay of the exponential moving average that is exported.
       identity_share: share of identity examples (empty prompt, the input as target).
       drop: probability of each of IP2P's conditioning dropouts (text, image, both).
+      empty_is_identity: an example whose instruction is dropped (IP2P's text dropout, the
+        image kept) takes the input as its target, so E("") with the image means "keep the
+        view", as the identity examples and ProEdit's e(0) read it. False (the first bundled
+        editor's recipe): it keeps its edit, and E("") + image learns a mixture of the input
+        (about 2/3) and every instruction's edits (1/3), which the identity edit and the
+        image guidance then draw from.
+      init: a diffusers folder of this architecture (a previous run's ``model/``) whose
+        networks start the run: its autoencoder is kept as it is (no VAE stage), its UNet and
+        text encoder start the UNet stage (the optimiser and the EMA start afresh). Empty:
+        every network starts from random weights.
       degrade: share of inputs degraded as a reconstruction's renders are (blur, noise).
       text_width: width of the text encoder (and the UNet's cross-attention).
       text_layers: transformer layers of the text encoder.
@@ -90,11 +103,13 @@ class EditorTrainConfig:
     ema: float = 0.999
     identity_share: float = 0.1
     drop: float = 0.05
+    empty_is_identity: bool = True
     degrade: float = 0.5
     #: Channels of the UNet's three levels (not a flag: the shipped architecture).
     width: tuple[int, int, int] = (32, 64, 96)
     text_width: int = 64
     text_layers: int = 2
+    init: str = ""
     seed: int = 0
 
     @staticmethod
@@ -136,6 +151,16 @@ class EditorTrainConfig:
         for name in ("lr", "vae_lr"):
             if not 0 < float(getattr(self, name)) <= 1:
                 raise DataError(_flag(name), f"must be in (0, 1], got {getattr(self, name)}")
+        if self.init:
+            from pathlib import Path
+
+            folder = Path(self.init)
+            missing = [c for c in ("unet", "vae", "text_encoder", "tokenizer")
+                       if not (folder / c / "config.json").is_file() and c != "tokenizer"
+                       or c == "tokenizer" and not (folder / c / "vocab.json").is_file()]
+            if missing:
+                raise DataError("--init", f"{self.init!r} is not a diffusers folder of a "
+                                f"trained editor (no {missing[0]}/ in it)")
         if not -2**63 <= int(self.seed) < 2**63:  # jax.random.key takes a 64-bit integer
             raise DataError("--seed", f"must fit in 64 bits (|seed| < 2^63), got {self.seed}")
         from ...memory import require_memory
@@ -482,6 +507,10 @@ def draw_batch(d: UNetData, key: Array, cfg: EditorTrainConfig, scaling: float):
     no_image = (u >= cfg.drop) & (u < 3 * cfg.drop)
     tokens = jnp.where(no_text[:, None], d.tokens[n_ins][None], tokens)
     cond = jnp.where(no_image[:, None, None, None], 0.0, cond)
+    if cfg.empty_is_identity:  # no instruction but the image: keep the view
+        keep = no_text & ~no_image
+        target = jnp.where(keep[:, None, None, None],
+                           d.input_mean[view, 0] + d.input_std[view] * eps_vae, target)
     return target * scaling, cond, tokens
 
 
