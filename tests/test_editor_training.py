@@ -7,6 +7,7 @@ step dominates); the bundled folder is checked against diffusers where torch is 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -17,6 +18,7 @@ import pytest
 from experiments import cli
 from jaxedit.editors.jax_ip2p import JaxIP2PEditor
 from jaxedit.editors import bundled_editor, instructions, native_size
+from jaxedit.errors import DataError
 from jaxedit.pipelines.train_editor import edit_data, tiny_ip2p
 from jaxedit.pipelines.train_editor.export import module_tensors, write_pipeline
 from jaxedit.models import load_ip2p
@@ -146,6 +148,51 @@ def test_train_editor_smoke_writes_a_working_editor_and_resumes(tmp_path, capfd)
     assert code == 2 and len(errors) == 1 and "unet.npz" in errors[0], err.err
     assert err.err.splitlines()[-1] == errors[0]  # the stages done before it logged a line each
     assert (out / "checkpoints" / "unet.npz").read_bytes() == b"not a checkpoint"
+
+    # --init: a run continued from the written folder keeps its autoencoder bit for bit, trains
+    # its UNet on, and refuses a folder of another architecture before any work.
+    more = tmp_path / "more"
+    cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), init=str(out / "model"))
+    from jaxedit.pipelines.train_editor import train_editor
+
+    train_editor(cfg, more)
+    vae = "vae/diffusion_pytorch_model.safetensors"
+    assert (more / "model" / vae).read_bytes() == (out / "model" / vae).read_bytes()
+    unet = "unet/diffusion_pytorch_model.safetensors"
+    assert (more / "model" / unet).read_bytes() != (out / "model" / unet).read_bytes()
+    with pytest.raises(DataError, match="--init"):
+        train_editor(dataclasses.replace(cfg, text_width=16), tmp_path / "other")
+    assert not (tmp_path / "other" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize("empty_is_identity", [True, False])
+def test_the_empty_prompt_with_the_image_keeps_the_view(empty_is_identity):
+    """IP2P's text dropout: with empty_is_identity an example whose text alone is dropped
+    takes its input as target (E("") + image means "keep the view"); without, its edit."""
+    v, m, hw = 6, 12, (2, 2, 4)
+    # Latents as labels: input view v is v + 1, target row r is 100 + r (no posterior noise).
+    inputs = np.stack([np.full(hw, v_ + 1.0, np.float32) for v_ in range(v)])
+    d = tiny_ip2p.UNetData(
+        target_mean=jnp.asarray(np.stack([np.full(hw, 100.0 + r, np.float32) for r in range(m)])),
+        target_std=jnp.zeros((m, *hw)), input_mean=jnp.asarray(np.stack([inputs] * 2, 1)),
+        input_std=jnp.zeros((v, *hw)), rows=jnp.arange(m, dtype=jnp.int32).reshape(2, 6),
+        counts=jnp.asarray([6, 6], jnp.int32), active=jnp.asarray([0, 1], jnp.int32),
+        views=jnp.arange(v, dtype=jnp.int32), tokens=jnp.asarray([[1, 2], [3, 4], [0, 0]]),
+        target_view=jnp.asarray(np.arange(m) % v, jnp.int32))
+    cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), batch=512, drop=0.3,
+                              identity_share=0.0, degrade=0.0,
+                              empty_is_identity=empty_is_identity)
+    target, cond, tokens = tiny_ip2p.draw_batch(d, jax.random.key(0), cfg, 1.0)
+    target, cond, tokens = (np.asarray(a)[:, 0, 0, 0] if a.ndim == 4 else np.asarray(a)
+                            for a in (target, cond, tokens))
+    empty = (tokens == 0).all(1)
+    text_dropped = empty & (cond > 0)  # the image kept
+    assert text_dropped.sum() > 50 and (~empty).sum() > 50
+    assert (target[~empty] >= 100).all()  # an instruction: its edit
+    if empty_is_identity:
+        np.testing.assert_array_equal(target[text_dropped], cond[text_dropped])
+    else:
+        assert (target[text_dropped] >= 100).all()
 
 
 def test_train_editor_refuses_an_unknown_scene_before_any_work(tmp_path, capfd):

@@ -88,6 +88,14 @@ def write_tokenizer(folder: Path, vocab: dict[str, int], merges: list[tuple[str,
         "clean_up_tokenization_spaces": True})
 
 
+def read_tokenizer(folder: Path) -> tuple[dict[str, int], list[tuple[str, str]]]:
+    """(vocab, merges) of a folder :func:`write_tokenizer` wrote (its inverse)."""
+    vocab = json.loads((folder / "vocab.json").read_text())
+    lines = (folder / "merges.txt").read_text().splitlines()
+    merges = [tuple(line.split(" ")) for line in lines if line and not line.startswith("#")]
+    return vocab, merges
+
+
 def write_pipeline(out: str | os.PathLike, *, unet, unet_config: dict, vae, vae_config: dict,
                    text_encoder, text_config: dict, vocab: dict[str, int],
                    merges: list[tuple[str, str]], bos: str, eos: str, max_length: int,
