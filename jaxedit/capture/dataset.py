@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import opencv_w2c_to_opengl_c2w
-from ..errors import DataError
+from ..errors import DataError, check_ranges, ranged
 from ..io.files import current_umask
 from ..io.images import read_image, write_image
 from ..io.nerfstudio import _downscale_image
@@ -155,14 +155,11 @@ class CaptureConfig:
     """
 
     sfm: SfmOptions = SfmOptions()
-    num_frames: int = 300
-    min_registered: float = 0.5
+    num_frames: int = ranged(300, low=1)
+    min_registered: float = ranged(0.5, low=0.0, high=1.0)
 
     def __post_init__(self):
-        if self.num_frames < 1:
-            raise DataError("num_frames", f"must be >= 1, got {self.num_frames}")
-        if not 0.0 <= self.min_registered <= 1.0:
-            raise DataError("min_registered", f"must be in [0, 1], got {self.min_registered}")
+        check_ranges(self)
 
 
 def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOptions = SfmOptions(),

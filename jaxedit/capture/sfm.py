@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from ..errors import DataError
+from ..errors import DataError, check_ranges, ranged
 
 MATCHING = ("exhaustive", "sequential")
 CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL")
@@ -66,12 +66,12 @@ class SfmOptions:
 
     camera_model: str = "SIMPLE_RADIAL"
     matching: str = "exhaustive"
-    overlap: int = 10
-    max_features: int = 8192
-    max_image_size: int = 3200
+    overlap: int = ranged(10, low=1)
+    max_features: int = ranged(8192, low=1)
+    max_image_size: int = ranged(3200, low=1)
     num_threads: int = -1
     seed: int = 0
-    chunk: int = 64
+    chunk: int = ranged(64, low=1)
     camera_params: tuple[float, ...] | None = None
     focal_px: float | None = None
     refine_intrinsics: bool = False
@@ -83,9 +83,7 @@ class SfmOptions:
         if self.matching not in MATCHING:
             raise DataError("matching", f"must be one of {', '.join(MATCHING)}, got "
                                           f"{self.matching!r}")
-        for name in ("overlap", "max_features", "max_image_size", "chunk"):
-            if getattr(self, name) < 1:
-                raise DataError(name, f"must be >= 1, got {getattr(self, name)}")
+        check_ranges(self)
         if self.focal_px is not None and self.camera_params is not None:
             raise DataError("camera_params", "give either focal_px or camera_params, not both")
         if self.focal_px is not None and not (math.isfinite(self.focal_px) and self.focal_px > 0):

@@ -102,7 +102,7 @@ from ...editors.diffusion import DDIM_STEPS
 from ...editors import outcome_class
 from ...editors.simulated import INSTRUCTIONS, SimulatedEditor
 from ...editors.simulated_targets import MAX_MODES
-from ...errors import DataError
+from ...errors import DataError, check_ranges, ranged
 from ...io import write_image
 from ...io.files import atomic_write_text
 from ...viz import image_grid
@@ -175,38 +175,31 @@ class AblationConfig:
 
     scenes: tuple[str, ...] = SCENES
     prompts: tuple[str, ...] = PROMPTS
-    seeds: int = 20
+    seeds: int = ranged(20, low=1)
     variants: tuple[str, ...] = VARIANTS
     methods: tuple[str, ...] = MAIN_METHODS
     control_methods: tuple[str, ...] = CONTROL_METHODS
-    size: int = 20
-    views: int = 6
-    test_views: int = 2
-    recon_iters: int = 400
-    refine_every: int = 10
-    max_steps: int = 30
-    warmup: int = 4
-    patience: int = 6
-    edit_every: int = 3
-    lr_sh_dc: float = 0.025
+    size: int = ranged(20, low=8)
+    views: int = ranged(6, low=1)
+    test_views: int = ranged(2, low=1)
+    recon_iters: int = ranged(400, low=1)
+    refine_every: int = ranged(10, low=1)
+    max_steps: int = ranged(30, low=1)
+    warmup: int = ranged(4, low=0)
+    patience: int = ranged(6, low=1)
+    edit_every: int = ranged(3, low=1)
+    lr_sh_dc: float = ranged(0.025, low=0, open=True)
     editor: str = "simulated"
-    ip2p_steps: int = DDIM_STEPS
+    ip2p_steps: int = ranged(DDIM_STEPS, low=1)
     references: bool = True
 
     def __post_init__(self):
         from ...scenes import list_scenes
 
-        for name, low in (("seeds", 1), ("size", 8), ("views", 1), ("test_views", 1),
-                          ("recon_iters", 1), ("refine_every", 1), ("max_steps", 1),
-                          ("warmup", 0), ("patience", 1), ("edit_every", 1),
-                          ("ip2p_steps", 1)):
-            if getattr(self, name) < low:
-                raise DataError(name, f"must be >= {low}, got {getattr(self, name)}")
+        check_ranges(self)
         if self.editor not in EDITORS:
             raise DataError("editor", f"unknown editor {self.editor!r}; choose from "
                                       f"{', '.join(EDITORS)}")
-        if not self.lr_sh_dc > 0:
-            raise DataError("lr_sh_dc", f"must be > 0, got {self.lr_sh_dc}")
         bad = [s for s in self.scenes if s not in list_scenes()]
         if bad or not self.scenes:
             raise DataError("scenes", f"unknown scene(s) {bad}; built-in: "
