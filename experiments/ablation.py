@@ -8,6 +8,8 @@ is :meth:`AblationConfig.smoke`, and ``--seed`` seeds the scenes and reconstruct
 
 from __future__ import annotations
 
+import dataclasses
+
 HELP = ("ablation: proedit vs nd, nd at equal steps and calls (nd_equal, nd_replay), nd-k, "
         "uniform and in2n over seeds, with reference levels and paired 95-percent confidence "
         "intervals (simulated editor or the bundled ip2p); resumes from RUN_DIR/runs.jsonl")
@@ -27,18 +29,36 @@ def _config_flags():
                                       Flag("references", off="--no-references")))
 
 
-#: The command's flags, generated from :class:`jaxedit.pipelines.ablation.AblationConfig`.
-FLAGS = (_config_flags(),)
+@dataclasses.dataclass(frozen=True)
+class AblationCommand:
+    """What one ``ablation`` command runs of the study its settings describe.
+
+    Attributes:
+      smoke: tiny sizes (CI): seconds, not minutes; sets every setting itself.
+      seed_range: run only seeds A .. B-1 of the study's --seeds, as A:B (a part of the
+        study, in a folder of its own; the part holding seed 0 runs the reference levels);
+        parts merge by concatenating their runs.jsonl.
+    """
+
+    smoke: bool = False
+    seed_range: str | None = None
+
+
+def _command_flags():
+    from .flags import Flag, FlagSet
+
+    return FlagSet(AblationCommand, (Flag("smoke"), Flag("seed_range", metavar="A:B")))
+
+
+#: The command's flags: the study's settings, generated from
+#: :class:`jaxedit.pipelines.ablation.AblationConfig`, and the command's own
+#: (:class:`AblationCommand`).
+FLAGS = (_config_flags(), _command_flags())
 
 
 def add_arguments(p) -> None:
     FLAGS[0].add_to(p)
-    p.add_argument("--smoke", action="store_true",
-                   help="tiny sizes (CI): seconds, not minutes; sets every setting itself")
-    p.add_argument("--seed-range", metavar="A:B", default=None,
-                   help="run only seeds A .. B-1 of the study's --seeds (a part of the study, "
-                        "in a folder of its own; the part holding seed 0 runs the reference "
-                        "levels); parts merge by concatenating their runs.jsonl")
+    FLAGS[1].add_to(p)
 
 
 def seed_range(text: str | None, seeds: int) -> range | None:

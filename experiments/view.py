@@ -26,16 +26,46 @@ import threading
 import time
 from pathlib import Path
 
+from jaxedit.errors import check_ranges, ranged
+
 HELP = "serve an edit run's snapshots in the browser (viser): a slider over subtasks, select button"
 
 HOST = "127.0.0.1"  # never 0.0.0.0: a run may be private; forward the port to share it
 DEFAULT_PORT = 8080  # viser's; a taken port moves to the next free one
 
 
+@dataclasses.dataclass(frozen=True)
+class ViewConfig:
+    """Where the viewer listens.
+
+    Attributes:
+      port: port on 127.0.0.1 (taken: the next free one; 0: any free port).
+    """
+
+    port: int = ranged(DEFAULT_PORT, low=0, high=65535)
+
+    def __post_init__(self):
+        check_ranges(self)
+
+
+def _config_flags():
+    from experiments.flags import Flag, FlagSet
+
+    return FlagSet(ViewConfig, (Flag("port"),))
+
+
+#: The command's flags, generated from :class:`ViewConfig`.
+FLAGS = (_config_flags(),)
+
+
 def add_arguments(p) -> None:
     p.add_argument("run_dir", type=Path, help="edit run directory (the --out of edit, or a demo's)")
-    p.add_argument("--port", type=int, default=DEFAULT_PORT,
-                   help="port on 127.0.0.1 (taken: the next free one; 0: any free port)")
+    FLAGS[0].add_to(p)
+
+
+def run_config(args) -> ViewConfig:
+    """The :class:`ViewConfig` of ``args`` (range errors name the flag)."""
+    return FLAGS[0].build(args)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -319,17 +349,8 @@ def watch_edit(run_dir: Path, *, port: int = DEFAULT_PORT) -> RunWatcher:
     return RunWatcher(run_dir, viewer).start()
 
 
-def check_port(port: int, flag: str) -> int:
-    """``port`` when it is a TCP port number (0: any free one), else a DataError naming ``flag``."""
-    from jaxedit import DataError
-
-    if not 0 <= port < 65536:
-        raise DataError(flag, f"must be a port in [0, 65535], got {port}")
-    return port
-
-
 def run(args) -> dict:
-    viewer = open_run(args.run_dir, port=check_port(args.port, "--port"))
+    viewer = open_run(args.run_dir, port=run_config(args).port)
     try:
         print(f"viewer: {viewer.url} ({len(viewer)} snapshots; Ctrl-C to stop)", flush=True)
         viewer.serve_forever()

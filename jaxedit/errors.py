@@ -60,9 +60,13 @@ class Range:
         return f">= {low:g}" if low is not None else f"<= {high:g}"
 
     def problem(self, value) -> str | None:
-        """The error text of ``value`` ("must be >= 1, got 0"), or None if it is in range."""
+        """The error text of ``value`` ("must be >= 1, got 0"), or None if it is in range; a
+        tuple (a colour, a point) is in range when each of its items is."""
         if value is None:
             return None
+        if isinstance(value, tuple):
+            bad = [v for v in value if self.problem(v)]
+            return f"must be {self.describe()} each, got {value}" if bad else None
         if self.open:
             bad = ((self.low is not None and not value > self.low)
                    or (self.high is not None and not value < self.high))
