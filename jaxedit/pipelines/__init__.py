@@ -1,8 +1,10 @@
 """Pipelines: runs with a run directory, the library half of the commands that write one.
 
 * :mod:`.reconstruct` -- fit a dataset and write its run directory;
-* :mod:`.edit` -- the edit command's config tree and :func:`run_edit`, a whole
-  progressive edit with its run directory;
+* :mod:`.edit` -- the edit command's config tree (:class:`EditRunConfig`, its
+  :class:`EditorConfig`), :func:`run_edit`, a whole progressive edit with its run
+  directory, and :func:`edit_files`, the edit of a dataset and a scene on disk as the
+  ``edit`` command runs it (its editor and difficulty distance made from the config);
 * :mod:`.train_editor` -- the bundled InstructPix2Pix's training: its dataset, networks,
   diffusers writer, evaluation and run directory;
 * :mod:`.snapshots` -- snapshot folders of scene states and the user's selection;
@@ -15,7 +17,8 @@ and :func:`jaxedit.edit.progressive.run_plan` hand records and states to callbac
 ``experiments/`` is the thin edge above (flags, progress bars, printing).
 """
 
-from .edit import EditRunConfig, run_edit
+from .edit import EditorConfig, EditRunConfig, edit_files, make_editor, run_edit
 from .snapshots import select_snapshot
 
-__all__ = ["EditRunConfig", "run_edit", "select_snapshot"]
+__all__ = ["EditRunConfig", "EditorConfig", "edit_files", "make_editor", "run_edit",
+           "select_snapshot"]
