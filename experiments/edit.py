@@ -186,9 +186,7 @@ def mode_defaults(mode: str):
 def run_config(args):
     """The :class:`jaxedit.pipelines.edit.EditRunConfig` of ``args``: the flags given over
     ``--mode``'s defaults (:func:`mode_defaults`; DataErrors name its fields)."""
-    from jaxedit.edit import ProEditConfig
-
-    return FLAGS[0].build(args, bases={"plan": ProEditConfig.for_mode(args.mode)})
+    return FLAGS[0].build(args, bases={"plan": mode_defaults(args.mode).plan})
 
 
 def progress_callback(quiet: bool):
