@@ -8,7 +8,8 @@
 """
 
 from .views import (VIEWS, fetch, replicate, shard_local_views, shard_views, views_loss_and_grad,
-                    views_mesh, views_step)
+                    views_loss_and_grad_jit, views_mesh, views_step, views_step_jit)
 
 __all__ = ["VIEWS", "fetch", "replicate", "shard_local_views", "shard_views",
-           "views_loss_and_grad", "views_mesh", "views_step"]
+           "views_loss_and_grad", "views_loss_and_grad_jit", "views_mesh", "views_step",
+           "views_step_jit"]
