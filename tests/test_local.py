@@ -368,38 +368,28 @@ class Crash(RuntimeError):
     pass
 
 
-def _local_edit(ball, run_dir, **kw):
+def _local_edit(ball, run_dir, editor=None, **kw):
     from jaxedit.edit import ProEditConfig, TrainSettings
     from jaxedit.editors import SimulatedEditor
     from jaxedit.pipelines import run_edit
 
     g, data = ball
-    return run_edit(SimulatedEditor(), LOCAL_PROMPT, data, g,
+    return run_edit(editor or SimulatedEditor(), LOCAL_PROMPT, data, g,
                     config=ProEditConfig.for_mode("proedit", **LOCAL_RUN),
                     settings=TrainSettings(lr_sh_dc=0.05), seed=3, run_dir=run_dir,
                     report=False, local=L.LocalSpec("auto"), **kw)
 
 
-def test_a_local_edit_encodes_its_prompt_once(ball):
-    # the relevance (--local auto), the context and the difficulty share one encoding
-    from jaxedit.edit import ProEditConfig, TrainSettings
-    from counting_editor import CountingEditor
-    from jaxedit.pipelines import run_edit
-
-    g, data = ball
-    editor = CountingEditor()
-    run_edit(editor, LOCAL_PROMPT, data, g, seed=3, run_dir=None, report=False,
-             config=ProEditConfig.for_mode("proedit", **{**LOCAL_RUN, "subtasks": 1,
-                                                          "max_steps": 8, "warmup": 2}),
-             settings=TrainSettings(lr_sh_dc=0.05), local=L.LocalSpec("auto"))
-    assert editor.encoded == {LOCAL_PROMPT: 1, "": 1}
-
-
 def test_local_edit_keeps_the_frozen_bits_and_resumes_exactly(ball, tmp_path):
     import json
 
+    from counting_editor import CountingEditor
+
     g, data = ball
-    whole = _local_edit(ball, tmp_path / "whole")
+    editor = CountingEditor()
+    whole = _local_edit(ball, tmp_path / "whole", editor=editor)
+    # the relevance (--local auto), the context and the difficulty share one encoding
+    assert editor.encoded == {LOCAL_PROMPT: 1, "": 1}
     figures = json.loads((tmp_path / "whole" / "schedule.json").read_text())["local"]
     assert figures["mode"] == "auto" and figures["editable"] > 0 and figures["frozen"] > 0
     out = whole["gaussians"]
