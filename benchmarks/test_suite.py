@@ -1,12 +1,13 @@
 """The test suite's own cost: the README's test command, timed, with its compile share.
 
-    python benchmarks/test_suite.py [--out DIR]       # the whole suite (tens of minutes)
+    python benchmarks/test_suite.py [--out DIR]       # the whole suite
     python benchmarks/test_suite.py --smoke           # one small file, for CI
 
-Runs ``python -m pytest tests`` (``--smoke``: ``tests/test_compilation.py``) in a fresh process
-with ``JAXEDIT_TEST_PROFILE`` set, so that ``tests/conftest.py`` records each test's wall time
-and the XLA compiles it caused in the test process (the CLI tests' subprocesses compile on
-their own; their time is in the test's wall time, not in its compile seconds). Writes
+Runs the README's ``python -m pytest tests -n auto`` (``--smoke``: ``tests/test_compilation.py``)
+in a fresh process with ``JAXEDIT_TEST_PROFILE`` set, so that ``tests/conftest.py`` records each
+test's wall time and the XLA compiles it caused in the test process (the CLI tests'
+subprocesses compile on their own; their time is in the test's wall time, not in its compile
+seconds). With several workers the tests' times add up to more than the wall time. Writes
 ``test_suite.json``: the total wall time, the outcome counts, the compile share, the 20 slowest
 tests, and each file's time against its budget (:data:`FILE_BUDGET_S`; files over it are
 listed, not failed: speed is checked here, never by timed assertions in tests).
@@ -39,7 +40,8 @@ def _extra(p):
 
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra=_extra)
-    targets = args.pytest_args or (["tests/test_compilation.py"] if args.smoke else ["tests"])
+    targets = args.pytest_args or ["tests/test_compilation.py" if args.smoke else "tests",
+                                   "-n", "auto"]
     with tempfile.TemporaryDirectory() as tmp:
         profile = Path(tmp) / "profile.jsonl"
         env = {**os.environ, "JAXEDIT_TEST_PROFILE": str(profile), "JAX_PLATFORMS": "cpu"}
@@ -62,6 +64,7 @@ def main(argv=None):
     slowest = sorted(records, key=lambda r: -r["seconds"])[:20]
     payload = {
         "smoke": args.smoke, "command": "python -m pytest " + " ".join(targets),
+        "cpu_count": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0], "total_s": round(total, 1),
         "tests_s": round(tests_s, 1), "outcomes": counts, "exit_status": done.returncode,
         "compile_s": round(compile_s, 1),

@@ -1,9 +1,11 @@
 """Suite-wide settings: one compilation cache for the run, and a bound on memory mappings.
 
-Compile once: every test and every command the CLI tests start in a subprocess share one
-persistent compilation cache (``JAXEDIT_COMPILE_CACHE_DIR``, a fresh folder per run unless the
-caller sets one), so a program that one test compiled is read back, not compiled again, by
-the next process or by a test that builds the same program from a new closure.
+Compile once: every test, every xdist worker (``-n auto``) and every command the CLI tests
+start in a subprocess share one persistent compilation cache (``JAXEDIT_COMPILE_CACHE_DIR``, a
+fresh folder per run unless the caller sets one, holding every program:
+``JAXEDIT_COMPILE_CACHE_MIN_S=0``), so a program that one test compiled is read back, not
+compiled again, by the next process or by a test that builds the same program from a new
+closure.
 
 Memory mappings: keep the test process under the kernel's limit.
 
@@ -32,6 +34,9 @@ _OWN_CACHE = None
 if not os.environ.get("JAXEDIT_COMPILE_CACHE_DIR"):
     _OWN_CACHE = tempfile.mkdtemp(prefix="jaxedit-test-xla-")
     os.environ["JAXEDIT_COMPILE_CACHE_DIR"] = _OWN_CACHE
+# Every program, however quick to compile: the suite's processes (xdist workers, the commands
+# the CLI tests start) build the same small programs again and again, and a read is cheaper.
+os.environ.setdefault("JAXEDIT_COMPILE_CACHE_MIN_S", "0")
 
 
 def pytest_sessionfinish(session, exitstatus):
