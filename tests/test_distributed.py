@@ -144,7 +144,7 @@ def library_report(tmp_path_factory):
     procs, t0 = start_pair(lambda i, _: [sys.executable, str(ROOT / "tests" /
                                                               "distributed_child.py"),
                                          str(port), str(i), str(out)], [None, None], port=port)
-    results = finish(procs, timeout=240)
+    results = finish(procs, timeout=600)
     for rc, _, err in results:
         assert rc == 0, err[-3000:]
     reports = [json.loads((out / f"report_{i}.json").read_text()) for i in range(2)]
@@ -230,7 +230,7 @@ def edit_runs(tiny_inputs, tmp_path_factory):
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     procs, _ = start_pair(lambda i, out: edit_argv(tiny_inputs, out, *dist_argv(port, i, 30)),
                           [root / "two", root / "two"], port=port)  # every process: one --out
-    results = finish([single] + procs, timeout=300)
+    results = finish([single] + procs, timeout=600)
     return root, results, time.perf_counter() - t0
 
 
