@@ -195,6 +195,20 @@ def test_the_empty_prompt_with_the_image_keeps_the_view(empty_is_identity):
         assert (target[text_dropped] >= 100).all()
 
 
+def test_novel_cameras_are_off_the_training_orbit():
+    """The quality benchmark's novel cameras: every outcome made for them, all held out, and
+    each farther from its nearest training frame than any held-out camera of the orbit."""
+    data = edit_data.build_dataset(32, 20, ("ball",))
+    novel = edit_data.novel_dataset(32, 3, ("person", "ball"))
+    assert novel.scenes == ("ball",) and novel.held_out.all() and len(novel.inputs) == 3
+    assert len(novel.targets) == 3 * sum(len(i.outcomes) for i in edit_data.INSTRUCTIONS
+                                         if i.applies_to("ball"))
+    held = np.flatnonzero(data.held_out)
+    on_orbit = edit_data.nearest_training_psnr(data, held, data)
+    off = edit_data.nearest_training_psnr(novel, range(3), data)
+    assert max(off) < min(on_orbit)
+
+
 def test_train_editor_refuses_an_unknown_scene_before_any_work(tmp_path, capfd):
     code, err = _main(["train-editor", "--scenes", "person,moon", "--out", tmp_path / "r"],
                       capfd)

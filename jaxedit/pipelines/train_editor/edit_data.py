@@ -3,7 +3,9 @@
 Views come from the built-in scenes: the Cycles renders of ``person`` (its 72 training and 8
 test cameras, RGBA, downscaled) and the procedural scenes, ray-cast on their rigs' spirals
 (every ``HOLDOUT_EVERY``-th camera held out, as :func:`jaxedit.scenes.split_views` spaces
-them). Held-out cameras are never trained on; the quality benchmark edits them.
+them). Held-out cameras are never trained on; the quality benchmark edits them, and
+:func:`novel_dataset` the same scenes from cameras off the training orbits
+(:func:`nearest_training_psnr` says how far each is from its nearest training frame).
 
 Every instruction (:data:`INSTRUCTIONS`) has one or several *outcomes*, each a deterministic
 function of the view, so a divergent instruction's outcome is drawn at random per training
@@ -248,6 +250,28 @@ def procedural_views(name: str, size: int, views: int, scene=None) -> SceneViews
     return SceneViews(name, rgba, held, cams)
 
 
+#: Novel cameras of a procedural scene (evaluation only, never trained on): off the training
+#: orbit, on a sphere NOVEL_RADIUS times the rig's and over an elevation band
+#: NOVEL_ELEVATION_DEG above the top of the rig's, so no training camera is near them.
+NOVEL_RADIUS = 0.85
+NOVEL_ELEVATION_DEG = (8.0, 22.0)
+
+
+def novel_views(name: str, size: int, views: int, scene=None) -> SceneViews:
+    """``views`` cameras of a procedural scene off its training orbit (:data:`NOVEL_RADIUS`,
+    :data:`NOVEL_ELEVATION_DEG`), every one held out."""
+    from ...scenes import get_scene, render_scene, rig_cameras
+
+    scene = get_scene(name) if scene is None else scene
+    rig = scene.rig
+    top = rig.elevation_deg[1]
+    novel = dataclasses.replace(rig, radius=rig.radius * NOVEL_RADIUS,
+                                elevation_deg=(min(top + NOVEL_ELEVATION_DEG[0], 80.0),
+                                               min(top + NOVEL_ELEVATION_DEG[1], 85.0)))
+    cams = rig_cameras(novel, views, width=size)
+    return SceneViews(name, render_scene(scene, cams, alpha=True), np.ones(views, bool), cams)
+
+
 def composite(rgba: np.ndarray, background=(1.0, 1.0, 1.0)) -> np.ndarray:
     """[..., 4] straight RGBA -> [..., 3] over ``background`` (ray-cast RGB is already over it)."""
     a = rgba[..., 3:]
@@ -323,14 +347,50 @@ def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
         if name not in list_scenes():
             raise DataError("--scenes", f"unknown scene {name!r}; built-in scenes: "
                                         f"{', '.join(list_scenes())}")
+
+    def views_of(name):
+        if name == "person":
+            return person_views(size), None
+        obj = get_scene(name)
+        return procedural_views(name, size, procedural_views_per_scene, obj), obj
+
+    return _assemble(scenes, views_of, progress)
+
+
+def novel_dataset(size: int = 64, views_per_scene: int = 10,
+                  scenes: tuple[str, ...] = SCENES) -> EditDataset:
+    """The procedural scenes of ``scenes`` seen from :func:`novel_views` cameras, with every
+    outcome, all held out (the person's renders have no camera off their arc to render)."""
+    from ...scenes import get_scene
+
+    def views_of(name):
+        obj = get_scene(name)
+        return novel_views(name, size, views_per_scene, obj), obj
+
+    return _assemble(tuple(n for n in scenes if n != "person"), views_of)
+
+
+def nearest_training_psnr(data: EditDataset, views, training: EditDataset) -> list[float]:
+    """Per view of ``data`` (rows ``views``), the PSNR (dB) to the nearest training view of
+    the same scene in ``training``: how novel a held-out camera is (near 30 dB and above:
+    a near duplicate of a training frame)."""
+    out = []
+    for v in views:
+        name = data.scenes[data.scene[v]]
+        rows = np.flatnonzero(~training.held_out
+                              & (training.scene == training.scenes.index(name)))
+        x = data.inputs[v].astype(np.float64) / 255
+        mse = np.mean((training.inputs[rows].astype(np.float64) / 255 - x) ** 2, axis=(1, 2, 3))
+        out.append(float(-10 * np.log10(max(float(mse.min()), 1e-10))))
+    return out
+
+
+def _assemble(scenes: tuple[str, ...], views_of, progress=None) -> EditDataset:
+    """The dataset of ``scenes``, each scene's (SceneViews, scene object) from ``views_of``."""
     inputs, scene_ids, held, targets, t_view, t_ins, t_out = [], [], [], [], [], [], []
     offset = 0
     for s, name in enumerate(scenes):
-        if name == "person":
-            views, obj = person_views(size), None
-        else:
-            obj = get_scene(name)
-            views = procedural_views(name, size, procedural_views_per_scene, obj)
+        views, obj = views_of(name)
         rgb, pairs = scene_pairs(views, obj)
         n = len(rgb)
         inputs.append(to_uint8(rgb))

@@ -183,7 +183,8 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
                 "unedited_input": {"frequencies": [float(np.mean(u_which == k))
                                                    for k in range(k_out)],
                                    "mixing": float(np.mean(u_mixed))}}
-            entry["holding"] = _holding(edits, inputs, data, i, vs[:hold_views], e, null)
+            if hold_views:
+                entry["holding"] = _holding(edits, inputs, data, i, vs[:hold_views], e, null)
         if distance is not None:
             entry["interpolation"] = _interpolation(edits, inputs, vs[:interp_views], e, null,
                                                     ratios, distance, t_full)
