@@ -181,3 +181,21 @@ def test_short_batches_run_at_a_padded_size_and_compile_nothing_new(editor):
     assert three.shape == imgs[:3].shape
     assert "_edit_batch_into" not in compile_stats(since=before)["programs"]
     np.testing.assert_allclose(np.asarray(three), np.asarray(four[:3]), rtol=0, atol=1e-6)
+
+
+def test_warm_up_compiles_the_program_the_run_then_uses(editor):
+    """The demo's warm-up (on a thread, during the reconstruction) compiles the editor's
+    program for the run's view size, batch and guidance: the run's first edit compiles
+    nothing (e(r) given as the difficulty gives it, a NumPy interpolation)."""
+    from jaxedit.compilation import compile_stats
+    from jaxedit.editors import edit_views, interpolate_embedding, warm_up
+
+    guidance = (5.0, 1.25)  # a program no other test builds
+    warm_up(editor, 20, 16, jax.random.key(0), views=2, guidance=guidance)
+    e = interpolate_embedding(editor.encode(PROMPT), editor.encode(""), 0.5)
+    imgs = np.stack([_image(40 + i, (20, 16, 3)) for i in range(2)])
+    before = compile_stats()
+    out = edit_views(editor, imgs, imgs, e, jax.random.split(jax.random.key(3), 2),
+                     timestep_range=(0.45, 0.85), guidance=guidance)
+    assert len(out) == 2 and np.asarray(out[0]).shape == (20, 16, 3)
+    assert "_edit_batch_into" not in compile_stats(since=before)["programs"]

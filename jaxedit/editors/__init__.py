@@ -5,7 +5,8 @@ The ProEdit method (``jaxedit.edit``) sees an editor only through the protocol o
 where an instruction acts.
 
 - :mod:`.base`: the :class:`Editor` protocol, e(r) interpolation, batched :func:`edit_views`,
-  :func:`relevance` and :func:`relevance_mask`.
+  :func:`warm_up` (an editor's program compiled ahead of the run), :func:`relevance` and
+  :func:`relevance_mask`.
 - :mod:`.simulated` (+ :mod:`.simulated_targets`): the simulated editor, the test instrument
   whose targets are known exactly.
 - :mod:`.jax_ip2p`: InstructPix2Pix in JAX (no torch); :mod:`.ip2p`: its torch + diffusers
@@ -23,7 +24,7 @@ The two InstructPix2Pix editors are imported on demand (torch is optional; the J
 loads equinox networks).
 """
 
-from .base import Editor, edit_views, interpolate_embedding, relevance, relevance_mask
+from .base import Editor, edit_views, interpolate_embedding, relevance, relevance_mask, warm_up
 from .bundled import BUNDLED, DEFAULT_SIZE, bundled_editor, instructions, native_size
 from .keys import view_key
 from .simulated import VOCABULARY, SimulatedEditor
@@ -31,5 +32,5 @@ from .simulated import VOCABULARY, SimulatedEditor
 __all__ = [
     "BUNDLED", "DEFAULT_SIZE", "Editor", "SimulatedEditor", "VOCABULARY", "bundled_editor",
     "edit_views", "instructions", "interpolate_embedding", "native_size", "relevance",
-    "relevance_mask", "view_key",
+    "relevance_mask", "view_key", "warm_up",
 ]

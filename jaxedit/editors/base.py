@@ -65,6 +65,20 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
     return fn(image, original, embedding, key, timestep_range=timestep_range, guidance=guidance)
 
 
+def warm_up(editor, height: int, width: int, key: jax.Array, *, views: int = 1,
+            guidance: tuple[float, float] = (7.5, 1.5)) -> None:
+    """Edit ``views`` grey views of ``height`` x ``width`` once and drop the result, so that
+    the editor's program for that call (:func:`edit_views`' batch of ``views``, these
+    guidance scales) is compiled, and written to the persistent compilation cache, before a
+    run needs it. The demo calls it on a thread while the reconstruction trains: on a GPU
+    an SD 1.5-size editor program compiles for about 45 s. The run's own edits are not
+    changed (an editor is a pure function of its inputs and keys)."""
+    grey = jnp.full((views, height, width, 3), 0.5, jnp.float32)
+    out = edit_views(editor, grey, grey, editor.encode(""), jax.random.split(key, views),
+                     guidance=guidance)
+    jax.block_until_ready([jnp.asarray(x) for x in out])
+
+
 def interpolate_embedding(e_prompt, e_null, ratio: float):
     """e(r) = r E(p) + (1 - r) E(null), elementwise on arrays of one shape."""
     if tuple(e_prompt.shape) != tuple(e_null.shape):
