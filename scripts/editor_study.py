@@ -1,0 +1,162 @@
+"""Why the bundled editor's draws blend and its identity drifts: a cheap study of a weights
+folder on a few held-out views (issue 51, point 2), minutes where the full quality
+benchmark (``benchmarks/editor_quality.py``) takes an hour.
+
+Per guidance setting, on ``--per-scene`` held-out views of each scene (fresh noise, T = 0.98
+unless said, the benchmark's DDIM steps):
+
+- identity: the edit with E("") against the input, at T = 0.45, 0.85 and 0.98, for image
+  guidance 1.5 (the default) and 1.0 (the text guidance does nothing with E("")); beside it
+  the VAE round trip, the best any edit through the latent space can keep;
+- the one-outcome instructions of every scene (bronze, black and white): PSNR of the edit to
+  its target against the input's PSNR to it;
+- the divergent ones (splash, neon): the outcome measure's classes
+  (:mod:`jaxedit.editors.outcome_class`) over ``--draws`` draws per view;
+
+for text guidance 7.5 (the default), 3 and 1.5. And, from the config alone, what the empty
+prompt is trained towards (:func:`empty_prompt_shares`).
+
+    python scripts/editor_study.py --out /tmp/study.json
+    python scripts/editor_study.py --weights runs/editor-v2/model --out /tmp/study-v2.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import jax
+
+
+def empty_prompt_shares(identity_share: float, drop: float, empty_is_identity: bool) -> dict:
+    """Of the examples a UNet step sees with the empty prompt and the input image (the branch
+    E("") + image that identity and the image guidance use), the share whose target is the
+    input itself and the share whose target is an edit, as
+    :func:`jaxedit.pipelines.train_editor.tiny_ip2p.draw_batch` draws them."""
+    identity = identity_share * (1 - 2 * drop)  # its image dropped with probability 2 drop
+    dropped = (1 - identity_share) * drop  # an instruction's text dropped, its image kept
+    identity, edits = (identity + dropped, 0.0) if empty_is_identity else (identity, dropped)
+    total = identity + edits
+    return {"identity": identity / total, "edit": edits / total,
+            "share_of_all_examples": total}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--weights", type=Path, default=None)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--per-scene", type=int, default=2)
+    p.add_argument("--draws", type=int, default=2)
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--text-scales", default="7.5,3,1.5")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--novel", action="store_true",
+                   help="cameras off the training orbits (edit_data.novel_views) instead of "
+                        "the held-out ones")
+    p.add_argument("--image-scales", default="1.5,1")
+    p.add_argument("--sheet", type=Path, default=None,
+                   help="PNG of the edits at text guidance 7.5: a row per view, the input "
+                        "then bronze, black and white, the divergent draws")
+    args = p.parse_args(argv)
+
+    from jaxedit.editors import bundled_editor
+    from jaxedit.editors.jax_ip2p import JaxIP2PEditor
+    from jaxedit.pipelines.train_editor.edit_data import (build_dataset, novel_dataset,
+                                                          outcome_targets)
+    from jaxedit.pipelines.train_editor.quality import (nearest, outcome_figures, psnr,
+                                                        vae_roundtrip)
+    from jaxedit.pipelines.train_editor.quality import run_edits as _run
+
+    folder = args.weights or bundled_editor()
+    settings = json.loads((folder / "instructions.json").read_text())["dataset"]
+    t0 = time.perf_counter()
+    data = None if args.novel else build_dataset(
+        int(settings["size"]), int(settings["procedural_views"]), tuple(settings["scenes"]))
+    if args.novel:
+        data = novel_dataset(int(settings["size"]), args.per_scene, tuple(settings["scenes"]))
+        views = np.arange(len(data.inputs))
+    else:
+        held = np.flatnonzero(data.held_out)
+        views = np.concatenate([
+            held[data.scene[held] == s][:: max(1, (data.scene[held] == s).sum()
+                                              // args.per_scene)][: args.per_scene]
+            for s in range(len(data.scenes))])
+    editor = JaxIP2PEditor.from_pretrained(folder, steps=args.steps)
+    inputs = data.inputs.astype(np.float32) / 255
+    key = jax.random.key(args.seed)
+    counter = iter(range(1 << 30))
+
+    def edits(rows, embeddings, t, guidance):
+        return _run(editor, inputs[rows], inputs[rows], np.stack(embeddings),
+                    jax.random.fold_in(key, next(counter)), t, guidance)
+
+    null = editor.encode("")
+    out: dict = {"empty_prompt_branch": {
+        "text dropout keeps the edit (v1)": empty_prompt_shares(0.1, 0.05, False),
+        "empty_is_identity (v2)": empty_prompt_shares(0.1, 0.05, True)}, "weights": str(folder), "views": [int(v) for v in views],
+                 "scenes": [data.scenes[data.scene[v]] for v in views], "steps": args.steps,
+                 "draws": args.draws}
+    rt = vae_roundtrip(editor, inputs[views])
+    out["vae_roundtrip_psnr_db"] = float(np.mean(psnr(rt, inputs[views])))
+    out["identity_psnr_db"] = {}
+    for image_scale in (float(x) for x in args.image_scales.split(",")):
+        got = {}
+        for t in (0.45, 0.85, 0.98):
+            x = edits(list(views), [null] * len(views), t, (7.5, image_scale))
+            got[f"{t:g}"] = float(np.mean(psnr(x, inputs[views])))
+        out["identity_psnr_db"][f"image {image_scale:g}"] = got
+        print("identity", image_scale, got, "roundtrip", out["vae_roundtrip_psnr_db"],
+              flush=True)
+
+    single = [i for i, ins in enumerate(data.instructions)
+              if len(ins.outcomes) == 1 and ins.scenes is None]
+    divergent = [i for i, ins in enumerate(data.instructions) if len(ins.outcomes) > 1]
+    out["by_text_scale"] = {}
+    for scale in (float(s) for s in args.text_scales.split(",")):
+        entry: dict = {}
+        rows, embs, which = [], [], []
+        for i in single:
+            rows += list(views)
+            embs += [editor.encode(data.instructions[i].prompt)] * len(views)
+            which += [i] * len(views)
+        for i in divergent:
+            for v in views:
+                rows += [v] * args.draws
+                embs += [editor.encode(data.instructions[i].prompt)] * args.draws
+                which += [i] * args.draws
+        x = edits(rows, embs, 0.98, (scale, 1.5))
+        rows, which = np.asarray(rows), np.asarray(which)
+        for i in single + divergent:
+            sel = which == i
+            targets = np.stack([outcome_targets(data, v, i) for v in rows[sel]])
+            ins = data.instructions[i]
+            e = {"psnr": float(np.mean(nearest(x[sel], targets)[1])),
+                 "psnr_unedited": float(np.mean(nearest(inputs[rows[sel]], targets)[1]))}
+            if len(ins.outcomes) > 1:
+                f = outcome_figures(x[sel], inputs[rows[sel]], targets)
+                e.update({k: f[k] for k in ("unedited_fraction", "single_outcome_fraction",
+                                            "outcome_frequencies", "mixed_fraction",
+                                            "other_fraction", "progress_median",
+                                            "residual_median")})
+                e["without_other_gate"] = {k: f["without_other_gate"][k] for k in (
+                    "single_outcome_fraction", "outcome_frequencies", "mixed_fraction")}
+            entry[ins.prompt] = e
+        out["by_text_scale"][f"{scale:g}"] = entry
+        if args.sheet is not None and scale == 7.5:  # rows: views; input, then its edits
+            from jaxedit.io.images import write_image
+
+            grid = [np.concatenate([inputs[v], *x[rows == v]], 1) for v in views]
+            write_image(args.sheet, np.concatenate(grid, 0))
+        print("text scale", scale, json.dumps(entry), flush=True)
+    out["seconds"] = round(time.perf_counter() - t0, 1)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1) + "\n")
+    print("wrote", args.out)
+
+
+if __name__ == "__main__":
+    main()
