@@ -13,6 +13,12 @@ other, against the unedited input); identity is measured at ProEdit's SDEdit ran
 these figures. Also writes ``editor_quality.png``: per held-out view and instruction, the
 input, each outcome's target and four edits at T = 0.98.
 
+The held-out cameras lie on the training orbits; each one's PSNR to the nearest training
+frame of its scene is in ``nearest_training_psnr_db``. ``novel`` holds the same figures (but
+holding and interpolation) on ``--novel-views`` cameras per procedural scene off the orbits
+(:func:`jaxedit.pipelines.train_editor.edit_data.novel_views`: nearer, above the elevation
+band), with their own nearest-frame PSNRs and goals, and ``editor_quality_novel.png``.
+
     python benchmarks/editor_quality.py                 # the committed record (CPU, minutes)
     python benchmarks/editor_quality.py --smoke         # CI: two views, two DDIM steps
     python benchmarks/editor_quality.py --weights runs/editor/model
@@ -35,6 +41,8 @@ def _extra(p):
     p.add_argument("--steps", type=int, default=20, help="DDIM steps per edit")
     p.add_argument("--draws", type=int, default=4, help="edits per view (divergent)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--novel-views", type=int, default=6,
+                   help="cameras off the training orbit per procedural scene (0: none)")
 
 
 def contact_sheet(editor, data, views, key, path: Path) -> None:
@@ -93,7 +101,10 @@ def main(argv=None):
     from jaxedit.edit.difficulty import default_distance
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
     from jaxedit.editors import bundled_editor
-    from jaxedit.pipelines.train_editor.edit_data import HOLDOUT_EVERY, build_dataset, separation
+    from jaxedit.pipelines.train_editor.edit_data import (HOLDOUT_EVERY, NOVEL_ELEVATION_DEG,
+                                                          NOVEL_RADIUS, build_dataset,
+                                                          nearest_training_psnr, novel_dataset,
+                                                          separation)
     from jaxedit.pipelines.train_editor.quality import evaluate
 
     folder = args.weights or bundled_editor()
@@ -123,9 +134,32 @@ def main(argv=None):
     seconds = time.perf_counter() - t0
     # The dataset's own property: how far apart the divergent outcomes are on these views.
     result["separation"] = separation(data, distance, held)
+    # How novel each held-out view is: PSNR to the nearest training frame of its scene.
+    near = nearest_training_psnr(data, held, data)
+    result["nearest_training_psnr_db"] = {
+        name: [round(x, 2) for v, x in zip(held, near) if data.scene[v] == s]
+        for s, name in enumerate(data.scenes)}
     args.out.mkdir(parents=True, exist_ok=True)
     contact_sheet(editor, data, held[:: max(1, len(held) // 6)][:6], jax.random.fold_in(key, 7),
                   args.out / "editor_quality.png")
+    if args.novel_views:  # cameras off the training orbits: the same figures, no holding
+        novel = novel_dataset(size, 1 if args.smoke else args.novel_views,
+                              tuple(settings["scenes"]))
+        views = np.arange(len(novel.inputs))
+        t0 = time.perf_counter()
+        result["novel"] = evaluate(editor, novel, views, jax.random.fold_in(key, 11),
+                                   draws=1 if args.smoke else args.draws, hold_views=0,
+                                   log=print)
+        result["novel"]["cameras"] = {"radius": NOVEL_RADIUS,
+                                      "elevation_above_band_deg": list(NOVEL_ELEVATION_DEG)}
+        near = nearest_training_psnr(novel, views, data)
+        result["novel"]["nearest_training_psnr_db"] = {
+            name: [round(x, 2) for v, x in zip(views, near) if novel.scene[v] == s]
+            for s, name in enumerate(novel.scenes)}
+        result["novel"]["goals"] = goals(result["novel"])
+        seconds += time.perf_counter() - t0
+        contact_sheet(editor, novel, views[:: max(1, len(views) // 4)][:4],
+                      jax.random.fold_in(key, 13), args.out / "editor_quality_novel.png")
     from jaxedit.editors import outcome_class as oc
 
     result["outcome_measure"] = {
@@ -134,9 +168,11 @@ def main(argv=None):
         "edited_progress": oc.EDITED_PROGRESS, "pure_share": oc.PURE_SHARE,
         "other_residual": oc.OTHER_RESIDUAL}
     result["goals"] = goals(result)
-    result["held_out_note"] = ("held-out views are the dataset's held-out cameras (every "
-                               f"{settings['holdout_every']}th procedural camera, person's test "
-                               "views): near the training orbits, not novel cameras")
+    result["held_out_note"] = (
+        "held-out views are the dataset's held-out cameras (every "
+        f"{settings['holdout_every']}th procedural camera, person's test views), on the "
+        "training orbits (nearest_training_psnr_db says how near); 'novel' has the same figures "
+        "on cameras off the orbits (procedural scenes: nearer, above the elevation band)")
     write_json(args.out, "editor_quality", {"command": " ".join(["python",
                                                                  "benchmarks/editor_quality.py",
                                                                  *(argv or __import__("sys")
