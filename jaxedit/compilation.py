@@ -56,9 +56,10 @@ def persistent_cache_dir() -> Path | None:
     return cache_dir() / "xla"
 
 
-def _env_number(name: str, default: float, *, zero_ok: bool) -> float:
+def _env_number(name: str, default: float, *, zero_ok: bool, what: str) -> float:
     """The number in environment variable ``name`` (``default`` when unset); a value that is
-    not a finite positive number (or zero, with ``zero_ok``) is a DataError naming it."""
+    not a finite positive number (or zero, with ``zero_ok``) is a DataError naming it and
+    saying it must be ``what``."""
     text = os.environ.get(name)
     if not text:
         return default
@@ -69,21 +70,22 @@ def _env_number(name: str, default: float, *, zero_ok: bool) -> float:
     if not (0 <= value if zero_ok else 0 < value) or value == float("inf"):
         from .errors import DataError
 
-        kind = "a number of seconds, 0 or more" if zero_ok else "a positive number of MiB"
-        raise DataError(name, f"must be {kind}, got {text[:40]!r}")
+        raise DataError(name, f"must be {what}, got {text[:40]!r}")
     return value
 
 
 def max_cache_bytes() -> int:
     """The persistent cache's bound in bytes (``JAXEDIT_COMPILE_CACHE_MB``, else
     :data:`DEFAULT_MAX_MB`); a value that is not a positive number is a DataError."""
-    return int(_env_number("JAXEDIT_COMPILE_CACHE_MB", DEFAULT_MAX_MB, zero_ok=False) * 2 ** 20)
+    return int(_env_number("JAXEDIT_COMPILE_CACHE_MB", DEFAULT_MAX_MB, zero_ok=False,
+                           what="a positive number of MiB") * 2 ** 20)
 
 
 def min_compile_seconds() -> float:
     """The shortest compile the persistent cache keeps (``JAXEDIT_COMPILE_CACHE_MIN_S``, else
     :data:`MIN_COMPILE_SECONDS`); a value that is not a number >= 0 is a DataError."""
-    return _env_number("JAXEDIT_COMPILE_CACHE_MIN_S", MIN_COMPILE_SECONDS, zero_ok=True)
+    return _env_number("JAXEDIT_COMPILE_CACHE_MIN_S", MIN_COMPILE_SECONDS, zero_ok=True,
+                       what="a number of seconds, 0 or more")
 
 
 def enable_persistent_cache(path: str | os.PathLike | None = None) -> Path | None:
