@@ -105,7 +105,10 @@ def sample_points(scene: rc.Scene, cameras: Camera, num_points: int, rng: np.ran
         view = np.concatenate(kept_view)
         order = rng.permutation(len(pts))[:n_surf]
         pts, ids, view = pts[order], ids[order], view[order]
-        centres = np.stack([np.asarray(cams[int(v)].center(), np.float64) for v in view])
+        # Each point is shaded as seen from the first camera that sees it: one centre per
+        # camera, looked up per point (one eager einsum per point cost seconds per scene).
+        cam_centres = np.stack([np.asarray(c.center(), np.float64) for c in cams])
+        centres = cam_centres[view]
         colors = rc.shaded_color(scene, pts, ids, centres).astype(np.float64)
         pts = pts + rng.normal(scale=position_noise * radius, size=pts.shape)
         colors = np.clip(colors + rng.normal(scale=color_noise, size=colors.shape), 0.0, 1.0)
