@@ -35,7 +35,7 @@ class Renderer:
 
         out = render(gaussians, camera, background=self.background,
                      max_intersections=self.max_intersections)
-        used = next_capacity(int(jnp.max(out.num_intersections)) * HEADROOM)
+        used = next_capacity(int(np.max(np.asarray(out.num_intersections))) * HEADROOM)
         self.max_intersections = max(self.max_intersections or 0, used)
         return out
 

@@ -73,6 +73,8 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
     embedding = interpolate_embedding(ctx.e_prompt, ctx.e_null, ratio)
     sub_key = jax.random.fold_in(jax.random.fold_in(ctx.key, spec.index), _EDIT)
     renderer = ctx.renderer
+    # Each view's camera sliced once per subtask, not at every edit (a slice per leaf).
+    cameras = [ctx.data.train_cameras[i] for i in range(len(ctx.data.train_images))]
     # The original photos once on the editor's device (the default one when it has none).
     originals = jax.device_put(ctx.data.train_images, ctx.editor_device)
 
@@ -89,7 +91,7 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
             raise ValueError("edit_many takes the jobs of one step")
         # Device arrays where the scene is (the editor's device in async mode): an editor
         # in JAX takes them as they are; the torch reference copies them to its own device.
-        renders = [renderer(scene, ctx.data.train_cameras[job.view]).rgb for job in jobs]
+        renders = [renderer(scene, cameras[job.view]).rgb for job in jobs]
         # A local edit's mask is applied once, where the edits become training images
         # (take_edits): blending here with the render as well weighted the edit by the
         # mask's square (0.49 at a border pixel of 0.7).

@@ -32,6 +32,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..camera import Camera
 from ..errors import DataError
@@ -188,20 +189,26 @@ def _background_only(gaussians: Gaussians, camera: Camera, background) -> Render
                         overflow=jnp.zeros(batch, bool))
 
 
+@functools.partial(jax.jit, static_argnames=("capacity",))
+def _pad_slots(gaussians: Gaussians, means2d_delta, capacity: int):
+    """``(gaussians, means2d_delta)`` padded to ``capacity`` slots: one program, where the
+    same padding done op by op cost a dozen dispatches per frame."""
+    if means2d_delta is not None:
+        widths = [(0, 0)] * means2d_delta.ndim
+        widths[-2] = (0, capacity - gaussians.capacity)
+        means2d_delta = jnp.pad(means2d_delta, widths)
+    return grow(gaussians, capacity), means2d_delta
+
+
 def _bucketed(gaussians: Gaussians, means2d_delta):
     """The scene padded with dead slots to its capacity's step on the buffer ladder
     (:func:`next_capacity`), and ``means2d_delta`` padded with zeros to match: scenes of
     nearby sizes (a PLY's exact count, each snapshot's alive Gaussians) share one program.
     Dead slots draw nothing, so the frame is the same."""
-    n = gaussians.capacity
-    padded = next_capacity(n)
-    if padded == n:
+    padded = next_capacity(gaussians.capacity)
+    if padded == gaussians.capacity:
         return gaussians, means2d_delta
-    if means2d_delta is not None:
-        widths = [(0, 0)] * means2d_delta.ndim
-        widths[-2] = (0, padded - n)
-        means2d_delta = jnp.pad(means2d_delta, widths)
-    return grow(gaussians, padded), means2d_delta
+    return _pad_slots(gaussians, means2d_delta, capacity=padded)
 
 
 def _unpadded(out: RenderOutput, n: int) -> RenderOutput:
@@ -272,10 +279,11 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
         cap = next_capacity(needed * HEADROOM)
     while True:
         out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
-        overflow = bool(jnp.any(out.overflow))
+        # Host reads of the small per-frame arrays, not eager reductions (each a dispatch).
+        overflow = bool(np.any(np.asarray(out.overflow)))
         if not overflow:
             return _unpadded(out, n)
-        need = int(jnp.max(out.num_intersections))
+        need = int(np.max(np.asarray(out.num_intersections)))
         new = next_capacity(max(need * HEADROOM, 2 * cap))
         log.warning("render: intersection buffer overflowed (%d > %d), re-rendering with %d",
                     need, cap, new)
