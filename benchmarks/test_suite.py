@@ -9,8 +9,9 @@ test's wall time and the XLA compiles it caused in the test process (the CLI tes
 subprocesses compile on their own; their time is in the test's wall time, not in its compile
 seconds). With several workers the tests' times add up to more than the wall time. Writes
 ``test_suite.json``: the total wall time, the outcome counts, the compile share, the 20 slowest
-tests, and each file's time against its budget (:data:`FILE_BUDGET_S`; files over it are
-listed, not failed: speed is checked here, never by timed assertions in tests).
+tests, the programs the suite spends most compiling, and each file's time against its budget
+(:data:`FILE_BUDGET_S`; files over it are listed, not failed: speed is checked here, never by
+timed assertions in tests).
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Seconds a test file may take on the 2-core CPU before this benchmark lists it (the
 #: suite's goal is 10 minutes for about fifty files).
 FILE_BUDGET_S = 60.0
+#: Programs listed by their compile seconds summed over the suite (``top_programs``).
+TOP_PROGRAMS = 25
 
 
 def _extra(p):
@@ -61,7 +64,16 @@ def main(argv=None):
         per_file[r["test"].split("::")[0]] += r["seconds"]
     compile_s = sum(r["compile_seconds"] for r in records)
     tests_s = sum(r["seconds"] for r in records)
-    slowest = sorted(records, key=lambda r: -r["seconds"])[:20]
+    slowest = [{k: v for k, v in r.items() if k != "programs"}
+               for r in sorted(records, key=lambda r: -r["seconds"])[:20]]
+    # Which programs the suite compiles most: where sharing one program pays most.
+    programs = collections.defaultdict(lambda: [0, 0.0])
+    for r in records:
+        for name, (count, seconds) in r.get("programs", {}).items():
+            programs[name][0] += count
+            programs[name][1] += seconds
+    top_programs = [{"program": name, "compiles": c, "seconds": round(s, 1)} for name, (c, s)
+                    in sorted(programs.items(), key=lambda kv: -kv[1][1])[:TOP_PROGRAMS]]
     payload = {
         "smoke": args.smoke, "command": "python -m pytest " + " ".join(targets),
         "cpu_count": os.cpu_count(),
@@ -72,6 +84,7 @@ def main(argv=None):
         "compiles": sum(r["compiles"] for r in records),
         "cache_hits": sum(r["cache_hits"] for r in records),
         "slowest": slowest,
+        "top_programs": top_programs,
         "file_budget_s": FILE_BUDGET_S,
         "files_s": dict(sorted(((f, round(s, 1)) for f, s in per_file.items()),
                                key=lambda kv: -kv[1])),

@@ -37,6 +37,16 @@ if not os.environ.get("JAXEDIT_COMPILE_CACHE_DIR"):
 # Every program, however quick to compile: the suite's processes (xdist workers, the commands
 # the CLI tests start) build the same small programs again and again, and a read is cheaper.
 os.environ.setdefault("JAXEDIT_COMPILE_CACHE_MIN_S", "0")
+# XLA:CPU's LLVM backend without its optimisation passes: the same HLO programs, compiled in
+# about 60 % of the time (on the 2-core CPU, one process, no cache: test_densify 79 s -> 50 s,
+# test_jax_ip2p 94 s -> 54 s), and compiling is most of what the suite spends. The arithmetic
+# stays IEEE float32, but its last bits can differ from a default build's (a 12 px ablation
+# run then follows another trajectory), so a test compares figures computed in the same run,
+# never with committed ones; the benchmark smokes in CI run the default build. A caller's own
+# level wins.
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + " --xla_backend_optimization_level=0").strip()
 
 
 def pytest_sessionfinish(session, exitstatus):
@@ -63,7 +73,9 @@ if _PROFILE:
             f.write(json.dumps({"test": item.nodeid, "seconds": round(seconds, 3),
                                 "compile_seconds": compiled["seconds"],
                                 "compiles": compiled["count"],
-                                "cache_hits": compiled["cache_hits"]}) + "\n")
+                                "cache_hits": compiled["cache_hits"],
+                                "programs": {name: [p["count"], p["seconds"]] for name, p
+                                             in compiled["programs"].items()}}) + "\n")
 
 
 def _count_mappings() -> int:
