@@ -717,6 +717,8 @@ class TestAblationFlagCombinations:
         (["--scenes", ","], "--scenes"), (["--variants", "1,x"], "--variants"),
         (["--smoke", "--scenes", "person"], "--scenes"), (["--smoke", "--seeds", "3"], "--seeds"),
         (["--smoke", "--prompts", "make it look like autumn"], "--prompts"),
+        (["--scenes", "person", "--size", "64", "--points", "500"], "--points"),
+        (["--points", "0"], "--points"),
     ])
     def test_combination(self, tmp_path, capfd, flags, flag):
         out = tmp_path / "o"

@@ -25,14 +25,15 @@ def stamp_prepared(out: Path, wanted: dict) -> None:
 
 
 def prepared_scene(out: Path, scene: str, *, size: int, views: int, test_views: int,
-                   seed: int, config=None, log=lambda msg: None):
+                   seed: int, config=None, points: int | None = None, log=lambda msg: None):
     """A built-in scene's dataset (``out/data``) and its reconstruction (``out/reconstruct``),
     made once and reused: (the :class:`jaxedit.io.Dataset`, Gaussians, the reconstruction's
     metrics).
 
     ``config`` is the reconstruction's :class:`jaxedit.pipelines.reconstruct.ReconstructConfig`;
     None makes the dataset only (and returns None for the Gaussians and {} for the
-    metrics). The folder is stamped with every setting, so a cache made with others is a
+    metrics). ``points``: the initial cloud's size of a procedural scene (None: the scene's
+    default). The folder is stamped with every setting, so a cache made with others is a
     DataError (:func:`stamp_prepared`), never silently reused.
     """
     from ..io import load_ply
@@ -43,11 +44,14 @@ def prepared_scene(out: Path, scene: str, *, size: int, views: int, test_views: 
     data_dir, recon_dir = out / "data", out / "reconstruct"
     stamp_prepared(out, {"scene": scene, "size": size, "views": views, "test_views": test_views,
                          "seed": seed, "reconstruct": None if config is None
-                         else dataclasses.asdict(config)})
+                         else dataclasses.asdict(config),
+                         # only when given: folders stamped before the setting existed
+                         # keep their stamp
+                         **({} if points is None else {"points": points})})
     if not (data_dir / "transforms.json").exists():
         log(f"making the {scene} scene ({views}+{test_views} views, {size} px)")
         make_scene(scene, data_dir, views=views, test_views=test_views, seed=seed,
-                   **size_arguments(scene, size))
+                   num_points=points, **size_arguments(scene, size))
     dataset = recon.load_dataset(data_dir, config or recon.ReconstructConfig())
     if config is None:
         return dataset, None, {}

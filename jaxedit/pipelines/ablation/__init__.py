@@ -171,6 +171,9 @@ class AblationConfig:
       references: also score the reference levels of each (scene, instruction): the
         unedited reconstruction and the ceiling (a scene trained directly on one outcome's
         targets, the best of its outcomes).
+      points: points in the initial cloud of each procedural scene (unset: the scene's own
+        4000; fewer make every training step cheaper at small sizes); rendered scenes bring
+        their own.
     """
 
     scenes: tuple[str, ...] = SCENES
@@ -192,9 +195,11 @@ class AblationConfig:
     editor: str = "simulated"
     ip2p_steps: int = ranged(DDIM_STEPS, low=1)
     references: bool = True
+    points: int | None = ranged(None, low=1)
 
     def __post_init__(self):
         from ...scenes import list_scenes
+        from ...scenes.library import DATASETS
 
         check_ranges(self)
         if self.editor not in EDITORS:
@@ -207,6 +212,10 @@ class AblationConfig:
                             f"no scene given; built-in: {', '.join(list_scenes())}")
         if not self.prompts:
             raise DataError("prompts", "no instruction given")
+        rendered = [s for s in self.scenes if s in DATASETS]
+        if self.points is not None and rendered:
+            raise DataError("points", f"{', '.join(rendered)}: a rendered scene brings its own "
+                                      "points; give --points with procedural scenes only")
         for name in ("methods", "control_methods"):
             rows = getattr(self, name)
             bad = [m for m in rows if m not in METHODS]
@@ -234,7 +243,7 @@ class AblationConfig:
                    variants=("3", "3:0"), methods=("proedit", "nd", "nd_equal", "nd_k"),
                    control_methods=("proedit", "nd"), size=16, views=4, test_views=2,
                    recon_iters=30, refine_every=4, max_steps=12, warmup=2, patience=3,
-                   edit_every=2)
+                   edit_every=2, points=400)
 
     def settings_json(self, kinds: dict[str, str], recon_seed: int, editor: str | None = None
                       ) -> dict:
@@ -251,7 +260,8 @@ class AblationConfig:
                 "recon_seed": recon_seed,
                 "target_subtasks": {k: TARGET_SUBTASKS.get(k, TARGET_SUBTASKS_DEFAULT)
                                     for k in sorted(set(kinds.values()))},
-                **({"ip2p_steps": self.ip2p_steps} if (editor or self.editor) == "ip2p" else {})}
+                **({"ip2p_steps": self.ip2p_steps} if (editor or self.editor) == "ip2p" else {}),
+                **({} if self.points is None else {"points": self.points})}
 
     def rows_of(self, editor: str | None = None) -> dict[str, list[str]]:
         """{variant label: its methods, in the order of METHODS}; an editor other than the
@@ -461,7 +471,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
     for scene_name in scenes:
         dataset, scene, _ = prepared_scene(out / scene_name, scene_name, size=config.size,
                                            views=config.views, test_views=config.test_views,
-                                           seed=recon_seed,
+                                           seed=recon_seed, points=config.points,
                                            config=recon_config(config.recon_iters), log=log)
         data = EditData.from_dataset(dataset)
         test_idx = np.asarray(dataset.test_indices) if len(dataset.test_indices) else \
