@@ -56,6 +56,8 @@ def main(argv=None):
             if profile.exists() else []
     summary = done.stdout.strip().splitlines()[-1] if done.stdout.strip() else ""
     counts = {k: int(v) for v, k in re.findall(r"(\d+) (passed|failed|skipped|errors?)", summary)}
+    failed = [line.split(" ")[1] for line in done.stdout.splitlines()
+              if line.startswith(("FAILED ", "ERROR "))]
     if done.returncode not in (0, 1) or not records:
         sys.exit(f"pytest did not run the tests (exit {done.returncode}):\n"
                  f"{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
@@ -78,7 +80,8 @@ def main(argv=None):
         "smoke": args.smoke, "command": "python -m pytest " + " ".join(targets),
         "cpu_count": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0], "total_s": round(total, 1),
-        "tests_s": round(tests_s, 1), "outcomes": counts, "exit_status": done.returncode,
+        "tests_s": round(tests_s, 1), "outcomes": counts, "failed": failed,
+        "exit_status": done.returncode,
         "compile_s": round(compile_s, 1),
         "compile_share": round(compile_s / tests_s, 3) if tests_s else None,
         "compiles": sum(r["compiles"] for r in records),
