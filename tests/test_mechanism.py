@@ -104,6 +104,24 @@ def test_the_planted_mechanism_is_found_prediction_by_prediction():
     assert out["P4"][0] == "no difference" and out["uniform"]["same_run"] == 10
 
 
+def test_edits_the_measure_cannot_see_leave_the_mechanism_untested():
+    # every method's edits mostly "other" or "unedited": not testable; one method that the
+    # measure sees is enough to test
+    def runs(methods_unseen):
+        records = []
+        for seed in range(4):
+            for method in ("proedit", *M.CONTROLS):
+                outcomes = ["other", "unedited", "other", 0] if method in methods_unseen \
+                    else [0, 0, 0, 0]
+                records.append(_record(method, seed, _log((0, 0.5, 10, outcomes)), 20.0, 0.0))
+        return M.study(records, views=VIEWS, recon_psnr=30.0)["instructions"][PROMPT]
+
+    out = runs({"proedit", *M.CONTROLS})
+    assert len(out["not_testable"]) == 1 and "every method" in out["not_testable"][0]
+    assert out["unseen_share"]["proedit"] == pytest.approx(0.75)
+    assert runs({"proedit"})["not_testable"] == []
+
+
 def test_controls_that_never_split_leave_the_mechanism_untested():
     out = _study(split_seeds=3)["instructions"][PROMPT]
     for control in M.CONTROLS:
