@@ -28,6 +28,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from ...editors.outcome_class import OTHER, UNEDITED
 from ...metrics import paired_differences
 
 #: The controls of M (primary family), and the scheduler's comparison (P4).
@@ -40,7 +41,7 @@ SPLIT = 0.25
 MIN_SPLIT_SEEDS = 5
 #: Not testable: the reconstruction's held-out PSNR below this (dB).
 MIN_RECON_PSNR = 25.0
-#: Not testable: more than this share of a method's training edits "other" or "unedited".
+#: Not testable: more than this share of every method's training edits "other" or "unedited".
 MAX_UNSEEN = 0.5
 BOOTSTRAP = 10_000
 LEVEL = 0.95
@@ -107,7 +108,7 @@ def edit_figures(log: Sequence[dict] | None, views: int) -> dict:
                 pairs += 1
                 kept += last[e["view"]] == e["outcome"]
             last[e["view"]] = e["outcome"]
-    unseen = sum(e["outcome"] in ("other", "unedited") for e in log) / len(log)
+    unseen = sum(e["outcome"] in (OTHER, UNEDITED) for e in log) / len(log)
     return {"early_split": None if first is None else first[2],
             "edit_consistency": consistency, "keep_rate": kept / pairs if pairs else None,
             "unseen_share": unseen, "edits": len(log)}
@@ -131,7 +132,7 @@ def _paired(a: Sequence[float], b: Sequence[float]) -> dict | None:
         p_w = 1.0 if diff[0] == 0 else None
     else:
         p_t = float(stats.ttest_rel(x, y).pvalue)
-        p_w = float(stats.wilcoxon(diff).pvalue) if np.any(diff != 0) else 1.0
+        p_w = float(stats.wilcoxon(diff).pvalue)
     return {**d, "p_t": p_t, "p_wilcoxon": p_w}
 
 
