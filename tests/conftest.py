@@ -37,17 +37,6 @@ if not os.environ.get("JAXEDIT_COMPILE_CACHE_DIR"):
 # Every program, however quick to compile: the suite's processes (xdist workers, the commands
 # the CLI tests start) build the same small programs again and again, and a read is cheaper.
 os.environ.setdefault("JAXEDIT_COMPILE_CACHE_MIN_S", "0")
-# XLA:CPU's LLVM backend at optimisation level 1 instead of XLA's default 3: the same HLO
-# programs, compiled faster where they are large, running about as fast (on the 2-core CPU,
-# quiet, one process, no cache: test_jax_ip2p 51 s -> 38 s; the 200k-cap growth, which is
-# mostly arithmetic, 56 s -> 44-58 s; level 0 compiled no faster than 1 and ran that test
-# three times slower). The arithmetic stays IEEE float32, but its last bits can differ from a
-# default build's (a 12 px ablation run then follows another trajectory), so a test compares
-# figures computed in the same run, never with committed ones; the benchmark smokes in CI run
-# the default build. A caller's own level wins.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                               + " --xla_backend_optimization_level=1").strip()
 
 
 def pytest_sessionfinish(session, exitstatus):
