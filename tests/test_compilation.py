@@ -119,6 +119,23 @@ def test_cache_switches_and_bound(monkeypatch, tmp_path):
             compilation.min_compile_seconds()
 
 
+def test_trim_cache_removes_the_least_recently_used_entries_past_the_bound(tmp_path):
+    folder = tmp_path / "xla"
+    assert compilation.trim_cache(folder, 10) == 0  # no folder yet: nothing to do
+    folder.mkdir()
+    for i, name in enumerate("abcd"):  # a: used longest ago ... d: most recently
+        entry = folder / f"{name}-cache"
+        entry.write_bytes(b"x" * 100)
+        (folder / f"{name}-atime").write_bytes(b"t")  # JAX's own sidecar (older folders)
+        os.utime(entry, (1000 + i, 1000 + i))
+    os.utime(folder / "a-cache", (5000, 1000))  # read recently: a is the newest now
+    (folder / "unrelated.txt").write_bytes(b"y" * 1000)  # not an entry: never counted
+    assert compilation.trim_cache(folder, 400) == 0
+    assert compilation.trim_cache(folder, 250) == 200  # b then c go
+    left = sorted(p.name for p in folder.iterdir())
+    assert left == ["a-atime", "a-cache", "d-atime", "d-cache", "unrelated.txt"]
+
+
 _CHILD = """
 import json, sys, jax, jax.numpy as jnp
 import jaxedit
@@ -129,6 +146,7 @@ def cached_program_for_test(x):
 before = compile_stats()
 jax.jit(cached_program_for_test)(jnp.ones((16, 16))).block_until_ready()
 print(json.dumps({"dir": jax.config.jax_compilation_cache_dir,
+                  "jax_bound": jax.config.jax_compilation_cache_max_size,
                   "program": compile_stats(since=before)["programs"]["cached_program_for_test"]}))
 """
 
@@ -146,6 +164,7 @@ def test_a_second_process_reads_the_program_from_the_cache(tmp_path):
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
     cold = _child(env)
     assert cold["dir"] == str(tmp_path / "xla")
+    assert cold["jax_bound"] == -1  # bounded by trim_cache at start, not by JAX at each write
     assert (cold["program"]["count"], cold["program"]["cache_hits"]) == (1, 0)
     assert any((tmp_path / "xla").iterdir())
     warm = _child(env)
