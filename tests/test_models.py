@@ -29,7 +29,7 @@ from safetensors.numpy import load_file, save_file  # noqa: E402
 from jaxedit.errors import DataError  # noqa: E402
 from jaxedit.models import (AutoencoderKL, CLIPTextEncoder, CLIPTokenizer, UNet2DCondition,  # noqa: E402
                             cast, load_ip2p, load_module, set_query_chunk)
-from jaxedit.models.layers import Attention, attention  # noqa: E402
+from jaxedit.models.layers import Attention, attention, standard_normal  # noqa: E402
 from test_ip2p import write_scheduler_and_index  # noqa: E402 - the one scheduler writer
 from without_torch import run_without_torch  # noqa: E402
 
@@ -143,6 +143,18 @@ def assert_close(ours, ref, rel=1e-4):
 def unet_fn():
     """One jitted UNet call shared by the tests (compiled once per shape and dtype)."""
     return eqx.filter_jit(lambda unet, x, t, c: unet(x, t, c))
+
+
+def test_random_init_draws_are_jax_random_normal_bit_for_bit():
+    """Random weights come from one program per power-of-two length (standard_normal): the
+    same bits as jax.random.normal of each shape, in each dtype a network is built in."""
+    key = jax.random.key(7)
+    for dtype in (jnp.float32, jnp.bfloat16):
+        for shape in ((), (1,), (5, 7), (3, 3, 8, 16), (320,), (77, 24)):
+            got, want = standard_normal(key, shape, dtype), jax.random.normal(key, shape, dtype)
+            assert got.shape == want.shape and got.dtype == want.dtype
+            np.testing.assert_array_equal(np.asarray(got, np.float32),
+                                          np.asarray(want, np.float32))
 
 
 @pytest.mark.parametrize("hw, timestep", [((8, 8), [981, 17]), ((7, 10), 500)])
