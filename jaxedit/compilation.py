@@ -9,8 +9,9 @@ every program that took at least :data:`MIN_COMPILE_SECONDS` to compile is writt
 beyond the bound are removed (:func:`trim_cache`). JAX's own bound
 (``jax_compilation_cache_max_size``) is not used: it lists the whole folder and reads an
 access-time file per entry at every write, under a lock that every process sharing the folder
-waits on, so each write costs O(N) in the N entries (0.19 s at 4000 entries on the 2-core CPU,
-where the test suite's shared folder holds thousands). Environment:
+waits on, so each write costs O(N) in the N entries (175 ms at 4000 entries on the 2-core
+CPU, ``benchmarks/compile_cache.py``; the test suite's shared folder holds thousands).
+Environment:
 
 * ``JAXEDIT_COMPILE_CACHE=0``: off (as does configuring JAX's own cache folder, which wins).
 * ``JAXEDIT_COMPILE_CACHE_DIR``: another folder (the test suite shares one across processes).
@@ -135,8 +136,9 @@ def trim_cache(folder: str | os.PathLike, max_bytes: int) -> int:
     "Used" is the later of a file's access and modification times, as the file system keeps
     them (Linux's default ``relatime`` updates an entry's access time at its first read after
     a write, and at least daily). Called once per process, when the cache is switched on, so the
-    folder can pass the bound by what one run writes. An entry another process removes or reads
-    meanwhile is skipped; JAX compiles a program whose entry vanished, as for any miss.
+    folder can pass the bound by what one run writes. An entry another process removes
+    meanwhile is skipped; a process that finds its entry gone compiles the program again (JAX
+    warns when the entry vanished between its check and its read).
     """
     entries, total = [], 0
     try:

@@ -46,9 +46,10 @@ def standard_normal(key, shape: tuple[int, ...], dtype=jnp.float32) -> Array:
 
     A network's random init draws tens of shapes, and each draw compiles the random bit
     generator anew (about 1 s each on the CPU): Stable Diffusion 1.5's UNet has 49 shapes in 17
-    power-of-two lengths. With JAX's partitionable Threefry (``jax_threefry_partitionable``, the default)
-    element i of a draw depends on the key and i only, so the first ``prod(shape)`` entries of a
-    longer flat draw are the same bits, reshaped (without it, each shape is drawn as it is)."""
+    power-of-two lengths. With JAX's partitionable Threefry (``jax_threefry_partitionable``,
+    the default) element i of a draw depends on the key and i only, so the first
+    ``prod(shape)`` entries of a longer flat draw are the same bits, reshaped (without it, each
+    shape is drawn as it is)."""
     if not jax.config.jax_threefry_partitionable:
         return jax.random.normal(key, shape, dtype)
     n = math.prod(shape)
