@@ -286,11 +286,11 @@ class _EditorWarmUp:
         import jax
 
         from jaxedit.editors import warm_up
-        from jaxedit.io import load_nerfstudio
+        from jaxedit.io import nerfstudio_view_size
         from jaxedit.pipelines.edit import make_editor
 
         self._editor = make_editor(edit_cfg.editor)
-        height, width = load_nerfstudio(data, downscale=edit_cfg.downscale).images.shape[1:3]
+        height, width = nerfstudio_view_size(data, downscale=edit_cfg.downscale)
         # the difficulty's call: its views in one batch where the editor takes batches
         views = max(1, min(int(getattr(self._editor, "batch", 1)),
                            edit_cfg.plan.difficulty_views or 1))

@@ -20,9 +20,9 @@ from jaxedit import gaussians as G
 from jaxedit.camera import Camera
 from jaxedit import sh as shlib
 from jaxedit.io import (Distortion, distort_points, load_nerfstudio, load_ply, load_points_ply,
-                        read_image, rotate_sh, save_nerfstudio, save_ply, save_points_ply,
-                        transform_cameras, transform_gaussians, transform_points, undistort_points,
-                        write_image)
+                        nerfstudio_view_size, read_image, rotate_sh, save_nerfstudio, save_ply,
+                        save_points_ply, transform_cameras, transform_gaussians, transform_points,
+                        undistort_points, write_image)
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -396,6 +396,11 @@ def test_downscale_area_average_and_intrinsics(tmp_path):
     save_nerfstudio(tmp_path / "ds", imgs, cams)
     ds = load_nerfstudio(tmp_path / "ds", downscale=2)
     assert ds.images.shape == (2, 6, 8, 3) and (ds.cameras.width, ds.cameras.height) == (8, 6)
+    # the size from transforms.json alone is the loaded one, image files not needed
+    for f in (tmp_path / "ds" / "images").iterdir():
+        f.unlink()
+    assert nerfstudio_view_size(tmp_path / "ds", downscale=2) == (6, 8)
+    assert nerfstudio_view_size(tmp_path / "ds") == (12, 17)
     want = imgs[:, :12, :16].reshape(2, 6, 2, 8, 2, 3).mean(axis=(2, 4))
     np.testing.assert_allclose(ds.images, want, atol=1e-6)
     # A world point lands at half the pixel coordinates.

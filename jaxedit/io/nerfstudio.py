@@ -375,6 +375,36 @@ def _downscale_image(image: np.ndarray, factor: int) -> np.ndarray:
     return img.reshape(h, factor, w, factor, -1).mean(axis=(1, 3)).astype(np.float32)
 
 
+def _parse_frames(json_path: Path, meta: dict):
+    """Every frame's (file path, pose, intrinsics, where), parsed and validated before any
+    image is decoded (fail fast), in nerfstudio's order; and the one (width, height) of them."""
+    parsed = []
+    for i, frame in enumerate(meta["frames"]):
+        where = f"frames[{i}]"
+        fp = _file_path(json_path, frame, where)
+        parsed.append((fp, _pose(json_path, frame, where), _intrinsics(json_path, meta, frame, where),
+                       where))
+    names = [p[0] for p in parsed]
+    if len(set(map(_norm_name, names))) != len(names):
+        dup = next(n for n in names if sum(_norm_name(m) == _norm_name(n) for m in names) > 1)
+        raise DataError(json_path, f"file_path {dup!r} appears in more than one frame")
+    # nerfstudio sorts frames by file path (pathlib order: part by part, "./" ignored)
+    parsed.sort(key=lambda p: Path(p[0]).parts)
+    sizes = {(p[2].width, p[2].height) for p in parsed}
+    if len(sizes) != 1:
+        raise DataError(json_path, f"frames have different image sizes {sorted(sizes)}; "
+                                   f"jaxedit needs one size per dataset")
+    return parsed, next(iter(sizes))
+
+
+def nerfstudio_view_size(path: str | os.PathLike, *, downscale: int = 1) -> tuple[int, int]:
+    """(height, width) of the views :func:`load_nerfstudio` would give, from transforms.json
+    alone (no image decoded): what a caller needs to compile for the views ahead of them."""
+    json_path = _resolve_json(path)
+    _, (full_w, full_h) = _parse_frames(json_path, _load_meta(json_path))
+    return full_h // int(downscale), full_w // int(downscale)
+
+
 def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(1.0, 1.0, 1.0),
                     normalize: str = "none", split_every: int = 8) -> Dataset:
     """Load a nerfstudio dataset (see the module docstring for the exact rules).
@@ -404,25 +434,8 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
     json_path = _resolve_json(path)
     meta = _load_meta(json_path)
 
-    # Parse and validate every frame before decoding any image: fail fast.
-    parsed = []
-    for i, frame in enumerate(meta["frames"]):
-        where = f"frames[{i}]"
-        fp = _file_path(json_path, frame, where)
-        parsed.append((fp, _pose(json_path, frame, where), _intrinsics(json_path, meta, frame, where),
-                       where))
+    parsed, (full_w, full_h) = _parse_frames(json_path, meta)
     names = [p[0] for p in parsed]
-    if len(set(map(_norm_name, names))) != len(names):
-        dup = next(n for n in names if sum(_norm_name(m) == _norm_name(n) for m in names) > 1)
-        raise DataError(json_path, f"file_path {dup!r} appears in more than one frame")
-    # nerfstudio sorts frames by file path (pathlib order: part by part, "./" ignored)
-    parsed.sort(key=lambda p: Path(p[0]).parts)
-    names = [p[0] for p in parsed]
-    sizes = {(p[2].width, p[2].height) for p in parsed}
-    if len(sizes) != 1:
-        raise DataError(json_path, f"frames have different image sizes {sorted(sizes)}; "
-                                   f"jaxedit needs one size per dataset")
-    (full_w, full_h), = sizes
     if full_w // downscale < 1 or full_h // downscale < 1:  # before decoding any image
         raise DataError("downscale", f"factor {downscale} is larger than the {full_w}x{full_h} "
                         "images: no pixels would be left")
