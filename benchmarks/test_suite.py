@@ -1,14 +1,17 @@
 """The test suite's own cost: the README's test command, timed, with its compile share.
 
-    python benchmarks/test_suite.py [--out DIR]       # the whole suite
+    python benchmarks/test_suite.py [--out DIR]       # the README's command (the default tier)
+    python benchmarks/test_suite.py --tier slow       # the tests marked slow alone
+    python benchmarks/test_suite.py --tier all        # both tiers, as CI runs them
     python benchmarks/test_suite.py --smoke           # one small file, for CI
 
-Runs the README's ``python -m pytest tests -n auto`` (``--smoke``: ``tests/test_compilation.py``)
+Runs the README's ``python -m pytest tests -n auto`` (``--smoke``: ``tests/test_compilation.py``;
+``--tier slow``: ``-m slow`` added, ``--tier all``: ``--slow``, see ``tests/conftest.py``)
 in a fresh process with ``JAXEDIT_TEST_PROFILE`` set, so that ``tests/conftest.py`` records each
 test's wall time and the XLA compiles it caused in the test process (the CLI tests'
 subprocesses compile on their own; their time is in the test's wall time, not in its compile
 seconds). With several workers the tests' times add up to more than the wall time. Writes
-``test_suite.json``: the total wall time, the outcome counts, the compile share, the 20 slowest
+``test_suite.json`` (``test_suite_slow.json``, ``test_suite_all.json``): the total wall time, the outcome counts, the compile share, the 20 slowest
 tests, the programs the suite spends most compiling, and each file's time against its budget
 (:data:`FILE_BUDGET_S`; files over it are listed, not failed: speed is checked here, never by
 timed assertions in tests).
@@ -36,7 +39,13 @@ FILE_BUDGET_S = 60.0
 TOP_PROGRAMS = 25
 
 
+#: pytest's arguments for each tier, after ``tests -n auto``.
+TIERS = {"default": [], "slow": ["-m", "slow"], "all": ["--slow"]}
+
+
 def _extra(p):
+    p.add_argument("--tier", choices=sorted(TIERS), default="default",
+                   help="default: the README's command; slow: the tests marked slow; all: both")
     p.add_argument("--pytest-args", nargs="*", default=None,
                    help="what to run instead of the README's `tests` (e.g. a file)")
 
@@ -44,7 +53,7 @@ def _extra(p):
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra=_extra)
     targets = args.pytest_args or ["tests/test_compilation.py" if args.smoke else "tests",
-                                   "-n", "auto"]
+                                   "-n", "auto", *TIERS[args.tier]]
     with tempfile.TemporaryDirectory() as tmp:
         profile = Path(tmp) / "profile.jsonl"
         env = {**os.environ, "JAXEDIT_TEST_PROFILE": str(profile), "JAX_PLATFORMS": "cpu"}
@@ -77,7 +86,7 @@ def main(argv=None):
     top_programs = [{"program": name, "compiles": c, "seconds": round(s, 1)} for name, (c, s)
                     in sorted(programs.items(), key=lambda kv: -kv[1][1])[:TOP_PROGRAMS]]
     payload = {
-        "smoke": args.smoke, "command": "python -m pytest " + " ".join(targets),
+        "smoke": args.smoke, "tier": args.tier, "command": "python -m pytest " + " ".join(targets),
         "cpu_count": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0], "total_s": round(total, 1),
         "tests_s": round(tests_s, 1), "outcomes": counts, "failed": failed,
@@ -95,7 +104,8 @@ def main(argv=None):
     }
     print(f"{summary}; {total:.0f} s, compiling {compile_s:.0f} s of {tests_s:.0f} s in tests",
           flush=True)
-    write_json(args.out, "test_suite", payload)
+    write_json(args.out, "test_suite" if args.tier == "default" else f"test_suite_{args.tier}",
+               payload)
 
 
 if __name__ == "__main__":

@@ -39,6 +39,31 @@ if not os.environ.get("JAXEDIT_COMPILE_CACHE_DIR"):
 os.environ.setdefault("JAXEDIT_COMPILE_CACHE_MIN_S", "0")
 
 
+# Two tiers. The README's command (`python -m pytest tests -n auto`) runs the default tier: every
+# unit, property and oracle test, and one end-to-end run of each command. Tests marked `slow`
+# (several processes, networks trained, studies and scale runs with a quality bar) run with
+# --slow (CI, every time) or -m slow (that tier alone); a test named by its node id always runs.
+def pytest_addoption(parser):
+    parser.addoption("--slow", action="store_true",
+                     help="also run the tests marked slow (CI runs every test)")
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--slow") or config.option.markexpr:
+        return
+    named = [a.replace(os.sep, "/") for a in config.args if "::" in a]
+
+    def wanted(item):
+        return item.get_closest_marker("slow") is None or any(
+            item.nodeid == n or item.nodeid.startswith((n + "[", n + "::")) or n.endswith(item.nodeid)
+            for n in named)
+
+    keep = [item for item in items if wanted(item)]
+    if len(keep) < len(items):
+        config.hook.pytest_deselected(items=[item for item in items if not wanted(item)])
+        items[:] = keep
+
+
 def pytest_sessionfinish(session, exitstatus):
     if _OWN_CACHE is not None:
         shutil.rmtree(_OWN_CACHE, ignore_errors=True)

@@ -265,6 +265,9 @@ def _tiny(**kw):
     return AblationConfig(**(base | kw))
 
 
+# slow tier: a whole study through the runner (its paired intervals are proven in the default
+# tier by test_paired_intervals_detect_the_planted_step_size_effect_and_not_its_absence)
+@pytest.mark.slow
 def test_planted_step_effect_is_found_through_the_runner_and_exactly_0_without(tmp_path):
     # Planted: ND's one large step draws each view's outcome, ProEdit's small steps hold one:
     # ND's scene mixes more (paired by seed). Not planted: every view is outcome 0 in every

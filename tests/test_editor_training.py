@@ -49,6 +49,8 @@ def test_the_local_edit_changes_the_shirt_only():
     assert not changed[~shirt].any()
 
 
+# slow tier: renders the whole shipped dataset and scores every held-out view with LPIPS
+@pytest.mark.slow
 def test_divergent_outcomes_are_separated_and_as_far_from_the_original():
     from jaxedit.edit.difficulty import default_distance
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+import pytest
 
 from jaxedit import scenes
 from jaxedit.capture.points import background_fraction, random_points, view_box
@@ -66,6 +67,8 @@ def test_background_carving_keeps_points_out_of_free_space():
     assert background_fraction(images, (0.0, 0.0, 0.0)) < 0.1
 
 
+# slow tier: two reconstructions to a quality bar
+@pytest.mark.slow
 def test_a_dataset_without_points_reconstructs_within_2_db_of_one_with_points(tmp_path):
     """Issue 11 item 4: the starting points of a dataset without a cloud cost < 2 dB."""
     import dataclasses

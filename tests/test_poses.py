@@ -109,6 +109,9 @@ def test_sparse_adam_moves_only_the_trained_view():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+# slow tier: a reconstruction with camera optimisation to a pose-error bar (the CLI's
+# camera_opt run and test-time refinement stay in the default tier)
+@pytest.mark.slow
 def test_training_recovers_perturbed_training_poses():
     """The oracle of the training step's pose gradient: Gaussians that render the targets
     exactly from known cameras, held (near) fixed by tiny learning rates, and training

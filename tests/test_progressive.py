@@ -645,6 +645,8 @@ def test_the_anneal_reaches_t_min_in_subtasks_that_end_on_their_plateau(tiny):
     assert all(s["anneal_horizon"] == cfg.warmup + room // 2 for s in subs)
 
 
+# slow tier: an edit at 200k Gaussians (the budget and the cap are proven at small sizes)
+@pytest.mark.slow
 def test_an_input_above_200k_gaussians_grows_up_to_its_cap_and_never_past_it():
     # Real reconstructions hold 0.3-3M Gaussians; the old fixed 200k cap left such a scene
     # no room at all. Tiny images keep the 200k-Gaussian steps cheap.
