@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from jaxedit import DataError
 from jaxedit import camera as camlib
 from jaxedit import gaussians as G
 from jaxedit.camera import Camera
@@ -401,6 +402,9 @@ def test_downscale_area_average_and_intrinsics(tmp_path):
         f.unlink()
     assert nerfstudio_view_size(tmp_path / "ds", downscale=2) == (6, 8)
     assert nerfstudio_view_size(tmp_path / "ds") == (12, 17)
+    for bad, message in ((0, "integer >= 1"), (13, "no pixels would be left")):
+        with pytest.raises(DataError, match=message):
+            nerfstudio_view_size(tmp_path / "ds", downscale=bad)
     want = imgs[:, :12, :16].reshape(2, 6, 2, 8, 2, 3).mean(axis=(2, 4))
     np.testing.assert_allclose(ds.images, want, atol=1e-6)
     # A world point lands at half the pixel coordinates.

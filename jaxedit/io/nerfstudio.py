@@ -397,12 +397,28 @@ def _parse_frames(json_path: Path, meta: dict):
     return parsed, next(iter(sizes))
 
 
+def _check_downscale(downscale) -> int:
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
+        raise DataError("downscale", f"must be an integer >= 1, got {downscale!r}")
+    return int(downscale)
+
+
+def _scaled_size(full_w: int, full_h: int, downscale: int) -> tuple[int, int]:
+    """(height, width) of the images after ``downscale``, or a DataError if none is left."""
+    if full_w // downscale < 1 or full_h // downscale < 1:
+        raise DataError("downscale", f"factor {downscale} is larger than the {full_w}x{full_h} "
+                        "images: no pixels would be left")
+    return full_h // downscale, full_w // downscale
+
+
 def nerfstudio_view_size(path: str | os.PathLike, *, downscale: int = 1) -> tuple[int, int]:
     """(height, width) of the views :func:`load_nerfstudio` would give, from transforms.json
-    alone (no image decoded): what a caller needs to compile for the views ahead of them."""
+    alone (no image decoded), with its errors: what a caller needs to compile for the views
+    ahead of them."""
+    downscale = _check_downscale(downscale)
     json_path = _resolve_json(path)
     _, (full_w, full_h) = _parse_frames(json_path, _load_meta(json_path))
-    return full_h // int(downscale), full_w // int(downscale)
+    return _scaled_size(full_w, full_h, downscale)
 
 
 def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(1.0, 1.0, 1.0),
@@ -423,22 +439,18 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
     Raises:
       DataError: for any problem with the json, the images or the points.
     """
-    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
-        raise DataError("downscale", f"must be an integer >= 1, got {downscale!r}")
+    downscale = _check_downscale(downscale)
     if normalize not in NORMALIZE_MODES:
         raise DataError("normalize", f"must be one of {NORMALIZE_MODES}, got {normalize!r}")
     bg = np.asarray(background, np.float64)
     if bg.shape != (3,) or not np.isfinite(bg).all():
         raise DataError("background", "must be three finite numbers")
-    downscale = int(downscale)
     json_path = _resolve_json(path)
     meta = _load_meta(json_path)
 
     parsed, (full_w, full_h) = _parse_frames(json_path, meta)
     names = [p[0] for p in parsed]
-    if full_w // downscale < 1 or full_h // downscale < 1:  # before decoding any image
-        raise DataError("downscale", f"factor {downscale} is larger than the {full_w}x{full_h} "
-                        "images: no pixels would be left")
+    height, width = _scaled_size(full_w, full_h, downscale)  # before decoding any image
     train_idx, test_idx = _split(json_path, meta, names, split_every)
     image_paths = [_resolve_image(json_path, fp, where) for fp, _, _, where in parsed]
 
@@ -454,7 +466,6 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
         intr_rows.append((intr.fx, intr.fy, intr.cx, intr.cy))
     images = np.stack(images)
     intr_arr = np.asarray(intr_rows, np.float64) / downscale
-    width, height = full_w // downscale, full_h // downscale
 
     c2w = np.stack([p[1] for p in parsed])
     if normalize == "nerfstudio":
