@@ -11,8 +11,9 @@ in a fresh process with ``JAXEDIT_TEST_PROFILE`` set, so that ``tests/conftest.p
 test's wall time and the XLA compiles it caused in the test process (the CLI tests'
 subprocesses compile on their own; their time is in the test's wall time, not in its compile
 seconds). With several workers the tests' times add up to more than the wall time. Writes
-``test_suite.json`` (``test_suite_slow.json``, ``test_suite_all.json``): the total wall time, the outcome counts, the compile share, the 20 slowest
-tests, the programs the suite spends most compiling, and each file's time against its budget
+``test_suite.json`` (``test_suite_slow.json``, ``test_suite_all.json``): the total wall time,
+the outcome counts, the compile share, the 20 slowest tests, the programs the suite spends
+most compiling, and each file's time against its budget
 (:data:`FILE_BUDGET_S`; files over it are listed, not failed: speed is checked here, never by
 timed assertions in tests).
 """

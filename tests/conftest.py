@@ -40,7 +40,7 @@ os.environ.setdefault("JAXEDIT_COMPILE_CACHE_MIN_S", "0")
 
 
 # Two tiers. The README's command (`python -m pytest tests -n auto`) runs the default tier: every
-# unit, property and oracle test, and one end-to-end run of each command. Tests marked `slow`
+# unit, property and oracle test, and end-to-end runs of the main commands. Tests marked `slow`
 # (several processes, networks trained, studies and scale runs with a quality bar) run with
 # --slow (CI, every time) or -m slow (that tier alone); a test named by its node id always runs.
 def pytest_addoption(parser):
@@ -58,9 +58,11 @@ def pytest_collection_modifyitems(config, items):
             item.nodeid == n or item.nodeid.startswith((n + "[", n + "::")) or n.endswith(item.nodeid)
             for n in named)
 
-    keep = [item for item in items if wanted(item)]
-    if len(keep) < len(items):
-        config.hook.pytest_deselected(items=[item for item in items if not wanted(item)])
+    keep, left_out = [], []
+    for item in items:
+        (keep if wanted(item) else left_out).append(item)
+    if left_out:
+        config.hook.pytest_deselected(items=left_out)
         items[:] = keep
 
 
