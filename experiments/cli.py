@@ -532,6 +532,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = None
     dist = None
+    result_out = sys.stdout
     try:
         args = parse(argv)
         dist = distributed_config(args)
@@ -547,6 +548,7 @@ def main(argv: list[str] | None = None) -> int:
         if dist is not None:
             from jaxedit.parallel.distributed import check_agreement, initialize, is_writer
 
+            result_out = _stdout_for_the_result()
             initialize(dist)
             # Before any work, every process must have been given the same run (process 0
             # checks and writes --out for all): one line where they differ, not a silent run.
@@ -583,8 +585,22 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     if result and writes(args):
-        print(json.dumps(jsonable(result), indent=2))
+        print(json.dumps(jsonable(result), indent=2), file=result_out, flush=True)
     return 0
+
+
+def _stdout_for_the_result():
+    """A stream on this process's stdout kept for the command's result; what else writes to
+    file descriptor 1 from now on goes to stderr.
+
+    The distributed runtime's C++ code (gloo) prints its connection notices to stdout, from
+    several threads at once and interleaved mid-line, so no filter of stdout's lines could
+    keep the result JSON whole (a leaked half-notice broke a two-process run's JSON).
+    """
+    sys.stdout.flush()
+    stream = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)
+    return stream
 
 
 # --- several processes (jaxedit.parallel.distributed) -------------------------------------------

@@ -297,13 +297,16 @@ def split_edits(editor):
 #: A glog / absl line: severity, date, time, thread, file:line].
 _LOG_LINE = re.compile(r"[IWEF]\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+ [^\]]+\] ")
 _FATAL = re.compile(r"F\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+ [^\]]+\] ")
+#: gloo's connection notice, also where two threads' notices interleave mid-line and a
+#: line begins inside one ("0 is connected to 1 peer ranks. Expected number ...").
+_GLOO_NOTICE = re.compile(r"is connected to \d+ peer ranks|Expected number of connected peer")
 
 
 def is_runtime_noise(line: str) -> bool:
     """Whether a worker's stderr line is the runtime's own logging (glog lines, gloo's
     connection notices, a fatal error's stack trace), not jaxedit's output."""
     return bool(_LOG_LINE.search(line) or line.startswith(("[Gloo] ", "*** Check failure"))
-                or re.match(r"\s+@\s+0x", line))
+                or _GLOO_NOTICE.search(line) or re.match(r"\s+@\s+0x", line))
 
 
 def fatal_reason(message: str, returncode: int, config: DistributedConfig) -> str:
