@@ -58,8 +58,11 @@ def main(argv=None) -> None:
                    help="cameras off the training orbits (edit_data.novel_views) instead of "
                         "the held-out ones")
     p.add_argument("--image-scales", default="1.5,1")
+    p.add_argument("--edit-image-scales", default="1.5",
+                   help="image guidance of the instructions' edits, each with every text "
+                        "scale (a higher one holds the edit closer to the input)")
     p.add_argument("--sheet", type=Path, default=None,
-                   help="PNG of the edits at text guidance 7.5: a row per view, the input "
+                   help="PNG of the edits at the first guidance pair: a row per view, the input "
                         "then bronze, black and white, the divergent draws")
     args = p.parse_args(argv)
 
@@ -97,7 +100,8 @@ def main(argv=None) -> None:
     null = editor.encode("")
     out: dict = {"empty_prompt_branch": {
         "text dropout keeps the edit (v1)": empty_prompt_shares(0.1, 0.05, False),
-        "empty_is_identity (v2)": empty_prompt_shares(0.1, 0.05, True)}, "weights": str(folder), "views": [int(v) for v in views],
+        "empty_is_identity (v2)": empty_prompt_shares(0.1, 0.05, True)},
+        "weights": str(folder), "views": [int(v) for v in views],
                  "scenes": [data.scenes[data.scene[v]] for v in views], "steps": args.steps,
                  "draws": args.draws}
     rt = vae_roundtrip(editor, inputs[views])
@@ -116,7 +120,9 @@ def main(argv=None) -> None:
               if len(ins.outcomes) == 1 and ins.scenes is None]
     divergent = [i for i, ins in enumerate(data.instructions) if len(ins.outcomes) > 1]
     out["by_text_scale"] = {}
-    for scale in (float(s) for s in args.text_scales.split(",")):
+    pairs = [(float(t), float(i)) for i in args.edit_image_scales.split(",")
+             for t in args.text_scales.split(",")]
+    for scale, image_scale in pairs:
         entry: dict = {}
         rows, embs, which = [], [], []
         for i in single:
@@ -128,7 +134,7 @@ def main(argv=None) -> None:
                 rows += [v] * args.draws
                 embs += [editor.encode(data.instructions[i].prompt)] * args.draws
                 which += [i] * args.draws
-        x = edits(rows, embs, 0.98, (scale, 1.5))
+        x = edits(rows, embs, 0.98, (scale, image_scale))
         rows, which = np.asarray(rows), np.asarray(which)
         for i in single + divergent:
             sel = which == i
@@ -145,13 +151,15 @@ def main(argv=None) -> None:
                 e["without_other_gate"] = {k: f["without_other_gate"][k] for k in (
                     "single_outcome_fraction", "outcome_frequencies", "mixed_fraction")}
             entry[ins.prompt] = e
-        out["by_text_scale"][f"{scale:g}"] = entry
-        if args.sheet is not None and scale == 7.5:  # rows: views; input, then its edits
+        name = f"{scale:g}" if image_scale == 1.5 else f"{scale:g} image {image_scale:g}"
+        out["by_text_scale"][name] = entry
+        if args.sheet is not None and (scale, image_scale) == pairs[0]:
+            # rows: views; the input, then its edits
             from jaxedit.io.images import write_image
 
             grid = [np.concatenate([inputs[v], *x[rows == v]], 1) for v in views]
             write_image(args.sheet, np.concatenate(grid, 0))
-        print("text scale", scale, json.dumps(entry), flush=True)
+        print("text scale", name, json.dumps(entry), flush=True)
     out["seconds"] = round(time.perf_counter() - t0, 1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")
