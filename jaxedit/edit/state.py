@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..gaussians import grow
+from ..raster.render import next_capacity
 from ..train import put_image
 from .buffer import Utilisation
 from .context import EditContext
@@ -143,8 +144,9 @@ def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) ->
     """A run at its very beginning: the input scene, the original photos as training images."""
     images = ctx.data.train_images if images is None else images
     # Room to densify from the start (growth means a recompile), but not much more: the
-    # step's cost grows with the capacity. 1.5x, a multiple of 256.
-    want = -(-int(1.5 * int(gaussians.num_alive())) // 256) * 256
+    # step's cost grows with the capacity. 1.5x, on the buffers' ladder, so that the edit
+    # often builds the programs its scene's reconstruction built (read from the cache).
+    want = next_capacity(math.ceil(1.5 * int(gaussians.num_alive())))
     capacity = min(max(want, gaussians.capacity), max(ctx.trainer.settings.densify.max_gaussians,
                                                      gaussians.capacity))
     if capacity > gaussians.capacity:

@@ -147,7 +147,7 @@ def planned_capacity(state: TrainState, room: float | None) -> int:
     d = state.config.densify
     if not _will_densify(state, room):
         return state.capacity
-    want = int(math.ceil(room * int(state.gaussians.num_alive()) / 1024.0)) * 1024
+    want = next_capacity(math.ceil(room * int(state.gaussians.num_alive())))
     return max(state.capacity, min(want, int(d.max_gaussians)))
 
 
@@ -160,7 +160,9 @@ def plan_room(state: TrainState, room: float | None) -> TrainState:
     GPU's kernels): the host stop that made end-to-end training several times
     slower than its steady state. Giving a fresh run ``room`` x its alive
     Gaussians up front makes those stops rare; the unused slots are dead and cost
-    little per step (see :func:`default_room`). Outside jit. The capacity is part of the state (and of its
+    little per step (see :func:`default_room`). The capacity is a size on the buffers' ladder
+    (:func:`jaxedit.raster.render.next_capacity`), so that runs of nearby sizes (a
+    reconstruction and the edit of its scene) build the same programs. Outside jit. The capacity is part of the state (and of its
     checkpoints), so :func:`fit` plans only at step 0 and a resumed run keeps
     the capacity it had: resume stays bit-exact.
     """
