@@ -141,12 +141,17 @@ class ChunkResult(NamedTuple):
     metrics: dict
 
 
-@functools.partial(jax.jit, static_argnames=("length", "warmup", "window", "patience",
-                                             "min_delta", "stop_on_plateau"))
+# The run's settings that are plain numbers (warmup, patience, whether a plateau ends the
+# subtask) are traced, not static: runs that differ only in them (ProEdit and a fixed budget,
+# tests with other patience) share one program. The window is the tracker's shape; min_delta
+# stays static, so that best * (1 - min_delta) is the constant it always was.
+@functools.partial(jax.jit, static_argnames=("length", "min_delta"))
 def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars, *, length,
-                warmup, window, patience, min_delta, stop_on_plateau):
+                min_delta):
     subtask, step0, n_active = scalars[0], scalars[1], scalars[2]
     stop_if_plateau, earliest_end = scalars[3] > 0, scalars[4]
+    warmup, patience, stop_on_plateau = scalars[5], scalars[6], scalars[7] > 0
+    window = tracker.recent.shape[0]
     key_sub = jax.random.fold_in(run_key, subtask)
     views_key, train_key = (jax.random.fold_in(key_sub, _VIEWS),
                             jax.random.fold_in(key_sub, _TRAIN))
@@ -193,14 +198,13 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
     only from :func:`earliest_end` on; never without ``limits.stop_on_plateau``).
     """
     cfg = ctx.config
-    # The chunk's only upload: five int32 (explicit; images and state stay on the device).
+    # The chunk's only upload: eight int32 (explicit; images and state stay on the device).
     scalars = jax.device_put(np.array([spec.index, st.step, num_steps, stop_if_plateau,
-                                       earliest_end(st, cfg)], np.int32))
+                                       earliest_end(st, cfg), cfg.warmup, cfg.patience,
+                                       limits.stop_on_plateau], np.int32))
     train, tracker, metrics = _edit_chunk(
         *commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
-                 ctx.key)), scalars,
-        length=CHUNK, warmup=cfg.warmup, window=cfg.loss_window,
-        patience=cfg.patience, min_delta=cfg.min_delta, stop_on_plateau=limits.stop_on_plateau)
+                 ctx.key)), scalars, length=CHUNK, min_delta=cfg.min_delta)
     metrics = jax.device_get(metrics)  # the one host read of the chunk
     completed = metrics["ran"] & ~metrics["redo"]
     k = int(np.sum(completed))
