@@ -50,6 +50,7 @@ def pytest_addoption(parser):
 
 def pytest_collection_modifyitems(config, items):
     if config.getoption("--slow") or config.option.markexpr:
+        _longest_files_first(items, ("test_suite.json", "test_suite_slow.json"))
         return
     named = [a.replace(os.sep, "/") for a in config.args if "::" in a]
 
@@ -64,6 +65,33 @@ def pytest_collection_modifyitems(config, items):
     if left_out:
         config.hook.pytest_deselected(items=left_out)
         items[:] = keep
+    _longest_files_first(items, ("test_suite.json",))
+
+
+def _longest_files_first(items, tables: tuple[str, ...]) -> None:
+    """Order the test files by their measured time, longest first (stable within a file).
+
+    xdist hands a file (``--dist loadfile``) to the next free worker in this order
+    (``--no-loadscope-reorder``), so the long files start first and the short ones fill in
+    at the end: the longest-processing-time rule, which keeps one worker from running a
+    long file alone while the other is idle. The times are the suite's own benchmark
+    (``tables`` in ``benchmarks/results/cpu``: the default tier's, and the slow tier's when
+    it runs); a file they lack counts as 0 s.
+    """
+    import json
+    from pathlib import Path
+
+    seconds: dict[str, float] = {}
+    results = Path(__file__).parents[1] / "benchmarks" / "results" / "cpu"
+    for table in (results / name for name in tables):
+        try:
+            files = json.loads(table.read_text()).get("files_s", {})
+        except (OSError, ValueError):
+            continue
+        for name, s in files.items():
+            seconds[name] = seconds.get(name, 0.0) + float(s)
+    if seconds:
+        items.sort(key=lambda item: -seconds.get(item.nodeid.split("::")[0], 0.0))
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -129,9 +129,14 @@ def test_should_stop_ends_early_and_data_order_is_a_function_of_key_and_step(fac
     batch, _ = T.select_batch(images, face["cams"][face["train"]],
                               jax.random.key_data(jax.random.key(3)), 4)
     np.testing.assert_array_equal(np.asarray(batch.image), images[views[4]])
+    # Checked before every chunk: at the module's chunk length (the program first_leg
+    # compiled; chunk=1 would compile one more for the same property) it ends at 2 chunks.
+    asked = []
     state = T.fit(fresh_state(face), images, face["cams"][face["train"]],
-                  should_stop=lambda step, losses: step >= 5, chunk=1)
-    assert int(state.step) == 5
+                  should_stop=lambda step, losses: asked.append(step) or step >= 2 * T.CHUNK,
+                  room=None)
+    assert int(state.step) == 2 * T.CHUNK
+    assert asked[-1] == 2 * T.CHUNK and T.CHUNK in asked  # asked between chunks
 
 
 def test_train_step_asks_for_a_redo_instead_of_returning_a_truncated_frame(face):
