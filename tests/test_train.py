@@ -226,3 +226,19 @@ def test_planned_room_trains_the_same_scene_without_stopping_for_capacity(face, 
     assert a.capacity == b.capacity
     for x, y in zip(leaves(a), leaves(b)):
         np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-4)
+
+
+def test_a_checkpoint_of_the_static_extent_layout_loads_the_same_state(face, first_leg, tmp_path):
+    # Before the extent was traced it travelled in the meta record only: such a file lacks its
+    # leaf, and loading it gives the state a current file gives (the extent from the meta).
+    state, _ = first_leg
+    assert not isinstance(state.scene_extent, float)  # a leaf: scenes share programs
+    current = T.save_checkpoint(tmp_path / "current.npz", state)
+    with np.load(current) as z:
+        arrays = {k: z[k] for k in z.files if k != ".scene_extent"}
+    assert len(arrays) == len(np.load(current).files) - 1
+    np.savez(tmp_path / "earlier.npz", **arrays)
+    earlier = T.load_checkpoint(tmp_path / "earlier.npz")
+    assert float(earlier.scene_extent) == pytest.approx(face["extent"], rel=1e-6)
+    for a, b in zip(leaves(T.load_checkpoint(current)), leaves(earlier)):
+        np.testing.assert_array_equal(a, b)

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..io.checkpoint import read_pytree, restore, save_pytree
+from ..train.checkpoint import PRE_TRACED_EXTENT
 from .buffer import Utilisation
 from .state import DensityTally, EditState, LossTracker
 
@@ -134,7 +135,9 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[EditState,
     template = {"train": train_template, "images": np.zeros((0,), np.float32),
                 "edited": np.zeros((0,), bool), "tracker_recent": np.zeros((0,), np.float32)}
     # The capacity grows during a run: the stored shapes win over the template's.
-    tree = restore(template, arrays, path, shapes=False)
+    # An earlier layout's trainer state lacks the traced extent: the template's is the
+    # run's own (the same scene), as the static one was.
+    tree = restore(template, arrays, path, shapes=False, template_fills=PRE_TRACED_EXTENT)
     train = tree["train"]
     if info.get("max_intersections") is not None and hasattr(train, "max_intersections"):
         train = dataclasses.replace(train, max_intersections=int(info["max_intersections"]))

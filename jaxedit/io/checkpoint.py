@@ -96,7 +96,8 @@ def read_pytree(path, *, kind: str) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, record.get("meta", {})
 
 
-def restore(template, arrays: dict[str, np.ndarray], where, *, shapes: bool = True) -> Any:
+def restore(template, arrays: dict[str, np.ndarray], where, *, shapes: bool = True,
+            template_fills: tuple[str, ...] = ()) -> Any:
     """``template`` with every leaf replaced by the array stored under its path.
 
     Args:
@@ -105,12 +106,18 @@ def restore(template, arrays: dict[str, np.ndarray], where, *, shapes: bool = Tr
       where: what a DataError names (the file).
       shapes: also require each stored leaf's shape to be the template's (False:
         only the dtype, for states whose capacity grows during a run).
+      template_fills: leaves (paths ending so) that files of an earlier layout lack and
+        whose value the template already holds from the file's meta record: a missing
+        one keeps the template's.
     """
     flat, treedef = jax.tree_util.tree_flatten_with_path(template)
     leaves = []
     for p, ref in flat:
         name = jax.tree_util.keystr(p)
         a = arrays.get(name)
+        if a is None and name.endswith(template_fills or ("\0",)):
+            leaves.append(ref)
+            continue
         if a is None:
             raise DataError(where, f"checkpoint lacks {name} (saved by another version?)")
         if _is_key(ref):

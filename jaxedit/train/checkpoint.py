@@ -21,6 +21,9 @@ from .config import TrainConfig
 from .state import TrainState, init_state
 
 KIND = "train"
+#: The scene extent was a static field, kept only in the meta record, before it was traced:
+#: files of that layout lack its leaf, and the template built from their meta holds it.
+PRE_TRACED_EXTENT = (".scene_extent",)
 #: The version of the file layout (that of every jaxedit checkpoint).
 CHECKPOINT_VERSION = FORMAT_VERSION
 
@@ -31,7 +34,7 @@ def save_checkpoint(path, state: TrainState, *, extra: dict | None = None) -> Pa
     ``extra`` (JSON-serialisable) is stored alongside and returned by
     :func:`load_checkpoint_with_extra`.
     """
-    meta = dict(config=state.config.to_dict(), scene_extent=state.scene_extent,
+    meta = dict(config=state.config.to_dict(), scene_extent=float(state.scene_extent),
                 max_intersections=state.max_intersections, capacity=state.capacity,
                 sh_degree=state.gaussians.sh_degree, step=int(state.step),
                 num_views=state.cameras.num_views, extra=extra or {})
@@ -57,7 +60,7 @@ def _template(meta: dict, where) -> TrainState:
 def load_checkpoint_with_extra(path) -> tuple[TrainState, dict]:
     """(TrainState, extra) from a checkpoint written by :func:`save_checkpoint`."""
     arrays, meta = read_pytree(path, kind=KIND)
-    state = restore(_template(meta, path), arrays, path)
+    state = restore(_template(meta, path), arrays, path, template_fills=PRE_TRACED_EXTENT)
     return state, meta.get("extra", {})
 
 

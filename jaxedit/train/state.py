@@ -40,7 +40,9 @@ class TrainState:
       cameras: :class:`jaxedit.poses.CameraCorrections` of the V training views
         (V = 0 unless ``config.camera_opt``).
       config: TrainConfig (static).
-      scene_extent: float (static).
+      scene_extent: float32 [], the world size (:func:`scene_extent`). Traced, not static:
+        the scene's size is data, so scenes of the same shapes (another capture, the
+        same one rescaled) run the same compiled programs.
       max_intersections: int (static), the tile splatter's buffer size (0: not
         sized yet, see :func:`size_buffer`). Every step pays for the whole buffer
         (it is sorted), so it is measured rather than guessed.
@@ -57,7 +59,7 @@ class TrainState:
     key: jax.Array
     cameras: CameraCorrections
     config: TrainConfig = dataclasses.field(metadata=dict(static=True))
-    scene_extent: float = dataclasses.field(metadata=dict(static=True))
+    scene_extent: jax.Array
     max_intersections: int = dataclasses.field(metadata=dict(static=True))
     frozen: Any = None
 
@@ -86,7 +88,7 @@ def params_of(g: Gaussians) -> Gaussians:
     return dataclasses.replace(g, alive=None)
 
 
-def optimizer(config: TrainConfig, scene_extent: float) -> optax.GradientTransformation:
+def optimizer(config: TrainConfig, scene_extent) -> optax.GradientTransformation:
     """One Adam per attribute (``optax.partition``), Splatfacto learning rates.
 
     The SH array holds DC and higher-order coefficients together; Adam is
@@ -179,5 +181,5 @@ def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *
                       densify_stats=strategy.init(gaussians), step=jnp.zeros((), jnp.int32),
                       densify_origin=jnp.zeros((), jnp.int32), key=key_data(key),
                       cameras=poses.init_corrections(depth), config=config,
-                      scene_extent=float(scene_extent),
+                      scene_extent=jnp.asarray(scene_extent, jnp.float32),
                       max_intersections=int(max_intersections))
