@@ -403,7 +403,8 @@ def test_cli_edit_uses_lpips_difficulty_and_checks_real_model_flags(tiny, tmp_pa
     weights = save_lpips_params(tmp_path / "lpips_alex.npz", tensors, "alex")
     base = ["edit", "--data", str(tmp_path / "data"), "--scene", str(tmp_path / "scene.ply"),
             "--prompt", PROMPT, "--editor", "simulated", "--sync", "--subtasks", "1",
-            "--max-steps", "4", "--warmup", "2", "--patience", "2", "--turntable-frames", "0",
+            # the contract test's run settings: one compiled edit chunk for both CLI runs
+            "--max-steps", "8", "--warmup", "6", "--patience", "3", "--turntable-frames", "0",
             "--quiet", "--no-report"]
     out = tmp_path / "run"
     assert main(base + ["--out", str(out), "--lpips-weights", str(weights)]) == 0
@@ -600,8 +601,10 @@ def test_the_plan_owns_the_density_warmup(tiny):
 def test_a_run_encodes_its_prompt_once(tiny):
     # the context, the difficulty oracle (and a local edit's relevance) share one encoding
     g, data, _, _ = tiny
+    # TINY's warm-up (the density control's, static in the trainer's config): the program
+    # the sync run compiled
     cfg = ProEditConfig.for_mode("proedit", **{**TINY, "max_steps": 8, "patience": 2,
-                                               "warmup": 2, "difficulty_views": 2})
+                                               "difficulty_views": 2})
     editor = CountingEditor()
     run_edit(editor, PROMPT, data, g, config=cfg, settings=FAST, seed=1, run_dir=None)
     assert editor.encoded == {PROMPT: 1, "": 1}
