@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -248,12 +249,13 @@ def test_diffusers_pipeline_gives_the_jax_editors_edit():
     vae_noise = rng.standard_normal((1, 16, 16, 4)).astype(np.float32)
     sde_noise = rng.standard_normal((1, 16, 16, 4)).astype(np.float32)
     cfg = editor.config()
-    ours = np.asarray(jx.edit_with_noise(
+    # jitted: run eagerly, the VAE and the steps around the scan compiled ~200 primitives
+    ours = np.asarray(jx.edit_with_noise_jit(
         editor.nets, jnp.asarray(view), jnp.asarray(view), jnp.asarray(editor.encode(prompt)),
         jnp.asarray(editor.encode("")), jnp.asarray([t_start], jnp.int32),
         jnp.asarray(vae_noise), jnp.asarray(sde_noise), editor.schedule, cfg))
-    latents, _ = jx.encode_latents(editor.nets.vae, jnp.asarray(view), jnp.asarray(view),
-                                   jnp.asarray(vae_noise), cfg)
+    latents, _ = eqx.filter_jit(jx.encode_latents)(editor.nets.vae, jnp.asarray(view),
+                                                   jnp.asarray(view), jnp.asarray(vae_noise), cfg)
     a = float(editor.schedule.alphas_cumprod[t_start])
     x_t = (np.sqrt(a) * np.asarray(latents) + np.sqrt(1 - a) * sde_noise).astype(np.float32)
 
