@@ -115,7 +115,7 @@ def restore(template, arrays: dict[str, np.ndarray], where, *, shapes: bool = Tr
     for p, ref in flat:
         name = jax.tree_util.keystr(p)
         a = arrays.get(name)
-        if a is None and name.endswith(template_fills or ("\0",)):
+        if a is None and name.endswith(template_fills):  # () matches nothing
             leaves.append(ref)
             continue
         if a is None:

@@ -88,7 +88,8 @@ def params_of(g: Gaussians) -> Gaussians:
     return dataclasses.replace(g, alive=None)
 
 
-def optimizer(config: TrainConfig, scene_extent) -> optax.GradientTransformation:
+def optimizer(config: TrainConfig,
+              scene_extent: float | jax.Array) -> optax.GradientTransformation:
     """One Adam per attribute (``optax.partition``), Splatfacto learning rates.
 
     The SH array holds DC and higher-order coefficients together; Adam is
