@@ -312,14 +312,14 @@ def load_lpips_params(path, net: str | None = None) -> tuple[LPIPSParams, str]:
     conv_w, conv_b = [], []
     for c in _convs(net):
         w = get(f"trunk.{c.index}.weight", (c.cout, c.cin, c.kernel, c.kernel))
-        conv_w.append(jnp.asarray(w.transpose(2, 3, 1, 0)))  # OIHW -> HWIO
-        conv_b.append(jnp.asarray(get(f"trunk.{c.index}.bias", (c.cout,))))
+        conv_w.append(jax.device_put(w.transpose(2, 3, 1, 0)))  # OIHW -> HWIO
+        conv_b.append(jax.device_put(get(f"trunk.{c.index}.bias", (c.cout,))))
     heads = []
     for k, ch in enumerate(_tap_channels(net)):
         w = get(f"lin{k}.weight", (1, ch, 1, 1)).reshape(ch)
         if np.any(w < 0):
             raise DataError(path, f"head lin{k} has negative weights; LPIPS heads are non-negative")
-        heads.append(jnp.asarray(w))
+        heads.append(jax.device_put(w))
     return LPIPSParams(tuple(conv_w), tuple(conv_b), tuple(heads)), net
 
 

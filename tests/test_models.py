@@ -379,6 +379,20 @@ def test_wrong_shape_is_named(tiny, tmp_path):
 LEGACY_NAMES = (("to_q", "query"), ("to_k", "key"), ("to_v", "value"), ("to_out.0", "proj_attn"))
 
 
+def test_loading_builds_no_program_per_weight_shape(tiny):
+    """Weights go to the device by transfer: jnp.asarray of a NumPy array would build a copy
+    program per shape (52 here; hundreds in SD 1.5), and a cast a conversion per shape."""
+    from jaxedit.compilation import compile_stats
+
+    jax.clear_caches()  # what the process built so far must not hide a program per shape
+    before = compile_stats()
+    loaded = load_ip2p(tiny, dtype=jnp.bfloat16)
+    built = compile_stats(since=before)
+    shapes = {(leaf.shape, leaf.dtype) for leaf in jax.tree_util.tree_leaves(loaded)}
+    assert len(shapes) > 40
+    assert built["count"] + built["cache_hits"] <= 3, built["programs"]  # the build key's
+
+
 def test_legacy_vae_attention_names_load(tiny, tmp_path, models):
     """VAE checkpoints from before diffusers 0.14 name the mid-block attention query/key/value/
     proj_attn, some with 1x1-conv shaped weights; they load to the same module."""

@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
@@ -128,5 +127,5 @@ def restore(template, arrays: dict[str, np.ndarray], where, *, shapes: bool = Tr
         if np.dtype(a.dtype) != ref_dtype or (shapes and tuple(a.shape) != ref_shape):
             raise DataError(where, f"checkpoint leaf {name} is {a.dtype} {tuple(a.shape)}, "
                                    f"expected {ref_dtype} {ref_shape}")
-        leaves.append(jnp.asarray(np.asarray(a)))
+        leaves.append(jax.device_put(np.asarray(a)))
     return jax.tree_util.tree_unflatten(treedef, leaves)

@@ -29,6 +29,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -325,11 +326,10 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
             row = int(np.argwhere(bad.reshape(len(arr), -1).any(axis=1))[0, 0]) if len(arr) else 0
             raise DataError(path, f"non-finite {label} value (NaN or inf) at vertex {row} "
                                   f"({int(bad.reshape(len(arr), -1).any(axis=1).sum())} bad vertices)")
-    return Gaussians(
-        means=jnp.asarray(means), log_scales=jnp.asarray(log_scales), quats=jnp.asarray(quats),
-        opacity_logits=jnp.asarray(opacity), sh=jnp.asarray(sh),
-        alive=jnp.ones((element.count,), bool),
-    )
+    # device_put, not jnp.asarray: the latter compiles a copy program per array shape
+    arrays = dict(means=means, log_scales=log_scales, quats=quats, opacity_logits=opacity,
+                  sh=sh, alive=np.ones((element.count,), bool))
+    return Gaussians(**jax.device_put(arrays))
 
 
 def ply_fields(sh_degree: int, *, normals: bool = True) -> list[str]:

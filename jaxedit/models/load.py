@@ -335,9 +335,10 @@ def module_from_tensors(skeleton, tensors: dict[str, np.ndarray], where: str | o
             if array.shape != tuple(shape) and not squeezable:
                 wrong.append(f"{prefix + key!r} has shape {list(array.shape)}, expected {list(shape)}")
                 continue
-            # converted on the host (ml_dtypes rounds as XLA does): on the device each
-            # weight shape compiled a conversion of its own
-            values[field] = jnp.asarray(np.asarray(convert(np.asarray(array)), dtype=dtype))
+            # converted on the host (ml_dtypes rounds as XLA does) and copied by device_put:
+            # on the device each weight shape compiled a conversion of its own, and
+            # jnp.asarray of a NumPy array compiles a copy ("stage") per shape
+            values[field] = jax.device_put(np.asarray(convert(np.asarray(array)), dtype=dtype))
         filled.append(dataclasses.replace(layer, **values) if values else layer)
     unexpected = sorted(prefix + k for k in tensors if k not in used and not _IGNORED.search(k))
     problems = []
