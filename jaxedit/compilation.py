@@ -3,7 +3,7 @@
 On a GPU most of a first run is XLA compiling (the demo: two thirds of 179 s on an H100; an
 SD 1.5-size editor program about 45 s), and a second run compiled it all again. So ``import
 jaxedit`` switches on JAX's persistent compilation cache (:func:`enable_persistent_cache`):
-every program it compiles (:data:`MIN_COMPILE_SECONDS`) is written to
+every program it compiles, however small (:data:`MIN_COMPILE_SECONDS`), is written to
 ``$JAXEDIT_CACHE/xla`` (``~/.cache/jaxedit/xla``) and read back by later runs, bounded to
 :data:`DEFAULT_MAX_MB`: when a process switches the cache on, the least recently used entries
 beyond the bound are removed (:func:`trim_cache`). JAX's own bound
