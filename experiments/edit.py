@@ -41,6 +41,7 @@ def _config_flags():
         Flag("plan.schedule_method", choices=("bisect", "root")),
         Flag("plan.refine_first", off="--no-refine-first"),
         Flag("plan.consolidate", off="--no-consolidate"),
+        Flag("plan.pipelined", off="--inline-edits"),
         Flag("plan.asynchronous", "--async", off="--sync", key="asynchronous"),
         Flag("downscale"),
         Flag("plan.warmup"),

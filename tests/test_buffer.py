@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from jaxedit.edit.buffer import (AsyncEditSource, EditJob, EditorThreadError, SyncEditSource,
-                                 Utilisation, make_source, view_order)
+from jaxedit.edit.buffer import (AsyncEditSource, EditJob, EditorThreadError,
+                                 PipelinedEditSource, SyncEditSource, Utilisation, make_source,
+                                 view_order)
 
 
 def _fake_edit(job: EditJob, scene) -> np.ndarray:
@@ -51,6 +52,61 @@ def test_sync_exchange_edits_the_scene_of_that_step_and_counts():
     assert float(got[0].image[0, 0, 0]) == pytest.approx(20.001)
     u = src.utilisation
     assert (u.edits, u.consumed, u.polls, u.empty_polls) == (2, 2, 3, 1)
+
+
+def test_pipelined_edits_the_scene_of_the_exchange_and_hands_it_over_at_collect():
+    started, release = threading.Event(), threading.Event()
+
+    def slow_edit(job, scene):
+        started.set()
+        assert release.wait(10)
+        return _fake_edit(job, scene)
+
+    with PipelinedEditSource(slow_edit, np.array([2, 0, 1]), every=2) as src:
+        assert src.collect() == []  # nothing begun yet
+        assert src.exchange(0, np.array([10.0])) == []  # begun, not waited for
+        assert started.wait(10)  # on the worker, while this thread goes on
+        with pytest.raises(RuntimeError, match="collect"):
+            src.exchange(2, np.array([20.0]))  # one edit in flight at a time
+        release.set()
+        got = src.collect()
+        assert [(e.job.view, e.job.step, e.scene_step) for e in got] == [(2, 0, 0)]
+        assert float(got[0].image[0, 0, 0]) == pytest.approx(12.0)  # the scene of step 0
+        assert src.exchange(1, np.array([0.0])) == [] and src.collect() == []  # none due
+        src.exchange(2, np.array([20.0]))
+        got = src.collect()
+        assert float(got[0].image[0, 0, 0]) == pytest.approx(20.001)
+    u = src.utilisation
+    assert (u.edits, u.consumed, u.polls) == (2, 2, 3)
+    assert u.trainer_waits <= 2 and u.editor_seconds > 0
+
+
+def test_pipelined_makes_the_sync_rules_edits_and_the_sweep_at_once():
+    order = np.array([1, 0, 2])
+    kw = dict(every=3, initial_sweep=True)
+    sync, piped = SyncEditSource(_fake_edit, order, **kw), PipelinedEditSource(_fake_edit, order, **kw)
+    with piped:
+        for s in range(0, 13):
+            scene = np.array([float(s)])
+            want = sync.exchange(s, scene)
+            got = piped.exchange(s, scene)
+            if s == 0:  # the sweep: every view, returned by the exchange itself
+                assert len(got) == 3 and piped.collect() == []
+            else:
+                assert got == []
+                got = piped.collect()
+            assert [(e.job, e.scene_step) for e in got] == [(e.job, e.scene_step) for e in want]
+            assert all(np.array_equal(a.image, b.image) for a, b in zip(got, want))
+
+
+def test_pipelined_editor_error_is_raised_at_collect():
+    with PipelinedEditSource(_failing_edit, np.array([0, 1, 2]), every=1) as src:
+        for step in (0, 1):
+            src.exchange(step, np.array([0.0]))
+            src.collect()
+        src.exchange(2, np.array([0.0]))
+        with pytest.raises(Boom):  # the editor's own error, in the trainer's thread
+            src.collect()
 
 
 def test_async_produces_from_latest_scene_and_shuts_down():
@@ -150,7 +206,9 @@ def test_wait_for_counts_trainer_waits_and_feeds_arrivals():
 def test_utilisation_add_and_make_source():
     u = Utilisation(edits=1, editor_seconds=0.5).add(Utilisation(edits=2, trainer_waits=3))
     assert u.as_dict()["edits"] == 3 and u.trainer_waits == 3 and u.editor_seconds == 0.5
-    assert isinstance(make_source(_fake_edit, np.array([0]), asynchronous=False), SyncEditSource)
+    assert type(make_source(_fake_edit, np.array([0]), asynchronous=False)) is SyncEditSource
+    with make_source(_fake_edit, np.array([0]), asynchronous=False, pipelined=True) as src:
+        assert isinstance(src, PipelinedEditSource)
     assert isinstance(make_source(_fake_edit, np.array([0]), asynchronous=True), AsyncEditSource)
 
 

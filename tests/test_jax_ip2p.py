@@ -183,6 +183,47 @@ def test_short_batches_run_at_a_padded_size_and_compile_nothing_new(editor):
     np.testing.assert_allclose(np.asarray(three), np.asarray(four[:3]), rtol=0, atol=1e-6)
 
 
+def test_views_edited_side_by_side_are_each_views_own_edit(editor):
+    """On one CPU device edit_views makes one single-view call per core at once (threads):
+    each view gets the edit a call of its own gives, in order."""
+    import os
+
+    from jaxedit.editors import edit_views
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert editor.batch == 1
+    assert editor.calls_side_by_side == max(1, min(cores, jx.CPU_CALLS))
+    imgs = np.stack([_image(60 + i, (20, 16, 3)) for i in range(3)])
+    keys = jax.random.split(jax.random.key(5), 3)
+    e = editor.encode(PROMPT)
+    together = edit_views(editor, imgs, imgs, e, keys, timestep_range=(0.45, 0.85))
+    for i, view in enumerate(together):
+        alone = editor.edit(imgs[i], imgs[i], e, keys[i], timestep_range=(0.45, 0.85))
+        np.testing.assert_array_equal(np.asarray(view), np.asarray(alone))
+
+
+def test_edit_views_makes_calls_side_by_side_when_the_editor_says_so():
+    """edit_views runs ``calls_side_by_side`` calls at once and returns the views in order
+    (an editor whose calls wait for each other would hang one call at a time)."""
+    import threading
+
+    from jaxedit.editors import edit_views
+
+    class Meeting:
+        calls_side_by_side = 2
+
+        def __init__(self):
+            self.barrier = threading.Barrier(2, timeout=10)
+
+        def edit(self, image, original, embedding, key, **kw):
+            self.barrier.wait()  # both calls in flight at once, or a BrokenBarrierError
+            return image + 1
+
+    views = [np.full((2, 2, 3), i, np.float32) for i in range(4)]
+    out = edit_views(Meeting(), views, views, None, list(range(4)))
+    assert [float(v[0, 0, 0]) for v in out] == [1.0, 2.0, 3.0, 4.0]
+
+
 def test_warm_up_compiles_the_program_the_run_then_uses(editor):
     """The demo's warm-up (on a thread, during the reconstruction) compiles the editor's
     program for the run's view size, batch and guidance: the run's first edit compiles

@@ -7,7 +7,7 @@ the trainer keeps training on whatever the dataset currently holds, replacing a
 training image whenever a new edit of that view arrives (iterative dataset
 update).
 
-Two interchangeable sources implement that contract, :class:`EditSource`, for a
+Three interchangeable sources implement that contract, :class:`EditSource`, for a
 subtask's loop (:mod:`jaxedit.edit.subtask`):
 
 * :class:`SyncEditSource`, fully deterministic: the edits due at trainer step
@@ -15,6 +15,9 @@ subtask's loop (:mod:`jaxedit.edit.subtask`):
   cyclic order) and computed inline from the scene at step ``s``. Same seed,
   same bits; resuming at any step reproduces the uninterrupted run, because the
   rule depends on the step only.
+* :class:`PipelinedEditSource`, the same edits made on a worker thread beside the
+  trainer's next steps and taken into the dataset when those steps end: as deterministic,
+  with the editor's time hidden behind the trainer's where they can run side by side.
 * :class:`AsyncEditSource`, a producer thread (on its own JAX device when there
   are two or more) that edits views in the same cyclic order, each from the
   latest scene the trainer published, and hands them over through a bounded
@@ -39,6 +42,7 @@ NumPy results (the torch reference, the simulated editor) stay NumPy.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import queue
 import threading
@@ -168,6 +172,11 @@ class EditSource(Protocol):
     def exchange(self, step: int, scene) -> list[EditedView]:
         """Hand over the trainer's ``scene`` at ``step``; the edits ready for it."""
 
+    def collect(self) -> list[EditedView]:
+        """At the end of the steps that followed an exchange: the edits begun there and
+        due now (:class:`PipelinedEditSource`; the other sources hand theirs over at an
+        exchange and return [])."""
+
     def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
                  on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
         """Block until ``predicate()`` holds, feeding arrivals to ``on_edits``; its value."""
@@ -247,7 +256,21 @@ class SyncEditSource:
 
     def exchange(self, step: int, scene) -> list[EditedView]:
         """Perform the edits due at ``step`` on ``scene`` and return them."""
-        jobs = self.jobs_at(step)
+        out = self._edit(self.jobs_at(step), scene, step)
+        for view in out:
+            self._count(view, waited=view.seconds)
+        self.utilisation.polls += 1
+        self.utilisation.empty_polls += not out
+        return out
+
+    def collect(self) -> list[EditedView]:
+        """Edits begun at the last exchange and not yet handed over (none: every edit is
+        made inside :meth:`exchange`)."""
+        return []
+
+    def _edit(self, jobs: list[EditJob], scene, step: int) -> list[EditedView]:
+        """``jobs`` (all due at ``step``) edited on ``scene``, finished (each edit's seconds
+        are its group's share; several jobs go to ``edit_many`` together when it is given)."""
         together = self.edit_many is not None and len(jobs) > 1
         groups = [jobs] if together else [[job] for job in jobs]
         out = []
@@ -257,16 +280,16 @@ class SyncEditSource:
                       else [self.edit_fn(group[0], scene)])
             images = [as_view(image, self.trainer_device) for image in images]
             dt = (time.perf_counter() - t0) / len(group)
-            for job, image in zip(group, images):
-                self.utilisation.edits += 1
-                self.utilisation.consumed += 1
-                self.utilisation.editor_seconds += dt
-                self.utilisation.trainer_waits += 1
-                self.utilisation.trainer_wait_s += dt
-                out.append(EditedView(job, image, dt, step))
-        self.utilisation.polls += 1
-        self.utilisation.empty_polls += not out
+            out.extend(EditedView(job, image, dt, step) for job, image in zip(group, images))
         return out
+
+    def _count(self, view: EditedView, waited: float) -> None:
+        u = self.utilisation
+        u.edits += 1
+        u.consumed += 1
+        u.editor_seconds += view.seconds
+        u.trainer_waits += waited > 0
+        u.trainer_wait_s += waited
 
     def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
                  on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
@@ -275,6 +298,63 @@ class SyncEditSource:
 
     def close(self) -> None:
         pass
+
+
+class PipelinedEditSource(SyncEditSource):
+    """:class:`SyncEditSource`'s edits, made while the trainer trains.
+
+    The edit due at step ``s`` is made from the scene as it is at step ``s``, on a worker
+    thread, while the trainer takes the steps up to its next stop (the next exchange, a
+    checkpoint, the end of the warm-up or of the subtask); :meth:`collect` hands it over at
+    that stop, and the trainer waits only for what the editor has not finished by then.
+    Which scene an edit sees and the step at which its view enters the dataset are fixed by
+    the rule and the stops, never by timing, so a seed fixes the bits as it does for
+    :class:`SyncEditSource`, and a resume is exact (nothing is in flight at a chunk's end,
+    where checkpoints are taken). What differs from it is when an edit is used: at the end
+    of the chunk it was made beside, not at its start. The initial sweep (every view at step
+    0) is made at once, so that a subtask starts on a dataset fully edited with e(r).
+
+    On a CPU the two programs share the cores, each of which leaves idle much of the time
+    (the demo's editor and trainer on 2 cores: an edit beside 10 training steps costs
+    nothing more than the steps); on two devices each has its own.
+    """
+
+    def __init__(self, edit_fn: EditFn, order: np.ndarray, **kwargs):
+        super().__init__(edit_fn, order, **kwargs)
+        self._worker = concurrent.futures.ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="jaxedit-editor")
+        self._pending: concurrent.futures.Future | None = None
+
+    def exchange(self, step: int, scene) -> list[EditedView]:
+        """The initial sweep at once; a single edit due at ``step`` begun on ``scene`` (and
+        handed over by :meth:`collect`)."""
+        if self._pending is not None:
+            raise RuntimeError("collect() the edit begun at the last exchange first")
+        jobs = self.jobs_at(step)
+        if len(jobs) != 1:
+            return super().exchange(step, scene)
+        self.utilisation.polls += 1
+        self._pending = self._worker.submit(self._edit, jobs, scene, step)
+        return []
+
+    def collect(self) -> list[EditedView]:
+        """The edit begun at the last exchange, once finished (the editor's error, if it
+        failed, is raised here); [] when none was begun."""
+        if self._pending is None:
+            return []
+        pending, self._pending = self._pending, None
+        t0 = time.perf_counter()
+        finished = pending.done()
+        out = pending.result()
+        waited = 0.0 if finished else time.perf_counter() - t0
+        for view in out:
+            self._count(view, waited=waited)
+        return out
+
+    def close(self) -> None:
+        """Wait for an edit in flight (at most one) and stop the worker."""
+        self._pending = None
+        self._worker.shutdown(wait=True, cancel_futures=True)
 
 
 class ScheduledEditSource(SyncEditSource):
@@ -427,6 +507,10 @@ class AsyncEditSource:
         self.publish(scene, step)
         return self.poll()
 
+    def collect(self) -> list[EditedView]:
+        """Nothing: the thread's edits are taken at the exchanges (every step)."""
+        return []
+
     def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
                  on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
         """Block until ``predicate()`` holds, feeding arrivals to ``on_edits``.
@@ -524,10 +608,12 @@ class AsyncEditSource:
 
 def make_source(edit_fn: EditFn, order: np.ndarray, *, asynchronous: bool, every: int = 10,
                 initial_sweep: bool = False, device=None, capacity: int = 4,
-                trainer_device=None, edit_many: EditManyFn | None = None, exchanges=None):
-    """The sync (deterministic) or async (threaded) edit source with one call (the
-    asynchronous producer edits one view at a time, each from the newest scene);
-    ``exchanges`` (deterministic only): an explicit schedule, :class:`ScheduledEditSource`."""
+                trainer_device=None, edit_many: EditManyFn | None = None, exchanges=None,
+                pipelined: bool = False):
+    """The sync (deterministic: inline, or ``pipelined`` beside the trainer's steps) or
+    async (threaded) edit source with one call (the asynchronous producer edits one view at
+    a time, each from the newest scene); ``exchanges`` (deterministic, inline only): an
+    explicit schedule, :class:`ScheduledEditSource`."""
     if exchanges is not None:
         if asynchronous:
             raise ValueError("an explicit edit schedule is deterministic: not asynchronous")
@@ -536,5 +622,6 @@ def make_source(edit_fn: EditFn, order: np.ndarray, *, asynchronous: bool, every
     if asynchronous:
         return AsyncEditSource(edit_fn, order, device=device, capacity=capacity,
                                trainer_device=trainer_device)
-    return SyncEditSource(edit_fn, order, every=every, initial_sweep=initial_sweep,
-                          trainer_device=trainer_device, edit_many=edit_many)
+    kind = PipelinedEditSource if pipelined else SyncEditSource
+    return kind(edit_fn, order, every=every, initial_sweep=initial_sweep,
+                trainer_device=trainer_device, edit_many=edit_many)

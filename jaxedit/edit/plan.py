@@ -50,6 +50,13 @@ class ProEditConfig:
       guidance: (text, image) classifier-free guidance scales.
       edit_every: trainer steps between edits in the deterministic mode.
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
+      pipelined: the deterministic schedule's edits are made on a worker thread while the
+        trainer takes the steps up to its next stop, and enter the dataset there
+        (:class:`jaxedit.edit.buffer.PipelinedEditSource`): the same bits for a seed and an
+        exact resume, with the editor's time hidden behind the trainer's where the two can
+        run side by side (a CPU's cores, two devices). False: inline, the trainer waits
+        for each edit and trains on it from the step it was due. Not for ``asynchronous``
+        or an explicit ``edit_plan``, whose edits arrive as those say.
       asynchronous: producer thread instead of the deterministic schedule. Off by
         default, in the library and on the command line alike: the deterministic
         schedule is the one whose bits a seed fixes and whose resume is exact; the
@@ -99,6 +106,7 @@ class ProEditConfig:
     guidance: tuple[float, float] = (7.5, 1.5)
     edit_every: int = ranged(10, low=1)
     initial_sweep: bool = True
+    pipelined: bool = True
     asynchronous: bool = False
     checkpoint_every: int = ranged(50, low=1)
     difficulty_views: int | None = ranged(None, low=1)

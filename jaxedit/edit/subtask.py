@@ -317,7 +317,8 @@ def prepare(ctx: EditContext, st: EditState, spec: SubtaskSpec) -> Subtask:
                          every=cfg.edit_every, initial_sweep=cfg.initial_sweep,
                          device=ctx.editor_device, capacity=2 * CHUNK,
                          trainer_device=next(iter(st.images.devices())),
-                         exchanges=None if cfg.edit_plan is None else cfg.edit_plan[spec.index])
+                         exchanges=None if cfg.edit_plan is None else cfg.edit_plan[spec.index],
+                         pipelined=cfg.pipelined)
     return Subtask(ctx, spec, limits, source, horizon, time.perf_counter() - st.seconds)
 
 
@@ -328,7 +329,8 @@ def init(sub: Subtask, st: EditState) -> SubtaskLoop:
 
 def step(sub: Subtask, loop: SubtaskLoop) -> tuple[SubtaskLoop, ChunkResult]:
     """The exchange due at the loop's step, then one chunk of training steps up to the
-    next step where the host must act (:func:`next_stop`)."""
+    next step where the host must act (:func:`next_stop`), then the edits the source made
+    beside those steps (a pipelined source's)."""
     ctx, cfg, source = sub.ctx, sub.ctx.config, sub.source
     st, exchanged_at = loop.st, loop.exchanged_at
     s = st.step
@@ -346,6 +348,8 @@ def step(sub: Subtask, loop: SubtaskLoop) -> tuple[SubtaskLoop, ChunkResult]:
         k = len(chunk.losses)
         st = dataclasses.replace(st, train=grow_for_redo(st.train, jax.tree_util.tree_map(
             lambda a: a[k], chunk.metrics)))
+    # A pipelined source's edit, made beside these steps, enters the dataset at their end.
+    st = take_edits(ctx, st, source.collect(), sub.horizon)
     st = dataclasses.replace(st, seconds=time.perf_counter() - sub.started)
     timed_out_at = loop.timed_out_at
     if timed_out_at is None and cfg.max_seconds is not None and st.seconds >= cfg.max_seconds:

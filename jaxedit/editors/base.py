@@ -13,7 +13,8 @@ diffusion schedule in [0, 1] (the paper: 0.45-0.85, annealed by the driver);
 
 An editor that can edit several views in one call (the JAX InstructPix2Pix) also has
 ``edit_many(images, originals, embeddings, keys, ...)`` and ``batch``, its most views per
-call; :func:`edit_views` uses it wherever several views are due at once.
+call; :func:`edit_views` uses it wherever several views are due at once, and makes
+``calls_side_by_side`` of its calls at once when the editor has that attribute.
 
 Local edits (issue 35) ask an editor where an instruction acts: ``relevance(image,
 original, embedding, key, ...)`` -> float32 [H, W] mask in [0, 1]; :func:`relevance`
@@ -22,6 +23,7 @@ calls it (the JAX InstructPix2Pix has it as a method: one batched UNet call).
 
 from __future__ import annotations
 
+import concurrent.futures
 from typing import Any, Protocol, runtime_checkable
 
 import jax
@@ -96,19 +98,30 @@ def edit_views(editor, images, originals, embedding, keys, *,
     one [...] for all views; ``keys``: B typed keys. Returns B edited views (each as
     ``edit`` returns it), in order. One view per call gives ``edit``'s own result,
     so an editor without ``edit_many``, or with ``batch`` 1, edits exactly as before.
+    An editor whose ``calls_side_by_side`` is above 1 has that many calls made at once, on
+    threads (the same calls, so the same results).
     """
     count = len(images)
     batch = int(getattr(editor, "batch", 1)) if hasattr(editor, "edit_many") else 1
-    if batch <= 1 or count == 1:
-        return [editor.edit(images[i], originals[i], embedding, keys[i],
-                            timestep_range=timestep_range, guidance=guidance)
-                for i in range(count)]
-    out = []
-    for lo in range(0, count, batch):
+    batch = 1 if batch <= 1 or count == 1 else batch
+
+    def call(lo: int) -> list:
+        if batch == 1:
+            return [editor.edit(images[lo], originals[lo], embedding, keys[lo],
+                                timestep_range=timestep_range, guidance=guidance)]
         hi = min(lo + batch, count)
         edited = editor.edit_many(jnp.stack([jnp.asarray(x) for x in images[lo:hi]]),
                                   jnp.stack([jnp.asarray(x) for x in originals[lo:hi]]),
                                   embedding, jnp.stack(list(keys[lo:hi])),
                                   timestep_range=timestep_range, guidance=guidance)
-        out += [edited[i] for i in range(hi - lo)]
-    return out
+        return [edited[i] for i in range(hi - lo)]
+
+    starts = range(0, count, batch)
+    side_by_side = min(int(getattr(editor, "calls_side_by_side", 1)), len(starts))
+    if side_by_side <= 1:
+        parts = [call(lo) for lo in starts]
+    else:
+        with concurrent.futures.ThreadPoolExecutor(side_by_side,
+                                                   thread_name_prefix="jaxedit-edit") as pool:
+            parts = list(pool.map(call, starts))
+    return [view for part in parts for view in part]

@@ -186,7 +186,7 @@ def method_config(method: str, *, kind: str, lead: dict | None, warmup: int, pat
     # the difficulty over 3 views and no plotted curve: the schedule's editor calls are
     # bookkeeping here, not part of any method's training budget
     common = dict(max_steps=max_steps, patience=patience, edit_every=edit_every,
-                  asynchronous=False, difficulty_views=3, curve_points=2)
+                  asynchronous=False, pipelined=False, difficulty_views=3, curve_points=2)
     if method == "proedit":
         return ProEditConfig.for_mode("proedit", warmup=warmup, target_subtasks=TARGET_SUBTASKS.get(
             kind, TARGET_SUBTASKS_DEFAULT), **common)
@@ -197,7 +197,8 @@ def method_config(method: str, *, kind: str, lead: dict | None, warmup: int, pat
         return ProEditConfig.for_mode("proedit", warmup=warmup, subtasks=n, **common)
     if method == "in2n":
         return ProEditConfig.for_mode("in2n", max_steps=sum(steps), patience=patience,
-                                      edit_every=edit_every, asynchronous=False, curve_points=2)
+                                      edit_every=edit_every, asynchronous=False,
+                                      pipelined=False, curve_points=2)
     fixed = dict(common, anneal_steps=lead["horizon"])
     if method == "nd_k":
         return ProEditConfig.for_mode("nd", warmup=warmup, nd_subtasks=n,
