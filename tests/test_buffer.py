@@ -81,6 +81,18 @@ def test_pipelined_edits_the_scene_of_the_exchange_and_hands_it_over_at_collect(
     assert u.trainer_waits <= 2 and u.editor_seconds > 0
 
 
+def test_edits_are_pipelined_where_editor_and_trainer_run_side_by_side():
+    from types import SimpleNamespace
+
+    from jaxedit.edit.buffer import side_by_side
+
+    cpu, gpu0, gpu1 = (SimpleNamespace(platform=p, id=i) for i, p in
+                       enumerate(("cpu", "gpu", "gpu")))
+    assert side_by_side(cpu, None) and side_by_side(cpu, cpu)  # a CPU's cores
+    assert side_by_side(gpu0, gpu1)  # the editor on a device of its own
+    assert not side_by_side(gpu0, gpu0) and not side_by_side(gpu0, None)  # one shared GPU
+
+
 def test_pipelined_makes_the_sync_rules_edits_and_the_sweep_at_once():
     order = np.array([1, 0, 2])
     kw = dict(every=3, initial_sweep=True)

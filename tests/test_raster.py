@@ -19,7 +19,7 @@ from hypothesis import given, settings, strategies as st
 
 from jaxedit import camera as cam_lib
 from jaxedit.errors import DataError
-from jaxedit.gaussians import Gaussians, quat_to_rotmat
+from jaxedit.gaussians import Gaussians, grow, quat_to_rotmat
 from jaxedit.raster import render, render_reference
 from jaxedit.raster.render import next_capacity
 
@@ -299,6 +299,25 @@ def test_too_small_buffer_still_yields_the_exact_image(backend):
     assert not bool(out.overflow)
     assert_images_close(out, ref_fwd(g, CAM))
     assert next_capacity(need) >= need
+
+
+def test_renders_outside_a_trace_share_a_program_across_nearby_sizes():
+    """render()'s own ladder is powers of two: scenes of 6000 and 8000 slots (one bucket of
+    8192; two on the training ladder) render with one program, each frame the exact one."""
+    from jaxedit.compilation import compile_stats
+    from jaxedit.raster.render import render_capacity
+
+    assert [render_capacity(n) for n in (1, 1024, 1025, 6144, 8192, 14336)] == \
+        [1024, 1024, 2048, 8192, 8192, 16384]
+    small, large = make_scene(5), make_scene(6)
+    small = grow(small, 6000)  # dead slots: the same frame
+    large = grow(large, 8000)
+    render(small, CAM, background=BG)  # the 8192-slot program, compiled here if new
+    before = compile_stats()
+    out = render(large, CAM, background=BG)
+    assert "render_tiles" not in compile_stats(since=before)["programs"]
+    assert out.means2d.shape == (8000, 2)
+    assert_images_close(out, ref_fwd(large, CAM))
 
 
 def test_inside_jit_the_caller_owns_the_buffer():

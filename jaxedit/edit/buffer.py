@@ -145,6 +145,15 @@ def pick_devices() -> tuple[jax.Device, jax.Device]:
     return devices[0], devices[1] if len(devices) > 1 else devices[0]
 
 
+def side_by_side(trainer_device: jax.Device, editor_device: jax.Device | None) -> bool:
+    """Whether the editor's programs run at the same time as the trainer's: on a CPU (whose
+    cores each leaves idle) or on a device of the editor's own (None: the trainer's). One
+    accelerator shared by both runs their programs one after the other, and a pipelined
+    edit would only hold both programs' buffers at once."""
+    return trainer_device.platform == "cpu" or (
+        editor_device is not None and editor_device != trainer_device)
+
+
 class EditSource(Protocol):
     """What a subtask's loop asks of its edits, whichever source makes them.
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ..raster.render import HEADROOM, next_capacity
+from ..raster.render import HEADROOM, render_capacity
 
 
 class Renderer:
@@ -35,7 +35,7 @@ class Renderer:
 
         out = render(gaussians, camera, background=self.background,
                      max_intersections=self.max_intersections)
-        used = next_capacity(int(np.max(np.asarray(out.num_intersections))) * HEADROOM)
+        used = render_capacity(int(np.max(np.asarray(out.num_intersections))) * HEADROOM)
         self.max_intersections = max(self.max_intersections or 0, used)
         return out
 

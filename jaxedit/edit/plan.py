@@ -53,10 +53,12 @@ class ProEditConfig:
       pipelined: the deterministic schedule's edits are made on a worker thread while the
         trainer takes the steps up to its next stop, and enter the dataset there
         (:class:`jaxedit.edit.buffer.PipelinedEditSource`): the same bits for a seed and an
-        exact resume, with the editor's time hidden behind the trainer's where the two can
-        run side by side (a CPU's cores, two devices). False: inline, the trainer waits
-        for each edit and trains on it from the step it was due. Not for ``asynchronous``
-        or an explicit ``edit_plan``, whose edits arrive as those say.
+        exact resume, with the editor's time hidden behind the trainer's. Only where the two
+        run side by side (:func:`jaxedit.edit.buffer.side_by_side`: a CPU's cores, or an
+        editor on a device of its own); on one shared accelerator the edits stay inline.
+        False: inline, the trainer waits for each edit and trains on it from the step it
+        was due. Not for ``asynchronous`` or an explicit ``edit_plan``, whose edits arrive
+        as those say.
       asynchronous: producer thread instead of the deterministic schedule. Off by
         default, in the library and on the command line alike: the deterministic
         schedule is the one whose bits a seed fixes and whose resume is exact; the

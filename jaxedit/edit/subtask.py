@@ -35,7 +35,7 @@ from ..editors.base import edit_views, interpolate_embedding
 from ..editors.keys import edit_key
 from ..raster.placement import commit
 from ..train import CHUNK, Batch, apply_step, epoch_view, grow_for_redo, scan_steps
-from .buffer import EditedView, EditJob, EditSource, make_source, view_order
+from .buffer import EditedView, EditJob, EditSource, make_source, side_by_side, view_order
 from .context import EditContext
 from .local import blend
 from .plan import (ProEditConfig, SubtaskLimits, SubtaskSpec, anneal_horizon, anneal_timestep,
@@ -311,14 +311,16 @@ def prepare(ctx: EditContext, st: EditState, spec: SubtaskSpec) -> Subtask:
     order = view_order(len(ctx.data.train_images), jax.random.fold_in(key_sub, _ORDER))
     horizon = anneal_horizon(cfg, limits.max_steps)
     edit_one, edit_many = make_edit_fns(ctx, spec, horizon)
+    trainer_device = next(iter(st.images.devices()))
     # Room for two chunks' worth of edits, so a fast editor is never held up between
     # the trainer's collections.
     source = make_source(edit_one, order, asynchronous=cfg.asynchronous, edit_many=edit_many,
                          every=cfg.edit_every, initial_sweep=cfg.initial_sweep,
                          device=ctx.editor_device, capacity=2 * CHUNK,
-                         trainer_device=next(iter(st.images.devices())),
+                         trainer_device=trainer_device,
                          exchanges=None if cfg.edit_plan is None else cfg.edit_plan[spec.index],
-                         pipelined=cfg.pipelined)
+                         pipelined=cfg.pipelined and side_by_side(trainer_device,
+                                                                  ctx.editor_device))
     return Subtask(ctx, spec, limits, source, horizon, time.perf_counter() - st.seconds)
 
 

@@ -11,7 +11,7 @@ carries ``num_intersections`` (what the frame needed) and ``overflow`` (pairs
 were dropped, the image is incomplete).
 
 * Outside a trace (plain calls, and ``jax.grad`` without ``jit``), ``render``
-  counts the pairs first, picks the capacity :func:`next_capacity` gives that
+  counts the pairs first, picks the capacity :func:`render_capacity` gives that
   count (a pure function of it: no state between calls; the geometric ladder
   keeps the distinct sizes, hence compiles, few, and jit's own cache, keyed on
   the static capacity, reuses them), and never returns a frame with dropped
@@ -49,6 +49,11 @@ log = logging.getLogger(__name__)
 
 #: Capacities are rounded up to 2^(k/STEPS_PER_OCTAVE) (then to a multiple of 1024).
 STEPS_PER_OCTAVE = 4
+#: The ladder of :func:`render` outside a trace (powers of two): its frames are few and their
+#: cost follows the frame's pairs (the compositor runs only the blocks in use), so fewer
+#: programs win over a tighter buffer. The demo's edit rendered scenes of 6144 and 8192
+#: slots into buffers of 14336 and then 16384 pairs: three programs, now one.
+RENDER_STEPS_PER_OCTAVE = 1
 MIN_CAPACITY = 1024
 #: Headroom over the counted pairs when a capacity is (re)chosen.
 HEADROOM = 1.15
@@ -80,20 +85,25 @@ def tile_size(backend: str) -> int:
     """Binning/compositing tile size of a resolved backend."""
     return PALLAS_TILE if backend == "pallas" else TILE
 
-def next_capacity(needed: int) -> int:
+def next_capacity(needed: int, steps_per_octave: int = STEPS_PER_OCTAVE) -> int:
     """Smallest buffer size on the geometric ladder that holds ``needed`` pairs.
 
-    The ladder has ``STEPS_PER_OCTAVE`` sizes per doubling (so at most ~19 %
+    The ladder has ``steps_per_octave`` sizes per doubling (4: at most ~19 %
     unused buffer, which the compositor pays for) and few distinct sizes (so
     few recompiles); sizes are multiples of 1024.
     """
     needed = max(int(needed), MIN_CAPACITY)
-    k = math.ceil(STEPS_PER_OCTAVE * math.log2(needed) - 1e-9)
-    cap = int(math.ceil(2.0 ** (k / STEPS_PER_OCTAVE) / 1024.0) * 1024)
+    k = math.ceil(steps_per_octave * math.log2(needed) - 1e-9)
+    cap = int(math.ceil(2.0 ** (k / steps_per_octave) / 1024.0) * 1024)
     while cap < needed:  # guard against rounding
         k += 1
-        cap = int(math.ceil(2.0 ** (k / STEPS_PER_OCTAVE) / 1024.0) * 1024)
+        cap = int(math.ceil(2.0 ** (k / steps_per_octave) / 1024.0) * 1024)
     return cap
+
+
+def render_capacity(needed: int) -> int:
+    """:func:`next_capacity` on :func:`render`'s coarser ladder (:data:`RENDER_STEPS_PER_OCTAVE`)."""
+    return next_capacity(needed, RENDER_STEPS_PER_OCTAVE)
 
 
 def _composite(proj, bins, w, h, capacity, backend):
@@ -202,10 +212,10 @@ def _pad_slots(gaussians: Gaussians, means2d_delta, capacity: int):
 
 def _bucketed(gaussians: Gaussians, means2d_delta):
     """The scene padded with dead slots to its capacity's step on the buffer ladder
-    (:func:`next_capacity`), and ``means2d_delta`` padded with zeros to match: scenes of
+    (:func:`render_capacity`), and ``means2d_delta`` padded with zeros to match: scenes of
     nearby sizes (a PLY's exact count, each snapshot's alive Gaussians) share one program.
     Dead slots draw nothing, so the frame is the same."""
-    padded = next_capacity(gaussians.capacity)
+    padded = render_capacity(gaussians.capacity)
     if padded == gaussians.capacity:
         return gaussians, means2d_delta
     return _pad_slots(gaussians, means2d_delta, capacity=padded)
@@ -276,7 +286,7 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
     if max_intersections is not None and int(max_intersections) >= needed:
         cap = int(max_intersections)  # the caller's size, when it holds the frame
     else:
-        cap = next_capacity(needed * HEADROOM)
+        cap = render_capacity(needed * HEADROOM)
     while True:
         out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
         # Host reads of the small per-frame arrays, not eager reductions (each a dispatch).
@@ -284,7 +294,7 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
         if not overflow:
             return _unpadded(out, n)
         need = int(np.max(np.asarray(out.num_intersections)))
-        new = next_capacity(max(need * HEADROOM, 2 * cap))
+        new = render_capacity(max(need * HEADROOM, 2 * cap))
         log.warning("render: intersection buffer overflowed (%d > %d), re-rendering with %d",
                     need, cap, new)
         cap = new
