@@ -503,6 +503,24 @@ def test_a_chunk_of_edit_steps_makes_no_implicit_host_transfer(chunk_start):
     assert st.step == 8 and len(result.losses) == 8 and np.all(np.isfinite(result.losses))
 
 
+def test_the_chunk_program_built_beside_the_schedule_is_the_one_the_subtask_runs(chunk_start):
+    """run_edit builds the training chunks' program on a thread while the schedule edits
+    (compile_chunk); the subtask's first chunk then compiles nothing (a min_delta no other
+    test uses makes the program new here)."""
+    from jaxedit.compilation import compile_stats
+    from jaxedit.edit.subtask import compile_chunk, step_chunk
+
+    ctx, start, spec, limits = chunk_start
+    ctx = dataclasses.replace(ctx, config=dataclasses.replace(ctx.config, min_delta=2.5e-3))
+    before = compile_stats()
+    compile_chunk(ctx, start)
+    built = compile_stats(since=before)["programs"]["_edit_chunk"]
+    assert built["count"] + built["cache_hits"] == 1
+    before = compile_stats()
+    st, result = step_chunk(ctx, start, spec, limits, 4, stop_if_plateau=False)
+    assert st.step == 4 and "_edit_chunk" not in compile_stats(since=before)["programs"]
+
+
 class SlowEditor(SimulatedEditor):
     """The simulated editor, 40 ms per edit: far slower than the trainer's steps."""
 

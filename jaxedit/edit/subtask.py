@@ -199,12 +199,10 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
     """
     cfg = ctx.config
     # The chunk's only upload: eight int32 (explicit; images and state stay on the device).
-    scalars = jax.device_put(np.array([spec.index, st.step, num_steps, stop_if_plateau,
-                                       earliest_end(st, cfg), cfg.warmup, cfg.patience,
-                                       limits.stop_on_plateau], np.int32))
-    train, tracker, metrics = _edit_chunk(
-        *commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
-                 ctx.key)), scalars, length=CHUNK, min_delta=cfg.min_delta)
+    scalars = [spec.index, st.step, num_steps, stop_if_plateau, earliest_end(st, cfg),
+               cfg.warmup, cfg.patience, limits.stop_on_plateau]
+    train, tracker, metrics = _edit_chunk(*_chunk_args(ctx, st, scalars), length=CHUNK,
+                                          min_delta=cfg.min_delta)
     metrics = jax.device_get(metrics)  # the one host read of the chunk
     completed = metrics["ran"] & ~metrics["redo"]
     k = int(np.sum(completed))
@@ -214,6 +212,24 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
     return (dataclasses.replace(st, train=train, tracker=tracker, step=st.step + k,
                                 density=density),
             ChunkResult(np.asarray(metrics["loss"][:k]), redo, plateau, metrics))
+
+
+def _chunk_args(ctx: EditContext, st: EditState, scalars: list) -> tuple:
+    """:func:`_edit_chunk`'s arguments at ``st``: committed where they are (one program for
+    fresh and trained leaves alike), the eight int32 ``scalars`` uploaded."""
+    return (*commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
+                     ctx.key)), jax.device_put(np.asarray(scalars, np.int32)))
+
+
+def compile_chunk(ctx: EditContext, st: EditState) -> None:
+    """Build the program of the training chunks that start from ``st``'s shapes (as a
+    subtask begun on it runs them), or read it back from the persistent cache, without
+    running it: the first chunk then starts at once. The edit does it on a thread while the
+    difficulty schedule runs (:func:`jaxedit.pipelines.edit.run_edit`); the schedule's
+    editor calls leave the tracing room, and a cold 2-core CPU spends about 6 s building
+    this program."""
+    _edit_chunk.lower(*_chunk_args(ctx, st, [0] * 8), length=CHUNK,
+                      min_delta=ctx.config.min_delta).compile()
 
 
 #: earliest_end while the annealing has not reached t_min: no plateau ends the subtask.

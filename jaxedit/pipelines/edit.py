@@ -16,9 +16,11 @@ directory: resume, snapshots, the JSON files. The run directory::
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Callable
@@ -35,7 +37,8 @@ from ..edit.checkpoint import (check_resume, load_checkpoint, save_checkpoint,
 from ..edit.context import EditContext, EditData, encode_prompt
 from ..edit.difficulty import default_distance
 from ..edit.outputs import Renderer
-from ..edit.state import init_state
+from ..edit.state import begin_subtask, init_state
+from ..edit.subtask import compile_chunk
 from ..edit.plan import ProEditConfig, SubtaskSpec
 from ..edit.trainer import TrainSettings
 from ..errors import DataError, check_ranges, ranged
@@ -194,6 +197,28 @@ def _write_json(path: Path, data: dict) -> None:
 LOCAL_DIR = "local"
 
 
+@contextlib.contextmanager
+def _on_a_thread(fn: Callable, *args):
+    """``fn(*args)`` on a thread while the block runs; joined at its end, where the thread's
+    error is raised (unless the block's own is on its way)."""
+    errors: list[BaseException] = []
+
+    def work():
+        try:
+            fn(*args)
+        except BaseException as e:  # raised in the caller's thread below
+            errors.append(e)
+
+    thread = threading.Thread(target=work, name=getattr(fn, "__name__", "work"), daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        thread.join()
+    if errors:
+        raise errors[0]
+
+
 def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
              settings: TrainSettings | None = None, seed: int = 0,
              run_dir: str | os.PathLike | None = None, resume: bool = False,
@@ -279,12 +304,14 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
                                for i in range(len(data.train_images))])
             log(f"continuing from {snap} (r = {start_ratio:.3f})")
-        plan, header = progressive.plan_edit(
-            ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio, log=log,
-            resumed_from=None if resume_from is None else str(resume_from))
+        st = init_state(ctx, start_scene, images)
+        # The training chunks' program is built (or read back) while the schedule edits.
+        with _on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
+            plan, header = progressive.plan_edit(
+                ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio, log=log,
+                resumed_from=None if resume_from is None else str(resume_from))
         if local_figures is not None:
             header = dict(header, local=local_figures)
-        st = init_state(ctx, start_scene, images)
     if config.subtask_steps is not None and len(config.subtask_steps) != len(plan):
         raise DataError("subtask_steps", f"{len(config.subtask_steps)} lengths for a plan of "
                                          f"{len(plan)} subtasks")
