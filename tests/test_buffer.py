@@ -109,6 +109,8 @@ def test_pipelined_makes_the_sync_rules_edits_and_the_sweep_at_once():
                 got = piped.collect()
             assert [(e.job, e.scene_step) for e in got] == [(e.job, e.scene_step) for e in want]
             assert all(np.array_equal(a.image, b.image) for a, b in zip(got, want))
+    with PipelinedEditSource(_fake_edit, np.array([0]), every=3, initial_sweep=True) as one:
+        assert len(one.exchange(0, np.array([1.0]))) == 1  # a sweep of one view: at once too
 
 
 def test_pipelined_editor_error_is_raised_at_collect():

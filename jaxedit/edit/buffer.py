@@ -340,7 +340,7 @@ class PipelinedEditSource(SyncEditSource):
         if self._pending is not None:
             raise RuntimeError("collect() the edit begun at the last exchange first")
         jobs = self.jobs_at(step)
-        if len(jobs) != 1:
+        if not jobs or (self.initial_sweep and step == 0):
             return super().exchange(step, scene)
         self.utilisation.polls += 1
         self._pending = self._worker.submit(self._edit, jobs, scene, step)
