@@ -117,11 +117,11 @@ def edit_views(editor, images, originals, embedding, keys, *,
         return [edited[i] for i in range(hi - lo)]
 
     starts = range(0, count, batch)
-    side_by_side = min(int(getattr(editor, "calls_side_by_side", 1)), len(starts))
-    if side_by_side <= 1:
+    at_once = min(int(getattr(editor, "calls_side_by_side", 1)), len(starts))
+    if at_once <= 1:
         parts = [call(lo) for lo in starts]
     else:
-        with concurrent.futures.ThreadPoolExecutor(side_by_side,
+        with concurrent.futures.ThreadPoolExecutor(at_once,
                                                    thread_name_prefix="jaxedit-edit") as pool:
             parts = list(pool.map(call, starts))
     return [view for part in parts for view in part]
