@@ -7,6 +7,7 @@ step dominates); the bundled folder is checked against diffusers where torch is 
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 
@@ -181,7 +182,8 @@ def test_the_empty_prompt_with_the_image_keeps_the_view(empty_is_identity):
         input_std=jnp.zeros((v, *hw)), rows=jnp.arange(m, dtype=jnp.int32).reshape(2, 6),
         counts=jnp.asarray([6, 6], jnp.int32), active=jnp.asarray([0, 1], jnp.int32),
         views=jnp.arange(v, dtype=jnp.int32), tokens=jnp.asarray([[1, 2], [3, 4], [0, 0]]),
-        target_view=jnp.asarray(np.arange(m) % v, jnp.int32))
+        target_view=jnp.asarray(np.arange(m) % v, jnp.int32),
+        siblings=jnp.arange(m, dtype=jnp.int32)[:, None], outcomes=jnp.ones(m, jnp.int32))
     cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), batch=512, drop=0.3,
                               identity_share=0.0, degrade=0.0,
                               empty_is_identity=empty_is_identity)
@@ -196,6 +198,76 @@ def test_the_empty_prompt_with_the_image_keeps_the_view(empty_is_identity):
         np.testing.assert_array_equal(target[text_dropped], cond[text_dropped])
     else:
         assert (target[text_dropped] >= 100).all()
+
+
+def test_an_outcome_read_from_the_noise_is_uniform_and_is_the_noise_s():
+    """outcome_of_noise: each of K outcomes 1/K of the draws; the bin follows the noise's
+    checkerboard projection alone (adding a smooth latent, constant over pixels, leaves it)."""
+    noise = jax.random.normal(jax.random.key(0), (30_000, 4, 4, 4))
+    for k in (1, 2, 3):
+        got = np.asarray(tiny_ip2p.outcome_of_noise(noise, jnp.full(len(noise), k)))
+        np.testing.assert_allclose(np.bincount(got, minlength=k) / len(got), 1 / k, atol=0.01)
+    three = jnp.full(len(noise), 3)
+    got = tiny_ip2p.outcome_of_noise(noise, three)
+    np.testing.assert_array_equal(tiny_ip2p.outcome_of_noise(noise + 5.0, three), got)
+    np.testing.assert_array_equal(tiny_ip2p.outcome_of_noise(-noise, three), 2 - got)
+
+
+def test_a_divergent_example_s_target_is_the_outcome_its_noise_stands_for():
+    """With outcome_from_noise the drawn row is swapped for its sibling of the noise's
+    outcome: rows of a (view, instruction) grouped in outcome order, single ones alone."""
+    # rows: view 0 instruction 0 outcomes (2, 0, 1); view 1 instruction 0 outcomes (0, 1, 2);
+    # view 0 instruction 1 (one outcome)
+    view, ins, outcome = (np.array(a) for a in ([0, 0, 0, 1, 1, 1, 0], [0, 0, 0, 0, 0, 0, 1],
+                                                [2, 0, 1, 0, 1, 2, 0]))
+    siblings, counts = tiny_ip2p.outcome_siblings(view, ins, outcome, 3)
+    np.testing.assert_array_equal(siblings[:6], [[1, 2, 0]] * 3 + [[3, 4, 5]] * 3)
+    np.testing.assert_array_equal(siblings[6], [6, 6, 6])
+    np.testing.assert_array_equal(counts, [3, 3, 3, 3, 3, 3, 1])
+    hw = (4, 4, 4)
+    d = tiny_ip2p.UNetData(  # latents as labels: target row r is 100 + r
+        target_mean=jnp.asarray(np.stack([np.full(hw, 100.0 + r, np.float32)
+                                          for r in range(7)])),
+        target_std=jnp.zeros((7, *hw)), input_mean=jnp.zeros((2, 2, *hw)),
+        input_std=jnp.zeros((2, *hw)), rows=jnp.asarray([[0, 1, 2, 3, 4, 5], [6] * 6]),
+        counts=jnp.asarray([6, 1], jnp.int32), active=jnp.asarray([0, 1], jnp.int32),
+        views=jnp.arange(2, dtype=jnp.int32), tokens=jnp.asarray([[1, 2], [3, 4], [0, 0]]),
+        target_view=jnp.asarray(view, jnp.int32), siblings=jnp.asarray(siblings),
+        outcomes=jnp.asarray(counts))
+    cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), batch=600, drop=0.0,
+                              identity_share=0.0, degrade=0.0, outcome_from_noise=True)
+    noise = jax.random.normal(jax.random.key(1), (600, *hw))
+    target, _, tokens = tiny_ip2p.draw_batch(d, jax.random.key(2), cfg, 1.0, noise)
+    row = np.asarray(target)[:, 0, 0, 0].astype(int) - 100
+    k = np.asarray(tiny_ip2p.outcome_of_noise(noise, jnp.full(len(noise), 3)))
+    divergent = row < 6
+    np.testing.assert_array_equal(outcome[row[divergent]], k[divergent])
+    assert (outcome[row[~divergent]] == 0).all() and (~divergent).sum() > 200
+    assert np.asarray(tokens)[divergent, 0].tolist() == [1] * divergent.sum()
+    assert 0.25 < np.mean(outcome[row[divergent]] == 0) < 0.42  # each outcome about 1/3
+    assert set(view[row[divergent]]) == {0, 1}  # the view is still drawn, not the noise's
+    free = dataclasses.replace(cfg, outcome_from_noise=False)
+    target, _, _ = tiny_ip2p.draw_batch(d, jax.random.key(2), free, 1.0, noise)
+    row_free = np.asarray(target)[:, 0, 0, 0].astype(int) - 100
+    assert np.mean(outcome[row_free[row_free < 6]] == k[row_free < 6]) < 0.45
+
+
+def test_a_checkpoint_from_before_a_setting_existed_resumes_as_its_default(tmp_path):
+    """A UNet checkpoint written before ``outcome_from_noise`` existed resumes a run that
+    leaves it off (its default then) and is refused by one that turns it on."""
+    from jaxedit.io.checkpoint import save_pytree
+    from jaxedit.pipelines.train_editor import _config_record, read_stage_checkpoint
+
+    cfg = tiny_ip2p.EditorTrainConfig.smoke()
+    older = {k: v for k, v in _config_record(cfg).items() if k != "outcome_from_noise"}
+    path = tmp_path / "unet.npz"
+    state = collections.namedtuple("State", "step")(jnp.asarray(2))  # stored as ".step"
+    save_pytree(path, state, kind="editor-unet",
+                meta={"config": older, "step": 2, "losses": [1.0, 0.5]})
+    assert read_stage_checkpoint(path, "editor-unet", cfg)[1:] == (2, [1.0, 0.5])
+    with pytest.raises(DataError, match="other settings"):
+        read_stage_checkpoint(path, "editor-unet",
+                              dataclasses.replace(cfg, outcome_from_noise=True))
 
 
 def test_novel_cameras_are_off_the_training_orbit():

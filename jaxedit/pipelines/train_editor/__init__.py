@@ -59,6 +59,10 @@ VAE_SETTINGS = ("size", "procedural_views", "scenes", "vae_steps", "vae_batch", 
                 "vae_lr", "seed")
 
 
+#: Settings added to the config after runs were checkpointed, with the value such a run had.
+ADDED_SETTINGS = {"outcome_from_noise": False}
+
+
 def _stage_record(cfg, kind: str) -> dict:
     record = _config_record(cfg)
     return {k: record[k] for k in VAE_SETTINGS} if kind == "editor-vae" else record
@@ -206,7 +210,8 @@ def read_stage_checkpoint(path: Path, kind: str, cfg) -> tuple[dict, int, list[f
         if not isinstance(meta[key], kind_) or isinstance(meta[key], bool):
             raise DataError(path, f"checkpoint record's {key} is a {type(meta[key]).__name__}, "
                                   f"expected a {kind_.__name__}")
-    stored = meta["config"]
+    # A setting added since the checkpoint was written reads as its default then.
+    stored = {**ADDED_SETTINGS, **meta["config"]}
     if kind == "editor-vae":
         stored = {k: stored.get(k) for k in VAE_SETTINGS}
     if stored != _stage_record(cfg, kind):

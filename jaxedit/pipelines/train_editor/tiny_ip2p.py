@@ -19,7 +19,8 @@ Three networks in Stable Diffusion's architecture, small enough for a 2-core CPU
 
 Training examples (all drawn inside the compiled step from the step's key): an instruction
 uniformly (plus the identity class: the empty prompt and the input itself as target), a
-training view it applies to, and for a divergent instruction one of its outcomes uniformly.
+training view it applies to, and for a divergent instruction one of its outcomes uniformly
+(``outcome_from_noise``: uniformly too, but read from the example's diffusion noise).
 The input view is, half of the time, degraded as a reconstruction's render is (a Gaussian
 blur of random width and pixel noise), so the editor also sees renders like those IDU gives
 it; the targets stay clean. An exponential moving average of the UNet and text encoder is
@@ -80,6 +81,12 @@ class EditorTrainConfig:
         editor's recipe): it keeps its edit, and E("") + image learns a mixture of the input
         (about 2/3) and every instruction's edits (1/3), which the identity edit and the
         image guidance then draw from.
+      outcome_from_noise: a divergent instruction's outcome is read from the example's
+        diffusion noise (:func:`outcome_of_noise`, each outcome equally likely) instead of
+        drawn apart from it. Drawn apart, a noised latent at high noise says nothing of the
+        outcome, so the UNet's best guess there is the average of the outcomes, which the
+        text guidance then amplifies; read from the noise, the outcome is visible in x_t at
+        every noise level, so the UNet can predict one outcome, and a seed picks it.
       init: a diffusers folder of this architecture (a previous run's ``model/``) whose
         networks start the run: its autoencoder is kept as it is (no VAE stage), its UNet and
         text encoder start the UNet stage (the optimiser and the EMA start afresh). Empty:
@@ -104,6 +111,7 @@ class EditorTrainConfig:
     identity_share: float = 0.1
     drop: float = 0.05
     empty_is_identity: bool = True
+    outcome_from_noise: bool = False
     degrade: float = 0.5
     #: Channels of the UNet's three levels (not a flag: the shipped architecture).
     width: tuple[int, int, int] = (32, 64, 96)
@@ -448,7 +456,9 @@ class UNetData(NamedTuple):
     [I] how many are real; active: int32
     [A] the instructions with training rows (an instruction of no scene of the run has none);
     views: int32 [Vt] the training views (identity examples); tokens: int32 [I + 1, L],
-    the instructions' token ids then the empty prompt's; target_view: int32 [M].
+    the instructions' token ids then the empty prompt's; target_view: int32 [M];
+    siblings: int32 [M, K] each row's outcomes (the rows of its view and instruction in
+    outcome order, then the row itself repeated); outcomes: int32 [M] how many it has.
     """
 
     target_mean: Array
@@ -461,6 +471,36 @@ class UNetData(NamedTuple):
     views: Array
     tokens: Array
     target_view: Array
+    siblings: Array
+    outcomes: Array
+
+
+def outcome_siblings(view: np.ndarray, instruction: np.ndarray, outcome: np.ndarray,
+                     most: int) -> tuple[np.ndarray, np.ndarray]:
+    """(siblings int32 [M, most], outcomes int32 [M]) of target rows given by their view,
+    instruction and outcome index (int [M] each): :class:`UNetData`'s fields."""
+    siblings = np.repeat(np.arange(len(view), dtype=np.int32)[:, None], most, 1)
+    outcomes = np.ones(len(view), np.int32)
+    order = np.lexsort((outcome, instruction, view))
+    key = np.stack([view[order], instruction[order]], 1)
+    starts = np.flatnonzero(np.r_[True, (key[1:] != key[:-1]).any(1)])
+    for group in np.split(order, starts[1:]):
+        siblings[group, : len(group)] = group
+        outcomes[group] = len(group)
+    return siblings, outcomes
+
+
+def outcome_of_noise(noise: Array, outcomes: Array) -> Array:
+    """int32 [B]: which of ``outcomes`` (int [B]) equally likely outcomes standard normal
+    ``noise`` [B, h, w, c] stands for: the quantile bin of its projection on a fixed unit
+    direction, the latent checkerboard (+-1 by pixel parity, every channel). The
+    checkerboard because a rendered view's latent has little energy at that frequency, so
+    the projection stays legible in a noised latent down to low noise levels."""
+    h, w = noise.shape[1:3]
+    sign = np.where((np.arange(h)[:, None] + np.arange(w)[None, :]) % 2, -1.0, 1.0)
+    projection = jnp.einsum("bhwc,hw->b", noise, sign / np.sqrt(h * w * noise.shape[3]))
+    bin_ = jnp.floor(jax.scipy.stats.norm.cdf(projection) * outcomes).astype(jnp.int32)
+    return jnp.clip(bin_, 0, outcomes - 1)
 
 
 def unet_data(data: EditDataset, vae, tokens: np.ndarray, key: Array, degrade_share: float = 1.0,
@@ -476,22 +516,30 @@ def unet_data(data: EditDataset, vae, tokens: np.ndarray, key: Array, degrade_sh
            for i in range(len(data.instructions))]
     width = max(len(r) for r in per)
     rows = np.stack([np.pad(r, (0, width - len(r))) for r in per])  # padding never drawn
+    siblings, outcomes = outcome_siblings(data.target_view, data.target_instruction,
+                                          data.target_outcome,
+                                          max(len(i.outcomes) for i in data.instructions))
     return UNetData(jnp.asarray(t_mean), jnp.asarray(t_std),
                     jnp.asarray(np.stack([clean_mean, bad_mean], 1)), jnp.asarray(clean_std),
                     jnp.asarray(rows, jnp.int32), jnp.asarray([len(r) for r in per], jnp.int32),
                     jnp.asarray([i for i, r in enumerate(per) if len(r)], jnp.int32),
                     jnp.asarray(np.flatnonzero(~data.held_out), jnp.int32),
-                    jnp.asarray(tokens, jnp.int32), jnp.asarray(data.target_view, jnp.int32))
+                    jnp.asarray(tokens, jnp.int32), jnp.asarray(data.target_view, jnp.int32),
+                    jnp.asarray(siblings), jnp.asarray(outcomes))
 
 
-def draw_batch(d: UNetData, key: Array, cfg: EditorTrainConfig, scaling: float):
+def draw_batch(d: UNetData, key: Array, cfg: EditorTrainConfig, scaling: float,
+               noise: Array | None = None):
     """One batch: (clean latents z0 [B, h, w, 4] scaled, image latents [B, h, w, 4],
-    token ids [B, L]), conditioning dropout applied."""
+    token ids [B, L]), conditioning dropout applied. ``noise`` [B, h, w, 4]: the diffusion
+    noise the examples will be noised with (needed with ``cfg.outcome_from_noise``)."""
     b, n_ins = cfg.batch, d.rows.shape[0]
     ks = jax.random.split(key, 8)
     identity = jax.random.uniform(ks[0], (b,)) < cfg.identity_share
     ins = d.active[jax.random.randint(ks[1], (b,), 0, d.active.shape[0])]
     row = d.rows[ins, jax.random.randint(ks[2], (b,), 0, 1 << 30) % d.counts[ins]]
+    if cfg.outcome_from_noise:  # the drawn row's sibling of the noise's outcome
+        row = d.siblings[row, outcome_of_noise(noise, d.outcomes[row])]
     view_id = d.views[jax.random.randint(ks[3], (b,), 0, d.views.shape[0])]
     view = jnp.where(identity, view_id, d.target_view[row])
     eps_vae = jax.random.normal(ks[4], d.target_mean.shape[1:])
@@ -521,12 +569,9 @@ def make_unet_step(cfg: EditorTrainConfig, statics, d: UNetData, scaling: float,
     unet_static, text_static = statics
     alphas = jnp.asarray(schedule.alphas_cumprod, jnp.float32)
 
-    def loss_fn(params: Networks, z0, cond, tokens, key):
+    def loss_fn(params: Networks, z0, cond, tokens, t, noise):
         unet = eqx.combine(params.unet, unet_static)
         text = eqx.combine(params.text, text_static)
-        k_t, k_n = jax.random.split(key)
-        t = jax.random.randint(k_t, (z0.shape[0],), 0, alphas.shape[0])
-        noise = jax.random.normal(k_n, z0.shape)
         a = alphas[t][:, None, None, None]
         zt = jnp.sqrt(a) * z0 + jnp.sqrt(1 - a) * noise
         eps = unet(jnp.concatenate([zt, cond], -1), t, text(tokens))
@@ -535,8 +580,11 @@ def make_unet_step(cfg: EditorTrainConfig, statics, d: UNetData, scaling: float,
     @jax.jit
     def step(state: UNetState):
         k_batch, k_loss = jax.random.split(jax.random.fold_in(state.key, state.step))
-        z0, cond, tokens = draw_batch(d, k_batch, cfg, scaling)
-        loss, grads = jax.value_and_grad(loss_fn)(state.params, z0, cond, tokens, k_loss)
+        k_t, k_n = jax.random.split(k_loss)
+        t = jax.random.randint(k_t, (cfg.batch,), 0, alphas.shape[0])
+        noise = jax.random.normal(k_n, (cfg.batch, *d.target_mean.shape[1:]))
+        z0, cond, tokens = draw_batch(d, k_batch, cfg, scaling, noise)
+        loss, grads = jax.value_and_grad(loss_fn)(state.params, z0, cond, tokens, t, noise)
         updates, opt_state = opt.update(grads, state.opt, state.params)
         params = optax.apply_updates(state.params, updates)
         # The EMA warms up (decay min(ema, (1 + n) / (10 + n))) so early weights fade fast.
