@@ -13,8 +13,12 @@ unless said, the benchmark's DDIM steps):
 - the divergent ones (splash, neon): the outcome measure's classes
   (:mod:`jaxedit.editors.outcome_class`) over ``--draws`` draws per view;
 
-for text guidance 7.5 (the default), 3 and 1.5. And, from the config alone, what the empty
-prompt is trained towards (:func:`empty_prompt_shares`).
+for text guidance 7.5 (the default), 3 and 1.5, at each of ``--edit-t`` (T = 0.98, and 0.85
+the top of ProEdit's SDEdit range); with ``--holding``, the quality benchmark's holding
+figures of the divergent instructions on the same views (from a view halfway into an
+outcome, the share of edits that stay in it at T = 0.45 and 0.85), at the default guidance.
+And, from the config alone, what the empty prompt is trained towards
+(:func:`empty_prompt_shares`).
 
     python scripts/editor_study.py --out /tmp/study.json
     python scripts/editor_study.py --weights runs/editor-v2/model --out /tmp/study-v2.json
@@ -61,6 +65,10 @@ def main(argv=None) -> None:
     p.add_argument("--edit-image-scales", default="1.5",
                    help="image guidance of the instructions' edits, each with every text "
                         "scale (a higher one holds the edit closer to the input)")
+    p.add_argument("--edit-t", default="0.98",
+                   help="the instructions' SDEdit strengths T (comma-separated)")
+    p.add_argument("--holding", action="store_true",
+                   help="also the divergent instructions' holding figures (default guidance)")
     p.add_argument("--sheet", type=Path, default=None,
                    help="PNG of the edits at the first guidance pair: a row per view, the input "
                         "then bronze, black and white, the divergent draws")
@@ -70,8 +78,8 @@ def main(argv=None) -> None:
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
     from jaxedit.pipelines.train_editor.edit_data import (build_dataset, novel_dataset,
                                                           outcome_targets)
-    from jaxedit.pipelines.train_editor.quality import (nearest, outcome_figures, psnr,
-                                                        vae_roundtrip)
+    from jaxedit.pipelines.train_editor.quality import (holding, nearest, outcome_figures,
+                                                        psnr, vae_roundtrip)
     from jaxedit.pipelines.train_editor.quality import run_edits as _run
 
     folder = args.weights or bundled_editor()
@@ -120,9 +128,9 @@ def main(argv=None) -> None:
               if len(ins.outcomes) == 1 and ins.scenes is None]
     divergent = [i for i, ins in enumerate(data.instructions) if len(ins.outcomes) > 1]
     out["by_text_scale"] = {}
-    pairs = [(float(t), float(i)) for i in args.edit_image_scales.split(",")
-             for t in args.text_scales.split(",")]
-    for scale, image_scale in pairs:
+    pairs = [(float(t), float(i), float(strength)) for strength in args.edit_t.split(",")
+             for i in args.edit_image_scales.split(",") for t in args.text_scales.split(",")]
+    for scale, image_scale, strength in pairs:
         entry: dict = {}
         rows, embs, which = [], [], []
         for i in single:
@@ -134,7 +142,7 @@ def main(argv=None) -> None:
                 rows += [v] * args.draws
                 embs += [editor.encode(data.instructions[i].prompt)] * args.draws
                 which += [i] * args.draws
-        x = edits(rows, embs, 0.98, (scale, image_scale))
+        x = edits(rows, embs, strength, (scale, image_scale))
         rows, which = np.asarray(rows), np.asarray(which)
         for i in single + divergent:
             sel = which == i
@@ -152,14 +160,25 @@ def main(argv=None) -> None:
                     "single_outcome_fraction", "outcome_frequencies", "mixed_fraction")}
             entry[ins.prompt] = e
         name = f"{scale:g}" if image_scale == 1.5 else f"{scale:g} image {image_scale:g}"
+        name += "" if strength == 0.98 else f" T {strength:g}"
         out["by_text_scale"][name] = entry
-        if args.sheet is not None and (scale, image_scale) == pairs[0]:
+        if args.sheet is not None and (scale, image_scale, strength) == pairs[0]:
             # rows: views; the input, then its edits
             from jaxedit.io.images import write_image
 
             grid = [np.concatenate([inputs[v], *x[rows == v]], 1) for v in views]
             write_image(args.sheet, np.concatenate(grid, 0))
         print("text scale", name, json.dumps(entry), flush=True)
+    if args.holding:
+        out["holding"] = {}
+        for i in divergent:
+            ins = data.instructions[i]
+            out["holding"][ins.prompt] = holding(
+                lambda images, originals, embs, t: _run(
+                    editor, images, originals, np.stack(embs),
+                    jax.random.fold_in(key, next(counter)), t),
+                inputs, data, i, list(views), editor.encode(ins.prompt), null)
+            print("holding", ins.prompt, out["holding"][ins.prompt], flush=True)
     out["seconds"] = round(time.perf_counter() - t0, 1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")

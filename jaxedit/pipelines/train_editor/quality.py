@@ -184,7 +184,7 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
                                                    for k in range(k_out)],
                                    "mixing": float(np.mean(u_mixed))}}
             if hold_views:
-                entry["holding"] = _holding(edits, inputs, data, i, vs[:hold_views], e, null)
+                entry["holding"] = holding(edits, inputs, data, i, vs[:hold_views], e, null)
         if distance is not None:
             entry["interpolation"] = _interpolation(edits, inputs, vs[:interp_views], e, null,
                                                     ratios, distance, t_full)
@@ -197,8 +197,10 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
     return result
 
 
-def _holding(edits, inputs, data, i, vs, e, null) -> dict:
-    """P(stay in c) from a view halfway into outcome c, per T and step (see the docstring)."""
+def holding(edits, inputs, data, i, vs, e, null) -> dict:
+    """P(stay in c) from a view halfway into outcome c, per T and step (see the docstring):
+    ``edits(images, originals, embeddings, t)`` edits, ``vs`` the views, ``e`` and ``null``
+    instruction ``i``'s embedding and E("")."""
     k_out = len(data.instructions[i].outcomes)
     start, targets, wanted = [], [], []
     for v in vs:
