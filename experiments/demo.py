@@ -29,6 +29,7 @@ import importlib.util
 import json
 import time
 from pathlib import Path
+from typing import Callable
 
 from jaxedit.edit.plan import ProEditConfig
 from jaxedit.errors import check_ranges, ranged
@@ -270,52 +271,23 @@ def _edit_argv(run_cfg, mode: str, inputs: dict) -> list[str]:
     return argv + FLAGS[0].argv(run_cfg, mode_defaults(mode))
 
 
-class _EditorWarmUp:
-    """The edit's editor, built before the reconstruction, with its program compiled on a
-    thread while the reconstruction trains (:func:`jaxedit.editors.warm_up`), so that the
-    compile overlaps the training instead of delaying the difficulty schedule (on a GPU an
-    SD 1.5-size editor program compiles for about 45 s). The editor is built on the main
-    thread, so that missing weights stop the demo before the reconstruction."""
+def _editor_warm_up(editor, edit_cfg, data: Path, seed: int) -> Callable[[], None]:
+    """The call that compiles the edit's editor program (:func:`jaxedit.editors.warm_up`) for
+    the views of ``data`` and the difficulty's batch: run on a thread while the
+    reconstruction trains, so that the compile overlaps the training instead of delaying the
+    difficulty schedule (on a GPU an SD 1.5-size editor program compiles for about 45 s)."""
+    import functools
 
-    def __init__(self):
-        self._editor, self._thread, self._error = None, None, None
+    import jax
 
-    def start(self, edit_cfg, data: Path, seed: int) -> None:
-        import threading
+    from jaxedit.editors import warm_up
+    from jaxedit.io import nerfstudio_view_size
 
-        import jax
-
-        from jaxedit.editors import warm_up
-        from jaxedit.io import nerfstudio_view_size
-        from jaxedit.pipelines.edit import make_editor
-
-        self._editor = make_editor(edit_cfg.editor)
-        height, width = nerfstudio_view_size(data, downscale=edit_cfg.downscale)
-        # the difficulty's call: its views in one batch where the editor takes batches
-        views = max(1, min(int(getattr(self._editor, "batch", 1)),
-                           edit_cfg.plan.difficulty_views or 1))
-
-        def work():
-            try:
-                warm_up(self._editor, height, width, jax.random.key(seed), views=views,
-                        guidance=tuple(edit_cfg.plan.guidance))
-            except BaseException as e:  # handed to the edit stage, which raises it
-                self._error = e
-
-        self._thread = threading.Thread(target=work, name="editor-warm-up", daemon=True)
-        self._thread.start()
-
-    def wait(self) -> None:
-        """Until the thread is done: a process must not end while XLA compiles on a thread."""
-        if self._thread is not None:
-            self._thread.join()
-
-    def editor(self):
-        """The warmed editor once its thread is done (None if never started)."""
-        self.wait()
-        if self._error is not None:
-            raise self._error
-        return self._editor
+    height, width = nerfstudio_view_size(data, downscale=edit_cfg.downscale)
+    # the difficulty's call: its views in one batch where the editor takes batches
+    views = max(1, min(int(getattr(editor, "batch", 1)), edit_cfg.plan.difficulty_views or 1))
+    return functools.partial(warm_up, editor, height, width, jax.random.key(seed), views=views,
+                             guidance=tuple(edit_cfg.plan.guidance))
 
 
 def _run_edit(run_cfg, argv: list[str], *, prompt: str, data: Path, scene: Path, out: Path,
@@ -367,22 +339,23 @@ def run(args) -> dict:
         "--views": config.views, "--test-views": config.test_views, **common})
     recon_argv = _stage_argv("reconstruct", {
         "--data": data, "--out": recon, "--iters": config.iters, **common})
-    warm = _EditorWarmUp()
+    warmed = []  # the edit's editor, built before the reconstruction and warmed up during it
 
     def reconstruct():
-        if not (config.reuse and (edit / "schedule.json").exists()):
-            warm.start(edit_cfg, data, args.seed)
-        try:
+        if config.reuse and (edit / "schedule.json").exists():
+            return _run_stage(recon_argv)
+        from jaxedit.pipelines.edit import make_editor, on_a_thread
+
+        warmed.append(make_editor(edit_cfg.editor))  # missing weights stop the demo here
+        with on_a_thread(_editor_warm_up(warmed[0], edit_cfg, data, args.seed)):
             _run_stage(recon_argv)
-        finally:
-            warm.wait()
 
     plans = [
         ("make-scene", data / "transforms.json", lambda: _run_stage(make_argv)),
         ("reconstruct", recon / "scene.ply", reconstruct),
         ("edit", edit / "schedule.json", lambda: _run_edit(
             edit_cfg, edit_argv, prompt=prompt, data=data, scene=recon / "scene.ply", out=edit,
-            seed=args.seed, quiet=args.quiet, editor=warm.editor())),
+            seed=args.seed, quiet=args.quiet, editor=(warmed or [None])[0])),
     ]
     seconds: dict[str, float] = {}
     compiles_before = compile_stats()

@@ -521,6 +521,29 @@ def test_the_chunk_program_built_beside_the_schedule_is_the_one_the_subtask_runs
     assert st.step == 4 and "_edit_chunk" not in compile_stats(since=before)["programs"]
 
 
+def test_work_on_a_thread_ends_with_the_block_and_its_error_is_raised_there():
+    """on_a_thread (the chunk compile beside the schedule, the demo's editor warm-up beside
+    the reconstruction): joined when the block ends; its error raised there, after the
+    block's own if the block failed too."""
+    from jaxedit.pipelines.edit import on_a_thread
+
+    done, release = [], threading.Event()
+    with on_a_thread(lambda: (release.wait(10), done.append(1))):
+        assert done == []  # the work waits for the block's word
+        release.set()
+    assert done == [1]
+
+    def fail():
+        raise ValueError("the work failed")
+
+    with pytest.raises(ValueError, match="the work failed"):
+        with on_a_thread(fail):
+            pass
+    with pytest.raises(KeyError, match="the block"):
+        with on_a_thread(fail):
+            raise KeyError("the block")
+
+
 class SlowEditor(SimulatedEditor):
     """The simulated editor, 40 ms per edit: far slower than the trainer's steps."""
 

@@ -198,9 +198,10 @@ LOCAL_DIR = "local"
 
 
 @contextlib.contextmanager
-def _on_a_thread(fn: Callable, *args):
-    """``fn(*args)`` on a thread while the block runs; joined at its end, where the thread's
-    error is raised (unless the block's own is on its way)."""
+def on_a_thread(fn: Callable, *args):
+    """``fn(*args)`` on a thread while the block runs; joined at its end (a process must not
+    end while XLA compiles on a thread), where the thread's error is raised unless the
+    block's own is on its way."""
     errors: list[BaseException] = []
 
     def work():
@@ -306,7 +307,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             log(f"continuing from {snap} (r = {start_ratio:.3f})")
         st = init_state(ctx, start_scene, images)
         # The training chunks' program is built (or read back) while the schedule edits.
-        with _on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
+        with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
             plan, header = progressive.plan_edit(
                 ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio, log=log,
                 resumed_from=None if resume_from is None else str(resume_from))
