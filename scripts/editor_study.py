@@ -16,7 +16,13 @@ unless said, the benchmark's DDIM steps):
 for text guidance 7.5 (the default), 3 and 1.5, at each of ``--edit-t`` (T = 0.98, and 0.85
 the top of ProEdit's SDEdit range); with ``--holding``, the quality benchmark's holding
 figures of the divergent instructions on the same views (from a view halfway into an
-outcome, the share of edits that stay in it at T = 0.45 and 0.85), at the default guidance.
+outcome, the share of edits that stay in it at T = 0.45 and 0.85), at the default guidance;
+for each divergent edit where its change lies (:func:`band_figures`: inside the band of the
+outcome it leans to or outside it, and how strongly), beside the same figures of the
+outcome targets' VAE round trips (the floor of a latent edit); with ``--noise-bins``,
+whether the outcome follows the noise as ``train-editor --outcome-from-noise`` teaches
+(the SDEdit noise's checkerboard projection set to each outcome's bin: the share of edits
+that lean to that outcome, 1/K by chance).
 And, from the config alone, what the empty prompt is trained towards
 (:func:`empty_prompt_shares`).
 
@@ -49,6 +55,44 @@ def empty_prompt_shares(identity_share: float, drop: float, empty_is_identity: b
             "share_of_all_examples": total}
 
 
+def noise_bins(editor, data, i, views, inputs, key, t=0.98, guidance=(3.0, 1.5)) -> float:
+    """The share of instruction ``i``'s edits of ``views`` that lean to (largest weight of
+    the outcome measure) the outcome whose bin (:func:`outcome_of_noise`) their SDEdit noise
+    is in: each view's noise drawn once, then its checkerboard projection set to each bin's
+    centre in turn (one draw per view and bin). 1/K where the outcome ignores that bin."""
+    import jax.numpy as jnp
+    from scipy.stats import norm
+
+    from jaxedit.editors.diffusion import timestep_bounds
+    from jaxedit.editors.jax_ip2p import edit_with_noise_jit, latent_factor
+    from jaxedit.editors.outcome_class import classify
+    from jaxedit.pipelines.train_editor.edit_data import outcome_targets
+    from jaxedit.pipelines.train_editor.tiny_ip2p import outcome_of_noise
+
+    k = len(data.instructions[i].outcomes)
+    b, (height, width) = len(views), editor.model_hw(*inputs.shape[1:3])
+    f = latent_factor(editor.nets.vae)
+    base = jax.random.normal(key, (b, height // f, width // f, 4))
+    parity = (np.arange(height // f)[:, None] + np.arange(width // f)[None, :]) % 2
+    direction = np.where(parity, -1.0, 1.0)[..., None] * np.ones(4) / np.sqrt(base[0].size)
+    projection = jnp.einsum("bhwc,hwc->b", base, direction)
+    images = jnp.asarray(inputs[views])
+    step = timestep_bounds((t, t), editor.num_train_timesteps)[0]
+    hits = 0
+    for c in range(k):
+        centre = float(norm.ppf((c + 0.5) / k))
+        noise = base + (centre - projection)[:, None, None, None] * direction
+        assert (np.asarray(outcome_of_noise(noise, jnp.full(b, k))) == c).all()
+        x = np.asarray(edit_with_noise_jit(
+            editor.nets, images, images, editor.encode(data.instructions[i].prompt),
+            editor.encode(""), jnp.full(b, step, jnp.int32), jnp.zeros_like(noise), noise,
+            editor.schedule, editor.config(guidance)))
+        hits += sum(int(np.argmax(classify(x[j], inputs[v], outcome_targets(data, v, i),
+                                           other_gate=False)["weights"]) == c)
+                    for j, v in enumerate(views))
+    return hits / (k * b)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--weights", type=Path, default=None)
@@ -69,6 +113,9 @@ def main(argv=None) -> None:
                    help="the instructions' SDEdit strengths T (comma-separated)")
     p.add_argument("--holding", action="store_true",
                    help="also the divergent instructions' holding figures (default guidance)")
+    p.add_argument("--noise-bins", action="store_true",
+                   help="also whether the divergent outcomes follow the noise's bin "
+                        "(outcome_of_noise), at T = 0.98 and text guidance 3")
     p.add_argument("--sheet", type=Path, default=None,
                    help="PNG of the edits at the first guidance pair: a row per view, the input "
                         "then bronze, black and white, the divergent draws")
@@ -78,8 +125,8 @@ def main(argv=None) -> None:
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
     from jaxedit.pipelines.train_editor.edit_data import (build_dataset, novel_dataset,
                                                           outcome_targets)
-    from jaxedit.pipelines.train_editor.quality import (holding, nearest, outcome_figures,
-                                                        psnr, vae_roundtrip)
+    from jaxedit.pipelines.train_editor.quality import (band_figures, holding, nearest,
+                                                        outcome_figures, psnr, vae_roundtrip)
     from jaxedit.pipelines.train_editor.quality import run_edits as _run
 
     folder = args.weights or bundled_editor()
@@ -127,6 +174,13 @@ def main(argv=None) -> None:
     single = [i for i, ins in enumerate(data.instructions)
               if len(ins.outcomes) == 1 and ins.scenes is None]
     divergent = [i for i, ins in enumerate(data.instructions) if len(ins.outcomes) > 1]
+    out["band_floor"] = {}  # the outcome targets through the VAE alone
+    for i in divergent:
+        targets = np.stack([outcome_targets(data, v, i) for v in views])
+        k = targets.shape[1]
+        trips = vae_roundtrip(editor, targets.reshape(-1, *targets.shape[2:]))
+        out["band_floor"][data.instructions[i].prompt] = band_figures(
+            trips, np.repeat(inputs[views], k, 0), np.repeat(targets, k, 0))
     out["by_text_scale"] = {}
     pairs = [(float(t), float(i), float(strength)) for strength in args.edit_t.split(",")
              for i in args.edit_image_scales.split(",") for t in args.text_scales.split(",")]
@@ -152,6 +206,7 @@ def main(argv=None) -> None:
                  "psnr_unedited": float(np.mean(nearest(inputs[rows[sel]], targets)[1]))}
             if len(ins.outcomes) > 1:
                 f = outcome_figures(x[sel], inputs[rows[sel]], targets)
+                e["band"] = band_figures(x[sel], inputs[rows[sel]], targets)
                 e.update({k: f[k] for k in ("unedited_fraction", "single_outcome_fraction",
                                             "outcome_frequencies", "mixed_fraction",
                                             "other_fraction", "progress_median",
@@ -179,6 +234,11 @@ def main(argv=None) -> None:
                     jax.random.fold_in(key, next(counter)), t),
                 inputs, data, i, list(views), editor.encode(ins.prompt), null)
             print("holding", ins.prompt, out["holding"][ins.prompt], flush=True)
+    if args.noise_bins:
+        out["noise_bins"] = {data.instructions[i].prompt: noise_bins(
+            editor, data, i, list(views), inputs, jax.random.fold_in(key, next(counter)))
+            for i in divergent}
+        print("noise bins", out["noise_bins"], flush=True)
     out["seconds"] = round(time.perf_counter() - t0, 1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")

@@ -78,3 +78,21 @@ def test_an_outcome_equal_to_the_input_is_refused():
     u = np.full((4, 4, 3), 0.5, np.float32)
     with pytest.raises(ValueError, match="equals the input"):
         oc.classify(u, u, np.stack([u, u + 0.1]))
+
+
+def test_band_figures_place_a_change_inside_or_outside_the_outcome_s_band(divergent):
+    """band_figures: a target itself changes only its band at gain 1 in its direction; the
+    same change at twice the strength, gain 2; a target plus a cast over the whole view
+    puts part of its change outside the band."""
+    from jaxedit.pipelines.train_editor.quality import band_figures
+
+    for u, t, prompt in divergent:
+        k = len(t)
+        exact = band_figures(t, np.stack([u] * k), np.stack([t] * k))
+        assert exact["outside_band"] == pytest.approx(0.0, abs=1e-4), prompt  # rounding
+        assert exact["gain_in_band"] == pytest.approx(1.0, abs=1e-4), prompt
+        assert exact["cosine_in_band"] == pytest.approx(1.0, abs=1e-4), prompt
+        twice = band_figures(u + 2 * (t - u), np.stack([u] * k), np.stack([t] * k))
+        assert twice["gain_in_band"] == pytest.approx(2.0, abs=1e-4), prompt
+        cast = band_figures(t + 0.1, np.stack([u] * k), np.stack([t] * k))
+        assert 0.2 < cast["outside_band"] < 1, prompt

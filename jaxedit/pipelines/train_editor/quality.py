@@ -98,6 +98,34 @@ def outcome_figures(images, originals, targets) -> dict:
     return out
 
 
+def band_figures(images, originals, targets) -> dict:
+    """Where B edits' change lies against the outcome each leans to (its largest weight in
+    :func:`outcome_class.classify`): images, originals [B, H, W, 3], targets [B, K, H, W, 3].
+
+    Medians over the edits of ``outside_band`` (the share of the change's energy on pixels
+    that outcome leaves alone: 0 for the target itself), ``gain_in_band`` (the change's
+    RMS over the outcome's on the pixels it changes: 1 at the target's strength) and
+    ``cosine_in_band`` (the change's direction against the outcome's there)."""
+    outside, gain, cosine = [], [], []
+    for x, u, t in zip(images, originals, targets):
+        weights = outcome_class.classify(x, u, t, other_gate=False)["weights"]
+        d, want = x - u, t[int(np.argmax(weights))] - u
+        band = np.abs(want).sum(-1) > BAND_CHANGE
+        energy = (d ** 2).sum(-1)
+        outside.append(energy[~band].sum() / max(energy.sum(), 1e-12))
+        inside, wanted = d[band], want[band]
+        gain.append(np.sqrt((inside ** 2).sum() / (wanted ** 2).sum()))
+        cosine.append((inside * wanted).sum()
+                      / max(np.sqrt((inside ** 2).sum() * (wanted ** 2).sum()), 1e-12))
+    return {"outside_band": float(np.median(outside)), "gain_in_band": float(np.median(gain)),
+            "cosine_in_band": float(np.median(cosine))}
+
+
+#: A pixel is in an outcome's band when the outcome changes it by more than this (the sum of
+#: |change| over RGB in [0, 1]): well above the uint8 targets' rounding.
+BAND_CHANGE = 0.02
+
+
 def run_edits(editor, images: np.ndarray, originals: np.ndarray, embeddings: np.ndarray,
               key: jax.Array, t: float, guidance=(7.5, 1.5)) -> np.ndarray:
     """Edit B views (images, originals [B, H, W, 3]; embeddings [B, L, D]) at T = t, in
