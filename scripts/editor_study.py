@@ -22,7 +22,8 @@ outcome it leans to or outside it, and how strongly), beside the same figures of
 outcome targets' VAE round trips (the floor of a latent edit); with ``--noise-bins``,
 whether the outcome follows the noise as ``train-editor --outcome-from-noise`` teaches
 (the SDEdit noise's checkerboard projection set to each outcome's bin: the share of edits
-that lean to that outcome, 1/K by chance).
+that lean to that outcome, 1/K by chance), and how far the views' latents spread along that
+direction (:func:`projection_spread`).
 And, from the config alone, what the empty prompt is trained towards
 (:func:`empty_prompt_shares`).
 
@@ -58,8 +59,9 @@ def empty_prompt_shares(identity_share: float, drop: float, empty_is_identity: b
 def noise_bins(editor, data, i, views, inputs, key, t=0.98, guidance=(3.0, 1.5)) -> float:
     """The share of instruction ``i``'s edits of ``views`` that lean to (largest weight of
     the outcome measure) the outcome whose bin (:func:`outcome_of_noise`) their SDEdit noise
-    is in: each view's noise drawn once, then its checkerboard projection set to each bin's
-    centre in turn (one draw per view and bin). 1/K where the outcome ignores that bin."""
+    is in: each view's noise drawn once, then its projection on :func:`outcome_direction`
+    set to each bin's centre in turn (one draw per view and bin). 1/K where the outcome
+    ignores that bin."""
     import jax.numpy as jnp
     from scipy.stats import norm
 
@@ -67,14 +69,13 @@ def noise_bins(editor, data, i, views, inputs, key, t=0.98, guidance=(3.0, 1.5))
     from jaxedit.editors.jax_ip2p import edit_with_noise_jit, latent_factor
     from jaxedit.editors.outcome_class import classify
     from jaxedit.pipelines.train_editor.edit_data import outcome_targets
-    from jaxedit.pipelines.train_editor.tiny_ip2p import outcome_of_noise
+    from jaxedit.pipelines.train_editor.tiny_ip2p import outcome_direction, outcome_of_noise
 
     k = len(data.instructions[i].outcomes)
     b, (height, width) = len(views), editor.model_hw(*inputs.shape[1:3])
     f = latent_factor(editor.nets.vae)
     base = jax.random.normal(key, (b, height // f, width // f, 4))
-    parity = (np.arange(height // f)[:, None] + np.arange(width // f)[None, :]) % 2
-    direction = np.where(parity, -1.0, 1.0)[..., None] * np.ones(4) / np.sqrt(base[0].size)
+    direction = outcome_direction(*base.shape[1:])
     projection = jnp.einsum("bhwc,hwc->b", base, direction)
     images = jnp.asarray(inputs[views])
     step = timestep_bounds((t, t), editor.num_train_timesteps)[0]
@@ -91,6 +92,24 @@ def noise_bins(editor, data, i, views, inputs, key, t=0.98, guidance=(3.0, 1.5))
                                            other_gate=False)["weights"]) == c)
                     for j, v in enumerate(views))
     return hits / (k * b)
+
+
+def projection_spread(editor, images: np.ndarray) -> dict:
+    """Std over ``images`` [B, H, W, 3] of their scaled latents' projection on
+    :func:`outcome_direction` and on the uniform unit direction: how much of a view's latent
+    lies where ``outcome_of_noise`` reads the noise (the noise's own: 1)."""
+    import jax.numpy as jnp
+
+    from jaxedit.editors.jax_ip2p import resize_images
+    from jaxedit.pipelines.train_editor.tiny_ip2p import outcome_direction
+
+    cfg = editor.config()
+    x = resize_images(jnp.asarray(images, jnp.float32), editor.model_hw(*images.shape[1:3]))
+    mean, _ = editor.nets.vae.encode((x * 2 - 1).astype(cfg.dtype))
+    z = np.asarray(mean, np.float32) * cfg.scaling_factor
+    along = np.einsum("bhwc,hwc->b", z, outcome_direction(*z.shape[1:]))
+    uniform = z.reshape(len(z), -1).sum(1) / np.sqrt(z[0].size)
+    return {"checkerboard": float(along.std()), "uniform": float(uniform.std())}
 
 
 def main(argv=None) -> None:
@@ -238,7 +257,10 @@ def main(argv=None) -> None:
         out["noise_bins"] = {data.instructions[i].prompt: noise_bins(
             editor, data, i, list(views), inputs, jax.random.fold_in(key, next(counter)))
             for i in divergent}
-        print("noise bins", out["noise_bins"], flush=True)
+        shown = np.concatenate([inputs[views]] + [
+            np.concatenate([outcome_targets(data, v, i) for v in views]) for i in divergent])
+        out["latent_projection_std"] = projection_spread(editor, shown)
+        print("noise bins", out["noise_bins"], out["latent_projection_std"], flush=True)
     out["seconds"] = round(time.perf_counter() - t0, 1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")

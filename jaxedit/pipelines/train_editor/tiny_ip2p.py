@@ -86,7 +86,9 @@ class EditorTrainConfig:
         drawn apart from it. Drawn apart, a noised latent at high noise says nothing of the
         outcome, so the UNet's best guess there is the average of the outcomes, which the
         text guidance then amplifies; read from the noise, the outcome is visible in x_t at
-        every noise level, so the UNet can predict one outcome, and a seed picks it.
+        every noise level, so the UNet could predict one outcome. Tried for v5
+        (docs/editor.md): 2000 steps from v4 did not learn it, and the models already pick
+        one outcome per seed; off by default.
       init: a diffusers folder of this architecture (a previous run's ``model/``) whose
         networks start the run: its autoencoder is kept as it is (no VAE stage), its UNet and
         text encoder start the UNet stage (the optimiser and the EMA start afresh). Empty:
@@ -490,15 +492,20 @@ def outcome_siblings(view: np.ndarray, instruction: np.ndarray, outcome: np.ndar
     return siblings, outcomes
 
 
+def outcome_direction(h: int, w: int, c: int) -> np.ndarray:
+    """float [h, w, c]: the unit direction :func:`outcome_of_noise` projects on, the latent
+    checkerboard (+-1 by pixel parity, every channel, normalised). The checkerboard because
+    a rendered view's latent has little energy at that frequency, so the projection stays
+    legible in a noised latent down to low noise levels."""
+    sign = np.where((np.arange(h)[:, None] + np.arange(w)[None, :]) % 2, -1.0, 1.0)
+    return np.repeat(sign[..., None], c, -1) / np.sqrt(h * w * c)
+
+
 def outcome_of_noise(noise: Array, outcomes: Array) -> Array:
     """int32 [B]: which of ``outcomes`` (int [B]) equally likely outcomes standard normal
-    ``noise`` [B, h, w, c] stands for: the quantile bin of its projection on a fixed unit
-    direction, the latent checkerboard (+-1 by pixel parity, every channel). The
-    checkerboard because a rendered view's latent has little energy at that frequency, so
-    the projection stays legible in a noised latent down to low noise levels."""
-    h, w = noise.shape[1:3]
-    sign = np.where((np.arange(h)[:, None] + np.arange(w)[None, :]) % 2, -1.0, 1.0)
-    projection = jnp.einsum("bhwc,hw->b", noise, sign / np.sqrt(h * w * noise.shape[3]))
+    ``noise`` [B, h, w, c] stands for: the quantile bin of its projection on
+    :func:`outcome_direction`."""
+    projection = jnp.einsum("bhwc,hwc->b", noise, outcome_direction(*noise.shape[1:]))
     bin_ = jnp.floor(jax.scipy.stats.norm.cdf(projection) * outcomes).astype(jnp.int32)
     return jnp.clip(bin_, 0, outcomes - 1)
 
