@@ -100,13 +100,11 @@ def projection_spread(editor, images: np.ndarray) -> dict:
     lies where ``outcome_of_noise`` reads the noise (the noise's own: 1)."""
     import jax.numpy as jnp
 
-    from jaxedit.editors.jax_ip2p import resize_images
+    from jaxedit.editors.jax_ip2p import encode_latents, resize_images
     from jaxedit.pipelines.train_editor.tiny_ip2p import outcome_direction
 
-    cfg = editor.config()
     x = resize_images(jnp.asarray(images, jnp.float32), editor.model_hw(*images.shape[1:3]))
-    mean, _ = editor.nets.vae.encode((x * 2 - 1).astype(cfg.dtype))
-    z = np.asarray(mean, np.float32) * cfg.scaling_factor
+    z = np.asarray(encode_latents(editor.nets.vae, x, x, 0.0, editor.config())[0])  # means
     along = np.einsum("bhwc,hwc->b", z, outcome_direction(*z.shape[1:]))
     uniform = z.reshape(len(z), -1).sum(1) / np.sqrt(z[0].size)
     return {"checkerboard": float(along.std()), "uniform": float(uniform.std())}
