@@ -355,7 +355,7 @@ def run(args) -> dict:
         ("reconstruct", recon / "scene.ply", reconstruct),
         ("edit", edit / "schedule.json", lambda: _run_edit(
             edit_cfg, edit_argv, prompt=prompt, data=data, scene=recon / "scene.ply", out=edit,
-            seed=args.seed, quiet=args.quiet, editor=(warmed or [None])[0])),
+            seed=args.seed, quiet=args.quiet, editor=warmed[0] if warmed else None)),
     ]
     seconds: dict[str, float] = {}
     compiles_before = compile_stats()

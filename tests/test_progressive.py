@@ -523,8 +523,8 @@ def test_the_chunk_program_built_beside_the_schedule_is_the_one_the_subtask_runs
 
 def test_work_on_a_thread_ends_with_the_block_and_its_error_is_raised_there():
     """on_a_thread (the chunk compile beside the schedule, the demo's editor warm-up beside
-    the reconstruction): joined when the block ends; its error raised there, after the
-    block's own if the block failed too."""
+    the reconstruction): joined when the block ends; its error raised there, unless the
+    block failed too, whose own error then goes first."""
     from jaxedit.pipelines.edit import on_a_thread
 
     done, release = [], threading.Event()
