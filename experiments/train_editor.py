@@ -28,7 +28,7 @@ def _config_flags():
         "size", "procedural_views", "scenes", "vae_steps", "vae_batch", "vae_crop", "vae_lr",
         "steps", "batch", "lr", "ema", "identity_share", "drop", "degrade", "text_width",
         "text_layers", "init")) + (Flag("empty_is_identity", off="--empty-prompt-edits"),
-                                   Flag("outcome_from_noise")))
+                                   Flag("outcome_from_noise"), Flag("balance_outcomes")))
 
 
 #: The command's flags, generated from

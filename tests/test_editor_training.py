@@ -252,6 +252,32 @@ def test_a_divergent_example_s_target_is_the_outcome_its_noise_stands_for():
     assert np.mean(outcome[row_free[row_free < 6]] == k[row_free < 6]) < 0.45
 
 
+def test_balanced_outcomes_draw_instructions_in_proportion_to_their_outcomes():
+    """balance_outcomes: an instruction of 3 outcomes is drawn 3 times as often as one of a
+    single outcome (3/4 against 1/4 here), each of its outcomes as often as that one;
+    off, each instruction half the time."""
+    hw = (2, 2, 4)
+    # instruction 0: rows 0-2, the three outcomes of view 0; instruction 1: row 3, one outcome
+    d = tiny_ip2p.UNetData(
+        target_mean=jnp.asarray(np.stack([np.full(hw, 100.0 + r, np.float32)
+                                          for r in range(4)])),
+        target_std=jnp.zeros((4, *hw)), input_mean=jnp.zeros((1, 2, *hw)),
+        input_std=jnp.zeros((1, *hw)), rows=jnp.asarray([[0, 1, 2], [3, 3, 3]]),
+        counts=jnp.asarray([3, 1], jnp.int32), active=jnp.asarray([0, 1], jnp.int32),
+        views=jnp.zeros(1, jnp.int32), tokens=jnp.asarray([[1, 2], [3, 4], [0, 0]]),
+        target_view=jnp.zeros(4, jnp.int32), siblings=jnp.asarray([[0, 1, 2]] * 3 + [[3] * 3]),
+        outcomes=jnp.asarray([3, 3, 3, 1], jnp.int32))
+    cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), batch=8000, drop=0.0,
+                              identity_share=0.0, degrade=0.0, balance_outcomes=True)
+    for balanced, share in ((True, 0.75), (False, 0.5)):
+        target, _, tokens = tiny_ip2p.draw_batch(
+            d, jax.random.key(3), dataclasses.replace(cfg, balance_outcomes=balanced), 1.0)
+        row = np.asarray(target)[:, 0, 0, 0].astype(int) - 100
+        np.testing.assert_allclose(np.bincount(row, minlength=4)[:3] / len(row),
+                                   share / 3, atol=0.015)
+        np.testing.assert_array_equal(np.asarray(tokens)[:, 0] == 1, row < 3)
+
+
 def test_a_checkpoint_from_before_a_setting_existed_resumes_as_its_default(tmp_path):
     """A UNet checkpoint written before ``outcome_from_noise`` existed resumes a run that
     leaves it off (its default then) and is refused by one that turns it on."""

@@ -60,7 +60,7 @@ VAE_SETTINGS = ("size", "procedural_views", "scenes", "vae_steps", "vae_batch", 
 
 
 #: Settings added to the config after runs were checkpointed, with the value such a run had.
-ADDED_SETTINGS = {"outcome_from_noise": False}
+ADDED_SETTINGS = {"outcome_from_noise": False, "balance_outcomes": False}
 
 
 def _stage_record(cfg, kind: str) -> dict:

@@ -89,6 +89,12 @@ class EditorTrainConfig:
         every noise level, so the UNet could predict one outcome. Tried for v5
         (docs/editor.md): 2000 steps from v4 did not learn it, and the models already pick
         one outcome per seed; off by default.
+      balance_outcomes: instructions are drawn in proportion to their outcomes' number, so
+        each outcome of a divergent instruction is as frequent as a one-outcome instruction
+        (with 2 x 3 outcomes and 4 single ones: each divergent instruction 3/10 of the
+        non-identity examples instead of 1/6, each of its outcomes 1/10 instead of 1/18).
+        Off: each instruction equally often, a band outcome a third as often as an
+        instruction.
       init: a diffusers folder of this architecture (a previous run's ``model/``) whose
         networks start the run: its autoencoder is kept as it is (no VAE stage), its UNet and
         text encoder start the UNet stage (the optimiser and the EMA start afresh). Empty:
@@ -114,6 +120,7 @@ class EditorTrainConfig:
     drop: float = 0.05
     empty_is_identity: bool = True
     outcome_from_noise: bool = False
+    balance_outcomes: bool = False
     degrade: float = 0.5
     #: Channels of the UNet's three levels (not a flag: the shipped architecture).
     width: tuple[int, int, int] = (32, 64, 96)
@@ -543,7 +550,11 @@ def draw_batch(d: UNetData, key: Array, cfg: EditorTrainConfig, scaling: float,
     b, n_ins = cfg.batch, d.rows.shape[0]
     ks = jax.random.split(key, 8)
     identity = jax.random.uniform(ks[0], (b,)) < cfg.identity_share
-    ins = d.active[jax.random.randint(ks[1], (b,), 0, d.active.shape[0])]
+    if cfg.balance_outcomes:  # weight each active instruction by its outcomes
+        weights = d.outcomes[d.rows[d.active, 0]].astype(jnp.float32)
+        ins = d.active[jax.random.categorical(ks[1], jnp.log(weights), shape=(b,))]
+    else:
+        ins = d.active[jax.random.randint(ks[1], (b,), 0, d.active.shape[0])]
     row = d.rows[ins, jax.random.randint(ks[2], (b,), 0, 1 << 30) % d.counts[ins]]
     if cfg.outcome_from_noise:  # the drawn row's sibling of the noise's outcome
         row = d.siblings[row, outcome_of_noise(noise, d.outcomes[row])]
