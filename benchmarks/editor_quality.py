@@ -35,17 +35,32 @@ from common import parse_args, peak_rss_mb, write_json
 import jax
 
 
+def _guidance(text: str) -> tuple[float, float]:
+    """``--guidance TEXT,IMAGE``: two scales >= 1 (below 1 a guidance term reverses)."""
+    import argparse
+
+    try:
+        scales = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        scales = ()
+    if len(scales) != 2 or not all(1.0 <= x <= 100.0 for x in scales):
+        raise argparse.ArgumentTypeError(f"want TEXT,IMAGE, two scales in [1, 100], got {text!r}")
+    return scales
+
+
 def _extra(p):
     p.add_argument("--weights", type=Path, default=None,
                    help="diffusers folder (default: the bundled editor)")
     p.add_argument("--steps", type=int, default=20, help="DDIM steps per edit")
     p.add_argument("--draws", type=int, default=4, help="edits per view (divergent)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--guidance", type=_guidance, default=(7.5, 1.5),
+                   help="TEXT,IMAGE classifier-free guidance scales of every edit")
     p.add_argument("--novel-views", type=int, default=6,
                    help="cameras off the training orbit per procedural scene (0: none)")
 
 
-def contact_sheet(editor, data, views, key, path: Path) -> None:
+def contact_sheet(editor, data, views, key, path: Path, guidance=(7.5, 1.5)) -> None:
     """A PNG: one row per (held-out view, instruction): input, outcome targets, 4 edits."""
     from jaxedit.pipelines.train_editor.edit_data import outcome_targets
     from jaxedit.pipelines.train_editor.quality import run_edits
@@ -59,7 +74,7 @@ def contact_sheet(editor, data, views, key, path: Path) -> None:
                 continue
             e = editor.encode(ins.prompt)
             edited = run_edits(editor, inputs[[v] * 4], inputs[[v] * 4], np.stack([e] * 4),
-                               jax.random.fold_in(key, 1000 * v + i), 0.98)
+                               jax.random.fold_in(key, 1000 * v + i), 0.98, guidance)
             targets = list(outcome_targets(data, v, i))
             blank = np.ones_like(inputs[v])
             cells = [inputs[v], *targets, *[blank] * (3 - len(targets)), blank, *edited]
@@ -130,7 +145,7 @@ def main(argv=None):
                       draws=1 if args.smoke else args.draws,
                       hold_views=2 if args.smoke else 16, interp_views=1 if args.smoke else 8,
                       ratios=(0.0, 0.5, 1.0) if args.smoke else tuple(np.linspace(0, 1, 9)),
-                      log=print)
+                      guidance=args.guidance, log=print)
     seconds = time.perf_counter() - t0
     # The dataset's own property: how far apart the divergent outcomes are on these views.
     result["separation"] = separation(data, distance, held)
@@ -141,7 +156,7 @@ def main(argv=None):
         for s, name in enumerate(data.scenes)}
     args.out.mkdir(parents=True, exist_ok=True)
     contact_sheet(editor, data, held[:: max(1, len(held) // 6)][:6], jax.random.fold_in(key, 7),
-                  args.out / "editor_quality.png")
+                  args.out / "editor_quality.png", args.guidance)
     if args.novel_views:  # cameras off the training orbits: the same figures, no holding
         novel = novel_dataset(size, 1 if args.smoke else args.novel_views,
                               tuple(settings["scenes"]))
@@ -149,7 +164,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         result["novel"] = evaluate(editor, novel, views, jax.random.fold_in(key, 11),
                                    draws=1 if args.smoke else args.draws, hold_views=0,
-                                   log=print)
+                                   guidance=args.guidance, log=print)
         result["novel"]["cameras"] = {"radius": NOVEL_RADIUS,
                                       "elevation_above_band_deg": list(NOVEL_ELEVATION_DEG)}
         near = nearest_training_psnr(novel, views, data)
@@ -159,7 +174,8 @@ def main(argv=None):
         result["novel"]["goals"] = goals(result["novel"])
         seconds += time.perf_counter() - t0
         contact_sheet(editor, novel, views[:: max(1, len(views) // 4)][:4],
-                      jax.random.fold_in(key, 13), args.out / "editor_quality_novel.png")
+                      jax.random.fold_in(key, 13), args.out / "editor_quality_novel.png",
+                      args.guidance)
     from jaxedit.editors import outcome_class as oc
 
     result["outcome_measure"] = {

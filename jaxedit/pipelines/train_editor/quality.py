@@ -151,19 +151,21 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
              distance: Callable | None = None, draws: int = 4, t_full: float = 0.98,
              hold_views: int = 16, interp_views: int = 8,
              ratios: Sequence[float] = tuple(np.linspace(0, 1, 9)),
+             guidance: tuple[float, float] = (7.5, 1.5),
              log: Callable[[str], None] = lambda s: None) -> dict:
     """All the figures of the module docstring, over the held-out ``views`` (rows of
-    ``data.inputs``). ``distance(a, b) -> float`` is the difficulty's (interpolation only;
-    None skips it)."""
+    ``data.inputs``), every edit at ``guidance`` (text, image). ``distance(a, b) -> float``
+    is the difficulty's (interpolation only; None skips it)."""
     inputs = data.inputs.astype(np.float32) / 255
     null = editor.encode("")
     counter = iter(range(1 << 30))
 
     def edits(images, originals, embedding_list, t):
         return run_edits(editor, images, originals, np.stack(embedding_list),
-                         jax.random.fold_in(key, next(counter)), t)
+                         jax.random.fold_in(key, next(counter)), t, guidance)
 
-    result: dict = {"t_full": t_full, "draws": draws, "views": len(views), "instructions": {}}
+    result: dict = {"t_full": t_full, "draws": draws, "views": len(views),
+                    "guidance": list(guidance), "instructions": {}}
     vs_all = list(views)
     identity = {}
     for t in (*SDEDIT_RANGE, t_full):
