@@ -31,21 +31,9 @@ from pathlib import Path
 
 import numpy as np
 from common import parse_args, peak_rss_mb, write_json
+from experiments.flags import guidance_pair
 
 import jax
-
-
-def _guidance(text: str) -> tuple[float, float]:
-    """``--guidance TEXT,IMAGE``: two scales >= 1 (below 1 a guidance term reverses)."""
-    import argparse
-
-    try:
-        scales = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        scales = ()
-    if len(scales) != 2 or not all(1.0 <= x <= 100.0 for x in scales):
-        raise argparse.ArgumentTypeError(f"want TEXT,IMAGE, two scales in [1, 100], got {text!r}")
-    return scales
 
 
 def _extra(p):
@@ -54,13 +42,14 @@ def _extra(p):
     p.add_argument("--steps", type=int, default=20, help="DDIM steps per edit")
     p.add_argument("--draws", type=int, default=4, help="edits per view (divergent)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--guidance", type=_guidance, default=(7.5, 1.5),
-                   help="TEXT,IMAGE classifier-free guidance scales of every edit")
+    p.add_argument("--guidance", type=guidance_pair, default=None,
+                   help="TEXT,IMAGE classifier-free guidance scales of every edit (default: "
+                        "the editor's own, what its folder recommends, as an edit run uses)")
     p.add_argument("--novel-views", type=int, default=6,
                    help="cameras off the training orbit per procedural scene (0: none)")
 
 
-def contact_sheet(editor, data, views, key, path: Path, guidance=(7.5, 1.5)) -> None:
+def contact_sheet(editor, data, views, key, path: Path, guidance=None) -> None:
     """A PNG: one row per (held-out view, instruction): input, outcome targets, 4 edits."""
     from jaxedit.pipelines.train_editor.edit_data import outcome_targets
     from jaxedit.pipelines.train_editor.quality import run_edits

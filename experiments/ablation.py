@@ -25,7 +25,8 @@ def _config_flags():
     return FlagSet(AblationConfig, tuple(Flag(name) for name in (
         "scenes", "prompts", "seeds", "variants", "methods", "control_methods", "size", "views",
         "test_views", "recon_iters", "refine_every", "max_steps", "warmup", "patience",
-        "edit_every", "lr_sh_dc", "ip2p_steps", "points")) + (Flag("editor", choices=EDITORS),
+        "edit_every", "lr_sh_dc", "ip2p_steps", "ip2p_weights", "points")) + (
+            Flag("editor", choices=EDITORS),
                                       Flag("references", off="--no-references")))
 
 

@@ -287,7 +287,7 @@ def _editor_warm_up(editor, edit_cfg, data: Path, seed: int) -> Callable[[], Non
     # the difficulty's call: its views in one batch where the editor takes batches
     views = max(1, min(int(getattr(editor, "batch", 1)), edit_cfg.plan.difficulty_views or 1))
     return functools.partial(warm_up, editor, height, width, jax.random.key(seed), views=views,
-                             guidance=tuple(edit_cfg.plan.guidance))
+                             guidance=edit_cfg.plan.guidance)
 
 
 def _run_edit(run_cfg, argv: list[str], *, prompt: str, data: Path, scene: Path, out: Path,

@@ -49,6 +49,7 @@ def _config_flags():
         Flag("plan.max_steps"),
         Flag("plan.max_seconds", "--max-subtask-seconds"),
         Flag("plan.edit_every"),
+        Flag("plan.guidance", metavar=("TEXT", "IMAGE")),
         Flag("plan.turntable_frames"),
         Flag("test_views"),
         Flag("editor.kind", "--editor", choices=EDITORS),

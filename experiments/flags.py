@@ -111,6 +111,18 @@ def finite_float(text: str) -> float:
     return value
 
 
+def guidance_pair(text: str) -> tuple[float, float]:
+    """A script's ``--guidance TEXT,IMAGE`` (one argument, comma-separated): the scales
+    :func:`jaxedit.editors.diffusion.check_guidance` accepts, as ``edit --guidance``."""
+    from jaxedit.editors.diffusion import check_guidance
+    from jaxedit.errors import DataError
+
+    try:
+        return check_guidance(text.split(","))
+    except DataError as e:
+        raise argparse.ArgumentTypeError(f"want TEXT,IMAGE: {e.problem}") from None
+
+
 #: How :class:`experiments.cli.OneLineParser` reads a flag's ``type`` where it differs from
 #: the type itself
 #: (registered with argparse by :class:`experiments.cli.OneLineParser`, and used by

@@ -125,6 +125,8 @@ def test_report_shows_the_statistics(tmp_path):
     (["--seeds", "0"], "--seeds"),
     (["--seeds", "4", "--seed-range", "2:5"], "--seed-range: 2:5 is not a non-empty range"),
     (["--seed-range", "3"], "--seed-range: expected A:B"),
+    (["--ip2p-weights", "."], "--ip2p-weights: used only with the ip2p editor"),
+    (["--editor", "ip2p", "--ip2p-weights", "/no/such/folder"], "--ip2p-weights"),
 ])
 def test_bad_flags_fail_in_one_line(tmp_path, capsys, argv, needle):
     assert cli.main(["ablation", "--out", str(tmp_path / "run"), *argv]) == 2
@@ -413,3 +415,21 @@ def test_the_edit_observer_finds_the_view_and_cannot_class_an_outcome_it_cannot_
     assert observe(photos[1] + 1e-4, targets[1, 1]) == (1, 1)  # a copy of view 1's photo
     assert observe(photos[0], photos[0]) == (0, UNEDITED)
     assert observe(photos[2], targets[0, 2]) == (2, "undefined")
+
+
+def test_the_ip2p_weights_the_study_runs_are_the_ones_it_records(tmp_path):
+    import shutil
+
+    from jaxedit.editors import bundled_editor
+    from jaxedit.pipelines.ablation import AblationConfig, _ip2p_folder, _weights_id
+
+    bundled = AblationConfig(editor="ip2p")
+    assert _ip2p_folder(bundled) == bundled_editor()
+    other = tmp_path / "v1"
+    shutil.copytree(bundled_editor(), other)
+    (other / "unet" / "diffusion_pytorch_model.safetensors").write_bytes(b"other weights")
+    pinned = AblationConfig(editor="ip2p", ip2p_weights=other)
+    assert _ip2p_folder(pinned) == other
+    assert len(_weights_id("ip2p", pinned)) == 16
+    assert _weights_id("ip2p", pinned) != _weights_id("ip2p", bundled)
+    assert _weights_id("simulated", AblationConfig()) is None

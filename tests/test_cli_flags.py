@@ -135,6 +135,7 @@ def test_errors_about_a_given_path_say_which_flag(tmp_path):
     (["edit", "--max-subtask-seconds", "-1"], "--max-subtask-seconds: must be > 0"),
     (["edit", "--warmup", "-1"], "--warmup: must be >= 0"),
     (["edit", "--max-gaussians", "0"], "--max-gaussians: must be >= 1"),
+    (["edit", "--guidance", "2", "0"], "--guidance: need text >= 0 and image > 0"),
     (["reconstruct", "--cull-alpha", "1.5"], "--cull-alpha: must be in (0, 1)"),
     (["reconstruct", "--sh-degree", "4"], "--sh-degree: must be in [0, 3]"),
     (["reconstruct", "--iters", "0"], "--iters: must be >= 1"),

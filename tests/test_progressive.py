@@ -175,6 +175,8 @@ def test_sync_edit_writes_the_run_directory(sync_run):
     for key in ("prompt", "editor", "mode", "threshold", "difficulty_curve", "subtasks"):
         assert key in sched
     assert sched["prompt"] == PROMPT and sched["editor"] == "simulated" and sched["mode"] == "proedit"
+    # no guidance given: the editor's own, recorded as used (the simulated editor's is IP2P's)
+    assert sched["config"]["guidance"] is None and sched["guidance"] == [7.5, 1.5]
     # How the difficulty was measured: distance, reduction, the seeded view subset.
     diff = sched["difficulty"]
     assert diff["distance"] == sched["distance"] and diff["reduction"].startswith("mean")

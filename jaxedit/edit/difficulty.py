@@ -30,7 +30,7 @@ import numpy as np
 from skimage.metrics import structural_similarity
 
 from ..errors import DataError
-from ..editors.base import edit_views, interpolate_embedding
+from ..editors.base import edit_views, editor_guidance, interpolate_embedding
 from ..editors.keys import quantize_ratio, view_key
 
 Distance = Callable[[np.ndarray, np.ndarray], float]
@@ -154,7 +154,8 @@ class DifficultyOracle:
       timestep_range: the editor's SDEdit range for these edits. Default (0.98, 0.98): a
         full-strength edit, i.e. how far the editor wants to move each view, not how much of it
         one noisy pass would keep.
-      guidance: the editor's (text, image) guidance scales.
+      guidance: the editor's (text, image) guidance scales (None: its own,
+        :func:`jaxedit.editors.editor_guidance`).
       seed: seeds the edits' keys (``view_key(jax.random.key(seed), k, ., 0)``); every
         (view, ratio) is edited with a fixed key, so d(r, r) = 0 and repeated questions get the
         same answer.
@@ -179,7 +180,7 @@ class DifficultyOracle:
     def __init__(self, editor, originals, prompt: str, *, views: Sequence[int] | None = None,
                  distance: Distance | None = None,
                  timestep_range: tuple[float, float] = (0.98, 0.98),
-                 guidance: tuple[float, float] = (7.5, 1.5), seed: int = 0,
+                 guidance: tuple[float, float] | None = None, seed: int = 0,
                  reduction: str = "mean", common_noise: bool = True, embeddings=None):
         originals = np.asarray(originals, np.float32)
         if originals.ndim != 4 or originals.shape[-1] != 3:
@@ -198,7 +199,7 @@ class DifficultyOracle:
                             f"got {list(self.views)}")
         self.distance = ms_ssim_distance if distance is None else distance
         self.timestep_range = tuple(timestep_range)
-        self.guidance = tuple(guidance)
+        self.guidance = editor_guidance(editor, guidance)
         self.reduction = reduction
         self.common_noise = bool(common_noise)
         self._run_key = jax.random.key(int(seed))

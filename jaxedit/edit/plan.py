@@ -11,6 +11,7 @@ import dataclasses
 import math
 from typing import Any, Sequence
 
+from ..editors.diffusion import check_guidance
 from ..errors import DataError, check_ranges, ranged
 from .schedule import MAX_DEPTH
 
@@ -47,7 +48,9 @@ class ProEditConfig:
       anneal_steps: N of the HiFA annealing, in steps after the warm-up (None:
         :func:`anneal_horizon`, half the room under the step guard).
       timestep_range: (t_min, t_max) of SDEdit (paper 0.45-0.85).
-      guidance: (text, image) classifier-free guidance scales.
+      guidance: (text, image) classifier-free guidance scales (None: the editor's own,
+        :func:`jaxedit.editors.editor_guidance`: what its weights folder recommends, 2, 1.5
+        for the bundled model, else InstructPix2Pix's 7.5, 1.5).
       edit_every: trainer steps between edits in the deterministic mode.
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
       pipelined: the deterministic schedule's edits are made on a worker thread while the
@@ -105,7 +108,7 @@ class ProEditConfig:
     max_seconds: float | None = ranged(None, low=0, open=True)
     anneal_steps: int | None = ranged(None, low=1)
     timestep_range: tuple[float, float] = (0.45, 0.85)
-    guidance: tuple[float, float] = (7.5, 1.5)
+    guidance: tuple[float, float] | None = None
     edit_every: int = ranged(10, low=1)
     initial_sweep: bool = True
     pipelined: bool = True
@@ -124,6 +127,8 @@ class ProEditConfig:
         if self.mode not in MODES:
             raise DataError("mode", f"unknown mode {self.mode!r}; choose from {', '.join(MODES)}")
         check_ranges(self)
+        if self.guidance is not None:
+            object.__setattr__(self, "guidance", check_guidance(self.guidance))
         lo, hi = self.timestep_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {lo}, {hi}")

@@ -57,6 +57,7 @@ from typing import Callable
 import jax
 import numpy as np
 
+from ..editors.base import editor_guidance
 from ..train import scene_extent
 from . import schedule as sched
 from .context import EditContext, EditData
@@ -98,7 +99,7 @@ def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distan
     """
     views = difficulty_view_subset(len(originals), ctx.config.difficulty_views, ctx.key)
     return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
-                            guidance=tuple(ctx.config.guidance), seed=seed,
+                            guidance=ctx.config.guidance, seed=seed,
                             embeddings=(ctx.e_prompt, ctx.e_null))
 
 
@@ -216,6 +217,8 @@ def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ra
               "distance": None if oracle is None else distance_name(distance),
               "resumed_from": resumed_from, "start_ratio": start_ratio, "asynchronous": config.asynchronous,
               "config": dataclasses.asdict(config),
+              # the scales every edit of the run used: the config's, or the editor's own
+              "guidance": list(editor_guidance(ctx.editor, config.guidance)),
               "guard": {"max_steps": step_guard(config, data.train_images.shape),
                         "max_steps_scaled": config.max_steps is None,
                         "max_seconds": config.max_seconds},

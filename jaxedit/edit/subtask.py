@@ -97,7 +97,7 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
         # mask's square (0.49 at a border pixel of 0.7).
         return edit_views(ctx.editor, renders, [originals[job.view] for job in jobs], embedding,
                           [edit_key(sub_key, job.view, job.iteration) for job in jobs],
-                          timestep_range=t_range(jobs[0]), guidance=tuple(cfg.guidance))
+                          timestep_range=t_range(jobs[0]), guidance=cfg.guidance)
 
     def edit_one(job: EditJob, scene):
         return edit_many([job], scene)[0]

@@ -13,7 +13,8 @@ where an instruction acts.
   reference (the JAX one also gives the relevance map of "Watch Your Steps");
   :mod:`.diffusion`: the arithmetic both share; :mod:`.keys`: per-view edit seeding.
 - :mod:`.bundled`: the small InstructPix2Pix that ships with jaxedit, a diffusers folder
-  inside the package, which ``--editor ip2p`` loads when no ``--ip2p-weights`` is given;
+  inside the package, which ``--editor ip2p`` loads when no ``--ip2p-weights`` is given
+  (with the guidance its folder recommends, :func:`recommended_guidance`);
   :mod:`.outcome_class`: the outcome measure of a divergent instruction's edits.
 
 How the bundled editor is made (its dataset from the built-in scenes, its training, the
@@ -24,13 +25,15 @@ The two InstructPix2Pix editors are imported on demand (torch is optional; the J
 loads equinox networks).
 """
 
-from .base import Editor, edit_views, interpolate_embedding, relevance, relevance_mask, warm_up
-from .bundled import BUNDLED, DEFAULT_SIZE, bundled_editor, instructions, native_size
+from .base import (Editor, edit_views, editor_guidance, interpolate_embedding, relevance,
+                   relevance_mask, warm_up)
+from .bundled import (BUNDLED, DEFAULT_SIZE, bundled_editor, instructions, native_size,
+                      recommended_guidance)
 from .keys import view_key
 from .simulated import VOCABULARY, SimulatedEditor
 
 __all__ = [
     "BUNDLED", "DEFAULT_SIZE", "Editor", "SimulatedEditor", "VOCABULARY", "bundled_editor",
-    "edit_views", "instructions", "interpolate_embedding", "native_size", "relevance",
-    "relevance_mask", "view_key", "warm_up",
+    "edit_views", "editor_guidance", "instructions", "interpolate_embedding", "native_size",
+    "recommended_guidance", "relevance", "relevance_mask", "view_key", "warm_up",
 ]

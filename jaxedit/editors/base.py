@@ -9,7 +9,9 @@ Images are float32 arrays [H, W, 3] in [0, 1] (NumPy or JAX). ``image`` is the
 current render of a view, ``original`` the original photo of that view (IP2P
 conditions on it). ``timestep_range`` is (t_min, t_max) as fractions of the
 diffusion schedule in [0, 1] (the paper: 0.45-0.85, annealed by the driver);
-``guidance`` is (text_scale, image_scale).
+``guidance`` is (text_scale, image_scale), None for the editor's own (its ``guidance``
+attribute: what its weights folder recommends, InstructPix2Pix's 7.5, 1.5 by default;
+:func:`editor_guidance`).
 
 An editor that can edit several views in one call (the JAX InstructPix2Pix) also has
 ``edit_many(images, originals, embeddings, keys, ...)`` and ``batch``, its most views per
@@ -31,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
+from .diffusion import IP2P_GUIDANCE, check_guidance
 from .masks import relevance_mask  # noqa: F401 - part of the protocol's API
 
 
@@ -44,15 +47,24 @@ class Editor(Protocol):
 
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
-             guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray | jax.Array:
+             guidance: tuple[float, float] | None = None) -> np.ndarray | jax.Array:
         """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key`` (NumPy, or a
         JAX array on the editor's device: the JAX editor's result stays on the device)."""
         ...
 
 
+def editor_guidance(editor, guidance: tuple[float, float] | None = None) -> tuple[float, float]:
+    """``guidance`` as (text, image) floats, or where None the editor's own: its ``guidance``
+    attribute (the bundled editor's folder recommends 2, 1.5: :func:`jaxedit.editors.bundled.
+    recommended_guidance`), else InstructPix2Pix's 7.5, 1.5."""
+    if guidance is None:
+        guidance = getattr(editor, "guidance", IP2P_GUIDANCE)
+    return check_guidance(guidance)
+
+
 def relevance(editor, image, original, embedding, key: jax.Array, *,
               timestep_range: tuple[float, float] = (0.02, 0.98),
-              guidance: tuple[float, float] = (7.5, 1.5)):
+              guidance: tuple[float, float] | None = None):
     """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant).
 
     ``editor.relevance`` (the JAX InstructPix2Pix's is
@@ -64,11 +76,12 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
         raise DataError("--local", f"editor {getattr(editor, 'name', type(editor).__name__)!r} "
                                    "gives no relevance map: use --local off with --region or "
                                    "--masks")
-    return fn(image, original, embedding, key, timestep_range=timestep_range, guidance=guidance)
+    return fn(image, original, embedding, key, timestep_range=timestep_range,
+              guidance=editor_guidance(editor, guidance))
 
 
 def warm_up(editor, height: int, width: int, key: jax.Array, *, views: int = 1,
-            guidance: tuple[float, float] = (7.5, 1.5)) -> None:
+            guidance: tuple[float, float] | None = None) -> None:
     """Edit ``views`` grey views of ``height`` x ``width`` once and drop the result, so that
     the editor's program for that call (:func:`edit_views`' batch of ``views``, these
     guidance scales) is compiled, and written to the persistent compilation cache, before a
@@ -90,7 +103,7 @@ def interpolate_embedding(e_prompt, e_null, ratio: float):
 
 def edit_views(editor, images, originals, embedding, keys, *,
                timestep_range: tuple[float, float] = (0.02, 0.98),
-               guidance: tuple[float, float] = (7.5, 1.5)) -> list:
+               guidance: tuple[float, float] | None = None) -> list:
     """Edit views [B] with their keys [B]: ``editor.edit_many`` in chunks of
     ``editor.batch`` where the editor has it, else one ``edit`` per view.
 
@@ -102,6 +115,7 @@ def edit_views(editor, images, originals, embedding, keys, *,
     threads (the same calls, so the same results).
     """
     count = len(images)
+    guidance = editor_guidance(editor, guidance)
     batch = int(getattr(editor, "batch", 1)) if hasattr(editor, "edit_many") else 1
     batch = 1 if batch <= 1 or count == 1 else batch
 

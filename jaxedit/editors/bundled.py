@@ -1,5 +1,5 @@
 """The small InstructPix2Pix shipped inside the package: where its folder is, its working
-size, the instructions it was trained on."""
+size, the instructions it was trained on, the guidance it edits with."""
 
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 from ..errors import DataError
+from .diffusion import IP2P_GUIDANCE, check_guidance
 
 #: Where the bundled weights live inside the installed package.
 BUNDLED = Path(__file__).parent / "weights" / "tiny-ip2p"
@@ -52,3 +53,23 @@ def instructions(folder: str | Path | None = None) -> list[dict]:
         return list(json.loads(path.read_text())["instructions"])
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise DataError(path, f"unreadable instructions list ({e})") from None
+
+
+def recommended_guidance(folder: str | Path | None = None) -> tuple[float, float]:
+    """The (text, image) guidance a trained folder is meant to edit with: ``"guidance"`` in
+    its ``instructions.json`` (written by ``scripts/bundle_editor.py --guidance``), else
+    InstructPix2Pix's (7.5, 1.5).
+
+    Why a folder says it: the bundled model's empty prompt is trained to keep the view, so
+    its text guidance scales the whole edit; it edits with gain 1 at text 2 and overshoots
+    1.9x at 7.5 (``docs/editor.md``). InstructPix2Pix's own weights were tuned at 7.5."""
+    path = Path(folder if folder is not None else BUNDLED) / "instructions.json"
+    if not path.is_file():
+        return IP2P_GUIDANCE
+    try:
+        listed = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise DataError(path, f"unreadable instructions list ({e})") from None
+    if not isinstance(listed, dict) or "guidance" not in listed:
+        return IP2P_GUIDANCE
+    return check_guidance(listed["guidance"], str(path))

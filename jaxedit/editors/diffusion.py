@@ -108,6 +108,25 @@ def model_size(height: int, width: int, size: int | None, factor: int = 8) -> tu
             max(factor, int(round(width * scale / factor)) * factor))
 
 
+#: InstructPix2Pix's (text, image) classifier-free guidance scales (Brooks et al. 2023, and
+#: diffusers' pipeline defaults): an editor's guidance unless its folder recommends its own
+#: (:func:`jaxedit.editors.bundled.recommended_guidance`).
+IP2P_GUIDANCE = (7.5, 1.5)
+
+
+def check_guidance(guidance, field: str = "guidance") -> tuple[float, float]:
+    """``guidance`` as (text, image) floats: two finite scales, text >= 0 and image > 0 (the
+    image scale divides nothing, but 0 would drop the view the edit starts from); a
+    DataError naming ``field`` otherwise."""
+    try:
+        text, image = (float(g) for g in guidance)
+    except (TypeError, ValueError):
+        raise DataError(field, f"need two scales (text, image), got {guidance!r}") from None
+    if not (np.isfinite(text) and np.isfinite(image) and text >= 0 and image > 0):
+        raise DataError(field, f"need text >= 0 and image > 0 scales, got {guidance!r}")
+    return text, image
+
+
 def dual_guidance(eps, text_scale: float, image_scale: float):
     """Combine the three-branch UNet output [3B, ...] ordered (text+image, image, uncond):
     eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u). Torch tensors or JAX arrays."""

@@ -62,9 +62,11 @@ import jax
 import numpy as np
 
 from ..errors import DataError
+from .base import editor_guidance
+from .bundled import recommended_guidance
 # The shared diffusion arithmetic; re-exported here, where it used to live.
-from .diffusion import (DDIM_STEPS, DEFAULT_MODEL, HOW_TO_GET,  # noqa: F401
-                        check_timestep_range, ddim_overrides, ddim_step, draw_timestep,
+from .diffusion import (DDIM_STEPS, DEFAULT_MODEL, HOW_TO_GET, IP2P_GUIDANCE,  # noqa: F401
+                        check_guidance, check_timestep_range, ddim_overrides, ddim_step, draw_timestep,
                         dtype_name, dual_guidance, model_size, resolve_weights,
                         timestep_schedule)
 
@@ -124,8 +126,11 @@ class InstructPix2PixEditor:
     name = "ip2p"
 
     def __init__(self, unet, vae, text_encoder, tokenizer, scheduler, *, device=None, dtype=None,
-                 size: int | None = 512, steps: int = DDIM_STEPS, source: str = ""):
+                 size: int | None = 512, steps: int = DDIM_STEPS, source: str = "",
+                 guidance: tuple[float, float] = IP2P_GUIDANCE):
         self.device = torch.device(device or _default_device())
+        #: (text, image) scales of an edit that names none (from_pretrained: the folder's).
+        self.guidance = check_guidance(guidance)
         on_cpu = self.device.type == "cpu"
         self.dtype = _dtype(dtype) or (torch.float32 if on_cpu else torch.float16)
         if unet.config.in_channels != 8:
@@ -191,9 +196,10 @@ class InstructPix2PixEditor:
         scheduler = _load(root, "scheduler", lambda: DDIMScheduler.from_pretrained(
             root, subfolder="scheduler", **ddim_overrides(root / "scheduler"), **kw))
         editor = cls(unet, vae, text_encoder, tokenizer, scheduler, device=device, dtype=dtype,
-                     size=size, steps=steps, source=str(root))
-        log.info("InstructPix2Pix loaded from %s on %s (%s), size %s, %d DDIM steps", root,
-                 editor.device, editor.dtype, size, steps)
+                     size=size, steps=steps, source=str(root),
+                     guidance=recommended_guidance(root))
+        log.info("InstructPix2Pix loaded from %s on %s (%s), size %s, %d DDIM steps, "
+                 "guidance %s", root, editor.device, editor.dtype, size, steps, editor.guidance)
         return editor
 
     def __repr__(self):
@@ -263,7 +269,7 @@ class InstructPix2PixEditor:
     @torch.inference_mode()
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
-             guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
+             guidance: tuple[float, float] | None = None) -> np.ndarray:
         """Edit one view: float32 [H, W, 3] in [0, 1] at ``image``'s size (see module docstring)."""
         check_timestep_range(timestep_range)
         hw = model_size(*self._image(image, "image").shape[-2:], self.size, self.vae_factor)
@@ -278,11 +284,12 @@ class InstructPix2PixEditor:
 
     @torch.inference_mode()
     def edit_with_noise(self, image, original, embedding, t_start: int, vae_noise, sde_noise, *,
-                        guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
+                        guidance: tuple[float, float] | None = None) -> np.ndarray:
         """:meth:`edit` with its random draws given: the timestep ``t_start`` and the standard
         normal ``vae_noise`` (the posterior sample's) and ``sde_noise`` (SDEdit's), each
         [1, 4, h/f, w/f] at the model size (f = ``vae_factor``); :meth:`edit` draws them
         from its key."""
+        guidance = editor_guidance(self, guidance)
         render = self._image(image, "image")
         orig = self._image(original, "original")
         height, width = render.shape[-2:]
@@ -321,7 +328,8 @@ class InstructPix2PixEditor:
         """What a run log / report records about this editor."""
         return {"editor": self.name, "weights": self.source, "device": str(self.device),
                 "dtype": str(self.dtype).replace("torch.", ""), "size": self.size,
-                "steps": self.steps, "scheduler": type(self.scheduler).__name__,
+                "steps": self.steps, "guidance": list(self.guidance),
+                "scheduler": type(self.scheduler).__name__,
                 "clip_sample": self.clip_sample, "prediction_type": self.prediction_type,
                 "unet_in_channels": int(self.unet.config.in_channels)}
 

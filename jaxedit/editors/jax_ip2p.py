@@ -45,8 +45,9 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..errors import DataError
-from .diffusion import (DDIM_STEPS, DEFAULT_MODEL, ddim_step, dtype_name, dual_guidance,
-                        model_size, timestep_bounds, timestep_table)
+from .base import editor_guidance
+from .diffusion import (DDIM_STEPS, DEFAULT_MODEL, IP2P_GUIDANCE, check_guidance, ddim_step,
+                        dtype_name, dual_guidance, model_size, timestep_bounds, timestep_table)
 from .masks import relevance_mask
 
 log = logging.getLogger(__name__)
@@ -102,7 +103,7 @@ class EditConfig:
     clip_sample: float | None = None
     scaling_factor: float = 0.18215
     dtype: str = "float32"
-    guidance: tuple[float, float] = (7.5, 1.5)
+    guidance: tuple[float, float] = IP2P_GUIDANCE
     vae_chunk: int | None = None
 
 
@@ -460,6 +461,8 @@ class JaxIP2PEditor:
       batch: most views per :meth:`edit_many` call when several are due at once (a
         subtask's initial sweep, the difficulty's views; :func:`jaxedit.editors.edit_views`).
         Default: :func:`default_batch` of the devices.
+      guidance: the (text, image) scales of an edit that names none (:meth:`from_pretrained`:
+        the folder's :func:`jaxedit.editors.bundled.recommended_guidance`).
 
     Memory (what an edit at 512 px holds; ``benchmarks/memory.py`` measures it):
       attention_chunk: queries per attention chunk in the UNet and the VAE
@@ -486,7 +489,9 @@ class JaxIP2PEditor:
                  clip_sample: float | None = None, scaling_factor: float = 0.18215,
                  devices: Sequence[jax.Device] | None = None,
                  size: int | None = 512, steps: int = DDIM_STEPS, source: str = "",
-                 batch: int | None = None, attention_chunk: int | None = ATTENTION_CHUNK,
+                 batch: int | None = None,
+                 guidance: tuple[float, float] = IP2P_GUIDANCE,
+                 attention_chunk: int | None = ATTENTION_CHUNK,
                  vae_chunk: int | None = VAE_CHUNK, text_encoder_residency: str = "auto",
                  load_text_encoder: Callable[[], Any] | None = None):
         self.devices = list(devices) if devices else [jax.devices()[0]]
@@ -506,6 +511,7 @@ class JaxIP2PEditor:
                          self.latent_factor, first_level_width(unet),
                          jnp.dtype(self.dtype).itemsize)
         self.size, self.steps, self.source = size, int(steps), source
+        self.guidance = check_guidance(guidance)
         for name, value in (("attention_chunk", attention_chunk), ("vae_chunk", vae_chunk)):
             if value is not None and int(value) < 1:
                 raise DataError(name, f"must be >= 1 or None, got {value}")
@@ -554,7 +560,7 @@ class JaxIP2PEditor:
         (:func:`jaxedit.editors.bundled.native_size`: 64 px for the bundled model, 512 for SD).
         """
         from ..models import load_ip2p
-        from .bundled import native_size
+        from .bundled import native_size, recommended_guidance
         from .diffusion import ddim_settings, resolve_weights
 
         root = resolve_weights(path)
@@ -570,11 +576,13 @@ class JaxIP2PEditor:
                      clip_sample=settings["clip_sample"],
                      scaling_factor=float(models.vae.scaling_factor), devices=devices,
                      size=size, steps=steps, source=str(root), batch=batch,
+                     guidance=recommended_guidance(root),
                      load_text_encoder=functools.partial(load_text_encoder, root,
                                                          jnp.dtype(name)), **memory)
         del models  # the editor holds the networks (on its devices) and no second copy
         log.info("InstructPix2Pix (JAX) loaded from %s on %s (%s), size %s, %d DDIM steps, "
-                 "batches of %d", root, editor.devices, editor.dtype, size, steps, editor.batch)
+                 "batches of %d, guidance %s", root, editor.devices, editor.dtype, size, steps,
+                 editor.batch, editor.guidance)
         return editor
 
     @classmethod
@@ -604,10 +612,11 @@ class JaxIP2PEditor:
         return (f"JaxIP2PEditor({self.source!r}, devices={self.devices}, dtype={self.dtype}, "
                 f"size={self.size}, steps={self.steps}, batch={self.batch})")
 
-    def config(self, guidance=(7.5, 1.5)) -> EditConfig:
+    def config(self, guidance: tuple[float, float] | None = None) -> EditConfig:
+        """The compiled edit's static settings at ``guidance`` (None: :attr:`guidance`)."""
         return EditConfig(steps=self.steps, prediction_type=self.prediction_type,
                           clip_sample=self.clip_sample, scaling_factor=self.scaling_factor,
-                          dtype=self.dtype, guidance=tuple(float(g) for g in guidance),
+                          dtype=self.dtype, guidance=editor_guidance(self, guidance),
                           vae_chunk=self.vae_chunk)
 
     # -- embeddings -----------------------------------------------------------------------
@@ -649,7 +658,7 @@ class JaxIP2PEditor:
 
     def edit_many(self, images, originals, embeddings, keys: jax.Array, *,
                   timestep_range: tuple[float, float] = (0.02, 0.98),
-                  guidance: tuple[float, float] = (7.5, 1.5)) -> jax.Array:
+                  guidance: tuple[float, float] | None = None) -> jax.Array:
         """Edit B views in one call: float32 [B, H, W, 3] on the editor's devices.
 
         ``images``, ``originals``: [B, H, W, 3]; ``embeddings``: [B, 77, D] or one [77, D];
@@ -694,7 +703,7 @@ class JaxIP2PEditor:
 
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
-             guidance: tuple[float, float] = (7.5, 1.5)) -> jax.Array:
+             guidance: tuple[float, float] | None = None) -> jax.Array:
         """Edit one view: float32 [H, W, 3] in [0, 1] (a JAX array on the editor's device)."""
         image = _as_batch(image, "image", 3 + 1)
         if image.shape[0] != 1:
@@ -706,7 +715,7 @@ class JaxIP2PEditor:
 
     def relevance(self, image, original, embedding, key: jax.Array, *,
                   timestep_range: tuple[float, float] = (0.02, 0.98),
-                  guidance: tuple[float, float] = (7.5, 1.5), draws: int = RELEVANCE_DRAWS,
+                  guidance: tuple[float, float] | None = None, draws: int = RELEVANCE_DRAWS,
                   sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
         """Where ``embedding`` changes the view, float32 [H, W] in {0, 1} (the Editor
         protocol's relevance, "Watch Your Steps", ICCV 2023).
@@ -741,7 +750,7 @@ class JaxIP2PEditor:
         return {"editor": self.name, "framework": "jax", "weights": self.source,
                 "devices": [str(d) for d in self.devices], "dtype": self.dtype,
                 "size": self.size, "steps": self.steps, "batch": self.batch,
-                "clip_sample": self.clip_sample,
+                "guidance": list(self.guidance), "clip_sample": self.clip_sample,
                 "prediction_type": self.prediction_type,
                 "attention_chunk": self.attention_chunk, "vae_chunk": self.vae_chunk,
                 "text_encoder_residency": self.text_encoder_residency}

@@ -146,6 +146,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError, quoted
+from .base import editor_guidance
+from .diffusion import IP2P_GUIDANCE
 from .masks import relevance_mask
 from .simulated_targets import (BULGE_MAX, MAX_MODES, _MODE_ASPECTS, blur, _bulge, _sample,
                                 _target_family, foreground)
@@ -437,6 +439,9 @@ class SimulatedEditor:
     """
 
     name = "simulated"
+    #: The guidance of an edit that names none: InstructPix2Pix's, where its perturbation
+    #: has the amplitude the module docstring gives.
+    guidance = IP2P_GUIDANCE
 
     def __init__(self, *, noise: float = 0.004, colour: float = 0.12, shift: float = 0.05,
                  jitter: float = 1.0, surfaces: tuple | None = None, modes: int = 1,
@@ -586,7 +591,7 @@ class SimulatedEditor:
 
     def relevance(self, image, original, embedding, key: jax.Array, *,
                   timestep_range: tuple[float, float] = (0.02, 0.98),
-                  guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
+                  guidance: tuple[float, float] | None = None) -> np.ndarray:
         """Where the instruction changes the view: float32 [H, W] in {0, 1}.
 
         From the noise-free target: |target - original| (channel mean), normalised,
@@ -601,7 +606,7 @@ class SimulatedEditor:
 
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
-             guidance: tuple[float, float] = (7.5, 1.5)) -> np.ndarray:
+             guidance: tuple[float, float] | None = None) -> np.ndarray:
         """Edit one view: float32 [H, W, 3] in [0, 1], deterministic given ``key``.
 
         The arguments are those of :meth:`edit_with_mode`, which also returns the drawn mode.
@@ -611,7 +616,7 @@ class SimulatedEditor:
 
     def edit_with_mode(self, image, original, embedding, key: jax.Array, *,
                        timestep_range: tuple[float, float] = (0.02, 0.98),
-                       guidance: tuple[float, float] = (7.5, 1.5)) -> tuple[np.ndarray, int]:
+                       guidance: tuple[float, float] | None = None) -> tuple[np.ndarray, int]:
         """(edited view float32 [H, W, 3] in [0, 1], the mode k it was drawn in).
 
         Args:
@@ -621,7 +626,8 @@ class SimulatedEditor:
           key: a ``jax.random`` key (see :func:`view_key`).
           timestep_range: (t_min, t_max) in [0, 1]; t ~ U(t_min, t_max), and a fraction
             cos(pi t / 2) of ``image`` survives.
-          guidance: (text, image) classifier-free guidance scales; they scale the perturbation.
+          guidance: (text, image) classifier-free guidance scales; they scale the perturbation
+            (None: :attr:`guidance`, InstructPix2Pix's 7.5, 1.5, where the scale is 1).
         """
         image = _as_image(image, "image")
         original = _as_image(original, "original")
@@ -632,9 +638,7 @@ class SimulatedEditor:
         if not (0.0 <= t0 <= t1 <= 1.0):
             raise DataError("timestep_range",
                             f"need 0 <= t_min <= t_max <= 1, got {timestep_range!r}")
-        gt, gi = (float(g) for g in guidance)
-        if not (gt >= 0 and gi > 0 and math.isfinite(gt) and math.isfinite(gi)):
-            raise DataError("guidance", f"need text >= 0 and image > 0 scales, got {guidance!r}")
+        gt, gi = editor_guidance(self, guidance)
         i, r = self.decode(embedding)
         kind, s = ("colour", 0.0) if i is None else (INSTRUCTIONS[i].kind, self.strength(r, i))
         gscale = (gt / 7.5) * math.sqrt(1.5 / gi)

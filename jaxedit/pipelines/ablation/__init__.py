@@ -7,8 +7,9 @@ Make each built-in scene's dataset and reconstruct it once, then edit the recons
 every method, for every instruction and every seed. Two editors (``editor``):
 
 - ``ip2p``, the mechanism test: the bundled small InstructPix2Pix
-  (:func:`jaxedit.editors.bundled_editor`), whose outcomes, their separation and whether a
-  view keeps one are the network's; one variant, its name, with ``methods``.
+  (:func:`jaxedit.editors.bundled_editor`, or the folder ``ip2p_weights``: the committed
+  study's instrument is v1), whose outcomes, their separation and whether a view keeps one
+  are the network's; one variant, its name, with ``methods``.
 - ``simulated``, the test instrument (noise-free targets known; not InstructPix2Pix): an
   editor variant (``variants``) is ``K`` or ``K:GAIN``, K divergent modes per instruction and
   the mode draw's ``mode_step_gain`` (default 1; :mod:`jaxedit.editors.simulated`, section
@@ -53,8 +54,9 @@ one), ``device`` (what ran it: a study may be run in parts, ``run_ablation(seeds
 several machines). Every record names its ``scene``, ``prompt``, ``method``, ``seed``,
 ``recon_seed`` (the scene's and reconstruction's seed: ``recon_seed=`` here, ``--seed`` on
 the command line, so a second reconstruction, or other views with ``views``/``test_views``,
-is a study of its own) and ``editor_weights`` (the bundled editor's UNet sha256, first 16
-digits; None for other editors). ``edit_outcomes``: every training edit of the run, in
+is a study of its own) and ``editor_weights`` (the ip2p editor's UNet sha256, first 16
+digits, also in the settings, so a study resumes only with its own weights; None for other
+editors). ``edit_outcomes``: every training edit of the run, in
 order, as ``{"subtask", "step" (from the subtask's start), "view", "t", "ratio",
 "outcome"}``, ``outcome`` the class of the edited image against the view's photo and its
 outcome targets (:mod:`jaxedit.editors.outcome_class`: the outcome's index, "unedited",
@@ -168,6 +170,9 @@ class AblationConfig:
         variant, ``methods`` only).
       ip2p_steps: DDIM steps per edit of the bundled editor (its 10-step edits are within
         37-40 dB PSNR of its 20-step ones on held-out views, at half the cost).
+      ip2p_weights: the ip2p editor's diffusers folder (None: the bundled one); it edits
+        at the guidance its folder recommends. The committed study's instrument is the
+        first bundled model, v1 (``docs/mechanism.md`` says how to get it back).
       references: also score the reference levels of each (scene, instruction): the
         unedited reconstruction and the ceiling (a scene trained directly on one outcome's
         targets, the best of its outcomes).
@@ -194,6 +199,7 @@ class AblationConfig:
     lr_sh_dc: float = ranged(0.025, low=0, open=True)
     editor: str = "simulated"
     ip2p_steps: int = ranged(DDIM_STEPS, low=1)
+    ip2p_weights: Path | None = None
     references: bool = True
     points: int | None = ranged(None, low=1)
 
@@ -205,6 +211,9 @@ class AblationConfig:
         if self.editor not in EDITORS:
             raise DataError("editor", f"unknown editor {self.editor!r}; choose from "
                                       f"{', '.join(EDITORS)}")
+        if self.ip2p_weights is not None and self.editor != "ip2p":
+            raise DataError("ip2p_weights", f"used only with the ip2p editor (the editor is "
+                                            f"{self.editor})")
         bad = [s for s in self.scenes if s not in list_scenes()]
         if bad or not self.scenes:
             raise DataError("scenes", f"unknown scene(s) {bad}; built-in: "
@@ -320,9 +329,11 @@ def _editors(config: AblationConfig, editor=None) -> tuple[dict, str]:
         return {name: editor}, name
     if config.editor == "ip2p":
         from ...edit.buffer import pick_devices
-        from ...editors.jax_ip2p import load_bundled
+        from ...editors.jax_ip2p import JaxIP2PEditor
 
-        return {"ip2p": load_bundled(devices=[pick_devices()[1]], steps=config.ip2p_steps)}, "ip2p"
+        return {"ip2p": JaxIP2PEditor.from_pretrained(_ip2p_folder(config),
+                                                      devices=[pick_devices()[1]],
+                                                      steps=config.ip2p_steps)}, "ip2p"
     return {_variant_label(k, g): SimulatedEditor(modes=k, mode_step_gain=g)
             for k, g in map(parse_variant, config.variants)}, "simulated"
 
@@ -441,7 +452,10 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
     first = next(iter(editors.values()))
     prompts = tuple(config.prompts)
     kinds = {p: _kind(first, p) for p in prompts}
+    weights_id = _weights_id(name, config) if editor is None else None
     settings_json = config.settings_json(kinds, recon_seed, name)
+    if weights_id is not None:  # a study resumes with the weights it began with, no others
+        settings_json["editor_weights"] = weights_id
     scenes = config.scenes
     seeds = range(config.seeds) if seeds is None else seeds
     if seeds.step != 1 or not 0 <= seeds.start < seeds.stop <= config.seeds:
@@ -455,7 +469,6 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
     elapsed0 = sum(r.get("seconds", 0.0) for r in runs)
 
     device = _device()
-    weights_id = _weights_id(name)
 
     def keep(record):
         record.setdefault("device", device)  # a run reused from ProEdit keeps ProEdit's
@@ -738,16 +751,20 @@ def _edit_observer(originals, train_targets):
     return observe
 
 
-def _weights_id(name: str) -> str | None:
-    """The bundled editor's UNet weights, sha256's first 16 digits (the ``ip2p`` editor);
-    None for the others."""
+def _ip2p_folder(config: AblationConfig) -> Path:
+    """The ip2p editor's diffusers folder: ``ip2p_weights``, else the bundled one."""
+    from ...editors import bundled_editor
+
+    return bundled_editor() if config.ip2p_weights is None else Path(config.ip2p_weights)
+
+
+def _weights_id(name: str, config: AblationConfig) -> str | None:
+    """The ip2p editor's UNet weights, sha256's first 16 digits; None for the others."""
     if name != "ip2p":
         return None
     import hashlib
 
-    from ...editors import bundled_editor
-
-    files = sorted((bundled_editor() / "unet").glob("*.safetensors"))
+    files = sorted((_ip2p_folder(config) / "unet").glob("*.safetensors"))
     digest = hashlib.sha256()
     for f in files:
         digest.update(f.read_bytes())

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...editors import outcome_class
-from ...editors.base import interpolate_embedding
+from ...editors.base import editor_guidance, interpolate_embedding
 from .edit_data import EditDataset, outcome_targets
 
 #: SDEdit timesteps of ProEdit's range (:class:`jaxedit.edit.plan.ProEditConfig`'s
@@ -127,9 +127,10 @@ BAND_CHANGE = 0.02
 
 
 def run_edits(editor, images: np.ndarray, originals: np.ndarray, embeddings: np.ndarray,
-              key: jax.Array, t: float, guidance=(7.5, 1.5)) -> np.ndarray:
+              key: jax.Array, t: float, guidance=None) -> np.ndarray:
     """Edit B views (images, originals [B, H, W, 3]; embeddings [B, L, D]) at T = t, in
-    chunks of CHUNK (the last one padded), each view with its own key: float32 [B, H, W, 3]."""
+    chunks of CHUNK (the last one padded), each view with its own key, at ``guidance`` (None:
+    the editor's own): float32 [B, H, W, 3]."""
     b = len(images)
     keys = jax.random.split(key, b)
     out = []
@@ -151,11 +152,13 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
              distance: Callable | None = None, draws: int = 4, t_full: float = 0.98,
              hold_views: int = 16, interp_views: int = 8,
              ratios: Sequence[float] = tuple(np.linspace(0, 1, 9)),
-             guidance: tuple[float, float] = (7.5, 1.5),
+             guidance: tuple[float, float] | None = None,
              log: Callable[[str], None] = lambda s: None) -> dict:
     """All the figures of the module docstring, over the held-out ``views`` (rows of
-    ``data.inputs``), every edit at ``guidance`` (text, image). ``distance(a, b) -> float``
-    is the difficulty's (interpolation only; None skips it)."""
+    ``data.inputs``), every edit at ``guidance`` (text, image; None: the editor's own, as
+    a run uses it). ``distance(a, b) -> float`` is the difficulty's (interpolation only;
+    None skips it)."""
+    guidance = editor_guidance(editor, guidance)
     inputs = data.inputs.astype(np.float32) / 255
     null = editor.encode("")
     counter = iter(range(1 << 30))
