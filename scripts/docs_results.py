@@ -90,7 +90,9 @@ def editor_quality() -> str:
          f"From {src(rel)} (`python benchmarks/editor_quality.py`): the bundled `tiny-ip2p` on "
          f"{d.get('held_out_views', d.get('views'))} held-out views at {d['size']} px, {d['ddim_steps']} DDIM steps, "
          f"full edits from T = {d['t_full']}, {d.get('draws')} draws per view for the divergent "
-         f"instructions; distance for d(0, r): {d.get('distance', '-')}."
+         f"instructions"
+         + (" at text / image guidance {} / {}".format(*d["guidance"]) if "guidance" in d else "")
+         + f"; distance for d(0, r): {d.get('distance', '-')}."
          + (f" Evaluation took {seconds:.0f} s." if seconds is not None else "")
          + (f" Peak RSS {d['peak_rss_mb']:.0f} MB." if "peak_rss_mb" in d else "")
          + " The reading of these figures is in [the bundled editor](../editor.md).\n\n",

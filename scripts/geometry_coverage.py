@@ -5,8 +5,8 @@ the ball covers in the input, the target and each edit, on the held-out views.
 
 `benchmarks/editor_quality.py` scores the instruction by PSNR over both of its scenes together
 (`ball` and `tabletop`); this splits them and measures the ball itself. The edits are the
-benchmark's full edits (T = 0.98, 20 DDIM steps, guidance 7.5 / 1.5, 2 draws per view, each
-with its own key). A pixel is the ball's where its colour is far from the background
+benchmark's full edits (T = 0.98, 20 DDIM steps, the editor's own guidance, 2 draws per view,
+each with its own key). A pixel is the ball's where its colour is far from the background
 (`ball`: the one textured sphere over the white backdrop) or red (`tabletop`: the red ball);
 both thresholds are checked against the renders' own coverage on the inputs and targets.
 """
@@ -98,7 +98,7 @@ def main(argv=None) -> None:
         "command": "python scripts/geometry_coverage.py --out "
                    "benchmarks/results/cpu/geometry_coverage.json",
         "weights": "jaxedit/editors/weights/tiny-ip2p", "t": 0.98, "ddim_steps": 20,
-        "guidance": [7.5, 1.5], "seed": args.seed, "tolerance": args.tolerance,
+        "guidance": list(editor.guidance), "seed": args.seed, "tolerance": args.tolerance,
         "seconds": round(time.perf_counter() - t0, 1), "scenes": scenes}, indent=1) + "\n")
 
 

@@ -370,7 +370,8 @@ def test_diffusers_pipeline_gives_the_jax_editors_edit():
     # DDIM steps from t to t - N // n: n = N / spacing makes that the next of ours_ts.
     n = scheduler.config.num_train_timesteps // (ours_ts[0] - ours_ts[1])
     image = torch.from_numpy(view.transpose(0, 3, 1, 2))  # [0, 1]: the pipeline normalises
-    theirs = pipe(prompt, image=image, num_inference_steps=n, guidance_scale=7.5,
-                  image_guidance_scale=1.5, latents=torch.from_numpy(x_t.transpose(0, 3, 1, 2)),
+    text, image_scale = editor.guidance  # the folder's (2, 1.5): the JAX edit's default
+    theirs = pipe(prompt, image=image, num_inference_steps=n, guidance_scale=text,
+                  image_guidance_scale=image_scale, latents=torch.from_numpy(x_t.transpose(0, 3, 1, 2)),
                   output_type="np").images
     np.testing.assert_allclose(theirs, ours, atol=2e-4)

@@ -56,6 +56,23 @@ def test_a_bad_recommendation_names_the_file(tmp_path, table, needle):
     assert str(folder / "instructions.json") in str(e.value)
 
 
+def test_the_bundled_editor_recommends_text_2():
+    assert recommended_guidance(BUNDLED) == recommended_guidance() == (2.0, 1.5)
+
+
+def test_the_jax_editor_takes_its_folders_guidance_and_records_it(tmp_path):
+    from jaxedit.editors.jax_ip2p import JaxIP2PEditor
+
+    editor = JaxIP2PEditor.from_pretrained(BUNDLED, steps=1)
+    assert editor.guidance == (2.0, 1.5)
+    assert editor.describe()["guidance"] == [2.0, 1.5]
+    assert editor.config().guidance == (2.0, 1.5)                # an edit naming none
+    assert editor.config((7.5, 1.5)).guidance == (7.5, 1.5)      # an edit naming its own
+    with pytest.raises(DataError, match="guidance"):
+        JaxIP2PEditor(editor.nets.unet, editor.nets.vae, editor.text_encoder, editor.tokenize,
+                      editor.schedule, guidance=(2.0, -1.0))
+
+
 class RecordingEditor(SimulatedEditor):
     """The simulated editor with a recommendation of its own, recording each call's scales."""
 
