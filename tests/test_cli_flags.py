@@ -223,3 +223,13 @@ def test_the_ddim_step_default_is_read_from_one_place():
         pass
     defaults += [inspect.signature(fn).parameters["steps"].default for fn in fns]
     assert defaults == [DDIM_STEPS] * len(defaults)
+
+
+def test_edit_guidance_flag_and_config_value(tmp_path):
+    from experiments import edit
+
+    assert edit.run_config(_parse("edit")).plan.guidance is None    # the editor's own
+    assert edit.run_config(_parse("edit", "--guidance", "2", "1.5")).plan.guidance == (2.0, 1.5)
+    (tmp_path / "c.json").write_text('{"guidance": [3, 1.25]}')
+    assert edit.run_config(_parse("edit", "--config", str(tmp_path / "c.json"))
+                           ).plan.guidance == (3.0, 1.25)

@@ -131,3 +131,31 @@ def test_check_guidance_reads_two_finite_scales():
     for bad in ((1.0,), (1.0, 2.0, 3.0), ("a", 1), None, (float("inf"), 1.5)):
         with pytest.raises(DataError):
             check_guidance(bad)
+
+
+def test_bundle_editor_records_the_guidance_it_is_given(tmp_path, monkeypatch, capsys):
+    import importlib.util
+    import shutil
+    from pathlib import Path
+
+    import jaxedit.editors
+
+    spec = importlib.util.spec_from_file_location(
+        "bundle_editor", Path(__file__).resolve().parents[1] / "scripts" / "bundle_editor.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    source = tmp_path / "trained"
+    shutil.copytree(BUNDLED, source)
+    table = json.loads((source / "instructions.json").read_text())
+    (source / "instructions.json").write_text(json.dumps({"instructions": table["instructions"]}))
+    target = tmp_path / "package" / "tiny-ip2p"
+    monkeypatch.setattr(jaxedit.editors, "BUNDLED", target)   # not the installed copy
+    assert recommended_guidance(source) == IP2P_GUIDANCE
+    assert script.main([str(source), "--guidance", "3,1.25"]) == 0
+    assert recommended_guidance(target) == (3.0, 1.25)
+    assert json.loads((target / "instructions.json").read_text())["instructions"] == \
+        table["instructions"]
+    assert "guidance (3.0, 1.25)" in capsys.readouterr().out
+    with pytest.raises(SystemExit):   # argparse's one line and status 2
+        script.main([str(source), "--guidance", "3"])
+    assert "want TEXT,IMAGE" in capsys.readouterr().err
