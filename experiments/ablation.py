@@ -22,12 +22,11 @@ def _config_flags():
 
     from jaxedit.pipelines.ablation import EDITORS
 
-    return FlagSet(AblationConfig, tuple(Flag(name) for name in (
-        "scenes", "prompts", "seeds", "variants", "methods", "control_methods", "size", "views",
-        "test_views", "recon_iters", "refine_every", "max_steps", "warmup", "patience",
-        "edit_every", "lr_sh_dc", "ip2p_steps", "ip2p_weights", "points")) + (
-            Flag("editor", choices=EDITORS),
-                                      Flag("references", off="--no-references")))
+    names = ("scenes", "prompts", "seeds", "variants", "methods", "control_methods", "size",
+             "views", "test_views", "recon_iters", "refine_every", "max_steps", "warmup",
+             "patience", "edit_every", "lr_sh_dc", "ip2p_steps", "ip2p_weights", "points")
+    return FlagSet(AblationConfig, tuple(Flag(name) for name in names) + (
+        Flag("editor", choices=EDITORS), Flag("references", off="--no-references")))
 
 
 @dataclasses.dataclass(frozen=True)

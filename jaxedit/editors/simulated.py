@@ -641,7 +641,7 @@ class SimulatedEditor:
         gt, gi = editor_guidance(self, guidance)
         i, r = self.decode(embedding)
         kind, s = ("colour", 0.0) if i is None else (INSTRUCTIONS[i].kind, self.strength(r, i))
-        gscale = (gt / 7.5) * math.sqrt(1.5 / gi)
+        gscale = (gt / IP2P_GUIDANCE[0]) * math.sqrt(IP2P_GUIDANCE[1] / gi)
         out, mode = _edit_impl(jnp.asarray(image), jnp.asarray(original), jnp.float32(s), key,
                                jnp.asarray([t0, t1], jnp.float32), jnp.float32(gscale),
                                self._points(original), kind=kind, params=self.params)
