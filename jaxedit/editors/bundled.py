@@ -43,15 +43,27 @@ def native_size(folder: str | Path) -> int:
         return DEFAULT_SIZE
 
 
+def _listing(folder: str | Path | None) -> tuple[Path, object]:
+    """(the path of a folder's ``instructions.json``, its JSON; None where there is no such
+    file); a DataError naming the file when it cannot be read."""
+    path = Path(folder if folder is not None else BUNDLED) / "instructions.json"
+    if not path.is_file():
+        return path, None
+    try:
+        return path, json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise DataError(path, f"unreadable instructions list ({e})") from None
+
+
 def instructions(folder: str | Path | None = None) -> list[dict]:
     """The instructions a trained folder lists (``instructions.json``): prompt, kind,
     outcomes; [] for a folder without the file (InstructPix2Pix takes any text)."""
-    path = Path(folder if folder is not None else BUNDLED) / "instructions.json"
-    if not path.is_file():
+    path, listing = _listing(folder)
+    if listing is None:
         return []
     try:
-        return list(json.loads(path.read_text())["instructions"])
-    except (OSError, ValueError, KeyError, TypeError) as e:
+        return list(listing["instructions"])
+    except (KeyError, TypeError) as e:
         raise DataError(path, f"unreadable instructions list ({e})") from None
 
 
@@ -63,13 +75,7 @@ def recommended_guidance(folder: str | Path | None = None) -> tuple[float, float
     Why a folder says it: the bundled model's empty prompt is trained to keep the view, so
     its text guidance scales the whole edit; it edits with gain 1 at text 2 and overshoots
     1.9x at 7.5 (``docs/editor.md``). InstructPix2Pix's own weights were tuned at 7.5."""
-    path = Path(folder if folder is not None else BUNDLED) / "instructions.json"
-    if not path.is_file():
+    path, listing = _listing(folder)
+    if not isinstance(listing, dict) or "guidance" not in listing:
         return IP2P_GUIDANCE
-    try:
-        listed = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise DataError(path, f"unreadable instructions list ({e})") from None
-    if not isinstance(listed, dict) or "guidance" not in listed:
-        return IP2P_GUIDANCE
-    return check_guidance(listed["guidance"], str(path))
+    return check_guidance(listing["guidance"], str(path))
