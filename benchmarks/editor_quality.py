@@ -121,7 +121,8 @@ def main(argv=None):
     size = int(settings["size"])
     steps = 2 if args.smoke else args.steps
     t0 = time.perf_counter()
-    data = build_dataset(size, int(settings["procedural_views"]), tuple(settings["scenes"]))
+    data = build_dataset(size, int(settings["procedural_views"]), tuple(settings["scenes"]),
+                         off_orbit_views_per_scene=int(settings.get("off_orbit_views", 0)))
     held = np.flatnonzero(data.held_out)
     if args.smoke:  # one held-out view of each scene
         held = np.array([held[data.scene[held] == s][0] for s in range(len(data.scenes))])
@@ -148,7 +149,7 @@ def main(argv=None):
                   args.out / "editor_quality.png", args.guidance)
     if args.novel_views:  # cameras off the training orbits: the same figures, no holding
         novel = novel_dataset(size, 1 if args.smoke else args.novel_views,
-                              tuple(settings["scenes"]))
+                              tuple(settings["scenes"]), int(settings["procedural_views"]))
         views = np.arange(len(novel.inputs))
         t0 = time.perf_counter()
         result["novel"] = evaluate(editor, novel, views, jax.random.fold_in(key, 11),

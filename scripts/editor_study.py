@@ -150,9 +150,11 @@ def main(argv=None) -> None:
     settings = json.loads((folder / "instructions.json").read_text())["dataset"]
     t0 = time.perf_counter()
     data = None if args.novel else build_dataset(
-        int(settings["size"]), int(settings["procedural_views"]), tuple(settings["scenes"]))
+        int(settings["size"]), int(settings["procedural_views"]), tuple(settings["scenes"]),
+        off_orbit_views_per_scene=int(settings.get("off_orbit_views", 0)))
     if args.novel:
-        data = novel_dataset(int(settings["size"]), args.per_scene, tuple(settings["scenes"]))
+        data = novel_dataset(int(settings["size"]), args.per_scene, tuple(settings["scenes"]),
+                             int(settings["procedural_views"]))
         views = np.arange(len(data.inputs))
     else:
         held = np.flatnonzero(data.held_out)

@@ -310,6 +310,57 @@ def test_novel_cameras_are_off_the_training_orbit():
     assert max(off) < min(on_orbit)
 
 
+def test_a_scene_s_bands_are_its_orbit_s_from_every_camera():
+    """An outcome recolours a surface by its colour, so the novel and the nearer cameras
+    take the bands of the scene's training orbit, not terciles of their own views (on the
+    ball seen from above those are far off: 0.29 / 0.37 against the orbit's 0.17 / 0.28
+    at 64 px)."""
+    from jaxedit.scenes import get_scene
+
+    ball = get_scene("ball")
+    orbit = edit_data.procedural_views("ball", 32, 20, ball)
+    novel = edit_data.novel_views("ball", 32, 3, ball, orbit_views=20)
+    near = edit_data.off_orbit_views("ball", 32, 4, ball, orbit.bands)
+    assert novel.bands == near.bands == orbit.bands
+    assert abs(edit_data.luma_bands(novel.rgba)[0] - orbit.bands[0]) > 0.03  # why it matters
+    # the targets follow: a splash outcome of a novel view is made with the orbit's bands
+    rgb, pairs = edit_data.scene_pairs(novel, ball)
+    splash = edit_data.INSTRUCTIONS.index(edit_data.instruction("splash some colour on it"))
+    red = next(t for i, k, t in pairs if i == splash and k == 0)
+    np.testing.assert_array_equal(red, edit_data.apply_image_outcome(
+        "splash some colour on it", "red shadows", novel.rgba[..., :3], novel.rgba[..., 3],
+        orbit.bands))
+
+
+def test_nearer_training_cameras_are_trained_on_and_stay_off_the_novel_ones():
+    """``off_orbit_views``: after a scene's orbit, that many nearer cameras (the object larger
+    in the frame), none held out, every outcome made for them; the person has none; the
+    novel cameras stay farther from every training frame than the orbit's held-out ones
+    are, and ``dataset.npz`` records the count."""
+    from jaxedit.pipelines.train_editor import _dataset_record
+
+    plain = edit_data.build_dataset(32, 20, ("person", "ball"))
+    data = edit_data.build_dataset(32, 20, ("person", "ball"), off_orbit_views_per_scene=5)
+    ball = data.scenes.index("ball")
+    assert len(data.inputs) == len(plain.inputs) + 5
+    assert data.held_out.sum() == plain.held_out.sum()
+    np.testing.assert_array_equal(data.inputs[: len(plain.inputs)], plain.inputs)
+    extra = np.arange(len(plain.inputs), len(data.inputs))
+    assert (data.scene[extra] == ball).all() and not data.held_out[extra].any()
+    per_view = sum(len(i.outcomes) for i in edit_data.INSTRUCTIONS if i.applies_to("ball"))
+    assert all((data.target_view == v).sum() == per_view for v in extra)
+    covered = (data.inputs[data.scene == ball] < 250).any(-1).mean(axis=(1, 2))
+    assert covered[20:].mean() > 1.5 * covered[:20].mean()  # nearer: the ball is larger
+    novel = edit_data.novel_dataset(32, 3, ("ball",), orbit_views=20)
+    held = np.flatnonzero(data.held_out & (data.scene == ball))
+    assert (max(edit_data.nearest_training_psnr(novel, range(3), data))
+            < min(edit_data.nearest_training_psnr(data, held, data)))
+    cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), off_orbit_views=5)
+    assert _dataset_record(cfg)["off_orbit_views"] == 5
+    with pytest.raises(DataError, match="--off-orbit-views"):
+        dataclasses.replace(cfg, off_orbit_views=-1).check()
+
+
 def test_train_editor_refuses_an_unknown_scene_before_any_work(tmp_path, capfd):
     code, err = _main(["train-editor", "--scenes", "person,moon", "--out", tmp_path / "r"],
                       capfd)

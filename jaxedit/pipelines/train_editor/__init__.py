@@ -55,12 +55,13 @@ def _config_record(cfg: tiny_ip2p.EditorTrainConfig) -> dict:
 
 #: The settings the autoencoder's stage depends on: a run that changes only the UNet's
 #: settings resumes the finished autoencoder instead of training it again.
-VAE_SETTINGS = ("size", "procedural_views", "scenes", "vae_steps", "vae_batch", "vae_crop",
-                "vae_lr", "seed")
+VAE_SETTINGS = ("size", "procedural_views", "off_orbit_views", "scenes", "vae_steps",
+                "vae_batch", "vae_crop", "vae_lr", "seed")
 
 
 #: Settings added to the config after runs were checkpointed, with the value such a run had.
-ADDED_SETTINGS = {"outcome_from_noise": False, "balance_outcomes": False}
+ADDED_SETTINGS = {"outcome_from_noise": False, "balance_outcomes": False,
+                  "off_orbit_views": 0}
 
 
 def _stage_record(cfg, kind: str) -> dict:
@@ -88,7 +89,12 @@ def check_run_folder(out: Path) -> None:
 
 def _dataset_record(cfg) -> dict:
     return {"size": cfg.size, "procedural_views": cfg.procedural_views,
-            "scenes": list(cfg.scenes)}
+            "off_orbit_views": cfg.off_orbit_views, "scenes": list(cfg.scenes)}
+
+
+#: The dataset record's keys (a record written before ``off_orbit_views`` existed lacks it,
+#: and reads as 0).
+DATASET_RECORD = ("size", "procedural_views", "off_orbit_views", "scenes")
 
 
 #: dataset.npz's arrays: (dtype kind, number of dimensions); images are [N, size, size, 3].
@@ -111,12 +117,15 @@ def read_dataset(path: Path) -> tuple[dict, edit_data.EditDataset]:
     except (KeyError, json.JSONDecodeError):
         raise DataError(path, "not a train-editor dataset (no readable settings record); "
                               "delete it to rebuild it") from None
-    keys = {"size", "procedural_views", "scenes"}
-    if (not isinstance(record, dict) or set(record) != keys
-            or not all(isinstance(record[k], int) for k in ("size", "procedural_views"))
+    if isinstance(record, dict):
+        record = {"off_orbit_views": 0, **record}
+    counts = ("size", "procedural_views", "off_orbit_views")
+    if (not isinstance(record, dict) or set(record) != set(DATASET_RECORD)
+            or not all(isinstance(record[k], int) and not isinstance(record[k], bool)
+                       for k in counts)
             or not isinstance(record["scenes"], list)
             or not all(isinstance(x, str) for x in record["scenes"])):
-        raise DataError(path, f"its settings record is not {{size, procedural_views, scenes}}: "
+        raise DataError(path, f"its settings record is not {{{', '.join(DATASET_RECORD)}}}: "
                               f"{json.dumps(record)[:120]}; delete it to rebuild it")
     if set(arrays) != set(DATASET_ARRAYS):
         raise DataError(path, f"holds arrays {sorted(arrays)}, expected "
@@ -174,7 +183,8 @@ def stored_dataset(cfg, out: Path, *, resume: bool = False) -> edit_data.EditDat
 
 def build_dataset(cfg, out: Path, progress=None) -> edit_data.EditDataset:
     """This config's dataset, built and written to OUT/dataset.npz (atomically)."""
-    data = edit_data.build_dataset(cfg.size, cfg.procedural_views, tuple(cfg.scenes), progress)
+    data = edit_data.build_dataset(cfg.size, cfg.procedural_views, tuple(cfg.scenes), progress,
+                                   cfg.off_orbit_views)
     with atomic_path(out / "dataset.npz") as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, meta=np.asarray(json.dumps(_dataset_record(cfg))), **data.arrays())
@@ -375,8 +385,7 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
         vocab=vocab, merges=merges, bos=tiny_ip2p.BOS, eos=tiny_ip2p.EOS,
         max_length=tiny_ip2p.MAX_LENGTH, scheduler_config=tiny_ip2p.SCHEDULER_CONFIG,
         instructions=[i.describe() for i in data.instructions],
-        dataset={"size": cfg.size, "procedural_views": cfg.procedural_views,
-                 "scenes": list(cfg.scenes), "holdout_every": edit_data.HOLDOUT_EVERY})
+        dataset={**_dataset_record(cfg), "holdout_every": edit_data.HOLDOUT_EVERY})
     atomic_write_text(out / "training.json", json.dumps(summary, indent=2) + "\n")
     return summary
 

@@ -3,8 +3,9 @@
 Views come from the built-in scenes: the Cycles renders of ``person`` (its 72 training and 8
 test cameras, RGBA, downscaled) and the procedural scenes, ray-cast on their rigs' spirals
 (every ``HOLDOUT_EVERY``-th camera held out, as :func:`jaxedit.scenes.split_views` spaces
-them). Held-out cameras are never trained on; the quality benchmark edits them, and
-:func:`novel_dataset` the same scenes from cameras off the training orbits
+them) and, optionally, on a nearer sphere (:func:`off_orbit_views`, all trained on).
+Held-out cameras are never trained on; the quality benchmark edits them, and
+:func:`novel_dataset` the same scenes from cameras off every training sphere and band
 (:func:`nearest_training_psnr` says how far each is from its nearest training frame).
 
 Every instruction (:data:`INSTRUCTIONS`) has one or several *outcomes*, each a deterministic
@@ -26,12 +27,13 @@ make the ball bigger          geometry     1 (ball, tabletop): the sphere scaled
 
 Image-space outcomes act inside the object's alpha (the white backdrop stays): a function of
 each pixel's colour only, so they are consistent across views. The divergent instructions'
-outcomes each change one luma band of the object (the scene's terciles: shadows, mid-tones,
-highlights), so any two outcomes differ in two bands where each differs from the original in
-one: pairwise farther apart than from the original, and about equally far from it (a global
-recolouring would not do: to a perceptual distance, red and blue versions of a view are closer
-to each other than to the original). The local and geometry edits
-change the scene and render it again, so they are exactly 3D consistent, shadows included.
+outcomes each change one luma band of the object (the terciles over its training orbit:
+shadows, mid-tones, highlights, the same from every camera), so any two outcomes differ in
+two bands where each differs from the original in one: pairwise farther apart than from the
+original, and about equally far from it (a global recolouring would not do: to a perceptual
+distance, red and blue versions of a view are closer to each other than to the original).
+The local and geometry edits change the scene and render it again, so they are exactly 3D
+consistent, shadows included.
 
 :func:`build_dataset` is pure given its arguments (the ray caster is deterministic); the
 arrays it returns are uint8 images, a few tens of MB at 64 px.
@@ -214,11 +216,14 @@ def _edited_scene(scene, prompt: str):
 @dataclasses.dataclass(frozen=True)
 class SceneViews:
     """One scene's views: rgba float32 [N, H, W, 4] (straight colour, coverage), held_out bool
-    [N], and the rig cameras (None for a rendered dataset)."""
+    [N], the scene's luma bands (:func:`luma_bands` of its training orbit, whatever cameras
+    these are: an outcome recolours a surface by its colour, so the same surface falls in the
+    same band from every camera) and the rig cameras (None for a rendered dataset)."""
 
     name: str
     rgba: np.ndarray
     held_out: np.ndarray
+    bands: tuple[float, float]
     cameras: object = None
 
 
@@ -236,7 +241,7 @@ def person_views(size: int) -> SceneViews:
     test = set(meta.get("test_filenames", []))
     files = [f["file_path"] for f in meta["frames"]]
     rgba = np.stack([_rgba_downscaled(root / f, 256 // size) for f in files])
-    return SceneViews("person", rgba, np.array([f in test for f in files]))
+    return SceneViews("person", rgba, np.array([f in test for f in files]), luma_bands(rgba))
 
 
 def procedural_views(name: str, size: int, views: int, scene=None) -> SceneViews:
@@ -247,7 +252,7 @@ def procedural_views(name: str, size: int, views: int, scene=None) -> SceneViews
     cams = rig_cameras(scene.rig, views, width=size)
     rgba = render_scene(scene, cams, alpha=True)
     held = (np.arange(views) % HOLDOUT_EVERY) == HOLDOUT_EVERY // 2
-    return SceneViews(name, rgba, held, cams)
+    return SceneViews(name, rgba, held, luma_bands(rgba), cams)
 
 
 #: Novel cameras of a procedural scene (evaluation only, never trained on): off the training
@@ -256,11 +261,26 @@ def procedural_views(name: str, size: int, views: int, scene=None) -> SceneViews
 NOVEL_RADIUS = 0.85
 NOVEL_ELEVATION_DEG = (8.0, 22.0)
 
+#: The nearer training cameras (``off_orbit_views``): on a sphere OFF_ORBIT_RADIUS times the
+#: rig's, over the rig's own elevation band, so the object is seen larger than on the orbit;
+#: the novel cameras lie between the two spheres and above both bands, so no training camera
+#: is near them either.
+OFF_ORBIT_RADIUS = 0.7
 
-def novel_views(name: str, size: int, views: int, scene=None) -> SceneViews:
+
+def _rig_views(name: str, size: int, rig, views: int, scene, bands, held_out) -> SceneViews:
+    from ...scenes import render_scene, rig_cameras
+
+    cams = rig_cameras(rig, views, width=size)
+    return SceneViews(name, render_scene(scene, cams, alpha=True), held_out, bands, cams)
+
+
+def novel_views(name: str, size: int, views: int, scene=None,
+                orbit_views: int = 100) -> SceneViews:
     """``views`` cameras of a procedural scene off its training orbit (:data:`NOVEL_RADIUS`,
-    :data:`NOVEL_ELEVATION_DEG`), every one held out."""
-    from ...scenes import get_scene, render_scene, rig_cameras
+    :data:`NOVEL_ELEVATION_DEG`), every one held out; its bands are those of the scene's
+    ``orbit_views`` training cameras."""
+    from ...scenes import get_scene
 
     scene = get_scene(name) if scene is None else scene
     rig = scene.rig
@@ -268,8 +288,15 @@ def novel_views(name: str, size: int, views: int, scene=None) -> SceneViews:
     novel = dataclasses.replace(rig, radius=rig.radius * NOVEL_RADIUS,
                                 elevation_deg=(min(top + NOVEL_ELEVATION_DEG[0], 80.0),
                                                min(top + NOVEL_ELEVATION_DEG[1], 85.0)))
-    cams = rig_cameras(novel, views, width=size)
-    return SceneViews(name, render_scene(scene, cams, alpha=True), np.ones(views, bool), cams)
+    bands = procedural_views(name, size, orbit_views, scene).bands
+    return _rig_views(name, size, novel, views, scene, bands, np.ones(views, bool))
+
+
+def off_orbit_views(name: str, size: int, views: int, scene, bands) -> SceneViews:
+    """``views`` training cameras of a procedural scene nearer than its orbit
+    (:data:`OFF_ORBIT_RADIUS`), none held out, with the orbit's ``bands``."""
+    rig = dataclasses.replace(scene.rig, radius=scene.rig.radius * OFF_ORBIT_RADIUS)
+    return _rig_views(name, size, rig, views, scene, bands, np.zeros(views, bool))
 
 
 def composite(rgba: np.ndarray, background=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -318,7 +345,7 @@ def to_uint8(x: np.ndarray) -> np.ndarray:
 def scene_pairs(views: SceneViews, scene_obj=None):
     """(inputs float32 [N, H, W, 3], [(instruction index, outcome index, targets [N, H, W, 3])])."""
     rgb = composite(views.rgba)
-    bands = luma_bands(views.rgba)
+    bands = views.bands
     pairs = []
     for i, ins in enumerate(INSTRUCTIONS):
         if not ins.applies_to(views.name):
@@ -336,10 +363,14 @@ def scene_pairs(views: SceneViews, scene_obj=None):
 
 
 def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
-                  scenes: tuple[str, ...] = SCENES, progress=None) -> EditDataset:
+                  scenes: tuple[str, ...] = SCENES, progress=None,
+                  off_orbit_views_per_scene: int = 0) -> EditDataset:
     """Render every scene's views and every outcome of every instruction that applies.
 
-    ``progress(name)`` is called after each scene (for a progress bar). Deterministic.
+    A procedural scene has ``procedural_views_per_scene`` cameras on its orbit (every
+    HOLDOUT_EVERY-th held out) and, after them, ``off_orbit_views_per_scene`` nearer
+    training cameras (:func:`off_orbit_views`). ``progress(name)`` is called after each scene
+    (for a progress bar). Deterministic.
     """
     from ...scenes import get_scene, list_scenes
 
@@ -350,22 +381,27 @@ def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
 
     def views_of(name):
         if name == "person":
-            return person_views(size), None
+            return [person_views(size)], None
         obj = get_scene(name)
-        return procedural_views(name, size, procedural_views_per_scene, obj), obj
+        orbit = procedural_views(name, size, procedural_views_per_scene, obj)
+        if not off_orbit_views_per_scene:
+            return [orbit], obj
+        return [orbit, off_orbit_views(name, size, off_orbit_views_per_scene, obj,
+                                       orbit.bands)], obj
 
     return _assemble(scenes, views_of, progress)
 
 
 def novel_dataset(size: int = 64, views_per_scene: int = 10,
-                  scenes: tuple[str, ...] = SCENES) -> EditDataset:
+                  scenes: tuple[str, ...] = SCENES, orbit_views: int = 100) -> EditDataset:
     """The procedural scenes of ``scenes`` seen from :func:`novel_views` cameras, with every
-    outcome, all held out (the person's renders have no camera off their arc to render)."""
+    outcome (in the bands of the scene's ``orbit_views`` training cameras), all held out (the
+    person's renders have no camera off their arc to render)."""
     from ...scenes import get_scene
 
     def views_of(name):
         obj = get_scene(name)
-        return novel_views(name, size, views_per_scene, obj), obj
+        return [novel_views(name, size, views_per_scene, obj, orbit_views)], obj
 
     return _assemble(tuple(n for n in scenes if n != "person"), views_of)
 
@@ -386,22 +422,24 @@ def nearest_training_psnr(data: EditDataset, views, training: EditDataset) -> li
 
 
 def _assemble(scenes: tuple[str, ...], views_of, progress=None) -> EditDataset:
-    """The dataset of ``scenes``, each scene's (SceneViews, scene object) from ``views_of``."""
+    """The dataset of ``scenes``, each scene's ([SceneViews, ...], scene object) from
+    ``views_of``."""
     inputs, scene_ids, held, targets, t_view, t_ins, t_out = [], [], [], [], [], [], []
     offset = 0
     for s, name in enumerate(scenes):
-        views, obj = views_of(name)
-        rgb, pairs = scene_pairs(views, obj)
-        n = len(rgb)
-        inputs.append(to_uint8(rgb))
-        scene_ids.append(np.full(n, s))
-        held.append(views.held_out)
-        for i, k, images in pairs:
-            targets.append(to_uint8(images))
-            t_view.append(offset + np.arange(n))
-            t_ins.append(np.full(n, i))
-            t_out.append(np.full(n, k))
-        offset += n
+        camera_sets, obj = views_of(name)
+        for views in camera_sets:
+            rgb, pairs = scene_pairs(views, obj)
+            n = len(rgb)
+            inputs.append(to_uint8(rgb))
+            scene_ids.append(np.full(n, s))
+            held.append(views.held_out)
+            for i, k, images in pairs:
+                targets.append(to_uint8(images))
+                t_view.append(offset + np.arange(n))
+                t_ins.append(np.full(n, i))
+                t_out.append(np.full(n, k))
+            offset += n
         if progress is not None:
             progress(name)
     cat = np.concatenate

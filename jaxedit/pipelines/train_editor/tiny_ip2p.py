@@ -64,6 +64,9 @@ class EditorTrainConfig:
     Attributes:
       size: image size of the edit dataset and the model (px, a multiple of 4).
       procedural_views: spiral cameras per procedural scene (every 10th held out).
+      off_orbit_views: more training cameras per procedural scene, nearer than its orbit
+        (:func:`edit_data.off_orbit_views`): the object larger in the frame than the orbit
+        shows it, as a capture's close-ups and the quality benchmark's novel cameras do.
       scenes: the built-in scenes the dataset is made of.
       vae_steps: training steps of the autoencoder.
       vae_batch: crops per autoencoder step.
@@ -107,6 +110,7 @@ class EditorTrainConfig:
 
     size: int = 64
     procedural_views: int = 100
+    off_orbit_views: int = 0
     scenes: tuple[str, ...] = edit_data.SCENES
     vae_steps: int = 2500
     vae_batch: int = 16
@@ -140,6 +144,11 @@ class EditorTrainConfig:
         """This config, or a DataError naming the flag of the first setting that is out of
         range, inconsistent, or whose working set exceeds the free memory (checked here,
         before any work: :func:`train_memory`, :func:`jaxedit.memory.require_memory`)."""
+        if (isinstance(self.off_orbit_views, bool)
+                or not isinstance(self.off_orbit_views, (int, np.integer))
+                or not 0 <= self.off_orbit_views <= MAXIMA["procedural_views"]):
+            raise DataError("--off-orbit-views", f"must be a whole number in 0 .. "
+                            f"{MAXIMA['procedural_views']}, got {self.off_orbit_views!r}")
         for name in ("size", "procedural_views", "vae_steps", "vae_batch", "vae_crop", "steps",
                      "batch", "text_width", "text_layers"):
             value, most = getattr(self, name), MAXIMA[name]
@@ -209,10 +218,11 @@ def train_memory(cfg: EditorTrainConfig) -> float:
     renders while it is built, plus one step's activations of the VAE and of the UNet
     (a few dozen feature maps of the first level kept for the backward pass). A low estimate:
     it refuses only what surely cannot fit."""
-    views = cfg.procedural_views * len(cfg.scenes)
+    views = (cfg.procedural_views + cfg.off_orbit_views) * len(cfg.scenes)
     pixels = float(cfg.size) ** 2
     dataset = 3 * views * (1 + TARGETS_PER_VIEW) * pixels * 3
-    render = cfg.procedural_views * (1 + TARGETS_PER_VIEW) * pixels * 4 * 4
+    render = (max(cfg.procedural_views, cfg.off_orbit_views) * (1 + TARGETS_PER_VIEW)
+              * pixels * 4 * 4)
     kept = 32  # feature maps of the first level a step keeps for its gradient
     vae_step = cfg.vae_batch * float(cfg.vae_crop) ** 2 * 16 * 4 * kept
     unet_step = 3 * cfg.batch * pixels / 16 * cfg.width[0] * 4 * kept
