@@ -334,7 +334,7 @@ def test_a_scene_s_bands_are_its_orbit_s_from_every_camera():
 
 def test_nearer_training_cameras_are_trained_on_and_stay_off_the_novel_ones():
     """``off_orbit_views``: after a scene's orbit, that many nearer cameras (the object larger
-    in the frame), none held out, every outcome made for them; the person has none; the
+    in the frame, seen from up to above the orbit's band), none held out, every outcome made for them; the person has none; the
     novel cameras stay farther from every training frame than the orbit's held-out ones
     are, and ``dataset.npz`` records the count."""
     from jaxedit.pipelines.train_editor import _dataset_record

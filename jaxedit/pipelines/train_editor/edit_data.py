@@ -262,10 +262,12 @@ NOVEL_RADIUS = 0.85
 NOVEL_ELEVATION_DEG = (8.0, 22.0)
 
 #: The nearer training cameras (``off_orbit_views``): on a sphere OFF_ORBIT_RADIUS times the
-#: rig's, over the rig's own elevation band, so the object is seen larger than on the orbit;
-#: the novel cameras lie between the two spheres and above both bands, so no training camera
-#: is near them either.
+#: rig's, from the bottom of the rig's elevation band up to OFF_ORBIT_TOP_DEG, so the object
+#: is seen larger than on the orbit and from above it, as close-ups and top views of a capture
+#: see it. The novel cameras lie between the two spheres: no training camera is near them
+#: (:func:`nearest_training_psnr`), but the nearer sphere's band spans their elevations.
 OFF_ORBIT_RADIUS = 0.7
+OFF_ORBIT_TOP_DEG = 85.0
 
 
 def _rig_views(name: str, size: int, rig, views: int, scene, bands, held_out) -> SceneViews:
@@ -293,9 +295,11 @@ def novel_views(name: str, size: int, views: int, scene=None,
 
 
 def off_orbit_views(name: str, size: int, views: int, scene, bands) -> SceneViews:
-    """``views`` training cameras of a procedural scene nearer than its orbit
-    (:data:`OFF_ORBIT_RADIUS`), none held out, with the orbit's ``bands``."""
-    rig = dataclasses.replace(scene.rig, radius=scene.rig.radius * OFF_ORBIT_RADIUS)
+    """``views`` training cameras of a procedural scene nearer than its orbit and up to above
+    it (:data:`OFF_ORBIT_RADIUS`, :data:`OFF_ORBIT_TOP_DEG`), none held out, with the orbit's
+    ``bands``."""
+    rig = dataclasses.replace(scene.rig, radius=scene.rig.radius * OFF_ORBIT_RADIUS,
+                              elevation_deg=(scene.rig.elevation_deg[0], OFF_ORBIT_TOP_DEG))
     return _rig_views(name, size, rig, views, scene, bands, np.zeros(views, bool))
 
 

@@ -64,9 +64,10 @@ class EditorTrainConfig:
     Attributes:
       size: image size of the edit dataset and the model (px, a multiple of 4).
       procedural_views: spiral cameras per procedural scene (every 10th held out).
-      off_orbit_views: more training cameras per procedural scene, nearer than its orbit
-        (:func:`edit_data.off_orbit_views`): the object larger in the frame than the orbit
-        shows it, as a capture's close-ups and the quality benchmark's novel cameras do.
+      off_orbit_views: more training cameras per procedural scene, nearer than its orbit and
+        up to above it (:func:`edit_data.off_orbit_views`): the object larger in the frame
+        and seen from higher than the orbit shows it, as a capture's close-ups and top views
+        do.
       scenes: the built-in scenes the dataset is made of.
       vae_steps: training steps of the autoencoder.
       vae_batch: crops per autoencoder step.
