@@ -24,11 +24,12 @@ def _config_flags():
 
     from .flags import Flag, FlagSet
 
-    return FlagSet(EditorTrainConfig, tuple(Flag(name) for name in (
-        "size", "procedural_views", "off_orbit_views", "scenes", "vae_steps", "vae_batch",
-        "vae_crop", "vae_lr", "steps", "batch", "lr", "ema", "identity_share", "drop",
-        "degrade", "text_width", "text_layers", "init")) + (Flag("empty_is_identity", off="--empty-prompt-edits"),
-                                   Flag("outcome_from_noise"), Flag("balance_outcomes")))
+    names = ("size", "procedural_views", "off_orbit_views", "scenes", "vae_steps", "vae_batch",
+             "vae_crop", "vae_lr", "steps", "batch", "lr", "ema", "identity_share", "drop",
+             "degrade", "text_width", "text_layers", "init")
+    return FlagSet(EditorTrainConfig, tuple(Flag(name) for name in names)
+                   + (Flag("empty_is_identity", off="--empty-prompt-edits"),
+                      Flag("outcome_from_noise"), Flag("balance_outcomes")))
 
 
 #: The command's flags, generated from

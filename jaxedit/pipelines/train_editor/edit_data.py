@@ -5,7 +5,7 @@ test cameras, RGBA, downscaled) and the procedural scenes, ray-cast on their rig
 (every ``HOLDOUT_EVERY``-th camera held out, as :func:`jaxedit.scenes.split_views` spaces
 them) and, optionally, on a nearer sphere (:func:`off_orbit_views`, all trained on).
 Held-out cameras are never trained on; the quality benchmark edits them, and
-:func:`novel_dataset` the same scenes from cameras off every training sphere and band
+:func:`novel_dataset` the same scenes from cameras on none of the training spheres
 (:func:`nearest_training_psnr` says how far each is from its nearest training frame).
 
 Every instruction (:data:`INSTRUCTIONS`) has one or several *outcomes*, each a deterministic
