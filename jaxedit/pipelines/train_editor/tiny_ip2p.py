@@ -145,18 +145,14 @@ class EditorTrainConfig:
         """This config, or a DataError naming the flag of the first setting that is out of
         range, inconsistent, or whose working set exceeds the free memory (checked here,
         before any work: :func:`train_memory`, :func:`jaxedit.memory.require_memory`)."""
-        if (isinstance(self.off_orbit_views, bool)
-                or not isinstance(self.off_orbit_views, (int, np.integer))
-                or not 0 <= self.off_orbit_views <= MAXIMA["procedural_views"]):
-            raise DataError("--off-orbit-views", f"must be a whole number in 0 .. "
-                            f"{MAXIMA['procedural_views']}, got {self.off_orbit_views!r}")
-        for name in ("size", "procedural_views", "vae_steps", "vae_batch", "vae_crop", "steps",
-                     "batch", "text_width", "text_layers"):
+        for name in ("size", "procedural_views", "off_orbit_views", "vae_steps", "vae_batch",
+                     "vae_crop", "steps", "batch", "text_width", "text_layers"):
             value, most = getattr(self, name), MAXIMA[name]
+            least = 0 if name == "off_orbit_views" else 1  # the orbit alone is the default
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                 raise DataError(_flag(name), f"must be a whole number, got {value!r}")
-            if not 1 <= value <= most:
-                raise DataError(_flag(name), f"must be in 1 .. {most}, got {value}")
+            if not least <= value <= most:
+                raise DataError(_flag(name), f"must be in {least} .. {most}, got {value}")
         if self.size % 16 or self.vae_crop % 4 or self.vae_crop > self.size:
             # The UNet halves the latent (size / 4) twice: size must be a multiple of 16.
             raise DataError("--size", f"size must be a multiple of 16 and the crop a multiple "
@@ -200,7 +196,8 @@ class EditorTrainConfig:
 #: The largest value of each count of :class:`EditorTrainConfig` (a hundred times or more the
 #: shipped run's, which takes an hour on a 2-core CPU): beyond it a typo, not a plan, which
 #: would otherwise run for days or fail deep inside the work.
-MAXIMA = {"size": 1024, "procedural_views": 10_000, "vae_steps": 250_000, "vae_batch": 4096,
+MAXIMA = {"size": 1024, "procedural_views": 10_000, "off_orbit_views": 10_000,
+          "vae_steps": 250_000, "vae_batch": 4096,
           "vae_crop": 1024, "steps": 200_000, "batch": 4096, "text_width": 4096,
           "text_layers": 48}
 
