@@ -122,7 +122,8 @@ def main(argv=None):
     steps = 2 if args.smoke else args.steps
     t0 = time.perf_counter()
     data = build_dataset(size, int(settings["procedural_views"]), tuple(settings["scenes"]),
-                         off_orbit_views_per_scene=int(settings.get("off_orbit_views", 0)))
+                         off_orbit_views_per_scene=int(settings.get("off_orbit_views", 0)),
+                         off_orbit_edits=bool(settings.get("off_orbit_edits", True)))
     held = np.flatnonzero(data.held_out)
     if args.smoke:  # one held-out view of each scene
         held = np.array([held[data.scene[held] == s][0] for s in range(len(data.scenes))])

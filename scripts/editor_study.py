@@ -151,7 +151,8 @@ def main(argv=None) -> None:
     t0 = time.perf_counter()
     data = None if args.novel else build_dataset(
         int(settings["size"]), int(settings["procedural_views"]), tuple(settings["scenes"]),
-        off_orbit_views_per_scene=int(settings.get("off_orbit_views", 0)))
+        off_orbit_views_per_scene=int(settings.get("off_orbit_views", 0)),
+        off_orbit_edits=bool(settings.get("off_orbit_edits", True)))
     if args.novel:
         data = novel_dataset(int(settings["size"]), args.per_scene, tuple(settings["scenes"]),
                              int(settings["procedural_views"]))

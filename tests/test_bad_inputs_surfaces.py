@@ -180,7 +180,8 @@ def _smoke_record() -> dict:
 
 @pytest.mark.parametrize("damage, needle", [
     ("garbage", "cannot read"), ("no-meta", "settings record"),
-    ("other-settings", "other settings"), ("missing-array", "holds arrays"),
+    ("other-settings", "other settings"), ("not-a-bool", "settings record"),
+    ("missing-array", "holds arrays"),
     ("wrong-dtype", "inputs"), ("wrong-size", "inputs are"), ("bad-index", "target_view")])
 def test_train_editor_resume_of_a_damaged_dataset(tmp_path, capfd, damage, needle):
     run = tmp_path / "run"
@@ -193,6 +194,8 @@ def test_train_editor_resume_of_a_damaged_dataset(tmp_path, capfd, damage, needl
         np.savez(path, inputs=np.zeros(2))
     elif damage == "other-settings":
         _dataset_npz(path, dict(record, procedural_views=11))
+    elif damage == "not-a-bool":
+        _dataset_npz(path, dict(record, off_orbit_edits="no"))
     elif damage == "missing-array":
         _dataset_npz(path, record, targets=_DROP)
     elif damage == "wrong-dtype":

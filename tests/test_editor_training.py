@@ -334,9 +334,9 @@ def test_a_scene_s_bands_are_its_orbit_s_from_every_camera():
 
 def test_nearer_training_cameras_are_trained_on_and_stay_off_the_novel_ones():
     """``off_orbit_views``: after a scene's orbit, that many nearer cameras (the object larger
-    in the frame, seen from up to above the orbit's band), none held out, every outcome made for them; the person has none; the
-    novel cameras stay farther from every training frame than the orbit's held-out ones
-    are, and ``dataset.npz`` records the count."""
+    in the frame, seen from up to above the orbit's band), none held out, every outcome made
+    for them; the person has none; the novel cameras stay farther from every training frame
+    than the orbit's held-out ones are, and ``dataset.npz`` records the count."""
     from jaxedit.pipelines.train_editor import _dataset_record
 
     plain = edit_data.build_dataset(32, 20, ("person", "ball"))
@@ -359,6 +359,30 @@ def test_nearer_training_cameras_are_trained_on_and_stay_off_the_novel_ones():
     assert _dataset_record(cfg)["off_orbit_views"] == 5
     with pytest.raises(DataError, match="--off-orbit-views"):
         dataclasses.replace(cfg, off_orbit_views=-1).check()
+
+
+def test_identity_only_nearer_cameras_are_inputs_without_edit_targets():
+    """``--off-orbit-identity-only``: the nearer cameras are the same training inputs, but no
+    edit target points at them (they are drawn as identity examples only), the orbit's
+    targets are unchanged, and the dataset record says so; asked for without nearer
+    cameras, it is refused naming the flag."""
+    from jaxedit.pipelines.train_editor import _dataset_record
+
+    edited = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4)
+    kept = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4,
+                                   off_orbit_edits=False)
+    np.testing.assert_array_equal(kept.inputs, edited.inputs)
+    np.testing.assert_array_equal(kept.held_out, edited.held_out)
+    assert not kept.held_out[20:].any()
+    assert kept.target_view.max() < 20 <= edited.target_view.max()
+    orbit = edited.target_view < 20
+    np.testing.assert_array_equal(kept.targets, edited.targets[orbit])
+    np.testing.assert_array_equal(kept.target_view, edited.target_view[orbit])
+    cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), off_orbit_views=4,
+                              off_orbit_edits=False).check()
+    assert _dataset_record(cfg)["off_orbit_edits"] is False
+    with pytest.raises(DataError, match="--off-orbit-identity-only.*--off-orbit-views"):
+        dataclasses.replace(cfg, off_orbit_views=0).check()
 
 
 def test_train_editor_refuses_an_unknown_scene_before_any_work(tmp_path, capfd):

@@ -55,13 +55,13 @@ def _config_record(cfg: tiny_ip2p.EditorTrainConfig) -> dict:
 
 #: The settings the autoencoder's stage depends on: a run that changes only the UNet's
 #: settings resumes the finished autoencoder instead of training it again.
-VAE_SETTINGS = ("size", "procedural_views", "off_orbit_views", "scenes", "vae_steps",
-                "vae_batch", "vae_crop", "vae_lr", "seed")
+VAE_SETTINGS = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits", "scenes",
+                "vae_steps", "vae_batch", "vae_crop", "vae_lr", "seed")
 
 
 #: Settings added to the config after runs were checkpointed, with the value such a run had.
 ADDED_SETTINGS = {"outcome_from_noise": False, "balance_outcomes": False,
-                  "off_orbit_views": 0}
+                  "off_orbit_views": 0, "off_orbit_edits": True}
 
 
 def _stage_record(cfg, kind: str) -> dict:
@@ -89,12 +89,13 @@ def check_run_folder(out: Path) -> None:
 
 def _dataset_record(cfg) -> dict:
     return {"size": cfg.size, "procedural_views": cfg.procedural_views,
-            "off_orbit_views": cfg.off_orbit_views, "scenes": list(cfg.scenes)}
+            "off_orbit_views": cfg.off_orbit_views, "off_orbit_edits": cfg.off_orbit_edits,
+            "scenes": list(cfg.scenes)}
 
 
-#: The dataset record's keys (a record written before ``off_orbit_views`` existed lacks it,
-#: and reads as 0).
-DATASET_RECORD = ("size", "procedural_views", "off_orbit_views", "scenes")
+#: The dataset record's keys, and the value a record written before a key existed reads as.
+DATASET_RECORD = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits", "scenes")
+DATASET_RECORD_ADDED = {"off_orbit_views": 0, "off_orbit_edits": True}
 
 
 #: dataset.npz's arrays: (dtype kind, number of dimensions); images are [N, size, size, 3].
@@ -118,11 +119,12 @@ def read_dataset(path: Path) -> tuple[dict, edit_data.EditDataset]:
         raise DataError(path, "not a train-editor dataset (no readable settings record); "
                               "delete it to rebuild it") from None
     if isinstance(record, dict):
-        record = {"off_orbit_views": 0, **record}
+        record = {**DATASET_RECORD_ADDED, **record}
     counts = ("size", "procedural_views", "off_orbit_views")
     if (not isinstance(record, dict) or set(record) != set(DATASET_RECORD)
             or not all(isinstance(record[k], int) and not isinstance(record[k], bool)
                        for k in counts)
+            or not isinstance(record["off_orbit_edits"], bool)
             or not isinstance(record["scenes"], list)
             or not all(isinstance(x, str) for x in record["scenes"])):
         raise DataError(path, f"its settings record is not {{{', '.join(DATASET_RECORD)}}}: "
@@ -184,7 +186,7 @@ def stored_dataset(cfg, out: Path, *, resume: bool = False) -> edit_data.EditDat
 def build_dataset(cfg, out: Path, progress=None) -> edit_data.EditDataset:
     """This config's dataset, built and written to OUT/dataset.npz (atomically)."""
     data = edit_data.build_dataset(cfg.size, cfg.procedural_views, tuple(cfg.scenes), progress,
-                                   cfg.off_orbit_views)
+                                   cfg.off_orbit_views, cfg.off_orbit_edits)
     with atomic_path(out / "dataset.npz") as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, meta=np.asarray(json.dumps(_dataset_record(cfg))), **data.arrays())

@@ -218,13 +218,16 @@ class SceneViews:
     """One scene's views: rgba float32 [N, H, W, 4] (straight colour, coverage), held_out bool
     [N], the scene's luma bands (:func:`luma_bands` of its training orbit, whatever cameras
     these are: an outcome recolours a surface by its colour, so the same surface falls in the
-    same band from every camera) and the rig cameras (None for a rendered dataset)."""
+    same band from every camera), the rig cameras (None for a rendered dataset) and whether
+    the instructions' edit targets are made for these views (if not, the views are inputs
+    only: identity examples)."""
 
     name: str
     rgba: np.ndarray
     held_out: np.ndarray
     bands: tuple[float, float]
     cameras: object = None
+    edited: bool = True
 
 
 def person_views(size: int) -> SceneViews:
@@ -294,13 +297,15 @@ def novel_views(name: str, size: int, views: int, scene=None,
     return _rig_views(name, size, novel, views, scene, bands, np.ones(views, bool))
 
 
-def off_orbit_views(name: str, size: int, views: int, scene, bands) -> SceneViews:
+def off_orbit_views(name: str, size: int, views: int, scene, bands,
+                    edited: bool = True) -> SceneViews:
     """``views`` training cameras of a procedural scene nearer than its orbit and up to above
     it (:data:`OFF_ORBIT_RADIUS`, :data:`OFF_ORBIT_TOP_DEG`), none held out, with the orbit's
-    ``bands``."""
+    ``bands``; ``edited``: whether their edit targets are made (:class:`SceneViews`)."""
     rig = dataclasses.replace(scene.rig, radius=scene.rig.radius * OFF_ORBIT_RADIUS,
                               elevation_deg=(scene.rig.elevation_deg[0], OFF_ORBIT_TOP_DEG))
-    return _rig_views(name, size, rig, views, scene, bands, np.zeros(views, bool))
+    return dataclasses.replace(_rig_views(name, size, rig, views, scene, bands,
+                                          np.zeros(views, bool)), edited=edited)
 
 
 def composite(rgba: np.ndarray, background=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -347,10 +352,13 @@ def to_uint8(x: np.ndarray) -> np.ndarray:
 
 
 def scene_pairs(views: SceneViews, scene_obj=None):
-    """(inputs float32 [N, H, W, 3], [(instruction index, outcome index, targets [N, H, W, 3])])."""
+    """(inputs float32 [N, H, W, 3], [(instruction index, outcome index, targets [N, H, W, 3])]);
+    no targets for views that are not ``edited``."""
     rgb = composite(views.rgba)
     bands = views.bands
     pairs = []
+    if not views.edited:
+        return rgb, pairs
     for i, ins in enumerate(INSTRUCTIONS):
         if not ins.applies_to(views.name):
             continue
@@ -368,13 +376,15 @@ def scene_pairs(views: SceneViews, scene_obj=None):
 
 def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
                   scenes: tuple[str, ...] = SCENES, progress=None,
-                  off_orbit_views_per_scene: int = 0) -> EditDataset:
+                  off_orbit_views_per_scene: int = 0,
+                  off_orbit_edits: bool = True) -> EditDataset:
     """Render every scene's views and every outcome of every instruction that applies.
 
     A procedural scene has ``procedural_views_per_scene`` cameras on its orbit (every
     HOLDOUT_EVERY-th held out) and, after them, ``off_orbit_views_per_scene`` nearer
-    training cameras (:func:`off_orbit_views`). ``progress(name)`` is called after each scene
-    (for a progress bar). Deterministic.
+    training cameras (:func:`off_orbit_views`), with the instructions' edit targets if
+    ``off_orbit_edits`` and as identity examples only if not. ``progress(name)`` is called
+    after each scene (for a progress bar). Deterministic.
     """
     from ...scenes import get_scene, list_scenes
 
@@ -391,7 +401,7 @@ def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
         if not off_orbit_views_per_scene:
             return [orbit], obj
         return [orbit, off_orbit_views(name, size, off_orbit_views_per_scene, obj,
-                                       orbit.bands)], obj
+                                       orbit.bands, off_orbit_edits)], obj
 
     return _assemble(scenes, views_of, progress)
 

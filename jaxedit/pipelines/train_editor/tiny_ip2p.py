@@ -68,6 +68,10 @@ class EditorTrainConfig:
         up to above it (:func:`edit_data.off_orbit_views`): the object larger in the frame
         and seen from higher than the orbit shows it, as a capture's close-ups and top views
         do.
+      off_orbit_edits: whether those cameras also get the instructions' edit targets; off
+        (``--off-orbit-identity-only``), they give identity examples only (the empty prompt
+        keeps a view seen from there): what they teach is to keep such views, and the
+        edits' bands are learnt from the orbit's views alone.
       scenes: the built-in scenes the dataset is made of.
       vae_steps: training steps of the autoencoder.
       vae_batch: crops per autoencoder step.
@@ -112,6 +116,7 @@ class EditorTrainConfig:
     size: int = 64
     procedural_views: int = 100
     off_orbit_views: int = 0
+    off_orbit_edits: bool = True
     scenes: tuple[str, ...] = edit_data.SCENES
     vae_steps: int = 2500
     vae_batch: int = 16
@@ -153,6 +158,9 @@ class EditorTrainConfig:
                 raise DataError(_flag(name), f"must be a whole number, got {value!r}")
             if not least <= value <= most:
                 raise DataError(_flag(name), f"must be in {least} .. {most}, got {value}")
+        if not self.off_orbit_edits and not self.off_orbit_views:
+            raise DataError("--off-orbit-identity-only", "needs nearer cameras to give identity "
+                            "examples: give --off-orbit-views N with N > 0")
         if self.size % 16 or self.vae_crop % 4 or self.vae_crop > self.size:
             # The UNet halves the latent (size / 4) twice: size must be a multiple of 16.
             raise DataError("--size", f"size must be a multiple of 16 and the crop a multiple "
