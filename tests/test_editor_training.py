@@ -450,3 +450,25 @@ def test_diffusers_pipeline_gives_the_jax_editors_edit():
                   image_guidance_scale=image_scale, latents=torch.from_numpy(x_t.transpose(0, 3, 1, 2)),
                   output_type="np").images
     np.testing.assert_allclose(theirs, ours, atol=2e-4)
+
+
+def test_identity_per_scene_averages_each_scene_s_views_alone():
+    """The quality benchmark's per-scene identity: each scene's figure is the mean PSNR over
+    its own views only (identity at each T and the VAE round trip), so the views' counts
+    weight them back to the pooled figure."""
+    from types import SimpleNamespace
+
+    from jaxedit.pipelines.train_editor.quality import _identity_per_scene, psnr
+
+    rng = np.random.default_rng(0)
+    data = SimpleNamespace(scenes=("face", "ball"), scene=np.array([0, 1, 1, 0, 1]))
+    views = [4, 0, 2]  # ball, face, ball
+    inputs = rng.uniform(size=(3, 4, 4, 3)).astype(np.float32)
+    near, far = inputs + 0.01, inputs + rng.normal(0, 0.1, inputs.shape).astype(np.float32)
+    out = _identity_per_scene(data, views, inputs, {0.45: near, 0.98: far}, far)
+    assert set(out) == {"face", "ball"}
+    np.testing.assert_allclose(out["face"]["identity_psnr_db"]["0.98"],
+                               psnr(far[1:2], inputs[1:2])[0], rtol=1e-6)
+    np.testing.assert_allclose(out["ball"]["vae_roundtrip_psnr_db"],
+                               np.mean(psnr(far[[0, 2]], inputs[[0, 2]])), rtol=1e-6)
+    np.testing.assert_allclose(out["ball"]["identity_psnr_db"]["0.45"], 40.0, rtol=1e-4)

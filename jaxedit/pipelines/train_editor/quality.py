@@ -9,7 +9,8 @@ Every figure is measured by editing with an :class:`~jaxedit.editors.base.Editor
 - ``identity_psnr_db``: the edit with E("") (no instruction) against the input view, PSNR,
   at T = 0.45 and 0.85 (the ends of ProEdit's SDEdit range) and at ``t_full``;
   ``vae_roundtrip_psnr_db``: the VAE alone (encode to the posterior mean, decode), the best
-  any edit through the latent space can keep a view (:func:`vae_roundtrip`).
+  any edit through the latent space can keep a view (:func:`vae_roundtrip`);
+  ``identity_per_scene``: both per scene (where a shortfall is).
 - outcomes of each divergent instruction (:mod:`jaxedit.editors.outcome_class`): every
   fresh-noise edit classed as one outcome, unedited, mixed or other against the unedited
   input; ``unedited_fraction`` over all draws, ``single_outcome_fraction``,
@@ -148,6 +149,21 @@ def _views_of(data: EditDataset, i: int, views: Sequence[int]) -> list[int]:
     return [int(v) for v in views if ins.applies_to(data.scenes[data.scene[v]])]
 
 
+def _identity_per_scene(data: EditDataset, views: Sequence[int], inputs: np.ndarray,
+                        identity: dict, roundtrip: np.ndarray) -> dict:
+    """{scene: {"identity_psnr_db": {T: dB}, "vae_roundtrip_psnr_db": dB}} over ``views``
+    (inputs, each identity[T] and roundtrip [V, H, W, 3] in the same order)."""
+    scene = data.scene[np.asarray(views)]
+    out = {}
+    for s in np.unique(scene):
+        m = scene == s
+        out[data.scenes[s]] = {
+            "identity_psnr_db": {f"{t:g}": float(np.mean(psnr(x[m], inputs[m])))
+                                 for t, x in identity.items()},
+            "vae_roundtrip_psnr_db": float(np.mean(psnr(roundtrip[m], inputs[m])))}
+    return out
+
+
 def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
              distance: Callable | None = None, draws: int = 4, t_full: float = 0.98,
              hold_views: int = 16, interp_views: int = 8,
@@ -181,6 +197,9 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
     roundtrip = vae_roundtrip(editor, inputs[vs_all])
     result["vae_roundtrip_psnr_db"] = None if roundtrip is None else \
         float(np.mean(psnr(roundtrip, inputs[vs_all])))
+    if roundtrip is not None:
+        result["identity_per_scene"] = _identity_per_scene(data, vs_all, inputs[vs_all],
+                                                           identity, roundtrip)
     log(f"identity (dB) {result['identity_psnr_db']}, VAE round trip "
         f"{result['vae_roundtrip_psnr_db']}")
     at = {v: j for j, v in enumerate(vs_all)}
