@@ -72,6 +72,23 @@ def _fracs(x) -> str:
     return " / ".join(f(v) for v in x) if isinstance(x, list) else f(x)
 
 
+def _identity_per_scene(d: dict) -> str:
+    """Identity and the VAE round trip per scene, on the held-out orbit views and the novel
+    cameras (records since the field exists)."""
+    sets = [(name, part["identity_per_scene"]) for name, part in
+            (("held-out orbit views", d), ("novel cameras", d.get("novel", {})))
+            if "identity_per_scene" in part]
+    if not sets:
+        return ""
+    ts = list(next(iter(sets[0][1].values()))["identity_psnr_db"])
+    rows = [[where, f"`{scene}`", *(f(x["identity_psnr_db"][t]) for t in ts),
+             f(x["vae_roundtrip_psnr_db"])]
+            for where, per in sets for scene, x in per.items()]
+    return ("\n## Identity per scene\n\nE(\"\") against the input, PSNR (dB), beside the VAE "
+            "round trip of the same views.\n\n"
+            + table(["cameras", "scene", *(f"T = {t}" for t in ts), "VAE round trip"], rows))
+
+
 def editor_quality() -> str:
     rel = "cpu/editor_quality.json"
     d = load(rel)
@@ -107,6 +124,7 @@ def editor_quality() -> str:
     elif "identity_psnr" in d:
         s.append(f"\nIdentity (E(\"\"), T = {d['t_full']}): {f(d['identity_psnr'])} dB against "
                  "the input.\n")
+    s.append(_identity_per_scene(d))
     classed = {n: i for n, i in d["instructions"].items() if "outcome_frequencies" in i}
     if classed:
         s.append("\n## Outcomes, with an unedited class\n\n"
