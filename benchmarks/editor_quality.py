@@ -185,9 +185,9 @@ def main(argv=None):
                                                                  *(argv or __import__("sys")
                                                                    .argv[1:])]),
                                             "draws_per_view": args.draws,
-
         # The bundled folder by its place in the package, not this machine's path.
-        "weights": str(folder) if args.weights else "jaxedit/editors/weights/tiny-ip2p", "smoke": args.smoke, "size": size, "ddim_steps": steps,
+        "weights": str(folder) if args.weights else "jaxedit/editors/weights/tiny-ip2p",
+        "smoke": args.smoke, "size": size, "ddim_steps": steps,
         "distance": getattr(distance, "name", getattr(distance, "__name__", str(distance))),
         "dataset": settings, "held_out_views": int(len(held)),
         "seconds": {"dataset": round(dataset_s, 1), "evaluation": round(seconds, 1)},

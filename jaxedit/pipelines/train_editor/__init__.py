@@ -95,7 +95,7 @@ def _dataset_record(cfg) -> dict:
 
 #: The dataset record's keys, and the value a record written before a key existed reads as.
 DATASET_RECORD = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits", "scenes")
-DATASET_RECORD_ADDED = {"off_orbit_views": 0, "off_orbit_edits": True}
+DATASET_RECORD_ADDED = {k: v for k, v in ADDED_SETTINGS.items() if k in DATASET_RECORD}
 
 
 #: dataset.npz's arrays: (dtype kind, number of dimensions); images are [N, size, size, 3].
