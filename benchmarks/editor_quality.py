@@ -26,6 +26,7 @@ band), with their own nearest-frame PSNRs and goals, and ``editor_quality_novel.
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -105,25 +106,18 @@ def main(argv=None):
     from jaxedit.edit.difficulty import default_distance
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
     from jaxedit.editors import bundled_editor
-    from jaxedit.pipelines.train_editor.edit_data import (HOLDOUT_EVERY, NOVEL_ELEVATION_DEG,
-                                                          NOVEL_RADIUS, build_dataset,
+    from jaxedit.pipelines.train_editor import rebuild_dataset, trained_on
+    from jaxedit.pipelines.train_editor.edit_data import (NOVEL_ELEVATION_DEG, NOVEL_RADIUS,
                                                           nearest_training_psnr, novel_dataset,
                                                           separation)
     from jaxedit.pipelines.train_editor.quality import evaluate
 
     folder = args.weights or bundled_editor()
-    import json
-
-    listing = json.loads((folder / "instructions.json").read_text())
-    settings = listing.get("dataset", {"size": 64, "procedural_views": 100,
-                                       "scenes": ["person", "face", "tabletop", "fence", "ball"],
-                                       "holdout_every": HOLDOUT_EVERY})
+    settings = trained_on(folder)
     size = int(settings["size"])
     steps = 2 if args.smoke else args.steps
     t0 = time.perf_counter()
-    data = build_dataset(size, int(settings["procedural_views"]), tuple(settings["scenes"]),
-                         off_orbit_views_per_scene=int(settings.get("off_orbit_views", 0)),
-                         off_orbit_edits=bool(settings.get("off_orbit_edits", True)))
+    data = rebuild_dataset(settings)
     held = np.flatnonzero(data.held_out)
     if args.smoke:  # one held-out view of each scene
         held = np.array([held[data.scene[held] == s][0] for s in range(len(data.scenes))])
@@ -195,4 +189,10 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from jaxedit.errors import DataError
+
+    try:
+        main()
+    except DataError as e:  # --weights: a folder with no training record, unreadable weights
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)

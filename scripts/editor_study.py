@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -140,19 +141,16 @@ def main(argv=None) -> None:
 
     from jaxedit.editors import bundled_editor
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
-    from jaxedit.pipelines.train_editor.edit_data import (build_dataset, novel_dataset,
-                                                          outcome_targets)
+    from jaxedit.pipelines.train_editor import rebuild_dataset, trained_on
+    from jaxedit.pipelines.train_editor.edit_data import novel_dataset, outcome_targets
     from jaxedit.pipelines.train_editor.quality import (band_figures, holding, nearest,
                                                         outcome_figures, psnr, vae_roundtrip)
     from jaxedit.pipelines.train_editor.quality import run_edits as _run
 
     folder = args.weights or bundled_editor()
-    settings = json.loads((folder / "instructions.json").read_text())["dataset"]
+    settings = trained_on(folder)
     t0 = time.perf_counter()
-    data = None if args.novel else build_dataset(
-        int(settings["size"]), int(settings["procedural_views"]), tuple(settings["scenes"]),
-        off_orbit_views_per_scene=int(settings.get("off_orbit_views", 0)),
-        off_orbit_edits=bool(settings.get("off_orbit_edits", True)))
+    data = None if args.novel else rebuild_dataset(settings)
     if args.novel:
         data = novel_dataset(int(settings["size"]), args.per_scene, tuple(settings["scenes"]),
                              int(settings["procedural_views"]))
@@ -269,4 +267,10 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from jaxedit.errors import DataError
+
+    try:
+        main()
+    except DataError as e:  # --weights: a folder with no training record, unreadable weights
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)

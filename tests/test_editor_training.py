@@ -385,6 +385,33 @@ def test_identity_only_nearer_cameras_are_inputs_without_edit_targets():
         dataclasses.replace(cfg, off_orbit_views=0).check()
 
 
+def test_a_folder_s_training_dataset_is_rebuilt_from_its_record(tmp_path):
+    """The benchmarks rebuild the dataset an editor folder was trained on from the record in
+    its instructions.json: the same arrays as the run built; a record from before a setting
+    existed reads as such a run had it; a folder with no record is refused naming the file."""
+    from jaxedit.pipelines.train_editor import rebuild_dataset, trained_on
+
+    def listing(record):
+        folder = tmp_path / str(len(list(tmp_path.iterdir())))
+        folder.mkdir()
+        (folder / "instructions.json").write_text(json.dumps(
+            {"instructions": [], **({"dataset": record} if record else {})}))
+        return folder
+
+    record = {"size": 32, "procedural_views": 20, "scenes": ["ball"], "off_orbit_views": 4,
+              "off_orbit_edits": False, "holdout_every": edit_data.HOLDOUT_EVERY}
+    rebuilt = rebuild_dataset(trained_on(listing(record)))
+    built = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4,
+                                    off_orbit_edits=False)
+    for name, array in built.arrays().items():
+        np.testing.assert_array_equal(getattr(rebuilt, name), array, err_msg=name)
+    older = {k: v for k, v in record.items() if not k.startswith("off_orbit")}
+    assert trained_on(listing(older)) == {**older, "off_orbit_views": 0,
+                                          "off_orbit_edits": True}
+    with pytest.raises(DataError, match="instructions.json.*lists no training dataset"):
+        trained_on(listing(None))
+
+
 def test_train_editor_refuses_an_unknown_scene_before_any_work(tmp_path, capfd):
     code, err = _main(["train-editor", "--scenes", "person,moon", "--out", tmp_path / "r"],
                       capfd)

@@ -193,6 +193,32 @@ def build_dataset(cfg, out: Path, progress=None) -> edit_data.EditDataset:
     return data
 
 
+def trained_on(folder: str | Path) -> dict:
+    """The dataset settings an exported editor folder was trained with: the ``"dataset"``
+    record of its ``instructions.json`` (:data:`DATASET_RECORD` and ``holdout_every``), a
+    setting added since the folder was written read as such a run had it.
+
+    Raises:
+      DataError naming the file when the folder lists no such record (it was not written by
+      ``train-editor``, so no dataset can be rebuilt for it).
+    """
+    path = Path(folder) / "instructions.json"
+    try:
+        record = json.loads(path.read_text())["dataset"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise DataError(path, "lists no training dataset (a folder written by "
+                              "`python -m experiments train-editor` does)") from None
+    return {**DATASET_RECORD_ADDED, **record}
+
+
+def rebuild_dataset(settings: dict, progress=None) -> edit_data.EditDataset:
+    """The dataset a folder was trained on, from its settings (:func:`trained_on`)."""
+    return edit_data.build_dataset(int(settings["size"]), int(settings["procedural_views"]),
+                                   tuple(settings["scenes"]), progress,
+                                   int(settings["off_orbit_views"]),
+                                   bool(settings["off_orbit_edits"]))
+
+
 def tokenizer_folder(out: Path) -> Path:
     return out / "model" / "tokenizer"
 

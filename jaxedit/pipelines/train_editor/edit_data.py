@@ -273,11 +273,13 @@ OFF_ORBIT_RADIUS = 0.7
 OFF_ORBIT_TOP_DEG = 85.0
 
 
-def _rig_views(name: str, size: int, rig, views: int, scene, bands, held_out) -> SceneViews:
+def _rig_views(name: str, size: int, rig, views: int, scene, bands, held_out,
+               edited: bool = True) -> SceneViews:
     from ...scenes import render_scene, rig_cameras
 
     cams = rig_cameras(rig, views, width=size)
-    return SceneViews(name, render_scene(scene, cams, alpha=True), held_out, bands, cams)
+    return SceneViews(name, render_scene(scene, cams, alpha=True), held_out, bands, cams,
+                      edited)
 
 
 def novel_views(name: str, size: int, views: int, scene=None,
@@ -304,8 +306,7 @@ def off_orbit_views(name: str, size: int, views: int, scene, bands,
     ``bands``; ``edited``: whether their edit targets are made (:class:`SceneViews`)."""
     rig = dataclasses.replace(scene.rig, radius=scene.rig.radius * OFF_ORBIT_RADIUS,
                               elevation_deg=(scene.rig.elevation_deg[0], OFF_ORBIT_TOP_DEG))
-    return dataclasses.replace(_rig_views(name, size, rig, views, scene, bands,
-                                          np.zeros(views, bool)), edited=edited)
+    return _rig_views(name, size, rig, views, scene, bands, np.zeros(views, bool), edited)
 
 
 def composite(rgba: np.ndarray, background=(1.0, 1.0, 1.0)) -> np.ndarray:
