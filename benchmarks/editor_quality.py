@@ -95,9 +95,18 @@ def goals(result: dict) -> dict:
     out["identity >= 25 dB at T = 0.98 (no colour cast)"] = {
         "value": t98, "met": t98 is not None and t98 >= 25.0}
     single = {p: e for p, e in result["instructions"].items() if "outcome_frequencies" not in e}
-    out["one-outcome edit closer to its target than the input (all scenes pooled)"] = {
-        p: {"edit_psnr": e["psnr"], "input_psnr": e["psnr_unedited"],
-            "met": e["psnr"] > e["psnr_unedited"]} for p, e in single.items()}
+    per_scene = [(f"{p} ({scene})", x) for p, e in single.items()
+                 for scene, x in e["per_scene"].items()]
+    out["one-outcome edit closer to its target than the input, per scene"] = {
+        who: {"edit_psnr": x["psnr"], "input_psnr": x["psnr_unedited"],
+              "met": x["psnr"] > x["psnr_unedited"]} for who, x in per_scene}
+    # Not issue 51's goal, beside it: where a target differs from its input by less than the
+    # autoencoder loses (a small ball grown on `tabletop`), no edit through the latents can
+    # pass the input; against the input's round trip the edit's own part is what is judged.
+    out["(beside it) the edit closer to its target than the input's VAE round trip"] = {
+        who: {"edit_psnr": x["psnr"], "vae_roundtrip_psnr": x.get("psnr_vae_roundtrip"),
+              "met": x.get("psnr_vae_roundtrip") is not None
+              and x["psnr"] > x["psnr_vae_roundtrip"]} for who, x in per_scene}
     return out
 
 

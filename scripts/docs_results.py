@@ -89,6 +89,23 @@ def _identity_per_scene(d: dict) -> str:
             + table(["cameras", "scene", *(f"T = {t}" for t in ts), "VAE round trip"], rows))
 
 
+def _edits_per_scene(d: dict) -> str:
+    """Each instruction's edits and inputs against its target per scene, on the held-out orbit
+    views and the novel cameras (records since the field exists)."""
+    rows = [[where, name, f"`{scene}`", f(x["psnr"]), f(x["psnr_unedited"]),
+             f(x.get("psnr_vae_roundtrip"))]
+            for where, part in (("held-out orbit views", d), ("novel cameras", d.get("novel", {})))
+            for name, i in part.get("instructions", {}).items()
+            for scene, x in i.get("per_scene", {}).items()]
+    if not rows:
+        return ""
+    return ("\n## Edits per scene\n\nEach instruction's full edits against its target (the "
+            "nearest outcome), PSNR (dB), beside the unedited input's and its VAE round trip's "
+            "(what keeping the input through the autoencoder scores), per scene.\n\n"
+            + table(["cameras", "instruction", "scene", "edit vs target", "input vs target",
+                     "input's round trip vs target"], rows))
+
+
 def editor_quality() -> str:
     rel = "cpu/editor_quality.json"
     d = load(rel)
@@ -125,6 +142,7 @@ def editor_quality() -> str:
         s.append(f"\nIdentity (E(\"\"), T = {d['t_full']}): {f(d['identity_psnr'])} dB against "
                  "the input.\n")
     s.append(_identity_per_scene(d))
+    s.append(_edits_per_scene(d))
     classed = {n: i for n, i in d["instructions"].items() if "outcome_frequencies" in i}
     if classed:
         s.append("\n## Outcomes, with an unedited class\n\n"

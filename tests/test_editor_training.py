@@ -480,12 +480,12 @@ def test_diffusers_pipeline_gives_the_jax_editors_edit():
 
 
 def test_identity_per_scene_averages_each_scene_s_views_alone():
-    """The quality benchmark's per-scene identity: each scene's figure is the mean PSNR over
-    its own views only (identity at each T and the VAE round trip), so the views' counts
-    weight them back to the pooled figure."""
+    """The quality benchmark's per-scene figures: each scene's is the mean over its own views
+    only (identity at each T, the VAE round trip, an instruction's edits over its draws), so
+    the views' counts weight them back to the pooled figure."""
     from types import SimpleNamespace
 
-    from jaxedit.pipelines.train_editor.quality import _identity_per_scene, psnr
+    from jaxedit.pipelines.train_editor.quality import _identity_per_scene, _scene_means, psnr
 
     rng = np.random.default_rng(0)
     data = SimpleNamespace(scenes=("face", "ball"), scene=np.array([0, 1, 1, 0, 1]))
@@ -499,3 +499,7 @@ def test_identity_per_scene_averages_each_scene_s_views_alone():
     np.testing.assert_allclose(out["ball"]["vae_roundtrip_psnr_db"],
                                np.mean(psnr(far[[0, 2]], inputs[[0, 2]])), rtol=1e-6)
     np.testing.assert_allclose(out["ball"]["identity_psnr_db"]["0.45"], 40.0, rtol=1e-4)
+    # An instruction's edits per scene: one value per draw, a view repeated for each.
+    rows = [4, 4, 0, 0, 2, 2]
+    by = _scene_means(data, rows, np.array([1.0, 3.0, 10.0, 20.0, 5.0, 7.0]))
+    assert by == {"face": 15.0, "ball": 4.0}

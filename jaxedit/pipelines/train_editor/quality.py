@@ -5,7 +5,10 @@ Every figure is measured by editing with an :class:`~jaxedit.editors.base.Editor
 
 - ``full_edit``: PSNR of the edit of the input view (T = ``t_full`` of the schedule, nearly
   pure noise, as IP2P edits a photo) against its target, the nearest outcome for a divergent
-  instruction; per instruction, over views and draws.
+  instruction; per instruction, over views and draws, beside the unedited input's, and
+  ``per_scene`` both per scene (an instruction of several scenes can be learnt on one only)
+  with the input's VAE round trip against the target (an edit whose target differs from its
+  input by less than the autoencoder loses cannot score above the input).
 - ``identity_psnr_db``: the edit with E("") (no instruction) against the input view, PSNR,
   at T = 0.45 and 0.85 (the ends of ProEdit's SDEdit range) and at ``t_full``;
   ``vae_roundtrip_psnr_db``: the VAE alone (encode to the posterior mean, decode), the best
@@ -149,19 +152,21 @@ def _views_of(data: EditDataset, i: int, views: Sequence[int]) -> list[int]:
     return [int(v) for v in views if ins.applies_to(data.scenes[data.scene[v]])]
 
 
+def _scene_means(data: EditDataset, views: Sequence[int], values) -> dict[str, float]:
+    """{scene: mean of ``values`` over that scene's views alone} (values [V], one per entry
+    of ``views``, a view possibly repeated: one per draw)."""
+    scene, values = data.scene[np.asarray(views)], np.asarray(values)
+    return {data.scenes[s]: float(np.mean(values[scene == s])) for s in np.unique(scene)}
+
+
 def _identity_per_scene(data: EditDataset, views: Sequence[int], inputs: np.ndarray,
                         identity: dict, roundtrip: np.ndarray) -> dict:
     """{scene: {"identity_psnr_db": {T: dB}, "vae_roundtrip_psnr_db": dB}} over ``views``
     (inputs, each identity[T] and roundtrip [V, H, W, 3] in the same order)."""
-    scene = data.scene[np.asarray(views)]
-    out = {}
-    for s in np.unique(scene):
-        m = scene == s
-        out[data.scenes[s]] = {
-            "identity_psnr_db": {f"{t:g}": float(np.mean(psnr(x[m], inputs[m])))
-                                 for t, x in identity.items()},
-            "vae_roundtrip_psnr_db": float(np.mean(psnr(roundtrip[m], inputs[m])))}
-    return out
+    at_t = {f"{t:g}": _scene_means(data, views, psnr(x, inputs)) for t, x in identity.items()}
+    kept = _scene_means(data, views, psnr(roundtrip, inputs))
+    return {name: {"identity_psnr_db": {t: by[name] for t, by in at_t.items()},
+                   "vae_roundtrip_psnr_db": kept[name]} for name in kept}
 
 
 def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
@@ -215,9 +220,17 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
         out = edits(inputs[rows], inputs[rows], [e] * len(rows), t_full)
         targets = np.stack([outcome_targets(data, v, i) for v in rows])  # [B, K, H, W, 3]
         which, best_psnr, mixed = nearest(out, targets)
+        input_psnr = nearest(inputs[rows], targets)[1]
+        per_scene = {"psnr": _scene_means(data, rows, best_psnr),
+                     "psnr_unedited": _scene_means(data, rows, input_psnr)}
+        if roundtrip is not None:  # the input through the autoencoder: what keeping it costs
+            per_scene["psnr_vae_roundtrip"] = _scene_means(
+                data, rows, nearest(roundtrip[[at[v] for v in rows]], targets)[1])
         entry = {"kind": ins.kind, "outcomes": list(ins.outcomes), "views": len(vs),
                  "edits": len(rows), "psnr": float(np.mean(best_psnr)),
-                 "psnr_unedited": float(np.mean(nearest(inputs[rows], targets)[1]))}
+                 "psnr_unedited": float(np.mean(input_psnr)),
+                 "per_scene": {name: {k: by[name] for k, by in per_scene.items()}
+                               for name in per_scene["psnr"]}}
         if k_out > 1:
             entry.update(outcome_figures(out, inputs[rows], targets))
             one = np.stack([outcome_targets(data, v, i) for v in vs])
