@@ -7,8 +7,11 @@ Every figure is measured by editing with an :class:`~jaxedit.editors.base.Editor
   pure noise, as IP2P edits a photo) against its target, the nearest outcome for a divergent
   instruction; per instruction, over views and draws, beside the unedited input's, and
   ``per_scene`` both per scene (an instruction of several scenes can be learnt on one only)
-  with the input's VAE round trip against the target (an edit whose target differs from its
-  input by less than the autoencoder loses cannot score above the input).
+  with the input's VAE round trip against the target and ``psnr_ceiling``, the target's own
+  round trip against it: about the most an edit decoded from the latents can score (the
+  encoder's latent of the target itself; another latent could decode a little nearer), so
+  an input that scores more than it (a target that differs from its input by less than the
+  autoencoder loses) is, in practice, not to be passed.
 - ``identity_psnr_db``: the edit with E("") (no instruction) against the input view, PSNR,
   at T = 0.45 and 0.85 (the ends of ProEdit's SDEdit range) and at ``t_full``;
   ``vae_roundtrip_psnr_db``: the VAE alone (encode to the posterior mean, decode), the best
@@ -85,6 +88,15 @@ def vae_roundtrip(editor, images: np.ndarray) -> np.ndarray | None:
         y = decode(editor.nets.vae, mean.astype(jnp.float32) * cfg.scaling_factor, cfg)
         out.append(np.asarray(jnp.clip(resize_images(y, images.shape[1:3]), 0, 1)))
     return np.concatenate(out)
+
+
+def vae_ceiling(editor, targets: np.ndarray) -> np.ndarray | None:
+    """float [V]: about the most an edit decoded from the editor's latents can score against
+    each view's outcome targets [V, K, H, W, 3]: each target's own VAE round trip against
+    it, the best outcome's; None for an editor without a VAE."""
+    flat = targets.reshape(-1, *targets.shape[2:])
+    kept = vae_roundtrip(editor, flat)
+    return None if kept is None else psnr(kept, flat).reshape(targets.shape[:2]).max(1)
 
 
 def outcome_figures(images, originals, targets) -> dict:
@@ -223,9 +235,12 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
         input_psnr = nearest(inputs[rows], targets)[1]
         per_scene = {"psnr": _scene_means(data, rows, best_psnr),
                      "psnr_unedited": _scene_means(data, rows, input_psnr)}
+        one = np.stack([outcome_targets(data, v, i) for v in vs])  # [V, K, H, W, 3]
         if roundtrip is not None:  # the input through the autoencoder: what keeping it costs
             per_scene["psnr_vae_roundtrip"] = _scene_means(
                 data, rows, nearest(roundtrip[[at[v] for v in rows]], targets)[1])
+            # The target through it: about the most an edit can score (an input above it stays).
+            per_scene["psnr_ceiling"] = _scene_means(data, vs, vae_ceiling(editor, one))
         entry = {"kind": ins.kind, "outcomes": list(ins.outcomes), "views": len(vs),
                  "edits": len(rows), "psnr": float(np.mean(best_psnr)),
                  "psnr_unedited": float(np.mean(input_psnr)),
@@ -233,7 +248,6 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
                                for name in per_scene["psnr"]}}
         if k_out > 1:
             entry.update(outcome_figures(out, inputs[rows], targets))
-            one = np.stack([outcome_targets(data, v, i) for v in vs])
             rows_at = [at[v] for v in vs]
             entry["baseline"] = {
                 "input": outcome_figures(inputs[vs], inputs[vs], one),
