@@ -395,7 +395,7 @@ def test_a_folder_s_training_dataset_is_rebuilt_from_its_record(tmp_path):
         folder = tmp_path / str(len(list(tmp_path.iterdir())))
         folder.mkdir()
         (folder / "instructions.json").write_text(json.dumps(
-            {"instructions": [], **({"dataset": record} if record else {})}))
+            {"instructions": [], **({"dataset": record} if record is not None else {})}))
         return folder
 
     record = {"size": 32, "procedural_views": 20, "scenes": ["ball"], "off_orbit_views": 4,
@@ -410,6 +410,10 @@ def test_a_folder_s_training_dataset_is_rebuilt_from_its_record(tmp_path):
                                           "off_orbit_edits": True}
     with pytest.raises(DataError, match="instructions.json.*lists no training dataset"):
         trained_on(listing(None))
+    for damaged in ([], {**record, "size": "64"}, {k: v for k, v in record.items()
+                                                   if k != "scenes"}):
+        with pytest.raises(DataError, match="instructions.json.*record is not"):
+            trained_on(listing(damaged))
 
 
 def test_train_editor_refuses_an_unknown_scene_before_any_work(tmp_path, capfd):

@@ -104,6 +104,21 @@ DATASET_ARRAYS = {"inputs": ("u", 4), "scene": ("i", 1), "held_out": ("b", 1),
                   "target_outcome": ("i", 1)}
 
 
+def _checked_dataset_record(record, counts=("size", "procedural_views", "off_orbit_views")):
+    """A dataset record with the settings added since read as such a run had them
+    (:data:`DATASET_RECORD_ADDED`); None unless it is a dict of exactly :data:`DATASET_RECORD`
+    and ``counts``, each of the type a run writes."""
+    if not isinstance(record, dict):
+        return None
+    record = {**DATASET_RECORD_ADDED, **record}
+    ok = (set(record) == set(DATASET_RECORD) | set(counts)
+          and all(isinstance(record[k], int) and not isinstance(record[k], bool) for k in counts)
+          and isinstance(record["off_orbit_edits"], bool)
+          and isinstance(record["scenes"], list)
+          and all(isinstance(x, str) for x in record["scenes"]))
+    return record if ok else None
+
+
 def read_dataset(path: Path) -> tuple[dict, edit_data.EditDataset]:
     """(the settings it was built with, the dataset) of a ``dataset.npz``: the one reader of
     the file, which checks its record, every array's dtype and rank, that the images are
@@ -118,17 +133,11 @@ def read_dataset(path: Path) -> tuple[dict, edit_data.EditDataset]:
     except (KeyError, json.JSONDecodeError):
         raise DataError(path, "not a train-editor dataset (no readable settings record); "
                               "delete it to rebuild it") from None
-    if isinstance(record, dict):
-        record = {**DATASET_RECORD_ADDED, **record}
-    counts = ("size", "procedural_views", "off_orbit_views")
-    if (not isinstance(record, dict) or set(record) != set(DATASET_RECORD)
-            or not all(isinstance(record[k], int) and not isinstance(record[k], bool)
-                       for k in counts)
-            or not isinstance(record["off_orbit_edits"], bool)
-            or not isinstance(record["scenes"], list)
-            or not all(isinstance(x, str) for x in record["scenes"])):
+    checked = _checked_dataset_record(record)
+    if checked is None:
         raise DataError(path, f"its settings record is not {{{', '.join(DATASET_RECORD)}}}: "
                               f"{json.dumps(record)[:120]}; delete it to rebuild it")
+    record = checked
     if set(arrays) != set(DATASET_ARRAYS):
         raise DataError(path, f"holds arrays {sorted(arrays)}, expected "
                               f"{sorted(DATASET_ARRAYS)}; delete it to rebuild it")
@@ -200,7 +209,7 @@ def trained_on(folder: str | Path) -> dict:
 
     Raises:
       DataError naming the file when the folder lists no such record (it was not written by
-      ``train-editor``, so no dataset can be rebuilt for it).
+      ``train-editor``, so no dataset can be rebuilt for it) or a damaged one.
     """
     path = Path(folder) / "instructions.json"
     try:
@@ -208,7 +217,13 @@ def trained_on(folder: str | Path) -> dict:
     except (OSError, ValueError, KeyError, TypeError):
         raise DataError(path, "lists no training dataset (a folder written by "
                               "`python -m experiments train-editor` does)") from None
-    return {**DATASET_RECORD_ADDED, **record}
+    checked = _checked_dataset_record(record, ("size", "procedural_views", "off_orbit_views",
+                                               "holdout_every"))
+    if checked is None:
+        raise DataError(path, f"its training dataset record is not {{"
+                              f"{', '.join(DATASET_RECORD)}, holdout_every}}: "
+                              f"{json.dumps(record)[:120]}")
+    return checked
 
 
 def rebuild_dataset(settings: dict, progress=None) -> edit_data.EditDataset:
