@@ -104,13 +104,15 @@ DATASET_ARRAYS = {"inputs": ("u", 4), "scene": ("i", 1), "held_out": ("b", 1),
                   "target_outcome": ("i", 1)}
 
 
-def _checked_dataset_record(record, counts=("size", "procedural_views", "off_orbit_views")):
+def _checked_dataset_record(record, extra_counts: tuple[str, ...] = ()):
     """A dataset record with the settings added since read as such a run had them
     (:data:`DATASET_RECORD_ADDED`); None unless it is a dict of exactly :data:`DATASET_RECORD`
-    and ``counts``, each of the type a run writes."""
+    and ``extra_counts`` (integers a record of another file adds), each of the type a run
+    writes."""
     if not isinstance(record, dict):
         return None
     record = {**DATASET_RECORD_ADDED, **record}
+    counts = ("size", "procedural_views", "off_orbit_views", *extra_counts)
     ok = (set(record) == set(DATASET_RECORD) | set(counts)
           and all(isinstance(record[k], int) and not isinstance(record[k], bool) for k in counts)
           and isinstance(record["off_orbit_edits"], bool)
@@ -193,12 +195,13 @@ def stored_dataset(cfg, out: Path, *, resume: bool = False) -> edit_data.EditDat
 
 
 def build_dataset(cfg, out: Path, progress=None) -> edit_data.EditDataset:
-    """This config's dataset, built and written to OUT/dataset.npz (atomically)."""
-    data = edit_data.build_dataset(cfg.size, cfg.procedural_views, tuple(cfg.scenes), progress,
-                                   cfg.off_orbit_views, cfg.off_orbit_edits)
+    """This config's dataset, built from its record and written with it to OUT/dataset.npz
+    (atomically)."""
+    record = _dataset_record(cfg)
+    data = rebuild_dataset(record, progress)
     with atomic_path(out / "dataset.npz") as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, meta=np.asarray(json.dumps(_dataset_record(cfg))), **data.arrays())
+            np.savez(f, meta=np.asarray(json.dumps(record)), **data.arrays())
     return data
 
 
@@ -217,8 +220,7 @@ def trained_on(folder: str | Path) -> dict:
     except (OSError, ValueError, KeyError, TypeError):
         raise DataError(path, "lists no training dataset (a folder written by "
                               "`python -m experiments train-editor` does)") from None
-    checked = _checked_dataset_record(record, ("size", "procedural_views", "off_orbit_views",
-                                               "holdout_every"))
+    checked = _checked_dataset_record(record, ("holdout_every",))
     if checked is None:
         raise DataError(path, f"its training dataset record is not {{"
                               f"{', '.join(DATASET_RECORD)}, holdout_every}}: "
@@ -227,11 +229,11 @@ def trained_on(folder: str | Path) -> dict:
 
 
 def rebuild_dataset(settings: dict, progress=None) -> edit_data.EditDataset:
-    """The dataset a folder was trained on, from its settings (:func:`trained_on`)."""
-    return edit_data.build_dataset(int(settings["size"]), int(settings["procedural_views"]),
+    """The dataset a dataset record describes: a run's (:func:`_dataset_record`), or the one a
+    folder was trained on (:func:`trained_on`)."""
+    return edit_data.build_dataset(settings["size"], settings["procedural_views"],
                                    tuple(settings["scenes"]), progress,
-                                   int(settings["off_orbit_views"]),
-                                   bool(settings["off_orbit_edits"]))
+                                   settings["off_orbit_views"], settings["off_orbit_edits"])
 
 
 def tokenizer_folder(out: Path) -> Path:
