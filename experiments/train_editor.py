@@ -7,10 +7,9 @@ DIR/model`` and diffusers' ``StableDiffusionInstructPix2PixPipeline`` load. The 
 generated from :class:`jaxedit.pipelines.train_editor.tiny_ip2p.EditorTrainConfig`;
 ``--smoke`` is :meth:`~jaxedit.pipelines.train_editor.tiny_ip2p.EditorTrainConfig.smoke`
 (CI: a couple of minutes);
-``--seed`` seeds every draw. The weights bundled with jaxedit were made by::
-
-    python -m experiments train-editor --out runs/editor --seed 0
-    python scripts/bundle_editor.py runs/editor/model
+``--seed`` seeds every draw. The weights bundled with jaxedit (v15) were made by
+``bash scripts/train_bundled_editor.sh``: v1 from scratch, then cycles of ``--init`` the
+previous model, each a study of ``docs/editor.md``.
 """
 
 from __future__ import annotations
