@@ -29,6 +29,7 @@ def _config_flags():
     return FlagSet(EditorTrainConfig, tuple(Flag(name) for name in names)
                    + (Flag("empty_is_identity", off="--empty-prompt-edits"),
                       Flag("off_orbit_edits", off="--off-orbit-identity-only"),
+                      Flag("off_orbit_geometry_only"),
                       Flag("outcome_from_noise"), Flag("balance_outcomes")))
 
 

@@ -385,6 +385,31 @@ def test_identity_only_nearer_cameras_are_inputs_without_edit_targets():
         dataclasses.replace(cfg, off_orbit_views=0).check()
 
 
+def test_geometry_only_nearer_cameras_get_the_geometry_targets_alone():
+    """``--off-orbit-geometry-only``: the nearer cameras get the bigger ball's targets (the
+    same images as with every edit made for them) and no image-space edit's, the orbit keeps
+    every instruction's targets, the record says so, and the flag is refused naming itself
+    beside ``--off-orbit-identity-only`` or without nearer cameras."""
+    from jaxedit.pipelines.train_editor import _dataset_record
+
+    edited = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4)
+    shaped = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4,
+                                     off_orbit_geometry_only=True)
+    np.testing.assert_array_equal(shaped.inputs, edited.inputs)
+    geometry = [i for i, ins in enumerate(edit_data.INSTRUCTIONS) if ins.kind == "geometry"]
+    near = shaped.target_view >= 20
+    assert near.sum() == 4 and np.isin(shaped.target_instruction[near], geometry).all()
+    wanted = (edited.target_view < 20) | np.isin(edited.target_instruction, geometry)
+    np.testing.assert_array_equal(shaped.targets, edited.targets[wanted])
+    np.testing.assert_array_equal(shaped.target_view, edited.target_view[wanted])
+    cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), off_orbit_views=4,
+                              off_orbit_geometry_only=True).check()
+    assert _dataset_record(cfg)["off_orbit_geometry_only"] is True
+    for bad in (dict(off_orbit_views=0), dict(off_orbit_edits=False)):
+        with pytest.raises(DataError, match="--off-orbit-geometry-only"):
+            dataclasses.replace(cfg, **bad).check()
+
+
 def test_a_folder_s_training_dataset_is_rebuilt_from_its_record(tmp_path):
     """The benchmarks rebuild the dataset an editor folder was trained on from the record in
     its instructions.json: the same arrays as the run built; a record from before a setting
@@ -407,7 +432,8 @@ def test_a_folder_s_training_dataset_is_rebuilt_from_its_record(tmp_path):
         np.testing.assert_array_equal(getattr(rebuilt, name), array, err_msg=name)
     older = {k: v for k, v in record.items() if not k.startswith("off_orbit")}
     assert trained_on(listing(older)) == {**older, "off_orbit_views": 0,
-                                          "off_orbit_edits": True}
+                                          "off_orbit_edits": True,
+                                          "off_orbit_geometry_only": False}
     with pytest.raises(DataError, match="instructions.json.*lists no training dataset"):
         trained_on(listing(None))
     for damaged in ([], {**record, "size": "64"}, {k: v for k, v in record.items()

@@ -55,13 +55,15 @@ def _config_record(cfg: tiny_ip2p.EditorTrainConfig) -> dict:
 
 #: The settings the autoencoder's stage depends on: a run that changes only the UNet's
 #: settings resumes the finished autoencoder instead of training it again.
-VAE_SETTINGS = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits", "scenes",
-                "vae_steps", "vae_batch", "vae_crop", "vae_lr", "seed")
+VAE_SETTINGS = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits",
+                "off_orbit_geometry_only", "scenes", "vae_steps", "vae_batch", "vae_crop",
+                "vae_lr", "seed")
 
 
 #: Settings added to the config after runs were checkpointed, with the value such a run had.
 ADDED_SETTINGS = {"outcome_from_noise": False, "balance_outcomes": False,
-                  "off_orbit_views": 0, "off_orbit_edits": True}
+                  "off_orbit_views": 0, "off_orbit_edits": True,
+                  "off_orbit_geometry_only": False}
 
 
 def _stage_record(cfg, kind: str) -> dict:
@@ -90,11 +92,12 @@ def check_run_folder(out: Path) -> None:
 def _dataset_record(cfg) -> dict:
     return {"size": cfg.size, "procedural_views": cfg.procedural_views,
             "off_orbit_views": cfg.off_orbit_views, "off_orbit_edits": cfg.off_orbit_edits,
-            "scenes": list(cfg.scenes)}
+            "off_orbit_geometry_only": cfg.off_orbit_geometry_only, "scenes": list(cfg.scenes)}
 
 
 #: The dataset record's keys, and the value a record written before a key existed reads as.
-DATASET_RECORD = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits", "scenes")
+DATASET_RECORD = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits",
+                  "off_orbit_geometry_only", "scenes")
 DATASET_RECORD_ADDED = {k: v for k, v in ADDED_SETTINGS.items() if k in DATASET_RECORD}
 
 
@@ -116,6 +119,7 @@ def _checked_dataset_record(record, extra_counts: tuple[str, ...] = ()):
     ok = (set(record) == set(DATASET_RECORD) | set(counts)
           and all(isinstance(record[k], int) and not isinstance(record[k], bool) for k in counts)
           and isinstance(record["off_orbit_edits"], bool)
+          and isinstance(record["off_orbit_geometry_only"], bool)
           and isinstance(record["scenes"], list)
           and all(isinstance(x, str) for x in record["scenes"]))
     return record if ok else None
@@ -233,7 +237,8 @@ def rebuild_dataset(settings: dict, progress=None) -> edit_data.EditDataset:
     folder was trained on (:func:`trained_on`)."""
     return edit_data.build_dataset(settings["size"], settings["procedural_views"],
                                    tuple(settings["scenes"]), progress,
-                                   settings["off_orbit_views"], settings["off_orbit_edits"])
+                                   settings["off_orbit_views"], settings["off_orbit_edits"],
+                                   settings["off_orbit_geometry_only"])
 
 
 def tokenizer_folder(out: Path) -> Path:

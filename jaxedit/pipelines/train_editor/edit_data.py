@@ -53,11 +53,16 @@ from ...errors import DataError, quoted
 HOLDOUT_EVERY = 10
 
 
+#: The kinds of instruction: the image-space edits (a material, colours), the local edit and
+#: the geometry edit (a changed scene, rendered).
+KINDS = ("material", "colour", "local", "geometry")
+
+
 @dataclasses.dataclass(frozen=True)
 class Instruction:
     """One instruction of the dataset.
 
-    prompt: the text; kind: "colour", "material", "local" or "geometry"; outcomes: the names of
+    prompt: the text; kind: one of :data:`KINDS`; outcomes: the names of
     its outcomes (one for a deterministic edit); scenes: the scenes it applies to (None: all).
     """
 
@@ -218,16 +223,16 @@ class SceneViews:
     """One scene's views: rgba float32 [N, H, W, 4] (straight colour, coverage), held_out bool
     [N], the scene's luma bands (:func:`luma_bands` of its training orbit, whatever cameras
     these are: an outcome recolours a surface by its colour, so the same surface falls in the
-    same band from every camera), the rig cameras (None for a rendered dataset) and whether
-    the instructions' edit targets are made for these views (if not, the views are inputs
-    only: identity examples)."""
+    same band from every camera), the rig cameras (None for a rendered dataset) and the
+    instruction kinds (:attr:`Instruction.kind`) whose edit targets are made for these views
+    (none: the views are inputs only, identity examples)."""
 
     name: str
     rgba: np.ndarray
     held_out: np.ndarray
     bands: tuple[float, float]
     cameras: object = None
-    edited: bool = True
+    edit_kinds: tuple[str, ...] = KINDS
 
 
 def person_views(size: int) -> SceneViews:
@@ -274,12 +279,12 @@ OFF_ORBIT_TOP_DEG = 85.0
 
 
 def _rig_views(name: str, size: int, rig, views: int, scene, bands, held_out,
-               edited: bool = True) -> SceneViews:
+               edit_kinds: tuple[str, ...] = KINDS) -> SceneViews:
     from ...scenes import render_scene, rig_cameras
 
     cams = rig_cameras(rig, views, width=size)
     return SceneViews(name, render_scene(scene, cams, alpha=True), held_out, bands, cams,
-                      edited)
+                      edit_kinds)
 
 
 def novel_views(name: str, size: int, views: int, scene=None,
@@ -300,13 +305,14 @@ def novel_views(name: str, size: int, views: int, scene=None,
 
 
 def off_orbit_views(name: str, size: int, views: int, scene, bands,
-                    edited: bool = True) -> SceneViews:
+                    edit_kinds: tuple[str, ...] = KINDS) -> SceneViews:
     """``views`` training cameras of a procedural scene nearer than its orbit and up to above
     it (:data:`OFF_ORBIT_RADIUS`, :data:`OFF_ORBIT_TOP_DEG`), none held out, with the orbit's
-    ``bands``; ``edited``: whether their edit targets are made (:class:`SceneViews`)."""
+    ``bands``; ``edit_kinds``: the instruction kinds whose edit targets are made for them
+    (:class:`SceneViews`)."""
     rig = dataclasses.replace(scene.rig, radius=scene.rig.radius * OFF_ORBIT_RADIUS,
                               elevation_deg=(scene.rig.elevation_deg[0], OFF_ORBIT_TOP_DEG))
-    return _rig_views(name, size, rig, views, scene, bands, np.zeros(views, bool), edited)
+    return _rig_views(name, size, rig, views, scene, bands, np.zeros(views, bool), edit_kinds)
 
 
 def composite(rgba: np.ndarray, background=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -354,14 +360,12 @@ def to_uint8(x: np.ndarray) -> np.ndarray:
 
 def scene_pairs(views: SceneViews, scene_obj=None):
     """(inputs float32 [N, H, W, 3], [(instruction index, outcome index, targets [N, H, W, 3])]);
-    no targets for views that are not ``edited``."""
+    targets only for the instructions of the views' ``edit_kinds``."""
     rgb = composite(views.rgba)
     bands = views.bands
     pairs = []
-    if not views.edited:
-        return rgb, pairs
     for i, ins in enumerate(INSTRUCTIONS):
-        if not ins.applies_to(views.name):
+        if not ins.applies_to(views.name) or ins.kind not in views.edit_kinds:
             continue
         if ins.kind in ("local", "geometry"):
             edited = _edited_scene(scene_obj, ins.prompt)
@@ -378,14 +382,16 @@ def scene_pairs(views: SceneViews, scene_obj=None):
 def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
                   scenes: tuple[str, ...] = SCENES, progress=None,
                   off_orbit_views_per_scene: int = 0,
-                  off_orbit_edits: bool = True) -> EditDataset:
+                  off_orbit_edits: bool = True,
+                  off_orbit_geometry_only: bool = False) -> EditDataset:
     """Render every scene's views and every outcome of every instruction that applies.
 
     A procedural scene has ``procedural_views_per_scene`` cameras on its orbit (every
     HOLDOUT_EVERY-th held out) and, after them, ``off_orbit_views_per_scene`` nearer
     training cameras (:func:`off_orbit_views`), with the instructions' edit targets if
-    ``off_orbit_edits`` and as identity examples only if not. ``progress(name)`` is called
-    after each scene (for a progress bar). Deterministic.
+    ``off_orbit_edits`` (only the geometry instruction's if ``off_orbit_geometry_only``) and
+    as identity examples only if not. ``progress(name)`` is called after each scene (for a
+    progress bar). Deterministic.
     """
     from ...scenes import get_scene, list_scenes
 
@@ -393,6 +399,8 @@ def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
         if name not in list_scenes():
             raise DataError("--scenes", f"unknown scene {name!r}; built-in scenes: "
                                         f"{', '.join(list_scenes())}")
+
+    near_kinds = (("geometry",) if off_orbit_geometry_only else KINDS) if off_orbit_edits else ()
 
     def views_of(name):
         if name == "person":
@@ -402,7 +410,7 @@ def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
         if not off_orbit_views_per_scene:
             return [orbit], obj
         return [orbit, off_orbit_views(name, size, off_orbit_views_per_scene, obj,
-                                       orbit.bands, off_orbit_edits)], obj
+                                       orbit.bands, near_kinds)], obj
 
     return _assemble(scenes, views_of, progress)
 

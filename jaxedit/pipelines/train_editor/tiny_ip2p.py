@@ -72,6 +72,10 @@ class EditorTrainConfig:
         (``--off-orbit-identity-only``), they give identity examples only (the empty prompt
         keeps a view seen from there): what they teach is to keep such views, and the
         edits' bands are learnt from the orbit's views alone.
+      off_orbit_geometry_only: those cameras get the geometry instruction's edit targets only
+        (``--off-orbit-geometry-only``): the image-space edits are learnt from the orbit and
+        kept off it as with ``--off-orbit-identity-only``, while a changed shape seen close
+        and from above, which the orbit never shows, is learnt from the nearer views.
       scenes: the built-in scenes the dataset is made of.
       vae_steps: training steps of the autoencoder.
       vae_batch: crops per autoencoder step.
@@ -117,6 +121,7 @@ class EditorTrainConfig:
     procedural_views: int = 100
     off_orbit_views: int = 0
     off_orbit_edits: bool = True
+    off_orbit_geometry_only: bool = False
     scenes: tuple[str, ...] = edit_data.SCENES
     vae_steps: int = 2500
     vae_batch: int = 16
@@ -161,6 +166,10 @@ class EditorTrainConfig:
         if not self.off_orbit_edits and not self.off_orbit_views:
             raise DataError("--off-orbit-identity-only", "needs nearer cameras to give identity "
                             "examples: give --off-orbit-views N with N > 0")
+        if self.off_orbit_geometry_only and not (self.off_orbit_views and self.off_orbit_edits):
+            raise DataError("--off-orbit-geometry-only", "needs nearer cameras with edit "
+                            "targets: give --off-orbit-views N with N > 0, without "
+                            "--off-orbit-identity-only")
         if self.size % 16 or self.vae_crop % 4 or self.vae_crop > self.size:
             # The UNet halves the latent (size / 4) twice: size must be a multiple of 16.
             raise DataError("--size", f"size must be a multiple of 16 and the crop a multiple "
