@@ -202,21 +202,28 @@ def geometry_coverage() -> str:
          f"T = {d['t']}, {d['ddim_steps']} DDIM steps, guidance {d['guidance'][0]} / "
          f"{d['guidance'][1]}.\n\n"]
     rows = []
-    for sc in d["scenes"]:
+    sets = ([("orbit, held out", sc) for sc in d["scenes"]]
+            + [("novel", sc) for sc in d.get("novel", [])]
+            + [("nearer training cameras", sc) for sc in d.get("nearer", [])])
+    for cameras, sc in sets:
         cov = sorted(sc["edit_coverage"])
         med = (cov[(len(cov) - 1) // 2] + cov[len(cov) // 2]) / 2
-        rows.append([f"`{sc['scene']}`", sc["views"], len(cov),
+        rows.append([f"`{sc['scene']}`", cameras, sc["views"], len(cov),
                      f"{min(sc['input_coverage']):.3f}-{max(sc['input_coverage']):.3f}",
                      f"{min(sc['target_coverage']):.3f}-{max(sc['target_coverage']):.3f}",
                      f"{min(cov):.3f}-{max(cov):.3f} (median {med:.3f})",
-                     f"{sc['edits_within']} of {len(cov)}", f(sc["psnr_edit_vs_target"]),
+                     f"{sc['edits_within']} of {len(cov)}",
+                     f"{sc['growth_fraction_median']:.2f}" if "growth_fraction_median" in sc
+                     else "-", f(sc["psnr_edit_vs_target"]),
                      f(sc["psnr_input_vs_target"])])
-    s.append(table(["scene", "views", "edits", "ball's share, inputs", "targets", "edits",
-                    f"edits within {d['tolerance']} of their target", "edit vs target (dB)",
+    s.append(table(["scene", "cameras", "views", "edits", "ball's share, inputs", "targets",
+                    "edits",
+                    f"edits within {d['tolerance']} of their target",
+                    "growth achieved (median; 0 kept, 1 as the target)", "edit vs target (dB)",
                     "input vs target (dB)"], rows))
-    for sc in d["scenes"]:
+    for cameras, sc in sets:
         if "mask_vs_alpha_input" in sc:
-            s.append(f"\nOn `{sc['scene']}` the colour mask's share is within "
+            s.append(f"\nOn `{sc['scene']}` ({cameras}) the colour mask's share is within "
                      f"{sc['mask_vs_alpha_input']:.3f} of the render's own coverage (alpha) on the "
                      f"inputs and {sc['mask_vs_alpha_target']:.3f} on the targets.\n")
     return "".join(s)
