@@ -61,8 +61,11 @@ def main(argv=None) -> None:
     p.add_argument("--guidance", type=guidance_pair, default=None, metavar="TEXT,IMAGE",
                    help="the edits' guidance (default: the editor's own, as an edit run's)")
     args = p.parse_args(argv)
+    if args.draws < 1 or args.novel_views < 0 or not 0 <= args.nearer_views <= NEARER:
+        p.error(f"--draws must be >= 1, --novel-views >= 0 and --nearer-views in 0 .. {NEARER}")
 
     from jaxedit.editors import bundled_editor
+    from jaxedit.io.files import atomic_write_text
     from jaxedit.pipelines.train_editor.edit_data import (INSTRUCTIONS, _edited_scene, composite,
                                            novel_views, off_orbit_views, procedural_views,
                                            to_uint8)
@@ -136,7 +139,7 @@ def main(argv=None) -> None:
         results[where].append(entry)
         print(where, name, {k: v for k, v in entry.items() if not isinstance(v, list)})
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
+    atomic_write_text(args.out, json.dumps({
         "what": "the ball's share of the view (its pixels found by colour: far from the white "
                 "backdrop on `ball`, red on `tabletop`) in the held-out inputs, their targets "
                 "and the editor's full edits of `make the ball bigger`, per scene: `scenes` on "
@@ -156,4 +159,10 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from jaxedit.errors import DataError
+
+    try:
+        main()
+    except DataError as e:  # --weights: not an editor folder, unreadable weights
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
