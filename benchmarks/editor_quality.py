@@ -79,12 +79,19 @@ def goals(result: dict) -> dict:
     freq_ok = {p: e["outcome_frequencies"] is not None
                and all(f is not None and 0.20 <= f <= 0.45 for f in e["outcome_frequencies"])
                for p, e in divergent.items()}
+    # Beside each frequency goal, its 95 % interval over the views (judged on the value; the
+    # interval says whether a miss or a pass near the edge could be the views' sampling).
+    def interval(e, name):
+        return e.get("intervals", {}).get(name)
+
     out["single_outcome_fraction >= 0.8"] = {
         p: {"value": e["single_outcome_fraction"],
+            "interval": interval(e, "single_outcome_fraction"),
             "met": e["single_outcome_fraction"] is not None
             and e["single_outcome_fraction"] >= 0.8} for p, e in divergent.items()}
     out["each outcome 20-45 % of edited draws"] = {
-        p: {"value": e["outcome_frequencies"], "met": freq_ok[p]} for p, e in divergent.items()}
+        p: {"value": e["outcome_frequencies"], "interval": interval(e, "outcome_frequencies"),
+            "met": freq_ok[p]} for p, e in divergent.items()}
     vae = result.get("vae_roundtrip_psnr_db")
     ident = result["identity_psnr_db"]
     low = {t: v for t, v in ident.items() if float(t) <= 0.85}

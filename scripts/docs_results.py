@@ -72,6 +72,13 @@ def _fracs(x) -> str:
     return " / ".join(f(v) for v in x) if isinstance(x, list) else f(x)
 
 
+def _spans(x) -> str:
+    """Intervals [[low, high], ...] as "low-high / ..."; "-" where there are none."""
+    if not x or any(v is None for v in x):
+        return "-"
+    return " / ".join(f"{f(lo)}-{f(hi)}" for lo, hi in x)
+
+
 def _identity_per_scene(d: dict) -> str:
     """Identity and the VAE round trip per scene, on the held-out orbit views and the novel
     cameras (records since the field exists)."""
@@ -151,15 +158,20 @@ def editor_quality() -> str:
                  "Each edit of a divergent instruction classed as one outcome, unedited, mixed or "
                  "other against the unedited input (`jaxedit.editors.outcome_class`); the "
                  "unedited fraction is over all draws, the rest over the edited draws. "
-                 "*Input* is the same measure on the unedited views themselves.\n\n")
+                 "*Input* is the same measure on the unedited views themselves. The intervals "
+                 "are 95 % over the held-out views (a bootstrap resampling views: a view's "
+                 "draws lean alike).\n\n")
         rows = []
         for n, i in classed.items():
             base = i.get("baseline", {}).get("input", {})
+            spans = i.get("intervals", {})
             rows.append([n, f(i.get("unedited_fraction")), f(i.get("single_outcome_fraction")),
-                         _fracs(i.get("outcome_frequencies")), f(i.get("mixed_fraction")),
+                         _fracs(i.get("outcome_frequencies")),
+                         _spans(spans.get("outcome_frequencies")), f(i.get("mixed_fraction")),
                          f(i.get("other_fraction")), f(base.get("unedited_fraction")),
                          f(base.get("single_outcome_fraction"))])
-        s.append(table(["instruction", "unedited", "one outcome", "outcome frequencies", "mixed",
+        s.append(table(["instruction", "unedited", "one outcome", "outcome frequencies",
+                        "their 95 % intervals", "mixed",
                         "other", "input: unedited", "input: one outcome"], rows))
     if "goals" in d:
         s.append("\n## Issue 51's goals\n\n")

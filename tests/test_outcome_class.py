@@ -74,6 +74,27 @@ def test_summary_counts_over_edited_draws_only():
     assert none["unedited_fraction"] == 1.0 and none["single_outcome_fraction"] is None
 
 
+def test_view_bootstrap_intervals_follow_the_views_not_the_draws():
+    # Every view with the same mix of draws: no spread between views, so the interval is
+    # the point itself, whatever the number of draws.
+    same = [0, 0, 1, oc.MIXED] * 10
+    s = oc.summarise(same, 2, groups=np.repeat(np.arange(10), 4))
+    assert s["intervals"]["outcome_frequencies"][0] == pytest.approx([0.5, 0.5])
+    assert s["intervals"]["single_outcome_fraction"] == pytest.approx([0.75, 0.75])
+    # Each view's 4 draws in one outcome, 12 of 30 views in outcome 0: the interval is that of
+    # 30 views (binomial sd sqrt(.4 * .6 / 30) = 0.089), not of 120 draws (0.045).
+    views = np.repeat(np.arange(30), 4)
+    labels = [0 if v < 12 else 1 for v in views]
+    s = oc.summarise(labels, 2, groups=views, seed=3)
+    low, high = s["intervals"]["outcome_frequencies"][0]
+    assert low < 0.4 < high
+    assert (high - low) / (2 * 1.96) == pytest.approx(np.sqrt(0.4 * 0.6 / 30), rel=0.15)
+    assert s["intervals"]["views"] == 30 and s["intervals"]["resamples"] == oc.BOOTSTRAP
+    assert oc.summarise(labels, 2, groups=views, seed=3) == s  # seeded
+    with pytest.raises(ValueError, match="groups"):
+        oc.summarise(labels, 2, groups=views[:-1])
+
+
 def test_an_outcome_equal_to_the_input_is_refused():
     u = np.full((4, 4, 3), 0.5, np.float32)
     with pytest.raises(ValueError, match="equals the input"):
