@@ -152,38 +152,44 @@ def editor_quality() -> str:
                  "the input.\n")
     s.append(_identity_per_scene(d))
     s.append(_edits_per_scene(d))
-    classed = {n: i for n, i in d["instructions"].items() if "outcome_frequencies" in i}
-    if classed:
+    parts = (("held-out orbit views", d), ("novel cameras", d.get("novel", {})))
+    rows = []
+    for where, part in parts:
+        for n, i in part.get("instructions", {}).items():
+            if "outcome_frequencies" not in i:
+                continue
+            base = i.get("baseline", {}).get("input", {})
+            spans = i.get("intervals", {})
+            rows.append([where, n, f(i.get("unedited_fraction")),
+                         f(i.get("single_outcome_fraction")),
+                         _fracs(i.get("outcome_frequencies")),
+                         _spans(spans.get("outcome_frequencies")), f(i.get("mixed_fraction")),
+                         f(i.get("other_fraction")), f(base.get("unedited_fraction")),
+                         f(base.get("single_outcome_fraction"))])
+    if rows:
         s.append("\n## Outcomes, with an unedited class\n\n"
                  "Each edit of a divergent instruction classed as one outcome, unedited, mixed or "
                  "other against the unedited input (`jaxedit.editors.outcome_class`); the "
                  "unedited fraction is over all draws, the rest over the edited draws. "
                  "*Input* is the same measure on the unedited views themselves. The intervals "
-                 "are 95 % over the held-out views (a bootstrap resampling views: a view's "
-                 "draws lean alike).\n\n")
-        rows = []
-        for n, i in classed.items():
-            base = i.get("baseline", {}).get("input", {})
-            spans = i.get("intervals", {})
-            rows.append([n, f(i.get("unedited_fraction")), f(i.get("single_outcome_fraction")),
-                         _fracs(i.get("outcome_frequencies")),
-                         _spans(spans.get("outcome_frequencies")), f(i.get("mixed_fraction")),
-                         f(i.get("other_fraction")), f(base.get("unedited_fraction")),
-                         f(base.get("single_outcome_fraction"))])
-        s.append(table(["instruction", "unedited", "one outcome", "outcome frequencies",
-                        "their 95 % intervals", "mixed",
-                        "other", "input: unedited", "input: one outcome"], rows))
-    if "goals" in d:
-        s.append("\n## Issue 51's goals\n\n")
-        rows = []
-        for goal, v in d["goals"].items():
+                 "are 95 % over the views (a bootstrap resampling views: a view's draws lean "
+                 "alike).\n\n")
+        s.append(table(["cameras", "instruction", "unedited", "one outcome",
+                        "outcome frequencies", "their 95 % intervals", "mixed", "other",
+                        "input: unedited", "input: one outcome"], rows))
+    rows = []
+    for where, part in parts:
+        for goal, v in part.get("goals", {}).items():
             if isinstance(v, dict) and "met" in v:
-                rows.append([goal, "", f(v["met"])])
+                rows.append([where, goal, "", f(v["met"])])
             elif isinstance(v, dict):
                 for who, x in v.items():
                     met = x.get("met") if isinstance(x, dict) else None
-                    rows.append([goal, who, f(met)])
-        s.append(table(["goal", "instruction", "met"], rows))
+                    rows.append([where, goal, who, f(met)])
+    if rows:
+        s.append("\n## Issue 51's goals\n\nJudged on the novel cameras; the orbit's held-out "
+                 "views beside them.\n\n")
+        s.append(table(["cameras", "goal", "instruction", "met"], rows))
     if "separation" in d:
         s.append("\n## Outcome separation (LPIPS-VGG, held-out views)\n\n")
         rows = []
