@@ -86,15 +86,21 @@ def main(argv=None) -> None:
         camera_sets += [("novel", 2 + s, name) for s, name in enumerate(("ball", "tabletop"))]
     if args.nearer_views:
         camera_sets += [("nearer", 4 + s, name) for s, name in enumerate(("ball", "tabletop"))]
+    orbits = {}  # the orbit's views per scene: the held-out cameras, and the nearer ones' bands
+
+    def orbit_of(name, obj):
+        if name not in orbits:
+            orbits[name] = procedural_views(name, 64, 100, obj)
+        return orbits[name]
+
     for where, s, name in camera_sets:
         obj = get_scene(name)
         if where == "scenes":
-            views = procedural_views(name, 64, 100, obj)
+            views = orbit_of(name, obj)
         elif where == "novel":
             views = novel_views(name, 64, args.novel_views, obj)
         else:  # train-editor's nearer cameras, an evenly spaced subset
-            orbit = procedural_views(name, 64, 100, obj)
-            every = off_orbit_views(name, 64, NEARER, obj, orbit.bands)
+            every = off_orbit_views(name, 64, NEARER, obj, orbit_of(name, obj).bands)
             pick = np.linspace(0, NEARER - 1, args.nearer_views).round().astype(int)
             views = dataclasses.replace(every, rgba=every.rgba[pick],
                                         held_out=np.ones(len(pick), bool),
