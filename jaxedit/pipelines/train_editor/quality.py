@@ -21,6 +21,7 @@ Every figure is measured by editing with an :class:`~jaxedit.editors.base.Editor
   fresh-noise edit classed as one outcome, unedited, mixed or other against the unedited
   input; ``unedited_fraction`` over all draws, ``single_outcome_fraction``,
   ``outcome_frequencies``, ``mixed_fraction`` and ``other_fraction`` over the edited draws;
+  ``intervals``: the one-outcome share's and each frequency's 95 % interval over the views;
   ``without_other_gate`` the same where an edit leans however much else it changed;
   ``baseline``: the same measure on the unedited input itself, on the E("") edits and on the
   VAE round trips of the same views (what an editor that does not edit scores).
