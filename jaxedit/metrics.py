@@ -13,7 +13,7 @@ divergent modes) must not favour any of them: :func:`mode_scores` gives the best
 over modes of the per-scene PSNR / SSIM and :func:`mode_mixture` how much of the
 result is a blend of modes rather than one. :func:`mean_ci` and
 :func:`paired_differences` turn per-seed numbers into means with Student-t
-confidence intervals.
+confidence intervals; :func:`percentile_interval` is a bootstrap's interval.
 """
 
 from __future__ import annotations
@@ -141,6 +141,13 @@ def mean_ci(values, *, level: float = 0.95) -> dict:
         return {"mean": mean, "ci": None, "low": None, "high": None, "n": 1}
     half = float(student_t.ppf(0.5 + level / 2, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size))
     return {"mean": mean, "ci": half, "low": mean - half, "high": mean + half, "n": int(x.size)}
+
+
+def percentile_interval(samples, *, level: float = 0.95) -> list[float]:
+    """The central ``level`` percentile interval [low, high] of a bootstrap's samples
+    (a 1-D sequence of the statistic, one per resample)."""
+    low, high = np.quantile(np.asarray(samples, np.float64), [(1 - level) / 2, (1 + level) / 2])
+    return [float(low), float(high)]
 
 
 def paired_differences(a, b, *, level: float = 0.95) -> dict:

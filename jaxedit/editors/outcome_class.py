@@ -51,6 +51,8 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import nnls
 
+from ..metrics import percentile_interval
+
 UNEDITED, MIXED, OTHER = "unedited", "mixed", "other"
 #: Below this total weight along the outcomes (a fraction of one outcome's change) the
 #: view is unedited.
@@ -150,11 +152,7 @@ def _view_bootstrap(labels: Sequence, groups: Sequence, k: int, seed: int,
         return {"level": LEVEL, "resamples": 0, "views": int(len(views)),
                 "single_outcome_fraction": None, "outcome_frequencies": [None] * k}
     freqs = sums[:, :k] / sums[:, k:]
-    q = [(1 - LEVEL) / 2, (1 + LEVEL) / 2]
-
-    def interval(x):
-        return [float(v) for v in np.quantile(x, q)]
-
     return {"level": LEVEL, "resamples": int(len(sums)), "views": int(len(views)),
-            "single_outcome_fraction": interval(freqs.sum(1)),
-            "outcome_frequencies": [interval(freqs[:, i]) for i in range(k)]}
+            "single_outcome_fraction": percentile_interval(freqs.sum(1), level=LEVEL),
+            "outcome_frequencies": [percentile_interval(freqs[:, i], level=LEVEL)
+                                    for i in range(k)]}

@@ -29,7 +29,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ...editors.outcome_class import OTHER, UNEDITED
-from ...metrics import paired_differences
+from ...metrics import paired_differences, percentile_interval
 
 #: The controls of M (primary family), and the scheduler's comparison (P4).
 CONTROLS = ("nd_k", "nd_equal")
@@ -154,7 +154,7 @@ def spearman_bootstrap(x: Sequence[float], y: Sequence[float], *, seed: int = 0,
     norm = np.sqrt((rx ** 2).sum(1) * (ry ** 2).sum(1))
     spread = norm > 0  # a resample without spread has no rank correlation
     draws = (rx * ry).sum(1)[spread] / norm[spread]
-    low, high = np.quantile(draws, [(1 - LEVEL) / 2, (1 + LEVEL) / 2])
+    low, high = percentile_interval(draws, level=LEVEL)
     p = float(min(1.0, 2 * min(np.mean(draws <= 0), np.mean(draws >= 0))))
     return {"rho": rho, "low": float(low), "high": float(high), "p": p, "n": int(len(x)),
             "resamples": int(len(draws))}
