@@ -24,8 +24,8 @@ def _config_flags():
     from .flags import Flag, FlagSet
 
     names = ("size", "procedural_views", "off_orbit_views", "scenes", "vae_steps", "vae_batch",
-             "vae_crop", "vae_lr", "steps", "batch", "lr", "ema", "identity_share", "drop",
-             "degrade", "text_width", "text_layers", "init")
+             "vae_crop", "vae_lr", "decoder_steps", "steps", "batch", "lr", "ema",
+             "identity_share", "drop", "degrade", "text_width", "text_layers", "init")
     return FlagSet(EditorTrainConfig, tuple(Flag(name) for name in names)
                    + (Flag("empty_is_identity", off="--empty-prompt-edits"),
                       Flag("off_orbit_edits", off="--off-orbit-identity-only"),

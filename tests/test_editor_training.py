@@ -168,6 +168,31 @@ def test_train_editor_smoke_writes_a_working_editor_and_resumes(tmp_path, capfd)
         train_editor(dataclasses.replace(cfg, text_width=16), tmp_path / "other")
     assert not (tmp_path / "other" / "checkpoints").exists()
 
+    # --decoder-steps with --steps 0: only the decoder learns. The encoder (so the latents the
+    # UNet was trained on), the UNet, the text encoder and the scaling factor stay --init's.
+    sharp = tmp_path / "sharp"
+    train_editor(dataclasses.replace(cfg, decoder_steps=3, steps=0), sharp)
+    for part in (unet, "text_encoder/model.safetensors"):
+        assert (sharp / "model" / part).read_bytes() == (out / "model" / part).read_bytes()
+    old, new = (module_tensors(load_ip2p(f / "model").vae) for f in (out, sharp))
+    frozen = [k for k in old if k.startswith(("encoder.", "quant_conv."))]
+    assert frozen and all(np.array_equal(old[k], new[k]) for k in frozen)
+    assert not all(np.array_equal(old[k], new[k]) for k in old if k.startswith("decoder."))
+    configs = [json.loads((f / "model" / "vae" / "config.json").read_text()) for f in (out, sharp)]
+    assert configs[0]["scaling_factor"] == configs[1]["scaling_factor"]
+    assert json.loads((sharp / "training.json").read_text())["seconds"].keys() == {
+        "dataset", "vae"}
+    before = (sharp / "model" / vae).read_bytes()
+    train_editor(dataclasses.replace(cfg, decoder_steps=3, steps=0), sharp, resume=True)
+    assert (sharp / "model" / vae).read_bytes() == before
+
+
+@pytest.mark.parametrize("flags, named", [({"decoder_steps": 3}, "--decoder-steps"),
+                                          ({"steps": 0}, "--steps")])
+def test_the_decoder_alone_or_a_kept_unet_needs_init(flags, named):
+    with pytest.raises(DataError, match=named):
+        dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), **flags).check()
+
 
 @pytest.mark.parametrize("empty_is_identity", [True, False])
 def test_the_empty_prompt_with_the_image_keeps_the_view(empty_is_identity):

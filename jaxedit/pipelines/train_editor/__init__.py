@@ -8,14 +8,17 @@ held-out cameras); this module writes the run directory:
 
     OUT/dataset.npz              the edit pairs (uint8), built once, reused on --resume
     OUT/checkpoints/vae.npz      the autoencoder's training state (every CHECKPOINT_EVERY steps)
+    OUT/checkpoints/decoder.npz  with --init and --decoder-steps: the decoder's fine-tuning
     OUT/checkpoints/unet.npz     the UNet's and text encoder's state, EMA included
     OUT/training.json            the config, the losses, the seconds of each stage
     OUT/model/                   the diffusers folder (EMA weights), with instructions.json
                                  and a model card
 
 Stages run in order and each resumes from its checkpoint: the dataset, the tokenizer (a
-pure function of the instructions), the VAE, the latents (a pure function of the VAE), the
-UNet. The same config and seed give the same weights on the same machine.
+pure function of the instructions), the VAE (with ``--init``: kept, or its decoder
+fine-tuned), the latents (a pure function of the VAE's encoder), the UNet (with ``--init``
+and ``--steps 0``: kept). The same config and seed give the same weights on the same
+machine.
 
 A resume reads the run's files through one checked reader each (:func:`read_dataset`,
 :func:`read_stage_checkpoint`) and refuses, before anything is written, a folder with nothing
@@ -60,21 +63,38 @@ VAE_SETTINGS = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits"
                 "vae_lr", "seed")
 
 
+#: The settings the decoder's fine-tuning depends on (the dataset's, the autoencoder's
+#: batches and rate, its length, the autoencoder it starts from, the seed).
+DECODER_SETTINGS = ("size", "procedural_views", "off_orbit_views", "off_orbit_edits",
+                    "off_orbit_geometry_only", "scenes", "vae_batch", "vae_crop", "vae_lr",
+                    "decoder_steps", "init", "seed")
+
+#: Each stage's checkpoint kind, and the settings it depends on (None: the whole config).
+STAGE_SETTINGS = {"editor-vae": VAE_SETTINGS, "editor-decoder": DECODER_SETTINGS,
+                  "editor-unet": None}
+
+
 #: Settings added to the config after runs were checkpointed, with the value such a run had.
-ADDED_SETTINGS = {"outcome_from_noise": False, "balance_outcomes": False,
+ADDED_SETTINGS = {"outcome_from_noise": False, "balance_outcomes": False, "decoder_steps": 0,
                   "off_orbit_views": 0, "off_orbit_edits": True,
                   "off_orbit_geometry_only": False}
 
 
 def _stage_record(cfg, kind: str) -> dict:
-    record = _config_record(cfg)
-    return {k: record[k] for k in VAE_SETTINGS} if kind == "editor-vae" else record
+    record, names = _config_record(cfg), STAGE_SETTINGS[kind]
+    return record if names is None else {k: record[k] for k in names}
+
+
+def _stage_steps(cfg, kind: str) -> int:
+    return {"editor-vae": cfg.vae_steps, "editor-decoder": cfg.decoder_steps,
+            "editor-unet": cfg.steps}[kind]
 
 
 #: What a run directory holds, by kind ("dir" / "file"): each is checked before any work, so
 #: a name taken by the wrong kind of thing is one line, not a traceback at the end of a run.
 RUN_LAYOUT = {"dataset.npz": "file", "training.json": "file", "checkpoints": "dir",
-              "checkpoints/vae.npz": "file", "checkpoints/unet.npz": "file", "model": "dir",
+              "checkpoints/vae.npz": "file", "checkpoints/decoder.npz": "file",
+              "checkpoints/unet.npz": "file", "model": "dir",
               "model/tokenizer": "dir"}
 
 
@@ -251,9 +271,9 @@ CHECKPOINT_META = {"config": dict, "step": int, "losses": list}
 
 def read_stage_checkpoint(path: Path, kind: str, cfg) -> tuple[dict, int, list[float]]:
     """(arrays, step, losses) of a stage's checkpoint: the one reader of ``vae.npz`` /
-    ``unet.npz``, which checks its record's keys and types, that it was written by a run
-    with this config's settings of the stage, and that its step and losses agree with each
-    other, with the stored state's step and with the stage's length.
+    ``decoder.npz`` / ``unet.npz``, which checks its record's keys and types, that it was
+    written by a run with this config's settings of the stage, and that its step and losses
+    agree with each other, with the stored state's step and with the stage's length.
 
     Raises:
       DataError naming ``path``.
@@ -272,13 +292,13 @@ def read_stage_checkpoint(path: Path, kind: str, cfg) -> tuple[dict, int, list[f
                                   f"expected a {kind_.__name__}")
     # A setting added since the checkpoint was written reads as its default then.
     stored = {**ADDED_SETTINGS, **meta["config"]}
-    if kind == "editor-vae":
-        stored = {k: stored.get(k) for k in VAE_SETTINGS}
+    if STAGE_SETTINGS[kind] is not None:
+        stored = {k: stored.get(k) for k in STAGE_SETTINGS[kind]}
     if stored != _stage_record(cfg, kind):
         raise DataError(path, "was written by a run with other settings; use its own flags "
                               "or another --out")
     step, losses = meta["step"], meta["losses"]
-    total = cfg.vae_steps if kind == "editor-vae" else cfg.steps
+    total = _stage_steps(cfg, kind)
     state_step = arrays.get(".step")
     if (not 0 <= step <= total or (len(losses) != step and not older)
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
@@ -318,14 +338,16 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     out = Path(out)
     ckpt = out / "checkpoints"
     check_run_folder(out)
-    stages = {"editor-vae": ckpt / "vae.npz", "editor-unet": ckpt / "unet.npz"}
+    stages = {"editor-vae": ckpt / "vae.npz", "editor-decoder": ckpt / "decoder.npz",
+              "editor-unet": ckpt / "unet.npz"}
     if not resume and ckpt.exists() and any(ckpt.iterdir()):
         raise DataError(ckpt, "holds a previous run's checkpoints; pass --resume to continue "
                               "it or choose another --out")
     if resume and not any(p.exists() for p in stages.values()) and not (
             out / "dataset.npz").exists():
-        raise DataError(out, "nothing to resume (no checkpoints/vae.npz, checkpoints/unet.npz "
-                             "or dataset.npz); run without --resume to start a new run")
+        raise DataError(out, "nothing to resume (no checkpoints/vae.npz, decoder.npz, "
+                             "unet.npz or dataset.npz); run without --resume to start a new "
+                             "run")
     stage = stage or (lambda name, total, done: None)
     seconds: dict[str, float] = {}
     key = jax.random.key(cfg.seed)
@@ -365,56 +387,69 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
     tokenizer = CLIPTokenizer.from_folder(tokenizer_folder(out))
     tokens = tokenizer([i.prompt for i in data.instructions] + [""])
 
-    # The autoencoder, on the training views' inputs and targets (or --init's, kept).
+    # The autoencoder, on the training views' inputs and targets (or --init's, kept or its
+    # decoder fine-tuned on them).
     t0 = time.perf_counter()
     train_rows = data.split(held_out=False)
     vae_static = eqx.filter(tiny_ip2p.AutoencoderKL.from_config(
         tiny_ip2p.vae_config(cfg), key=jax.random.key(0)), eqx.is_array, inverse=True)
     vae_losses: list[float] = []
-    if start is not None:
-        vae = eqx.combine(start["vae"], vae_static)
+    from_init = start is not None
+    autoencoder = "decoder fine-tuned" if cfg.decoder_steps else "kept" if from_init else "trained"
+    if from_init:
         log(f"autoencoder, UNet and text encoder start from {cfg.init}")
-    else:
+    if autoencoder != "kept":
+        kind = "editor-decoder" if from_init else "editor-vae"
         vae_images = np.concatenate([data.inputs[train_views], data.targets[train_rows]])
-        state = tiny_ip2p.init_vae(cfg, k_vae)
-        if "editor-vae" in stored:
-            state, vae_losses = _restored(stored["editor-vae"], state, stages["editor-vae"])
-        step = tiny_ip2p.make_vae_step(cfg, vae_static, jax.numpy.asarray(vae_images))
+        state = (tiny_ip2p.init_decoder(cfg, start["vae"], k_vae) if from_init
+                 else tiny_ip2p.init_vae(cfg, k_vae))
+        if kind in stored:
+            state, vae_losses = _restored(stored[kind], state, stages[kind])
+        step = tiny_ip2p.make_vae_step(cfg, vae_static, jax.numpy.asarray(vae_images),
+                                       decoder_only=from_init)
+        total = _stage_steps(cfg, kind)
         state, vae_losses = tiny_ip2p.run_steps(
-            step, state, cfg.vae_steps, every=CHECKPOINT_EVERY, losses=vae_losses,
-            on_progress=stage("vae", cfg.vae_steps, int(state.step)),
-            checkpoint=_checkpointer(stages["editor-vae"], "editor-vae", cfg))
+            step, state, total, every=CHECKPOINT_EVERY, losses=vae_losses,
+            on_progress=stage("decoder" if from_init else "vae", total, int(state.step)),
+            checkpoint=_checkpointer(stages[kind], kind, cfg))
         vae = eqx.combine(state.vae, vae_static)
+    else:
+        vae = eqx.combine(start["vae"], vae_static)
     seconds["vae"] = time.perf_counter() - t0
 
-    # The latents: every image encoded once; the scaling factor from the training targets.
-    t0 = time.perf_counter()
-    d = tiny_ip2p.unet_data(data, vae, tokens, k_degrade)
-    scaling = tiny_ip2p.latent_scaling(np.asarray(d.target_mean)[train_rows],
-                                       np.asarray(d.target_std)[train_rows], k_scale)
-    seconds["latents"] = time.perf_counter() - t0
-    log(f"latent scaling factor {scaling:.4f}")
-
-    # The UNet and the text encoder.
-    t0 = time.perf_counter()
+    # The UNet and the text encoder: trained on the latents (every image encoded once, the
+    # scaling factor from the training targets), or --init's kept with its scaling factor.
     unet, text = tiny_ip2p.build_networks(cfg, len(vocab), tokenizer.bos_id, tokenizer.eos_id,
                                           k_nets)
-    if start is not None:
-        unet = eqx.combine(start["unet"], eqx.filter(unet, eqx.is_array, inverse=True))
-        text = eqx.combine(start["text"], eqx.filter(text, eqx.is_array, inverse=True))
-    ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
-    unet_losses: list[float] = []
-    if "editor-unet" in stored:
-        ustate, unet_losses = _restored(stored["editor-unet"], ustate, stages["editor-unet"])
     statics = (eqx.filter(unet, eqx.is_array, inverse=True),
                eqx.filter(text, eqx.is_array, inverse=True))
-    schedule = DDPMSchedule.from_config(tiny_ip2p.SCHEDULER_CONFIG)
-    ustep = tiny_ip2p.make_unet_step(cfg, statics, d, scaling, schedule)
-    ustate, unet_losses = tiny_ip2p.run_steps(
-        ustep, ustate, cfg.steps, every=CHECKPOINT_EVERY, losses=unet_losses,
-        on_progress=stage("unet", cfg.steps, int(ustate.step)),
-        checkpoint=_checkpointer(stages["editor-unet"], "editor-unet", cfg))
-    seconds["unet"] = time.perf_counter() - t0
+    unet_losses: list[float] = []
+    if cfg.steps:
+        t0 = time.perf_counter()
+        d = tiny_ip2p.unet_data(data, vae, tokens, k_degrade)
+        scaling = tiny_ip2p.latent_scaling(np.asarray(d.target_mean)[train_rows],
+                                           np.asarray(d.target_std)[train_rows], k_scale)
+        seconds["latents"] = time.perf_counter() - t0
+        log(f"latent scaling factor {scaling:.4f}")
+        t0 = time.perf_counter()
+        if start is not None:
+            unet, text = (eqx.combine(start[name], static)
+                          for name, static in zip(("unet", "text"), statics))
+        ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
+        if "editor-unet" in stored:
+            ustate, unet_losses = _restored(stored["editor-unet"], ustate, stages["editor-unet"])
+        schedule = DDPMSchedule.from_config(tiny_ip2p.SCHEDULER_CONFIG)
+        ustep = tiny_ip2p.make_unet_step(cfg, statics, d, scaling, schedule)
+        ustate, unet_losses = tiny_ip2p.run_steps(
+            ustep, ustate, cfg.steps, every=CHECKPOINT_EVERY, losses=unet_losses,
+            on_progress=stage("unet", cfg.steps, int(ustate.step)),
+            checkpoint=_checkpointer(stages["editor-unet"], "editor-unet", cfg))
+        seconds["unet"] = time.perf_counter() - t0
+        exported = ustate.ema
+    else:
+        scaling = start["scaling"]
+        log(f"UNet and text encoder kept; latent scaling factor {scaling:.4f} (--init's)")
+        exported = tiny_ip2p.Networks(start["unet"], start["text"])
 
     summary = {
         "config": _config_record(cfg), "seconds": {k: round(v, 1) for k, v in seconds.items()},
@@ -422,15 +457,16 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
         "dataset": {"views": int(len(data.inputs)), "held_out_views": int(data.held_out.sum()),
                     "edited_views": int(len(data.targets)),
                     "scenes": list(data.scenes)},
-        "scaling_factor": scaling,
+        "scaling_factor": scaling, "autoencoder": autoencoder,
+        "unet": "trained" if cfg.steps else "kept",
         "vae_loss_last100": _mean_tail(vae_losses), "unet_loss_last100": _mean_tail(unet_losses),
         "vae_losses_every50": vae_losses[::50], "unet_losses_every50": unet_losses[::50],
     }
     write_pipeline(
-        out / "model", unet=eqx.combine(ustate.ema.unet, statics[0]),
+        out / "model", unet=eqx.combine(exported.unet, statics[0]),
         unet_config=tiny_ip2p.unet_config(cfg), vae=vae,
         vae_config=tiny_ip2p.vae_config(cfg, scaling),
-        text_encoder=eqx.combine(ustate.ema.text, statics[1]),
+        text_encoder=eqx.combine(exported.text, statics[1]),
         text_config=tiny_ip2p.text_config(cfg, len(vocab), tokenizer.bos_id, tokenizer.eos_id),
         vocab=vocab, merges=merges, bos=tiny_ip2p.BOS, eos=tiny_ip2p.EOS,
         max_length=tiny_ip2p.MAX_LENGTH, scheduler_config=tiny_ip2p.SCHEDULER_CONFIG,
@@ -456,7 +492,8 @@ def run_tokenizer(cfg, out: Path, resume: bool) -> tuple[dict[str, int], list]:
 
 def initial_networks(cfg, vocab: dict) -> dict:
     """The arrays of ``cfg.init``'s autoencoder, UNet and text encoder ({"vae", "unet",
-    "text"}), checked to be this config's architecture (every array's path and shape).
+    "text"}), checked to be this config's architecture (every array's path and shape), and
+    its latent scaling factor ("scaling").
 
     Raises:
       DataError naming ``--init``.
@@ -480,6 +517,7 @@ def initial_networks(cfg, vocab: dict) -> dict:
                                       f"architecture (--size, --text-width, --text-layers)")
         out[name] = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(want),
                                                  jax.tree_util.tree_leaves(got))
+    out["scaling"] = float(models.vae.scaling_factor)
     return out
 
 
