@@ -83,9 +83,10 @@ class EditorTrainConfig:
       vae_lr: the autoencoder's peak learning rate (Adam, cosine decay).
       decoder_steps: with ``init``, steps that fine-tune the kept autoencoder's decoder on
         the training views (``vae_batch`` crops of ``vae_crop`` px, ``vae_lr``). The encoder
-        is frozen, so the latents the UNet was trained on, and the UNet, stay valid: a
-        sharper decoder lifts every edit and the round trip alike (Stable Diffusion's
-        fine-tuned decoders are made the same way). 0: the decoder is kept as it is.
+        is frozen, so the latents the UNet was trained on, and the UNet, stay valid
+        (Stable Diffusion's fine-tuned decoders were made the same way); it sharpens the
+        round trip, while what it does to the edits, decoded from the UNet's latents, is
+        the quality benchmark's to say (docs/editor.md, v17). 0: the decoder is kept.
       steps: training steps of the UNet and the text encoder; 0 (with ``init`` only): both
         are kept as they are, with ``init``'s latent scaling factor.
       batch: examples per UNet step.
