@@ -432,7 +432,7 @@ def train_editor(cfg: tiny_ip2p.EditorTrainConfig, out: str | Path, *, resume: b
         seconds["latents"] = time.perf_counter() - t0
         log(f"latent scaling factor {scaling:.4f}")
         t0 = time.perf_counter()
-        if start is not None:
+        if from_init:
             unet, text = (eqx.combine(start[name], static)
                           for name, static in zip(("unet", "text"), statics))
         ustate = tiny_ip2p.init_unet(cfg, unet, text, k_unet)
