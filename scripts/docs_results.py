@@ -115,6 +115,21 @@ def _edits_per_scene(d: dict) -> str:
                      "input's round trip vs target", "ceiling"], rows))
 
 
+def _outcomes_per_scene(parts) -> str:
+    """The divergent instructions' outcome figures per scene (records since the field
+    exists): pooled shares can hide a scene that always gets one outcome."""
+    rows = [[where, n, f"`{scene}`", x["outcomes"]["edited"],
+             f(x["outcomes"]["unedited_fraction"]), f(x["outcomes"]["single_outcome_fraction"]),
+             _fracs(x["outcomes"]["outcome_frequencies"])]
+            for where, part in parts for n, i in part.get("instructions", {}).items()
+            for scene, x in i.get("per_scene", {}).items() if "outcomes" in x]
+    if not rows:
+        return ""
+    return ("\n### Outcomes per scene\n\nThe same classes, each scene's draws alone.\n\n"
+            + table(["cameras", "instruction", "scene", "edited draws", "unedited",
+                     "one outcome", "outcome frequencies"], rows))
+
+
 def editor_quality() -> str:
     rel = "cpu/editor_quality.json"
     d = load(rel)
@@ -160,11 +175,15 @@ def editor_quality() -> str:
                 continue
             base = i.get("baseline", {}).get("input", {})
             spans = i.get("intervals", {})
+            spread = i.get("view_spread", {})
             rows.append([where, n, f(i.get("unedited_fraction")),
                          f(i.get("single_outcome_fraction")),
                          _fracs(i.get("outcome_frequencies")),
                          _spans(spans.get("outcome_frequencies")), f(i.get("mixed_fraction")),
-                         f(i.get("other_fraction")), f(base.get("unedited_fraction")),
+                         f(i.get("other_fraction")),
+                         f"{f(spread.get('spread'))} ({f(spread.get('expected'))})"
+                         if spread else "-",
+                         f(base.get("unedited_fraction")),
                          f(base.get("single_outcome_fraction"))])
     if rows:
         s.append("\n## Outcomes, with an unedited class\n\n"
@@ -173,10 +192,15 @@ def editor_quality() -> str:
                  "unedited fraction is over all draws, the rest over the edited draws. "
                  "*Input* is the same measure on the unedited views themselves. The intervals "
                  "are 95 % over the views (a bootstrap resampling views: a view's draws lean "
-                 "alike).\n\n")
+                 "alike). *Views split* is the share of views whose draws land on more than "
+                 "one outcome, beside (in brackets) that share if every draw picked "
+                 "independently with the pooled frequencies: a model choosing the outcome by "
+                 "the view, not by the noise, scores 0 there whatever its pooled shares.\n\n")
         s.append(table(["cameras", "instruction", "unedited", "one outcome",
                         "outcome frequencies", "their 95 % intervals", "mixed", "other",
-                        "input: unedited", "input: one outcome"], rows))
+                        "views split (if independent)", "input: unedited",
+                        "input: one outcome"], rows))
+        s.append(_outcomes_per_scene(parts))
     rows = []
     for where, part in parts:
         for goal, v in part.get("goals", {}).items():

@@ -95,6 +95,26 @@ def test_view_bootstrap_intervals_follow_the_views_not_the_draws():
         oc.summarise(labels, 2, groups=views[:-1])
 
 
+def test_view_spread_tells_a_choice_by_view_from_a_choice_by_draw():
+    # Balanced pooled shares and one outcome in every draw both ways; only the spread differs.
+    views = np.repeat(np.arange(30), 4)
+    by_view = [int(v % 3) for v in views]
+    s = oc.view_spread(by_view, views, 3)
+    assert s == {"views": 30, "spread": 0.0, "expected": pytest.approx(1 - 3 / 3 ** 4)}
+    assert oc.summarise(by_view, 3)["outcome_frequencies"] == pytest.approx([1 / 3] * 3)
+    by_draw = list(np.random.default_rng(0).integers(0, 3, len(views)))
+    s = oc.view_spread(by_draw, views, 3)
+    assert s["spread"] == pytest.approx(s["expected"], abs=0.1) and s["spread"] > 0.8
+    # Draws off every outcome do not count; a view left with one outcome draw is not judged.
+    s = oc.view_spread([0, 1, oc.MIXED, oc.UNEDITED, 2, oc.OTHER], [0, 0, 0, 1, 1, 1], 3)
+    assert s["views"] == 1 and s["spread"] == 1.0
+    assert s["expected"] == pytest.approx(1 - 2 * 0.5 ** 2)
+    assert oc.view_spread([oc.MIXED, 0], [0, 0], 3) == {"views": 0, "spread": None,
+                                                         "expected": None}
+    with pytest.raises(ValueError, match="groups"):
+        oc.view_spread([0, 1], [0], 3)
+
+
 def test_an_outcome_equal_to_the_input_is_refused():
     u = np.full((4, 4, 3), 0.5, np.float32)
     with pytest.raises(ValueError, match="equals the input"):
@@ -117,3 +137,24 @@ def test_band_figures_place_a_change_inside_or_outside_the_outcome_s_band(diverg
         assert twice["gain_in_band"] == pytest.approx(2.0, abs=1e-4), prompt
         cast = band_figures(t + 0.1, np.stack([u] * k), np.stack([t] * k))
         assert 0.2 < cast["outside_band"] < 1, prompt
+
+
+def test_outcome_figures_per_scene_and_by_view(divergent):
+    """outcome_figures with views and scenes: each scene's draws summarised alone, and a
+    choice by the view (every draw of a view the same outcome) seen as no spread."""
+    from jaxedit.pipelines.train_editor.quality import outcome_figures
+
+    u, t, prompt = divergent[0]
+    assert len(t) == 3, prompt
+    # Two views of one scene, one of another; each view always the same outcome.
+    views = [0, 0, 1, 1, 2, 2]
+    picks = [0, 0, 1, 1, 2, 2]
+    images = np.stack([t[c] for c in picks])
+    figures = outcome_figures(images, np.stack([u] * 6), np.stack([t] * 6), views=views,
+                              scenes=["a", "a", "a", "a", "b", "b"])
+    assert figures["outcome_frequencies"] == pytest.approx([1 / 3] * 3), prompt
+    assert figures["view_spread"] == {"views": 3, "spread": 0.0,
+                                      "expected": pytest.approx(1 - 3 / 9)}
+    assert figures["per_scene"]["a"]["outcome_frequencies"] == pytest.approx([0.5, 0.5, 0])
+    assert figures["per_scene"]["b"]["outcome_frequencies"] == pytest.approx([0, 0, 1])
+    assert figures["per_scene"]["b"]["draws"] == 2

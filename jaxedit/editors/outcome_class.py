@@ -41,6 +41,13 @@ one-outcome share and of each outcome's frequency from a bootstrap that resample
 resampling draws would make the intervals too narrow). With a few dozen views the interval
 of a frequency spans about +-10 points: it says whether a figure near a goal's edge is a miss
 or sampling noise.
+
+Pooled shares can still be fooled: a model that always gives view A outcome 0 and view B
+outcome 1 has balanced frequencies and one outcome in every draw, yet it picks by the view,
+not by the noise. :func:`view_spread` tells the two apart: over the views with at least two
+draws on an outcome, the share whose draws land on more than one outcome, beside the share
+expected if every draw picked independently with the pooled frequencies (0 for a choice by
+view, whatever the pooled shares).
 """
 
 from __future__ import annotations
@@ -67,7 +74,7 @@ OTHER_RESIDUAL = 1.0
 BOOTSTRAP, LEVEL = 10_000, 0.95
 
 __all__ = ["BOOTSTRAP", "EDITED_PROGRESS", "LEVEL", "MIXED", "OTHER", "OTHER_RESIDUAL",
-           "PURE_SHARE", "UNEDITED", "classify", "classify_many", "summarise"]
+           "PURE_SHARE", "UNEDITED", "classify", "classify_many", "summarise", "view_spread"]
 
 
 def classify(image, original, targets, *, other_gate: bool = True) -> dict:
@@ -127,6 +134,28 @@ def summarise(labels: Sequence, k: int, groups: Sequence | None = None, *, seed:
     if groups is not None:
         out["intervals"] = _view_bootstrap(labels, groups, k, seed, resamples)
     return out
+
+
+def view_spread(labels: Sequence, groups: Sequence, k: int) -> dict:
+    """Whether an outcome is the draw's or the view's (module docstring): ``labels`` and
+    ``groups`` (the view each draw edits) as for :func:`summarise`. Over the views with at
+    least two draws on one of the K outcomes: {"views": how many, "spread": the share whose
+    outcome draws are not all one outcome, "expected": that share if each draw picked
+    independently with the pooled outcome frequencies}; both None without such a view."""
+    if len(groups) != len(labels):
+        raise ValueError(f"{len(groups)} groups for {len(labels)} labels")
+    per_view: dict = {}
+    for g, label in zip(groups, labels):
+        if isinstance(label, (int, np.integer)) and 0 <= label < k:
+            per_view.setdefault(g, []).append(int(label))
+    chosen = [v for v in per_view.values() if len(v) >= 2]
+    if not chosen:
+        return {"views": 0, "spread": None, "expected": None}
+    pooled = np.bincount(np.concatenate(chosen), minlength=k) / sum(map(len, chosen))
+    # P(m independent draws not all one outcome) = 1 - sum_k p_k^m, averaged over the views.
+    expected = np.mean([1.0 - np.sum(pooled ** len(v)) for v in chosen])
+    spread = np.mean([len(set(v)) > 1 for v in chosen])
+    return {"views": len(chosen), "spread": float(spread), "expected": float(expected)}
 
 
 def _view_bootstrap(labels: Sequence, groups: Sequence, k: int, seed: int,

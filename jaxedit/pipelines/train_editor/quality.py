@@ -100,16 +100,25 @@ def vae_ceiling(editor, targets: np.ndarray) -> np.ndarray | None:
     return None if kept is None else psnr(kept, flat).reshape(targets.shape[:2]).max(1)
 
 
-def outcome_figures(images, originals, targets, views: Sequence[int] | None = None) -> dict:
+def outcome_figures(images, originals, targets, views: Sequence[int] | None = None,
+                    scenes: Sequence[str] | None = None) -> dict:
     """The outcome measure's figures (:mod:`.outcome_class`) of B edits: images, originals
     [B, H, W, 3], targets [B, K, H, W, 3]; with ``without_other_gate`` and the medians of the
     classification's ``progress`` and ``residual``. ``views`` (B, the view each edit is of)
-    adds the intervals of a bootstrap over the views."""
+    adds the intervals of a bootstrap over the views and ``view_spread`` (whether the outcome
+    is the draw's or the view's); ``scenes`` (B names) adds the figures per scene
+    (``per_scene``: pooled shares could hide a scene that always gets one outcome)."""
     k = targets.shape[1]
     full = [outcome_class.classify(x, u, t) for x, u, t in zip(images, originals, targets)]
     lean = [outcome_class.classify(x, u, t, other_gate=False)["label"]
             for x, u, t in zip(images, originals, targets)]
-    out = outcome_class.summarise([c["label"] for c in full], k, groups=views)
+    labels = [c["label"] for c in full]
+    out = outcome_class.summarise(labels, k, groups=views)
+    if views is not None:
+        out["view_spread"] = outcome_class.view_spread(labels, views, k)
+    if scenes is not None:
+        out["per_scene"] = {name: outcome_class.summarise(
+            [x for x, s in zip(labels, scenes) if s == name], k) for name in dict.fromkeys(scenes)}
     out["without_other_gate"] = outcome_class.summarise(lean, k)
     out["progress_median"] = float(np.median([c["progress"] for c in full]))
     out["residual_median"] = float(np.median([c["residual"] for c in full]))
@@ -249,7 +258,12 @@ def evaluate(editor, data: EditDataset, views: Sequence[int], key: jax.Array, *,
                  "per_scene": {name: {k: by[name] for k, by in per_scene.items()}
                                for name in per_scene["psnr"]}}
         if k_out > 1:
-            entry.update(outcome_figures(out, inputs[rows], targets, views=rows))
+            figures = outcome_figures(out, inputs[rows], targets, views=rows,
+                                      scenes=[data.scenes[data.scene[v]] for v in rows])
+            # Beside the edits' per-scene PSNRs, their outcomes per scene.
+            for name, by_scene in figures.pop("per_scene").items():
+                entry["per_scene"][name]["outcomes"] = by_scene
+            entry.update(figures)
             rows_at = [at[v] for v in vs]
             entry["baseline"] = {
                 "input": outcome_figures(inputs[vs], inputs[vs], one),
