@@ -141,7 +141,8 @@ def view_spread(labels: Sequence, groups: Sequence, k: int) -> dict:
     ``groups`` (the view each draw edits) as for :func:`summarise`. Over the views with at
     least two draws on one of the K outcomes: {"views": how many, "spread": the share whose
     outcome draws are not all one outcome, "expected": that share if each draw picked
-    independently with the pooled outcome frequencies}; both None without such a view."""
+    independently with the outcome frequencies pooled over those views}; both None without
+    such a view."""
     if len(groups) != len(labels):
         raise ValueError(f"{len(groups)} groups for {len(labels)} labels")
     per_view: dict = {}
