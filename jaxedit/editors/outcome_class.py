@@ -136,6 +136,16 @@ def summarise(labels: Sequence, k: int, groups: Sequence | None = None, *, seed:
     return out
 
 
+def _is_outcome(label, k: int) -> bool:
+    """Whether a label is one of the K outcomes (not unedited, mixed or other)."""
+    return isinstance(label, (int, np.integer)) and 0 <= label < k
+
+
+def _check_groups(labels: Sequence, groups: Sequence) -> None:
+    if len(groups) != len(labels):
+        raise ValueError(f"{len(groups)} groups for {len(labels)} labels")
+
+
 def view_spread(labels: Sequence, groups: Sequence, k: int) -> dict:
     """Whether an outcome is the draw's or the view's (module docstring): ``labels`` and
     ``groups`` (the view each draw edits) as for :func:`summarise`. Over the views with at
@@ -143,11 +153,10 @@ def view_spread(labels: Sequence, groups: Sequence, k: int) -> dict:
     outcome draws are not all one outcome, "expected": that share if each draw picked
     independently with the outcome frequencies pooled over those views}; both None without
     such a view."""
-    if len(groups) != len(labels):
-        raise ValueError(f"{len(groups)} groups for {len(labels)} labels")
+    _check_groups(labels, groups)
     per_view: dict = {}
     for g, label in zip(groups, labels):
-        if isinstance(label, (int, np.integer)) and 0 <= label < k:
+        if _is_outcome(label, k):
             per_view.setdefault(g, []).append(int(label))
     chosen = [v for v in per_view.values() if len(v) >= 2]
     if not chosen:
@@ -165,15 +174,14 @@ def _view_bootstrap(labels: Sequence, groups: Sequence, k: int, seed: int,
     ``resamples`` resamples of the views (``groups``, one per label) with replacement; a
     resample without an edited draw is left out. {"level", "resamples", "views",
     "single_outcome_fraction": [low, high], "outcome_frequencies": [[low, high]] * K}."""
-    if len(groups) != len(labels):
-        raise ValueError(f"{len(groups)} groups for {len(labels)} labels")
+    _check_groups(labels, groups)
     views, view_of = np.unique(np.asarray(groups), return_inverse=True)
     # Per view: its draws in each outcome (columns 0..K-1) and its edited draws (column K).
     per_view = np.zeros((len(views), k + 1))
     for v, label in zip(view_of, labels):
         if label != UNEDITED:
             per_view[v, k] += 1
-            if isinstance(label, (int, np.integer)) and 0 <= label < k:
+            if _is_outcome(label, k):
                 per_view[v, label] += 1
     pick = np.random.default_rng(seed).integers(0, len(views), (resamples, len(views)))
     sums = per_view[pick].sum(1)  # [R, K + 1]
