@@ -24,7 +24,8 @@ Every figure is measured by editing with an :class:`~jaxedit.editors.base.Editor
   ``intervals``: the one-outcome share's and each frequency's 95 % interval over the views;
   ``view_spread``: whether a view's draws land on several outcomes as independent draws
   would (the outcome the noise's, not the view's); ``per_scene.SCENE.outcomes``: the same
-  classes per scene; ``without_other_gate`` the same where an edit leans however much else it changed;
+  classes per scene; ``without_other_gate`` the same where an edit leans however much else
+  it changed;
   ``baseline``: the same measure on the unedited input itself, on the E("") edits and on the
   VAE round trips of the same views (what an editor that does not edit scores).
   ``nearest_target``: the old measure (the share of edits nearest each outcome target, and
