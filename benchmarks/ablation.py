@@ -3,7 +3,7 @@
     python benchmarks/ablation.py [--smoke] [--out DIR] [--scenes face] [--seeds 20]
                                   [--variants 3,1,3:0] [--prompts P1,P2]
 
-Runs :func:`jaxedit.pipelines.ablation.run_ablation` at its defaults (simulated editor; see
+Runs :func:`jaxedit_lab.ablation.run_ablation` at its defaults (simulated editor; see
 that module for the methods, the editor variants and the mode-aware scores) into
 ``DIR/ablation_run`` (ablation.json with every run, ablation.md, views/, report.html) and
 writes ``DIR/ablation.json`` with the settings, the
@@ -20,7 +20,7 @@ from common import parse_args, peak_rss_mb, write_json
 
 
 def extra(p):
-    from jaxedit.pipelines.ablation import AblationConfig
+    from jaxedit_lab.ablation import AblationConfig
 
     defaults = AblationConfig()
     p.add_argument("--scenes", default=",".join(defaults.scenes))
@@ -35,7 +35,7 @@ def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra)
     import dataclasses
 
-    from jaxedit.pipelines.ablation import AblationConfig, run_ablation, tables
+    from jaxedit_lab.ablation import AblationConfig, run_ablation, tables
 
     split = lambda text: tuple(t.strip() for t in text.split(",") if t.strip())  # noqa: E731
     config = AblationConfig.smoke() if args.smoke else dataclasses.replace(

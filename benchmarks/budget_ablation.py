@@ -304,7 +304,7 @@ def resumable(path: Path, settings: dict, sizes: dict) -> list[dict]:
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra)
     from jaxedit import DataError
-    from jaxedit.editors.simulated import SimulatedEditor
+    from jaxedit_lab.simulated import SimulatedEditor
 
     sizes = dict(SMOKE if args.smoke else FULL)
     for name in ("max_steps", "patience"):

@@ -72,7 +72,7 @@ def main(argv=None):
 
     from jaxedit.edit import ProEditConfig, TrainSettings
     from jaxedit.pipelines import run_edit
-    from jaxedit.editors.simulated import SimulatedEditor
+    from jaxedit_lab.simulated import SimulatedEditor
 
     if args.smoke:
         args.size, args.views, args.points, args.max_steps = 32, 6, 200, 16

@@ -1,5 +1,5 @@
 """Quality of the bundled InstructPix2Pix on held-out cameras
-(:mod:`jaxedit.pipelines.train_editor.quality`).
+(:mod:`jaxedit_lab.train_editor.quality`).
 
 Rebuilds the edit dataset with the settings the model lists in its ``instructions.json``,
 keeps the held-out cameras only, and measures per instruction: the full edit's PSNR against
@@ -7,7 +7,7 @@ its target (nearest outcome), identity with E(""), the outcome frequencies and m
 divergent instructions from fresh noise, SDEdit holding at T = 0.45 / 0.85 for a small ratio
 step and for the jump to r = 1, and d(0, r) along the text interpolation (the difficulty's
 distance: LPIPS where its weights are, else MS-SSIM). The divergent instructions' outcomes
-are classed with :mod:`jaxedit.editors.outcome_class` (one outcome / unedited / mixed /
+are classed with :mod:`jaxedit_lab.outcome_class` (one outcome / unedited / mixed /
 other, against the unedited input); identity is measured at ProEdit's SDEdit range (T = 0.45,
 0.85) and at T = 0.98, beside the VAE round trip; ``goals`` checks issue 51's goals on
 these figures. Also writes ``editor_quality.png``: per held-out view and instruction, the
@@ -16,7 +16,7 @@ input, each outcome's target and four edits at T = 0.98.
 The held-out cameras lie on the training orbits; each one's PSNR to the nearest training
 frame of its scene is in ``nearest_training_psnr_db``. ``novel`` holds the same figures (but
 holding and interpolation) on ``--novel-views`` cameras per procedural scene off the orbits
-(:func:`jaxedit.pipelines.train_editor.edit_data.novel_views`: nearer, above the elevation
+(:func:`jaxedit_lab.train_editor.edit_data.novel_views`: nearer, above the elevation
 band), with their own nearest-frame PSNRs and goals, and ``editor_quality_novel.png``.
 
     python benchmarks/editor_quality.py                 # the committed record (CPU, minutes)
@@ -52,8 +52,8 @@ def _extra(p):
 
 def contact_sheet(editor, data, views, key, path: Path, guidance=None) -> None:
     """A PNG: one row per (held-out view, instruction): input, outcome targets, 4 edits."""
-    from jaxedit.pipelines.train_editor.edit_data import outcome_targets
-    from jaxedit.pipelines.train_editor.quality import run_edits
+    from jaxedit_lab.train_editor.edit_data import outcome_targets
+    from jaxedit_lab.train_editor.quality import run_edits
     from jaxedit.io.images import write_image
 
     inputs = data.inputs.astype(np.float32) / 255
@@ -124,11 +124,11 @@ def main(argv=None):
     from jaxedit.edit.difficulty import default_distance
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
     from jaxedit.editors import bundled_editor
-    from jaxedit.pipelines.train_editor import rebuild_dataset, trained_on
-    from jaxedit.pipelines.train_editor.edit_data import (NOVEL_ELEVATION_DEG, NOVEL_RADIUS,
+    from jaxedit_lab.train_editor import rebuild_dataset, trained_on
+    from jaxedit_lab.train_editor.edit_data import (NOVEL_ELEVATION_DEG, NOVEL_RADIUS,
                                                           nearest_training_psnr, novel_dataset,
                                                           separation)
-    from jaxedit.pipelines.train_editor.quality import evaluate
+    from jaxedit_lab.train_editor.quality import evaluate
 
     folder = args.weights or bundled_editor()
     settings = trained_on(folder)
@@ -179,10 +179,10 @@ def main(argv=None):
         contact_sheet(editor, novel, views[:: max(1, len(views) // 4)][:4],
                       jax.random.fold_in(key, 13), args.out / "editor_quality_novel.png",
                       args.guidance)
-    from jaxedit.editors import outcome_class as oc
+    from jaxedit_lab import outcome_class as oc
 
     result["outcome_measure"] = {
-        "module": "jaxedit.editors.outcome_class",
+        "module": "jaxedit_lab.outcome_class",
         "classes": "outcome k / unedited / mixed / other, against the unedited input",
         "edited_progress": oc.EDITED_PROGRESS, "pure_share": oc.PURE_SHARE,
         "other_residual": oc.OTHER_RESIDUAL}

@@ -15,7 +15,7 @@ over the lengths away; skipped, with the reason, when the two plans differ in le
   blue`` on the scene it was trained for. Its relevance is the "Watch Your Steps" noise
   difference (:meth:`jaxedit.editors.jax_ip2p.JaxIP2PEditor.relevance`). The target is the scene with the
   shoulders' albedo changed, ray-cast again at the held-out cameras (what the editor was
-  trained to produce, :func:`jaxedit.pipelines.train_editor.edit_data._edited_scene`).
+  trained to produce, :func:`jaxedit_lab.train_editor.edit_data._edited_scene`).
 - ``person`` (Blender renders): the simulated editor's local instruction ``paint the orange
   parts blue`` (the warm, coloured pixels swap red and blue: his hair and skin; every other
   pixel of the target is the original); the target is the editor's noise-free r = 1 edit.
@@ -136,7 +136,7 @@ def prepare_scene(out: Path, scene: str, sizes: dict, seed: int, log=print):
 
 def make_editor(kind: str, sizes: dict):
     if kind == "simulated":
-        from jaxedit.editors import SimulatedEditor
+        from jaxedit_lab.simulated import SimulatedEditor
 
         return SimulatedEditor()
     from jaxedit.edit.buffer import pick_devices
@@ -149,7 +149,7 @@ def targets(case: str, editor, prompt: str, data, sizes: dict) -> np.ndarray:
     """float32 [T, H, W, 3]: what the edit should look like at the held-out views."""
     if case == "person":
         return np.stack([editor.target(o, 1.0, prompt) for o in data.test_images])
-    from jaxedit.pipelines.train_editor.edit_data import _edited_scene
+    from jaxedit_lab.train_editor.edit_data import _edited_scene
     from jaxedit.scenes import get_scene, render_scene, scene_cameras
     from jaxedit.scenes.dataset import PROCEDURAL_DEFAULTS
 
@@ -167,7 +167,9 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
     from jaxedit.edit import TrainSettings
     from jaxedit.edit import local as L
     from jaxedit.errors import DataError
+    from jaxedit.edit.hooks import NO_HOOKS
     from jaxedit.pipelines import run_edit
+    from jaxedit_lab.ablation.controls import ControlConfig
 
     prompt = CASES[case][2]
     spec = L.LocalSpec("auto")
@@ -190,13 +192,13 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
             ("local_global_steps", spec, None))
     for name, local, arm_config in arms:
         if arm_config is None:
-            arm_config = dataclasses.replace(
-                config, subtask_steps=tuple(runs["global"]["subtask_steps"]))
+            arm_config = ControlConfig(**dataclasses.asdict(config),
+                                       subtask_steps=tuple(runs["global"]["subtask_steps"]))
         t0 = time.perf_counter()
         try:
             res = run_edit(editor, prompt, data, g, config=arm_config,
                            settings=TrainSettings(), seed=seed, run_dir=None, report=False,
-                           local=local)
+                           local=local, hooks=getattr(arm_config, "hooks", lambda: NO_HOOKS)())
         except DataError as e:   # the local plan has another subtask count than the global
             runs[name] = {"skipped": str(e)}
             continue

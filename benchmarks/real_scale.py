@@ -110,8 +110,7 @@ def run_pass(s: dict, folder: Path, work: Path) -> dict:
                             steps=s["ddim_steps"], batch=s["batch"])
     views = EditData.from_dataset(data)
     config = ProEditConfig(subtasks=s["subtasks"], refine_first=False, consolidate=False,
-                           stop_on_plateau=False, subtask_steps=(s["steps"],) * s["subtasks"],
-                           max_steps=s["steps"], edit_every=s["edit_every"], turntable_frames=0)
+                           stop_on_plateau=False, max_steps=s["steps"], edit_every=s["edit_every"], turntable_frames=0)
     out, edit_s = _timed(run_edit, editor, PROMPT, views, scene, config=config, seed=0,
                          run_dir=work / "edit", report=False)
     edit_compiles = compile_stats(since=c1)

@@ -84,7 +84,7 @@ def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv)
     from jaxedit.edit.difficulty import DifficultyOracle
     from jaxedit.edit.schedule import uniform
-    from jaxedit.editors.simulated import SimulatedEditor
+    from jaxedit_lab.simulated import SimulatedEditor
 
     max_depth = 5 if args.smoke else 6
     thresholds = (0.25, 0.1) if args.smoke else (0.3, 0.15, 0.08)

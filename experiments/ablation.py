@@ -1,8 +1,8 @@
 """``python -m experiments ablation``: ProEdit vs its controls as paired statistics over seeds.
 
-The edge of :mod:`jaxedit.pipelines.ablation` (whose docstring has the methods, the
+The edge of :mod:`jaxedit_lab.ablation` (whose docstring has the methods, the
 editor variants, the scores and what RUN_DIR receives): the flags are generated from
-:class:`jaxedit.pipelines.ablation.AblationConfig` (experiments/flags.py); ``--smoke``
+:class:`jaxedit_lab.ablation.AblationConfig` (experiments/flags.py); ``--smoke``
 is :meth:`AblationConfig.smoke`, and ``--seed`` seeds the scenes and reconstructions.
 """
 
@@ -16,17 +16,17 @@ HELP = ("ablation: proedit vs nd, nd at equal steps and calls (nd_equal, nd_repl
 
 
 def _config_flags():
-    from jaxedit.pipelines.ablation import AblationConfig
+    from jaxedit_lab.ablation import AblationConfig
 
     from .flags import Flag, FlagSet
 
-    from jaxedit.pipelines.ablation import EDITORS
+    from jaxedit_lab.ablation import EDITORS
 
     names = ("scenes", "prompts", "seeds", "variants", "methods", "control_methods", "size",
              "views", "test_views", "recon_iters", "refine_every", "max_steps", "warmup",
              "patience", "edit_every", "lr_sh_dc", "ip2p_steps", "ip2p_weights", "points")
     return FlagSet(AblationConfig, tuple(Flag(name) for name in names) + (
-        Flag("editor", choices=EDITORS), Flag("references", off="--no-references")))
+        Flag("editor", choices=EDITORS), Flag("references", off="--no-references"))).complete()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,11 +47,11 @@ class AblationCommand:
 def _command_flags():
     from .flags import Flag, FlagSet
 
-    return FlagSet(AblationCommand, (Flag("smoke"), Flag("seed_range", metavar="A:B")))
+    return FlagSet(AblationCommand, (Flag("smoke"), Flag("seed_range", metavar="A:B"))).complete()
 
 
 #: The command's flags: the study's settings, generated from
-#: :class:`jaxedit.pipelines.ablation.AblationConfig`, and the command's own
+#: :class:`jaxedit_lab.ablation.AblationConfig`, and the command's own
 #: (:class:`AblationCommand`).
 FLAGS = (_config_flags(), _command_flags())
 
@@ -81,7 +81,7 @@ def seed_range(text: str | None, seeds: int) -> range | None:
 def run_config(args):
     """The :class:`AblationConfig` of ``args`` (DataErrors name its fields)."""
     from jaxedit import DataError
-    from jaxedit.pipelines.ablation import AblationConfig
+    from jaxedit_lab.ablation import AblationConfig
 
     if not args.smoke:
         return FLAGS[0].build(args)
@@ -95,7 +95,7 @@ def run_config(args):
 
 def run(args) -> dict:
     from jaxedit import DataError
-    from jaxedit.pipelines.ablation import ALL, run_ablation
+    from jaxedit_lab.ablation import ALL, run_ablation
 
     if args.out is None:
         raise DataError("--out", "required (the ablation run directory)")

@@ -54,7 +54,7 @@ def _config_flags():
     from experiments.flags import Flag, FlagSet
 
     return FlagSet(BenchConfig, (Flag("smoke"), Flag("only"), Flag("timeout"),
-                                 Flag("max_rows")))
+                                 Flag("max_rows"))).complete()
 
 
 #: The command's flags, generated from :class:`BenchConfig`.

@@ -43,7 +43,7 @@ import tomllib
 from pathlib import Path
 
 # finite_float (re-exported), TYPE_READERS: how a flag's type reads its text.
-from .flags import (GIVEN, TYPE_READERS, Flag, FlagSet, as_flags, comma_list,  # noqa: F401
+from .flags import (COMMA_READERS, GIVEN, TYPE_READERS, Flag, FlagSet, as_flags, comma_list,  # noqa: F401
                     finite_float, flag_names)
 
 COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
@@ -245,9 +245,10 @@ def config_value(sub: argparse.ArgumentParser, action: argparse.Action, value, p
             raise DataError(path, f"{action.dest}: {name} is a switch, expected true or false, "
                             f"got {value!r}")
         return value
-    if action.type is comma_list and isinstance(value, list) and all(
-            isinstance(v, str) for v in value):
-        value = ",".join(value)  # config.json records a comma-separated flag as a list
+    items = str if action.type is comma_list else (str, int, float)
+    if action.type in COMMA_READERS and isinstance(value, list) and all(
+            isinstance(v, items) and not isinstance(v, bool) for v in value):
+        value = ",".join(map(str, value))  # config.json records a comma-separated flag as a list
     many = action in sub.lists or action.nargs in ("+", "*") or isinstance(action.nargs, int)
     values = value if many and isinstance(value, list) else [value]
     if many and not isinstance(value, list):
@@ -287,14 +288,33 @@ def convert(action: argparse.Action, text: str):
     return value
 
 
+def _flat(config: dict, prefix: str = "") -> dict:
+    """A config file's tables flattened to dotted keys (``[train.densify]`` ->
+    ``train.densify.grad_threshold``)."""
+    out = {}
+    for k, v in config.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
 def config_values(sub: argparse.ArgumentParser, config: dict, path: Path) -> dict:
-    """{dest: value} of a config file, each checked by :func:`config_value`."""
+    """{dest: value} of a config file, each checked by :func:`config_value`. A key is a
+    flag's dest or a setting's path in the command's config tree (nested tables or dotted
+    keys: ``train.densify.grad_threshold``)."""
     from jaxedit import DataError
 
     actions = {}
     for a in sub.arguments:
         if a.dest not in ("help", "config"):
             actions.setdefault(a.dest, a)
+    module = sub.get_default("_module")
+    paths = {}
+    for flag_set in getattr(module, "FLAGS", ()):
+        paths.update(flag_set.keys())
+    config = {paths.get(k, k) if k not in actions else k: v for k, v in _flat(config).items()}
     unknown = sorted(set(config) - set(actions))
     if unknown:
         raise DataError(path, f"unknown flag(s) {', '.join(unknown)} for {sub.prog.split()[-1]}")
@@ -541,10 +561,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.device:
             import jax
             jax.config.update("jax_platforms", args.device)
-        # On at import; called again here so that a bad JAXEDIT_COMPILE_CACHE_MB or _MIN_S is
-        # one line.
-        from jaxedit.compilation import enable_persistent_cache
-        enable_persistent_cache()
+        # The commands compile once across runs and record what they compiled; a bad
+        # JAXEDIT_COMPILE_CACHE_MB or _MIN_S is one line.
+        from jaxedit.compilation import enable
+        enable()
         if dist is not None:
             from jaxedit.parallel.distributed import check_agreement, initialize, is_writer
 
@@ -613,7 +633,7 @@ def distributed_flags():
 
     return FlagSet(DistributedConfig, (
         Flag("coordinator"), Flag("num_processes"), Flag("process_id"),
-        Flag("init_timeout"), Flag("heartbeat_timeout")))
+        Flag("init_timeout"), Flag("heartbeat_timeout"))).complete()
 
 
 def distributed_config(args: argparse.Namespace):

@@ -48,7 +48,7 @@ def _config_flags():
     return FlagSet(ClipMetricsConfig, (
         Flag("run", required=True), Flag("snapshot"), Flag("clip_weights"),
         Flag("caption_orig", required=True), Flag("caption_edit", required=True),
-        Flag("clip_device")))
+        Flag("clip_device"))).complete()
 
 
 #: The command's flags, generated from :class:`ClipMetricsConfig`.

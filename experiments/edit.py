@@ -61,7 +61,7 @@ def _config_flags():
         Flag("editor.batch", "--ip2p-batch"),
         Flag("distance", choices=DISTANCES),
         Flag("lpips_weights"),
-    ))
+    ), derived=("train.densify.warmup",)).complete()  # the plan's --warmup
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +70,10 @@ class EditCommand:
     (:class:`jaxedit.pipelines.edit.EditRunConfig`).
 
     Attributes:
+      preset: a method's whole config tree to start from (proedit, nd, in2n, igs2gs;
+        None: the one --mode names); the flags given win over it.
+      print_config: print the config tree this command would run (JSON, the nested keys
+        --config reads) and exit.
       data: nerfstudio dataset folder (the scene's photos).
       scene: input 3DGS .ply (a reconstruction of --data).
       prompt: the editing instruction.
@@ -92,6 +96,8 @@ class EditCommand:
         view's size or a whole multiple of it; white = editable.
     """
 
+    preset: str | None = None
+    print_config: bool = False
     data: Path | None = None
     scene: Path | None = None
     prompt: str | None = None
@@ -120,13 +126,15 @@ def _command_flags():
 
     clip = "CLIP metrics (local weights, see the README)"
     local = "local edits (only what the instruction touches changes)"
+    from jaxedit.pipelines.presets import PRESETS
+
     return FlagSet(EditCommand, (
-        Flag("data"), Flag("scene"), Flag("prompt"), Flag("select"), Flag("select_only"),
+        Flag("preset", choices=tuple(PRESETS)), Flag("print_config"), Flag("data"), Flag("scene"), Flag("prompt"), Flag("select"), Flag("select_only"),
         Flag("resume"), Flag("resume_from"), Flag("no_report"), Flag("view"),
         Flag("view_port"), Flag("clip_weights", group=clip), Flag("caption_orig", group=clip),
         Flag("caption_edit", group=clip), Flag("local", choices=("auto", "off"), group=local),
         Flag("region", repeat=True, group=local, metavar="SPEC"),
-        Flag("masks", group=local, metavar="DIR")))
+        Flag("masks", group=local, metavar="DIR"))).complete()
 
 
 def _flag_sets():
@@ -178,17 +186,35 @@ def add_clip_metrics(args) -> dict | None:
 
 def mode_defaults(mode: str):
     """The :class:`jaxedit.pipelines.edit.EditRunConfig` the command runs for ``--mode``
-    without other flags: its plan is the mode's (:meth:`ProEditConfig.for_mode`)."""
-    from jaxedit.edit import ProEditConfig
-    from jaxedit.pipelines.edit import EditRunConfig
+    without other flags: the mode's preset (:mod:`jaxedit.pipelines.presets`)."""
+    from jaxedit.pipelines.presets import preset
 
-    return EditRunConfig(plan=ProEditConfig.for_mode(mode))
+    return preset(mode)
 
 
 def run_config(args):
     """The :class:`jaxedit.pipelines.edit.EditRunConfig` of ``args``: the flags given over
-    ``--mode``'s defaults (:func:`mode_defaults`; DataErrors name its fields)."""
-    return FLAGS[0].build(args, bases={"plan": mode_defaults(args.mode).plan})
+    ``--preset``'s tree, else ``--mode``'s (:func:`mode_defaults`; DataErrors name its fields)."""
+    base = mode_defaults(args.preset or args.mode)
+    return FLAGS[0].build(args, bases={f.name: getattr(base, f.name)
+                                       for f in dataclasses.fields(base)})
+
+
+def config_tree_json(tree) -> str:
+    """``tree`` as the JSON ``--config`` reads back: nested tables of settings by field
+    (without the fields another flag sets)."""
+    import json
+
+    from .cli import jsonable
+
+    out = jsonable(dataclasses.asdict(tree))
+    for path in FLAGS[0].derived:
+        *parents, leaf = path.split(".")
+        node = out
+        for part in parents:
+            node = node[part]
+        node.pop(leaf)
+    return json.dumps(out, indent=2)
 
 
 def progress_callback(quiet: bool):
@@ -245,10 +271,14 @@ def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.parallel.distributed import split_edits
     from jaxedit.pipelines import select_snapshot
-    from jaxedit.pipelines.edit import edit_files, make_editor
+    from jaxedit.pipelines.edit import edit_files
 
     from .cli import writes
+    from .editors import make_editor
 
+    if args.print_config:
+        print(config_tree_json(run_config(args)))
+        return {}
     if args.out is None:
         raise DataError("--out", "required (the run directory)")
     command_config(args)

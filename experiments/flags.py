@@ -194,6 +194,20 @@ def comma_list(text: str) -> tuple[str, ...]:
     return tuple(t.strip() for t in str(text).split(",") if t.strip())
 
 
+def comma_floats(text: str) -> tuple[float, ...]:
+    """A ``tuple[float, ...]`` field's flag value: comma-separated numbers."""
+    return tuple(finite_float(x) for x in comma_list(text))
+
+
+def comma_ints(text: str) -> tuple[int, ...]:
+    """A ``tuple[int, ...]`` field's flag value: comma-separated integers."""
+    return tuple(int(x) for x in comma_list(text))
+
+
+#: The readers of a tuple field given as one comma-separated value.
+COMMA_READERS = (comma_list, comma_floats, comma_ints)
+
+
 def _value_type(hint):
     """The parser of a field's annotation: its scalar type (``int | None`` -> int, a
     ``Path``), :func:`comma_list` for ``tuple[str, ...]``, or the item type of a tuple of
@@ -202,8 +216,8 @@ def _value_type(hint):
     if hint in (int, float, str, bool, Path):
         return hint
     items = typing.get_args(hint)
-    if typing.get_origin(hint) is tuple and items == (str, ...):
-        return comma_list
+    if typing.get_origin(hint) is tuple and items in ((str, ...), (float, ...), (int, ...)):
+        return {str: comma_list, float: comma_floats, int: comma_ints}[items[0]]
     if (typing.get_origin(hint) is tuple and items and Ellipsis not in items
             and len(set(items)) == 1 and items[0] in (int, float, str)):
         return items[0]
@@ -228,13 +242,58 @@ def _count(hint) -> int | None:
     return None
 
 
+#: Help section of the flags :meth:`FlagSet.complete` generates for the fields without a name.
+EVERY_SETTING = "every other setting, by its path in the config tree"
+
+
+def leaf_fields(root: type, prefix: str = "") -> list[str]:
+    """Dotted paths of the settings of config tree ``root`` (fields that are not dataclasses)."""
+    out = []
+    hints = typing.get_type_hints(root)
+    for f in dataclasses.fields(root):
+        hint = _optional(hints[f.name])
+        if dataclasses.is_dataclass(hint):
+            out += leaf_fields(hint, prefix + f.name + ".")
+        else:
+            out.append(prefix + f.name)
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class FlagSet:
     """The flags of one config tree ``root`` (a frozen dataclass whose fields may be
-    dataclasses in turn)."""
+    dataclasses in turn).
+
+    Attributes:
+      root: the tree's dataclass.
+      flags: its flags.
+      derived: fields the command sets from another flag (e.g. a seed from the shared
+        ``--seed``), which have no flag of their own here.
+    """
 
     root: type
     flags: tuple[Flag, ...]
+    derived: tuple[str, ...] = ()
+
+    def complete(self) -> "FlagSet":
+        """This set with a flag for every other setting of the tree, named by its path
+        (``--train.densify.grad-threshold``; a switch also ``--no-...``), so that each one is
+        reachable from the command line and from ``--config``."""
+        named = {f.field for f in self.flags} | set(self.derived)
+        extra = []
+        for path in leaf_fields(self.root):
+            if path in named:
+                continue
+            cls, field, _ = _owner_and_field(self.root, path)
+            dashed = path.replace("_", "-")
+            is_bool = _optional(typing.get_type_hints(cls)[field.name]) is bool
+            extra.append(Flag(path, "--" + dashed, off="--no-" + dashed if is_bool else None,
+                              key=path, group=EVERY_SETTING))
+        return dataclasses.replace(self, flags=self.flags + tuple(extra))
+
+    def keys(self) -> dict[str, str]:
+        """{dotted field path: dest} of every flag: the nested keys ``--config`` takes."""
+        return {f.field: f.dest for f in self.flags}
 
     def owner(self, flag: Flag) -> tuple[type, dataclasses.Field, Any]:
         return _owner_and_field(self.root, flag.field)
@@ -294,7 +353,7 @@ class FlagSet:
                                 default=default, metavar=flag.metavar,
                                 help=f"{text} (repeatable)")
             return
-        shown = ",".join(default) if kind is comma_list else default
+        shown = ",".join(map(str, default)) if kind in COMMA_READERS and default else default
         if count is not None and default is not None:
             shown = " ".join(map(str, default))
         notes = [] if flag.required else [f"default: {shown}"]
@@ -382,12 +441,13 @@ class FlagSet:
             elif flag.repeat:
                 for item in value:
                     out += [flag.flag, item]
-            elif isinstance(value, tuple) and kind is not comma_list:
+            elif isinstance(value, tuple) and kind not in COMMA_READERS:
                 out += [flag.flag, *map(str, value)]
             elif value is None:
                 raise ValueError(f"{flag.flag}: no command line unsets it (from {was!r})")
             else:
-                out += [flag.flag, ",".join(value) if kind is comma_list else str(value)]
+                out += [flag.flag, ",".join(map(str, value)) if kind in COMMA_READERS
+                        else str(value)]
         if "" in out:
             raise ValueError("a switch without an off flag cannot be turned off")
         return out

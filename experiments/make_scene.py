@@ -59,7 +59,7 @@ class SceneConfig:
 def _config_flags():
     from experiments.flags import Flag, FlagSet
 
-    return FlagSet(SceneConfig, tuple(Flag(f.name) for f in dataclasses.fields(SceneConfig)))
+    return FlagSet(SceneConfig, tuple(Flag(f.name) for f in dataclasses.fields(SceneConfig))).complete()
 
 
 #: The command's flags, generated from :class:`SceneConfig`.

@@ -51,7 +51,7 @@ def _config_flags():
         Flag("sfm.num_threads", "--threads"),
         Flag("sfm.focal_px"),
         Flag("sfm.refine_intrinsics"),
-    ))
+    ), derived=("sfm.camera_params",)).complete()  # from --camera-params
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,7 +79,7 @@ def _command_flags():
         Flag("images", exclusive="source", required=True),
         Flag("video", exclusive="source", required=True),
         Flag("matching", choices=("auto", "exhaustive", "sequential")),
-        Flag("camera_params", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]")))
+        Flag("camera_params", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]"))).complete()
 
 
 #: The command's flags: its settings', generated from :class:`jaxedit.capture.CaptureConfig`,

@@ -44,7 +44,7 @@ def _config_flags() -> FlagSet:
         Flag("random_points"),
         Flag("checkpoint_every"),
         Flag("log_every"),
-    ))
+    )).complete()
 
 
 def _flag_sets():

@@ -78,7 +78,7 @@ def _config_flags():
         Flag("split", choices=("all", "train", "test")),
         Flag("normalize", choices=("none", "nerfstudio")), Flag("radius"), Flag("elevation"),
         Flag("target", metavar=("X", "Y", "Z")), Flag("fov"), Flag("size"), Flag("fps"),
-        Flag("background", metavar=("R", "G", "B")), Flag("sh_degree"), Flag("no_depth")))
+        Flag("background", metavar=("R", "G", "B")), Flag("sh_degree"), Flag("no_depth"))).complete()
 
 
 #: The command's flags, generated from :class:`RenderConfig`.

@@ -41,7 +41,7 @@ class ReportConfig:
 def _config_flags():
     from experiments.flags import Flag, FlagSet
 
-    return FlagSet(ReportConfig, tuple(Flag(f.name) for f in dataclasses.fields(ReportConfig)))
+    return FlagSet(ReportConfig, tuple(Flag(f.name) for f in dataclasses.fields(ReportConfig))).complete()
 
 
 #: The command's flags, generated from :class:`ReportConfig`.

@@ -1,11 +1,11 @@
 """``python -m experiments train-editor --out DIR``: train the small InstructPix2Pix.
 
-The edge of :mod:`jaxedit.pipelines.train_editor` (whose docstring lists what DIR receives):
+The edge of :mod:`jaxedit_lab.train_editor` (whose docstring lists what DIR receives):
 the edit dataset from the built-in scenes, the autoencoder, the tokenizer, the UNet and the
 text encoder, then ``DIR/model``, a diffusers folder that ``--editor ip2p --ip2p-weights
 DIR/model`` and diffusers' ``StableDiffusionInstructPix2PixPipeline`` load. The flags are
-generated from :class:`jaxedit.pipelines.train_editor.tiny_ip2p.EditorTrainConfig`;
-``--smoke`` is :meth:`~jaxedit.pipelines.train_editor.tiny_ip2p.EditorTrainConfig.smoke`
+generated from :class:`jaxedit_lab.train_editor.tiny_ip2p.EditorTrainConfig`;
+``--smoke`` is :meth:`~jaxedit_lab.train_editor.tiny_ip2p.EditorTrainConfig.smoke`
 (CI: a couple of minutes);
 ``--seed`` seeds every draw. The weights bundled with jaxedit (v15) were made by
 ``bash scripts/train_bundled_editor.sh``: v1 from scratch, then cycles of ``--init`` the
@@ -19,7 +19,7 @@ HELP = ("train the small InstructPix2Pix on edits of the built-in scenes (VAE, t
 
 
 def _config_flags():
-    from jaxedit.pipelines.train_editor.tiny_ip2p import EditorTrainConfig
+    from jaxedit_lab.train_editor.tiny_ip2p import EditorTrainConfig
 
     from .flags import Flag, FlagSet
 
@@ -30,11 +30,12 @@ def _config_flags():
                    + (Flag("empty_is_identity", off="--empty-prompt-edits"),
                       Flag("off_orbit_edits", off="--off-orbit-identity-only"),
                       Flag("off_orbit_geometry_only"),
-                      Flag("outcome_from_noise"), Flag("balance_outcomes")))
+                      Flag("outcome_from_noise"), Flag("balance_outcomes")),
+                   derived=("seed",)).complete()  # the shared --seed
 
 
 #: The command's flags, generated from
-#: :class:`jaxedit.pipelines.train_editor.tiny_ip2p.EditorTrainConfig`.
+#: :class:`jaxedit_lab.train_editor.tiny_ip2p.EditorTrainConfig`.
 FLAGS = (_config_flags(),)
 
 
@@ -51,7 +52,7 @@ def run_config(args):
     import dataclasses
 
     from jaxedit import DataError
-    from jaxedit.pipelines.train_editor.tiny_ip2p import EditorTrainConfig
+    from jaxedit_lab.train_editor.tiny_ip2p import EditorTrainConfig
 
     if not args.smoke:
         config = FLAGS[0].build(args)
@@ -69,7 +70,7 @@ def run(args) -> dict:
     import math
 
     from jaxedit import DataError
-    from jaxedit.pipelines.train_editor import train_editor
+    from jaxedit_lab.train_editor import train_editor
 
     from experiments.progress import Progress, configure
 

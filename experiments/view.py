@@ -51,7 +51,7 @@ class ViewConfig:
 def _config_flags():
     from experiments.flags import Flag, FlagSet
 
-    return FlagSet(ViewConfig, (Flag("port"),))
+    return FlagSet(ViewConfig, (Flag("port"),)).complete()
 
 
 #: The command's flags, generated from :class:`ViewConfig`.

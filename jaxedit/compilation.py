@@ -1,29 +1,20 @@
 """Compiling once: JAX's persistent compilation cache, and a record of what a run compiled.
 
-On a GPU most of a first run is XLA compiling (the demo: two thirds of 179 s on an H100; an
-SD 1.5-size editor program about 45 s), and a second run compiled it all again. So ``import
-jaxedit`` switches on JAX's persistent compilation cache (:func:`enable_persistent_cache`):
-every program it compiles, however small (:data:`MIN_COMPILE_SECONDS`), is written to
-``$JAXEDIT_CACHE/xla`` (``~/.cache/jaxedit/xla``) and read back by later runs, bounded to
-:data:`DEFAULT_MAX_MB`: when a process switches the cache on, the least recently used entries
-beyond the bound are removed (:func:`trim_cache`). JAX's own bound
-(``jax_compilation_cache_max_size``) is not used: it lists the whole folder and reads an
-access-time file per entry at every write, under a lock that every process sharing the folder
-waits on, so each write costs O(N) in the N entries (175 ms at 4000 entries on the 2-core
-CPU, ``benchmarks/compile_cache.py``; the test suite's shared folder holds thousands).
+:func:`enable` switches both on (the commands call it; ``import jaxedit`` does not). The cache
+(:func:`enable_persistent_cache`) keeps every compiled program under ``$JAXEDIT_CACHE/xla``
+(``~/.cache/jaxedit/xla``), bounded to :data:`DEFAULT_MAX_MB` by :func:`trim_cache` once per
+process (least recently used first), since JAX's own bound costs O(entries) at every write.
 Environment:
 
 * ``JAXEDIT_COMPILE_CACHE=0``: off (as does configuring JAX's own cache folder, which wins).
 * ``JAXEDIT_COMPILE_CACHE_DIR``: another folder (the test suite shares one across processes).
 * ``JAXEDIT_COMPILE_CACHE_MB``: the size bound in MiB.
-* ``JAXEDIT_COMPILE_CACHE_MIN_S``: the shortest compile written to the cache (default
-  :data:`MIN_COMPILE_SECONDS`, every program).
+* ``JAXEDIT_COMPILE_CACHE_MIN_S``: the shortest compile written to the cache.
 
-:func:`compile_stats` reads process-wide counters kept by listeners on ``jax.monitoring``:
-programs compiled, persistent-cache hits and seconds, per program name, so that a run can
-record ``"compiles": {"count": N, "seconds": S, "programs": {...}}`` in its ``metrics.json``
-(``compile_stats(since=before)`` gives what happened after ``before``), and
-:func:`compiling_now` names the program being compiled at this moment, for progress lines.
+:func:`compile_stats` reads process-wide counters kept by listeners on ``jax.monitoring``
+(programs compiled, cache hits, seconds per program) for a run's ``metrics.json``;
+:func:`compiling_now` names the program compiling at this moment, for progress lines.
+Measurements: docs/gpu.md (compile cache).
 """
 
 from __future__ import annotations
@@ -34,15 +25,10 @@ import threading
 import time
 from pathlib import Path
 
-#: Programs faster to compile than this are not written to the persistent cache. Every
-#: program is kept (JAX's default is 1 s): a run's small programs (eager operations at the
-#: edges, weights and images put on the device) are many, and reading one back is cheaper than
-#: compiling it. The demo on the 2-core CPU: its second run compiled 139 small programs for
-#: 3.1 s with 0.3 s here, and read them all back for about 0.5 s with 0 (the cache 2.0 -> 2.4
-#: MB); on a GPU each is a kernel build, dearer still.
+#: Programs faster to compile than this are not cached: 0 keeps every one, since a run's many
+#: small programs read back faster than they compile (docs/gpu.md).
 MIN_COMPILE_SECONDS = 0.0
-#: The persistent cache's default bound (MiB). The 64 px demo writes about 15 MB; one SD
-#: 1.5-size editor program at 512 px is a few hundred MB on a GPU.
+#: The persistent cache's default bound (MiB).
 DEFAULT_MAX_MB = 4096
 
 _BACKEND_COMPILE = "/jax/core/compile/backend_compile_duration"
@@ -246,9 +232,20 @@ def _counters() -> _Counters:
 
 
 def start_recording() -> None:
-    """Register the listeners (idempotent); :func:`compile_stats` counts from then on.
-    ``import jaxedit`` calls it, so every compile of a run is seen."""
+    """Register the listeners (idempotent); :func:`compile_stats` counts from then on."""
     _counters()
+
+
+def enable(path: str | os.PathLike | None = None) -> Path | None:
+    """Switch on what the commands run with: the persistent compilation cache
+    (:func:`enable_persistent_cache`) and the record of compiles (:func:`start_recording`).
+
+    ``import jaxedit`` changes nothing in the caller's program; call this once, early, to
+    compile once across runs and have :func:`compile_stats` count every compile. Returns the
+    cache folder, or None when the cache stays off.
+    """
+    start_recording()
+    return enable_persistent_cache(path)
 
 
 def compile_stats(since: dict | None = None) -> dict:

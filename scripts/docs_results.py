@@ -188,7 +188,7 @@ def editor_quality() -> str:
     if rows:
         s.append("\n## Outcomes, with an unedited class\n\n"
                  "Each edit of a divergent instruction classed as one outcome, unedited, mixed or "
-                 "other against the unedited input (`jaxedit.editors.outcome_class`); the "
+                 "other against the unedited input (`jaxedit_lab.outcome_class`); the "
                  "unedited fraction is over all draws, the rest over the edited draws. "
                  "*Input* is the same measure on the unedited views themselves. The intervals "
                  "are 95 % over the views (a bootstrap resampling views: a view's draws lean "

@@ -11,7 +11,7 @@ unless said, the benchmark's DDIM steps):
 - the one-outcome instructions of every scene (bronze, black and white): PSNR of the edit to
   its target against the input's PSNR to it;
 - the divergent ones (splash, neon): the outcome measure's classes
-  (:mod:`jaxedit.editors.outcome_class`) over ``--draws`` draws per view;
+  (:mod:`jaxedit_lab.outcome_class`) over ``--draws`` draws per view;
 
 for text guidance 7.5 (the default), 3 and 1.5, at each of ``--edit-t`` (T = 0.98, and 0.85
 the top of ProEdit's SDEdit range); with ``--holding``, the quality benchmark's holding
@@ -48,7 +48,7 @@ def empty_prompt_shares(identity_share: float, drop: float, empty_is_identity: b
     """Of the examples a UNet step sees with the empty prompt and the input image (the branch
     E("") + image that identity and the image guidance use), the share whose target is the
     input itself and the share whose target is an edit, as
-    :func:`jaxedit.pipelines.train_editor.tiny_ip2p.draw_batch` draws them."""
+    :func:`jaxedit_lab.train_editor.tiny_ip2p.draw_batch` draws them."""
     identity = identity_share * (1 - 2 * drop)  # its image dropped with probability 2 drop
     dropped = (1 - identity_share) * drop  # an instruction's text dropped, its image kept
     identity, edits = (identity + dropped, 0.0) if empty_is_identity else (identity, dropped)
@@ -68,9 +68,9 @@ def noise_bins(editor, data, i, views, inputs, key, t=0.98, guidance=(3.0, 1.5))
 
     from jaxedit.editors.diffusion import timestep_bounds
     from jaxedit.editors.jax_ip2p import edit_with_noise_jit, latent_factor
-    from jaxedit.editors.outcome_class import classify
-    from jaxedit.pipelines.train_editor.edit_data import outcome_targets
-    from jaxedit.pipelines.train_editor.tiny_ip2p import outcome_direction, outcome_of_noise
+    from jaxedit_lab.outcome_class import classify
+    from jaxedit_lab.train_editor.edit_data import outcome_targets
+    from jaxedit_lab.train_editor.tiny_ip2p import outcome_direction, outcome_of_noise
 
     k = len(data.instructions[i].outcomes)
     b, (height, width) = len(views), editor.model_hw(*inputs.shape[1:3])
@@ -102,7 +102,7 @@ def projection_spread(editor, images: np.ndarray) -> dict:
     import jax.numpy as jnp
 
     from jaxedit.editors.jax_ip2p import encode_latents, resize_images
-    from jaxedit.pipelines.train_editor.tiny_ip2p import outcome_direction
+    from jaxedit_lab.train_editor.tiny_ip2p import outcome_direction
 
     x = resize_images(jnp.asarray(images, jnp.float32), editor.model_hw(*images.shape[1:3]))
     z = np.asarray(encode_latents(editor.nets.vae, x, x, 0.0, editor.config())[0])  # means
@@ -141,11 +141,11 @@ def main(argv=None) -> None:
 
     from jaxedit.editors import bundled_editor
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
-    from jaxedit.pipelines.train_editor import rebuild_dataset, trained_on
-    from jaxedit.pipelines.train_editor.edit_data import novel_dataset, outcome_targets
-    from jaxedit.pipelines.train_editor.quality import (band_figures, holding, nearest,
+    from jaxedit_lab.train_editor import rebuild_dataset, trained_on
+    from jaxedit_lab.train_editor.edit_data import novel_dataset, outcome_targets
+    from jaxedit_lab.train_editor.quality import (band_figures, holding, nearest,
                                                         outcome_figures, psnr, vae_roundtrip)
-    from jaxedit.pipelines.train_editor.quality import run_edits as _run
+    from jaxedit_lab.train_editor.quality import run_edits as _run
 
     folder = args.weights or bundled_editor()
     settings = trained_on(folder)

@@ -66,11 +66,11 @@ def main(argv=None) -> None:
 
     from jaxedit.editors import bundled_editor
     from jaxedit.io.files import atomic_write_text
-    from jaxedit.pipelines.train_editor.edit_data import (INSTRUCTIONS, _edited_scene, composite,
+    from jaxedit_lab.train_editor.edit_data import (INSTRUCTIONS, _edited_scene, composite,
                                            novel_views, off_orbit_views, procedural_views,
                                            to_uint8)
     from jaxedit.editors.jax_ip2p import JaxIP2PEditor
-    from jaxedit.pipelines.train_editor.quality import psnr, run_edits
+    from jaxedit_lab.train_editor.quality import psnr, run_edits
     from jaxedit.scenes import get_scene, render_scene
 
     prompt = "make the ball bigger"

@@ -5,7 +5,7 @@
 Reads ``RUN_DIR/runs.jsonl`` (the ablation's records, each with its per-edit log),
 ``RUN_DIR/settings.json`` (the training views) and the scene's reconstruction metrics
 (``RUN_DIR/SCENE/reconstruct/metrics.json``, for the testability check), and writes the
-summary of :func:`jaxedit.pipelines.ablation.mechanism.study` (default
+summary of :func:`jaxedit_lab.ablation.mechanism.study` (default
 ``RUN_DIR/mechanism.json``): per run its early split, edit consistency, keep rate and
 scores; per instruction and control the paired contrasts (t interval, Wilcoxon, Holm over the
 primary family), Spearman's rho with its bootstrap interval, and P1-P4's verdicts. Prints one
@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 from jaxedit.errors import DataError  # noqa: E402
 from jaxedit.io.files import atomic_write_text  # noqa: E402
-from jaxedit.pipelines.ablation.mechanism import study  # noqa: E402
+from jaxedit_lab.ablation.mechanism import study  # noqa: E402
 
 
 def _read_json(path: Path):

@@ -131,10 +131,10 @@ def _surface_inputs(root: Path, scene: Path) -> None:
     from jaxedit.edit.state import EditState, LossTracker
     from jaxedit.edit.trainer import SubtaskTrainer, TrainSettings
     from jaxedit.editors.bundled import bundled_editor
-    from jaxedit.pipelines.train_editor.tiny_ip2p import EditorTrainConfig
+    from jaxedit_lab.train_editor.tiny_ip2p import EditorTrainConfig
     from jaxedit.io import load_ply
     from jaxedit.io.checkpoint import read_pytree
-    from jaxedit.pipelines.train_editor import _stage_record
+    from jaxedit_lab.train_editor import _stage_record
 
     # train-editor run folders.
     te = root / "te"

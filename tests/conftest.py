@@ -28,8 +28,8 @@ import tempfile
 
 import pytest
 
-# Set before any test module imports jaxedit (which switches the cache on at import); the
-# subprocesses inherit it through the environment.
+# Set before the cache is switched on below; the subprocesses inherit it through the
+# environment.
 _OWN_CACHE = None
 if not os.environ.get("JAXEDIT_COMPILE_CACHE_DIR"):
     _OWN_CACHE = tempfile.mkdtemp(prefix="jaxedit-test-xla-")
@@ -37,6 +37,12 @@ if not os.environ.get("JAXEDIT_COMPILE_CACHE_DIR"):
 # Every program, however quick to compile: the suite's processes (xdist workers, the commands
 # the CLI tests start) build the same small programs again and again, and a read is cheaper.
 os.environ.setdefault("JAXEDIT_COMPILE_CACHE_MIN_S", "0")
+
+# The suite runs as the commands do: the persistent cache and the record of compiles on
+# (``import jaxedit`` alone switches neither).
+import jaxedit  # noqa: E402
+
+jaxedit.enable_compilation()
 
 
 # Two tiers. The README's command (`python -m pytest tests -n auto`) runs the default tier: every

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from jaxedit.editors import SimulatedEditor
+from jaxedit_lab.simulated import SimulatedEditor
 
 
 class CountingEditor(SimulatedEditor):

@@ -38,7 +38,7 @@ from jaxedit import camera as camlib  # noqa: E402
 from jaxedit import gaussians as G  # noqa: E402
 from jaxedit import parallel as par  # noqa: E402
 from jaxedit import train  # noqa: E402
-from jaxedit.editors.simulated import SimulatedEditor  # noqa: E402
+from jaxedit_lab.simulated import SimulatedEditor  # noqa: E402
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 

@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 
 from experiments import cli
-from jaxedit.pipelines.ablation import METHODS, summarise, tables
+from jaxedit_lab.ablation import METHODS, summarise, tables
 from jaxedit import DataError
 from jaxedit.metrics import mean_ci, mode_mixture, mode_scores, paired_differences
 from jaxedit.pipelines.report import write_report
@@ -150,7 +150,7 @@ def test_an_interrupted_run_summarises_what_finished():
 # ---- the run's bookkeeping (pure) and the mechanism's planted effect -------------------------
 
 def test_edit_counts_follow_the_deterministic_source():
-    from jaxedit.pipelines.ablation.methods import (edits_per_subtask, match_edit_every,
+    from jaxedit_lab.ablation.methods import (edits_per_subtask, match_edit_every,
                                                     sweep_agreement)
 
     # exchanges at steps W, W + E, ... below the subtask's length; the first edits every view
@@ -191,7 +191,7 @@ def test_paired_intervals_detect_the_planted_step_size_effect_and_not_its_absenc
     # vs 0.59 here), so a committed scene keeps its mode in more views when the next subtask is
     # a small step (0.45 -> 0.575) than when it jumps to r = 1. Same keys for both (paired by seed and view). Gain 0: the draw
     # does not depend on the step, the same keys draw the same modes, the difference is 0.
-    from jaxedit.editors.simulated import SimulatedEditor
+    from jaxedit_lab.simulated import SimulatedEditor
 
     yy, xx = np.mgrid[0:24, 0:24] + 0.5
     inside = ((yy - 12) / 9) ** 2 + ((xx - 12) / 7) ** 2 < 1
@@ -258,7 +258,7 @@ class PlantedEditor:
 
 
 def _tiny(**kw):
-    from jaxedit.pipelines.ablation import AblationConfig
+    from jaxedit_lab.ablation import AblationConfig
 
     base = dict(scenes=("ball",), prompts=("make it look like autumn",), seeds=4,
                 methods=("proedit", "nd", "nd_equal", "nd_replay"), size=12, views=6,
@@ -275,7 +275,7 @@ def test_planted_step_effect_is_found_through_the_runner_and_exactly_0_without(t
     # ND's scene mixes more (paired by seed). Not planted: every view is outcome 0 in every
     # method, so the outcome agreement differences are exactly 0. The unplanted run also
     # checks the equal budgets and the reference levels.
-    from jaxedit.pipelines.ablation import run_ablation
+    from jaxedit_lab.ablation import run_ablation
 
     res = run_ablation(tmp_path / "planted", _tiny(seeds=5, methods=("proedit", "nd"),
                                                    references=False),
@@ -329,7 +329,7 @@ def test_uniform_reuses_proedit_only_when_its_ratios_are_uniform():
     # The study on the bundled editor found ProEdit's scheduler picking 0.25, 0.5, 0.75:
     # its seed-0 ProEdit and uniform runs were then the same bit for bit (computed both
     # ways, benchmarks/results/cpu/mechanism_ip2p/runs.jsonl), so later seeds reuse it.
-    from jaxedit.pipelines.ablation import _same_plan_as_uniform, _uniform_from
+    from jaxedit_lab.ablation import _same_plan_as_uniform, _uniform_from
 
     lead = {"method": "proedit", "ratios": [0.0, 0.25, 0.5, 0.75, 1.0, 1.0], "psnr_best": 17.5,
             "total_steps": 1388, "seconds": 160.0, "cpu_seconds": 150.0, "schedule_calls": 51}
@@ -367,8 +367,8 @@ def test_every_training_edit_is_logged_with_its_view_step_and_outcome(tmp_path):
     # edit's outcome. The planted editor's edit is exactly r of the way to outcome k, so its
     # class is known: k above r = 0.5, "unedited" below (the outcome measure's rule; at 0.5
     # itself rounding decides). nd_equal's explicit exchanges and nd_k's periodic ones.
-    from jaxedit.editors.outcome_class import UNEDITED
-    from jaxedit.pipelines.ablation import run_ablation
+    from jaxedit_lab.outcome_class import UNEDITED
+    from jaxedit_lab.ablation import run_ablation
 
     editor = _RecordingPlanted(True)
     config = _tiny(seeds=1, methods=("proedit", "nd_k", "nd_equal"), references=False)
@@ -404,8 +404,8 @@ def test_every_training_edit_is_logged_with_its_view_step_and_outcome(tmp_path):
 
 
 def test_the_edit_observer_finds_the_view_and_cannot_class_an_outcome_it_cannot_see():
-    from jaxedit.editors.outcome_class import UNEDITED
-    from jaxedit.pipelines.ablation import _edit_observer
+    from jaxedit_lab.outcome_class import UNEDITED
+    from jaxedit_lab.ablation import _edit_observer
 
     rng = np.random.default_rng(2)
     photos = rng.uniform(0.2, 0.8, (3, 8, 8, 3)).astype(np.float32)
@@ -421,7 +421,7 @@ def test_the_ip2p_weights_the_study_runs_are_the_ones_it_records(tmp_path):
     import shutil
 
     from jaxedit.editors import bundled_editor
-    from jaxedit.pipelines.ablation import AblationConfig, _ip2p_folder, _weights_id
+    from jaxedit_lab.ablation import AblationConfig, _ip2p_folder, _weights_id
 
     bundled = AblationConfig(editor="ip2p")
     assert _ip2p_folder(bundled) == bundled_editor()

@@ -56,7 +56,7 @@ def corpus(tmp_path_factory) -> types.SimpleNamespace:
 # ----------------------------------------------------------------------------- train-editor
 
 def _smoke_cfg():
-    from jaxedit.pipelines.train_editor.tiny_ip2p import EditorTrainConfig
+    from jaxedit_lab.train_editor.tiny_ip2p import EditorTrainConfig
 
     return EditorTrainConfig.smoke()
 
@@ -66,7 +66,7 @@ def _vae_checkpoint(path: Path, *, config: dict | None = None, **meta) -> Path:
     (``_DROP`` removes a key). Its state is only the step counter: the record is read and
     refused before any state is restored (a real state's template takes a minute to build)."""
     from jaxedit.io.checkpoint import FORMAT_VERSION
-    from jaxedit.pipelines.train_editor import _stage_record
+    from jaxedit_lab.train_editor import _stage_record
 
     record = {"config": config or _stage_record(_smoke_cfg(), "editor-vae"), "step": 0,
               "losses": []}
@@ -140,7 +140,7 @@ def test_a_refused_resume_leaves_the_dataset_and_checkpoint_byte_identical(tmp_p
     """The checkpoint was written with other settings: refused before the dataset is rebuilt
     (it used to be rebuilt and overwritten first, minutes of work, then refused)."""
     run = _run(tmp_path)
-    other = dict(__import__("jaxedit.pipelines.train_editor", fromlist=["x"])._stage_record(
+    other = dict(__import__("jaxedit_lab.train_editor", fromlist=["x"])._stage_record(
         _smoke_cfg(), "editor-vae"), size=64)
     _vae_checkpoint(run / "checkpoints" / "vae.npz", config=other)
     _fails(capfd, [*TE, "--out", run, "--resume"], "other settings", keep=run)
@@ -158,7 +158,7 @@ def test_train_editor_resume_of_a_damaged_checkpoint_record(tmp_path, capfd, met
 
 
 def _dataset_npz(path: Path, record: dict, **arrays) -> Path:
-    from jaxedit.pipelines.train_editor import DATASET_ARRAYS
+    from jaxedit_lab.train_editor import DATASET_ARRAYS
 
     n, size = 2, record.get("size", 32)
     full = {"inputs": np.zeros((n, size, size, 3), np.uint8), "scene": np.zeros(n, np.int32),

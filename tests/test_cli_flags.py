@@ -209,7 +209,7 @@ def test_the_ddim_step_default_is_read_from_one_place():
 
     from jaxedit.editors import jax_ip2p
     from jaxedit.editors.diffusion import DDIM_STEPS
-    from jaxedit.pipelines.ablation import AblationConfig
+    from jaxedit_lab.ablation import AblationConfig
 
     defaults = [jax_ip2p.EditConfig.steps, AblationConfig.ip2p_steps,
                 _parse("edit").ip2p_steps]
@@ -233,3 +233,41 @@ def test_edit_guidance_flag_and_config_value(tmp_path):
     (tmp_path / "c.json").write_text('{"guidance": [3, 1.25]}')
     assert edit.run_config(_parse("edit", "--config", str(tmp_path / "c.json"))
                            ).plan.guidance == (3.0, 1.25)
+
+
+def _flag_sets():
+    return [(name, s) for name in cli.COMMANDS for s in getattr(cli._module(name), "FLAGS", ())]
+
+
+@pytest.mark.parametrize("command, flag_set", _flag_sets(),
+                         ids=[f"{c}:{s.root.__name__}" for c, s in _flag_sets()])
+def test_every_setting_of_every_command_has_a_route_and_its_own_help(command, flag_set):
+    """Each field of the tree a command builds is a flag (and so a --config key), or is set
+    from another of the command's flags (``derived``); no two flags share a help line."""
+    routed = {f.field for f in flag_set.flags} | set(flag_set.derived)
+    assert set(flags.leaf_fields(flag_set.root)) - routed == set()
+    helps = [flags.attribute_docs(flag_set.owner(f)[0])[flag_set.owner(f)[1].name]
+             for f in flag_set.flags]
+    shared = {h for h in helps if helps.count(h) > 1}
+    assert not shared, shared
+
+
+def test_a_nested_setting_from_the_command_line_and_from_nested_config_keys(tmp_path):
+    from experiments import edit, reconstruct
+
+    args = _parse("reconstruct", "--train.densify.grad-threshold", "1e-4")
+    assert reconstruct.FLAGS[0].build(args).train.densify.grad_threshold == 1e-4
+    table = tmp_path / "c.toml"
+    table.write_text("[train.densify]\ngrad_threshold = 3e-4\nmax_gaussians = 5000\n"
+                     "refine_from_warmup = true\n")
+    built = reconstruct.FLAGS[0].build(_parse("reconstruct", "--config", str(table)))
+    assert (built.train.densify.grad_threshold, built.train.densify.max_gaussians,
+            built.train.densify.refine_from_warmup) == (3e-4, 5000, True)
+    dotted = tmp_path / "c.json"
+    dotted.write_text('{"train.densify.grad_threshold": 5e-4, "plan.loss_window": 7}')
+    tree = edit.run_config(cli.parse(["edit", "--config", str(dotted)]))
+    assert (tree.train.densify.grad_threshold, tree.plan.loss_window) == (5e-4, 7)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[train.densify]\nno_such_setting = 1\n")
+    with pytest.raises(DataError, match="train.densify.no_such_setting"):
+        _parse("reconstruct", "--config", str(bad))

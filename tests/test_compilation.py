@@ -140,6 +140,7 @@ _CHILD = """
 import json, sys, jax, jax.numpy as jnp
 import jaxedit
 from jaxedit.compilation import compile_stats
+jaxedit.enable_compilation()  # what every command does first
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # cache even a tiny one
 def cached_program_for_test(x):
     return jnp.tanh(x @ x.T).sum(0)

@@ -1,5 +1,5 @@
 """The small InstructPix2Pix: its dataset, its export, its training command and the bundled
-weights (jaxedit.editors, jaxedit.pipelines.train_editor, experiments/train_editor.py).
+weights (jaxedit.editors, jaxedit_lab.train_editor, experiments/train_editor.py).
 
 The whole training run is the CLI's ``--smoke`` (a couple of minutes: compiling the UNet's
 step dominates); the bundled folder is checked against diffusers where torch is installed.
@@ -21,8 +21,8 @@ from experiments import cli
 from jaxedit.editors.jax_ip2p import JaxIP2PEditor
 from jaxedit.editors import bundled_editor, instructions, native_size
 from jaxedit.errors import DataError
-from jaxedit.pipelines.train_editor import edit_data, tiny_ip2p
-from jaxedit.pipelines.train_editor.export import module_tensors, write_pipeline
+from jaxedit_lab.train_editor import edit_data, tiny_ip2p
+from jaxedit_lab.train_editor.export import module_tensors, write_pipeline
 from jaxedit.models import load_ip2p
 
 
@@ -157,7 +157,7 @@ def test_train_editor_smoke_writes_a_working_editor_and_resumes(tmp_path, capfd)
     # its UNet on, and refuses a folder of another architecture before any work.
     more = tmp_path / "more"
     cfg = dataclasses.replace(tiny_ip2p.EditorTrainConfig.smoke(), init=str(out / "model"))
-    from jaxedit.pipelines.train_editor import train_editor
+    from jaxedit_lab.train_editor import train_editor
 
     train_editor(cfg, more)
     vae = "vae/diffusion_pytorch_model.safetensors"
@@ -307,7 +307,7 @@ def test_a_checkpoint_from_before_a_setting_existed_resumes_as_its_default(tmp_p
     """A UNet checkpoint written before ``outcome_from_noise`` existed resumes a run that
     leaves it off (its default then) and is refused by one that turns it on."""
     from jaxedit.io.checkpoint import save_pytree
-    from jaxedit.pipelines.train_editor import _config_record, read_stage_checkpoint
+    from jaxedit_lab.train_editor import _config_record, read_stage_checkpoint
 
     cfg = tiny_ip2p.EditorTrainConfig.smoke()
     older = {k: v for k, v in _config_record(cfg).items() if k != "outcome_from_noise"}
@@ -362,7 +362,7 @@ def test_nearer_training_cameras_are_trained_on_and_stay_off_the_novel_ones():
     in the frame, seen from up to above the orbit's band), none held out, every outcome made
     for them; the person has none; the novel cameras stay farther from every training frame
     than the orbit's held-out ones are, and ``dataset.npz`` records the count."""
-    from jaxedit.pipelines.train_editor import _dataset_record
+    from jaxedit_lab.train_editor import _dataset_record
 
     plain = edit_data.build_dataset(32, 20, ("person", "ball"))
     data = edit_data.build_dataset(32, 20, ("person", "ball"), off_orbit_views_per_scene=5)
@@ -391,7 +391,7 @@ def test_identity_only_nearer_cameras_are_inputs_without_edit_targets():
     edit target points at them (they are drawn as identity examples only), the orbit's
     targets are unchanged, and the dataset record says so; asked for without nearer
     cameras, it is refused naming the flag."""
-    from jaxedit.pipelines.train_editor import _dataset_record
+    from jaxedit_lab.train_editor import _dataset_record
 
     edited = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4)
     kept = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4,
@@ -415,7 +415,7 @@ def test_geometry_only_nearer_cameras_get_the_geometry_targets_alone():
     same images as with every edit made for them) and no image-space edit's, the orbit keeps
     every instruction's targets, the record says so, and the flag is refused naming itself
     beside ``--off-orbit-identity-only`` or without nearer cameras."""
-    from jaxedit.pipelines.train_editor import _dataset_record
+    from jaxedit_lab.train_editor import _dataset_record
 
     edited = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4)
     shaped = edit_data.build_dataset(32, 20, ("ball",), off_orbit_views_per_scene=4,
@@ -439,7 +439,7 @@ def test_a_folder_s_training_dataset_is_rebuilt_from_its_record(tmp_path):
     """The benchmarks rebuild the dataset an editor folder was trained on from the record in
     its instructions.json: the same arrays as the run built; a record from before a setting
     existed reads as such a run had it; a folder with no record is refused naming the file."""
-    from jaxedit.pipelines.train_editor import rebuild_dataset, trained_on
+    from jaxedit_lab.train_editor import rebuild_dataset, trained_on
 
     def listing(record):
         folder = tmp_path / str(len(list(tmp_path.iterdir())))
@@ -540,7 +540,7 @@ def test_identity_per_scene_averages_each_scene_s_views_alone():
     the views' counts weight them back to the pooled figure."""
     from types import SimpleNamespace
 
-    from jaxedit.pipelines.train_editor.quality import _identity_per_scene, _scene_means, psnr
+    from jaxedit_lab.train_editor.quality import _identity_per_scene, _scene_means, psnr
 
     rng = np.random.default_rng(0)
     data = SimpleNamespace(scenes=("face", "ball"), scene=np.array([0, 1, 1, 0, 1]))

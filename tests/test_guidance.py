@@ -16,8 +16,8 @@ import pytest
 
 from jaxedit.edit import DifficultyOracle
 from jaxedit.edit.plan import ProEditConfig
-from jaxedit.editors import (BUNDLED, SimulatedEditor, edit_views, editor_guidance,
-                             recommended_guidance)
+from jaxedit.editors import BUNDLED, edit_views, editor_guidance, recommended_guidance
+from jaxedit_lab.simulated import SimulatedEditor
 from jaxedit.editors.diffusion import IP2P_GUIDANCE, check_guidance
 from jaxedit.errors import DataError
 

@@ -152,7 +152,7 @@ def test_masks_by_frame_name_and_their_bad_inputs(tmp_path):
 
 
 def test_simulated_editor_relevance_follows_its_target():
-    from jaxedit.editors import SimulatedEditor
+    from jaxedit_lab.simulated import SimulatedEditor
     from jaxedit.editors.base import relevance
 
     ed = SimulatedEditor()
@@ -310,8 +310,8 @@ LOCAL_PROMPT = "paint the orange parts blue"
 
 
 def test_local_instruction_changes_the_orange_part_only():
-    from jaxedit.editors.simulated import INSTRUCTIONS, LOCAL_VOCABULARY, VOCABULARY, SimulatedEditor
-    from jaxedit.editors.simulated_targets import orange_weight
+    from jaxedit_lab.simulated import INSTRUCTIONS, LOCAL_VOCABULARY, VOCABULARY, SimulatedEditor
+    from jaxedit_lab.simulated_targets import orange_weight
 
     assert INSTRUCTIONS[:len(VOCABULARY)] == VOCABULARY and LOCAL_VOCABULARY[0].kind == "local"
     ed = SimulatedEditor()
@@ -370,7 +370,7 @@ class Crash(RuntimeError):
 
 def _local_edit(ball, run_dir, editor=None, **kw):
     from jaxedit.edit import ProEditConfig, TrainSettings
-    from jaxedit.editors import SimulatedEditor
+    from jaxedit_lab.simulated import SimulatedEditor
     from jaxedit.pipelines import run_edit
 
     g, data = ball

@@ -1,4 +1,4 @@
-"""The pre-registered mechanism test's figures and verdicts (jaxedit.pipelines.ablation.mechanism)
+"""The pre-registered mechanism test's figures and verdicts (jaxedit_lab.ablation.mechanism)
 on hand-made per-edit logs whose answers are known."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from jaxedit.pipelines.ablation import mechanism as M
+from jaxedit_lab.ablation import mechanism as M
 
 VIEWS = 4
 PROMPT = "splash some colour on it"

@@ -1,4 +1,4 @@
-"""The outcome measure with an "unedited" class (jaxedit.editors.outcome_class, issue 51):
+"""The outcome measure with an "unedited" class (jaxedit_lab.outcome_class, issue 51):
 the unedited input scores "unedited", a pure outcome target its outcome, a 50/50 blend of two
 outcomes "mixed", for every divergent instruction the bundled editor was trained on."""
 
@@ -9,13 +9,13 @@ import itertools
 import numpy as np
 import pytest
 
-from jaxedit.editors import outcome_class as oc
+from jaxedit_lab import outcome_class as oc
 
 
 @pytest.fixture(scope="module")
 def divergent():
     """(input, targets [K, H, W, 3], prompt) of every divergent instruction on a few views."""
-    from jaxedit.pipelines.train_editor.edit_data import build_dataset, outcome_targets
+    from jaxedit_lab.train_editor.edit_data import build_dataset, outcome_targets
 
     data = build_dataset(32, 4, ("face",))
     out = []
@@ -125,7 +125,7 @@ def test_band_figures_place_a_change_inside_or_outside_the_outcome_s_band(diverg
     """band_figures: a target itself changes only its band at gain 1 in its direction; the
     same change at twice the strength, gain 2; a target plus a cast over the whole view
     puts part of its change outside the band."""
-    from jaxedit.pipelines.train_editor.quality import band_figures
+    from jaxedit_lab.train_editor.quality import band_figures
 
     for u, t, prompt in divergent:
         k = len(t)
@@ -142,7 +142,7 @@ def test_band_figures_place_a_change_inside_or_outside_the_outcome_s_band(diverg
 def test_outcome_figures_per_scene_and_by_view(divergent):
     """outcome_figures with views and scenes: each scene's draws summarised alone, and a
     choice by the view (every draw of a view the same outcome) seen as no spread."""
-    from jaxedit.pipelines.train_editor.quality import outcome_figures
+    from jaxedit_lab.train_editor.quality import outcome_figures
 
     u, t, prompt = divergent[0]
     assert len(t) == 3, prompt

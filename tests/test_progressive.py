@@ -21,7 +21,7 @@ from jaxedit.edit.state import EditState, LossTracker, apply_edits, track_loss
 from jaxedit.edit.subtask import train_view
 from jaxedit.edit.outputs import Renderer, reprojection_consistency
 from jaxedit.pipelines import run_edit, select_snapshot
-from jaxedit.editors.simulated import SimulatedEditor
+from jaxedit_lab.simulated import SimulatedEditor
 from counting_editor import CountingEditor
 
 PROMPT = "turn him into a bronze statue"
@@ -191,7 +191,7 @@ def test_sync_edit_writes_the_run_directory(sync_run):
     assert sched["target_subtasks"] == 2 and sched["schedule_method"] == "bisection"
     if not sched["depth_limit_hit"]:
         assert all(0 < s["difficulty"] <= sched["threshold"] for s in subs[1:])
-    from jaxedit.pipelines.ablation.methods import edits_per_subtask
+    from jaxedit_lab.ablation.methods import edits_per_subtask
 
     for s in subs:
         for key in ("index", "name", "ratio", "difficulty", "steps", "seconds", "converged",
@@ -472,7 +472,7 @@ def chunk_start(tiny):
     ctx = EditContext.create(SimulatedEditor(), PROMPT, data, cfg, trainer, Renderer(),
                              jax.random.key(3))
     return (ctx, begin_subtask(ctx, init_state(ctx, g)), SubtaskSpec(1, "r1", 0.5, None, "edit"),
-            subtask_limits(cfg, data.train_images.shape, 1))
+            subtask_limits(cfg, data.train_images.shape))
 
 
 def _bits(tree):
@@ -599,14 +599,11 @@ def test_the_subtask_limits_resolve_the_users_config_without_changing_it():
     shape = (8, 32, 32, 3)
     scaled = ProEditConfig.for_mode("proedit", max_steps=None)
     assert step_guard(scaled, shape) == subtask_guard(8, 32, 32)
-    assert subtask_limits(scaled, shape, 2) == SubtaskLimits(subtask_guard(8, 32, 32), True)
+    assert subtask_limits(scaled, shape) == SubtaskLimits(subtask_guard(8, 32, 32), True)
     assert scaled.max_steps is None  # still the user's: "scaled with the scene"
     given = ProEditConfig.for_mode("proedit", max_steps=77)
-    assert subtask_limits(given, shape, 0) == SubtaskLimits(77, True)
-    fixed = ProEditConfig.for_mode("nd", subtask_steps=(5, 9, 4))
-    assert [subtask_limits(fixed, shape, i) for i in range(3)] == [
-        SubtaskLimits(5, False), SubtaskLimits(9, False), SubtaskLimits(4, False)]
-    assert subtask_limits(ProEditConfig.for_mode("in2n", max_steps=40), shape, 0) == \
+    assert subtask_limits(given, shape) == SubtaskLimits(77, True)
+    assert subtask_limits(ProEditConfig.for_mode("in2n", max_steps=40), shape) == \
         SubtaskLimits(40, False)
 
 

@@ -246,7 +246,7 @@ def face_oracle():
     """d(r_a, r_b) of the demo's instruction on renders of the demo's scene (48 px)."""
     from jaxedit import scenes
     from jaxedit.edit.difficulty import DifficultyOracle
-    from jaxedit.editors.simulated import SimulatedEditor
+    from jaxedit_lab.simulated import SimulatedEditor
 
     scene = scenes.get_scene("face")
     cams, train, _ = scenes.scene_cameras(scene, views=6, test_views=0, size=48)

@@ -12,7 +12,7 @@ from jaxedit.edit.difficulty import DifficultyOracle, l1_distance, ms_ssim_dista
 from jaxedit.editors.base import Editor, interpolate_embedding
 from jaxedit.edit.schedule import decompose, decompose_root
 from jaxedit.editors.keys import view_key
-from jaxedit.editors.simulated import VOCABULARY, SimulatedEditor
+from jaxedit_lab.simulated import VOCABULARY, SimulatedEditor
 from jaxedit.errors import DataError
 
 S = 32
@@ -322,7 +322,7 @@ def _pair_distance(images):
 
 def test_mode_draw_follows_the_documented_equation(modal, img):
     # A NumPy oracle of section 4 for a cross-fade kind (material): T^k(s) = o + s (F_k - o).
-    from jaxedit.editors.simulated import mode_probabilities
+    from jaxedit_lab.simulated import mode_probabilities
 
     r, t = 0.7, 0.6
     e = emb(modal, VOCABULARY[1].prompt, r)

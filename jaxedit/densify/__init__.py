@@ -1,7 +1,8 @@
 """Adaptive density control (densify / cull) as a pure, optax-shaped transformation.
 
-``strategy = adaptive(DensifyConfig(...), scene_extent=..., iterations=...)`` is a pair
-of pure functions::
+``strategy = strategy_for(DensifyConfig(...), scene_extent=..., iterations=...)`` is a pair
+of pure functions (:func:`adaptive` by default; another registered with
+:func:`register_strategy` by ``DensifyConfig.strategy``)::
 
     stats = strategy.init(gaussians)
     gaussians, opt_state, stats, info = strategy.update(
@@ -32,7 +33,8 @@ Every public name of the three is re-exported here: ``from jaxedit.densify impor
 from .ops import (Selection, cull_mask, grow_state, grown_capacity, opacity_reset, place, remove,
                   select, split, zero_moments)
 from .stats import DensifyStats, RenderAux, accumulate, init_stats, render_aux
-from .strategy import BudgetFn, DensifyConfig, DensifyInfo, Strategy, adaptive, creation_budget
+from .strategy import (BudgetFn, DensifyConfig, DensifyInfo, Strategy, adaptive, creation_budget,
+                       nothing_done, register_strategy, strategy_for)
 
 __all__ = [
     # ops
@@ -42,4 +44,5 @@ __all__ = [
     "DensifyStats", "RenderAux", "accumulate", "init_stats", "render_aux",
     # strategy
     "BudgetFn", "DensifyConfig", "DensifyInfo", "Strategy", "adaptive", "creation_budget",
+    "nothing_done", "register_strategy", "strategy_for",
 ]

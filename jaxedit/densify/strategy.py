@@ -65,7 +65,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..errors import check_ranges, ranged
+from ..errors import DataError, check_ranges, ranged
 from ..gaussians import Gaussians
 from .ops import cull_mask, opacity_reset, place, remove, select, split, zero_moments
 from .stats import DensifyStats, RenderAux, accumulate, init_stats
@@ -158,7 +158,8 @@ def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> Budg
 # The strategy
 # --------------------------------------------------------------------------------------
 
-def _empty_info(capacity: int, alive) -> DensifyInfo:
+def nothing_done(capacity: int, alive) -> DensifyInfo:
+    """The :class:`DensifyInfo` of an update that changed nothing (``alive``: int [])."""
     z = jnp.zeros((), jnp.int32)
     f = jnp.zeros((), bool)
     return DensifyInfo(refined=f, reset=f, created=z, split=z, duplicated=z, culled=z,
@@ -175,23 +176,24 @@ class DensifyConfig:
 
     Attributes:
       enabled: False turns density control off (no maintenance, no resets).
-      max_gaussians: hard cap on the number alive, never exceeded (None: not yet
-        resolved; the edit trainer resolves it from its input scene).
+      max_gaussians: hard cap on the number of Gaussians alive, never exceeded.
       budget: ProEdit's adaptive creation with the budget :func:`creation_budget`
-        (``budget_min_new``, ``budget_growth``, ``budget_max_fraction``) instead of
-        classic thresholding at ``grad_threshold``.
+        instead of classic thresholding at ``grad_threshold``.
+      budget_min_new: the budget's floor: Gaussians a maintenance may always create.
+      budget_growth: the budget's growth: this fraction of those alive on top of the
+        number the last maintenance culled.
+      budget_max_fraction: the budget's ceiling: at most this fraction of those alive
+        created in one maintenance.
       grad_threshold: classic mode: mean NDC gradient norm needed to refine (2e-4).
       grad_floor: budget mode: candidates need a mean gradient strictly above this.
-      refine_every, warmup, stop_at: maintenance at ``step > warmup``, every
-        ``refine_every`` steps, while ``step <= stop_at`` (None: half of the run's
+      refine_every: steps between two density maintenances (split, duplicate, cull).
+      warmup: steps before the first maintenance (maintenance only at ``step > warmup``).
+      stop_at: last step with maintenance and opacity resets (None: half of the run's
         iterations, Splatfacto's 15000 of 30000).
       refine_from_warmup: False: INRIA's clock, maintenance at the multiples of
-        ``refine_every`` above ``warmup`` (a warmup below ``refine_every`` changes
-        nothing). True: the clock starts at the warm-up, maintenance at steps
-        ``warmup, warmup + refine_every, ...`` (``refine_every, ...`` for a warmup of
-        0), so the warm-up is exactly the steps without density control (ProEdit's W:
-        Gaussians on the right surface earn opacity for W steps, then the wrong ones
-        are culled).
+        ``refine_every`` above ``warmup``. True: maintenance at ``warmup, warmup +
+        refine_every, ...``, so the warm-up is exactly the steps without density control
+        (ProEdit's W).
       reset_every: opacity reset period (0 disables); only while ``step <= stop_at``.
       cull_alpha: cull opacity below this.
       reset_value: opacity after a periodic reset (None: ``2 * cull_alpha``).
@@ -202,6 +204,8 @@ class DensifyConfig:
         since the last maintenance; only after the first opacity reset, as in
         INRIA's 3DGS (early Gaussians are legitimately large on screen), hence
         never when ``reset_every`` is 0; None disables.
+      strategy: the density strategy that reads these settings, by the name it was
+        registered under (:func:`register_strategy`; "adaptive": :func:`adaptive`).
     """
 
     enabled: bool = True
@@ -223,9 +227,32 @@ class DensifyConfig:
     split_factor: float = 1.6
     cull_scale: float | None = 0.1
     cull_screen: float | None = 0.15
+    strategy: str = "adaptive"
 
     def __post_init__(self):
         check_ranges(self)
+        if self.strategy not in _STRATEGIES:
+            raise DataError("strategy", f"unknown density strategy {self.strategy!r}; "
+                                        f"registered: {', '.join(sorted(_STRATEGIES))}")
+
+
+#: ``make(config, *, scene_extent, iterations) -> Strategy`` by name (:func:`register_strategy`).
+_STRATEGIES: dict[str, Callable[..., Strategy]] = {}
+
+
+def register_strategy(name: str, make: Callable[..., Strategy]) -> None:
+    """Make ``DensifyConfig(strategy=name)`` train with ``make(config, *, scene_extent,
+    iterations) -> Strategy`` (the signature of :func:`adaptive`). ``make`` must be a
+    module-level function: compiled programs are cached by it."""
+    if not name or not callable(make):
+        raise DataError("strategy", f"need a name and a callable, got {name!r}, {make!r}")
+    _STRATEGIES[name] = make
+
+
+def strategy_for(config: DensifyConfig, *, scene_extent, iterations: int) -> Strategy:
+    """The :class:`Strategy` ``config.strategy`` names, built from ``config``: the one place a
+    run's density control is made."""
+    return _STRATEGIES[config.strategy](config, scene_extent=scene_extent, iterations=iterations)
 
 
 def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> Strategy:
@@ -310,7 +337,7 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
         return g, opt_state, new_stats, info
 
     def skip(gaussians, opt_state, stats, step, key, frozen):
-        return gaussians, opt_state, stats, _empty_info(gaussians.capacity, gaussians.num_alive())
+        return gaussians, opt_state, stats, nothing_done(gaussians.capacity, gaussians.num_alive())
 
     def update(gaussians: Gaussians, opt_state, stats: DensifyStats, aux: RenderAux | None,
                step, key: jax.Array, frozen: jax.Array | None = None):
@@ -354,3 +381,6 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
         return gaussians, opt_state, stats, info
 
     return Strategy(init=init, update=update)
+
+
+register_strategy("adaptive", adaptive)

@@ -7,7 +7,7 @@ the trainer keeps training on whatever the dataset currently holds, replacing a
 training image whenever a new edit of that view arrives (iterative dataset
 update).
 
-Three interchangeable sources implement that contract, :class:`EditSource`, for a
+Interchangeable sources implement that contract, :class:`EditSource`, for a
 subtask's loop (:mod:`jaxedit.edit.subtask`):
 
 * :class:`SyncEditSource`, fully deterministic: the edits due at trainer step
@@ -15,6 +15,8 @@ subtask's loop (:mod:`jaxedit.edit.subtask`):
   cyclic order) and computed inline from the scene at step ``s``. Same seed,
   same bits; resuming at any step reproduces the uninterrupted run, because the
   rule depends on the step only.
+* :class:`SweepEditSource`, as deterministic: every view every ``every`` steps
+  (Instruct-GS2GS's dataset update).
 * :class:`PipelinedEditSource`, the same edits made on a worker thread beside the
   trainer's next steps and taken into the dataset when those steps end: as deterministic,
   with the editor's time hidden behind the trainer's where they can run side by side.
@@ -63,8 +65,8 @@ class EditJob:
       iteration: how many edits this subtask issued before this one; it seeds the
         editor (with the view and ratio) and drives the timestep annealing.
       step: trainer step (within the subtask) at which the job was issued.
-      timestep: the SDEdit timestep the edit is made at, when the schedule fixes it
-        (:class:`ScheduledEditSource`); None: the subtask's annealing of ``step``.
+      timestep: the SDEdit timestep the edit is made at, when the source fixes it (a
+        study's explicit schedule); None: the subtask's annealing of ``step``.
     """
 
     view: int
@@ -366,48 +368,21 @@ class PipelinedEditSource(SyncEditSource):
         self._worker.shutdown(wait=True, cancel_futures=True)
 
 
-class ScheduledEditSource(SyncEditSource):
-    """Deterministic edits at an explicit list of exchanges instead of every ``every`` steps.
+class SweepEditSource(SyncEditSource):
+    """Deterministic sweeps: every ``every`` steps (step 0 included) every view is edited, in
+    ``order``, from the scene at that step (Instruct-GS2GS edits its whole dataset every 2500
+    steps). Edit ``i`` of the subtask is view ``order[i % N]`` of sweep ``i // N``."""
 
-    ``exchanges``: ``(step, count, timestep)`` triples with strictly increasing steps; at
-    ``step`` the next ``count`` views of the cyclic ``order`` are edited (edits are numbered
-    through the subtask, as :class:`SyncEditSource` numbers them), at ``timestep`` (None: the
-    subtask's annealing of the step). The equal-budget controls of the ablation use it: a
-    fractional schedule (edit k at step round(k L / calls)) matches any number of editor
-    calls exactly, and ProEdit's own exchanges replayed in one subtask match its sweeps and
-    timesteps (:mod:`jaxedit.pipelines.ablation.methods`).
-    """
-
-    def __init__(self, edit_fn: EditFn, order: np.ndarray, *, exchanges, trainer_device=None,
-                 edit_many: EditManyFn | None = None):
-        super().__init__(edit_fn, order, every=1, initial_sweep=False,
+    def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int,
+                 trainer_device=None, edit_many: EditManyFn | None = None):
+        super().__init__(edit_fn, order, every=every, initial_sweep=False,
                          trainer_device=trainer_device, edit_many=edit_many)
-        self.exchanges = tuple((int(s), int(c), None if t is None else float(t))
-                               for s, c, t in exchanges)
-        steps = [s for s, _, _ in self.exchanges]
-        if any(b <= a for a, b in zip(steps, steps[1:])) or (steps and steps[0] < 0) or any(
-                c < 1 for _, c, _ in self.exchanges):
-            raise ValueError(f"exchanges need increasing steps >= 0 and counts >= 1, got "
-                             f"{self.exchanges}")
-        self._at = {}
-        first = 0
-        for s, c, t in self.exchanges:
-            self._at[s] = (first, c, t)
-            first += c
-
-    def due(self, step: int) -> bool:
-        return step in self._at
-
-    def next_due(self, step: int) -> int | None:
-        later = [s for s in self._at if s > step]
-        return min(later) if later else None
 
     def jobs_at(self, step: int) -> list[EditJob]:
-        if step not in self._at:
+        if step < 0 or step % self.every:
             return []
-        first, count, t = self._at[step]
-        n = len(self.order)
-        return [EditJob(int(self.order[i % n]), i, step, t) for i in range(first, first + count)]
+        n, first = len(self.order), (step // self.every) * len(self.order)
+        return [EditJob(int(self.order[i % n]), i, step) for i in range(first, first + n)]
 
 
 class EditorThreadError(RuntimeError):
@@ -617,17 +592,17 @@ class AsyncEditSource:
 
 def make_source(edit_fn: EditFn, order: np.ndarray, *, asynchronous: bool, every: int = 10,
                 initial_sweep: bool = False, device=None, capacity: int = 4,
-                trainer_device=None, edit_many: EditManyFn | None = None, exchanges=None,
-                pipelined: bool = False):
+                trainer_device=None, edit_many: EditManyFn | None = None,
+                pipelined: bool = False, sweep_every: int | None = None):
     """The sync (deterministic: inline, or ``pipelined`` beside the trainer's steps) or
     async (threaded) edit source with one call (the asynchronous producer edits one view at
-    a time, each from the newest scene); ``exchanges`` (deterministic, inline only): an
-    explicit schedule, :class:`ScheduledEditSource`."""
-    if exchanges is not None:
+    a time, each from the newest scene); ``sweep_every``: every view every that many steps
+    instead (:class:`SweepEditSource`, inline)."""
+    if sweep_every is not None:
         if asynchronous:
-            raise ValueError("an explicit edit schedule is deterministic: not asynchronous")
-        return ScheduledEditSource(edit_fn, order, exchanges=exchanges,
-                                   trainer_device=trainer_device, edit_many=edit_many)
+            raise ValueError("sweeps are deterministic: not asynchronous")
+        return SweepEditSource(edit_fn, order, every=sweep_every,
+                               trainer_device=trainer_device, edit_many=edit_many)
     if asynchronous:
         return AsyncEditSource(edit_fn, order, device=device, capacity=capacity,
                                trainer_device=trainer_device)

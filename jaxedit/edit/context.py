@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
+from .hooks import NO_HOOKS, EditHooks
 from .outputs import Renderer
 from .plan import ProEditConfig
 from .trainer import SubtaskTrainer
@@ -96,6 +97,8 @@ class EditContext:
         training masks (:func:`jaxedit.edit.local.plan_local`), or None (a global edit):
         the training image of an edited view is the editor's output inside the mask and the
         original photo outside it, and the plateau test watches the loss inside it.
+      hooks: a study's changes to the plan, the limits or the edit source
+        (:class:`jaxedit.edit.hooks.EditHooks`; none by default).
     """
 
     editor: Any
@@ -109,12 +112,13 @@ class EditContext:
     e_null: np.ndarray
     editor_device: Any = None
     masks: Any = None
+    hooks: EditHooks = NO_HOOKS
 
     @staticmethod
     def create(editor, prompt: str, data: EditData, config: ProEditConfig,
                trainer: SubtaskTrainer, renderer: Renderer, key: jax.Array, editor_device=None,
-               masks=None, embeddings: tuple[np.ndarray, np.ndarray] | None = None
-               ) -> "EditContext":
+               masks=None, embeddings: tuple[np.ndarray, np.ndarray] | None = None,
+               hooks: EditHooks = NO_HOOKS) -> "EditContext":
         """The context of a run: the prompt encoded once.
 
         ``embeddings``: (E(p), E("")) of :func:`encode_prompt` when the caller has already
@@ -125,4 +129,5 @@ class EditContext:
         return EditContext(editor, prompt, data, config, trainer, renderer, key,
                            e_prompt=e_prompt, e_null=e_null,
                            editor_device=editor_device,
-                           masks=None if masks is None else jnp.asarray(masks, jnp.float32))
+                           masks=None if masks is None else jnp.asarray(masks, jnp.float32),
+                           hooks=hooks)

@@ -52,6 +52,9 @@ class ProEditConfig:
         :func:`jaxedit.editors.editor_guidance`: what its weights folder recommends, 2, 1.5
         for the bundled model, else InstructPix2Pix's 7.5, 1.5).
       edit_every: trainer steps between edits in the deterministic mode.
+      sweep_every: edit every view at once every that many steps after the warm-up
+        (Instruct-GS2GS's dataset update: 2500) instead of one view every ``edit_every``
+        steps (None); deterministic, not with ``asynchronous``.
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
       pipelined: the deterministic schedule's edits are made on a worker thread while the
         trainer takes the steps up to its next stop, and enter the dataset there
@@ -60,8 +63,7 @@ class ProEditConfig:
         run side by side (:func:`jaxedit.edit.buffer.side_by_side`: a CPU's cores, or an
         editor on a device of its own); on one shared accelerator the edits stay inline.
         False: inline, the trainer waits for each edit and trains on it from the step it
-        was due. Not for ``asynchronous`` or an explicit ``edit_plan``, whose edits arrive
-        as those say.
+        was due. Not for ``asynchronous``, whose edits arrive as they are made.
       asynchronous: producer thread instead of the deterministic schedule. Off by
         default, in the library and on the command line alike: the deterministic
         schedule is the one whose bits a seed fixes and whose resume is exact; the
@@ -78,18 +80,6 @@ class ProEditConfig:
       background: render background (the editor sees renders on it).
       stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs
         exactly ``max_steps`` (IN2N trains for a fixed number of iterations).
-      nd_subtasks: ND mode only: k edit subtasks, all at r = 1 (ND-k: ND with the opacity
-        resets, initial sweeps and subtask count of a k-subtask ProEdit run, the control
-        that separates progression from the extra resets and sweeps).
-      subtask_steps: fixed lengths of the subtasks in plan order (the equal-budget
-        controls): each runs exactly that many steps, no plateau test, no guard (None:
-        the plateau and ``max_steps`` decide).
-      edit_plan: explicit editor exchanges per subtask in plan order (the equal-budget
-        controls of the ablation): each entry None (every ``edit_every`` steps, as without
-        it) or a tuple of ``(step, count, timestep)``: at ``step`` steps after the warm-up
-        edit the next ``count`` views of the cyclic order, at ``timestep`` (None: annealed
-        by the step) (:class:`jaxedit.edit.buffer.ScheduledEditSource`; deterministic mode
-        only).
     """
 
     mode: str = "proedit"
@@ -110,6 +100,7 @@ class ProEditConfig:
     timestep_range: tuple[float, float] = (0.45, 0.85)
     guidance: tuple[float, float] | None = None
     edit_every: int = ranged(10, low=1)
+    sweep_every: int | None = ranged(None, low=1)
     initial_sweep: bool = True
     pipelined: bool = True
     asynchronous: bool = False
@@ -119,9 +110,6 @@ class ProEditConfig:
     turntable_frames: int = ranged(24, low=0)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     stop_on_plateau: bool = True
-    nd_subtasks: int = 1
-    subtask_steps: tuple[int, ...] | None = None
-    edit_plan: tuple | None = None
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -132,23 +120,8 @@ class ProEditConfig:
         lo, hi = self.timestep_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise DataError("timestep_range", f"need 0 <= t_min <= t_max <= 1, got {lo}, {hi}")
-        if self.nd_subtasks < 1 or (self.nd_subtasks > 1 and self.mode != "nd"):
-            raise DataError("nd_subtasks", f"must be >= 1, and 1 unless mode is nd, got "
-                                           f"{self.nd_subtasks} ({self.mode})")
-        if self.subtask_steps is not None and (
-                not len(self.subtask_steps) or min(self.subtask_steps) < 1):
-            raise DataError("subtask_steps", f"need lengths >= 1, got {self.subtask_steps}")
-        if self.edit_plan is not None:
-            if self.asynchronous:
-                raise DataError("edit_plan", "an explicit edit schedule is deterministic: "
-                                             "not with asynchronous")
-            for entry in self.edit_plan:
-                steps = [] if entry is None else [int(x[0]) for x in entry]
-                if entry is not None and (not steps or steps[0] < 0 or any(
-                        b <= a for a, b in zip(steps, steps[1:])) or any(
-                        int(x[1]) < 1 for x in entry)):
-                    raise DataError("edit_plan", f"each subtask's exchanges need increasing "
-                                                 f"steps >= 0 and counts >= 1, got {entry}")
+        if self.sweep_every is not None and self.asynchronous:
+            raise DataError("sweep_every", "sweeps are deterministic: not with asynchronous")
 
     @classmethod
     def for_mode(cls, mode: str, **overrides) -> "ProEditConfig":
@@ -249,7 +222,7 @@ class SubtaskLimits:
 
     Attributes:
       max_steps: the step guard (the config's, or :func:`subtask_guard` of the scene when
-        it is None; a ``subtask_steps`` entry for a subtask of fixed length).
+        it is None).
       stop_on_plateau: the loss plateau ends the subtask (False: exactly ``max_steps``).
     """
 
@@ -266,13 +239,10 @@ def step_guard(config: ProEditConfig, views_shape: Sequence[int]) -> int:
     return subtask_guard(n, h, w)
 
 
-def subtask_limits(config: ProEditConfig, views_shape: Sequence[int],
-                   index: int) -> SubtaskLimits:
-    """The limits of subtask ``index`` of a run on training views of shape ``views_shape``
-    (N, H, W, ...): the run's guard and plateau test, or with ``subtask_steps`` its own
-    fixed length (its step budget, no plateau)."""
-    if config.subtask_steps is not None:
-        return SubtaskLimits(int(config.subtask_steps[index]), False)
+def subtask_limits(config: ProEditConfig, views_shape: Sequence[int]) -> SubtaskLimits:
+    """The limits of a subtask of a run on training views of shape ``views_shape``
+    (N, H, W, ...): the run's guard and plateau test (a study's own limits:
+    :attr:`jaxedit.edit.hooks.EditHooks.limits`)."""
     return SubtaskLimits(step_guard(config, views_shape), config.stop_on_plateau)
 
 

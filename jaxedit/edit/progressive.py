@@ -114,11 +114,10 @@ def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
     cfg = ctx.config
     if cfg.mode == "nd":
         s = sched.uniform(1, oracle)
-        if cfg.nd_subtasks > 1 and start_ratio == 0.0:  # ND-k: the same edit k times
-            return s, [0.0] + [1.0] * cfg.nd_subtasks, [s.difficulties[0]] + [0.0] * (
-                cfg.nd_subtasks - 1)
     elif cfg.mode == "in2n":
         s = sched.uniform(1, None)
+    elif ctx.hooks.schedule is not None and start_ratio == 0.0:
+        s = ctx.hooks.schedule(oracle)
     elif cfg.subtasks is not None:
         s = sched.uniform(cfg.subtasks, oracle)
     elif cfg.threshold is None and cfg.target_subtasks is not None:
@@ -189,6 +188,8 @@ def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ra
             if len(ratios) > 1 or config.mode == "in2n" else
             plan_subtasks("proedit", [0.0, 1.0], [None], refine_first=False,
                           consolidate=config.consolidate)[-1:])
+    if start_ratio == 0.0:
+        plan = ctx.hooks.planned(plan)
     curve = []
     if oracle is not None:
         grid = np.linspace(0.0, 1.0, max(config.curve_points, 2))
@@ -252,7 +253,8 @@ def subtask_warnings(ctx: EditContext, spec: SubtaskSpec, info: dict,
     """What the log should say of a finished subtask: a guard that fired, a cap that bit."""
     out = []
     if info["guard"] == "steps":
-        guard = subtask_limits(ctx.config, ctx.data.train_images.shape, spec.index).max_steps
+        guard = ctx.hooks.limits_of(
+            spec, subtask_limits(ctx.config, ctx.data.train_images.shape)).max_steps
         out.append(f"subtask {spec.name}: max_steps guard ({guard}) fired "
                    f"before the loss plateaued")
     elif info["guard"] == "seconds":

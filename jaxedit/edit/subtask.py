@@ -79,7 +79,7 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
     originals = jax.device_put(ctx.data.train_images, ctx.editor_device)
 
     def t_range(job: EditJob) -> tuple[float, float]:
-        if job.timestep is not None:  # an explicit schedule fixes it (ScheduledEditSource)
+        if job.timestep is not None:  # the source fixes it (a study's explicit schedule)
             return (job.timestep, job.timestep)
         if cfg.mode == "in2n":
             return tuple(cfg.timestep_range)
@@ -324,7 +324,7 @@ def prepare(ctx: EditContext, st: EditState, spec: SubtaskSpec) -> Subtask:
     """Subtask ``spec``'s fixed parts: its limits, its edit source (the views in a seeded
     cyclic order, each edited from the current render with e(r)) and its annealing horizon."""
     cfg = ctx.config
-    limits = subtask_limits(cfg, ctx.data.train_images.shape, spec.index)
+    limits = ctx.hooks.limits_of(spec, subtask_limits(cfg, ctx.data.train_images.shape))
     key_sub = jax.random.fold_in(ctx.key, spec.index)
     order = view_order(len(ctx.data.train_images), jax.random.fold_in(key_sub, _ORDER))
     horizon = anneal_horizon(cfg, limits.max_steps)
@@ -332,13 +332,16 @@ def prepare(ctx: EditContext, st: EditState, spec: SubtaskSpec) -> Subtask:
     trainer_device = next(iter(st.images.devices()))
     # Room for two chunks' worth of edits, so a fast editor is never held up between
     # the trainer's collections.
-    source = make_source(edit_one, order, asynchronous=cfg.asynchronous, edit_many=edit_many,
-                         every=cfg.edit_every, initial_sweep=cfg.initial_sweep,
-                         device=ctx.editor_device, capacity=2 * CHUNK,
-                         trainer_device=trainer_device,
-                         exchanges=None if cfg.edit_plan is None else cfg.edit_plan[spec.index],
-                         pipelined=cfg.pipelined and side_by_side(trainer_device,
-                                                                  ctx.editor_device))
+    source = None if ctx.hooks.edit_source is None else ctx.hooks.edit_source(
+        spec, edit_one, order, edit_many=edit_many, trainer_device=trainer_device)
+    if source is None:
+        source = make_source(edit_one, order, asynchronous=cfg.asynchronous,
+                             edit_many=edit_many, every=cfg.edit_every,
+                             initial_sweep=cfg.initial_sweep, device=ctx.editor_device,
+                             capacity=2 * CHUNK, trainer_device=trainer_device,
+                             pipelined=cfg.pipelined and side_by_side(trainer_device,
+                                                                      ctx.editor_device),
+                             sweep_every=cfg.sweep_every)
     return Subtask(ctx, spec, limits, source, horizon, time.perf_counter() - st.seconds)
 
 

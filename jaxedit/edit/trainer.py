@@ -63,10 +63,10 @@ class TrainSettings:
         ``warmup`` is the plan's W (:attr:`ProEditConfig.warmup`, given to
         :meth:`train_config`): another value here is a DataError, not silently replaced.
       sh_degree: SH degree trained (the input scene's, all degrees on from the start).
-      lr_means, lr_sh_dc, lr_opacity: Adam learning rates (TrainConfig's, Splatfacto's,
-        by default; the higher-order SH get lr_sh_dc / 20). Splatfacto's are tuned for
-        ~30k steps; short CPU runs of a few hundred steps per subtask need a larger
-        colour rate to follow the edits at all (the ablation uses 10x).
+      lr_means: Adam learning rate of the means (Splatfacto's by default, constant).
+      lr_sh_dc: Adam learning rate of the SH colour (the higher SH get a twentieth); short
+        subtasks may need a larger one to follow the edits.
+      lr_opacity: Adam learning rate of the opacity logits.
 
     The background and the warm-up are the plan's (:class:`ProEditConfig`), given to
     :meth:`train_config`.
@@ -187,8 +187,8 @@ class SubtaskTrainer:
         if state.frozen is not None:  # a local edit's frozen Gaussians keep their opacity
             g = dataclasses.replace(g, opacity_logits=jnp.where(
                 state.frozen, state.gaussians.opacity_logits, g.opacity_logits))
-        strategy = densify.adaptive(state.config.densify, scene_extent=state.scene_extent,
-                                    iterations=state.config.iterations)
+        strategy = densify.strategy_for(state.config.densify, scene_extent=state.scene_extent,
+                                        iterations=state.config.iterations)
         return dataclasses.replace(state, gaussians=g, opt_state=opt,
                                    densify_stats=strategy.init(g), densify_origin=state.step)
 

@@ -1,19 +1,52 @@
 """Relevance masks: how much an instruction changes each pixel, as a mask. Shared by the
-protocol (:mod:`.base`), the simulated editor and the JAX InstructPix2Pix's relevance
+protocol (:mod:`.base`), the lab's simulated editor and the JAX InstructPix2Pix's relevance
 (:meth:`.jax_ip2p.JaxIP2PEditor.relevance`), in a module of its own so that none of them imports
 another; and the check of a mask file's size before it is decoded (:func:`check_mask_file`)."""
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..errors import DataError
-from .simulated_targets import blur
 
 #: Bytes a decoded pixel channel takes while a mask is read: float32, as decoded and as
 #: the RGB image the reader makes of it (at least three channels).
 _DECODED_BYTES = 4 * 2
+
+
+def _gaussian_kernel(sigma: float) -> jnp.ndarray:
+    radius = max(1, int(math.ceil(3.0 * sigma)))
+    x = np.arange(-radius, radius + 1, dtype=np.float32)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return jnp.asarray(k / k.sum())
+
+
+def blur(x, sigma: float):
+    """Separable Gaussian blur of float [H, W] or [H, W, C] with edge padding."""
+    if sigma <= 0:
+        return x
+    k = _gaussian_kernel(sigma)
+    r = (k.shape[0] - 1) // 2
+    squeeze = x.ndim == 2
+    if squeeze:
+        x = x[..., None]
+
+    def conv_axis(img, axis):
+        pad = [(0, 0)] * img.ndim
+        pad[axis] = (r, r)
+        p = jnp.pad(img, pad, mode="edge")
+        n = img.shape[axis]
+        out = 0.0
+        for i in range(k.shape[0]):
+            out = out + k[i] * jax.lax.slice_in_dim(p, i, i + n, axis=axis)
+        return out
+
+    y = conv_axis(conv_axis(x, 0), 1)
+    return y[..., 0] if squeeze else y
 
 
 def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:

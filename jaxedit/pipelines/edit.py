@@ -36,6 +36,7 @@ from ..edit.checkpoint import (check_resume, load_checkpoint, save_checkpoint,
                                snapshot_fingerprint)
 from ..edit.context import EditContext, EditData, encode_prompt
 from ..edit.difficulty import default_distance
+from ..edit.hooks import NO_HOOKS, EditHooks
 from ..edit.outputs import Renderer
 from ..edit.state import begin_subtask, init_state
 from ..edit.subtask import compile_chunk
@@ -96,11 +97,14 @@ class EditorConfig:
 
 
 def make_editor(config: EditorConfig):
-    """The editor ``config`` describes (the bundled InstructPix2Pix without ``weights``)."""
-    if config.kind == "simulated":
-        from ..editors.simulated import SimulatedEditor
+    """The InstructPix2Pix editor ``config`` describes (the bundled one without ``weights``).
 
-        return SimulatedEditor()
+    The simulated editor is the lab's (:mod:`jaxedit_lab.simulated`): the commands build it
+    (``experiments/editors.py``); library users pass it to :func:`run_edit` themselves.
+    """
+    if config.kind == "simulated":
+        raise DataError("kind", "the simulated editor is the lab's test instrument: pass "
+                                "jaxedit_lab.simulated.SimulatedEditor() as the editor")
     from ..editors import bundled_editor, native_size
 
     weights = config.weights or bundled_editor()
@@ -226,7 +230,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
              resume_from: str | os.PathLike | None = None, select=None,
              callback: Callable | None = None, progress: Callable | None = None,
              report: bool = True, log: Callable[[str], None] | None = None,
-             distance: Callable | None = None, local=None) -> dict:
+             distance: Callable | None = None, local=None, hooks: EditHooks = NO_HOOKS) -> dict:
     """Edit ``gaussians`` progressively (:mod:`jaxedit.edit.progressive`); returns the run summary.
 
     Args:
@@ -252,6 +256,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
       local: a :class:`jaxedit.edit.local.LocalSpec` (None or inactive: a global edit):
         Gaussians outside it are frozen, the views blended outside its rendered relevance;
         its figures go to schedule.json's ``"local"``.
+      hooks: a study's changes to the plan, limits or edit source
+        (:class:`jaxedit.edit.hooks.EditHooks`; the lab's controls use them).
     Returns:
       {"schedule": schedule.json contents, "metrics": metrics.json contents, "gaussians": final}.
     """
@@ -282,7 +288,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             f"of the pixels inside ({local_figures['seconds']:.1f} s)")
     ctx = EditContext.create(editor, prompt, data, config, trainer, Renderer(config.background),
                              jax.random.key(seed), editor_device, masks=masks,
-                             embeddings=embeddings)
+                             embeddings=embeddings, hooks=hooks)
     wall0 = time.perf_counter()
     ckpt = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if resume and (ckpt is None or not ckpt.exists()):
@@ -313,12 +319,6 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                 resumed_from=None if resume_from is None else str(resume_from))
         if local_figures is not None:
             header = dict(header, local=local_figures)
-    if config.subtask_steps is not None and len(config.subtask_steps) != len(plan):
-        raise DataError("subtask_steps", f"{len(config.subtask_steps)} lengths for a plan of "
-                                         f"{len(plan)} subtasks")
-    if config.edit_plan is not None and len(config.edit_plan) != len(plan):
-        raise DataError("edit_plan", f"{len(config.edit_plan)} subtasks' exchanges for a plan "
-                                     f"of {len(plan)} subtasks")
     if run_dir is not None and not resume:
         write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
         if local_figures is not None:  # the region at the held-out views, for the report

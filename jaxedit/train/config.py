@@ -17,25 +17,28 @@ class TrainConfig:
 
     Attributes:
       iterations: optimiser steps of the run (one view per step).
-      lr_means, lr_means_final: means learning rate, decayed exponentially from
-        the first to the second over ``iterations`` steps, both multiplied by the
-        scene extent (INRIA).
-      lr_sh_dc, lr_sh_rest, lr_opacity, lr_scales, lr_quats: Adam learning rates.
-      adam_eps: Adam epsilon (1e-15: tiny, as in 3DGS).
+      lr_means: means learning rate at the first step, times the scene extent (INRIA);
+        decayed exponentially to ``lr_means_final`` over ``iterations`` steps.
+      lr_means_final: means learning rate at the last step, times the scene extent.
+      lr_sh_dc: Adam learning rate of the SH degree-0 colour.
+      lr_sh_rest: Adam learning rate of the higher SH coefficients.
+      lr_opacity: Adam learning rate of the opacity logits.
+      lr_scales: Adam learning rate of the log-scales.
+      lr_quats: Adam learning rate of the rotations (quaternions).
+      adam_eps: Adam epsilon (tiny, as in 3DGS).
       lambda_dssim: loss = (1 - l) L1 + l (1 - SSIM).
-      sh_degree: largest SH degree trained (<= the Gaussians'); one degree is
-        switched on every ``sh_degree_interval`` steps, starting at 0.
+      sh_degree: largest SH degree trained (<= the Gaussians').
+      sh_degree_interval: steps between switching on one more SH degree, from degree 0.
       background: "random" (a uniform colour per step), "white" or "black";
         the colour behind the Gaussians in training renders.
       densify: :class:`DensifyConfig`.
       camera_opt: learn a 6-DoF pose correction per training view with the scene
-        (Splatfacto's camera optimizer, gsplat's ``pose_opt``): for poses estimated
-        by structure from motion, whose residual errors (~0.4 degree, 1-2 px) the
-        Gaussians would otherwise blur over. See :class:`jaxedit.poses.CameraCorrections`.
-      lr_camera, lr_camera_final: its learning rate (radians, and the translation in
-        units of the view's scene depth, see :func:`jaxedit.poses.apply_delta`), decayed
-        exponentially from the first to the second between ``camera_opt_from`` and
-        ``iterations``.
+        (Splatfacto's camera optimizer, gsplat's ``pose_opt``), for poses estimated by
+        structure from motion (:class:`jaxedit.poses.CameraCorrections`).
+      lr_camera: the pose corrections' learning rate at ``camera_opt_from`` (radians, and
+        the translation in units of the view's scene depth, :func:`jaxedit.poses.apply_delta`).
+      lr_camera_final: the pose corrections' learning rate at the last step (exponential
+        decay from ``lr_camera``).
       camera_opt_from: the step the corrections start to move: before it the scene is
         too blurred for its photometric gradient to say where a camera points.
     """

@@ -168,8 +168,8 @@ def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *
         raise DataError("scene_extent", f"must be a positive number, got {scene_extent}")
     key = jax.random.key(0) if key is None else key
     tx = optimizer(config, scene_extent)
-    strategy = dens.adaptive(config.densify, scene_extent=scene_extent,
-                             iterations=config.iterations)
+    strategy = dens.strategy_for(config.densify, scene_extent=scene_extent,
+                                 iterations=config.iterations)
     if max_intersections is None:
         max_intersections = 0
     if config.camera_opt:

@@ -98,8 +98,8 @@ def apply_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
     g1 = dataclasses.replace(params, alive=g.alive)
 
     step = state.step + 1
-    strategy = dens.adaptive(cfg.densify, scene_extent=state.scene_extent,
-                             iterations=cfg.iterations)
+    strategy = dens.strategy_for(cfg.densify, scene_extent=state.scene_extent,
+                                 iterations=cfg.iterations)
     aux = dens.render_aux(grad2d, out, batch.camera.width, batch.camera.height)
     g2, opt_state, stats, info = strategy.update(g1, opt_state, state.densify_stats, aux,
                                                  step - state.densify_origin, k_dens,

@@ -202,7 +202,7 @@ SIMULATION_NOTE = (
     "outcome and views differ only by noise that shrinks as the render approaches the target; "
     "with <b>editor modes = K &gt; 1</b> each edit call draws one of K discrete, individually "
     "3D-consistent outcomes, with probabilities that follow how close the current render is "
-    "to each (jaxedit.editors.simulated, section 4). The ablation therefore tests how the editing "
+    "to each (jaxedit_lab.simulated, section 4). The ablation therefore tests how the editing "
     "machinery (schedule, iterative dataset update, adaptive 3DGS) responds to divergent modes "
     "of a known size. It cannot show how large a real diffusion model's feasible output space "
     "is, how its modes are distributed, or how the difficulty measure tracks them; scores are "
@@ -229,7 +229,7 @@ def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_view
     config = read_json(run_dir / "config.json", required=False)
     note = SIMULATION_NOTE if settings.get("editor", "simulated") == "simulated" else (
         f"The editor here is {_e(str(settings.get('editor')))}; outcomes are its instructions' "
-        "outcome targets (jaxedit.pipelines.ablation.outcomes).")
+        "outcome targets (jaxedit_lab.ablation.outcomes).")
     body = (f"<p>{note}</p><p>{len(ablation['runs'])} edit runs; means and "
             "Student-t 95% confidence intervals over seeds; differences are paired by seed "
             "(proedit minus the other method); &ldquo;all&rdquo; averages the instructions of "

@@ -34,7 +34,7 @@ def main() -> None:
     root, cache, deadline = Path(root), Path(cache), float(deadline)
     units = json.loads(Path(queue_file).read_text())
     from experiments.cli import parse
-    from jaxedit.pipelines.ablation import run_ablation
+    from jaxedit_lab.ablation import run_ablation
     from experiments.ablation import run_config, seed_range
 
     last = 0.0

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ...io.files import atomic_write_text
-from ...io.weights import write_safetensors
-from ...models.load import _named_layers
+from jaxedit.io.files import atomic_write_text
+from jaxedit.io.weights import write_safetensors
+from jaxedit.models.load import _named_layers
 
 MODEL_INDEX = {
     "_class_name": "StableDiffusionInstructPix2PixPipeline",
@@ -102,7 +102,7 @@ def write_pipeline(out: str | os.PathLike, *, unet, unet_config: dict, vae, vae_
                    scheduler_config: dict, instructions: list[dict],
                    dataset: dict | None = None, card: str | None = None) -> Path:
     """Write the diffusers folder ``out`` (see the module docstring); returns it."""
-    from ...models import CLIPTextEncoder
+    from jaxedit.models import CLIPTextEncoder
 
     out = Path(out)
     for sub in ("unet", "vae", "text_encoder", "scheduler"):

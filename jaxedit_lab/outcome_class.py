@@ -58,7 +58,7 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import nnls
 
-from ..metrics import percentile_interval
+from jaxedit.metrics import percentile_interval
 
 UNEDITED, MIXED, OTHER = "unedited", "mixed", "other"
 #: Below this total weight along the outcomes (a fraction of one outcome's change) the

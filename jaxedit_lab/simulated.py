@@ -127,7 +127,7 @@ produce IP2P's images. What it reproduces is the behaviour ProEdit relies on:
    ``modes=1`` skips the draw: bit for bit the editor before modes existed.
 
 The target families of sections 1 and 4 (the noise-free ground truth, T^k(s)) are in
-:mod:`jaxedit.editors.simulated_targets`; this module holds the vocabulary and the editor.
+:mod:`jaxedit_lab.simulated_targets`; this module holds the vocabulary and the editor.
 
 Everything random comes from the ``key`` argument; equal inputs and key give equal bits. Use
 :func:`jaxedit.editors.keys.view_key` to derive per-view keys from (run key, view index, ratio,
@@ -145,11 +145,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import DataError, quoted
-from .base import editor_guidance
-from .diffusion import IP2P_GUIDANCE
-from .masks import relevance_mask
-from .simulated_targets import (BULGE_MAX, MAX_MODES, _MODE_ASPECTS, blur, _bulge, _sample,
+from jaxedit.errors import DataError, quoted
+from jaxedit.editors.base import editor_guidance
+from jaxedit.editors.diffusion import IP2P_GUIDANCE
+from jaxedit.editors.masks import relevance_mask
+from jaxedit_lab.simulated_targets import (BULGE_MAX, MAX_MODES, _MODE_ASPECTS, blur, _bulge, _sample,
                                 _target_family, foreground)
 
 EMBED_DIM = 8

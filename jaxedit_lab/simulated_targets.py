@@ -1,6 +1,6 @@
 """Target families of the simulated editor: the noise-free ground truth of every instruction.
 
-:mod:`jaxedit.editors.simulated` describes the model; this module is its part that says what each
+:mod:`jaxedit_lab.simulated` describes the model; this module is its part that says what each
 edit family *should* produce. ``_target_family(original, kind, points, mode)`` returns the map
 s -> T^k(s) from a strength s in [0, 1] (s = 0: the original, s = 1: the full target) to the
 target image of one instruction kind and one divergent mode k (0 .. MAX_MODES - 1; mode 0 is the
@@ -24,7 +24,8 @@ local      the warm, coloured pixels only (:func:`orange_weight`) get their chan
 Every target is a function of the content (colour) of each pixel through smooth functions, of
 the object's silhouette (:func:`foreground`, :func:`head_mask`) or of the surface point, never
 of the pixel position in the frame, so it is consistent across views. The image helpers they
-share with the editor's perturbation (``blur``, ``_sample``) live here too. Everything is pure
+share with the editor's perturbation (``_sample``) live here too; ``blur`` is the library's
+(:func:`jaxedit.editors.masks.blur`). Everything is pure
 JAX, traced inside the editor's compiled edit.
 """
 
@@ -35,6 +36,8 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jaxedit.editors.masks import blur
 
 
 # --------------------------------------------------------------------------------------------
@@ -49,37 +52,6 @@ def _luma(x):
 def _smoothstep(e0, e1, x):
     t = jnp.clip((x - e0) / (e1 - e0), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
-
-
-def _gaussian_kernel(sigma: float) -> jnp.ndarray:
-    radius = max(1, int(math.ceil(3.0 * sigma)))
-    x = np.arange(-radius, radius + 1, dtype=np.float32)
-    k = np.exp(-0.5 * (x / sigma) ** 2)
-    return jnp.asarray(k / k.sum())
-
-
-def blur(x, sigma: float):
-    """Separable Gaussian blur of float [H, W] or [H, W, C] with edge padding."""
-    if sigma <= 0:
-        return x
-    k = _gaussian_kernel(sigma)
-    r = (k.shape[0] - 1) // 2
-    squeeze = x.ndim == 2
-    if squeeze:
-        x = x[..., None]
-
-    def conv_axis(img, axis):
-        pad = [(0, 0)] * img.ndim
-        pad[axis] = (r, r)
-        p = jnp.pad(img, pad, mode="edge")
-        n = img.shape[axis]
-        out = 0.0
-        for i in range(k.shape[0]):
-            out = out + k[i] * jax.lax.slice_in_dim(p, i, i + n, axis=axis)
-        return out
-
-    y = conv_axis(conv_axis(x, 0), 1)
-    return y[..., 0] if squeeze else y
 
 
 def _sample(img, rows, cols):
@@ -124,7 +96,7 @@ _AUTUMN = np.array([[0.55, 0.55, 0.00],
 _BRONZE = np.array([[0.16, 0.09, 0.04], [0.70, 0.43, 0.18], [1.00, 0.88, 0.60]], np.float32)
 _MARBLE_BASE = np.array([0.93, 0.92, 0.89], np.float32)
 
-# The divergent modes (jaxedit.editors.simulated, section 4). Mode 0 of every kind is the single
+# The divergent modes (jaxedit_lab.simulated, section 4). Mode 0 of every kind is the single
 # target of the editor with ``modes=1``; the others are equally plausible, individually
 # 3D-consistent alternatives (each is a function of the content, the silhouette or the surface
 # point, like mode 0).

@@ -29,7 +29,7 @@ what is exported.
 Everything is a pure function of the config and the seed; :func:`train_vae` and
 :func:`train_unet` advance a state pytree one jit-compiled step at a time and hand it to a
 ``checkpoint`` callback, so a run can be stopped and resumed (the edge writes the files:
-:mod:`jaxedit.pipelines.train_editor`).
+:mod:`jaxedit_lab.train_editor`).
 """
 
 from __future__ import annotations
@@ -44,11 +44,11 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ...errors import DataError
-from ...models import AutoencoderKL, CLIPTextEncoder, UNet2DCondition
-from ...models.load import DDPMSchedule
-from . import edit_data
-from .edit_data import EditDataset
+from jaxedit.errors import DataError
+from jaxedit.models import AutoencoderKL, CLIPTextEncoder, UNet2DCondition
+from jaxedit.models.load import DDPMSchedule
+from jaxedit_lab.train_editor import edit_data
+from jaxedit_lab.train_editor.edit_data import EditDataset
 
 Array = jax.Array
 
@@ -119,6 +119,7 @@ class EditorTrainConfig:
         text encoder start the UNet stage (the optimiser and the EMA start afresh). Empty:
         every network starts from random weights.
       degrade: share of inputs degraded as a reconstruction's renders are (blur, noise).
+      width: the UNet's channels at each of its three resolutions.
       text_width: width of the text encoder (and the UNet's cross-attention).
       text_layers: transformer layers of the text encoder.
       seed: every random draw of the run derives from it.
@@ -191,7 +192,7 @@ class EditorTrainConfig:
                             f"of 4 with crop <= size, got {self.size} and {self.vae_crop}")
         if self.text_width % 2:  # the text encoder's two attention heads split it
             raise DataError("--text-width", f"must be even, got {self.text_width}")
-        from ...scenes import list_scenes
+        from jaxedit.scenes import list_scenes
 
         unknown = [s for s in self.scenes if s not in list_scenes()]
         if unknown or not self.scenes:
@@ -218,7 +219,7 @@ class EditorTrainConfig:
                                 f"trained editor (no {missing[0]}/ in it)")
         if not -2**63 <= int(self.seed) < 2**63:  # jax.random.key takes a 64-bit integer
             raise DataError("--seed", f"must fit in 64 bits (|seed| < 2^63), got {self.seed}")
-        from ...memory import require_memory
+        from jaxedit.memory import require_memory
 
         require_memory("--size/--procedural-views/--batch/--vae-batch", train_memory(self),
                        f"training at {self.size} px on {self.procedural_views} views per scene")
@@ -333,7 +334,7 @@ def train_tokenizer(texts: list[str], vocab_size: int = 1024) -> tuple[dict[str,
     from tokenizers import Regex, Tokenizer, normalizers, pre_tokenizers, trainers
     from tokenizers.models import BPE
 
-    from ...models.clip_text import _CLIP_SPLIT
+    from jaxedit.models.clip_text import _CLIP_SPLIT
 
     tok = Tokenizer(BPE(end_of_word_suffix="</w>"))
     tok.normalizer = normalizers.Sequence(

@@ -1,7 +1,7 @@
 """The ablation's methods (rows) and how their budgets follow ProEdit's run of the same seed.
 
 Every method runs the same trainer, W, patience, ``edit_every``, ``refine_every`` and step
-guard; :func:`method_config` builds each one's :class:`jaxedit.edit.plan.ProEditConfig`.
+guard; :func:`method_config` builds each one's :class:`.controls.ControlConfig`.
 The followers take ProEdit's steps and training editor calls exactly: ``nd_equal`` by a
 fractional edit schedule (:func:`fractional_exchanges`: the k-th single edit at step
 round(k (L - W) / (R + 1)), not an integer ``edit_every``), ``nd_replay`` by replaying
@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...edit.buffer import SyncEditSource
-from ...edit.plan import ProEditConfig, anneal_timestep
-from ...errors import DataError
+from jaxedit.edit.buffer import SyncEditSource
+from jaxedit.edit.plan import anneal_timestep
+from jaxedit.errors import DataError
+
+from .controls import ControlConfig
 
 METHODS = ("proedit", "nd", "nd_equal", "nd_replay", "nd_k", "uniform", "in2n")
 #: The default rows of the mechanism variant (in2n, one more trainer compile and no
@@ -137,7 +139,7 @@ class CallLog:
     :meth:`edit_with_mode`), the mode; everything else is the editor's. Batched calls
     (``edit_many``) count one call per view. With ``observe`` (``(original, edited) ->
     anything``), what it says of each call's result, in ``observed`` (the ablation: which
-    view and which outcome, :func:`jaxedit.pipelines.ablation._edit_observer`)."""
+    view and which outcome, :func:`jaxedit_lab.ablation._edit_observer`)."""
 
     def __init__(self, editor, observe=None):
         self.editor = editor
@@ -180,7 +182,7 @@ class CallLog:
 
 def method_config(method: str, *, kind: str, lead: dict | None, warmup: int, patience: int,
                   max_steps: int, edit_every: int, views: int):
-    """The :class:`ProEditConfig` of ``method``; ``lead`` is ProEdit's run of the same seed
+    """The :class:`.controls.ControlConfig` of ``method``; ``lead`` is ProEdit's run of the same seed
     ({"steps": per subtask, "edits": training edits per subtask, "horizon": its annealing
     horizon}). nd_equal and nd_replay make exactly ProEdit's steps and editor calls."""
     # the difficulty over 3 views and no plotted curve: the schedule's editor calls are
@@ -188,20 +190,20 @@ def method_config(method: str, *, kind: str, lead: dict | None, warmup: int, pat
     common = dict(max_steps=max_steps, patience=patience, edit_every=edit_every,
                   asynchronous=False, pipelined=False, difficulty_views=3, curve_points=2)
     if method == "proedit":
-        return ProEditConfig.for_mode("proedit", warmup=warmup, target_subtasks=TARGET_SUBTASKS.get(
+        return ControlConfig.for_mode("proedit", warmup=warmup, target_subtasks=TARGET_SUBTASKS.get(
             kind, TARGET_SUBTASKS_DEFAULT), **common)
     if method == "nd":
-        return ProEditConfig.for_mode("nd", warmup=warmup, **common)
+        return ControlConfig.for_mode("nd", warmup=warmup, **common)
     steps, n = lead["steps"], len(lead["steps"]) - 2  # r0, n edit subtasks, rn
     if method == "uniform":
-        return ProEditConfig.for_mode("proedit", warmup=warmup, subtasks=n, **common)
+        return ControlConfig.for_mode("proedit", warmup=warmup, subtasks=n, **common)
     if method == "in2n":
-        return ProEditConfig.for_mode("in2n", max_steps=sum(steps), patience=patience,
+        return ControlConfig.for_mode("in2n", max_steps=sum(steps), patience=patience,
                                       edit_every=edit_every, asynchronous=False,
                                       pipelined=False, curve_points=2)
     fixed = dict(common, anneal_steps=lead["horizon"])
     if method == "nd_k":
-        return ProEditConfig.for_mode("nd", warmup=warmup, nd_subtasks=n,
+        return ControlConfig.for_mode("nd", warmup=warmup, nd_subtasks=n,
                                       subtask_steps=tuple(steps), **fixed)
     lengths = (steps[0], sum(steps[1:-1]), steps[-1])
     if method == "nd_equal":
@@ -209,13 +211,13 @@ def method_config(method: str, *, kind: str, lead: dict | None, warmup: int, pat
         # gets the calls of ProEdit's n edit subtasks exactly, spread evenly
         middle = fractional_exchanges(lengths[1], sum(lead["edits"][1:-1]), warmup=warmup,
                                       views=views)
-        return ProEditConfig.for_mode("nd", warmup=warmup, subtask_steps=lengths,
+        return ControlConfig.for_mode("nd", warmup=warmup, subtask_steps=lengths,
                                       edit_plan=(None, middle, None), **fixed)
     if method == "nd_replay":
-        base = ProEditConfig.for_mode("nd", warmup=warmup, **common)
+        base = ControlConfig.for_mode("nd", warmup=warmup, **common)
         middle = replay_exchanges(list(steps[1:-1]), warmup=warmup, every=edit_every,
                                   views=views, horizon=lead["horizon"],
                                   timestep_range=tuple(base.timestep_range))
-        return ProEditConfig.for_mode("nd", warmup=warmup, subtask_steps=lengths,
+        return ControlConfig.for_mode("nd", warmup=warmup, subtask_steps=lengths,
                                       edit_plan=(None, middle, None), **fixed)
     raise ValueError(method)

@@ -12,7 +12,7 @@ every method, for every instruction and every seed. Two editors (``editor``):
   are the network's; one variant, its name, with ``methods``.
 - ``simulated``, the test instrument (noise-free targets known; not InstructPix2Pix): an
   editor variant (``variants``) is ``K`` or ``K:GAIN``, K divergent modes per instruction and
-  the mode draw's ``mode_step_gain`` (default 1; :mod:`jaxedit.editors.simulated`, section
+  the mode draw's ``mode_step_gain`` (default 1; :mod:`jaxedit_lab.simulated`, section
   4). ``3`` runs ``methods``; ``1`` (one outcome: nothing to keep consistent) and ``3:0``
   (holding a mode does not depend on the step size) run ``control_methods``.
 
@@ -59,7 +59,7 @@ digits, also in the settings, so a study resumes only with its own weights; None
 editors). ``edit_outcomes``: every training edit of the run, in
 order, as ``{"subtask", "step" (from the subtask's start), "view", "t", "ratio",
 "outcome"}``, ``outcome`` the class of the edited image against the view's photo and its
-outcome targets (:mod:`jaxedit.editors.outcome_class`: the outcome's index, "unedited",
+outcome targets (:mod:`jaxedit_lab.outcome_class`: the outcome's index, "unedited",
 "mixed" or "other"; "undefined" where an outcome leaves the view as it is); ``edit_outcome_counts`` counts them. (The reference levels make no
 editor calls: ``edit_outcomes`` is None.)
 
@@ -97,24 +97,24 @@ from pathlib import Path
 
 import numpy as np
 
-from ...edit import EditData, TrainSettings
-from ...edit.outputs import Renderer
-from ...edit.plan import anneal_horizon
-from ...editors.diffusion import DDIM_STEPS
-from ...editors import outcome_class
-from ...editors.simulated import INSTRUCTIONS, SimulatedEditor
-from ...editors.simulated_targets import MAX_MODES
-from ...errors import DataError, check_ranges, ranged
-from ...io import write_image
-from ...io.files import atomic_write_text
-from ...viz import image_grid
-from ..cache import prepared_scene
-from ..edit import run_edit
-from .methods import (BANDS, CONTROL_METHODS, FOLLOWERS, MAIN_METHODS, METHODS, TARGET_SUBTASKS,
+from jaxedit.edit import EditData, TrainSettings
+from jaxedit.edit.outputs import Renderer
+from jaxedit.edit.plan import anneal_horizon
+from jaxedit.editors.diffusion import DDIM_STEPS
+from jaxedit_lab import outcome_class
+from jaxedit_lab.simulated import INSTRUCTIONS, SimulatedEditor
+from jaxedit_lab.simulated_targets import MAX_MODES
+from jaxedit.errors import DataError, check_ranges, ranged
+from jaxedit.io import write_image
+from jaxedit.io.files import atomic_write_text
+from jaxedit.viz import image_grid
+from jaxedit.pipelines.cache import prepared_scene
+from jaxedit.pipelines.edit import run_edit
+from jaxedit_lab.ablation.methods import (BANDS, CONTROL_METHODS, FOLLOWERS, MAIN_METHODS, METHODS, TARGET_SUBTASKS,
                       TARGET_SUBTASKS_DEFAULT, CallLog, edits_per_subtask,
                       method_config, periodic_exchanges, sweep_agreement, timestep_bands)
-from .outcomes import FixedTargets, outcome_scores, outcome_targets
-from .summary import ALL, METRICS, REFERENCES, summarise, tables
+from jaxedit_lab.ablation.outcomes import FixedTargets, outcome_scores, outcome_targets
+from jaxedit_lab.ablation.summary import ALL, METRICS, REFERENCES, summarise, tables
 
 __all__ = ["ALL", "AblationConfig", "CONTROL_METHODS", "EDITORS", "MAIN_METHODS", "METHODS",
            "METRICS", "REFERENCES",
@@ -204,8 +204,8 @@ class AblationConfig:
     points: int | None = ranged(None, low=1)
 
     def __post_init__(self):
-        from ...scenes import list_scenes
-        from ...scenes.library import DATASETS
+        from jaxedit.scenes import list_scenes
+        from jaxedit.scenes.library import DATASETS
 
         check_ranges(self)
         if self.editor not in EDITORS:
@@ -290,9 +290,9 @@ def _variant_label(modes: int, gain: float) -> str:
 
 def recon_config(iters: int):
     """The reconstruction each scene's edits start from (SH degree 1, a 50k cap)."""
-    from ...densify import DensifyConfig
-    from ...train import TrainConfig
-    from ..reconstruct import ReconstructConfig
+    from jaxedit.densify import DensifyConfig
+    from jaxedit.train import TrainConfig
+    from jaxedit.pipelines.reconstruct import ReconstructConfig
 
     dens = DensifyConfig(refine_every=100, warmup=min(500, iters // 5),
                          reset_every=max(iters // 2, 1), max_gaussians=50_000)
@@ -328,8 +328,8 @@ def _editors(config: AblationConfig, editor=None) -> tuple[dict, str]:
         name = str(getattr(editor, "label", "custom"))
         return {name: editor}, name
     if config.editor == "ip2p":
-        from ...edit.buffer import pick_devices
-        from ...editors.jax_ip2p import JaxIP2PEditor
+        from jaxedit.edit.buffer import pick_devices
+        from jaxedit.editors.jax_ip2p import JaxIP2PEditor
 
         return {"ip2p": JaxIP2PEditor.from_pretrained(_ip2p_folder(config),
                                                       devices=[pick_devices()[1]],
@@ -346,7 +346,7 @@ def _kind(editor, prompt: str) -> str:
             return INSTRUCTIONS[editor._index(prompt)].kind
         if hasattr(editor, "kind"):
             return str(editor.kind(prompt))
-        from ..train_editor import edit_data
+        from jaxedit_lab.train_editor import edit_data
 
         return edit_data.instruction(prompt).kind
     except DataError as e:
@@ -557,7 +557,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
     payload = finish(out, runs, settings_json,
                      wall_time_s=elapsed0 + time.perf_counter() - t_start)
     if report:
-        from ..report import write_report
+        from jaxedit.pipelines.report import write_report
 
         write_report(out)
     return payload
@@ -596,7 +596,7 @@ def _references(editor, prompt, data, scene, targets, config, settings, kind, *,
         for k in range(train.shape[0]):
             fixed = FixedTargets(editor, data.train_images, train[k])
             res = run_edit(fixed, prompt, data, scene, config=cfg, settings=settings, seed=0,
-                           run_dir=None, report=False)
+                           run_dir=None, report=False, hooks=cfg.hooks())
             rgb = _renders(data, res["gaussians"], cfg.background)
             # scored against outcome k's own target: the ceiling of holding that outcome
             own = outcome_scores(rgb, targets[k:k + 1])
@@ -655,7 +655,7 @@ def _run_one(editor: CallLog, prompt, data, scene, cfg, settings, seed, targets)
     """(record, test renders) of one edit run; ``targets`` [K, M, H, W, 3] the outcomes'."""
     t0, c0 = time.perf_counter(), time.process_time()
     res = run_edit(editor, prompt, data, scene, config=cfg, settings=settings, seed=seed,
-                   run_dir=None, report=False)
+                   run_dir=None, report=False, hooks=cfg.hooks())
     rgb = _renders(data, res["gaussians"], cfg.background)
     scores = outcome_scores(rgb, targets)
     m, subtasks = res["metrics"], res["schedule"]["subtasks"]
@@ -732,7 +732,7 @@ def _edit_observer(originals, train_targets):
     """``(original, edited) -> (view, outcome)`` for :class:`.methods.CallLog`: the training
     view whose photo ``original`` is (the nearest: an editor may be handed a device copy) and
     the class of ``edited`` against it and its outcome targets (``train_targets`` [K, N, H,
-    W, 3]; :func:`jaxedit.editors.outcome_class.classify`); "undefined" on a view where an
+    W, 3]; :func:`jaxedit_lab.outcome_class.classify`); "undefined" on a view where an
     outcome's target is the photo itself (a local edit of a part the view does not show),
     which cannot tell that outcome from no edit."""
     photos = np.asarray(originals, np.float32)
@@ -753,7 +753,7 @@ def _edit_observer(originals, train_targets):
 
 def _ip2p_folder(config: AblationConfig) -> Path:
     """The ip2p editor's diffusers folder: ``ip2p_weights``, else the bundled one."""
-    from ...editors import bundled_editor
+    from jaxedit.editors import bundled_editor
 
     return bundled_editor() if config.ip2p_weights is None else Path(config.ip2p_weights)
 

@@ -40,13 +40,13 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ...errors import DataError
-from ...io.checkpoint import read_pytree, restore, save_pytree
-from ...io.files import atomic_path, atomic_write_text, read_npz
-from ...models import CLIPTokenizer
-from ...models.load import DDPMSchedule
-from . import edit_data, tiny_ip2p
-from .export import write_pipeline, write_tokenizer
+from jaxedit.errors import DataError
+from jaxedit.io.checkpoint import read_pytree, restore, save_pytree
+from jaxedit.io.files import atomic_path, atomic_write_text, read_npz
+from jaxedit.models import CLIPTokenizer
+from jaxedit.models.load import DDPMSchedule
+from jaxedit_lab.train_editor import edit_data, tiny_ip2p
+from jaxedit_lab.train_editor.export import write_pipeline, write_tokenizer
 
 #: Steps between checkpoints of either stage.
 CHECKPOINT_EVERY = 250
@@ -481,7 +481,7 @@ def run_tokenizer(cfg, out: Path, resume: bool) -> tuple[dict[str, int], list]:
     on its ids), on ``resume`` the one the run wrote (``tokenizers``' BPE trainer breaks ties
     differently in each process, so learning it again could give the checkpoint's text
     encoder other ids), else one learnt on the instructions."""
-    from .export import read_tokenizer
+    from jaxedit_lab.train_editor.export import read_tokenizer
 
     for folder, use in ((Path(cfg.init) / "tokenizer", bool(cfg.init)),
                         (tokenizer_folder(out), resume)):
@@ -498,7 +498,7 @@ def initial_networks(cfg, vocab: dict) -> dict:
     Raises:
       DataError naming ``--init``.
     """
-    from ...models import load_ip2p
+    from jaxedit.models import load_ip2p
 
     models = load_ip2p(Path(cfg.init))
     key = jax.random.key(0)

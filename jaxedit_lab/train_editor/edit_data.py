@@ -46,7 +46,7 @@ from typing import Callable
 
 import numpy as np
 
-from ...errors import DataError, quoted
+from jaxedit.errors import DataError, quoted
 
 #: Every HOLDOUT_EVERY-th camera of a procedural scene's spiral is held out (person: its own
 #: test split).
@@ -239,8 +239,8 @@ def person_views(size: int) -> SceneViews:
     """The person renders at ``size`` px (256 / size must be an integer), its test split held out."""
     import json
 
-    from ...scenes import dataset_path
-    from ...scenes.dataset import _rgba_downscaled
+    from jaxedit.scenes import dataset_path
+    from jaxedit.scenes.dataset import _rgba_downscaled
 
     root = dataset_path("person")
     meta = json.loads((root / "transforms.json").read_text())
@@ -254,7 +254,7 @@ def person_views(size: int) -> SceneViews:
 
 def procedural_views(name: str, size: int, views: int, scene=None) -> SceneViews:
     """``views`` spiral cameras of a procedural scene, every HOLDOUT_EVERY-th held out."""
-    from ...scenes import get_scene, render_scene, rig_cameras
+    from jaxedit.scenes import get_scene, render_scene, rig_cameras
 
     scene = get_scene(name) if scene is None else scene
     cams = rig_cameras(scene.rig, views, width=size)
@@ -280,7 +280,7 @@ OFF_ORBIT_TOP_DEG = 85.0
 
 def _rig_views(name: str, size: int, rig, views: int, scene, bands, held_out,
                edit_kinds: tuple[str, ...] = KINDS) -> SceneViews:
-    from ...scenes import render_scene, rig_cameras
+    from jaxedit.scenes import render_scene, rig_cameras
 
     cams = rig_cameras(rig, views, width=size)
     return SceneViews(name, render_scene(scene, cams, alpha=True), held_out, bands, cams,
@@ -292,7 +292,7 @@ def novel_views(name: str, size: int, views: int, scene=None,
     """``views`` cameras of a procedural scene off its training orbit (:data:`NOVEL_RADIUS`,
     :data:`NOVEL_ELEVATION_DEG`), every one held out; its bands are those of the scene's
     ``orbit_views`` training cameras."""
-    from ...scenes import get_scene
+    from jaxedit.scenes import get_scene
 
     scene = get_scene(name) if scene is None else scene
     rig = scene.rig
@@ -369,7 +369,7 @@ def scene_pairs(views: SceneViews, scene_obj=None):
             continue
         if ins.kind in ("local", "geometry"):
             edited = _edited_scene(scene_obj, ins.prompt)
-            from ...scenes import render_scene
+            from jaxedit.scenes import render_scene
 
             pairs.append((i, 0, render_scene(edited, views.cameras)))
             continue
@@ -393,7 +393,7 @@ def build_dataset(size: int = 64, procedural_views_per_scene: int = 100,
     as identity examples only if not. ``progress(name)`` is called after each scene (for a
     progress bar). Deterministic.
     """
-    from ...scenes import get_scene, list_scenes
+    from jaxedit.scenes import get_scene, list_scenes
 
     for name in scenes:
         if name not in list_scenes():
@@ -420,7 +420,7 @@ def novel_dataset(size: int = 64, views_per_scene: int = 10,
     """The procedural scenes of ``scenes`` seen from :func:`novel_views` cameras, with every
     outcome (in the bands of the scene's ``orbit_views`` training cameras), all held out (the
     person's renders have no camera off their arc to render)."""
-    from ...scenes import get_scene
+    from jaxedit.scenes import get_scene
 
     def views_of(name):
         obj = get_scene(name)

@@ -10,7 +10,7 @@ held-out renders of every run against the outcomes' noise-free targets at r = 1:
   in the most common class (1: every view shows the same outcome; 1/K at worst);
 - :func:`outcome_targets`: the targets of an editor's outcomes for views: the editor's own
   ``mode_targets`` where it has them (the simulated editor, test editors), else the bundled
-  InstructPix2Pix's training outcomes (:mod:`jaxedit.pipelines.train_editor.edit_data`),
+  InstructPix2Pix's training outcomes (:mod:`jaxedit_lab.train_editor.edit_data`),
   made again for the views of a procedural scene: its image outcomes from the scene's renders with coverage, its
   local and geometry outcomes by rendering the edited scene.
 - :class:`FixedTargets`: an "editor" that returns one outcome's target for every view, for
@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...errors import DataError
-from ...metrics import mode_scores, psnr
+from jaxedit.errors import DataError
+from jaxedit.metrics import mode_scores, psnr
 
 
 def outcome_scores(renders, targets) -> dict:
@@ -46,14 +46,14 @@ def outcome_targets(editor, prompt: str, images, *, scene_name: str | None = Non
     """float32 [K, N, H, W, 3]: every outcome of ``prompt`` for ``images`` [N, H, W, 3].
 
     ``editor.mode_targets(original, 1.0, prompt)`` where the editor has it; otherwise the
-    bundled editor's outcomes (:mod:`jaxedit.pipelines.train_editor.edit_data`) for the views
+    bundled editor's outcomes (:mod:`jaxedit_lab.train_editor.edit_data`) for the views
     ``indices`` of ``dataset``, a procedural built-in scene ``scene_name`` made with ``scene_seed``.
     """
     if hasattr(editor, "mode_targets"):
         return np.stack([editor.mode_targets(o, 1.0, prompt) for o in images],
                         axis=1).astype(np.float32)
-    from ..train_editor import edit_data
-    from ...scenes import get_scene, library, render_scene
+    from jaxedit_lab.train_editor import edit_data
+    from jaxedit.scenes import get_scene, library, render_scene
 
     ins = edit_data.instruction(prompt)
     if scene_name is None or dataset is None or scene_name in library.DATASETS:

@@ -17,7 +17,7 @@ Every figure is measured by editing with an :class:`~jaxedit.editors.base.Editor
   ``vae_roundtrip_psnr_db``: the VAE alone (encode to the posterior mean, decode), the best
   any edit through the latent space can keep a view (:func:`vae_roundtrip`);
   ``identity_per_scene``: both per scene (where a shortfall is).
-- outcomes of each divergent instruction (:mod:`jaxedit.editors.outcome_class`): every
+- outcomes of each divergent instruction (:mod:`jaxedit_lab.outcome_class`): every
   fresh-noise edit classed as one outcome, unedited, mixed or other against the unedited
   input; ``unedited_fraction`` over all draws, ``single_outcome_fraction``,
   ``outcome_frequencies``, ``mixed_fraction`` and ``other_fraction`` over the edited draws;
@@ -48,9 +48,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ...editors import outcome_class
-from ...editors.base import editor_guidance, interpolate_embedding
-from .edit_data import EditDataset, outcome_targets
+from jaxedit_lab import outcome_class
+from jaxedit.editors.base import editor_guidance, interpolate_embedding
+from jaxedit_lab.train_editor.edit_data import EditDataset, outcome_targets
 
 #: SDEdit timesteps of ProEdit's range (:class:`jaxedit.edit.plan.ProEditConfig`'s
 #: ``timestep_range``, 0.45-0.85) at which identity is measured, besides ``t_full``.
@@ -82,7 +82,7 @@ def vae_roundtrip(editor, images: np.ndarray) -> np.ndarray | None:
     CHUNK; None for an editor without one."""
     if not hasattr(editor, "nets") or not hasattr(editor, "model_hw"):
         return None
-    from ...editors.jax_ip2p import decode, resize_images
+    from jaxedit.editors.jax_ip2p import decode, resize_images
 
     cfg, out = editor.config(), []
     hw = editor.model_hw(*images.shape[1:3])

@@ -28,8 +28,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from ...editors.outcome_class import OTHER, UNEDITED
-from ...metrics import paired_differences, percentile_interval
+from jaxedit_lab.outcome_class import OTHER, UNEDITED
+from jaxedit.metrics import paired_differences, percentile_interval
 
 #: The controls of M (primary family), and the scheduler's comparison (P4).
 CONTROLS = ("nd_k", "nd_equal")
