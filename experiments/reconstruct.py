@@ -40,6 +40,7 @@ def _config_flags() -> FlagSet:
         Flag("train.lr_camera", "--camera-lr"),
         Flag("train.camera_opt_from"),
         Flag("downscale"),
+        Flag("skip_missing_images"),
         Flag("normalize", choices=NORMALIZE),
         Flag("random_points"),
         Flag("checkpoint_every"),

@@ -14,8 +14,14 @@ p1, p2) and nerfstudio's for all six (nerfstudio puts k4 on r2^4).
 Undistorting an *image* only needs the forward map: the undistorted pixel at
 (u, v) shows what the distorted image shows at ``K distort(K^-1 (u, v))``, so we
 resample the input there bilinearly with the same intrinsics K (nothing is
-cropped or rescaled). Undistorting *points* needs the inverse, computed by
-Newton's method (:func:`undistort_points`).
+rescaled). Undistorting *points* needs the inverse, computed by Newton's method
+(:func:`undistort_points`).
+
+Where the lens shows less than the pinhole view (pincushion distortion, k1 > 0),
+some undistorted pixels have no source inside the captured image
+(:func:`source_inside`); :func:`valid_rectangle` finds an axis-aligned rectangle of
+pixels that all have one, to crop to (what COLMAP's undistorter does with
+``blank_pixels`` 0), so that no pixel of a dataset is made up.
 """
 
 from __future__ import annotations
@@ -113,6 +119,54 @@ def bilinear_sample(image: np.ndarray, u: np.ndarray, v: np.ndarray, fill) -> np
     return np.where(inside[..., None], out, np.asarray(fill, out.dtype))
 
 
+def _source_coords(height: int, width: int, fx, fy, cx, cy, d: Distortion):
+    v, u = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
+    xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)
+    with np.errstate(over="ignore", invalid="ignore"):  # absurd coefficients -> no source
+        xy_d = distort_points(xy, d)
+        return xy_d[..., 0] * fx + cx, xy_d[..., 1] * fy + cy
+
+
+def source_inside(height: int, width: int, fx: float, fy: float, cx: float, cy: float,
+                  d: Distortion) -> np.ndarray:
+    """bool [H, W]: the undistorted pixels whose source lies in the captured H x W image
+    (the rectangle [0, W] x [0, H], where :func:`bilinear_sample` does not fill)."""
+    us, vs = _source_coords(height, width, fx, fy, cx, cy, d)
+    return (us >= 0.0) & (us <= width) & (vs >= 0.0) & (vs <= height)
+
+
+def valid_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1): an axis-aligned rectangle ``mask[y0:y1, x0:x1]`` that is all True.
+
+    Starting from the whole image, the side whose row or column holds the most False
+    pixels moves in by one until none is left inside (greedy: large, not always the
+    largest). A mask that is True everywhere gives (0, 0, W, H); an all-False one an
+    empty rectangle (x0 == x1 or y0 == y1).
+    """
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    bad = np.zeros((h + 1, w + 1), np.int64)  # summed-area table of the False pixels
+    bad[1:, 1:] = np.cumsum(np.cumsum(~mask, axis=0), axis=1)
+
+    def count(a, b, c, e):  # False pixels in rows a:c, columns b:e
+        return int(bad[c, e] - bad[a, e] - bad[c, b] + bad[a, b])
+
+    x0, y0, x1, y1 = 0, 0, w, h
+    while x0 < x1 and y0 < y1 and count(y0, x0, y1, x1):
+        sides = (count(y0, x0, y0 + 1, x1), count(y1 - 1, x0, y1, x1),
+                 count(y0, x0, y1, x0 + 1), count(y0, x1 - 1, y1, x1))
+        side = int(np.argmax(sides))
+        if side == 0:
+            y0 += 1
+        elif side == 1:
+            y1 -= 1
+        elif side == 2:
+            x0 += 1
+        else:
+            x1 -= 1
+    return x0, y0, x1, y1
+
+
 def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: float,
                     d: Distortion, *, fill=(1.0, 1.0, 1.0)) -> np.ndarray:
     """The pinhole image (same K) seen by a camera with distortion ``d``.
@@ -127,10 +181,5 @@ def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: floa
     """
     if d.is_zero():
         return np.asarray(image, np.float32)
-    h, w = image.shape[:2]
-    v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
-    xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)
-    with np.errstate(over="ignore", invalid="ignore"):  # absurd coefficients -> fill
-        xy_d = distort_points(xy, d)
-    us, vs = xy_d[..., 0] * fx + cx, xy_d[..., 1] * fy + cy
+    us, vs = _source_coords(image.shape[0], image.shape[1], fx, fy, cx, cy, d)
     return bilinear_sample(np.asarray(image, np.float32), us, vs, fill).astype(np.float32)

@@ -10,6 +10,13 @@ Transparency: formats that store straight (unassociated) alpha, like PNG, are
 read as stored and composited as ``rgb * alpha + background * (1 - alpha)``
 (what nerfstudio does); formats with associated (premultiplied) alpha, like
 EXR, as ``rgb + background * (1 - alpha)``. Both give the same picture.
+
+Photos at the size trained at (:func:`read_photo`): a JPEG is decoded at 1/2, 1/4
+or 1/8 of its size by the decoder's DCT scaling (Pillow's ``draft``), which is
+the area average of the full-size decode up to the codec's rounding, so a 1/8
+load never holds the full-size pixels; other formats are decoded whole and
+area-averaged. The EXIF orientation of a photo (:func:`photo_header`) is applied
+on request, before the area average, so blocks line up with the upright image.
 """
 
 from __future__ import annotations
@@ -25,6 +32,10 @@ import OpenImageIO as oiio
 
 from ..errors import DataError
 from .files import atomic_path
+
+_JPEG_MAGIC = b"\xff\xd8\xff"
+#: EXIF orientation tags that swap the image's width and height.
+SWAPPING_ORIENTATIONS = (5, 6, 7, 8)
 
 #: Suffix -> (pixel type written, description). PNG/JPEG are 8-bit, EXR float32,
 #: TIFF 16-bit.
@@ -108,6 +119,139 @@ def image_header(path: str | os.PathLike) -> tuple[int, int, int]:
             return int(spec.height), int(spec.width), int(spec.nchannels)
         finally:
             inp.close()
+
+
+def _is_jpeg(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(3) == _JPEG_MAGIC
+    except OSError as e:
+        raise DataError(path, f"cannot read file ({e.strerror or e})") from None
+
+
+def photo_header(path: str | os.PathLike) -> tuple[int, int, int, bool]:
+    """(stored height, stored width, EXIF orientation 1-8, 8-bit) of an image, nothing decoded.
+
+    The orientation is 1 (as stored) when the file has none; ``8-bit`` is True for 8-bit
+    integer pixels (JPEG, most PNGs), False for 16-bit and float files.
+
+    Raises:
+      DataError: missing, unreadable file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "image file not found" if not path.exists() else "not a file")
+    if _is_jpeg(path):
+        from PIL import Image, UnidentifiedImageError
+
+        try:
+            with Image.open(path) as im:
+                w, h = im.size
+                tag = im.getexif().get(0x0112, 1)
+        except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
+            raise DataError(path, f"cannot open image ({' '.join(str(e).split()) or 'corrupt'})"
+                            ) from None
+        return h, w, int(tag) if tag in range(1, 9) else 1, True
+    utf8_name(path)
+    with _c_stderr_held_back():
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise DataError(path, f"cannot open image ({_oiio_error()})")
+        try:
+            spec = inp.spec()
+            tag = spec.get_int_attribute("Orientation", 1)
+            eight = spec.format.basetype in (oiio.UINT8, oiio.INT8)
+            return (int(spec.height), int(spec.width), tag if tag in range(1, 9) else 1,
+                    bool(eight))
+        finally:
+            inp.close()
+
+
+def orient(image: np.ndarray, orientation: int) -> np.ndarray:
+    """``image`` [H, W, ...] turned upright by its EXIF ``orientation`` (1-8, as Pillow's
+    ``ImageOps.exif_transpose``): [W, H, ...] for 5-8."""
+    ops = {1: lambda a: a, 2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1],
+           4: lambda a: a[::-1], 5: lambda a: a.swapaxes(0, 1),
+           6: lambda a: a[::-1].swapaxes(0, 1), 7: lambda a: a[::-1, ::-1].swapaxes(0, 1),
+           8: lambda a: a[:, ::-1].swapaxes(0, 1)}
+    if orientation not in ops:
+        raise DataError("orientation", f"must be an EXIF orientation 1-8, got {orientation!r}")
+    return ops[orientation](image)
+
+
+def area_average(image: np.ndarray, factor: int) -> np.ndarray:
+    """float32 [H // f, W // f, C]: the mean of each f x f block of ``image`` [H, W, C]
+    (the right and bottom remainder cropped); ``factor`` 1 returns it as float32."""
+    image = np.asarray(image)
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    if factor == 1:
+        return image.astype(np.float32, copy=False)
+    block = image[:h * factor, :w * factor].astype(np.float32)
+    return block.reshape(h, factor, w, factor, -1).mean(axis=(1, 3), dtype=np.float32)
+
+
+def _jpeg_scale(factor: int, width: int, height: int, orientation: int) -> int:
+    """The DCT scale (1, 2, 4, 8) to decode at: the largest dividing ``factor``; 1 when a
+    re-orientation would move the partial last block of a side that is not a multiple of it
+    to the top or left."""
+    scale = next(s for s in (8, 4, 2, 1) if factor % s == 0)
+    if orientation != 1 and (width % scale or height % scale):
+        return 1
+    return scale
+
+
+def _decode_jpeg(path: Path, factor: int, orientation: int) -> np.ndarray:
+    """(uint8 [ceil(H / s), ceil(W / s), 3] decoded at scale 1/s, s dividing ``factor``;
+    s; the stored (H, W))."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            scale = _jpeg_scale(factor, w, h, orientation)
+            if scale > 1:
+                im.draft("RGB", (max(1, w // scale), max(1, h // scale)))
+            im.load()
+            # the scale the decoder chose (Pillow may pick a smaller one than asked)
+            got = next((g for g in (8, 4, 2, 1)
+                        if im.size == (-(-w // g), -(-h // g))), 0)
+            pixels = np.asarray(im.convert("RGB") if im.mode != "RGB" else im)
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
+        raise DataError(path, f"cannot decode image ({' '.join(str(e).split()) or 'corrupt'})"
+                        ) from None
+    if not got or factor % got or pixels.shape[:2] != (-(-h // got), -(-w // got)):
+        raise DataError(path, f"JPEG decoder returned {pixels.shape[1]}x{pixels.shape[0]} at "
+                              f"scale 1/{got}; expected a scale dividing {factor}")
+    return pixels, got, (h, w)
+
+
+def read_photo(path: str | os.PathLike, factor: int = 1, *, orientation: int = 1,
+               background=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """A photo at 1/``factor`` of its size: float32 [H // f, W // f, 3] in [0, 1].
+
+    The area average of :func:`read_image`'s pixels turned by :func:`orient` (H, W the
+    upright size): JPEGs are decoded at a reduced size by DCT scaling (exact up to the
+    codec's rounding), other formats in full, one at a time.
+
+    Args:
+      path: an image file.
+      factor: integer downscale >= 1.
+      orientation: EXIF orientation to apply (1: as stored; see :func:`photo_header`).
+      background: RGB that transparent pixels are composited over.
+    Raises:
+      DataError: unreadable, truncated or undecodable file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "image file not found" if not path.exists() else "not a file")
+    if _is_jpeg(path):
+        pixels, scale, (h, w) = _decode_jpeg(path, factor, orientation)
+        if orientation in SWAPPING_ORIENTATIONS:
+            h, w = w, h
+        # The last decoded row/column may cover a partial block: crop to whole target pixels.
+        out = area_average(orient(pixels, orientation), factor // scale)[:h // factor, :w // factor]
+        return out / np.float32(255.0)
+    return area_average(orient(read_image(path, background=background), orientation), factor)
 
 
 def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:

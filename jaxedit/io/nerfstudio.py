@@ -15,16 +15,26 @@ What :func:`load_nerfstudio` does, in order (and why):
 * Camera models: PINHOLE, SIMPLE_PINHOLE and OPENCV. OPENCV images are
   **undistorted on load** by an exact remap (forward distortion model +
   bilinear resampling, :mod:`jaxedit.io.distortion`) that keeps the declared
-  intrinsics; pixels whose source lies outside the captured image get the
-  background colour. OPENCV_FISHEYE, EQUIRECTANGULAR and anything else are
-  refused with a :class:`DataError`, as is a PINHOLE camera that declares
-  non-zero distortion.
+  intrinsics, then **cropped** to a rectangle of pixels that all have a source
+  inside the photo (``cx``, ``cy`` and the size follow the crop), so no pixel is
+  made up. OPENCV_FISHEYE, EQUIRECTANGULAR and anything else are refused with a
+  :class:`DataError`, as is a PINHOLE camera that declares non-zero distortion.
 * Split: explicit ``train_filenames`` and ``test_filenames`` (falling back to
   ``val_filenames``) when present, else every ``split_every``-th view is held
   out (``index % split_every == 0``, nerfstudio's interval rule).
 * ``downscale=f`` averages f x f pixel blocks (cropping the right/bottom
   remainder) and divides the intrinsics by f: exact in the pixel-centre
-  convention.
+  convention. A JPEG is decoded at 1/2, 1/4 or 1/8 size by the codec
+  (:func:`jaxedit.io.images.read_photo`) and undistorted at the loaded size;
+  :func:`auto_downscale` is nerfstudio's default factor for a capture.
+* Views are held as uint8 when every photo is 8-bit (:attr:`Dataset.pixels`) and
+  kept as loaded in a cache beside the dataset (:mod:`jaxedit.io.view_cache`),
+  so the next load reads them back instead of decoding the photos.
+* EXIF orientation: a photo whose upright size is the declared ``w`` x ``h`` is
+  turned upright; one whose stored size is (posed as stored, the way COLMAP reads
+  photos) is read as stored.
+* Frames whose image file is missing are an error that counts them; with
+  ``skip_missing`` they are dropped with a warning that lists them.
 * ``normalize="nerfstudio"``: nerfstudio's default orientation ("up": the mean
   camera up vector is rotated onto +z), centring (mean camera position) and
   scaling (max |t| = 1), applied to cameras and points. ``world_transform``
@@ -37,6 +47,7 @@ Every problem raises :class:`DataError` naming the file or field.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import shutil
@@ -49,9 +60,9 @@ import numpy as np
 from ..camera import Camera, check_cameras, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
 from ..errors import DataError
 from ..gaussians import Gaussians
-from .distortion import Distortion, undistort_image
+from .distortion import Distortion, source_inside, undistort_image, valid_rectangle
 from .files import current_umask
-from .images import read_image, write_image
+from .images import SWAPPING_ORIENTATIONS, photo_header, read_photo, write_image
 from .ply import load_points_ply, save_points_ply
 from .similarity import transform_cameras, transform_gaussians, transform_points
 
@@ -59,6 +70,10 @@ SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _RIGID_TOL = 1e-3  # max |R^T R - I| accepted as a rotation
 NORMALIZE_MODES = ("none", "nerfstudio")
+#: nerfstudio's (and 3DGS's) default: a capture's long side is brought to at most this.
+MAX_AUTO_SIDE = 1600
+
+log = logging.getLogger("jaxedit.io")
 
 
 @dataclass(frozen=True)
@@ -67,7 +82,9 @@ class Dataset:
 
     Attributes:
       path: the transforms.json it came from.
-      images: float32 [N, H, W, 3] in [0, 1] (undistorted, downscaled).
+      pixels: [N, H, W, 3] the views as loaded (undistorted, cropped to the pixels that
+        have a source, downscaled): uint8 when every photo is 8-bit, else float32 in
+        [0, 1]. :attr:`images` is them as float32.
       cameras: batched Camera [N], OpenCV world->camera, in the (normalised) world.
       filenames: the frames' ``file_path`` strings as in the json, in dataset order.
       train_indices: int [Ntrain]; test_indices: int [Ntest].
@@ -78,7 +95,7 @@ class Dataset:
     """
 
     path: Path
-    images: np.ndarray
+    pixels: np.ndarray
     cameras: Camera
     filenames: list[str]
     train_indices: np.ndarray
@@ -89,12 +106,29 @@ class Dataset:
     scene_scale: float
 
     def __len__(self) -> int:
-        return len(self.images)
+        return len(self.pixels)
+
+    @property
+    def images(self) -> np.ndarray:
+        """float32 [N, H, W, 3] in [0, 1]: every view, converted on each access (4x the
+        memory of uint8 :attr:`pixels`; prefer :meth:`subset` or :attr:`pixels`)."""
+        return as_float_images(self.pixels)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(height, width) of the views."""
+        return int(self.pixels.shape[1]), int(self.pixels.shape[2])
 
     def subset(self, indices) -> tuple[np.ndarray, Camera]:
         """(images float32 [M, H, W, 3], cameras [M]) for the given view indices."""
         indices = np.asarray(indices, np.int64)
-        return self.images[indices], self.cameras[indices]
+        return as_float_images(self.pixels[indices]), self.cameras[indices]
+
+    def subset_pixels(self, indices) -> tuple[np.ndarray, Camera]:
+        """(:attr:`pixels` [M, H, W, 3] as stored, cameras [M]) for the given view indices:
+        what :func:`jaxedit.train.fit` takes without a float copy."""
+        indices = np.asarray(indices, np.int64)
+        return self.pixels[indices], self.cameras[indices]
 
     def train(self) -> tuple[np.ndarray, Camera]:
         """(images, cameras) of the training views."""
@@ -115,6 +149,14 @@ class Dataset:
     def to_original_gaussians(self, gaussians: Gaussians) -> Gaussians:
         """A scene fitted in the normalised world -> the dataset's original world."""
         return transform_gaussians(gaussians, np.linalg.inv(self.world_transform))
+
+
+def as_float_images(pixels) -> np.ndarray:
+    """float32 [..., 3] in [0, 1] of uint8 or float ``pixels`` (uint8 divided by 255)."""
+    pixels = np.asarray(pixels)
+    if pixels.dtype == np.uint8:
+        return pixels.astype(np.float32) / np.float32(255.0)
+    return pixels.astype(np.float32, copy=False)
 
 
 # ---------------------------------------------------------------------------
@@ -316,7 +358,8 @@ def _norm_name(name: str) -> str:
     return os.path.normpath(name)
 
 
-def _resolve_image(json_path: Path, file_path: str, where: str) -> Path:
+def _resolve_image(json_path: Path, file_path: str, where: str) -> Path | None:
+    """The image file of a frame's ``file_path``, or None when it does not exist."""
     if "\0" in file_path:
         raise DataError(json_path, f"{where}.file_path contains a NUL character")
     p = Path(file_path)
@@ -327,12 +370,42 @@ def _resolve_image(json_path: Path, file_path: str, where: str) -> Path:
         for suffix in (".png", ".jpg", ".jpeg", ".exr"):
             if p.with_suffix(suffix).is_file():
                 return p.with_suffix(suffix)
-    raise DataError(json_path, f"{where}.file_path: image file {file_path!r} not found")
+    return None
 
 
-def _split(path: Path, meta: dict, names: list[str], split_every: int):
-    """(train_indices, test_indices) from filename lists or the interval rule."""
+def _listing(names, limit: int | None = 5) -> str:
+    shown = list(names) if limit is None else list(names)[:limit]
+    more = len(names) - len(shown)
+    return ", ".join(shown) + (f" and {more} more" if more > 0 else "")
+
+
+def _drop_missing(json_path: Path, parsed: list, skip_missing: bool):
+    """(the frames whose image exists, their image paths, the names dropped)."""
+    paths = [_resolve_image(json_path, fp, where) for fp, _, _, where in parsed]
+    missing = [p[0] for p, path in zip(parsed, paths) if path is None]
+    if not missing:
+        return parsed, paths, []
+    if not skip_missing:
+        if len(missing) == 1:
+            where = next(p[3] for p in parsed if p[0] == missing[0])
+            raise DataError(json_path, f"{where}.file_path: image file {missing[0]!r} not found "
+                            f"(1 of {len(parsed)} frames' images is missing; "
+                            f"--skip-missing-images drops it)")
+        raise DataError(json_path, f"{len(missing)} of {len(parsed)} frames' image files are "
+                        f"missing ({_listing(missing)}); --skip-missing-images drops them")
+    if len(missing) == len(parsed):
+        raise DataError(json_path, f"all {len(parsed)} frames' image files are missing")
+    log.warning("%s: dropping %d of %d frames whose image files are missing: %s", json_path,
+                len(missing), len(parsed), _listing(missing, None))
+    kept = [(p, path) for p, path in zip(parsed, paths) if path is not None]
+    return [k[0] for k in kept], [k[1] for k in kept], missing
+
+
+def _split(path: Path, meta: dict, names: list[str], split_every: int, dropped=()):
+    """(train_indices, test_indices) from filename lists or the interval rule; names of
+    ``dropped`` frames in the lists are passed over."""
     index = {_norm_name(n): i for i, n in enumerate(names)}
+    gone = {_norm_name(n) for n in dropped}
 
     def indices_of(key):
         value = meta.get(key)
@@ -343,6 +416,8 @@ def _split(path: Path, meta: dict, names: list[str], split_every: int):
         out = []
         for v in value:
             i = index.get(_norm_name(v))
+            if i is None and _norm_name(v) in gone:
+                continue
             if i is None:
                 raise DataError(path, f"{key}: {v!r} is not the file_path of any frame")
             out.append(i)
@@ -411,34 +486,133 @@ def _scaled_size(full_w: int, full_h: int, downscale: int) -> tuple[int, int]:
     return full_h // downscale, full_w // downscale
 
 
+def auto_downscale(width: int, height: int, max_side: int = MAX_AUTO_SIDE) -> int:
+    """The smallest power of two that brings the long side of ``width`` x ``height`` to at
+    most ``max_side`` (nerfstudio's rule for a capture loaded without a factor)."""
+    factor = 1
+    while max(width, height) / factor > max_side:
+        factor *= 2
+    return factor
+
+
+def _scaled_intrinsics(intr: _Intrinsics, f: int) -> tuple[float, float, float, float]:
+    # Pixel centres at integer + 0.5: an f x f block average is exact with K / f.
+    return intr.fx / f, intr.fy / f, intr.cx / f, intr.cy / f
+
+
+def _crop(parsed: list, height: int, width: int, downscale: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) at the loaded size: the pixels of every frame whose undistorted
+    source lies in its photo (the whole image without distortion)."""
+    x0, y0, x1, y1 = 0, 0, width, height
+    seen = set()
+    for _, _, intr, _ in parsed:
+        if intr.distortion.is_zero() or intr in seen:
+            continue
+        seen.add(intr)
+        inside = source_inside(height, width, *_scaled_intrinsics(intr, downscale),
+                               intr.distortion)
+        a, b, c, d = valid_rectangle(inside)
+        x0, y0, x1, y1 = max(x0, a), max(y0, b), min(x1, c), min(y1, d)
+    return x0, y0, x1, y1
+
+
+def _view_geometry(json_path: Path, parsed: list, full_w: int, full_h: int, downscale: int):
+    """((height, width) as loaded, the crop (x0, y0, x1, y1) at the downscaled size)."""
+    height, width = _scaled_size(full_w, full_h, downscale)
+    crop = _crop(parsed, height, width, downscale)
+    x0, y0, x1, y1 = crop
+    if x1 <= x0 or y1 <= y0:
+        raise DataError(json_path, "the lens distortion leaves no undistorted pixel with a "
+                                   "source inside the photo (check k1..k4, p1, p2)")
+    return (y1 - y0, x1 - x0), crop
+
+
 def nerfstudio_view_size(path: str | os.PathLike, *, downscale: int = 1) -> tuple[int, int]:
     """(height, width) of the views :func:`load_nerfstudio` would give, from transforms.json
     alone (no image decoded), with its errors: what a caller needs to compile for the views
     ahead of them."""
     downscale = _check_downscale(downscale)
     json_path = _resolve_json(path)
-    _, (full_w, full_h) = _parse_frames(json_path, _load_meta(json_path))
-    return _scaled_size(full_w, full_h, downscale)
+    parsed, (full_w, full_h) = _parse_frames(json_path, _load_meta(json_path))
+    return _view_geometry(json_path, parsed, full_w, full_h, downscale)[0]
+
+
+def nerfstudio_photo_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) that transforms.json declares for its photos (nothing decoded)."""
+    json_path = _resolve_json(path)
+    return _parse_frames(json_path, _load_meta(json_path))[1]
+
+
+def nerfstudio_frame_count(path: str | os.PathLike) -> tuple[int, int]:
+    """(frames listed, bytes a loaded view's channel takes: 1 when the first photo found is
+    8-bit, else 4), from transforms.json and one image header: a load's memory ahead of it."""
+    json_path = _resolve_json(path)
+    parsed, _ = _parse_frames(json_path, _load_meta(json_path))
+    for fp, _, _, where in parsed:
+        image = _resolve_image(json_path, fp, where)
+        if image is not None:
+            return len(parsed), 1 if photo_header(image)[3] else 4
+    return len(parsed), 1
+
+
+def _orientation(image_path: Path, header, intr: _Intrinsics, where: str) -> int:
+    """The EXIF orientation to apply: the photo's own when its upright size is the declared
+    one, none when only its stored size is (posed as stored, as COLMAP reads photos)."""
+    h, w, tag, _ = header
+    upright = (w, h) if tag in SWAPPING_ORIENTATIONS else (h, w)
+    if upright == (intr.height, intr.width):
+        return tag
+    if (h, w) == (intr.height, intr.width):
+        return 1
+    raise DataError(image_path, f"image is {upright[1]}x{upright[0]} but {where} declares "
+                                f"w={intr.width}, h={intr.height}")
+
+
+def _load_view(image_path: Path, intr: _Intrinsics, orientation: int, downscale: int, crop,
+               bg: np.ndarray, eight_bit: bool) -> np.ndarray:
+    """One view as loaded: decoded at 1/downscale, undistorted there, cropped; uint8 or
+    float32 [h, w, 3]."""
+    image = read_photo(image_path, downscale, orientation=orientation, background=bg)
+    expect = (intr.height // downscale, intr.width // downscale)
+    if image.shape[:2] != expect:
+        raise DataError(image_path, f"decoded {image.shape[1]}x{image.shape[0]} pixels at 1/"
+                                    f"{downscale}, expected {expect[1]}x{expect[0]}")
+    if not intr.distortion.is_zero():
+        image = undistort_image(image, *_scaled_intrinsics(intr, downscale), intr.distortion,
+                                fill=bg)
+    x0, y0, x1, y1 = crop
+    image = image[y0:y1, x0:x1]
+    if eight_bit:
+        return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return np.ascontiguousarray(image, np.float32)
 
 
 def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(1.0, 1.0, 1.0),
-                    normalize: str = "none", split_every: int = 8) -> Dataset:
+                    normalize: str = "none", split_every: int = 8, skip_missing: bool = False,
+                    cache: bool = True) -> Dataset:
     """Load a nerfstudio dataset (see the module docstring for the exact rules).
 
     Args:
       path: the dataset folder or its transforms.json.
-      downscale: integer factor >= 1 (area average; intrinsics divided by it).
-      background: RGB in [0, 1] for compositing RGBA images and for pixels that
-        undistortion leaves without a source.
+      downscale: integer factor >= 1 (area average; intrinsics divided by it); JPEGs
+        are decoded at the reduced size.
+      background: RGB in [0, 1] for compositing RGBA images.
       normalize: "none" (poses as in the file) or "nerfstudio" (orient up,
         centre, scale max |t| to 1).
       split_every: hold out views with ``index % split_every == 0`` when the
         file has no filename lists; 0 keeps every view for training.
+      skip_missing: drop the frames whose image file is missing (logged as a warning
+        listing them) instead of raising.
+      cache: read and write the views as loaded in the dataset's view cache
+        (:mod:`jaxedit.io.view_cache`) when loading changes them (a downscale or a
+        distortion); False decodes every photo.
     Returns:
       a :class:`Dataset`.
     Raises:
       DataError: for any problem with the json, the images or the points.
     """
+    from .view_cache import ViewCache, cache_folder
+
     downscale = _check_downscale(downscale)
     if normalize not in NORMALIZE_MODES:
         raise DataError("normalize", f"must be one of {NORMALIZE_MODES}, got {normalize!r}")
@@ -449,23 +623,34 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
     meta = _load_meta(json_path)
 
     parsed, (full_w, full_h) = _parse_frames(json_path, meta)
+    (height, width), crop = _view_geometry(json_path, parsed, full_w, full_h, downscale)
+    parsed, image_paths, dropped = _drop_missing(json_path, parsed, skip_missing)
     names = [p[0] for p in parsed]
-    height, width = _scaled_size(full_w, full_h, downscale)  # before decoding any image
-    train_idx, test_idx = _split(json_path, meta, names, split_every)
-    image_paths = [_resolve_image(json_path, fp, where) for fp, _, _, where in parsed]
+    train_idx, test_idx = _split(json_path, meta, names, split_every, dropped)
 
-    images, intr_rows = [], []
-    for (fp, _, intr, where), image_path in zip(parsed, image_paths):
-        image = read_image(image_path, background=bg)
-        if image.shape[:2] != (intr.height, intr.width):
-            raise DataError(image_path, f"image is {image.shape[1]}x{image.shape[0]} but "
-                                        f"{where} declares w={intr.width}, h={intr.height}")
-        image = undistort_image(image, intr.fx, intr.fy, intr.cx, intr.cy, intr.distortion,
-                                fill=bg)
-        images.append(_downscale_image(image, downscale))
-        intr_rows.append((intr.fx, intr.fy, intr.cx, intr.cy))
-    images = np.stack(images)
-    intr_arr = np.asarray(intr_rows, np.float64) / downscale
+    headers = [photo_header(p) for p in image_paths]  # sizes checked before any decoding
+    orientations = [_orientation(path, header, p[2], p[3])
+                    for path, header, p in zip(image_paths, headers, parsed)]
+    eight_bit = all(h[3] for h in headers)
+    # At full size without distortion a cached view would be the photo again, uncompressed.
+    transformed = downscale > 1 or any(not p[2].distortion.is_zero() for p in parsed)
+    views = ViewCache(cache_folder(json_path.parent) if cache and transformed else None)
+    pixels = np.empty((len(parsed), height, width, 3), np.uint8 if eight_bit else np.float32)
+    for k, ((name, _, intr, _), image_path, o) in enumerate(zip(parsed, image_paths,
+                                                               orientations)):
+        entry = views.entry(image_path, _norm_name(name), {
+            "downscale": downscale, "intrinsics": [intr.fx, intr.fy, intr.cx, intr.cy,
+                                                   intr.width, intr.height],
+            "distortion": list(intr.distortion), "crop": list(crop), "orientation": o,
+            "background": bg.tolist(), "uint8": eight_bit})
+        view = views.get(entry, (height, width, 3), pixels.dtype)
+        if view is None:
+            view = _load_view(image_path, intr, o, downscale, crop, bg, eight_bit)
+            views.put(entry, view)
+        pixels[k] = view
+    intr_arr = np.asarray([_scaled_intrinsics(p[2], downscale) for p in parsed], np.float64)
+    intr_arr[:, 2] -= crop[0]
+    intr_arr[:, 3] -= crop[1]
 
     c2w = np.stack([p[1] for p in parsed])
     if normalize == "nerfstudio":
@@ -494,7 +679,7 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
         points, colors = load_points_ply(ply_path)
         points = transform_points(points, world_transform).astype(np.float32)
 
-    return Dataset(path=json_path, images=images, cameras=cameras, filenames=names,
+    return Dataset(path=json_path, pixels=pixels, cameras=cameras, filenames=names,
                    train_indices=train_idx, test_indices=test_idx, points=points,
                    point_colors=colors, world_transform=world_transform, scene_scale=float(scale))
 

@@ -57,7 +57,10 @@ class ReconstructConfig:
 
     Attributes:
       train: training hyper-parameters (:class:`jaxedit.train.TrainConfig`).
-      downscale: integer image downscale factor.
+      downscale: integer image downscale factor; 0: the smallest power of two that brings
+        the photos' long side to at most 1600 px (nerfstudio's rule), logged; 1: full size.
+      skip_missing_images: drop the frames whose image file is missing (a warning lists
+        them) instead of stopping.
       normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not
         ("none").
       random_points: initial points when the dataset has no point cloud (photo-consistent
@@ -67,7 +70,8 @@ class ReconstructConfig:
     """
 
     train: TrainConfig = TrainConfig()
-    downscale: int = ranged(1, low=1)
+    downscale: int = ranged(0, low=0)
+    skip_missing_images: bool = False
     normalize: str = "none"
     random_points: int = ranged(20_000, low=1)
     checkpoint_every: int = ranged(1000, low=0)
@@ -86,13 +90,54 @@ def composite_background(name: str) -> tuple[float, float, float]:
     return background_rgb(name) or background_rgb("white")
 
 
+def resolve_downscale(path, config: ReconstructConfig) -> int:
+    """``config.downscale``, or for 0 the factor :func:`jaxedit.io.nerfstudio.auto_downscale`
+    picks for the dataset at ``path`` (from transforms.json alone; logged)."""
+    from ..io.nerfstudio import MAX_AUTO_SIDE, auto_downscale, nerfstudio_photo_size
+
+    if config.downscale:
+        return config.downscale
+    width, height = nerfstudio_photo_size(path)
+    factor = auto_downscale(width, height)
+    if factor > 1:
+        log.warning("downscale %d: the %dx%d photos are trained at %dx%d (long side <= %d px, "
+                    "nerfstudio's default); --downscale 1 keeps full size", factor, width,
+                    height, width // factor, height // factor, MAX_AUTO_SIDE)
+    return factor
+
+
+#: Bytes a Gaussian costs in training at degree-3 SH: 59 float32 parameters, each with a
+#: gradient and two Adam moments, and the densification statistics (about 1 KiB).
+GAUSSIAN_BYTES = 1024
+
+
+def working_set(num_views: int, height: int, width: int, channel_bytes: int,
+                max_gaussians: int) -> float:
+    """Estimated bytes of a reconstruction: the views on the host and on the device
+    (``channel_bytes`` 1 for uint8), one float32 copy of them (the random start and the
+    evaluation read float views) and the Gaussians at the cap."""
+    views = num_views * height * width * 3
+    return views * (2 * channel_bytes + 4) + max_gaussians * GAUSSIAN_BYTES
+
+
 def load_dataset(path, config: ReconstructConfig):
     """The nerfstudio dataset at ``path`` as ``config`` reads it (downscale, normalisation,
-    RGBA composited over the background); DataError if its images are too small."""
+    RGBA composited over the background, missing images); DataError if its images are too
+    small or the run would not fit in memory (checked before any photo is decoded)."""
     from ..io import load_nerfstudio
+    from ..io.nerfstudio import nerfstudio_frame_count, nerfstudio_view_size
+    from ..memory import require_memory
 
-    data = load_nerfstudio(path, downscale=config.downscale, normalize=config.normalize,
-                           background=composite_background(config.train.background))
+    downscale = resolve_downscale(path, config)
+    height, width = nerfstudio_view_size(path, downscale=downscale)
+    count, channel_bytes = nerfstudio_frame_count(path)
+    require_memory("--downscale", working_set(count, height, width, channel_bytes,
+                                              config.train.densify.max_gaussians),
+                   f"{count} views of {width}x{height} and up to "
+                   f"{config.train.densify.max_gaussians} Gaussians (--max-gaussians)")
+    data = load_nerfstudio(path, downscale=downscale, normalize=config.normalize,
+                           background=composite_background(config.train.background),
+                           skip_missing=config.skip_missing_images)
     check_image_size(data, path)
     return data
 
@@ -120,7 +165,7 @@ MIN_IMAGE_SIZE = 11
 def check_image_size(data, where) -> None:
     """DataError when ``data``'s images (after downscaling) are smaller than SSIM's window."""
 
-    h, w = data.images.shape[1:3]
+    h, w = data.image_size
     if min(h, w) < MIN_IMAGE_SIZE:
         raise DataError(where, f"images are {w}x{h} px (after downscaling); training needs at "
                         f"least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE} (the SSIM window)")
@@ -199,12 +244,13 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     out = None if out is None else Path(out)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    train_images, train_cams = data.train()
+    # The training views stay as loaded (uint8 for photos) on the device, a quarter of float32.
+    train_images, train_cams = data.subset_pixels(data.train_indices)
     if len(data.test_indices):
         test_images, test_cams = data.test()
         test_idx, eval_split = data.test_indices, "test"
     else:  # no held-out views: report training-view quality, and say so
-        test_images, test_cams = train_images, train_cams
+        test_images, test_cams = data.train()
         test_idx, eval_split = data.train_indices, "train"
     extent = T.scene_extent(train_cams)
     ckpt_dir = None if out is None else out / "checkpoints"

@@ -157,7 +157,7 @@ def copy_rendered_scene(name: str, out_dir: str | os.PathLike, *, downscale: int
     src = library.dataset_path(name)
     if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
         raise DataError("downscale", f"must be an integer >= 1, got {downscale!r}")
-    data = load_nerfstudio(src, downscale=int(downscale))
+    data = load_nerfstudio(src, downscale=int(downscale), cache=False)  # package data: no cache
     train = _spread(data.train_indices, views, "views")
     test = _spread(data.test_indices, test_views, "test_views")
     if len(train) == 0:

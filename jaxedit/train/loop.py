@@ -58,10 +58,19 @@ seeded permutation every epoch of ``num_views`` steps.
 """
 
 
+def unit_float(image) -> jax.Array:
+    """float32 in [0, 1] of a uint8 image (divided by 255) or a float one (as it is): the
+    training images may stay uint8 on the device, a quarter of float32's memory."""
+    image = jnp.asarray(image)
+    if image.dtype == jnp.uint8:
+        return image.astype(jnp.float32) / 255.0
+    return image
+
+
 @jax.jit
 def _select(images, cameras, base_key_data, step):
     view, key = _view_and_key(base_key_data, step, images.shape[0])
-    return Batch(image=images[view], camera=cameras[view], view=view), key
+    return Batch(image=unit_float(images[view]), camera=cameras[view], view=view), key
 
 
 def select_batch(images, cameras: Camera, base_key_data, step) -> tuple[Batch, jax.Array]:
@@ -128,7 +137,7 @@ def _train_chunk(state: TrainState, images, cameras: Camera, n_active, *, length
 
     Args:
       state: TrainState.
-      images: float [N, H, W, 3] training images (on the device).
+      images: float [N, H, W, 3] in [0, 1] or uint8 training images (on the device).
       cameras: Camera batch [N].
       n_active: int32 [], steps wanted (<= ``length``).
       length: static scan length.
@@ -140,7 +149,8 @@ def _train_chunk(state: TrainState, images, cameras: Camera, n_active, *, length
 
     def one(st, _):
         view, key = _view_and_key(st.key, st.step, num_views)
-        return apply_step(st, Batch(image=images[view], camera=cameras[view], view=view), key)
+        return apply_step(st, Batch(image=unit_float(images[view]), camera=cameras[view],
+                                    view=view), key)
 
     return scan_steps(one, state, n_active, length=length)
 
@@ -253,8 +263,9 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
 
     Args:
       state: TrainState (fresh from :func:`init_state` or from :func:`load_checkpoint`).
-      images: float [N, H, W, 3] training images in [0, 1] (NumPy or JAX); the
-        caller may pass a different array of the same shape to each call.
+      images: float [N, H, W, 3] training images in [0, 1], or uint8 ones (kept uint8 on
+        the device, each step's view converted; :attr:`jaxedit.io.Dataset.pixels`), NumPy
+        or JAX; the caller may pass a different array of the same shape to each call.
       cameras: Camera batch [N] matching ``images``.
       key: base PRNG key; default: the one in ``state`` (set by :func:`init_state`).
         The view and key of step s depend only on (key, s).
@@ -292,7 +303,9 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
     total = state.config.iterations if iterations is None else int(iterations)
     if chunk < 1:
         raise DataError("chunk", f"must be >= 1, got {chunk}")
-    images = jnp.asarray(images, state.gaussians.means.dtype)
+    images = jnp.asarray(images)
+    if images.dtype != jnp.uint8:
+        images = images.astype(state.gaussians.means.dtype)
     if images.ndim != 4 or images.shape[-1] != 3:
         raise DataError("images", f"expected float [N, H, W, 3], got {tuple(images.shape)}")
     if len(cameras) != images.shape[0]:
