@@ -282,6 +282,9 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     required = (["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
                 + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
     missing = [n for n in required if n not in names]
+    if missing and "packed_position" in names:
+        raise DataError(path, "a PlayCanvas compressed PLY, not the INRIA layout: read it with "
+                              "jaxedit.io.load_scene")
     if missing:
         raise DataError(path, f"not a 3DGS PLY: vertex element lacks field(s) {', '.join(missing)}")
     n_rest = _rest_field_count(path, names)

@@ -1,0 +1,195 @@
+"""What every splat format shares: the NumPy splat table, byte checks, quantisation helpers.
+
+The formats in this package convert between their bytes and :class:`Splats`, a frozen dataclass
+of NumPy arrays in the INRIA 3DGS parameterisation (the fields of ``jaxedit.Gaussians`` without
+the capacity and alive mask), and the ``load_*`` / ``save_*`` functions convert between
+:class:`Splats` and ``Gaussians`` at the edge. Axes are the PLY's (x right, y down, z forward,
+"RDF"); SH coefficients are [N, K, 3] (coefficient-major, channel last, DC first).
+
+Every check of a reader raises :class:`jaxedit.errors.DataError` naming the file and the problem;
+sizes declared by a file are checked against its length before anything is allocated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ...errors import DataError
+from ...gaussians import Gaussians
+
+#: The SH DC normalisation (rgb = 0.5 + C0 * dc).
+C0 = 0.28209479177387814
+
+#: Largest file a reader reads whole (a scene of about 100 M Gaussians at SH degree 3 as a PLY).
+MAX_FILE_BYTES = 1 << 35
+
+
+@dataclasses.dataclass(frozen=True)
+class Splats:
+    """N Gaussians as float32 NumPy arrays (no capacity, no alive mask).
+
+    Attributes:
+      means: [N, 3] centres.
+      log_scales: [N, 3] log standard deviations.
+      quats: [N, 4] rotations (w, x, y, z), not necessarily unit.
+      opacity_logits: [N] logit of opacity.
+      sh: [N, K, 3] SH coefficients, K = (d+1)^2, DC first.
+    """
+
+    means: np.ndarray
+    log_scales: np.ndarray
+    quats: np.ndarray
+    opacity_logits: np.ndarray
+    sh: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(np.sqrt(self.sh.shape[1]))) - 1
+
+    def take(self, index: np.ndarray) -> "Splats":
+        """The splats at ``index`` (an int array [M] or a bool mask [N]), in that order."""
+        return Splats(*(np.ascontiguousarray(a[index]) for a in dataclasses.astuple(self)))
+
+
+def from_gaussians(g: Gaussians, where: str | os.PathLike = "gaussians") -> Splats:
+    """The alive Gaussians of ``g`` in slot order, as float32 NumPy arrays.
+
+    Raises DataError (naming ``where``) when an alive Gaussian has a non-finite value or a zero
+    quaternion: no format can store those faithfully, so nothing is written.
+    """
+    alive = np.asarray(g.alive, bool)
+    s = Splats(np.asarray(g.means, np.float32)[alive], np.asarray(g.log_scales, np.float32)[alive],
+               np.asarray(g.quats, np.float32)[alive],
+               np.asarray(g.opacity_logits, np.float32)[alive], np.asarray(g.sh, np.float32)[alive])
+    if s.sh.shape[1] not in (1, 4, 9, 16):
+        raise DataError(where, f"{s.sh.shape[1]} SH coefficients is not (d+1)^2 for d in 0..3")
+    check_splats(where, s, "alive Gaussian")
+    return s
+
+
+def check_splats(where, s: Splats, noun: str = "splat") -> None:
+    """DataError naming ``where`` and the first bad ``noun``: a non-finite value or a zero quaternion."""
+    for label, arr in (("position", s.means), ("scale", s.log_scales), ("rotation", s.quats),
+                       ("opacity", s.opacity_logits), ("colour/SH", s.sh)):
+        bad = ~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1)
+        if bad.any():
+            raise DataError(where, f"non-finite {label} (NaN or inf) at {noun} {int(np.argmax(bad))} "
+                                   f"({int(bad.sum())} bad); nothing written or read")
+    zero = ~(np.abs(s.quats) > 0).any(axis=1)
+    if zero.any():
+        raise DataError(where, f"zero rotation quaternion at {noun} {int(np.argmax(zero))} "
+                               f"({int(zero.sum())} bad)")
+
+
+def to_gaussians(s: Splats) -> Gaussians:
+    """A :class:`Gaussians` of capacity N with every slot alive."""
+    arrays = dict(means=s.means, log_scales=s.log_scales, quats=s.quats,
+                  opacity_logits=s.opacity_logits, sh=s.sh, alive=np.ones((s.count,), bool))
+    # device_put, not jnp.asarray: the latter compiles a copy program per array shape
+    return Gaussians(**jax.device_put({k: np.ascontiguousarray(v) for k, v in arrays.items()}))
+
+
+# --- bytes ---------------------------------------------------------------------------
+
+
+def read_file(path: str | os.PathLike, what: str) -> tuple[Path, bytes]:
+    """(path, its bytes); DataError for a missing, unreadable, oversized file or a folder."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if path.is_dir():
+            raise DataError(path, f"is a directory, expected {what}")
+        if size > MAX_FILE_BYTES:
+            raise DataError(path, f"file of {size} bytes is larger than the {MAX_FILE_BYTES} "
+                                  f"bytes a scene file may have")
+        return path, path.read_bytes()
+    except FileNotFoundError:
+        raise DataError(path, "file not found") from None
+    except OSError as e:
+        raise DataError(path, f"cannot read file ({e.strerror or e})") from None
+
+
+def need(where, available: int, count: int, item_bytes: int, what: str) -> None:
+    """DataError unless ``count`` items of ``item_bytes`` fit in ``available`` bytes.
+
+    Called before allocating anything sized by a count read from a file.
+    """
+    if count < 0 or count * item_bytes > available:
+        raise DataError(where, f"{what}: {count} items of {item_bytes} bytes need "
+                               f"{count * item_bytes} bytes, {max(available, 0)} present "
+                               f"(truncated file or a wrong count)")
+
+
+# --- shared encodings ----------------------------------------------------------------
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
+
+
+def logit(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    """float32 logit of ``p`` clipped to [eps, 1 - eps] (a byte of 0 or 255 stays finite)."""
+    p = np.clip(np.asarray(p, np.float64), eps, 1.0 - eps)
+    return np.log(p / (1.0 - p)).astype(np.float32)
+
+
+def unit_quats(q: np.ndarray) -> np.ndarray:
+    """float64 [N, 4] quaternions divided by their norm (callers rule out zero ones)."""
+    q = np.asarray(q, np.float64)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def largest_component(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index [N] of the largest |component|, the quaternions [N, 4] signed so it is >= 0).
+
+    Ties go to the lowest index, as in the tools' smallest-three encoders.
+    """
+    index = np.argmax(np.abs(q), axis=1)
+    sign = np.where(np.take_along_axis(q, index[:, None], 1) < 0, -1.0, 1.0)
+    return index, q * sign
+
+
+def others(index: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """[N, 3]: the three components of each quaternion other than ``index``, in order."""
+    keep = np.ones(q.shape, bool)
+    keep[np.arange(len(q)), index] = False
+    return q[keep].reshape(len(q), 3)
+
+
+def with_largest(index: np.ndarray, three: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`others`: [N, 4] with the dropped component sqrt(1 - |three|^2) >= 0."""
+    n = len(three)
+    q = np.empty((n, 4), np.float32)
+    keep = np.ones((n, 4), bool)
+    keep[np.arange(n), index] = False
+    q[keep] = three.reshape(-1)
+    q[np.arange(n), index] = np.sqrt(np.maximum(0.0, 1.0 - (three.astype(np.float64) ** 2).sum(1)))
+    return q
+
+
+def morton_order(means: np.ndarray, bits: int = 10) -> np.ndarray:
+    """int [N] permutation sorting the points along a Z-order curve over their bounding box.
+
+    Each axis is quantised to ``bits`` bits over [min, max] and the bits interleaved (x lowest),
+    so that splats close in space land close in the file: what the chunked formats compress.
+    """
+    means = np.asarray(means, np.float64)
+    if len(means) == 0:
+        return np.zeros((0,), np.int64)
+    lo, hi = means.min(0), means.max(0)
+    extent = np.where(hi - lo > 0, hi - lo, 1.0)
+    cells = np.clip(((means - lo) / extent * ((1 << bits) - 1)).astype(np.int64), 0, (1 << bits) - 1)
+    code = np.zeros(len(means), np.int64)
+    for b in range(bits):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> b) & 1) << (3 * b + axis)
+    return np.argsort(code, kind="stable")

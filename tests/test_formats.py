@@ -1,0 +1,390 @@
+"""Splat file formats: round trips within each format's quantisation, conventions, bad input,
+and the proof by the tool people use (@playcanvas/splat-transform 3.7.0, skipped where absent)."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import struct
+import subprocess
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxedit import sh as shlib
+from jaxedit.errors import DataError
+from jaxedit.gaussians import quat_to_rotmat
+from jaxedit.io import load_ply, load_scene, save_ply, save_scene
+from jaxedit.io.formats import compressed_ply, sog, splat, spz
+from jaxedit.io.formats.common import Splats, from_gaussians, morton_order, to_gaussians
+from jaxedit.io.formats.scene import scene_format
+
+ENCODERS = {"compressed-ply": compressed_ply.encode, "spz": spz.encode, "sog": sog.encode_sog,
+            "splat": splat.encode}
+SUFFIX = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog",
+          "splat": ".splat"}
+
+
+def make_splats(n=700, degree=3, seed=0) -> Splats:
+    """A scene whose values lie inside every format's range (SH within SPZ's [-1, 1))."""
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2
+    sh = np.concatenate([rng.uniform(-1.5, 1.5, (n, 1, 3)), rng.uniform(-0.9, 0.9, (n, k - 1, 3))], 1)
+    return Splats(rng.uniform(-2, 2, (n, 3)).astype(np.float32),
+                  rng.uniform(-6, -1, (n, 3)).astype(np.float32),
+                  rng.normal(size=(n, 4)).astype(np.float32),
+                  rng.uniform(-5, 5, n).astype(np.float32), sh.astype(np.float32))
+
+
+def sorted_like(s: Splats) -> Splats:
+    return s.take(morton_order(s.means))
+
+
+def rotation_error(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest 1 - |<a, b>| over unit quaternions (0 when equal up to sign)."""
+    a = a / np.linalg.norm(a, axis=1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    return float(np.max(1 - np.abs((a * b).sum(1))))
+
+
+def sigmoid(x):
+    return 1 / (1 + np.exp(-np.asarray(x, np.float64)))
+
+
+# --- round trips ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_compressed_ply_round_trip_within_its_quantisation(degree):
+    s = make_splats(degree=degree)
+    d, t = compressed_ply.decode(compressed_ply.encode(s)), sorted_like(s)
+    assert d.sh.shape == t.sh.shape
+    # chunk extents of at most 4 (positions) and 5 (log-scales): 11/10-bit steps
+    assert np.abs(d.means - t.means).max() <= 4 / 1022
+    assert np.abs(d.log_scales - t.log_scales).max() <= 5 / 1022
+    assert np.abs(d.sh[:, 0] - t.sh[:, 0]).max() * shlib.C0 <= 1 / 255
+    assert np.abs(sigmoid(d.opacity_logits) - sigmoid(t.opacity_logits)).max() <= 1 / 255
+    assert rotation_error(d.quats, t.quats) < 2e-5
+    if degree:
+        assert np.abs(d.sh[:, 1:] - t.sh[:, 1:]).max() <= 8 / 256 + 1e-6
+
+
+@pytest.mark.parametrize("version", [2, 3, 4])
+@pytest.mark.parametrize("degree", [0, 3])
+def test_spz_round_trip_within_its_quantisation(version, degree):
+    s = make_splats(degree=degree)
+    d = spz.decode(spz.encode(s, version=version))
+    assert np.abs(d.means - s.means).max() <= 0.5 / 4096 + 1e-6
+    assert np.abs(d.log_scales - s.log_scales).max() <= 1 / 32 + 1e-6
+    assert np.abs(d.sh[:, 0] - s.sh[:, 0]).max() <= 0.5 / (0.15 * 255) + 1e-6
+    assert np.abs(sigmoid(d.opacity_logits) - sigmoid(s.opacity_logits)).max() <= 0.5 / 255 + 1e-6
+    assert rotation_error(d.quats, s.quats) < (2e-2 if version == 2 else 2e-5)
+    if degree:  # round to 1/128, then 5 bits (degree 1) or 4 bits (above)
+        assert np.abs(d.sh[:, 1:4] - s.sh[:, 1:4]).max() <= 4.5 / 128 + 1e-6
+        assert np.abs(d.sh[:, 4:] - s.sh[:, 4:]).max() <= 8.5 / 128 + 1e-6
+
+
+def test_splat_round_trip_keeps_the_dc_colour_only():
+    s = make_splats(degree=2)
+    d = splat.decode(splat.encode(s))
+    assert d.sh.shape == (s.count, 1, 3)
+    np.testing.assert_array_equal(d.means, s.means)
+    assert np.abs(d.log_scales - s.log_scales).max() < 1e-6
+    rgb = np.clip(0.5 + shlib.C0 * s.sh[:, 0], 0, 1)
+    assert np.abs(0.5 + shlib.C0 * d.sh[:, 0] - rgb).max() <= 0.5 / 255 + 1e-6
+    assert np.abs(sigmoid(d.opacity_logits) - sigmoid(s.opacity_logits)).max() <= 0.5 / 255 + 1e-6
+    assert rotation_error(d.quats, s.quats) < 1e-3
+
+
+@pytest.mark.parametrize("degree", [0, 2])
+def test_sog_round_trip_within_its_codebooks(degree):
+    s = make_splats(n=1500, degree=degree)
+    # 40 distinct SH vectors: a palette of 1024 entries must hold each of them
+    rest = s.sh[np.random.default_rng(2).integers(0, 40, s.count), 1:]
+    s = Splats(s.means, s.log_scales, s.quats, s.opacity_logits,
+               np.concatenate([s.sh[:, :1], rest], 1))
+    files = sog.encode_files(s, iterations=4)
+    d, t = sog.decode_files(files.__getitem__), sorted_like(s)
+    log_span = np.log(3.0) * 2  # sign(x) log(|x| + 1) over [-2, 2], 16 bits
+    assert np.abs(d.means - t.means).max() <= 3 * log_span / 65535
+    assert np.abs(d.log_scales - t.log_scales).max() <= 5 / 128  # 256 centres over a span of 5
+    assert np.abs(d.sh[:, 0] - t.sh[:, 0]).max() <= 3 / 128
+    assert np.abs(sigmoid(d.opacity_logits) - sigmoid(t.opacity_logits)).max() <= 0.5 / 255 + 1e-6
+    assert rotation_error(d.quats, t.quats) < 1e-4
+    assert d.sh.shape == t.sh.shape
+    if degree:  # up to the 256-entry codebook of the palette's values over [-0.9, 0.9]
+        assert np.abs(d.sh[:, 1:] - t.sh[:, 1:]).max() <= 1.8 / 128
+
+
+def test_load_scene_and_save_scene_by_name_and_header(tmp_path):
+    g = to_gaussians(make_splats(n=300, degree=1))
+    for fmt, suffix in SUFFIX.items():
+        path = save_scene(tmp_path / f"scene{suffix}", g)
+        assert scene_format(path) == fmt
+        back = load_scene(path)
+        assert int(back.alive.sum()) == 300
+        assert back.sh.shape[1] == (1 if fmt == "splat" else 4)
+    np.testing.assert_array_equal(np.asarray(load_scene(tmp_path / "scene.ply").means),
+                                  np.asarray(g.means))
+    # a compressed PLY under a plain .ply name is told by its header
+    path = save_scene(tmp_path / "plain.ply", g, format="compressed-ply")
+    assert scene_format(path) == "compressed-ply"
+    assert load_scene(path).sh.shape == (300, 4, 3)
+    with pytest.raises(DataError, match="compressed PLY.*load_scene"):
+        load_ply(path)
+    # SOG as meta.json and its textures in a folder
+    meta = save_scene(tmp_path / "sog" / "meta.json", g)
+    assert sorted(p.name for p in meta.parent.iterdir())[:2] == ["means_l.webp", "means_u.webp"]
+    assert load_scene(meta).capacity == 300
+
+
+def test_dead_slots_are_dropped_and_bad_gaussians_refused(tmp_path):
+    g = to_gaussians(make_splats(n=50, degree=0))
+    g = type(g)(**{**g.__dict__, "alive": g.alive.at[:10].set(False)})
+    assert load_scene(save_scene(tmp_path / "a.spz", g)).capacity == 40
+    quats = np.asarray(g.quats).copy()
+    quats[20] = 0
+    bad = type(g)(**{**g.__dict__, "quats": quats})
+    with pytest.raises(DataError, match="zero rotation quaternion at alive Gaussian 10"):
+        save_scene(tmp_path / "b.spz", bad)
+    assert not (tmp_path / "b.spz").exists()
+    means = np.asarray(g.means).copy()
+    means[30, 1] = np.nan
+    with pytest.raises(DataError, match="non-finite position"):
+        save_scene(tmp_path / "c.compressed.ply", type(g)(**{**g.__dict__, "means": means}))
+
+
+# --- conventions ---------------------------------------------------------------------
+
+
+def test_rub_flip_is_the_change_of_axes_for_positions_rotations_and_sh():
+    rng = np.random.default_rng(1)
+    s = make_splats(n=64, degree=3)
+    f = spz.flip_axes(s)
+    flip = np.diag([1.0, -1.0, -1.0])
+    np.testing.assert_allclose(f.means, s.means @ flip)
+    rot, rot_f = np.asarray(quat_to_rotmat(s.quats)), np.asarray(quat_to_rotmat(f.quats))
+    np.testing.assert_allclose(rot_f, flip @ rot @ flip, atol=1e-5)
+    dirs = rng.normal(size=(64, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    colour = np.asarray(shlib.evaluate(s.sh, dirs.astype(np.float32)))
+    colour_f = np.asarray(shlib.evaluate(f.sh, (dirs @ flip).astype(np.float32)))
+    np.testing.assert_allclose(colour_f, colour, atol=1e-5)
+    # encode with axes="rub", decode raw: the file holds flipped positions; decoding rub undoes it
+    raw = spz.decode(spz.encode(s, axes="rub"))
+    assert np.abs(raw.means - s.means @ flip).max() < 1e-3
+    assert np.abs(spz.decode(spz.encode(s, axes="rub"), axes="rub").means - s.means).max() < 1e-3
+
+
+def test_spz_sh_is_colour_interleaved_and_ply_channel_major():
+    s = make_splats(n=1, degree=1)
+    sh = np.zeros((1, 4, 3), np.float32)
+    sh[0, 1] = [0.5, -0.5, 0.25]  # the first higher coefficient of r, g, b
+    s = Splats(s.means, s.log_scales, s.quats, s.opacity_logits, sh)
+    data = spz.encode(s, version=3)
+    payload = __import__("gzip").decompress(data)
+    sh_bytes = np.frombuffer(payload[-9:], np.uint8)
+    np.testing.assert_array_equal(sh_bytes[:3], [192, 64, 160])  # r g b of coefficient 1
+    cp = compressed_ply.decode(compressed_ply.encode(s))
+    assert cp.sh[0, 1].tolist() == pytest.approx([0.5, -0.5, 0.25], abs=1 / 32)
+
+
+def test_spz_degree_four_keeps_bands_zero_to_three():
+    s = make_splats(n=20, degree=3)
+    arrays = spz._arrays(s, 3)
+    extra = np.full((20, 9, 3), 128, np.uint8).tobytes()  # band 4: 9 coefficients of zero
+    sh4 = np.concatenate([np.frombuffer(arrays[5], np.uint8).reshape(20, 15, 3),
+                          np.frombuffer(extra, np.uint8).reshape(20, 9, 3)], 1)
+    header = struct.pack("<IIIBBBB", spz.MAGIC, 3, 20, 4, 12, 0, 0)
+    data = __import__("gzip").compress(header + b"".join(arrays[:5]) + sh4.tobytes())
+    with pytest.warns(UserWarning, match="band 4 dropped"):
+        d = spz.decode(data)
+    ref = spz.decode(spz.encode(s, version=3))
+    np.testing.assert_array_equal(d.sh, ref.sh)
+
+
+def test_morton_order_keeps_neighbours_together():
+    grid = np.stack(np.meshgrid(*[np.arange(8.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    order = morton_order(np.random.default_rng(0).permutation(grid))
+    assert sorted(order.tolist()) == list(range(512))
+    cells = np.random.default_rng(0).permutation(grid)[order]
+    # every run of 8 in Morton order is one 2x2x2 block
+    assert (np.ptp(cells.reshape(64, 8, 3), axis=1) == 1).all()
+
+
+# --- bad input -----------------------------------------------------------------------
+
+
+def _write(tmp_path, name, data):
+    path = tmp_path / name
+    path.write_bytes(data)
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog", "splat"])
+def test_truncated_files_are_refused(tmp_path, fmt):
+    data = ENCODERS[fmt](make_splats(n=300, degree=1))
+    path = _write(tmp_path, "cut" + SUFFIX[fmt], data[:len(data) - 37])
+    with pytest.raises(DataError, match=str(path.name)):
+        load_scene(path)
+
+
+def test_wrong_magic_unknown_versions_and_absurd_counts(tmp_path):
+    s = make_splats(n=40, degree=0)
+    v4 = bytearray(spz.encode(s))
+    bad = _write(tmp_path, "magic.spz", b"NOPE" + bytes(v4[4:]))
+    with pytest.raises(DataError, match="not an SPZ file"):
+        load_scene(bad)
+    v4[4] = 9
+    with pytest.raises(DataError, match="unsupported SPZ version 9"):
+        load_scene(_write(tmp_path, "version.spz", bytes(v4)))
+    # v3 declaring 2^31 splats in a small file: refused before anything is allocated
+    header = struct.pack("<IIIBBBB", spz.MAGIC, 3, 1 << 31, 0, 12, 0, 0)
+    with pytest.raises(DataError, match="truncated file or a wrong count"):
+        load_scene(_write(tmp_path, "count.spz", __import__("gzip").compress(header + b"\0" * 64)))
+    v4 = bytearray(spz.encode(s))
+    struct.pack_into("<I", v4, 8, 41)  # the count disagrees with the streams' sizes
+    with pytest.raises(DataError, match="declares .* bytes, 41 splats need"):
+        load_scene(_write(tmp_path, "disagree.spz", bytes(v4)))
+    cp = compressed_ply.encode(s).replace(b"element vertex 40", b"element vertex 99999999", 1)
+    with pytest.raises(DataError, match="cannot hold|truncated"):
+        load_scene(_write(tmp_path, "count.compressed.ply", cp))
+    with pytest.raises(DataError, match="not a whole number of 32-byte"):
+        load_scene(_write(tmp_path, "odd.splat", b"\0" * 33))
+    files = sog.encode_files(s)
+    meta = json.loads(files["meta.json"])
+    for change, message in (({"version": 3}, "unsupported SOG version 3"),
+                            ({"count": 10 ** 12}, "count must be an integer"),
+                            ({"count": 5000}, "texture for 5000 entries")):
+        files["meta.json"] = json.dumps({**meta, **change}).encode()
+        with pytest.raises(DataError, match=message):
+            sog.decode_files(files.__getitem__, "x.sog")
+
+
+def test_zero_quaternion_and_nan_in_a_file_are_refused(tmp_path):
+    data = bytearray(splat.encode(make_splats(n=10, degree=0)))
+    data[3 * 32 + 28:3 * 32 + 32] = bytes([128] * 4)
+    with pytest.raises(DataError, match="zero rotation quaternion at splat 3"):
+        load_scene(_write(tmp_path, "zero.splat", bytes(data)))
+    data = bytearray(splat.encode(make_splats(n=10, degree=0)))
+    data[5 * 32:5 * 32 + 4] = struct.pack("<f", float("nan"))
+    with pytest.raises(DataError, match="non-finite position .* at splat 5"):
+        load_scene(_write(tmp_path, "nan.splat", bytes(data)))
+    cp = bytearray(compressed_ply.encode(make_splats(n=10, degree=0)))
+    start = cp.index(b"end_header\n") + len(b"end_header\n")
+    cp[start:start + 4] = struct.pack("<f", float("nan"))  # chunk min_x
+    with pytest.raises(DataError, match="non-finite position"):
+        load_scene(_write(tmp_path, "nan.compressed.ply", bytes(cp)))
+
+
+def test_a_zip_bomb_sog_is_refused_before_inflating(tmp_path):
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("meta.json", b"{}")
+        zf.writestr("means_l.webp", b"\0" * (40 << 20))  # 40 MiB of zeros, ~40 KiB packed
+    path = _write(tmp_path, "bomb.sog", buf.getvalue())
+    with pytest.raises(DataError, match="zip bomb"):
+        load_scene(path)
+    with pytest.raises(DataError, match="not a .sog"):
+        load_scene(_write(tmp_path, "junk.sog", b"PK\3\4 junk"))
+
+
+def test_unknown_extension_and_missing_file(tmp_path):
+    g = to_gaussians(make_splats(n=5, degree=0))
+    with pytest.raises(DataError, match="unknown splat file extension"):
+        save_scene(tmp_path / "scene.obj", g)
+    with pytest.raises(DataError, match="file not found"):
+        load_scene(tmp_path / "none.spz")
+
+
+# --- proof by splat-transform --------------------------------------------------------
+
+
+def splat_transform() -> list[str] | None:
+    """The splat-transform command: $SPLAT_TRANSFORM_DIR (an npm prefix) or PATH; None if absent."""
+    folder = os.environ.get("SPLAT_TRANSFORM_DIR")
+    candidates = [Path(folder) / "node_modules" / ".bin" / "splat-transform"] if folder else []
+    candidates.append(Path(shutil.which("splat-transform") or "/nonexistent"))
+    for c in candidates:
+        if c.exists() and shutil.which("node"):
+            return [str(c)]
+    return None
+
+
+ST = splat_transform()
+needs_st = pytest.mark.skipif(ST is None, reason="@playcanvas/splat-transform is not installed "
+                                                 "(.ci/run installs it; set SPLAT_TRANSFORM_DIR)")
+
+
+def run_st(*args):
+    out = subprocess.run([*ST, "-q", "-w", *map(str, args)], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    return out.stdout
+
+
+FORWARD = {"opacity": sigmoid, **{f"scale_{i}": np.exp for i in range(3)},
+           **{f"f_dc_{i}": (lambda v: 0.5 + shlib.C0 * v) for i in range(3)}}
+
+
+def raw_columns(s: Splats) -> dict[str, np.ndarray]:
+    """Our reading as the PLY columns splat-transform's --stats summarises (f_rest channel-major)."""
+    n = s.count
+    rest = s.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
+    return {"x": s.means[:, 0], "y": s.means[:, 1], "z": s.means[:, 2],
+            **{f"rot_{i}": s.quats[:, i] for i in range(4)},
+            **{f"scale_{i}": s.log_scales[:, i] for i in range(3)},
+            "opacity": s.opacity_logits, **{f"f_dc_{i}": s.sh[:, 0, i] for i in range(3)},
+            **{f"f_rest_{i}": rest[:, i] for i in range(rest.shape[1])}}
+
+
+@needs_st
+@pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog", "splat"])
+def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
+    s = make_splats(n=600, degree=0 if fmt == "splat" else 2)
+    path = _write(tmp_path, "ours" + SUFFIX[fmt], ENCODERS[fmt](s))
+    ours = from_gaussians(load_scene(path))
+    printed = run_st(path, "--stats", "json", "null")
+    stats = json.loads(printed[printed.index("{"):])
+    assert stats["numGaussians"] == 600
+    assert stats["shBands"] == (0 if fmt == "splat" else 2)
+    table = stats["stats"][0]
+    # --stats gives raw statistics through the monotonic activations (exp scale, sigmoid, rgb)
+    mine = raw_columns(ours)
+    assert set(mine) <= set(table["columns"])
+    for i, name in enumerate(table["columns"]):
+        forward = FORWARD.get(name, lambda v: v)
+        # .splat: splat-transform decodes a rotation byte as b/127.5 - 1, antimatter15 as (b - 128)/128
+        tol = 1e-2 if fmt == "splat" and name.startswith("rot") else 1e-4
+        for stat, fn in (("mean", np.mean), ("min", np.min), ("max", np.max)):
+            value = float(forward(fn(mine[name].astype(np.float64))))
+            assert table["data"][stat][i] == pytest.approx(value, abs=tol, rel=1e-4), (name, stat)
+    # its conversion back to an INRIA .ply holds the values our reader gives
+    run_st(path, tmp_path / "back.ply")
+    back = load_ply(tmp_path / "back.ply")
+    np.testing.assert_allclose(np.asarray(back.means), ours.means, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(back.log_scales), ours.log_scales, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(back.sh), ours.sh, atol=1e-5)
+    # .splat: the rotation byte's two decodings (above) differ by up to half a step
+    assert rotation_error(np.asarray(back.quats), ours.quats) < (1e-3 if fmt == "splat" else 1e-6)
+
+
+@needs_st
+@pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog"])
+def test_we_read_splat_transforms_files_as_it_does(tmp_path, fmt):
+    s = make_splats(n=600, degree=3)
+    source = save_ply(tmp_path / "scene.ply", to_gaussians(s))
+    theirs = tmp_path / ("theirs" + SUFFIX[fmt])
+    run_st(*(["-g", "cpu"] if fmt == "sog" else []), source, theirs)
+    run_st(theirs, tmp_path / "decoded.ply")  # their decoder's reading of their file
+    ours, ref = load_scene(theirs), load_ply(tmp_path / "decoded.ply")
+    assert ours.capacity == ref.capacity == 600
+    np.testing.assert_allclose(np.asarray(ours.means), np.asarray(ref.means), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(ours.log_scales), np.asarray(ref.log_scales), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(ours.sh), np.asarray(ref.sh), atol=1e-5)
+    np.testing.assert_allclose(sigmoid(ours.opacity_logits), sigmoid(ref.opacity_logits), atol=1e-5)
+    assert rotation_error(np.asarray(ours.quats), np.asarray(ref.quats)) < 1e-6
