@@ -383,3 +383,32 @@ def test_uint8_views_give_the_float_batches():
         b, _ = select_batch(pixels.astype(np.float32) / 255.0, cams, base, step)
         assert a.image.dtype == np.float32
         np.testing.assert_allclose(np.asarray(a.image), np.asarray(b.image), rtol=0, atol=1e-7)
+
+
+def test_process_data_gives_colmap_the_upright_photos(tmp_path, monkeypatch):
+    """COLMAP reads stored pixels and ignores the tag: process-data writes rotated phone
+    photos upright (PNG, lossless), so its poses, the loader and the editor see one image."""
+    import jaxedit.capture.dataset as cd
+    from jaxedit.capture.frames import check_images
+
+    rng = np.random.default_rng(12)
+    upright = [_photo(rng, 48, 32) for _ in range(3)]
+    photos = []
+    for k, image in enumerate(upright):
+        photos.append(tmp_path / "photos" / f"IMG_{k}.jpg")
+        tag = 6 if k else 1
+        _save_jpeg(photos[-1], _unorient(image, tag), tag)
+    assert check_images(photos, tmp_path / "photos") == (32, 48)
+    seen = {}
+
+    def fake_sfm(image_dir, names, *args, **kwargs):
+        seen.update({n: read_image(image_dir / n) for n in names})
+        raise DataError("structure from motion", "stopped by the test")
+
+    monkeypatch.setattr(cd, "run_sfm", fake_sfm)
+    with pytest.raises(DataError, match="stopped by the test"):
+        cd.process_capture(tmp_path / "out", photos)
+    assert sorted(seen) == ["frame_00001.jpg", "frame_00002.png", "frame_00003.png"]
+    for image, got in zip(upright, (seen[n] for n in sorted(seen))):
+        assert got.shape == (48, 32, 3) and _psnr(got, image) > 30.0
+    assert not (tmp_path / "out").exists()

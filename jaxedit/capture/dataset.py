@@ -10,7 +10,9 @@ jaxedit both read the result):
   same rotated world.
 * One shared camera: OPENCV intrinsics (``fl_x fl_y cx cy k1 k2 p1 p2``) for the
   radial models, PINHOLE for the pinhole ones, at the top level.
-* ``images/frame_00001.png`` ... (1-based, in the sorted order of the inputs) and
+* ``images/frame_00001.png`` ... (1-based, in the sorted order of the inputs; a photo
+  whose EXIF orientation is not "as stored" is written upright as PNG, since COLMAP
+  reads the stored pixels and ignores the tag, then the poses and the loader agree) and
   area-averaged copies ``images_2/``, ``images_4/``; the COLMAP database and
   models stay in ``colmap/``. Frames that SfM could not register stay in
   ``images/`` but are not listed in ``transforms.json``. Each frame made from a
@@ -36,7 +38,7 @@ import numpy as np
 from ..camera import opencv_w2c_to_opengl_c2w
 from ..errors import DataError, check_ranges, ranged
 from ..io.files import current_umask
-from ..io.images import read_image, write_image
+from ..io.images import photo_header, read_image, read_photo, write_image
 from ..io.nerfstudio import _downscale_image
 from ..io.ply import save_points_ply
 from .sfm import Report, SfmOptions, run_sfm
@@ -169,7 +171,8 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
 
     Args:
       out_dir: the dataset folder; must not exist or be empty.
-      sources: image files (copied byte for byte) and/or uint8 [H, W, 3] frames (PNG), in order.
+      sources: image files (copied byte for byte; upright PNGs of photos with an EXIF
+        orientation) and/or uint8 [H, W, 3] frames (PNG), in order.
       options: SfM settings (:class:`SfmOptions`).
       min_fraction: fewer registered views than this fraction of the images (or fewer
         than 3) is an error: such a model covers too little of the capture.
@@ -194,11 +197,16 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
         names = frame_names(sources)
         images = staging / "images"
         images.mkdir()
-        for name, source in zip(names, sources):
-            if isinstance(source, (str, Path)):
-                shutil.copyfile(source, images / name)
-            else:
-                write_image(images / name, np.asarray(source, np.float32) / 255.0)
+        for k, source in enumerate(sources):
+            if not isinstance(source, (str, Path)):
+                write_image(images / names[k], np.asarray(source, np.float32) / 255.0)
+                continue
+            orientation = photo_header(source)[2]
+            if orientation == 1:
+                shutil.copyfile(source, images / names[k])
+            else:  # COLMAP ignores EXIF orientation: it gets the upright pixels, losslessly
+                names[k] = str(Path(names[k]).with_suffix(".png"))
+                write_image(images / names[k], read_photo(source, orientation=orientation))
         height, width = read_image(images / names[0]).shape[:2]
         sfm = run_sfm(images, names, staging / "colmap", options, report, (width, height))
         need = min_registered(len(names), min_fraction)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from ..io.images import read_image
+from ..io.images import SWAPPING_ORIENTATIONS, photo_header, read_image
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 MIN_IMAGES = 3
@@ -31,7 +31,8 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
 
 
 def check_images(paths: list[Path], where: str | os.PathLike) -> tuple[int, int]:
-    """Decode every image once; return their common (width, height).
+    """Decode every image once; return their common upright (width, height) (the EXIF
+    orientation applied, as :func:`jaxedit.capture.dataset.process_capture` writes them).
 
     Raises DataError for fewer than :data:`MIN_IMAGES` images, an unreadable image
     (naming it) or images of different sizes (jaxedit datasets have one size).
@@ -41,7 +42,10 @@ def check_images(paths: list[Path], where: str | os.PathLike) -> tuple[int, int]
                                f"structure from motion needs at least {MIN_IMAGES}")
     sizes: dict[tuple[int, int], Path] = {}
     for path in paths:
-        h, w = read_image(path).shape[:2]
+        read_image(path)  # decodable
+        h, w, orientation, _ = photo_header(path)
+        if orientation in SWAPPING_ORIENTATIONS:
+            h, w = w, h
         sizes.setdefault((w, h), path)
     if len(sizes) > 1:
         listed = ", ".join(f"{w}x{h} ({p.name})" for (w, h), p in sorted(sizes.items())[:3])
