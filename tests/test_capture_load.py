@@ -412,3 +412,19 @@ def test_process_data_gives_colmap_the_upright_photos(tmp_path, monkeypatch):
     for image, got in zip(upright, (seen[n] for n in sorted(seen))):
         assert got.shape == (48, 32, 3) and _psnr(got, image) > 30.0
     assert not (tmp_path / "out").exists()
+
+
+def test_the_reused_remap_is_bilinear_sample():
+    """undistort_image's sparse remap (one per camera) against scipy's map_coordinates."""
+    from jaxedit.io.distortion import _source_coords, bilinear_sample, undistortion_table
+
+    rng = np.random.default_rng(13)
+    image = rng.random((37, 53, 3)).astype(np.float32)
+    fill = np.array([1.0, 0.0, 1.0])
+    for d in (Distortion(k1=-0.2, k2=0.05, p1=0.003, p2=-0.002), Distortion(k1=0.4)):
+        args = (37, 53, 30.0, 28.0, 25.0, 19.0, d)
+        want = bilinear_sample(image, *_source_coords(*args), fill)
+        table = undistortion_table(*args)
+        got = undistort_image(image, *args[2:], fill=fill, table=table)
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        np.testing.assert_array_equal(got, undistort_image(image, *args[2:], fill=fill))

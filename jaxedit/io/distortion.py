@@ -167,8 +167,64 @@ def valid_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
     return x0, y0, x1, y1
 
 
+class Remap(NamedTuple):
+    """A bilinear resampling of a fixed set of continuous pixel coordinates, computed once
+    and applied to every image of one camera (:func:`remap_table`, :func:`apply_remap`).
+
+    Attributes:
+      matrix: scipy.sparse CSR float32 [M, S]: each output pixel's 4 bilinear weights over
+        the S source pixels (a sparse product is the fastest gather NumPy has).
+      inside: bool [M], the samples inside the source rectangle (others get ``fill``).
+      shape: the output's (height, width) and the source's (height, width).
+    """
+
+    matrix: object
+    inside: np.ndarray
+    shape: tuple
+
+
+def remap_table(u: np.ndarray, v: np.ndarray, height: int, width: int) -> Remap:
+    """The :class:`Remap` of sampling a ``height`` x ``width`` image at pixel coordinates
+    ``u``, ``v`` float [H', W'] exactly as :func:`bilinear_sample` does (centres at
+    integer + 0.5, edge pixels clamped, outside the rectangle filled)."""
+    from scipy import sparse
+
+    inside = (u >= 0.0) & (u <= width) & (v >= 0.0) & (v <= height)
+    x = np.clip(np.where(inside, u, 0.5) - 0.5, 0.0, width - 1).reshape(-1)
+    y = np.clip(np.where(inside, v, 0.5) - 0.5, 0.0, height - 1).reshape(-1)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, width - 1), np.minimum(y0 + 1, height - 1)
+    ax, ay = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+    columns = np.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], 1)
+    weights = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], 1)
+    m = x.size
+    matrix = sparse.csr_matrix((weights.reshape(-1), columns.reshape(-1),
+                                np.arange(0, 4 * m + 1, 4)), shape=(m, height * width))
+    return Remap(matrix, inside.reshape(-1), (u.shape[0], u.shape[1], height, width))
+
+
+def apply_remap(image: np.ndarray, table: Remap, fill) -> np.ndarray:
+    """float32 [H', W', C]: ``image`` float [H, W, C] resampled by ``table``."""
+    h, w, src_h, src_w = table.shape
+    if image.shape[:2] != (src_h, src_w):
+        raise ValueError(f"remap table is for {src_w}x{src_h} images, got "
+                         f"{image.shape[1]}x{image.shape[0]}")
+    flat = np.asarray(image, np.float32).reshape(src_h * src_w, -1)
+    out = np.asarray(table.matrix @ flat, np.float32)
+    out[~table.inside] = np.asarray(fill, np.float32)
+    return out.reshape(h, w, -1)
+
+
+def undistortion_table(height: int, width: int, fx: float, fy: float, cx: float, cy: float,
+                       d: Distortion) -> Remap:
+    """The :class:`Remap` of :func:`undistort_image` for a ``height`` x ``width`` camera."""
+    us, vs = _source_coords(height, width, fx, fy, cx, cy, d)
+    return remap_table(us, vs, height, width)
+
+
 def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: float,
-                    d: Distortion, *, fill=(1.0, 1.0, 1.0)) -> np.ndarray:
+                    d: Distortion, *, fill=(1.0, 1.0, 1.0), table: Remap | None = None
+                    ) -> np.ndarray:
     """The pinhole image (same K) seen by a camera with distortion ``d``.
 
     Args:
@@ -176,10 +232,13 @@ def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: floa
       fx, fy, cx, cy: intrinsics in pixels (pixel centres at integer + 0.5).
       d: distortion coefficients.
       fill: value [C] for pixels whose source falls outside the captured image.
+      table: :func:`undistortion_table` of these intrinsics and size, to reuse over the
+        images of one camera (built here when None).
     Returns:
-      float32 [H, W, C].
+      float32 [H, W, C], :func:`bilinear_sample` at the distorted positions.
     """
     if d.is_zero():
         return np.asarray(image, np.float32)
-    us, vs = _source_coords(image.shape[0], image.shape[1], fx, fy, cx, cy, d)
-    return bilinear_sample(np.asarray(image, np.float32), us, vs, fill).astype(np.float32)
+    if table is None:
+        table = undistortion_table(image.shape[0], image.shape[1], fx, fy, cx, cy, d)
+    return apply_remap(image, table, fill)

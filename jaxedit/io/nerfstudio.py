@@ -60,7 +60,8 @@ import numpy as np
 from ..camera import Camera, check_cameras, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
 from ..errors import DataError
 from ..gaussians import Gaussians
-from .distortion import Distortion, source_inside, undistort_image, valid_rectangle
+from .distortion import (Distortion, source_inside, undistort_image, undistortion_table,
+                         valid_rectangle)
 from .files import current_umask
 from .images import SWAPPING_ORIENTATIONS, photo_header, read_photo, write_image
 from .ply import load_points_ply, save_points_ply
@@ -569,17 +570,19 @@ def _orientation(image_path: Path, header, intr: _Intrinsics, where: str) -> int
 
 
 def _load_view(image_path: Path, intr: _Intrinsics, orientation: int, downscale: int, crop,
-               bg: np.ndarray, eight_bit: bool) -> np.ndarray:
+               bg: np.ndarray, eight_bit: bool, tables: dict) -> np.ndarray:
     """One view as loaded: decoded at 1/downscale, undistorted there, cropped; uint8 or
-    float32 [h, w, 3]."""
+    float32 [h, w, 3]. ``tables``: the undistortion remaps by camera, filled as needed."""
     image = read_photo(image_path, downscale, orientation=orientation, background=bg)
     expect = (intr.height // downscale, intr.width // downscale)
     if image.shape[:2] != expect:
         raise DataError(image_path, f"decoded {image.shape[1]}x{image.shape[0]} pixels at 1/"
                                     f"{downscale}, expected {expect[1]}x{expect[0]}")
     if not intr.distortion.is_zero():
-        image = undistort_image(image, *_scaled_intrinsics(intr, downscale), intr.distortion,
-                                fill=bg)
+        k = _scaled_intrinsics(intr, downscale)
+        if intr not in tables:  # one remap per camera, not per photo
+            tables[intr] = undistortion_table(*expect, *k, intr.distortion)
+        image = undistort_image(image, *k, intr.distortion, fill=bg, table=tables[intr])
     x0, y0, x1, y1 = crop
     image = image[y0:y1, x0:x1]
     if eight_bit:
@@ -636,6 +639,7 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
     transformed = downscale > 1 or any(not p[2].distortion.is_zero() for p in parsed)
     views = ViewCache(cache_folder(json_path.parent) if cache and transformed else None)
     pixels = np.empty((len(parsed), height, width, 3), np.uint8 if eight_bit else np.float32)
+    tables: dict = {}
     for k, ((name, _, intr, _), image_path, o) in enumerate(zip(parsed, image_paths,
                                                                orientations)):
         entry = views.entry(image_path, _norm_name(name), {
@@ -645,7 +649,7 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
             "background": bg.tolist(), "uint8": eight_bit})
         view = views.get(entry, (height, width, 3), pixels.dtype)
         if view is None:
-            view = _load_view(image_path, intr, o, downscale, crop, bg, eight_bit)
+            view = _load_view(image_path, intr, o, downscale, crop, bg, eight_bit, tables)
             views.put(entry, view)
         pixels[k] = view
     intr_arr = np.asarray([_scaled_intrinsics(p[2], downscale) for p in parsed], np.float64)
