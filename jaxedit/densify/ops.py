@@ -1,26 +1,11 @@
 """The named pure operations of density control, on Gaussians and optimiser state.
 
-As gsplat's ``strategy/ops.py`` next to its strategies: each operation is usable alone,
-and :func:`jaxedit.densify.strategy.adaptive` composes them into one maintenance step:
-
-* cull: :func:`cull_mask` (opacity below ``cull_alpha``, too large in world space, or,
-  from a given step on, too large on screen) and :func:`remove` (mark those slots dead);
-* :func:`select`: rank the candidates by mean NDC gradient and take the first ``k``
-  (a :class:`Selection`; ``k`` is bounded by the budget, the free slots and the cap);
-* :func:`split`: two children drawn from the parent's own Gaussian distribution,
-  scales divided by a factor, the first child in the parent's slot;
-* :func:`place` (duplication): write rows -- a parent's own copy, or a split's
-  second child -- into the free (dead) slots;
-* reset: :func:`opacity_reset` (ProEdit's reset to the cull threshold, or 3DGS's
-  periodic clamp) and :func:`zero_moments` (zero the optimiser's per-slot state,
-  every ``Gaussians``-shaped node of an optax state, where slots were created,
-  split or freed);
-* capacity growth, outside jit: :func:`grown_capacity` and :func:`grow_state` (grow
-  Gaussians, optimiser state and densify statistics with dead, zeroed slots).
-
-Everything works on the fixed-capacity ``alive`` layout of
-:class:`jaxedit.gaussians.Gaussians`: no shape depends on data, so each operation
-jit-compiles once (except the capacity growth, which changes shapes by design).
+As gsplat's ``strategy/ops.py``: each is usable alone, and
+:func:`jaxedit.densify.strategy.adaptive` composes them: cull (:func:`cull_mask`,
+:func:`remove`), rank (:func:`select`), :func:`split`, duplicate (:func:`place`), reset
+(:func:`opacity_reset`, :func:`zero_moments`), and capacity growth outside jit
+(:func:`grown_capacity`, :func:`grow_state`). All work on the fixed-capacity ``alive``
+layout, so no shape depends on data.
 """
 
 from __future__ import annotations
@@ -37,20 +22,16 @@ from ..gaussians import Gaussians
 from .stats import DensifyStats
 
 
-# --------------------------------------------------------------------------------------
-# Helpers on optimiser state
-# --------------------------------------------------------------------------------------
+# -- Helpers on optimiser state --------------------------------------------------------
 
 def _is_gaussians(x) -> bool:
     return isinstance(x, Gaussians)
 
 
 def _map_gaussian_nodes(fn, tree):
-    """Apply ``fn(name, array) -> array`` to every array field of every Gaussians node of ``tree``.
+    """Apply ``fn(name, array) -> array`` to every array field of every Gaussians node.
 
-    optax keeps its per-parameter state (Adam's mu, nu, ...) in trees shaped like
-    the parameters; with ``optax.partition`` the fields of other labels are
-    ``MaskedNode``s, which are left alone, as are non-Gaussians leaves (counts).
+    Other leaves (counts, ``optax.partition``'s ``MaskedNode``s) are left alone.
     """
 
     def on_node(node):
@@ -90,9 +71,8 @@ def zero_moments(opt_state, mask: jax.Array, fields=None):
 def opacity_reset(gaussians: Gaussians, opt_state, value: float, *, clamp: bool = False):
     """Reset opacities to ``value`` and zero the opacity optimiser moments.
 
-    ProEdit sets every opacity to the cull threshold at the start of each
-    subtask (``clamp=False``); the periodic 3DGS reset lowers opacities to at
-    most ``value`` (``clamp=True``). Dead slots are left untouched.
+    ``clamp=False``: every alive opacity set to ``value`` (ProEdit's per-subtask reset);
+    ``clamp=True``: lowered to at most ``value`` (3DGS's periodic reset). Dead slots unchanged.
 
     Args:
       gaussians: Gaussians, capacity C.
@@ -103,8 +83,8 @@ def opacity_reset(gaussians: Gaussians, opt_state, value: float, *, clamp: bool 
     """
     value = jnp.asarray(value, gaussians.opacity_logits.dtype)
     logit = jnp.log(value) - jnp.log1p(-value)
-    # Rounded, sigmoid(logit) can land one ulp below ``value`` (0.005 does in float32): the
-    # cull ``opacity < cull_alpha`` would then remove every Gaussian no view has updated yet.
+    # sigmoid(logit) can round one ulp below ``value``; the cull ``opacity < cull_alpha``
+    # would then remove every Gaussian no view has updated yet.
     logit = jnp.where(jax.nn.sigmoid(logit) < value, jnp.nextafter(logit, jnp.inf), logit)
     new = jnp.minimum(gaussians.opacity_logits, logit) if clamp else jnp.full_like(
         gaussians.opacity_logits, logit)
@@ -116,9 +96,7 @@ def opacity_reset(gaussians: Gaussians, opt_state, value: float, *, clamp: bool 
     return g, opt_state
 
 
-# --------------------------------------------------------------------------------------
-# Capacity growth (outside jit)
-# --------------------------------------------------------------------------------------
+# -- Capacity growth (outside jit) -----------------------------------------------------
 
 def grown_capacity(capacity: int, needed: int, max_gaussians: int) -> int:
     """Smallest ``capacity * 2^m`` holding ``needed`` slots, clamped to ``max_gaussians``."""
@@ -135,9 +113,8 @@ def _pad_rows(a, extra: int):
 
 
 def grow_state(gaussians: Gaussians, opt_state, stats: DensifyStats | None, capacity: int):
-    """Grow Gaussians, optimiser state and densify stats to ``capacity`` slots (outside jit).
-
-    New slots are dead, with zero moments and zero statistics.
+    """Grow Gaussians, optimiser state and densify stats to ``capacity`` slots (outside
+    jit); the new slots are dead with zero moments and statistics.
     """
     old = gaussians.capacity
     extra = capacity - old
@@ -160,16 +137,14 @@ def grow_state(gaussians: Gaussians, opt_state, stats: DensifyStats | None, capa
     return g, opt_state, stats
 
 
-# --------------------------------------------------------------------------------------
-# The operations of a maintenance step (pure; composed by :func:`.strategy.adaptive`)
-# --------------------------------------------------------------------------------------
+# -- The operations of a maintenance step (pure; composed by :func:`.strategy.adaptive`) ---
 
 def cull_mask(g: Gaussians, stats: DensifyStats, step, *, cull_alpha: float,
               big_scale: float | None, cull_screen: float | None,
               screen_from: int | None) -> jax.Array:
-    """bool [C]: the alive Gaussians to remove -- opacity below ``cull_alpha``, largest
-    world scale above ``big_scale``, or (from step ``screen_from`` on) a screen radius
-    that reached ``cull_screen`` of the image since the last maintenance step."""
+    """bool [C]: alive Gaussians with opacity < ``cull_alpha``, largest world scale >
+    ``big_scale``, or (after step ``screen_from``) screen radius > ``cull_screen``.
+    """
     culled = jax.nn.sigmoid(g.opacity_logits) < cull_alpha
     if big_scale is not None:
         culled |= jnp.exp(jnp.max(g.log_scales, axis=-1)) > big_scale
@@ -207,8 +182,9 @@ class Selection(NamedTuple):
 
 def select(stats: DensifyStats, alive: jax.Array, *, floor: float, budget, max_gaussians: int
            ) -> Selection:
-    """Rank the candidates by mean NDC gradient and take the first ``min(budget, #candidates,
-    max_gaussians - alive, free slots)`` (``budget`` None: every candidate)."""
+    """Rank the candidates by mean NDC gradient and select the first ``min(budget,
+    #candidates, max_gaussians - alive, free slots)`` (``budget`` None: every candidate).
+    """
     capacity = alive.shape[0]
     avg = stats.grad_sum / jnp.maximum(stats.count, 1).astype(jnp.float32)
     cand = alive & (stats.count > 0) & (avg > floor)
@@ -227,12 +203,12 @@ def select(stats: DensifyStats, alive: jax.Array, *, floor: float, budget, max_g
 
 def split(g: Gaussians, mask: jax.Array, key: jax.Array, factor: float
           ) -> tuple[Gaussians, Gaussians]:
-    """Split the Gaussians of ``mask`` [C] in two, drawn from the parent's own distribution.
+    """Split the Gaussians of ``mask`` [C] in two, drawn from the parent's distribution.
 
     Returns:
-      (g with each split parent replaced by its first child, rows [C] whose split rows
-      are the second children -- to be placed in free slots -- and whose other rows
-      are ``g``'s own). Children's scales are the parent's divided by ``factor``.
+      (g with each split parent replaced by its first child, rows [C] holding the second
+      children at split rows and ``g``'s own elsewhere). Children's scales are divided by
+      ``factor``.
     """
     eps = jax.random.normal(key, (g.capacity, 2, 3), g.means.dtype)
     offsets = jnp.einsum("cij,ckj->cki", g.rotations(), eps * jnp.exp(g.log_scales)[:, None, :],
@@ -247,9 +223,7 @@ def split(g: Gaussians, mask: jax.Array, key: jax.Array, factor: float
 
 
 def place(g: Gaussians, rows: Gaussians, order: jax.Array, count) -> tuple[Gaussians, jax.Array]:
-    """Write ``rows[order[j]]`` into the j-th free slot of ``g`` for j < ``count`` (alive).
-
-    Duplication is placing a parent's own row; a split places its second child.
+    """Write ``rows[order[j]]`` into the j-th free slot of ``g``, alive, for j < ``count``.
 
     Returns:
       (g, bool [C]: the slots written).

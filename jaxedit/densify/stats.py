@@ -1,10 +1,5 @@
-"""The statistics of density control: what one training render tells it, summed between steps.
-
-Both halves of the package read them: :mod:`jaxedit.densify.ops` ranks and culls by them
-and grows them with the capacity, :mod:`jaxedit.densify.strategy` accumulates them at every
-step and restarts them after each maintenance step. :class:`RenderAux` is one render's
-contribution (:func:`render_aux` builds it), :class:`DensifyStats` the running sums
-(:func:`init_stats`, :func:`accumulate`).
+"""The statistics of density control: one render's :class:`RenderAux`, summed into
+:class:`DensifyStats` between maintenance steps (:func:`init_stats`, :func:`accumulate`).
 """
 
 from __future__ import annotations
@@ -19,8 +14,7 @@ class RenderAux(NamedTuple):
     """What densification needs from one training render.
 
     Attributes:
-      grad_means2d: float [C, 2], gradient of the loss w.r.t. the projected
-        means in pixels (the gradient of ``means2d_delta``).
+      grad_means2d: float [C, 2], loss gradient w.r.t. the projected means, in pixels.
       radii: float or int [C], screen-space radius in pixels (0 if not drawn).
       visible: bool [C], drawn in this view.
       image_size: float [2], (width, height) in pixels.

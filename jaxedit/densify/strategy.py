@@ -1,60 +1,26 @@
 """The density-control strategy: statistics, settings and the ``(init, update)`` pair.
 
-As gsplat's strategies next to ``strategy/ops.py``: this module keeps what is carried
-between steps and when to act, :mod:`jaxedit.densify.ops` what is done.
-:func:`adaptive` turns a :class:`DensifyConfig` into a :class:`Strategy`; the
-statistics it carries are :mod:`jaxedit.densify.stats`' :class:`DensifyStats`, each
-update reports a :class:`DensifyInfo`, and :func:`creation_budget` is ProEdit's t(n, N).
+As gsplat's strategies beside ``ops.py``: this module decides what is carried and when to
+act, :mod:`jaxedit.densify.ops` what is done. ``update`` accumulates each step's 3DGS
+statistics (NDC 2D-mean gradient norm, visibility count, screen radius). At maintenance
+steps (``step > warmup``, ``step % refine_every == 0``, ``step <= stop_at``; with
+``refine_from_warmup`` counted from ``warmup``) it, in order:
 
-What ``update`` does at every call: accumulate the 3DGS statistics of this
-step's render (norm of the 2D-mean gradient in NDC units, visibility count,
-largest screen radius). At maintenance steps (``step > warmup``, ``step %
-refine_every == 0``, ``step <= stop_at``; with ``refine_from_warmup`` the clock starts
-at the warm-up: ``step >= warmup``, ``(step - warmup) % refine_every == 0``), in this
-order:
+1. culls Gaussians with opacity < ``cull_alpha``, world scale > ``cull_scale *
+   scene_extent`` or (after the first opacity reset) screen radius >= ``cull_screen``;
+   first, so the freed slots are reused at once;
+2. creates from the candidates whose mean gradient passes the threshold, highest first:
+   ``k = min(#candidates, free slots, max_gaussians - alive)``, also ``<= t(n, N)``
+   with ProEdit's budget (:func:`creation_budget`; the effective threshold is then the
+   k-th score, paper section 3.3). Small ones are duplicated, large ones split with
+   ``key``; each consumes one free slot;
+3. zeroes the optimiser moments of new, split and freed slots and restarts the statistics.
 
-1. cull: alive Gaussians with opacity < ``cull_alpha``, or larger than
-   ``cull_scale * scene_extent`` in world space, or (after the first opacity
-   reset, as in INRIA's 3DGS) whose screen radius reached ``cull_screen`` of the
-   image size. Culling first frees slots that the creation below can reuse at
-   once, and no Gaussian is created from a parent that is being removed.
-2. create: candidates are the surviving, seen Gaussians whose mean NDC gradient
-   passes the threshold. They are ranked by that score (highest first, ties by
-   slot index) and the first ``k`` are refined, with
-
-   * classic mode (``budget=None``): ``k = min(#candidates, free slots,
-     max_gaussians - alive)``, threshold ``grad_threshold`` (2e-4);
-   * ProEdit's adaptive creation (``budget=t``): ``k = min(t(n, N),
-     #candidates, free slots, max_gaussians - alive)`` where ``n`` is the number
-     culled at the previous maintenance step and ``N`` the number alive before
-     this one. The effective gradient threshold is the score of the k-th
-     candidate: the threshold is chosen by the scheduled count, not fixed
-     (paper, section 3.3 and appendix D).
-
-   A selected Gaussian whose largest scale is <= ``dense_percent *
-   scene_extent`` is duplicated (an exact copy goes to a free slot); a larger
-   one is split: two children are drawn from the parent's own Gaussian
-   distribution with ``key``, scales divided by ``split_factor`` (1.6); the
-   first child replaces the parent in its slot, the second takes a free slot.
-   Either way one refined Gaussian consumes exactly one free slot.
-3. the optimiser moments (every ``Gaussians``-shaped node of ``opt_state``,
-   e.g. Adam's mu and nu) of new, split and freed slots are zeroed; the
-   statistics restart; ``n`` is remembered for the next budget.
-
-At ``step % reset_every == 0`` (``step <= stop_at``) the opacities are clamped
-to ``reset_value`` (2 x ``cull_alpha`` by default) and their moments zeroed.
-
-The number of Gaussians never exceeds ``max_gaussians`` (a hard cap). When the
-cap would allow more than the current capacity, ``update`` does not drop the
-excess silently: ``info.capacity_limited`` is set and ``info.slots_needed``
-says how many slots the step wanted; the caller (outside jit) grows the
-capacity with :func:`jaxedit.densify.ops.grow_state` /
-:func:`jaxedit.densify.ops.grown_capacity` and redoes the step (it is pure, so the
-redo gives the same result as if the room had been there).
-:func:`jaxedit.train.fit` does this automatically.
-
-Step numbering: ``step`` is the number of optimiser steps done including the
-current one (1-based), as in INRIA's trainer.
+At ``step % reset_every == 0`` the opacities are clamped to ``reset_value``. Nothing is
+dropped silently: when free slots bind below the cap, ``info.capacity_limited`` and
+``info.slots_needed`` tell the caller to grow the capacity
+(:func:`jaxedit.densify.ops.grow_state`) and redo the pure step, as
+:func:`jaxedit.train.fit` does. ``step`` is 1-based, as in INRIA's trainer.
 """
 
 from __future__ import annotations
@@ -77,21 +43,18 @@ class DensifyInfo(NamedTuple):
     """What one ``update`` did (int32 / bool scalars; zeros when nothing was due).
 
     Attributes:
-      refined: a maintenance (densify + cull) step ran.
+      refined: a maintenance step ran.
       reset: the opacities were reset.
-      created: Gaussians added (= split + duplicated).
+      created: Gaussians added (split + duplicated).
       split, duplicated, culled: counts of each operation.
       alive: Gaussians alive after the update.
-      capacity: slots in the pytree (static, reported for logs).
+      capacity: slots in the pytree.
       candidates: Gaussians passing the gradient threshold.
-      budget: t(n, N) in budget mode, or the number of candidates in classic mode.
-      threshold: the effective NDC gradient threshold (score of the last
-        created Gaussian; ``grad_threshold`` in classic mode when nothing was created).
-      capacity_limited: free slots were the binding limit and the cap would
-        allow more: grow the capacity and redo the step.
-      cap_limited: the hard cap ``max_gaussians`` was the binding limit.
-      slots_needed: alive + wanted creations (within the cap): the capacity the
-        step needed.
+      budget: t(n, N), or the candidate count in classic mode.
+      threshold: the effective gradient threshold (score of the last one created).
+      capacity_limited: free slots bound below the cap: grow and redo the step.
+      cap_limited: ``max_gaussians`` was the binding limit.
+      slots_needed: the capacity the step needed (alive + wanted, within the cap).
     """
 
     refined: jax.Array
@@ -117,27 +80,17 @@ class Strategy(NamedTuple):
     update: Callable
 
 
-# --------------------------------------------------------------------------------------
-# Creation budget t(n, N)
-# --------------------------------------------------------------------------------------
+# -- Creation budget t(n, N) -----------------------------------------------------------
 
 def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> BudgetFn:
-    """The family of creation budgets t(n, N) for ProEdit's adaptive creation.
+    """ProEdit's creation budget t(n, N).
 
         t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N)))
 
-    with ``n`` the number culled at the previous maintenance step and ``N`` the
-    number alive. Why this shape: re-creating ``n`` replaces what the last cull
-    removed, so capacity moves from Gaussians that lost their opacity (wrong
-    geometry, floaters) to the places with the largest view-space gradient
-    (where the edited views disagree with the scene most) without growing the
-    scene; ``growth N`` adds a small fraction on top, so the total grows
-    smoothly and geometrically (1.02^k after k maintenance steps by default,
-    about x1.6 over a 25-step subtask) instead of exploding on inconsistent
-    edited views; ``max_fraction N`` bounds a single step (after an opacity
-    reset a cull can remove a large part of the scene; it is refilled at most
-    10% per step); ``min_new`` lets a tiny or freshly culled scene still grow.
-    The constants' defaults are :class:`DensifyConfig`'s ``budget_*`` fields.
+    ``n``: the number culled at the previous maintenance, ``N``: the number alive.
+    Re-creating ``n`` moves capacity from faded Gaussians to high-gradient regions without
+    growing the scene; ``growth`` adds a geometric trickle; ``max_fraction`` bounds one step
+    (an opacity reset can cull much at once); ``min_new`` lets a tiny scene grow.
 
     Returns:
       a jit-able function (n int [], N int []) -> int32 [].
@@ -154,9 +107,7 @@ def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> Budg
     return budget
 
 
-# --------------------------------------------------------------------------------------
-# The strategy
-# --------------------------------------------------------------------------------------
+# -- The strategy ----------------------------------------------------------------------
 
 def nothing_done(capacity: int, alive) -> DensifyInfo:
     """The :class:`DensifyInfo` of an update that changed nothing (``alive``: int [])."""
@@ -170,42 +121,32 @@ def nothing_done(capacity: int, alive) -> DensifyInfo:
 
 @dataclasses.dataclass(frozen=True)
 class DensifyConfig:
-    """Density control settings: the one declaration of them and their defaults
-    (nerfstudio Splatfacto / INRIA 3DGS). :func:`adaptive` turns them into a strategy;
-    :class:`jaxedit.train.TrainConfig` stores them (JSON, checkpoints).
+    """Density control settings and their defaults (Splatfacto / INRIA 3DGS);
+    :func:`adaptive` turns them into a strategy.
 
     Attributes:
       enabled: False turns density control off (no maintenance, no resets).
-      max_gaussians: hard cap on the number of Gaussians alive, never exceeded.
-      budget: ProEdit's adaptive creation with the budget :func:`creation_budget`
-        instead of classic thresholding at ``grad_threshold``.
+      max_gaussians: hard cap on the Gaussians alive, never exceeded.
+      budget: ProEdit's adaptive creation (:func:`creation_budget`) instead of thresholding.
       budget_min_new: the budget's floor: Gaussians a maintenance may always create.
-      budget_growth: the budget's growth: this fraction of those alive on top of the
-        number the last maintenance culled.
-      budget_max_fraction: the budget's ceiling: at most this fraction of those alive
-        created in one maintenance.
-      grad_threshold: classic mode: mean NDC gradient norm needed to refine (2e-4).
+      budget_growth: the budget's growth: this fraction of those alive on top of the last cull.
+      budget_max_fraction: the budget's ceiling: at most this fraction of those alive per step.
+      grad_threshold: classic mode: mean NDC gradient norm needed to refine.
       grad_floor: budget mode: candidates need a mean gradient strictly above this.
-      refine_every: steps between two density maintenances (split, duplicate, cull).
-      warmup: steps before the first maintenance (maintenance only at ``step > warmup``).
-      stop_at: last step with maintenance and opacity resets (None: half of the run's
-        iterations, Splatfacto's 15000 of 30000).
-      refine_from_warmup: False: INRIA's clock, maintenance at the multiples of
-        ``refine_every`` above ``warmup``. True: maintenance at ``warmup, warmup +
-        refine_every, ...``, so the warm-up is exactly the steps without density control
-        (ProEdit's W).
-      reset_every: opacity reset period (0 disables); only while ``step <= stop_at``.
+      refine_every: steps between two density maintenances.
+      warmup: steps before the first maintenance.
+      stop_at: last step with maintenance and opacity resets (None: half the iterations).
+      refine_from_warmup: maintenance at ``warmup, warmup + refine_every, ...`` (ProEdit's W)
+        instead of INRIA's multiples of ``refine_every`` above ``warmup``.
+      reset_every: opacity reset period (0 disables).
       cull_alpha: cull opacity below this.
       reset_value: opacity after a periodic reset (None: ``2 * cull_alpha``).
       dense_percent: duplicate if max scale <= this * scene_extent, else split.
       split_factor: children's scales are the parent's divided by this.
       cull_scale: cull if max scale > this * scene_extent (None disables).
-      cull_screen: cull if the screen radius reached this fraction of max(W, H)
-        since the last maintenance; only after the first opacity reset, as in
-        INRIA's 3DGS (early Gaussians are legitimately large on screen), hence
-        never when ``reset_every`` is 0; None disables.
-      strategy: the density strategy that reads these settings, by the name it was
-        registered under (:func:`register_strategy`; "adaptive": :func:`adaptive`).
+      cull_screen: cull if the screen radius reached this fraction of max(W, H), after the
+        first opacity reset (None disables).
+      strategy: the registered name of the strategy that reads these (:func:`register_strategy`).
     """
 
     enabled: bool = True
@@ -241,17 +182,16 @@ _STRATEGIES: dict[str, Callable[..., Strategy]] = {}
 
 
 def register_strategy(name: str, make: Callable[..., Strategy]) -> None:
-    """Make ``DensifyConfig(strategy=name)`` train with ``make(config, *, scene_extent,
-    iterations) -> Strategy`` (the signature of :func:`adaptive`). ``make`` must be a
-    module-level function: compiled programs are cached by it."""
+    """Make ``DensifyConfig(strategy=name)`` use ``make(config, *, scene_extent,
+    iterations) -> Strategy``, a module-level function (compiled programs are cached by it).
+    """
     if not name or not callable(make):
         raise DataError("strategy", f"need a name and a callable, got {name!r}, {make!r}")
     _STRATEGIES[name] = make
 
 
 def strategy_for(config: DensifyConfig, *, scene_extent, iterations: int) -> Strategy:
-    """The :class:`Strategy` ``config.strategy`` names, built from ``config``: the one place a
-    run's density control is made."""
+    """The :class:`Strategy` ``config.strategy`` names, built from ``config``."""
     return _STRATEGIES[config.strategy](config, scene_extent=scene_extent, iterations=iterations)
 
 
@@ -260,8 +200,8 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
 
     Args:
       config: the :class:`DensifyConfig`.
-      scene_extent: world size of the scene (radius of the camera rig, INRIA's
-        ``cameras_extent``); scales the duplicate/split and world-cull thresholds.
+      scene_extent: world size of the scene (INRIA's ``cameras_extent``); scales the
+        duplicate/split and world-cull thresholds.
       iterations: the run's steps (``stop_at=None`` stops at half of them).
     """
     if config.max_gaussians is None:
@@ -299,14 +239,11 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
                            cull_screen=cull_screen, screen_from=screen_from) & ~frozen
         g = remove(gaussians, culled)
         n_alive1 = g.num_alive()
-        # t(n, N) over the Gaussians the edit may change: a local edit's frozen ones are
-        # never culled nor candidates, and counted in N they let the editable part grow by
-        # 0.02 of the whole scene per step (person: a third more Gaussians in the region
-        # than the global edit left there).
+        # t(n, N) counts only the editable Gaussians: with frozen ones in N a local edit's
+        # region would grow by a fraction of the whole scene each step.
         t = None if budget is None else jnp.maximum(jnp.asarray(budget(
             stats.last_culled, n_alive0 - jnp.sum(gaussians.alive & frozen)), jnp.int32), 0)
-        # Frozen Gaussians are never candidates (no split, no clone): only the editable
-        # ones, and hence only their neighbourhood, get new Gaussians.
+        # Frozen Gaussians are never candidates, so only the editable region grows.
         seen = stats._replace(count=jnp.where(frozen, 0, stats.count))
         sel = select(seen, g.alive, floor=floor, budget=t, max_gaussians=max_gaussians)
         small = jnp.exp(jnp.max(g.log_scales, axis=-1)) <= dup_scale
@@ -341,17 +278,16 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
 
     def update(gaussians: Gaussians, opt_state, stats: DensifyStats, aux: RenderAux | None,
                step, key: jax.Array, frozen: jax.Array | None = None):
-        """One step of density control; see the module docstring.
+        """One step of density control (module docstring).
 
         Args:
-          gaussians: Gaussians, capacity C (after this step's optimiser update).
+          gaussians: capacity C, after this step's optimiser update.
           opt_state: optax state with Gaussians-shaped moments (or None).
           stats: DensifyStats from ``init`` or the previous update.
-          aux: this step's RenderAux, or None to accumulate nothing.
-          step: int, 1-based optimiser step count.
-          key: PRNG key (split children).
-          frozen: bool [C] or None: alive Gaussians never culled, split, cloned or
-            reset (a local edit's outside; None: none).
+          aux: this step's RenderAux, or None.
+          step: int, 1-based.
+          key: PRNG key for split children.
+          frozen: bool [C] or None: Gaussians never culled, split, cloned or reset.
         Returns:
           (gaussians, opt_state, stats, info: DensifyInfo).
         """

@@ -1,33 +1,11 @@
-"""InstructPix2Pix in JAX: the edit of :mod:`jaxedit.editors.ip2p`, as one jit-compiled pure function.
+"""InstructPix2Pix in JAX: the torch reference's edit (:mod:`jaxedit.editors.ip2p`) as one pure jit.
 
-The edit is the torch reference's, step for step (see :mod:`jaxedit.editors.ip2p`): resize to
-the model size, VAE-encode the render (posterior sample x ``scaling_factor``) and the
-original (posterior mode, unscaled), draw T in ``timestep_range`` from the key, noise the
-latent to T (SDEdit), deterministic DDIM (eta = 0) over :func:`timestep_schedule`'s steps
-with three-branch dual classifier-free guidance, decode, resize back, clamp. The shared
-arithmetic lives in :mod:`jaxedit.editors.diffusion`.
-
-The core, :func:`edit_with_noise`, is pure in (networks, images, originals, embeddings,
-T, noises) and batched: B views in one call, each with its own T. Its number of DDIM
-steps is static while T is traced: slot k of the schedule holds round(T (steps - k) /
-steps) and slots that repeat or reach 0 (T < steps) leave the latent as it is
-(:func:`jaxedit.editors.diffusion.timestep_table`), so one compiled program serves every
-T. :func:`edit_batch` only draws T and the noises from per-view keys.
-
-Randomness: view key -> (k_t, k_n) by ``jax.random.split`` exactly as the torch editor
-splits it, so both draw the same T from the same key; the two standard normal latents
-(posterior sample, SDEdit noise) are drawn from k_n with ``jax.random.normal``, on the
-device.
-
-Devices and precision: the editor runs on ``devices`` (default: the first JAX device). With
-several, a :class:`jax.sharding.Mesh` over them shards a batch of views along its first
-axis (``NamedSharding(mesh, P("views"))``) with the networks replicated; every view's
-arithmetic is independent, so a sharded batch gives a one-device batch's results. The
-networks run in bfloat16 on accelerators (float32's range: no fp16 VAE overflow; pass
-``dtype="float16"`` for torch's choice) and float32 on the CPU; the latents, the DDIM
-arithmetic and the output are float32. Images go in as NumPy or JAX arrays and the result
-is a JAX array on the editor's device: the trainer takes it from there with
-``jax.device_put`` (:mod:`jaxedit.edit.buffer`), never through the host.
+Resize to the model size, VAE-encode render and original, noise to T (SDEdit), DDIM with
+dual classifier-free guidance, decode, resize back. Batched, one T per view; the step count
+is static and T traced, so one program serves every T. Each view key splits into
+(k_t, k_n) as the torch editor's does, so both draw the same T. Batches shard along
+``views`` over the editor's devices; networks run in bfloat16 on accelerators (float32's
+range: no fp16 VAE overflow), float32 on the CPU; latents and output are float32.
 """
 
 from __future__ import annotations
@@ -62,12 +40,10 @@ VIEWS = "views"
 
 
 class Networks(eqx.Module):
-    """The two networks an edit runs: the 8-channel conditional UNet and the VAE.
+    """The 8-channel conditional UNet and the VAE (:mod:`jaxedit.models`).
 
-    ``unet(sample [B, h, w, 8], timestep [B], context [B, 77, D]) -> eps [B, h, w, 4]``;
-    ``vae.encode(x [B, H, W, 3] in [-1, 1]) -> (mean, logvar)`` [B, H/f, W/f, 4] each;
-    ``vae.decode(z) -> [B, H, W, 3]`` (see :mod:`jaxedit.models`), f the VAE's downsampling
-    factor (:func:`latent_factor`: 8 for Stable Diffusion's VAE, 4 for a 3-level one).
+    ``unet(sample [B, h, w, 8], t [B], context [B, 77, D]) -> eps [B, h, w, 4]``;
+    ``vae.encode(x [B, H, W, 3] in [-1, 1]) -> (mean, logvar)``; ``vae.decode(z)``.
     """
 
     unet: Any
@@ -75,11 +51,8 @@ class Networks(eqx.Module):
 
 
 class DiffusionSchedule(NamedTuple):
-    """The noise schedule, as the DDIM update reads it.
-
-    alphas_cumprod: float32 [N] (N = num_train_timesteps), cumulative alpha per timestep.
-    final_alpha: the alpha the last DDIM step lands on (alpha_0, or 1 with
-      ``set_alpha_to_one``).
+    """The noise schedule: alphas_cumprod float32 [N]; final_alpha, the alpha the
+    last DDIM step lands on.
     """
 
     alphas_cumprod: jax.Array
@@ -90,12 +63,7 @@ class DiffusionSchedule(NamedTuple):
 class EditConfig:
     """Static settings of a compiled edit (hashable: a change recompiles).
 
-    steps: DDIM slots; prediction_type: "epsilon", "v_prediction" or "sample";
-    clip_sample: x0 clamp (None: none, SD 1.x); scaling_factor: the VAE latent scale;
-    dtype: the networks' dtype name; guidance: (text, image) scales; vae_chunk: views per
-    VAE pass (encode and decode run over the batch in chunks of this many, one after
-    another, so their activations are one chunk's; None: the whole batch at once). Every
-    view's VAE pass is independent of the others', so chunking changes memory, not results.
+    ``vae_chunk``: views per VAE pass (None: all); the rest as :class:`JaxIP2PEditor`'s.
     """
 
     steps: int = DDIM_STEPS
@@ -110,16 +78,17 @@ class EditConfig:
 # ----------------------------------------------------------------------------- pure pieces
 
 def latent_factor(vae) -> int:
-    """The VAE's downsampling factor f (image side / latent side): its ``downsample_factor``
-    (:class:`jaxedit.models.AutoencoderKL`: 2^(levels-1) from its blocks, as diffusers'
-    ``vae_scale_factor`` is from ``block_out_channels``); 8, Stable Diffusion's, for a VAE
-    that does not state one. Static: it is read from the module's structure, never traced."""
+    """The VAE's downsampling factor f (image side / latent side), static.
+
+    Its ``downsample_factor``, or 8 (Stable Diffusion's) for a VAE that states none.
+    """
     return int(getattr(vae, "downsample_factor", 8))
 
 
 def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
-    """[B, H, W, C] -> [B, h, w, C]: bilinear, antialiased when shrinking (as torch's
-    ``interpolate(mode="bilinear", antialias=True)``); the same size is returned as is."""
+    """[B, H, W, C] -> [B, h, w, C], bilinear, antialiased when shrinking (as torch's
+    ``interpolate(..., antialias=True)``).
+    """
     if tuple(images.shape[1:3]) == tuple(hw):
         return images
     return jax.image.resize(images, (images.shape[0], *hw, images.shape[3]), method="linear",
@@ -127,11 +96,10 @@ def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
 
 
 def in_chunks(fn: Callable, x: jax.Array, chunk: int | None):
-    """``fn(x)`` for a batch-wise ``fn`` (each example's output depends on that example
-    only), evaluated over chunks of ``chunk`` examples one after another (``lax.map``), so
-    the temporaries held at once are one chunk's. The batch is padded to a multiple of
-    ``chunk`` (with copies of its last example, dropped after). None, or a chunk not
-    smaller than the batch: one call."""
+    """``fn(x)`` for a per-example ``fn``, run over chunks of ``chunk`` examples by
+    ``lax.map`` so only one chunk's temporaries are live. The batch is padded with its last
+    example; None or ``chunk >= B``: one call.
+    """
     b = x.shape[0]
     if chunk is None or chunk >= b:
         return fn(x)
@@ -145,21 +113,16 @@ def in_chunks(fn: Callable, x: jax.Array, chunk: int | None):
 
 def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.Array,
                    cfg: EditConfig) -> tuple[jax.Array, jax.Array]:
-    """(latents, cond), float32 [B, h/f, w/f, 4] each, from images in [0, 1] at model size
-    (f: :func:`latent_factor`).
-
-    One VAE pass over both: the render's posterior sample mean + std * ``vae_noise`` times
-    the scaling factor, and the original's posterior mode (its mean), unscaled. With
-    ``cfg.vae_chunk`` = c, c views (their renders and originals, 2c images) per pass
-    (:func:`in_chunks`).
+    """(latents, cond), float32 [B, h/f, w/f, 4]: the render's scaled posterior
+    sample (noise ``vae_noise``) and the original's posterior mean; images in [0, 1].
     """
     b = images.shape[0]
     if cfg.vae_chunk is None or cfg.vae_chunk >= b:
         pair = jnp.concatenate([images, originals]) * 2 - 1
         mean, logvar = vae.encode(pair.astype(cfg.dtype))
-    else:  # views [B, 2, H, W, 3]: each chunk encodes its renders and originals together
+    else:
         pairs = (jnp.stack([images, originals], 1) * 2 - 1).astype(cfg.dtype)
-        flat = lambda v: v.reshape(-1, *v.shape[2:])  # noqa: E731 - [c, 2, ...] -> [2c, ...]
+        flat = lambda v: v.reshape(-1, *v.shape[2:])  # noqa: E731
         both = in_chunks(lambda v: jax.tree_util.tree_map(
             lambda y: y.reshape(v.shape[0], 2, *y.shape[1:]), vae.encode(flat(v))),
             pairs, cfg.vae_chunk)
@@ -173,19 +136,14 @@ def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.
 def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, null: jax.Array,
             t_start: jax.Array, sde_noise: jax.Array, schedule: DiffusionSchedule,
             cfg: EditConfig) -> jax.Array:
-    """SDEdit to T then DDIM back to the clean latent, float32 [B, h, w, 4].
+    """SDEdit to ``t_start`` (int32 [B]) then DDIM back, float32 [B, h, w, 4].
 
-    Args:
-      latents, cond, sde_noise: float32 [B, h, w, 4].
-      embeddings: float [B, 77, D] the edit's embeddings e; null: float [77, D], E("").
-      t_start: int32 [B], T per view.
-    Each step evaluates the UNet once on 3B samples ordered (text+image: e with cond;
-    image: E("") with cond; unconditional: E("") with zeros) and combines them with
-    :func:`dual_guidance`.
+    ``latents``, ``cond``, ``sde_noise``: [B, h, w, 4]; ``embeddings``: [B, 77, D]; ``null``:
+    [77, D]. Each step runs the UNet on 3B samples, combined by :func:`dual_guidance`.
     """
     a = schedule.alphas_cumprod
     b = latents.shape[0]
-    expand = lambda v: v[:, None, None, None]  # noqa: E731 - [B] -> broadcast over a latent
+    expand = lambda v: v[:, None, None, None]  # noqa: E731
     a_start = expand(a[t_start])
     x = a_start ** 0.5 * latents + (1 - a_start) ** 0.5 * sde_noise
     ts, t_next, valid = timestep_table(t_start, cfg.steps)  # [B, steps] each
@@ -208,8 +166,9 @@ def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, nu
 
 
 def decode(vae, latents: jax.Array, cfg: EditConfig) -> jax.Array:
-    """Latents [B, h, w, 4] -> images float32 [B, f h, f w, 3] in [0, 1] (f:
-    :func:`latent_factor`), decoded ``cfg.vae_chunk`` views at a time (:func:`in_chunks`)."""
+    """Latents [B, h, w, 4] -> float32 [B, f h, f w, 3] in [0, 1], ``cfg.vae_chunk`` views
+    at a time.
+    """
     decoded = in_chunks(vae.decode, (latents / cfg.scaling_factor).astype(cfg.dtype),
                         cfg.vae_chunk).astype(jnp.float32)
     return jnp.clip((decoded + 1) / 2, 0, 1)
@@ -219,14 +178,12 @@ def edit_with_noise(nets: Networks, images: jax.Array, originals: jax.Array,
                     embeddings: jax.Array, null: jax.Array, t_start: jax.Array,
                     vae_noise: jax.Array, sde_noise: jax.Array, schedule: DiffusionSchedule,
                     cfg: EditConfig) -> jax.Array:
-    """The whole edit with its random draws given (pure; the torch editor's
-    ``edit_with_noise``).
+    """The whole edit with its random draws given (pure).
 
     Args:
-      images, originals: float [B, H, W, 3] in [0, 1], renders and original photos.
-      embeddings: float [B, 77, D] or [77, D] (one for all views); null: [77, D].
-      t_start: int32 [B]; vae_noise, sde_noise: float32 [B, h/f, w/f, 4] standard normals
-        at the model size (h, w) = latent size x f, f the VAE's :func:`latent_factor`.
+      images, originals: float [B, H, W, 3] in [0, 1].
+      embeddings: float [B, 77, D] or [77, D]; null: [77, D], E("").
+      t_start: int32 [B]; vae_noise, sde_noise: float32 [B, h/f, w/f, 4], (h, w) the model size.
     Returns:
       float32 [B, H, W, 3] in [0, 1].
     """
@@ -245,8 +202,7 @@ def edit_with_noise(nets: Networks, images: jax.Array, originals: jax.Array,
 def draw_noise(keys: jax.Array, t_bounds: jax.Array, latent_hw: tuple[int, int]):
     """(t_start int32 [B], vae_noise, sde_noise float32 [B, h, w, 4]) from keys [B].
 
-    ``t_bounds``: int32 [2], T's inclusive range (:func:`timestep_bounds`). Each key splits
-    into (k_t, k_n) as in the torch editor (same T from the same key); k_n gives the noises.
+    ``t_bounds``: int32 [2], T's inclusive range (:func:`timestep_bounds`).
     """
     def one(key):
         k_t, k_n = jax.random.split(key)
@@ -262,10 +218,9 @@ def draw_noise(keys: jax.Array, t_bounds: jax.Array, latent_hw: tuple[int, int])
 def edit_batch(nets: Networks, images: jax.Array, originals: jax.Array, embeddings: jax.Array,
                null: jax.Array, keys: jax.Array, t_bounds: jax.Array,
                schedule: DiffusionSchedule, cfg: EditConfig, model_hw: tuple[int, int]):
-    """Edit B views, float32 [B, H, W, 3], T and noises drawn from ``keys`` [B] (typed keys).
+    """Edit B views, float32 [B, H, W, 3], T and noises drawn from typed ``keys`` [B].
 
-    ``model_hw``: the networks' (h, w), multiples of the VAE's :func:`latent_factor` f
-    (:func:`model_size`); the latents are (h/f, w/f).
+    ``model_hw``: the networks' (h, w), multiples of :func:`latent_factor` (:func:`model_size`).
     """
     f = latent_factor(nets.vae)
     t_start, vae_noise, sde_noise = draw_noise(keys, t_bounds, (model_hw[0] // f,
@@ -284,9 +239,8 @@ def _edit_batch_into(kept: tuple, images: jax.Array, cfg: EditConfig, model_hw: 
                       model_hw)
 
 
-#: :func:`edit_batch`, jitted with ``images`` donated: the output (float32, the images'
-#: shape) is written into the images' buffer instead of a new one. Only for an images
-#: buffer the caller no longer holds (:meth:`JaxIP2PEditor.edit_many` gives it a copy).
+#: :func:`edit_batch`, jitted with ``images`` donated to the output; only for a buffer
+#: the caller no longer holds (:meth:`JaxIP2PEditor.edit_many` passes a copy).
 edit_batch_donating_jit = eqx.filter_jit(_edit_batch_into, donate="all-except-first")
 
 
@@ -296,25 +250,18 @@ RELEVANCE_DRAWS = 4
 
 def noise_difference(nets, images, originals, embedding, null, keys, t_bounds, schedule,
                      cfg, model_hw: tuple[int, int], draws: int = RELEVANCE_DRAWS) -> jax.Array:
-    """Mean |eps(x_t, c, e) - eps(x_t, c, E(""))| per latent pixel, float32 [B, h, w].
+    """Mean |eps(x_t, c, e) - eps(x_t, c, E(""))| per latent pixel, float32 [B, h/f, w/f].
 
-    Args:
-      nets: :class:`jaxedit.editors.jax_ip2p.Networks`.
-      images, originals: float [B, H, W, 3] in [0, 1] (render, original photo).
-      embedding: float [77, D], the instruction's; null: [77, D], E("").
-      keys: B typed keys; each draws ``draws`` timesteps in ``t_bounds`` (int32 [2])
-        and noises.
-      schedule, cfg: the editor's :class:`DiffusionSchedule` and :class:`EditConfig`.
-      model_hw: the networks' (h, w), multiples of the VAE's factor f.
-    Returns:
-      float32 [B, h/f, w/f], averaged over channels and draws.
+    ``images``, ``originals``: float [B, H, W, 3] in [0, 1]; ``embedding``, ``null``: [77, D];
+    ``keys``: B typed keys, each drawing ``draws`` timesteps in ``t_bounds`` and noises; the
+    mean is over channels and draws.
     """
     b = images.shape[0]
     f = latent_factor(nets.vae)
     lat_hw = (model_hw[0] // f, model_hw[1] // f)
     sub = jax.vmap(lambda k: jax.random.split(k, draws))(keys).reshape(-1)  # [B * draws]
     t, vae_noise, sde_noise = draw_noise(sub, t_bounds, lat_hw)
-    rep = lambda x: jnp.repeat(x, draws, 0)  # noqa: E731 - [B, ...] -> [B * draws, ...]
+    rep = lambda x: jnp.repeat(x, draws, 0)  # noqa: E731
     latents, cond = encode_latents(
         nets.vae, rep(resize_images(images.astype(jnp.float32), model_hw)),
         rep(resize_images(originals.astype(jnp.float32), model_hw)), vae_noise, cfg)
@@ -336,9 +283,9 @@ noise_difference_jit = eqx.filter_jit(noise_difference)
 # ----------------------------------------------------------------------------- the editor
 
 def check_prompt(prompt) -> str:
-    """``prompt`` when it is text the tokenizer takes: a string of valid UTF-8 (a command
-    line's stray bytes arrive as lone surrogates, on which the tokenizer fails). The
-    message shows where, not the prompt: a prompt may be pages long."""
+    """``prompt`` if it is a valid UTF-8 string, else DataError naming the bad
+    character's position (a command line's stray bytes arrive as lone surrogates).
+    """
     if not isinstance(prompt, str):
         raise DataError("prompt", f"must be a string, got {type(prompt).__name__}")
     try:
@@ -350,36 +297,31 @@ def check_prompt(prompt) -> str:
     return prompt
 
 
-#: Feature maps of the UNet's first level an edit holds at once (its skips, attention and
-#: resnet temporaries), per sample: the factor of :func:`edit_memory_at_least`.
+#: Feature maps of the UNet's first level held at once per sample (:func:`edit_memory_at_least`).
 HELD_MAPS = 8
 
 
 def edit_memory_at_least(size: int, steps: int, batch: int, factor: int, width: int,
                          itemsize: int) -> float:
-    """Bytes one batch of edits holds at least: its timestep tables (int32 [3, batch, steps]),
-    the images and their float32 copies at model size, and the UNet's first-level feature
-    maps of its three guidance branches (:data:`HELD_MAPS` of them)."""
+    """Lower bound on the bytes one batch of edits holds: timestep tables, the
+    images at model size, and :data:`HELD_MAPS` first-level UNet maps per guidance branch.
+    """
     latent = (size / factor) ** 2
     return (3 * batch * steps * 4 + 4 * batch * size * size * 3 * 4
             + 3 * batch * latent * width * itemsize * HELD_MAPS)
 
 
 def first_level_width(unet) -> int:
-    """Channels of the UNet's first level (its ``conv_in`` outputs); 0 for a network without
-    Stable Diffusion's ``conv_in`` (the tests' stand-ins), whose maps the bound then leaves out:
-    :func:`edit_memory_at_least` stays a lower bound."""
+    """Channels of the UNet's ``conv_in`` output; 0 for a network without one."""
     conv_in = getattr(unet, "conv_in", None)
     return 0 if conv_in is None else int(conv_in.weight.shape[-1])
 
 
 def check_edit_sizes(size: int | None, steps: int, batch: int, timesteps: int, factor: int,
                      width: int, itemsize: int) -> None:
-    """Refuse, before any edit, DDIM steps beyond the schedule's timesteps (every step past
-    them repeats a timestep and changes nothing, at the cost of a UNet call) and a model size,
-    step count and batch whose edit cannot fit in the free memory
-    (:func:`jaxedit.memory.require_memory`). ``size`` None: the views' own size, unknown
-    until they come."""
+    """Raise DataError for more DDIM steps than schedule timesteps, or for an edit
+    that cannot fit in free memory (:func:`jaxedit.memory.require_memory`; ``size`` None skips).
+    """
     from ..memory import require_memory
 
     if steps > timesteps:
@@ -421,11 +363,9 @@ def _as_batch(x, field: str, ndim: int) -> jax.Array:
     return x
 
 
-#: Queries per attention chunk (:class:`JaxIP2PEditor`'s ``attention_chunk``): SD's first
-#: level at 512 px has 4096 positions, so 4 chunks there; 256 px and below, one.
+#: Queries per attention chunk (:class:`JaxIP2PEditor`'s ``attention_chunk``).
 ATTENTION_CHUNK = 1024
-#: Views per VAE pass (:attr:`EditConfig.vae_chunk`): one 512 px view's decode already
-#: fills an accelerator, and a batch of 8 at once would hold 8 views' activations.
+#: Views per VAE pass (:attr:`EditConfig.vae_chunk`).
 VAE_CHUNK = 1
 #: Where the text encoder may live once the null prompt is encoded (:class:`JaxIP2PEditor`).
 TEXT_ENCODER_RESIDENCY = ("auto", "device", "host", "reload")
@@ -446,40 +386,23 @@ def _residency(value: str, device: jax.Device, load: Callable | None) -> str:
 
 
 class JaxIP2PEditor:
-    """InstructPix2Pix in JAX implementing :class:`jaxedit.editors.Editor` (module docstring).
+    """InstructPix2Pix in JAX, a :class:`jaxedit.editors.Editor`.
 
     Args:
-      unet, vae, text_encoder: equinox modules (:mod:`jaxedit.models`); the UNet's parameter
-        dtype is the networks' compute dtype (:meth:`from_pretrained` loads them in the
-        device's default: float32 on the CPU, bfloat16 on accelerators).
+      unet, vae, text_encoder: equinox modules; the UNet's dtype is the compute dtype.
       tokenize: ``list[str] -> int32 [B, 77]`` CLIP token ids.
-      schedule: :class:`DiffusionSchedule`; prediction_type, clip_sample: the DDIM update's.
-      devices: the editor's devices (default: the first JAX device); several shard batches.
-      size: model resolution of the longer side (a multiple of the VAE's downsampling factor,
-        ``latent_factor``: 8 for Stable Diffusion; None keeps the view's size).
-      steps: DDIM steps from T to 0.
-      batch: most views per :meth:`edit_many` call when several are due at once (a
-        subtask's initial sweep, the difficulty's views; :func:`jaxedit.editors.edit_views`).
-        Default: :func:`default_batch` of the devices.
-      guidance: the (text, image) scales of an edit that names none (:meth:`from_pretrained`:
-        the folder's :func:`jaxedit.editors.bundled.recommended_guidance`).
-
-    Memory (what an edit at 512 px holds; ``benchmarks/memory.py`` measures it):
-      attention_chunk: queries per attention chunk in the UNet and the VAE
-        (:func:`jaxedit.models.set_query_chunk`): the float32 logits held at once are
-        [3B, heads, chunk, L] instead of [3B, heads, L, L] (L = 4096 at SD's first level at
-        512 px: 1.6 GB per view at once). Same results. None: no chunking.
-      vae_chunk: views per VAE pass (:attr:`EditConfig.vae_chunk`); same results. Default
-        :data:`VAE_CHUNK`; None: the whole batch at once.
-      text_encoder_residency: where the text encoder lives once the null prompt is
-        encoded (embeddings are cached per prompt, so it runs only for a new prompt):
-        "device" (kept on the editor's devices), "host" (a NumPy copy in host memory,
-        uploaded for a new prompt and freed after), "reload" (dropped; reloaded from
-        ``load_text_encoder`` for a new prompt) or "auto": "host" on accelerators, and on
-        the CPU (where host memory is the device's) "reload" when ``load_text_encoder`` is
-        given, else "device".
-      load_text_encoder: ``() -> module``, the text encoder as loaded (from_pretrained:
-        from the weights folder).
+      schedule, prediction_type, clip_sample: the DDIM update's.
+      devices: default the first JAX device; several shard batches.
+      size: model resolution of the longer side (None: the view's own).
+      steps: DDIM steps; batch: most views per :meth:`edit_many` call.
+      guidance: (text, image) scales of an edit that names none.
+      attention_chunk, vae_chunk: queries per attention chunk, views per VAE pass (None: all);
+        memory only, same results.
+      text_encoder_residency: "device", "host", "reload" or "auto": where the text encoder
+        lives after E("") is encoded.
+      load_text_encoder: ``() -> module``, for "reload".
+    Raises:
+      DataError: a bad setting, or an edit too large for free memory.
     """
 
     name = "ip2p"
@@ -499,8 +422,7 @@ class JaxIP2PEditor:
         if self.batch < 1:
             raise DataError("batch", f"must be >= 1, got {batch}")
         self.dtype = _float_dtype(unet)
-        #: image side / latent side of the VAE (:func:`latent_factor`): model sizes are
-        #: multiples of it.
+        #: image side / latent side of the VAE (:func:`latent_factor`).
         self.latent_factor = latent_factor(vae)
         if size is not None and size % self.latent_factor:
             raise DataError("size", f"model size {size} is not a multiple of "
@@ -521,7 +443,6 @@ class JaxIP2PEditor:
         self.replicated = NamedSharding(self.mesh, PartitionSpec())
         self.by_view = NamedSharding(self.mesh, PartitionSpec(VIEWS))
         from ..models import set_query_chunk
-        # A device_put to the device the weights are on shares their buffers (no copy).
         self.nets = jax.device_put(set_query_chunk(Networks(unet, vae), self.attention_chunk),
                                    self.replicated)
         self.text_encoder_residency = _residency(text_encoder_residency, self.devices[0],
@@ -549,15 +470,10 @@ class JaxIP2PEditor:
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, devices=None,
                         dtype=None, size: int | None | str = "native", steps: int = DDIM_STEPS,
                         batch: int | None = None, **memory) -> "JaxIP2PEditor":
-        """Load a local diffusers folder (or a Hub id in the local cache) into JAX, no torch.
+        """Load a local diffusers folder (or cached Hub id) into JAX, no torch.
 
-        ``path`` as :func:`jaxedit.editors.diffusion.resolve_weights`; the scheduler config is
-        read as Stable Diffusion 1.x's DDIM (:func:`jaxedit.editors.diffusion.ddim_settings`).
-        Each tensor is cast to ``dtype`` as it is read (a bfloat16 load never holds the
-        float32 networks). ``memory``: the constructor's ``attention_chunk``, ``vae_chunk``,
-        ``text_encoder_residency``; the text encoder is reloaded from ``path`` when released.
-        ``size`` "native" (the default): the folder's own, as diffusers defaults to it
-        (:func:`jaxedit.editors.bundled.native_size`: 64 px for the bundled model, 512 for SD).
+        Tensors are cast to ``dtype`` as read; ``size`` "native": the folder's
+        (:func:`jaxedit.editors.bundled.native_size`); ``memory``: the constructor's keywords.
         """
         from ..models import load_ip2p
         from .bundled import native_size, recommended_guidance
@@ -579,7 +495,7 @@ class JaxIP2PEditor:
                      guidance=recommended_guidance(root),
                      load_text_encoder=functools.partial(load_text_encoder, root,
                                                          jnp.dtype(name)), **memory)
-        del models  # the editor holds the networks (on its devices) and no second copy
+        del models
         log.info("InstructPix2Pix (JAX) loaded from %s on %s (%s), size %s, %d DDIM steps, "
                  "batches of %d, guidance %s", root, editor.devices, editor.dtype, size, steps,
                  editor.batch, editor.guidance)
@@ -587,9 +503,9 @@ class JaxIP2PEditor:
 
     @classmethod
     def bundled(cls, *, devices=None, steps: int = DDIM_STEPS, **kwargs) -> "JaxIP2PEditor":
-        """The small InstructPix2Pix shipped in the package
-        (:func:`jaxedit.editors.bundled_editor`) at the size it was trained at;
-        ``devices``, ``steps`` and ``kwargs`` as :meth:`from_pretrained`."""
+        """The small InstructPix2Pix shipped in the package, at its native size;
+        arguments as :meth:`from_pretrained`.
+        """
         from .bundled import bundled_editor, native_size
 
         folder = bundled_editor()
@@ -598,11 +514,10 @@ class JaxIP2PEditor:
 
     @property
     def calls_side_by_side(self) -> int:
-        """Edit calls :func:`jaxedit.editors.edit_views` makes at once: on one CPU device, one
-        per core (up to :data:`CPU_CALLS`); else 1 (a batch fills an accelerator, and several
-        devices share one call). XLA runs the bundled editor's program on about one core of
-        a CPU: 16 single-view edits took 1.67 s one after another and 0.95 s two at a time
-        on a 2-core CPU (three or four at a time: the same)."""
+        """Edit calls :func:`jaxedit.editors.edit_views` makes at once:
+        one per core (up to :data:`CPU_CALLS`) on a single CPU device, where XLA runs one edit on
+        about one core; else 1.
+        """
         if len(self.devices) > 1 or self.devices[0].platform != "cpu":
             return 1
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -613,7 +528,7 @@ class JaxIP2PEditor:
                 f"size={self.size}, steps={self.steps}, batch={self.batch})")
 
     def config(self, guidance: tuple[float, float] | None = None) -> EditConfig:
-        """The compiled edit's static settings at ``guidance`` (None: :attr:`guidance`)."""
+        """The :class:`EditConfig` at ``guidance`` (None: :attr:`guidance`)."""
         return EditConfig(steps=self.steps, prediction_type=self.prediction_type,
                           clip_sample=self.clip_sample, scaling_factor=self.scaling_factor,
                           dtype=self.dtype, guidance=editor_guidance(self, guidance),
@@ -622,14 +537,14 @@ class JaxIP2PEditor:
     # -- embeddings -----------------------------------------------------------------------
 
     def encode(self, prompt: str) -> np.ndarray:
-        """CLIP text embedding E(prompt): NumPy float32 [77, D]; E("") is the null embedding."""
+        """CLIP text embedding E(prompt), NumPy float32 [77, D], cached per prompt."""
         check_prompt(prompt)
         if prompt not in self._embeddings:
             ids = jnp.asarray(np.asarray(self.tokenize([prompt]), np.int32))
             encoder = self.text_encoder  # a released one is fetched for this prompt only
             hidden = self._encode(encoder, jax.device_put(ids, self.replicated))
             self._embeddings[prompt] = np.asarray(hidden[0], np.float32)
-            del encoder  # a released encoder's device copy goes with it
+            del encoder
         return self._embeddings[prompt].copy()
 
     def _embedding(self, embedding) -> jax.Array:
@@ -642,9 +557,9 @@ class JaxIP2PEditor:
 
     @property
     def text_encoder(self):
-        """The text encoder on the editor's devices. Once released
-        (``text_encoder_residency`` "host" or "reload") each access uploads the host copy or
-        reloads it, and the editor keeps no reference: the caller's goes when it is done."""
+        """The text encoder on the editor's devices; once released, uploaded or
+        reloaded on each access and not kept.
+        """
         if self._text_encoder is not None:
             return self._text_encoder
         source = (self._text_encoder_host if self.text_encoder_residency == "host"
@@ -659,12 +574,10 @@ class JaxIP2PEditor:
     def edit_many(self, images, originals, embeddings, keys: jax.Array, *,
                   timestep_range: tuple[float, float] = (0.02, 0.98),
                   guidance: tuple[float, float] | None = None) -> jax.Array:
-        """Edit B views in one call: float32 [B, H, W, 3] on the editor's devices.
+        """Edit B views: float32 [B, H, W, 3] on the editor's devices.
 
-        ``images``, ``originals``: [B, H, W, 3]; ``embeddings``: [B, 77, D] or one [77, D];
-        ``keys``: B typed keys (or raw uint32 [B, 2]). The batch is padded (repeats of the
-        last view, dropped from the result) to :func:`padded_batch`'s size, a power of two
-        and a multiple of the devices, over which it is sharded.
+        ``embeddings``: [B, 77, D] or [77, D]; ``keys``: B typed keys (or uint32 [B, 2]). The
+        batch is padded to :func:`padded_batch` and sharded.
         """
         images = _as_batch(images, "image", 4)
         originals = _as_batch(originals, "original", 4)
@@ -682,9 +595,8 @@ class JaxIP2PEditor:
             raise DataError("embedding", f"{emb.shape[0]} embeddings for {b} views")
         t_bounds = np.asarray(timestep_bounds(timestep_range, self.num_train_timesteps), np.int32)
         pad = padded_batch(b, len(self.devices)) - b
-        # The images' buffer is donated to the output, so it must be a copy made here, never
-        # the caller's own device array (copied when nothing else made one). One program for
-        # every caller: a second, non-donating one would be a second compile of the UNet.
+        # The images' buffer is donated, so it must be a copy made here; one donating
+        # program for every caller (a second one would compile the UNet again).
         copied = not isinstance(images, jax.Array) or bool(pad) or images.dtype != jnp.float32
         images = images.astype(jnp.float32) if copied else jnp.copy(images)
         batched = [images, originals, keys] + ([emb] if emb.ndim == 3 else [])
@@ -704,7 +616,7 @@ class JaxIP2PEditor:
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
              guidance: tuple[float, float] | None = None) -> jax.Array:
-        """Edit one view: float32 [H, W, 3] in [0, 1] (a JAX array on the editor's device)."""
+        """Edit one view: float32 [H, W, 3] in [0, 1] on the editor's device."""
         image = _as_batch(image, "image", 3 + 1)
         if image.shape[0] != 1:
             raise DataError("image", f"expected one image [H, W, 3], got {tuple(image.shape)}")
@@ -717,13 +629,9 @@ class JaxIP2PEditor:
                   timestep_range: tuple[float, float] = (0.02, 0.98),
                   guidance: tuple[float, float] | None = None, draws: int = RELEVANCE_DRAWS,
                   sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
-        """Where ``embedding`` changes the view, float32 [H, W] in {0, 1} (the Editor
-        protocol's relevance, "Watch Your Steps", ICCV 2023).
-
-        ``image``, ``original``: [H, W, 3] in [0, 1]; ``embedding``: [77, D] (e.g. e(r));
-        ``key``: one typed key (timesteps and noises). :func:`noise_difference` on one
-        batched UNet call, resized to the view and put through
-        :func:`jaxedit.editors.masks.relevance_mask`.
+        """Where ``embedding`` changes the view, float32 [H, W] in {0, 1} ("Watch
+        Your Steps", ICCV 2023): :func:`noise_difference` through
+        :func:`jaxedit.editors.masks.relevance_mask`. ``image``, ``original``: [H, W, 3].
         """
         image = jnp.asarray(image, jnp.float32)
         original = jnp.asarray(original, jnp.float32)
@@ -746,7 +654,7 @@ class JaxIP2PEditor:
         return relevance_mask(diff, sigma=sigma, threshold=threshold)
 
     def describe(self) -> dict:
-        """What a run log / report records about this editor."""
+        """What a run log records about this editor."""
         return {"editor": self.name, "framework": "jax", "weights": self.source,
                 "devices": [str(d) for d in self.devices], "dtype": self.dtype,
                 "size": self.size, "steps": self.steps, "batch": self.batch,
@@ -756,25 +664,24 @@ class JaxIP2PEditor:
                 "text_encoder_residency": self.text_encoder_residency}
 
 
-#: Views per device in one edit on an accelerator (512 px, bf16: a few GB of activations
-#: with the three guidance branches; one view leaves an H100 mostly idle).
+#: Views per device in one edit on an accelerator.
 ACCELERATOR_BATCH = 8
 #: Most edit calls made at once on a CPU (:attr:`JaxIP2PEditor.calls_side_by_side`).
 CPU_CALLS = 8
 
 
 def padded_batch(views: int, devices: int) -> int:
-    """The batch a call of ``views`` views runs at: the next power of two, then a multiple of
-    the devices. A sweep's remainder (20 views in batches of 8 end with 4) or a single view
-    would otherwise be a UNet program of its own, about 45 s of compiling at SD 1.5's size;
-    so at most log2(batch) + 1 programs, for at most twice the work of a rare short call."""
+    """The batch a call of ``views`` runs at: the next power of two, rounded up to a
+    multiple of ``devices``, so a handful of UNet programs serve every call.
+    """
     size = 1 << max(int(views) - 1, 0).bit_length()
     return -(-size // devices) * devices
 
 
 def default_batch(devices: Sequence[jax.Device]) -> int:
     """Views per :meth:`JaxIP2PEditor.edit_many` call: :data:`ACCELERATOR_BATCH` per
-    accelerator; one per CPU device (a batch there costs memory and saves little time)."""
+    accelerator, one per CPU device.
+    """
     per_device = 1 if devices[0].platform == "cpu" else ACCELERATOR_BATCH
     return per_device * len(devices)
 
@@ -796,8 +703,7 @@ def load_text_encoder(root: str | os.PathLike, dtype=jnp.float32):
                        prefix=CLIPTextEncoder.CHECKPOINT_PREFIX, dtype=dtype)
 
 
-#: The CLI's factory (``--editor ip2p --ip2p-weights DIR``):
-#: :meth:`JaxIP2PEditor.from_pretrained` itself, so its defaults have one owner.
+#: The CLI's factory: :meth:`JaxIP2PEditor.from_pretrained`, so its defaults have one owner.
 load_editor = JaxIP2PEditor.from_pretrained
 load_bundled = JaxIP2PEditor.bundled
 
