@@ -1,29 +1,15 @@
 """Pose corrections: a small rigid correction of cameras fitted to their images.
 
-Two uses of one parameterisation (:func:`apply_delta`): test-time refinement of
-held-out cameras against a frozen scene (:func:`refine_poses`, below), and training-time
-camera optimisation, where each training view's correction is learned with the scene
-(:class:`CameraCorrections`, used by :mod:`jaxedit.train` with ``TrainConfig.camera_opt``).
+One parameterisation (:func:`apply_delta`), two uses: test-time refinement of held-out
+cameras against a frozen scene (:func:`refine_poses`, as methods trained on estimated
+poses, BARF and later, are scored) and training-time camera optimisation
+(:class:`CameraCorrections`, ``TrainConfig.camera_opt``).
 
-A scene trained on poses estimated by structure from motion lives in SfM's world,
-and the held-out cameras carried into it (by a similarity fitted to the training
-cameras) keep their own residual pose errors: a 0.5 degree rotation is about 1.5 px
-at 128 px, which costs several dB of PSNR that say nothing about the scene. Methods
-trained on estimated poses (BARF, NoPe-NeRF and later ones) are therefore scored
-after refining each test camera's pose against its image with the scene frozen,
-which :func:`refine_poses` does:
-
-    cams, info = refine_poses(scene, test_cameras, test_images, background=jnp.ones(3))
-
-Each camera gets a correction ``delta`` float [6] applied on the left of its
-world-to-camera pose, ``w2c' = [exp(w) | depth * u] w2c`` with ``w = delta[:3]`` a
-rotation vector (radians, about the point at the scene's depth on the optical axis) and
-``u = delta[3:]`` a translation
-in the camera frame in units of the scene's depth in front of the camera. In those
-units a unit of either half moves a point at that depth by about ``f`` pixels, so one
-Adam learning rate suits both. The intrinsics stay fixed. The rasterizer is
-differentiable in the camera pose (projection is plain JAX), so the gradient flows
-into ``delta`` directly; refinement never changes the Gaussians. Nothing is random.
+A correction ``delta`` float [6] acts on the left of world-to-camera,
+``w2c' = [exp(w) | depth * u] w2c``: ``w = delta[:3]`` a rotation vector (radians, about
+the point at the scene's depth on the optical axis), ``u = delta[3:]`` a camera-frame
+translation in units of that depth, so a unit of either moves the image by about ``f``
+pixels and one learning rate suits both. Intrinsics stay fixed; nothing is random.
 """
 
 from __future__ import annotations
@@ -49,17 +35,12 @@ class RefineConfig:
     """Settings of :func:`refine_poses`.
 
     Attributes:
-      steps: Adam steps (a fixed number: the result does not depend on a stopping rule).
-      lr: initial learning rate of both halves of ``delta`` (radians, depth units); it
-        decays by a cosine to ``lr * final_lr_fraction``, so the last steps settle
-        instead of oscillating at the step size.
-      final_lr_fraction: see ``lr``.
-      blur_px: standard deviation (pixels) of a Gaussian blur applied to both the
-        render and the image at the first step, shrinking linearly to 0 at half the
-        steps (coarse to fine: a blurred image has a wider basin); 0 turns it off.
-      loss: "mse" (what PSNR scores) or "l1" (more robust to what the scene cannot
-        reproduce). On the capture benchmark's face scene, MSE scored 0.27 dB higher
-        held-out PSNR than L1; both had converged within 50 steps.
+      steps: Adam steps (fixed: no stopping rule).
+      lr: initial learning rate of both halves of ``delta``, cosine-decayed.
+      final_lr_fraction: the learning rate at the last step, as a fraction of ``lr``.
+      blur_px: blur sigma (pixels) on render and image at the first step, shrinking to 0 at
+        half the steps (coarse to fine); 0 turns it off.
+      loss: "mse" (what PSNR scores) or "l1".
       headroom: intersection buffer over the pairs counted at the starting poses.
     """
 
@@ -84,10 +65,8 @@ class RefineConfig:
 
 
 def so3_exp(omega: jax.Array) -> jax.Array:
-    """Rotation matrices of rotation vectors (Rodrigues): float [..., 3] -> [..., 3, 3].
-
-    Uses the Taylor series of sin(t)/t and (1 - cos t)/t^2 near t = 0, so values and
-    gradients stay finite at the identity, where refinement starts.
+    """Rotation matrices of rotation vectors (Rodrigues): float [..., 3] -> [..., 3, 3];
+    Taylor series near 0 keep values and gradients finite at the identity.
     """
     omega = jnp.asarray(omega)
     t2 = jnp.sum(omega * omega, -1)[..., None, None]
@@ -105,7 +84,7 @@ def so3_exp(omega: jax.Array) -> jax.Array:
 
 
 def apply_delta(cameras: Camera, delta: jax.Array, depth: jax.Array) -> Camera:
-    """``cameras`` with their poses corrected by ``delta`` (see the module docstring).
+    """``cameras`` with their poses corrected by ``delta`` (module docstring).
 
     Args:
       cameras: a Camera or a batch [B].
@@ -118,11 +97,8 @@ def apply_delta(cameras: Camera, delta: jax.Array, depth: jax.Array) -> Camera:
     delta = jnp.asarray(delta, w2c.dtype)
     rot = so3_exp(delta[..., :3])
     depth = jnp.asarray(depth, w2c.dtype)[..., None]
-    # Rotate about the point at the scene's depth on the optical axis, not about the
-    # camera centre: then a rotation mostly changes parallax and a translation mostly
-    # shifts the image, two nearly independent effects that Adam's per-coordinate
-    # step sizes handle well. (About the centre, a rotation and a sideways
-    # translation shift the image alike and Adam crawls along that valley.)
+    # Pivot at the scene's depth, not the camera centre: rotation then mostly changes
+    # parallax and translation shifts the image, nearly independent for Adam.
     pivot = depth * jnp.array([0.0, 0.0, 1.0], w2c.dtype)
     trans = depth * delta[..., 3:] + pivot - jnp.einsum("...ij,...j->...i", rot, pivot,
                                                         precision=jax.lax.Precision.HIGHEST)
@@ -134,13 +110,8 @@ def apply_delta(cameras: Camera, delta: jax.Array, depth: jax.Array) -> Camera:
 
 
 def scene_depth(gaussians: Gaussians, cameras: Camera) -> jax.Array:
-    """Median camera-space depth of the alive Gaussians in front of each camera.
-
-    Args:
-      gaussians: the scene, capacity C.
-      cameras: a batch [B].
-    Returns:
-      float [B] (1.0 for a camera with nothing in front of it).
+    """Median camera-space depth of the alive Gaussians in front of each camera [B]:
+    float [B] (1.0 where nothing is in front).
     """
     r = jnp.asarray(cameras.world_to_camera)[:, :3, :3]
     t = jnp.asarray(cameras.world_to_camera)[:, :3, 3]
@@ -152,9 +123,8 @@ def scene_depth(gaussians: Gaussians, cameras: Camera) -> jax.Array:
 
 
 def _blur(images: jax.Array, sigma: jax.Array, radius: int) -> jax.Array:
-    """Separable Gaussian blur of float [B, H, W, 3] with a traced sigma (pixels; 0: none).
-
-    The kernel has the static ``radius``, so one compiled step serves every sigma.
+    """Separable Gaussian blur of float [B, H, W, 3], traced sigma (pixels; 0: none),
+    static ``radius`` so one program serves every sigma.
     """
     x = jnp.arange(-radius, radius + 1, dtype=images.dtype)
     kern = jnp.exp(-0.5 * (x / jnp.maximum(sigma, 1e-3)) ** 2)
@@ -185,8 +155,7 @@ def _refine(gaussians, cameras, images, depth, background, lr, final_fraction, b
             rgb, target = _blur(rgb, sigma, radius), _blur(target, sigma, radius)
         diff = rgb - target
         per_view = jnp.mean(jnp.abs(diff) if loss == "l1" else diff * diff, axis=(1, 2, 3))
-        # Views are independent: the sum's gradient w.r.t. each view's delta is that
-        # view's own, and Adam is elementwise, so this is B separate refinements.
+        # Views are independent and Adam elementwise: B separate refinements.
         return per_view.sum(), (per_view, out.overflow)
 
     def step(carry, i):
@@ -210,17 +179,15 @@ def refine_poses(gaussians: Gaussians, cameras: Camera, images, *,
 
     Args:
       gaussians: the trained scene (capacity C); not changed.
-      cameras: a batch [B] of starting cameras (e.g. aligned test cameras).
-      images: float [B, H, W, 3] in [0, 1], the images those cameras took (H, W those
-        of the cameras).
+      cameras: a batch [B] of starting cameras.
+      images: float [B, H, W, 3] in [0, 1], at the cameras' size.
       config: :class:`RefineConfig`.
-      background: float [3] colour behind the Gaussians, as the scene was trained with.
+      background: float [3], as the scene was trained with.
       sh_degree: active SH degree (default all).
-      backend: the compositor (see :func:`jaxedit.render`).
+      backend: the compositor (:func:`jaxedit.render`).
     Returns:
-      (cameras [B] with refined ``world_to_camera``, info) where info holds ``delta``
-      float64 [B, 6], ``rotation_deg`` [B] and ``translation`` [B] (scene units) of the
-      corrections, ``depth`` [B] (the translation unit) and ``loss`` float64 [steps, B].
+      (cameras [B] refined, info) with ``delta`` float64 [B, 6], ``rotation_deg`` [B],
+      ``translation`` [B] (scene units), ``depth`` [B] and ``loss`` float64 [steps, B].
     """
     config = config.check()
     if not cameras.batch_shape or len(cameras.batch_shape) != 1:
@@ -258,9 +225,7 @@ def refine_poses(gaussians: Gaussians, cameras: Camera, images, *,
     return refined, info
 
 
-# --------------------------------------------------------------------------------------
-# Training-time camera optimisation: the same correction, learned with the scene
-# --------------------------------------------------------------------------------------
+# -- Training-time camera optimisation: the same correction, learned with the scene ----
 
 def _row_adam() -> optax.GradientTransformation:
     """The Adam direction of one camera's correction (the learning rate is applied outside)."""
@@ -270,20 +235,17 @@ def _row_adam() -> optax.GradientTransformation:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class CameraCorrections:
-    """Per-view pose corrections trained jointly with the scene (Splatfacto's camera
+    """Per-view pose corrections trained with the scene (Splatfacto's camera
     optimizer, gsplat's ``pose_opt``), in :func:`apply_delta`'s parameterisation.
 
-    Each step trains on one view, so only that view's row gets a gradient. Its Adam
-    moments and step count are kept per row and advanced only when the view is
-    trained (a sparse Adam): a shared Adam would keep moving every other view's
-    correction by its stale momentum at every step.
+    Adam moments and step counts are per row and advance only when that view is trained
+    (sparse Adam), so stale momentum never moves the other views.
 
     Attributes:
-      delta: float [V, 6], the corrections (rotation vector, translation / depth).
-      depth: float [V], each view's translation unit and pivot depth, fixed at init
-        (:func:`scene_depth` of the initial scene).
+      delta: float [V, 6], the corrections.
+      depth: float [V], each view's translation unit and pivot, fixed at init.
       adam: ``optax.scale_by_adam`` state with a leading [V] on every leaf.
-    V = 0 when camera optimisation is off: the state is empty and the step skips it.
+    V = 0 when camera optimisation is off.
     """
 
     delta: jax.Array
@@ -303,8 +265,9 @@ def init_corrections(depth) -> CameraCorrections:
 
 
 def update_correction(corr: CameraCorrections, view, grad, lr) -> CameraCorrections:
-    """One sparse Adam step on the row ``view`` (int32 []) with ``grad`` float [6] and
-    learning rate ``lr`` (float []; 0 leaves the row and its moments as they were)."""
+    """One sparse Adam step on row ``view`` (int32 []) with ``grad`` float [6]
+    at ``lr`` (float []; 0 leaves the row and its moments unchanged).
+    """
     row_state = jax.tree_util.tree_map(lambda a: a[view], corr.adam)
     direction, new_state = _row_adam().update(grad, row_state)
     active = lr > 0

@@ -1,16 +1,8 @@
 """Outputs people look at: coloured depth maps, turntables, image grids, camera paths.
 
-It renders Gaussians with the splatter and writes single files (atomically); the
-snapshot folders that gather them are :mod:`jaxedit.pipelines.snapshots`. The numerical pieces (:func:`colorize_depth`,
-:func:`depth_range`, :func:`image_grid`, :func:`frame_cameras`) are pure NumPy
-functions of their inputs.
-
-Turntables are written as animated WebP (always) and MP4 (when the optional
-``imageio-ffmpeg`` package, which ships its own ffmpeg binary, is installed).
-WebP is the primary format because Pillow (already installed with matplotlib)
-encodes it with no extra binary, it loops, and an ``<img>`` tag plays it in every
-current browser, so the self-contained report can inline it as a data URI; MP4 is
-the format people share and feed to video players.
+The numerical pieces are pure NumPy; files are written atomically. Turntables are
+animated WebP (Pillow encodes it, it loops, and the self-contained report can inline it)
+and MP4 when ``imageio-ffmpeg`` is installed.
 """
 
 from __future__ import annotations
@@ -29,23 +21,19 @@ from .io.files import atomic_path, atomic_write_bytes
 MIN_ALPHA = 1e-3
 
 
-# ---------------------------------------------------------------------------
-# Depth maps
-# ---------------------------------------------------------------------------
+# -- Depth maps ------------------------------------------------------------------------
 def depth_range(depth, alpha, *, percentiles: tuple[float, float] = (2.0, 98.0),
                 coverage: float = 0.5) -> tuple[float, float]:
-    """Robust (near, far) of the depth over covered pixels.
-
-    Percentiles rather than min/max so that a few floaters or the soft edge of
-    the object do not squeeze the colour range of everything else.
+    """Robust (near, far) of the depth over covered pixels (percentiles, so floaters
+    do not squeeze the colour range).
 
     Args:
-      depth: float [..., H, W] expected depth (any leading axes, e.g. views).
-      alpha: float [..., H, W] accumulated opacity, same shape.
+      depth: float [..., H, W] expected depth.
+      alpha: float [..., H, W] accumulated opacity.
       percentiles: (low, high) in [0, 100].
       coverage: pixels with alpha above this take part.
     Returns:
-      (near, far) floats with far > near; (0, 1) when nothing is covered.
+      (near, far) with far > near; (0, 1) when nothing is covered.
     """
     depth, alpha = np.asarray(depth, np.float64), np.asarray(alpha, np.float64)
     if depth.shape != alpha.shape:
@@ -68,18 +56,13 @@ def depth_range(depth, alpha, *, percentiles: tuple[float, float] = (2.0, 98.0),
 def colorize_depth(depth, alpha, *, near: float | None = None, far: float | None = None,
                    cmap: str = "turbo", background=(1.0, 1.0, 1.0),
                    percentiles: tuple[float, float] = (2.0, 98.0)) -> np.ndarray:
-    """A depth map as an RGB image: near is red, far is blue, background blank.
-
-    The colour of a pixel is ``cmap((far - d) / (far - near))`` blended over
-    ``background`` by its alpha, so soft object edges fade out instead of showing
-    the meaningless depth of nearly transparent pixels.
+    """A depth map as RGB, near red, far blue, blended over ``background`` by alpha.
 
     Args:
-      depth: float [H, W] expected depth (the renderer's ``depth``).
+      depth: float [H, W] expected depth.
       alpha: float [H, W] accumulated opacity in [0, 1].
-      near, far: colour range; default :func:`depth_range` of this frame. Pass a
-        shared range to compare several frames.
-      cmap: a matplotlib colormap name (turbo, viridis, ...).
+      near, far: colour range; default :func:`depth_range` of this frame.
+      cmap: a matplotlib colormap name.
       background: float [3] in [0, 1], colour of uncovered pixels.
     Returns:
       float32 [H, W, 3] in [0, 1].
@@ -100,7 +83,6 @@ def colorize_depth(depth, alpha, *, near: float | None = None, far: float | None
         colormap = matplotlib.colormaps[cmap]
     except KeyError:
         raise DataError("cmap", f"unknown matplotlib colormap {cmap!r}") from None
-    # Reversed so that near things are warm: the usual reading of a depth map.
     t = np.clip((far - np.nan_to_num(depth, nan=far)) / (far - near), 0.0, 1.0)
     rgb = colormap(t)[..., :3]
     a = np.where(alpha > MIN_ALPHA, np.clip(alpha, 0.0, 1.0), 0.0)[..., None]
@@ -108,9 +90,7 @@ def colorize_depth(depth, alpha, *, near: float | None = None, far: float | None
     return (a * rgb + (1.0 - a) * bg).astype(np.float32)
 
 
-# ---------------------------------------------------------------------------
-# Grids and 8-bit conversion
-# ---------------------------------------------------------------------------
+# -- Grids and 8-bit conversion --------------------------------------------------------
 def to_uint8(image) -> np.ndarray:
     """float [..., 3] in [0, 1] (or uint8) -> uint8, rounded and clipped."""
     image = np.asarray(image)
@@ -121,11 +101,10 @@ def to_uint8(image) -> np.ndarray:
 
 def image_grid(images: Sequence, ncols: int | None = None, *, pad: int = 2,
                pad_value: float = 1.0) -> np.ndarray:
-    """Tile images into one image, row-major.
+    """Tile images into one image, row-major, each cell the largest size.
 
     Args:
-      images: sequence of float [H_i, W_i, 3] in [0, 1] (or uint8); sizes may
-        differ (each cell is the largest size, images top-left aligned).
+      images: sequence of float [H_i, W_i, 3] in [0, 1] (or uint8), top-left aligned.
       ncols: columns; default all in one row.
       pad: pixels between cells and around the grid.
       pad_value: grey level of the padding in [0, 1].
@@ -156,9 +135,7 @@ def image_grid(images: Sequence, ncols: int | None = None, *, pad: int = 2,
     return out
 
 
-# ---------------------------------------------------------------------------
-# Rendering helpers
-# ---------------------------------------------------------------------------
+# -- Rendering helpers -----------------------------------------------------------------
 def _default_render():
     from .raster import render
 
@@ -167,13 +144,13 @@ def _default_render():
 
 def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: int | None = None,
                  render_fn: Callable | None = None):
-    """Render every camera of a batch, one at a time (bounded memory).
+    """Render each camera of a batch, one at a time (bounded memory).
 
     Args:
       gaussians: a :class:`jaxedit.Gaussians`.
-      cameras: a batched :class:`jaxedit.Camera` [N] (or a single camera).
-      render_fn: the renderer, ``render(gaussians, camera, *, background,
-        sh_degree)``; default :func:`jaxedit.raster.render`.
+      cameras: a batched :class:`jaxedit.Camera` [N] (or one camera).
+      render_fn: ``render(gaussians, camera, *, background, sh_degree)``; default
+        :func:`jaxedit.raster.render`.
     Returns:
       (rgb float32 [N, H, W, 3], alpha float32 [N, H, W], depth float32 [N, H, W]).
     """
@@ -193,16 +170,12 @@ def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: i
     return np.stack(rgbs), np.stack(alphas), np.stack(depths)
 
 
-# ---------------------------------------------------------------------------
-# Turntables
-# ---------------------------------------------------------------------------
+# -- Turntables ------------------------------------------------------------------------
 def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
-    """An orbit that matches a set of cameras looking at an object.
+    """An orbit matching cameras that look at an object (+z up).
 
-    The target is the point closest (least squares) to all optical axes, which
-    for captures around an object is the object's centre; the radius and
-    elevation are the median distance and elevation of the camera centres
-    from it (+z up).
+    The target is the least-squares closest point to all optical axes; radius and elevation
+    are the cameras' median distance and elevation from it.
 
     Args:
       cameras: batched :class:`jaxedit.Camera` [N], N >= 1.
@@ -229,10 +202,8 @@ def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
 
 
 def frame_gaussians(gaussians, *, fov_deg: float = 40.0) -> tuple[np.ndarray, float]:
-    """(target float [3], radius) that fit the live Gaussians in a ``fov_deg`` view.
-
-    The target is the median of the live means, the extent the 95th percentile
-    of their distances to it plus their 3-sigma footprint (robust to floaters).
+    """(target float [3], radius) fitting the live Gaussians in a ``fov_deg`` view:
+    median of the means, extent by a high percentile of distances plus 3-sigma footprints.
     """
     alive = np.asarray(gaussians.alive, bool)
     if not alive.any():
@@ -252,14 +223,13 @@ def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
               sh_degree: int | None = None, render_fn: Callable | None = None) -> np.ndarray:
     """Render a full orbit around the scene (+z up).
 
-    Unset orbit parameters come from ``cameras`` (:func:`frame_cameras`) when
-    given, else from the Gaussians themselves (:func:`frame_gaussians`, 20 deg
-    elevation, 40 deg field of view).
+    Unset orbit parameters come from ``cameras`` (:func:`frame_cameras`), else from the
+    Gaussians (:func:`frame_gaussians`).
 
     Args:
       n_frames: frames over 360 degrees.
       radius, elevation (degrees), target float [3]: the orbit.
-      size: frame width and height in pixels (default: the cameras' width, or 128).
+      size: frame side in pixels (default: the cameras' width, or 128).
     Returns:
       uint8 [n_frames, size, size, 3].
     """
@@ -289,12 +259,11 @@ def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
 
 
 def load_camera_path(path) -> tuple:
-    """Cameras of a nerfstudio viewer camera path (``camera_path.json``).
+    """Cameras of a nerfstudio viewer ``camera_path.json`` (perspective only).
 
-    The format ``ns-render camera-path`` reads: ``render_width``,
-    ``render_height``, optional ``fps``/``seconds``, and ``camera_path``, a list
-    of ``{"camera_to_world": 16 floats (row-major 4x4, OpenGL axes), "fov":
-    vertical field of view in degrees}``. Only perspective paths are supported.
+    Reads ``render_width``, ``render_height``, optional ``fps``/``seconds`` and
+    ``camera_path``: ``{"camera_to_world": 16 floats (row-major, OpenGL axes), "fov":
+    vertical degrees}``.
 
     Returns:
       (batched :class:`jaxedit.Camera` [N], fps or None).
@@ -346,9 +315,8 @@ def load_camera_path(path) -> tuple:
 
 
 def save_camera_path(path, cameras, *, fps: float = 12.0) -> None:
-    """Write cameras [N] as a nerfstudio viewer camera path (see :func:`load_camera_path`).
-
-    The vertical field of view comes from ``fy`` (square pixels assumed by the format).
+    """Write cameras [N] as a nerfstudio camera path (:func:`load_camera_path`);
+    the vertical field of view comes from ``fy``.
     """
     import json
 
@@ -415,14 +383,14 @@ def _write_mp4(path: Path, frames: np.ndarray, fps: float) -> None:
 
 
 def write_turntable(path, frames, fps: float = 12.0, *, mp4: bool | None = None) -> list[Path]:
-    """Write a turntable as animated WebP at ``path`` (and MP4 next to it).
+    """Write a turntable as animated WebP at ``path`` (and MP4 beside it).
 
     Args:
-      path: the ``.webp`` file to write.
+      path: the ``.webp`` file.
       frames: uint8 or float [F, H, W, 3].
       fps: frames per second.
-      mp4: also write ``path`` with suffix ``.mp4``; default: when
-        ``imageio-ffmpeg`` is installed. ``True`` without it raises DataError.
+      mp4: also write ``.mp4``; default when ``imageio-ffmpeg`` is installed; True without
+        it raises DataError.
     Returns:
       The paths written.
     """
