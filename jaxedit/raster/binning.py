@@ -1,16 +1,9 @@
 """Tile binning: every (Gaussian, tile it touches) pair in a fixed-capacity buffer.
 
-Each visible Gaussian covers the rectangle of 16x16 tiles that its footprint's
-bounding box (see :mod:`.project`) meets. Pairs are enumerated without any
-per-Gaussian or per-tile cap: a cumulative count over Gaussians gives each its
-slice of the buffer and a running maximum maps a buffer slot back to (Gaussian,
-k-th tile of its rectangle). Pairs are enumerated in depth order, so one sort on
-an integer (tile, depth rank) key groups them by tile, front to back, ties in
-Gaussian order.
-
-The buffer has a static capacity; ``num_intersections`` says how many pairs the
-frame needs and ``overflow`` whether some were dropped (the caller must then
-render again with a larger buffer; see :func:`jaxedit.raster.render`).
+No per-Gaussian or per-tile cap: a cumulative count gives each Gaussian its slice of the
+buffer, pairs are enumerated in depth order, and one sort on a (tile, depth rank) key
+groups them by tile, front to back. ``num_intersections`` says how many pairs the frame
+needs and ``overflow`` whether some were dropped (:func:`jaxedit.raster.render`).
 """
 
 from __future__ import annotations
@@ -22,9 +15,7 @@ import jax.numpy as jnp
 
 from .project import Projected
 
-#: INRIA's tile size; binning and compositing take any tile size (the result is
-#: the same, exactly: tiles only group work). Smaller tiles waste less work on
-#: pixels a Gaussian does not reach but make more pairs; see render.TILE.
+#: INRIA's tile size; any tile size gives the same result (tiles only group work).
 TILE = 16
 
 
@@ -32,20 +23,16 @@ class Bins(NamedTuple):
     """Sorted tile intersections of one frame.
 
     Attributes:
-      gids: int32 [N], Gaussian index of each pair, sorted by (tile, depth);
-        unused slots hold C (one past the last Gaussian).
-      tiles: int32 [N], tile index (row-major) of each pair; unused: num_tiles.
-      tile_start: int32 [num_tiles + 1], pairs of tile t are
+      gids: int32 [N], Gaussian of each pair, sorted by (tile, depth); unused slots hold C.
+      tiles: int32 [N], row-major tile of each pair; unused: num_tiles.
+      tile_start: int32 [num_tiles + 1]: tile t's pairs are
         ``gids[tile_start[t]:tile_start[t + 1]]``.
-      num_intersections: int32 scalar, pairs the frame needs (may exceed N).
-      overflow: bool scalar, num_intersections > N.
-      enum_slots: int32 [N], each pair's slot in enumeration order, where the
-        pairs of one Gaussian are consecutive (unused: N). The Pallas backward
-        writes its per-pair gradient rows there, so a Gaussian's rows can be
-        summed in a fixed order without atomics.
-      depth_order: int32 [C], Gaussian indices front to back (enumeration order).
-      run_ends: int32 [C], end of the k-th Gaussian's (in depth order) run of
-        slots in enumeration order (its run starts where the previous one ends).
+      num_intersections: int32 [], pairs the frame needs (may exceed N).
+      overflow: bool [], num_intersections > N.
+      enum_slots: int32 [N], each pair's slot in enumeration order, a Gaussian's pairs
+        consecutive (unused: N), where the Pallas backward writes its rows (no atomics).
+      depth_order: int32 [C], Gaussians front to back.
+      run_ends: int32 [C], end of the k-th Gaussian's (depth order) run of slots.
     """
 
     gids: jax.Array
@@ -82,11 +69,8 @@ def image_to_tiles(img, width: int, height: int, tile: int):
 
 
 def tile_rects(proj: Projected, width: int, height: int, tile: int = TILE):
-    """Tile rectangle of each Gaussian's footprint.
-
-    Returns:
-      (x0, y0, nx, ny) int32 [C] each: first tile column/row and the number of
-      tile columns/rows covered (0 for invisible Gaussians).
+    """Tile rectangle of each Gaussian's footprint: (x0, y0, nx, ny) int32 [C], the
+    first tile column/row and the count covered (0 for invisible).
     """
     tiles_x, tiles_y = grid_shape(width, height, tile)
     m = jax.lax.stop_gradient(proj.means2d)
@@ -113,13 +97,9 @@ def count_intersections(proj: Projected, width: int, height: int, tile: int = TI
 
 
 def _pair_owners(counts, capacity: int):
-    """int32 [capacity]: for each buffer slot, the index k of the Gaussian whose run of
-    ``counts[k]`` consecutive slots holds it (slots past the total: the last one with pairs).
-
-    Each Gaussian with pairs marks the slot where its run starts, and a running
-    maximum carries the mark over the run. This is two passes over the buffer; a
-    binary search per slot (``searchsorted``) costs ~log2(C) dependent gathers per
-    slot and was 9x slower on a GPU at 1080p / 1M Gaussians (80M slots).
+    """int32 [capacity]: for each slot, the Gaussian k whose run of ``counts[k]``
+    slots holds it (past the total: the last with pairs). A running maximum of run-start
+    marks: two passes, much faster on a GPU than a per-slot ``searchsorted``.
     """
     c = counts.shape[0]
     starts = jnp.cumsum(counts) - counts
@@ -132,14 +112,10 @@ def bin_gaussians(proj: Projected, width: int, height: int, capacity: int,
                   tile: int = TILE) -> Bins:
     """Sorted (tile, depth) intersections in a buffer of static ``capacity``.
 
-    Gaussians are first ordered by depth (a sort of C keys); pairs are then
-    enumerated in that order, Gaussian by Gaussian (the "enumeration order"), so
-    sorting them by tile with ties kept in enumeration order yields (tile, depth)
-    order, ties in depth broken by Gaussian index as in the oracle. Where
-    ``tiles x C < 2^31`` one integer key ``tile * C + depth_rank`` is sorted alone
-    (it carries its payload, and XLA's single-array sort is far faster on a CPU);
-    above that (1080p with 1M Gaussians) the tile ids are sorted stably with their
-    positions (on a GPU a radix sort: 20x faster there than a two-key sort).
+    Pairs are enumerated Gaussian by Gaussian in depth order, so a stable sort by tile gives
+    (tile, depth) order, depth ties by Gaussian index as in the oracle. One integer key
+    ``tile * C + depth_rank`` where ``tiles x C < 2^31`` (XLA's single-array sort is fastest
+    on a CPU), else a stable sort of tile ids with positions (a radix sort on a GPU).
     """
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y

@@ -1,31 +1,15 @@
 """Exact per-tile alpha compositing with a recomputing ``custom_vjp`` backward.
 
-Shape of the computation ("chunked pair-major"). Each tile's depth-sorted list
-is cut into chunks of ``K`` pairs (the last chunk of a tile padded); the chunks
-of all tiles are laid end to end, so no list is capped and the padding is at
-most K - 1 pairs per tile. All chunks advance together through their K pair
-positions (a ``lax.scan`` over positions, every chunk in parallel): at each
-step alpha is evaluated for (chunk, pixel of its tile) and blended front to
-back, exactly as INRIA's per-pixel loop does. A chunk's incoming transmittance
-comes from the tile's earlier chunks: a first pass takes each chunk's product
-of (1 - alpha), a segmented exclusive scan over chunks turns those into carries,
-and the second pass blends. INRIA's stop rule (a Gaussian that would drop T
-below 1e-4 is not blended, nor anything behind it) is a per-pixel prefix test.
+"Chunked pair-major": each tile's depth-sorted list is cut into chunks of ``K`` pairs laid
+end to end (no list capped, at most K - 1 padding per tile). A ``lax.scan`` over the K
+positions advances all chunks at once, blending front to back as INRIA's per-pixel loop;
+a chunk's incoming transmittance comes from a segmented exclusive scan of the earlier
+chunks' products (first pass), and INRIA's T < 1e-4 stop is a per-pixel prefix test.
+Chunks run in cache-sized blocks, and only the blocks holding this frame's pairs (a
+dynamic trip count), so work follows the pairs, not the buffer.
 
-Chunks are processed in blocks of ~8k (chunk, pixel) elements so the scan's
-working set stays in cache (XLA on CPU runs each fused op over whole arrays, and
-memory traffic, not arithmetic, was the limit without blocking), and only the
-blocks that hold this frame's pairs are computed: a loop with a dynamic trip
-count, so the work follows the frame's pairs rather than the buffer capacity.
-
-The backward recomputes alpha and T rather than storing per-(pair, pixel)
-values. Residuals are the inputs, each chunk's incoming T and feature sums
-(O(pairs)) and the images: memory O(pixels + pairs). The colour behind pair i,
-needed by dL/dalpha_i, is the pixel's total minus the running prefix, whose
-per-chunk start comes from a segmented scan of the saved chunk sums.
-
-Work is about (pairs + K/2 x tiles) x tile pixels per pass: two passes forward,
-one backward.
+The backward recomputes alpha and T: residuals are the inputs, each chunk's incoming T
+and feature sums and the images, O(pixels + pairs).
 """
 
 from __future__ import annotations
@@ -40,12 +24,10 @@ from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 #: Pairs per chunk.
 CHUNK = 32
-#: Target (chunk, pixel) elements per block of the scan on a CPU: the scan's
-#: working set then stays in cache.
+#: Target (chunk, pixel) elements per scan block on a CPU: the working set stays in cache.
 BLOCK_ELEMENTS = 8192
-#: The same on an accelerator, where each block is a few kernel launches per pair
-#: position: blocks must be large (a 1080p frame with 1M Gaussians has ~20M
-#: pairs; 8k-element blocks would mean ~10^5 launches per frame).
+#: The same on an accelerator, where a block costs kernel launches per pair position:
+#: blocks must be large.
 BLOCK_ELEMENTS_ACCELERATOR = 1 << 22
 
 
@@ -65,11 +47,11 @@ def layout(capacity: int, num_tiles: int, tile: int, chunk: int = CHUNK,
 
 def make_chunks(bins: Bins, num_tiles: int, capacity: int, tile: int, chunk: int = CHUNK,
                 block_elements: int = BLOCK_ELEMENTS):
-    """Chunk layout of the sorted pairs (``block_elements``: see :func:`block_elements`).
+    """Chunk layout of the sorted pairs (``block_elements``: :func:`block_elements`).
 
     Returns:
-      (gids int32 [NC, K] (-1 for padding), tile_of int32 [NC] (num_tiles for
-      unused chunks), first bool [NC]: the chunk starts its tile's list).
+      (gids int32 [NC, K] (-1 for padding), tile_of int32 [NC] (num_tiles for unused),
+      first bool [NC]: the chunk starts its tile's list).
     """
     nb, per_block = layout(capacity, num_tiles, tile, chunk, block_elements)
     nc = nb * per_block
@@ -114,9 +96,8 @@ def _pixel_centres(tile_of, tiles_x, tile, dtype):
 
 
 def _alpha(m, con, op, px, py):
-    """One pair position across a block: dx, dy, exp(power), o exp(power), alpha [NB, P].
-
-    Args: m [NB, 2], con [NB, 3], op [NB], px/py [NB, P].
+    """One pair position across a block: dx, dy, exp(power), o exp(power), alpha [NB, P]
+    from m [NB, 2], con [NB, 3], op [NB], px/py [NB, P].
     """
     dx = m[:, 0, None] - px
     dy = m[:, 1, None] - py
@@ -129,11 +110,8 @@ def _alpha(m, con, op, px, py):
 
 
 def _map_used(fn, xs, used_blocks, init):
-    """``lax.map(fn, xs)`` over the first ``used_blocks`` blocks only (a dynamic count).
-
-    The buffer's capacity fixes the number of blocks, but only the blocks that
-    hold pairs of this frame are computed: the work follows the frame's pairs,
-    not the buffer size. Outputs of skipped blocks keep their ``init`` values.
+    """``lax.map(fn, xs)`` over the first ``used_blocks`` blocks only (a dynamic
+    count); skipped blocks keep their ``init`` outputs.
     """
 
     def body(b, outs):
@@ -232,11 +210,10 @@ def composite(means2d, conics, opacities, features, gids, tile_of, first, width,
     """Blend the chunked pairs into images.
 
     Args:
-      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C]
-        (0 for culled); features: float [C, F] (colour, depth, ...).
+      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C] (0 for culled);
+        features: float [C, F].
       gids, tile_of, first: the chunk layout from :func:`make_chunks`.
-      width, height, tile: static image and tile size; block: the
-        ``block_elements`` the layout was made with.
+      width, height, tile: static sizes; block: the ``block_elements`` of the layout.
     Returns:
       (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
     """
@@ -322,16 +299,11 @@ def _composite_bwd(width, height, tile, block, res, cts):
 composite.defvjp(_composite_fwd, _composite_bwd)
 
 
-# --------------------------------------------------------------------------------------
-# Per-Gaussian accumulation of blending weights (no gradient: relevance lifting)
-# --------------------------------------------------------------------------------------
+# -- Per-Gaussian accumulation of blending weights (no gradient: relevance lifting) ----
 
 def _weigh_block(xs):
-    """One block: per pair, sum over its tile's pixels of w_i(p) v_j(p), [K, NB, F].
-
-    The blend of :func:`_blend` (same alpha, transmittance and INRIA stop rule), but
-    what it sums per pair instead of per pixel is the pair's weight w = T alpha times
-    the per-pixel values.
+    """One block: per pair, sum over its tile's pixels of w_i(p) v(p), [K, NB, F],
+    with :func:`_blend`'s alpha, transmittance and stop rule.
     """
     m, con, op, px, py, carry, vals = xs  # vals [NB, P, F]
     nf = vals.shape[-1]
@@ -349,11 +321,11 @@ def _weigh_block(xs):
 
 def accumulate_weights(means2d, conics, opacities, values, gids, tile_of, first, width, height,
                        tile, block=BLOCK_ELEMENTS):
-    """Per Gaussian, sum over pixels of its blending weight times per-pixel values.
+    """Per Gaussian, sum over pixels of its blending weight times values.
 
     Args:
-      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C] (0 for culled).
-      values: float [H, W, F], per-pixel values v (e.g. a mask and ones).
+      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C].
+      values: float [H, W, F], per-pixel values v.
       gids, tile_of, first: the chunk layout from :func:`make_chunks`.
       width, height, tile, block: as :func:`composite`.
     Returns:

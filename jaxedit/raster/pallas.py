@@ -1,34 +1,18 @@
 """Per-tile alpha compositing as a Pallas kernel (Triton on GPU), forward and backward.
 
-The GPU shape of :mod:`.composite`: one program per image tile, the tile's pixels
-as the vector axis (a 16 x 16 tile is 256 lanes), and the tile's depth-sorted
-pairs streamed through one at a time, front to back, exactly as INRIA's CUDA
-rasterizer blends them (same rules as :mod:`.reference`: power > 0 and
-alpha < 1/255 skip a pair, alpha is clamped at 0.99, and a pixel stops before
-the pair that would drop its transmittance below 1e-4). A program ends as soon
-as every pixel of its tile has stopped, so the work follows what is visible.
-
-Residuals of the backward are only the inputs, the final transmittance and the
-index of the last blended pair per pixel: O(pixels + pairs). The backward kernel
-walks each tile's list back to front from its last contributor, recovering the
-transmittance before each pair by division (T_i = T_{i+1} / (1 - alpha_i)) and
-keeping the colour behind it as a running sum, and writes one gradient row per
-pair (each pair belongs to one tile, so every row has one writer: no atomics).
-Rows land at the pair's slot in enumeration order (see :class:`.binning.Bins`),
-where each Gaussian's rows are consecutive, and a third kernel sums each
-Gaussian's run in a fixed order (:func:`reduce_pair_rows`): gradients are
-bit-identical from run to run, which a scatter-add (float atomics on a GPU) is not.
-
-Gradient of the blended features C = sum_i w_i f_i, w_i = alpha_i T_i, and of
-T_final = prod_i (1 - alpha_i), for one pixel with upstream g = dL/dC and
+The GPU shape of :mod:`.composite`: one program per tile, its pixels the vector lanes,
+its depth-sorted pairs blended front to back with :mod:`.reference`'s rules; a program
+ends once every pixel has stopped. The backward keeps only the inputs, the final
+transmittance and each pixel's last blended pair, walks each tile back to front
+(T_i = T_{i+1} / (1 - alpha_i)) and writes one gradient row per pair (one writer per
+row, no atomics); :func:`reduce_pair_rows` sums each Gaussian's consecutive rows in a
+fixed order, so gradients are bit-identical run to run. Per pixel, with g = dL/dC and
 g_T = dL/dT_final:
 
     dL/dalpha_i = T_i (g . f_i) - (g . S_i + g_T T_final) / (1 - alpha_i),
-    S_i = sum_{j > i} w_j f_j  (the colour behind pair i),
+    S_i = sum_{j > i} w_j f_j  (the colour behind pair i).
 
-then alpha = min(0.99, o exp(power)) and the conic quadratic give the gradients
-of the 2D mean, the conic and the opacity. ``interpret=True`` runs the same
-kernels on the CPU (tests hold them to the dense oracle there).
+``interpret=True`` runs the same kernels on the CPU.
 """
 
 from __future__ import annotations
@@ -50,17 +34,14 @@ PAIR_BATCH = 8
 _ROW_FIXED = 6
 
 
-#: Whether the kernels are lowered for Triton off a GPU: context-local (a ContextVar, so a
-#: thread or task sees only its own ``with compiled_for_gpu()``), never a rebound global.
+#: Whether the kernels are lowered for Triton off a GPU (a ContextVar: per thread/task).
 _FOR_GPU = contextvars.ContextVar("jaxedit_pallas_for_gpu", default=False)
 
 
 @contextlib.contextmanager
 def compiled_for_gpu():
-    """Within this context the kernels are lowered for Triton even off a GPU.
-
-    For ``jax.export(..., platforms=("cuda",))`` from a machine without a GPU:
-    it checks that the kernels lower, without running them.
+    """Within this context the kernels are lowered for Triton even off a GPU
+    (``jax.export(..., platforms=("cuda",))`` checks that they lower, without running).
     """
     token = _FOR_GPU.set(True)
     try:
@@ -111,9 +92,8 @@ def _forward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref,
                     feat_ref, trans_ref, last_ref, *, tiles_x, tile, num_features, capacity):
     """One tile: blend its pairs front to back.
 
-    Outputs (this tile's blocks): feat_ref float [F, P], trans_ref float [P]
-    (transmittance after the last blended pair), last_ref int32 [P] (buffer slot
-    of the last blended pair, begin - 1 where none).
+    Outputs: feat_ref float [F, P], trans_ref float [P] (final transmittance), last_ref
+    int32 [P] (slot of the last blended pair, begin - 1 where none).
     """
     t = pl.program_id(0)
     begin = start_ref[t]
@@ -161,14 +141,12 @@ def _forward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref,
 def _backward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref, slots_ref, trans_ref,
                      last_ref, gf_ref, gt_ref, zeros_ref, rows_ref, *, tiles_x, tile,
                      num_features, capacity):
-    """One tile: per-pair gradient rows, walking its list back to front.
+    """One tile: per-pair gradient rows, back to front.
 
-    Inputs (this tile's blocks): trans_ref float [P] and last_ref int32 [P] from
-    the forward; gf_ref float [F, P] = dL/dfeatures; gt_ref float [P] =
-    dL/dT_final; slots_ref int32 [N], each pair's slot in enumeration order.
-    Output: rows_ref float [N + PAIR_BATCH, ROW] (aliased to the zeroed
-    zeros_ref), the rows of this tile's pairs up to its last contributor, at
-    their enumeration slots; rows of pairs behind it stay zero.
+    Inputs: trans_ref float [P], last_ref int32 [P] (forward); gf_ref float [F, P] and
+    gt_ref float [P], the upstream gradients; slots_ref int32 [N], enumeration slots.
+    Output: rows_ref float [N + PAIR_BATCH, ROW] (aliased to zeros_ref); rows of pairs
+    behind the last contributor stay zero.
     """
     del zeros_ref  # the output's initial (zero) contents
     t = pl.program_id(0)
@@ -281,15 +259,10 @@ def tiles_backward(means2d, conics, opacities, features, gids, tile_start, enum_
                    last, g_feat, g_trans, width, height, tile, interpret=False):
     """Backward kernel: float [N + PAIR_BATCH, ROW] gradient rows in enumeration order.
 
-    Row ``enum_slots[i]`` holds pair i's d means2d (2), d conic (3), d opacity (1)
-    and d features (F), zero-padded to ROW = :func:`row_width` columns; rows of
-    unused slots, of pairs behind their tile's last contributor and the
-    PAIR_BATCH padding rows are zero.
-
-    Args: as :func:`tiles_forward`, plus ``enum_slots`` int32 [N] (see
-    :class:`.binning.Bins`), the forward's ``trans`` [T, P] and ``last``
-    [T, P], and the upstream gradients g_feat float [T, F, P] and g_trans float
-    [T, P] in tile layout.
+    Row ``enum_slots[i]`` holds pair i's d means2d (2), d conic (3), d opacity (1), d features
+    (F), zero-padded to :func:`row_width`; unused and padding rows are zero. Arguments as
+    :func:`tiles_forward`, plus ``enum_slots`` int32 [N], the forward's ``trans`` and ``last``
+    [T, P], and g_feat float [T, F, P], g_trans float [T, P].
     """
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
@@ -348,11 +321,9 @@ def composite(means2d, conics, opacities, features, bins, width, height, tile,
     """Blend the sorted pairs into images with the Pallas kernels.
 
     Args:
-      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C] (0 for
-        culled); features: float [C, F].
-      bins: the frame's :class:`.binning.Bins` (pairs sorted by tile and depth).
-      width, height, tile: static image and tile size; interpret: run the
-        kernels with the Pallas interpreter (CPU).
+      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C]; features: float [C, F].
+      bins: the frame's :class:`.binning.Bins`.
+      width, height, tile: static sizes; interpret: use the Pallas interpreter.
     Returns:
       (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
     """

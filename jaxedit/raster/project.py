@@ -1,18 +1,11 @@
 """EWA projection of 3D Gaussians to screen-space ellipses, with SH colour and culling.
 
-Shared by the tile splatter and the dense oracle, so both see exactly the same
-2D Gaussians; they differ only in how they composite.
-
-Conventions (INRIA 3DGS / gsplat): OpenCV camera (x right, y down, +z forward),
-pixel centres at integer + 0.5, cov2d = J W Sigma W^T J^T + 0.3 I with the
-Jacobian evaluated at x/z, y/z clamped to 1.3x the field of view.
-
-Footprint. A Gaussian of opacity ``o`` can only pass the per-pixel rule
-``alpha >= 1/255`` where its Mahalanobis distance ``q = d^T conic d`` satisfies
-``q <= 2 ln(255 o)`` (the opacity-aware extent of gsplat). Every pixel outside
-that ellipse gets ``alpha < 1/255`` and is skipped, so binning a Gaussian to the
-tiles its ellipse touches loses nothing: the tile splatter equals the dense
-"every pixel x every Gaussian" oracle exactly, not just up to a 3-sigma cut.
+Shared by the tile splatter and the dense oracle, which differ only in compositing.
+Conventions (INRIA 3DGS / gsplat): OpenCV camera (x right, y down, +z forward), pixel
+centres at integer + 0.5, cov2d = J W Sigma W^T J^T + 0.3 I, J at x/z, y/z clamped to
+1.3x the field of view. Footprint: with opacity ``o``, ``alpha >= 1/255`` needs
+``d^T conic d <= 2 ln(255 o)`` (gsplat's opacity-aware extent), so binning to the tiles
+that ellipse touches equals the dense oracle exactly.
 """
 
 from __future__ import annotations
@@ -45,14 +38,13 @@ FOOTPRINT_MARGIN = 1e-3
 class Projected(NamedTuple):
     """Screen-space Gaussians for one camera (capacity ``C``).
 
-    Culled Gaussians (dead, behind the near plane or beyond far, off-screen,
-    degenerate, too transparent to ever pass 1/255) hold finite placeholder
-    values, ``opacities == 0`` and ``visible == False``; their gradients are 0.
+    Culled Gaussians (dead, outside [near, far], off-screen, degenerate, too transparent)
+    hold finite placeholders, ``opacities == 0``, ``visible == False`` and zero gradients.
 
     Attributes:
-      means2d: float [C, 2], projected centres in pixels (centres at +0.5).
+      means2d: float [C, 2], projected centres in pixels.
       conics: float [C, 3], inverse 2D covariance (a, b, c): q = a dx^2 + 2 b dx dy + c dy^2.
-      depths: float [C], camera-space z (the sort key and the depth feature).
+      depths: float [C], camera-space z.
       opacities: float [C], sigmoid(logit); 0 where culled.
       colors: float [C, 3], SH colour seen from this camera, >= 0.
       extents: float [C, 2], half-widths in pixels of the footprint's bounding box.
@@ -71,17 +63,10 @@ class Projected(NamedTuple):
 
 
 def matmul_exact(a: jax.Array, b: jax.Array) -> jax.Array:
-    """``a @ b`` in full float32 on every platform: float [..., n, m].
+    """``a @ b`` in full float32 on every platform, as ``jnp.matmul``: float [..., n, m].
 
-    Args:
-      a: float [..., n, k] (or [k]); b: float [..., k, m] (or [k]), as ``jnp.matmul``.
-    Why not plain ``@``: a float32 dot at DEFAULT precision runs in TF32 on NVIDIA
-    GPUs (operands rounded to a 10-bit mantissa). In projection that rounds world
-    coordinates of a few hundred units by ~0.1 and the J W R S products by 5e-4
-    relative (issue #18: with TF32 the 2D-mean gradients were ~0.7% off from this
-    alone; the SSIM filter's dot was the larger error). HIGHEST costs nothing on
-    the CPU, which computes float32 dots exactly anyway (an elementwise form
-    measured 2-3x slower there, forward + backward).
+    A DEFAULT-precision float32 dot runs in TF32 on NVIDIA GPUs, which visibly skews the
+    projected means and their gradients; HIGHEST is free on the CPU.
     """
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
@@ -104,11 +89,11 @@ def project(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = Non
 
     Args:
       gaussians: the scene, capacity C.
-      camera: a single camera (no batch axis).
-      sh_degree: static active SH degree (<= the pytree's); default: all.
-      near, far: camera-space z range kept (z <= near or z >= far is culled).
-      means2d_delta: optional float [C, 2] added to the projected means (pass
-        zeros and differentiate w.r.t. it to get the 2D-mean gradient).
+      camera: a single camera.
+      sh_degree: static active SH degree (<= the pytree's); default all.
+      near, far: camera-space z range kept.
+      means2d_delta: optional float [C, 2] added to the projected means (zeros, to
+        differentiate w.r.t. them).
     Returns:
       :class:`Projected`.
     """
@@ -118,8 +103,7 @@ def project(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = Non
     valid = _inputs_valid(g, near, far, camera)
     vm = valid[:, None]
 
-    # Double-where: culled Gaussians are computed from safe placeholders so
-    # neither their values nor their gradients can be NaN.
+    # Double-where: culled Gaussians use safe placeholders, so no NaN values or gradients.
     means = jnp.where(vm, g.means, 0.0)
     log_scales = jnp.clip(jnp.where(vm, g.log_scales, 0.0), *LOG_SCALE_RANGE)
     quats = jnp.where(vm, g.quats, jnp.array([1.0, 0.0, 0.0, 0.0], dtype))
@@ -134,8 +118,7 @@ def project(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = Non
     if means2d_delta is not None:
         means2d = means2d + means2d_delta
 
-    # Jacobian at the clamped direction (as INRIA / gsplat: keeps far off-axis
-    # Gaussians from blowing up into huge screen ellipses).
+    # Jacobian at the clamped direction (INRIA / gsplat): no huge far off-axis ellipses.
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
     lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
     lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y

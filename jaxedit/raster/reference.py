@@ -1,15 +1,12 @@
 """The dense oracle: every pixel against every Gaussian, sorted by depth.
 
-Slow and obviously correct; plain autodiff. The tests hold the tile splatter to
-it (values and gradients), and the benchmark reports how much faster the
-splatter is. Per pixel, front to back (INRIA's rule):
+Slow, obviously correct, plain autodiff; the tests hold the tile splatter to it. Per
+pixel, front to back (INRIA's rule), dx, dy from the pixel centre to the mean:
 
     power = -0.5 (a dx^2 + c dy^2) - b dx dy          (skip if power > 0)
     alpha = min(0.99, o exp(power))                   (skip if alpha < 1/255)
     if T (1 - alpha) < 1e-4: stop, this Gaussian is NOT blended
     C += c alpha T;  T *= 1 - alpha
-
-with dx, dy from the pixel centre (x + 0.5, y + 0.5) to the projected mean.
 """
 
 from __future__ import annotations
@@ -108,18 +105,7 @@ def _render_one(gaussians, camera, background, sh_degree, near, far, means2d_del
 def render_reference(gaussians: Gaussians, camera: Camera, *, background=None,
                      sh_degree: int | None = None, near: float = 0.01, far: float = 1e10,
                      means2d_delta: jax.Array | None = None) -> RenderOutput:
-    """Dense oracle render; same signature and output as :func:`jaxedit.raster.render`.
-
-    Args:
-      gaussians: the scene (capacity C).
-      camera: a Camera, optionally batched along a leading axis B.
-      background: float [3] colour behind the Gaussians (default black).
-      sh_degree: active SH degree (<= the pytree's); default all.
-      near, far: camera-space depth range.
-      means2d_delta: float [C, 2] (or [B, C, 2]) added to the 2D means.
-    Returns:
-      RenderOutput (with a leading B axis for batched cameras).
-    """
+    """Dense oracle render; same signature and output as :func:`jaxedit.raster.render`."""
     sh_degree = P.check_sh_degree(gaussians, sh_degree)
     bg = None if background is None else jnp.asarray(background, gaussians.means.dtype)
     fn = functools.partial(_render_one, sh_degree=sh_degree)
@@ -149,14 +135,8 @@ def _weights_one(gaussians, camera, values, near, far):
 
 def accumulate_weights_reference(gaussians: Gaussians, camera: Camera, values, *,
                                  near: float = 0.01, far: float = 1e10) -> jax.Array:
-    """Dense oracle of :func:`jaxedit.raster.render.accumulate_weights` (same signature).
-
-    Args:
-      gaussians: capacity C; camera: one Camera or a batch [B].
-      values: float [H, W, F] ([B, H, W, F] for a batch).
-    Returns:
-      float [C, F]: sum over views and pixels of T_i alpha_i v. Every pixel against
-      every Gaussian at once: small images only.
+    """Dense oracle of :func:`jaxedit.raster.render.accumulate_weights`
+    (same signature and output; small images only).
     """
     values = jnp.asarray(values, gaussians.means.dtype)
     if camera.batch_shape:

@@ -1,26 +1,15 @@
 """The public entry point: ``render`` (tile splatter) and its jittable core ``render_tiles``.
 
 Pipeline: :func:`.project.project` -> :func:`.binning.bin_gaussians` (fixed-capacity
-buffer, multi-key sort) -> :func:`.composite.composite` (exact blending, custom VJP).
+buffer) -> :func:`.composite.composite` (exact blending, custom VJP).
 
-Intersection buffer protocol
-----------------------------
-The number of (Gaussian, tile) pairs depends on the data, but XLA needs a static
-buffer size. ``render_tiles(..., capacity=n)`` is pure and jittable; its output
-carries ``num_intersections`` (what the frame needed) and ``overflow`` (pairs
-were dropped, the image is incomplete).
-
-* Outside a trace (plain calls, and ``jax.grad`` without ``jit``), ``render``
-  counts the pairs first, picks the capacity :func:`render_capacity` gives that
-  count (a pure function of it: no state between calls; the geometric ladder
-  keeps the distinct sizes, hence compiles, few, and jit's own cache, keyed on
-  the static capacity, reuses them), and never returns a frame with dropped
-  pairs (it re-renders with a larger buffer if needed).
-* Inside a caller's ``jit``/``vmap``, the count is not concrete: pass
-  ``max_intersections=n`` and check ``out.overflow`` yourself; when it is True,
-  re-run the step with a buffer of at least ``out.num_intersections`` (e.g.
-  :func:`next_capacity`). ``render`` raises :class:`DataError` when called
-  under a trace without ``max_intersections``.
+Intersection buffer: the (Gaussian, tile) pair count depends on data, XLA needs a static
+size. ``render_tiles(..., capacity=n)`` reports ``num_intersections`` and ``overflow``.
+Outside a trace ``render`` counts the pairs, sizes the buffer by :func:`render_capacity`
+(a pure, geometric ladder: few programs) and never returns a frame with dropped pairs.
+Inside a caller's ``jit``/``vmap`` pass ``max_intersections`` and, when ``out.overflow``,
+re-run with at least ``out.num_intersections`` (:func:`next_capacity`); without it
+``render`` raises :class:`DataError` under a trace.
 """
 
 from __future__ import annotations
@@ -49,30 +38,24 @@ log = logging.getLogger(__name__)
 
 #: Capacities are rounded up to 2^(k/STEPS_PER_OCTAVE) (then to a multiple of 1024).
 STEPS_PER_OCTAVE = 4
-#: The ladder of :func:`render` outside a trace (powers of two): its frames are few and their
-#: cost follows the frame's pairs (the compositor runs only the blocks in use), so fewer
-#: programs win over a tighter buffer. The demo's edit rendered scenes of 6144 and 8192
-#: slots into buffers of 14336 and then 16384 pairs: three programs, now one.
+#: The ladder of :func:`render` outside a trace (powers of two): a frame's cost follows its
+#: pairs, not its buffer, so fewer programs win over a tighter buffer.
 RENDER_STEPS_PER_OCTAVE = 1
 MIN_CAPACITY = 1024
 #: Headroom over the counted pairs when a capacity is (re)chosen.
 HEADROOM = 1.15
 
-#: Tile size of the XLA compositor (the image does not depend on it): small tiles
-#: waste less work on pixels a Gaussian does not reach, which is what costs on a CPU.
+#: Tile size of the XLA compositor: small tiles waste less work on a CPU.
 TILE = 8
-#: Tile size of the Pallas kernel: one program per tile, its pixels the vector
-#: lanes (256 = 8 warps of 32), as the CUDA rasterizers do.
+#: Tile size of the Pallas kernel: one program per tile, its pixels the vector lanes.
 PALLAS_TILE = 16
 
 BACKENDS = ("auto", "xla", "pallas")
 
 
 def resolve_backend(backend: str, platform: str | None = None) -> str:
-    """The compositor for ``backend`` on ``platform`` (default: JAX's default backend).
-
-    ``auto`` is the Pallas kernel on a GPU and the XLA path elsewhere; ``pallas``
-    off a GPU runs the kernel in the Pallas interpreter (slow; for tests).
+    """The compositor for ``backend`` on ``platform`` (default: JAX's default backend):
+    ``auto`` is Pallas on a GPU, XLA elsewhere; ``pallas`` off a GPU runs the interpreter.
     """
     if backend not in BACKENDS:
         raise DataError("backend", f"must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -86,11 +69,8 @@ def tile_size(backend: str) -> int:
     return PALLAS_TILE if backend == "pallas" else TILE
 
 def next_capacity(needed: int, steps_per_octave: int = STEPS_PER_OCTAVE) -> int:
-    """Smallest buffer size on the geometric ladder that holds ``needed`` pairs.
-
-    The ladder has ``steps_per_octave`` sizes per doubling (4: at most ~19 %
-    unused buffer, which the compositor pays for) and few distinct sizes (so
-    few recompiles); sizes are multiples of 1024.
+    """Smallest buffer size on the geometric ladder that holds ``needed`` pairs:
+    ``steps_per_octave`` sizes per doubling, multiples of 1024 (few sizes, few recompiles).
     """
     needed = max(int(needed), MIN_CAPACITY)
     k = math.ceil(steps_per_octave * math.log2(needed) - 1e-9)
@@ -139,10 +119,8 @@ def render_tiles(gaussians: Gaussians, camera: Camera, *, capacity: int, backgro
                  means2d_delta: jax.Array | None = None, backend: str = "auto") -> RenderOutput:
     """Pure, jittable tile splatter with a static intersection ``capacity``.
 
-    Same arguments as :func:`render` (``capacity`` replaces ``max_intersections``).
-    The caller must check ``out.overflow`` (True: pairs were dropped).
-    Batched cameras are vmapped; ``num_intersections``/``overflow`` are then per camera.
-    The buffer counts pairs at the backend's tile size (see :func:`count_pairs`).
+    Arguments as :func:`render`. The caller checks ``out.overflow`` (True: pairs were
+    dropped). Batched cameras are vmapped; the buffer counts pairs at the backend's tile size.
     """
     capacity = int(capacity)
     if capacity < 1:
@@ -181,9 +159,8 @@ def count_pairs(gaussians: Gaussians, camera: Camera, *, backend: str = "auto", 
 
 
 def _background_only(gaussians: Gaussians, camera: Camera, background) -> RenderOutput:
-    """The frame of a scene that puts nothing on screen: background colour, zero alpha/depth.
-
-    Same shapes and dtypes as a splatted frame (leading batch axes of ``camera`` kept).
+    """The frame of a scene with nothing on screen: background colour, zero
+    alpha/depth, a splatted frame's shapes and dtypes.
     """
     batch = camera.batch_shape
     dtype = gaussians.means.dtype
@@ -201,8 +178,7 @@ def _background_only(gaussians: Gaussians, camera: Camera, background) -> Render
 
 @functools.partial(jax.jit, static_argnames=("capacity",))
 def _pad_slots(gaussians: Gaussians, means2d_delta, capacity: int):
-    """``(gaussians, means2d_delta)`` padded to ``capacity`` slots: one program, where the
-    same padding done op by op cost a dozen dispatches per frame."""
+    """``(gaussians, means2d_delta)`` padded to ``capacity`` slots in one program."""
     if means2d_delta is not None:
         widths = [(0, 0)] * means2d_delta.ndim
         widths[-2] = (0, capacity - gaussians.capacity)
@@ -211,10 +187,10 @@ def _pad_slots(gaussians: Gaussians, means2d_delta, capacity: int):
 
 
 def _bucketed(gaussians: Gaussians, means2d_delta):
-    """The scene padded with dead slots to its capacity's step on the buffer ladder
-    (:func:`render_capacity`), and ``means2d_delta`` padded with zeros to match: scenes of
-    nearby sizes (a PLY's exact count, each snapshot's alive Gaussians) share one program.
-    Dead slots draw nothing, so the frame is the same."""
+    """The scene padded with dead slots to its capacity's step on the
+    :func:`render_capacity` ladder (``means2d_delta`` with zeros), so scenes of nearby sizes
+    share one program; dead slots draw nothing.
+    """
     padded = render_capacity(gaussians.capacity)
     if padded == gaussians.capacity:
         return gaussians, means2d_delta
@@ -235,30 +211,26 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
     """Render Gaussians with the exact tile splatter.
 
     Args:
-      gaussians: the scene, capacity C (dead slots never contribute and get zero gradient).
-      camera: a Camera, or a batch of B cameras along a leading axis (vmapped).
+      gaussians: the scene, capacity C (dead slots never contribute, zero gradient).
+      camera: a Camera, or a batch of B along a leading axis (vmapped).
       background: float [3] colour behind the Gaussians (default black).
       sh_degree: active SH degree (<= the pytree's); default all.
       near, far: camera-space depth range kept.
-      means2d_delta: optional float [C, 2] ([B, C, 2] when batched) of zeros added
-        to the projected 2D means, to differentiate w.r.t. them: its gradient is the
-        pixel-space 2D-mean gradient; times (W/2, H/2) it is INRIA's NDC
-        densification statistic.
-      max_intersections: static buffer size (pairs of Gaussian x tile). Required
-        inside a caller's jit/vmap (check ``out.overflow`` then); outside a
-        trace it is a starting size and is grown as needed.
-      backend: "auto" (the Pallas kernel on a GPU, the XLA path elsewhere),
-        "xla" or "pallas" (off a GPU: the Pallas interpreter, for tests).
+      means2d_delta: optional zeros float [C, 2] ([B, C, 2]) added to the projected means;
+        its gradient is the pixel-space 2D-mean gradient (x (W/2, H/2): INRIA's NDC one).
+      max_intersections: static pair buffer size; required inside a caller's jit/vmap,
+        else a starting size, grown as needed.
+      backend: "auto" (Pallas on a GPU, XLA elsewhere), "xla" or "pallas".
     Returns:
-      RenderOutput: rgb [H, W, 3], alpha [H, W], depth [H, W] (expected depth),
-      means2d [C, 2], radii [C], visible [C], num_intersections, overflow
-      (with a leading B axis for batched cameras).
+      RenderOutput: rgb [H, W, 3], alpha [H, W], depth [H, W] (expected), means2d [C, 2],
+      radii [C], visible [C], num_intersections, overflow (leading B when batched).
+    Raises:
+      DataError: under a trace without ``max_intersections``.
     """
     sh_degree = P.check_sh_degree(gaussians, sh_degree)
     backend = resolve_backend(backend)
-    # One program whatever the caller passes: black is an explicit background, and the
-    # arrays are committed where they are (a render sees a scene's fresh and trained
-    # leaves by turns; jit would compile each mix again).
+    # One program whatever the caller passes: an explicit background, arrays committed
+    # where they are (a mix of fresh and trained leaves would compile again).
     background = jnp.zeros(3, gaussians.means.dtype) if background is None else \
         jnp.asarray(background, gaussians.means.dtype)
     gaussians, camera, background, means2d_delta = commit(
@@ -289,7 +261,7 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
         cap = render_capacity(needed * HEADROOM)
     while True:
         out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
-        # Host reads of the small per-frame arrays, not eager reductions (each a dispatch).
+        # Host reads of the small per-frame arrays, not eager reductions.
         overflow = bool(np.any(np.asarray(out.overflow)))
         if not overflow:
             return _unpadded(out, n)
@@ -315,18 +287,15 @@ def _weights_one(gaussians, camera, values, near, far, *, capacity, sh_degree):
 
 def accumulate_weights(gaussians: Gaussians, camera: Camera, values, *, near: float = 0.01,
                        far: float = 1e10) -> jax.Array:
-    """Per Gaussian, its alpha-blending weights times per-pixel values, summed over pixels
-    (and views): the splatter pass behind per-Gaussian relevance (no gradient).
+    """Per Gaussian, the sum over pixels (and views) of its blending weight
+    T_i alpha_i times per-pixel values: the pass behind per-Gaussian relevance (no gradient).
 
     Args:
       gaussians: the scene, capacity C.
-      camera: one Camera, or a batch [B] (summed over the views, one at a time).
-      values: float [H, W, F] ([B, H, W, F] for a batch), per-pixel values v.
+      camera: one Camera, or a batch [B] (summed, one view at a time).
+      values: float [H, W, F] ([B, H, W, F] for a batch).
     Returns:
-      float [C, F]: sum over views and pixels of T_i alpha_i v (INRIA's weights, the
-      ones the colour is blended with); 0 for dead or never-drawn Gaussians.
-    Outside a trace only (it sizes its own intersection buffer); the XLA compositor
-    on every platform.
+      float [C, F]; 0 for dead or never-drawn Gaussians. Outside a trace only; XLA compositor.
     """
     values = jnp.asarray(values, gaussians.means.dtype)
     if camera.batch_shape:

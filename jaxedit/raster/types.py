@@ -14,18 +14,14 @@ class RenderOutput:
 
     Attributes:
       rgb: float [H, W, 3], composited colour over the background.
-      alpha: float [H, W], accumulated opacity 1 - T_final, in [0, 1].
+      alpha: float [H, W], accumulated opacity 1 - T_final.
       depth: float [H, W], expected depth sum_i w_i z_i / alpha (0 where alpha ~ 0).
-      means2d: float [C, 2], projected means in pixels; its gradient (times
-        (W/2, H/2)) is INRIA's NDC densification statistic.
+      means2d: float [C, 2], projected means in pixels.
       radii: int [C], screen-space radius in pixels; 0 for culled/dead Gaussians.
       visible: bool [C], projected on screen and alive.
-      num_intersections: int scalar, tile intersections the frame needs
-        (0 for the reference renderer).
-      overflow: bool scalar, True when the intersection buffer was too small
-        (only ever True from ``render_tiles`` / ``render(..., max_intersections=n)``
-        inside a caller's trace: the image is then incomplete and must be redone
-        with a buffer of at least ``num_intersections``).
+      num_intersections: int [], tile intersections the frame needs (0 for the oracle).
+      overflow: bool [], the buffer was too small (only inside a caller's trace): the
+        image is incomplete; redo it with at least ``num_intersections``.
     """
 
     rgb: jax.Array
