@@ -1,34 +1,17 @@
 """Several processes on JAX's distributed runtime: joining it, splitting edits, failing cleanly.
 
-A multi-process run starts the same command once per host (or per GPU), each with
-``--coordinator HOST:PORT --num-processes N --process-id I``. :func:`initialize` joins
-``jax.distributed`` (CPU collectives through gloo, the runtime's default), after which
-``jax.devices()`` lists every process's devices and ``jax.local_devices()`` this one's.
+Each host (or GPU) runs the same command with ``--coordinator HOST:PORT --num-processes N
+--process-id I``; :func:`initialize` joins ``jax.distributed``. In an edit every process
+runs the same deterministic program and holds the same scene; the views due at one step
+are split by :class:`SplitEditor` (:func:`process_slice`) and all-gathered
+(:func:`gather_views`); only process 0 (:func:`is_writer`) writes; and all processes
+first check they agree on every setting (:func:`check_agreement`), since different
+flags would otherwise give wrong results or hang.
 
-What runs where in an edit (``experiments/edit.py``):
-
-* every process runs the same deterministic program (the trainer on its first local
-  device, the editor on its second), so every process holds the same scene;
-* the views due at one step (a subtask's initial sweep, the difficulty's views) are
-  split over the processes by :class:`SplitEditor`: process ``p`` edits the contiguous
-  slice :func:`process_slice` gives it with its own editor on its local devices, and
-  :func:`gather_views` all-gathers the results, so every process continues with the same
-  bits (one edit at a time is edited by every process: no traffic);
-* only process 0 (:func:`is_writer`) writes the run directory; the others write nothing;
-* before any work, every process checks that all agree on the number of processes, the run
-  directory and every setting (:func:`check_agreement`): a run whose processes were given
-  different flags would otherwise succeed silently with wrong results, or hang.
-
-The library's data-parallel pieces (:mod:`jaxedit.parallel`, the JAX editor's mesh) take a
-mesh over ``jax.devices()`` and then span every process unchanged.
-
-Failure. The runtime ends a process whose peer stopped sending heartbeats, or whose
-coordinator cannot be reached, with a fatal C++ log and ``abort()``: nothing Python can
-catch. The command line therefore runs each process as a child of a small supervisor
-(:func:`supervise`) that passes its output through, drops the runtime's log noise
-(:func:`is_runtime_noise`), and turns an abnormal end into one line
-(:func:`fatal_reason`) and exit status 2, within ``heartbeat_timeout`` (a lost peer) or
-``init_timeout`` (no coordinator) seconds.
+The runtime ends a process whose peer or coordinator is lost with ``abort()``, which
+Python cannot catch, so each process runs under :func:`supervise`, which filters the
+runtime's log noise and turns an abnormal end into one line (:func:`fatal_reason`) and
+exit status 2.
 """
 
 from __future__ import annotations
@@ -59,13 +42,12 @@ class DistributedConfig:
     """How this process joins a multi-process run (one process: the defaults).
 
     Attributes:
-      coordinator: HOST:PORT where process 0 serves JAX's coordinator (every process gives
-        the same); auto: detected on TPU slices, SLURM and Open MPI jobs; unset: one process.
-      num_processes: processes in the run (one per host, or one per GPU).
+      coordinator: HOST:PORT where process 0 serves JAX's coordinator; auto: detected on
+        TPU slices, SLURM and Open MPI; unset: one process.
+      num_processes: processes in the run (one per host, or per GPU).
       process_id: this process's index, 0 .. num_processes - 1; process 0 writes the outputs.
       init_timeout: seconds to wait for every process to reach the coordinator.
-      heartbeat_timeout: seconds without a heartbeat after which a process counts as dead
-        and every process stops.
+      heartbeat_timeout: seconds without a heartbeat after which a process counts as dead.
     """
 
     coordinator: str | None = None
@@ -101,12 +83,9 @@ def parse_address(address: str) -> tuple[str, int]:
 
 
 def initialize(config: DistributedConfig) -> None:
-    """Join the distributed runtime (a no-op for one process). Call before anything else
-    touches JAX.
-
-    CPU collectives go through gloo (set explicitly, JAX's default). A coordinator that
-    cannot be reached within ``init_timeout`` seconds is a DataError where the runtime
-    reports it to Python (when it aborts instead, :func:`supervise` reports it).
+    """Join the distributed runtime (a no-op for one process), before anything else
+    touches JAX. CPU collectives go through gloo. Raises DataError when the coordinator is
+    unreachable within ``init_timeout`` and the runtime says so to Python.
     """
     if not config.active:
         return
@@ -142,9 +121,9 @@ AGREEMENT_FIRST = ("num_processes", "out")
 
 
 def disagreement(mine: dict, theirs: dict) -> str | None:
-    """The first setting on which two processes' records differ, as ``--flag`` (None: they
-    agree). Records are {setting: JSON value}: the number of processes, the run directory,
-    then every other flag in name order."""
+    """The first setting, as ``--flag``, on which two records {setting: JSON value}
+    differ (process count, run directory, then by name); None when they agree.
+    """
     keys = [k for k in AGREEMENT_FIRST if k in mine or k in theirs]
     keys += sorted((set(mine) | set(theirs)) - set(keys))
     for key in keys:
@@ -154,14 +133,11 @@ def disagreement(mine: dict, theirs: dict) -> str | None:
 
 
 def check_agreement(record: dict, timeout: int) -> None:
-    """Refuse to go on unless every process of the run gives the same ``record`` (its number
-    of processes, run directory and settings: {setting: JSON value}), each process's
-    published in the runtime's key-value store and compared here; a no-op for one process.
+    """Refuse to go on unless every process publishes the same ``record``
+    ({setting: JSON value}) in the runtime's key-value store; a no-op for one process.
 
-    Every process reads process 0's record first (it always exists, so a process that
-    counts more processes than there are stops at once instead of waiting for one that
-    never comes), then the others'. Every process that sees a difference stops with the
-    same kind of line; the others then lose it as a peer and stop too (:func:`supervise`).
+    Process 0's record is read first (it always exists, so a miscounted process stops at
+    once), then the others'.
 
     Raises:
       DataError naming the first flag that differs, the two values and the processes.
@@ -217,18 +193,19 @@ def is_writer() -> bool:
 
 
 def process_slice(count: int, process: int, processes: int) -> slice:
-    """The views [count] that ``process`` of ``processes`` edits: a contiguous slice of
-    ``ceil(count / processes)`` views (the last processes' may be shorter or empty)."""
+    """The contiguous slice of ``count`` views that ``process`` edits:
+    ``ceil(count / processes)`` each, the last ones shorter or empty.
+    """
     per = -(-count // processes)
     lo = min(process * per, count)
     return slice(lo, min(lo + per, count))
 
 
 def gather_views(local, count: int) -> np.ndarray:
-    """Every process's views, in process order: float32 [count, H, W, 3] on every process.
+    """Every process's views, in process order: float32 [count, H, W, 3] everywhere.
 
-    ``local``: this process's views [b, H, W, 3], its :func:`process_slice` of ``count``
-    (``b`` may be 0: nothing was left for it). Every process must call it (a collective)."""
+    ``local``: this process's :func:`process_slice`, [b, H, W, 3] (b may be 0). A collective.
+    """
     from jax.experimental import multihost_utils
 
     processes = process_count()
@@ -249,13 +226,11 @@ def barrier(name: str) -> None:
 
 
 class SplitEditor:
-    """An editor whose multi-view edits are split over the processes (module docstring).
+    """An editor whose multi-view edits are split over the processes.
 
-    ``edit_many(images [B, H, W, 3], originals [B, H, W, 3], embedding, keys [B])`` edits
-    this process's :func:`process_slice` with the wrapped editor (in its own batches,
-    :func:`jaxedit.editors.base.edit_views`) and returns all B views, gathered: float32
-    NumPy [B, H, W, 3], the same bits on every process. ``edit`` (one view) runs the
-    wrapped editor on every process. Everything else is the wrapped editor's.
+    ``edit_many`` edits this process's :func:`process_slice` with the wrapped editor and
+    returns all B views gathered, float32 NumPy [B, H, W, 3], the same bits everywhere;
+    ``edit`` and everything else are the wrapped editor's.
     """
 
     def __init__(self, editor):
@@ -297,14 +272,14 @@ def split_edits(editor):
 #: A glog / absl line: severity, date, time, thread, file:line].
 _LOG_LINE = re.compile(r"[IWEF]\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+ [^\]]+\] ")
 _FATAL = re.compile(r"F\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+ [^\]]+\] ")
-#: gloo's connection notice, also where two threads' notices interleave mid-line and a
-#: line begins inside one ("0 is connected to 1 peer ranks. Expected number ...").
+#: gloo's connection notice, also where a line begins inside an interleaved one.
 _GLOO_NOTICE = re.compile(r"is connected to \d+ peer ranks|Expected number of connected peer")
 
 
 def is_runtime_noise(line: str) -> bool:
-    """Whether a worker's stderr line is the runtime's own logging (glog lines, gloo's
-    connection notices, a fatal error's stack trace), not jaxedit's output."""
+    """Whether a worker's stderr line is the runtime's logging (glog, gloo
+    notices, a fatal stack trace), not jaxedit's output.
+    """
     return bool(_LOG_LINE.search(line) or line.startswith(("[Gloo] ", "*** Check failure"))
                 or _GLOO_NOTICE.search(line) or re.match(r"\s+@\s+0x", line))
 
@@ -340,22 +315,18 @@ def fatal_reason(message: str, returncode: int, config: DistributedConfig) -> st
     return f"exited with status {returncode}"
 
 
-#: Seconds the supervisor waits for a finished worker's output to be passed on: the pipes
-#: end as soon as the worker is gone, but on a loaded machine the copying threads may need
-#: seconds to run (a 5 s wait lost workers' one-line errors under load).
+#: Seconds the supervisor waits for a finished worker's output to be passed on (the
+#: copying threads may lag on a loaded machine).
 PUMP_DRAIN_S = 60
 
 
 def supervise(command: Sequence[str], config: DistributedConfig, *, cleanup=None,
               stderr=None) -> int:
-    """Run ``command`` (this command as a worker) and map an abnormal end to one line + 2.
+    """Run ``command`` as a worker and map an abnormal end to one line and status 2.
 
-    The worker's stdout and stderr are passed through except the runtime's noise
-    (:func:`is_runtime_noise`; gloo prints to stdout). Exit statuses 0, 2 (a one-line error the
-    worker printed itself) and 130 (interrupted) are passed on; anything else (an abort
-    by the runtime, a signal, or a status 2 whose line never came) prints ``error: process I
-    of N stopped: REASON`` and returns 2, after ``cleanup()`` (the writer removes what the run
-    created).
+    Output passes through except the runtime's noise. Statuses 0, 2 (the worker's own
+    one-line error) and 130 pass on; anything else prints ``error: process I of N stopped:
+    REASON`` and returns 2, after ``cleanup()``.
     """
     stderr = stderr or sys.stderr
     env = {**os.environ, WORKER_ENV: "1"}
@@ -391,9 +362,9 @@ def _wait(child: subprocess.Popen) -> int:
 
 
 def _pump(source, sink, fatal: list[str] | None, said: list[str] | None = None) -> None:
-    """Copy a worker's output stream to ``sink`` line by line (``\r`` ends a line too),
-    through :func:`_route`; ``fatal`` None: only drop the runtime's noise; ``said`` collects
-    the worker's own ``error:`` lines."""
+    """Copy a worker's stream to ``sink`` line by line (``\r`` ends a line too)
+    through :func:`_route`.
+    """
     pending = b""
     while True:
         chunk = os.read(source.fileno(), 65536)
@@ -408,9 +379,9 @@ def _pump(source, sink, fatal: list[str] | None, said: list[str] | None = None) 
 
 
 def _route(line: str, fatal: list[str] | None, stderr, said: list[str] | None = None) -> None:
-    """Pass a worker's stderr ``line`` on, or keep it as the fatal message, or drop it. The
-    worker's own one-line error (``error: ...``) is always passed on (and kept in ``said``),
-    even after the runtime's fatal log began."""
+    """Pass a worker's stderr ``line`` on, keep it as the fatal message, or drop it;
+    ``error: ...`` lines always pass (and go to ``said``).
+    """
     if said is not None and line.startswith("error: "):
         said.append(line)
         stderr.write(line)

@@ -1,27 +1,13 @@
 """Data parallelism over a mesh of devices: views sharded, Gaussians and networks replicated.
 
-Two batched computations of a ProEdit run split over views:
-
-* the edit of a batch of views (:meth:`jaxedit.editors.jax_ip2p.JaxIP2PEditor.edit_many`:
-  the editor's own mesh), and
-* the training loss over a batch of views, :func:`views_step`: the mean photometric loss
-  of V views rendered from one replicated scene. With the images and cameras placed by
-  :func:`shard_views` and the train state by :func:`replicate`, ``jax.jit`` compiles one
-  SPMD program: every device renders and differentiates its views, and XLA all-reduces
-  the gradient (the mean over views) before the replicated Adam update.
-
-:func:`views_step` is the multi-view counterpart of :func:`jaxedit.train.apply_step`
-(same loss, background, SH schedule and optimiser) without density control and camera
-optimisation, whose statistics are per view; a step whose tile buffer overflowed in any
-view leaves the state as it was and says so (``overflow``), as the single-view step does.
-
-On several processes (:func:`jaxedit.parallel.distributed.initialize` first, one process per host
-or GPU) the same code runs unchanged with a mesh over ``jax.devices()``, the global device
-list: :func:`shard_views` of the same host data on every process places each process's
-views on its own devices (:func:`shard_local_views` when each process holds only its own),
-the gradient all-reduce crosses processes (gloo on CPUs, NCCL on GPUs, ICI on a TPU slice),
-and :func:`fetch` reads a result that is sharded across processes on every process
-(``tests/test_distributed.py`` runs it on 2 processes x 2 CPU devices).
+:func:`views_step` is the mean training loss of V views of one replicated scene: with
+images and cameras placed by :func:`shard_views` and the state by :func:`replicate`,
+``jax.jit`` compiles one SPMD program and XLA all-reduces the gradient. It is
+:func:`jaxedit.train.apply_step` for several views (same loss and optimiser), without
+density control and camera optimisation; an overflowed tile buffer in any view leaves the
+state unchanged (``overflow``). Over several processes
+(:func:`jaxedit.parallel.distributed.initialize`) the same code runs with a mesh over
+``jax.devices()``; :func:`shard_local_views` and :func:`fetch` handle per-process data.
 """
 
 from __future__ import annotations
@@ -83,9 +69,9 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
     """(loss, render output, gradient w.r.t. the trainable Gaussians) of V views.
 
     Args:
-      state: :class:`jaxedit.train.TrainState` (its Gaussians, config, tile buffer size).
+      state: :class:`jaxedit.train.TrainState`.
       images: float [V, H, W, 3] targets; cameras: batched Camera [V].
-      key: the step key (the background colour when it is random).
+      key: the step key (a random background's colour).
     """
     from ..train import active_sh_degree, background_color, sh_mask
     from ..train.state import params_of
@@ -105,10 +91,8 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
 
 
 def views_step(state, images: jax.Array, cameras, key: jax.Array):
-    """One optimiser step on the mean loss of V views: (state, {"loss", "overflow"}).
-
-    Shard ``images`` / ``cameras`` over a mesh and replicate ``state`` to run it data
-    parallel (module docstring); unsharded inputs give the one-device program.
+    """One optimiser step on the mean loss of V views: (state, {"loss", "overflow"});
+    sharded inputs and a replicated state run it data parallel.
     """
     from ..train import optimizer
     from ..train.state import params_of
