@@ -119,20 +119,31 @@ def bilinear_sample(image: np.ndarray, u: np.ndarray, v: np.ndarray, fill) -> np
     return np.where(inside[..., None], out, np.asarray(fill, out.dtype))
 
 
-def _source_coords(height: int, width: int, fx, fy, cx, cy, d: Distortion):
-    v, u = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
+def _source_coords(height: int, width: int, fx, fy, cx, cy, d: Distortion, rows=None):
+    """(u, v) float64 [R, W]: where undistorted pixels of rows ``rows`` (start, stop; all
+    by default) take their colour in the distorted image."""
+    r0, r1 = rows or (0, height)
+    v, u = np.meshgrid(np.arange(r0, r1) + 0.5, np.arange(width) + 0.5, indexing="ij")
     xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)
     with np.errstate(over="ignore", invalid="ignore"):  # absurd coefficients -> no source
         xy_d = distort_points(xy, d)
         return xy_d[..., 0] * fx + cx, xy_d[..., 1] * fy + cy
 
 
+#: Rows of the output computed at once by the remap builders (bounds their float64 temporaries).
+_ROWS = 64
+
+
 def source_inside(height: int, width: int, fx: float, fy: float, cx: float, cy: float,
                   d: Distortion) -> np.ndarray:
     """bool [H, W]: the undistorted pixels whose source lies in the captured H x W image
     (the rectangle [0, W] x [0, H], where :func:`bilinear_sample` does not fill)."""
-    us, vs = _source_coords(height, width, fx, fy, cx, cy, d)
-    return (us >= 0.0) & (us <= width) & (vs >= 0.0) & (vs <= height)
+    out = np.empty((height, width), bool)
+    for r in range(0, height, _ROWS):
+        us, vs = _source_coords(height, width, fx, fy, cx, cy, d, rows=(r, min(r + _ROWS,
+                                                                               height)))
+        out[r:r + _ROWS] = (us >= 0.0) & (us <= width) & (vs >= 0.0) & (vs <= height)
+    return out
 
 
 def valid_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
@@ -183,12 +194,8 @@ class Remap(NamedTuple):
     shape: tuple
 
 
-def remap_table(u: np.ndarray, v: np.ndarray, height: int, width: int) -> Remap:
-    """The :class:`Remap` of sampling a ``height`` x ``width`` image at pixel coordinates
-    ``u``, ``v`` float [H', W'] exactly as :func:`bilinear_sample` does (centres at
-    integer + 0.5, edge pixels clamped, outside the rectangle filled)."""
-    from scipy import sparse
-
+def _bilinear_rows(u, v, height: int, width: int):
+    """(columns int32 [M, 4], weights float32 [M, 4], inside bool [M]) of samples u, v."""
     inside = (u >= 0.0) & (u <= width) & (v >= 0.0) & (v <= height)
     x = np.clip(np.where(inside, u, 0.5) - 0.5, 0.0, width - 1).reshape(-1)
     y = np.clip(np.where(inside, v, 0.5) - 0.5, 0.0, height - 1).reshape(-1)
@@ -197,10 +204,26 @@ def remap_table(u: np.ndarray, v: np.ndarray, height: int, width: int) -> Remap:
     ax, ay = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
     columns = np.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], 1)
     weights = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], 1)
-    m = x.size
-    matrix = sparse.csr_matrix((weights.reshape(-1), columns.reshape(-1),
-                                np.arange(0, 4 * m + 1, 4)), shape=(m, height * width))
-    return Remap(matrix, inside.reshape(-1), (u.shape[0], u.shape[1], height, width))
+    return columns.astype(np.int32), weights, inside.reshape(-1)
+
+
+def _remap(parts, out_shape, height: int, width: int) -> Remap:
+    from scipy import sparse
+
+    columns = np.concatenate([p[0] for p in parts]).reshape(-1)
+    weights = np.concatenate([p[1] for p in parts]).reshape(-1)
+    inside = np.concatenate([p[2] for p in parts])
+    m = inside.size
+    matrix = sparse.csr_matrix((weights, columns, np.arange(0, 4 * m + 1, 4, dtype=np.int32)),
+                               shape=(m, height * width))
+    return Remap(matrix, inside, (out_shape[0], out_shape[1], height, width))
+
+
+def remap_table(u: np.ndarray, v: np.ndarray, height: int, width: int) -> Remap:
+    """The :class:`Remap` of sampling a ``height`` x ``width`` image at pixel coordinates
+    ``u``, ``v`` float [H', W'] exactly as :func:`bilinear_sample` does (centres at
+    integer + 0.5, edge pixels clamped, outside the rectangle filled)."""
+    return _remap([_bilinear_rows(u, v, height, width)], u.shape, height, width)
 
 
 def apply_remap(image: np.ndarray, table: Remap, fill) -> np.ndarray:
@@ -217,9 +240,12 @@ def apply_remap(image: np.ndarray, table: Remap, fill) -> np.ndarray:
 
 def undistortion_table(height: int, width: int, fx: float, fy: float, cx: float, cy: float,
                        d: Distortion) -> Remap:
-    """The :class:`Remap` of :func:`undistort_image` for a ``height`` x ``width`` camera."""
-    us, vs = _source_coords(height, width, fx, fy, cx, cy, d)
-    return remap_table(us, vs, height, width)
+    """The :class:`Remap` of :func:`undistort_image` for a ``height`` x ``width`` camera
+    (built a block of rows at a time: its temporaries stay small beside the table)."""
+    parts = [_bilinear_rows(*_source_coords(height, width, fx, fy, cx, cy, d,
+                                            rows=(r, min(r + _ROWS, height))), height, width)
+             for r in range(0, height, _ROWS)]
+    return _remap(parts, (height, width), height, width)
 
 
 def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: float,
