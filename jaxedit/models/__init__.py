@@ -1,14 +1,8 @@
-"""Stable Diffusion 1.x / InstructPix2Pix networks as equinox modules, loaded from diffusers
-folders without torch.
+"""Stable Diffusion 1.x / InstructPix2Pix networks as equinox modules, loaded without torch.
 
-- :class:`UNet2DCondition` (``unet.py``): eps(sample, timestep, text context), NHWC.
-- :class:`AutoencoderKL` (``vae.py``): ``encode`` -> (mean, logvar), ``decode``.
-- :class:`CLIPTextEncoder` and :class:`CLIPTokenizer` (``clip_text.py``).
-- :func:`load_ip2p` (``load.py``): a diffusers folder -> :class:`IP2PModels`; :func:`cast`.
-- :func:`set_query_chunk`: attention over query chunks (bounded memory at 512 px).
-
-Layers and their checkpoint names: ``layers.py``. Importing this package needs jax,
-equinox, numpy, safetensors and tokenizers only (tokenizers on first use).
+:class:`UNet2DCondition`, :class:`AutoencoderKL`, :class:`CLIPTextEncoder` and
+:class:`CLIPTokenizer`; :func:`load_ip2p` reads a diffusers folder into
+:class:`IP2PModels`; :func:`cast`; :func:`set_query_chunk` bounds attention memory.
 """
 
 from .clip_text import CLIPTextEncoder, CLIPTokenizer

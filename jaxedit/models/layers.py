@@ -1,17 +1,10 @@
 """The building blocks Stable Diffusion 1.x is made of, as equinox modules (NHWC).
 
-Every layer that holds parameters is a :class:`ParamLayer`: its fields are named as in
-diffusers / transformers (``weight``, ``bias``) and the modules that contain it use
-diffusers' attribute names, so the pytree path of a layer *is* the checkpoint name of its
-tensors (``down_blocks.0.resnets.1.conv1``). Each ParamLayer says how a checkpoint tensor
-maps onto its field (:meth:`ParamLayer.torch_layout`): convolutions are stored HWIO
-(checkpoints hold OIHW), linear layers [in, out] (checkpoints hold [out, in]).
-
-Precision: a layer computes in its weights' dtype (inputs are cast to it), so casting the
-parameters to bfloat16 makes the network run in bfloat16. GroupNorm / LayerNorm statistics
-and attention softmax are always computed in float32.
-
-Shapes: B batch, H/W spatial, C channels, L sequence length, D width.
+Every layer holding parameters is a :class:`ParamLayer` named as in diffusers, so a
+layer's pytree path is its tensors' checkpoint name (``down_blocks.0.resnets.1.conv1``);
+:meth:`ParamLayer.torch_layout` maps checkpoint tensors to fields (convolutions HWIO,
+linear [in, out]). A layer computes in its weights' dtype; norm statistics and attention
+softmax are float32. Shapes: B batch, H/W spatial, C channels, L sequence, D width.
 """
 
 from __future__ import annotations
@@ -41,15 +34,11 @@ def _standard_normal_flat(key, length: int, dtype):
 
 
 def standard_normal(key, shape: tuple[int, ...], dtype=jnp.float32) -> Array:
-    """``jax.random.normal(key, shape, dtype)``, from one compiled program per power-of-two
-    length instead of one per shape.
-
-    A network's random init draws tens of shapes, and each draw compiles the random bit
-    generator anew (about 1 s each on the CPU): Stable Diffusion 1.5's UNet has 49 shapes in 17
-    power-of-two lengths. With JAX's partitionable Threefry (``jax_threefry_partitionable``,
-    the default) element i of a draw depends on the key and i only, so the first
-    ``prod(shape)`` entries of a longer flat draw are the same bits, reshaped (without it, each
-    shape is drawn as it is)."""
+    """``jax.random.normal(key, shape, dtype)`` from one compiled program per
+    power-of-two length instead of one per shape (a network init draws tens of shapes). With
+    partitionable Threefry (the default) element i depends on the key and i only, so a
+    prefix of a longer flat draw has the same bits.
+    """
     if not jax.config.jax_threefry_partitionable:
         return jax.random.normal(key, shape, dtype)
     n = math.prod(shape)
@@ -118,9 +107,7 @@ class Linear(ParamLayer):
 
 
 #: Feature maps of at most this many positions are convolved as one matmul over their
-#: patches (:func:`_conv_as_matmul`). XLA:CPU's convolution takes 409 ms where torch takes
-#: 23 ms for a 3x3, 1280 -> 1280 channel conv of 3 maps of 2 x 2 (SD's lowest UNet level at
-#: 128 px); the patch matrix of so few positions costs nothing on any backend.
+#: patches (:func:`_conv_as_matmul`): XLA:CPU's convolution is slow on tiny maps.
 SMALL_CONV_POSITIONS = 16
 
 
@@ -243,12 +230,11 @@ class Embedding(ParamLayer):
 
 def attention(q: Array, k: Array, v: Array, *, causal: bool = False,
               query_chunk: int | None = None) -> Array:
-    """softmax(q k^T / sqrt(Dh)) v per head; logits and softmax in float32 whatever the dtype.
+    """softmax(q k^T / sqrt(Dh)) v per head; logits and softmax in float32.
 
-    q [B, L, N, Dh], k and v [B, S, N, Dh] -> [B, L, N, Dh]. ``query_chunk``: evaluate the
-    queries in chunks of this many (one after another), so the logits held at once are
-    [B, N, chunk, S] instead of [B, N, L, S] (SD's first level at 512 px: L = S = 4096). The
-    rows of a softmax are independent, so chunking changes nothing but memory."""
+    q [B, L, N, Dh], k and v [B, S, N, Dh] -> [B, L, N, Dh]. ``query_chunk``: queries in
+    chunks of this many, one after another, so logits are [B, N, chunk, S]; same results.
+    """
     length = q.shape[1]
     if query_chunk is None or query_chunk >= length or causal:
         return jax.nn.dot_product_attention(q, k, v, is_causal=causal)
@@ -262,12 +248,9 @@ def attention(q: Array, k: Array, v: Array, *, causal: bool = False,
 
 
 class Attention(eqx.Module):
-    """Multi-head attention as diffusers' ``Attention``.
-
-    Self-attention when ``context`` is None. ``group_norm`` (the VAE's mid-block attention)
-    normalises the input first; ``residual`` adds the input back (also the VAE's).
-    ``query_chunk`` bounds the logits' memory (see :func:`attention`,
-    :func:`set_query_chunk`).
+    """Multi-head attention as diffusers' ``Attention`` (self-attention when
+    ``context`` is None); ``group_norm`` and ``residual`` are the VAE's variant;
+    ``query_chunk`` as :func:`attention`.
     """
 
     to_q: Linear
@@ -359,12 +342,10 @@ class BasicTransformerBlock(eqx.Module):
 
 
 class Transformer2DModel(eqx.Module):
-    """GroupNorm, proj_in, transformer blocks over the H*W tokens, proj_out, plus the input.
-
-    ``proj_in`` / ``proj_out`` are 1x1 convolutions (SD 1.x) or linear layers
-    (``use_linear_projection``, SD 2.x); both are the same map on the channels. ``eps`` is
-    the blocks' LayerNorm epsilon (diffusers' Transformer2DModel ``norm_eps``, 1e-5: the
-    UNet's blocks never pass the UNet's own ``norm_eps`` to it); the GroupNorm's is 1e-6.
+    """GroupNorm, proj_in, transformer blocks over the H*W tokens, proj_out, plus
+    the input. ``proj_in`` / ``proj_out`` are 1x1 convolutions (SD 1.x) or linear
+    (``use_linear_projection``, SD 2.x); ``eps`` is the blocks' LayerNorm epsilon
+    (diffusers' default, not the UNet's ``norm_eps``).
     """
 
     norm: GroupNorm
@@ -484,11 +465,8 @@ class Upsample2D(eqx.Module):
 
 def timestep_embedding(timesteps: Array, dim: int, *, flip_sin_to_cos: bool = True,
                        freq_shift: float = 0.0, max_period: float = 10000.0) -> Array:
-    """Sinusoidal embedding of (possibly fractional) timesteps, as diffusers'
-    ``get_timestep_embedding``: frequencies exp(-ln(max_period) k / (dim/2 - freq_shift)),
-    [sin | cos] (or [cos | sin] with ``flip_sin_to_cos``), a zero column when ``dim`` is odd.
-
-    timesteps [B] -> [B, dim] float32.
+    """Sinusoidal embedding of timesteps [B] -> float32 [B, dim], as diffusers'
+    ``get_timestep_embedding`` (``flip_sin_to_cos``: [cos | sin]; odd ``dim``: a zero column).
     """
     half = dim // 2
     exponent = -math.log(max_period) * jnp.arange(half, dtype=jnp.float32) / (half - freq_shift)

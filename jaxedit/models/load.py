@@ -1,20 +1,14 @@
 """Reading diffusers-format weights straight into the equinox modules, without torch.
 
-A diffusers pipeline folder (what ``huggingface-cli download timbrooks/instruct-pix2pix``
-writes) holds ``model_index.json`` and one sub-folder per component; each network's
-``config.json`` says its architecture and its weights file holds tensors named by the torch
-module path. The modules here use the same attribute names, so a layer's pytree path is its
-tensors' name (:mod:`jaxedit.models.layers`); loading builds the module's skeleton from the
-config (shapes only, no random init), then fills every layer from the tensor of its name,
-converting torch's layout. A missing, unexpected or mis-shaped tensor is a one-line
-:class:`~jaxedit.errors.DataError` naming the file and the tensor(s).
+A diffusers folder holds ``model_index.json`` and one sub-folder per component, each with
+a ``config.json`` and tensors named by the torch module path. The modules use the same
+attribute names, so loading builds a shape-only skeleton from the config and fills every
+layer from the tensor of its name (:mod:`jaxedit.models.layers`). A missing, unexpected
+or mis-shaped tensor is a one-line :class:`~jaxedit.errors.DataError`.
 
-Weights files, per sub-folder, in order of preference: ``model.safetensors`` /
-``diffusion_pytorch_model.safetensors``, then their ``.fp16.safetensors`` variants
-(converted to the requested dtype), read by :func:`jaxedit.io.weights.read_safetensors`;
-then legacy torch ``.bin`` checkpoints (``diffusion_pytorch_model.bin``,
-``pytorch_model.bin``), read by a restricted unpickler that rebuilds tensors as NumPy
-arrays and refuses anything else (a pickle can run code).
+Weights files, in order of preference: ``model.safetensors`` /
+``diffusion_pytorch_model.safetensors``, their ``.fp16`` variants, then legacy torch
+``.bin`` checkpoints read by a restricted unpickler (a pickle can run code).
 """
 
 from __future__ import annotations
@@ -90,11 +84,9 @@ def read_config(path: Path) -> dict:
 
 # ----------------------------------------------------------------------------- config schemas
 
-#: Per network, the config entries that set its architecture: name -> (kind, least, most).
-#: kind "int" / "ints" (an int or a list of ints, one per block) / "float" / "bool" / "strs".
-#: The bounds hold every released Stable Diffusion 1.x / 2.x / XL network with room to spare;
-#: beyond them a config builds a network no machine holds (or that takes minutes to describe).
-#: Entries not listed are left to the builders; an entry absent takes the builder's default.
+#: Per network, the config entries that set its architecture: name -> (kind, least, most),
+#: kind "int" / "ints" (one per block) / "float" / "bool" / "strs". The bounds hold every
+#: released SD 1.x / 2.x / XL network; absent entries take the builder's default.
 CONFIG_SCHEMA = {
     "unet": {"block_out_channels": ("ints", 1, 16384), "layers_per_block": ("ints", 1, 16),
              "in_channels": ("int", 1, 1024), "out_channels": ("int", 1, 1024),
@@ -145,9 +137,8 @@ def _entry_problem(value, kind: str, low: float, high: float) -> str | None:
 
 
 def check_network_config(kind: str, config: dict, where) -> dict:
-    """``config`` (a network's config.json) with every entry of :data:`CONFIG_SCHEMA` of the
-    right type and in range, and consistent (channels divisible by the norm groups, the text
-    encoder's width by its heads), before anything is built from it.
+    """``config`` (a network's config.json) checked against :data:`CONFIG_SCHEMA`
+    (type, range) and for consistency (channels by norm groups, width by heads).
 
     Raises:
       DataError naming ``where`` and the entry.
@@ -179,8 +170,7 @@ def check_network_config(kind: str, config: dict, where) -> dict:
 
 
 #: scheduler_config.json's entries: name -> (kind, least, most), as :data:`CONFIG_SCHEMA`.
-#: The timestep count sets the length of every table of the schedule (and of the DDIM
-#: steps' tables), so it is bounded as a size is.
+#: The timestep count sizes every schedule table, so it is bounded as a size is.
 SCHEDULER_SCHEMA = {
     "num_train_timesteps": ("int", 1, 100_000), "beta_start": ("float", 0, 1),
     "beta_end": ("float", 0, 1), "beta_schedule": ("strs", 1, 1),
@@ -192,9 +182,8 @@ SCHEDULER_SCHEMA = {
 
 
 def check_scheduler_config(config: dict, where) -> dict:
-    """A scheduler config with every entry of :data:`SCHEDULER_SCHEMA` of the right type and
-    in range, beta_start <= beta_end, and ``trained_betas`` (when given) one value in (0, 1)
-    per timestep.
+    """A scheduler config checked against :data:`SCHEDULER_SCHEMA`, with
+    beta_start <= beta_end and ``trained_betas`` one value in (0, 1) per timestep.
 
     Raises:
       DataError naming ``where`` and the entry.
@@ -219,8 +208,7 @@ def check_scheduler_config(config: dict, where) -> dict:
 
 
 def read_scheduler_config(path: Path) -> dict:
-    """``scheduler_config.json``, read and checked (:func:`check_scheduler_config`): the one
-    reader of the file, whoever needs its schedule or its DDIM settings."""
+    """``scheduler_config.json``, read and checked (:func:`check_scheduler_config`)."""
     return check_scheduler_config(read_config(path), path)
 
 
@@ -229,9 +217,9 @@ def _per(value, n: int) -> list:
 
 
 def weight_bytes_at_least(kind: str, config: dict, itemsize: int) -> float:
-    """A lower bound of a checked config's weight bytes, from its largest layers alone (the
-    3x3 convolutions of its resnets; the text encoder's projections and embeddings), so that
-    a config whose weights cannot fit is refused before its network is described at all."""
+    """A lower bound of a checked config's weight bytes from its largest
+    layers, so a config that cannot fit is refused before its network is described.
+    """
     if kind == "text_encoder":
         d, layers = config.get("hidden_size", 768), config.get("num_hidden_layers", 12)
         inner = config.get("intermediate_size", 4 * d)
@@ -263,9 +251,9 @@ def weights_file(folder: Path) -> Path:
 
 
 def read_weights(path: Path) -> dict[str, np.ndarray]:
-    """All tensors of a ``.safetensors`` file, or of a torch ``.bin`` state_dict (read without
-    torch and without running code, :func:`jaxedit.io.weights.load_torch_checkpoint`), as
-    NumPy arrays."""
+    """All tensors of a ``.safetensors`` file or a torch ``.bin`` state_dict (no
+    torch, no code run: :func:`jaxedit.io.weights.load_torch_checkpoint`), as NumPy.
+    """
     if path.suffix == ".bin":
         return load_torch_checkpoint(path)
     return read_safetensors(path)[0]
@@ -310,13 +298,12 @@ def _listing(names: list[str], limit: int = 3) -> str:
 
 def module_from_tensors(skeleton, tensors: dict[str, np.ndarray], where: str | os.PathLike, *,
                         prefix: str = "", dtype=jnp.float32):
-    """``skeleton`` (a module, or its ``eqx.filter_eval_shape``) with every array from ``tensors``.
+    """``skeleton`` (a module or its ``eqx.filter_eval_shape``) filled from ``tensors``.
 
-    ``tensors``: checkpoint name -> array in torch layout; names start with ``prefix``.
+    ``tensors``: checkpoint name -> array in torch layout, names starting with ``prefix``.
     Raises DataError(where, ...) naming missing, unexpected or mis-shaped tensors.
     """
-    # transformers >= 5 saves CLIPTextModel without its "text_model." prefix: accept both, and
-    # name tensors in errors as this file does.
+    # transformers >= 5 saves CLIPTextModel without "text_model.": accept both.
     prefix = prefix if any(k.startswith(prefix) for k in tensors) else ""
     tensors = _modernise({k[len(prefix):] if k.startswith(prefix) else k: v
                           for k, v in tensors.items()})
@@ -335,9 +322,8 @@ def module_from_tensors(skeleton, tensors: dict[str, np.ndarray], where: str | o
             if array.shape != tuple(shape) and not squeezable:
                 wrong.append(f"{prefix + key!r} has shape {list(array.shape)}, expected {list(shape)}")
                 continue
-            # converted on the host (ml_dtypes rounds as XLA does) and copied by device_put:
-            # on the device each weight shape compiled a conversion of its own, and
-            # jnp.asarray of a NumPy array compiles a copy ("stage") per shape
+            # converted on the host (ml_dtypes rounds as XLA does) and copied by device_put: on the
+            # device each weight shape would compile a conversion of its own
             values[field] = jax.device_put(np.asarray(convert(np.asarray(array)), dtype=dtype))
         filled.append(dataclasses.replace(layer, **values) if values else layer)
     unexpected = sorted(prefix + k for k in tensors if k not in used and not _IGNORED.search(k))
@@ -355,11 +341,11 @@ def module_from_tensors(skeleton, tensors: dict[str, np.ndarray], where: str | o
 
 def load_module(folder: str | os.PathLike, build: Callable[..., Any], *, prefix: str = "",
                 dtype=jnp.float32, kind: str | None = None):
-    """A module from one component folder: ``build(config, key=..., dtype=...)`` gives its
-    architecture (only its shapes are evaluated), the weights file fills it. Its
-    config.json is checked first (:func:`check_network_config` for ``kind``, default the
-    folder's name: "unet", "vae" or "text_encoder"), and weights that cannot fit in the free
-    memory are refused before any is read."""
+    """A module from one component folder: ``build(config, key=..., dtype=...)``
+    gives its shapes, the weights file fills it. The config is checked first
+    (:func:`check_network_config`; ``kind`` defaults to the folder's name) and weights that
+    cannot fit in free memory are refused before any is read.
+    """
     from ..memory import require_memory
 
     folder = Path(folder)
@@ -437,10 +423,9 @@ class IP2PModels(eqx.Module):
 
 
 def load_ip2p(folder: str | os.PathLike, *, dtype=jnp.float32) -> IP2PModels:
-    """An InstructPix2Pix (or any SD 1.x) diffusers folder -> :class:`IP2PModels` in ``dtype``.
-
-    Each tensor is converted to ``dtype`` as it is read (as :func:`cast` would), so a bf16
-    load never holds the float32 networks."""
+    """An InstructPix2Pix (or any SD 1.x) diffusers folder -> :class:`IP2PModels` in ``dtype``,
+    each tensor converted as read (a bf16 load never holds float32 networks).
+    """
     from .unet import UNet2DCondition
     from .vae import AutoencoderKL
 
@@ -459,8 +444,9 @@ def load_ip2p(folder: str | os.PathLike, *, dtype=jnp.float32) -> IP2PModels:
 
 
 def check_tokenizer_fits(tokenizer: CLIPTokenizer, text_encoder, where) -> None:
-    """Refuse a tokenizer whose ids or length the text encoder has no rows for (JAX would
-    clamp the out-of-range lookups silently: wrong embeddings, no error)."""
+    """Refuse a tokenizer whose ids or length the text encoder has no rows for
+    (JAX would clamp the lookups silently).
+    """
     rows = text_encoder.embeddings.token_embedding.weight.shape[0]
     positions = text_encoder.embeddings.position_embedding.weight.shape[0]
     vocab = tokenizer._tokenizer.get_vocab_size()
@@ -472,12 +458,10 @@ def check_tokenizer_fits(tokenizer: CLIPTokenizer, text_encoder, where) -> None:
 
 
 def cast(models, dtype):
-    """Every floating array of ``models`` (any pytree) cast to ``dtype`` (e.g. jnp.bfloat16).
-
-    The layers compute in their weights' dtype; normalisation statistics and the attention
-    softmax stay in float32 whatever it is (see :mod:`jaxedit.models.layers`). One compiled
-    program for the whole tree: cast leaf by leaf, each weight shape compiled a conversion of
-    its own (a hundred for the small test networks, more for SD 1.5)."""
+    """Every floating array of ``models`` (any pytree) cast to ``dtype``, in one compiled
+    program (leaf by leaf, each shape would compile its own conversion). Norm statistics and
+    softmax stay float32 (:mod:`jaxedit.models.layers`).
+    """
     arrays, rest = eqx.partition(models, eqx.is_array)
     return eqx.combine(_cast_floating(arrays, jnp.dtype(dtype)), rest)
 

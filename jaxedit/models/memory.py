@@ -1,19 +1,11 @@
 """Memory of the networks without holding them: parameter bytes of abstract modules and
 XLA's compiled memory analysis of a function of them.
 
-:func:`abstract` builds a network's skeleton (``eqx.filter_eval_shape`` of its
-``from_config``: shapes and dtypes, no weights allocated), so Stable Diffusion 1.5's
-860 M-parameter UNet costs nothing to describe. :func:`param_bytes` counts what its
-weights take in any dtype; :func:`compiled_memory` compiles a function of abstract
-arguments (modules, ``jax.ShapeDtypeStruct``) for the default backend and returns what
-XLA's buffer assignment says it needs: arguments, outputs, aliased (donated) bytes and
-temporaries. These are the compiler's figures for *that* backend (XLA:CPU's buffer
-assignment and fusion differ from XLA:GPU's, and a GPU allocator adds fragmentation),
-so on a CPU they are an estimate of a GPU's.
-
-:data:`SD15_UNET_IP2P`, :data:`SD15_VAE` and :data:`CLIP_L14_TEXT` are the
-configurations timbrooks/instruct-pix2pix ships (Stable Diffusion 1.5 with an
-8-channel UNet input).
+:func:`abstract` builds a shape-only skeleton (``eqx.filter_eval_shape``), so SD 1.5's
+UNet costs nothing to describe; :func:`param_bytes` counts its weights in any dtype;
+:func:`compiled_memory` returns XLA's buffer assignment for the default backend (on a
+CPU only an estimate of a GPU's). :data:`SD15_UNET_IP2P`, :data:`SD15_VAE` and
+:data:`CLIP_L14_TEXT` are timbrooks/instruct-pix2pix's configurations.
 """
 
 from __future__ import annotations
@@ -95,14 +87,10 @@ def param_bytes(tree, dtype=None) -> int:
 def compiled_memory(fn: Callable, *args, donate: Sequence[int] = ()) -> dict:
     """XLA's memory analysis of ``fn(*args)`` compiled for the default backend.
 
-    ``args``: pytrees (equinox modules included) whose array leaves may be abstract
-    (``jax.ShapeDtypeStruct``); their other leaves are static. ``donate``: positions of the
-    arguments whose buffers are donated (the output may reuse them).
-
-    Returns bytes: ``argument``, ``output``, ``alias`` (output bytes living in donated
-    argument buffers), ``temp`` (the compiled program's temporaries) and ``peak`` =
-    argument + output - alias + temp (what the call holds at most while it runs, the
-    arguments included), plus ``compile_s``.
+    ``args``: pytrees whose array leaves may be ``jax.ShapeDtypeStruct`` (other leaves
+    static); ``donate``: positions of donated arguments. Returns bytes ``argument``,
+    ``output``, ``alias`` (output in donated buffers), ``temp``, ``peak`` = argument +
+    output - alias + temp, and ``compile_s``.
     """
     import time
 
