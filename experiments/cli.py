@@ -46,7 +46,7 @@ from pathlib import Path
 from .flags import (COMMA_READERS, GIVEN, TYPE_READERS, Flag, FlagSet, as_flags, comma_list,  # noqa: F401
                     finite_float, flag_names)
 
-COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "bench",
+COMMANDS = ["demo", "make-scene", "reconstruct", "edit", "ablation", "render", "export", "bench",
             "report", "convert-lpips", "clip-metrics", "view", "process-data", "train-editor"]
 
 

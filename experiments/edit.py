@@ -75,7 +75,7 @@ class EditCommand:
       print_config: print the config tree this command would run (JSON, the nested keys
         --config reads) and exit.
       data: nerfstudio dataset folder (the scene's photos).
-      scene: input 3DGS .ply (a reconstruction of --data).
+      scene: input splat file, any format load_scene reads (a reconstruction of --data).
       prompt: the editing instruction.
       select: subtask index (int) or ratio (float) to export as selected.ply.
       select_only: only (re)select a snapshot of the finished run in --out.

@@ -32,7 +32,7 @@ class RenderConfig:
     """What is rendered, along which cameras, and how.
 
     Attributes:
-      scene: 3DGS .ply file to render.
+      scene: splat file to render (.ply, .compressed.ply, .spz, .sog, meta.json, .splat).
       data: nerfstudio dataset (folder or transforms.json) whose cameras to use.
       orbit: an orbit of N frames around the scene (the default path: 36 frames).
       camera_path: nerfstudio viewer camera path JSON (camera_path.json) to follow.
@@ -100,7 +100,7 @@ def _check(args) -> None:
     if args.out is None:
         raise DataError("--out", "an output directory is required")
     if not args.scene.is_file():
-        raise DataError(args.scene, "is a folder, expected a scene .ply file (given as --scene)"
+        raise DataError(args.scene, "is a folder, expected a scene file (given as --scene)"
                         if args.scene.is_dir() else "scene file does not exist")
     run_config(args)  # the ranges
     if args.data is None and args.split != "all":
@@ -162,13 +162,13 @@ def cameras_for(args, gaussians):
 def run(args) -> dict:
     from experiments.progress import Progress, configure
     from jaxedit import camera as camlib, viz
-    from jaxedit.io import load_ply, write_image
+    from jaxedit.io import load_scene, write_image
     from jaxedit.io.files import atomic_write_text
 
     _check(args)
     configure(quiet=args.quiet)
     t0 = time.perf_counter()
-    gaussians = load_ply(args.scene)
+    gaussians = load_scene(args.scene)
     cams, path_fps = cameras_for(args, gaussians)
     camlib.check_cameras(cams, args.camera_path or args.data or "--orbit/--radius/--fov/--target")
     fps = args.fps or path_fps or 12.0

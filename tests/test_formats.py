@@ -342,6 +342,7 @@ def raw_columns(s: Splats) -> dict[str, np.ndarray]:
             **{f"f_rest_{i}": rest[:, i] for i in range(rest.shape[1])}}
 
 
+@pytest.mark.slow  # starts node a few times; CI runs the slow tier every time
 @needs_st
 @pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog", "splat"])
 def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
@@ -373,6 +374,7 @@ def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
     assert rotation_error(np.asarray(back.quats), ours.quats) < (1e-3 if fmt == "splat" else 1e-6)
 
 
+@pytest.mark.slow  # starts node a few times; CI runs the slow tier every time
 @needs_st
 @pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog"])
 def test_we_read_splat_transforms_files_as_it_does(tmp_path, fmt):
@@ -388,3 +390,54 @@ def test_we_read_splat_transforms_files_as_it_does(tmp_path, fmt):
     np.testing.assert_allclose(np.asarray(ours.sh), np.asarray(ref.sh), atol=1e-5)
     np.testing.assert_allclose(sigmoid(ours.opacity_logits), sigmoid(ref.opacity_logits), atol=1e-5)
     assert rotation_error(np.asarray(ours.quats), np.asarray(ref.quats)) < 1e-6
+
+
+# --- the export command --------------------------------------------------------------
+
+
+def _edit_run(tmp_path):
+    """A folder laid out as an edit run: schedule.json listing two subtasks' snapshots."""
+    run = tmp_path / "run"
+    subtasks = []
+    for index, ratio in enumerate((0.5, 1.0)):
+        rel = f"subtasks/{index:02d}_r{ratio:.3f}/scene.ply"
+        save_ply(run / rel, to_gaussians(make_splats(n=100 + index, degree=1, seed=index)))
+        subtasks.append({"index": index, "name": f"s{index}", "ratio": ratio, "snapshot": rel})
+    (run / "schedule.json").write_text(json.dumps({"subtasks": subtasks}))
+    return run
+
+
+def test_export_command_converts_files_and_run_snapshots(tmp_path, capsys):
+    from experiments.cli import main
+
+    run = _edit_run(tmp_path)
+    assert main(["export", str(run), "--select", "1", "--output", str(tmp_path / "a.spz")]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["gaussians"] == 101 and result["format"] == "spz"
+    assert not (run / "selected.ply").exists()  # the run is only read
+    assert load_scene(tmp_path / "a.spz").capacity == 101
+    assert main(["export", str(tmp_path / "a.spz"), "--output", str(tmp_path / "b" / "meta.json")]) == 0
+    assert load_scene(tmp_path / "b" / "meta.json").capacity == 101
+    assert main(["export", str(run), "--select", "0.5", "--output", str(tmp_path / "c.ply"),
+                 "--format", "compressed-ply"]) == 0
+    assert scene_format(tmp_path / "c.ply") == "compressed-ply"
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["{run}", "--output", "{tmp}/x.spz"], "without selected.ply: give --select"),
+    (["{run}", "--select", "7", "--output", "{tmp}/x.spz"], "no finished subtask 7"),
+    (["{tmp}/missing.spz", "--output", "{tmp}/x.spz"], "missing.spz"),
+    (["{run}/schedule.json", "--output", "{tmp}/x.spz"], "unsupported SOG version None"),
+    (["{run}", "--select", "0", "--output", "{tmp}/x.obj"], "unknown splat file extension"),
+    (["{bad}", "--output", "{tmp}/x.ply"], "not an SPZ file"),
+])
+def test_export_command_answers_bad_input_in_one_line(tmp_path, capsys, argv, message):
+    from experiments.cli import main
+
+    run = _edit_run(tmp_path)
+    bad = _write(tmp_path, "bad.spz", b"\0" * 64)
+    args = [a.format(run=run, tmp=tmp_path, bad=bad) for a in argv]
+    assert main(["export", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and message in err and "\n" not in err
+    assert not (tmp_path / "x.spz").exists() and not (tmp_path / "x.ply").exists()

@@ -44,7 +44,7 @@ from ..edit.plan import ProEditConfig, SubtaskSpec
 from ..edit.trainer import TrainSettings
 from ..errors import DataError, check_ranges, ranged
 from ..editors.diffusion import DDIM_STEPS
-from ..io import load_nerfstudio, load_ply
+from ..io import load_nerfstudio, load_ply, load_scene
 from ..io.files import atomic_write_text
 from .report import write_report
 from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
@@ -153,13 +153,14 @@ class EditRunConfig:
 
 
 def load_inputs(config: EditRunConfig, data_path, scene_path) -> tuple[EditData, object]:
-    """(EditData, input Gaussians) of the nerfstudio dataset ``data_path`` and the 3DGS
-    .ply ``scene_path``, read as ``config`` says (downscale, at most ``test_views``)."""
+    """(EditData, input Gaussians) of the nerfstudio dataset ``data_path`` and the splat file
+    ``scene_path`` (any format :func:`jaxedit.io.load_scene` reads), read as ``config`` says
+    (downscale, at most ``test_views``)."""
     from .reconstruct import check_image_size
 
     dataset = load_nerfstudio(data_path, downscale=config.downscale)
     check_image_size(dataset, data_path)
-    scene = load_ply(scene_path)
+    scene = load_scene(scene_path)
     if not np.asarray(scene.alive).any():
         raise DataError(scene_path, "has no Gaussians (zero vertices): nothing to edit")
     data = EditData.from_dataset(dataset)

@@ -111,9 +111,27 @@ def snapshot_ratio(directory: Path) -> float:
 def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
     """Make ``run_dir/selected.ply`` the snapshot of a subtask, chosen by ratio or index.
 
+    ``which``: as in :func:`find_snapshot`. Also writes ``selected.json``. Returns the path.
+    """
+    run_dir = Path(run_dir)
+    chosen, src = find_snapshot(run_dir, which)
+    dst = run_dir / "selected.ply"
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+    atomic_write_text(run_dir / "selected.json",
+                      json.dumps({"index": chosen["index"], "name": chosen["name"],
+                                  "ratio": chosen["ratio"], "snapshot": chosen["snapshot"]},
+                                 indent=2) + "\n")
+    return dst
+
+
+def find_snapshot(run_dir: str | os.PathLike, which) -> tuple[dict, Path]:
+    """(schedule.json's entry, scene.ply path) of an edit run's subtask, by ratio or index;
+    reads only.
+
     ``which``: an int (subtask index, negative counts from the end) or a float
     ratio (the last subtask with the nearest ratio; a string is parsed: "2" is
-    an index, "0.5" a ratio). Also writes ``selected.json``. Returns the path.
+    an index, "0.5" a ratio).
     """
     run_dir = Path(run_dir)
     path = run_dir / "schedule.json"
@@ -146,11 +164,4 @@ def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
     src = run_dir / chosen["snapshot"]
     if not src.is_file():
         raise DataError(src, f"snapshot of subtask {chosen['index']} is missing (listed in {path})")
-    dst = run_dir / "selected.ply"
-    with atomic_path(dst) as tmp:
-        shutil.copyfile(src, tmp)
-    atomic_write_text(run_dir / "selected.json",
-                      json.dumps({"index": chosen["index"], "name": chosen["name"],
-                                  "ratio": chosen["ratio"], "snapshot": chosen["snapshot"]},
-                                 indent=2) + "\n")
-    return dst
+    return chosen, src

@@ -1,0 +1,60 @@
+"""``export``: write a scene in the format a viewer or another tool reads.
+
+    python -m experiments export SCENE --output FILE            # any format to any format
+    python -m experiments export RUN_DIR --select 2 --output FILE.spz
+    python -m experiments export RUN_DIR --output FILE.sog      # the run's selected.ply
+
+SCENE is a splat file of any format :func:`jaxedit.io.load_scene` reads (INRIA or compressed
+.ply, .spz, .sog, meta.json, .splat); RUN_DIR an edit run, whose subtask ``--select`` picks (an
+index or a ratio, as ``edit --select``; the run is only read) or, without it, its
+``selected.ply``. The format is FILE's extension (``.compressed.ply``, ``.spz``, ``.sog``,
+``meta.json``, ``.splat``, ``.ply``) unless ``--format`` says. ``--out`` is not used: the file
+is the output.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+HELP = "write a scene or an edit run's snapshot as .ply, .compressed.ply, .spz, .sog or .splat"
+
+
+def add_arguments(p) -> None:
+    from jaxedit.io import FORMATS
+
+    p.add_argument("source", type=Path, help="a splat file, or an edit run directory")
+    p.add_argument("--output", type=Path, required=True,
+                   help="the file to write; its extension picks the format")
+    p.add_argument("--select", default=None,
+                   help="with RUN_DIR: the subtask (index or ratio) to export")
+    p.add_argument("--format", default=None, choices=FORMATS,
+                   help="the format, whatever --output's extension")
+
+
+def source_scene(source: Path, select: str | None) -> Path:
+    """The splat file that ``source`` and ``--select`` name."""
+    from jaxedit import DataError
+    from jaxedit.pipelines.snapshots import find_snapshot
+
+    if source.is_dir():
+        if select is not None:
+            return find_snapshot(source, select)[1]
+        if not (source / "selected.ply").is_file():
+            raise DataError(source, "a folder without selected.ply: give --select K (a subtask "
+                                    "index or ratio), or a scene file")
+        return source / "selected.ply"
+    if select is not None:
+        raise DataError("--select", "only applies when the source is an edit run directory")
+    return source
+
+
+def run(args) -> dict:
+    from jaxedit.io import load_scene, save_scene
+    from jaxedit.io.formats import format_from_name
+
+    scene_file = source_scene(args.source, args.select)
+    fmt = args.format or format_from_name(args.output)  # a bad extension: before any reading
+    gaussians = load_scene(scene_file)
+    path = save_scene(args.output, gaussians, format=fmt)
+    return {"source": str(scene_file), "output": str(path), "format": fmt,
+            "gaussians": int(gaussians.alive.sum()), "bytes": path.stat().st_size}
