@@ -67,9 +67,11 @@ def from_gaussians(g: Gaussians, where: str | os.PathLike = "gaussians") -> Spla
     quaternion: no format can store those faithfully, so nothing is written.
     """
     alive = np.asarray(g.alive, bool)
-    s = Splats(np.asarray(g.means, np.float32)[alive], np.asarray(g.log_scales, np.float32)[alive],
-               np.asarray(g.quats, np.float32)[alive],
-               np.asarray(g.opacity_logits, np.float32)[alive], np.asarray(g.sh, np.float32)[alive])
+    fields = (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)
+    if alive.all():  # the usual case: views of the arrays, no copy
+        s = Splats(*(np.asarray(a, np.float32) for a in fields))
+    else:
+        s = Splats(*(np.asarray(a, np.float32)[alive] for a in fields))
     if s.sh.shape[1] not in (1, 4, 9, 16):
         raise DataError(where, f"{s.sh.shape[1]} SH coefficients is not (d+1)^2 for d in 0..3")
     check_splats(where, s, "alive Gaussian")
@@ -182,14 +184,22 @@ def morton_order(means: np.ndarray, bits: int = 10) -> np.ndarray:
     Each axis is quantised to ``bits`` bits over [min, max] and the bits interleaved (x lowest),
     so that splats close in space land close in the file: what the chunked formats compress.
     """
-    means = np.asarray(means, np.float64)
+    means = np.asarray(means, np.float32)
     if len(means) == 0:
         return np.zeros((0,), np.int64)
     lo, hi = means.min(0), means.max(0)
-    extent = np.where(hi - lo > 0, hi - lo, 1.0)
-    cells = np.clip(((means - lo) / extent * ((1 << bits) - 1)).astype(np.int64), 0, (1 << bits) - 1)
-    code = np.zeros(len(means), np.int64)
-    for b in range(bits):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> b) & 1) << (3 * b + axis)
+    extent = np.where(hi - lo > 0, hi - lo, 1.0).astype(np.float32)
+    top = (1 << bits) - 1
+    code = np.zeros(len(means), np.uint32 if bits <= 10 else np.uint64)
+    for axis in range(3):
+        v = np.clip((means[:, axis] - lo[axis]) / extent[axis] * top, 0, top).astype(code.dtype)
+        code |= _spread_bits(v, bits) << axis
     return np.argsort(code, kind="stable")
+
+
+def _spread_bits(v: np.ndarray, bits: int) -> np.ndarray:
+    """``v`` with bit b moved to bit 3b (the Morton interleave of one axis)."""
+    out = np.zeros_like(v)
+    for b in range(bits):
+        out |= ((v >> b) & 1) << (3 * b)
+    return out

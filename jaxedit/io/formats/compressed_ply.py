@@ -42,6 +42,8 @@ _CHUNK_FIELDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
 _VERTEX_FIELDS = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
 _REST_DEGREE = {0: 0, 9: 1, 24: 2, 45: 3}
 _SQRT1_2 = math.sqrt(0.5)
+#: The value of each SH byte: 0 and 255 are the ends of [-4, 4], the others bucket centres.
+_SH_TABLE = ((np.concatenate([[0.0], (np.arange(1, 255) + 0.5) / 256, [1.0]]) - 0.5) * 8).astype(np.float32)
 
 
 def is_compressed_ply(data: bytes) -> bool:
@@ -56,14 +58,15 @@ def is_compressed_ply(data: bytes) -> bool:
 
 def _unorm(v: np.ndarray, bits: int) -> np.ndarray:
     top = (1 << bits) - 1
-    return np.clip(np.floor(v * top + 0.5), 0, top).astype(np.uint32)
+    return np.clip(v * np.float32(top) + np.float32(0.5), 0, top).astype(np.uint32)  # floor: >= 0
 
 
 def _normalise(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(x - lo) / (hi - lo) in [0, 1] per chunk; a chunk narrower than 1e-5 maps to 0."""
     span = hi - lo
-    t = np.where(span < 1e-5, 0.0, (x - lo) / np.where(span < 1e-5, 1.0, span))
-    return np.clip(t, 0.0, 1.0)
+    narrow = span < 1e-5
+    t = (x - lo) / np.where(narrow, np.float32(1), span)
+    return np.clip(np.where(narrow, np.float32(0), t), 0, 1)
 
 
 def _pack_111011(t: np.ndarray) -> np.ndarray:
@@ -72,40 +75,43 @@ def _pack_111011(t: np.ndarray) -> np.ndarray:
 
 def encode(s: Splats) -> bytes:
     """The compressed .ply bytes of ``s`` (Morton-ordered; finite values, non-zero quats)."""
-    n = s.count
-    s = s.take(morton_order(s.means))
-    chunks = max(1, math.ceil(n / CHUNK)) if n else 0
-    pad = np.minimum(np.arange(chunks * CHUNK), max(n - 1, 0))  # repeat the last splat
+    n, k = s.count, s.sh.shape[1]
+    order = morton_order(s.means)
+    # SH bytes first, then ordered: a byte a value moves less memory than a float
+    # trunc((v/8 + 0.5) * 256) = floor(32 v + 128) once clipped to [0, 255]
+    rest = s.sh[:, 1:, :] * np.float32(32)
+    rest += np.float32(128)
+    sh_bytes = np.clip(rest, 0, 255, out=rest).astype(np.uint8)
+    sh_bytes = sh_bytes.transpose(0, 2, 1).reshape(n, 3 * (k - 1))[order]  # channel-major f_rest
+    chunks = math.ceil(n / CHUNK)
+    pad = order[np.minimum(np.arange(chunks * CHUNK), max(n - 1, 0))]  # repeat the last splat
 
-    def chunked(a):  # [N, ...] -> [C, 256, ...] float64
-        return np.asarray(a, np.float64)[pad].reshape((chunks, CHUNK) + a.shape[1:])
+    def chunked(a):  # [N, ...] -> [C, 256, ...], Morton-ordered
+        return a[pad].reshape((chunks, CHUNK) + a.shape[1:])
 
     pos, scl = chunked(s.means), chunked(s.log_scales)
-    rgb = chunked(s.sh[:, 0, :]) * C0 + 0.5
+    rgb = chunked(s.sh[:, 0, :]) * np.float32(C0) + np.float32(0.5)
     p_lo, p_hi = pos.min(1, keepdims=True), pos.max(1, keepdims=True)
     s_lo = np.clip(scl.min(1, keepdims=True), -20, 20)
     s_hi = np.clip(scl.max(1, keepdims=True), -20, 20)
     c_lo, c_hi = rgb.min(1, keepdims=True), rgb.max(1, keepdims=True)
 
-    q_index, q = largest_component(unit_quats(chunked(s.quats).reshape(-1, 4)))
+    q_index, q = largest_component(unit_quats(s.quats[order]))
     keep = np.ones(q.shape, bool)
-    keep[np.arange(len(q)), q_index] = False
+    keep[np.arange(n), q_index] = False
     three = _unorm(q[keep].reshape(-1, 3) * _SQRT1_2 + 0.5, 10)
     rotation = (q_index.astype(np.uint32) << 30) | (three[:, 0] << 20) | (three[:, 1] << 10) | three[:, 2]
-    alpha = _unorm(sigmoid(chunked(s.opacity_logits)), 8)
-    colour = _normalise(rgb, c_lo, c_hi)
+    alpha = _unorm(sigmoid(s.opacity_logits[order]), 8)
+    colour = _normalise(rgb, c_lo, c_hi).reshape(-1, 3)[:n]
     packed = np.stack([
-        _pack_111011(_normalise(pos, p_lo, p_hi)).reshape(-1),
+        _pack_111011(_normalise(pos, p_lo, p_hi)).reshape(-1)[:n],
         rotation,
-        _pack_111011(_normalise(scl, s_lo, s_hi)).reshape(-1),
-        ((_unorm(colour[..., 0], 8) << 24) | (_unorm(colour[..., 1], 8) << 16)
-         | (_unorm(colour[..., 2], 8) << 8) | alpha).reshape(-1),
-    ], axis=1).astype("<u4")[:n]
+        _pack_111011(_normalise(scl, s_lo, s_hi)).reshape(-1)[:n],
+        (_unorm(colour[:, 0], 8) << 24) | (_unorm(colour[:, 1], 8) << 16)
+        | (_unorm(colour[:, 2], 8) << 8) | alpha,
+    ], axis=1).astype("<u4")
     bounds = np.concatenate([p_lo, p_hi, s_lo, s_hi, c_lo, c_hi], axis=2).reshape(chunks, 18)
 
-    k = s.sh.shape[1]
-    rest = s.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))  # channel-major f_rest
-    sh_bytes = np.clip(np.trunc((rest.astype(np.float64) / 8 + 0.5) * 256), 0, 255).astype(np.uint8)
     header = ["ply", "format binary_little_endian 1.0", "comment written by jaxedit",
               f"element chunk {chunks}", *[f"property float {f}" for f in _CHUNK_FIELDS],
               f"element vertex {n}", *[f"property uint {f}" for f in _VERTEX_FIELDS]]
@@ -200,8 +206,7 @@ def decode(data: bytes, where: str | os.PathLike = "compressed ply") -> Splats:
     if n_rest:
         b = tables["sh"].view(np.uint8).reshape(n, -1)[:, [sh_el.properties.index(p) for p in
                                                           sh_el.properties if p.name.startswith("f_rest_")]]
-        nrm = np.where(b == 0, 0.0, np.where(b == 255, 1.0, (b.astype(np.float32) + 0.5) / 256))
-        sh[:, 1:, :] = ((nrm - 0.5) * 8).astype(np.float32).reshape(n, 3, k - 1).transpose(0, 2, 1)
+        sh[:, 1:, :] = _SH_TABLE[b].reshape(n, 3, k - 1).transpose(0, 2, 1)
     s = Splats(means.astype(np.float32), log_scales.astype(np.float32), quats,
                opacity, sh)
     check_splats(where, s)
