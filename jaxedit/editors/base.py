@@ -1,26 +1,15 @@
 """The Editor protocol every 2D instruction editor implements.
 
-An editor turns a text instruction into an embedding (``encode``) and edits one
-view given an embedding (``edit``). The framework, not the editor, forms the
-ProEdit subtask embedding e(r) = r E(p) + (1 - r) E("") with
-:func:`interpolate_embedding`; ``encode("")`` is the null embedding E("").
+An editor turns a text instruction into an embedding (``encode``; ``encode("")`` is
+E("")) and edits one view given an embedding (``edit``); the framework forms ProEdit's
+e(r) = r E(p) + (1 - r) E("") (:func:`interpolate_embedding`). Images are float32
+[H, W, 3] in [0, 1]: ``image`` the current render, ``original`` the photo.
+``timestep_range`` is (t_min, t_max) as fractions of the schedule; ``guidance`` is
+(text, image), None for the editor's own (:func:`editor_guidance`).
 
-Images are float32 arrays [H, W, 3] in [0, 1] (NumPy or JAX). ``image`` is the
-current render of a view, ``original`` the original photo of that view (IP2P
-conditions on it). ``timestep_range`` is (t_min, t_max) as fractions of the
-diffusion schedule in [0, 1] (the paper: 0.45-0.85, annealed by the driver);
-``guidance`` is (text_scale, image_scale), None for the editor's own (its ``guidance``
-attribute: what its weights folder recommends, InstructPix2Pix's 7.5, 1.5 by default;
-:func:`editor_guidance`).
-
-An editor that can edit several views in one call (the JAX InstructPix2Pix) also has
-``edit_many(images, originals, embeddings, keys, ...)`` and ``batch``, its most views per
-call; :func:`edit_views` uses it wherever several views are due at once, and makes
-``calls_side_by_side`` of its calls at once when the editor has that attribute.
-
-Local edits (issue 35) ask an editor where an instruction acts: ``relevance(image,
-original, embedding, key, ...)`` -> float32 [H, W] mask in [0, 1]; :func:`relevance`
-calls it (the JAX InstructPix2Pix has it as a method: one batched UNet call).
+Optional: ``edit_many`` with ``batch`` (several views per call, used by
+:func:`edit_views`), ``calls_side_by_side``, and ``relevance`` (float32 [H, W] mask in
+[0, 1]; :func:`relevance`) for local edits.
 """
 
 from __future__ import annotations
@@ -42,21 +31,22 @@ class Editor(Protocol):
     name: str
 
     def encode(self, prompt: str) -> Any:
-        """Embedding E(prompt): an array (the simulated editor's is small, IP2P's is [77, 768])."""
+        """Embedding E(prompt), an array (IP2P's is [77, 768])."""
         ...
 
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
              guidance: tuple[float, float] | None = None) -> np.ndarray | jax.Array:
-        """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key`` (NumPy, or a
-        JAX array on the editor's device: the JAX editor's result stays on the device)."""
+        """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key`` (NumPy,
+        or a JAX array on the editor's device).
+        """
         ...
 
 
 def editor_guidance(editor, guidance: tuple[float, float] | None = None) -> tuple[float, float]:
-    """``guidance`` as (text, image) floats, or where None the editor's own: its ``guidance``
-    attribute (the bundled editor's folder recommends 2, 1.5: :func:`jaxedit.editors.bundled.
-    recommended_guidance`), else InstructPix2Pix's 7.5, 1.5."""
+    """``guidance`` as (text, image) floats, or where None the editor's
+    ``guidance`` attribute, else :data:`jaxedit.editors.diffusion.IP2P_GUIDANCE`.
+    """
     if guidance is None:
         guidance = getattr(editor, "guidance", IP2P_GUIDANCE)
     return check_guidance(guidance)
@@ -65,11 +55,8 @@ def editor_guidance(editor, guidance: tuple[float, float] | None = None) -> tupl
 def relevance(editor, image, original, embedding, key: jax.Array, *,
               timestep_range: tuple[float, float] = (0.02, 0.98),
               guidance: tuple[float, float] | None = None):
-    """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant).
-
-    ``editor.relevance`` (the JAX InstructPix2Pix's is
-    :meth:`jaxedit.editors.jax_ip2p.JaxIP2PEditor.relevance`). An editor without one is a
-    DataError (``--local auto`` needs it; ``--region`` / ``--masks`` do not).
+    """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant),
+    by ``editor.relevance``; DataError for an editor without one.
     """
     fn = getattr(editor, "relevance", None)
     if fn is None:
@@ -82,12 +69,10 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
 
 def warm_up(editor, height: int, width: int, key: jax.Array, *, views: int = 1,
             guidance: tuple[float, float] | None = None) -> None:
-    """Edit ``views`` grey views of ``height`` x ``width`` once and drop the result, so that
-    the editor's program for that call (:func:`edit_views`' batch of ``views``, these
-    guidance scales) is compiled, and written to the persistent compilation cache, before a
-    run needs it. The demo calls it on a thread while the reconstruction trains: on a GPU
-    an SD 1.5-size editor program compiles for about 45 s. The run's own edits are not
-    changed (an editor is a pure function of its inputs and keys)."""
+    """Edit ``views`` grey ``height`` x ``width`` views once and drop the result, so the
+    program of that call is compiled (and cached on disk) before a run needs it; the run's
+    own edits do not change.
+    """
     grey = jnp.full((views, height, width, 3), 0.5, jnp.float32)
     out = edit_views(editor, grey, grey, editor.encode(""), jax.random.split(key, views),
                      guidance=guidance)
@@ -104,15 +89,12 @@ def interpolate_embedding(e_prompt, e_null, ratio: float):
 def edit_views(editor, images, originals, embedding, keys, *,
                timestep_range: tuple[float, float] = (0.02, 0.98),
                guidance: tuple[float, float] | None = None) -> list:
-    """Edit views [B] with their keys [B]: ``editor.edit_many`` in chunks of
-    ``editor.batch`` where the editor has it, else one ``edit`` per view.
+    """Edit views [B] with keys [B]: ``editor.edit_many`` in chunks of ``editor.batch``
+    where it has one, else ``edit`` per view; ``calls_side_by_side`` calls at once on threads.
 
-    ``images``, ``originals``: [B, H, W, 3] (or sequences of [H, W, 3]); ``embedding``
-    one [...] for all views; ``keys``: B typed keys. Returns B edited views (each as
-    ``edit`` returns it), in order. One view per call gives ``edit``'s own result,
-    so an editor without ``edit_many``, or with ``batch`` 1, edits exactly as before.
-    An editor whose ``calls_side_by_side`` is above 1 has that many calls made at once, on
-    threads (the same calls, so the same results).
+    ``images``, ``originals``: [B, H, W, 3] (or sequences of [H, W, 3]); ``embedding``: one
+    for all views; ``keys``: B typed keys. Returns B views (as ``edit`` returns them), in
+    order; results do not depend on the batching.
     """
     count = len(images)
     guidance = editor_guidance(editor, guidance)

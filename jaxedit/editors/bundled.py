@@ -27,11 +27,10 @@ def bundled_editor() -> Path:
 
 
 def native_size(folder: str | Path) -> int:
-    """The resolution a diffusers folder works at, as diffusers' pipelines default to it: the
-    UNet's ``sample_size`` times the VAE's scale factor, 2^(len(block_out_channels) - 1)
-    (64 x 8 = 512 for Stable Diffusion 1.x and InstructPix2Pix, 16 x 4 = 64 for the bundled
-    model); Stable Diffusion's 512 for a folder whose configs do not say. (The VAE's own
-    ``sample_size`` is not what diffusers uses.)"""
+    """The resolution a diffusers folder works at, as diffusers' pipelines default to
+    it: the UNet's ``sample_size`` times the VAE factor 2^(len(block_out_channels) - 1);
+    512 for a folder whose configs do not say.
+    """
     folder = Path(folder)
     try:
         unet = json.loads((folder / "unet" / "config.json").read_text())
@@ -44,8 +43,9 @@ def native_size(folder: str | Path) -> int:
 
 
 def _listing(folder: str | Path | None) -> tuple[Path, object]:
-    """(the path of a folder's ``instructions.json``, its JSON; None where there is no such
-    file); a DataError naming the file when it cannot be read."""
+    """(path of a folder's ``instructions.json``, its JSON or None without the file);
+    DataError naming the file when it cannot be read.
+    """
     path = Path(folder if folder is not None else BUNDLED) / "instructions.json"
     if not path.is_file():
         return path, None
@@ -68,13 +68,10 @@ def instructions(folder: str | Path | None = None) -> list[dict]:
 
 
 def recommended_guidance(folder: str | Path | None = None) -> tuple[float, float]:
-    """The (text, image) guidance a trained folder is meant to edit with: ``"guidance"`` in
-    its ``instructions.json`` (written by ``scripts/bundle_editor.py --guidance``), else
-    InstructPix2Pix's (7.5, 1.5).
-
-    Why a folder says it: the bundled model's empty prompt is trained to keep the view, so
-    its text guidance scales the whole edit; it edits with gain 1 at text 2 and overshoots
-    1.9x at 7.5 (``docs/editor.md``). InstructPix2Pix's own weights were tuned at 7.5."""
+    """The (text, image) guidance a trained folder edits with: ``"guidance"`` in
+    its ``instructions.json``, else InstructPix2Pix's. The bundled model's empty prompt keeps
+    the view, so its text scale sets the edit's gain (``docs/editor.md``).
+    """
     path, listing = _listing(folder)
     if not isinstance(listing, dict) or "guidance" not in listing:
         return IP2P_GUIDANCE

@@ -1,12 +1,8 @@
 """The diffusion arithmetic of the InstructPix2Pix edit, shared by both editors.
 
-One definition of each piece the JAX editor (:mod:`jaxedit.editors.jax_ip2p`) and the torch
-reference (:mod:`jaxedit.editors.ip2p`) have in common: the timestep draw, the DDIM
-timestep schedule (as a host list and as fixed-length arrays for ``jit``), the model
-size, dual classifier-free guidance and the deterministic DDIM update. The guidance and
-the DDIM update are written with arithmetic only, so they work on torch tensors and on
-JAX arrays alike; nothing here imports torch. Both take the same names for their networks' dtype
-(:func:`dtype_name`).
+The timestep draw, the DDIM schedule (a host list, and fixed-length arrays for ``jit``),
+the model size, dual guidance and the DDIM update, written with arithmetic only so they
+take torch tensors and JAX arrays alike; nothing here imports torch.
 """
 
 from __future__ import annotations
@@ -18,15 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-# The folder checks live with the loader; the torch reference reads the same folders.
+# The folder checks live with the loader.
 from ..models.load import HOW_TO_GET  # noqa: F401 - re-exported
 from ..models.load import check_layout as resolve_weights  # noqa: F401 - re-exported
 
 DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
 #: The diffusion timesteps Stable Diffusion is trained with.
 NUM_TRAIN_TIMESTEPS = 1000
-#: DDIM steps per edit, both editors' default (InstructPix2Pix's pipelines use 10-100; 20
-#: is IN2N's). The one place it is written: editors, commands and studies read it here.
+#: DDIM steps per edit, both editors' default (IN2N's); commands and studies read it here.
 DDIM_STEPS = 20
 #: The short names both editors' ``dtype`` takes for float16, bfloat16 and float32.
 DTYPE_ALIASES = {"fp16": "float16", "half": "float16", "fp32": "float32", "float": "float32",
@@ -34,9 +29,9 @@ DTYPE_ALIASES = {"fp16": "float16", "half": "float16", "fp32": "float32", "float
 
 
 def dtype_name(dtype) -> str:
-    """The name of an editor's ``dtype`` given by name: an alias of :data:`DTYPE_ALIASES`
-    spelled out ("fp16" -> "float16"), any other name as given (each editor checks it
-    against its own framework's floating dtypes)."""
+    """An editor's ``dtype`` name with a :data:`DTYPE_ALIASES` alias spelled out
+    ("fp16" -> "float16"); other names as given.
+    """
     return DTYPE_ALIASES.get(str(dtype), str(dtype))
 
 
@@ -63,11 +58,8 @@ def draw_timestep(key: jax.Array, timestep_range: tuple[float, float],
 
 
 def timestep_schedule(t_start: int, steps: int) -> list[int]:
-    """DDIM timesteps from ``t_start`` down towards 0: round(T (steps - k) / steps), k < steps.
-
-    Evenly spaced, strictly decreasing, first = T; fewer than ``steps`` entries when T < steps
-    (repeated and zero timesteps are dropped). The step after the last one lands on the
-    scheduler's final alpha (the clean image).
+    """DDIM timesteps from ``t_start`` towards 0: round(T (steps - k) / steps), k < steps,
+    repeats and zeros dropped; the step after the last lands on the final alpha.
     """
     if steps < 1:
         raise DataError("steps", f"must be >= 1, got {steps}")
@@ -79,18 +71,16 @@ def timestep_table(t_start: jax.Array, steps: int) -> tuple[jax.Array, jax.Array
     """:func:`timestep_schedule` as fixed-length arrays, for a traced ``t_start``.
 
     Args:
-      t_start: int [...] drawn timesteps T (any batch shape).
+      t_start: int [...] timesteps T.
       steps: static number of slots.
     Returns:
-      (t, t_next, valid), each [..., steps]: slot k holds t_k = round(T (steps - k) / steps)
-      (round half to even, as Python's round); ``valid`` is False for a slot whose t_k is 0
-      or repeats the previous slot's (T < steps), so the valid slots in order are exactly
-      ``timestep_schedule(T, steps)``; ``t_next`` is the next valid slot's timestep (0 after
-      the last one, where the update lands on the final alpha).
+      (t, t_next, valid), each [..., steps]: t_k = round(T (steps - k) / steps) (half to
+      even); ``valid`` drops zero and repeated slots, so the valid slots are
+      ``timestep_schedule(T, steps)``; ``t_next`` the next valid timestep (0 after the last).
     """
     t_start = jnp.asarray(t_start, jnp.int32)
-    # Integer arithmetic: a float quotient may be computed as a product with 1 / steps
-    # (XLA does), which turns 343 / 14 = 24.5 into 24.500002 and rounds it the wrong way.
+    # Integer arithmetic: XLA may compute a quotient as a product with 1 / steps and round
+    # a half the wrong way.
     num = t_start[..., None] * (steps - jnp.arange(steps, dtype=jnp.int32))
     q, r = num // steps, num % steps
     t = q + ((2 * r > steps) | ((2 * r == steps) & (q % 2 == 1))).astype(jnp.int32)
@@ -108,16 +98,15 @@ def model_size(height: int, width: int, size: int | None, factor: int = 8) -> tu
             max(factor, int(round(width * scale / factor)) * factor))
 
 
-#: InstructPix2Pix's (text, image) classifier-free guidance scales (Brooks et al. 2023, and
-#: diffusers' pipeline defaults): an editor's guidance unless its folder recommends its own
-#: (:func:`jaxedit.editors.bundled.recommended_guidance`).
+#: InstructPix2Pix's (text, image) guidance scales (Brooks et al. 2023): an editor's unless
+#: its folder recommends its own (:func:`jaxedit.editors.bundled.recommended_guidance`).
 IP2P_GUIDANCE = (7.5, 1.5)
 
 
 def check_guidance(guidance, field: str = "guidance") -> tuple[float, float]:
-    """``guidance`` as (text, image) floats: two finite scales, text >= 0 and image > 0 (the
-    image scale divides nothing, but 0 would drop the view the edit starts from); a
-    DataError naming ``field`` otherwise."""
+    """``guidance`` as (text, image) floats, finite, text >= 0 and image > 0 (0 would drop
+    the view the edit starts from); DataError naming ``field`` otherwise.
+    """
     try:
         text, image = (float(g) for g in guidance)
     except (TypeError, ValueError):
@@ -139,10 +128,9 @@ def ddim_step(sample, model_output, alpha_t, alpha_prev, prediction_type: str = 
               clip_sample: float | None = None):
     """One deterministic DDIM update (eta = 0) from cumulative alpha ``alpha_t`` to ``alpha_prev``.
 
-    x0 = (x - sqrt(1 - a_t) eps) / sqrt(a_t), clamped to +-``clip_sample`` when given (as
-    DDIMScheduler does with ``clip_sample``); x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps.
-    Torch tensors with float alphas, or JAX arrays with alphas broadcastable to ``sample``
-    (e.g. [B, 1, 1, 1] for per-example timesteps).
+    x0 = (x - sqrt(1 - a_t) eps) / sqrt(a_t), clamped to +-``clip_sample`` when given;
+    x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps. Torch tensors with float alphas, or
+    JAX arrays with alphas broadcastable to ``sample``.
     """
     a_t, a_p = alpha_t, alpha_prev
     if isinstance(a_t, (int, float, np.floating)):  # host scalars stay Python floats (torch)
@@ -167,12 +155,9 @@ def ddim_step(sample, model_output, alpha_t, alpha_prev, prediction_type: str = 
 # ----------------------------------------------------------------------------- weights folders
 
 def ddim_overrides(folder: Path) -> dict:
-    """DDIM settings for a scheduler config of another class.
-
-    IP2P's repository ships an Euler-ancestral config. Read as DDIM it would get DDIM's
-    defaults clip_sample=True and set_alpha_to_one=True; Stable Diffusion 1.x's DDIM setup
-    (and IN2N, which takes its DDIM config from CompVis/stable-diffusion-v1-4) uses
-    neither. The betas always come from the folder; an explicit DDIM config is kept as is.
+    """DDIM settings for a scheduler config of another class: SD 1.x's DDIM setup
+    (no x0 clipping, final alpha = alpha_0), as IN2N uses for IP2P's Euler-ancestral config.
+    An explicit DDIM config is kept as is.
     """
     from ..models.load import read_scheduler_config
 
@@ -183,12 +168,10 @@ def ddim_overrides(folder: Path) -> dict:
 
 
 def ddim_settings(folder: Path, alphas_cumprod) -> dict:
-    """The DDIM update's settings from a scheduler folder, read as :func:`ddim_overrides` says.
+    """The DDIM update's settings from a scheduler folder (:func:`ddim_overrides`).
 
-    Returns {"final_alpha": float, "clip_sample": float | None}: alpha after the last step
-    (1 with ``set_alpha_to_one``, else alpha_0) and the x0 clamp (None: no clipping), with
-    DDIMScheduler's defaults (clip_sample True, range 1, set_alpha_to_one True) for keys an
-    explicit DDIM config leaves out.
+    Returns {"final_alpha": float, "clip_sample": float | None}, with DDIMScheduler's
+    defaults for keys an explicit DDIM config leaves out.
     """
     from ..models.load import read_scheduler_config
 

@@ -1,42 +1,17 @@
-"""InstructPix2Pix as a jaxedit Editor (optional extra ``jaxedit[ip2p]``: torch + diffusers).
+"""InstructPix2Pix as a jaxedit Editor in torch (extra ``jaxedit[ip2p]``): the reference.
 
-The edit of one view follows Instruct-NeRF2NeRF's use of InstructPix2Pix (IP2P):
+The edit of one view, as Instruct-NeRF2NeRF uses InstructPix2Pix: resize render and
+original to the model size (longer side ``size``, multiples of the VAE factor); encode the
+render (posterior sample x ``scaling_factor``) and the original (posterior mode,
+unscaled); noise to T drawn in ``timestep_range`` (SDEdit); DDIM (eta = 0) over
+``steps`` timesteps with dual classifier-free guidance over (text+image, image only:
+E("") with the original, unconditional: E("") with zeros); decode, resize back, clamp.
+IP2P's Euler-ancestral scheduler config is read as SD 1.x's DDIM, as IN2N does.
 
-1. resize the current render and the original photo to the model size (the longer side
-   becomes ``size``, default 512, both sides rounded to multiples of the VAE's downsampling
-   factor f = 2^(len(block_out_channels) - 1), diffusers' ``vae_scale_factor``: 8 for SD);
-2. encode the render to a latent (VAE posterior sample x ``scaling_factor``) and the original
-   to the conditioning latent (VAE posterior mode, unscaled, as IP2P was trained);
-3. draw a timestep T uniformly in ``timestep_range`` x 1000 (from the JAX key) and noise the
-   latent to T (SDEdit);
-4. run deterministic DDIM (eta = 0) with ``steps`` (default ``DDIM_STEPS``) evenly spaced
-   timesteps from T down to 0; each step evaluates the UNet once on a batch of three branches
-   (text+image, image only, unconditional) and combines them with dual classifier-free
-   guidance ``eps = eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u)``. The noise schedule
-   comes from the weights' scheduler config; IP2P ships an Euler-ancestral config, which is
-   read as Stable Diffusion 1.x's DDIM (no x0 clipping, final alpha = alpha_0), as IN2N does;
-5. decode (latent / scaling_factor), map [-1, 1] -> [0, 1], resize back, clamp.
-
-The "image only" branch uses E("") with the original's latent; the unconditional branch
-uses E("") with a zero latent, as in diffusers' IP2P pipeline.
-
-Embeddings: ``encode(prompt)`` returns NumPy float32 [77, D] (D = 768 for SD 1.5): the
-last hidden state of the CLIP text encoder, as Stable Diffusion conditions on it. NumPy
-keeps the framework side (``interpolate_embedding``, memo keys, checkpoints) free of torch;
-``edit`` accepts NumPy, JAX or torch embeddings and moves them to the editor's device
-(77 x 768 floats, negligible next to the diffusion). ``r E(p) + (1 - r) E("")`` is formed
-by the framework with :func:`jaxedit.editors.interpolate_embedding`.
-
-Devices and precision: the editor runs on its own torch device (``cuda:0`` when available,
-else ``cpu``) while JAX may train on another; fp16 on accelerators, fp32 on the CPU. Images
-enter through DLPack (JAX arrays) or ``torch.from_numpy`` (NumPy) without a host copy where
-the source allows, and leave as NumPy float32 [H, W, 3]. The latents and the DDIM arithmetic
-are kept in float32 even when the networks run in fp16.
-
-Randomness: everything is derived from the JAX ``key``: the timestep by ``jax.random.randint``
-and a 63-bit seed for a CPU ``torch.Generator`` that draws the VAE sample and the SDEdit
-noise. Drawing on the CPU makes the noise the same on every device, so a run's edits do not
-depend on which GPU produced them (up to the networks' floating point).
+``encode`` returns NumPy float32 [77, D], so the framework stays free of torch. The editor
+runs on its own torch device (fp16 on accelerators, fp32 on the CPU; latents and DDIM in
+float32) and returns NumPy float32 [H, W, 3]. Randomness: T from the JAX key, and a
+63-bit seed for a CPU ``torch.Generator`` drawing both noises, the same on every device.
 """
 
 from __future__ import annotations
@@ -64,7 +39,7 @@ import numpy as np
 from ..errors import DataError
 from .base import editor_guidance
 from .bundled import recommended_guidance
-# The shared diffusion arithmetic; re-exported here, where it used to live.
+# The shared diffusion arithmetic, re-exported.
 from .diffusion import (DDIM_STEPS, DEFAULT_MODEL, HOW_TO_GET, IP2P_GUIDANCE,  # noqa: F401
                         check_guidance, check_timestep_range, ddim_overrides, ddim_step, draw_timestep,
                         dtype_name, dual_guidance, model_size, resolve_weights,
@@ -96,8 +71,9 @@ def _load(root: Path, sub: str, loader):
 
 
 def _from_jax(x: jax.Array) -> "torch.Tensor":
-    """JAX array -> torch tensor: DLPack (zero-copy, on JAX's device) when this torch build can
-    take it, else one device-to-host copy (e.g. JAX on a GPU with a CPU-only torch)."""
+    """JAX array -> torch tensor by DLPack (zero-copy) when this torch takes it, else
+    one device-to-host copy.
+    """
     try:
         return torch.from_dlpack(x)
     except (RuntimeError, TypeError, BufferError, ValueError):
@@ -171,15 +147,13 @@ class InstructPix2PixEditor:
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, device=None, dtype=None,
                         size: int | None = 512, steps: int = DDIM_STEPS,
                         variant: str | None = None):
-        """Load from a local diffusers folder (or the local HF cache) with no network access.
+        """Load from a local diffusers folder (or the local HF cache), no network.
 
-        ``path``: folder with unet/ vae/ text_encoder/ tokenizer/ scheduler/ (diffusers'
-        save_pretrained layout, e.g. timbrooks/instruct-pix2pix), or that Hub id when it is in
-        the local cache. ``device``: torch device string (default ``cuda:0`` if available, else
-        ``cpu``); ``dtype``: torch dtype (default fp16 off-CPU, fp32 on CPU); ``size``: model
-        resolution of the longer side (a multiple of the VAE's factor ``vae_factor``, 8 for
-        SD; None keeps the view's size); ``steps``:
-        DDIM steps from T to 0; ``variant``: diffusers weight variant (e.g. ``"fp16"``).
+        ``path``: folder with unet/ vae/ text_encoder/ tokenizer/ scheduler/, or a cached Hub
+        id. ``device``: torch device (default ``cuda:0`` if available, else ``cpu``); ``dtype``:
+        default fp16 off the CPU, fp32 on it; ``size``: model resolution of the longer side, a
+        multiple of ``vae_factor`` (None: the view's); ``steps``: DDIM steps; ``variant``:
+        diffusers weight variant.
         """
         root = resolve_weights(path)
         device = torch.device(device or _default_device())
@@ -285,10 +259,9 @@ class InstructPix2PixEditor:
     @torch.inference_mode()
     def edit_with_noise(self, image, original, embedding, t_start: int, vae_noise, sde_noise, *,
                         guidance: tuple[float, float] | None = None) -> np.ndarray:
-        """:meth:`edit` with its random draws given: the timestep ``t_start`` and the standard
-        normal ``vae_noise`` (the posterior sample's) and ``sde_noise`` (SDEdit's), each
-        [1, 4, h/f, w/f] at the model size (f = ``vae_factor``); :meth:`edit` draws them
-        from its key."""
+        """:meth:`edit` with its draws given: timestep ``t_start``,
+        standard normals ``vae_noise`` and ``sde_noise`` [1, 4, h/f, w/f] at the model size.
+        """
         guidance = editor_guidance(self, guidance)
         render = self._image(image, "image")
         orig = self._image(original, "original")
@@ -335,6 +308,5 @@ class InstructPix2PixEditor:
 
 
 
-#: The CLI's factory (``--editor ip2p --ip2p-weights DIR``):
-#: :meth:`InstructPix2PixEditor.from_pretrained` itself, so its defaults have one owner.
+#: The CLI's factory: :meth:`InstructPix2PixEditor.from_pretrained`, so its defaults have one owner.
 load_editor = InstructPix2PixEditor.from_pretrained

@@ -1,17 +1,9 @@
 """Seeding of edits: the ``jax.random`` key of every editor call, derived from a run's key.
 
-Every function that turns (run key, view, ratio, iteration) into the key of one edit lives
-here, so that the parts that need such keys (the difficulty oracle, the ProEdit driver)
-depend on this scheme and not on one another or on one particular editor:
-
-* :func:`view_key`: the key of an edit of a view at a subtask ratio (the difficulty oracle's
-  memoised edits);
-* :func:`edit_key`: the key of the driver's edits within a subtask, from the subtask's edit
-  stream;
-* :func:`quantize_ratio`: the integer a ratio enters keys and memo tables as.
-
-All of them are pure ``fold_in`` chains: equal arguments give equal keys, in a seeded run, a
-resumed one and the asynchronous mode.
+One scheme for every part that needs such keys, so none depends on another or on an
+editor: :func:`view_key` (the difficulty oracle's memoised edits), :func:`edit_key` (the
+driver's edits within a subtask) and :func:`quantize_ratio`. All are pure ``fold_in``
+chains: equal arguments, equal keys, in seeded, resumed and asynchronous runs alike.
 """
 
 from __future__ import annotations
@@ -34,10 +26,9 @@ def quantize_ratio(ratio: float) -> int:
 
 
 def view_key(run_key: jax.Array, view_index: int, ratio: float, iteration: int) -> jax.Array:
-    """Key of one edit: fold_in of (view index, quantised ratio, iteration) into ``run_key``.
-
-    The ratio is quantised to 1e-6 (``quantize_ratio``) so that ratios read back from JSON or
-    recomputed in floating point give the same key.
+    """Key of one edit: fold_in of (view index, quantised ratio, iteration) into
+    ``run_key``; the ratio is quantised (:func:`quantize_ratio`) so that a ratio read back
+    from JSON gives the same key.
     """
     if int(view_index) < 0 or int(iteration) < 0:
         raise DataError("view_key", f"view index and iteration must be >= 0, got "
@@ -48,9 +39,9 @@ def view_key(run_key: jax.Array, view_index: int, ratio: float, iteration: int) 
 
 
 def edit_key(edit_stream: jax.Array, view: int, iteration: int) -> jax.Array:
-    """The key of the ``iteration``-th edit of ``view`` in a subtask whose edit stream is
-    ``edit_stream``: the driver's own draws (no editor's key scheme decides them), the
-    same in a seeded run, a resumed one and the asynchronous mode."""
+    """The key of the ``iteration``-th edit of ``view`` in a subtask with edit stream
+    ``edit_stream``.
+    """
     if int(view) < 0 or int(iteration) < 0:
         raise DataError("edit_key", f"view and iteration must be >= 0, got {view}, {iteration}")
     return jax.random.fold_in(jax.random.fold_in(edit_stream, int(view)), int(iteration))

@@ -1,7 +1,7 @@
-"""Relevance masks: how much an instruction changes each pixel, as a mask. Shared by the
-protocol (:mod:`.base`), the lab's simulated editor and the JAX InstructPix2Pix's relevance
-(:meth:`.jax_ip2p.JaxIP2PEditor.relevance`), in a module of its own so that none of them imports
-another; and the check of a mask file's size before it is decoded (:func:`check_mask_file`)."""
+"""Relevance masks from difference maps, shared by the Editor protocol, the simulated
+editor and :meth:`.jax_ip2p.JaxIP2PEditor.relevance` without one importing another; and
+the size check of a mask file (:func:`check_mask_file`).
+"""
 
 from __future__ import annotations
 
@@ -13,8 +13,7 @@ import numpy as np
 
 from ..errors import DataError
 
-#: Bytes a decoded pixel channel takes while a mask is read: float32, as decoded and as
-#: the RGB image the reader makes of it (at least three channels).
+#: Bytes a decoded pixel channel takes while a mask is read (float32, decoded and as RGB).
 _DECODED_BYTES = 4 * 2
 
 
@@ -50,15 +49,13 @@ def blur(x, sigma: float):
 
 
 def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
-    """A difference map (how much an instruction changes each pixel) as a relevance mask.
+    """A difference map as a relevance mask.
 
     Args:
-      difference: float [H, W] or [B, H, W], >= 0 (e.g. |target - original| or
-        |eps(e) - eps(E(""))|).
+      difference: float [H, W] or [B, H, W], >= 0 (e.g. |eps(e) - eps(E(""))|).
       sigma: blur in pixels; threshold: on the map normalised to [0, 1] per view.
     Returns:
-      float32 of the input's shape, 1 where relevant, else 0 (all 0 for a view with no
-      difference).
+      float32 of the input's shape, 1 where relevant, else 0.
     """
     d = jnp.asarray(difference, jnp.float32)
     single = d.ndim == 2
@@ -72,9 +69,8 @@ def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) ->
 
 
 def check_mask_file(path, hw: tuple[int, int]) -> tuple[int, int]:
-    """The (height, width) of a mask file drawn for a view of size ``hw`` = (H, W), from its
-    header, before anything is decoded: it must be the view's size or a whole multiple of it,
-    and its decoded pixels must fit in the free memory (a small PNG can decode to gigabytes).
+    """The (height, width) of a mask file for a view of size ``hw``, read from its
+    header: the view's size or a whole multiple, and decodable within free memory.
 
     Raises:
       DataError naming ``path``.
