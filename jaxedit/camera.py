@@ -1,13 +1,8 @@
-"""Pinhole cameras as pytrees, in the OpenCV convention.
+"""Pinhole cameras as pytrees, in the OpenCV convention (x right, y down, +z forward).
 
-A camera maps world points to camera coordinates with ``world_to_camera``
-(x right, y down, looking down +z) and to pixels with the intrinsics; pixel
-centres are at integer + 0.5. ``width``/``height`` are static (they fix array
-shapes). A batch of cameras is a :class:`Camera` whose array fields have a
-leading axis: ``world_to_camera`` [B, 4, 4], ``fx`` [B], ... ; index or
-``jax.vmap`` over it.
-
-World convention of the built-in scenes and trajectories: +z is up.
+Pixel centres are at integer + 0.5; ``width``/``height`` are static. A batch of cameras
+is a :class:`Camera` whose array fields have a leading axis (``world_to_camera``
+[B, 4, 4], ``fx`` [B], ...). The built-in scenes' world has +z up.
 """
 
 from __future__ import annotations
@@ -96,12 +91,8 @@ class Camera:
         ], -2)
 
     def project(self, points: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Pinhole projection of world points (single camera).
-
-        Args:
-          points: float [N, 3] world points.
-        Returns:
-          (pixels float [N, 2] in pixel units with centres at +0.5, depth float [N]).
+        """Pinhole projection of world points float [N, 3] (single camera):
+        (pixels float [N, 2], centres at +0.5; depth float [N]).
         """
         cam = jnp.matmul(points, self.rotation.T, precision=_EXACT) + self.translation
         z = cam[:, 2]
@@ -130,12 +121,11 @@ def rigid_inverse(m):
     return xp.concatenate([top, bottom], axis=-2)
 
 
-#: Camera centres farther than this from the origin leave float32 (7 digits) too little
-#: precision for a scene of ordinary size around the origin.
+#: Camera centres farther than this from the origin leave float32 too little precision.
 MAX_DISTANCE = 1e6
-#: Focal lengths beyond this many image widths are a field of view under ~0.006 degrees.
+#: Focal lengths beyond this many image widths: a vanishing field of view.
 MAX_FOCAL_WIDTHS = 1e4
-#: ... and below this fraction of the image size, one over 179.9 degrees.
+#: ... and below this fraction of the image size, one near 180 degrees.
 MIN_FOCAL_WIDTHS = 1e-3
 
 
@@ -200,9 +190,8 @@ def opencv_w2c_to_opengl_c2w(w2c) -> np.ndarray:
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenCV world->camera [4, 4] of a camera at ``eye`` looking at ``target``.
-
-    Image "up" is as close to ``up`` as possible; camera y points down.
+    """OpenCV world->camera [4, 4] of a camera at ``eye`` looking at ``target``, image up
+    as close to ``up`` as possible.
     """
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
     forward = target - eye

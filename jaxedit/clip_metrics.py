@@ -1,25 +1,16 @@
-"""CLIP edit metrics of Instruct-NeRF2NeRF: text-image direction similarity and direction
-consistency, over rendered test-view sequences.
+"""CLIP edit metrics of Instruct-NeRF2NeRF over rendered test-view sequences.
 
-With unit-normalised CLIP embeddings I(.) of images and T(.) of captions, for views
-k = 0..N-1 rendered from the original scene (o_k) and the edited scene (x_k), and the
-captions of the original (c_o) and of the edited scene (c_x):
+With unit CLIP embeddings I(.) of views o_k (original scene) and x_k (edited), and T(.)
+of the captions c_o and c_x:
 
-    dI_k = I(x_k) - I(o_k)                     image-space edit direction of view k
-    dT   = T(c_x) - T(c_o)                     text-space edit direction
-    direction similarity  = mean_k cos(dI_k, dT)          ("CLIP text-image direction")
-    direction consistency = mean_k cos(dI_k, dI_{k+1})    (consecutive views of the path)
+    dI_k = I(x_k) - I(o_k),  dT = T(c_x) - T(c_o)
+    direction similarity  = mean_k cos(dI_k, dT)
+    direction consistency = mean_k cos(dI_k, dI_{k+1})
 
-Embeddings are normalised before the differences (as in InstructPix2Pix's / IN2N's metric
-code). A view whose direction vanishes (edit = original) has no defined cosine: its value is
-NaN and the means skip it (``undefined`` counts them); a mean with nothing defined is NaN.
-
-The arithmetic (:func:`direction_metrics`) is plain NumPy and needs no torch. The encoder
-(:class:`ClipEncoder`, optional: torch + transformers, as in the ``ip2p`` extra) loads a
-transformers ``CLIPModel`` from a local folder or the local Hugging Face cache, never the
-network. Images are preprocessed as CLIP's processor does (shortest side -> crop size with
-bicubic resampling, centre crop, ImageNet-CLIP mean/std) but on float tensors, without the
-8-bit round trip.
+A vanishing direction has no cosine: NaN, skipped by the means (``undefined`` counts
+them). :func:`direction_metrics` is plain NumPy; :class:`ClipEncoder` (torch +
+transformers) loads a local ``CLIPModel`` and preprocesses as CLIP's processor does, on
+float tensors.
 """
 
 from __future__ import annotations
@@ -66,11 +57,9 @@ def _mean(values: np.ndarray) -> float:
 def direction_metrics(image_orig, image_edit, text_orig, text_edit) -> dict:
     """IN2N's CLIP metrics from embeddings.
 
-    image_orig, image_edit: float [N, D] CLIP image embeddings of the original and edited
-    renders of N views in path order; text_orig, text_edit: float [D] caption embeddings.
-    Returns a dict with the two means (``direction_similarity``, ``direction_consistency``),
-    their per-view / per-pair values, ``clip_score_edit`` (mean cos(I(x_k), T(c_x))),
-    ``image_similarity`` (mean cos(I(o_k), I(x_k))) and the counts of undefined values.
+    ``image_orig``, ``image_edit``: float [N, D] image embeddings of N views in path order;
+    ``text_orig``, ``text_edit``: float [D]. Returns the two means, their per-view / per-pair
+    values, ``clip_score_edit``, ``image_similarity`` and the undefined counts.
     """
     io, ie = np.asarray(image_orig, np.float64), np.asarray(image_edit, np.float64)
     to, te = np.asarray(text_orig, np.float64), np.asarray(text_edit, np.float64)
@@ -198,8 +187,9 @@ class ClipEncoder:
         return _unit(feats).astype(np.float32)
 
     def edit_metrics(self, originals, edits, caption_orig: str, caption_edit: str) -> dict:
-        """IN2N's metrics (see :func:`direction_metrics`) for renders float [N, H, W, 3] of the
-        original and the edited scene from the same N test cameras, in path order."""
+        """:func:`direction_metrics` for renders float [N, H, W, 3] of the original
+        and edited scene from the same N cameras, in path order.
+        """
         if len(originals) != len(edits):
             raise DataError("images", f"{len(originals)} original renders but {len(edits)} edited")
         t = self.encode_texts([caption_orig, caption_edit])

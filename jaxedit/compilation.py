@@ -1,20 +1,11 @@
 """Compiling once: JAX's persistent compilation cache, and a record of what a run compiled.
 
-:func:`enable` switches both on (the commands call it; ``import jaxedit`` does not). The cache
-(:func:`enable_persistent_cache`) keeps every compiled program under ``$JAXEDIT_CACHE/xla``
-(``~/.cache/jaxedit/xla``), bounded to :data:`DEFAULT_MAX_MB` by :func:`trim_cache` once per
-process (least recently used first), since JAX's own bound costs O(entries) at every write.
-Environment:
-
-* ``JAXEDIT_COMPILE_CACHE=0``: off (as does configuring JAX's own cache folder, which wins).
-* ``JAXEDIT_COMPILE_CACHE_DIR``: another folder (the test suite shares one across processes).
-* ``JAXEDIT_COMPILE_CACHE_MB``: the size bound in MiB.
-* ``JAXEDIT_COMPILE_CACHE_MIN_S``: the shortest compile written to the cache.
-
-:func:`compile_stats` reads process-wide counters kept by listeners on ``jax.monitoring``
-(programs compiled, cache hits, seconds per program) for a run's ``metrics.json``;
-:func:`compiling_now` names the program compiling at this moment, for progress lines.
-Measurements: docs/gpu.md (compile cache).
+:func:`enable` switches both on (``import jaxedit`` does not). The cache keeps programs
+under ``$JAXEDIT_CACHE/xla``, bounded by :func:`trim_cache` once per process (JAX's own
+bound costs O(entries) per write). Environment: ``JAXEDIT_COMPILE_CACHE=0`` (off),
+``JAXEDIT_COMPILE_CACHE_DIR`` (folder), ``JAXEDIT_COMPILE_CACHE_MB`` (bound, MiB),
+``JAXEDIT_COMPILE_CACHE_MIN_S`` (shortest compile cached). :func:`compile_stats` reads
+``jax.monitoring`` counters; :func:`compiling_now` names the program compiling now.
 """
 
 from __future__ import annotations
@@ -25,8 +16,7 @@ import threading
 import time
 from pathlib import Path
 
-#: Programs faster to compile than this are not cached: 0 keeps every one, since a run's many
-#: small programs read back faster than they compile (docs/gpu.md).
+#: Programs faster to compile than this are not cached (0: all; reads beat recompiles).
 MIN_COMPILE_SECONDS = 0.0
 #: The persistent cache's default bound (MiB).
 DEFAULT_MAX_MB = 4096
@@ -51,9 +41,9 @@ def persistent_cache_dir() -> Path | None:
 
 
 def _env_number(name: str, default: float, *, zero_ok: bool, what: str) -> float:
-    """The number in environment variable ``name`` (``default`` when unset); a value that is
-    not a finite positive number (or zero, with ``zero_ok``) is a DataError naming it and
-    saying it must be ``what``."""
+    """The number in environment variable ``name`` (``default`` when unset), else a
+    DataError saying it must be ``what``.
+    """
     text = os.environ.get(name)
     if not text:
         return default
@@ -83,15 +73,13 @@ def min_compile_seconds() -> float:
 
 
 def enable_persistent_cache(path: str | os.PathLike | None = None) -> Path | None:
-    """Switch on JAX's persistent compilation cache -> its folder, or None when it stays off.
+    """Switch on JAX's persistent compilation cache -> its folder, or None when off.
 
     Args:
-      path: the folder (None: :func:`persistent_cache_dir`). A folder already configured in
-        JAX (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``) is left as it is and returned.
-
-    Only JAX's configuration changes here; the folder is created by JAX at the first write.
-    A bad ``JAXEDIT_COMPILE_CACHE_MB`` or ``_MIN_S`` raises :class:`jaxedit.DataError` before
-    anything changes.
+      path: the folder (None: :func:`persistent_cache_dir`); a folder JAX already has
+        configured is kept and returned.
+    Raises:
+      DataError: a bad ``JAXEDIT_COMPILE_CACHE_MB`` or ``_MIN_S``, before anything changes.
     """
     import jax
 
@@ -112,21 +100,16 @@ def enable_persistent_cache(path: str | os.PathLike | None = None) -> Path | Non
     return folder
 
 
-#: File name endings of JAX's cache entries and of the access times JAX writes beside them
-#: when it bounds the folder itself (a folder written by an older jaxedit holds them).
+#: File name endings of JAX's cache entries and of the access times JAX writes beside them.
 _ENTRY_SUFFIX, _ATIME_SUFFIX = "-cache", "-atime"
 
 
 def trim_cache(folder: str | os.PathLike, max_bytes: int) -> int:
-    """Remove the least recently used entries of the cache ``folder`` until its entries take at
-    most ``max_bytes`` -> the bytes removed (0 for a missing folder).
+    """Remove the least recently used entries of ``folder`` until they take at most
+    ``max_bytes`` -> the bytes removed (0 for a missing folder).
 
-    "Used" is the later of a file's access and modification times, as the file system keeps
-    them (Linux's default ``relatime`` updates an entry's access time at its first read after
-    a write, and at least daily). Called once per process, when the cache is switched on, so the
-    folder can pass the bound by what one run writes. An entry another process removes
-    meanwhile is skipped; a process that finds its entry gone compiles the program again (JAX
-    warns when the entry vanished between its check and its read).
+    "Used": the later of access and modification time. Entries another process removes
+    meanwhile are skipped.
     """
     entries, total = [], 0
     try:
@@ -237,12 +220,8 @@ def start_recording() -> None:
 
 
 def enable(path: str | os.PathLike | None = None) -> Path | None:
-    """Switch on what the commands run with: the persistent compilation cache
-    (:func:`enable_persistent_cache`) and the record of compiles (:func:`start_recording`).
-
-    ``import jaxedit`` changes nothing in the caller's program; call this once, early, to
-    compile once across runs and have :func:`compile_stats` count every compile. Returns the
-    cache folder, or None when the cache stays off.
+    """Switch on the persistent compilation cache and the record of compiles; call once,
+    early. Returns the cache folder, or None when the cache stays off.
     """
     start_recording()
     return enable_persistent_cache(path)
@@ -253,11 +232,9 @@ def compile_stats(since: dict | None = None) -> dict:
     "lower_seconds", "programs": {name: {"count", "cache_hits", "seconds"}}}``.
 
     Args:
-      since: an earlier result: the difference is returned (programs with nothing new are
-        left out), e.g. what one run compiled in a process that ran others before.
+      since: an earlier result; the difference is returned.
 
-    ``count`` is what XLA compiled, ``cache_hits`` what the persistent cache gave instead,
-    ``seconds`` the time of both (XLA's compile or the cache's read, not tracing/lowering).
+    ``count``: XLA compiles; ``cache_hits``: persistent cache reads; ``seconds``: both.
     """
     c = _counters()
     with c.lock:

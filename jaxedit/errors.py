@@ -1,9 +1,7 @@
 """The one exception type for bad input, and the range checks of config fields.
 
-Every reader and validator in jaxedit raises :class:`DataError` with a one-line
-message that names the file or field and what is wrong with it. The CLI prints
-that line and exits with status 2; nothing else is caught there, so a real bug
-still shows its traceback.
+Readers and validators raise :class:`DataError` with a one-line message naming the file
+or field; the CLI prints it and exits 2 (a real bug still shows its traceback).
 """
 
 from __future__ import annotations
@@ -24,20 +22,15 @@ class DataError(ValueError):
 
 
 def quoted(text: str, limit: int = 80) -> str:
-    """``repr(text)`` for an error line, cut to about ``limit`` characters: a message names
-    what the user gave (a prompt may be pages long) without echoing all of it."""
+    """``repr(text)`` for an error line, cut to about ``limit`` characters."""
     if len(text) <= limit:
         return repr(text)
     return f"{text[:limit]!r}... ({len(text)} characters)"
 
 
 # --- range checks of config fields -----------------------------------------------------
-#
-# A config dataclass declares a field's range once, in the field's metadata
-# (``warmup: int = ranged(30, low=0)``); its ``__post_init__`` calls
-# :func:`check_ranges`, and the command-line flags generated from the field
-# (experiments/flags.py) show the same range in their help. A value outside is a
-# DataError naming the field, which the commands print as the flag.
+# A field declares its range once in its metadata (``ranged(30, low=0)``); ``__post_init__``
+# calls :func:`check_ranges` and the generated flags show it in their help.
 
 RANGE = "jaxedit.range"
 

@@ -1,8 +1,7 @@
 """The Gaussians pytree: a fixed-capacity set of 3D Gaussians with an ``alive`` mask.
 
-Shapes are static so that one compiled train step serves the whole run:
-densification writes into free (dead) slots and culling clears ``alive``.
-Capacity grows only outside jit, by :func:`grow` (doubling, one recompile).
+Static shapes, so one compiled train step serves the whole run: densification writes into
+dead slots, culling clears ``alive``, and capacity grows only outside jit (:func:`grow`).
 Dead slots hold finite values and never contribute to a render.
 """
 
@@ -74,13 +73,8 @@ class Gaussians:
 
 
 def quat_to_rotmat(quats: jax.Array) -> jax.Array:
-    """Rotation matrices from quaternions.
-
-    Args:
-      quats: float [..., 4] (w, x, y, z); normalised here, a zero quaternion
-        maps to the identity without NaNs.
-    Returns:
-      float [..., 3, 3].
+    """Rotation matrices float [..., 3, 3] from quaternions [..., 4] (w, x, y, z),
+    normalised here; a zero quaternion maps to the identity without NaNs.
     """
     norm2 = jnp.sum(quats * quats, axis=-1, keepdims=True)
     safe = norm2 > 1e-24
@@ -133,9 +127,8 @@ def from_points(points, colors, *, sh_degree: int = 3, capacity: int | None = No
                 init_opacity: float = 0.1, dtype=jnp.float32) -> Gaussians:
     """Gaussians initialised from a point cloud, Splatfacto style.
 
-    Log-scale is the log of the mean distance to the 3 nearest neighbours
-    (isotropic), opacity is ``init_opacity`` (logit(0.1) by default), rotation is
-    the identity and the DC coefficient reproduces ``colors``; higher SH are 0.
+    Isotropic log-scale from the mean distance to the 3 nearest neighbours, opacity
+    ``init_opacity``, identity rotation, DC colour ``colors``, higher SH 0.
 
     Args:
       points: float [N, 3].
@@ -165,17 +158,15 @@ def from_points(points, colors, *, sh_degree: int = 3, capacity: int | None = No
 
 
 def subsample_points(points, colors, max_count: int, key: jax.Array):
-    """At most ``max_count`` of the points, drawn uniformly without replacement.
-
-    A hard cap on the number of Gaussians must already hold for the initial cloud.
-    The kept points stay in their original order.
+    """At most ``max_count`` of the points, uniformly without replacement, in
+    their original order (the Gaussian cap holds for the initial cloud).
 
     Args:
       points: float [N, 3]; colors: [N, 3].
       max_count: the cap (>= 1).
       key: PRNG key of the draw.
     Returns:
-      (points [min(N, max_count), 3], colors [min(N, max_count), 3]) as numpy arrays.
+      (points, colors) NumPy [min(N, max_count), 3] each.
     """
     points, colors = np.asarray(points), np.asarray(colors)
     if max_count < 1:
@@ -201,15 +192,12 @@ def compact(g: Gaussians) -> Gaussians:
 
 
 def splat_arrays(g: Gaussians) -> dict[str, np.ndarray]:
-    """The alive Gaussians as the plain arrays a browser splat viewer draws.
-
-    The keys are the arguments of viser's ``scene.add_gaussian_splats``: such
-    viewers draw one colour per splat, so the view-dependent SH terms are dropped.
+    """The alive Gaussians, in slot order, as viser's ``scene.add_gaussian_splats``
+    arguments (one colour per splat: view-dependent SH dropped).
 
     Returns:
-      {"centers": float32 [N, 3], "covariances": float32 [N, 3, 3] (world, R S S^T R^T),
-       "rgbs": float32 [N, 3] in [0, 1] (the DC colour), "opacities": float32 [N, 1]},
-      N = the number of alive Gaussians, in slot order.
+      {"centers": float32 [N, 3], "covariances": float32 [N, 3, 3], "rgbs": float32 [N, 3]
+      in [0, 1], "opacities": float32 [N, 1]}.
     """
     g = compact(g)
     return {"centers": np.asarray(g.means, np.float32),

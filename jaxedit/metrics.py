@@ -1,19 +1,10 @@
 """Image quality metrics for reporting (NumPy / scikit-image, float64).
 
-``psnr`` and ``ssim_skimage`` are the numbers that go into ``metrics.json``;
-training uses the JAX versions in :mod:`jaxedit.losses`. Perceptual metrics
-(LPIPS, CLIP) live in their own modules and may build on these.
-
-Every image function takes images float [H, W, C] in [0, data_range] and returns a
-float, or a batch [N, H, W, C] and returns float [N] (one value per image;
-average them for a dataset score, as the 3DGS papers do).
-
-Scoring against an editor with several valid outcomes (the simulated editor's
-divergent modes) must not favour any of them: :func:`mode_scores` gives the best
-over modes of the per-scene PSNR / SSIM and :func:`mode_mixture` how much of the
-result is a blend of modes rather than one. :func:`mean_ci` and
-:func:`paired_differences` turn per-seed numbers into means with Student-t
-confidence intervals; :func:`percentile_interval` is a bootstrap's interval.
+``psnr`` and ``ssim_skimage`` are ``metrics.json``'s numbers (training uses
+:mod:`jaxedit.losses`). Image functions take float [H, W, C] in [0, data_range] -> float,
+or [N, H, W, C] -> float [N]. :func:`mode_scores` / :func:`mode_mixture` score against an
+editor with several valid outcomes without favouring one; :func:`mean_ci`,
+:func:`paired_differences` and :func:`percentile_interval` give confidence intervals.
 """
 
 from __future__ import annotations
@@ -62,8 +53,9 @@ def ssim_skimage(a, b, *, data_range: float = 1.0):
 
 
 def image_metrics(renders, targets, *, data_range: float = 1.0) -> dict:
-    """Dataset scores: mean PSNR (infinite values capped at 100 dB) and mean SSIM over a
-    batch [N, H, W, C] (or one image)."""
+    """Dataset scores of a batch [N, H, W, C] (or one image): mean PSNR, each
+    capped at 100 (an identical pair's inf), and mean SSIM.
+    """
     p = np.minimum(np.atleast_1d(psnr(renders, targets, data_range=data_range)), 100.0)
     s = np.atleast_1d(ssim_skimage(renders, targets, data_range=data_range))
     return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s))}
@@ -72,12 +64,9 @@ def image_metrics(renders, targets, *, data_range: float = 1.0) -> dict:
 def mode_mixture(renders, mode_targets) -> np.ndarray:
     """Weights w float [K] of the convex blend of modes closest to the renders.
 
-    argmin over the simplex (w >= 0, sum w = 1) of || renders - sum_k w_k T_k ||^2,
-    renders float [N, H, W, C] (or [H, W, C]), mode_targets float [K, N, H, W, C].
-    Pixels where all modes agree do not move w; K = 1 gives [1.0]. Exact for the
-    small K of an editor's modes: the least-squares solution on every face of the
-    simplex (every non-empty subset of modes, sum constraint eliminated), the best
-    feasible one.
+    argmin over the simplex of || renders - sum_k w_k T_k ||^2, renders float [N, H, W, C]
+    (or [H, W, C]), mode_targets float [K, N, H, W, C]; K = 1 gives [1.0]. Exact: the best
+    feasible least-squares solution over every face of the simplex (small K).
     """
     from itertools import combinations
 
@@ -105,13 +94,11 @@ def mode_mixture(renders, mode_targets) -> np.ndarray:
 
 
 def mode_scores(renders, mode_targets, *, data_range: float = 1.0) -> dict:
-    """Scores of renders [N, H, W, C] against K valid outcomes [K, N, H, W, C] of an edit.
+    """Scores of renders [N, H, W, C] against K valid outcomes [K, N, H, W, C].
 
-    Returns {"psnr_best", "ssim_best": max over modes of the per-scene (mean over
-    views) PSNR / SSIM; "mode": the mode with the best PSNR; "psnr_per_mode",
-    "ssim_per_mode": lists [K]; "mode_weights": :func:`mode_mixture`;
-    "mode_mixing": 1 - max_k w_k scaled by K / (K - 1) to [0, 1] (0: the result is
-    one mode, 1: an even blend of all K; 0 when K = 1)}.
+    Returns {"psnr_best", "ssim_best": max over modes of the per-scene mean; "mode": the
+    best-PSNR mode; "psnr_per_mode", "ssim_per_mode": [K]; "mode_weights":
+    :func:`mode_mixture`; "mode_mixing": 1 - max_k w_k scaled to [0, 1] (0: one mode)}.
     """
     t = np.asarray(mode_targets)
     per = [image_metrics(renders, t[k], data_range=data_range) for k in range(t.shape[0])]

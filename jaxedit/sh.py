@@ -1,8 +1,7 @@
 """Real spherical harmonics up to degree 3, in the sign convention of INRIA's 3DGS.
 
-Colour of a Gaussian seen along unit direction ``d`` (from the camera centre to
-the Gaussian mean) is ``max(sum_k sh[k] * Y_k(d) + 0.5, 0)``, with ``sh[0]`` the
-DC term. The constants are the standard real SH normalisations.
+Colour seen along unit direction ``d`` (camera centre to mean) is
+``max(sum_k sh[k] * Y_k(d) + 0.5, 0)``, ``sh[0]`` the DC term.
 """
 
 from __future__ import annotations
@@ -34,13 +33,8 @@ def degree_from_coeffs(n: int) -> int:
 
 
 def basis(degree: int, dirs: jnp.ndarray) -> jnp.ndarray:
-    """SH basis values.
-
-    Args:
-      degree: static int in 0..3.
-      dirs: float array [..., 3], unit view directions.
-    Returns:
-      float array [..., (degree+1)^2].
+    """SH basis values float [..., (degree+1)^2] of unit directions [..., 3] (static
+    ``degree`` in 0..3).
     """
     x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
     out = [jnp.full_like(x, C0)]
@@ -65,12 +59,11 @@ def evaluate(sh: jnp.ndarray, dirs: jnp.ndarray, degree: int | None = None) -> j
     """Colour from SH coefficients.
 
     Args:
-      sh: float array [..., K, 3], K = (D+1)^2 coefficients, DC first.
-      dirs: float array [..., 3], view directions (need not be normalised).
-      degree: static active degree <= D (coefficients above it are ignored);
-        defaults to D.
+      sh: float [..., K, 3], K = (D+1)^2 coefficients, DC first.
+      dirs: float [..., 3], view directions (need not be normalised).
+      degree: static active degree <= D; defaults to D.
     Returns:
-      float array [..., 3], colours clamped at 0 from below.
+      float [..., 3], clamped at 0 from below.
     """
     full = degree_from_coeffs(sh.shape[-2])
     degree = full if degree is None else min(degree, full)
@@ -78,7 +71,7 @@ def evaluate(sh: jnp.ndarray, dirs: jnp.ndarray, degree: int | None = None) -> j
     unit = dirs / jnp.maximum(norm, 1e-12)
     b = basis(degree, unit)  # [..., k]
     k = num_coeffs(degree)
-    # HIGHEST: at DEFAULT precision a GPU may run this float32 dot in TF32 (10-bit mantissa).
+    # HIGHEST: no TF32 on GPUs.
     rgb = jnp.einsum("...k,...kc->...c", b, sh[..., :k, :],
                      precision=jax.lax.Precision.HIGHEST) + 0.5
     return jnp.maximum(rgb, 0.0)
