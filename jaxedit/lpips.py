@@ -1,17 +1,11 @@
-"""LPIPS (learned perceptual image patch similarity) in JAX, no torch.
-
-Zhang et al. (CVPR 2018, the ``lpips`` package's v0.1): both images go through a frozen
-VGG16 or AlexNet trunk; the activations at five ReLU taps are unit-normalised along
-channels, their squared differences weighted by non-negative per-channel heads, averaged
-over space and summed over the taps::
+"""LPIPS (Zhang et al., CVPR 2018; the ``lpips`` package's v0.1) in pure JAX, no torch::
 
     d(x, y) = sum_l mean_hw( sum_c w_lc (f_l(x)/|f_l(x)| - f_l(y)/|f_l(y)|)_c^2 )
 
-Inputs are float [..., H, W, 3] in [0, 1], mapped to [-1, 1] and through lpips'
-ScalingLayer (``normalize=True``). Pure JAX, jit-able and differentiable. Weights are a
-``.safetensors`` / ``.npz`` file from ``python -m experiments convert-lpips``, holding in
-OIHW ``trunk.<i>.weight`` / ``trunk.<i>.bias`` per trunk convolution ``i``,
-``lin<k>.weight`` [1, C_k, 1, 1] per head, and the trunk's name (``net``) as metadata.
+f_l: five ReLU taps of a frozen VGG16 or AlexNet trunk, w_l: non-negative heads. Images
+float [..., H, W, 3] in [0, 1] go through lpips' ScalingLayer (``normalize=True``).
+Weights: a ``.safetensors`` / ``.npz`` from ``python -m experiments convert-lpips``
+(OIHW ``trunk.<i>.*``, ``lin<k>.weight`` [1, C_k, 1, 1], the trunk's name as ``net``).
 """
 
 from __future__ import annotations

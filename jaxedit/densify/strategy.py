@@ -1,26 +1,15 @@
 """The density-control strategy: statistics, settings and the ``(init, update)`` pair.
 
-As gsplat's strategies beside ``ops.py``: this module decides what is carried and when to
-act, :mod:`jaxedit.densify.ops` what is done. ``update`` accumulates each step's 3DGS
-statistics (NDC 2D-mean gradient norm, visibility count, screen radius). At maintenance
-steps (``step > warmup``, ``step % refine_every == 0``, ``step <= stop_at``; with
-``refine_from_warmup`` counted from ``warmup``) it, in order:
-
-1. culls Gaussians with opacity < ``cull_alpha``, world scale > ``cull_scale *
-   scene_extent`` or (after the first opacity reset) screen radius >= ``cull_screen``;
-   first, so the freed slots are reused at once;
-2. creates from the candidates whose mean gradient passes the threshold, highest first:
-   ``k = min(#candidates, free slots, max_gaussians - alive)``, also ``<= t(n, N)``
-   with ProEdit's budget (:func:`creation_budget`; the effective threshold is then the
-   k-th score, paper section 3.3). Small ones are duplicated, large ones split with
-   ``key``; each consumes one free slot;
-3. zeroes the optimiser moments of new, split and freed slots and restarts the statistics.
-
-At ``step % reset_every == 0`` the opacities are clamped to ``reset_value``. Nothing is
-dropped silently: when free slots bind below the cap, ``info.capacity_limited`` and
-``info.slots_needed`` tell the caller to grow the capacity
-(:func:`jaxedit.densify.ops.grow_state`) and redo the pure step, as
-:func:`jaxedit.train.fit` does. ``step`` is 1-based, as in INRIA's trainer.
+``update`` accumulates each step's 3DGS statistics; at maintenance steps (``step >
+warmup``, every ``refine_every``, until ``stop_at``; from ``warmup`` itself with
+``refine_from_warmup``) it culls (low opacity, too large in the world or, after the first
+reset, on screen), then creates from the highest-gradient candidates, at most
+``min(free slots, max_gaussians - alive)`` and, with ProEdit's budget, t(n, N)
+(:func:`creation_budget`, paper section 3.3), duplicating small ones and splitting large
+ones, then zeroes the moments of changed slots. Every ``reset_every`` steps opacities are
+clamped to ``reset_value``. When free slots bind below the cap, ``info.capacity_limited``
+and ``info.slots_needed`` tell the caller to grow (:func:`jaxedit.densify.ops.grow_state`)
+and redo the pure step, as :func:`jaxedit.train.fit` does. ``step`` is 1-based.
 """
 
 from __future__ import annotations

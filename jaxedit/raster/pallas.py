@@ -1,16 +1,13 @@
 """Per-tile alpha compositing as a Pallas kernel (Triton on GPU), forward and backward.
 
-The GPU shape of :mod:`.composite`: one program per tile, its pixels the vector lanes,
-its depth-sorted pairs blended front to back with :mod:`.reference`'s rules; a program
-ends once every pixel has stopped. The backward keeps only the inputs, the final
-transmittance and each pixel's last blended pair, walks each tile back to front
-(T_i = T_{i+1} / (1 - alpha_i)) and writes one gradient row per pair (one writer per
-row, no atomics); :func:`reduce_pair_rows` sums each Gaussian's consecutive rows in a
-fixed order, so gradients are bit-identical run to run. Per pixel, with g = dL/dC and
-g_T = dL/dT_final:
+:mod:`.composite`'s blend with one program per tile, its pixels the vector lanes, pairs
+front to back until every pixel stops. The backward walks each tile back to front
+(T_i = T_{i+1} / (1 - alpha_i)) writing one gradient row per pair, and
+:func:`reduce_pair_rows` sums each Gaussian's rows in a fixed order: no atomics,
+bit-identical gradients. Per pixel, with g = dL/dC, g_T = dL/dT_final and
+S_i = sum_{j > i} w_j f_j:
 
-    dL/dalpha_i = T_i (g . f_i) - (g . S_i + g_T T_final) / (1 - alpha_i),
-    S_i = sum_{j > i} w_j f_j  (the colour behind pair i).
+    dL/dalpha_i = T_i (g . f_i) - (g . S_i + g_T T_final) / (1 - alpha_i)
 
 ``interpret=True`` runs the same kernels on the CPU.
 """
