@@ -63,7 +63,10 @@ class DiffusionSchedule(NamedTuple):
 class EditConfig:
     """Static settings of a compiled edit (hashable: a change recompiles).
 
-    ``vae_chunk``: views per VAE pass (None: all); the rest as :class:`JaxIP2PEditor`'s.
+    steps: DDIM slots; prediction_type: "epsilon", "v_prediction" or "sample"; clip_sample:
+    x0 clamp (None: none); scaling_factor: the VAE latent scale; dtype: the networks' dtype
+    name; guidance: (text, image) scales; vae_chunk: views per VAE pass (None: all; memory
+    only, same results).
     """
 
     steps: int = DDIM_STEPS
