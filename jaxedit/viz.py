@@ -203,7 +203,7 @@ def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
 
 def frame_gaussians(gaussians, *, fov_deg: float = 40.0) -> tuple[np.ndarray, float]:
     """(target float [3], radius) fitting the live Gaussians in a ``fov_deg`` view:
-    median of the means, extent by a high percentile of distances plus 3-sigma footprints.
+    median of the means, extent the 95th percentile of distances plus 3-sigma footprints.
     """
     alive = np.asarray(gaussians.alive, bool)
     if not alive.any():
@@ -224,7 +224,7 @@ def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
     """Render a full orbit around the scene (+z up).
 
     Unset orbit parameters come from ``cameras`` (:func:`frame_cameras`), else from the
-    Gaussians (:func:`frame_gaussians`).
+    Gaussians (:func:`frame_gaussians`, 20 degrees elevation, 40 degrees field of view).
 
     Args:
       n_frames: frames over 360 degrees.
