@@ -5,8 +5,7 @@
   :class:`EditorConfig`), :func:`run_edit`, a whole progressive edit with its run
   directory, and :func:`edit_files`, the edit of a dataset and a scene on disk as the
   ``edit`` command runs it (its editor and difficulty distance made from the config);
-* :mod:`.train_editor` -- the bundled InstructPix2Pix's training: its dataset, networks,
-  diffusers writer, evaluation and run directory;
+* :mod:`.presets` -- the edit methods' whole config trees (proedit, nd, in2n, igs2gs);
 * :mod:`.snapshots` -- snapshot folders of scene states and the user's selection;
 * :mod:`.rundir` -- a training run's JSONL log and rolling checkpoints;
 * :mod:`.report` -- a run directory's self-contained ``report.html``;
