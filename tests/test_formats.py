@@ -9,6 +9,7 @@ import os
 import shutil
 import struct
 import subprocess
+import time
 import zipfile
 from pathlib import Path
 
@@ -441,3 +442,77 @@ def test_export_command_answers_bad_input_in_one_line(tmp_path, capsys, argv, me
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and message in err and "\n" not in err
     assert not (tmp_path / "x.spz").exists() and not (tmp_path / "x.ply").exists()
+
+
+# --- a web viewer draws our export ---------------------------------------------------
+
+
+def viewer_settings(eye, target, fov_deg: float) -> dict:
+    """SuperSplat viewer settings (splat-transform --viewer-settings) of one camera, white, no effects.
+
+    The viewer's world is the PLY's turned 180 degrees about z ((x, y, z) -> (-x, -y, z)), its
+    camera looks at ``target`` with the world's +y up, i.e. the PLY's -y.
+    """
+    to_viewer = np.array([-1.0, -1.0, 1.0])
+    off = {"enabled": False}
+    return {"version": 2, "tonemapping": "none", "highPrecisionRendering": False,
+            "background": {"color": [1, 1, 1]},
+            "postEffectSettings": {"sharpness": {**off, "amount": 0},
+                                   "bloom": {**off, "intensity": 1, "blurLevel": 2},
+                                   "grading": {**off, "brightness": 0, "contrast": 1, "saturation": 1,
+                                               "tint": [1, 1, 1]},
+                                   "vignette": {**off, "intensity": 0.5, "inner": 0.3, "outer": 0.75,
+                                                "curvature": 1},
+                                   "fringing": {**off, "intensity": 0.5}},
+            "animTracks": [], "annotations": [], "startMode": "default",
+            "cameras": [{"initial": {"position": (to_viewer * eye).tolist(),
+                                     "target": (to_viewer * np.asarray(target)).tolist(), "fov": fov_deg}}]}
+
+
+@pytest.mark.slow  # headless Chromium with software WebGL
+@needs_st
+def test_a_web_viewer_draws_our_spz_as_we_render_it(tmp_path):
+    import jax.numpy as jnp
+    from PIL import Image
+    from test_viewer import CHROMIUM, DevTools
+
+    import jaxedit
+    from jaxedit import camera as camlib
+    from jaxedit import metrics
+
+    if CHROMIUM is None:
+        pytest.skip("chromium is not on PATH (CI installs Debian's chromium)")
+    rng = np.random.default_rng(3)
+    n = 3000
+    dirs = rng.normal(size=(n, 3))
+    means = dirs / np.linalg.norm(dirs, axis=1, keepdims=True) * rng.uniform(0, 0.5, (n, 1)) ** (1 / 3)
+    sh = np.concatenate([rng.normal(0, 0.9, (n, 1, 3)), rng.normal(0, 0.05, (n, 15, 3))], 1)
+    scene = Splats(means.astype(np.float32), rng.normal(-3.2, 0.3, (n, 3)).astype(np.float32),
+                   rng.normal(size=(n, 4)).astype(np.float32), rng.normal(1, 1, n).astype(np.float32),
+                   sh.astype(np.float32))
+    ours = save_scene(tmp_path / "scene.spz", to_gaussians(scene))
+    eye, target, fov, size = np.array([1.6, 0.0, 0.0]), np.zeros(3), 50.0, 256
+    (tmp_path / "settings.json").write_text(json.dumps(viewer_settings(eye, target, fov)))
+    run_st("-g", "cpu", "--viewer-settings", tmp_path / "settings.json", ours, tmp_path / "viewer.html")
+
+    cam = camlib.make_camera(camlib.look_at(eye, target, up=(0.0, -1.0, 0.0)), width=size,
+                             height=size, focal=size / 2 / np.tan(np.radians(fov / 2)))
+    rgb = np.clip(np.asarray(jaxedit.render(load_scene(ours), cam, background=jnp.ones(3)).rgb), 0, 1)
+    profile = tmp_path / "chromium"
+    profile.mkdir()
+    browser = DevTools(profile, (tmp_path / "viewer.html").as_uri() + "?noui&noanim&webgl")
+    try:
+        browser.call("Emulation.setDeviceMetricsOverride", width=size, height=size,
+                     deviceScaleFactor=1, mobile=False)
+        deadline, shot = time.monotonic() + 120, None
+        while time.monotonic() < deadline:  # until the splats are drawn and the frame settles
+            time.sleep(2)
+            img = browser.screenshot(tmp_path / "shot.png").astype(np.float32) / 255
+            if shot is not None and (img < 0.9).mean() > 0.05 and np.abs(img - shot).max() < 1 / 255:
+                break
+            shot = img
+    finally:
+        browser.close()
+    Image.fromarray((np.concatenate([img, rgb], 1) * 255).astype(np.uint8)).save(tmp_path / "side.png")
+    # a wrong axis, rotation or SH convention draws another picture, far below this
+    assert float(metrics.psnr(img, rgb)) > 25, tmp_path / "side.png"
