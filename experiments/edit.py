@@ -59,6 +59,8 @@ def _config_flags():
         Flag("editor.size", "--ip2p-size"),
         Flag("editor.steps", "--ip2p-steps"),
         Flag("editor.batch", "--ip2p-batch"),
+        Flag("editor.targets", "--edit-targets", choices=("detail", "stretch")),
+        Flag("identity.accept_low", "--accept-low-identity"),
         Flag("distance", choices=DISTANCES),
         Flag("lpips_weights"),
     ), derived=("train.densify.warmup",)).complete()  # the plan's --warmup
@@ -217,6 +219,17 @@ def config_tree_json(tree) -> str:
     return json.dumps(out, indent=2)
 
 
+def moved_postfix(records) -> dict:
+    """The progress line's figures of the last finished subtask: how far its snapshot moved
+    from the input scene (PSNR, LPIPS of the held-out renders; Gaussians against the input's)."""
+    m = (records[-1].get("metrics") or {}) if records else {}
+    if m.get("psnr_vs_input") is None:
+        return {}
+    return {"last": records[-1]["name"], "vs_input": f"{m['psnr_vs_input']:.1f}dB",
+            "lpips": f"{m['lpips_vs_input']:.3f}",
+            "gaussians": f"{m['num_gaussians']}/{m['input_gaussians']}"}
+
+
 def progress_callback(quiet: bool):
     """A progress(spec, step, loss, state) that drives nested bars (overall + subtask).
 
@@ -233,7 +246,7 @@ def progress_callback(quiet: bool):
         if bars.get("spec") != spec.index:
             if "child" in bars:
                 bars["child"].close()
-                bars["root"].update(1)
+                bars["root"].update(1, **moved_postfix(st.records))
             bars["child"] = bars["root"].child(None, f"{spec.name} r{spec.ratio:.3f}")
             bars["spec"], bars["step"] = spec.index, 0
         # Called once per chunk of steps: advance by the steps it took.

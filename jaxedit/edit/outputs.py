@@ -8,6 +8,8 @@ The snapshot folders that hold them are written by :mod:`jaxedit.pipelines.snaps
 
 from __future__ import annotations
 
+import functools
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -114,19 +116,53 @@ def reprojection_consistency(rgb: np.ndarray, alpha: np.ndarray, depth: np.ndarr
     return float(-10.0 * np.log10(mse))
 
 
-def scene_metrics(ctx, gaussians, ratio: float) -> dict:
+@functools.lru_cache(maxsize=1)
+def bundled_lpips():
+    """LPIPS-AlexNet with the package's weights, ``(a, b) [H, W, 3] -> float``, loaded once."""
+    from ..io.weights import bundled_lpips_weights
+    from ..lpips import lpips_distance
+
+    return lpips_distance(bundled_lpips_weights())
+
+
+def distance_to_input(renders: np.ndarray, reference: np.ndarray, *, lpips=None) -> dict:
+    """How far renders moved from the input scene's renders of the same views.
+
+    Args:
+      renders, reference: float [N, H, W, 3] in [0, 1] (a scene state's and the input
+        scene's renders of the same cameras).
+      lpips: ``(a, b) -> float`` (None: :func:`bundled_lpips`).
+    Returns:
+      {"psnr_vs_input", "ssim_vs_input", "lpips_vs_input"}: means over the views (identical
+      renders: 100 dB, SSIM 1, LPIPS 0).
+    """
+    if renders.shape != reference.shape:
+        raise ValueError(f"renders {renders.shape} and reference {reference.shape} differ")
+    lpips = bundled_lpips() if lpips is None else lpips
+    sc = image_scores(renders, reference)
+    lp = float(np.mean([lpips(a, b) for a, b in zip(renders, reference)]))
+    return {"psnr_vs_input": sc["psnr"], "ssim_vs_input": sc["ssim"], "lpips_vs_input": lp}
+
+
+def scene_metrics(ctx, gaussians, ratio: float, *, reference: tuple | None = None) -> dict:
     """Numbers of one scene state at the held-out views.
 
     psnr/ssim_vs_target: renders vs the editor's noise-free target at r = 1 (None
     when the editor has no ground truth, e.g. a real diffusion model);
     psnr/ssim_vs_subtask_target: vs the target at this subtask's ratio;
     multiview_consistency: :func:`reprojection_consistency` of the renders (dB);
-    num_gaussians.
+    num_gaussians. With ``reference`` = (the input scene's renders [M, H, W, 3] of the
+    held-out views, its Gaussian count): how far this state moved from it
+    (:func:`distance_to_input`), ``input_gaussians`` and ``gaussians_vs_input`` (the ratio).
     """
     rgb, alpha, depth = ctx.renderer.views(gaussians, ctx.data.test_cameras)
     out = {"ratio": float(ratio), "num_gaussians": int(gaussians.num_alive()),
            "multiview_consistency": reprojection_consistency(rgb, alpha, depth,
                                                              ctx.data.test_cameras)}
+    if reference is not None:
+        ref_rgb, ref_count = reference
+        out.update(distance_to_input(rgb, ref_rgb), input_gaussians=int(ref_count),
+                   gaussians_vs_input=out["num_gaussians"] / max(int(ref_count), 1))
     target = getattr(ctx.editor, "target", None)
     if target is None:
         out.update(psnr_vs_target=None, ssim_vs_target=None)

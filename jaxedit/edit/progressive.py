@@ -62,6 +62,8 @@ from ..train import scene_extent
 from . import schedule as sched
 from .context import EditContext, EditData
 from .difficulty import DifficultyOracle, difficulty_view_subset, ms_ssim_distance
+from .identity import (IdentityFloor, LowIdentityError, identity_line, identity_problem,
+                       measure_identity)
 from .outputs import image_scores, scene_metrics
 from .plan import ProEditConfig, SubtaskSpec, plan_subtasks, step_guard, subtask_limits
 from .state import EditState, finish_subtask
@@ -163,15 +165,49 @@ def cap_warning(name: str, density: dict, cap: int, alive: int) -> str | None:
             f"to let the edit grow geometry")
 
 
+def check_identity(ctx: EditContext, gaussians, floor: IdentityFloor, *, seed: int,
+                   log=lambda msg: None) -> dict | None:
+    """The editor's identity on the input scene ``gaussians`` (schedule.json's
+    ``"identity"``; None in the IN2N mode, which has no difficulty views):
+    :func:`jaxedit.edit.identity.measure_identity` of the difficulty views' renders at the
+    run's t_max, logged; under ``floor`` a :class:`LowIdentityError` naming the figure, the
+    floor and the way out (a warning with ``floor.accept_low``)."""
+    config, data = ctx.config, ctx.data
+    if config.mode == "in2n":
+        return None
+    views = difficulty_view_subset(len(data.train_images), config.difficulty_views, ctx.key)
+    renders = np.stack([ctx.renderer.rgb(gaussians, data.train_cameras[i]) for i in views])
+    local = np.arange(len(views))
+    figures = measure_identity(ctx.editor, renders, data.train_images[np.asarray(views)], local,
+                               ctx.e_null, timestep=config.timestep_range[1], seed=seed,
+                               guidance=config.guidance, keys_of=views)
+    log(identity_line(figures))
+    problem = identity_problem(figures, floor)
+    figures = dict(figures, min_psnr=floor.min_psnr, max_lpips=floor.max_lpips,
+                   passed=problem is None, accepted_low=problem is not None and floor.accept_low)
+    if problem is None:
+        return figures
+    if not floor.accept_low:
+        raise LowIdentityError(
+            "editor identity", f"the editor does not reproduce this scene's views at e(0) "
+            f"({problem}): refinement would blur the scene before the instruction begins; "
+            f"stopped before training. Use InstructPix2Pix weights made for such views "
+            f"(--ip2p-weights DIR), or --accept-low-identity to edit anyway", figures)
+    log(f"WARNING: editor identity under the floor ({problem}); going on "
+        f"(--accept-low-identity)")
+    return figures
+
+
 def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ratio: float = 0.0,
-              resumed_from: str | None = None,
+              resumed_from: str | None = None, identity: dict | None = None,
               log=lambda msg: None) -> tuple[tuple[SubtaskSpec, ...], dict]:
     """(the subtasks, schedule.json's header) of an edit of ``gaussians`` (the input scene).
 
     The difficulty oracle edits renders of the input scene (``seed`` seeds its
     edits); the schedule starts at ``start_ratio``: a run continued from the
-    snapshot ``resumed_from`` has no refine subtask. ``log`` receives the
-    scheduler's warnings.
+    snapshot ``resumed_from`` has no refine subtask. ``identity``: the figures of
+    :func:`check_identity`, recorded in the header (None: not checked). ``log`` receives
+    the scheduler's warnings.
     """
     config, data = ctx.config, ctx.data
     originals = np.stack([ctx.renderer.rgb(gaussians, data.train_cameras[i])
@@ -224,7 +260,7 @@ def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ra
                         "max_steps_scaled": config.max_steps is None,
                         "max_seconds": config.max_seconds},
               "max_gaussians": ctx.trainer.settings.densify.max_gaussians,
-              "input_gaussians": int(gaussians.num_alive())}
+              "input_gaussians": int(gaussians.num_alive()), "identity": identity}
     return plan, header
 
 
@@ -246,6 +282,25 @@ def subtask_record(spec: SubtaskSpec, info: dict, num_gaussians: int) -> dict:
             "seconds": info["seconds"], "converged": info["converged"],
             "guard": info["guard"], "density": info["density"],
             "num_gaussians": int(num_gaussians), "snapshot": None, "metrics": None}
+
+
+def moved_line(name: str, metrics: dict) -> str:
+    """The log's line of how far a subtask's snapshot moved from the input scene."""
+    return (f"subtask {name}: snapshot {metrics['psnr_vs_input']:.2f} dB from the input scene "
+            f"(SSIM {metrics['ssim_vs_input']:.3f}, LPIPS {metrics['lpips_vs_input']:.3f}), "
+            f"{metrics['num_gaussians']} Gaussians of the input's {metrics['input_gaussians']}")
+
+
+def refine_warning(name: str, metrics: dict, min_psnr: float) -> str | None:
+    """The warning of a refinement (r_0) snapshot that moved the scene more than
+    ``min_psnr`` allows (its test renders against the input scene's; None: it did not)."""
+    psnr = metrics.get("psnr_vs_input")
+    if psnr is None or psnr >= min_psnr:
+        return None
+    return (f"WARNING: subtask {name} (refinement, e(0)) moved the scene: its renders are "
+            f"{psnr:.1f} dB from the input scene's (floor {min_psnr:g} dB), LPIPS "
+            f"{metrics['lpips_vs_input']:.3f}, {metrics['num_gaussians']} Gaussians of "
+            f"{metrics['input_gaussians']}: the editor does not reproduce these views")
 
 
 def subtask_warnings(ctx: EditContext, spec: SubtaskSpec, info: dict,

@@ -8,6 +8,7 @@ directory: resume, snapshots, the JSON files. The run directory::
     RUN/schedule.json        the plan and every finished subtask's record
     RUN/metrics.json         the final scene's numbers
     RUN/checkpoint.npz       the edit state, rewritten every checkpoint_every steps
+    RUN/identity.json        only in a run the editor identity check stopped: its figures
     RUN/original/            snapshot of the input scene (:mod:`.snapshots`)
     RUN/subtasks/NN_rX.XXX/  snapshot of each finished subtask
     RUN/selected.ply         the chosen snapshot (``select``)
@@ -37,6 +38,7 @@ from ..edit.checkpoint import (check_resume, load_checkpoint, save_checkpoint,
 from ..edit.context import EditContext, EditData, encode_prompt
 from ..edit.difficulty import default_distance
 from ..edit.hooks import NO_HOOKS, EditHooks
+from ..edit.identity import IdentityFloor, LowIdentityError
 from ..edit.outputs import Renderer
 from ..edit.state import begin_subtask, init_state
 from ..edit.subtask import compile_chunk
@@ -51,6 +53,8 @@ from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
 
 #: The edit state's checkpoint inside a run directory.
 CHECKPOINT_NAME = "checkpoint.npz"
+#: The editor identity check's record of a run it stopped.
+IDENTITY_NAME = "identity.json"
 
 
 #: The 2D editors an edit run can use (:class:`EditorConfig`).
@@ -66,7 +70,8 @@ class EditorConfig:
         the small model bundled with jaxedit unless ``weights``; ip2p-torch: the torch +
         diffusers reference).
       weights: local diffusers folder of the InstructPix2Pix weights (ip2p, ip2p-torch;
-        None: the bundled small model).
+        None: the bundled small model, made for the built-in scenes at 64 px: on your own
+        capture give SD-size InstructPix2Pix weights, e.g. timbrooks/instruct-pix2pix).
       device: torch device of ip2p-torch (None: cuda:0, else cpu); the JAX editor runs on
         the editor's JAX device (the second if any).
       dtype: networks' dtype (None: float32 on the CPU; bfloat16 (JAX) or float16 (torch)
@@ -76,6 +81,9 @@ class EditorConfig:
       steps: DDIM steps per IP2P edit.
       batch: ip2p: most views per editor call when several are due at once (a subtask's
         initial sweep, the difficulty's views; None: 8 per accelerator, 1 on the CPU).
+      targets: ip2p: a view larger than the editor's size gets as its target the render
+        plus the edit's change made at the editor's size (detail), or the edit enlarged
+        (stretch: blurred, the targets before issue 77).
     """
 
     kind: str = "simulated"
@@ -85,8 +93,14 @@ class EditorConfig:
     size: int | None = ranged(None, low=8)
     steps: int = ranged(DDIM_STEPS, low=1)
     batch: int | None = ranged(None, low=1)
+    targets: str = "detail"
 
     def __post_init__(self):
+        from ..editors.compose import TARGETS
+
+        if self.targets not in TARGETS:
+            raise DataError("targets", f"unknown targets {self.targets!r}; choose from "
+                                       f"{', '.join(TARGETS)}")
         if self.kind not in EDITORS:
             raise DataError("kind", f"unknown editor {self.kind!r}; choose from "
                                     f"{', '.join(EDITORS)}")
@@ -112,9 +126,12 @@ def make_editor(config: EditorConfig):
     if config.kind == "ip2p":
         from ..editors.jax_ip2p import load_editor
 
+        from ..editors.compose import with_targets
+
         # The editor's device of pick_devices, the one run_edit gives the editor.
-        return load_editor(weights, devices=[pick_devices()[1]], dtype=config.dtype,
-                           size=size, steps=config.steps, batch=config.batch)
+        return with_targets(load_editor(weights, devices=[pick_devices()[1]],
+                                        dtype=config.dtype, size=size, steps=config.steps,
+                                        batch=config.batch), config.targets)
     try:
         from ..editors.ip2p import load_editor as load_torch_editor
     except ImportError as e:  # torch / diffusers are optional extras
@@ -138,11 +155,14 @@ class EditRunConfig:
         None: the bundled LPIPS-AlexNet).
       downscale: image downscale factor of the dataset.
       test_views: at most this many held-out views in snapshots and metrics (None: all).
+      identity: the floor the editor's identity on the scene must clear before training
+        (:class:`jaxedit.edit.identity.IdentityFloor`).
     """
 
     plan: ProEditConfig = ProEditConfig()
     train: TrainSettings = TrainSettings()
     editor: EditorConfig = EditorConfig()
+    identity: IdentityFloor = IdentityFloor()
     distance: str = "auto"
     lpips_weights: Path | None = None
     downscale: int = ranged(1, low=1)
@@ -191,7 +211,7 @@ def edit_files(config: EditRunConfig, prompt: str, data_path, scene_path, *, edi
     if callable(local):
         local = local(data)
     return run_edit(editor, prompt, data, scene, config=config.plan, settings=config.train,
-                    distance=distance, local=local, **kwargs)
+                    distance=distance, local=local, identity=config.identity, **kwargs)
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -231,7 +251,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
              resume_from: str | os.PathLike | None = None, select=None,
              callback: Callable | None = None, progress: Callable | None = None,
              report: bool = True, log: Callable[[str], None] | None = None,
-             distance: Callable | None = None, local=None, hooks: EditHooks = NO_HOOKS) -> dict:
+             distance: Callable | None = None, local=None, hooks: EditHooks = NO_HOOKS,
+             identity: IdentityFloor | None = IdentityFloor()) -> dict:
     """Edit ``gaussians`` progressively (:mod:`jaxedit.edit.progressive`); returns the run summary.
 
     Args:
@@ -259,6 +280,11 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         its figures go to schedule.json's ``"local"``.
       hooks: a study's changes to the plan, limits or edit source
         (:class:`jaxedit.edit.hooks.EditHooks`; the lab's controls use them).
+      identity: the floor of the editor's identity on the scene, checked before the
+        schedule's edits (:func:`jaxedit.edit.progressive.check_identity`; None: not
+        checked); under it the run stops with a :class:`LowIdentityError`, having written
+        only ``run_dir/identity.json``. Its ``refine_min_psnr`` flags an r_0 that moved the
+        scene.
     Returns:
       {"schedule": schedule.json contents, "metrics": metrics.json contents, "gaussians": final}.
     """
@@ -312,14 +338,28 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
                                for i in range(len(data.train_images))])
             log(f"continuing from {snap} (r = {start_ratio:.3f})")
+        figures = None
+        if identity is not None and start_ratio == 0.0:
+            try:  # before anything is compiled for training or written
+                figures = progressive.check_identity(ctx, gaussians, identity, seed=seed,
+                                                     log=log)
+            except LowIdentityError as e:  # the check's record, and nothing else
+                if run_dir is not None:
+                    _write_json(run_dir / IDENTITY_NAME, dict(e.figures, stopped=str(e)))
+                raise
         st = init_state(ctx, start_scene, images)
         # The training chunks' program is built (or read back) while the schedule edits.
         with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
             plan, header = progressive.plan_edit(
-                ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio, log=log,
-                resumed_from=None if resume_from is None else str(resume_from))
+                ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio,
+                log=log, resumed_from=None if resume_from is None else str(resume_from),
+                identity=figures)
         if local_figures is not None:
             header = dict(header, local=local_figures)
+    # The input scene's renders of the held-out views: every snapshot says how far it moved.
+    reference = None if run_dir is None else (
+        ctx.renderer.views(gaussians, data.test_cameras)[0], int(gaussians.num_alive()))
+    refine_floor = (identity or IdentityFloor()).refine_min_psnr
     if run_dir is not None and not resume:
         write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
         if local_figures is not None:  # the region at the held-out views, for the report
@@ -343,8 +383,14 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             return record
         rel = Path("subtasks") / spec.dirname
         record = dict(record, metrics=write_scene_snapshot(
-            ctx, run_dir / rel, trainer.gaussians(state.train), ratio=spec.ratio),
+            ctx, run_dir / rel, trainer.gaussians(state.train), ratio=spec.ratio,
+            reference=reference),
             snapshot=str(rel / "scene.ply"), **snapshot_fingerprint(run_dir / rel / "scene.ply"))
+        log(progressive.moved_line(spec.name, record["metrics"]))
+        warning = (progressive.refine_warning(spec.name, record["metrics"], refine_floor)
+                   if spec.kind == "refine" else None)
+        if warning:
+            log(warning)
         write_schedule(tuple(state.records) + (record,))
         return record
 

@@ -83,14 +83,17 @@ def write_snapshot(directory, gaussians, cameras, *, background=(1.0, 1.0, 1.0),
     return record
 
 
-def write_scene_snapshot(ctx, directory: Path, gaussians, *, ratio: float) -> dict:
-    """scene.ply, renders/, depth/, (turntable.webp) and metrics.json of one scene state."""
+def write_scene_snapshot(ctx, directory: Path, gaussians, *, ratio: float,
+                         reference: tuple | None = None) -> dict:
+    """scene.ply, renders/, depth/, (turntable.webp) and metrics.json of one scene state;
+    ``reference``: (the input scene's renders of the held-out views, its Gaussian count),
+    to record how far this state moved from it (:func:`jaxedit.edit.outputs.scene_metrics`)."""
     directory = Path(directory)
     write_snapshot(directory, gaussians, ctx.data.test_cameras,
                        background=tuple(ctx.config.background),
                        turntable_frames=ctx.config.turntable_frames,
                        render_fn=lambda g, cam, **kw: ctx.renderer(g, cam))
-    metrics = scene_metrics(ctx, gaussians, ratio)
+    metrics = scene_metrics(ctx, gaussians, ratio, reference=reference)
     atomic_write_text(directory / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return metrics
 

@@ -24,6 +24,28 @@ _PLOT_MEMO: dict = {}
 # ---------------------------------------------------------------------------
 # Edit run
 # ---------------------------------------------------------------------------
+def moved_cells(metrics: dict | None) -> list[str]:
+    """The schedule table's cells of how far a snapshot moved from the input scene: PSNR,
+    SSIM / LPIPS of its test renders against the input's, its Gaussians (and their ratio)."""
+    m = metrics or {}
+    if not _is_number(m.get("psnr_vs_input")):
+        return ["&mdash;"] * 3
+    return [f"{m['psnr_vs_input']:.2f}", f"{m['ssim_vs_input']:.3f} / {m['lpips_vs_input']:.3f}",
+            f"{m['num_gaussians']} ({m['gaussians_vs_input']:.2f}&times;)"]
+
+
+def identity_paragraph(identity: dict | None) -> str:
+    """The editor's identity on this scene (schedule.json's ``"identity"``), one paragraph."""
+    if not isinstance(identity, dict):
+        return ""
+    verdict = ("clears the floor" if identity.get("passed") else
+               "is <b>under the floor</b> (edited anyway: --accept-low-identity)")
+    return (f"<p>Editor identity on this scene: PSNR {identity['psnr']:.1f} dB, LPIPS "
+            f"{identity['lpips']:.3f} (e(0) at t = {identity['timestep']:.2f} on "
+            f"{len(identity['views'])} difficulty views; floor {identity['min_psnr']:g} dB, "
+            f"LPIPS {identity['max_lpips']:g}): it {verdict}.</p>")
+
+
 def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: int,
                    turntable_px: int, max_frames: int, notes: dict | None,
                    config_path: Path | None = None) -> list[tuple[str, str, str]]:
@@ -71,10 +93,15 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
         name = _e(s.get("name", "")) + (" &#9733;" if i == start else "")
         rows.append([_e(s.get("index", i)), name, f"{float(s['ratio']):.4f}",
                      _fmt(s.get("difficulty")), _fmt(s.get("steps")), _fmt(s.get("seconds")),
-                     _fmt(s.get("converged")), f"<code>{_e(snap)}</code>" if snap else "&mdash;"])
-    rows.append(["", "<b>total</b>", "", "", _fmt(total_steps), _fmt(round(total_s, 2)), "", ""])
-    body = _table(["#", "subtask", "ratio r", "difficulty d(r<sub>i-1</sub>, r<sub>i</sub>)",
-                   "iterations", "seconds", "converged", "snapshot"], rows, "schedule")
+                     _fmt(s.get("converged")), *moved_cells(s.get("metrics")),
+                     f"<code>{_e(snap)}</code>" if snap else "&mdash;"])
+    rows.append(["", "<b>total</b>", "", "", _fmt(total_steps), _fmt(round(total_s, 2)), "",
+                 "", "", "", ""])
+    body = (identity_paragraph(schedule.get("identity"))
+            + _table(["#", "subtask", "ratio r", "difficulty d(r<sub>i-1</sub>, r<sub>i</sub>)",
+                      "iterations", "seconds", "converged", "PSNR vs input (dB)",
+                      "SSIM / LPIPS vs input", "Gaussians (vs input)", "snapshot"], rows,
+                     "schedule"))
     unconverged = [s.get("name", i) for i, s in enumerate(subtasks) if s.get("converged") is False]
     if unconverged:
         body += ("<p>Not converged (the max-steps guard fired before the loss plateaued): "

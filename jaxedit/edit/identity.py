@@ -1,0 +1,126 @@
+"""The editor's identity on a scene: does e(0) give back the views it is shown?
+
+The refinement subtask r_0 (paper 3.3) trains the scene on edits made with the empty
+instruction's embedding e(0) = E(""): with an editor that reproduces its input there, r_0
+only sharpens the scene; with one that does not (weights trained on other images, or at
+another size), every target is a changed image and r_0 moves the whole scene before the
+instruction has begun. :func:`measure_identity` edits the difficulty views' renders with
+e(0) at the run's strongest timestep (t_max, where r_0's first edits are made), one editor
+call per view, and scores the edits against the renders (or the photos, where nearer);
+:func:`identity_problem` says whether the figures clear an :class:`IdentityFloor`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Sequence
+
+import jax
+import numpy as np
+
+from ..editors.base import edit_views, editor_guidance
+from ..editors.keys import view_key
+from ..errors import DataError, check_ranges, ranged
+from .outputs import bundled_lpips, image_scores
+
+
+@dataclasses.dataclass(frozen=True)
+class IdentityFloor:
+    """What an editor's identity on the scene must clear before an edit trains.
+
+    Attributes:
+      min_psnr: lowest identity PSNR (dB) of e(0)'s edits against the renders.
+      max_lpips: highest identity LPIPS (AlexNet) of those edits against the renders.
+      accept_low: go on (with a warning) when the identity is under the floor.
+      refine_min_psnr: PSNR (dB) of the refinement's (r_0's) snapshot against the input
+        scene's renders under which the log warns that r_0 moved the scene.
+    """
+
+    min_psnr: float = ranged(18.0, low=0.0)
+    max_lpips: float = ranged(0.35, low=0.0)
+    accept_low: bool = False
+    refine_min_psnr: float = ranged(28.0, low=0.0)
+
+    def __post_init__(self):
+        check_ranges(self)
+
+
+class LowIdentityError(DataError):
+    """The editor does not reproduce the scene's views at e(0): the edit stopped before
+    training. ``figures``: :func:`measure_identity`'s record."""
+
+    def __init__(self, where, problem: str, figures: dict):
+        super().__init__(where, problem)
+        self.figures = figures
+
+
+def measure_identity(editor, renders: np.ndarray, originals: np.ndarray, views: Sequence[int],
+                     e_null, *, timestep: float, seed: int,
+                     guidance: tuple[float, float] | None = None,
+                     lpips: Callable | None = None, keys_of: Sequence[int] | None = None) -> dict:
+    """Edit ``renders[views]`` with e(0) at ``timestep``; PSNR and LPIPS against the renders
+    (or the photos, where the edit is nearer them: an edit that gives back the photo refines
+    the scene towards the capture).
+
+    Args:
+      editor: an :class:`jaxedit.editors.Editor`.
+      renders: float [N, H, W, 3], the input scene's renders of the training views.
+      originals: float [N, H, W, 3], their photos (the editor's conditioning, as in r_0).
+      views: the view indices to check (the difficulty views).
+      e_null: the editor's E("").
+      timestep: the SDEdit timestep (fraction of the schedule).
+      seed: the run seed; view k's key is :func:`view_key` (seed, k, 0, 0), the difficulty
+        oracle's key of that view.
+      guidance: the run's (text, image) scales (None: the editor's own).
+      lpips: ``(a, b) -> float`` (None: the bundled LPIPS-AlexNet).
+      keys_of: the training-view indices of ``views`` (None: ``views`` are those indices),
+        which name them in the keys and the record.
+    Returns:
+      {"psnr", "lpips" (means over the views of each view's better of the two),
+      "psnr_per_view", "lpips_per_view", "psnr_vs_renders", "lpips_vs_renders",
+      "psnr_vs_photos", "lpips_vs_photos", "views" (training-view indices), "timestep",
+      "editor_calls"} (one call per view).
+    """
+    views = [int(k) for k in views]
+    names = views if keys_of is None else [int(k) for k in keys_of]
+    lpips = bundled_lpips() if lpips is None else lpips
+    run_key = jax.random.key(int(seed))
+    keys = [view_key(run_key, k, 0.0, 0) for k in names]
+    edited = edit_views(editor, [renders[k] for k in views], [originals[k] for k in views],
+                        e_null, keys, timestep_range=(float(timestep), float(timestep)),
+                        guidance=editor_guidance(editor, guidance))
+    edited = [np.asarray(e, np.float32) for e in edited]
+
+    def scores(refs):
+        return ([image_scores(e[None], refs[k][None])["psnr"] for e, k in zip(edited, views)],
+                [float(lpips(e, refs[k])) for e, k in zip(edited, views)])
+
+    psnr_r, lp_r = scores(renders)
+    psnr_o, lp_o = scores(originals)
+    # Giving back the photo is as good as giving back the render: r_0 then refines the
+    # scene towards the capture (an editor conditioned on the photo may do either).
+    psnr = [max(a, b) for a, b in zip(psnr_r, psnr_o)]
+    lp = [min(a, b) for a, b in zip(lp_r, lp_o)]
+    return {"psnr": float(np.mean(psnr)), "lpips": float(np.mean(lp)),
+            "psnr_per_view": psnr, "lpips_per_view": lp,
+            "psnr_vs_renders": float(np.mean(psnr_r)), "lpips_vs_renders": float(np.mean(lp_r)),
+            "psnr_vs_photos": float(np.mean(psnr_o)), "lpips_vs_photos": float(np.mean(lp_o)),
+            "views": names, "timestep": float(timestep), "editor_calls": len(views)}
+
+
+def identity_problem(figures: dict, floor: IdentityFloor) -> str | None:
+    """What is wrong with ``figures`` (:func:`measure_identity`) under ``floor``, naming
+    the figure and the floor (None: it clears the floor)."""
+    problems = []
+    if figures["psnr"] < floor.min_psnr:
+        problems.append(f"PSNR {figures['psnr']:.1f} dB < floor {floor.min_psnr:g} dB")
+    if figures["lpips"] > floor.max_lpips:
+        problems.append(f"LPIPS {figures['lpips']:.3f} > ceiling {floor.max_lpips:g}")
+    return "; ".join(problems) or None
+
+
+def identity_line(figures: dict) -> str:
+    """The log's line of the check."""
+    return (f"editor identity on this scene: PSNR {figures['psnr']:.1f} dB, LPIPS "
+            f"{figures['lpips']:.3f} (e(0) at t = {figures['timestep']:.2f}, "
+            f"{len(figures['views'])} difficulty views)")

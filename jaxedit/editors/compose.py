@@ -1,0 +1,106 @@
+"""How an edit made at the editor's size becomes the target of a larger view.
+
+An InstructPix2Pix edits at its model size (the bundled editor's 64 px, SD's 512 px); a
+view larger than that comes back *stretched*: the edit, made of the view shrunk to the
+model size, enlarged again, so every target is a blurred image and training on it blurs
+the scene. :class:`DetailTargets` makes the target from the edit's *change* at the
+editor's scale instead, added to the view as it is::
+
+    target = image + up(edit(down(image)) - down(image))
+
+(``down`` / ``up``: antialiased bilinear resizes, :func:`jaxedit.editors.jax_ip2p.resize_images`),
+so what the edit changes is taken at the editor's resolution and what it leaves alone
+keeps the view's own detail. Views at (or under) the editor's size are edited exactly as
+the editor edits them.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ..errors import DataError
+
+#: How a larger view's target is made: "detail" (:class:`DetailTargets`) or "stretch" (the
+#: editor's own result, its edit enlarged).
+TARGETS = ("detail", "stretch")
+
+
+def compose_target(images, small, edited_small):
+    """``images + up(edited_small - small)``, clamped to [0, 1].
+
+    Args:
+      images: float [B, H, W, 3], the views at their own size.
+      small: float [B, h, w, 3], the views at the editor's size (``down(images)``).
+      edited_small: float [B, h, w, 3], the editor's edits of ``small``.
+    Returns float32 [B, H, W, 3].
+    """
+    from .jax_ip2p import resize_images
+
+    change = jnp.asarray(edited_small, jnp.float32) - jnp.asarray(small, jnp.float32)
+    return jnp.clip(jnp.asarray(images, jnp.float32) + resize_images(change, images.shape[1:3]),
+                    0.0, 1.0)
+
+
+class DetailTargets:
+    """``editor`` whose edits of views larger than its model size keep the views' detail
+    (:func:`compose_target`); everything else (``encode``, ``relevance``, ``guidance``,
+    ``batch``, ...) is the editor's own.
+
+    ``editor`` must have ``model_hw(height, width)``, the size it edits a view at (the JAX
+    InstructPix2Pix has it).
+    """
+
+    def __init__(self, editor):
+        if not hasattr(editor, "model_hw"):
+            raise DataError("targets", f"editor {getattr(editor, 'name', editor)!r} does not "
+                                       "say its model size; use stretched targets")
+        self.editor = editor
+
+    def __getattr__(self, name):
+        return getattr(self.editor, name)
+
+    def __repr__(self):
+        return f"DetailTargets({self.editor!r})"
+
+    def _smaller(self, height: int, width: int) -> tuple[int, int] | None:
+        """The editor's size of a view of ``height`` x ``width`` when the view is larger
+        (None: edited as it is)."""
+        h, w = self.editor.model_hw(height, width)
+        return (h, w) if h < height or w < width else None
+
+    def edit_many(self, images, originals, embeddings, keys, **kwargs):
+        """:meth:`edit_many` of the editor, composed as :func:`compose_target` for views
+        larger than its size; float32 [B, H, W, 3]."""
+        from .jax_ip2p import resize_images
+
+        images = jnp.asarray(images, jnp.float32)
+        hw = self._smaller(*images.shape[1:3])
+        if hw is None:
+            return self.editor.edit_many(images, originals, embeddings, keys, **kwargs)
+        small = resize_images(images, hw)
+        edited = self.editor.edit_many(small, resize_images(jnp.asarray(originals, jnp.float32),
+                                                            hw), embeddings, keys, **kwargs)
+        return compose_target(images, small, edited)
+
+    def edit(self, image, original, embedding, key, **kwargs):
+        """:meth:`edit` of one view [H, W, 3], composed as :meth:`edit_many`."""
+        image = jnp.asarray(image, jnp.float32)
+        if self._smaller(*image.shape[:2]) is None:
+            return self.editor.edit(image, original, embedding, key, **kwargs)
+        import jax
+
+        if not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+            key = jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
+        return self.edit_many(image[None], jnp.asarray(original, jnp.float32)[None], embedding,
+                              key.reshape(1), **kwargs)[0]
+
+
+def with_targets(editor, targets: str):
+    """``editor`` making larger views' targets as ``targets`` says (one of :data:`TARGETS`):
+    "detail" wraps an editor that has a model size in :class:`DetailTargets` (others, e.g.
+    the simulated editor, edit at the view's size and are returned as they are)."""
+    if targets not in TARGETS:
+        raise DataError("targets", f"must be one of {', '.join(TARGETS)}, got {targets!r}")
+    if targets == "stretch" or not hasattr(editor, "model_hw"):
+        return editor
+    return DetailTargets(editor)

@@ -1,0 +1,203 @@
+"""Issue 77: the editor's identity checked before an edit trains, detail-keeping targets for
+views larger than the editor's size, and how far every snapshot moved from the input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxedit import DataError
+from jaxedit import camera as cl
+from jaxedit import gaussians as gl
+from jaxedit.edit import EditData, ProEditConfig, TrainSettings
+from jaxedit.edit.identity import (IdentityFloor, LowIdentityError, identity_problem,
+                                   measure_identity)
+from jaxedit.edit.outputs import Renderer, distance_to_input
+from jaxedit.editors.compose import DetailTargets, compose_target, with_targets
+from jaxedit.editors.jax_ip2p import resize_images
+
+PROMPT = "turn him into a bronze statue"
+
+
+class Identity:
+    """An editor that gives back the view it is shown (a perfect identity at every e(r))."""
+
+    name = "identity"
+    guidance = (7.5, 1.5)
+
+    def encode(self, prompt):
+        return np.zeros((4,), np.float32)
+
+    def edit(self, image, original, embedding, key, **kwargs):
+        return np.asarray(image, np.float32)
+
+
+def _views(n=3, size=32, seed=0):
+    rng = np.random.default_rng(seed)
+    base = rng.uniform(0.2, 0.8, (n, 1, 1, 3))
+    ys, xs = np.mgrid[0:size, 0:size] / size
+    texture = 0.15 * np.sin(12 * xs + 7 * ys)[None, ..., None]
+    return np.clip(base + texture, 0, 1).astype(np.float32)
+
+
+def test_distance_to_input_is_zero_for_the_input_and_grows_with_change():
+    views = _views()
+    same = distance_to_input(views, views)
+    assert same["psnr_vs_input"] == 100.0 and same["ssim_vs_input"] == pytest.approx(1.0)
+    assert same["lpips_vs_input"] == pytest.approx(0.0, abs=1e-6)
+    rng = np.random.default_rng(1)
+    small = np.clip(views + rng.normal(0, 0.02, views.shape), 0, 1).astype(np.float32)
+    large = np.clip(views + rng.normal(0, 0.2, views.shape), 0, 1).astype(np.float32)
+    a, b = distance_to_input(small, views), distance_to_input(large, views)
+    assert 30 < a["psnr_vs_input"] < 40 and b["psnr_vs_input"] < a["psnr_vs_input"] - 10
+    assert b["lpips_vs_input"] > a["lpips_vs_input"] and b["ssim_vs_input"] < a["ssim_vs_input"]
+
+
+@pytest.mark.slow
+def test_identity_of_a_perfect_and_of_a_random_editor():
+    from ip2p_standins import standin_editor
+
+    views = _views(4)
+    floor = IdentityFloor()
+    good = measure_identity(Identity(), views, views, [0, 2], np.zeros(4), timestep=0.85, seed=0)
+    assert good["psnr"] == 100.0 and good["views"] == [0, 2] and good["editor_calls"] == 2
+    assert identity_problem(good, floor) is None
+    poor = standin_editor(size=32, steps=2)  # random weights: a deliberately poor editor
+    bad = measure_identity(poor, views, views, [0, 1, 3], poor.encode(""), timestep=0.85, seed=0)
+    assert bad["editor_calls"] == 3 and len(bad["psnr_per_view"]) == 3
+    problem = identity_problem(bad, floor)
+    assert problem is not None and f"floor {floor.min_psnr:g} dB" in problem
+
+
+def test_compose_target_keeps_the_views_detail_and_adds_the_change():
+    views = jnp.asarray(_views(2, size=64))
+    small = resize_images(views, (16, 16))
+    # no change at the editor's size: the target is the view itself, every bit of it
+    assert np.array_equal(np.asarray(compose_target(views, small, small)), np.asarray(views))
+    shifted = np.asarray(compose_target(views, small, small + 0.1))
+    np.testing.assert_allclose(shifted, np.clip(np.asarray(views) + 0.1, 0, 1), atol=1e-6)
+
+
+def test_detail_targets_only_change_views_larger_than_the_editor():
+    from ip2p_standins import standin_editor
+
+    inner = standin_editor(size=16, steps=2)
+    wrapped = with_targets(inner, "detail")
+    assert isinstance(wrapped, DetailTargets) and with_targets(inner, "stretch") is inner
+    assert wrapped.name == inner.name and wrapped.batch == inner.batch
+    e = inner.encode("")
+    keys = jax.random.split(jax.random.key(0), 2)
+    at_size = jnp.asarray(_views(2, size=16))
+    # views at the editor's size: exactly the editor's edit
+    assert np.array_equal(np.asarray(wrapped.edit_many(at_size, at_size, e, keys)),
+                          np.asarray(inner.edit_many(at_size, at_size, e, keys)))
+    big = jnp.asarray(_views(2, size=48))
+    got = np.asarray(wrapped.edit_many(big, big, e, keys))
+    small = resize_images(big, (16, 16))
+    want = compose_target(big, small, inner.edit_many(small, small, e, keys))
+    assert got.shape == (2, 48, 48, 3) and np.array_equal(got, np.asarray(want))
+    one = np.asarray(wrapped.edit(big[0], big[0], e, keys[0]))
+    np.testing.assert_allclose(one, got[0], atol=1e-6)
+    with pytest.raises(DataError, match="targets"):
+        with_targets(inner, "sharpest")
+
+
+# ---------------------------------------------------------------------------
+# Whole runs on a tiny scene: 8 train + 2 held-out views of a coloured ball, 32 x 32
+# ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    g = gl.from_points(d * 0.5, np.clip(0.5 + 0.4 * d[:, [2, 0, 1]], 0, 1), sh_degree=1,
+                       init_opacity=0.8)
+    g = dataclasses.replace(g, log_scales=g.log_scales + 0.3)
+    cams = cl.orbit(10, radius=2.5, width=32, height=32, elevation_deg=15)
+    renderer = Renderer()
+    images = np.stack([renderer.rgb(g, cams[i]) for i in range(10)])
+    return g, EditData.create(images[:8], cams[np.arange(8)], images[8:], cams[np.arange(8, 10)])
+
+
+TINY = dict(warmup=6, patience=8, loss_window=4, max_steps=24, edit_every=3, checkpoint_every=5,
+            subtasks=1, consolidate=False, asynchronous=False, turntable_frames=0,
+            difficulty_views=3)
+
+
+def test_a_random_editor_is_stopped_before_training_with_only_the_record(tiny, tmp_path):
+    from ip2p_standins import standin_editor
+
+    from jaxedit.pipelines import run_edit
+
+    g, data = tiny
+    run_dir = tmp_path / "run"
+    with pytest.raises(LowIdentityError) as err:
+        run_edit(standin_editor(size=32, steps=2), PROMPT, data, g,
+                 config=ProEditConfig.for_mode("proedit", **TINY), seed=0, run_dir=run_dir,
+                 report=False)
+    message = str(err.value)
+    assert "\n" not in message and "--ip2p-weights" in message
+    assert "--accept-low-identity" in message and "dB < floor" in message
+    assert sorted(p.name for p in run_dir.iterdir()) == ["identity.json"]
+    record = json.loads((run_dir / "identity.json").read_text())
+    assert record["passed"] is False and record["editor_calls"] == 3
+    assert record["views"] == json.loads(json.dumps(err.value.figures["views"]))
+
+
+@pytest.fixture(scope="module")
+def simulated_run(tiny, tmp_path_factory):
+    from jaxedit_lab.simulated import SimulatedEditor
+
+    from jaxedit.pipelines import run_edit
+
+    g, data = tiny
+    run_dir = tmp_path_factory.mktemp("identity")
+    lines = []
+    # a refinement floor no real r_0 clears, so that its warning must be logged
+    out = run_edit(SimulatedEditor(), PROMPT, data, g,
+                   config=ProEditConfig.for_mode("proedit", **TINY),
+                   settings=TrainSettings(lr_sh_dc=0.05), seed=1, run_dir=run_dir,
+                   log=lines.append, identity=IdentityFloor(refine_min_psnr=99.0))
+    return run_dir, out, lines
+
+
+@pytest.mark.slow
+def test_the_simulated_editor_passes_and_every_snapshot_says_how_far_it_moved(simulated_run,
+                                                                               tiny):
+    run_dir, out, lines = simulated_run
+    g, _ = tiny
+    sched = json.loads((run_dir / "schedule.json").read_text())
+    ident = sched["identity"]
+    assert ident["passed"] and ident["editor_calls"] == len(ident["views"]) == 3
+    assert ident["timestep"] == ProEditConfig().timestep_range[1]
+    assert any(line.startswith("editor identity on this scene: PSNR") for line in lines)
+    for s in sched["subtasks"]:
+        m = s["metrics"]
+        assert m["input_gaussians"] == int(g.num_alive())
+        assert m["gaussians_vs_input"] == pytest.approx(m["num_gaussians"] / m["input_gaussians"])
+        assert 0 < m["psnr_vs_input"] < 100 and 0 < m["lpips_vs_input"] < 1
+        on_disk = json.loads((run_dir / s["snapshot"]).with_name("metrics.json").read_text())
+        assert on_disk["psnr_vs_input"] == m["psnr_vs_input"]
+    # the r = 1 edit moved the scene further than the refinement did
+    r0, r1 = (s["metrics"] for s in sched["subtasks"])
+    assert r1["psnr_vs_input"] < r0["psnr_vs_input"]
+    assert any("subtask r0 (refinement, e(0)) moved the scene" in line for line in lines)
+    assert not any("subtask r1 (refinement" in line for line in lines)
+    html = (run_dir / "report.html").read_text()
+    assert "Editor identity on this scene" in html and "PSNR vs input (dB)" in html
+    assert f"{r0['psnr_vs_input']:.2f}" in html
+
+
+def test_the_progress_line_shows_the_last_snapshot():
+    from experiments.edit import moved_postfix
+
+    m = {"psnr_vs_input": 31.24, "lpips_vs_input": 0.0412, "num_gaussians": 900,
+         "input_gaussians": 1000}
+    assert moved_postfix([{"name": "r0", "metrics": m}]) == {
+        "last": "r0", "vs_input": "31.2dB", "lpips": "0.041", "gaussians": "900/1000"}
+    assert moved_postfix([]) == {} and moved_postfix([{"name": "r0", "metrics": None}]) == {}
