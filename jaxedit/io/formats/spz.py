@@ -111,8 +111,8 @@ def encode(s: Splats, *, version: int = 4, axes: str = "ply", level: int | None 
     Args:
       version: 2 or 3 (one gzip stream) or 4 (ZSTD streams, the current version).
       axes: "ply" stores the PLY axes as they are (splat-transform's convention), "rub" converts.
-      level: the compression level (gzip 1-9, default 6; ZSTD 1-22, default 6, a file a few
-        percent larger than splat-transform's level-12 one, written several times faster).
+      level: the compression level (gzip 1-9, default 6; ZSTD 1-22, default 6: splat-transform
+        writes level 12, a smaller file written more slowly).
     """
     _check_axes(axes)
     if version not in VERSIONS:
