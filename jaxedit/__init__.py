@@ -15,8 +15,8 @@ from .camera import Camera
 from .compilation import enable as enable_compilation
 from .errors import DataError
 from .gaussians import Gaussians
-from .io import (Dataset, load_nerfstudio, load_ply, read_image, save_nerfstudio, save_ply,
-                 write_image)
+from .io import (Dataset, load_nerfstudio, load_ply, load_scene, read_image, save_nerfstudio,
+                 save_ply, save_scene, write_image)
 from .edit import decompose, decompose_root
 from .lpips import load_lpips, lpips_distance
 from .raster import RenderOutput, render, render_reference
@@ -42,8 +42,8 @@ __all__ = [
     "__version__", "camera", "clip_metrics", "colorize_depth", "decompose", "decompose_root",
     "densify", "edit", "editors", "enable_compilation", "evaluate", "fit", "init_state",
     "gaussians", "image_grid", "io", "lpips", "lpips_distance", "load_lpips", "load_nerfstudio",
-    "load_ply", "losses", "make_scene", "metrics", "poses", "raster", "read_image", "render",
-    "render_reference", "resume", "save_nerfstudio", "save_ply", "scenes", "sh", "train",
+    "load_ply", "load_scene", "losses", "make_scene", "metrics", "poses", "raster", "read_image", "render",
+    "render_reference", "resume", "save_nerfstudio", "save_ply", "save_scene", "scenes", "sh", "train",
     "train_step", "turntable", "viz", "write_image", "write_report", "write_snapshot",
     "write_turntable",
 ]
