@@ -153,10 +153,11 @@ class Dataset:
 
 
 def as_float_images(pixels) -> np.ndarray:
-    """float32 [..., 3] in [0, 1] of uint8 or float ``pixels`` (uint8 divided by 255)."""
+    """float32 [..., 3] in [0, 1] of uint8 or float ``pixels`` (uint8 times 1/255: bit for bit
+    OpenImageIO's float read of an 8-bit file)."""
     pixels = np.asarray(pixels)
     if pixels.dtype == np.uint8:
-        return pixels.astype(np.float32) / np.float32(255.0)
+        return pixels.astype(np.float32) * np.float32(1.0 / 255.0)
     return pixels.astype(np.float32, copy=False)
 
 

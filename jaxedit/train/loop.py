@@ -59,11 +59,12 @@ seeded permutation every epoch of ``num_views`` steps.
 
 
 def unit_float(image) -> jax.Array:
-    """float32 in [0, 1] of a uint8 image (divided by 255) or a float one (as it is): the
-    training images may stay uint8 on the device, a quarter of float32's memory."""
+    """float32 in [0, 1] of a uint8 image (times 1/255, bit for bit OpenImageIO's float read
+    of the same file) or a float one (as it is): the training images may stay uint8 on the
+    device, a quarter of float32's memory."""
     image = jnp.asarray(image)
     if image.dtype == jnp.uint8:
-        return image.astype(jnp.float32) / 255.0
+        return image.astype(jnp.float32) * jnp.float32(1.0 / 255.0)
     return image
 
 
