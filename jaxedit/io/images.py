@@ -132,8 +132,9 @@ def _is_jpeg(path: Path) -> bool:
 def photo_header(path: str | os.PathLike) -> tuple[int, int, int, bool]:
     """(stored height, stored width, EXIF orientation 1-8, 8-bit) of an image, nothing decoded.
 
-    The orientation is 1 (as stored) when the file has none; ``8-bit`` is True for 8-bit
-    integer pixels (JPEG, most PNGs), False for 16-bit and float files.
+    The orientation is 1 (as stored) when the file has none; ``8-bit`` is True for opaque
+    8-bit integer pixels (JPEG, RGB PNGs), False for 16-bit and float files and for images with
+    an alpha channel, whose compositing over the background falls between the 8-bit levels.
 
     Raises:
       DataError: missing, unreadable file.
@@ -160,7 +161,7 @@ def photo_header(path: str | os.PathLike) -> tuple[int, int, int, bool]:
         try:
             spec = inp.spec()
             tag = spec.get_int_attribute("Orientation", 1)
-            eight = spec.format.basetype in (oiio.UINT8, oiio.INT8)
+            eight = spec.format.basetype in (oiio.UINT8, oiio.INT8) and spec.nchannels in (1, 3)
             return (int(spec.height), int(spec.width), tag if tag in range(1, 9) else 1,
                     bool(eight))
         finally:
