@@ -6,7 +6,8 @@ The built-in person at 256 px (24 training and 4 held-out views), reconstructed,
 refined by r_0 (e(0), what every ProEdit run does first) with the bundled 64 px
 InstructPix2Pix, once with each way of making a larger view's target
 (:mod:`jaxedit.editors.compose`): ``stretch`` (the 64 px edit enlarged, the targets before
-issue 77) and ``detail`` (the render plus the edit's change at 64 px, the default). Per
+issue 77) and ``detail`` (the render plus the edit's change at 64 px, the default), and a
+control editor that gives the render back (r_0's own cost, no editor's). Per
 composition: the editor identity check's figures, r_0's snapshot against the input
 scene's renders (PSNR, SSIM, LPIPS, Gaussians), and the held-out PSNR against the photos of
 the input scene and of r_0's snapshot. The run stops after r_0's snapshot. Writes
@@ -31,6 +32,25 @@ ROOT = Path(__file__).resolve().parents[1]
 def extra(p):
     p.add_argument("--work", type=Path, default=None,
                    help="keep the dataset, reconstruction and runs here (default: a temp dir)")
+
+
+class GivesBack:
+    """The control: an editor that gives back the render it is shown, at every e(r) (what a
+    perfect identity would do at e(0)), so r_0's own cost (its opacity reset, its steps)
+    shows apart from any editor's."""
+
+    name = "gives-back-the-render"
+    guidance = (2.0, 1.5)
+
+    def encode(self, prompt):
+        import numpy as np
+
+        return np.zeros((4,), np.float32)
+
+    def edit(self, image, original, embedding, key, **kwargs):
+        import numpy as np
+
+        return np.asarray(image, np.float32)
 
 
 class Stop(Exception):
@@ -87,9 +107,10 @@ def main(argv=None):
             cli("reconstruct", "--data", str(data), "--out", str(recon), "--iters", str(iters))
         reconstruct_s = time.perf_counter() - t0
         rows, panels = [], []
-        for targets in ("stretch", "detail"):
-            config = EditRunConfig(plan=ProEditConfig.for_mode("proedit", **plan),
-                                   editor=EditorConfig(kind="ip2p", steps=5, targets=targets),
+        for targets in ("control", "stretch", "detail"):
+            editor = EditorConfig(kind="ip2p", steps=5,
+                                  targets="detail" if targets == "control" else targets)
+            config = EditRunConfig(plan=ProEditConfig.for_mode("proedit", **plan), editor=editor,
                                    identity=IdentityFloor(accept_low=True))
 
             def progress(spec, step, loss, st):
@@ -102,7 +123,7 @@ def main(argv=None):
             try:
                 edit_files(config, "turn him into a bronze statue", data, recon / "scene.ply",
                            seed=0, run_dir=run, progress=progress, log=lines.append,
-                           report=False)
+                           report=False, editor=GivesBack() if targets == "control" else None)
             except Stop:
                 pass
             schedule = json.loads((run / "schedule.json").read_text())
@@ -124,6 +145,8 @@ def main(argv=None):
             print(f"{targets:8s} identity {schedule['identity']['psnr']:.1f} dB; r_0 "
                   f"{m['psnr_vs_input']:.2f} dB / LPIPS {m['lpips_vs_input']:.3f} from the "
                   f"input, {m['num_gaussians']} of {m['input_gaussians']} Gaussians", flush=True)
+            if targets == "control":
+                continue
             if not panels:
                 panels.append(read_image(run / "original" / "renders" / "view_000.png")[..., :3])
             panels.append(read_image(run / Path(r0["snapshot"]).parent / "renders"
