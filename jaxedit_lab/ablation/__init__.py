@@ -596,7 +596,8 @@ def _references(editor, prompt, data, scene, targets, config, settings, kind, *,
         for k in range(train.shape[0]):
             fixed = FixedTargets(editor, data.train_images, train[k])
             res = run_edit(fixed, prompt, data, scene, config=cfg, settings=settings, seed=0,
-                           run_dir=None, report=False, hooks=cfg.hooks())
+                           run_dir=None, report=False, hooks=cfg.hooks(),
+                           identity=None)
             rgb = _renders(data, res["gaussians"], cfg.background)
             # scored against outcome k's own target: the ceiling of holding that outcome
             own = outcome_scores(rgb, targets[k:k + 1])
@@ -655,7 +656,8 @@ def _run_one(editor: CallLog, prompt, data, scene, cfg, settings, seed, targets)
     """(record, test renders) of one edit run; ``targets`` [K, M, H, W, 3] the outcomes'."""
     t0, c0 = time.perf_counter(), time.process_time()
     res = run_edit(editor, prompt, data, scene, config=cfg, settings=settings, seed=seed,
-                   run_dir=None, report=False, hooks=cfg.hooks())
+                   run_dir=None, report=False, hooks=cfg.hooks(),
+                   identity=None)
     rgb = _renders(data, res["gaussians"], cfg.background)
     scores = outcome_scores(rgb, targets)
     m, subtasks = res["metrics"], res["schedule"]["subtasks"]
