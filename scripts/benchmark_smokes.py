@@ -30,7 +30,7 @@ BENCHMARKS = ROOT / "benchmarks"
 NOT_BENCHMARKS = {"__init__.py", "common.py"}
 #: Smokes measured on the 2-core CPU to take a minute or more; they start first.
 SLOW_FIRST = ("first_use", "real_scale", "ablation", "budget_ablation", "editor_quality",
-              "local_edit", "test_suite", "edit_pipeline")
+              "local_edit", "test_suite", "edit_pipeline", "edit_targets")
 
 
 def benchmark_names() -> list[str]:
