@@ -1,30 +1,17 @@
 """ProEdit's difficulty-aware subtask scheduler (paper section 3.2), plus root placement.
 
-A schedule is a strictly increasing sequence of ratios 0 = r_0 < r_1 < ... < r_n = 1; subtask i
-edits the scene with e(r_i). Three ways to get one, each returning a :class:`Schedule`:
+A schedule is ratios 0 = r_0 < r_1 < ... < r_n = 1; subtask i edits with e(r_i). Each builder
+returns a :class:`Schedule`:
 
-- :func:`decompose` (the paper): recursive bisection of [0, 1] until every interval has
-  d(r_a, r_b) <= threshold, then pruning of every r_i whose neighbours are already within the
-  threshold of each other. The recursion is a fold over an immutable worklist of intervals.
-- :func:`decompose_root` (beyond the paper): walk from r = 0 and place the next ratio at the
-  largest r' with d(r, r') <= threshold, found with ``optimistix``'s bisection root finder on
-  g(r') = d(r, r') - threshold, then balancing sweeps that equalise neighbouring
-  difficulties. For a difficulty increasing in r this gives the fewest subtasks the threshold
-  allows, with nearly equal difficulties. Measured (``benchmarks/schedule.py``): fewer or as
-  many subtasks as bisection + pruning and a smaller spread of difficulties, but 1.5-4x more
-  editor calls while scheduling (each root search bisects down to the grid, where the paper's
-  dyadic midpoints are shared by all intervals). A subtask costs minutes of 3DGS training, an
-  editor call seconds, so fewer subtasks usually pay for the extra calls.
-- :func:`uniform` (the ``--subtasks N`` override): n equal steps.
-- :func:`for_target_subtasks` (``--target-subtasks N``): the threshold for which either of the
-  first two gives N subtasks, found by a 1-D root find (optimistix bisection on the log of
-  the threshold), for users who know how many steps they want (the paper reports about 4
-  for texture edits and about 8 for geometry edits) rather than a difficulty scale.
+- :func:`decompose` (the paper): bisection of [0, 1] until every interval has
+  d(r_a, r_b) <= threshold, then pruning.
+- :func:`decompose_root`: greedy farthest placement by optimistix bisection, then balancing;
+  fewer subtasks for more editor calls.
+- :func:`uniform` (``--subtasks N``): n equal steps.
+- :func:`for_target_subtasks` (``--target-subtasks N``): the threshold that gives N subtasks.
 
-``difficulty`` is any deterministic callable ``(r_a, r_b) -> float`` (a
-:class:`jaxedit.edit.difficulty.DifficultyOracle`, or a synthetic function in tests). The
-scheduler memoises pair evaluations itself, in its fold state, and reports how many distinct
-pairs it evaluated.
+``difficulty`` is any deterministic ``(r_a, r_b) -> float`` (e.g. a
+:class:`jaxedit.edit.difficulty.DifficultyOracle`); pair evaluations are memoised.
 """
 
 from __future__ import annotations
@@ -50,13 +37,10 @@ class Schedule:
     """A subtask decomposition.
 
     Attributes:
-      ratios: (r_0, ..., r_n = 1), strictly increasing; r_0 = 0 for a whole edit, or the
-        ratio of the snapshot a continued edit starts from.
-      difficulties: (d(r_0, r_1), ..., d(r_{n-1}, r_n)); NaN where not measured (``uniform``
-        without a difficulty).
-      depth_limit_hit: True when some interval could not be brought under the threshold (the
-        bisection depth limit, or the root placement's resolution), so some difficulty may exceed
-        the threshold.
+      ratios: (r_0, ..., r_n = 1), strictly increasing; r_0 > 0 when continuing an edit.
+      difficulties: (d(r_0, r_1), ..., d(r_{n-1}, r_n)); NaN where not measured.
+      depth_limit_hit: True when some difficulty may exceed the threshold (depth limit or
+        grid resolution reached).
       evaluations: number of distinct (r_a, r_b) pairs the difficulty was evaluated on.
       method: "bisection", "root" or "uniform".
       threshold: the difficulty threshold used (None for ``uniform``).
@@ -119,7 +103,6 @@ def _check_threshold(threshold) -> float:
     return t
 
 
-# --------------------------------------------------------------------------------------------
 # Pair memo threaded through the folds (an immutable mapping, replaced on every new pair)
 
 
@@ -133,7 +116,6 @@ def _measure(difficulty: DifficultyFn, cache: Mapping, a: float, b: float) -> tu
     return d, {**cache, key: d}
 
 
-# --------------------------------------------------------------------------------------------
 # Bisection (the paper)
 
 
@@ -158,10 +140,7 @@ def _prune(ratios: tuple[float, ...], diffs: tuple[float, ...], difficulty: Diff
            threshold: float, cache: Mapping):
     """Remove interior ratios r_i with d(r_{i-1}, r_{i+1}) <= threshold until none is left.
 
-    Order: each pass removes the removable ratio with the smallest merged difficulty
-    d(r_{i-1}, r_{i+1}) (ties: the smallest index), then re-examines its neighbours. It stops
-    exactly when no interior ratio is removable, so every removable ratio is removed; every
-    new interval has d <= threshold, so the invariant of the bisection is kept.
+    Each pass removes the one with the smallest merged difficulty (ties: smallest index).
     """
     while True:
         best = None
@@ -183,28 +162,24 @@ def _check_start(start) -> float:
     return r
 
 
-#: The bisection's depth limit, the one default of it (``ProEditConfig.max_depth`` is this):
-#: at most 2^4 = 16 subtasks, twice the paper's ~8 for geometry edits, and a depth-4 fold
-#: asks the editor about at most 17 ratios per difficulty view (16 views x 17 ratios ~ 270
-#: InstructPix2Pix edits, ~9 minutes at ~2 s each); depth 6 (65 ratios) would quadruple that
-#: for subtasks no edit in the paper needs.
+#: The bisection's depth limit (``ProEditConfig.max_depth``): at most 2^4 = 16 subtasks.
 MAX_DEPTH = 4
 
 
 def decompose(difficulty: DifficultyFn, *, threshold: float, max_depth: int = MAX_DEPTH,
               prune: bool = True, start: float = 0.0) -> Schedule:
-    """The paper's decomposition: bisection from [start, 1] (default [0, 1]), then pruning.
+    """The paper's decomposition: bisection of [start, 1], then pruning.
 
     Args:
       difficulty: deterministic ``(r_a, r_b) -> float >= 0``.
-      threshold: d_threshold; every accepted interval has d <= threshold unless the depth limit
-        was hit (then ``depth_limit_hit`` is True).
+      threshold: d_threshold > 0; every interval ends with d <= threshold unless
+        ``depth_limit_hit``.
       max_depth: intervals of length 2^-max_depth are accepted whatever their difficulty.
-      prune: run the pruning pass (see ``_prune`` for its order).
-      start: the ratio already reached, when an edit continues from a snapshot with a new
-        threshold (the schedule then covers [start, 1]).
+      prune: run the pruning pass.
+      start: the ratio already reached when continuing an edit.
 
-    Returns a :class:`Schedule` with method "bisection".
+    Returns a :class:`Schedule` with method "bisection". Raises DataError on a bad threshold,
+    depth, start or difficulty value.
     """
     threshold = _check_threshold(threshold)
     if int(max_depth) < 0:
@@ -237,24 +212,17 @@ def prune_ratios(ratios, difficulty: DifficultyFn, *, threshold: float) -> Sched
                     threshold)
 
 
-# --------------------------------------------------------------------------------------------
 # Root placement (beyond the paper)
 
 
 def _quantise(y: float, lo: float, resolution: float) -> float:
-    """Nearest point of the global grid k * resolution, clipped to [lo, 1] (1 is on the grid).
-
-    Every ratio placed is on this grid (r_0 = 0 is), so searches from different r_i meet on the
-    same ratios and a per-ratio memo (the editor's) gets hits.
-    """
+    """Nearest point of the grid k * resolution, clipped to [lo, 1]; shared so memos hit."""
     q = round(float(y) / resolution) * resolution
     q = min(max(q, lo), 1.0)
     return 1.0 if 1.0 - q < 0.5 * resolution else round(q, 12)
 
 
-# Host functions reachable from the one compiled root finder: g is a module-level function, so
-# optimistix compiles the solve once per (resolution, max_steps) and every search reuses it;
-# the search in progress is named by an integer token passed as an argument.
+# Module-level g, so the solve compiles once; the search in progress is named by a token.
 _HOST_FNS: dict[int, Callable[[float], float]] = {}
 _TOKENS = itertools.count(1)
 
@@ -275,17 +243,13 @@ def _bisect_host(host: Callable[[float], float], lower: float, upper: float,
                  resolution: float) -> tuple[float, float]:
     """optimistix Bisection on a host function with host(lower) < 0 <= host(upper).
 
-    Returns the final bracket (lower, upper): host < 0 was observed at ``lower`` (or it is the
-    initial one). flip=False skips Bisection's sign-detection pass (the caller knows the
-    bracket). Bisection only reports success when |host| < atol, which a step-shaped or noisy
-    function may never reach, hence throw=False and bracket checks by the callers. Once the
-    bracket is below one grid cell every further step is a memo hit.
+    Returns the final bracket (lower, upper). throw=False: a step-shaped host never reaches
+    atol, so callers check the bracket.
     """
     errors: list[BaseException] = []
 
     def guarded(y):
-        # an exception inside a callback would come out as an XLA runtime error: keep the
-        # original (e.g. the editor's DataError) and raise it after the solve
+        # keep the original exception (not XLA's wrapper) and raise it after the solve
         if errors:
             return 0.0
         try:
@@ -311,11 +275,9 @@ def _bisect_host(host: Callable[[float], float], lower: float, upper: float,
 
 def _equalise(difficulty: DifficultyFn, cache: Mapping, a: float, x0: float, b: float,
               resolution: float):
-    """Move the ratio x0 in (a, b) on the grid to where d(a, x) ~ d(x, b).
+    """Move x0 in (a, b) on the grid to where d(a, x) ~ d(x, b), if that lowers the max.
 
-    Bisection on h(x) = d(a, x) - d(x, b) (h(a) < 0 < h(b) for d > 0). The move is kept only
-    if it lowers max(d(a, x), d(x, b)), so a noisy d can never make a schedule worse and the
-    threshold invariant is kept. Returns (x, d(a, x), d(x, b), cache).
+    Returns (x, d(a, x), d(x, b), cache).
     """
     da, cache = _measure(difficulty, cache, a, x0)
     db, cache = _measure(difficulty, cache, x0, b)
@@ -347,12 +309,7 @@ def _equalise(difficulty: DifficultyFn, cache: Mapping, a: float, x0: float, b: 
 
 
 def _tighten(fn: Callable[[float], float], lower: float, upper: float, cache: Mapping):
-    """Shrink a bracket fn(lower) < 0 <= fn(upper) with the ratios the cache already knows.
-
-    Every ratio in a cached pair has been edited (for a memoised oracle), so evaluating fn there
-    costs distance computations but no editor call. Scanning them upwards, the bracket becomes
-    (last known point with fn < 0, first known point with fn >= 0): still a sign change.
-    """
+    """Shrink a bracket fn(lower) < 0 <= fn(upper) with cached ratios (no editor call)."""
     known = sorted({x for pair in cache for x in pair if lower < x < upper})
     for x in known:
         if fn(x) < 0:
@@ -366,11 +323,8 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
                 resolution: float, width_hint: float | None):
     """Largest grid ratio r' in (r, 1] found by bisection with d(r, r') <= threshold.
 
-    Returns (r', d(r, r'), resolution_hit, cache). For d(r, .) increasing this is the largest
-    admissible ratio on the grid; for a non-monotone or noisy d it is the lower end of a sign
-    change of g, which the bisection keeps verified (g < 0 there). ``width_hint`` (the previous
-    step) sets a first upper end r + 2 * width_hint, kept when g > 0 there, which saves
-    bisection steps, hence editor calls.
+    Returns (r', d(r, r'), resolution_hit, cache). ``width_hint`` (the previous step) gives a
+    first upper end r + 2 * width_hint, saving editor calls.
     """
     d1, cache = _measure(difficulty, cache, r, 1.0)
     if d1 <= threshold:
@@ -379,11 +333,9 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
 
     def host(y):
         d, box["cache"] = _measure(difficulty, box["cache"], r, _quantise(y, r, resolution))
-        # admissible means d <= threshold, but Bisection keeps a point as the lower end only
-        # when g < 0: map d == threshold to a tiny negative value
+        # Bisection keeps a lower end only where g < 0: d == threshold maps below 0
         return d - threshold if d > threshold else min(d - threshold, -1e-30)
 
-    # g(r) = -threshold < 0 < g(1): a bracket, tightened for free by already edited ratios
     lower, upper = _tighten(host, r, 1.0, cache)
     if width_hint is not None and upper - lower > 2.0 * width_hint:
         guess = _quantise(lower + 2.0 * width_hint, r, resolution)
@@ -392,15 +344,14 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
     if _quantise(upper, r, resolution) - _quantise(lower, r, resolution) > resolution:
         lower, _ = _bisect_host(host, lower, upper, resolution)
     cache = box["cache"]
-    # state.lower only ever moves to points where g < 0 was observed (after quantisation);
-    # verify anyway and walk down the grid if a float32 rounding moved it across the step
+    # verify: a float32 rounding may have moved lower across the step
     cand = _quantise(lower, r, resolution)
     while cand > r:
         d, cache = _measure(difficulty, cache, r, cand)
         if d <= threshold:
             return cand, d, False, cache
         cand = _quantise(cand - resolution, r, resolution)
-    # not even one grid step stays under the threshold: take it anyway, and report it
+    # not even one grid step is admissible: take it and report it
     step = _quantise(r + resolution, r, resolution)
     d, cache = _measure(difficulty, cache, r, step)
     return step, d, True, cache
@@ -411,21 +362,19 @@ def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: fl
                    start: float = 0.0) -> Schedule:
     """Greedy placement: each next ratio is the largest one within the threshold.
 
-    From r_0 = 0, r_{i+1} = max{r' on the grid r_i + k * resolution : d(r_i, r') <= threshold},
-    found with ``optimistix.root_find(optx.Bisection)`` on g(r') = d(r_i, r') - threshold
-    evaluated on the host through ``jax.pure_callback``. Ratios are quantised to ``resolution``
-    so a memoised difficulty (editor calls per (ratio, view)) gets hits. For d(r_i, .)
-    increasing, greedy farthest placement gives the fewest subtasks possible for the threshold
-    (the classic interval-cover argument) and every difficulty but the last is close to the
-    threshold. ``depth_limit_hit`` reports a step taken at the grid resolution above the
-    threshold, or ``max_subtasks`` reached (then the last step jumps to 1).
+    r_{i+1} = max{r' on the grid : d(r_i, r') <= threshold}, by ``optimistix`` bisection on
+    d(r_i, r') - threshold through ``jax.pure_callback``. For d increasing in r' this gives the
+    fewest subtasks the threshold allows.
 
-    Greedy placement leaves the remainder in the last subtask, often a small one. ``balance``
-    backward sweeps then move each interior ratio, from the last to the first, to where its two
-    neighbouring difficulties are equal (bisection on d(r_{i-1}, x) - d(x, r_{i+1})), keeping a
-    move only when it lowers the larger of the two; this spreads the remainder over the
-    subtasks, never raises the maximum, and costs a few more editor calls (``balance=0``: none).
-    ``start``: as in :func:`decompose` (the next ratios are on the grid).
+    Args:
+      difficulty, threshold, prune, start: as in :func:`decompose`.
+      resolution: grid step of the ratios, in (0, 0.5].
+      max_subtasks: after this many, the last step jumps to 1.
+      balance: backward sweeps that equalise neighbouring difficulties (never raising the
+        maximum), spreading the small last subtask; 0: none.
+
+    Returns a :class:`Schedule` with method "root"; ``depth_limit_hit`` when a grid step or
+    the last jump exceeds the threshold. Raises DataError on bad arguments.
     """
     threshold = _check_threshold(threshold)
     resolution = float(resolution)
@@ -455,7 +404,6 @@ def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: fl
                     threshold)
 
 
-# --------------------------------------------------------------------------------------------
 # The threshold for a number of subtasks (the --target-subtasks N option)
 
 
@@ -465,17 +413,18 @@ def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
                         **method_kwargs) -> Schedule:
     """The schedule of ``method`` whose number of subtasks is closest to ``target``.
 
-    The count n(t) of subtasks that ``method`` (:func:`decompose` or :func:`decompose_root`)
-    gives for a threshold t falls from the depth limit towards 1 as t grows to d(start, 1). The
-    threshold is found by optimistix bisection on y in [0, 1], t = d01 * 2^(-K (1 - y)) with
-    K = 24 octaves below d01 = d(start, 1), of h(y) = target + 1/2 - n(t(y)) (negative where
-    there are too many subtasks); n is a step function, so the search ends at a jump, and of
-    the two thresholds around it the one whose count is nearest the target wins (ties: fewer
-    subtasks, which cost less training). Every decomposition reuses the difficulty's memo, so
-    the search costs editor calls only for ratios no earlier candidate used. A target beyond
-    what the depth limit allows gives the finest schedule, with ``depth_limit_hit`` set.
+    Bisection on the log-threshold t = d(start, 1) * 2^(-24 (1 - y)), y in [0, 1]; of the two
+    thresholds at the count's jump the nearer count wins (ties: fewer subtasks).
 
-    Returns the chosen :class:`Schedule`, its ``target_subtasks`` set.
+    Args:
+      difficulty: as in :func:`decompose`.
+      target: wanted number of subtasks, an integer >= 1.
+      method: :func:`decompose` or :func:`decompose_root`.
+      resolution: grid step of y.
+      start, method_kwargs: passed to ``method``.
+
+    Returns the chosen :class:`Schedule` with ``target_subtasks`` set (the finest one, with
+    ``depth_limit_hit``, when the target is out of reach). Raises DataError on a bad target.
     """
     if int(target) != target or int(target) < 1:
         raise DataError("target_subtasks", f"must be an integer >= 1, got {target!r}")
@@ -506,13 +455,12 @@ def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
     return dataclasses.replace(best, target_subtasks=target)
 
 
-# --------------------------------------------------------------------------------------------
 # Uniform (the --subtasks N override)
 
 
 def uniform(n: int, difficulty: DifficultyFn | None = None, *, start: float = 0.0) -> Schedule:
-    """n equal subtasks r_i = start + i (1 - start) / n (default i / n); difficulties measured
-    when ``difficulty`` is given."""
+    """n equal subtasks r_i = start + i (1 - start) / n; difficulties measured when
+    ``difficulty`` is given, else NaN. Raises DataError unless n is an integer >= 1."""
     if int(n) != n or int(n) < 1:
         raise DataError("subtasks", f"must be an integer >= 1, got {n!r}")
     n = int(n)
