@@ -1,16 +1,9 @@
-"""Local edits (issue 35): what the instruction touches, per pixel and per Gaussian.
+"""Local edits: what the instruction touches, per pixel and per Gaussian.
 
-* per-view relevance masks come from the editor (:func:`jaxedit.editors.base.relevance`,
-  :func:`jaxedit.editors.base.relevance_mask`); this module lifts and composes them.
-* :func:`lift_relevance`: each Gaussian's blending-weight mean of a mask over views (the
-  splatter pass :func:`jaxedit.raster.accumulate_weights`).
-* :func:`parse_region` / :func:`in_regions`: ``box:xmin,ymin,zmin,xmax,ymax,zmax`` and
-  ``sphere:cx,cy,cz,r`` in scene coordinates (a union of several).
-* :func:`load_masks`: one mask image per frame from a folder, matched by frame name.
-* :func:`editable`: the per-Gaussian ``editable`` mask these compose into; its complement
-  on the alive Gaussians is what the trainer freezes (:func:`frozen_of`).
-
-Every error is a :class:`jaxedit.errors.DataError` (one line, exit 2 on the CLI).
+Per-view relevance (:func:`jaxedit.editors.base.relevance`), regions
+(:func:`parse_region`) and mask folders (:func:`load_masks`) compose into the per-Gaussian
+:func:`editable` mask; the rest of the alive Gaussians is frozen (:func:`frozen_of`).
+Errors are :class:`jaxedit.errors.DataError`.
 """
 
 from __future__ import annotations
@@ -26,28 +19,18 @@ import numpy as np
 
 from ..errors import DataError
 
-#: ``--local`` values: ``auto`` takes the editor's relevance (within any region/masks),
-#: ``off`` edits the whole scene (regions and masks still restrict it when given).
+#: ``--local`` values: ``auto`` takes the editor's relevance, ``off`` edits the whole scene
+#: (regions and masks still restrict it).
 LOCAL_MODES = ("auto", "off")
-#: A Gaussian is editable when its lifted relevance reaches this: a tenth of its blending
-#: weight over the training views falls on relevant pixels. A frozen Gaussian keeps its
-#: colour in every pixel it covers, so one straddling the region's border (a hair strand over
-#: the face, a splat across the silhouette) holds its share of those pixels at the original:
-#: at 0.5, a sixth of the person's changed pixels kept over 10 % of frozen colour (the edit
-#: could reach at most 32 dB there; 38 dB at 0.1) and the local edit scored 1.9 dB below the
-#: global one inside the region. The Gaussians between 0.1 and 0.5 are that border (4.5 % of
-#: the person's Gaussians).
+#: A Gaussian is editable when its lifted relevance reaches this; low, so that Gaussians
+#: straddling the region's border are edited rather than holding their pixels frozen.
 GAUSSIAN_THRESHOLD = 0.1
-#: A pixel is the edit's own when the editable Gaussians hold at least this share of its
-#: blending weight: its training image takes the edit whole (:func:`training_masks`).
+#: A pixel's training image takes the edit when editable Gaussians hold this share of it.
 OWNED = 0.5
 #: Extensions a mask file may have.
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
 
 
-# ---------------------------------------------------------------------------
-# Lifting to the Gaussians
-# ---------------------------------------------------------------------------
 def lift_relevance(gaussians, cameras, masks) -> jax.Array:
     """Each Gaussian's weighted mean of ``masks`` over the views it is drawn in.
 
@@ -64,9 +47,6 @@ def lift_relevance(gaussians, cameras, masks) -> jax.Array:
     return jnp.where(sums[:, 1] > 1e-8, sums[:, 0] / jnp.maximum(sums[:, 1], 1e-8), 0.0)
 
 
-# ---------------------------------------------------------------------------
-# Regions in scene coordinates
-# ---------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class Region:
     """A box (``values`` = xmin, ymin, zmin, xmax, ymax, zmax) or a sphere (cx, cy, cz, r)."""
@@ -119,9 +99,6 @@ def in_regions(regions, means) -> jax.Array:
     return inside
 
 
-# ---------------------------------------------------------------------------
-# Masks from a folder
-# ---------------------------------------------------------------------------
 def _mask_files(directory: Path) -> dict[str, Path]:
     files: dict[str, Path] = {}
     for p in sorted(directory.iterdir()):
@@ -133,14 +110,14 @@ def _mask_files(directory: Path) -> dict[str, Path]:
 def load_masks(directory, filenames, hw: tuple[int, int], originals=None) -> np.ndarray:
     """One mask per frame, float32 [N, H, W] in [0, 1] (the mean of its channels).
 
-    ``filenames``: the frames' ``file_path`` strings (:attr:`jaxedit.io.nerfstudio.Dataset.
-    filenames`); frame ``images/frame_00001.png`` takes ``DIR/frame_00001.<png|jpg|...>``,
-    as nerfstudio's ``masks/`` folder names them, or else the mask named as the frame's own
-    photo (``originals``: per frame its ``original_file_path``, e.g. ``IMG_0001.jpg``, or
-    None; ``process-data`` records it), so masks drawn on the photos need no renaming. A
-    mask at an integer multiple of its view's size ``hw`` = (H, W) (drawn on the full-size
-    photo of a ``--downscale``d run) is box-averaged down to it. A missing folder or frame, a
-    mask of any other size, or an all-zero mask set is a DataError.
+    Args:
+      directory: the mask folder.
+      filenames: the frames' ``file_path`` strings; frame ``images/frame_00001.png`` takes
+        ``DIR/frame_00001.<png|jpg|...>`` (nerfstudio's ``masks/`` naming).
+      hw: the views' (H, W); a mask at an integer multiple of it is box-averaged down.
+      originals: per frame its ``original_file_path`` or None, the fallback mask name.
+
+    Raises DataError for a missing folder or frame, a mask of another size, or all-empty masks.
     """
     from ..editors.masks import check_mask_file
     from ..io.images import read_image
@@ -187,15 +164,11 @@ def _to_view_size(mask: np.ndarray, hw: tuple[int, int], path) -> np.ndarray:
     raise DataError(path, f"mask is {w}x{h} px, its view {W}x{H} (or a whole multiple of it)")
 
 
-# ---------------------------------------------------------------------------
-# The per-Gaussian editable mask
-# ---------------------------------------------------------------------------
 def editable(gaussians, *, regions=(), relevance=None,
              threshold: float = GAUSSIAN_THRESHOLD) -> jax.Array:
     """bool [C]: alive, inside the regions (if any) and relevant (if ``relevance`` [C]).
 
-    Raises a DataError when that leaves no Gaussian (a region that holds none, or no
-    Gaussian relevant enough).
+    Raises DataError when that leaves no Gaussian.
     """
     inside = in_regions(regions, gaussians.means) & gaussians.alive
     if regions and not bool(jnp.any(inside)):
@@ -214,9 +187,6 @@ def frozen_of(gaussians, editable_mask) -> jax.Array:
     return gaussians.alive & ~jnp.asarray(editable_mask, bool)
 
 
-# ---------------------------------------------------------------------------
-# A run's local edit: what is editable, and each view's rendered relevance
-# ---------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class LocalSpec:
     """The ``--local`` / ``--region`` / ``--masks`` of a run.
@@ -254,18 +224,10 @@ def render_editable(gaussians, cameras, editable_mask) -> np.ndarray:
 
 
 def training_masks(weights, owned: float = OWNED) -> np.ndarray:
-    """Which pixels' training images are the edit, float32 [B, H, W] of 0 / 1, from the
-    rendered relevance ``weights`` [B, H, W] (:func:`render_editable`): those where the
-    editable Gaussians hold ``owned`` of the blending weight or more; the rest keep the photo.
+    """Which pixels' training images are the edit, float32 [B, H, W] of 0 / 1.
 
-    A pixel goes whole to the Gaussians that hold most of it. The weight itself as a soft
-    blend, ``w * edit + (1 - w) * photo``, asks the pixels the edit owns to keep ``1 - w``
-    of the photo (``benchmarks/local_edit.py``, person, seeds 0-2, local minus global inside
-    the region: -0.54 dB on average with the blend, -0.15 dB with this mask; at seed 0 the
-    blend cost 0.45 dB with every Gaussian editable, so it is the blend, not the freezing).
-    A fade to ``w / owned`` instead brings the edit into pixels the frozen part holds: on the
-    face, InstructPix2Pix's smear of the face then reaches the untouched part (36.6 dB
-    against 40.0 dB); the edit in every pixel, 27.9 dB.
+    1 where the rendered relevance ``weights`` [B, H, W] (:func:`render_editable`) is
+    ``owned`` or more; a hard mask, since a soft blend keeps part of the photo in owned pixels.
     """
     return (np.asarray(weights, np.float32) >= owned).astype(np.float32)
 
@@ -286,12 +248,10 @@ def plan_local(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, e
                key=None) -> LocalPlan:
     """The editable Gaussians, view masks and figures of a local edit (:class:`LocalPlan`).
 
-    The editor's relevance per training view (``auto``: image = original, the
-    instruction's full ``embedding``, keys folded from ``key``) times any user masks is
-    lifted to the Gaussians; those inside the regions with a lifted relevance of
-    :data:`GAUSSIAN_THRESHOLD` or more are editable. The view masks are
-    :func:`training_masks` of the editable Gaussians' rendered relevance
-    (:func:`render_editable`).
+    The editor's relevance per view (``auto``: of ``originals`` [N, H, W, 3] under the full
+    ``embedding``, keys folded from ``key``) times any user masks is lifted to the Gaussians;
+    those inside the regions at :data:`GAUSSIAN_THRESHOLD` or more are editable. View masks:
+    :func:`training_masks` of :func:`render_editable`.
     """
     import time
 
@@ -324,11 +284,9 @@ def heat_overlay(image, weight, colour=(1.0, 0.15, 0.0), strength: float = 0.6) 
 
 
 def write_overlays(folder, gaussians, cameras, images, editable_mask, relevance=None) -> list:
-    """The rendered relevance of the editable Gaussians over ``images`` float [B, H, W, 3]
-    of ``cameras`` [B], written as ``folder/view_XX.png`` (the report's local-edit section),
-    and the per-Gaussian relevance as ``folder/gaussians.npz`` (:func:`save_gaussian_relevance`:
-    the viewer's colours; ``relevance`` float [C], the lifted one, or None: the editable
-    flags stand in for it). Returns the paths of the PNGs."""
+    """Write the editable Gaussians' rendered relevance over ``images`` float [B, H, W, 3]
+    of ``cameras`` [B] as ``folder/view_XX.png``, and :func:`save_gaussian_relevance`
+    (``relevance`` float [C] or None). Returns the paths of the PNGs."""
     from ..io import write_image
 
     folder = Path(os.fspath(folder))
@@ -342,18 +300,14 @@ def write_overlays(folder, gaussians, cameras, images, editable_mask, relevance=
     return paths
 
 
-# ---------------------------------------------------------------------------
-# The per-Gaussian relevance on disk (the viewer colours the splats by it)
-# ---------------------------------------------------------------------------
 #: In a run's ``local/`` folder: the input scene's alive Gaussians' relevance.
 GAUSSIANS_FILE = "gaussians.npz"
 
 
 def save_gaussian_relevance(folder, gaussians, editable_mask, relevance=None) -> Path:
-    """Write ``folder/gaussians.npz`` for the input scene's alive Gaussians in slot order
-    (the rows of its scene.ply): ``means`` float32 [K, 3] (to find them again in any
-    snapshot: frozen ones keep their bits), ``editable`` bool [K] and ``relevance``
-    float32 [K] (the lifted relevance; the editable flags as 0 / 1 when None)."""
+    """Write ``folder/gaussians.npz`` for the alive Gaussians in slot order: ``means``
+    float32 [K, 3] (frozen ones keep their bits in any snapshot), ``editable`` bool [K],
+    ``relevance`` float32 [K] (the editable flags when None). Returns its path."""
     from ..io.files import atomic_write_bytes
 
     alive = np.asarray(gaussians.alive, bool)
@@ -388,17 +342,15 @@ def load_gaussian_relevance(folder) -> dict | None:
     return out
 
 
-#: The viewer's colours: relevance 0 (frozen, untouched) .. 1, and the Gaussians a snapshot
-#: has that the input had not (edited or created by the edit: all from editable ones).
+#: The viewer's colours: relevance 0 .. 1, and Gaussians the input had not.
 COLD, HOT, CHANGED = (0.15, 0.3, 0.9), (1.0, 0.15, 0.0), (1.0, 0.85, 0.0)
 
 
 def relevance_colours(saved: dict, means) -> np.ndarray:
     """float32 [N, 3] colours of a snapshot's Gaussians (``means`` [N, 3]) by relevance.
 
-    A Gaussian of the input (its mean found bit for bit in ``saved``, from
-    :func:`load_gaussian_relevance`) goes from :data:`COLD` (relevance 0) to :data:`HOT`
-    (1); any other one (moved or created by the edit) is :data:`CHANGED`.
+    An input Gaussian (mean found bit for bit in ``saved``) goes from :data:`COLD` to
+    :data:`HOT`; any other is :data:`CHANGED`.
     """
     means = np.ascontiguousarray(np.asarray(means, np.float32))
     known = {row.tobytes(): i for i, row in
