@@ -23,63 +23,47 @@ class ProEditConfig:
     """Knobs of a progressive edit (defaults follow the paper where it gives a value).
 
     Attributes:
-      mode: "proedit" (the difficulty-aware schedule), "nd" (no decomposition: one
-        subtask 0 -> 1) or "in2n" (the Instruct-NeRF2NeRF baseline).
-      threshold: d_threshold of the scheduler, per view: the difficulty is the mean over
-        the difficulty views of the per-view distance (the paper's eq. 3 sum divided by
-        |V|), so the threshold does not change with the number of views (None:
+      mode: "proedit" (difficulty-aware schedule), "nd" (one subtask 0 -> 1) or "in2n"
+        (the Instruct-NeRF2NeRF baseline).
+      threshold: d_threshold of the scheduler, a mean distance per view (None:
         ``target_subtasks``, else d(0, 1) / 4).
-      target_subtasks: find the threshold that gives this many subtasks (a 1-D root
-        find; the paper reports ~4 for texture and ~8 for geometry edits).
-      subtasks: override with N uniform ratios (paper: ~4 texture, ~8 geometry).
+      target_subtasks: find the threshold that gives this many subtasks.
+      subtasks: override with N uniform ratios.
       schedule_method: "bisect" (paper) or "root" (optimistix placement).
       max_depth: bisection depth limit (:data:`jaxedit.edit.schedule.MAX_DEPTH`).
-      refine_first: the extra subtask r_0 = 0 first, refining the scene with the editor at
-        r = 0 (appendix B).
-      consolidate: the extra subtask r_n = 1 last, consolidating the final edit (appendix B).
+      refine_first: first run the extra subtask r_0 = 0, refining with the editor (appendix B).
+      consolidate: last run the extra subtask r_n = 1, consolidating the edit (appendix B).
       warmup: W, steps after the opacity reset without densify/cull.
       patience: P, steps without a new minimum of the running mean loss.
       loss_window: length of the running mean.
       min_delta: relative decrease that counts as "decreased".
-      max_steps: per-subtask step guard; the plateau test decides where a subtask
-        ends and this only bounds it (None: :func:`subtask_guard` of the scene).
-      max_seconds: per-subtask wall-clock guard (None: none). A subtask it ends is
-        not reproducible, since where it ends depends on the machine.
+      max_steps: per-subtask step guard bounding the plateau test (None:
+        :func:`subtask_guard` of the scene).
+      max_seconds: per-subtask wall-clock guard, not reproducible (None: none).
       anneal_steps: N of the HiFA annealing, in steps after the warm-up (None:
-        :func:`anneal_horizon`, half the room under the step guard).
+        :func:`anneal_horizon`).
       timestep_range: (t_min, t_max) of SDEdit (paper 0.45-0.85).
       guidance: (text, image) classifier-free guidance scales (None: the editor's own,
-        :func:`jaxedit.editors.editor_guidance`: what its weights folder recommends, 2, 1.5
-        for the bundled model, else InstructPix2Pix's 7.5, 1.5).
+        :func:`jaxedit.editors.editor_guidance`).
       edit_every: trainer steps between edits in the deterministic mode.
       sweep_every: edit every view at once every that many steps after the warm-up
-        (Instruct-GS2GS's dataset update: 2500) instead of one view every ``edit_every``
-        steps (None); deterministic, not with ``asynchronous``.
+        (Instruct-GS2GS's dataset update) instead of one view every ``edit_every`` (None);
+        not with ``asynchronous``.
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
-      pipelined: the deterministic schedule's edits are made on a worker thread while the
-        trainer takes the steps up to its next stop, and enter the dataset there
-        (:class:`jaxedit.edit.buffer.PipelinedEditSource`): the same bits for a seed and an
-        exact resume, with the editor's time hidden behind the trainer's. Only where the two
-        run side by side (:func:`jaxedit.edit.buffer.side_by_side`: a CPU's cores, or an
-        editor on a device of its own); on one shared accelerator the edits stay inline.
-        False: inline, the trainer waits for each edit and trains on it from the step it
-        was due. Not for ``asynchronous``, whose edits arrive as they are made.
-      asynchronous: producer thread instead of the deterministic schedule. Off by
-        default, in the library and on the command line alike: the deterministic
-        schedule is the one whose bits a seed fixes and whose resume is exact; the
-        producer thread (``edit --async``) is the faster opt-in when the editor has a
-        device of its own.
+      pipelined: make the deterministic schedule's edits on a worker thread while the
+        trainer runs to its next stop, same bits
+        (:class:`jaxedit.edit.buffer.PipelinedEditSource`), where the two run side by side
+        (:func:`jaxedit.edit.buffer.side_by_side`); False: inline.
+      asynchronous: a producer thread instead of the deterministic schedule, faster when
+        the editor has a device of its own but not reproducible.
       checkpoint_every: steps between checkpoints inside a subtask.
-      difficulty_views: size of the fixed, seeded subset of training views the difficulty
-        d(r_a, r_b) is taken over (None: all of them, up to
-        :data:`jaxedit.edit.difficulty.DIFFICULTY_VIEWS`; each view costs one editor call
-        per ratio).
+      difficulty_views: size of the seeded subset of training views the difficulty is taken
+        over (None: all, up to :data:`jaxedit.edit.difficulty.DIFFICULTY_VIEWS`).
       curve_points: grid size of the reported d(0, r) curve.
-      turntable_frames: frames of each snapshot's turntable (0: none). A run directory
-        is for people to look at, and the turntable is how they see a snapshot in 3D.
+      turntable_frames: frames of each snapshot's turntable (0: none).
       background: render background (the editor sees renders on it).
-      stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs
-        exactly ``max_steps`` (IN2N trains for a fixed number of iterations).
+      stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs exactly
+        ``max_steps`` (IN2N).
     """
 
     mode: str = "proedit"
@@ -136,10 +120,8 @@ class ProEditConfig:
 
 @dataclasses.dataclass(frozen=True)
 class SubtaskSpec:
-    """One subtask: ``ratio`` r_i and the measured difficulty d(r_{i-1}, r_i) (None: not an edit step).
-
-    kind: "refine" (r_0, null embedding), "edit" or "consolidate" (r_n, e(1)).
-    """
+    """One subtask: ``ratio`` r_i, difficulty d(r_{i-1}, r_i) (None: not an edit step) and
+    ``kind`` "refine" (r_0), "edit" or "consolidate" (r_n, e(1))."""
 
     index: int
     name: str
@@ -193,22 +175,18 @@ def anneal_timestep(step: int, total: int, t_min: float, t_max: float) -> float:
 
 #: The smallest step guard of a subtask (what every scene gets at least).
 GUARD_MIN_STEPS = 600
-#: Epochs over the training views the guard allows at the reference resolution.
-#: ASSUMPTION (the paper bounds a subtask only in time, 10-20 minutes): 20 epochs, so a
-#: guard never cuts a subtask whose views each need ~20 passes to settle.
+#: Epochs over the training views the guard allows at the reference resolution (an
+#: assumption: the paper bounds a subtask only in time).
 GUARD_EPOCHS = 20
-#: The resolution the epoch count is meant for; larger images hold more Gaussians and
-#: finer detail, which takes more steps to settle: the guard grows with the image's
-#: side over this one (its square root of pixels).
+#: The side (sqrt of pixels) the epoch count is meant for; the guard grows above it.
 GUARD_REFERENCE_SIDE = 256
 
 
 def subtask_guard(num_views: int, height: int, width: int) -> int:
     """The default ``max_steps`` guard of a scene with ``num_views`` training views of H x W.
 
-    ``max(GUARD_MIN_STEPS, GUARD_EPOCHS * num_views * max(1, sqrt(H W) / 256))``: every
-    view gets the same number of passes whatever the view count, and more at high
-    resolution. The 32-view, 64 px demo gets 640; 100 views at 512 px get 4000.
+    ``max(GUARD_MIN_STEPS, GUARD_EPOCHS * num_views * max(1, sqrt(H W) / 256))``: the same
+    passes per view whatever the view count, more at high resolution.
     """
     side = math.sqrt(float(height) * float(width)) / GUARD_REFERENCE_SIDE
     return max(GUARD_MIN_STEPS, int(math.ceil(GUARD_EPOCHS * num_views * max(1.0, side))))
@@ -216,13 +194,11 @@ def subtask_guard(num_views: int, height: int, width: int) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class SubtaskLimits:
-    """How long one subtask may train: the user's :class:`ProEditConfig` resolved for a
-    scene and a subtask (:func:`subtask_limits`). The config itself stays as given, so a
-    ``max_steps`` of None still says "scaled with the scene" after the run resolved it.
+    """How long one subtask may train: :class:`ProEditConfig` resolved for a scene
+    (:func:`subtask_limits`); the config itself stays as given.
 
     Attributes:
-      max_steps: the step guard (the config's, or :func:`subtask_guard` of the scene when
-        it is None).
+      max_steps: the step guard (the config's, or :func:`subtask_guard` of the scene).
       stop_on_plateau: the loss plateau ends the subtask (False: exactly ``max_steps``).
     """
 
@@ -249,19 +225,10 @@ def subtask_limits(config: ProEditConfig, views_shape: Sequence[int]) -> Subtask
 def anneal_horizon(config: ProEditConfig, max_steps: int) -> int:
     """Steps after the warm-up at which a subtask's annealed timestep reaches t_min.
 
-    HiFA anneals over the whole optimisation; a ProEdit subtask has no fixed length, its
-    plateau ends it, and the subtask lets no plateau end it before an edit made at t_min
-    has trained ``patience`` steps (:func:`jaxedit.edit.subtask.earliest_end`). The horizon
-    is half the room the step guard ``max_steps`` (:attr:`SubtaskLimits.max_steps`) leaves
-    for that (``max_steps - warmup - patience - edit_every``), so it grows with the scene as
-    the guard does, and the second half of the room is for refining at t_min and the
-    plateau. ``config.anneal_steps`` overrides (clamped to the room).
-
-    Why not the length of the subtasks already run: that estimate fulfils itself. A
-    subtask annealed over half its predecessor's length ends soon after the t_min gate
-    opens, so the lengths shrank to about twice warm-up plus patience (the demo's
-    subtasks went from ~450 to ~250 steps) and the async demo lost 1.5 dB against the
-    editor's target (37.5 dB; 39.1 dB with this horizon, 38.7 dB either way in sync).
+    Half the room ``max_steps - warmup - patience - edit_every`` under the step guard
+    (the rest refines at t_min, :func:`jaxedit.edit.subtask.earliest_end`), so it grows
+    with the scene; ``config.anneal_steps`` overrides, clamped to the room. Not the previous
+    subtasks' length, an estimate that fulfils itself.
     """
     room = max_steps - config.warmup - config.patience - config.edit_every
     horizon = config.anneal_steps if config.anneal_steps is not None else room // 2
