@@ -1,21 +1,11 @@
-"""An independent NumPy ray caster of textured analytic shapes.
+"""An independent NumPy ray caster of textured analytic shapes: the built-in scenes'
+ground truth.
 
-It renders the ground truth of the built-in scenes. It shares nothing with the
-splatter (no ``jaxedit.raster`` import): only the camera convention
-(:class:`jaxedit.camera.Camera`, OpenCV, pixel centres at integer + 0.5), so a
-reconstruction that matches its images has really learned the scene.
-
-Shapes are ellipsoids (spheres), boxes and finite planes (rectangles), each
-with a rigid placement. Shading is view-independent on purpose: albedo times
-(ambient + sum of Lambertian directional lights, with hard shadows), so a
-degree-0 colour per surface point can explain every view. Points that no shape
-covers show the background colour (white by default: it keeps silhouettes crisp
-against the dark parts of the textures and matches the trainers' default
-background).
-
-Anti-aliasing: each pixel averages ``supersample`` x ``supersample`` rays on a
-regular sub-grid, and textures are mip-mapped with a per-ray footprint from
-finite differences of texture coordinates over that grid.
+It shares only the camera convention with the splatter (:class:`jaxedit.camera.Camera`),
+so a reconstruction that matches its images has really learned the scene. Shapes are
+ellipsoids, boxes and rectangles; shading is view-independent (albedo times ambient plus
+Lambertian lights with hard shadows), so degree-0 colours can explain every view.
+Anti-aliasing: s x s rays per pixel and mip-mapped textures.
 """
 
 from __future__ import annotations
@@ -47,9 +37,8 @@ def rotation_xyz(degrees) -> np.ndarray:
 class Decal:
     """A picture projected orthographically onto the front (+x local) of an ellipsoid.
 
-    The decal's uv is ``(0.5 + y/2, 0.5 - z/2)`` of the unit-sphere local point, so
-    (0.5, 0.5) is the front pole, u grows to the viewer's right and v downwards.
-    It is blended over the base albedo with a soft elliptical mask.
+    uv = ``(0.5 + y/2, 0.5 - z/2)`` of the unit-sphere point: (0.5, 0.5) at the front pole,
+    u to the viewer's right, v down; blended over the albedo with a soft elliptical mask.
 
     Attributes:
       texture: the picture (with ``wrap="clamp"`` usually).
@@ -199,9 +188,6 @@ class Scene:
         return np.min(lo, axis=0), np.max(hi, axis=0)
 
 
-# ----------------------------------------------------------------------------- rays
-
-
 def camera_rays(cam: Camera, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """World rays through a regular sub-grid of every pixel of one camera.
 
@@ -314,9 +300,6 @@ def occluded(scene: Scene, points: np.ndarray, direction: np.ndarray, max_t: flo
         if cand.size:
             blocked[cand] = _intersect_shape(shape, points[cand], d[cand]) < max_t
     return blocked
-
-
-# ----------------------------------------------------------------------------- surfaces
 
 
 @dataclasses.dataclass(frozen=True)
@@ -544,10 +527,7 @@ def render(scene: Scene, cameras: Camera, *, supersample: int = 2, alpha: bool =
 
 
 def surface_points_and_ids(scene: Scene, cameras: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What each pixel centre sees, for edits defined on the 3D surface.
-
-    One ray through the centre of every pixel (no supersampling), same convention as
-    :func:`render` and :class:`jaxedit.camera.Camera`.
+    """What each pixel centre sees (one ray, no supersampling), for edits on the 3D surface.
 
     Args:
       scene: a :class:`Scene`; cameras: batched Camera [N] (or a single one).
@@ -555,11 +535,8 @@ def surface_points_and_ids(scene: Scene, cameras: Camera) -> tuple[np.ndarray, n
       points: float32 [N, H, W, 3] world position of the first surface hit (NaN on background);
       ids: int32 [N, H, W] index into ``scene.shapes`` (names: ``scene.object_names``), -1 on
         background;
-      uv: float32 [N, H, W, 2] texture coordinates of the hit in [0, 1] per repetition. For
-        an ellipsoid with a decal (the ``face`` head) these are the decal (face picture)
-        coordinates: (0.5, 0.5) at the front pole, u to the viewer's right, v down the face.
-        NaN on background.
-    A 3D-consistent edit is then any function of (points, ids, uv) composited where ids >= 0.
+      uv: float32 [N, H, W, 2] texture coordinates of the hit in [0, 1] per repetition (a
+        decal's own coordinates where it has one, :class:`Decal`); NaN on background.
     """
     views, batched = _views(cameras)
     pts, ids, uvs = [], [], []
@@ -576,11 +553,8 @@ def surface_points_and_ids(scene: Scene, cameras: Camera) -> tuple[np.ndarray, n
     return (pts, ids, uvs) if batched else (pts[0], ids[0], uvs[0])
 
 
-# ----------------------------------------------------------------------------- sampling
-
-
 def surface_area(shape: Shape) -> float:
-    """Area of a shape's surface (ellipsoids: Knud Thomsen's formula, within about 1%)."""
+    """Area of a shape's surface (ellipsoids: Knud Thomsen's approximation)."""
     a, b, c = shape.s
     if shape.kind == "ellipsoid":
         p = 1.6075
@@ -594,8 +568,7 @@ def sample_surface(shape: Shape, n: int, rng: np.random.Generator) -> np.ndarray
     """float [n, 3] world points uniformly distributed (by area) on a shape's surface."""
     s = shape.s
     if shape.kind == "ellipsoid":
-        # Uniform on the unit sphere, then accept with probability proportional to the
-        # ellipsoid's area element there (exactly uniform on the ellipsoid).
+        # uniform on the sphere, accepted in proportion to the ellipsoid's area element
         bound = max(s[1] * s[2], s[0] * s[2], s[0] * s[1])
         out = []
         total = 0
