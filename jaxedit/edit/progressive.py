@@ -1,51 +1,14 @@
 """A whole progressive edit (paper 3.2-3.3): its plan, its run over the subtasks, its records.
 
-The scene goes through
+    s_in --r_0 (refine, e(0))--> s_0 --r_1--> ... --r_n--> s_n --consolidate (e(1))--> s_out
 
-    s_in --r_0 (refine, e(0))--> s_0 --r_1--> s_1 ... --r_n--> s_n --consolidate (e(1))--> s_out
-
-where every arrow is one *subtask*: a seeded, resumable transformation of the
-training state (:mod:`jaxedit.edit.subtask`). A subtask with ratio r:
-
-1. sets every Gaussian's opacity to the cull threshold and trains ``warmup``
-   steps without densify/cull, so Gaussians on the right surface earn opacity
-   and wrong ones are culled at the next maintenance (paper 3.3 (1));
-2. runs the iterative dataset update: edited views of the *current* renders
-   (``image`` = current render, ``original`` = original photo, embedding
-   e(r) = r E(p) + (1 - r) E("")) replace the training images as they arrive
-   from an edit source (:mod:`jaxedit.edit.buffer`: deterministic inline or a
-   producer thread); the SDEdit timestep follows HiFA's annealing
-   t(i) = t_max - (t_max - t_min) sqrt(i / N) within the subtask, N half the
-   room under the step guard (:func:`plan.anneal_horizon`);
-3. trains with the budgeted adaptive density control (paper 3.3 (2), app. D)
-   under a hard cap (default twice the input's Gaussians; a warning with
-   figures whenever the cap, not t(n), limited creation);
-4. ends when the running mean of the training loss has not decreased for
-   ``patience`` steps after every view was edited at least once and after an
-   edit at t_min arrived, or when a guard fires (``max_steps``, scaled with the
-   scene by :func:`plan.subtask_guard`, or ``max_seconds``; recorded as
-   ``converged: False`` and the guard's name).
-
-Modes (rows of the paper's tables): ``proedit`` (difficulty-aware schedule),
-``nd`` (no decomposition: one edit subtask 0 -> 1, with the same r_0 / r_n and
-adaptive 3DGS, the paper's ablation), ``in2n`` (Instruct-NeRF2NeRF on 3DGS: one
-subtask at r = 1, no opacity reset, classic densify thresholds, one view edited
-every 10 steps with timesteps drawn from 0.02-0.98, a fixed number of steps).
-
-Everything random is derived from one key with ``fold_in`` of (subtask index,
-purpose, step), so the deterministic mode reproduces bits, and a run resumed
-from the checkpoint written inside any subtask ends with the same bits as an
-uninterrupted run.
-
-Modules, one per concept, in the order an edit calls them: :mod:`.plan`
-(configuration and subtasks), :mod:`.schedule` (the difficulty-aware scheduler,
-3.2), :mod:`.trainer` (the editing trainer), :mod:`.context` (what a run reads),
-:mod:`.state` (where a run is, and its pure updates), this module (the plan of a
-whole edit and :func:`run_plan`, the one loop over its subtasks), :mod:`.subtask`
-(one subtask as a state machine, 3.3), :mod:`.buffer` (the edit sources),
-:mod:`.checkpoint` (the state in a checkpoint) and :mod:`.outputs` (renders and
-scores). Nothing here writes a file: :func:`jaxedit.pipelines.edit.run_edit` gives
-:func:`run_plan` its run directory through callbacks.
+Each arrow is a seeded, resumable subtask (:mod:`jaxedit.edit.subtask`): an opacity reset
+and warm-up (3.3 (1)), the iterative dataset update with HiFA-annealed timesteps, budgeted
+density control under a hard cap (3.3 (2)), until the loss plateaus or a guard fires. Modes:
+``proedit`` (difficulty-aware schedule), ``nd`` (one edit subtask 0 -> 1, the paper's
+ablation), ``in2n`` (Instruct-NeRF2NeRF on 3DGS). Every random draw folds (subtask,
+purpose, step) into one key, so a resumed run ends with the same bits. Nothing here writes
+a file: :func:`jaxedit.pipelines.edit.run_edit` passes callbacks to :func:`run_plan`.
 """
 
 from __future__ import annotations
@@ -76,15 +39,10 @@ DEFAULT_SUBTASKS = 4
 
 def make_trainer(config: ProEditConfig, settings: TrainSettings, data: EditData,
                  gaussians) -> SubtaskTrainer:
-    """The editing trainer of a run: ``settings`` completed by the plan and the scene.
-
-    The plan owns W (the trainer's density clock gets it here, and only here), the mode
-    and the background; the scene extent (when unset) comes from the training cameras;
-    the trainer resolves the hard cap from the input's Gaussians.
-    """
+    """The editing trainer of a run: ``settings`` completed by the plan (warm-up W, mode,
+    background) and the scene (extent from the training cameras when unset)."""
     if settings.scene_extent is None:
-        # Rounded: the extent is a static field of the train state, and cameras that went
-        # through a file differ in the last bits; equal rigs should share one compiled step.
+        # rounded: a static field, so equal rigs read from files share one compiled step
         extent = float(f"{scene_extent(data.train_cameras):.4g}")
         settings = dataclasses.replace(settings, scene_extent=extent)
     settings = dataclasses.replace(settings, adaptive=config.mode != "in2n")
@@ -93,12 +51,9 @@ def make_trainer(config: ProEditConfig, settings: TrainSettings, data: EditData,
 
 
 def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distance=None):
-    """The memoised d(r_a, r_b) over the difficulty views' renders of the input scene.
-
-    ``distance``: the perceptual distance (e.g. :func:`jaxedit.lpips.lpips_distance`);
-    None is the oracle's default (multi-scale SSIM). The reduction over views is the
-    oracle's default, the mean (eq. 3's sum / |V|), so thresholds are per view.
-    """
+    """The memoised d(r_a, r_b), a mean over the difficulty views' renders ``originals``
+    [N, H, W, 3] of the input scene; ``distance`` e.g. :func:`jaxedit.lpips.lpips_distance`
+    (None: multi-scale SSIM)."""
     views = difficulty_view_subset(len(originals), ctx.config.difficulty_views, ctx.key)
     return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
                             guidance=ctx.config.guidance, seed=seed,
@@ -127,8 +82,7 @@ def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
         kwargs = {} if cfg.schedule_method == "root" else {"max_depth": cfg.max_depth}
         s = sched.for_target_subtasks(oracle, cfg.target_subtasks, method=method, **kwargs)
     else:
-        # No threshold given: a quarter of the whole task's difficulty, i.e. about the
-        # paper's ~4 subtasks for texture edits (more where d(0, r) is uneven).
+        # no threshold: a quarter of d(0, 1)
         threshold = (cfg.threshold if cfg.threshold is not None
                      else max(oracle(0.0, 1.0) / DEFAULT_SUBTASKS, 1e-6))
         method = sched.decompose_root if cfg.schedule_method == "root" else sched.decompose
@@ -143,11 +97,8 @@ def make_schedule(ctx: EditContext, oracle, *, start_ratio: float = 0.0):
 
 
 def edit_fit(ctx: EditContext, st: EditState) -> float:
-    """PSNR (dB) of the final renders against the last edited training images.
-
-    How well one 3D scene explains all the edited views: low when the edits
-    disagree across views (the multi-view inconsistency the scene had to average).
-    """
+    """PSNR (dB) of the final renders against the last edited training images: low when
+    the edits disagree across views."""
     g = ctx.trainer.gaussians(st.train)
     rgb = np.stack([ctx.renderer.rgb(g, ctx.data.train_cameras[i])
                     for i in range(len(st.edited))])
@@ -167,11 +118,10 @@ def cap_warning(name: str, density: dict, cap: int, alive: int) -> str | None:
 
 def check_identity(ctx: EditContext, gaussians, floor: IdentityFloor, *, seed: int,
                    log=lambda msg: None) -> dict | None:
-    """The editor's identity on the input scene ``gaussians`` (schedule.json's
-    ``"identity"``; None in the IN2N mode, which has no difficulty views):
-    :func:`jaxedit.edit.identity.measure_identity` of the difficulty views' renders at the
-    run's t_max, logged; under ``floor`` a :class:`LowIdentityError` naming the figure, the
-    floor and the way out (a warning with ``floor.accept_low``)."""
+    """The editor's identity on the input scene (schedule.json's ``"identity"``; None in
+    IN2N mode): :func:`jaxedit.edit.identity.measure_identity` of the difficulty views at
+    t_max, logged. Raises :class:`LowIdentityError` under ``floor`` unless
+    ``floor.accept_low`` (then a warning)."""
     config, data = ctx.config, ctx.data
     if config.mode == "in2n":
         return None
@@ -201,13 +151,15 @@ def check_identity(ctx: EditContext, gaussians, floor: IdentityFloor, *, seed: i
 def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ratio: float = 0.0,
               resumed_from: str | None = None, identity: dict | None = None,
               log=lambda msg: None) -> tuple[tuple[SubtaskSpec, ...], dict]:
-    """(the subtasks, schedule.json's header) of an edit of ``gaussians`` (the input scene).
+    """(the subtasks, schedule.json's header) of an edit of the input scene ``gaussians``.
 
-    The difficulty oracle edits renders of the input scene (``seed`` seeds its
-    edits); the schedule starts at ``start_ratio``: a run continued from the
-    snapshot ``resumed_from`` has no refine subtask. ``identity``: the figures of
-    :func:`check_identity`, recorded in the header (None: not checked). ``log`` receives
-    the scheduler's warnings.
+    Args:
+      seed: seeds the difficulty oracle's edits.
+      distance: the difficulty's distance (None: the oracle's default).
+      start_ratio: where the schedule starts; a run continued from the snapshot
+        ``resumed_from`` has no refine subtask.
+      identity: :func:`check_identity`'s figures for the header (None: not checked).
+      log: receives the scheduler's warnings.
     """
     config, data = ctx.config, ctx.data
     originals = np.stack([ctx.renderer.rgb(gaussians, data.train_cameras[i])
@@ -326,15 +278,13 @@ def run_plan(ctx: EditContext, st: EditState, plan: tuple[SubtaskSpec, ...], *,
              on_subtask: Callable | None = None, checkpoint: Callable | None = None,
              progress: Callable | None = None, callback: Callable | None = None,
              log: Callable[[str], None] = lambda msg: None) -> EditState:
-    """Run the subtasks of ``plan`` from ``st`` (its ``st.subtask``-th on, possibly resumed
-    mid-way) in order; the state after the last one.
+    """Run the subtasks of ``plan`` from the ``st.subtask``-th on (possibly resumed mid-way);
+    returns the state after the last one.
 
     Args:
-      on_subtask: ``on_subtask(st, spec, record) -> record`` when a subtask ends (``st``:
-        the state at its end, ``record``: its :func:`subtask_record`): the record to keep
-        (a run directory adds its snapshot).
-      checkpoint: ``checkpoint(st)`` every ``checkpoint_every`` steps inside a subtask and
-        after each finished one.
+      on_subtask: ``on_subtask(st, spec, record) -> record`` when a subtask ends: the
+        :func:`subtask_record` to keep (a run directory adds its snapshot).
+      checkpoint: ``checkpoint(st)`` every ``checkpoint_every`` steps and after each subtask.
       progress, callback: as :func:`jaxedit.edit.subtask.run_subtask`'s.
       log: ``log(message)``: each subtask's start and its warnings.
     """
