@@ -1,7 +1,6 @@
 """The trainer of a subtask: :mod:`jaxedit.train`'s pure steps with ProEdit's density control.
 
-:class:`TrainSettings` is the one declaration of the editing trainer's knobs; it
-produces the :class:`jaxedit.train.TrainConfig` the steps run with.
+:class:`TrainSettings` declares its knobs and makes the :class:`jaxedit.train.TrainConfig`.
 """
 
 from __future__ import annotations
@@ -20,28 +19,11 @@ from ..raster.render import next_capacity
 from ..train import TrainConfig
 from .plan import ProEditConfig
 
-#: The editing trainer's density control (paper 3.3; the paper follows Splatfacto's
-#: defaults where it says nothing), a :class:`jaxedit.densify.DensifyConfig`:
-#:
-#: - ``budget`` on with t(n, N) = max(16, min(10% N, n + 2% N)). ASSUMPTION: the paper
-#:   (appendix "Gaussian Creation Strategy") gives only the form "t(n) of the culled
-#:   count n and the total N", no constants; 16 / 2% / 10% are ours, kept by
-#:   ``benchmarks/budget_ablation.py`` (no variant edited better).
-#: - ``refine_every`` 100, Splatfacto's; the budget ablation compared our earlier 50:
-#:   the same edit quality, far fewer Gaussians created, fewer subtasks cut by the guard.
-#: - ``cull_alpha`` 0.1, Splatfacto's cull_alpha_thresh, which is also the opacity every
-#:   Gaussian gets at a subtask start (it keeps the scene visible to the editor;
-#:   gsplat's 0.005 would blank it); no periodic reset (``reset_every`` 0): the subtask
-#:   start is the reset.
-#: - ``max_gaussians`` None: :func:`default_max_gaussians` of the input scene.
-#: - ``warmup``: the plan's W (:class:`jaxedit.edit.plan.ProEditConfig` owns it and the
-#:   subtask loop reads it there; :class:`SubtaskTrainer` gets it from
-#:   :func:`jaxedit.edit.progressive.make_trainer` and gives it to the density control's
-#:   clock; :class:`TrainSettings` refuses another); ``refine_from_warmup``: the first
-#:   maintenance (cull and create) comes right after the W steps, then every
-#:   ``refine_every`` (with INRIA's clock a W below ``refine_every`` had no effect: the
-#:   first maintenance was at step ``refine_every`` whatever W).
-#: - ``stop_at``: never (a subtask has no fixed length).
+#: The editing trainer's density control (paper 3.3, else Splatfacto's defaults): the
+#: budget t(n, N) = max(16, min(0.1 N, n + 0.02 N)) (the constants are ours; the paper gives
+#: only the form); ``cull_alpha`` 0.1 is also the opacity a subtask start resets to (the
+#: only reset); ``max_gaussians`` None: :func:`default_max_gaussians`; ``warmup`` is the
+#: plan's W, the first maintenance right after it; no ``stop_at``.
 EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
                              budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
                              warmup=ProEditConfig.warmup, refine_from_warmup=True, stop_at=2 ** 30,
@@ -57,19 +39,13 @@ class TrainSettings:
     Attributes:
       scene_extent: world size (None: ``jaxedit.train.scene_extent`` of the train cameras).
       adaptive: ProEdit's budgeted creation (True) or classic 3DGS thresholds with a
-        periodic opacity reset (False, IN2N); ``run_edit`` sets it from the mode.
-      densify: the density control (:data:`EDIT_DENSIFY`); in classic mode its budget
-        is off and it resets opacities every :data:`CLASSIC_RESET_EVERY` steps. Its
-        ``warmup`` is the plan's W (:attr:`ProEditConfig.warmup`, given to
-        :meth:`train_config`): another value here is a DataError, not silently replaced.
-      sh_degree: SH degree trained (the input scene's, all degrees on from the start).
-      lr_means: Adam learning rate of the means (Splatfacto's by default, constant).
-      lr_sh_dc: Adam learning rate of the SH colour (the higher SH get a twentieth); short
-        subtasks may need a larger one to follow the edits.
+        periodic opacity reset (False, IN2N).
+      densify: the density control (:data:`EDIT_DENSIFY`); its ``warmup`` must stay the
+        plan's (:attr:`ProEditConfig.warmup`), else DataError.
+      sh_degree: SH degree trained (all degrees on from the start).
+      lr_means: Adam learning rate of the means (constant).
+      lr_sh_dc: Adam learning rate of the SH colour (the higher SH get a twentieth).
       lr_opacity: Adam learning rate of the opacity logits.
-
-    The background and the warm-up are the plan's (:class:`ProEditConfig`), given to
-    :meth:`train_config`.
     """
 
     scene_extent: float | None = None
@@ -91,14 +67,12 @@ class TrainSettings:
 
     def train_config(self, background=ProEditConfig.background,
                      warmup: int = ProEditConfig.warmup) -> TrainConfig:
-        """The :class:`jaxedit.train.TrainConfig` these settings describe, rendering on
-        ``background`` (RGB, the plan's; white or black), its density clock warming up for
-        ``warmup`` steps (the plan's W)."""
+        """The :class:`jaxedit.train.TrainConfig` of these settings, on the plan's
+        ``background`` (RGB, white or black) and warm-up W ``warmup``."""
         dens = dataclasses.replace(self.densify, warmup=int(warmup))
         dens = dens if self.adaptive else dataclasses.replace(
             dens, budget=False, reset_every=CLASSIC_RESET_EVERY)
         background = background_name(background)
-        # Constant means learning rate (no decay across subtasks), every SH degree from step 1.
         return TrainConfig(iterations=2 ** 30, lr_means=self.lr_means,
                            lr_means_final=self.lr_means, lr_sh_dc=self.lr_sh_dc,
                            lr_sh_rest=self.lr_sh_dc / 20, lr_opacity=self.lr_opacity,
@@ -111,11 +85,8 @@ CAP_MIN_ROOM = 10_000
 
 
 def default_max_gaussians(num_input: int) -> int:
-    """The edit's default hard cap: twice the input's Gaussians, at least CAP_MIN_ROOM more.
-
-    Reconstructions by Splatfacto or gsplat hold 0.3-3M Gaussians; a fixed cap below that
-    would leave ProEdit's creation budget no room, so geometry edits could only recolour.
-    """
+    """The edit's default hard cap: twice the input's Gaussians, at least CAP_MIN_ROOM more
+    (relative, so a large input's creation budget keeps room)."""
     return max(2 * int(num_input), int(num_input) + CAP_MIN_ROOM)
 
 
@@ -133,23 +104,18 @@ def resolve_max_gaussians(settings: TrainSettings, num_input: int) -> TrainSetti
 class SubtaskTrainer:
     """An edit's view of :mod:`jaxedit.train`: the settings, init and subtask restart.
 
-    The steps themselves are the subtask's (:func:`jaxedit.edit.subtask.step_chunk`:
-    :mod:`jaxedit.train`'s pure step scanned over a chunk, redone with a larger
-    intersection buffer or capacity when it asks for it) on the train state made
-    here. ``restart`` is paper 3.3 (1): every opacity to the cull threshold (moments
-    zeroed), fresh density statistics, and the density-control clock restarted so
-    that the first ``warmup`` steps of the subtask have no densify/cull.
+    The steps are :func:`jaxedit.edit.subtask.step_chunk`'s. ``restart`` is paper 3.3 (1):
+    opacities to the cull threshold (moments zeroed, frozen Gaussians kept), fresh density
+    statistics and clock, so the first ``warmup`` steps have no densify/cull.
     """
 
     def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None,
                  *, background=ProEditConfig.background, warmup: int = ProEditConfig.warmup,
                  editable=None):
-        """``num_input``: the input scene's Gaussian count, against which the cap is
-        resolved (:func:`resolve_max_gaussians`: the one place it is; None: the settings
-        must hold a cap); ``background``, ``warmup``: the plan's (RGB; W); ``editable``:
-        bool [C0] over the input scene's slots for a local edit
-        (:func:`jaxedit.edit.local.editable`): the other alive Gaussians are frozen (None: a
-        global edit, nothing frozen)."""
+        """``num_input``: the input's Gaussian count the cap is resolved against
+        (:func:`resolve_max_gaussians`; None: the settings hold a cap); ``background``,
+        ``warmup``: the plan's; ``editable``: bool [C0] over the input's slots
+        (:func:`jaxedit.edit.local.editable`), the other alive Gaussians frozen (None: none)."""
         self.editable = None if editable is None else np.asarray(editable, bool)
         if num_input is not None:
             settings = resolve_max_gaussians(settings, num_input)
@@ -159,12 +125,8 @@ class SubtaskTrainer:
         self.config = settings.train_config(background, warmup)
 
     def init(self, gaussians, cameras=None):
-        """A fresh train state; with ``cameras``, its tile buffer is sized to what they need.
-
-        The step's cost grows with the intersection buffer (it is sorted every
-        step), so measure the views instead of guessing from the capacity; a
-        scene that grows later overflows once and the step is redone larger.
-        """
+        """A fresh train state; with ``cameras``, its intersection buffer is sized to what
+        they need (it is sorted every step, so measured rather than guessed)."""
         sh = min(self.settings.sh_degree, gaussians.sh_degree)
         config = dataclasses.replace(self.config, sh_degree=sh)
         cap = None
