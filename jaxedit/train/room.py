@@ -1,11 +1,8 @@
 """Room for a step: the tile splatter's intersection buffer and the Gaussians' capacity.
 
-Both are static sizes (every step pays for them; changing one recompiles). A step
-that finds one too small asks for a redo instead of returning a truncated frame
-or dropping Gaussians (:mod:`jaxedit.train.step`); here, outside jit, they are
-sized from the training views (:func:`size_buffer`), planned for a densifying
-run (:func:`plan_room`), grown after a redo (:func:`grow_for_redo`), and the
-redo loop of a single step (:func:`step_with_retry`).
+Both are static sizes (changing one recompiles); a step that finds one too small asks for
+a redo (:mod:`jaxedit.train.step`). Outside jit, they are sized (:func:`size_buffer`),
+planned (:func:`plan_room`) and grown (:func:`grow_for_redo`).
 """
 
 from __future__ import annotations
@@ -53,11 +50,7 @@ def measure_intersections(gaussians: Gaussians, cameras: Camera) -> int:
 
 
 def size_buffer(state: TrainState, cameras: Camera, *, headroom: float = HEADROOM) -> TrainState:
-    """``state`` with a tile buffer of ``headroom`` x what the views need now (outside jit).
-
-    Training grows the scene, hence the headroom; when it is not enough the step
-    overflows and is redone with a larger buffer (:func:`grow_for_redo`).
-    """
+    """``state`` with a tile buffer of ``headroom`` x what ``cameras`` need now (outside jit)."""
     needed = measure_intersections(state.gaussians, cameras)
     cap = next_capacity(max(int(needed * headroom), 1))
     log.info("train: intersection buffer %d (views need up to %d)", cap, needed)
@@ -67,13 +60,12 @@ def size_buffer(state: TrainState, cameras: Camera, *, headroom: float = HEADROO
 def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
     """After a step that asked for a redo: a larger intersection buffer and/or capacity.
 
-    Outside jit. The buffer at least doubles (and holds what the frame needed);
-    the capacity doubles until it holds what density control needed, clamped to
-    the hard cap. Logged (each costs one recompile).
+    Outside jit. The buffer at least doubles; the capacity grows to :data:`GROWTH_ROOM` x
+    the slots needed, clamped to the hard cap (RuntimeError when it cannot grow).
     """
     if bool(metrics["overflow"]):
         needed = int(np.max(np.asarray(metrics["num_intersections"])))
-        # Training grows the scene, so leave room (each size is one more compile).
+
         new = max(2 * state.max_intersections, next_capacity(int(needed * HEADROOM)))
         log.info("train: intersection buffer %d -> %d (a view needed %d)",
                  state.max_intersections, new, needed)
@@ -81,7 +73,7 @@ def grow_for_redo(state: TrainState, metrics: dict) -> TrainState:
     if bool(metrics["capacity_limited"]):
         needed = int(metrics["densify"]["slots_needed"])
         cap = state.config.densify.max_gaussians
-        # Room for the next maintenance steps too: each growth is one more compile.
+
         new_cap = dens.grown_capacity(state.capacity, GROWTH_ROOM * needed, cap)
         if new_cap <= state.capacity:
             raise RuntimeError(f"capacity {state.capacity} cannot grow to hold {needed}")
@@ -106,24 +98,13 @@ def grown(state: TrainState, capacity: int) -> TrainState:
 #: On a capacity redo, the capacity grows to hold this many times the slots the step needed.
 GROWTH_ROOM = 2
 
-#: The capacity :func:`fit` gives a fresh run that will densify, as a multiple of its
-#: alive Gaussians (within ``max_gaussians``), on a GPU and elsewhere: see :func:`default_room`.
+#: The capacity :func:`fit` gives a fresh densifying run, a multiple of its alive Gaussians.
 ROOM = {"gpu": 4.0, "cpu": 2.0}
 
 
 def default_room(platform: str | None = None) -> float:
-    """:func:`fit`'s ``room`` on ``platform`` (default: JAX's default backend).
-
-    A dead slot still costs its share of every step's per-Gaussian passes
-    (projection, Adam, the statistics): on a GPU nothing measurable, on a CPU about
-    1 ms per 1000 slots and step at 64 px (15 / 21 / 31 ms of CPU per step at
-    capacity 5000 / 10240 / 20480 on the person scene), while a compile costs ~10 s
-    of CPU. So 4x on a GPU, 2x on a CPU: on the person scene at 64 px (1500 steps,
-    5000 initial Gaussians growing to 8607; with the buffer planned alike, see
-    :func:`planned_headroom`) 2x ran 33-34 steps per CPU second end to end against
-    24-25 growing on demand, while 4x costs more per step than the compile it saves
-    (benchmarks/results/cpu/train_loop.json).
-    """
+    """:func:`fit`'s ``room`` on ``platform`` (default: JAX's default backend): more on a
+    GPU, where a dead slot costs nothing measurable, than on a CPU, where it costs per step."""
     return ROOM["gpu"] if (platform or jax.default_backend()) == "gpu" else ROOM["cpu"]
 
 
@@ -135,10 +116,7 @@ def _will_densify(state: TrainState, room: float | None) -> bool:
 
 def planned_headroom(state: TrainState, room: float | None) -> float:
     """The buffer's headroom for a run about to start: :data:`HEADROOM`, times ``room`` when
-    density control will grow the scene (the pairs grow with the Gaussians, and each buffer
-    growth is a recompile too). On the person scene at 64 px the buffer grew from 1.5x to
-    3x the initial need within 1500 steps; a 2x larger buffer costs ~2.4 ms of CPU per step
-    there (16k -> 32k pairs), less than the compile it saves, and nothing measurable on a GPU."""
+    density control will grow the scene (each buffer growth is a recompile)."""
     return HEADROOM * room if _will_densify(state, room) else HEADROOM
 
 
@@ -152,19 +130,12 @@ def planned_capacity(state: TrainState, room: float | None) -> int:
 
 
 def plan_room(state: TrainState, room: float | None) -> TrainState:
-    """``state`` with the room a densifying run will need, allocated before its first step.
+    """``state`` with ``room`` x its alive Gaussians of capacity, allocated before its first
+    step, so density control rarely stops the compiled chunk to grow it.
 
-    Density control runs inside the compiled chunk and only flips ``alive`` bits,
-    but when it needs more slots than the capacity has, the chunk ends, the host
-    grows the capacity and the chunk recompiles (seconds on a CPU, more with the
-    GPU's kernels): the host stop that made end-to-end training several times
-    slower than its steady state. Giving a fresh run ``room`` x its alive
-    Gaussians up front makes those stops rare; the unused slots are dead and cost
-    little per step (see :func:`default_room`). The capacity is a size on the buffers' ladder
-    (:func:`jaxedit.raster.render.next_capacity`), so that runs of nearby sizes (a
-    reconstruction and the edit of its scene) build the same programs. Outside jit. The capacity is part of the state (and of its
-    checkpoints), so :func:`fit` plans only at step 0 and a resumed run keeps
-    the capacity it had: resume stays bit-exact.
+    Outside jit. The capacity is on :func:`jaxedit.raster.render.next_capacity`'s ladder, so
+    nearby sizes share programs; it is part of the checkpoint, so :func:`fit` plans only at
+    step 0 and a resume stays bit-exact.
     """
     new_cap = planned_capacity(state, room)
     if new_cap <= state.capacity:
