@@ -1,16 +1,8 @@
-"""Where an edit run is (:class:`EditState`) and the pure functions that advance it.
+"""Where an edit run is (:class:`EditState`) and the pure functions that advance it:
+:func:`init_state`, :func:`begin_subtask`, :func:`apply_edits`, :func:`finish_subtask`.
 
-A run's state is immutable; each function returns a new one (optax-style init/update):
-
-* :func:`init_state`: the input scene and the original photos;
-* :func:`begin_subtask`: paper 3.3 (1), every opacity to the cull threshold, fresh
-  density statistics, loss tracker and edit flags;
-* :func:`apply_edits`: edited views land in the device-resident training set;
-* :func:`finish_subtask`: the subtask's record appended, the clock moved on.
-
-Its parts advanced on the device, inside a chunk of steps
-(:func:`jaxedit.edit.subtask.step_chunk`): the :class:`LossTracker` (:func:`track_loss`);
-on the host from a chunk's metrics: the :class:`DensityTally` (:func:`tally_density`).
+:class:`LossTracker` advances on the device (:func:`track_loss`), :class:`DensityTally` on
+the host from a chunk's metrics (:func:`tally_density`).
 """
 
 from __future__ import annotations
@@ -31,11 +23,10 @@ from .context import EditContext
 
 
 class LossTracker(NamedTuple):
-    """Running mean of the last ``window`` losses and steps since its last minimum.
+    """Running mean of the last ``window`` losses and steps since its last minimum (a pytree).
 
-    recent: float32 [window] ring buffer; count: int32, losses seen; best:
-    float32, lowest running mean so far (inf before the window is full);
-    since_best: int32, steps since then. A pytree: it is advanced on the device.
+    recent: float32 [window] ring buffer; count: int32, losses seen; best: float32, lowest
+    running mean so far (inf before the window is full); since_best: int32, steps since.
     """
 
     recent: jax.Array
@@ -69,11 +60,9 @@ def track_loss(tracker: LossTracker, loss, *, min_delta: float) -> LossTracker:
 class DensityTally(NamedTuple):
     """What density control did in a subtask (host ints, summed over its maintenance steps).
 
-    refinements: maintenance steps; created / culled: Gaussians; budget_limited:
-    maintenance steps whose creation the budget t(n) set (it created t(n), neither the
-    candidates nor the cap held it lower); cap_limited: maintenance steps where the hard
-    cap, not the budget t(n), bounded creation; shortfall: Gaussians those steps wanted
-    (min(t(n), candidates)) but had no room for.
+    refinements: maintenance steps; created / culled: Gaussians; budget_limited: steps that
+    created exactly t(n); cap_limited: steps where the hard cap bounded creation; shortfall:
+    Gaussians those steps wanted (min(t(n), candidates)) but had no room for.
     """
 
     refinements: int = 0
@@ -116,13 +105,10 @@ class EditState:
       records: one dict per finished subtask (schedule.json entries).
       seconds: wall time spent in the current subtask before the last restart.
       utilisation: buffer counters summed over the run.
-      complete_at: the subtask's step when every view had been edited (-1: not yet);
-        it may end no earlier than ``patience`` steps later, so it never ends on
-        edits it has not trained on.
-      annealed_at: the subtask's step when the first edit made at t_min arrived
-        (-1: not yet); a plateau ends the subtask no earlier than ``patience`` steps
-        later, so the annealing always reaches t_min. When both are set the loss tracker
-        starts afresh: the plateau is that of the loss against the final training images.
+      complete_at: the subtask's step when every view had been edited (-1: not yet); it
+        ends no earlier than ``patience`` steps later.
+      annealed_at: the subtask's step when the first edit made at t_min arrived (-1: not
+        yet); it ends no earlier than ``patience`` steps later.
       density: the subtask's :class:`DensityTally`.
     """
 
@@ -143,9 +129,7 @@ class EditState:
 def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) -> EditState:
     """A run at its very beginning: the input scene, the original photos as training images."""
     images = ctx.data.train_images if images is None else images
-    # Room to densify from the start (growth means a recompile), but not much more: the
-    # step's cost grows with the capacity. 1.5x, on the buffers' ladder, so that the edit
-    # often builds the programs its scene's reconstruction built (read from the cache).
+    # 1.5x room to densify without a recompile, on the ladder the reconstruction used
     want = next_capacity(math.ceil(1.5 * int(gaussians.num_alive())))
     capacity = min(max(want, gaussians.capacity), max(ctx.trainer.settings.densify.max_gaussians,
                                                      gaussians.capacity))
@@ -169,7 +153,8 @@ def begin_subtask(ctx: EditContext, st: EditState) -> EditState:
 def apply_edits(st: EditState, views, images, annealed=()) -> EditState:
     """``st`` with edited ``images`` [K, H, W, 3] as the training images of ``views`` [K].
 
-    ``annealed`` (bool [K], optional): the edit was made at t_min.
+    ``annealed`` (bool [K], optional): the edit was made at t_min. Once every view is edited
+    and an annealed edit arrived, the loss tracker starts afresh.
     """
     if not len(views):
         return st
@@ -181,11 +166,7 @@ def apply_edits(st: EditState, views, images, annealed=()) -> EditState:
     annealed_at = st.step if st.annealed_at < 0 and any(annealed) else st.annealed_at
     tracker = st.tracker
     if min(complete_at, annealed_at) >= 0 > min(st.complete_at, st.annealed_at):
-        # The plateau test starts here: every view edited and the annealing at t_min. A best
-        # running mean from before was taken against other training images (edits made at
-        # higher timesteps, or the photos), often lower than the loss against the final ones
-        # can reach for a while: kept, it ended the subtask at the earliest step allowed,
-        # while the loss was still falling (person, local edit: 3 of 6 subtasks).
+        # an earlier best was against other training images and would end the subtask early
         tracker = LossTracker.init(len(tracker.recent))
     return dataclasses.replace(st, images=data, edited=edited, complete_at=complete_at,
                                annealed_at=annealed_at, tracker=tracker)
