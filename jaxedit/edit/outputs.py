@@ -17,18 +17,12 @@ from ..raster.render import HEADROOM, render_capacity
 
 
 class Renderer:
-    """Render single views over a fixed background, never truncated.
-
-    Outside jit, :func:`jaxedit.raster.render` sizes its intersection buffer
-    itself (counting first, caching the size, redoing a frame that overflowed),
-    so a frame is complete whatever the scene's growth.
-    """
+    """Render single views over a fixed background, never truncated (outside jit,
+    :func:`jaxedit.raster.render` sizes its own buffer)."""
 
     def __init__(self, background=(1.0, 1.0, 1.0)):
         self.background = jnp.asarray(background, jnp.float32)
-        # The largest intersection buffer a frame has needed so far: smaller frames reuse
-        # its compiled program instead of compiling one per size (a turntable's frames
-        # and a growing scene's snapshots need many sizes).
+        # largest buffer needed so far: smaller frames reuse its compiled program
         self.max_intersections: int | None = None
 
     def __call__(self, gaussians, camera):
@@ -59,7 +53,7 @@ def image_scores(renders: np.ndarray, targets: np.ndarray) -> dict:
     psnrs, ssims = [], []
     for a, b in zip(np.clip(renders, 0, 1), np.clip(targets, 0, 1)):
         mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-        psnrs.append(-10.0 * np.log10(max(mse, 1e-10)))  # identical images: 100 dB, not inf
+        psnrs.append(-10.0 * np.log10(max(mse, 1e-10)))  # finite for identical images
         ssims.append(structural_similarity(b, a, channel_axis=-1, data_range=1.0,
                                            win_size=min(7, min(a.shape[:2]) // 2 * 2 - 1)))
     return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims))}
@@ -69,11 +63,9 @@ def reprojection_consistency(rgb: np.ndarray, alpha: np.ndarray, depth: np.ndarr
                              *, min_alpha: float = 0.5) -> float:
     """Multi-view consistency of renders: PSNR (dB) of colours carried between neighbouring views.
 
-    Each pixel of view i with alpha > min_alpha is lifted to 3D with its rendered
-    depth, projected into view i+1 (cyclically) and compared with the colour
-    there (nearest pixel, only where that view also sees a surface at the same
-    depth within 5%). View-dependent colour that overfits inconsistent edits,
-    floaters and depth errors all lower it. Returns NaN when no pixel is co-visible.
+    Pixels of view i with alpha > min_alpha are lifted by their rendered depth into view
+    i+1 (cyclically) and compared where it sees a surface at the same depth (0.05
+    relative). Returns NaN when no pixel is co-visible.
 
     Args:
       rgb: float [N, H, W, 3]; alpha, depth: float [N, H, W]; cameras: batched [N].
@@ -133,8 +125,8 @@ def distance_to_input(renders: np.ndarray, reference: np.ndarray, *, lpips=None)
         scene's renders of the same cameras).
       lpips: ``(a, b) -> float`` (None: :func:`bundled_lpips`).
     Returns:
-      {"psnr_vs_input", "ssim_vs_input", "lpips_vs_input"}: means over the views (identical
-      renders: 100 dB, SSIM 1, LPIPS 0).
+      {"psnr_vs_input", "ssim_vs_input", "lpips_vs_input"}: means over the views. Raises
+      ValueError when the shapes differ.
     """
     if renders.shape != reference.shape:
         raise ValueError(f"renders {renders.shape} and reference {reference.shape} differ")
@@ -147,13 +139,11 @@ def distance_to_input(renders: np.ndarray, reference: np.ndarray, *, lpips=None)
 def scene_metrics(ctx, gaussians, ratio: float, *, reference: tuple | None = None) -> dict:
     """Numbers of one scene state at the held-out views.
 
-    psnr/ssim_vs_target: renders vs the editor's noise-free target at r = 1 (None
-    when the editor has no ground truth, e.g. a real diffusion model);
-    psnr/ssim_vs_subtask_target: vs the target at this subtask's ratio;
-    multiview_consistency: :func:`reprojection_consistency` of the renders (dB);
-    num_gaussians. With ``reference`` = (the input scene's renders [M, H, W, 3] of the
-    held-out views, its Gaussian count): how far this state moved from it
-    (:func:`distance_to_input`), ``input_gaussians`` and ``gaussians_vs_input`` (the ratio).
+    psnr/ssim_vs_target: vs the editor's noise-free target at r = 1 (None without one);
+    psnr/ssim_vs_subtask_target: vs the target at ``ratio``; multiview_consistency
+    (:func:`reprojection_consistency`); num_gaussians. With ``reference`` = (the input's
+    held-out renders [M, H, W, 3], its Gaussian count): :func:`distance_to_input`,
+    ``input_gaussians`` and ``gaussians_vs_input``.
     """
     rgb, alpha, depth = ctx.renderer.views(gaussians, ctx.data.test_cameras)
     out = {"ratio": float(ratio), "num_gaussians": int(gaussians.num_alive()),
