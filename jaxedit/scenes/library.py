@@ -1,13 +1,9 @@
 """The built-in scenes and their camera rigs.
 
-Each procedural scene is a function ``seed -> Scene``. Seed 0 is the canonical layout;
-other seeds jitter what is meant to vary (object placement on the table), never the
-look of ``face``, which is the benchmark scene.
-
-Rendered scenes (:data:`DATASETS`, e.g. ``person``) are not generated: they ship as
-nerfstudio datasets under ``jaxedit/scenes/data/NAME`` (package data), made by an outside
-renderer (``scripts/render_person.py``: Blender Cycles), and are copied out by
-:func:`jaxedit.scenes.make_scene`.
+Each procedural scene is a function ``seed -> Scene``; ``seed=0`` is the canonical layout,
+other seeds jitter object placement, never the look of ``face`` (the benchmark scene).
+Rendered scenes (:data:`DATASETS`, e.g. ``person``, Blender Cycles) ship as nerfstudio
+datasets under ``jaxedit/scenes/data/NAME``, copied out by :func:`jaxedit.scenes.make_scene`.
 
 World frame: +z up, units of about a metre. The face looks along +x.
 """

@@ -1,18 +1,8 @@
 """Initial point clouds for the built-in scenes, made to look like a COLMAP sparse cloud.
 
-Structure-from-motion only triangulates surface points that several cameras see,
-with a little positional error, colours taken from the images (so shading is
-baked in) and a sprinkle of wrong matches. :func:`sample_points` imitates that:
-
-1. candidates uniformly distributed by area over every shape's surface;
-2. kept only if at least ``min_views`` of the given cameras see them (inside the
-   image and not hidden by another surface), so no points are inside the head or
-   under the table;
-3. coloured with the ray caster's shaded colour seen from one of those cameras,
-   plus Gaussian colour noise;
-4. moved by Gaussian positional noise (a fraction of the scene extent);
-5. plus outliers drawn uniformly in the scene's bounding box (10% margin) with
-   random colours.
+:func:`sample_points` imitates structure from motion: area-uniform surface points kept
+where at least ``min_views`` cameras see them, coloured by the ray caster's shading from
+one of them, with colour and position noise, plus random outliers in the bounding box.
 """
 
 from __future__ import annotations
