@@ -1,16 +1,8 @@
 """An edit run's checkpoint: its whole :class:`EditState` in one npz, atomically, bit-exact.
 
-The format is :mod:`jaxedit.io.checkpoint`'s (versioned, fsync, atomic rename; the
-trainer's checkpoints use it too): the trainer state's leaves under their pytree
-paths (typed PRNG keys as raw key data), the training images, the edit flags and
-the loss tracker as arrays, and everything else as the file's JSON meta record,
-so a resumed run continues with the same bits.
-
-:func:`read_record` is the one reader of that meta record (every key, its type and its
-range checked, unknown keys refused), and :func:`check_resume` checks, before a resumed
-run writes anything, that the checkpoint fits the data it is resumed with and that every
-snapshot its run's records (and ``schedule.json``) name is still there, loads, and has the
-size and hash recorded when it was written (:func:`snapshot_fingerprint`).
+The format is :mod:`jaxedit.io.checkpoint`'s: arrays under their pytree paths, the rest a
+JSON meta record checked by :func:`read_record`. :func:`check_resume` checks, before a
+resumed run writes anything, the data's shape and every recorded snapshot.
 """
 
 from __future__ import annotations
@@ -123,20 +115,17 @@ def read_record(path, info) -> dict:
 
 
 def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[EditState, dict]:
-    """Read a checkpoint written by :func:`save_checkpoint` (state, meta).
+    """Read a checkpoint written by :func:`save_checkpoint` as (state, meta).
 
-    ``train_template`` is any trainer state of the same structure (shapes may
-    differ: capacity grows during a run); its typed PRNG keys are restored. The meta
-    record is checked by :func:`read_record` before anything is built from it.
+    ``train_template``: a trainer state of the same structure (shapes may differ); the
+    meta record is checked by :func:`read_record` first. Raises DataError.
     """
     path = Path(path)
     arrays, info = read_pytree(path, kind=KIND)
     info = read_record(path, info)
     template = {"train": train_template, "images": np.zeros((0,), np.float32),
                 "edited": np.zeros((0,), bool), "tracker_recent": np.zeros((0,), np.float32)}
-    # The capacity grows during a run: the stored shapes win over the template's.
-    # An earlier layout's trainer state lacks the traced extent: the template's is the
-    # run's own (the same scene), as the static one was.
+    # stored shapes win (capacity grows); a state without the traced extent takes the template's
     tree = restore(template, arrays, path, shapes=False, template_fills=PRE_TRACED_EXTENT)
     train = tree["train"]
     if info.get("max_intersections") is not None and hasattr(train, "max_intersections"):
@@ -185,10 +174,8 @@ def _named_snapshots(run_dir: Path, records) -> dict[str, dict]:
 
 
 def verify_snapshots(run_dir: str | os.PathLike, records) -> None:
-    """Refuse a resume whose finished subtasks' snapshots are not as they were written:
-    every one the records or ``schedule.json`` name must be present, load as a scene, and
-    have its recorded size and hash (records of older runs have neither: present and
-    loading then suffice).
+    """Refuse a resume whose finished subtasks' snapshots (named by ``records`` or
+    ``schedule.json``) are missing, do not load, or differ from their recorded size and hash.
 
     Raises:
       DataError naming the snapshot.
@@ -215,8 +202,7 @@ def verify_snapshots(run_dir: str | os.PathLike, records) -> None:
 
 def check_resume(path, st: EditState, images_shape: tuple, run_dir=None) -> None:
     """Before a resumed run writes anything: the checkpoint's training images must be of
-    the data's shape ``images_shape`` [N, H, W, 3] (a checkpoint of other data would be
-    rewritten and then fail), and every snapshot must be intact (:func:`verify_snapshots`).
+    shape ``images_shape`` [N, H, W, 3], and every snapshot intact (:func:`verify_snapshots`).
 
     Raises:
       DataError naming the checkpoint ``path`` or the snapshot.
