@@ -1,11 +1,6 @@
 """What an edit reads and never changes: its views (:class:`EditData`) and its run's
-context (:class:`EditContext`), each built by an explicit constructor.
-
-The constructors do the work (moving the cameras to the device once, encoding the
-prompt); the dataclasses only hold the results, so a
-``dataclasses.replace`` copies them as they are and never redoes it. The prompt is
-encoded once per run (:func:`encode_prompt`): the context, the difficulty oracle and a
-local edit's relevance all read these embeddings.
+context (:class:`EditContext`). The constructors do the work (cameras to the device, the
+prompt encoded once), so ``dataclasses.replace`` never redoes it.
 """
 
 from __future__ import annotations
@@ -30,8 +25,7 @@ class EditData:
 
     Attributes:
       train_images: float32 [N, H, W, 3], the original photos of the training views.
-      train_cameras: batched Camera [N] (on the device: the training chunks read them
-        every step).
+      train_cameras: batched Camera [N], on the device.
       test_images: float32 [M, H, W, 3], held-out originals (never trained on).
       test_cameras: batched Camera [M].
     """
@@ -83,8 +77,8 @@ class EditContext:
       editor: an :class:`jaxedit.editors.Editor`.
       prompt: the instruction p.
       data: the views (:class:`EditData`).
-      config: :class:`ProEditConfig`, the user's as given (a subtask's resolved step guard
-        and plateau test: :func:`jaxedit.edit.plan.subtask_limits`).
+      config: :class:`ProEditConfig`, as given (resolved per subtask by
+        :func:`jaxedit.edit.plan.subtask_limits`).
       trainer: :class:`SubtaskTrainer`.
       renderer: :class:`Renderer` used for the editor's inputs and the snapshots.
       key: the run key (``jax.random.key(seed)``).
@@ -93,10 +87,8 @@ class EditContext:
         edits with e(r) = r E(p) + (1 - r) E("").
       editor_device: device of the editor (async mode), see
         :func:`jaxedit.edit.buffer.pick_devices`.
-      masks: float [N, H, W] per training view (a device array), a local edit's
-        training masks (:func:`jaxedit.edit.local.plan_local`), or None (a global edit):
-        the training image of an edited view is the editor's output inside the mask and the
-        original photo outside it, and the plateau test watches the loss inside it.
+      masks: float [N, H, W] on the device, a local edit's training masks
+        (:func:`jaxedit.edit.local.plan_local`: edit inside, photo outside), or None.
       hooks: a study's changes to the plan, the limits or the edit source
         (:class:`jaxedit.edit.hooks.EditHooks`; none by default).
     """
@@ -119,12 +111,8 @@ class EditContext:
                trainer: SubtaskTrainer, renderer: Renderer, key: jax.Array, editor_device=None,
                masks=None, embeddings: tuple[np.ndarray, np.ndarray] | None = None,
                hooks: EditHooks = NO_HOOKS) -> "EditContext":
-        """The context of a run: the prompt encoded once.
-
-        ``embeddings``: (E(p), E("")) of :func:`encode_prompt` when the caller has already
-        encoded the prompt (``run_edit`` does, for a local edit's relevance); None: encoded
-        here.
-        """
+        """The context of a run; ``embeddings``: (E(p), E("")) of :func:`encode_prompt`
+        when already encoded (None: encoded here)."""
         e_prompt, e_null = encode_prompt(editor, prompt) if embeddings is None else embeddings
         return EditContext(editor, prompt, data, config, trainer, renderer, key,
                            e_prompt=e_prompt, e_null=e_null,
