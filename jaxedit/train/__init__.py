@@ -1,32 +1,11 @@
 """3DGS training: a pure, jit-compiled train step, a resumable fit loop, checkpoints.
 
-The pieces, from the inside out (one module each):
-
-* :mod:`.config` -- :class:`TrainConfig` (with :class:`jaxedit.densify.DensifyConfig`):
-  every hyper-parameter, Splatfacto defaults, JSON-serialisable (stored in checkpoints).
-* :mod:`.state` -- :class:`TrainState`: the whole training state as one pytree
-  (Gaussians, optax state with one Adam per attribute, densify statistics, the step
-  count, the run's base PRNG key, camera corrections); the config, the scene extent
-  and the intersection-buffer size are static fields. :func:`init_state`, :func:`optimizer`.
-* :mod:`.step` -- :func:`apply_step` / :func:`train_step` ``(state, batch, key) ->
-  (state, metrics)``: render one view, 0.8 L1 + 0.2 D-SSIM, Adam, then density
-  control. Pure. A step that needs a larger intersection buffer or capacity
-  returns its input state with ``metrics["redo"]`` set.
-* :mod:`.room` -- the buffer and the capacity: sized from the views, planned for a
-  densifying run, grown after a redo (:func:`step_with_retry` for single steps).
-* :mod:`.loop` -- :func:`train_chunk` (up to ``length`` steps in one ``lax.scan``,
-  views picked on the device) and :func:`fit`, the loop over chunks with log
-  records, progress events, checkpoint calls and the divergence guard
-  (:func:`divergence`); it writes no files (:mod:`jaxedit.pipelines.rundir` does). The
-  view of step ``s`` and its key are pure functions of ``(base key, s)``, so a run
-  resumed from any checkpoint ends with bit-identical Gaussians, whatever the chunking.
-* :mod:`.checkpoint` -- :func:`save_checkpoint` / :func:`load_checkpoint` (the
-  shared format of :mod:`jaxedit.io.checkpoint`).
-* :mod:`.evaluation` -- :func:`evaluate`, :func:`render_views`.
-
-The ProEdit driver swaps the ``images`` array between chunks (:func:`put_image`
-updates one view of a device array in place) and runs its own scan of
-:func:`apply_step` (:func:`scan_steps`).
+From the inside out: :mod:`.config` (:class:`TrainConfig`, Splatfacto defaults),
+:mod:`.state` (:class:`TrainState`, one pytree), :mod:`.step` (the pure
+:func:`train_step`: 0.8 L1 + 0.2 D-SSIM, Adam, density control; ``metrics["redo"]`` when
+out of room), :mod:`.room` (buffer and capacity), :mod:`.loop` (:func:`train_chunk`,
+:func:`fit`; step ``s``'s view and key depend only on (base key, s), so a resumed run is
+bit-identical), :mod:`.checkpoint`, :mod:`.evaluation`.
 """
 
 from ..densify import DensifyConfig
