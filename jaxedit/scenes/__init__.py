@@ -1,30 +1,25 @@
 """Built-in scenes: procedural ones, rendered by an independent NumPy ray caster, and
 rendered datasets shipped with the package.
 
-No dataset can be downloaded, so jaxedit ships scene generators that write
-ordinary nerfstudio datasets (transforms.json + PNGs + an initial point cloud),
-and the same loader serves built-in and real scenes::
+The generators write ordinary nerfstudio datasets (transforms.json, PNGs, an initial
+point cloud), read by the same loader as real scenes::
 
     from jaxedit import scenes
     scenes.list_scenes()                      # ['face', 'tabletop', 'fence', 'ball', 'person']
     scenes.make_scene("face", "runs/face")    # 64 train + 8 test views, 128 x 128
     scenes.make_scene("person", "runs/person", downscale=2)   # 72 + 8 Cycles views, 128 x 128
 
-``person`` is a photo-textured man (Reallusion's CC BY 3.0 model from Sweet Home 3D's
-furniture library) rendered by Blender's Cycles on a frontal arc, head and shoulders, as
-RGBA PNGs with a transparent backdrop; ``scripts/render_person.py`` regenerates it.
+``person`` is a photo-textured man (Reallusion's CC BY 3.0 model from Sweet Home 3D)
+rendered by Blender's Cycles; ``scripts/render_person.py`` regenerates it.
 
     scene = scenes.get_scene("face")
     cams, train, test = scenes.scene_cameras(scene, views=64, test_views=8, size=128)
     images = scenes.render_scene(scene, cams)               # float32 [72, 128, 128, 3]
     points, ids, uv = scenes.surface_points_and_ids(scene, cams)
 
-``surface_points_and_ids`` says what every pixel centre sees (world point, object
-id into ``scene.object_names``, texture coordinates), so an edit defined as a
-function of the surface is 3D-consistent across views by construction.
-
-The ray caster (:mod:`.raycast`) does not import the splatter; it shares only the
-camera convention, so reconstructing its images is a real test of the splatter.
+``surface_points_and_ids`` says what every pixel centre sees, so an edit defined on the
+surface is 3D-consistent by construction. The ray caster (:mod:`.raycast`) shares only
+the camera convention with the splatter.
 """
 
 import numpy as np
