@@ -33,22 +33,18 @@ class TrainState:
         parameters (the Gaussians without ``alive``).
       densify_stats: :class:`jaxedit.densify.DensifyStats`.
       step: int32 [], optimiser steps done.
-      densify_origin: int32 [], density control sees ``step - densify_origin``
-        (the ProEdit driver sets it at each subtask start so that warm-up counts
-        from there).
+      densify_origin: int32 [], density control sees ``step - densify_origin`` (reset at
+        each subtask start).
       key: uint32 [2], the run's base PRNG key data (views and per-step keys derive from it).
       cameras: :class:`jaxedit.poses.CameraCorrections` of the V training views
         (V = 0 unless ``config.camera_opt``).
       config: TrainConfig (static).
-      scene_extent: float32 [], the world size (:func:`scene_extent`). Traced, not static:
-        the scene's size is data, so scenes of the same shapes (another capture, the
-        same one rescaled) run the same compiled programs.
-      max_intersections: int (static), the tile splatter's buffer size (0: not
-        sized yet, see :func:`size_buffer`). Every step pays for the whole buffer
-        (it is sorted), so it is measured rather than guessed.
-      frozen: bool [C] or None: alive Gaussians a local edit keeps as they are (no
-        gradient update, no split/clone/cull, no opacity reset); None (the default):
-        every Gaussian is trained, as before local edits existed.
+      scene_extent: float32 [], the world size (:func:`scene_extent`); traced, so scenes
+        of the same shapes share compiled programs.
+      max_intersections: int (static), the tile splatter's buffer size (0: not sized yet,
+        :func:`size_buffer`).
+      frozen: bool [C] or None: alive Gaussians a local edit keeps as they are (no update,
+        densify or opacity reset); None: every Gaussian is trained.
     """
 
     gaussians: Gaussians
@@ -72,9 +68,8 @@ class Batch(NamedTuple):
     """One training view: image float [H, W, 3] in [0, 1], its (single) Camera, and its
     index among the training views (int32 []; needed only with ``config.camera_opt``).
 
-    ``region``: float [H, W] or None, the pixels a local edit changes: the step then also
-    reports the loss inside them (``region_loss``), for the edit's plateau test. It does not
-    change what is trained.
+    ``region``: float [H, W] or None, the pixels a local edit changes; the step then also
+    reports ``region_loss`` there (training is unchanged).
     """
 
     image: jax.Array
