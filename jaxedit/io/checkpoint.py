@@ -1,17 +1,9 @@
 """Pytrees to and from one ``.npz`` file: the checkpoint format of every jaxedit loop.
 
-A checkpoint holds each array leaf of a pytree under its pytree path
-(``jax.tree_util.keystr``: ``.gaussians.means``, ``['images']``), typed PRNG keys
-as their raw key data, and one JSON record ``meta``: the format version, the
-``kind`` of checkpoint (``"train"``, ``"edit"``: a file of one kind is never read
-as another), the leaf paths, which of them are keys, and the caller's own JSON
-``meta``. Writing is atomic (a temporary file, fsync, rename: a crash leaves the
-previous checkpoint or the new one, never half a file). Reading restores the
-leaves into a *template* of the same structure, so the bits that come back are
-the bits that went in: resumed runs continue bit-identically.
-
-Used by :mod:`jaxedit.train.checkpoint` (the trainer's state) and
-:mod:`jaxedit.edit.checkpoint` (the ProEdit driver's state).
+Each array leaf is stored under its ``jax.tree_util.keystr`` path (typed PRNG keys as key
+data), with one JSON record: format version, ``kind`` (a file of one kind is never read
+as another), leaf paths and the caller's ``meta``. Writing is atomic; reading restores
+into a template of the same structure, bit for bit.
 """
 
 from __future__ import annotations
