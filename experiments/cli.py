@@ -288,13 +288,14 @@ def convert(action: argparse.Action, text: str):
     return value
 
 
-def _flat(config: dict, prefix: str = "") -> dict:
+def _flat(config: dict, flags, prefix: str = "") -> dict:
     """A config file's tables flattened to dotted keys (``[train.densify]`` ->
-    ``train.densify.grad_threshold``)."""
+    ``train.densify.grad_threshold``). A dict under a flag's own name, or an empty one, is
+    a value (which the flag then refuses), not a table."""
     out = {}
     for k, v in config.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
+        if isinstance(v, dict) and v and prefix + k not in flags:
+            out.update(_flat(v, flags, f"{prefix}{k}."))
         else:
             out[prefix + k] = v
     return out
@@ -314,7 +315,8 @@ def config_values(sub: argparse.ArgumentParser, config: dict, path: Path) -> dic
     paths = {}
     for flag_set in getattr(module, "FLAGS", ()):
         paths.update(flag_set.keys())
-    config = {paths.get(k, k) if k not in actions else k: v for k, v in _flat(config).items()}
+    config = {paths.get(k, k) if k not in actions else k: v
+              for k, v in _flat(config, set(actions) | set(paths)).items()}
     unknown = sorted(set(config) - set(actions))
     if unknown:
         raise DataError(path, f"unknown flag(s) {', '.join(unknown)} for {sub.prog.split()[-1]}")
