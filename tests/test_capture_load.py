@@ -210,7 +210,7 @@ def test_reconstruct_picks_the_default_downscale_and_refuses_what_cannot_fit(tmp
     rng = np.random.default_rng(5)
     d = _dataset(tmp_path / "d", [_photo(rng, 40, 1700) for _ in range(3)])
     config = R.ReconstructConfig()
-    assert config.downscale == 0
+    assert config.downscale is None
     with caplog.at_level(logging.WARNING, logger="jaxedit.reconstruct"):
         data = R.load_dataset(d, config)
     assert data.image_size == (20, 850)

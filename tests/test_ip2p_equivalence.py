@@ -181,7 +181,8 @@ def test_cli_edit_with_the_jax_editor_runs_without_torch(weights, tmp_path):
             "--ip2p-steps", "1", "--ip2p-batch", "3", "--data", str(data), "--scene", str(scene), "--prompt",
             "make it red", "--mode", "nd", "--sync", "--max-steps", "12", "--warmup", "2",
             "--edit-every", "4", "--test-views", "1", "--turntable-frames", "0", "--no-report",
-            "--quiet", "--out", str(out)]
+            # tiny random weights at 16 px cannot clear the identity floor; the run is the test
+            "--accept-low-identity", "--quiet", "--out", str(out)]
     done = run_without_torch(f"""
         from experiments import cli
         code = cli.main({argv!r})

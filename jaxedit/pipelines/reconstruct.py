@@ -57,8 +57,8 @@ class ReconstructConfig:
 
     Attributes:
       train: training hyper-parameters (:class:`jaxedit.train.TrainConfig`).
-      downscale: integer image downscale factor; 0: the smallest power of two that brings
-        the photos' long side to at most 1600 px (nerfstudio's rule), logged; 1: full size.
+      downscale: integer image downscale factor (1: full size; unset: the smallest power of
+        two that brings the photos' long side to at most 1600 px, nerfstudio's rule, logged).
       skip_missing_images: drop the frames whose image file is missing (a warning lists
         them) instead of stopping.
       normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not
@@ -70,7 +70,7 @@ class ReconstructConfig:
     """
 
     train: TrainConfig = TrainConfig()
-    downscale: int = ranged(0, low=0)
+    downscale: int | None = ranged(None, low=1)
     skip_missing_images: bool = False
     normalize: str = "none"
     random_points: int = ranged(20_000, low=1)
@@ -91,11 +91,11 @@ def composite_background(name: str) -> tuple[float, float, float]:
 
 
 def resolve_downscale(path, config: ReconstructConfig) -> int:
-    """``config.downscale``, or for 0 the factor :func:`jaxedit.io.nerfstudio.auto_downscale`
+    """``config.downscale``, or when unset (None) the factor :func:`jaxedit.io.nerfstudio.auto_downscale`
     picks for the dataset at ``path`` (from transforms.json alone; logged)."""
     from ..io.nerfstudio import MAX_AUTO_SIDE, auto_downscale, nerfstudio_photo_size
 
-    if config.downscale:
+    if config.downscale is not None:
         return config.downscale
     width, height = nerfstudio_photo_size(path)
     factor = auto_downscale(width, height)
