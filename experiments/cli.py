@@ -584,12 +584,16 @@ def main(argv: list[str] | None = None) -> int:
         # place: process-data) must find it absent or empty: it takes no lock inside it
         # and records its config once it succeeded.
         whole = getattr(args._module, "RECORD_CONFIG_AFTER_RUN", False)
-        with claimed_out(None if whole or not writes(args) else args.out):
-            if not whole and writes(args):
-                write_run_config(args)
+        # A command may only signal a run (no lock, no record) or add to it (the lock, the
+        # run's own config.json kept): the module's out_use(args) says ("run" by default).
+        use = getattr(args._module, "out_use", lambda a: "run")(args)
+        args._argv = list(argv)
+        with claimed_out(None if whole or not writes(args) or use == "signal" else args.out):
+            if not whole and writes(args) and use == "run":
+                write_run_config(args, argv)
             result = args._module.run(args)
         if whole:
-            write_run_config(args)
+            write_run_config(args, argv)
         if dist is not None:
             from jaxedit.parallel.distributed import barrier
 

@@ -8,6 +8,12 @@ at a snapshot (also on a finished run with ``--select-only``); ``--resume``
 continues a crashed run; ``--resume-from SNAPSHOT_DIR`` continues from any
 snapshot with another schedule (more or fewer subtasks, another threshold).
 ``--view`` serves the scene in the browser while it is edited (``experiments/view.py``).
+
+Steering (the run as a tree, :mod:`jaxedit.pipelines.steer`): ``--from NODE --refine``
+redoes a step split in two, ``--from NODE --prompt TEXT`` (or another ``--seed``,
+``--threshold``, ...) branches, ``--extend R_MAX`` goes past r = 1, ``--stop`` asks the
+running edit to stop after its subtask, ``--tree`` prints the tree; a branch reuses the run's
+recorded flags, so only what changes is given.
 """
 
 from __future__ import annotations
@@ -96,6 +102,19 @@ class EditCommand:
       masks: one mask image per frame, named as the frame (images/frame_00001.png takes
         DIR/frame_00001.png) or as its photo (process-data's original_file_path), at the
         view's size or a whole multiple of it; white = editable.
+      from_node: a finished subtask of the run in --out to branch from: INDEX (the main
+        branch) or BRANCH:INDEX, negative from the end (e.g. b1:-1); with --prompt, a new
+        instruction from there, else the same one with the flags given (--seed, ...).
+      refine: redo the step of --from NODE from the snapshot before it, split in two where
+        the halves' difficulties meet, then the steps after it.
+      ratio: the ratio --refine splits the step at (default: the difficulty-aware split).
+      extend: go past r = 1 up to this ratio with extrapolated embeddings (experimental),
+        from --from NODE (default: the main branch's last subtask).
+      name: the new branch's name (default b1, b2, ...).
+      branch: the branch --resume continues (default: the main one).
+      stop: ask the edit running in --out to stop after its current subtask (--resume
+        goes on).
+      tree: print the run's tree of branches and subtasks.
     """
 
     preset: str | None = None
@@ -116,6 +135,14 @@ class EditCommand:
     local: str = "off"
     region: tuple[str, ...] = ()
     masks: Path | None = None
+    from_node: str | None = None
+    refine: bool = False
+    ratio: float | None = ranged(None, low=0, open=True)
+    extend: float | None = ranged(None, low=1, open=True)
+    name: str | None = None
+    branch: str | None = None
+    stop: bool = False
+    tree: bool = False
 
     def __post_init__(self):
         from jaxedit.errors import check_ranges
@@ -128,6 +155,7 @@ def _command_flags():
 
     clip = "CLIP metrics (local weights, see the README)"
     local = "local edits (only what the instruction touches changes)"
+    steer = "steering a run in --out (a tree of branches from its snapshots)"
     from jaxedit.pipelines.presets import PRESETS
 
     return FlagSet(EditCommand, (
@@ -136,7 +164,12 @@ def _command_flags():
         Flag("view_port"), Flag("clip_weights", group=clip), Flag("caption_orig", group=clip),
         Flag("caption_edit", group=clip), Flag("local", choices=("auto", "off"), group=local),
         Flag("region", repeat=True, group=local, metavar="SPEC"),
-        Flag("masks", group=local, metavar="DIR"))).complete()
+        Flag("masks", group=local, metavar="DIR"),
+        Flag("from_node", "--from", group=steer, metavar="NODE", key="from_node"),
+        Flag("refine", group=steer), Flag("ratio", group=steer),
+        Flag("extend", group=steer, metavar="R_MAX"), Flag("name", group=steer),
+        Flag("branch", group=steer), Flag("stop", group=steer),
+        Flag("tree", group=steer))).complete()
 
 
 def _flag_sets():
@@ -280,6 +313,134 @@ def check_processes(args, run_cfg) -> None:
             raise DataError(flag, "not with several processes yet (one process only)")
 
 
+def steering(args) -> str | None:
+    """Which steering operation ``args`` asks for (None: an ordinary edit)."""
+    if args.stop:
+        return "stop"
+    if args.tree:
+        return "tree"
+    if args.from_node is not None or args.refine or args.extend is not None:
+        return "branch"
+    if args.branch not in (None, "main"):
+        return "resume"
+    return None
+
+
+def out_use(args) -> str:
+    """How the command uses --out (experiments/cli.py): --stop and --tree only signal or
+    read a run; a branch holds the run's lock and keeps its config.json."""
+    kind = steering(args)
+    return "signal" if kind in ("stop", "tree") else "branch" if kind else "run"
+
+
+#: Flags of a recorded command line that are actions of that one command, not settings.
+_ACTIONS = {"--resume", "--select-only", "--view", "--print-config", "--refine", "--stop",
+            "--tree"}
+_ACTIONS_WITH_VALUE = {"--resume-from", "--select", "--view-port", "--from", "--ratio",
+                       "--extend", "--name", "--branch"}
+
+
+def recorded_settings(out: Path) -> list[str]:
+    """The run's recorded command line (``config.json``) without its actions."""
+    import json
+
+    from jaxedit import DataError
+
+    path = out / "config.json"
+    try:
+        argv = [str(a) for a in json.loads(path.read_text())["argv"]]
+    except FileNotFoundError:
+        raise DataError(path, "no config.json: not a run directory of `edit`") from None
+    except (ValueError, KeyError, TypeError) as e:
+        raise DataError(path, f"malformed run record ({e})") from None
+    kept, skip = [], False
+    for token in argv[1:]:
+        name = token.split("=", 1)[0]
+        if skip:
+            skip = False
+        elif name in _ACTIONS:
+            continue
+        elif name in _ACTIONS_WITH_VALUE:
+            skip = "=" not in token
+        else:
+            kept.append(token)
+    return kept
+
+
+def run_steering(args, kind: str) -> dict:
+    """--stop, --tree, a new branch or a branch's --resume on the run in --out."""
+    from jaxedit import DataError
+    from jaxedit.edit.difficulty import default_distance
+    from jaxedit.edit.steer import parse_node
+    from jaxedit.pipelines import steer
+    from jaxedit.pipelines.edit import load_inputs
+    from jaxedit.pipelines.report import write_report
+
+    from .cli import parse
+    from .editors import make_editor
+
+    if kind == "tree":
+        print(steer.format_tree(args.out), flush=True)
+        return {}
+    if kind == "stop":
+        return {"stop_requested": str(steer.request_stop(args.out))}
+    steer.read_control(args.out)  # a garbled request: one line before anything
+    given = {token.split("=", 1)[0][2:].replace("-", "_") for token in args._argv
+             if token.startswith("--")}  # what this command line changes
+    merged = parse(["edit", *recorded_settings(args.out), *args._argv[1:]])
+    if merged.local != "off" or merged.region or merged.masks is not None:
+        raise DataError("--from", "branches of a local edit are not supported yet")
+    run_cfg = run_config(merged)
+    tree = steer.read_tree(args.out)
+    if kind == "resume":
+        if not args.resume:
+            raise DataError("--branch", "names the branch --resume continues; add --resume")
+        branch = tree.get(args.branch)
+    else:
+        if args.resume:
+            raise DataError("--resume", "continues a branch (--branch NAME), not with --from")
+        if args.refine and args.extend is not None:
+            raise DataError("--refine", "either --refine or --extend")
+        if args.ratio is not None and not args.refine:
+            raise DataError("--ratio", "is --refine's split; add --refine")
+        op = "refine" if args.refine else "extend" if args.extend is not None else "branch"
+        settings = {"argv": list(args._argv), "ratio": args.ratio, "r_max": args.extend}
+        for key in ("threshold", "target_subtasks", "guidance"):
+            if key in given:
+                settings[key] = getattr(merged, key)
+        if op == "branch" and not given & {"prompt", "seed", "threshold", "target_subtasks",
+                                           "guidance"}:
+            raise DataError("--from", "a branch changes something: give --prompt, --seed, "
+                                      "--threshold, --target-subtasks or --guidance (or "
+                                      "--refine / --extend)")
+        node = parse_node(args.from_node if args.from_node is not None else "-1")
+        branch = steer.plan_branch(args.out, tree, op, node, name=args.name,
+                                   prompt=args.prompt if "prompt" in given else None,
+                                   seed=merged.seed, settings=settings)
+    scene = merged.scene if merged.scene is not None and Path(merged.scene).is_file() \
+        else args.out / "original" / "scene.ply"
+    data, input_scene = load_inputs(run_cfg, merged.data, scene)
+    editor = make_editor(run_cfg.editor)
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    log(f"{branch.op} {branch.name} from {branch.parent}")
+    progress = progress_callback(args.quiet)
+    try:
+        out = steer.run_branch(editor, run_cfg, data, input_scene, args.out, branch,
+                               distance=default_distance(run_cfg.distance, run_cfg.lpips_weights),
+                               resume=args.resume, stop=steer.stop_requested(args.out, log),
+                               progress=progress, log=log)
+    finally:
+        progress.close()
+    if not args.no_report:
+        write_report(args.out)
+    records = out["schedule"]["subtasks"]
+    return {"branch": branch.name, "op": branch.op, "parent": str(branch.parent),
+            "stopped": out["stopped"], "run_dir": str(steer.branch_dir(args.out, branch.name)),
+            "subtasks": [{"index": r["index"], "ratio": r["ratio"], "kind": r["kind"],
+                          "difficulty": r["difficulty"], "done": bool(r.get("snapshot"))}
+                         for r in records]}
+
+
 def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.parallel.distributed import split_edits
@@ -295,6 +456,9 @@ def run(args) -> dict:
     if args.out is None:
         raise DataError("--out", "required (the run directory)")
     command_config(args)
+    kind = steering(args)
+    if kind is not None:
+        return run_steering(args, kind)
     if args.select_only and not writes(args):
         return {}
     if args.select_only:
@@ -323,10 +487,18 @@ def run(args) -> dict:
         from .view import watch_edit
 
         watcher = watch_edit(args.out, port=args.view_port)
+    from jaxedit.pipelines import steer
+
     progress = progress_callback(args.quiet)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    stop = None
+    if writes(args):
+        steer.read_control(args.out)  # garbled: one line; a valid one is stale (we hold the lock)
+        (args.out / steer.CONTROL_NAME).unlink(missing_ok=True)
+        stop = steer.stop_requested(args.out, log)
     try:
         out = edit_files(run_cfg, args.prompt or "", args.data, args.scene, editor=editor,
+                         stop=stop,
                          local=lambda data: local_spec(args, run_cfg, data), seed=args.seed,
                          run_dir=args.out if writes(args) else None, resume=args.resume,
                          resume_from=args.resume_from,
@@ -339,6 +511,11 @@ def run(args) -> dict:
     m = out["metrics"]
     if not writes(args):
         return {}
+    if out["stopped"]:
+        done = sum(1 for r in out["schedule"]["subtasks"] if r.get("snapshot"))
+        print(f"stopped after {done} of {len(out['schedule']['subtasks'])} subtasks; "
+              f"--resume goes on", flush=True)
+        return {"stopped": True, "run_dir": str(args.out)}
     clip = add_clip_metrics(args)
     if clip is not None:
         m = m | {"clip_direction_similarity": clip.get("direction_similarity"),

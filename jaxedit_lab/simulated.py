@@ -521,9 +521,9 @@ class SimulatedEditor:
             return None, 0.0
         i = int(active[0])
         r = float(coords[i])
-        if r < -1e-4 or r > 1 + 1e-4:
-            raise DataError("embedding", f"ratio {r:.4f} outside [0, 1]")
-        return i, min(max(r, 0.0), 1.0)
+        if r < -1e-4:
+            raise DataError("embedding", f"ratio {r:.4f} below 0")
+        return i, max(r, 0.0)  # past 1: an extended edit, extrapolated
 
     def strength(self, ratio: float, instruction) -> float:
         """s(r) of the instruction: the fraction of the full edit present in the r-target."""

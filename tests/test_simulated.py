@@ -65,8 +65,10 @@ def test_protocol_vocabulary_and_embeddings(editor):
     mix = 0.5 * editor.encode(editor.instructions[0]) + 0.5 * editor.encode(editor.instructions[1])
     with pytest.raises(DataError, match="embedding"):
         editor.decode(mix)
-    with pytest.raises(DataError, match="outside"):
-        editor.decode(emb(editor, AUTUMN, 1.5))
+    with pytest.raises(DataError, match="below 0"):
+        editor.decode(emb(editor, AUTUMN, -0.5))
+    # past 1: an extended edit (edit --extend) extrapolates
+    assert editor.decode(emb(editor, AUTUMN, 1.5))[1] == pytest.approx(1.5, abs=1e-6)
 
 
 def test_targets_end_points_continuity_nonlinearity(editor, img):

@@ -250,6 +250,46 @@ class DifficultyOracle:
             self._pairs[(qa, qb)] = hit
         return hit
 
+    def fingerprint(self) -> str:
+        """A digest of what the answers depend on (editor inputs, embeddings, keys, views,
+        distance): two oracles of one fingerprint give the same d."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for part in (self.originals, np.asarray(self._e_prompt, np.float32),
+                     np.asarray(self._e_null, np.float32),
+                     np.asarray(jax.random.key_data(self._run_key))):
+            h.update(np.ascontiguousarray(part).tobytes())
+        h.update(repr((self.views, self.timestep_range, tuple(self.guidance), self.reduction,
+                       self.common_noise, getattr(self.editor, "name", type(self.editor).__name__),
+                       getattr(self.distance, "name", getattr(self.distance, "__name__", ""))
+                       )).encode())
+        return h.hexdigest()
+
+    def memo(self) -> dict[str, np.ndarray]:
+        """The edits (float16: half the bytes, well under a uint8 step) and distances computed
+        so far, as arrays (:meth:`restore` reads them)."""
+        keys = sorted(self._images)
+        pairs = sorted(self._pairs)
+        shape = (0,) + self.originals.shape[1:]
+        return {"fingerprint": np.asarray(self.fingerprint()),
+                "image_keys": np.asarray(keys, np.int64).reshape(-1, 2),
+                "images": (np.stack([self._images[k] for k in keys]).astype(np.float16) if keys
+                           else np.zeros(shape, np.float16)),
+                "pair_keys": np.asarray(pairs, np.int64).reshape(-1, 2),
+                "pairs": np.asarray([self._pairs[k] for k in pairs], np.float64)}
+
+    def restore(self, memo) -> bool:
+        """Take the edits and distances of another oracle's :meth:`memo` if it had this
+        fingerprint (then no editor call repeats them); returns whether it did."""
+        if str(np.asarray(memo["fingerprint"])) != self.fingerprint():
+            return False
+        for (q, k), image in zip(np.asarray(memo["image_keys"]), np.asarray(memo["images"])):
+            self._images.setdefault((int(q), int(k)), np.asarray(image, np.float32))
+        for (qa, qb), d in zip(np.asarray(memo["pair_keys"]), np.asarray(memo["pairs"])):
+            self._pairs.setdefault((int(qa), int(qb)), float(d))
+        return True
+
     def curve(self, ratios: Sequence[float]) -> list[tuple[float, float]]:
         """[(r, d(0, r))] for plotting the difficulty curve (schedule.json's difficulty_curve)."""
         return [(float(r), self(0.0, r)) for r in ratios]

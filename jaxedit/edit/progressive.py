@@ -54,10 +54,21 @@ def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distan
     """The memoised d(r_a, r_b), a mean over the difficulty views' renders ``originals``
     [N, H, W, 3] of the input scene; ``distance`` e.g. :func:`jaxedit.lpips.lpips_distance`
     (None: multi-scale SSIM)."""
-    views = difficulty_view_subset(len(originals), ctx.config.difficulty_views, ctx.key)
+    views = difficulty_view_subset(len(originals), ctx.config.difficulty_views,
+                                   jax.random.key(seed))
     return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
                             guidance=ctx.config.guidance, seed=seed,
                             embeddings=(ctx.e_prompt, ctx.e_null))
+
+
+def scene_oracle(ctx: EditContext, gaussians, seed: int, distance=None):
+    """:func:`difficulty_oracle` of the renders of ``gaussians`` at the training views
+    (None in IN2N mode, which has no schedule)."""
+    if ctx.config.mode == "in2n":
+        return None
+    originals = np.stack([ctx.renderer.rgb(gaussians, ctx.data.train_cameras[i])
+                          for i in range(len(ctx.data.train_images))])
+    return difficulty_oracle(ctx, originals, seed, distance)
 
 
 def distance_name(distance) -> str:
@@ -148,8 +159,25 @@ def check_identity(ctx: EditContext, gaussians, floor: IdentityFloor, *, seed: i
     return figures
 
 
+def plan_steps(ratios, difficulties, *, consolidate: bool) -> tuple[SubtaskSpec, ...]:
+    """The subtasks of a branch's steps ``ratios[0] < ... < ratios[-1]`` (any interval of
+    the path, past r = 1 too): one edit per step, then (``consolidate``) one at the last."""
+    specs = [SubtaskSpec(i, f"r{i + 1}", float(r), None if d is None else float(d), "edit")
+             for i, (r, d) in enumerate(zip(ratios[1:], difficulties))]
+    if consolidate:
+        specs.append(SubtaskSpec(len(specs), "rn", float(ratios[-1]), None, "consolidate"))
+    return tuple(specs)
+
+
+def _schedule_fields(schedule) -> dict:
+    return {"threshold": schedule.threshold, "target_subtasks": schedule.target_subtasks,
+            "schedule_method": schedule.method, "depth_limit_hit": schedule.depth_limit_hit,
+            "difficulty_evaluations": schedule.evaluations}
+
+
 def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ratio: float = 0.0,
               resumed_from: str | None = None, identity: dict | None = None,
+              oracle=None, steps: Callable | None = None,
               log=lambda msg: None) -> tuple[tuple[SubtaskSpec, ...], dict]:
     """(the subtasks, schedule.json's header) of an edit of the input scene ``gaussians``.
 
@@ -159,48 +187,58 @@ def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ra
       start_ratio: where the schedule starts; a run continued from the snapshot
         ``resumed_from`` has no refine subtask.
       identity: :func:`check_identity`'s figures for the header (None: not checked).
+      oracle: the difficulty oracle (None: :func:`scene_oracle` of ``gaussians``).
+      steps: ``steps(oracle) -> (fields, ratios, difficulties)``, a branch's own steps
+        (:mod:`jaxedit.edit.steer`) instead of the config's schedule; ``fields`` gives the
+        header's threshold, target_subtasks, schedule_method, depth_limit_hit and
+        difficulty_evaluations.
       log: receives the scheduler's warnings.
     """
     config, data = ctx.config, ctx.data
-    originals = np.stack([ctx.renderer.rgb(gaussians, data.train_cameras[i])
-                          for i in range(len(data.train_images))])
-    oracle = None if config.mode == "in2n" else difficulty_oracle(ctx, originals, seed, distance)
+    if oracle is None:
+        oracle = scene_oracle(ctx, gaussians, seed, distance)
     if oracle is not None:
         log(f"difficulty distance: {distance_name(distance)}")
-    schedule, ratios, diffs = make_schedule(ctx, oracle, start_ratio=start_ratio)
-    if start_ratio >= 1.0 - 1e-9:
-        ratios, diffs = [1.0], []
-    plan = (plan_subtasks(config.mode, ratios, diffs, start_ratio=start_ratio,
-                          refine_first=config.refine_first and resumed_from is None,
-                          consolidate=config.consolidate)
-            if len(ratios) > 1 or config.mode == "in2n" else
-            plan_subtasks("proedit", [0.0, 1.0], [None], refine_first=False,
-                          consolidate=config.consolidate)[-1:])
-    if start_ratio == 0.0:
-        plan = ctx.hooks.planned(plan)
+    if steps is not None:
+        fields, ratios, diffs = steps(oracle)
+        plan = plan_steps(ratios, diffs, consolidate=config.consolidate)
+    else:
+        schedule, ratios, diffs = make_schedule(ctx, oracle, start_ratio=start_ratio)
+        fields = _schedule_fields(schedule)
+        if start_ratio >= 1.0 - 1e-9:
+            ratios, diffs = [1.0], []
+        plan = (plan_subtasks(config.mode, ratios, diffs, start_ratio=start_ratio,
+                              refine_first=config.refine_first and resumed_from is None,
+                              consolidate=config.consolidate)
+                if len(ratios) > 1 or config.mode == "in2n" else
+                plan_subtasks("proedit", [0.0, 1.0], [None], refine_first=False,
+                              consolidate=config.consolidate)[-1:])
+        if start_ratio == 0.0:
+            plan = ctx.hooks.planned(plan)
+        if schedule.depth_limit_hit:
+            log(f"WARNING: the scheduler hit its depth limit (max_depth {config.max_depth}, at "
+                f"most {2 ** config.max_depth} subtasks): some subtask is harder than the "
+                f"threshold {schedule.threshold:.4g}")
+        if schedule.target_subtasks is not None:
+            log(f"threshold {schedule.threshold:.4g} gives {schedule.num_subtasks} subtasks "
+                f"(target {schedule.target_subtasks})")
     curve = []
     if oracle is not None:
         grid = np.linspace(0.0, 1.0, max(config.curve_points, 2))
         curve = [[r, d] for r, d in oracle.curve(sorted(set(map(float, grid)) | set(ratios)))]
-    if schedule.depth_limit_hit:
-        log(f"WARNING: the scheduler hit its depth limit (max_depth {config.max_depth}, at "
-            f"most {2 ** config.max_depth} subtasks): some subtask is harder than the "
-            f"threshold {schedule.threshold:.4g}")
-    if schedule.target_subtasks is not None:
-        log(f"threshold {schedule.threshold:.4g} gives {schedule.num_subtasks} subtasks "
-            f"(target {schedule.target_subtasks})")
     header = {"prompt": ctx.prompt,
               "editor": getattr(ctx.editor, "name", type(ctx.editor).__name__),
-              "mode": config.mode, "threshold": schedule.threshold,
-              "target_subtasks": schedule.target_subtasks,
+              "mode": config.mode, "threshold": fields["threshold"],
+              "target_subtasks": fields["target_subtasks"],
               "difficulty": None if oracle is None else {
                   "distance": distance_name(distance),
                   "reduction": "mean over views (paper eq. 3's sum / |V|; the threshold "
                                "is per view)",
                   "views": list(oracle.views), "num_views": len(oracle.views),
                   "of_training_views": len(data.train_images)},
-              "schedule_method": schedule.method, "depth_limit_hit": schedule.depth_limit_hit,
-              "difficulty_evaluations": schedule.evaluations,
+              "schedule_method": fields["schedule_method"],
+              "depth_limit_hit": fields["depth_limit_hit"],
+              "difficulty_evaluations": fields["difficulty_evaluations"],
               "editor_calls_for_schedule": getattr(oracle, "editor_calls", 0),
               "difficulty_curve": curve, "seed": seed,
               "distance": None if oracle is None else distance_name(distance),
@@ -277,6 +315,7 @@ def subtask_warnings(ctx: EditContext, spec: SubtaskSpec, info: dict,
 def run_plan(ctx: EditContext, st: EditState, plan: tuple[SubtaskSpec, ...], *,
              on_subtask: Callable | None = None, checkpoint: Callable | None = None,
              progress: Callable | None = None, callback: Callable | None = None,
+             stop: Callable[[], bool] | None = None,
              log: Callable[[str], None] = lambda msg: None) -> EditState:
     """Run the subtasks of ``plan`` from the ``st.subtask``-th on (possibly resumed mid-way);
     returns the state after the last one.
@@ -286,9 +325,14 @@ def run_plan(ctx: EditContext, st: EditState, plan: tuple[SubtaskSpec, ...], *,
         :func:`subtask_record` to keep (a run directory adds its snapshot).
       checkpoint: ``checkpoint(st)`` every ``checkpoint_every`` steps and after each subtask.
       progress, callback: as :func:`jaxedit.edit.subtask.run_subtask`'s.
+      stop: ``stop() -> bool``, asked between subtasks: True ends the run there (the state
+        is that of a finished subtask: a checkpoint of it resumes the plan).
       log: ``log(message)``: each subtask's start and its warnings.
     """
     for spec in plan[st.subtask:]:
+        if stop is not None and st.subtask > 0 and stop():
+            log(f"stopped before subtask {spec.index} {spec.name} (resume to go on)")
+            break
         log(f"subtask {spec.index} {spec.name} ({spec.kind}) r = {spec.ratio:.3f}")
         st, info = run_subtask(ctx, st, spec, callback=callback, checkpoint=checkpoint,
                                progress=progress)

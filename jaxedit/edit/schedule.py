@@ -212,6 +212,46 @@ def prune_ratios(ratios, difficulty: DifficultyFn, *, threshold: float) -> Sched
                     threshold)
 
 
+def split_ratio(difficulty: DifficultyFn, a: float, b: float, *,
+                iterations: int = 3) -> tuple[float, float, float]:
+    """The split a < x < b of one step where d(a, x) ~ d(x, b) (a refined step).
+
+    Bisection on the sign of d(a, x) - d(x, b) from the midpoint, ``iterations`` halvings
+    of the bracket (one new ratio edited each); the best of the points tried is kept.
+    Returns (x, d(a, x), d(x, b)).
+    """
+    a, b = float(a), float(b)
+    if not b > a:
+        raise DataError("ratio", f"a step must go up, got {a:g} -> {b:g}")
+    lo, hi, cache, best = a, b, {}, None
+    for _ in range(max(int(iterations), 0) + 1):
+        x = 0.5 * (lo + hi)
+        d1, cache = _measure(difficulty, cache, a, x)
+        d2, cache = _measure(difficulty, cache, x, b)
+        if best is None or max(d1, d2) < max(best[1], best[2]):
+            best = (x, d1, d2)
+        if d1 == d2:
+            break
+        lo, hi = (lo, x) if d1 > d2 else (x, hi)
+    return best
+
+
+def decompose_interval(difficulty: DifficultyFn, lo: float, hi: float, *, threshold: float,
+                       max_depth: int = MAX_DEPTH) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """:func:`decompose` of the ratios [lo, hi] (e.g. past r = 1): the bisection run on
+    [0, 1] rescaled to the interval. Returns (ratios lo < ... < hi, their difficulties)."""
+    lo, hi = float(lo), float(hi)
+    if not hi > lo:
+        raise DataError("ratio", f"an interval must go up, got {lo:g} -> {hi:g}")
+
+    def at(u: float) -> float:
+        return hi if u == 1.0 else lo + u * (hi - lo)
+
+    s = decompose(lambda u, v: difficulty(at(u), at(v)), threshold=threshold,
+                  max_depth=max_depth)
+    return tuple(at(u) for u in s.ratios), tuple(s.difficulties)
+
+
 # Root placement (beyond the paper)
 
 

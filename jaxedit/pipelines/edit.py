@@ -47,7 +47,7 @@ from ..edit.trainer import TrainSettings
 from ..errors import DataError, check_ranges, ranged
 from ..editors.diffusion import DDIM_STEPS
 from ..io import load_nerfstudio, load_ply, load_scene
-from ..io.files import atomic_write_text
+from ..io.files import atomic_path, atomic_write_text
 from .report import write_report
 from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
 
@@ -55,6 +55,33 @@ from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
 CHECKPOINT_NAME = "checkpoint.npz"
 #: The editor identity check's record of a run it stopped.
 IDENTITY_NAME = "identity.json"
+#: The difficulty oracle's edits and distances, read back by the run's branches.
+ORACLE_NAME = "difficulty.npz"
+
+
+@dataclasses.dataclass(frozen=True)
+class EditStart:
+    """Where a branch of an edit run begins (:mod:`jaxedit.pipelines.steer` builds it).
+
+    Attributes:
+      scene: the Gaussians of the parent's snapshot.
+      ratio: that snapshot's ratio on the branch's embedding path.
+      label: the parent node, recorded as schedule.json's ``resumed_from``.
+      embeddings: (E_to, E_from) of the branch's path, e(r) = r E_to + (1 - r) E_from.
+      steps: the branch's ``steps(oracle)`` (:func:`jaxedit.edit.progressive.plan_edit`).
+      path_scene: the scene whose renders the path's difficulty oracle edits.
+      path_seed: the seed of the path's oracle.
+      memo: the path's oracle memo file (:data:`ORACLE_NAME` of the branch that began it).
+    """
+
+    scene: object
+    ratio: float
+    label: str
+    embeddings: tuple
+    steps: Callable
+    path_scene: object
+    path_seed: int
+    memo: Path
 
 
 #: The 2D editors an edit run can use (:class:`EditorConfig`).
@@ -214,6 +241,25 @@ def edit_files(config: EditRunConfig, prompt: str, data_path, scene_path, *, edi
                     distance=distance, local=local, identity=config.identity, **kwargs)
 
 
+def read_oracle_memo(oracle, path: Path) -> bool:
+    """Give ``oracle`` the edits of the memo file ``path`` if it is this oracle's
+    (:meth:`jaxedit.edit.difficulty.DifficultyOracle.restore`); False when absent or not."""
+    if not Path(path).is_file():
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as memo:
+            return oracle.restore(memo)
+    except (OSError, ValueError, KeyError) as e:
+        raise DataError(path, f"unreadable difficulty memo ({e}); delete it to recompute") from None
+
+
+def write_oracle_memo(oracle, path: Path) -> None:
+    """The oracle's edits and distances, atomically, for the run's branches."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **oracle.memo())
+
+
 def _write_json(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=2) + "\n")
 
@@ -252,7 +298,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
              callback: Callable | None = None, progress: Callable | None = None,
              report: bool = True, log: Callable[[str], None] | None = None,
              distance: Callable | None = None, local=None, hooks: EditHooks = NO_HOOKS,
-             identity: IdentityFloor | None = IdentityFloor()) -> dict:
+             identity: IdentityFloor | None = IdentityFloor(), start: EditStart | None = None,
+             stop: Callable[[], bool] | None = None) -> dict:
     """Edit ``gaussians`` progressively (:mod:`jaxedit.edit.progressive`); returns the run summary.
 
     Args:
@@ -285,8 +332,12 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         checked); under it the run stops with a :class:`LowIdentityError`, having written
         only ``run_dir/identity.json``. Its ``refine_min_psnr`` flags an r_0 that moved the
         scene.
+      start: a branch's beginning (:class:`EditStart`; None: the input scene at r = 0).
+      stop: ``stop() -> bool``, asked between subtasks: True ends the run after the
+        finished one (no metrics.json; ``resume`` goes on).
     Returns:
-      {"schedule": schedule.json contents, "metrics": metrics.json contents, "gaussians": final}.
+      {"schedule": schedule.json contents, "metrics": metrics.json contents (None when
+      stopped), "gaussians": final, "stopped": whether ``stop`` ended it}.
     """
     log = log or (lambda msg: None)
     compiles_before = compile_stats()
@@ -299,7 +350,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     # first, else by EditContext.create (after the local plan, whose errors come first).
     embeddings = None
     masks, local_figures, local_plan = None, None, None
-    if local is not None and local.active and resume_from is not None:
+    if start is not None:
+        embeddings = start.embeddings
+    if local is not None and local.active and (resume_from is not None or start is not None):
         raise DataError("--local", "a local edit starts from the input scene, not --resume-from")
     if local is not None and local.active:
         if local.mode == "auto":
@@ -330,7 +383,12 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         log(f"resuming subtask {st.subtask} at step {st.step} from {ckpt}")
     else:
         start_ratio, start_scene, images = 0.0, gaussians, None
-        if resume_from is not None:
+        origin = None if resume_from is None else str(resume_from)
+        if start is not None:
+            start_ratio, start_scene, origin = start.ratio, start.scene, start.label
+            images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
+                               for i in range(len(data.train_images))])
+        elif resume_from is not None:
             snap = Path(resume_from)
             start_ratio = snapshot_ratio(snap)
             start_scene = load_ply(snap / "scene.ply")
@@ -339,7 +397,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                                for i in range(len(data.train_images))])
             log(f"continuing from {snap} (r = {start_ratio:.3f})")
         figures = None
-        if identity is not None and start_ratio == 0.0:
+        if identity is not None and start_ratio == 0.0 and start is None:
             try:  # before anything is compiled for training or written
                 figures = progressive.check_identity(ctx, gaussians, identity, seed=seed,
                                                      log=log)
@@ -349,18 +407,26 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                 raise
         st = init_state(ctx, start_scene, images)
         # The training chunks' program is built (or read back) while the schedule edits.
+        memo = (start.memo if start is not None
+                else None if run_dir is None else run_dir / ORACLE_NAME)
         with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
+            oracle = progressive.scene_oracle(
+                ctx, gaussians if start is None else start.path_scene,
+                seed if start is None else start.path_seed, distance)
+            restored = oracle is not None and memo is not None and read_oracle_memo(oracle, memo)
             plan, header = progressive.plan_edit(
                 ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio,
-                log=log, resumed_from=None if resume_from is None else str(resume_from),
-                identity=figures)
+                log=log, resumed_from=origin, identity=figures, oracle=oracle,
+                steps=None if start is None else start.steps)
+            if oracle is not None and memo is not None and (restored or start is None):
+                write_oracle_memo(oracle, memo)
         if local_figures is not None:
             header = dict(header, local=local_figures)
     # The input scene's renders of the held-out views: every snapshot says how far it moved.
     reference = None if run_dir is None else (
         ctx.renderer.views(gaussians, data.test_cameras)[0], int(gaussians.num_alive()))
     refine_floor = (identity or IdentityFloor()).refine_min_psnr
-    if run_dir is not None and not resume:
+    if run_dir is not None and not resume and start is None:
         write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
         if local_figures is not None:  # the region at the held-out views, for the report
             local_lib.write_overlays(run_dir / LOCAL_DIR, gaussians, data.test_cameras,
@@ -397,7 +463,10 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     write_schedule(st.records)
     save(st)
     st = progressive.run_plan(ctx, st, plan, on_subtask=on_subtask, checkpoint=save,
-                              progress=progress, callback=callback, log=log)
+                              progress=progress, callback=callback, stop=stop, log=log)
+    if st.subtask < len(plan):  # stopped between subtasks: the checkpoint resumes it
+        return {"schedule": progressive.schedule_json(header, plan, st.records), "metrics": None,
+                "gaussians": trainer.gaussians(st.train), "stopped": True}
 
     metrics = {**progressive.final_metrics(ctx, st, plan, time.perf_counter() - wall0),
                "compiles": compile_stats(since=compiles_before)}
@@ -408,4 +477,4 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         if report:
             write_report(run_dir)
     return {"schedule": progressive.schedule_json(header, plan, st.records), "metrics": metrics,
-            "gaussians": trainer.gaussians(st.train)}
+            "gaussians": trainer.gaussians(st.train), "stopped": False}

@@ -111,19 +111,36 @@ def snapshot_ratio(directory: Path) -> float:
         raise DataError(path, f"malformed snapshot metrics ({e})") from None
 
 
+#: A steered run's branches' folders (RUN/branches/NAME, :mod:`jaxedit.pipelines.steer`).
+BRANCHES = "branches"
+
+
+def branch_folder(run_dir, name: str) -> Path:
+    """The folder of branch ``name`` of a run ("main": the run directory itself)."""
+    return Path(run_dir) if name == "main" else Path(run_dir) / BRANCHES / name
+
+
 def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
     """Make ``run_dir/selected.ply`` the snapshot of a subtask, chosen by ratio or index.
 
-    ``which``: as in :func:`find_snapshot`. Also writes ``selected.json``. Returns the path.
+    ``which``: as in :func:`find_snapshot`, or ``"BRANCH:INDEX"`` for a node of a
+    branch (:mod:`jaxedit.pipelines.steer`). Also writes ``selected.json``. Returns the path.
     """
     run_dir = Path(run_dir)
-    chosen, src = find_snapshot(run_dir, which)
+    branch = "main"
+    if isinstance(which, str) and ":" in which:
+        branch, _, which = which.rpartition(":")
+        if not (branch_folder(run_dir, branch) / "schedule.json").is_file():
+            raise DataError("select", f"the run has no branch {branch!r}")
+    chosen, src = find_snapshot(branch_folder(run_dir, branch), which)
+    chosen = dict(chosen, snapshot=str(src.relative_to(run_dir)), branch=branch)
     dst = run_dir / "selected.ply"
     with atomic_path(dst) as tmp:
         shutil.copyfile(src, tmp)
     atomic_write_text(run_dir / "selected.json",
                       json.dumps({"index": chosen["index"], "name": chosen["name"],
-                                  "ratio": chosen["ratio"], "snapshot": chosen["snapshot"]},
+                                  "ratio": chosen["ratio"], "snapshot": chosen["snapshot"],
+                                  **({} if branch == "main" else {"branch": branch})},
                                  indent=2) + "\n")
     return dst
 
@@ -160,8 +177,9 @@ def find_snapshot(run_dir: str | os.PathLike, which) -> tuple[dict, Path]:
         chosen = by_index[idx]
     else:
         r = float(which)
-        if not 0.0 <= r <= 1.0:
-            raise DataError("select", f"ratio must be in [0, 1], got {r}")
+        top = max(1.0, max(s["ratio"] for s in subtasks))  # past 1 in an extended branch
+        if not 0.0 <= r <= top:
+            raise DataError("select", f"ratio must be in [0, {top:g}], got {r}")
         best = min(abs(s["ratio"] - r) for s in subtasks)
         chosen = [s for s in subtasks if abs(s["ratio"] - r) == best][-1]
     src = run_dir / chosen["snapshot"]
