@@ -20,6 +20,7 @@ from jaxedit.edit.steer import (Branch, NodeRef, RunTree, extend_steps, parse_no
 from jaxedit.io import save_ply
 from jaxedit.io.files import folder_lock
 from jaxedit.pipelines import steer
+from jaxedit.pipelines.report import write_report
 
 sys.path.insert(0, str(Path(__file__).parent))
 from cli_expect import contents, fails  # noqa: E402
@@ -175,6 +176,13 @@ def test_refine_splits_the_step_and_recomputes_nothing_of_the_parent(run, tmp_pa
     assert cli.main(["edit", "--out", str(out), "--tree"]) == 0
     printed = capsys.readouterr().out
     assert f"b1 refine of main:{k}" in printed and "b1:0 edit" in printed
+    page = write_report(out).read_text()
+    assert '<section id="tree">' in page and f"main:{k}" in page
+    strip = page.split('alt="snapshots of b1"')[0].rsplit("<img", 1)[1]
+    assert 'src="data:image/jpeg;base64,' in strip
+    # a run without branches reads as before: no tree section
+    plain = write_report(run, out=tmp_path / "plain.html").read_text()
+    assert '<section id="tree">' not in plain and '<section id="schedule">' in plain
 
 
 def test_the_same_branch_twice_gives_the_same_bytes_and_keep_selects_it(run, tmp_path):

@@ -64,6 +64,30 @@ def difficulty_plot(schedule: dict) -> str:
     return _figure_uri(fig)
 
 
+def tree_plot(branches: list[dict], threshold) -> str:
+    """PNG data URI: each branch's steps as d(r_{i-1}, r_i) at r_i, one line a branch, the
+    threshold dashed. ``branches``: [{"name", "start_ratio", "steps": [(r, d)]}]."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    for b in branches:
+        steps = [(float(r), float(d)) for r, d in b["steps"] if d is not None]
+        if steps:
+            rs, ds = np.array(steps).T
+            ax.plot(rs, ds, "o-", ms=4, lw=1.2, label=str(b["name"]))
+    if threshold is not None:
+        ax.axhline(float(threshold), color="#d62728", ls="--", lw=1, label=f"threshold {threshold:g}")
+    ax.set_xlabel("ratio r (on the branch's path)")
+    ax.set_ylabel("$d(r_{i-1}, r_i)$")
+    ax.set_title("Difficulty of each branch's steps")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    return _figure_uri(fig)
+
+
 ABLATION_METHODS = ("proedit", "nd", "nd_equal", "nd_replay", "nd_k", "uniform", "in2n", "nd_equal_steps",
                     "unedited", "ceiling")
 _METHOD_COLOURS = {"proedit": "#d62728", "nd": "#1f77b4", "nd_equal": "#2ca02c",

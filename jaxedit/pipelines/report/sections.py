@@ -12,7 +12,8 @@ from pathlib import Path
 from ...errors import DataError
 from .html import _e, _fmt, _img, _kv_table, _metric_names, _reproduce, _slider, _table
 from .images import _grid_uri, _load_thumb, _turntable_uri, image_uri
-from .plots import ABLATION_METHODS, _summary_index, ablation_plot, difficulty_plot, training_plot
+from .plots import (ABLATION_METHODS, _summary_index, ablation_plot, difficulty_plot,
+                    training_plot, tree_plot)
 from .rundir import _is_number, _pngs, _snapshot_dir, read_json, read_train_log
 
 
@@ -108,6 +109,10 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
                  f"{_e(', '.join(map(str, unconverged)))}.</p>")
     sections.append(("schedule", "Schedule", body))
 
+    tree = _tree_body(run_dir, schedule, thumb_px=thumb_px, max_views=max_views)
+    if tree:
+        sections.append(("tree", "Tree of edits", tree))
+
     # Difficulty plot (the same at every size: drawn once per schedule) -------
     key = json.dumps(schedule, sort_keys=True, default=str)
     if _PLOT_MEMO.get("key") != key:
@@ -179,6 +184,53 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
             [[_e(label)] + [_fmt(m.get(n)) for n in names] for label, m in per], "per-subtask")
     sections.append(("metrics", "Metrics", body))
     return sections
+
+
+def _tree_body(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: int) -> str:
+    """The branches of a steered run (``tree.json``): a table, each branch's strip of
+    snapshots (its first test view per subtask) and their step difficulties; "" without."""
+    from ...edit.steer import RunTree
+    from ..snapshots import branch_folder
+
+    raw = read_json(run_dir / "tree.json", required=False)
+    if raw is None:
+        return ""
+    try:
+        tree = RunTree.from_json(raw)
+    except (ValueError, KeyError, TypeError) as e:
+        raise DataError(run_dir / "tree.json", f"malformed run tree ({e})") from None
+    rows, strips, lines = [], [], []
+    for name in tree.names():
+        branch = tree.get(name)
+        folder = branch_folder(run_dir, name)
+        sched = schedule if branch is None else read_json(folder / "schedule.json",
+                                                          required=False) or {}
+        subtasks = [s for s in sched.get("subtasks", []) if s.get("snapshot")]
+        status = ("done" if (folder / "metrics.json").is_file() else
+                  "open" if sched else "planned")
+        rows.append([f"<b>{_e(name)}</b>", _e("root" if branch is None else branch.op),
+                     _e("" if branch is None else branch.parent),
+                     _e(sched.get("prompt", "") if branch is None or branch.prompt is None
+                        else branch.prompt),
+                     _e(sched.get("seed", "")), _e(status),
+                     _e(", ".join(f"{float(s['ratio']):.3f}" for s in subtasks))])
+        views = [(_pngs(folder / Path(s["snapshot"]).parent / "renders") or [None])[0]
+                 for s in subtasks]
+        uri = _grid_uri([v for v in views if v is not None], thumb_px // 2, 16)
+        strips.append(f'<div><div class="row-label">{_e(name)}: '
+                      + ", ".join(f"{_e(s['name'])} r = {float(s['ratio']):.3f}" for s in subtasks)
+                      + "</div>" + _img(uri, f"snapshots of {name}") + "</div>")
+        steps = [(s["ratio"], s.get("difficulty")) for s in sched.get("subtasks", [])
+                 if s.get("kind") == "edit"]
+        lines.append({"name": name, "steps": steps})
+    return ("<p>Branches grown from the run's snapshots (<code>edit --out RUN --from NODE "
+            "--refine | --prompt TEXT | --seed N</code>, <code>--extend R_MAX</code>); keep one "
+            "with <code>edit --out RUN --select-only --select BRANCH:INDEX</code>.</p>"
+            + _table(["branch", "operation", "from", "instruction", "seed", "status",
+                      "snapshots at r"], rows, "tree")
+            + "".join(strips)
+            + "<div>" + _img(tree_plot(lines, schedule.get("threshold")), "branch difficulties",
+                             "plot") + "</div>")
 
 
 def _local_body(run_dir: Path, local: dict, *, thumb_px: int, max_views: int) -> str:
