@@ -431,14 +431,40 @@ def run_steering(args, kind: str) -> dict:
                                progress=progress, log=log)
     finally:
         progress.close()
+    records = out["schedule"]["subtasks"]
+    folder = steer.branch_dir(args.out, branch.name)
+    if merged.clip_weights is not None and not out["stopped"]:
+        branch_clip_metrics(merged, args.out, folder, records)
     if not args.no_report:
         write_report(args.out)
-    records = out["schedule"]["subtasks"]
     return {"branch": branch.name, "op": branch.op, "parent": str(branch.parent),
             "stopped": out["stopped"], "run_dir": str(steer.branch_dir(args.out, branch.name)),
             "subtasks": [{"index": r["index"], "ratio": r["ratio"], "kind": r["kind"],
                           "difficulty": r["difficulty"], "done": bool(r.get("snapshot"))}
                          for r in records]}
+
+
+def branch_clip_metrics(merged, run_dir: Path, folder: Path, records) -> dict:
+    """IN2N's CLIP metrics of a branch's last snapshot against the run's original views,
+    merged into the branch's metrics.json."""
+    import json
+
+    from jaxedit.io.files import atomic_write_text
+
+    from .clip_metrics import clip_metrics_of_run
+
+    if not (merged.caption_orig and merged.caption_edit):
+        from jaxedit import DataError
+
+        raise DataError("--clip-weights", "needs --caption-orig and --caption-edit")
+    last = (folder / records[-1]["snapshot"]).parent
+    clip = clip_metrics_of_run(run_dir, snapshot=last, clip_weights=merged.clip_weights,
+                               caption_orig=merged.caption_orig,
+                               caption_edit=merged.caption_edit, device=merged.ip2p_device)
+    path = folder / "metrics.json"
+    atomic_write_text(path, json.dumps(json.loads(path.read_text()) | {"clip": clip},
+                                       indent=2) + "\n")
+    return clip
 
 
 def run(args) -> dict:

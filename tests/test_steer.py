@@ -25,6 +25,7 @@ from jaxedit.pipelines.report import write_report
 sys.path.insert(0, str(Path(__file__).parent))
 from cli_expect import contents, fails  # noqa: E402
 from test_cli_bad_inputs import _dataset  # noqa: E402
+from test_clip_metrics import clip_dir  # noqa: E402,F401 - a fixture
 
 PROMPT = "turn him into a bronze statue"
 
@@ -278,3 +279,16 @@ def test_bad_steering_inputs_change_nothing(run, tmp_path, capfd):
     (out / steer.TREE_NAME).write_text('{"version": 1, "branches": [{"name": "x"}]}')
     fails(capfd, ["edit", "--out", out, "--from", "2", "--refine", "--quiet"], "tree.json",
           keep=out, snapshot=contents)
+
+
+def test_a_branch_scores_its_last_snapshot_with_clip(run, tmp_path, clip_dir):
+    out = fresh_copy(run, tmp_path)
+    assert cli.main(["edit", "--out", str(out), "--from", "2", "--seed", "4", "--quiet",
+                     "--no-report", "--clip-weights", str(clip_dir), "--caption-orig", "a man",
+                     "--caption-edit", "a bronze statue", "--ip2p-device", "cpu"]) == 0
+    folder = out / "branches" / "b1"
+    last = (folder / schedule(folder)["subtasks"][-1]["snapshot"]).parent
+    saved = json.loads((last / "clip_metrics.json").read_text())
+    clip = json.loads((folder / "metrics.json").read_text())["clip"]
+    assert clip["direction_similarity"] == pytest.approx(saved["direction_similarity"])
+    assert "clip" not in json.loads((out / "metrics.json").read_text())
