@@ -418,7 +418,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                 ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio,
                 log=log, resumed_from=origin, identity=figures, oracle=oracle,
                 steps=None if start is None else start.steps)
-            if oracle is not None and memo is not None and (restored or start is None):
+            # the path's owner (re)writes its memo; a branch adds to it, never over another's
+            if oracle is not None and memo is not None and (
+                    restored or start is None or not memo.exists()):
                 write_oracle_memo(oracle, memo)
         if local_figures is not None:
             header = dict(header, local=local_figures)
