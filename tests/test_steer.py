@@ -292,3 +292,55 @@ def test_a_branch_scores_its_last_snapshot_with_clip(run, tmp_path, clip_dir):
     clip = json.loads((folder / "metrics.json").read_text())["clip"]
     assert clip["direction_similarity"] == pytest.approx(saved["direction_similarity"])
     assert "clip" not in json.loads((out / "metrics.json").read_text())
+
+
+class Tint:
+    """A tiny editor that knows every instruction: a colour per text, added to the photo."""
+
+    name = "tint"
+    guidance = (7.5, 1.5)
+
+    def __init__(self):
+        self.seen = []
+
+    def encode(self, text):
+        import hashlib
+
+        code = np.frombuffer(hashlib.sha256(text.encode()).digest()[:3], np.uint8)
+        return (code.astype(np.float32) / 255.0 - 0.5) * (0.0 if text == "" else 0.6)
+
+    def edit(self, image, original, embedding, key, *, timestep_range=(0.02, 0.98),
+             guidance=None):
+        self.seen.append(np.asarray(embedding, np.float32))
+        return np.clip(0.5 * np.asarray(image) + 0.5 * (np.asarray(original) + embedding), 0, 1)
+
+
+def test_a_new_instruction_branches_from_the_parents_embedding(run, tmp_path):
+    from experiments.edit import recorded_settings, run_config
+    from jaxedit.pipelines.edit import load_inputs
+
+    out = fresh_copy(run, tmp_path)
+    args = cli.parse(["edit", *recorded_settings(out)])
+    config = run_config(args)
+    data, scene = load_inputs(config, args.data, args.scene)
+    editor = Tint()
+    tree = steer.read_tree(out)
+    branch = steer.plan_branch(out, tree, "branch", NodeRef("main", 2), prompt="make it gold",
+                               seed=1)
+    assert branch.path == "b1" and branch.from_ratio == 0.0
+    done = steer.run_branch(editor, config, data, scene, out, branch)
+    r_k = schedule(out)["subtasks"][2]["ratio"]
+    e_from = r_k * editor.encode(PROMPT)
+    first = schedule(out / "branches" / "b1")["subtasks"][0]
+    want = first["ratio"] * editor.encode("make it gold") + (1 - first["ratio"]) * e_from
+    assert any(np.allclose(e, want, atol=1e-6) for e in editor.seen)
+    assert done["schedule"]["prompt"] == "make it gold"
+    assert (out / "branches" / "b1" / "difficulty.npz").is_file()
+    # its own refine reads the new path's memo: only the split's ratios are edited
+    tree = steer.read_tree(out)
+    k = next(r["index"] for r in done["schedule"]["subtasks"] if r["kind"] == "edit")
+    refine = steer.plan_branch(out, tree, "refine", NodeRef("b1", k), seed=1)
+    assert (refine.path, refine.start) == ("b1", NodeRef("main", 2) if k == 0 else NodeRef("b1", k - 1))
+    again = steer.run_branch(editor, config, data, scene, out, refine)
+    views = done["schedule"]["difficulty"]["num_views"]
+    assert again["schedule"]["editor_calls_for_schedule"] <= 4 * views
