@@ -96,6 +96,8 @@ class EditCommand:
       masks: one mask image per frame, named as the frame (images/frame_00001.png takes
         DIR/frame_00001.png) or as its photo (process-data's original_file_path), at the
         view's size or a whole multiple of it; white = editable.
+      export: formats (comma list of ply, compressed-ply, spz, sog, splat) to write the
+        selected snapshot (--select, else the last) in, as RUN/selected.spz etc.
     """
 
     preset: str | None = None
@@ -116,11 +118,15 @@ class EditCommand:
     local: str = "off"
     region: tuple[str, ...] = ()
     masks: Path | None = None
+    export: tuple[str, ...] = ()
 
     def __post_init__(self):
         from jaxedit.errors import check_ranges
 
+        from .export import export_formats
+
         check_ranges(self)
+        object.__setattr__(self, "export", export_formats(self.export))
 
 
 def _command_flags():
@@ -136,7 +142,7 @@ def _command_flags():
         Flag("view_port"), Flag("clip_weights", group=clip), Flag("caption_orig", group=clip),
         Flag("caption_edit", group=clip), Flag("local", choices=("auto", "off"), group=local),
         Flag("region", repeat=True, group=local, metavar="SPEC"),
-        Flag("masks", group=local, metavar="DIR"))).complete()
+        Flag("masks", group=local, metavar="DIR"), Flag("export", metavar="FORMATS"))).complete()
 
 
 def _flag_sets():
@@ -288,20 +294,22 @@ def run(args) -> dict:
 
     from .cli import writes
     from .editors import make_editor
+    from .export import export_selected
 
     if args.print_config:
         print(config_tree_json(run_config(args)))
         return {}
     if args.out is None:
         raise DataError("--out", "required (the run directory)")
-    command_config(args)
+    exports = command_config(args).export
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     if args.select_only and not writes(args):
         return {}
     if args.select_only:
         if args.select is None:
             raise DataError("--select", "required with --select-only")
         path = select_snapshot(args.out, args.select)
-        return {"selected": str(path)}
+        return {"selected": str(path), "exported": export_selected(args.out, exports, args.select, log)}
     run_cfg = run_config(args)
     if args.resume and args.resume_from is not None:
         raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
@@ -324,7 +332,6 @@ def run(args) -> dict:
 
         watcher = watch_edit(args.out, port=args.view_port)
     progress = progress_callback(args.quiet)
-    log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     try:
         out = edit_files(run_cfg, args.prompt or "", args.data, args.scene, editor=editor,
                          local=lambda data: local_spec(args, run_cfg, data), seed=args.seed,
@@ -346,9 +353,10 @@ def run(args) -> dict:
     keys = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
             "num_gaussians", "wall_time_s", "subtasks", "all_converged",
             "clip_direction_similarity", "clip_direction_consistency")
+    exported = export_selected(args.out, exports, args.select, log)
     if watcher is not None:
         print(f"edit finished; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)",
               flush=True)
         watcher.viewer.serve_forever()
         watcher.viewer.close()
-    return {k: m.get(k) for k in keys} | {"run_dir": str(args.out)}
+    return {k: m.get(k) for k in keys} | {"run_dir": str(args.out), "exported": exported}
