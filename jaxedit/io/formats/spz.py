@@ -236,10 +236,11 @@ def decode(data: bytes, where: str | os.PathLike = "spz", *, axes: str = "ply") 
     """The splats of .spz bytes (any of v2-v4), in file order. DataError for a malformed file."""
     _check_axes(axes)
     version, n, degree, frac, (pos, alpha, colour, scale, rot, *sh) = _streams(data, where)
-    b = np.frombuffer(pos, np.uint8).reshape(n, 3, 3).astype(np.int32)
-    fixed = b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
-    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
-    means = (fixed.astype(np.float64) / (1 << frac)).astype(np.float32)
+    # int24 little-endian -> the top three bytes of an int32, then an arithmetic shift
+    word = np.zeros((n, 3, 4), np.uint8)
+    word[..., 1:] = np.frombuffer(pos, np.uint8).reshape(n, 3, 3)
+    fixed = word.view("<i4")[..., 0] >> 8
+    means = fixed.astype(np.float32) * np.float32(1.0 / (1 << frac))  # exact: 24 bits, 2^-frac
     opacity = logit(np.frombuffer(alpha, np.uint8) / 255.0)
     dc = (np.frombuffer(colour, np.uint8).reshape(n, 3) / 255.0 - 0.5) / COLOR_SCALE
     log_scales = (np.frombuffer(scale, np.uint8).reshape(n, 3) / 16.0 - 10.0).astype(np.float32)
