@@ -115,6 +115,8 @@ class EditCommand:
       stop: ask the edit running in --out to stop after its current subtask (--resume
         goes on).
       tree: print the run's tree of branches and subtasks.
+      export: formats (comma list of ply, compressed-ply, spz, sog, splat) to write the
+        selected snapshot (--select, else the last) in, as RUN/selected.spz etc.
     """
 
     preset: str | None = None
@@ -143,11 +145,15 @@ class EditCommand:
     branch: str | None = None
     stop: bool = False
     tree: bool = False
+    export: tuple[str, ...] = ()
 
     def __post_init__(self):
         from jaxedit.errors import check_ranges
 
+        from .export import export_formats
+
         check_ranges(self)
+        object.__setattr__(self, "export", export_formats(self.export))
 
 
 def _command_flags():
@@ -169,7 +175,7 @@ def _command_flags():
         Flag("refine", group=steer), Flag("ratio", group=steer),
         Flag("extend", group=steer, metavar="R_MAX"), Flag("name", group=steer),
         Flag("branch", group=steer), Flag("stop", group=steer),
-        Flag("tree", group=steer))).complete()
+        Flag("tree", group=steer), Flag("export", metavar="FORMATS"))).complete()
 
 
 def _flag_sets():
@@ -378,6 +384,7 @@ def run_steering(args, kind: str) -> dict:
 
     from .cli import parse
     from .editors import make_editor
+    from .export import export_selected
 
     if kind == "tree":
         print(steer.format_tree(args.out), flush=True)
@@ -437,7 +444,9 @@ def run_steering(args, kind: str) -> dict:
         branch_clip_metrics(merged, args.out, folder, records)
     if not args.no_report:
         write_report(args.out)
-    return {"branch": branch.name, "op": branch.op, "parent": str(branch.parent),
+    exported = ([] if out["stopped"] else
+                export_selected(args.out, command_config(args).export, f"{branch.name}:-1", log))
+    return {"exported": exported, "branch": branch.name, "op": branch.op, "parent": str(branch.parent),
             "stopped": out["stopped"], "run_dir": str(steer.branch_dir(args.out, branch.name)),
             "subtasks": [{"index": r["index"], "ratio": r["ratio"], "kind": r["kind"],
                           "difficulty": r["difficulty"], "done": bool(r.get("snapshot"))}
@@ -475,23 +484,25 @@ def run(args) -> dict:
 
     from .cli import writes
     from .editors import make_editor
+    from .export import export_selected
 
     if args.print_config:
         print(config_tree_json(run_config(args)))
         return {}
     if args.out is None:
         raise DataError("--out", "required (the run directory)")
-    command_config(args)
+    exports = command_config(args).export
     kind = steering(args)
     if kind is not None:
         return run_steering(args, kind)
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     if args.select_only and not writes(args):
         return {}
     if args.select_only:
         if args.select is None:
             raise DataError("--select", "required with --select-only")
         path = select_snapshot(args.out, args.select)
-        return {"selected": str(path)}
+        return {"selected": str(path), "exported": export_selected(args.out, exports, args.select, log)}
     run_cfg = run_config(args)
     if args.resume and args.resume_from is not None:
         raise DataError("--resume", "use either --resume (same run) or --resume-from (a snapshot)")
@@ -516,7 +527,6 @@ def run(args) -> dict:
     from jaxedit.pipelines import steer
 
     progress = progress_callback(args.quiet)
-    log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     stop = None
     if writes(args):
         steer.read_control(args.out)  # garbled: one line; a valid one is stale (we hold the lock)
@@ -549,9 +559,10 @@ def run(args) -> dict:
     keys = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
             "num_gaussians", "wall_time_s", "subtasks", "all_converged",
             "clip_direction_similarity", "clip_direction_consistency")
+    exported = export_selected(args.out, exports, args.select, log)
     if watcher is not None:
         print(f"edit finished; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)",
               flush=True)
         watcher.viewer.serve_forever()
         watcher.viewer.close()
-    return {k: m.get(k) for k in keys} | {"run_dir": str(args.out)}
+    return {k: m.get(k) for k in keys} | {"run_dir": str(args.out), "exported": exported}

@@ -10,6 +10,9 @@ index or a ratio, as ``edit --select``; the run is only read) or, without it, it
 ``selected.ply``. The format is FILE's extension (``.compressed.ply``, ``.spz``, ``.sog``,
 ``meta.json``, ``.splat``, ``.ply``) unless ``--format`` says. ``--out`` is not used: the file
 is the output.
+
+``edit ... --export spz,sog`` writes the run's selected snapshot the same way
+(:func:`export_selected`).
 """
 
 from __future__ import annotations
@@ -58,3 +61,41 @@ def run(args) -> dict:
     path = save_scene(args.output, gaussians, format=fmt)
     return {"source": str(scene_file), "output": str(path), "format": fmt,
             "gaussians": int(gaussians.alive.sum()), "bytes": path.stat().st_size}
+
+
+def export_formats(values) -> tuple[str, ...]:
+    """``edit --export``'s formats (a comma list of :data:`jaxedit.io.FORMATS`), each once,
+    in the order given; DataError naming ``export`` for an unknown or empty one."""
+    from jaxedit import DataError
+    from jaxedit.io import FORMATS
+
+    formats = tuple(dict.fromkeys(v.strip().lower() for v in values))
+    bad = [v for v in formats if v not in FORMATS]
+    if bad:
+        raise DataError("export", f"unknown format {bad[0]!r} (expected a comma list of "
+                                  f"{', '.join(FORMATS)})")
+    return formats
+
+
+def export_selected(run_dir: Path, formats, select, log=print) -> list[str]:
+    """Write an edit run's chosen snapshot as ``run_dir/selected<suffix>`` in each format.
+
+    The snapshot is subtask ``select`` (index or ratio) or, when None, the last finished
+    one; it becomes ``selected.ply`` / ``selected.json`` first (as ``edit --select``).
+    Logs one line per file; returns the paths written.
+    """
+    from jaxedit.io import load_scene, save_scene
+    from jaxedit.io.formats import SUFFIXES
+    from jaxedit.pipelines import select_snapshot
+
+    if not formats:
+        return []
+    chosen = select_snapshot(run_dir, -1 if select is None else select)
+    gaussians = load_scene(chosen)
+    written = []
+    for fmt in formats:
+        path = chosen if fmt == "ply" else save_scene(run_dir / f"selected{SUFFIXES[fmt]}",
+                                                      gaussians, format=fmt)
+        log(f"exported the selected snapshot as {fmt}: {path} ({path.stat().st_size} bytes)")
+        written.append(str(path))
+    return written

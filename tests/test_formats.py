@@ -444,6 +444,67 @@ def test_export_command_answers_bad_input_in_one_line(tmp_path, capsys, argv, me
     assert not (tmp_path / "x.spz").exists() and not (tmp_path / "x.ply").exists()
 
 
+def _edit_inputs(tmp_path):
+    """A 16 px, 4-view dataset (one held out) and a 30-Gaussian scene to edit."""
+    from jaxedit import camera as camlib
+    from jaxedit import gaussians as G
+    from jaxedit.io import save_nerfstudio
+
+    rng = np.random.default_rng(0)
+    cams = camlib.hemisphere(4, radius=2.2, width=16, height=16, fov_deg=50.0)
+    images = rng.uniform(0.2, 0.8, size=(4, 16, 16, 3)).astype(np.float32)
+    pts = rng.normal(scale=0.3, size=(30, 3)).astype(np.float32)
+    data = save_nerfstudio(tmp_path / "data", images, cams, test_indices=np.array([1]),
+                           points=pts, point_colors=rng.uniform(size=(30, 3)).astype(np.float32))
+    scene = save_ply(tmp_path / "scene.ply", G.from_points(pts, rng.uniform(size=(30, 3)),
+                                                           sh_degree=0))
+    return data.parent, scene
+
+
+def test_edit_export_writes_the_selected_snapshot_and_refuses_a_bad_format_first(tmp_path, capsys):
+    """edit --export spz,ply: RUN/selected.spz is the selected snapshot within SPZ's steps;
+    an unknown format is refused before anything is trained or written."""
+    from experiments.cli import main
+    from experiments.export import export_selected
+
+    data, scene = _edit_inputs(tmp_path)
+    run = tmp_path / "run"
+    base = ["edit", "--data", str(data), "--scene", str(scene), "--prompt", "turn him into a bronze statue",
+            "--mode", "nd",
+            "--sync", "--subtasks", "2", "--max-steps", "2", "--test-views", "1",
+            "--turntable-frames", "0", "--no-report", "--accept-low-identity", "--out", str(run)]
+    assert main([*base, "--export", "spz,webp"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --export: ") and "'webp'" in err and "\n" not in err
+    assert not run.exists()
+
+    assert main([*base, "--quiet", "--export", "spz,ply", "--select", "0"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["exported"] == [str(run / "selected.spz"), str(run / "selected.ply")]
+    chosen = json.loads((run / "selected.json").read_text())
+    assert chosen["index"] == 0
+    want = from_gaussians(load_scene(run / chosen["snapshot"]))
+    np.testing.assert_array_equal(from_gaussians(load_scene(run / "selected.ply")).means, want.means)
+    got = from_gaussians(load_scene(run / "selected.spz"))
+    assert got.count == want.count == 30
+    assert np.abs(got.means - want.means).max() <= 0.5 / 4096 + 1e-6
+    assert np.abs(got.log_scales - want.log_scales).max() <= 1 / 32 + 1e-6
+    assert np.abs(sigmoid(got.opacity_logits) - sigmoid(want.opacity_logits)).max() <= 0.5 / 255 + 1e-6
+    assert rotation_error(got.quats, want.quats) < 2e-5
+
+    # --select-only re-exports; without --select, the last snapshot is the one
+    assert main(["edit", "--out", str(run), "--select-only", "--select", "1", "--export", "splat",
+                 "--quiet"]) == 0
+    assert json.loads(capsys.readouterr().out)["exported"] == [str(run / "selected.splat")]
+    lines = []
+    assert export_selected(run, ("compressed-ply",), None, log=lines.append) == [
+        str(run / "selected.compressed.ply")]
+    assert lines[0].startswith(f"exported the selected snapshot as compressed-ply: {run}")
+    last = json.loads((run / "schedule.json").read_text())["subtasks"][-1]
+    assert json.loads((run / "selected.json").read_text())["index"] == last["index"]
+    assert load_scene(run / "selected.compressed.ply").capacity == 30
+
+
 # --- a web viewer draws our export ---------------------------------------------------
 
 

@@ -48,6 +48,38 @@ _PLY_TYPES = {
 _FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
 _MAX_HEADER = 1 << 20  # a header longer than this is not a PLY header
 _REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}  # number of f_rest fields -> SH degree
+_ALIGN = 64  # bytes: jax.device_put on CPU adopts a C-ordered array this aligned, uncopied
+
+
+def host_array(shape, dtype=np.float32) -> np.ndarray:
+    """An uninitialised C-ordered array whose data is 64-byte aligned.
+
+    ``jax.device_put`` on the CPU backend takes such an array as the device buffer without
+    copying it, so a reader that fills one and hands it over (keeping no reference) pays for
+    one copy of the data instead of two.
+    """
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    raw = np.empty(nbytes + _ALIGN, np.uint8)
+    start = -raw.ctypes.data % _ALIGN
+    return raw[start:start + nbytes].view(dtype).reshape(shape)
+
+
+def device_arrays(arrays: dict, *, owned: bool = False) -> dict:
+    """``jax.device_put`` of {name: NumPy array}, each copied once into aligned memory.
+
+    ``owned``: the arrays are the caller's own and never written again, so those already
+    C-ordered and aligned are handed over without a copy (the device buffer is their memory).
+    """
+    def ready(a):
+        a = np.asarray(a)
+        if owned and a.flags.c_contiguous and a.ctypes.data % _ALIGN == 0:
+            return a
+        out = host_array(a.shape, a.dtype)
+        np.copyto(out, a)
+        return out
+
+    return jax.device_put({k: ready(v) for k, v in arrays.items()})
 
 
 @dataclass(frozen=True)
@@ -302,26 +334,35 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
         # gather -- much faster than stacking strided per-field views.
         matrix = records.view(np.dtype("<f4")).reshape(element.count, len(order))
 
-    def cols(fields):
+    def cols(fields):  # [N, F] float32 (a slice where the fields are adjacent)
         if not fields:
-            return np.zeros((element.count, 0), np.float32)
+            return slice(0, 0) if matrix is not None else np.zeros((element.count, 0), np.float32)
         if matrix is not None:
             idx = [order.index(f) for f in fields]
-            if idx == list(range(idx[0], idx[0] + len(idx))):  # adjacent: a view, no gather
-                return matrix[:, idx[0]:idx[0] + len(idx)]
-            return matrix[:, idx]
+            if idx == list(range(idx[0], idx[0] + len(idx))):
+                return slice(idx[0], idx[0] + len(idx))
+            return idx
         return np.stack([np.asarray(table[f], np.float32) for f in fields], axis=-1).reshape(
             element.count, len(fields))
 
-    means = cols(["x", "y", "z"])
-    log_scales = cols([f"scale_{i}" for i in range(3)])
-    quats = cols([f"rot_{i}" for i in range(4)])
-    opacity = cols(["opacity"])[:, 0]
-    dc = cols(["f_dc_0", "f_dc_1", "f_dc_2"])  # [N, 3]
-    k_rest = n_rest // 3
-    # Channel-major file layout [N, 3, K-1] -> our coefficient-major [N, K-1, 3].
-    rest = cols(rest_names).reshape(element.count, 3, k_rest).transpose(0, 2, 1)
-    sh = np.concatenate([dc[:, None, :], rest], axis=1)
+    n, k_rest = element.count, n_rest // 3
+    # Filled once, in memory device_put adopts: [N, 3], [N, 3], [N, 4], [N], [N, K, 3].
+    means, log_scales, quats = host_array((n, 3)), host_array((n, 3)), host_array((n, 4))
+    opacity, sh = host_array((n,)), host_array((n, 1 + k_rest, 3))
+    sources = [(means, cols(["x", "y", "z"])), (log_scales, cols([f"scale_{i}" for i in range(3)])),
+               (quats, cols([f"rot_{i}" for i in range(4)])), (opacity, cols(["opacity"])),
+               (sh[:, 0, :], cols(["f_dc_0", "f_dc_1", "f_dc_2"])), (None, cols(rest_names))]
+    # A few thousand rows at a time, so that each block of the file is read from cache for all
+    # the fields it feeds (the rows are hundreds of bytes apart).
+    step = n if matrix is None else 4096
+    for lo in range(0, n, step):
+        rows = slice(lo, min(n, lo + step))
+        for out, where in sources:
+            block = where[rows] if matrix is None else matrix[rows, where]
+            if out is None:  # channel-major file layout [N, 3, K-1] -> coefficient-major
+                sh[rows, 1:, :] = block.reshape(len(block), 3, k_rest).transpose(0, 2, 1)
+            else:
+                out[rows] = block.reshape(out[rows].shape)
     for label, arr in (("x/y/z", means), ("scale", log_scales), ("rot", quats),
                        ("opacity", opacity), ("f_dc/f_rest", sh)):
         bad = ~np.isfinite(arr)
@@ -332,7 +373,7 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     # device_put, not jnp.asarray: the latter compiles a copy program per array shape
     arrays = dict(means=means, log_scales=log_scales, quats=quats, opacity_logits=opacity,
                   sh=sh, alive=np.ones((element.count,), bool))
-    return Gaussians(**jax.device_put(arrays))
+    return Gaussians(**device_arrays(arrays, owned=True))
 
 
 def ply_fields(sh_degree: int, *, normals: bool = True) -> list[str]:
@@ -346,21 +387,29 @@ def ply_fields(sh_degree: int, *, normals: bool = True) -> list[str]:
 def gaussians_to_table(g: Gaussians) -> np.ndarray:
     """The alive Gaussians as a float32 structured array with the INRIA PLY fields [N]."""
     alive = np.asarray(g.alive, bool)
-    sh = np.asarray(g.sh, np.float32)[alive]  # [N, K, 3]
+    fields = [np.asarray(a, np.float32) for a in (g.means, g.sh, g.opacity_logits,
+                                                   g.log_scales, g.quats)]
+    if not alive.all():
+        fields = [a[alive] for a in fields]
+    means, sh, opacity, log_scales, quats = fields  # sh [N, K, 3]
     n, k = sh.shape[0], sh.shape[1]
-    rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))  # channel-major
-    columns = np.concatenate([
-        np.asarray(g.means, np.float32)[alive],
-        np.zeros((n, 3), np.float32),  # normals, as INRIA writes them
-        sh[:, 0, :],
-        rest,
-        np.asarray(g.opacity_logits, np.float32)[alive][:, None],
-        np.asarray(g.log_scales, np.float32)[alive],
-        np.asarray(g.quats, np.float32)[alive],
-    ], axis=1)
     degree = int(round(np.sqrt(k))) - 1
     dtype = np.dtype([(name, "<f4") for name in ply_fields(degree)])
-    return np.ascontiguousarray(columns).view(dtype).reshape(n)
+    table = np.empty((n, dtype.itemsize // 4), np.float32)
+    rest = 9 + 3 * (k - 1)  # columns: x y z, normals, f_dc, f_rest, opacity, scales, rot
+    # A few thousand rows at a time, so that each block of the table is written in cache.
+    step = 4096
+    for lo in range(0, n, step):
+        rows = slice(lo, min(n, lo + step))
+        out = table[rows]
+        out[:, 0:3] = means[rows]
+        out[:, 3:6] = 0.0  # normals, as INRIA writes them
+        out[:, 6:9] = sh[rows, 0, :]
+        out[:, 9:rest].reshape(len(out), 3, k - 1)[...] = sh[rows, 1:, :].transpose(0, 2, 1)
+        out[:, rest] = opacity[rows]
+        out[:, rest + 1:rest + 4] = log_scales[rows]
+        out[:, rest + 4:rest + 8] = quats[rows]
+    return table.view(dtype).reshape(n)
 
 
 def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
@@ -389,7 +438,7 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(table.tobytes())
+            f.write(memoryview(table.view(np.uint8)))  # no copy of the table
     return path
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from ...errors import DataError
 from ...gaussians import Gaussians
+from ..ply import device_arrays
 
 #: The SH DC normalisation (rgb = 0.5 + C0 * dc).
 C0 = 0.28209479177387814
@@ -57,7 +58,11 @@ class Splats:
 
     def take(self, index: np.ndarray) -> "Splats":
         """The splats at ``index`` (an int array [M] or a bool mask [N]), in that order."""
-        return Splats(*(np.ascontiguousarray(a[index]) for a in dataclasses.astuple(self)))
+        index = np.asarray(index)
+        if index.dtype == bool:
+            return Splats(*(np.ascontiguousarray(a[index]) for a in dataclasses.astuple(self)))
+        # np.take, not a[index]: several times faster on rows of a few values
+        return Splats(*(np.take(a, index, axis=0) for a in dataclasses.astuple(self)))
 
 
 def from_gaussians(g: Gaussians, where: str | os.PathLike = "gaussians") -> Splats:
@@ -82,6 +87,8 @@ def check_splats(where, s: Splats, noun: str = "splat") -> None:
     """DataError naming ``where`` and the first bad ``noun``: a non-finite value or a zero quaternion."""
     for label, arr in (("position", s.means), ("scale", s.log_scales), ("rotation", s.quats),
                        ("opacity", s.opacity_logits), ("colour/SH", s.sh)):
+        if np.isfinite(arr.sum(dtype=np.float64)):  # float32 values: finite iff all are
+            continue
         bad = ~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1)
         if bad.any():
             raise DataError(where, f"non-finite {label} (NaN or inf) at {noun} {int(np.argmax(bad))} "
@@ -92,12 +99,16 @@ def check_splats(where, s: Splats, noun: str = "splat") -> None:
                                f"({int(zero.sum())} bad)")
 
 
-def to_gaussians(s: Splats) -> Gaussians:
-    """A :class:`Gaussians` of capacity N with every slot alive."""
+def to_gaussians(s: Splats, *, owned: bool = False) -> Gaussians:
+    """A :class:`Gaussians` of capacity N with every slot alive.
+
+    ``owned``: ``s`` is a reader's own and never written again, so its aligned arrays become
+    the device buffers uncopied (:func:`jaxedit.io.ply.device_arrays`); otherwise each is copied.
+    """
     arrays = dict(means=s.means, log_scales=s.log_scales, quats=s.quats,
                   opacity_logits=s.opacity_logits, sh=s.sh, alive=np.ones((s.count,), bool))
     # device_put, not jnp.asarray: the latter compiles a copy program per array shape
-    return Gaussians(**jax.device_put({k: np.ascontiguousarray(v) for k, v in arrays.items()}))
+    return Gaussians(**device_arrays(arrays, owned=owned))
 
 
 # --- bytes ---------------------------------------------------------------------------
@@ -160,21 +171,23 @@ def largest_component(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return index, q * sign
 
 
+#: For each dropped component 0..3, the other three in order.
+_OTHERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+
+
 def others(index: np.ndarray, q: np.ndarray) -> np.ndarray:
     """[N, 3]: the three components of each quaternion other than ``index``, in order."""
-    keep = np.ones(q.shape, bool)
-    keep[np.arange(len(q)), index] = False
-    return q[keep].reshape(len(q), 3)
+    return np.take_along_axis(q, _OTHERS[index], axis=1)
 
 
 def with_largest(index: np.ndarray, three: np.ndarray) -> np.ndarray:
     """Inverse of :func:`others`: [N, 4] with the dropped component sqrt(1 - |three|^2) >= 0."""
     n = len(three)
     q = np.empty((n, 4), np.float32)
-    keep = np.ones((n, 4), bool)
-    keep[np.arange(n), index] = False
-    q[keep] = three.reshape(-1)
-    q[np.arange(n), index] = np.sqrt(np.maximum(0.0, 1.0 - (three.astype(np.float64) ** 2).sum(1)))
+    index = np.asarray(index, np.int64)
+    np.put_along_axis(q, _OTHERS[index], three, axis=1)
+    largest = np.sqrt(np.maximum(0.0, 1.0 - (three.astype(np.float64) ** 2).sum(1)))
+    np.put_along_axis(q, index[:, None], largest[:, None], axis=1)
     return q
 
 
@@ -193,12 +206,22 @@ def morton_order(means: np.ndarray, bits: int = 10) -> np.ndarray:
     code = np.zeros(len(means), np.uint32 if bits <= 10 else np.uint64)
     for axis in range(3):
         v = np.clip((means[:, axis] - lo[axis]) / extent[axis] * top, 0, top).astype(code.dtype)
-        code |= _spread_bits(v, bits) << axis
-    return np.argsort(code, kind="stable")
+        code |= _spread_bits(v, bits) << code.dtype.type(axis)
+    if bits > 10 or len(means) >= 1 << 32:
+        return np.argsort(code, kind="stable")
+    # The stable argsort as one sort of distinct keys (code, index): a few times faster.
+    key = (code.astype(np.uint64) << np.uint64(32)) | np.arange(len(code), dtype=np.uint64)
+    key.sort()
+    return (key & np.uint64(0xFFFFFFFF)).astype(np.int64)
 
 
 def _spread_bits(v: np.ndarray, bits: int) -> np.ndarray:
     """``v`` with bit b moved to bit 3b (the Morton interleave of one axis)."""
+    if bits <= 10:  # the usual shift-and-mask spread of a 10-bit value over 30 bits
+        v = v.astype(np.uint32)
+        for shift, mask in ((16, 0x030000FF), (8, 0x0300F00F), (4, 0x030C30C3), (2, 0x09249249)):
+            v = (v | (v << np.uint32(shift))) & np.uint32(mask)
+        return v
     out = np.zeros_like(v)
     for b in range(bits):
         out |= ((v >> b) & 1) << (3 * b)

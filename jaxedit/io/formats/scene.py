@@ -26,6 +26,10 @@ from . import compressed_ply, sog, splat, spz
 
 FORMATS = ("ply", "compressed-ply", "spz", "sog", "splat")
 
+#: The file name ending each format is written under (format_from_name reads it back).
+SUFFIXES = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog",
+            "splat": ".splat"}
+
 
 def format_from_name(path: str | os.PathLike) -> str:
     """The format a file name asks for when writing; DataError for an unknown extension."""

@@ -34,6 +34,7 @@ import numpy as np
 from ...errors import DataError
 from ...gaussians import Gaussians
 from ..files import atomic_write_bytes
+from ..ply import host_array
 from .common import (Splats, check_splats, from_gaussians, largest_component, logit, need,
                      read_file, sigmoid, to_gaussians, unit_quats, with_largest)
 
@@ -76,7 +77,8 @@ def _u8(x) -> np.ndarray:
 def _arrays(s: Splats, version: int) -> list[bytes]:
     """The per-splat arrays (positions, alphas, colours, scales, rotations[, SH]) as bytes."""
     n = s.count
-    fixed = np.round(s.means.astype(np.float64) * (1 << FRACTIONAL_BITS))
+    # float32 is exact here: a power-of-two multiple, then rounded to an integer
+    fixed = np.round(s.means * np.float32(1 << FRACTIONAL_BITS))
     if len(fixed) and np.abs(fixed).max() >= 1 << 23:
         raise DataError("spz", f"a position beyond +-{(1 << 23) / (1 << FRACTIONAL_BITS):g} does not fit "
                                f"SPZ's 24-bit fixed point with {FRACTIONAL_BITS} fractional bits")
@@ -98,10 +100,28 @@ def _arrays(s: Splats, version: int) -> list[bytes]:
             word = np.where(index == j, word, (word << 10) | code)
         rot = (word | (index.astype(np.uint32) << 30)).astype("<u4")
     out = [pos.tobytes(), alpha.tobytes(), colour.tobytes(), scale.tobytes(), rot.tobytes()]
-    if s.sh.shape[1] > 1:  # [N, K-1, 3] is colour-interleaved already
-        q = (np.clip(np.round(s.sh[:, 1:, :] * np.float32(128)), -128, 127) + 128).astype(np.uint8)
-        out.append(np.concatenate([_SH_BYTE[8][q[:, :3]].reshape(n, -1),
-                                   _SH_BYTE[16][q[:, 3:]].reshape(n, -1)], axis=1).tobytes())
+    if s.sh.shape[1] > 1:
+        out.append(_sh_bytes(s.sh[:, 1:, :]).tobytes())
+    return out
+
+
+def _sh_bytes(rest: np.ndarray, step: int = 4096) -> np.ndarray:
+    """uint8 [N, 3(K-1)]: ``rest`` [N, K-1, 3] (colour-interleaved already) as SPZ's SH bytes.
+
+    Worked ``step`` rows at a time, in place, so each block stays in cache.
+    """
+    n, k = rest.shape[0], rest.shape[1]
+    out = np.empty((n, 3 * k), np.uint8)
+    first = 3 * min(k, 3)  # degree 1's bytes, 5 bits; the rest 4 bits
+    for lo in range(0, n, step):
+        rows = slice(lo, min(n, lo + step))
+        t = rest[rows] * np.float32(128)
+        np.rint(t, out=t)
+        np.clip(t, -128, 127, out=t)
+        t += np.float32(128)
+        q = t.astype(np.uint8).reshape(len(t), 3 * k)
+        out[rows, :first] = _SH_BYTE[8][q[:, :first]]
+        out[rows, first:] = _SH_BYTE[16][q[:, first:]]
     return out
 
 
@@ -216,10 +236,11 @@ def decode(data: bytes, where: str | os.PathLike = "spz", *, axes: str = "ply") 
     """The splats of .spz bytes (any of v2-v4), in file order. DataError for a malformed file."""
     _check_axes(axes)
     version, n, degree, frac, (pos, alpha, colour, scale, rot, *sh) = _streams(data, where)
-    b = np.frombuffer(pos, np.uint8).reshape(n, 3, 3).astype(np.int32)
-    fixed = b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
-    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
-    means = (fixed.astype(np.float64) / (1 << frac)).astype(np.float32)
+    # int24 little-endian -> the top three bytes of an int32, then an arithmetic shift
+    word = np.zeros((n, 3, 4), np.uint8)
+    word[..., 1:] = np.frombuffer(pos, np.uint8).reshape(n, 3, 3)
+    fixed = word.view("<i4")[..., 0] >> 8
+    means = fixed.astype(np.float32) * np.float32(1.0 / (1 << frac))  # exact: 24 bits, 2^-frac
     opacity = logit(np.frombuffer(alpha, np.uint8) / 255.0)
     dc = (np.frombuffer(colour, np.uint8).reshape(n, 3) / 255.0 - 0.5) / COLOR_SCALE
     log_scales = (np.frombuffer(scale, np.uint8).reshape(n, 3) / 16.0 - 10.0).astype(np.float32)
@@ -237,11 +258,12 @@ def decode(data: bytes, where: str | os.PathLike = "spz", *, axes: str = "ply") 
         q = with_largest(index, three)
     quats = q[:, [3, 0, 1, 2]]  # (x, y, z, w) -> (w, x, y, z)
     k = (min(degree, 3) + 1) ** 2
-    coeffs = np.zeros((n, k, 3), np.float32)
+    coeffs = host_array((n, k, 3))  # filled once, in memory device_put adopts
     coeffs[:, 0, :] = dc
     if degree:
-        rest = _SH_TABLE[np.frombuffer(sh[0], np.uint8).reshape(n, -1, 3)[:, :k - 1]]
-        coeffs[:, 1:, :] = rest
+        rest = np.frombuffer(sh[0], np.uint8).reshape(n, -1, 3)[:, :k - 1]
+        for lo in range(0, n, 4096):  # a block at a time: the table's output stays in cache
+            coeffs[lo:lo + 4096, 1:, :] = _SH_TABLE[rest[lo:lo + 4096]]
         if degree == 4:
             warnings.warn(f"{where}: SPZ SH degree 4; band 4 dropped (jaxedit renders 0..3)",
                           stacklevel=2)
@@ -253,7 +275,7 @@ def decode(data: bytes, where: str | os.PathLike = "spz", *, axes: str = "ply") 
 def load_spz(path: str | os.PathLike, *, axes: str = "ply") -> Gaussians:
     """Read a .spz file (v2-v4) into Gaussians (all alive, file order)."""
     path, data = read_file(path, "an .spz file")
-    return to_gaussians(decode(data, path, axes=axes))
+    return to_gaussians(decode(data, path, axes=axes), owned=True)
 
 
 def save_spz(path: str | os.PathLike, gaussians: Gaussians, *, version: int = 4,
