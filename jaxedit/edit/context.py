@@ -1,6 +1,5 @@
 """What an edit reads and never changes: its views (:class:`EditData`) and its run's
-context (:class:`EditContext`). The constructors do the work (cameras to the device, the
-prompt encoded once), so ``dataclasses.replace`` never redoes it.
+context (:class:`EditContext`), built by constructors so ``dataclasses.replace`` redoes nothing.
 """
 
 from __future__ import annotations
@@ -63,9 +62,9 @@ class EditData:
 
 
 def encode_prompt(editor, prompt: str) -> tuple[np.ndarray, np.ndarray]:
-    """(E(p), E("")): the editor's embeddings of ``prompt`` and of the empty prompt, as
-    NumPy arrays of the editor's shape ([77, D] for InstructPix2Pix). The one place a run
-    encodes its prompt."""
+    """(E(p), E("")): the editor's embeddings of ``prompt`` and of "", NumPy, the editor's
+    shape ([77, D] for InstructPix2Pix). The one place a run encodes its prompt.
+    """
     return np.asarray(editor.encode(prompt)), np.asarray(editor.encode(""))
 
 
