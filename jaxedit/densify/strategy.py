@@ -62,7 +62,9 @@ class Strategy(NamedTuple):
 # -- Creation budget t(n, N) -----------------------------------------------------------
 
 def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> BudgetFn:
-    """ProEdit's creation budget t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N))).
+    """ProEdit's creation budget, paper section 3.3::
+
+        t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N)))
 
     ``n``: culled at the previous maintenance, ``N``: alive. Re-creating ``n`` moves
     capacity from faded Gaussians to high-gradient regions; ``growth`` adds a geometric
