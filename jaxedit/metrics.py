@@ -1,10 +1,9 @@
-"""Image quality metrics for reporting (NumPy / scikit-image, float64).
+"""Image quality metrics for reporting (NumPy / scikit-image, float64; training uses
+:mod:`jaxedit.losses`).
 
-``psnr`` and ``ssim_skimage`` are ``metrics.json``'s numbers (training uses
-:mod:`jaxedit.losses`). Image functions take float [H, W, C] in [0, data_range] -> float,
-or [N, H, W, C] -> float [N]. :func:`mode_scores` / :func:`mode_mixture` score against an
-editor with several valid outcomes without favouring one; :func:`mean_ci`,
-:func:`paired_differences` and :func:`percentile_interval` give confidence intervals.
+Image functions take float [H, W, C] in [0, data_range] -> float, or [N, H, W, C] ->
+float [N]. :func:`mode_scores` / :func:`mode_mixture` score against an editor with
+several valid outcomes; :func:`mean_ci` and friends give confidence intervals.
 """
 
 from __future__ import annotations

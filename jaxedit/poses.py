@@ -1,15 +1,12 @@
 """Pose corrections: a small rigid correction of cameras fitted to their images.
 
-One parameterisation (:func:`apply_delta`), two uses: test-time refinement of held-out
-cameras against a frozen scene (:func:`refine_poses`, as methods trained on estimated
-poses, BARF and later, are scored) and training-time camera optimisation
-(:class:`CameraCorrections`, ``TrainConfig.camera_opt``).
-
-A correction ``delta`` float [6] acts on the left of world-to-camera,
-``w2c' = [exp(w) | depth * u] w2c``: ``w = delta[:3]`` a rotation vector (radians, about
-the point at the scene's depth on the optical axis), ``u = delta[3:]`` a camera-frame
-translation in units of that depth, so a unit of either moves the image by about ``f``
-pixels and one learning rate suits both. Intrinsics stay fixed; nothing is random.
+One parameterisation, two uses: test-time refinement of held-out cameras against a
+frozen scene (:func:`refine_poses`) and training-time camera optimisation
+(:class:`CameraCorrections`). A correction ``delta`` float [6] acts on the left of
+world-to-camera, ``w2c' = [exp(w) | depth * u] w2c``: ``w = delta[:3]`` a rotation
+vector (radians, about the point at the scene's depth on the optical axis),
+``u = delta[3:]`` a camera-frame translation in units of that depth, so a unit of
+either moves the image by about ``f`` pixels and one learning rate suits both.
 """
 
 from __future__ import annotations

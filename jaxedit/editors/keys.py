@@ -1,9 +1,6 @@
-"""Seeding of edits: the ``jax.random`` key of every editor call, derived from a run's key.
-
-One scheme for every part that needs such keys, so none depends on another or on an
-editor: :func:`view_key` (the difficulty oracle's memoised edits), :func:`edit_key` (the
-driver's edits within a subtask) and :func:`quantize_ratio`. All are pure ``fold_in``
-chains: equal arguments, equal keys, in seeded, resumed and asynchronous runs alike.
+"""Seeding of edits: the ``jax.random`` key of every editor call, derived from a run's key
+by pure ``fold_in`` chains (:func:`view_key`, :func:`edit_key`), so seeded, resumed and
+asynchronous runs draw the same keys.
 """
 
 from __future__ import annotations

@@ -1,10 +1,9 @@
-"""The building blocks Stable Diffusion 1.x is made of, as equinox modules (NHWC).
+"""The building blocks of Stable Diffusion 1.x as equinox modules (NHWC).
 
-Every layer holding parameters is a :class:`ParamLayer` named as in diffusers, so a
-layer's pytree path is its tensors' checkpoint name (``down_blocks.0.resnets.1.conv1``);
-:meth:`ParamLayer.torch_layout` maps checkpoint tensors to fields (convolutions HWIO,
-linear [in, out]). A layer computes in its weights' dtype; norm statistics and attention
-softmax are float32. Shapes: B batch, H/W spatial, C channels, L sequence, D width.
+Every layer with parameters is a :class:`ParamLayer` named as in diffusers, so its
+pytree path is its tensors' checkpoint name; :meth:`ParamLayer.torch_layout` maps
+checkpoint tensors to fields. A layer computes in its weights' dtype; norm statistics
+and attention softmax are float32.
 """
 
 from __future__ import annotations

@@ -1,15 +1,10 @@
-"""The public entry point: ``render`` (tile splatter) and its jittable core ``render_tiles``.
+"""The public entry point: :func:`render` (tile splatter) and its jittable core :func:`render_tiles`.
 
-Pipeline: :func:`.project.project` -> :func:`.binning.bin_gaussians` (fixed-capacity
-buffer) -> :func:`.composite.composite` (exact blending, custom VJP).
-
-Intersection buffer: the (Gaussian, tile) pair count depends on data, XLA needs a static
-size. ``render_tiles(..., capacity=n)`` reports ``num_intersections`` and ``overflow``.
-Outside a trace ``render`` counts the pairs, sizes the buffer by :func:`render_capacity`
-(a pure, geometric ladder: few programs) and never returns a frame with dropped pairs.
-Inside a caller's ``jit``/``vmap`` pass ``max_intersections`` and, when ``out.overflow``,
-re-run with at least ``out.num_intersections`` (:func:`next_capacity`); without it
-``render`` raises :class:`DataError` under a trace.
+:func:`.project.project` -> :func:`.binning.bin_gaussians` (fixed-capacity pair
+buffer) -> :func:`.composite.composite` (exact blending, custom VJP). The pair count
+depends on data: outside a trace :func:`render` sizes the buffer on a geometric
+ladder (:func:`render_capacity`) and never returns dropped pairs; inside a caller's
+jit/vmap pass ``max_intersections`` and re-run on ``out.overflow``.
 """
 
 from __future__ import annotations
