@@ -188,8 +188,7 @@ class ClipEncoder:
 
     def edit_metrics(self, originals, edits, caption_orig: str, caption_edit: str) -> dict:
         """:func:`direction_metrics` for renders float [N, H, W, 3] of the original
-        and edited scene from the same N cameras, in path order.
-        """
+        and edited scene from the same N cameras, in path order."""
         if len(originals) != len(edits):
             raise DataError("images", f"{len(originals)} original renders but {len(edits)} edited")
         t = self.encode_texts([caption_orig, caption_edit])

@@ -42,8 +42,7 @@ def _band(rows: int, taps: tuple[float, ...]) -> np.ndarray:
 def _filter_axis(x, taps: tuple[float, ...], axis: int, block: int = 64):
     """Correlate ``x`` with ``taps`` along ``axis``, 'valid' part (n - k + 1 outputs),
     as banded matrix products over blocks of ``block`` outputs (fast to compile and
-    differentiate, linear cost).
-    """
+    differentiate, linear cost)."""
     k = len(taps)
     x = jnp.moveaxis(x, axis, 0)
     n = x.shape[0]

@@ -53,8 +53,7 @@ def ssim_skimage(a, b, *, data_range: float = 1.0):
 
 def image_metrics(renders, targets, *, data_range: float = 1.0) -> dict:
     """Dataset scores of a batch [N, H, W, C] (or one image): mean PSNR, each
-    capped at 100 (an identical pair's inf), and mean SSIM.
-    """
+    capped at 100 (an identical pair's inf), and mean SSIM."""
     p = np.minimum(np.atleast_1d(psnr(renders, targets, data_range=data_range)), 100.0)
     s = np.atleast_1d(ssim_skimage(renders, targets, data_range=data_range))
     return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s))}

@@ -158,8 +158,7 @@ def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: i
 def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
     """(target float [3], radius, elevation_deg, horizontal fov_deg) of an orbit matching
     ``cameras`` [N] (+z up): the least-squares closest point to the optical axes, the median
-    distance and elevation from it.
-    """
+    distance and elevation from it."""
     w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
     rot, trans = w2c[:, :3, :3], w2c[:, :3, 3]
     centres = -np.einsum("nji,nj->ni", rot, trans)

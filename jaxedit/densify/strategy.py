@@ -161,8 +161,7 @@ _STRATEGIES: dict[str, Callable[..., Strategy]] = {}
 
 def register_strategy(name: str, make: Callable[..., Strategy]) -> None:
     """Make ``DensifyConfig(strategy=name)`` use ``make(config, *, scene_extent,
-    iterations) -> Strategy``, a module-level function (compiled programs are cached by it).
-    """
+    iterations) -> Strategy``, a module-level function (compiled programs are cached by it)."""
     if not name or not callable(make):
         raise DataError("strategy", f"need a name and a callable, got {name!r}, {make!r}")
     _STRATEGIES[name] = make

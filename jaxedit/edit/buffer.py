@@ -39,8 +39,7 @@ class EditJob:
 @dataclasses.dataclass(frozen=True)
 class EditedView:
     """An edit result: ``image`` float32 [H, W, 3] in [0, 1] (NumPy, or JAX on the
-    trainer's device), ``seconds`` of editor time, ``scene_step`` the scene's trainer step.
-    """
+    trainer's device), ``seconds`` of editor time, ``scene_step`` the scene's trainer step."""
 
     job: EditJob
     image: np.ndarray | jax.Array
@@ -52,8 +51,7 @@ class EditedView:
 class Utilisation:
     """Counters (and wall-clock seconds) of edits made and consumed, of the trainer
     waiting for the editor, of the editor waiting for a scene or a free queue slot, and of
-    polls (``empty_polls``: those that found no edit).
-    """
+    polls (``empty_polls``: those that found no edit)."""
 
     edits: int = 0
     consumed: int = 0
@@ -80,8 +78,7 @@ EditManyFn = Callable[[list[EditJob], Any], list]
 
 def as_view(image, device: jax.Device | None = None):
     """An editor's result as the trainer takes it: a finished JAX array on ``device``
-    (None: where it is), or NumPy float32 [H, W, 3].
-    """
+    (None: where it is), or NumPy float32 [H, W, 3]."""
     if isinstance(image, jax.Array):
         image = image.astype(jnp.float32)
         if device is not None:
@@ -99,8 +96,7 @@ def view_order(num_views: int, key: jax.Array) -> np.ndarray:
 
 def pick_devices() -> tuple[jax.Device, jax.Device]:
     """(trainer device, editor device) among this process's local devices; distinct
-    when there are two or more.
-    """
+    when there are two or more."""
     devices = jax.local_devices()
     return devices[0], devices[1] if len(devices) > 1 else devices[0]
 
@@ -108,8 +104,7 @@ def pick_devices() -> tuple[jax.Device, jax.Device]:
 def side_by_side(trainer_device: jax.Device, editor_device: jax.Device | None) -> bool:
     """Whether the editor's programs run concurrently with the trainer's: on a CPU, or
     on an editor device distinct from ``trainer_device``. On one shared accelerator
-    pipelining would only hold both programs' buffers at once.
-    """
+    pipelining would only hold both programs' buffers at once."""
     return trainer_device.platform == "cpu" or (
         editor_device is not None and editor_device != trainer_device)
 
@@ -140,8 +135,7 @@ class EditSource(Protocol):
 
     def collect(self) -> list[EditedView]:
         """Edits begun at the last exchange and due now at the end of the steps that
-        followed it ([] for sources that hand edits over inside :meth:`exchange`).
-        """
+        followed it ([] for sources that hand edits over inside :meth:`exchange`)."""
 
     def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
                  on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
@@ -231,8 +225,7 @@ class SyncEditSource:
 
     def _edit(self, jobs: list[EditJob], scene, step: int) -> list[EditedView]:
         """``jobs`` (all due at ``step``) edited on ``scene``, finished; grouped into one
-        ``edit_many`` call when given.
-        """
+        ``edit_many`` call when given."""
         together = self.edit_many is not None and len(jobs) > 1
         groups = [jobs] if together else [[job] for job in jobs]
         out = []
@@ -280,8 +273,7 @@ class PipelinedEditSource(SyncEditSource):
 
     def exchange(self, step: int, scene) -> list[EditedView]:
         """Begin the edit due at ``step`` on ``scene`` (handed over by :meth:`collect`);
-        the initial sweep is made at once and returned.
-        """
+        the initial sweep is made at once and returned."""
         if self._pending is not None:
             raise RuntimeError("collect() the edit begun at the last exchange first")
         jobs = self.jobs_at(step)
@@ -293,8 +285,7 @@ class PipelinedEditSource(SyncEditSource):
 
     def collect(self) -> list[EditedView]:
         """The edit begun at the last exchange, once finished ([] if none); re-raises
-        the editor's error.
-        """
+        the editor's error."""
         if self._pending is None:
             return []
         pending, self._pending = self._pending, None
@@ -314,8 +305,7 @@ class PipelinedEditSource(SyncEditSource):
 
 class SweepEditSource(SyncEditSource):
     """Every ``every`` steps (step 0 included) every view, in ``order``, from the scene
-    at that step. Edit ``i`` is view ``order[i % N]`` of sweep ``i // N``.
-    """
+    at that step. Edit ``i`` is view ``order[i % N]`` of sweep ``i // N``."""
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int,
                  trainer_device=None, edit_many: EditManyFn | None = None):

@@ -63,8 +63,7 @@ class EditData:
 
 def encode_prompt(editor, prompt: str) -> tuple[np.ndarray, np.ndarray]:
     """(E(p), E("")): the editor's embeddings of ``prompt`` and of "", NumPy, the editor's
-    shape ([77, D] for InstructPix2Pix). The one place a run encodes its prompt.
-    """
+    shape ([77, D] for InstructPix2Pix). The one place a run encodes its prompt."""
     return np.asarray(editor.encode(prompt)), np.asarray(editor.encode(""))
 
 

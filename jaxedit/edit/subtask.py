@@ -102,8 +102,7 @@ def take_edits(ctx: EditContext, st: EditState, arrivals: list[EditedView],
 class ChunkResult(NamedTuple):
     """What the host learns from a chunk (NumPy): ``losses`` float [k] of the completed
     steps, ``redo`` (a step asked for more room), ``plateau`` at the last completed step,
-    and the chunk's step ``metrics`` ([length] each).
-    """
+    and the chunk's step ``metrics`` ([length] each)."""
 
     losses: np.ndarray
     redo: bool
@@ -180,8 +179,7 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
 
 def _chunk_args(ctx: EditContext, st: EditState, scalars: list) -> tuple:
     """:func:`_edit_chunk`'s arguments at ``st``, committed where they are, with the
-    eight int32 ``scalars`` uploaded.
-    """
+    eight int32 ``scalars`` uploaded."""
     return (*commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
                      ctx.key)), jax.device_put(np.asarray(scalars, np.int32)))
 
@@ -189,8 +187,7 @@ def _chunk_args(ctx: EditContext, st: EditState, scalars: list) -> tuple:
 def compile_chunk(ctx: EditContext, st: EditState) -> None:
     """Compile (or read from the persistent cache) the training chunk for ``st``'s
     shapes without running it, so the first chunk starts at once; the edit does it on a
-    thread while the difficulty schedule runs.
-    """
+    thread while the difficulty schedule runs."""
     _edit_chunk.lower(*_chunk_args(ctx, st, [0] * 8), length=CHUNK,
                       min_delta=ctx.config.min_delta).compile()
 
@@ -219,8 +216,7 @@ def last_step(st: EditState, cfg: ProEditConfig, max_steps: int, can_wait: bool,
               guard: int | None = None) -> int:
     """Where the guard (``max_steps``, or ``guard`` when the time guard fired) ends the
     subtask; with a threaded source (``can_wait``) and views still unedited at the guard,
-    ``patience`` steps after they all arrive.
-    """
+    ``patience`` steps after they all arrive."""
     guard = max_steps if guard is None else min(guard, max_steps)
     if not can_wait or st.complete_at < 0:
         return guard
@@ -229,8 +225,7 @@ def last_step(st: EditState, cfg: ProEditConfig, max_steps: int, can_wait: bool,
 
 def next_stop(step: int, cfg: ProEditConfig, last: int, source: EditSource) -> int:
     """The next step after ``step`` where the host must act: an exchange, a checkpoint,
-    the end of the warm-up or of the subtask, or ``CHUNK`` steps on.
-    """
+    the end of the warm-up or of the subtask, or ``CHUNK`` steps on."""
     warmup = cfg.warmup
     stops = [last, step + CHUNK, (step // cfg.checkpoint_every + 1) * cfg.checkpoint_every]
     if step < warmup:
@@ -266,8 +261,7 @@ class Subtask:
 class SubtaskLoop(NamedTuple):
     """Where a subtask's loop is (host side, immutable): the state ``st``, the step of the
     last exchange ``exchanged_at`` (so a redone chunk does not edit again), ``timed_out_at``
-    (``max_seconds`` fired), ``converged`` (on its plateau) and ``done``.
-    """
+    (``max_seconds`` fired), ``converged`` (on its plateau) and ``done``."""
 
     st: EditState
     exchanged_at: int | None = None
@@ -305,8 +299,7 @@ def init(sub: Subtask, st: EditState) -> SubtaskLoop:
 
 def step(sub: Subtask, loop: SubtaskLoop) -> tuple[SubtaskLoop, ChunkResult]:
     """The exchange due at the loop's step, one chunk of steps up to :func:`next_stop`,
-    then the edits a pipelined source made beside them.
-    """
+    then the edits a pipelined source made beside them."""
     ctx, cfg, source = sub.ctx, sub.ctx.config, sub.source
     st, exchanged_at = loop.st, loop.exchanged_at
     s = st.step
@@ -334,8 +327,7 @@ def step(sub: Subtask, loop: SubtaskLoop) -> tuple[SubtaskLoop, ChunkResult]:
 
 def await_views(sub: Subtask, st: EditState) -> EditState:
     """``st`` with the edits that arrive until every view has one: the trainer's only
-    wait. A deterministic source returns at once.
-    """
+    wait. A deterministic source returns at once."""
     arrived: list[EditedView] = []
 
     def complete() -> bool:

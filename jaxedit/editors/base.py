@@ -38,15 +38,13 @@ class Editor(Protocol):
              timestep_range: tuple[float, float] = (0.02, 0.98),
              guidance: tuple[float, float] | None = None) -> np.ndarray | jax.Array:
         """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key`` (NumPy,
-        or a JAX array on the editor's device).
-        """
+        or a JAX array on the editor's device)."""
         ...
 
 
 def editor_guidance(editor, guidance: tuple[float, float] | None = None) -> tuple[float, float]:
     """``guidance`` as (text, image) floats, or where None the editor's
-    ``guidance`` attribute, else :data:`jaxedit.editors.diffusion.IP2P_GUIDANCE`.
-    """
+    ``guidance`` attribute, else :data:`jaxedit.editors.diffusion.IP2P_GUIDANCE`."""
     if guidance is None:
         guidance = getattr(editor, "guidance", IP2P_GUIDANCE)
     return check_guidance(guidance)
@@ -56,8 +54,7 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
               timestep_range: tuple[float, float] = (0.02, 0.98),
               guidance: tuple[float, float] | None = None):
     """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant),
-    by ``editor.relevance``; DataError for an editor without one.
-    """
+    by ``editor.relevance``; DataError for an editor without one."""
     fn = getattr(editor, "relevance", None)
     if fn is None:
         raise DataError("--local", f"editor {getattr(editor, 'name', type(editor).__name__)!r} "
@@ -71,8 +68,7 @@ def warm_up(editor, height: int, width: int, key: jax.Array, *, views: int = 1,
             guidance: tuple[float, float] | None = None) -> None:
     """Edit ``views`` grey ``height`` x ``width`` views once and drop the result, so the
     program of that call is compiled (and cached on disk) before a run needs it; the run's
-    own edits do not change.
-    """
+    own edits do not change."""
     grey = jnp.full((views, height, width, 3), 0.5, jnp.float32)
     out = edit_views(editor, grey, grey, editor.encode(""), jax.random.split(key, views),
                      guidance=guidance)

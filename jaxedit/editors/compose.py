@@ -39,8 +39,7 @@ def compose_target(images, small, edited_small):
 class DetailTargets:
     """``editor`` whose edits of views larger than its model size keep the views' detail
     (:func:`compose_target`); everything else is the editor's own. ``editor`` must have
-    ``model_hw(height, width)``, the size it edits a view at.
-    """
+    ``model_hw(height, width)``, the size it edits a view at."""
 
     def __init__(self, editor):
         if not hasattr(editor, "model_hw"):

@@ -68,8 +68,7 @@ def _load(root: Path, sub: str, loader):
 
 def _from_jax(x: jax.Array) -> "torch.Tensor":
     """JAX array -> torch tensor by DLPack (zero-copy) when this torch takes it, else
-    one device-to-host copy.
-    """
+    one device-to-host copy."""
     try:
         return torch.from_dlpack(x)
     except (RuntimeError, TypeError, BufferError, ValueError):
@@ -256,8 +255,7 @@ class InstructPix2PixEditor:
     def edit_with_noise(self, image, original, embedding, t_start: int, vae_noise, sde_noise, *,
                         guidance: tuple[float, float] | None = None) -> np.ndarray:
         """:meth:`edit` with its draws given: timestep ``t_start``,
-        standard normals ``vae_noise`` and ``sde_noise`` [1, 4, h/f, w/f] at the model size.
-        """
+        standard normals ``vae_noise`` and ``sde_noise`` [1, 4, h/f, w/f] at the model size."""
         guidance = editor_guidance(self, guidance)
         render = self._image(image, "image")
         orig = self._image(original, "original")

@@ -54,8 +54,7 @@ def read_image(path: str | os.PathLike, *, background=(1.0, 1.0, 1.0)) -> np.nda
 
 def utf8_name(path: str | os.PathLike) -> str:
     """``path`` as text for OpenImageIO, which takes UTF-8 names only; a name with stray
-    bytes is refused (DataError naming its bytes) rather than failing inside the binding.
-    """
+    bytes is refused (DataError naming its bytes) rather than failing inside the binding."""
     text = os.fspath(path)
     try:
         text.encode("utf-8")
@@ -174,8 +173,7 @@ def area_average(image: np.ndarray, factor: int) -> np.ndarray:
 
 def _jpeg_scale(factor: int, width: int, height: int, orientation: int) -> int:
     """The DCT scale (1, 2, 4, 8) to decode at: the largest dividing ``factor``; 1 when
-    re-orientation would move a partial last block to the top or left.
-    """
+    re-orientation would move a partial last block to the top or left."""
     scale = next(s for s in (8, 4, 2, 1) if factor % s == 0)
     if orientation != 1 and (width % scale or height % scale):
         return 1
@@ -285,8 +283,7 @@ def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
 @contextlib.contextmanager
 def _c_stderr_held_back():
     """Hold back what C libraries print on fd 2 (libpng's error line, already in our
-    DataError's text): dropped when the block raises, passed on otherwise.
-    """
+    DataError's text): dropped when the block raises, passed on otherwise."""
     fd = 2  # C's stderr, whatever Python's sys.stderr is at the moment
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()

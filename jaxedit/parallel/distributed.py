@@ -77,8 +77,7 @@ def parse_address(address: str) -> tuple[str, int]:
 
 def initialize(config: DistributedConfig) -> None:
     """Join the distributed runtime (a no-op for one process) before anything else touches
-    JAX; CPU collectives use gloo. Raises DataError when the coordinator is unreachable.
-    """
+    JAX; CPU collectives use gloo. Raises DataError when the coordinator is unreachable."""
     if not config.active:
         return
     import jax
@@ -114,8 +113,7 @@ AGREEMENT_FIRST = ("num_processes", "out")
 
 def disagreement(mine: dict, theirs: dict) -> str | None:
     """The first setting (as ``--flag``) on which two records {setting: JSON value} differ,
-    :data:`AGREEMENT_FIRST` first; None when they agree.
-    """
+    :data:`AGREEMENT_FIRST` first; None when they agree."""
     keys = [k for k in AGREEMENT_FIRST if k in mine or k in theirs]
     keys += sorted((set(mine) | set(theirs)) - set(keys))
     for key in keys:
@@ -184,8 +182,7 @@ def is_writer() -> bool:
 
 def process_slice(count: int, process: int, processes: int) -> slice:
     """The contiguous slice of ``count`` views ``process`` edits: ``ceil(count / processes)``
-    each, the last ones shorter or empty.
-    """
+    each, the last ones shorter or empty."""
     per = -(-count // processes)
     lo = min(process * per, count)
     return slice(lo, min(lo + per, count))
@@ -193,8 +190,7 @@ def process_slice(count: int, process: int, processes: int) -> slice:
 
 def gather_views(local, count: int) -> np.ndarray:
     """Every process's views in process order, float32 [count, H, W, 3], from this
-    process's ``local`` slice [b, H, W, 3] (b may be 0). A collective.
-    """
+    process's ``local`` slice [b, H, W, 3] (b may be 0). A collective."""
     from jax.experimental import multihost_utils
 
     processes = process_count()
@@ -217,8 +213,7 @@ def barrier(name: str) -> None:
 class SplitEditor:
     """An editor whose ``edit_many`` edits this process's :func:`process_slice` and returns
     all B views gathered (float32 NumPy [B, H, W, 3], same bits everywhere); everything
-    else is the wrapped editor's.
-    """
+    else is the wrapped editor's."""
 
     def __init__(self, editor):
         self.inner = editor
@@ -362,8 +357,7 @@ def _pump(source, sink, fatal: list[str] | None, said: list[str] | None = None) 
 
 def _route(line: str, fatal: list[str] | None, stderr, said: list[str] | None = None) -> None:
     """Pass a worker's stderr ``line`` on, keep it as the fatal message, or drop it;
-    ``error: ...`` lines always pass (into ``said``).
-    """
+    ``error: ...`` lines always pass (into ``said``)."""
     if said is not None and line.startswith("error: "):
         said.append(line)
         stderr.write(line)

@@ -88,8 +88,7 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
 
 def views_step(state, images: jax.Array, cameras, key: jax.Array):
     """One optimiser step on the mean loss of V views: (state, {"loss", "overflow"});
-    sharded inputs and a replicated state run it data parallel.
-    """
+    sharded inputs and a replicated state run it data parallel."""
     from ..train import optimizer
     from ..train.state import params_of
 

@@ -155,8 +155,7 @@ def count_pairs(gaussians: Gaussians, camera: Camera, *, backend: str = "auto", 
 
 def _background_only(gaussians: Gaussians, camera: Camera, background) -> RenderOutput:
     """The frame of a scene with nothing on screen: background colour, zero
-    alpha/depth, a splatted frame's shapes and dtypes.
-    """
+    alpha/depth, a splatted frame's shapes and dtypes."""
     batch = camera.batch_shape
     dtype = gaussians.means.dtype
     bg = jnp.zeros((3,), dtype) if background is None else jnp.asarray(background, dtype)
@@ -184,8 +183,7 @@ def _pad_slots(gaussians: Gaussians, means2d_delta, capacity: int):
 def _bucketed(gaussians: Gaussians, means2d_delta):
     """The scene padded with dead slots to its capacity's step on the
     :func:`render_capacity` ladder (``means2d_delta`` with zeros), so scenes of nearby sizes
-    share one program; dead slots draw nothing.
-    """
+    share one program; dead slots draw nothing."""
     padded = render_capacity(gaussians.capacity)
     if padded == gaussians.capacity:
         return gaussians, means2d_delta

@@ -26,15 +26,13 @@ from .textures import Texture
 
 def render_scene(scene: Scene, cameras, *, supersample: int = 2, alpha: bool = False):
     """Ground truth of ``scene`` for ``cameras``: float32 [N, H, W, 3] in [0, 1], each pixel
-    averaging ``supersample``^2 rays; ``alpha=True`` adds coverage as a 4th channel.
-    """
+    averaging ``supersample``^2 rays; ``alpha=True`` adds coverage as a 4th channel."""
     return raycast.render(scene, cameras, supersample=supersample, alpha=alpha)
 
 
 def surface_views(scene: Scene, cameras, images=None) -> tuple:
     """``(images, points)``: the views (float32 [N, H, W, 3]; default :func:`render_scene`)
-    and the world point each pixel centre sees (0 on the background).
-    """
+    and the world point each pixel centre sees (0 on the background)."""
     if images is None:
         images = render_scene(scene, cameras)
     points, ids, _ = surface_points_and_ids(scene, cameras)

@@ -31,8 +31,7 @@ def _stream_keys(base_data):
 
 def epoch_view(key: jax.Array, step, num_views: int):
     """Entry ``step % N`` of a permutation of ``num_views`` (static) seeded by ``key``
-    and the epoch ``step // N``: the data order of every trainer.
-    """
+    and the epoch ``step // N``: the data order of every trainer."""
     epoch, i = step // num_views, step % num_views
     return jax.random.permutation(jax.random.fold_in(key, epoch), num_views)[i]
 
@@ -53,8 +52,7 @@ seeded permutation every epoch of ``num_views`` steps.
 
 def unit_float(image) -> jax.Array:
     """float32 in [0, 1] of a uint8 image (times 1/255, as OpenImageIO reads the file) or
-    a float one as it is; training images may stay uint8 on the device.
-    """
+    a float one as it is; training images may stay uint8 on the device."""
     image = jnp.asarray(image)
     if image.dtype == jnp.uint8:
         return image.astype(jnp.float32) * jnp.float32(1.0 / 255.0)
@@ -141,8 +139,7 @@ train_chunk = jax.jit(_train_chunk, static_argnames=("length",))
 
 def put_image(images: jax.Array, index, image) -> jax.Array:
     """``images`` [N, H, W, 3] with view ``index`` replaced by ``image`` [H, W, 3]; the
-    buffer is donated, so the other views are not copied where donation is supported.
-    """
+    buffer is donated, so the other views are not copied where donation is supported."""
     return _put_image(images, jnp.asarray(index, jnp.int32), jnp.asarray(image, images.dtype))
 
 
@@ -189,8 +186,7 @@ def divergence(step0: int, metrics: dict, *, history=None, max_loss: float | Non
 
 class TrainProgress(NamedTuple):
     """One progress event of :func:`fit`, sent after every chunk: ``desc``, ``step`` of
-    ``total``, the last step's ``loss`` and ``psnr``, and alive ``gaussians``.
-    """
+    ``total``, the last step's ``loss`` and ``psnr``, and alive ``gaussians``."""
 
     desc: str
     step: int
