@@ -1,14 +1,10 @@
 """Reading diffusers-format weights straight into the equinox modules, without torch.
 
-A diffusers folder holds ``model_index.json`` and one sub-folder per component, each with
-a ``config.json`` and tensors named by the torch module path. The modules use the same
-attribute names, so loading builds a shape-only skeleton from the config and fills every
-layer from the tensor of its name (:mod:`jaxedit.models.layers`). A missing, unexpected
-or mis-shaped tensor is a one-line :class:`~jaxedit.errors.DataError`.
-
-Weights files, in order of preference: ``model.safetensors`` /
-``diffusion_pytorch_model.safetensors``, their ``.fp16`` variants, then legacy torch
-``.bin`` checkpoints read by a restricted unpickler (a pickle can run code).
+Loading builds a shape-only skeleton from each component's ``config.json`` and fills
+every layer from the tensor of its name; a missing, unexpected or mis-shaped tensor
+is a one-line :class:`~jaxedit.errors.DataError`. Weights files, preferred first:
+``*.safetensors``, their ``.fp16`` variants, then torch ``.bin`` checkpoints read by
+a restricted unpickler (a pickle can run code).
 """
 
 from __future__ import annotations
