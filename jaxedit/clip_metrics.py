@@ -7,10 +7,7 @@ of the captions c_o and c_x:
     direction similarity  = mean_k cos(dI_k, dT)
     direction consistency = mean_k cos(dI_k, dI_{k+1})
 
-A vanishing direction has no cosine: NaN, skipped by the means (``undefined`` counts
-them). :func:`direction_metrics` is plain NumPy; :class:`ClipEncoder` (torch +
-transformers) loads a local ``CLIPModel`` and preprocesses as CLIP's processor does, on
-float tensors.
+A vanishing direction has no cosine: NaN, skipped by the means (``undefined`` counts them).
 """
 
 from __future__ import annotations
