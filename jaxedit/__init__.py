@@ -1,10 +1,8 @@
 """jaxedit: progressive instruction-guided 3D Gaussian splatting scene editing in JAX.
 
-The functional API, re-exported. ``import jaxedit`` changes nothing in the caller's program
-(no JAX setting, no listener, no run-directory code imported): the commands switch on the
-persistent compilation cache and the record of compiles with :func:`enable_compilation`,
-which library users call themselves if they want them. The run-directory helpers
-(``write_report``, ``write_snapshot``, ``resume``) are imported on first use.
+The functional API, re-exported. ``import jaxedit`` changes nothing in the caller's
+program; call :func:`enable_compilation` for the persistent compilation cache. The
+run-directory helpers are imported on first use.
 """
 
 __version__ = "0.1.0"

@@ -191,8 +191,7 @@ def opencv_w2c_to_opengl_c2w(w2c) -> np.ndarray:
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """OpenCV world->camera [4, 4] of a camera at ``eye`` looking at ``target``, image up
-    as close to ``up`` as possible.
-    """
+    as close to ``up`` as possible."""
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
     forward = target - eye
     forward /= np.linalg.norm(forward)

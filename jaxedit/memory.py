@@ -1,12 +1,5 @@
-"""The free-memory check of every size that sets memory, before any work.
-
-A size read from a flag, a config file or a file header (image sizes, network widths and
-depths, step tables, mask sizes) decides how much memory the work will take; a wrong or
-hostile one would otherwise exhaust the machine minutes in, or kill the process without a
-word. Every such size is turned into an estimate of bytes and put through
-:func:`require_memory` before anything is allocated: the CLI's reconstruction, render and
-make-scene flags, the ``train-editor`` config, InstructPix2Pix weights folders and the
-edit's masks all use this one check.
+"""The free-memory check every size read from a flag, config or file header goes
+through (:func:`require_memory`) before anything is allocated.
 """
 
 from __future__ import annotations
@@ -36,7 +29,7 @@ def require_memory(where, needed: float, what: str) -> None:
       needed: estimated bytes.
       what: what the bytes are for, in words.
     Raises:
-      DataError naming ``where``.
+      DataError: naming ``where``.
     """
     free = available_memory()
     if needed > free:

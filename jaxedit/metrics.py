@@ -1,10 +1,9 @@
-"""Image quality metrics for reporting (NumPy / scikit-image, float64).
+"""Image quality metrics for reporting (NumPy / scikit-image, float64; training uses
+:mod:`jaxedit.losses`).
 
-``psnr`` and ``ssim_skimage`` are ``metrics.json``'s numbers (training uses
-:mod:`jaxedit.losses`). Image functions take float [H, W, C] in [0, data_range] -> float,
-or [N, H, W, C] -> float [N]. :func:`mode_scores` / :func:`mode_mixture` score against an
-editor with several valid outcomes without favouring one; :func:`mean_ci`,
-:func:`paired_differences` and :func:`percentile_interval` give confidence intervals.
+Image functions take float [H, W, C] in [0, data_range] -> float, or [N, H, W, C] ->
+float [N]. :func:`mode_scores` / :func:`mode_mixture` score against an editor with
+several valid outcomes; :func:`mean_ci` and friends give confidence intervals.
 """
 
 from __future__ import annotations
@@ -54,8 +53,7 @@ def ssim_skimage(a, b, *, data_range: float = 1.0):
 
 def image_metrics(renders, targets, *, data_range: float = 1.0) -> dict:
     """Dataset scores of a batch [N, H, W, C] (or one image): mean PSNR, each
-    capped at 100 (an identical pair's inf), and mean SSIM.
-    """
+    capped at 100 (an identical pair's inf), and mean SSIM."""
     p = np.minimum(np.atleast_1d(psnr(renders, targets, data_range=data_range)), 100.0)
     s = np.atleast_1d(ssim_skimage(renders, targets, data_range=data_range))
     return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s))}

@@ -1,15 +1,12 @@
 """Pose corrections: a small rigid correction of cameras fitted to their images.
 
-One parameterisation (:func:`apply_delta`), two uses: test-time refinement of held-out
-cameras against a frozen scene (:func:`refine_poses`, as methods trained on estimated
-poses, BARF and later, are scored) and training-time camera optimisation
-(:class:`CameraCorrections`, ``TrainConfig.camera_opt``).
-
-A correction ``delta`` float [6] acts on the left of world-to-camera,
-``w2c' = [exp(w) | depth * u] w2c``: ``w = delta[:3]`` a rotation vector (radians, about
-the point at the scene's depth on the optical axis), ``u = delta[3:]`` a camera-frame
-translation in units of that depth, so a unit of either moves the image by about ``f``
-pixels and one learning rate suits both. Intrinsics stay fixed; nothing is random.
+One parameterisation, two uses: test-time refinement of held-out cameras against a
+frozen scene (:func:`refine_poses`) and training-time camera optimisation
+(:class:`CameraCorrections`). A correction ``delta`` float [6] acts on the left of
+world-to-camera, ``w2c' = [exp(w) | depth * u] w2c``: ``w = delta[:3]`` a rotation
+vector (radians, about the point at the scene's depth on the optical axis),
+``u = delta[3:]`` a camera-frame translation in units of that depth, so a unit of
+either moves the image by about ``f`` pixels and one learning rate suits both.
 """
 
 from __future__ import annotations
@@ -66,8 +63,7 @@ class RefineConfig:
 
 def so3_exp(omega: jax.Array) -> jax.Array:
     """Rotation matrices of rotation vectors (Rodrigues): float [..., 3] -> [..., 3, 3];
-    Taylor series near 0 keep values and gradients finite at the identity.
-    """
+    Taylor series near 0 keep values and gradients finite at the identity."""
     omega = jnp.asarray(omega)
     t2 = jnp.sum(omega * omega, -1)[..., None, None]
     small = t2 < 1e-8
@@ -124,8 +120,7 @@ def scene_depth(gaussians: Gaussians, cameras: Camera) -> jax.Array:
 
 def _blur(images: jax.Array, sigma: jax.Array, radius: int) -> jax.Array:
     """Separable Gaussian blur of float [B, H, W, 3], traced sigma (pixels; 0: none),
-    static ``radius`` so one program serves every sigma.
-    """
+    static ``radius`` so one program serves every sigma."""
     x = jnp.arange(-radius, radius + 1, dtype=images.dtype)
     kern = jnp.exp(-0.5 * (x / jnp.maximum(sigma, 1e-3)) ** 2)
     kern = kern / kern.sum()
@@ -266,8 +261,7 @@ def init_corrections(depth) -> CameraCorrections:
 
 def update_correction(corr: CameraCorrections, view, grad, lr) -> CameraCorrections:
     """One sparse Adam step on row ``view`` (int32 []) with ``grad`` float [6]
-    at ``lr`` (float []; 0 leaves the row and its moments unchanged).
-    """
+    at ``lr`` (float []; 0 leaves the row and its moments unchanged)."""
     row_state = jax.tree_util.tree_map(lambda a: a[view], corr.adam)
     direction, new_state = _row_adam().update(grad, row_state)
     active = lr > 0

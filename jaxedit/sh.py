@@ -34,8 +34,7 @@ def degree_from_coeffs(n: int) -> int:
 
 def basis(degree: int, dirs: jnp.ndarray) -> jnp.ndarray:
     """SH basis values float [..., (degree+1)^2] of unit directions [..., 3] (static
-    ``degree`` in 0..3).
-    """
+    ``degree`` in 0..3)."""
     x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
     out = [jnp.full_like(x, C0)]
     if degree >= 1:

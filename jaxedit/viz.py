@@ -1,8 +1,5 @@
-"""Outputs people look at: coloured depth maps, turntables, image grids, camera paths.
-
-The numerical pieces are pure NumPy; files are written atomically. Turntables are
-animated WebP (Pillow encodes it, it loops, and the self-contained report can inline it)
-and MP4 when ``imageio-ffmpeg`` is installed.
+"""Outputs people look at: coloured depth maps, turntables (animated WebP, MP4 with
+``imageio-ffmpeg``), image grids, camera paths. Files are written atomically.
 """
 
 from __future__ import annotations
@@ -21,19 +18,15 @@ from .io.files import atomic_path, atomic_write_bytes
 MIN_ALPHA = 1e-3
 
 
-# -- Depth maps ------------------------------------------------------------------------
 def depth_range(depth, alpha, *, percentiles: tuple[float, float] = (2.0, 98.0),
                 coverage: float = 0.5) -> tuple[float, float]:
-    """Robust (near, far) of the depth over covered pixels (percentiles, so floaters
-    do not squeeze the colour range).
+    """Robust (near, far) of the depth over covered pixels, by percentiles so floaters do
+    not squeeze the colour range; (0, 1) when nothing is covered.
 
     Args:
-      depth: float [..., H, W] expected depth.
-      alpha: float [..., H, W] accumulated opacity.
+      depth, alpha: float [..., H, W] expected depth and accumulated opacity.
       percentiles: (low, high) in [0, 100].
       coverage: pixels with alpha above this take part.
-    Returns:
-      (near, far) with far > near; (0, 1) when nothing is covered.
     """
     depth, alpha = np.asarray(depth, np.float64), np.asarray(alpha, np.float64)
     if depth.shape != alpha.shape:
@@ -56,16 +49,13 @@ def depth_range(depth, alpha, *, percentiles: tuple[float, float] = (2.0, 98.0),
 def colorize_depth(depth, alpha, *, near: float | None = None, far: float | None = None,
                    cmap: str = "turbo", background=(1.0, 1.0, 1.0),
                    percentiles: tuple[float, float] = (2.0, 98.0)) -> np.ndarray:
-    """A depth map as RGB, near red, far blue, blended over ``background`` by alpha.
+    """A depth map as RGB float32 [H, W, 3] in [0, 1], near red, far blue, over ``background`` by alpha.
 
     Args:
-      depth: float [H, W] expected depth.
-      alpha: float [H, W] accumulated opacity in [0, 1].
+      depth, alpha: float [H, W] expected depth and accumulated opacity in [0, 1].
       near, far: colour range; default :func:`depth_range` of this frame.
       cmap: a matplotlib colormap name.
       background: float [3] in [0, 1], colour of uncovered pixels.
-    Returns:
-      float32 [H, W, 3] in [0, 1].
     """
     import matplotlib
 
@@ -90,7 +80,6 @@ def colorize_depth(depth, alpha, *, near: float | None = None, far: float | None
     return (a * rgb + (1.0 - a) * bg).astype(np.float32)
 
 
-# -- Grids and 8-bit conversion --------------------------------------------------------
 def to_uint8(image) -> np.ndarray:
     """float [..., 3] in [0, 1] (or uint8) -> uint8, rounded and clipped."""
     image = np.asarray(image)
@@ -101,15 +90,13 @@ def to_uint8(image) -> np.ndarray:
 
 def image_grid(images: Sequence, ncols: int | None = None, *, pad: int = 2,
                pad_value: float = 1.0) -> np.ndarray:
-    """Tile images into one image, row-major, each cell the largest size.
+    """Tile images row-major into one float32 image, each cell the largest size.
 
     Args:
-      images: sequence of float [H_i, W_i, 3] in [0, 1] (or uint8), top-left aligned.
+      images: float [H_i, W_i, 3] in [0, 1] (or uint8), top-left aligned.
       ncols: columns; default all in one row.
       pad: pixels between cells and around the grid.
       pad_value: grey level of the padding in [0, 1].
-    Returns:
-      float32 [rows * (H + pad) + pad, ncols * (W + pad) + pad, 3].
     """
     imgs = [np.asarray(im) for im in images]
     if not imgs:
@@ -135,7 +122,6 @@ def image_grid(images: Sequence, ncols: int | None = None, *, pad: int = 2,
     return out
 
 
-# -- Rendering helpers -----------------------------------------------------------------
 def _default_render():
     from .raster import render
 
@@ -147,7 +133,6 @@ def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: i
     """Render each camera of a batch, one at a time (bounded memory).
 
     Args:
-      gaussians: a :class:`jaxedit.Gaussians`.
       cameras: a batched :class:`jaxedit.Camera` [N] (or one camera).
       render_fn: ``render(gaussians, camera, *, background, sh_degree)``; default
         :func:`jaxedit.raster.render`.
@@ -170,18 +155,10 @@ def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: i
     return np.stack(rgbs), np.stack(alphas), np.stack(depths)
 
 
-# -- Turntables ------------------------------------------------------------------------
 def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
-    """An orbit matching cameras that look at an object (+z up).
-
-    The target is the least-squares closest point to all optical axes; radius and elevation
-    are the cameras' median distance and elevation from it.
-
-    Args:
-      cameras: batched :class:`jaxedit.Camera` [N], N >= 1.
-    Returns:
-      (target float [3], radius, elevation_deg, horizontal fov_deg).
-    """
+    """(target float [3], radius, elevation_deg, horizontal fov_deg) of an orbit matching
+    ``cameras`` [N] (+z up): the least-squares closest point to the optical axes, the median
+    distance and elevation from it."""
     w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
     rot, trans = w2c[:, :3, :3], w2c[:, :3, 3]
     centres = -np.einsum("nji,nj->ni", rot, trans)
@@ -221,17 +198,11 @@ def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
               elevation: float | None = None, target=None, size: int | None = None,
               fov_deg: float | None = None, cameras=None, background=(1.0, 1.0, 1.0),
               sh_degree: int | None = None, render_fn: Callable | None = None) -> np.ndarray:
-    """Render a full orbit around the scene (+z up).
+    """Render a full orbit around the scene (+z up): uint8 [n_frames, size, size, 3].
 
     Unset orbit parameters come from ``cameras`` (:func:`frame_cameras`), else from the
-    Gaussians (:func:`frame_gaussians`, 20 degrees elevation, 40 degrees field of view).
-
-    Args:
-      n_frames: frames over 360 degrees.
-      radius, elevation (degrees), target float [3]: the orbit.
-      size: frame side in pixels (default: the cameras' width, or 128).
-    Returns:
-      uint8 [n_frames, size, size, 3].
+    Gaussians (:func:`frame_gaussians`, 20 degrees elevation, 40 degrees fov). ``size``
+    defaults to the cameras' width, or 128.
     """
     from . import camera as camlib
 
@@ -259,14 +230,12 @@ def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
 
 
 def load_camera_path(path) -> tuple:
-    """Cameras of a nerfstudio viewer ``camera_path.json`` (perspective only).
+    """Cameras of a nerfstudio viewer ``camera_path.json`` (perspective only): (batched
+    :class:`jaxedit.Camera` [N], fps or None).
 
     Reads ``render_width``, ``render_height``, optional ``fps``/``seconds`` and
-    ``camera_path``: ``{"camera_to_world": 16 floats (row-major, OpenGL axes), "fov":
-    vertical degrees}``.
-
-    Returns:
-      (batched :class:`jaxedit.Camera` [N], fps or None).
+    ``camera_path`` entries ``{"camera_to_world": 16 floats (row-major, OpenGL),
+    "fov": vertical degrees}``.
     """
     import json
 
@@ -315,9 +284,7 @@ def load_camera_path(path) -> tuple:
 
 
 def save_camera_path(path, cameras, *, fps: float = 12.0) -> None:
-    """Write cameras [N] as a nerfstudio camera path (:func:`load_camera_path`);
-    the vertical field of view comes from ``fy``.
-    """
+    """Write cameras [N] as a nerfstudio camera path (vertical fov from ``fy``)."""
     import json
 
     from . import camera as camlib
@@ -383,16 +350,13 @@ def _write_mp4(path: Path, frames: np.ndarray, fps: float) -> None:
 
 
 def write_turntable(path, frames, fps: float = 12.0, *, mp4: bool | None = None) -> list[Path]:
-    """Write a turntable as animated WebP at ``path`` (and MP4 beside it).
+    """Write a turntable as animated WebP at ``path`` (and MP4 beside it); the paths written.
 
     Args:
-      path: the ``.webp`` file.
       frames: uint8 or float [F, H, W, 3].
       fps: frames per second.
-      mp4: also write ``.mp4``; default when ``imageio-ffmpeg`` is installed; True without
-        it raises DataError.
-    Returns:
-      The paths written.
+      mp4: also write ``.mp4``; default when ``imageio-ffmpeg`` is installed (True
+        without it raises DataError).
     """
     path = Path(path)
     if path.suffix.lower() != ".webp":

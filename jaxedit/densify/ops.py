@@ -114,8 +114,7 @@ def _pad_rows(a, extra: int):
 
 def grow_state(gaussians: Gaussians, opt_state, stats: DensifyStats | None, capacity: int):
     """Grow Gaussians, optimiser state and densify stats to ``capacity`` slots (outside
-    jit); the new slots are dead with zero moments and statistics.
-    """
+    jit); the new slots are dead with zero moments and statistics."""
     old = gaussians.capacity
     extra = capacity - old
     if extra < 0:
@@ -143,8 +142,7 @@ def cull_mask(g: Gaussians, stats: DensifyStats, step, *, cull_alpha: float,
               big_scale: float | None, cull_screen: float | None,
               screen_from: int | None) -> jax.Array:
     """bool [C]: alive Gaussians with opacity < ``cull_alpha``, largest world scale >
-    ``big_scale``, or (after step ``screen_from``) screen radius > ``cull_screen``.
-    """
+    ``big_scale``, or (after step ``screen_from``) screen radius > ``cull_screen``."""
     culled = jax.nn.sigmoid(g.opacity_logits) < cull_alpha
     if big_scale is not None:
         culled |= jnp.exp(jnp.max(g.log_scales, axis=-1)) > big_scale
@@ -183,8 +181,7 @@ class Selection(NamedTuple):
 def select(stats: DensifyStats, alive: jax.Array, *, floor: float, budget, max_gaussians: int
            ) -> Selection:
     """Rank the candidates by mean NDC gradient and select the first ``min(budget,
-    #candidates, max_gaussians - alive, free slots)`` (``budget`` None: every candidate).
-    """
+    #candidates, max_gaussians - alive, free slots)`` (``budget`` None: every candidate)."""
     capacity = alive.shape[0]
     avg = stats.grad_sum / jnp.maximum(stats.count, 1).astype(jnp.float32)
     cand = alive & (stats.count > 0) & (avg > floor)

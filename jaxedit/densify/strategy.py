@@ -1,15 +1,5 @@
-"""The density-control strategy: statistics, settings and the ``(init, update)`` pair.
-
-``update`` accumulates each step's 3DGS statistics; at maintenance steps (``step >
-warmup``, every ``refine_every``, until ``stop_at``; from ``warmup`` itself with
-``refine_from_warmup``) it culls (low opacity, too large in the world or, after the first
-reset, on screen), then creates from the highest-gradient candidates, at most
-``min(free slots, max_gaussians - alive)`` and, with ProEdit's budget, t(n, N)
-(:func:`creation_budget`, paper section 3.3), duplicating small ones and splitting large
-ones, then zeroes the moments of changed slots. Every ``reset_every`` steps opacities are
-clamped to ``reset_value``. When free slots bind below the cap, ``info.capacity_limited``
-and ``info.slots_needed`` tell the caller to grow (:func:`jaxedit.densify.ops.grow_state`)
-and redo the pure step, as :func:`jaxedit.train.fit` does. ``step`` is 1-based.
+"""The density-control strategy: statistics, settings and the ``(init, update)`` pair
+(:func:`adaptive`, built by name through :func:`strategy_for`).
 """
 
 from __future__ import annotations
@@ -72,14 +62,13 @@ class Strategy(NamedTuple):
 # -- Creation budget t(n, N) -----------------------------------------------------------
 
 def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> BudgetFn:
-    """ProEdit's creation budget t(n, N).
+    """ProEdit's creation budget, paper section 3.3::
 
         t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N)))
 
-    ``n``: the number culled at the previous maintenance, ``N``: the number alive.
-    Re-creating ``n`` moves capacity from faded Gaussians to high-gradient regions without
-    growing the scene; ``growth`` adds a geometric trickle; ``max_fraction`` bounds one step
-    (an opacity reset can cull much at once); ``min_new`` lets a tiny scene grow.
+    ``n``: culled at the previous maintenance, ``N``: alive. Re-creating ``n`` moves
+    capacity from faded Gaussians to high-gradient regions; ``growth`` adds a geometric
+    trickle, ``max_fraction`` bounds one step, ``min_new`` lets a tiny scene grow.
 
     Returns:
       a jit-able function (n int [], N int []) -> int32 [].
@@ -172,8 +161,7 @@ _STRATEGIES: dict[str, Callable[..., Strategy]] = {}
 
 def register_strategy(name: str, make: Callable[..., Strategy]) -> None:
     """Make ``DensifyConfig(strategy=name)`` use ``make(config, *, scene_extent,
-    iterations) -> Strategy``, a module-level function (compiled programs are cached by it).
-    """
+    iterations) -> Strategy``, a module-level function (compiled programs are cached by it)."""
     if not name or not callable(make):
         raise DataError("strategy", f"need a name and a callable, got {name!r}, {make!r}")
     _STRATEGIES[name] = make
@@ -186,6 +174,16 @@ def strategy_for(config: DensifyConfig, *, scene_extent, iterations: int) -> Str
 
 def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> Strategy:
     """3DGS adaptive density control with an optional ProEdit creation budget.
+
+    ``update`` accumulates each step's statistics; at maintenance steps (``step >
+    warmup``, every ``refine_every``, until ``stop_at``; from ``warmup`` itself with
+    ``refine_from_warmup``) it culls (low opacity, too large in the world or, after the
+    first reset, on screen), then splits large and duplicates small high-gradient
+    candidates, at most ``min(free slots, max_gaussians - alive)`` and, with the budget,
+    t(n, N) (:func:`creation_budget`); changed slots' moments are zeroed. Every
+    ``reset_every`` steps opacities are clamped to ``reset_value``. When free slots bind
+    below the cap, ``info.capacity_limited`` and ``info.slots_needed`` tell the caller to
+    grow (:func:`jaxedit.densify.ops.grow_state`) and redo the pure step.
 
     Args:
       config: the :class:`DensifyConfig`.
@@ -267,7 +265,7 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
 
     def update(gaussians: Gaussians, opt_state, stats: DensifyStats, aux: RenderAux | None,
                step, key: jax.Array, frozen: jax.Array | None = None):
-        """One step of density control (module docstring).
+        """One step of density control (:func:`adaptive`).
 
         Args:
           gaussians: capacity C, after this step's optimiser update.

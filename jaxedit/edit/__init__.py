@@ -1,12 +1,9 @@
 """The ProEdit method: difficulty, the subtask scheduler, the plan, its run.
 
-In the order an edit calls them: :mod:`.plan` (configuration, subtasks), :mod:`.schedule`
-and :mod:`.difficulty` (the scheduler, 3.2), :mod:`.trainer`, :mod:`.context` (what a
-run reads), :mod:`.state` (where it is), :mod:`.progressive` (a whole edit's plan and
-:func:`run_plan`, the one loop over its subtasks), :mod:`.subtask` (one subtask's state
-machine), :mod:`.buffer` (the edit sources), :mod:`.hooks` (where a new scheduler or a
-study's control plugs in). The 2D editors it drives are
-:mod:`jaxedit.editors`. A whole edit with its run directory is
+:mod:`.plan` (config, subtasks), :mod:`.schedule` and :mod:`.difficulty` (the
+scheduler), :mod:`.progressive` (:func:`run_plan`, the loop over subtasks),
+:mod:`.subtask` (one subtask), :mod:`.buffer` (edit sources), :mod:`.hooks` (where a
+scheduler or a study plugs in). A whole edit with its run directory is
 :func:`jaxedit.pipelines.edit.run_edit`.
 """
 

@@ -1,45 +1,6 @@
-"""Producer/consumer of edited views: the 2D editor feeds the 3D trainer.
-
-ProEdit (paper section 3.3, "dual-GPU training") decouples the slow 2D editor
-(seconds per image) from the fast 3DGS trainer (milliseconds per step): the
-editor keeps producing edited views of the *current* scene into a buffer and
-the trainer keeps training on whatever the dataset currently holds, replacing a
-training image whenever a new edit of that view arrives (iterative dataset
-update).
-
-Interchangeable sources implement that contract, :class:`EditSource`, for a
-subtask's loop (:mod:`jaxedit.edit.subtask`):
-
-* :class:`SyncEditSource`, fully deterministic: the edits due at trainer step
-  ``s`` are fixed by a rule (one view every ``every`` steps, views in a seeded
-  cyclic order) and computed inline from the scene at step ``s``. Same seed,
-  same bits; resuming at any step reproduces the uninterrupted run, because the
-  rule depends on the step only.
-* :class:`SweepEditSource`, as deterministic: every view every ``every`` steps
-  (Instruct-GS2GS's dataset update).
-* :class:`PipelinedEditSource`, the same edits made on a worker thread beside the
-  trainer's next steps and taken into the dataset when those steps end: as deterministic,
-  with the editor's time hidden behind the trainer's where they can run side by side.
-* :class:`AsyncEditSource`, a producer thread (on its own JAX device when there
-  are two or more) that edits views in the same cyclic order, each from the
-  latest scene the trainer published, and hands them over through a bounded
-  queue. The trainer polls without blocking. Editor failures are re-raised in
-  the trainer's thread at the next poll or at close; close (also on Ctrl-C)
-  stops and joins the thread. Which scene version an edit sees depends on
-  timing, so this mode is not bit-reproducible.
-
-Both record :class:`Utilisation`: editor time, how often and how long the
-trainer waited for the editor and the editor for the trainer.
-
-The source is generic: it never renders or edits itself; the subtask passes an
-``edit_fn(job, scene) -> image`` that renders view ``job.view`` of ``scene`` and
-calls the editor with the job's seed and annealed timestep.
-
-Edited views stay where the editor made them when it returns a JAX array (the JAX
-editor, :mod:`jaxedit.editors.jax_ip2p`): the asynchronous source moves them to the
-trainer's device with ``jax.device_put`` (device to device, no host copy), so editor
-and trainer are two jitted programs on two device groups exchanging device arrays.
-NumPy results (the torch reference, the simulated editor) stay NumPy.
+"""Edit sources: the 2D editor feeds edited views to the 3D trainer (iterative dataset
+update, ProEdit section 3.3). A source never renders or edits itself: it calls
+``edit_fn(job, scene) -> image``; JAX results move to the trainer's device.
 """
 
 from __future__ import annotations
@@ -77,8 +38,8 @@ class EditJob:
 
 @dataclasses.dataclass(frozen=True)
 class EditedView:
-    """An edit result. ``image``: float32 [H, W, 3] in [0, 1] (NumPy, or a JAX array on the
-    trainer's device); ``seconds``: editor time (until the edit is complete on its device)."""
+    """An edit result: ``image`` float32 [H, W, 3] in [0, 1] (NumPy, or JAX on the
+    trainer's device), ``seconds`` of editor time, ``scene_step`` the scene's trainer step."""
 
     job: EditJob
     image: np.ndarray | jax.Array
@@ -88,16 +49,9 @@ class EditedView:
 
 @dataclasses.dataclass
 class Utilisation:
-    """Counters of who waited for whom (seconds are wall-clock, noisy on shared machines).
-
-    edits: edits produced; consumed: edits the trainer took into its dataset.
-    editor_seconds: total time inside ``edit_fn``.
-    trainer_waits / trainer_wait_s: times (and time) the trainer blocked on the editor.
-    editor_waits / editor_wait_s: times (and time) the editor blocked on the trainer
-      (no scene published yet, or the hand-over queue full).
-    polls / empty_polls: trainer polls, and those that found no new edit (the
-      trainer then trained on the images it had: it never blocks to poll).
-    """
+    """Counters (and wall-clock seconds) of edits made and consumed, of the trainer
+    waiting for the editor, of the editor waiting for a scene or a free queue slot, and of
+    polls (``empty_polls``: those that found no edit)."""
 
     edits: int = 0
     consumed: int = 0
@@ -123,8 +77,8 @@ EditManyFn = Callable[[list[EditJob], Any], list]
 
 
 def as_view(image, device: jax.Device | None = None):
-    """An editor's result as the trainer takes it: a JAX array finished and moved to ``device``
-    (None: left where it is), anything else as NumPy float32 [H, W, 3]."""
+    """An editor's result as the trainer takes it: a finished JAX array on ``device``
+    (None: where it is), or NumPy float32 [H, W, 3]."""
     if isinstance(image, jax.Array):
         image = image.astype(jnp.float32)
         if device is not None:
@@ -141,33 +95,29 @@ def view_order(num_views: int, key: jax.Array) -> np.ndarray:
 
 
 def pick_devices() -> tuple[jax.Device, jax.Device]:
-    """(trainer device, editor device) of this process: different devices when it has two or
-    more (its local devices: in a multi-process run every process trains and edits on its own)."""
+    """(trainer device, editor device) among this process's local devices; distinct
+    when there are two or more."""
     devices = jax.local_devices()
     return devices[0], devices[1] if len(devices) > 1 else devices[0]
 
 
 def side_by_side(trainer_device: jax.Device, editor_device: jax.Device | None) -> bool:
-    """Whether the editor's programs run at the same time as the trainer's: on a CPU (whose
-    cores each leaves idle) or on a device of the editor's own (None: the trainer's). One
-    accelerator shared by both runs their programs one after the other, and a pipelined
-    edit would only hold both programs' buffers at once."""
+    """Whether the editor's programs run concurrently with the trainer's: on a CPU, or
+    on an editor device distinct from ``trainer_device``. On one shared accelerator
+    pipelining would only hold both programs' buffers at once."""
     return trainer_device.platform == "cpu" or (
         editor_device is not None and editor_device != trainer_device)
 
 
 class EditSource(Protocol):
-    """What a subtask's loop asks of its edits, whichever source makes them.
+    """What a subtask's loop asks of its edits.
 
-    Steps are counted from the end of the subtask's warm-up. Use as a context manager
-    (``with source:``): the threaded source starts its thread on entry and joins it on
-    exit.
+    Steps count from the end of the subtask's warm-up. Use as a context manager; a
+    threaded source starts its thread on entry and joins it on exit.
 
     Attributes:
-      can_wait: whether waiting brings edits (a producer thread): a plateau or a guard
-        reached before every view was edited then waits for the missing ones. False: edits
-        arrive only at the exchanges due (the deterministic schedule, whose steps and bits
-        a seed fixes); waiting cannot help.
+      can_wait: whether waiting brings edits (a producer thread). False: edits arrive
+        only at the exchanges due.
       utilisation: who waited for whom (:class:`Utilisation`).
     """
 
@@ -184,9 +134,8 @@ class EditSource(Protocol):
         """Hand over the trainer's ``scene`` at ``step``; the edits ready for it."""
 
     def collect(self) -> list[EditedView]:
-        """At the end of the steps that followed an exchange: the edits begun there and
-        due now (:class:`PipelinedEditSource`; the other sources hand theirs over at an
-        exchange and return [])."""
+        """Edits begun at the last exchange and due now at the end of the steps that
+        followed it ([] for sources that hand edits over inside :meth:`exchange`)."""
 
     def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
                  on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
@@ -198,22 +147,19 @@ class EditSource(Protocol):
 
 
 class SyncEditSource:
-    """Deterministic edits: at step ``s`` (with ``s % every == offset``) edit one view.
+    """Deterministic edits: at each step ``s`` with ``s % every == 0``, one view, inline.
 
-    The ``i``-th edit of the subtask (``i = s // every``) edits view
-    ``order[i % N]`` from the scene as it is at step ``s``. Editing happens inline
-    (the trainer "waits" for every edit; counted in ``utilisation``).
+    Edit ``i = s // every`` is view ``order[i % N]`` of the scene at step ``s``.
 
     Args:
       edit_fn: ``(job, scene) -> image float32 [H, W, 3]``.
-      order: int [N], cyclic view order (see :func:`view_order`).
-      every: trainer steps between edits (IN2N: 10).
-      initial_sweep: when True, step 0 edits every view once (in ``order``), so
-        the subtask starts on a dataset fully edited with the new embedding.
-      trainer_device: where JAX results go (``None``: left where the editor made them).
-      edit_many: ``(jobs, scene) -> views``, used when several edits are due at one step
-        (the initial sweep) so that an editor that batches views edits them together
-        (``edit_fn`` then serves single edits); each edit's seconds are the batch's share.
+      order: int [N], cyclic view order (:func:`view_order`).
+      every: trainer steps between edits.
+      initial_sweep: step 0 edits every view once, so the subtask starts on a fully
+        edited dataset.
+      trainer_device: where JAX results go (None: left where the editor made them).
+      edit_many: ``(jobs, scene) -> images`` for several edits due at one step (the
+        initial sweep); each edit's seconds are the batch's share.
     """
 
     #: Edits arrive only at :meth:`exchange`, at steps a rule fixes.
@@ -242,9 +188,8 @@ class SyncEditSource:
     def jobs_at(self, step: int) -> list[EditJob]:
         """The edits due at trainer ``step`` (a pure function of the step).
 
-        Without the initial sweep, edit ``i`` happens at step ``i * every``; with
-        it, step 0 issues edits 0..N-1 (every view) and edit ``N + k - 1`` happens
-        at step ``k * every`` (k >= 1).
+        With the initial sweep, step 0 issues edits 0..N-1 and edit ``N + k - 1`` is at
+        step ``k * every`` (k >= 1); without it edit ``i`` is at step ``i * every``.
         """
         n = len(self.order)
         if step < 0 or step % self.every:
@@ -275,13 +220,12 @@ class SyncEditSource:
         return out
 
     def collect(self) -> list[EditedView]:
-        """Edits begun at the last exchange and not yet handed over (none: every edit is
-        made inside :meth:`exchange`)."""
+        """[]: every edit is made inside :meth:`exchange`."""
         return []
 
     def _edit(self, jobs: list[EditJob], scene, step: int) -> list[EditedView]:
-        """``jobs`` (all due at ``step``) edited on ``scene``, finished (each edit's seconds
-        are its group's share; several jobs go to ``edit_many`` together when it is given)."""
+        """``jobs`` (all due at ``step``) edited on ``scene``, finished; grouped into one
+        ``edit_many`` call when given."""
         together = self.edit_many is not None and len(jobs) > 1
         groups = [jobs] if together else [[job] for job in jobs]
         out = []
@@ -312,22 +256,13 @@ class SyncEditSource:
 
 
 class PipelinedEditSource(SyncEditSource):
-    """:class:`SyncEditSource`'s edits, made while the trainer trains.
+    """:class:`SyncEditSource`'s edits, made on a worker thread while the trainer trains.
 
-    The edit due at step ``s`` is made from the scene as it is at step ``s``, on a worker
-    thread, while the trainer takes the steps up to its next stop (the next exchange, a
-    checkpoint, the end of the warm-up or of the subtask); :meth:`collect` hands it over at
-    that stop, and the trainer waits only for what the editor has not finished by then.
-    Which scene an edit sees and the step at which its view enters the dataset are fixed by
-    the rule and the stops, never by timing, so a seed fixes the bits as it does for
-    :class:`SyncEditSource`, and a resume is exact (nothing is in flight at a chunk's end,
-    where checkpoints are taken). What differs from it is when an edit is used: at the end
-    of the chunk it was made beside, not at its start. The initial sweep (every view at step
-    0) is made at once, so that a subtask starts on a dataset fully edited with e(r).
-
-    On a CPU the two programs share the cores, each of which leaves idle much of the time
-    (the demo's editor and trainer on 2 cores: an edit beside 10 training steps costs
-    nothing more than the steps); on two devices each has its own.
+    The edit due at step ``s`` is made from the scene at ``s`` while the trainer runs
+    to its next stop (exchange, checkpoint, end of warm-up or subtask), where
+    :meth:`collect` hands it over. Scenes and hand-over steps are fixed by the rule,
+    not by timing, so a seed fixes the bits and a resume is exact (nothing is in
+    flight at a chunk's end). The initial sweep is made at once.
     """
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, **kwargs):
@@ -337,8 +272,8 @@ class PipelinedEditSource(SyncEditSource):
         self._pending: concurrent.futures.Future | None = None
 
     def exchange(self, step: int, scene) -> list[EditedView]:
-        """The initial sweep at once; a single edit due at ``step`` begun on ``scene`` (and
-        handed over by :meth:`collect`)."""
+        """Begin the edit due at ``step`` on ``scene`` (handed over by :meth:`collect`);
+        the initial sweep is made at once and returned."""
         if self._pending is not None:
             raise RuntimeError("collect() the edit begun at the last exchange first")
         jobs = self.jobs_at(step)
@@ -349,8 +284,8 @@ class PipelinedEditSource(SyncEditSource):
         return []
 
     def collect(self) -> list[EditedView]:
-        """The edit begun at the last exchange, once finished (the editor's error, if it
-        failed, is raised here); [] when none was begun."""
+        """The edit begun at the last exchange, once finished ([] if none); re-raises
+        the editor's error."""
         if self._pending is None:
             return []
         pending, self._pending = self._pending, None
@@ -369,9 +304,8 @@ class PipelinedEditSource(SyncEditSource):
 
 
 class SweepEditSource(SyncEditSource):
-    """Deterministic sweeps: every ``every`` steps (step 0 included) every view is edited, in
-    ``order``, from the scene at that step (Instruct-GS2GS edits its whole dataset every 2500
-    steps). Edit ``i`` of the subtask is view ``order[i % N]`` of sweep ``i // N``."""
+    """Every ``every`` steps (step 0 included) every view, in ``order``, from the scene
+    at that step. Edit ``i`` is view ``order[i % N]`` of sweep ``i // N``."""
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int,
                  trainer_device=None, edit_many: EditManyFn | None = None):
@@ -390,17 +324,17 @@ class EditorThreadError(RuntimeError):
 
 
 class AsyncEditSource:
-    """Edits produced on a background thread (own device), consumed without waiting.
+    """Edits produced on a background thread, consumed without waiting.
 
-    Use as a context manager (``with AsyncEditSource(...) as src:``) so the
-    thread is stopped and joined on any exit, including errors and Ctrl-C.
+    Use as a context manager so the thread is joined on any exit, Ctrl-C included.
+    Which scene an edit sees depends on timing: not bit-reproducible.
 
     Args:
-      edit_fn: ``(job, scene) -> image`` called on the editor thread with the
-        latest published scene, already placed on ``device``.
+      edit_fn: ``(job, scene) -> image``, called on the editor thread with the latest
+        published scene, placed on ``device``.
       order: int [N], cyclic view order.
-      device: editor device (``None``: leave arrays where they are).
-      trainer_device: where JAX results go (``None``: left on the editor's device).
+      device: editor device (None: leave arrays where they are).
+      trainer_device: where JAX results go (None: left on the editor's device).
       capacity: hand-over queue size; the editor waits when it is full.
       poll_interval: seconds between checks of the stop flag while waiting.
     """
@@ -437,7 +371,6 @@ class AsyncEditSource:
         return self.start()
 
     def __exit__(self, exc_type, exc, tb):
-        # On an exception already propagating, do not mask it with the editor's.
         self.close(raise_error=exc_type is None)
         return False
 
@@ -448,7 +381,7 @@ class AsyncEditSource:
         if self._started and self._thread.is_alive():
             t0 = time.perf_counter()
             while self._thread.is_alive() and time.perf_counter() - t0 < timeout:
-                self._drain_nowait()  # unblock a producer stuck on a full queue
+                self._drain_nowait()
                 self._thread.join(self.poll_interval)
             waited = time.perf_counter() - t0
             self.utilisation.trainer_waits += 1
@@ -479,8 +412,7 @@ class AsyncEditSource:
         return out
 
     def due(self, step: int) -> bool:
-        """Every step: the editor then always works from a fresh render (collecting its edits
-        once per 16-step chunk left it on stale renders and cost the demo 1.5 dB)."""
+        """Every step, so the editor always works from a fresh render."""
         return step >= 0
 
     def next_due(self, step: int) -> int:
@@ -500,7 +432,7 @@ class AsyncEditSource:
         """Block until ``predicate()`` holds, feeding arrivals to ``on_edits``.
 
         The only place the trainer waits for the editor (counted). Returns the
-        final value of the predicate (False on timeout).
+        predicate's final value (False on timeout).
         """
         if predicate():
             return True
@@ -594,10 +526,16 @@ def make_source(edit_fn: EditFn, order: np.ndarray, *, asynchronous: bool, every
                 initial_sweep: bool = False, device=None, capacity: int = 4,
                 trainer_device=None, edit_many: EditManyFn | None = None,
                 pipelined: bool = False, sweep_every: int | None = None):
-    """The sync (deterministic: inline, or ``pipelined`` beside the trainer's steps) or
-    async (threaded) edit source with one call (the asynchronous producer edits one view at
-    a time, each from the newest scene); ``sweep_every``: every view every that many steps
-    instead (:class:`SweepEditSource`, inline)."""
+    """The edit source for a subtask.
+
+    Args:
+      asynchronous: :class:`AsyncEditSource` (one view at a time, from the newest scene).
+      pipelined: :class:`PipelinedEditSource` instead of :class:`SyncEditSource`.
+      sweep_every: every view every that many steps (:class:`SweepEditSource`).
+
+    Raises:
+      ValueError: ``sweep_every`` with ``asynchronous``.
+    """
     if sweep_every is not None:
         if asynchronous:
             raise ValueError("sweeps are deterministic: not asynchronous")

@@ -1,8 +1,6 @@
-"""An edit run's checkpoint: its whole :class:`EditState` in one npz, atomically, bit-exact.
-
-The format is :mod:`jaxedit.io.checkpoint`'s: arrays under their pytree paths, the rest a
-JSON meta record checked by :func:`read_record`. :func:`check_resume` checks, before a
-resumed run writes anything, the data's shape and every recorded snapshot.
+"""An edit run's checkpoint: its whole :class:`EditState` in one npz, atomically,
+bit-exact (:mod:`jaxedit.io.checkpoint`); :func:`check_resume` checks a resume before it
+writes anything.
 """
 
 from __future__ import annotations

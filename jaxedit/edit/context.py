@@ -1,6 +1,5 @@
 """What an edit reads and never changes: its views (:class:`EditData`) and its run's
-context (:class:`EditContext`). The constructors do the work (cameras to the device, the
-prompt encoded once), so ``dataclasses.replace`` never redoes it.
+context (:class:`EditContext`), built by constructors so ``dataclasses.replace`` redoes nothing.
 """
 
 from __future__ import annotations
@@ -63,9 +62,8 @@ class EditData:
 
 
 def encode_prompt(editor, prompt: str) -> tuple[np.ndarray, np.ndarray]:
-    """(E(p), E("")): the editor's embeddings of ``prompt`` and of the empty prompt, as
-    NumPy arrays of the editor's shape ([77, D] for InstructPix2Pix). The one place a run
-    encodes its prompt."""
+    """(E(p), E("")): the editor's embeddings of ``prompt`` and of "", NumPy, the editor's
+    shape ([77, D] for InstructPix2Pix). The one place a run encodes its prompt."""
     return np.asarray(editor.encode(prompt)), np.asarray(editor.encode(""))
 
 
@@ -80,17 +78,13 @@ class EditContext:
       config: :class:`ProEditConfig`, as given (resolved per subtask by
         :func:`jaxedit.edit.plan.subtask_limits`).
       trainer: :class:`SubtaskTrainer`.
-      renderer: :class:`Renderer` used for the editor's inputs and the snapshots.
+      renderer: :class:`Renderer` of the editor's inputs and the snapshots.
       key: the run key (``jax.random.key(seed)``).
       e_prompt: E(p), the editor's embedding of the prompt (NumPy).
-      e_null: E(""), its embedding of the empty prompt (NumPy); a subtask at ratio r
-        edits with e(r) = r E(p) + (1 - r) E("").
-      editor_device: device of the editor (async mode), see
-        :func:`jaxedit.edit.buffer.pick_devices`.
-      masks: float [N, H, W] on the device, a local edit's training masks
-        (:func:`jaxedit.edit.local.plan_local`: edit inside, photo outside), or None.
-      hooks: a study's changes to the plan, the limits or the edit source
-        (:class:`jaxedit.edit.hooks.EditHooks`; none by default).
+      e_null: E("") (NumPy); a subtask at ratio r edits with e(r) = r E(p) + (1 - r) E("").
+      editor_device: the editor's device (:func:`jaxedit.edit.buffer.pick_devices`).
+      masks: float [N, H, W] on the device, a local edit's training masks, or None.
+      hooks: a study's changes (:class:`jaxedit.edit.hooks.EditHooks`; none by default).
     """
 
     editor: Any

@@ -1,10 +1,6 @@
-"""The seams where a new scheduler or a study changes an edit without the method's config
-knowing of it.
-
-A scheduler of your own, or a control of an ablation (the same edit k times at r = 1, subtasks
-of fixed length, editor calls at chosen steps), is an :class:`EditHooks` passed to
-:func:`jaxedit.pipelines.edit.run_edit`; the method's :class:`~jaxedit.edit.plan.ProEditConfig`
-holds only what the method reads. Every hook is optional; None keeps the method's own way.
+"""Seams where a custom scheduler or a study changes an edit without the method's
+config knowing: an :class:`EditHooks` passed to :func:`jaxedit.pipelines.edit.run_edit`.
+Every hook is optional; None keeps the method's own way.
 """
 
 from __future__ import annotations

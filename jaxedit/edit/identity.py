@@ -1,13 +1,9 @@
 """The editor's identity on a scene: does e(0) give back the views it is shown?
 
-The refinement subtask r_0 (paper 3.3) trains the scene on edits made with the empty
-instruction's embedding e(0) = E(""): with an editor that reproduces its input there, r_0
-only sharpens the scene; with one that does not (weights trained on other images, or at
-another size), every target is a changed image and r_0 moves the whole scene before the
-instruction has begun. :func:`measure_identity` edits the difficulty views' renders with
-e(0) at the run's strongest timestep (t_max, where r_0's first edits are made), one editor
-call per view, and scores the edits against the renders (or the photos, where nearer);
-:func:`identity_problem` says whether the figures clear an :class:`IdentityFloor`.
+The refinement subtask r_0 trains on edits made with e(0) = E(""); an editor that
+does not reproduce its input there moves the whole scene before the instruction
+begins. :func:`measure_identity` scores e(0)'s edits at t_max; :func:`identity_problem`
+checks them against an :class:`IdentityFloor`.
 """
 
 from __future__ import annotations
@@ -59,27 +55,23 @@ def measure_identity(editor, renders: np.ndarray, originals: np.ndarray, views: 
                      guidance: tuple[float, float] | None = None,
                      lpips: Callable | None = None, keys_of: Sequence[int] | None = None) -> dict:
     """Edit ``renders[views]`` with e(0) at ``timestep``; PSNR and LPIPS against the renders
-    (or the photos, where the edit is nearer them: an edit that gives back the photo refines
-    the scene towards the capture).
+    or the photos, whichever is nearer (giving back the photo refines towards the capture).
 
     Args:
       editor: an :class:`jaxedit.editors.Editor`.
       renders: float [N, H, W, 3], the input scene's renders of the training views.
-      originals: float [N, H, W, 3], their photos (the editor's conditioning, as in r_0).
+      originals: float [N, H, W, 3], their photos (the editor's conditioning).
       views: the view indices to check (the difficulty views).
       e_null: the editor's E("").
       timestep: the SDEdit timestep (fraction of the schedule).
-      seed: the run seed; view k's key is :func:`view_key` (seed, k, 0, 0), the difficulty
-        oracle's key of that view.
+      seed: the run seed; view k's key is :func:`view_key` (seed, k, 0, 0).
       guidance: the run's (text, image) scales (None: the editor's own).
       lpips: ``(a, b) -> float`` (None: the bundled LPIPS-AlexNet).
-      keys_of: the training-view indices of ``views`` (None: ``views`` are those indices),
-        which name them in the keys and the record.
+      keys_of: the training-view indices naming ``views`` in keys and record (None: ``views``).
     Returns:
-      {"psnr", "lpips" (means over the views of each view's better of the two),
-      "psnr_per_view", "lpips_per_view", "psnr_vs_renders", "lpips_vs_renders",
-      "psnr_vs_photos", "lpips_vs_photos", "views" (training-view indices), "timestep",
-      "editor_calls"} (one call per view).
+      {"psnr", "lpips" (means of each view's better score), "psnr_per_view",
+      "lpips_per_view", "psnr_vs_renders", "lpips_vs_renders", "psnr_vs_photos",
+      "lpips_vs_photos", "views", "timestep", "editor_calls"}.
     """
     views = [int(k) for k in views]
     names = views if keys_of is None else [int(k) for k in keys_of]
@@ -97,8 +89,6 @@ def measure_identity(editor, renders: np.ndarray, originals: np.ndarray, views: 
 
     psnr_r, lp_r = scores(renders)
     psnr_o, lp_o = scores(originals)
-    # Giving back the photo is as good as giving back the render: r_0 then refines the
-    # scene towards the capture (an editor conditioned on the photo may do either).
     psnr = [max(a, b) for a, b in zip(psnr_r, psnr_o)]
     lp = [min(a, b) for a, b in zip(lp_r, lp_o)]
     return {"psnr": float(np.mean(psnr)), "lpips": float(np.mean(lp)),

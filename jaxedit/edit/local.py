@@ -1,9 +1,7 @@
 """Local edits: what the instruction touches, per pixel and per Gaussian.
 
-Per-view relevance (:func:`jaxedit.editors.base.relevance`), regions
-(:func:`parse_region`) and mask folders (:func:`load_masks`) compose into the per-Gaussian
-:func:`editable` mask; the rest of the alive Gaussians is frozen (:func:`frozen_of`).
-Errors are :class:`jaxedit.errors.DataError`.
+Relevance maps, regions (:func:`parse_region`) and mask folders (:func:`load_masks`)
+compose into the per-Gaussian :func:`editable` mask; the rest is frozen (:func:`frozen_of`).
 """
 
 from __future__ import annotations

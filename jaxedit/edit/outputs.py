@@ -1,9 +1,6 @@
-"""What an edit run measures: renders of scene states and their scores.
-
-Renders go through :class:`Renderer` (never truncated); the numbers are
-:func:`image_scores` against the editor's targets and
+"""What an edit run measures: renders of scene states (:class:`Renderer`, never
+truncated), :func:`image_scores` against the editor's targets and
 :func:`reprojection_consistency` across views, gathered by :func:`scene_metrics`.
-The snapshot folders that hold them are written by :mod:`jaxedit.pipelines.snapshots`.
 """
 
 from __future__ import annotations

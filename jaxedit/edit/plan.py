@@ -46,14 +46,11 @@ class ProEditConfig:
       guidance: (text, image) classifier-free guidance scales (None: the editor's own,
         :func:`jaxedit.editors.editor_guidance`).
       edit_every: trainer steps between edits in the deterministic mode.
-      sweep_every: edit every view at once every that many steps after the warm-up
-        (Instruct-GS2GS's dataset update) instead of one view every ``edit_every`` (None);
-        not with ``asynchronous``.
+      sweep_every: edit every view every that many steps after the warm-up (Instruct-GS2GS)
+        instead of one view every ``edit_every`` (None); not with ``asynchronous``.
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
-      pipelined: make the deterministic schedule's edits on a worker thread while the
-        trainer runs to its next stop, same bits
-        (:class:`jaxedit.edit.buffer.PipelinedEditSource`), where the two run side by side
-        (:func:`jaxedit.edit.buffer.side_by_side`); False: inline.
+      pipelined: make the deterministic edits on a worker thread beside the trainer, same
+        bits (:class:`jaxedit.edit.buffer.PipelinedEditSource`); False: inline.
       asynchronous: a producer thread instead of the deterministic schedule, faster when
         the editor has a device of its own but not reproducible.
       checkpoint_every: steps between checkpoints inside a subtask.
@@ -226,9 +223,8 @@ def anneal_horizon(config: ProEditConfig, max_steps: int) -> int:
     """Steps after the warm-up at which a subtask's annealed timestep reaches t_min.
 
     Half the room ``max_steps - warmup - patience - edit_every`` under the step guard
-    (the rest refines at t_min, :func:`jaxedit.edit.subtask.earliest_end`), so it grows
-    with the scene; ``config.anneal_steps`` overrides, clamped to the room. Not the previous
-    subtasks' length, an estimate that fulfils itself.
+    (the rest refines at t_min), so it grows with the scene; ``config.anneal_steps``
+    overrides, clamped to the room. Not the previous subtask's length: that estimate fulfils itself.
     """
     room = max_steps - config.warmup - config.patience - config.edit_every
     horizon = config.anneal_steps if config.anneal_steps is not None else room // 2

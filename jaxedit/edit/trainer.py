@@ -19,11 +19,9 @@ from ..raster.render import next_capacity
 from ..train import TrainConfig
 from .plan import ProEditConfig
 
-#: The editing trainer's density control (paper 3.3, else Splatfacto's defaults): the
-#: budget t(n, N) = max(16, min(0.1 N, n + 0.02 N)) (the constants are ours; the paper gives
-#: only the form); ``cull_alpha`` 0.1 is also the opacity a subtask start resets to (the
-#: only reset); ``max_gaussians`` None: :func:`default_max_gaussians`; ``warmup`` is the
-#: plan's W, the first maintenance right after it; no ``stop_at``.
+#: The editing trainer's density control (paper 3.3; the budget's constants are ours, the paper
+#: gives only the form). ``cull_alpha`` is also the opacity a subtask start resets to, the only
+#: reset; the cap is :func:`default_max_gaussians`; maintenance from the plan's W on.
 EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
                              budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
                              warmup=ProEditConfig.warmup, refine_from_warmup=True, stop_at=2 ** 30,
@@ -102,11 +100,9 @@ def resolve_max_gaussians(settings: TrainSettings, num_input: int) -> TrainSetti
 
 
 class SubtaskTrainer:
-    """An edit's view of :mod:`jaxedit.train`: the settings, init and subtask restart.
-
-    The steps are :func:`jaxedit.edit.subtask.step_chunk`'s. ``restart`` is paper 3.3 (1):
-    opacities to the cull threshold (moments zeroed, frozen Gaussians kept), fresh density
-    statistics and clock, so the first ``warmup`` steps have no densify/cull.
+    """An edit's view of :mod:`jaxedit.train`: the settings, init and subtask restart
+    (paper 3.3 (1): opacities to the cull threshold, moments zeroed, frozen Gaussians kept,
+    fresh density statistics and clock).
     """
 
     def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None,

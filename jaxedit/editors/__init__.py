@@ -1,25 +1,13 @@
-"""The 2D instruction editors, one package beside the networks (``jaxedit.models``).
+"""The 2D instruction editors. The method sees an editor only through :mod:`.base`'s
+:class:`Editor` protocol.
 
-The ProEdit method (``jaxedit.edit``) sees an editor only through the protocol of
-:mod:`.base`: encode a prompt, edit views at a timestep range, and (for local edits) say
-where an instruction acts.
+- :mod:`.base`: the protocol, e(r) interpolation, :func:`edit_views`, :func:`warm_up`,
+  :func:`relevance` and :func:`relevance_mask`.
+- :mod:`.jax_ip2p`: InstructPix2Pix in JAX; :mod:`.ip2p`: its torch reference;
+  :mod:`.diffusion`: their shared arithmetic; :mod:`.keys`: per-view seeding.
+- :mod:`.bundled`: the small InstructPix2Pix shipped in the package.
 
-- :mod:`.base`: the :class:`Editor` protocol, e(r) interpolation, batched :func:`edit_views`,
-  :func:`warm_up` (an editor's program compiled ahead of the run), :func:`relevance` and
-  :func:`relevance_mask`.
-- :mod:`.jax_ip2p`: InstructPix2Pix in JAX (no torch); :mod:`.ip2p`: its torch + diffusers
-  reference (the JAX one also gives the relevance map of "Watch Your Steps");
-  :mod:`.diffusion`: the arithmetic both share; :mod:`.keys`: per-view edit seeding.
-- :mod:`.bundled`: the small InstructPix2Pix that ships with jaxedit, a diffusers folder
-  inside the package, which ``--editor ip2p`` loads when no ``--ip2p-weights`` is given
-  (with the guidance its folder recommends, :func:`recommended_guidance`).
-
-The simulated editor (the offline test instrument whose targets are known exactly), the
-outcome measure and the bundled editor's training are the lab's (:mod:`jaxedit_lab`), above
-this library.
-
-The two InstructPix2Pix editors are imported on demand (torch is optional; the JAX one
-loads equinox networks).
+The two InstructPix2Pix editors are imported on demand.
 """
 
 from .base import (Editor, edit_views, editor_guidance, interpolate_embedding, relevance,

@@ -1,15 +1,11 @@
 """The Editor protocol every 2D instruction editor implements.
 
-An editor turns a text instruction into an embedding (``encode``; ``encode("")`` is
-E("")) and edits one view given an embedding (``edit``); the framework forms ProEdit's
-e(r) = r E(p) + (1 - r) E("") (:func:`interpolate_embedding`). Images are float32
-[H, W, 3] in [0, 1]: ``image`` the current render, ``original`` the photo.
-``timestep_range`` is (t_min, t_max) as fractions of the schedule; ``guidance`` is
-(text, image), None for the editor's own (:func:`editor_guidance`).
-
-Optional: ``edit_many`` with ``batch`` (several views per call, used by
-:func:`edit_views`), ``calls_side_by_side``, and ``relevance`` (float32 [H, W] mask in
-[0, 1]; :func:`relevance`) for local edits.
+``encode(prompt)`` gives E(prompt) (``encode("")`` is E("")); ``edit`` edits one view
+given an embedding; the framework forms e(r) = r E(p) + (1 - r) E("")
+(:func:`interpolate_embedding`). Images are float32 [H, W, 3] in [0, 1] (``image``
+the render, ``original`` the photo); ``timestep_range`` is (t_min, t_max) as fractions
+of the schedule; ``guidance`` (text, image), None for the editor's own. Optional:
+``edit_many`` with ``batch``, ``calls_side_by_side``, ``relevance`` (local edits).
 """
 
 from __future__ import annotations
@@ -38,15 +34,13 @@ class Editor(Protocol):
              timestep_range: tuple[float, float] = (0.02, 0.98),
              guidance: tuple[float, float] | None = None) -> np.ndarray | jax.Array:
         """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key`` (NumPy,
-        or a JAX array on the editor's device).
-        """
+        or a JAX array on the editor's device)."""
         ...
 
 
 def editor_guidance(editor, guidance: tuple[float, float] | None = None) -> tuple[float, float]:
     """``guidance`` as (text, image) floats, or where None the editor's
-    ``guidance`` attribute, else :data:`jaxedit.editors.diffusion.IP2P_GUIDANCE`.
-    """
+    ``guidance`` attribute, else :data:`jaxedit.editors.diffusion.IP2P_GUIDANCE`."""
     if guidance is None:
         guidance = getattr(editor, "guidance", IP2P_GUIDANCE)
     return check_guidance(guidance)
@@ -56,8 +50,7 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
               timestep_range: tuple[float, float] = (0.02, 0.98),
               guidance: tuple[float, float] | None = None):
     """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant),
-    by ``editor.relevance``; DataError for an editor without one.
-    """
+    by ``editor.relevance``; DataError for an editor without one."""
     fn = getattr(editor, "relevance", None)
     if fn is None:
         raise DataError("--local", f"editor {getattr(editor, 'name', type(editor).__name__)!r} "
@@ -70,8 +63,7 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
 def warm_up(editor, height: int, width: int, key: jax.Array, *, views: int = 1,
             guidance: tuple[float, float] | None = None) -> None:
     """Edit ``views`` grey ``height`` x ``width`` views once and drop the result, so the
-    program of that call is compiled (and cached on disk) before a run needs it; the run's
-    own edits do not change.
+    call's program is compiled (and cached) before a run needs it.
     """
     grey = jnp.full((views, height, width, 3), 0.5, jnp.float32)
     out = edit_views(editor, grey, grey, editor.encode(""), jax.random.split(key, views),

@@ -29,8 +29,7 @@ def bundled_editor() -> Path:
 def native_size(folder: str | Path) -> int:
     """The resolution a diffusers folder works at, as diffusers' pipelines default to
     it: the UNet's ``sample_size`` times the VAE factor 2^(len(block_out_channels) - 1);
-    512 for a folder whose configs do not say.
-    """
+    512 for a folder whose configs do not say."""
     folder = Path(folder)
     try:
         unet = json.loads((folder / "unet" / "config.json").read_text())
@@ -44,8 +43,7 @@ def native_size(folder: str | Path) -> int:
 
 def _listing(folder: str | Path | None) -> tuple[Path, object]:
     """(path of a folder's ``instructions.json``, its JSON or None without the file);
-    DataError naming the file when it cannot be read.
-    """
+    DataError naming the file when it cannot be read."""
     path = Path(folder if folder is not None else BUNDLED) / "instructions.json"
     if not path.is_file():
         return path, None
@@ -70,8 +68,7 @@ def instructions(folder: str | Path | None = None) -> list[dict]:
 def recommended_guidance(folder: str | Path | None = None) -> tuple[float, float]:
     """The (text, image) guidance a trained folder edits with: ``"guidance"`` in
     its ``instructions.json``, else InstructPix2Pix's. The bundled model's empty prompt keeps
-    the view, so its text scale sets the edit's gain (``docs/editor.md``).
-    """
+    the view, so its text scale sets the edit's gain (``docs/editor.md``)."""
     path, listing = _listing(folder)
     if not isinstance(listing, dict) or "guidance" not in listing:
         return IP2P_GUIDANCE

@@ -1,17 +1,12 @@
-"""How an edit made at the editor's size becomes the target of a larger view.
+"""How an edit made at the editor's model size becomes the target of a larger view.
 
-An InstructPix2Pix edits at its model size (the bundled editor's 64 px, SD's 512 px); a
-view larger than that comes back *stretched*: the edit, made of the view shrunk to the
-model size, enlarged again, so every target is a blurred image and training on it blurs
-the scene. :class:`DetailTargets` makes the target from the edit's *change* at the
-editor's scale instead, added to the view as it is::
+Enlarging the edit of a shrunk view blurs every target, and so the scene.
+:class:`DetailTargets` adds the edit's change at the editor's scale to the view::
 
     target = image + up(edit(down(image)) - down(image))
 
-(``down`` / ``up``: antialiased bilinear resizes, :func:`jaxedit.editors.jax_ip2p.resize_images`),
-so what the edit changes is taken at the editor's resolution and what it leaves alone
-keeps the view's own detail. Views at (or under) the editor's size are edited exactly as
-the editor edits them.
+(antialiased bilinear resizes), so unchanged areas keep the view's own detail.
+Views at or under the editor's size are edited as the editor edits them.
 """
 
 from __future__ import annotations
@@ -43,12 +38,8 @@ def compose_target(images, small, edited_small):
 
 class DetailTargets:
     """``editor`` whose edits of views larger than its model size keep the views' detail
-    (:func:`compose_target`); everything else (``encode``, ``relevance``, ``guidance``,
-    ``batch``, ...) is the editor's own.
-
-    ``editor`` must have ``model_hw(height, width)``, the size it edits a view at (the JAX
-    InstructPix2Pix has it).
-    """
+    (:func:`compose_target`); everything else is the editor's own. ``editor`` must have
+    ``model_hw(height, width)``, the size it edits a view at."""
 
     def __init__(self, editor):
         if not hasattr(editor, "model_hw"):

@@ -30,8 +30,7 @@ DTYPE_ALIASES = {"fp16": "float16", "half": "float16", "fp32": "float32", "float
 
 def dtype_name(dtype) -> str:
     """An editor's ``dtype`` name with a :data:`DTYPE_ALIASES` alias spelled out
-    ("fp16" -> "float16"); other names as given.
-    """
+    ("fp16" -> "float16"); other names as given."""
     return DTYPE_ALIASES.get(str(dtype), str(dtype))
 
 
@@ -59,8 +58,7 @@ def draw_timestep(key: jax.Array, timestep_range: tuple[float, float],
 
 def timestep_schedule(t_start: int, steps: int) -> list[int]:
     """DDIM timesteps from ``t_start`` towards 0: round(T (steps - k) / steps), k < steps,
-    repeats and zeros dropped; the step after the last lands on the final alpha.
-    """
+    repeats and zeros dropped; the step after the last lands on the final alpha."""
     if steps < 1:
         raise DataError("steps", f"must be >= 1, got {steps}")
     ts = [int(round(t_start * (steps - k) / steps)) for k in range(steps)]
@@ -105,8 +103,7 @@ IP2P_GUIDANCE = (7.5, 1.5)
 
 def check_guidance(guidance, field: str = "guidance") -> tuple[float, float]:
     """``guidance`` as (text, image) floats, finite, text >= 0 and image > 0 (0 would drop
-    the view the edit starts from); DataError naming ``field`` otherwise.
-    """
+    the view the edit starts from); DataError naming ``field`` otherwise."""
     try:
         text, image = (float(g) for g in guidance)
     except (TypeError, ValueError):
@@ -157,8 +154,7 @@ def ddim_step(sample, model_output, alpha_t, alpha_prev, prediction_type: str = 
 def ddim_overrides(folder: Path) -> dict:
     """DDIM settings for a scheduler config of another class: SD 1.x's DDIM setup
     (no x0 clipping, final alpha = alpha_0), as IN2N uses for IP2P's Euler-ancestral config.
-    An explicit DDIM config is kept as is.
-    """
+    An explicit DDIM config is kept as is."""
     from ..models.load import read_scheduler_config
 
     config = read_scheduler_config(folder / "scheduler_config.json")

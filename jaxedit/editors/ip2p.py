@@ -1,17 +1,13 @@
 """InstructPix2Pix as a jaxedit Editor in torch (extra ``jaxedit[ip2p]``): the reference.
 
-The edit of one view, as Instruct-NeRF2NeRF uses InstructPix2Pix: resize render and
-original to the model size (longer side ``size``, multiples of the VAE factor); encode the
-render (posterior sample x ``scaling_factor``) and the original (posterior mode,
-unscaled); noise to T drawn in ``timestep_range`` (SDEdit); DDIM (eta = 0) over
-``steps`` timesteps with dual classifier-free guidance over (text+image, image only:
-E("") with the original, unconditional: E("") with zeros); decode, resize back, clamp.
-IP2P's Euler-ancestral scheduler config is read as SD 1.x's DDIM, as IN2N does.
+The edit of one view as Instruct-NeRF2NeRF makes it: resize to the model size,
+encode render (scaled posterior sample) and original (posterior mode), noise to T
+(SDEdit), DDIM (eta = 0) with dual classifier-free guidance, decode, resize back.
+IP2P's Euler-ancestral config is read as SD 1.x's DDIM, as IN2N does.
 
-``encode`` returns NumPy float32 [77, D], so the framework stays free of torch. The editor
-runs on its own torch device (fp16 on accelerators, fp32 on the CPU; latents and DDIM in
-float32) and returns NumPy float32 [H, W, 3]. Randomness: T from the JAX key, and a
-63-bit seed for a CPU ``torch.Generator`` drawing both noises, the same on every device.
+``encode`` returns NumPy float32 [77, D] and edits NumPy float32 [H, W, 3], so the
+framework stays free of torch. T comes from the JAX key and both noises from a
+63-bit seed for a CPU ``torch.Generator``, the same on every device.
 """
 
 from __future__ import annotations
@@ -72,8 +68,7 @@ def _load(root: Path, sub: str, loader):
 
 def _from_jax(x: jax.Array) -> "torch.Tensor":
     """JAX array -> torch tensor by DLPack (zero-copy) when this torch takes it, else
-    one device-to-host copy.
-    """
+    one device-to-host copy."""
     try:
         return torch.from_dlpack(x)
     except (RuntimeError, TypeError, BufferError, ValueError):
@@ -260,8 +255,7 @@ class InstructPix2PixEditor:
     def edit_with_noise(self, image, original, embedding, t_start: int, vae_noise, sde_noise, *,
                         guidance: tuple[float, float] | None = None) -> np.ndarray:
         """:meth:`edit` with its draws given: timestep ``t_start``,
-        standard normals ``vae_noise`` and ``sde_noise`` [1, 4, h/f, w/f] at the model size.
-        """
+        standard normals ``vae_noise`` and ``sde_noise`` [1, 4, h/f, w/f] at the model size."""
         guidance = editor_guidance(self, guidance)
         render = self._image(image, "image")
         orig = self._image(original, "original")

@@ -52,8 +52,7 @@ class Networks(eqx.Module):
 
 class DiffusionSchedule(NamedTuple):
     """The noise schedule: alphas_cumprod float32 [N]; final_alpha, the alpha the
-    last DDIM step lands on.
-    """
+    last DDIM step lands on."""
 
     alphas_cumprod: jax.Array
     final_alpha: jax.Array
@@ -90,8 +89,7 @@ def latent_factor(vae) -> int:
 
 def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
     """[B, H, W, C] -> [B, h, w, C], bilinear, antialiased when shrinking (as torch's
-    ``interpolate(..., antialias=True)``).
-    """
+    ``interpolate(..., antialias=True)``)."""
     if tuple(images.shape[1:3]) == tuple(hw):
         return images
     return jax.image.resize(images, (images.shape[0], *hw, images.shape[3]), method="linear",
@@ -101,8 +99,7 @@ def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
 def in_chunks(fn: Callable, x: jax.Array, chunk: int | None):
     """``fn(x)`` for a per-example ``fn``, run over chunks of ``chunk`` examples by
     ``lax.map`` so only one chunk's temporaries are live. The batch is padded with its last
-    example; None or ``chunk >= B``: one call.
-    """
+    example; None or ``chunk >= B``: one call."""
     b = x.shape[0]
     if chunk is None or chunk >= b:
         return fn(x)
@@ -117,8 +114,7 @@ def in_chunks(fn: Callable, x: jax.Array, chunk: int | None):
 def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.Array,
                    cfg: EditConfig) -> tuple[jax.Array, jax.Array]:
     """(latents, cond), float32 [B, h/f, w/f, 4]: the render's scaled posterior
-    sample (noise ``vae_noise``) and the original's posterior mean; images in [0, 1].
-    """
+    sample (noise ``vae_noise``) and the original's posterior mean; images in [0, 1]."""
     b = images.shape[0]
     if cfg.vae_chunk is None or cfg.vae_chunk >= b:
         pair = jnp.concatenate([images, originals]) * 2 - 1
@@ -170,8 +166,7 @@ def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, nu
 
 def decode(vae, latents: jax.Array, cfg: EditConfig) -> jax.Array:
     """Latents [B, h, w, 4] -> float32 [B, f h, f w, 3] in [0, 1], ``cfg.vae_chunk`` views
-    at a time.
-    """
+    at a time."""
     decoded = in_chunks(vae.decode, (latents / cfg.scaling_factor).astype(cfg.dtype),
                         cfg.vae_chunk).astype(jnp.float32)
     return jnp.clip((decoded + 1) / 2, 0, 1)
@@ -287,8 +282,7 @@ noise_difference_jit = eqx.filter_jit(noise_difference)
 
 def check_prompt(prompt) -> str:
     """``prompt`` if it is a valid UTF-8 string, else DataError naming the bad
-    character's position (a command line's stray bytes arrive as lone surrogates).
-    """
+    character's position (a command line's stray bytes arrive as lone surrogates)."""
     if not isinstance(prompt, str):
         raise DataError("prompt", f"must be a string, got {type(prompt).__name__}")
     try:
@@ -307,8 +301,7 @@ HELD_MAPS = 8
 def edit_memory_at_least(size: int, steps: int, batch: int, factor: int, width: int,
                          itemsize: int) -> float:
     """Lower bound on the bytes one batch of edits holds: timestep tables, the
-    images at model size, and :data:`HELD_MAPS` first-level UNet maps per guidance branch.
-    """
+    images at model size, and :data:`HELD_MAPS` first-level UNet maps per guidance branch."""
     latent = (size / factor) ** 2
     return (3 * batch * steps * 4 + 4 * batch * size * size * 3 * 4
             + 3 * batch * latent * width * itemsize * HELD_MAPS)
@@ -323,8 +316,7 @@ def first_level_width(unet) -> int:
 def check_edit_sizes(size: int | None, steps: int, batch: int, timesteps: int, factor: int,
                      width: int, itemsize: int) -> None:
     """Raise DataError for more DDIM steps than schedule timesteps, or for an edit
-    that cannot fit in free memory (:func:`jaxedit.memory.require_memory`; ``size`` None skips).
-    """
+    that cannot fit in free memory (:func:`jaxedit.memory.require_memory`; ``size`` None skips)."""
     from ..memory import require_memory
 
     if steps > timesteps:
@@ -507,8 +499,7 @@ class JaxIP2PEditor:
     @classmethod
     def bundled(cls, *, devices=None, steps: int = DDIM_STEPS, **kwargs) -> "JaxIP2PEditor":
         """The small InstructPix2Pix shipped in the package, at its native size;
-        arguments as :meth:`from_pretrained`.
-        """
+        arguments as :meth:`from_pretrained`."""
         from .bundled import bundled_editor, native_size
 
         folder = bundled_editor()
@@ -561,8 +552,7 @@ class JaxIP2PEditor:
     @property
     def text_encoder(self):
         """The text encoder on the editor's devices; once released, uploaded or
-        reloaded on each access and not kept.
-        """
+        reloaded on each access and not kept."""
         if self._text_encoder is not None:
             return self._text_encoder
         source = (self._text_encoder_host if self.text_encoder_residency == "host"
@@ -634,8 +624,7 @@ class JaxIP2PEditor:
                   sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
         """Where ``embedding`` changes the view, float32 [H, W] in {0, 1} ("Watch
         Your Steps", ICCV 2023): :func:`noise_difference` through
-        :func:`jaxedit.editors.masks.relevance_mask`. ``image``, ``original``: [H, W, 3].
-        """
+        :func:`jaxedit.editors.masks.relevance_mask`. ``image``, ``original``: [H, W, 3]."""
         image = jnp.asarray(image, jnp.float32)
         original = jnp.asarray(original, jnp.float32)
         if image.ndim != 3 or image.shape != original.shape:
@@ -675,16 +664,14 @@ CPU_CALLS = 8
 
 def padded_batch(views: int, devices: int) -> int:
     """The batch a call of ``views`` runs at: the next power of two, rounded up to a
-    multiple of ``devices``, so a handful of UNet programs serve every call.
-    """
+    multiple of ``devices``, so a handful of UNet programs serve every call."""
     size = 1 << max(int(views) - 1, 0).bit_length()
     return -(-size // devices) * devices
 
 
 def default_batch(devices: Sequence[jax.Device]) -> int:
     """Views per :meth:`JaxIP2PEditor.edit_many` call: :data:`ACCELERATOR_BATCH` per
-    accelerator, one per CPU device.
-    """
+    accelerator, one per CPU device."""
     per_device = 1 if devices[0].platform == "cpu" else ACCELERATOR_BATCH
     return per_device * len(devices)
 

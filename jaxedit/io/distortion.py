@@ -1,27 +1,18 @@
 """The OpenCV radial-tangential lens model, its inverse, and exact image undistortion.
 
 A normalised undistorted point (x, y) = ((u - cx) / fx, (v - cy) / fy) maps to
-the distorted point
 
     r2 = x^2 + y^2
     radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3 + k4 r2^4
     x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
     y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
 
-which is OpenCV's model for k1, k2, k3, p1, p2 (COLMAP's ``OPENCV`` uses k1, k2,
-p1, p2) and nerfstudio's for all six (nerfstudio puts k4 on r2^4).
-
-Undistorting an *image* only needs the forward map: the undistorted pixel at
-(u, v) shows what the distorted image shows at ``K distort(K^-1 (u, v))``, so we
-resample the input there bilinearly with the same intrinsics K (nothing is
-rescaled). Undistorting *points* needs the inverse, computed by Newton's method
-(:func:`undistort_points`).
-
-Where the lens shows less than the pinhole view (pincushion distortion, k1 > 0),
-some undistorted pixels have no source inside the captured image
-(:func:`source_inside`); :func:`valid_rectangle` finds an axis-aligned rectangle of
-pixels that all have one, to crop to (what COLMAP's undistorter does with
-``blank_pixels`` 0), so that no pixel of a dataset is made up.
+(OpenCV's model; COLMAP's ``OPENCV`` uses k1, k2, p1, p2, nerfstudio all six).
+Undistorting an image needs only this forward map: pixel (u, v) of the result
+samples the input at ``K distort(K^-1 (u, v))``, same K. Points need the inverse
+(:func:`undistort_points`, Newton). Where pincushion distortion leaves pixels
+without a source (:func:`source_inside`), :func:`valid_rectangle` finds a crop
+in which none is made up.
 """
 
 from __future__ import annotations

@@ -1,8 +1,5 @@
-"""Atomic file writes: outputs appear whole or not at all.
-
-Everything jaxedit writes goes to a temporary name in the destination folder
-and is renamed into place (an atomic operation on POSIX filesystems), so a
-crash or a bad input never leaves a half-written file behind.
+"""Atomic file writes: every output goes to a temporary name in its folder and is
+renamed into place, so a crash never leaves a half-written file.
 """
 
 from __future__ import annotations

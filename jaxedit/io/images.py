@@ -1,22 +1,8 @@
 """Reading and writing images with OpenImageIO.
 
-Images inside jaxedit are float32 [H, W, 3] arrays in [0, 1]. Pixel values are
-taken as stored (no colour-space conversion): an sRGB PNG gives its sRGB code
-values / 255, an EXR its (linear) floats. Values of float files outside
-[0, 1] are clipped, because every consumer (losses, the editors) expects that
-range.
-
-Transparency: formats that store straight (unassociated) alpha, like PNG, are
-read as stored and composited as ``rgb * alpha + background * (1 - alpha)``
-(what nerfstudio does); formats with associated (premultiplied) alpha, like
-EXR, as ``rgb + background * (1 - alpha)``. Both give the same picture.
-
-Photos at the size trained at (:func:`read_photo`): a JPEG is decoded at 1/2, 1/4
-or 1/8 of its size by the decoder's DCT scaling (Pillow's ``draft``), which is
-the area average of the full-size decode up to the codec's rounding, so a 1/8
-load never holds the full-size pixels; other formats are decoded whole and
-area-averaged. The EXIF orientation of a photo (:func:`photo_header`) is applied
-on request, before the area average, so blocks line up with the upright image.
+Images are float32 [H, W, 3] in [0, 1], values as stored (no colour-space
+conversion; float files clipped to [0, 1]). Straight alpha (PNG) is composited as
+``rgb * a + bg * (1 - a)``, associated alpha (EXR) as ``rgb + bg * (1 - a)``.
 """
 
 from __future__ import annotations
@@ -67,11 +53,8 @@ def read_image(path: str | os.PathLike, *, background=(1.0, 1.0, 1.0)) -> np.nda
 
 
 def utf8_name(path: str | os.PathLike) -> str:
-    """``path`` as text for OpenImageIO, which takes UTF-8 names only.
-
-    A name that is not valid UTF-8 (Python holds its stray bytes as surrogates) is
-    refused, named by its bytes, rather than failing inside the C++ binding.
-    """
+    """``path`` as text for OpenImageIO, which takes UTF-8 names only; a name with stray
+    bytes is refused (DataError naming its bytes) rather than failing inside the binding."""
     text = os.fspath(path)
     try:
         text.encode("utf-8")
@@ -99,9 +82,7 @@ def read_image_with_alpha(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarr
 
 
 def image_header(path: str | os.PathLike) -> tuple[int, int, int]:
-    """(height, width, channels) of an image file from its header alone, nothing decoded:
-    what a caller checks before decoding a file that may be small on disk and gigabytes
-    in memory.
+    """(height, width, channels) of an image file from its header alone, nothing decoded.
 
     Raises:
       DataError: missing, unreadable file.
@@ -132,9 +113,8 @@ def _is_jpeg(path: Path) -> bool:
 def photo_header(path: str | os.PathLike) -> tuple[int, int, int, bool]:
     """(stored height, stored width, EXIF orientation 1-8, 8-bit) of an image, nothing decoded.
 
-    The orientation is 1 (as stored) when the file has none; ``8-bit`` is True for opaque
-    8-bit integer pixels (JPEG, RGB PNGs), False for 16-bit and float files and for images with
-    an alpha channel, whose compositing over the background falls between the 8-bit levels.
+    Orientation is 1 when the file has none; ``8-bit`` is True only for opaque 8-bit
+    integer pixels (alpha compositing falls between the 8-bit levels).
 
     Raises:
       DataError: missing, unreadable file.
@@ -192,9 +172,8 @@ def area_average(image: np.ndarray, factor: int) -> np.ndarray:
 
 
 def _jpeg_scale(factor: int, width: int, height: int, orientation: int) -> int:
-    """The DCT scale (1, 2, 4, 8) to decode at: the largest dividing ``factor``; 1 when a
-    re-orientation would move the partial last block of a side that is not a multiple of it
-    to the top or left."""
+    """The DCT scale (1, 2, 4, 8) to decode at: the largest dividing ``factor``; 1 when
+    re-orientation would move a partial last block to the top or left."""
     scale = next(s for s in (8, 4, 2, 1) if factor % s == 0)
     if orientation != 1 and (width % scale or height % scale):
         return 1
@@ -230,14 +209,14 @@ def read_photo(path: str | os.PathLike, factor: int = 1, *, orientation: int = 1
                background=(1.0, 1.0, 1.0)) -> np.ndarray:
     """A photo at 1/``factor`` of its size: float32 [H // f, W // f, 3] in [0, 1].
 
-    The area average of :func:`read_image`'s pixels turned by :func:`orient` (H, W the
-    upright size): JPEGs are decoded at a reduced size by DCT scaling (exact up to the
-    codec's rounding), other formats in full, one at a time.
+    The area average of :func:`read_image`'s pixels, turned upright by :func:`orient`
+    first so blocks line up. JPEGs are decoded at reduced size by DCT scaling (Pillow's
+    ``draft``, exact up to the codec's rounding), so the full-size pixels are never held.
 
     Args:
       path: an image file.
       factor: integer downscale >= 1.
-      orientation: EXIF orientation to apply (1: as stored; see :func:`photo_header`).
+      orientation: EXIF orientation to apply (1: as stored; :func:`photo_header`).
       background: RGB that transparent pixels are composited over.
     Raises:
       DataError: unreadable, truncated or undecodable file.
@@ -260,8 +239,8 @@ def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
     if not path.is_file():
         raise DataError(path, "image file not found" if not path.exists() else "not a file")
     utf8_name(path)
-    # Ask for unassociated alpha as stored (PNG, some TIFFs): compositing in
-    # float then avoids the 8-bit rounding of OpenImageIO's premultiply.
+    # Ask for unassociated alpha as stored: compositing in float avoids the 8-bit
+    # rounding of OpenImageIO's premultiply.
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
     with _c_stderr_held_back():
@@ -303,13 +282,8 @@ def _read_rgb_alpha(path: Path) -> tuple[np.ndarray, np.ndarray | None, bool]:
 
 @contextlib.contextmanager
 def _c_stderr_held_back():
-    """Hold back what C libraries print on file descriptor 2 (libpng's "libpng error: ..." line).
-
-    The decoder's complaint is already part of OpenImageIO's error text, which goes into
-    our one-line DataError; printing it too would make two lines. When the block raises,
-    the held-back text is dropped; otherwise it is passed on to stderr unchanged (a
-    warning about a file that could be read stays visible).
-    """
+    """Hold back what C libraries print on fd 2 (libpng's error line, already in our
+    DataError's text): dropped when the block raises, passed on otherwise."""
     fd = 2  # C's stderr, whatever Python's sys.stderr is at the moment
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()
@@ -369,15 +343,13 @@ def write_image(path: str | os.PathLike, image, *, metadata: dict | None = None)
         td = oiio.UINT16
     else:
         data, td = image, oiio.FLOAT
-    # OpenImageIO refuses strided buffers; numpy keeps a view's layout through
-    # astype/clip (order "K"), so make the pixels C-ordered here, once.
+    # OpenImageIO refuses strided buffers: make the pixels C-ordered once.
     data = np.ascontiguousarray(data)
     h, w, c = data.shape
     spec = oiio.ImageSpec(w, h, c, td)
     if c == 4:
         spec.alpha_channel = 3
-        # Our RGBA is straight alpha; say so, so that PNG is written without
-        # an unpremultiply round trip that would change the colour values.
+        # Our RGBA is straight alpha: say so, so PNG skips an unpremultiply round trip.
         spec.attribute("oiio:UnassociatedAlpha", 1)
     if suffix in (".jpg", ".jpeg"):
         spec.attribute("Compression", "jpeg:95")

@@ -1,25 +1,17 @@
 """PLY files: 3D Gaussian splats (the INRIA 3DGS layout) and coloured point clouds.
 
-Gaussian splat files (:func:`load_ply`, :func:`save_ply`) follow the layout that
-INRIA's 3DGS, gsplat, nerfstudio's exporter and the common web viewers agree on:
-``binary_little_endian``, one ``vertex`` element, one float property per value::
+Splat files (:func:`load_ply`, :func:`save_ply`) use the layout INRIA's 3DGS, gsplat,
+nerfstudio and the web viewers share: ``binary_little_endian``, one ``vertex``
+element, one float property per value::
 
     x y z [nx ny nz] f_dc_0..2 f_rest_0..M-1 opacity scale_0..2 rot_0..3
 
-Fields are looked up by name, so their order does not matter and the normals
-(INRIA writes zeros, gsplat omits them) are optional. ``f_rest`` is
-channel-major: with K = (d+1)^2 coefficients per channel, ``f_rest_0..K-2`` are
-the higher-order coefficients of red, the next K-1 of green, then blue. Our
-``Gaussians.sh`` is [C, K, 3] (coefficient-major, channel last), so
-``f_rest_{c*(K-1)+k} = sh[:, 1+k, c]``. ``opacity`` is the logit, ``scale_i``
-the log standard deviations and ``rot_0..3`` the raw quaternion (w, x, y, z).
-
-Point clouds (:func:`load_points_ply`, :func:`save_points_ply`) are the initial
-points of a dataset as COLMAP / nerfstudio write them: ``x y z`` floats, optional
-normals, ``red green blue`` (usually uchar), ascii or binary.
-
-Every malformed file raises :class:`jaxedit.errors.DataError` naming the file
-and the problem; files are written atomically.
+Fields are looked up by name (normals optional). ``f_rest`` is channel-major: with
+K = (d+1)^2, ``f_rest_{c*(K-1)+k} = sh[:, 1+k, c]`` for ``Gaussians.sh`` [C, K, 3].
+``opacity`` is the logit, ``scale_i`` the log standard deviations, ``rot_0..3`` the
+raw quaternion (w, x, y, z). Point clouds (:func:`load_points_ply`,
+:func:`save_points_ply`) are COLMAP / nerfstudio initial points, ascii or binary.
+A malformed file raises :class:`jaxedit.errors.DataError`; writes are atomic.
 """
 
 from __future__ import annotations
@@ -276,8 +268,7 @@ def _read_ascii_vertices(path: Path, data: bytes, header: _Header):
     raise AssertionError("unreachable")
 
 
-# ---------------------------------------------------------------------------
-# Gaussian splats
+# -- Gaussian splats --
 
 
 def _rest_field_count(path: Path, names: set[str]) -> int:
@@ -329,9 +320,8 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     order = [p.name for p in element.properties]
     matrix = None
     if records is not None and all(p.kind == "f4" for p in element.properties):
-        # The usual case: every field float32 (little-endian, checked above), so
-        # the records are a float32 matrix [N, F] and picking columns is one
-        # gather -- much faster than stacking strided per-field views.
+        # Every field float32: the records are a float32 matrix [N, F] and picking columns
+        # is one gather, not a stack of strided per-field views.
         matrix = records.view(np.dtype("<f4")).reshape(element.count, len(order))
 
     def cols(fields):  # [N, F] float32 (a slice where the fields are adjacent)
@@ -413,11 +403,8 @@ def gaussians_to_table(g: Gaussians) -> np.ndarray:
 
 
 def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
-    """Write the alive Gaussians as a 3DGS .ply (INRIA layout, normals zero), atomically.
-
-    Dead slots are dropped; alive ones keep their slot order. Values are
-    written as float32, so a float32 pytree round-trips bit-exactly through
-    :func:`load_ply`. Returns the path written.
+    """Write the alive Gaussians, in slot order, as a 3DGS .ply (normals zero), atomically;
+    float32, so a float32 pytree round-trips bit-exactly through :func:`load_ply`. Returns the path.
     """
     path = Path(path)
     n_coeffs = np.shape(gaussians.sh)[-2]
@@ -442,8 +429,7 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
     return path
 
 
-# ---------------------------------------------------------------------------
-# Point clouds
+# -- point clouds --
 
 
 def _color_scale(kind: str) -> float:
@@ -457,16 +443,12 @@ def _color_scale(kind: str) -> float:
 def load_points_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Read a coloured point cloud (COLMAP / nerfstudio ``sparse_pc.ply`` style).
 
-    Accepts ascii and binary PLYs with a ``vertex`` element holding ``x y z``
-    and optionally ``red green blue`` (also spelled ``r g b`` or
-    ``diffuse_red ...``); uchar colours are divided by 255, ushort by 65535,
-    float colours are used as they are. A 3DGS file gives its Gaussians'
-    centres and DC colours. Other properties (normals, alpha) and
-    other elements (faces) are ignored.
+    Ascii or binary, a ``vertex`` element with ``x y z`` and optional ``red green blue``
+    (or ``r g b``, ``diffuse_red ...``): uchar colours / 255, ushort / 65535, floats as
+    they are. A 3DGS file gives its centres and DC colours; anything else is ignored.
 
     Returns:
-      (points float32 [P, 3], colors float32 [P, 3] in [0, 1]); points without
-      colours get mid-grey 0.5.
+      (points float32 [P, 3], colors float32 [P, 3] in [0, 1]); no colours: grey 0.5.
     Raises:
       DataError: unreadable/malformed file, missing x/y/z, non-finite values.
     """

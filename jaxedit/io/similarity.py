@@ -1,14 +1,9 @@
 """Similarity transforms of the world (q = s R p + t) applied to points, cameras, Gaussians.
 
-Datasets may be normalised on load (nerfstudio's orient/centre/scale); these
-functions map anything made in the normalised world back to the original one
-(pass the inverse of ``Dataset.world_transform``) or vice versa.
-
-Gaussians need more than their means moved: rotations compose with R, log-scales
-shift by log s, and view-dependent colour must follow the rotation, so every SH
-band l is multiplied by its (2l+1)x(2l+1) rotation matrix. We get that matrix by
-least squares on the SH basis itself (exact, since each band is closed under
-rotation), so it is correct for whatever sign convention ``jaxedit.sh`` uses.
+Use them to map results between a normalised dataset's world and the original one
+(the inverse of ``Dataset.world_transform``). Gaussians' SH bands are rotated by
+matrices fitted by least squares on the SH basis itself (exact: each band is closed
+under rotation), so they hold for whatever convention ``jaxedit.sh`` uses.
 """
 
 from __future__ import annotations

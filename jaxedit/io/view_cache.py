@@ -1,17 +1,10 @@
 """A cache of a dataset's views as loaded (downscaled, undistorted, cropped), beside it.
 
-nerfstudio keeps downscaled copies of a capture as ``images_2/4/8``; jaxedit keeps the
-views exactly as :func:`jaxedit.io.load_nerfstudio` made them, one ``.npy`` a view, in
-``<dataset>/.jaxedit_cache/``. A view's file name holds a hash of its frame's file path
-and of every setting that shapes its pixels (factor, intrinsics, distortion, crop,
-orientation, background, the loader's version), then a hash of the source's size and
-modification time: a changed photo or setting misses the cache and is rebuilt, and the
-stale file of that photo and setting is removed. A dataset folder that cannot be
-written falls back to ``<jaxedit cache>/views/<hash of the dataset's path>/`` (see
-:func:`jaxedit.io.weights.cache_dir`), and to no cache at all when neither can be.
-
-Entries are written atomically; one that cannot be read back whole, or holds another
-shape, is treated as missing and rebuilt.
+One ``.npy`` per view in ``<dataset>/.jaxedit_cache/``, named by a hash of the frame's
+path and every setting that shapes its pixels, then of the source's size and mtime:
+a changed photo or setting misses and the stale file is removed. An unwritable
+dataset folder falls back to ``<jaxedit cache>/views/<hash>/``, then to no cache.
+Entries are written atomically; an unreadable or mis-shaped one is rebuilt.
 """
 
 from __future__ import annotations

@@ -1,15 +1,10 @@
 """CLIP's text encoder (Stable Diffusion's conditioning) and its tokenizer, without torch.
 
-:class:`CLIPTextEncoder` is transformers' ``CLIPTextModel`` up to the last hidden state:
-token + position embeddings, pre-LN transformer layers with causal self-attention, the
-final LayerNorm. Its pytree paths are the checkpoint's names without the ``text_model.``
-prefix (``encoder.layers.3.self_attn.q_proj``).
-
-:class:`CLIPTokenizer` builds the byte-level BPE tokenizer transformers' CLIPTokenizer builds
-(NFC, whitespace runs -> one space, lowercase; CLIP's split regex; ``</w>`` word ends;
-``<|startoftext|>`` ... ``<|endoftext|>``) with the ``tokenizers`` package, from a diffusers
-``tokenizer/`` folder, and pads / truncates to ``model_max_length`` (77) as Stable Diffusion's
-pipelines call it.
+:class:`CLIPTextEncoder` is transformers' ``CLIPTextModel`` up to the last hidden
+state; its pytree paths are the checkpoint's names without ``text_model.``.
+:class:`CLIPTokenizer` builds transformers' byte-level BPE CLIPTokenizer with the
+``tokenizers`` package from a diffusers ``tokenizer/`` folder, padded/truncated to
+``model_max_length`` (77) as Stable Diffusion's pipelines call it.
 """
 
 from __future__ import annotations

@@ -1,10 +1,9 @@
-"""The building blocks Stable Diffusion 1.x is made of, as equinox modules (NHWC).
+"""The building blocks of Stable Diffusion 1.x as equinox modules (NHWC).
 
-Every layer holding parameters is a :class:`ParamLayer` named as in diffusers, so a
-layer's pytree path is its tensors' checkpoint name (``down_blocks.0.resnets.1.conv1``);
-:meth:`ParamLayer.torch_layout` maps checkpoint tensors to fields (convolutions HWIO,
-linear [in, out]). A layer computes in its weights' dtype; norm statistics and attention
-softmax are float32. Shapes: B batch, H/W spatial, C channels, L sequence, D width.
+Every layer with parameters is a :class:`ParamLayer` named as in diffusers, so its
+pytree path is its tensors' checkpoint name; :meth:`ParamLayer.torch_layout` maps
+checkpoint tensors to fields. A layer computes in its weights' dtype; norm statistics
+and attention softmax are float32.
 """
 
 from __future__ import annotations
@@ -37,8 +36,7 @@ def standard_normal(key, shape: tuple[int, ...], dtype=jnp.float32) -> Array:
     """``jax.random.normal(key, shape, dtype)`` from one compiled program per
     power-of-two length instead of one per shape (a network init draws tens of shapes). With
     partitionable Threefry (the default) element i depends on the key and i only, so a
-    prefix of a longer flat draw has the same bits.
-    """
+    prefix of a longer flat draw has the same bits."""
     if not jax.config.jax_threefry_partitionable:
         return jax.random.normal(key, shape, dtype)
     n = math.prod(shape)
@@ -250,8 +248,7 @@ def attention(q: Array, k: Array, v: Array, *, causal: bool = False,
 class Attention(eqx.Module):
     """Multi-head attention as diffusers' ``Attention`` (self-attention when
     ``context`` is None); ``group_norm`` and ``residual`` are the VAE's variant;
-    ``query_chunk`` as :func:`attention`.
-    """
+    ``query_chunk`` as :func:`attention`."""
 
     to_q: Linear
     to_k: Linear
@@ -345,8 +342,7 @@ class Transformer2DModel(eqx.Module):
     """GroupNorm, proj_in, transformer blocks over the H*W tokens, proj_out, plus
     the input. ``proj_in`` / ``proj_out`` are 1x1 convolutions (SD 1.x) or linear
     (``use_linear_projection``, SD 2.x); ``eps`` is the blocks' LayerNorm epsilon
-    (diffusers' default, not the UNet's ``norm_eps``).
-    """
+    (diffusers' default, not the UNet's ``norm_eps``)."""
 
     norm: GroupNorm
     proj_in: Conv2d | Linear
@@ -466,8 +462,7 @@ class Upsample2D(eqx.Module):
 def timestep_embedding(timesteps: Array, dim: int, *, flip_sin_to_cos: bool = True,
                        freq_shift: float = 0.0, max_period: float = 10000.0) -> Array:
     """Sinusoidal embedding of timesteps [B] -> float32 [B, dim], as diffusers'
-    ``get_timestep_embedding`` (``flip_sin_to_cos``: [cos | sin]; odd ``dim``: a zero column).
-    """
+    ``get_timestep_embedding`` (``flip_sin_to_cos``: [cos | sin]; odd ``dim``: a zero column)."""
     half = dim // 2
     exponent = -math.log(max_period) * jnp.arange(half, dtype=jnp.float32) / (half - freq_shift)
     args = jnp.asarray(timesteps, jnp.float32)[:, None] * jnp.exp(exponent)[None, :]

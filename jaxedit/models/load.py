@@ -1,14 +1,10 @@
 """Reading diffusers-format weights straight into the equinox modules, without torch.
 
-A diffusers folder holds ``model_index.json`` and one sub-folder per component, each with
-a ``config.json`` and tensors named by the torch module path. The modules use the same
-attribute names, so loading builds a shape-only skeleton from the config and fills every
-layer from the tensor of its name (:mod:`jaxedit.models.layers`). A missing, unexpected
-or mis-shaped tensor is a one-line :class:`~jaxedit.errors.DataError`.
-
-Weights files, in order of preference: ``model.safetensors`` /
-``diffusion_pytorch_model.safetensors``, their ``.fp16`` variants, then legacy torch
-``.bin`` checkpoints read by a restricted unpickler (a pickle can run code).
+Loading builds a shape-only skeleton from each component's ``config.json`` and fills
+every layer from the tensor of its name; a missing, unexpected or mis-shaped tensor
+is a one-line :class:`~jaxedit.errors.DataError`. Weights files, preferred first:
+``*.safetensors``, their ``.fp16`` variants, then torch ``.bin`` checkpoints read by
+a restricted unpickler (a pickle can run code).
 """
 
 from __future__ import annotations
@@ -218,8 +214,7 @@ def _per(value, n: int) -> list:
 
 def weight_bytes_at_least(kind: str, config: dict, itemsize: int) -> float:
     """A lower bound of a checked config's weight bytes from its largest
-    layers, so a config that cannot fit is refused before its network is described.
-    """
+    layers, so a config that cannot fit is refused before its network is described."""
     if kind == "text_encoder":
         d, layers = config.get("hidden_size", 768), config.get("num_hidden_layers", 12)
         inner = config.get("intermediate_size", 4 * d)
@@ -252,8 +247,7 @@ def weights_file(folder: Path) -> Path:
 
 def read_weights(path: Path) -> dict[str, np.ndarray]:
     """All tensors of a ``.safetensors`` file or a torch ``.bin`` state_dict (no
-    torch, no code run: :func:`jaxedit.io.weights.load_torch_checkpoint`), as NumPy.
-    """
+    torch, no code run: :func:`jaxedit.io.weights.load_torch_checkpoint`), as NumPy."""
     if path.suffix == ".bin":
         return load_torch_checkpoint(path)
     return read_safetensors(path)[0]
@@ -344,8 +338,7 @@ def load_module(folder: str | os.PathLike, build: Callable[..., Any], *, prefix:
     """A module from one component folder: ``build(config, key=..., dtype=...)``
     gives its shapes, the weights file fills it. The config is checked first
     (:func:`check_network_config`; ``kind`` defaults to the folder's name) and weights that
-    cannot fit in free memory are refused before any is read.
-    """
+    cannot fit in free memory are refused before any is read."""
     from ..memory import require_memory
 
     folder = Path(folder)
@@ -424,8 +417,7 @@ class IP2PModels(eqx.Module):
 
 def load_ip2p(folder: str | os.PathLike, *, dtype=jnp.float32) -> IP2PModels:
     """An InstructPix2Pix (or any SD 1.x) diffusers folder -> :class:`IP2PModels` in ``dtype``,
-    each tensor converted as read (a bf16 load never holds float32 networks).
-    """
+    each tensor converted as read (a bf16 load never holds float32 networks)."""
     from .unet import UNet2DCondition
     from .vae import AutoencoderKL
 
@@ -445,8 +437,7 @@ def load_ip2p(folder: str | os.PathLike, *, dtype=jnp.float32) -> IP2PModels:
 
 def check_tokenizer_fits(tokenizer: CLIPTokenizer, text_encoder, where) -> None:
     """Refuse a tokenizer whose ids or length the text encoder has no rows for
-    (JAX would clamp the lookups silently).
-    """
+    (JAX would clamp the lookups silently)."""
     rows = text_encoder.embeddings.token_embedding.weight.shape[0]
     positions = text_encoder.embeddings.position_embedding.weight.shape[0]
     vocab = tokenizer._tokenizer.get_vocab_size()
@@ -460,8 +451,7 @@ def check_tokenizer_fits(tokenizer: CLIPTokenizer, text_encoder, where) -> None:
 def cast(models, dtype):
     """Every floating array of ``models`` (any pytree) cast to ``dtype``, in one compiled
     program (leaf by leaf, each shape would compile its own conversion). Norm statistics and
-    softmax stay float32 (:mod:`jaxedit.models.layers`).
-    """
+    softmax stay float32 (:mod:`jaxedit.models.layers`)."""
     arrays, rest = eqx.partition(models, eqx.is_array)
     return eqx.combine(_cast_floating(arrays, jnp.dtype(dtype)), rest)
 

@@ -1,11 +1,8 @@
-"""Memory of the networks without holding them: parameter bytes of abstract modules and
-XLA's compiled memory analysis of a function of them.
-
-:func:`abstract` builds a shape-only skeleton (``eqx.filter_eval_shape``), so SD 1.5's
-UNet costs nothing to describe; :func:`param_bytes` counts its weights in any dtype;
-:func:`compiled_memory` returns XLA's buffer assignment for the default backend (on a
-CPU only an estimate of a GPU's). :data:`SD15_UNET_IP2P`, :data:`SD15_VAE` and
-:data:`CLIP_L14_TEXT` are timbrooks/instruct-pix2pix's configurations.
+"""Memory of the networks without holding them: parameter bytes of abstract modules
+(:func:`abstract`, :func:`param_bytes`) and XLA's compiled memory analysis
+(:func:`compiled_memory`; on a CPU only an estimate of a GPU's).
+:data:`SD15_UNET_IP2P`, :data:`SD15_VAE` and :data:`CLIP_L14_TEXT` are
+timbrooks/instruct-pix2pix's configurations.
 """
 
 from __future__ import annotations

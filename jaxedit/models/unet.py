@@ -1,15 +1,7 @@
 """Stable Diffusion 1.x's conditional UNet (diffusers' ``UNet2DConditionModel``), NHWC.
 
-conv_in; the timestep's sinusoidal embedding through time_embedding (linear-SiLU-linear);
-down blocks (CrossAttnDownBlock2D: (resnet, transformer) pairs, DownBlock2D: resnets; each
-but the last ending in a stride-2 convolution), every output kept as a skip; the mid block
-(resnet, transformer, resnet); up blocks (layers + 1 resnets, each fed the next skip
-concatenated on the channels, transformers in CrossAttnUpBlock2D, nearest x2 + conv but at
-the last level); GroupNorm-SiLU-conv_out. The pytree paths are diffusers' tensor names.
-
-``attention_head_dim`` in SD 1.x configs is, for historical reasons, the number of heads
-(diffusers reads ``num_attention_heads or attention_head_dim`` as heads); the head width is
-channels / heads.
+Pytree paths are diffusers' tensor names. SD 1.x configs' ``attention_head_dim`` is
+the number of heads (as diffusers reads it); the head width is channels / heads.
 """
 
 from __future__ import annotations

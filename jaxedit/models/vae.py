@@ -1,11 +1,5 @@
-"""Stable Diffusion's VAE (diffusers' ``AutoencoderKL``) as an equinox module, NHWC.
-
-Encoder: conv_in, DownEncoderBlock2D per level (resnets, then a stride-2 convolution padded
-bottom/right except at the last level), a mid block (resnet, single-head self-attention with
-GroupNorm and residual, resnet), GroupNorm-SiLU-conv_out to 2 x latent channels, quant_conv.
-Decoder: post_quant_conv, conv_in, the mid block, UpDecoderBlock2D per level (layers + 1
-resnets, nearest x2 + conv except at the last level), GroupNorm-SiLU-conv_out.
-The pytree paths are diffusers' tensor names (``encoder.down_blocks.0.resnets.1.conv2``).
+"""Stable Diffusion's VAE (diffusers' ``AutoencoderKL``) as an equinox module, NHWC; the
+pytree paths are diffusers' tensor names (``encoder.down_blocks.0.resnets.1.conv2``).
 """
 
 from __future__ import annotations

@@ -1,17 +1,10 @@
 """Several processes on JAX's distributed runtime: joining it, splitting edits, failing cleanly.
 
-Each host (or GPU) runs the same command with ``--coordinator HOST:PORT --num-processes N
---process-id I``; :func:`initialize` joins ``jax.distributed``. In an edit every process
-runs the same deterministic program and holds the same scene; the views due at one step
-are split by :class:`SplitEditor` (:func:`process_slice`) and all-gathered
-(:func:`gather_views`); only process 0 (:func:`is_writer`) writes; and all processes
-first check they agree on every setting (:func:`check_agreement`), since different
-flags would otherwise give wrong results or hang.
-
-The runtime ends a process whose peer or coordinator is lost with ``abort()``, which
-Python cannot catch, so each process runs under :func:`supervise`, which filters the
-runtime's log noise and turns an abnormal end into one line (:func:`fatal_reason`) and
-exit status 2.
+Every process runs the same deterministic program on the same scene; the views due
+at a step are split over processes and all-gathered (:class:`SplitEditor`), only
+process 0 writes, and settings are checked to agree first (:func:`check_agreement`).
+The runtime calls ``abort()`` on a lost peer, which Python cannot catch, so workers run
+under :func:`supervise`.
 """
 
 from __future__ import annotations
@@ -83,10 +76,8 @@ def parse_address(address: str) -> tuple[str, int]:
 
 
 def initialize(config: DistributedConfig) -> None:
-    """Join the distributed runtime (a no-op for one process), before anything else
-    touches JAX. CPU collectives go through gloo. Raises DataError when the coordinator is
-    unreachable within ``init_timeout`` and the runtime says so to Python.
-    """
+    """Join the distributed runtime (a no-op for one process) before anything else touches
+    JAX; CPU collectives use gloo. Raises DataError when the coordinator is unreachable."""
     if not config.active:
         return
     import jax
@@ -121,9 +112,8 @@ AGREEMENT_FIRST = ("num_processes", "out")
 
 
 def disagreement(mine: dict, theirs: dict) -> str | None:
-    """The first setting, as ``--flag``, on which two records {setting: JSON value}
-    differ (process count, run directory, then by name); None when they agree.
-    """
+    """The first setting (as ``--flag``) on which two records {setting: JSON value} differ,
+    :data:`AGREEMENT_FIRST` first; None when they agree."""
     keys = [k for k in AGREEMENT_FIRST if k in mine or k in theirs]
     keys += sorted((set(mine) | set(theirs)) - set(keys))
     for key in keys:
@@ -133,14 +123,12 @@ def disagreement(mine: dict, theirs: dict) -> str | None:
 
 
 def check_agreement(record: dict, timeout: int) -> None:
-    """Refuse to go on unless every process publishes the same ``record``
-    ({setting: JSON value}) in the runtime's key-value store; a no-op for one process.
-
-    Process 0's record is read first (it always exists, so a miscounted process stops at
-    once), then the others'.
+    """Refuse to go on unless every process publishes the same ``record`` ({setting: JSON
+    value}); a no-op for one process. Process 0's record is read first, so a miscounted
+    process stops at once.
 
     Raises:
-      DataError naming the first flag that differs, the two values and the processes.
+      DataError: naming the first flag that differs, the two values and the processes.
     """
     import jax
     from jax._src import distributed as _dist
@@ -193,19 +181,16 @@ def is_writer() -> bool:
 
 
 def process_slice(count: int, process: int, processes: int) -> slice:
-    """The contiguous slice of ``count`` views that ``process`` edits:
-    ``ceil(count / processes)`` each, the last ones shorter or empty.
-    """
+    """The contiguous slice of ``count`` views ``process`` edits: ``ceil(count / processes)``
+    each, the last ones shorter or empty."""
     per = -(-count // processes)
     lo = min(process * per, count)
     return slice(lo, min(lo + per, count))
 
 
 def gather_views(local, count: int) -> np.ndarray:
-    """Every process's views, in process order: float32 [count, H, W, 3] everywhere.
-
-    ``local``: this process's :func:`process_slice`, [b, H, W, 3] (b may be 0). A collective.
-    """
+    """Every process's views in process order, float32 [count, H, W, 3], from this
+    process's ``local`` slice [b, H, W, 3] (b may be 0). A collective."""
     from jax.experimental import multihost_utils
 
     processes = process_count()
@@ -226,12 +211,9 @@ def barrier(name: str) -> None:
 
 
 class SplitEditor:
-    """An editor whose multi-view edits are split over the processes.
-
-    ``edit_many`` edits this process's :func:`process_slice` with the wrapped editor and
-    returns all B views gathered, float32 NumPy [B, H, W, 3], the same bits everywhere;
-    ``edit`` and everything else are the wrapped editor's.
-    """
+    """An editor whose ``edit_many`` edits this process's :func:`process_slice` and returns
+    all B views gathered (float32 NumPy [B, H, W, 3], same bits everywhere); everything
+    else is the wrapped editor's."""
 
     def __init__(self, editor):
         self.inner = editor
@@ -277,9 +259,7 @@ _GLOO_NOTICE = re.compile(r"is connected to \d+ peer ranks|Expected number of co
 
 
 def is_runtime_noise(line: str) -> bool:
-    """Whether a worker's stderr line is the runtime's logging (glog, gloo
-    notices, a fatal stack trace), not jaxedit's output.
-    """
+    """Whether a worker's stderr line is the runtime's logging (glog, gloo, a fatal trace)."""
     return bool(_LOG_LINE.search(line) or line.startswith(("[Gloo] ", "*** Check failure"))
                 or _GLOO_NOTICE.search(line) or re.match(r"\s+@\s+0x", line))
 
@@ -315,18 +295,17 @@ def fatal_reason(message: str, returncode: int, config: DistributedConfig) -> st
     return f"exited with status {returncode}"
 
 
-#: Seconds the supervisor waits for a finished worker's output to be passed on (the
-#: copying threads may lag on a loaded machine).
+# Seconds to wait for a finished worker's output to be passed on.
 PUMP_DRAIN_S = 60
 
 
 def supervise(command: Sequence[str], config: DistributedConfig, *, cleanup=None,
               stderr=None) -> int:
-    """Run ``command`` as a worker and map an abnormal end to one line and status 2.
+    """Run ``command`` as a worker; map an abnormal end to one line and status 2.
 
-    Output passes through except the runtime's noise. Statuses 0, 2 (the worker's own
-    one-line error) and 130 pass on; anything else prints ``error: process I of N stopped:
-    REASON`` and returns 2, after ``cleanup()``.
+    Output passes through minus the runtime's noise. Statuses 0, 2 and 130 pass on;
+    anything else prints ``error: process I of N stopped: REASON`` and returns 2, after
+    ``cleanup()``.
     """
     stderr = stderr or sys.stderr
     env = {**os.environ, WORKER_ENV: "1"}
@@ -362,9 +341,7 @@ def _wait(child: subprocess.Popen) -> int:
 
 
 def _pump(source, sink, fatal: list[str] | None, said: list[str] | None = None) -> None:
-    """Copy a worker's stream to ``sink`` line by line (``\r`` ends a line too)
-    through :func:`_route`.
-    """
+    """Copy a worker's stream to ``sink`` line by line (``\r`` ends a line) via :func:`_route`."""
     pending = b""
     while True:
         chunk = os.read(source.fileno(), 65536)
@@ -380,8 +357,7 @@ def _pump(source, sink, fatal: list[str] | None, said: list[str] | None = None) 
 
 def _route(line: str, fatal: list[str] | None, stderr, said: list[str] | None = None) -> None:
     """Pass a worker's stderr ``line`` on, keep it as the fatal message, or drop it;
-    ``error: ...`` lines always pass (and go to ``said``).
-    """
+    ``error: ...`` lines always pass (into ``said``)."""
     if said is not None and line.startswith("error: "):
         said.append(line)
         stderr.write(line)

@@ -1,13 +1,9 @@
 """Data parallelism over a mesh of devices: views sharded, Gaussians and networks replicated.
 
-:func:`views_step` is the mean training loss of V views of one replicated scene: with
-images and cameras placed by :func:`shard_views` and the state by :func:`replicate`,
-``jax.jit`` compiles one SPMD program and XLA all-reduces the gradient. It is
-:func:`jaxedit.train.apply_step` for several views (same loss and optimiser), without
-density control and camera optimisation; an overflowed tile buffer in any view leaves the
-state unchanged (``overflow``). Over several processes
-(:func:`jaxedit.parallel.distributed.initialize`) the same code runs with a mesh over
-``jax.devices()``; :func:`shard_local_views` and :func:`fetch` handle per-process data.
+:func:`views_step` is :func:`jaxedit.train.apply_step` for V views of one replicated
+scene (no density control or camera optimisation): one SPMD program, the gradient
+all-reduced by XLA. Across processes :func:`shard_local_views` and :func:`fetch`
+handle per-process data.
 """
 
 from __future__ import annotations
@@ -92,8 +88,7 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
 
 def views_step(state, images: jax.Array, cameras, key: jax.Array):
     """One optimiser step on the mean loss of V views: (state, {"loss", "overflow"});
-    sharded inputs and a replicated state run it data parallel.
-    """
+    sharded inputs and a replicated state run it data parallel."""
     from ..train import optimizer
     from ..train.state import params_of
 

@@ -1,10 +1,6 @@
-"""A training run's files: its metrics log and its rolling checkpoints.
-
-:func:`jaxedit.train.fit` writes nothing; it hands records and states to callbacks.
-These are the callbacks a run directory uses: :class:`JsonlLog` appends each record
-as a JSON line (so a resumed run continues its log), :class:`RollingCheckpoints`
-writes ``ckpt_<step>.npz`` (atomic, fsynced: :mod:`jaxedit.io.checkpoint`) and keeps
-the newest few, and :func:`resume` finds the newest one again.
+"""A training run's files, as callbacks of :func:`jaxedit.train.fit`: :class:`JsonlLog`
+appends each record as a JSON line, :class:`RollingCheckpoints` writes atomic
+``ckpt_<step>.npz`` files and keeps the newest few, :func:`resume` finds the newest.
 """
 
 from __future__ import annotations

@@ -1,10 +1,6 @@
-"""The tile splatter and its dense oracle.
-
-``render`` (the tile splatter) and ``render_reference`` (the dense oracle) share one
-signature and :class:`RenderOutput`, with INRIA's conventions. ``render_tiles`` is the
-pure jittable core, ``next_capacity`` its buffer ladder, ``accumulate_weights`` (oracle
-``accumulate_weights_reference``) the per-Gaussian sum of blending weights times
-per-pixel values, and ``placement.commit`` keeps one program per call site.
+"""The tile splatter (:func:`render`, its jittable core :func:`render_tiles`) and its
+dense oracle (:func:`render_reference`): one signature and :class:`RenderOutput`,
+INRIA's conventions.
 """
 
 from .reference import accumulate_weights_reference, render_reference

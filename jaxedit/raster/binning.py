@@ -70,8 +70,7 @@ def image_to_tiles(img, width: int, height: int, tile: int):
 
 def tile_rects(proj: Projected, width: int, height: int, tile: int = TILE):
     """Tile rectangle of each Gaussian's footprint: (x0, y0, nx, ny) int32 [C], the
-    first tile column/row and the count covered (0 for invisible).
-    """
+    first tile column/row and the count covered (0 for invisible)."""
     tiles_x, tiles_y = grid_shape(width, height, tile)
     m = jax.lax.stop_gradient(proj.means2d)
     ext = proj.extents
@@ -99,8 +98,7 @@ def count_intersections(proj: Projected, width: int, height: int, tile: int = TI
 def _pair_owners(counts, capacity: int):
     """int32 [capacity]: for each slot, the Gaussian k whose run of ``counts[k]``
     slots holds it (past the total: the last with pairs). A running maximum of run-start
-    marks: two passes, much faster on a GPU than a per-slot ``searchsorted``.
-    """
+    marks: two passes, much faster on a GPU than a per-slot ``searchsorted``."""
     c = counts.shape[0]
     starts = jnp.cumsum(counts) - counts
     marks = jnp.zeros(capacity, jnp.int32).at[jnp.where(counts > 0, starts, capacity)].max(

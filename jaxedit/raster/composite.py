@@ -97,8 +97,7 @@ def _pixel_centres(tile_of, tiles_x, tile, dtype):
 
 def _alpha(m, con, op, px, py):
     """One pair position across a block: dx, dy, exp(power), o exp(power), alpha [NB, P]
-    from m [NB, 2], con [NB, 3], op [NB], px/py [NB, P].
-    """
+    from m [NB, 2], con [NB, 3], op [NB], px/py [NB, P]."""
     dx = m[:, 0, None] - px
     dy = m[:, 1, None] - py
     power = -0.5 * (con[:, 0, None] * dx * dx + con[:, 2, None] * dy * dy) - con[:, 1, None] * dx * dy
@@ -111,8 +110,7 @@ def _alpha(m, con, op, px, py):
 
 def _map_used(fn, xs, used_blocks, init):
     """``lax.map(fn, xs)`` over the first ``used_blocks`` blocks only (a dynamic
-    count); skipped blocks keep their ``init`` outputs.
-    """
+    count); skipped blocks keep their ``init`` outputs."""
 
     def body(b, outs):
         x = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_index_in_dim(a, b, 0, False), xs)
@@ -303,8 +301,7 @@ composite.defvjp(_composite_fwd, _composite_bwd)
 
 def _weigh_block(xs):
     """One block: per pair, sum over its tile's pixels of w_i(p) v(p), [K, NB, F],
-    with :func:`_blend`'s alpha, transmittance and stop rule.
-    """
+    with :func:`_blend`'s alpha, transmittance and stop rule."""
     m, con, op, px, py, carry, vals = xs  # vals [NB, P, F]
     nf = vals.shape[-1]
 

@@ -38,8 +38,7 @@ _FOR_GPU = contextvars.ContextVar("jaxedit_pallas_for_gpu", default=False)
 @contextlib.contextmanager
 def compiled_for_gpu():
     """Within this context the kernels are lowered for Triton even off a GPU
-    (``jax.export(..., platforms=("cuda",))`` checks that they lower, without running).
-    """
+    (``jax.export(..., platforms=("cuda",))`` checks that they lower, without running)."""
     token = _FOR_GPU.set(True)
     try:
         yield

@@ -16,8 +16,7 @@ import numpy as np
 def commit(tree):
     """``tree`` with each uncommitted JAX array committed to its device (an alias, no
     copy) and each NumPy array or scalar to the default device; committed or sharded arrays,
-    tracers and Python scalars are returned as they are.
-    """
+    tracers and Python scalars are returned as they are."""
     return jax.tree_util.tree_map(_commit_leaf, tree)
 
 

@@ -136,8 +136,7 @@ def _weights_one(gaussians, camera, values, near, far):
 def accumulate_weights_reference(gaussians: Gaussians, camera: Camera, values, *,
                                  near: float = 0.01, far: float = 1e10) -> jax.Array:
     """Dense oracle of :func:`jaxedit.raster.render.accumulate_weights`
-    (same signature and output; small images only).
-    """
+    (same signature and output; small images only)."""
     values = jnp.asarray(values, gaussians.means.dtype)
     if camera.batch_shape:
         return sum(_weights_one(gaussians, camera[i], values[i], near, far)

@@ -1,15 +1,10 @@
-"""The public entry point: ``render`` (tile splatter) and its jittable core ``render_tiles``.
+"""The public entry point: :func:`render` (tile splatter) and its jittable core :func:`render_tiles`.
 
-Pipeline: :func:`.project.project` -> :func:`.binning.bin_gaussians` (fixed-capacity
-buffer) -> :func:`.composite.composite` (exact blending, custom VJP).
-
-Intersection buffer: the (Gaussian, tile) pair count depends on data, XLA needs a static
-size. ``render_tiles(..., capacity=n)`` reports ``num_intersections`` and ``overflow``.
-Outside a trace ``render`` counts the pairs, sizes the buffer by :func:`render_capacity`
-(a pure, geometric ladder: few programs) and never returns a frame with dropped pairs.
-Inside a caller's ``jit``/``vmap`` pass ``max_intersections`` and, when ``out.overflow``,
-re-run with at least ``out.num_intersections`` (:func:`next_capacity`); without it
-``render`` raises :class:`DataError` under a trace.
+:func:`.project.project` -> :func:`.binning.bin_gaussians` (fixed-capacity pair
+buffer) -> :func:`.composite.composite` (exact blending, custom VJP). The pair count
+depends on data: outside a trace :func:`render` sizes the buffer on a geometric
+ladder (:func:`render_capacity`) and never returns dropped pairs; inside a caller's
+jit/vmap pass ``max_intersections`` and re-run on ``out.overflow``.
 """
 
 from __future__ import annotations
@@ -160,8 +155,7 @@ def count_pairs(gaussians: Gaussians, camera: Camera, *, backend: str = "auto", 
 
 def _background_only(gaussians: Gaussians, camera: Camera, background) -> RenderOutput:
     """The frame of a scene with nothing on screen: background colour, zero
-    alpha/depth, a splatted frame's shapes and dtypes.
-    """
+    alpha/depth, a splatted frame's shapes and dtypes."""
     batch = camera.batch_shape
     dtype = gaussians.means.dtype
     bg = jnp.zeros((3,), dtype) if background is None else jnp.asarray(background, dtype)
@@ -189,8 +183,7 @@ def _pad_slots(gaussians: Gaussians, means2d_delta, capacity: int):
 def _bucketed(gaussians: Gaussians, means2d_delta):
     """The scene padded with dead slots to its capacity's step on the
     :func:`render_capacity` ladder (``means2d_delta`` with zeros), so scenes of nearby sizes
-    share one program; dead slots draw nothing.
-    """
+    share one program; dead slots draw nothing."""
     padded = render_capacity(gaussians.capacity)
     if padded == gaussians.capacity:
         return gaussians, means2d_delta

@@ -1,25 +1,16 @@
-"""Built-in scenes: procedural ones, rendered by an independent NumPy ray caster, and
-rendered datasets shipped with the package.
-
-The generators write ordinary nerfstudio datasets (transforms.json, PNGs, an initial
-point cloud), read by the same loader as real scenes::
+"""Built-in scenes: procedural ones rendered by an independent NumPy ray caster, and
+rendered datasets shipped with the package, written as nerfstudio datasets::
 
     from jaxedit import scenes
-    scenes.list_scenes()                      # ['face', 'tabletop', 'fence', 'ball', 'person']
-    scenes.make_scene("face", "runs/face")    # 64 train + 8 test views, 128 x 128
-    scenes.make_scene("person", "runs/person", downscale=2)   # 72 + 8 Cycles views, 128 x 128
-
-``person`` is a photo-textured man (Reallusion's CC BY 3.0 model from Sweet Home 3D)
-rendered by Blender's Cycles; ``scripts/render_person.py`` regenerates it.
-
+    scenes.make_scene("face", "runs/face")
     scene = scenes.get_scene("face")
     cams, train, test = scenes.scene_cameras(scene, views=64, test_views=8, size=128)
     images = scenes.render_scene(scene, cams)               # float32 [72, 128, 128, 3]
     points, ids, uv = scenes.surface_points_and_ids(scene, cams)
 
-``surface_points_and_ids`` says what every pixel centre sees, so an edit defined on the
-surface is 3D-consistent by construction. The ray caster (:mod:`.raycast`) shares only
-the camera convention with the splatter.
+``surface_points_and_ids`` says what every pixel centre sees, so an edit defined on
+the surface is 3D-consistent by construction. ``person`` is Reallusion's CC BY 3.0 model
+(Sweet Home 3D) rendered by Cycles (``scripts/render_person.py``).
 """
 
 import numpy as np
@@ -34,19 +25,14 @@ from .textures import Texture
 
 
 def render_scene(scene: Scene, cameras, *, supersample: int = 2, alpha: bool = False):
-    """Ground truth of ``scene`` for ``cameras``: float32 [N, H, W, 3] in [0, 1].
-
-    Each pixel averages ``supersample`` x ``supersample`` rays; ``alpha=True`` adds the
-    coverage as a 4th channel. See :func:`raycast.render`.
-    """
+    """Ground truth of ``scene`` for ``cameras``: float32 [N, H, W, 3] in [0, 1], each pixel
+    averaging ``supersample``^2 rays; ``alpha=True`` adds coverage as a 4th channel."""
     return raycast.render(scene, cameras, supersample=supersample, alpha=alpha)
 
 
 def surface_views(scene: Scene, cameras, images=None) -> tuple:
-    """The pair ``(images, points)`` that gives an editor the 3D surface of ``scene``'s views
-    (:class:`jaxedit.editors.SimulatedEditor`'s ``surfaces``): the views (float32
-    [N, H, W, 3]; default: :func:`render_scene` of ``cameras``) and the world point each pixel
-    centre sees (:func:`surface_points_and_ids`; 0 on the background)."""
+    """``(images, points)``: the views (float32 [N, H, W, 3]; default :func:`render_scene`)
+    and the world point each pixel centre sees (0 on the background)."""
     if images is None:
         images = render_scene(scene, cameras)
     points, ids, _ = surface_points_and_ids(scene, cameras)

@@ -50,31 +50,23 @@ def make_scene(name: str, out_dir: str | os.PathLike, *, size: int | None = None
                views: int | None = None, test_views: int | None = None, seed: int = 0,
                num_points: int | None = None, supersample: int | None = None,
                downscale: int = 1) -> Path:
-    """Write a built-in scene as a nerfstudio dataset.
+    """Write a built-in scene as a nerfstudio dataset; the same arguments give byte-identical files.
 
-    Procedural scenes are rendered here (``size`` 128, ``views`` 64, ``test_views`` 8,
-    ``num_points`` 4000, ``supersample`` 2 unless given). Rendered scenes
-    (:data:`library.DATASETS`) are copied: see :func:`copy_rendered_scene` for what
-    ``downscale``, ``views`` and ``test_views`` do there; ``size``, ``num_points`` and
-    ``supersample`` do not apply to them.
-
-    Writes ``out_dir/transforms.json`` (PINHOLE intrinsics, OpenGL camera-to-world,
-    ``train_filenames`` / ``val_filenames`` / ``test_filenames``), ``images/frame_*.png``
-    (``views + test_views`` frames, test views interleaved along the camera spiral),
-    ``sparse_pc.ply`` (a COLMAP-like initial cloud, see :mod:`jaxedit.scenes.points`)
-    and ``jaxedit_scene.json`` (scene name, seed, background, object names: what an editor
-    needs to rebuild the scene with :func:`jaxedit.scenes.get_scene`).
-
-    The same arguments give byte-identical files.
+    Procedural scenes are rendered here; rendered scenes (:data:`library.DATASETS`) are
+    copied by :func:`copy_rendered_scene` (``size``, ``num_points``, ``supersample`` do not
+    apply). Writes ``transforms.json`` (PINHOLE intrinsics, OpenGL camera-to-world, the
+    split's filenames), ``images/frame_*.png`` (test views interleaved along the spiral),
+    ``sparse_pc.ply`` (:mod:`jaxedit.scenes.points`) and ``jaxedit_scene.json`` (what
+    :func:`jaxedit.scenes.get_scene` needs to rebuild the scene).
 
     Args:
       name: one of :func:`jaxedit.scenes.list_scenes`.
       out_dir: the dataset folder (created, or updated in place).
-      size: image width and height in pixels (procedural scenes).
-      views, test_views: numbers of training and held-out views.
+      size: image width and height in pixels (procedural; default 128).
+      views, test_views: numbers of training and held-out views (default 64, 8).
       seed: scene variant and point-cloud draws.
-      num_points: points in the initial cloud (5% of them outliers).
-      supersample: rays per pixel along each axis (anti-aliasing).
+      num_points: points in the initial cloud, a few of them outliers (default 4000).
+      supersample: rays per pixel along each axis (default 2).
       downscale: integer image downscale factor (rendered scenes).
     Returns:
       the path of ``transforms.json``.
@@ -145,11 +137,10 @@ def copy_rendered_scene(name: str, out_dir: str | os.PathLike, *, downscale: int
                         views: int | None = None, test_views: int | None = None) -> Path:
     """Copy the rendered scene ``name`` (e.g. ``person``) into ``out_dir`` as a nerfstudio dataset.
 
-    The images stay RGBA (transparent backdrop; loaders composite it over their background).
-    ``downscale`` area-averages f x f blocks and divides the intrinsics by f (256 px -> 128 px
-    with 2); ``views`` / ``test_views`` keep that many training / held-out views, evenly spread
-    along the camera arc (default: all). The point cloud, ``jaxedit_scene.json`` (with the
-    choices made here added) and the model's credits and licence come along.
+    Images stay RGBA. ``downscale`` area-averages f x f blocks and divides the
+    intrinsics by f; ``views`` / ``test_views`` keep that many views, evenly spread along
+    the camera arc (default: all). The point cloud, ``jaxedit_scene.json`` and the
+    model's credits and licence come along.
 
     Returns:
       the path of ``transforms.json``.
@@ -185,13 +176,11 @@ def copy_rendered_scene(name: str, out_dir: str | os.PathLike, *, downscale: int
 def photo_capture(name: str, out_dir: str | os.PathLike, *, views: int,
                   first: int = 0, last: int | None = None, background=(0.5, 0.5, 0.5),
                   suffix: str = ".png", exif: dict | None = None):
-    """The rendered scene ``name`` as a folder of plain photos, as a user's capture would be.
+    """The rendered scene ``name`` as a folder of plain photos without poses, as a user's capture.
 
-    ``views`` views evenly spread over the scene's views ``first .. last`` (all of its
-    views in order along the camera arc by default), composited over the plain
-    ``background``, written as ``IMG_0000<suffix>``, ... with no poses (``exif``: metadata
-    attributes such as ``{"Exif:FocalLengthIn35mmFilm": 63}``). The true cameras come
-    back for judging what structure from motion recovers from them.
+    ``views`` views evenly spread over views ``first .. last``, composited over
+    ``background``, written as ``IMG_0000<suffix>``, ... (``exif``: metadata attributes,
+    e.g. ``{"Exif:FocalLengthIn35mmFilm": 63}``).
 
     Returns:
       (the photo paths in order, their true cameras [views]).

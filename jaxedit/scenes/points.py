@@ -1,8 +1,5 @@
-"""Initial point clouds for the built-in scenes, made to look like a COLMAP sparse cloud.
-
-:func:`sample_points` imitates structure from motion: area-uniform surface points kept
-where at least ``min_views`` cameras see them, coloured by the ray caster's shading from
-one of them, with colour and position noise, plus random outliers in the bounding box.
+"""Initial point clouds for the built-in scenes, made to look like a COLMAP sparse cloud
+(:func:`sample_points`).
 """
 
 from __future__ import annotations
@@ -96,7 +93,7 @@ def sample_points(scene: rc.Scene, cameras: Camera, num_points: int, rng: np.ran
         order = rng.permutation(len(pts))[:n_surf]
         pts, ids, view = pts[order], ids[order], view[order]
         # Each point is shaded as seen from the first camera that sees it: one centre per
-        # camera, looked up per point (one eager einsum per point cost seconds per scene).
+        # camera, looked up per point (not one eager einsum per point).
         cam_centres = np.stack([np.asarray(c.center(), np.float64) for c in cams])
         centres = cam_centres[view]
         colors = rc.shaded_color(scene, pts, ids, centres).astype(np.float64)

@@ -1,11 +1,9 @@
-"""An independent NumPy ray caster of textured analytic shapes: the built-in scenes'
-ground truth.
+"""An independent NumPy ray caster of textured analytic shapes: the built-in scenes' ground truth.
 
-It shares only the camera convention with the splatter (:class:`jaxedit.camera.Camera`),
-so a reconstruction that matches its images has really learned the scene. Shapes are
-ellipsoids, boxes and rectangles; shading is view-independent (albedo times ambient plus
-Lambertian lights with hard shadows), so degree-0 colours can explain every view.
-Anti-aliasing: s x s rays per pixel and mip-mapped textures.
+It shares only the camera convention with the splatter, so a reconstruction that
+matches its images has learned the scene. Shapes are ellipsoids, boxes and
+rectangles; shading is view-independent (ambient plus Lambertian lights with hard
+shadows), so degree-0 colours can explain every view.
 """
 
 from __future__ import annotations

@@ -1,14 +1,8 @@
-"""Textures for the built-in scenes: images that ship inside scikit-image, mip-mapped.
+"""Textures for the built-in scenes: images shipped inside scikit-image, mip-mapped.
 
-Only images stored in the ``skimage/data`` folder of the installed package are
-used (no pooch download), so scene generation works offline. Pixel values are
-used as albedo directly (sRGB numbers in [0, 1], no linearisation): the scenes
-are synthetic targets, not a physically based renderer.
-
-A texture is sampled with trilinear mip-mapping: the caller passes the texel
-footprint of each sample (from finite differences of the texture coordinates
-over the supersampled pixel grid), so minified textures are low-passed before
-they are point-sampled and the rendered images carry no texture aliasing.
+Only images in the installed package are used (no download). Pixel values are the
+albedo as stored (sRGB in [0, 1]). Sampling is trilinear: the caller passes each
+sample's texel footprint, so minified textures are low-passed (no aliasing).
 """
 
 from __future__ import annotations

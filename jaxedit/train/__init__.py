@@ -1,11 +1,8 @@
 """3DGS training: a pure, jit-compiled train step, a resumable fit loop, checkpoints.
 
-From the inside out: :mod:`.config` (:class:`TrainConfig`, Splatfacto defaults),
-:mod:`.state` (:class:`TrainState`, one pytree), :mod:`.step` (the pure
-:func:`train_step`: 0.8 L1 + 0.2 D-SSIM, Adam, density control; ``metrics["redo"]`` when
-out of room), :mod:`.room` (buffer and capacity), :mod:`.loop` (:func:`train_chunk`,
-:func:`fit`; step ``s``'s view and key depend only on (base key, s), so a resumed run is
-bit-identical), :mod:`.checkpoint`, :mod:`.evaluation`.
+:mod:`.config` (:class:`TrainConfig`), :mod:`.state` (:class:`TrainState`), :mod:`.step`
+(:func:`train_step`), :mod:`.room` (buffer and capacity), :mod:`.loop` (:func:`fit`),
+:mod:`.checkpoint`, :mod:`.evaluation`.
 """
 
 from ..densify import DensifyConfig

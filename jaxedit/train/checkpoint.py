@@ -1,8 +1,5 @@
-"""Trainer checkpoints: a :class:`TrainState` in one ``.npz`` (:mod:`jaxedit.io.checkpoint`).
-
-The static fields (config, scene extent, buffer size) and the shapes that rebuild
-the template (capacity, SH degree, camera views) travel in the file's meta
-record; the arrays are the state's leaves, bit for bit.
+"""Trainer checkpoints: a :class:`TrainState` in one ``.npz`` (:mod:`jaxedit.io.checkpoint`),
+the static fields and template shapes in its meta record, the leaves bit for bit.
 """
 
 from __future__ import annotations

@@ -1,11 +1,8 @@
 """The training loop: data order, compiled chunks of steps, the divergence guard, :func:`fit`.
 
-The view of step ``s`` and its PRNG key are pure functions of ``(base key, s)``
-(a seeded permutation per epoch), so a run resumed from any checkpoint ends
-with bit-identical Gaussians, whatever the chunking. :func:`train_chunk` runs up
-to ``length`` steps in one ``lax.scan`` with the views picked from the
-device-resident images, density control included: the host acts only between
-chunks (logs, checkpoints, the guard, growing the room after a redo).
+The view and key of step ``s`` are pure functions of ``(base key, s)``, so a resumed
+run ends with bit-identical Gaussians whatever the chunking; the host acts only
+between chunks.
 """
 
 from __future__ import annotations
@@ -25,9 +22,7 @@ from .room import default_room, grow_for_redo, plan_room, planned_headroom, size
 from .state import Batch, TrainState, key_data
 from .step import GUARDED, apply_step
 
-# --------------------------------------------------------------------------------------
-# Data order
-# --------------------------------------------------------------------------------------
+# -- data order --
 
 def _stream_keys(base_data):
     base = jax.random.wrap_key_data(base_data)
@@ -35,11 +30,8 @@ def _stream_keys(base_data):
 
 
 def epoch_view(key: jax.Array, step, num_views: int):
-    """The view of 0-based ``step`` among ``num_views`` (static): entry ``step % N`` of a
-    permutation of the views seeded by ``key`` (typed) and the epoch ``step // N``.
-
-    The one data order of every trainer: :func:`fit`'s and the edit's subtasks
-    (:func:`jaxedit.edit.subtask.step_chunk`), each with its own key."""
+    """Entry ``step % N`` of a permutation of ``num_views`` (static) seeded by ``key``
+    and the epoch ``step // N``: the data order of every trainer."""
     epoch, i = step // num_views, step % num_views
     return jax.random.permutation(jax.random.fold_in(key, epoch), num_views)[i]
 
@@ -59,9 +51,8 @@ seeded permutation every epoch of ``num_views`` steps.
 
 
 def unit_float(image) -> jax.Array:
-    """float32 in [0, 1] of a uint8 image (times 1/255, bit for bit OpenImageIO's float read
-    of the same file) or a float one (as it is): the training images may stay uint8 on the
-    device, a quarter of float32's memory."""
+    """float32 in [0, 1] of a uint8 image (times 1/255, as OpenImageIO reads the file) or
+    a float one as it is; training images may stay uint8 on the device."""
     image = jnp.asarray(image)
     if image.dtype == jnp.uint8:
         return image.astype(jnp.float32) * jnp.float32(1.0 / 255.0)
@@ -75,17 +66,12 @@ def _select(images, cameras, base_key_data, step):
 
 
 def select_batch(images, cameras: Camera, base_key_data, step) -> tuple[Batch, jax.Array]:
-    """(Batch of 0-based ``step``, its key) from images [N, H, W, 3] and cameras [N].
-
-    The view is the ``step % N``-th entry of a seeded permutation of epoch ``step // N``.
-    """
+    """(Batch of 0-based ``step``, its key) from images [N, H, W, 3] and cameras [N]."""
     return _select(jnp.asarray(images), cameras, jnp.asarray(base_key_data),
                    jnp.asarray(step, jnp.int32))
 
 
-# --------------------------------------------------------------------------------------
-# Chunks of steps on the device
-# --------------------------------------------------------------------------------------
+# -- chunks of steps on the device --
 
 #: Steps per compiled chunk in :func:`fit` (the host acts only between chunks).
 CHUNK = 16
@@ -94,25 +80,21 @@ CHUNK = 16
 def scan_steps(step, carry, n_active, *, length: int, after=None):
     """Up to ``length`` steps of ``step`` in one ``lax.scan``, ending early on a redo or a stop.
 
-    Step ``i`` runs when ``i < n_active`` and no earlier step of the chunk asked
-    for a redo or a stop; the others are skipped (``lax.cond``) with blank
-    metrics, so one compiled chunk serves every count. A step that asks for a
-    redo must leave its carry as it was (see :func:`jaxedit.train.step.train_step`), so the
-    returned carry is the one after the completed steps.
+    Steps past ``n_active`` or after a redo/stop are skipped (``lax.cond``) with blank
+    metrics, so one compiled chunk serves every count. A step asking for a redo must
+    leave its carry unchanged.
 
     Args:
-      step: ``(carry, i) -> (carry, metrics)``, ``i`` int32 [] the index in the
-        chunk; ``metrics`` is a dict of arrays holding a bool ``redo``.
+      step: ``(carry, i) -> (carry, metrics)``, ``i`` int32 [] the index in the chunk;
+        ``metrics`` a dict of arrays holding a bool ``redo``.
       carry: the pytree the steps advance.
       n_active: int32 [], steps wanted (<= ``length``).
       length: static scan length.
-      after: optional ``(carry, metrics, i) -> (metrics, stop)``, evaluated after
-        every index: extends the metrics and says whether the chunk ends after
-        this step (e.g. a loss plateau); its stop counts only for a step that ran.
+      after: optional ``(carry, metrics, i) -> (metrics, stop)`` after every index; its
+        stop counts only for a step that ran.
     Returns:
-      (carry, metrics): the metrics stacked over the chunk ([length] each) plus
-      ``ran`` (bool [length]: the step was attempted); a completed step has
-      ``ran & ~redo``.
+      (carry, metrics): metrics stacked [length] plus ``ran`` (bool [length]); a
+      completed step has ``ran & ~redo``.
     """
     blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
                                    jax.eval_shape(step, carry, jnp.zeros((), jnp.int32))[1])
@@ -133,18 +115,14 @@ def scan_steps(step, carry, n_active, *, length: int, after=None):
 
 
 def _train_chunk(state: TrainState, images, cameras: Camera, n_active, *, length: int):
-    """Up to ``length`` train steps in one ``lax.scan`` (:func:`scan_steps`), views and keys
-    chosen on the device.
+    """Up to ``length`` train steps in one :func:`scan_steps`, views and keys chosen on device.
 
     Args:
-      state: TrainState.
-      images: float [N, H, W, 3] in [0, 1] or uint8 training images (on the device).
+      images: float [N, H, W, 3] in [0, 1] or uint8, on the device.
       cameras: Camera batch [N].
       n_active: int32 [], steps wanted (<= ``length``).
-      length: static scan length.
     Returns:
-      (state, metrics): :func:`jaxedit.train.step.train_step`'s metrics stacked over the chunk
-      ([length] each) plus ``ran``; a completed step has ``ran & ~redo``.
+      (state, metrics): per-step metrics stacked [length] plus ``ran``.
     """
     num_views = images.shape[0]
 
@@ -160,12 +138,8 @@ train_chunk = jax.jit(_train_chunk, static_argnames=("length",))
 
 
 def put_image(images: jax.Array, index, image) -> jax.Array:
-    """``images`` [N, H, W, 3] with view ``index`` replaced by ``image`` [H, W, 3], in place.
-
-    The buffer is donated, so an edited view lands in the device-resident
-    training set without copying the other views (where the platform supports
-    donation; elsewhere it is a copy, with the same result).
-    """
+    """``images`` [N, H, W, 3] with view ``index`` replaced by ``image`` [H, W, 3]; the
+    buffer is donated, so the other views are not copied where donation is supported."""
     return _put_image(images, jnp.asarray(index, jnp.int32), jnp.asarray(image, images.dtype))
 
 
@@ -186,10 +160,8 @@ def divergence(step0: int, metrics: dict, *, history=None, max_loss: float | Non
       step0: the step count before the chunk.
       metrics: per-step metrics of the chunk's completed steps (NumPy, [n]).
       history: the run's losses so far, this chunk's included (default: the chunk's).
-      max_loss: the loss averaged over the last ``window`` steps may not exceed
-        this. A photometric loss is at most ~1.2 (L1 <= 1, 1 - SSIM <= 2); an
-        untrained scene sits near 0.3-0.4 and an opacity reset returns there, a
-        render unrelated to its target (the GPU failure of issue #18) at ~1.
+      max_loss: bound on the loss averaged over the last ``window`` steps. The
+        photometric loss is at most ~1.2; a render unrelated to its target sits near 1.
       window: steps averaged by the loss rule.
     Returns:
       a one-line reason naming the first bad step and quantity.
@@ -210,18 +182,11 @@ def divergence(step0: int, metrics: dict, *, history=None, max_loss: float | Non
     return None
 
 
-# --------------------------------------------------------------------------------------
-# Progress events (the library never draws: callers render them, see experiments/progress.py)
-# --------------------------------------------------------------------------------------
+# -- progress events (the library never draws) --
 
 class TrainProgress(NamedTuple):
-    """One progress event of :func:`fit`, sent after every chunk of steps.
-
-    Attributes:
-      desc: the run's label (``fit(desc=...)``).
-      step: steps done so far; total: the step the run ends at.
-      loss, psnr: the last step's training loss and PSNR; gaussians: alive Gaussians.
-    """
+    """One progress event of :func:`fit`, sent after every chunk: ``desc``, ``step`` of
+    ``total``, the last step's ``loss`` and ``psnr``, and alive ``gaussians``."""
 
     desc: str
     step: int
@@ -231,9 +196,6 @@ class TrainProgress(NamedTuple):
     gaussians: int
 
 
-# --------------------------------------------------------------------------------------
-# The loop
-# --------------------------------------------------------------------------------------
 
 def _jsonable(metrics: dict) -> dict:
     out = {}
@@ -256,48 +218,34 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         room: float | None | str = "auto") -> TrainState:
     """Train until ``state.step == iterations`` (default ``state.config.iterations``).
 
-    The images live on the device and the steps run in compiled chunks of up to
-    ``chunk`` (:func:`train_chunk`); the host acts only between chunks (logs,
-    progress, checkpoints, the divergence guard, growing the buffer or capacity),
-    reading the chunk's metrics back at once. Chunking does not change the
-    result: the view and key of step s depend only on (key, s).
+    Steps run in compiled chunks of up to ``chunk`` (:func:`train_chunk`); the host acts
+    only between chunks. The next chunk is dispatched before the current one is read.
 
     Args:
-      state: TrainState (fresh from :func:`init_state` or from :func:`load_checkpoint`).
-      images: float [N, H, W, 3] training images in [0, 1], or uint8 ones (kept uint8 on
-        the device, each step's view converted; :attr:`jaxedit.io.Dataset.pixels`), NumPy
-        or JAX; the caller may pass a different array of the same shape to each call.
+      state: TrainState, fresh from :func:`init_state` or from a checkpoint.
+      images: float [N, H, W, 3] in [0, 1] or uint8 (kept uint8 on the device), NumPy or JAX.
       cameras: Camera batch [N] matching ``images``.
-      key: base PRNG key; default: the one in ``state`` (set by :func:`init_state`).
-        The view and key of step s depend only on (key, s).
+      key: base PRNG key; default: the one in ``state``.
       iterations: stop at this step count (default: the config's).
-      log: ``log(record)`` with a JSON-ready metrics record (step, elapsed seconds,
-        capacity, buffer size and the step's metrics) every ``log_every`` steps, at
-        the last step and at every density-control step; None: no records.
-      checkpoint: ``checkpoint(state)`` every ``checkpoint_every`` steps (chunks end
-        on those steps) and at the end of a run that took a step; None: never.
-        The library writes no files: :mod:`jaxedit.pipelines.rundir` has the run
-        directory's writers (a JSONL log, rolling ``ckpt_<step>.npz`` files).
-      progress: ``progress(TrainProgress)`` after every chunk (and once at the start),
-        e.g. to draw a bar; None: silent. The library itself never prints.
-      callback: ``callback(state, metrics)`` after every chunk: the state at its
-        end and the metrics of its completed steps (NumPy arrays [n]).
-      should_stop: ``should_stop(step, loss_history) -> bool`` checked before
-        every chunk; True ends the loop early (a final checkpoint is still written).
+      log: ``log(record)`` with a JSON-ready metrics record every ``log_every`` steps,
+        at the last step and at every density-control step.
+      checkpoint: ``checkpoint(state)`` every ``checkpoint_every`` steps (chunks end on
+        them) and at the end of a run that took a step. The library writes no files.
+      progress: ``progress(TrainProgress)`` at the start and after every chunk.
+      callback: ``callback(state, metrics)`` after every chunk, metrics of its completed
+        steps (NumPy [n]).
+      should_stop: ``should_stop(step, loss_history) -> bool`` before every chunk; True
+        ends the loop (a final checkpoint is still written).
       chunk: steps per compiled chunk (1: the host sees every step).
-      max_loss: divergence guard threshold (see :func:`divergence`; None: only
-        non-finite values stop the run).
-      room: a fresh run (step 0) that will densify starts with ``room`` x its alive
-        Gaussians of capacity (:func:`plan_room`; None: as given, grown on demand;
-        "auto": :func:`default_room`), and an unsized buffer ``room`` x the usual
-        headroom (:func:`planned_headroom`). The capacity changes only the speed and the
-        last bits of the floats (reductions over differently sized arrays).
+      max_loss: divergence guard threshold (:func:`divergence`; None: non-finite only).
+      room: capacity of a fresh densifying run, x its alive Gaussians (:func:`plan_room`;
+        None: grown on demand; "auto": :func:`default_room`), and of an unsized buffer
+        x the usual headroom. Changes only speed and the floats' last bits.
     Returns:
       the final TrainState.
     Raises:
-      DataError: the run diverged (a non-finite loss or parameter, or an exploding
-        loss); the message names the step and the quantity. Nothing of the bad
-        chunk is checkpointed, so the newest checkpoint is the last good state.
+      DataError: bad inputs, or the run diverged (the message names the step and
+        quantity); nothing of the bad chunk is checkpointed.
     """
     if key is not None:
         state = dataclasses.replace(state, key=key_data(key))
@@ -337,7 +285,7 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
     steps_done = 0
 
     def launch(st, at):
-        """Dispatch the chunk that starts at step ``at`` (asynchronous: nothing is read)."""
+        """Dispatch the chunk starting at step ``at`` without reading it."""
         n = min(chunk, total - at)
         if checkpoint_every:
             n = min(n, checkpoint_every - at % checkpoint_every)
@@ -350,9 +298,7 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         ahead = launch(state, step)
     while ahead is not None:
         new, metrics, n = ahead
-        # The next chunk goes to the device before this one is read, so the device
-        # never waits for the host's logging and checks. It assumes this chunk
-        # completes; when it does not (a redo, a stop, divergence) it is dropped.
+        # Dispatched before this chunk is read; dropped if it does not complete
         ahead = launch(new, step + n) if step + n < total else None
         metrics = jax.device_get(metrics)
         completed = metrics["ran"] & ~metrics["redo"]
@@ -376,7 +322,7 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
                 log(record)
         step += k
         steps_done += k
-        if k < n:  # a step asked for more room: grow, then redo it in a new chunk
+        if k < n:  # a step asked for more room: grow, redo it
             state = grow_for_redo(state, jax.tree_util.tree_map(lambda a: a[k], metrics))
             ahead = None
         if k:

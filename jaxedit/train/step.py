@@ -1,14 +1,10 @@
 """One optimisation step: render a view, 0.8 L1 + 0.2 D-SSIM, Adam, density control.
 
-:func:`apply_step` is the pure step (to trace inside a caller's jit or scan: the
-chunked loop, the ProEdit driver); :func:`train_step` is it jitted. A step never
-returns a half-applied state: when the tile buffer overflowed or density control
-needed more slots than the capacity has, it returns its *input* state with
-``metrics["redo"]`` set (see :mod:`jaxedit.train.room`).
-
-Numerics: no float32 dot in the step runs at DEFAULT precision (on NVIDIA GPUs
-that is TF32, a 10-bit mantissa, which made training diverge there, issue #18);
-``tests/test_backbone.py`` checks it with ``tests/tf32.py`` (a CPU emulation of TF32).
+:func:`apply_step` is the pure step (to trace inside a caller's jit or scan);
+:func:`train_step` is it jitted. A step never returns a half-applied state: on a
+tile-buffer overflow or too few slots it returns its *input* state with
+``metrics["redo"]`` set (:mod:`jaxedit.train.room`). No float32 dot runs at DEFAULT
+precision, which is TF32 on NVIDIA GPUs and makes training diverge.
 """
 
 from __future__ import annotations
