@@ -282,8 +282,9 @@ def _editor_warm_up(editor, edit_cfg, data: Path, seed: int) -> Callable[[], Non
 
     from jaxedit.editors import warm_up
     from jaxedit.io import nerfstudio_view_size
+    from jaxedit.io.nerfstudio import dataset_downscale
 
-    height, width = nerfstudio_view_size(data, downscale=edit_cfg.downscale)
+    height, width = nerfstudio_view_size(data, downscale=dataset_downscale(data, edit_cfg.downscale))
     # the difficulty's call: its views in one batch where the editor takes batches
     views = max(1, min(int(getattr(editor, "batch", 1)), edit_cfg.plan.difficulty_views or 1))
     return functools.partial(warm_up, editor, height, width, jax.random.key(seed), views=views,

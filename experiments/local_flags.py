@@ -20,8 +20,10 @@ def local_spec(args, config, data):
         import numpy as np
 
         from jaxedit.io import load_nerfstudio
+        from jaxedit.io.nerfstudio import dataset_downscale
 
-        dataset = load_nerfstudio(args.data, downscale=config.downscale)
+        dataset = load_nerfstudio(args.data, downscale=dataset_downscale(args.data,
+                                                                         config.downscale))
         names = [dataset.filenames[i] for i in np.asarray(dataset.train_indices)]
         masks = L.load_masks(args.masks, names, tuple(data.train_images.shape[1:3]),
                              originals=_photo_names(dataset.path, names))

@@ -224,6 +224,22 @@ def test_reconstruct_picks_the_default_downscale_and_refuses_what_cannot_fit(tmp
         R.load_dataset(d, config)
 
 
+def test_edit_loads_a_large_capture_at_the_size_reconstruct_picks(tmp_path):
+    from jaxedit import gaussians as G
+    from jaxedit.io import save_ply
+    from jaxedit.pipelines.edit import EditRunConfig, load_inputs
+
+    rng = np.random.default_rng(7)
+    d = _dataset(tmp_path / "d", [_photo(rng, 40, 1700) for _ in range(3)])
+    scene = tmp_path / "scene.ply"
+    save_ply(scene, G.from_points(rng.normal(size=(5, 3)), rng.uniform(size=(5, 3)), sh_degree=0))
+    assert EditRunConfig().downscale is None
+    data, _ = load_inputs(EditRunConfig(), d, scene)
+    assert data.train_images.shape[1:3] == (20, 850)
+    data, _ = load_inputs(EditRunConfig(downscale=1), d, scene)
+    assert data.train_images.shape[1:3] == (40, 1700)
+
+
 # ---------------------------------------------------------------------------------------------
 # missing images
 

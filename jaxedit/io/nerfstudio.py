@@ -539,6 +539,20 @@ def nerfstudio_view_size(path: str | os.PathLike, *, downscale: int = 1) -> tupl
     return _view_geometry(json_path, parsed, full_w, full_h, downscale)[0]
 
 
+def dataset_downscale(path: str | os.PathLike, downscale: int | None) -> int:
+    """``downscale``, or when None the factor :func:`auto_downscale` picks for the photos of
+    the dataset at ``path`` (from transforms.json alone; a factor above 1 is logged)."""
+    if downscale is not None:
+        return int(downscale)
+    width, height = nerfstudio_photo_size(path)
+    factor = auto_downscale(width, height)
+    if factor > 1:
+        log.warning("downscale %d: the %dx%d photos are used at %dx%d (long side <= %d px, "
+                    "nerfstudio's default); --downscale 1 keeps full size", factor, width,
+                    height, width // factor, height // factor, MAX_AUTO_SIDE)
+    return factor
+
+
 def nerfstudio_photo_size(path: str | os.PathLike) -> tuple[int, int]:
     """(width, height) that transforms.json declares for its photos (nothing decoded)."""
     json_path = _resolve_json(path)

@@ -180,7 +180,8 @@ class EditRunConfig:
         AlexNet weights or ``lpips_weights``; ms-ssim).
       lpips_weights: LPIPS .safetensors/.npz written by convert-lpips (e.g. --net vgg;
         None: the bundled LPIPS-AlexNet).
-      downscale: image downscale factor of the dataset.
+      downscale: image downscale factor of the dataset (unset: the smallest power of two
+        that brings the photos' long side to at most 1600 px, as reconstruct picks).
       test_views: at most this many held-out views in snapshots and metrics (None: all).
       identity: the floor the editor's identity on the scene must clear before training
         (:class:`jaxedit.edit.identity.IdentityFloor`).
@@ -192,7 +193,7 @@ class EditRunConfig:
     identity: IdentityFloor = IdentityFloor()
     distance: str = "auto"
     lpips_weights: Path | None = None
-    downscale: int = ranged(1, low=1)
+    downscale: int | None = ranged(None, low=1)
     test_views: int | None = ranged(None, low=1)
 
     def __post_init__(self):
@@ -205,7 +206,9 @@ def load_inputs(config: EditRunConfig, data_path, scene_path) -> tuple[EditData,
     (downscale, at most ``test_views``)."""
     from .reconstruct import check_image_size
 
-    dataset = load_nerfstudio(data_path, downscale=config.downscale)
+    from ..io.nerfstudio import dataset_downscale
+
+    dataset = load_nerfstudio(data_path, downscale=dataset_downscale(data_path, config.downscale))
     check_image_size(dataset, data_path)
     scene = load_scene(scene_path)
     if not np.asarray(scene.alive).any():

@@ -93,17 +93,9 @@ def composite_background(name: str) -> tuple[float, float, float]:
 def resolve_downscale(path, config: ReconstructConfig) -> int:
     """``config.downscale``, or when unset (None) the factor :func:`jaxedit.io.nerfstudio.auto_downscale`
     picks for the dataset at ``path`` (from transforms.json alone; logged)."""
-    from ..io.nerfstudio import MAX_AUTO_SIDE, auto_downscale, nerfstudio_photo_size
+    from ..io.nerfstudio import dataset_downscale
 
-    if config.downscale is not None:
-        return config.downscale
-    width, height = nerfstudio_photo_size(path)
-    factor = auto_downscale(width, height)
-    if factor > 1:
-        log.warning("downscale %d: the %dx%d photos are trained at %dx%d (long side <= %d px, "
-                    "nerfstudio's default); --downscale 1 keeps full size", factor, width,
-                    height, width // factor, height // factor, MAX_AUTO_SIDE)
-    return factor
+    return dataset_downscale(path, config.downscale)
 
 
 #: Bytes a Gaussian costs in training at degree-3 SH: 59 float32 parameters, each with a
