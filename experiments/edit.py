@@ -392,6 +392,7 @@ def run_steering(args, kind: str) -> dict:
     if kind == "stop":
         return {"stop_requested": str(steer.request_stop(args.out))}
     steer.read_control(args.out)  # a garbled request: one line before anything
+    (args.out / steer.CONTROL_NAME).unlink(missing_ok=True)  # a valid one is stale: we hold the lock
     given = {token.split("=", 1)[0][2:].replace("-", "_") for token in args._argv
              if token.startswith("--")}  # what this command line changes
     merged = parse(["edit", *recorded_settings(args.out), *args._argv[1:]])
