@@ -441,6 +441,15 @@ def run_steering(args, kind: str) -> dict:
                          for r in records]}
 
 
+def serve_view(watcher, what: str) -> None:
+    """``--view`` after the edit: the viewer (and its watcher) go on until Ctrl-C."""
+    if watcher is None:
+        return
+    print(f"{what}; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)", flush=True)
+    watcher.viewer.edit_finished()
+    watcher.serve_forever()
+
+
 def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.parallel.distributed import split_edits
@@ -515,6 +524,7 @@ def run(args) -> dict:
         done = sum(1 for r in out["schedule"]["subtasks"] if r.get("snapshot"))
         print(f"stopped after {done} of {len(out['schedule']['subtasks'])} subtasks; "
               f"--resume goes on", flush=True)
+        serve_view(watcher, "edit stopped")
         return {"stopped": True, "run_dir": str(args.out)}
     clip = add_clip_metrics(args)
     if clip is not None:
@@ -523,9 +533,5 @@ def run(args) -> dict:
     keys = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
             "num_gaussians", "wall_time_s", "subtasks", "all_converged",
             "clip_direction_similarity", "clip_direction_consistency")
-    if watcher is not None:
-        print(f"edit finished; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)",
-              flush=True)
-        watcher.viewer.serve_forever()
-        watcher.viewer.close()
+    serve_view(watcher, "edit finished")
     return {k: m.get(k) for k in keys} | {"run_dir": str(args.out)}
