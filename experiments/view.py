@@ -1,19 +1,34 @@
-"""``view``: an edit run's scene as Gaussian splats in the browser (viser).
+"""``view``: an edit run's scene as Gaussian splats in the browser (viser), and its steering.
 
     python -m experiments view RUN_DIR [--port 8080]
 
 Serves, on 127.0.0.1 only, the snapshots an edit run wrote (``original/scene.ply``
 then ``subtasks/NN_rX.XXX/scene.ply`` in schedule order) with viser, the viewer
 library nerfstudio uses. A slider picks the snapshot, i.e. the aggressivity of the
-edit; the button "write selected.ply" does what ``edit --select-only --select K``
-does for the subtask on screen. A local edit's run (``edit --local`` / ``--region`` /
+edit; the button "write selected.ply" (keep) does what ``edit --select-only --select K``
+does for the node on screen. A local edit's run (``edit --local`` / ``--region`` /
 ``--masks``, issue 35) adds a checkbox "colour by relevance": the splats take the colour
 of their lifted relevance (``local/gaussians.npz``: blue 0 .. red 1, the editable
 Gaussians' set where the run kept only that; yellow: Gaussians the edit moved or created,
 all from editable ones), so the frozen part of the scene shows as what stayed bit for bit.
-``edit --view`` serves the run the same way while it is edited: a background thread
-polls the run directory and shows each snapshot as its subtask ends. To view a run on a
-remote machine, forward the port (``ssh -L``).
+
+A steered run (``tree.json``, :mod:`jaxedit.pipelines.steer`) adds a dropdown of its
+branches: the slider runs over the chosen branch, from the original through its parent
+chain's snapshots up to its start, then its own (keep writes a branch node as
+``select_snapshot(RUN, "b1:2")`` does). An ``edit`` run directory (with its config.json)
+gets the folder "steer": **stop** (``edit --stop``: the running edit stops after its
+subtask), **refine** the node on screen, **branch** from it with the instruction and / or
+seed typed above, **extend** it up to ``r_max`` -- each runs ``python -m experiments edit
+--out RUN --from NODE --name bN ...`` as a subprocess, one at a time, with its last
+progress line and the branch's finished subtasks in the panel (or its one-line error),
+and the view moves to the new branch when its first snapshot arrives. A background
+thread polls the run directory (every branch), so new branches and snapshots appear
+as they are written.
+
+``edit --view`` serves the run the same way while it is edited, each snapshot shown as
+its subtask ends; that process holds the run until Ctrl-C, so there only stop applies
+(refine / branch / extend from ``view RUN`` afterwards). To view a run on a remote
+machine, forward the port (``ssh -L``).
 
 Needs the optional extra ``viewer`` (``pip install 'jaxedit[viewer]'``).
 """
@@ -31,7 +46,8 @@ from pathlib import Path
 
 from jaxedit.errors import check_ranges, ranged
 
-HELP = "serve an edit run's snapshots in the browser (viser): a slider over subtasks, select button"
+HELP = ("serve an edit run's snapshots in the browser (viser): a slider over each branch, "
+        "keep, stop / refine / branch / extend")
 
 HOST = "127.0.0.1"  # never 0.0.0.0: a run may be private; forward the port to share it
 DEFAULT_PORT = 8080  # viser's; a taken port moves to the next free one
@@ -414,8 +430,10 @@ class SnapshotViewer:
                 self._dropdown.visible = len(self._branches) > 1
             if branch == self._follow and isinstance(node, str):  # the branch's own node
                 self._follow = None
-                self._dropdown.value = branch  # its callback chooses it
-                return
+                if branch != self._branch:
+                    self._dropdown.value = branch  # its callback chooses it, showing this one
+                    return
+                follow = True
             if branch == self._branch:
                 self._slider.max = len(scenes) - 1
                 if follow:

@@ -515,3 +515,58 @@ def test_viewer_draws_the_splats_in_headless_chromium(tmp_path, viser_installed)
     # other snapshots' colours are absent.
     assert last["blue"] > 5000 and last["red"] < 50 and last["green"] < 50, last
     assert original["red"] > 5000 and original["blue"] < 50 and original["green"] < 50, original
+
+
+def splat_pixels(img):
+    """Pixels of the canvas middle (off viser's panels and notices) that are not background."""
+    h, w = img.shape[:2]
+    return (np.abs(img[h // 3:, w // 5:int(w * 0.64)] - 255).max(axis=-1) > 40)
+
+
+def page_text(browser):
+    return browser.evaluate("document.body.innerText") or ""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not on PATH (CI installs Debian's chromium)")
+def test_refine_pressed_in_headless_chromium_renders_the_new_branch(tiny_run, tmp_path,
+                                                                    viser_installed):
+    run = shutil.copytree(tiny_run, tmp_path / "run")
+    watcher = view.watch_run(run, port=0)
+    watcher.interval = 0.3
+    viewer, browser = watcher.viewer, None
+    k = last_edit_step(run)
+    try:
+        viewer.show(k + 1)  # main:k, the last edit step, on screen
+        browser = DevTools(tmp_path / "profile", viewer.url)
+        if not browser.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
+            pytest.skip("this Chromium has no WebGL2 (no SwiftShader)")
+        wait_for(lambda: f"subtask {k} " in page_text(browser), 60)
+        time.sleep(2)  # software WebGL draws the first frames
+        before = browser.screenshot(tmp_path / "before.png")
+        watcher.start()
+        # Press refine in the page: the click reaches the server over viser's websocket.
+        assert browser.evaluate("""(() => { const b = [...document.querySelectorAll('button')]
+            .find(b => b.innerText.trim() === 'refine'); b.click(); return !b.disabled; })()""")
+        wait_for(lambda: viewer._operation is not None, 30)
+        assert viewer._operation.argv[-5:] == ["--from", f"main:{k}", "--name", "b1", "--refine"]
+        # The new branch's first snapshot arrives: the page's dropdown and caption move to it.
+        wait_for(lambda: "subtask b1:0 " in page_text(browser)
+                 or not viewer._operation.running, 400)
+        assert "subtask b1:0 " in page_text(browser), viewer._op_status.content
+        assert browser.evaluate("[...document.querySelectorAll('input')]"
+                                ".some(i => i.type === 'text' && i.value === 'b1')")
+        shown = view.branch_chains(run)["b1"][k + 1]  # b1:0, after main's chain up to k-1
+        assert shown.node == "b1:0" and viewer.node_on_screen() == "b1:0"
+        deadline, after = time.monotonic() + 60, None
+        while after is None or (np.abs(after - before).max(axis=-1) > 40).sum() < 500:
+            assert time.monotonic() < deadline, "the page kept showing main's snapshot"
+            time.sleep(0.5)
+            after = browser.screenshot(tmp_path / "after.png")
+    finally:
+        if browser is not None:
+            browser.close()
+        watcher.stop()
+        viewer.close()  # the refine still running is ended (--branch b1 --resume goes on)
+    # Both screenshots show splats across the canvas; the new one is b1:0's.
+    assert splat_pixels(before).sum() > 3000 and splat_pixels(after).sum() > 3000
