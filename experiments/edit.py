@@ -441,12 +441,15 @@ def run_steering(args, kind: str) -> dict:
                          for r in records]}
 
 
-def serve_view(watcher, what: str) -> None:
-    """``--view`` after the edit: the viewer (and its watcher) go on until Ctrl-C."""
-    if watcher is None:
+def after_release(args) -> None:
+    """``--view`` once the edit is over and the run's lock released (experiments/cli.py):
+    the viewer and its watcher go on until Ctrl-C, and its refine / branch / extend
+    buttons can take the run."""
+    view = getattr(args, "_view", None)
+    if view is None:
         return
+    watcher, what = view
     print(f"{what}; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)", flush=True)
-    watcher.viewer.edit_finished()
     watcher.serve_forever()
 
 
@@ -524,7 +527,7 @@ def run(args) -> dict:
         done = sum(1 for r in out["schedule"]["subtasks"] if r.get("snapshot"))
         print(f"stopped after {done} of {len(out['schedule']['subtasks'])} subtasks; "
               f"--resume goes on", flush=True)
-        serve_view(watcher, "edit stopped")
+        args._view = None if watcher is None else (watcher, "edit stopped")
         return {"stopped": True, "run_dir": str(args.out)}
     clip = add_clip_metrics(args)
     if clip is not None:
@@ -533,5 +536,5 @@ def run(args) -> dict:
     keys = ("psnr_vs_target", "ssim_vs_target", "multiview_consistency", "edit_fit_psnr",
             "num_gaussians", "wall_time_s", "subtasks", "all_converged",
             "clip_direction_similarity", "clip_direction_consistency")
-    serve_view(watcher, "edit finished")
+    args._view = None if watcher is None else (watcher, "edit finished")
     return {k: m.get(k) for k in keys} | {"run_dir": str(args.out)}

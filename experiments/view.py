@@ -26,9 +26,9 @@ thread polls the run directory (every branch), so new branches and snapshots app
 as they are written.
 
 ``edit --view`` serves the run the same way while it is edited, each snapshot shown as
-its subtask ends; that process holds the run until Ctrl-C, so there only stop applies
-(refine / branch / extend from ``view RUN`` afterwards). To view a run on a remote
-machine, forward the port (``ssh -L``).
+its subtask ends (there refine / branch / extend are refused while the edit holds the
+run), and goes on serving, steerable, once the edit finished or stopped, until Ctrl-C.
+To view a run on a remote machine, forward the port (``ssh -L``).
 
 Needs the optional extra ``viewer`` (``pip install 'jaxedit[viewer]'``).
 """
@@ -339,7 +339,6 @@ class SnapshotViewer:
         self._branch = MAIN  # the branch the slider runs over
         self._shown: int | None = None
         self._launch, self._operation, self._follow = launch, None, None
-        self._edit_done = False
         gui = self.server.gui
         self._dropdown = gui.add_dropdown("branch", (MAIN,), initial_value=MAIN, visible=False,
                                           hint="the run's branches (refine, branch, extend)")
@@ -504,7 +503,6 @@ class SnapshotViewer:
             busy = self._operation is not None and self._operation.running
             for button in (self._refine, self._branch_button, self._extend):
                 button.disabled = node is None or busy
-            self._stop.disabled = self._edit_done and not busy
 
     def select(self) -> Path | None:
         """Write ``selected.ply`` from the node on screen (keep, the button's action)."""
@@ -592,16 +590,6 @@ class SnapshotViewer:
 
     def _stop_clicked(self, _event) -> None:
         self.stop_edit()
-
-    def edit_finished(self) -> None:
-        """``edit --view`` after its edit: this process still holds the run's lock, so
-        stop has nothing to stop and refine / branch / extend are refused by the command."""
-        with self._lock:
-            self._edit_done = True
-            if self.steerable:
-                self._op_status.content = ("the edit finished; this process holds the run: "
-                                           "steer it with `view RUN` after Ctrl-C")
-                self._sync_buttons()
 
     def serve_forever(self) -> None:
         """Block until Ctrl-C (the server runs on viser's own threads)."""

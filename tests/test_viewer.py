@@ -265,8 +265,6 @@ def test_stop_writes_the_control_file_only_while_an_edit_holds_the_run(tmp_path,
             viewer._stop_clicked(None)
         assert viewer._op_status.content.startswith("stop requested")
         assert json.loads((run / steer.CONTROL_NAME).read_text()) == {"stop": True}
-        viewer.edit_finished()  # edit --view after its edit: nothing left to stop
-        assert viewer._stop.disabled
     finally:
         viewer.close()
 
@@ -570,3 +568,21 @@ def test_refine_pressed_in_headless_chromium_renders_the_new_branch(tiny_run, tm
         viewer.close()  # the refine still running is ended (--branch b1 --resume goes on)
     # Both screenshots show splats across the canvas; the new one is b1:0's.
     assert splat_pixels(before).sum() > 3000 and splat_pixels(after).sum() > 3000
+
+
+@pytest.mark.slow
+def test_edit_view_serves_on_steerable_once_the_edit_released_the_run(
+        tiny_run, tmp_path, monkeypatch, viser_installed):
+    d, seen = tiny_run.parent, {}
+
+    def serve(viewer):  # instead of blocking until Ctrl-C: what the user would find
+        seen.update(locked=steer._locked(out), branches=viewer.branches(), shown=len(viewer),
+                    steerable=viewer.steerable)
+
+    monkeypatch.setattr(view.SnapshotViewer, "serve_forever", serve)
+    out = tmp_path / "run"
+    assert main(["edit", "--data", str(d / "data"), "--scene", str(d / "scene.ply"),
+                 "--out", str(out), "--view", "--view-port", "0", *TINY]) == 0
+    subtasks = json.loads((out / "schedule.json").read_text())["subtasks"]
+    assert seen == {"locked": False, "branches": ("main",), "shown": len(subtasks) + 1,
+                    "steerable": True}
