@@ -557,8 +557,12 @@ class SnapshotViewer:
             argv = operation_argv(self.run_dir, op, node, name, prompt=prompt,
                                   seed=None if seed == run_seed(self.run_dir) else seed,
                                   r_max=float(self._r_max.value))
-            self._operation = Operation(op, name, argv, launch=self._launch,
-                                        on_change=self.refresh_operation)
+            try:
+                self._operation = Operation(op, name, argv, launch=self._launch,
+                                            on_change=self.refresh_operation)
+            except OSError as e:  # no such interpreter, too many processes, ...
+                self._op_status.content = f"error: {op}: cannot start {argv[0]} ({e})"
+                return None
             self._follow = name
             self.refresh_operation()
             return self._operation

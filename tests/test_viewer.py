@@ -347,6 +347,13 @@ def test_steering_buttons_start_the_command_and_show_its_progress(tmp_path, vise
         assert op.wait(10) == 2
         assert viewer._op_status.content == "error: --from: node main:1 is a consolidate subtask"
         assert not viewer._extend.disabled
+
+        def broken(argv):
+            raise FileNotFoundError(2, "No such file or directory")
+
+        viewer._launch = broken  # the command cannot even start: said in the panel
+        assert viewer.start("refine") is None and not viewer._refine.disabled
+        assert viewer._op_status.content.startswith("error: refine: cannot start ")
     finally:
         viewer.close()
 
