@@ -612,6 +612,10 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     if result and writes(args):
         print(json.dumps(jsonable(result), indent=2), file=result_out, flush=True)
+    # What a command does once --out is released (edit --view: the viewer serves on).
+    after = getattr(args._module, "after_release", None)
+    if after is not None:
+        after(args)
     return 0
 
 

@@ -477,6 +477,18 @@ def branch_clip_metrics(merged, run_dir: Path, folder: Path, records) -> dict:
     return clip
 
 
+def after_release(args) -> None:
+    """``--view`` once the edit is over and the run's lock released (experiments/cli.py):
+    the viewer and its watcher go on until Ctrl-C, and its refine / branch / extend
+    buttons can take the run."""
+    view = getattr(args, "_view", None)
+    if view is None:
+        return
+    watcher, what = view
+    print(f"{what}; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)", flush=True)
+    watcher.serve_forever()
+
+
 def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.parallel.distributed import split_edits
@@ -552,6 +564,7 @@ def run(args) -> dict:
         done = sum(1 for r in out["schedule"]["subtasks"] if r.get("snapshot"))
         print(f"stopped after {done} of {len(out['schedule']['subtasks'])} subtasks; "
               f"--resume goes on", flush=True)
+        args._view = None if watcher is None else (watcher, "edit stopped")
         return {"stopped": True, "run_dir": str(args.out)}
     clip = add_clip_metrics(args)
     if clip is not None:
@@ -561,9 +574,5 @@ def run(args) -> dict:
             "num_gaussians", "wall_time_s", "subtasks", "all_converged",
             "clip_direction_similarity", "clip_direction_consistency")
     exported = export_selected(args.out, exports, args.select, log)
-    if watcher is not None:
-        print(f"edit finished; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)",
-              flush=True)
-        watcher.viewer.serve_forever()
-        watcher.viewer.close()
+    args._view = None if watcher is None else (watcher, "edit finished")
     return {k: m.get(k) for k in keys} | {"run_dir": str(args.out), "exported": exported}

@@ -1,8 +1,11 @@
-"""The splat viewer (experiments/view.py): snapshots, slider, select button, live refresh, browser.
+"""The splat viewer (experiments/view.py): snapshots, slider, select button, live refresh,
+the run's tree (branch dropdown, steering buttons), browser.
 
 Runs are written directly (three snapshot PLYs of 300 Gaussians and a schedule.json, as
-the edit driver lays them out) instead of running an edit. The browser test opens the
-viewer in headless Chromium with software WebGL and looks for the splats' colours.
+the edit driver lays them out; a branch folder and tree.json for the tree) instead of
+running an edit; the steering buttons' subprocess is a fake that records its command line,
+except in the slow tests, which edit a tiny scene and refine it for real. The browser tests
+open the viewer in headless Chromium with software WebGL and look for the splats' colours.
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import json
+import queue
 import shutil
 import subprocess
 import sys
@@ -23,12 +27,15 @@ import pytest
 from experiments import view
 from experiments.cli import main
 from jaxedit import DataError
-from jaxedit.pipelines import select_snapshot
+from jaxedit.edit.steer import Branch, NodeRef, RunTree
+from jaxedit.io.files import folder_lock
+from jaxedit.pipelines import select_snapshot, steer
 from jaxedit.gaussians import covariance, from_points, grow, splat_arrays
 from jaxedit.io import save_ply
 
 # One vivid colour per snapshot, so a screenshot tells which one is on screen.
 RED, GREEN, BLUE = (1.0, 0.1, 0.1), (0.1, 0.9, 0.1), (0.1, 0.2, 1.0)
+YELLOW = (1.0, 0.9, 0.1)
 
 
 CENTRE = np.array([4.0, -3.0, 1.0])  # off the origin, where viser's default camera looks
@@ -117,6 +124,9 @@ def test_slider_and_select_button_write_what_select_only_writes(tmp_path, viser_
     viewer = view.open_run(run, port=0)
     try:
         assert len(viewer) == 3 and viewer._shown == 2  # the most edited snapshot first
+        # No tree.json and no edit's config.json: as before, no dropdown, no steering.
+        assert not viewer._dropdown.visible and not viewer.steerable
+        assert viewer.branches() == ("main",)
         assert viewer.url.startswith("http://127.0.0.1:") and viewer.server.get_port() > 0
         viewer.show(0)
         assert viewer._button.disabled and viewer.select() is None  # the original: no subtask
@@ -172,6 +182,238 @@ def test_watcher_shows_each_snapshot_as_the_run_writes_it(tmp_path, viser_instal
         watcher.stop()  # stopping picks up what was written last
         viewer.close()
     assert len(viewer) == 3 and viewer._shown == 0
+
+
+# ---------------------------------------------------------------- the tree and steering
+
+
+def add_branch(run, name, parent, start, records, rgb, seed):
+    """Branch ``name`` of ``run`` as steer.run_branch leaves it: tree.json's entry and its
+    folder with one finished subtask per (ratio) in ``records``, all of colour ``rgb``."""
+    folder = run / "branches" / name
+    subtasks = [{"index": i, "name": f"s{i}", "kind": "edit", "ratio": r,
+                 "snapshot": write_snapshot(folder, f"subtasks/{i:02d}_r{r:.3f}",
+                                            blob(seed + i, rgb))}
+                for i, r in enumerate(records)]
+    (folder / "schedule.json").write_text(json.dumps({"prompt": "test", "subtasks": subtasks}))
+    tree = steer.read_tree(run).add(Branch(name, "refine", parent, start, 0.5, "main"))
+    steer.write_tree(run, tree)
+
+
+def make_steerable(run):
+    """make_run's run as `edit` leaves it: its config.json makes the steering controls appear."""
+    make_run(run)
+    (run / "config.json").write_text(json.dumps({"command": "edit", "argv": ["edit"]}))
+    return run
+
+
+def test_branch_dropdown_lists_the_tree_and_the_slider_follows_the_chosen_branch(
+        tmp_path, viser_installed):
+    run = make_run(tmp_path / "run")
+    # b1 refines main:1 from main:0; b2 branches from b1's node 0.
+    add_branch(run, "b1", NodeRef("main", 1), NodeRef("main", 0), [0.75, 1.0], YELLOW, 10)
+    add_branch(run, "b2", NodeRef("b1", 0), NodeRef("b1", 0), [1.0], GREEN, 20)
+    chains = view.branch_chains(run)
+    assert list(chains) == ["main", "b1", "b2"]
+    assert [s.node for s in chains["main"]] == [None, 0, 1]
+    assert [s.node for s in chains["b1"]] == [None, 0, "b1:0", "b1:1"]  # up to its start
+    assert [s.node for s in chains["b2"]] == [None, 0, "b1:0", "b2:0"]
+    assert "b1:1" in chains["b1"][3].label and "r = 1.000" in chains["b1"][3].label
+    viewer = view.open_run(run, port=0)
+    try:
+        assert viewer.branches() == ("main", "b1", "b2") and viewer._dropdown.visible
+        assert tuple(viewer._dropdown.options) == ("main", "b1", "b2")
+        assert viewer._branch == "main" and len(viewer) == 3 and viewer.node_on_screen() == 1
+        viewer._dropdown.value = "b1"  # what picking it in the page does
+        assert len(viewer) == 4 and int(viewer._slider.max) == 3
+        assert viewer.node_on_screen() == "b1:1" and "b1:1" in viewer._caption.content
+        viewer._slider.value = 2
+        assert viewer.node_on_screen() == "b1:0"
+        path = viewer.select()  # keep a branch node
+        assert path.read_bytes() == (run / "branches/b1/subtasks/00_r0.750/scene.ply").read_bytes()
+        assert json.loads((run / "selected.json").read_text())["branch"] == "b1"
+        viewer._slider.value = 1  # main:0 seen in b1's chain: keep writes main's subtask 0
+        assert viewer.node_on_screen() == 0
+        assert viewer.select().read_bytes() == (run / "subtasks/00_r0.500/scene.ply").read_bytes()
+        # A branch made later (by another process) reaches the dropdown on the next poll.
+        add_branch(run, "b3", NodeRef("main", 0), NodeRef("main", 0), [0.9], BLUE, 30)
+        watcher = view.RunWatcher(run, viewer)
+        watcher._seen = {b: {s.path for s in c} for b, c in view.branch_chains(run).items()
+                         if b != "b3"}
+        assert watcher.refresh() == 3  # original, main:0, b3:0
+        assert tuple(viewer._dropdown.options) == ("main", "b1", "b2", "b3")
+        assert viewer._branch == "b1" and viewer.node_on_screen() == 0  # the view stays
+        viewer._dropdown.value = "main"
+        assert len(viewer) == 3 and viewer.node_on_screen() == 1
+    finally:
+        viewer.close()
+    (run / "tree.json").write_text("{}")
+    with pytest.raises(DataError, match="tree.json: malformed run tree"):
+        view.open_run(run, port=0)
+
+
+def test_stop_writes_the_control_file_only_while_an_edit_holds_the_run(tmp_path, viser_installed):
+    run = make_steerable(tmp_path / "run")
+    viewer = view.open_run(run, port=0)
+    try:
+        assert viewer.steerable and not viewer._stop.disabled
+        viewer._stop_clicked(None)  # nothing runs: refused in the panel
+        assert viewer._op_status.content.startswith("error: ") and "no edit is running" in \
+            viewer._op_status.content
+        assert not (run / steer.CONTROL_NAME).exists()
+        with folder_lock(run):  # an edit (another process) holds the run
+            viewer._stop_clicked(None)
+        assert viewer._op_status.content.startswith("stop requested")
+        assert json.loads((run / steer.CONTROL_NAME).read_text()) == {"stop": True}
+    finally:
+        viewer.close()
+
+
+class FakeProcess:
+    """What launch_process returns, driven by the test: stderr lines, then an exit status."""
+
+    def __init__(self, argv):
+        self.argv, self._lines, self._done = argv, queue.Queue(), None
+
+    @property
+    def stderr(self):
+        return iter(self._lines.get, None)
+
+    def say(self, line):
+        self._lines.put(line + "\n")
+
+    def exit(self, status):
+        self._done = status
+        self._lines.put(None)
+
+    def wait(self, timeout=None):
+        return self._done
+
+    def terminate(self):
+        self.exit(-15)
+
+
+def test_steering_buttons_start_the_command_and_show_its_progress(tmp_path, viser_installed):
+    run = make_steerable(tmp_path / "run")
+    started = []
+
+    def launch(argv):
+        started.append(FakeProcess(argv))
+        return started[-1]
+
+    viewer = view.open_run(run, port=0, launch=launch)
+    cmd = [sys.executable, "-m", "experiments", "edit", "--out", str(run.resolve())]
+    try:
+        viewer.show(0)  # the original: nothing to refine
+        assert viewer._refine.disabled and viewer.start("refine") is None and not started
+        viewer.show(1)
+        assert not viewer._refine.disabled
+        op = viewer.start("refine")  # the refine button's action
+        assert started[0].argv == cmd + ["--from", "main:0", "--name", "b1", "--refine"]
+        assert viewer._refine.disabled and viewer._extend.disabled  # one operation at a time
+        assert viewer.start("extend") is None and len(started) == 1
+        assert "refine b1 is still running" in viewer._op_status.content
+        started[0].say("start edit")
+        write_snapshot(run / "branches/b1", "subtasks/00_r0.250", blob(5, GREEN))
+        (run / "branches/b1/schedule.json").write_text(json.dumps({"subtasks": [
+            {"index": 0, "snapshot": "subtasks/00_r0.250/scene.ply"}, {"index": 1}]}))
+        started[0].say("done r0 r0.250 60 in 0:02 loss=0.0682")
+        wait_for(lambda: "done r0 r0.250" in viewer._op_status.content)
+        assert "running: 1 of 2 subtasks done" in viewer._op_status.content
+        started[0].exit(0)
+        assert op.wait(10) == 0 and viewer._op_status.content == "refine b1 finished"
+        assert not viewer._refine.disabled
+        # branch: a new instruction and / or another seed; neither is refused at once.
+        viewer.start("branch")
+        assert len(started) == 1 and "new instruction or change the seed" in \
+            viewer._op_status.content
+        viewer._seed.value = 7
+        viewer.start("branch")
+        assert started[1].argv == cmd + ["--from", "main:0", "--name", "b1", "--seed", "7"]
+        started[1].exit(0)
+        viewer._seed.value, viewer._prompt.value = 0, "  give him a marble texture "
+        viewer._operation.wait(10)
+        viewer.start("branch")
+        assert started[2].argv == cmd + ["--from", "main:0", "--name", "b1",
+                                         "--prompt", "give him a marble texture"]
+        started[2].exit(0)
+        viewer._operation.wait(10)
+        viewer.show(2)
+        viewer._r_max.value = 1.5
+        op = viewer.start("extend")
+        assert started[3].argv == cmd + ["--from", "main:1", "--name", "b1", "--extend", "1.5"]
+        started[3].say("error: --from: node main:1 is a consolidate subtask")
+        started[3].exit(2)  # a refused command: its one line in the panel
+        assert op.wait(10) == 2
+        assert viewer._op_status.content == "error: --from: node main:1 is a consolidate subtask"
+        assert not viewer._extend.disabled
+
+        def broken(argv):
+            raise FileNotFoundError(2, "No such file or directory")
+
+        viewer._launch = broken  # the command cannot even start: said in the panel
+        assert viewer.start("refine") is None and not viewer._refine.disabled
+        assert viewer._op_status.content.startswith("error: refine: cannot start ")
+    finally:
+        viewer.close()
+
+
+# A tiny real edit (the simulated editor): 24 px views, 60 Gaussians, three subtasks.
+TINY = ["--prompt", "turn him into a bronze statue", "--sync", "--max-steps", "60",
+        "--warmup", "5", "--patience", "10", "--test-views", "1", "--turntable-frames", "0",
+        "--accept-low-identity", "--target-subtasks", "3", "--quiet", "--no-report"]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A finished tiny edit run (copy it before steering it)."""
+    from test_cli_bad_inputs import _dataset
+
+    from jaxedit.gaussians import from_points as points
+
+    d = tmp_path_factory.mktemp("tiny")
+    rng = np.random.default_rng(1)
+    _dataset(d / "data", size=24)
+    save_ply(d / "scene.ply", points(rng.normal(scale=0.3, size=(60, 3)),
+                                     rng.uniform(size=(60, 3)), sh_degree=0))
+    assert main(["edit", "--data", str(d / "data"), "--scene", str(d / "scene.ply"),
+                 "--out", str(d / "run"), *TINY]) == 0
+    return d / "run"
+
+
+def last_edit_step(run) -> int:
+    """The main branch's last subtask of kind edit (what refine can split)."""
+    return [r["index"] for r in json.loads((run / "schedule.json").read_text())["subtasks"]
+            if r["kind"] == "edit"][-1]
+
+
+@pytest.mark.slow
+def test_refine_button_really_refines_a_tiny_run(tiny_run, tmp_path, viser_installed):
+    run = shutil.copytree(tiny_run, tmp_path / "run")
+    watcher = view.watch_run(run, port=0)
+    viewer = watcher.viewer
+    try:
+        k = last_edit_step(run)
+        viewer.show(k + 1)  # the original is first on the slider
+        viewer._r_max.value = 1.0  # extend needs r_max > 1: the command refuses, in the panel
+        op = viewer.start("extend")
+        assert op.wait(120) == 2 and viewer._op_status.content.startswith("error: --extend")
+        assert not (run / "branches").exists() and not (run / "tree.json").exists()
+        op = viewer.start("refine")
+        assert op.argv[-5:] == ["--from", f"main:{k}", "--name", "b1", "--refine"]
+        assert op.wait(300) == 0, viewer._op_status.content
+        watcher.refresh()
+    finally:
+        viewer.close()
+    assert viewer._op_status.content == "refine b1 finished"
+    rows = steer.tree_rows(run)
+    assert [(r["name"], r["op"], r["parent"], r["status"]) for r in rows[1:]] == [
+        ("b1", "refine", f"main:{k}", "done")]
+    # The view moved to the new branch: its last node, after main's up to the refined step.
+    chain = view.branch_chains(run)["b1"]
+    assert viewer._branch == "b1" and viewer.node_on_screen() == chain[-1].node
+    assert [s.node for s in chain[:k + 1]] == [None, *range(k)]
+    assert all(isinstance(s.node, str) for s in chain[k + 1:])
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -278,3 +520,76 @@ def test_viewer_draws_the_splats_in_headless_chromium(tmp_path, viser_installed)
     # other snapshots' colours are absent.
     assert last["blue"] > 5000 and last["red"] < 50 and last["green"] < 50, last
     assert original["red"] > 5000 and original["blue"] < 50 and original["green"] < 50, original
+
+
+def splat_pixels(img):
+    """Pixels of the canvas middle (off viser's panels and notices) that are not background."""
+    h, w = img.shape[:2]
+    return (np.abs(img[h // 3:, w // 5:int(w * 0.64)] - 255).max(axis=-1) > 40)
+
+
+def page_text(browser):
+    return browser.evaluate("document.body.innerText") or ""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not on PATH (CI installs Debian's chromium)")
+def test_refine_pressed_in_headless_chromium_renders_the_new_branch(tiny_run, tmp_path,
+                                                                    viser_installed):
+    run = shutil.copytree(tiny_run, tmp_path / "run")
+    watcher = view.watch_run(run, port=0)
+    watcher.interval = 0.3
+    viewer, browser = watcher.viewer, None
+    k = last_edit_step(run)
+    try:
+        viewer.show(k + 1)  # main:k, the last edit step, on screen
+        browser = DevTools(tmp_path / "profile", viewer.url)
+        if not browser.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
+            pytest.skip("this Chromium has no WebGL2 (no SwiftShader)")
+        wait_for(lambda: f"subtask {k} " in page_text(browser), 60)
+        time.sleep(2)  # software WebGL draws the first frames
+        before = browser.screenshot(tmp_path / "before.png")
+        watcher.start()
+        # Press refine in the page: the click reaches the server over viser's websocket.
+        assert browser.evaluate("""(() => { const b = [...document.querySelectorAll('button')]
+            .find(b => b.innerText.trim() === 'refine'); b.click(); return !b.disabled; })()""")
+        wait_for(lambda: viewer._operation is not None, 30)
+        assert viewer._operation.argv[-5:] == ["--from", f"main:{k}", "--name", "b1", "--refine"]
+        # The new branch's first snapshot arrives: the page's dropdown and caption move to it.
+        wait_for(lambda: "subtask b1:0 " in page_text(browser)
+                 or not viewer._operation.running, 400)
+        assert "subtask b1:0 " in page_text(browser), viewer._op_status.content
+        assert browser.evaluate("[...document.querySelectorAll('input')]"
+                                ".some(i => i.type === 'text' && i.value === 'b1')")
+        shown = view.branch_chains(run)["b1"][k + 1]  # b1:0, after main's chain up to k-1
+        assert shown.node == "b1:0" and viewer.node_on_screen() == "b1:0"
+        deadline, after = time.monotonic() + 60, None
+        while after is None or (np.abs(after - before).max(axis=-1) > 40).sum() < 500:
+            assert time.monotonic() < deadline, "the page kept showing main's snapshot"
+            time.sleep(0.5)
+            after = browser.screenshot(tmp_path / "after.png")
+    finally:
+        if browser is not None:
+            browser.close()
+        watcher.stop()
+        viewer.close()  # the refine still running is ended (--branch b1 --resume goes on)
+    # Both screenshots show splats across the canvas; the new one is b1:0's.
+    assert splat_pixels(before).sum() > 3000 and splat_pixels(after).sum() > 3000
+
+
+@pytest.mark.slow
+def test_edit_view_serves_on_steerable_once_the_edit_released_the_run(
+        tiny_run, tmp_path, monkeypatch, viser_installed):
+    d, seen = tiny_run.parent, {}
+
+    def serve(viewer):  # instead of blocking until Ctrl-C: what the user would find
+        seen.update(locked=steer._locked(out), branches=viewer.branches(), shown=len(viewer),
+                    steerable=viewer.steerable)
+
+    monkeypatch.setattr(view.SnapshotViewer, "serve_forever", serve)
+    out = tmp_path / "run"
+    assert main(["edit", "--data", str(d / "data"), "--scene", str(d / "scene.ply"),
+                 "--out", str(out), "--view", "--view-port", "0", *TINY]) == 0
+    subtasks = json.loads((out / "schedule.json").read_text())["subtasks"]
+    assert seen == {"locked": False, "branches": ("main",), "shown": len(subtasks) + 1,
+                    "steerable": True}
