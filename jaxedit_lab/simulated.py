@@ -523,7 +523,8 @@ class SimulatedEditor:
         r = float(coords[i])
         if r < -1e-4:
             raise DataError("embedding", f"ratio {r:.4f} below 0")
-        return i, max(r, 0.0)  # past 1: an extended edit, extrapolated
+        # 1 within the basis' rounding is 1; past it, an extended edit (extrapolated)
+        return i, 1.0 if abs(r - 1.0) <= 1e-4 else max(r, 0.0)
 
     def strength(self, ratio: float, instruction) -> float:
         """s(r) of the instruction: the fraction of the full edit present in the r-target."""
