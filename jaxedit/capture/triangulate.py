@@ -41,7 +41,7 @@ class TriangulateOptions:
       min_track: fewest views that must see a point for it to be kept.
       max_error: largest mean reprojection error in pixels of a kept point.
       min_points: fewer points than this is an error (too little texture or overlap).
-      num_threads: COLMAP threads (-1: all cores).
+      num_threads: COLMAP threads extracting, matching and triangulating (-1: all cores).
       seed: COLMAP's random seed (RANSAC).
       max_side: ``process-data --triangulate`` reads the photos at the power-of-two downscale
         that brings their long side to at most this (nerfstudio's rule); ``reconstruct``

@@ -237,9 +237,9 @@ def _triangulated(data, options: TriangulateOptions, *, required: bool):
         log.warning("initial points: the dataset has none and pycolmap is not installed "
                     "to triangulate them; starting from random points")
         return None
-    pixels, cameras = data.subset_pixels(data.train_indices)
+    images, cameras = data.train()
     try:
-        points, colors = triangulate(pixels, cameras, options=options,
+        points, colors = triangulate(images, cameras, options=options,
                                      where=getattr(data, "path", "dataset"))
     except DataError as e:
         if required:
@@ -247,7 +247,7 @@ def _triangulated(data, options: TriangulateOptions, *, required: bool):
         log.warning("initial points: %s; starting from random points", e)
         return None
     log.info("initial points: %d triangulated at the known poses of %d training views",
-             len(points), len(pixels))
+             len(points), len(images))
     return points, colors
 
 
