@@ -25,7 +25,7 @@ from jaxedit.pipelines.reconstruct import initial_points
 
 pycolmap = pytest.importorskip("pycolmap")
 SIZE, VIEWS = 128, 16
-FAST = TriangulateOptions(num_threads=2)
+FAST = TriangulateOptions()  # one COLMAP thread: the same points every run
 
 
 def _bare(folder: Path) -> Path:
@@ -95,6 +95,10 @@ def test_reconstruct_init_auto_triangulates_a_bare_dataset_and_random_keeps_the_
     data = load_nerfstudio(face)
     auto = initial_points(data, 300, 0, triangulation=FAST)
     assert auto[2] == "triangulated" and len(auto[0]) >= FAST.min_points
+    # The training views' points, the same ones on every run (a multi-process run relies on it).
+    again = triangulate(*data.train(), options=FAST)
+    np.testing.assert_array_equal(auto[0], again[0])
+    np.testing.assert_array_equal(auto[1], again[1])
     random = initial_points(data, 300, 0, init="random")
     assert random[2] == "random" and len(random[0]) == 300
     with_points = data.__class__(**{**data.__dict__, "points": auto[0], "point_colors": auto[1]})

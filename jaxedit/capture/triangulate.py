@@ -42,6 +42,8 @@ class TriangulateOptions:
       max_error: largest mean reprojection error in pixels of a kept point.
       min_points: fewer points than this is an error (too little texture or overlap).
       num_threads: COLMAP threads extracting, matching and triangulating (-1: all cores).
+        One gives the same points on every run (and in every process of a multi-process
+        reconstruction); with more, COLMAP's threads change a few of them.
       seed: COLMAP's random seed (RANSAC).
       max_side: ``process-data --triangulate`` reads the photos at the power-of-two downscale
         that brings their long side to at most this (nerfstudio's rule); ``reconstruct``
@@ -53,7 +55,7 @@ class TriangulateOptions:
     min_track: int = ranged(2, low=2)
     max_error: float = ranged(2.0, low=0.0)
     min_points: int = ranged(100, low=1)
-    num_threads: int = -1
+    num_threads: int = 1
     seed: int = 0
     max_side: int = ranged(1600, low=1)
 
