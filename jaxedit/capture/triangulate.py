@@ -135,7 +135,6 @@ def triangulate(images, cameras: Camera, *, options: TriangulateOptions = Triang
             return triangulate(images, cameras, options=options, where=where, work_dir=tmp)
     import pycolmap
 
-
     if len(images) < 2:
         raise DataError(where, f"triangulating needs at least 2 views, got {len(images)}; "
                                f"use --init random")
