@@ -38,6 +38,8 @@ import numpy as np
 from common import write_json  # noqa: E402  (sets sys.path)
 
 EXTRA_TEST = 8
+#: What must agree for the cases of two runs to share one JSON file.
+SETTINGS = ("smoke", "size", "train_views", "test_views", "iterations", "random_points")
 
 
 def _surface_error(points, cameras) -> dict:
@@ -78,16 +80,14 @@ def _runs(data, root: Path, config, random_points: int, reference: str | None) -
 def main(argv=None) -> int:
     import argparse
 
-    from jaxedit.pipelines.reconstruct import ReconstructConfig
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--smoke", action="store_true", help="tiny sizes, for CI")
     p.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
     p.add_argument("--iters", type=int, default=None)
     p.add_argument("--size", type=int, default=None)
     p.add_argument("--views", type=int, default=None)
-    p.add_argument("--random-points", type=int, default=ReconstructConfig.random_points,
-                   help="points of the random start (reconstruct's default)")
+    p.add_argument("--random-points", type=int, default=None,
+                   help="points of the random start (reconstruct's default; smoke: 2000)")
     p.add_argument("--cases", default="scene,capture",
                    help="cases to run; the others are kept from DIR's JSON of the same settings")
     p.add_argument("--reference", action="store_true",
@@ -96,6 +96,7 @@ def main(argv=None) -> int:
 
     import jaxedit
     from jaxedit.capture import quiet_colmap
+    from jaxedit.pipelines.reconstruct import ReconstructConfig
     from jaxedit.train import TrainConfig
 
     jaxedit.enable_compilation()
@@ -104,16 +105,12 @@ def main(argv=None) -> int:
     views = args.views or (16 if args.smoke else 32)
     iters = args.iters or (20 if args.smoke else 2000)
     config = TrainConfig(iterations=iters)
+    if args.random_points is None:
+        args.random_points = 2000 if args.smoke else ReconstructConfig.random_points
     results = {"smoke": args.smoke, "load_average_at_start": list(os.getloadavg()),
                "size": size, "train_views": views, "test_views": EXTRA_TEST,
                "iterations": iters, "random_points": args.random_points, "cases": {}}
     cases = args.cases.split(",")
-    kept = Path(args.out) / "triangulate_init.json"
-    if kept.is_file():  # the other cases of an earlier run with the same settings
-        old = json.loads(kept.read_text())
-        if all(old.get(k) == results[k] for k in ("smoke", "size", "train_views", "test_views",
-                                                   "iterations", "random_points")):
-            results["cases"] = {k: v for k, v in old["cases"].items() if k not in cases}
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="jaxedit-triangulate-") as tmp:
         root = Path(tmp)
@@ -175,8 +172,15 @@ def _capture_case(args, root, size, views, config, results) -> None:
 
 
 def _write(out: Path, results: dict, t_start: float) -> None:
-    """Write the JSON of the cases run so far, with the gains and the goals they decide."""
+    """Write the JSON of the cases run so far, with the gains and the goals they decide; the
+    other cases of the file already there are kept when it has the same settings."""
     results["wall_time_s"] = round(time.perf_counter() - t_start, 1)
+    kept = Path(out) / "triangulate_init.json"
+    if kept.is_file():
+        old = json.loads(kept.read_text())
+        if all(old.get(k) == results[k] for k in SETTINGS):
+            results["cases"] = {**{k: v for k, v in old["cases"].items()
+                                   if k not in results["cases"]}, **results["cases"]}
     gains = {name: round(c["runs"]["triangulate"]["test_psnr"] - c["runs"]["random"]["test_psnr"],
                          3) for name, c in results["cases"].items()}
     results["psnr_gain_db"] = gains
