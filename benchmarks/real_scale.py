@@ -99,7 +99,7 @@ def run_pass(s: dict, folder: Path, work: Path) -> dict:
     data = dataclasses.replace(load_dataset(path, config), points=None)
     c0 = compile_stats()
     recon, recon_s = _timed(reconstruct, data, work / "reconstruct", config.train,
-                            checkpoint_every=0, random_points=s["points"])
+                            checkpoint_every=0, random_points=s["points"], init="random")
     recon_compiles = compile_stats(since=c0)
 
     from jaxedit.io import load_ply

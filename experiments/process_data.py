@@ -3,6 +3,7 @@
     python -m experiments process-data --images DIR --out DATA [--matching exhaustive]
     python -m experiments process-data --video FILE --out DATA [--num-frames 300]
     python -m experiments process-data --images DIR --out DATA --focal-px 1200 [--refine-intrinsics]
+    python -m experiments process-data --triangulate DATA      # points for a posed dataset
 
 The analogue of nerfstudio's ``ns-process-data images|video``: SIFT extraction,
 matching (exhaustive for photos, sequential for video frames), incremental
@@ -16,6 +17,11 @@ and the sharpest frame of each is kept. Known intrinsics (``--focal-px`` or
 frame records its photo's name as ``original_file_path``. Then::
 
     python -m experiments reconstruct --data DATA --out RUN --normalize nerfstudio
+
+``--triangulate DATA`` gives a posed ``transforms.json`` without a point cloud (instant-ngp,
+Polycam, Record3D) one: SIFT features matched between neighbouring views and triangulated
+at the known poses, written as ``DATA/sparse_pc.ply`` and its ``ply_file_path`` (see
+:mod:`jaxedit.capture.triangulate`); ``reconstruct`` does the same in memory by default.
 
 Needs the optional extra: ``pip install -e ".[capture]"`` (pycolmap, imageio-ffmpeg).
 """
@@ -61,6 +67,8 @@ class ProcessDataCommand:
     Attributes:
       images: folder of photos (png, jpg, tif).
       video: video file (anything ffmpeg reads).
+      triangulate: a posed nerfstudio dataset (folder or transforms.json) without points:
+        triangulate features at its poses and write them as its ply_file_path.
       matching: image pairs to match (auto: exhaustive for photos, sequential for video).
       camera_params: known intrinsics in pixels (nerfstudio's fl_x,fl_y,cx,cy,k1,...), in
         --camera-model's terms; held fixed unless --refine-intrinsics (excludes --focal-px).
@@ -68,6 +76,7 @@ class ProcessDataCommand:
 
     images: Path | None = None
     video: Path | None = None
+    triangulate: Path | None = None
     matching: str = "auto"
     camera_params: str | None = None
 
@@ -78,6 +87,7 @@ def _command_flags():
     return FlagSet(ProcessDataCommand, (
         Flag("images", exclusive="source", required=True),
         Flag("video", exclusive="source", required=True),
+        Flag("triangulate", exclusive="source", required=True, metavar="DATA"),
         Flag("matching", choices=("auto", "exhaustive", "sequential")),
         Flag("camera_params", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]"))).complete()
 
@@ -138,7 +148,7 @@ def run(args) -> dict:
 
     from experiments.progress import Progress, configure
 
-    if args.out is None:
+    if args.out is None and getattr(args, "triangulate", None) is None:
         raise DataError("--out", "process-data needs a dataset folder (--out DATA)")
     try:
         import pycolmap  # noqa: F401
@@ -147,6 +157,8 @@ def run(args) -> dict:
     configure(quiet=args.quiet)
     quiet_colmap(True)
     config = run_config(args)
+    if getattr(args, "triangulate", None) is not None:
+        return triangulate(args, config)
     options = config.sfm.check()
     check_out_dir(args.out)  # before decoding anything
     extra = {}
@@ -167,3 +179,21 @@ def run(args) -> dict:
                                   min_fraction=config.min_registered, report=report)
         report.close()
     return summary | {"matching": options.matching} | extra
+
+
+def triangulate(args, config) -> dict:
+    """``--triangulate DATA``: the dataset's points triangulated at its poses, written into it."""
+    from jaxedit import DataError
+    from jaxedit.capture.triangulate import triangulate_dataset, write_dataset_points
+    from jaxedit.io.nerfstudio import _load_meta, _resolve_json
+
+    if args.out is not None:
+        raise DataError("--out", "--triangulate writes into the dataset it is given; drop --out")
+    json_path = _resolve_json(args.triangulate)
+    meta = _load_meta(json_path)
+    if meta.get("ply_file_path") is not None:  # before any photo is read
+        raise DataError(json_path, f"already has points (ply_file_path: "
+                                   f"{meta['ply_file_path']!r}); remove that key to triangulate")
+    points, colors, summary = triangulate_dataset(json_path, options=config.triangulation)
+    ply = write_dataset_points(json_path, points, colors)
+    return summary | {"ply_file_path": str(ply), "transforms": str(json_path)}

@@ -23,7 +23,7 @@ HELP = "reconstruct a nerfstudio dataset with 3DGS: scene.ply, test renders, met
 
 
 def _config_flags() -> FlagSet:
-    from jaxedit.pipelines.reconstruct import NORMALIZE, ReconstructConfig
+    from jaxedit.pipelines.reconstruct import INITS, NORMALIZE, ReconstructConfig
 
     return FlagSet(ReconstructConfig, (
         Flag("train.iterations", "--iters"),
@@ -42,6 +42,7 @@ def _config_flags() -> FlagSet:
         Flag("downscale"),
         Flag("skip_missing_images"),
         Flag("normalize", choices=NORMALIZE),
+        Flag("init", choices=INITS),
         Flag("random_points"),
         Flag("checkpoint_every"),
         Flag("log_every"),
@@ -114,13 +115,26 @@ def run(args) -> dict:
         raise DataError("--resume", "not with several processes yet (only process 0 has the "
                                     "checkpoints)")
     configure(quiet=args.quiet)
+    if config.init != "random":
+        _quiet_colmap()
     # Every process trains the same scene; only process 0 writes the run directory.
     metrics = runs.run(args.data, args.out if writes(args) else None, config, seed=args.seed,
                        resume=args.resume, progress=training_bar())
     if not writes(args):
         return {}
-    keys = ("test_psnr", "test_ssim", "num_gaussians", "iterations", "wall_time_s", "steps_per_s")
+    keys = ("test_psnr", "test_ssim", "num_gaussians", "iterations", "wall_time_s", "steps_per_s",
+            "init", "initial_points", "initial_point_count")
     return {k: metrics[k] for k in keys} | {"out": str(args.out)}
+
+
+def _quiet_colmap() -> None:
+    """COLMAP's own log lines off, where it is installed (triangulation reports through ours)."""
+    try:
+        from jaxedit.capture.sfm import quiet_colmap
+
+        quiet_colmap(True)
+    except ImportError:
+        pass
 
 
 __all__ = ["reconstruct", "run_config", "initial_points", "capped_initial_points"]

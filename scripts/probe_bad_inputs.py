@@ -61,6 +61,8 @@ def _inputs(root: Path) -> dict:
     for k in range(3):
         write_image(badname / f"p{k}.png", images[k])
     os.rename(badname / "p2.png", os.path.join(os.fsencode(badname), b"p\xff.png"))
+    # A posed dataset without points whose noise images have nothing to triangulate.
+    save_nerfstudio(root / "posed_noise", images, cams, test_indices=np.array([1]))
     # A dataset whose transforms.json names a file that is not UTF-8 (JSON's \udcff escape).
     badjson = save_nerfstudio(root / "data_badname", images, cams, test_indices=np.array([1])).parent
     meta = json.loads((badjson / "transforms.json").read_text())
@@ -255,6 +257,7 @@ def _surface_inputs(root: Path, scene: Path) -> None:
 def _paths(root: Path) -> dict:
     """Where :func:`_inputs` put everything."""
     return dict(data=root / "data", scene=root / "scene.ply", photos=root / "photos",
+                posed_noise=root / "posed_noise",
                 badname=root / "photos_badname", badjson=root / "data_badname",
                 runs={k: root / f"run_{k}" for k in ("empty", "garbage", "text")},
                 edit_run=root / "edit_run", afile=root / "afile", te=root / "te",
@@ -309,8 +312,10 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
             elif action.type is Path and action.dest != "config":
                 given = "no/such/path"
                 args = [a for a in base]
-                if flag == "--video":  # instead of --images, not beside it
+                if flag in ("--video", "--triangulate"):  # instead of --images, not beside it
                     args[args.index("--images"):args.index("--images") + 2] = []
+                if flag == "--triangulate":  # it writes into the dataset: no --out
+                    args[args.index("--out"):args.index("--out") + 2] = []
                 if flag in args:  # replace the valid value
                     i = args.index(flag)
                     args[i + 1] = given
@@ -350,6 +355,17 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
         args = _base(command, inp, out_rel)
         args[args.index("--data") + 1] = str(inp["badjson"])
         found.append((f"{command} dataset naming a non-UTF-8 file", args, "\\xff", None))
+    # Points for a posed dataset: nothing to triangulate, or points already there.
+    noise_json = inp["posed_noise"] / "transforms.json"
+    found.append(("process-data --triangulate of noise images",
+                  ["process-data", "--triangulate", str(inp["posed_noise"]), "--quiet"],
+                  "--init random", noise_json))
+    found.append(("process-data --triangulate of a dataset with points",
+                  ["process-data", "--triangulate", str(inp["data"]), "--quiet"],
+                  "ply_file_path", inp["data"] / "transforms.json"))
+    found.append(("reconstruct --init triangulate of noise images",
+                  ["reconstruct", "--data", str(inp["posed_noise"]), "--out", out_rel,
+                   "--init", "triangulate", "--quiet"], "--init random", noise_json))
     # Broken checkpoints on --resume.
     for kind, run in inp["runs"].items():
         found.append((f"reconstruct --resume {kind} checkpoint",

@@ -85,6 +85,6 @@ def test_a_dataset_without_points_reconstructs_within_2_db_of_one_with_points(tm
     psnr = {}
     for name, d in (("points", data), ("random", bare)):
         m = reconstruct(d, tmp_path / name, config, checkpoint_every=0, log_every=100,
-                        random_points=2000)
+                        random_points=2000, init="auto" if name == "points" else "random")
         psnr[name] = m["test_psnr"]
     assert psnr["random"] > psnr["points"] - 2.0, psnr

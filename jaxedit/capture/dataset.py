@@ -42,6 +42,7 @@ from ..io.images import photo_header, read_image, read_photo, write_image
 from ..io.nerfstudio import _downscale_image
 from ..io.ply import save_points_ply
 from .sfm import Report, SfmOptions, run_sfm
+from .triangulate import TriangulateOptions
 
 APPLIED_TRANSFORM = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0]])
 DOWNSCALES = (2, 4)
@@ -151,12 +152,15 @@ class CaptureConfig:
 
     Attributes:
       sfm: structure-from-motion settings (:class:`~jaxedit.capture.sfm.SfmOptions`).
+      triangulation: settings of ``--triangulate``, points for a posed dataset
+        (:class:`~jaxedit.capture.triangulate.TriangulateOptions`).
       num_frames: a video is cut into this many windows and the sharpest frame of each is kept.
       min_registered: fewer registered views than this fraction of the images (or fewer than
         3) is an error: such a model covers too little of the capture.
     """
 
     sfm: SfmOptions = SfmOptions()
+    triangulation: TriangulateOptions = TriangulateOptions()
     num_frames: int = ranged(300, low=1)
     min_registered: float = ranged(0.5, low=0.0, high=1.0)
 

@@ -20,10 +20,13 @@ into the run directory:
   ``checkpoint_every`` steps and at the end. Resuming continues from the
   newest one and ends with the same Gaussians as an uninterrupted run.
 
-Initial points come from the dataset's ``ply_file_path`` (as COLMAP's sparse
-cloud would); a dataset without points starts from ``random_points`` random
-points in the box where the training cameras' view frusta overlap, the most
-photo-consistent of 4x as many uniform candidates (see jaxedit.capture.points).
+Initial points (``init``): "auto" takes the dataset's ``ply_file_path`` (as COLMAP's
+sparse cloud would) and, for a dataset without points, SIFT features of the training
+views triangulated at their known poses (jaxedit.capture.triangulate); where that
+cannot be done (no pycolmap, too few points) it says so and falls back to "random":
+``random_points`` points in the box where the training cameras' view frusta overlap,
+the most photo-consistent of 4x as many uniform candidates (jaxedit.capture.points).
+"triangulate" and "random" take those whatever the dataset holds.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from .. import gaussians as G
 from ..compilation import compile_stats
 from ..train.background import background_rgb
 from ..errors import DataError, check_ranges, ranged
+from ..capture.triangulate import TriangulateOptions
 from ..train import TrainConfig
 from .rundir import JsonlLog, RollingCheckpoints, latest_checkpoint
 
@@ -49,6 +53,8 @@ log = logging.getLogger("jaxedit.reconstruct")
 
 #: How the poses may be normalised when the dataset is read.
 NORMALIZE = ("none", "nerfstudio")
+#: Where the initial points come from (see the module docstring).
+INITS = ("auto", "triangulate", "random")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,8 +69,12 @@ class ReconstructConfig:
         them) instead of stopping.
       normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not
         ("none").
-      random_points: initial points when the dataset has no point cloud (photo-consistent
-        random points where the training frusta overlap).
+      init: initial points: "auto" (the dataset's cloud, else triangulated at the known
+        poses, else random), "triangulate" (SIFT matches at the known poses, pycolmap) or
+        "random" (photo-consistent random points, the start before triangulation).
+      triangulation: how "triangulate" and "auto" triangulate the training views.
+      random_points: initial points of the random start (photo-consistent random points
+        where the training frusta overlap).
       checkpoint_every: checkpoint period in steps (0: only at the end).
       log_every: train_log.jsonl period in steps.
     """
@@ -73,6 +83,8 @@ class ReconstructConfig:
     downscale: int | None = ranged(None, low=1)
     skip_missing_images: bool = False
     normalize: str = "none"
+    init: str = "auto"
+    triangulation: TriangulateOptions = TriangulateOptions()
     random_points: int = ranged(20_000, low=1)
     checkpoint_every: int = ranged(1000, low=0)
     log_every: int = ranged(10, low=1)
@@ -82,6 +94,8 @@ class ReconstructConfig:
         if self.normalize not in NORMALIZE:
             raise DataError("normalize", f"must be one of {', '.join(NORMALIZE)}, got "
                             f"{self.normalize!r}")
+        if self.init not in INITS:
+            raise DataError("init", f"must be one of {', '.join(INITS)}, got {self.init!r}")
 
 
 def composite_background(name: str) -> tuple[float, float, float]:
@@ -147,7 +161,8 @@ def run_loaded(data, out, config: ReconstructConfig, *, seed: int = 0, resume: b
     """:func:`run` of a dataset already read by :func:`load_dataset` with ``config``."""
     return reconstruct(data, out, config.train, seed=seed, resume=resume,
                        checkpoint_every=config.checkpoint_every, log_every=config.log_every,
-                       random_points=config.random_points, progress=progress)
+                       random_points=config.random_points, init=config.init,
+                       triangulation=config.triangulation, progress=progress)
 
 
 #: Smallest image side that training and evaluation accept: SSIM's 11-pixel window.
@@ -167,9 +182,10 @@ def check_image_size(data, where) -> None:
 CARVE_BORDER_FRACTION = 0.5
 
 
-def initial_points(data, n_random: int, seed: int, background=None):
-    """(points [P, 3], colours [P, 3], source): the dataset's cloud, or photo-consistent random
-    points in the box where the training cameras' frusta overlap (jaxedit.capture.points).
+def initial_points(data, n_random: int, seed: int, background=None, *, init: str = "auto",
+                   triangulation: TriangulateOptions = TriangulateOptions()):
+    """(points [P, 3], colours [P, 3], source) by ``init`` (see the module docstring); source
+    is "dataset", "triangulated" or "random".
 
     ``background`` (RGB, the training background): when at least
     :data:`CARVE_BORDER_FRACTION` of the training images' border pixels show it (an object
@@ -178,10 +194,16 @@ def initial_points(data, n_random: int, seed: int, background=None):
 
     from ..capture.points import background_fraction, random_points
 
-    if data.points is not None and len(data.points) >= 4:
+    if init not in INITS:
+        raise DataError("init", f"must be one of {', '.join(INITS)}, got {init!r}")
+    if init == "auto" and data.points is not None and len(data.points) >= 4:
         colors = data.point_colors if data.point_colors is not None else np.full(
             (len(data.points), 3), 0.5, np.float32)
         return np.asarray(data.points, np.float32), np.asarray(colors, np.float32), "dataset"
+    if init in ("auto", "triangulate"):
+        found = _triangulated(data, triangulation, required=init == "triangulate")
+        if found is not None:
+            return (*found, "triangulated")
     images, cameras = data.train()
     if background is not None and background_fraction(images, background) < CARVE_BORDER_FRACTION:
         background = None  # a scene photo, not an object on a background: no carving
@@ -193,14 +215,45 @@ def initial_points(data, n_random: int, seed: int, background=None):
     return points, colors, "random"
 
 
-def capped_initial_points(data, n_random: int, cap: int, seed: int, background=None):
+def _triangulated(data, options: TriangulateOptions, *, required: bool):
+    """(points, colours) triangulated at the training views' poses; when not ``required``,
+    None (logged) where pycolmap is missing or finds too few points."""
+    from ..capture.triangulate import triangulate
+
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError:
+        if required:
+            raise DataError("init", 'triangulate needs pycolmap: pip install -e ".[capture]", '
+                                    'or use --init random') from None
+        log.warning("initial points: the dataset has none and pycolmap is not installed "
+                    "to triangulate them; starting from random points")
+        return None
+    images, cameras = data.train()
+    try:
+        points, colors = triangulate(images, cameras, options=options,
+                                     where=getattr(data, "path", "dataset"))
+    except DataError as e:
+        if required:
+            raise
+        log.warning("initial points: %s; starting from random points", e)
+        return None
+    log.info("initial points: %d triangulated at the known poses of %d training views",
+             len(points), len(images))
+    return points, colors
+
+
+def capped_initial_points(data, n_random: int, cap: int, seed: int, background=None, *,
+                          init: str = "auto",
+                          triangulation: TriangulateOptions = TriangulateOptions()):
     """:func:`initial_points`, subsampled to at most ``cap`` (``max_gaussians``) points.
 
     The cap is hard from the first step on, so a larger initial cloud is thinned
     (a uniform draw, logged) rather than trained and culled later.
     """
 
-    points, colors, source = initial_points(data, n_random, seed, background)
+    points, colors, source = initial_points(data, n_random, seed, background, init=init,
+                                            triangulation=triangulation)
     if len(points) > cap:
         log.info("initial points: keeping a random %d of the %d %s points (max_gaussians)",
                  cap, len(points), source)
@@ -211,6 +264,7 @@ def capped_initial_points(data, n_random: int, cap: int, seed: int, background=N
 
 def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
                 checkpoint_every: int = 1000, log_every: int = 10, random_points: int = 20_000,
+                init: str = "auto", triangulation: TriangulateOptions = TriangulateOptions(),
                 progress: Callable | None = None) -> dict:
     """Train on ``data``'s training views, evaluate on its test views, write the outputs.
 
@@ -219,7 +273,7 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
       out: run directory (None: write nothing, as the processes other than 0 of a
         multi-process run, :mod:`jaxedit.parallel.distributed`).
       config: :class:`jaxedit.train.TrainConfig`.
-      seed, resume, checkpoint_every, log_every, random_points: as
+      seed, resume, checkpoint_every, log_every, random_points, init, triangulation: as
         :class:`ReconstructConfig` (``resume``: continue from the newest checkpoint).
       progress: :func:`jaxedit.train.fit`'s progress callback (a bar at the edge); its
         ``close()``, if it has one, is called when training ends.
@@ -258,11 +312,13 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
                 log.warning("resuming %s with changed training settings", latest)
                 state = dataclasses.replace(state, config=config)
             log.info("resuming from %s (step %d)", latest, int(state.step))
-    points_source = "checkpoint"
+    points_source, num_points = "checkpoint", None
     if state is None:
         points, colors, points_source = capped_initial_points(
             data, random_points, config.densify.max_gaussians, seed,
-            background_rgb(config.background))
+            background_rgb(config.background), init=init, triangulation=triangulation)
+        num_points = int(len(points))
+        log.info("initial points: %d (%s; --init %s)", num_points, points_source, init)
         g = G.from_points(points, colors, sh_degree=config.sh_degree)
         state = T.init_state(g, config, extent, key=jax.random.key(seed), cameras=train_cams)
     start_step = int(state.step)
@@ -325,7 +381,8 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
         "compile_time_s": round(float(np.sum(seconds[slow])), 3),
         "eval_time_s": round(eval_s, 3), "write_time_s": round(write_s, 3),
         "max_intersections": state.max_intersections, "scene_extent": extent,
-        "initial_points": points_source, "train_views": int(len(train_images)),
+        "initial_points": points_source, "initial_point_count": num_points, "init": init,
+        "train_views": int(len(train_images)),
         "test_views": int(len(test_idx)), "image_size": [int(train_images.shape[2]),
                                                          int(train_images.shape[1])],
         "config": config.to_dict(),
