@@ -12,7 +12,8 @@ Stable Diffusion 1.5's architecture at 512 px (random weights saved as a diffuse
 batch of views per call. Random weights give noise edits, on which the plateau test means
 nothing, so the work of each subtask is fixed instead: ``--subtasks`` uniform ratios of
 ``--steps`` training steps each (3000) with an edit every ``--edit-every`` steps (10), no
-plateau test, no r_0 refinement or consolidation. The JSON says so.
+plateau test, no r_0 refinement or consolidation, and no editor identity check (random
+weights cannot reproduce a view). The JSON says so.
 
 The job runs twice in fresh processes that share one empty persistent compilation cache:
 ``cold`` compiles everything, ``warm`` reads it back, as a user's second run does. For each:
@@ -74,7 +75,7 @@ def _timed(fn, *args, **kwargs):
     return out, time.perf_counter() - t0
 
 
-def run_pass(s: dict, folder: Path, work: Path) -> dict:
+def run_pass(s: dict, folder: Path, work: Path, real_weights: bool) -> dict:
     """One pass of the job in this process -> its figures."""
     import dataclasses
 
@@ -112,7 +113,10 @@ def run_pass(s: dict, folder: Path, work: Path) -> dict:
     config = ProEditConfig(subtasks=s["subtasks"], refine_first=False, consolidate=False,
                            stop_on_plateau=False, max_steps=s["steps"], edit_every=s["edit_every"], turntable_frames=0)
     out, edit_s = _timed(run_edit, editor, PROMPT, views, scene, config=config, seed=0,
-                         run_dir=work / "edit", report=False)
+                         run_dir=work / "edit", report=False,
+                         # Random weights cannot reproduce a view, so the identity floor
+                         # would stop every run before training; real weights keep it.
+                         **({} if real_weights else {"identity": None}))
     edit_compiles = compile_stats(since=c1)
     metrics, schedule = out["metrics"], out["schedule"]
     util = metrics["utilisation"]
@@ -147,7 +151,8 @@ def main(argv=None):
     s = settings(args)
     if args.worker is not None:  # a child: one pass, JSON on stdout
         with tempfile.TemporaryDirectory() as work:
-            print("RESULT " + json.dumps(run_pass(s, args.folder, Path(work))), flush=True)
+            print("RESULT " + json.dumps(run_pass(s, args.folder, Path(work),
+                                                     args.ip2p_weights is not None)), flush=True)
         return
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.ip2p_weights
@@ -179,7 +184,8 @@ def main(argv=None):
     write_json(args.out, "real_scale", {
         "smoke": args.smoke, "settings": s, "prompt": PROMPT,
         "weights": "given" if args.ip2p_weights else f"random {s['arch']}",
-        "work_per_subtask": "fixed (random weights: no plateau test, no refine/consolidate)",
+        "work_per_subtask": "fixed (no plateau test, no refine/consolidate)",
+        "identity_check": args.ip2p_weights is not None,
         "load_average_1min": os.getloadavg()[0], "passes": passes})
 
 
