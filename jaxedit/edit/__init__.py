@@ -1,11 +1,4 @@
-"""The ProEdit method: difficulty, the subtask scheduler, the plan, its run.
-
-:mod:`.plan` (config, subtasks), :mod:`.schedule` and :mod:`.difficulty` (the
-scheduler), :mod:`.progressive` (:func:`run_plan`, the loop over subtasks),
-:mod:`.subtask` (one subtask), :mod:`.buffer` (edit sources), :mod:`.hooks` (where a
-scheduler or a study plugs in). A whole edit with its run directory is
-:func:`jaxedit.pipelines.edit.run_edit`.
-"""
+"""The ProEdit method: difficulty, the subtask scheduler, the plan and its run."""
 
 from .buffer import (AsyncEditSource, EditedView, EditJob, EditorThreadError, SweepEditSource,
                      SyncEditSource, Utilisation)

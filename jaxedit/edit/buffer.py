@@ -1,7 +1,4 @@
-"""Edit sources: the 2D editor feeds edited views to the 3D trainer (iterative dataset
-update, ProEdit section 3.3). A source never renders or edits itself: it calls
-``edit_fn(job, scene) -> image``; JAX results move to the trainer's device.
-"""
+"""Edit sources: how the 2D editor's edited views reach the 3D trainer (ProEdit 3.3)."""
 
 from __future__ import annotations
 
@@ -23,11 +20,9 @@ class EditJob:
 
     Attributes:
       view: index of the training view (position in the training set).
-      iteration: how many edits this subtask issued before this one; it seeds the
-        editor (with the view and ratio) and drives the timestep annealing.
+      iteration: edits this subtask issued before this one (seeds the editor).
       step: trainer step (within the subtask) at which the job was issued.
-      timestep: the SDEdit timestep the edit is made at, when the source fixes it (a
-        study's explicit schedule); None: the subtask's annealing of ``step``.
+      timestep: fixed SDEdit timestep; None: the subtask's annealing of ``step``.
     """
 
     view: int
@@ -49,9 +44,7 @@ class EditedView:
 
 @dataclasses.dataclass
 class Utilisation:
-    """Counters (and wall-clock seconds) of edits made and consumed, of the trainer
-    waiting for the editor, of the editor waiting for a scene or a free queue slot, and of
-    polls (``empty_polls``: those that found no edit)."""
+    """Counters and wall-clock seconds of edits made/consumed and of who waited for whom."""
 
     edits: int = 0
     consumed: int = 0
@@ -77,8 +70,7 @@ EditManyFn = Callable[[list[EditJob], Any], list]
 
 
 def as_view(image, device: jax.Device | None = None):
-    """An editor's result as the trainer takes it: a finished JAX array on ``device``
-    (None: where it is), or NumPy float32 [H, W, 3]."""
+    """A finished float32 [H, W, 3] JAX array on ``device`` (None: where it is), or NumPy."""
     if isinstance(image, jax.Array):
         image = image.astype(jnp.float32)
         if device is not None:
@@ -95,29 +87,24 @@ def view_order(num_views: int, key: jax.Array) -> np.ndarray:
 
 
 def pick_devices() -> tuple[jax.Device, jax.Device]:
-    """(trainer device, editor device) among this process's local devices; distinct
-    when there are two or more."""
+    """(trainer device, editor device), distinct when there are two local devices."""
     devices = jax.local_devices()
     return devices[0], devices[1] if len(devices) > 1 else devices[0]
 
 
 def side_by_side(trainer_device: jax.Device, editor_device: jax.Device | None) -> bool:
-    """Whether the editor's programs run concurrently with the trainer's: on a CPU, or
-    on an editor device distinct from ``trainer_device``. On one shared accelerator
-    pipelining would only hold both programs' buffers at once."""
+    """Whether editor and trainer run concurrently (CPU, or two distinct devices); on one
+    shared accelerator pipelining would only hold both programs' buffers at once."""
     return trainer_device.platform == "cpu" or (
         editor_device is not None and editor_device != trainer_device)
 
 
 class EditSource(Protocol):
-    """What a subtask's loop asks of its edits.
-
-    Steps count from the end of the subtask's warm-up. Use as a context manager; a
-    threaded source starts its thread on entry and joins it on exit.
+    """What a subtask's loop asks of its edits (a context manager; steps count from the
+    end of warm-up).
 
     Attributes:
-      can_wait: whether waiting brings edits (a producer thread). False: edits arrive
-        only at the exchanges due.
+      can_wait: whether waiting brings edits (a producer thread).
       utilisation: who waited for whom (:class:`Utilisation`).
     """
 
@@ -134,8 +121,7 @@ class EditSource(Protocol):
         """Hand over the trainer's ``scene`` at ``step``; the edits ready for it."""
 
     def collect(self) -> list[EditedView]:
-        """Edits begun at the last exchange and due now at the end of the steps that
-        followed it ([] for sources that hand edits over inside :meth:`exchange`)."""
+        """Edits begun at the last exchange and due now ([] if handed over inside it)."""
 
     def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
                  on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
@@ -147,22 +133,17 @@ class EditSource(Protocol):
 
 
 class SyncEditSource:
-    """Deterministic edits: at each step ``s`` with ``s % every == 0``, one view, inline.
-
-    Edit ``i = s // every`` is view ``order[i % N]`` of the scene at step ``s``.
+    """Deterministic inline edits: at step ``s % every == 0``, view ``order[(s // every) % N]``.
 
     Args:
       edit_fn: ``(job, scene) -> image float32 [H, W, 3]``.
       order: int [N], cyclic view order (:func:`view_order`).
       every: trainer steps between edits.
-      initial_sweep: step 0 edits every view once, so the subtask starts on a fully
-        edited dataset.
+      initial_sweep: step 0 edits every view once.
       trainer_device: where JAX results go (None: left where the editor made them).
-      edit_many: ``(jobs, scene) -> images`` for several edits due at one step (the
-        initial sweep); each edit's seconds are the batch's share.
+      edit_many: ``(jobs, scene) -> images`` for several edits due at one step.
     """
 
-    #: Edits arrive only at :meth:`exchange`, at steps a rule fixes.
     can_wait = False
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int = 10,
@@ -186,11 +167,7 @@ class SyncEditSource:
         return False
 
     def jobs_at(self, step: int) -> list[EditJob]:
-        """The edits due at trainer ``step`` (a pure function of the step).
-
-        With the initial sweep, step 0 issues edits 0..N-1 and edit ``N + k - 1`` is at
-        step ``k * every`` (k >= 1); without it edit ``i`` is at step ``i * every``.
-        """
+        """The edits due at ``step``; with the initial sweep, step 0 issues edits 0..N-1."""
         n = len(self.order)
         if step < 0 or step % self.every:
             return []
@@ -203,7 +180,7 @@ class SyncEditSource:
         return [EditJob(int(self.order[i % n]), i, step)]
 
     def due(self, step: int) -> bool:
-        """Whether edits are due at ``step`` (the subtask exchanges only then)."""
+        """Whether edits are due at ``step``."""
         return step >= 0 and step % self.every == 0
 
     def next_due(self, step: int) -> int | None:
@@ -224,8 +201,7 @@ class SyncEditSource:
         return []
 
     def _edit(self, jobs: list[EditJob], scene, step: int) -> list[EditedView]:
-        """``jobs`` (all due at ``step``) edited on ``scene``, finished; grouped into one
-        ``edit_many`` call when given."""
+        """``jobs`` edited on ``scene`` (one ``edit_many`` call when given), finished."""
         together = self.edit_many is not None and len(jobs) > 1
         groups = [jobs] if together else [[job] for job in jobs]
         out = []
@@ -256,14 +232,9 @@ class SyncEditSource:
 
 
 class PipelinedEditSource(SyncEditSource):
-    """:class:`SyncEditSource`'s edits, made on a worker thread while the trainer trains.
-
-    The edit due at step ``s`` is made from the scene at ``s`` while the trainer runs
-    to its next stop (exchange, checkpoint, end of warm-up or subtask), where
-    :meth:`collect` hands it over. Scenes and hand-over steps are fixed by the rule,
-    not by timing, so a seed fixes the bits and a resume is exact (nothing is in
-    flight at a chunk's end). The initial sweep is made at once.
-    """
+    """:class:`SyncEditSource`'s edits, made on a worker thread while the trainer trains
+    to its next stop, where :meth:`collect` hands them over. Hand-over steps follow the
+    rule, not timing, so runs stay bit-reproducible."""
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, **kwargs):
         super().__init__(edit_fn, order, **kwargs)
@@ -272,8 +243,7 @@ class PipelinedEditSource(SyncEditSource):
         self._pending: concurrent.futures.Future | None = None
 
     def exchange(self, step: int, scene) -> list[EditedView]:
-        """Begin the edit due at ``step`` on ``scene`` (handed over by :meth:`collect`);
-        the initial sweep is made at once and returned."""
+        """Begin the edit due at ``step``; the initial sweep is made at once and returned."""
         if self._pending is not None:
             raise RuntimeError("collect() the edit begun at the last exchange first")
         jobs = self.jobs_at(step)
@@ -284,8 +254,7 @@ class PipelinedEditSource(SyncEditSource):
         return []
 
     def collect(self) -> list[EditedView]:
-        """The edit begun at the last exchange, once finished ([] if none); re-raises
-        the editor's error."""
+        """The edit begun at the last exchange, once finished; re-raises the editor's error."""
         if self._pending is None:
             return []
         pending, self._pending = self._pending, None
@@ -304,8 +273,7 @@ class PipelinedEditSource(SyncEditSource):
 
 
 class SweepEditSource(SyncEditSource):
-    """Every ``every`` steps (step 0 included) every view, in ``order``, from the scene
-    at that step. Edit ``i`` is view ``order[i % N]`` of sweep ``i // N``."""
+    """Every ``every`` steps (step 0 included), every view in ``order``."""
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, every: int,
                  trainer_device=None, edit_many: EditManyFn | None = None):
@@ -324,14 +292,11 @@ class EditorThreadError(RuntimeError):
 
 
 class AsyncEditSource:
-    """Edits produced on a background thread, consumed without waiting.
-
-    Use as a context manager so the thread is joined on any exit, Ctrl-C included.
-    Which scene an edit sees depends on timing: not bit-reproducible.
+    """Edits made on a background thread from the newest scene (timing-dependent: not
+    bit-reproducible); use as a context manager so the thread is always joined.
 
     Args:
-      edit_fn: ``(job, scene) -> image``, called on the editor thread with the latest
-        published scene, placed on ``device``.
+      edit_fn: ``(job, scene) -> image``, given the latest published scene.
       order: int [N], cyclic view order.
       device: editor device (None: leave arrays where they are).
       trainer_device: where JAX results go (None: left on the editor's device).
@@ -339,7 +304,6 @@ class AsyncEditSource:
       poll_interval: seconds between checks of the stop flag while waiting.
     """
 
-    #: Edits arrive whenever the editor thread finishes one.
     can_wait = True
 
     def __init__(self, edit_fn: EditFn, order: np.ndarray, *, device: jax.Device | None = None,
@@ -360,7 +324,6 @@ class AsyncEditSource:
         self._thread = threading.Thread(target=self._run, name="jaxedit-editor", daemon=True)
         self._started = False
 
-    # -- lifecycle -----------------------------------------------------------
     def start(self) -> "AsyncEditSource":
         if not self._started:
             self._started = True
@@ -395,7 +358,6 @@ class AsyncEditSource:
     def running(self) -> bool:
         return self._thread.is_alive()
 
-    # -- trainer side ----------------------------------------------------------
     def publish(self, scene, step: int) -> None:
         """Make ``scene`` (a pytree of arrays, immutable) the one the editor renders next."""
         with self._lock:
@@ -429,11 +391,8 @@ class AsyncEditSource:
 
     def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None,
                  on_edits: Callable[[list[EditedView]], None] | None = None) -> bool:
-        """Block until ``predicate()`` holds, feeding arrivals to ``on_edits``.
-
-        The only place the trainer waits for the editor (counted). Returns the
-        predicate's final value (False on timeout).
-        """
+        """Block until ``predicate()`` holds, feeding arrivals to ``on_edits``; its final
+        value (False on timeout)."""
         if predicate():
             return True
         t0 = time.perf_counter()
@@ -458,7 +417,6 @@ class AsyncEditSource:
         finally:
             self.utilisation.trainer_wait_s += time.perf_counter() - t0
 
-    # -- internals -----------------------------------------------------------
     def _drain_nowait(self) -> list[EditedView]:
         out = []
         while True:

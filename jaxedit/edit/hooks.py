@@ -1,7 +1,4 @@
-"""Seams where a custom scheduler or a study changes an edit without the method's
-config knowing: an :class:`EditHooks` passed to :func:`jaxedit.pipelines.edit.run_edit`.
-Every hook is optional; None keeps the method's own way.
-"""
+"""Hooks through which a study changes an edit (None keeps the method's own way)."""
 
 from __future__ import annotations
 
@@ -16,16 +13,11 @@ class EditHooks:
     """A study's changes to an edit.
 
     Attributes:
-      schedule: ``schedule(difficulty) -> Schedule``: the ratios of a ProEdit run from r = 0
-        instead of the configured scheduler (:mod:`jaxedit.edit.schedule`); ``difficulty``
-        is the run's memoised d(r_a, r_b).
-      plan: ``plan(specs) -> specs``: the laid-out subtasks (r_0, the edit steps, r_n) of a run
-        from r = 0, replaced before any training (may raise :class:`jaxedit.DataError`).
-      limits: ``limits(spec, limits) -> SubtaskLimits``: subtask ``spec``'s step guard and
-        plateau test, given the method's.
+      schedule: ``schedule(difficulty) -> Schedule`` replacing the configured scheduler.
+      plan: ``plan(specs) -> specs``: replaces the laid-out subtasks before training.
+      limits: ``limits(spec, limits) -> SubtaskLimits``: a subtask's step guard and plateau.
       edit_source: ``edit_source(spec, edit_fn, order, *, edit_many, trainer_device)`` -> an
-        edit source (:mod:`jaxedit.edit.buffer`'s protocol) for subtask ``spec``, or None for
-        the method's periodic one.
+        edit source for subtask ``spec``, or None for the method's periodic one.
     """
 
     schedule: Callable | None = None

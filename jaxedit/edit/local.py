@@ -1,8 +1,5 @@
-"""Local edits: what the instruction touches, per pixel and per Gaussian.
-
-Relevance maps, regions (:func:`parse_region`) and mask folders (:func:`load_masks`)
-compose into the per-Gaussian :func:`editable` mask; the rest is frozen (:func:`frozen_of`).
-"""
+"""Local edits: relevance maps, regions and mask folders composed into the per-Gaussian
+:func:`editable` mask; the rest is frozen."""
 
 from __future__ import annotations
 
@@ -17,27 +14,18 @@ import numpy as np
 
 from ..errors import DataError
 
-#: ``--local`` values: ``auto`` takes the editor's relevance, ``off`` edits the whole scene
-#: (regions and masks still restrict it).
+#: ``--local`` values: ``auto`` (the editor's relevance) or ``off``.
 LOCAL_MODES = ("auto", "off")
-#: A Gaussian is editable when its lifted relevance reaches this; low, so that Gaussians
-#: straddling the region's border are edited rather than holding their pixels frozen.
+#: Editable at this lifted relevance; low, so Gaussians on the border get edited too.
 GAUSSIAN_THRESHOLD = 0.1
 #: A pixel's training image takes the edit when editable Gaussians hold this share of it.
 OWNED = 0.5
-#: Extensions a mask file may have.
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
 
 
 def lift_relevance(gaussians, cameras, masks) -> jax.Array:
-    """Each Gaussian's weighted mean of ``masks`` over the views it is drawn in.
-
-    Args:
-      gaussians: capacity C; cameras: a batch [B]; masks: float [B, H, W] in [0, 1].
-    Returns:
-      float32 [C]: sum_v,p w_i m / sum_v,p w_i (w_i = T_i alpha_i, the blending weights),
-      0 for Gaussians never drawn.
-    """
+    """float32 [C]: each Gaussian's blending-weighted mean of ``masks`` float [B, H, W]
+    over ``cameras`` [B] (0 where never drawn)."""
     from ..raster import accumulate_weights
 
     m = jnp.asarray(masks, jnp.float32)[..., None]
@@ -109,9 +97,8 @@ def load_masks(directory, filenames, hw: tuple[int, int], originals=None) -> np.
     """One mask per frame, float32 [N, H, W] in [0, 1] (the mean of its channels).
 
     Args:
-      directory: the mask folder.
-      filenames: the frames' ``file_path`` strings; frame ``images/frame_00001.png`` takes
-        ``DIR/frame_00001.<png|jpg|...>`` (nerfstudio's ``masks/`` naming).
+      directory: the mask folder (a frame's mask has its file's stem, nerfstudio-style).
+      filenames: the frames' ``file_path`` strings.
       hw: the views' (H, W); a mask at an integer multiple of it is box-averaged down.
       originals: per frame its ``original_file_path`` or None, the fallback mask name.
 
@@ -151,8 +138,7 @@ def load_masks(directory, filenames, hw: tuple[int, int], originals=None) -> np.
 
 
 def _to_view_size(mask: np.ndarray, hw: tuple[int, int], path) -> np.ndarray:
-    """``mask`` float [h, w] at its view's size (H, W): as it is, or box-averaged from an
-    integer multiple k (h, w) = (k H, k W)."""
+    """``mask`` float [h, w] box-averaged to (H, W) from an integer multiple of it."""
     (h, w), (H, W) = mask.shape, hw
     k = h // H if H else 0
     if (h, w) == (H, W):
@@ -164,10 +150,7 @@ def _to_view_size(mask: np.ndarray, hw: tuple[int, int], path) -> np.ndarray:
 
 def editable(gaussians, *, regions=(), relevance=None,
              threshold: float = GAUSSIAN_THRESHOLD) -> jax.Array:
-    """bool [C]: alive, inside the regions (if any) and relevant (if ``relevance`` [C]).
-
-    Raises DataError when that leaves no Gaussian.
-    """
+    """bool [C]: alive, inside the regions and relevant (if ``relevance`` [C]); DataError if none."""
     inside = in_regions(regions, gaussians.means) & gaussians.alive
     if regions and not bool(jnp.any(inside)):
         raise DataError("--region", f"{' '.join(r.spec() for r in regions)}: contains no "
@@ -187,11 +170,7 @@ def frozen_of(gaussians, editable_mask) -> jax.Array:
 
 @dataclasses.dataclass(frozen=True)
 class LocalSpec:
-    """The ``--local`` / ``--region`` / ``--masks`` of a run.
-
-    mode: ``auto`` (the editor's relevance) or ``off``; regions: :class:`Region` s (a
-    union); masks: float [N, H, W] of the training views, or None.
-    """
+    """A run's ``--local`` mode, ``--region`` s (a union) and ``--masks`` float [N, H, W] or None."""
 
     mode: str = "off"
     regions: tuple = ()
@@ -208,8 +187,7 @@ class LocalSpec:
 
 
 def render_editable(gaussians, cameras, editable_mask) -> np.ndarray:
-    """The rendered relevance: each pixel's blending weight on editable Gaussians,
-    float32 [B, H, W] in [0, 1] (cameras [B]; black background, colour = editable)."""
+    """float32 [B, H, W] in [0, 1]: each pixel's blending weight on editable Gaussians."""
     from ..raster import render
     from ..sh import C0
 
@@ -222,19 +200,15 @@ def render_editable(gaussians, cameras, editable_mask) -> np.ndarray:
 
 
 def training_masks(weights, owned: float = OWNED) -> np.ndarray:
-    """Which pixels' training images are the edit, float32 [B, H, W] of 0 / 1.
-
-    1 where the rendered relevance ``weights`` [B, H, W] (:func:`render_editable`) is
-    ``owned`` or more; a hard mask, since a soft blend keeps part of the photo in owned pixels.
-    """
+    """float32 [B, H, W] of 0 / 1: ``weights`` >= ``owned`` (hard, since a soft blend keeps
+    part of the photo in owned pixels)."""
     return (np.asarray(weights, np.float32) >= owned).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)
 class LocalPlan:
-    """What :func:`plan_local` decides: ``editable`` bool [C], the training views' ``masks``
-    float [N, H, W], the ``figures`` (schedule.json's ``"local"``) and the lifted
-    ``relevance`` float32 [C] (None without relevance maps or masks: a region alone)."""
+    """``editable`` bool [C], view ``masks`` float [N, H, W], ``figures`` (schedule.json's
+    ``"local"``) and lifted ``relevance`` float32 [C] (None for a region alone)."""
 
     editable: np.ndarray
     masks: np.ndarray
@@ -244,13 +218,8 @@ class LocalPlan:
 
 def plan_local(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, embedding=None,
                key=None) -> LocalPlan:
-    """The editable Gaussians, view masks and figures of a local edit (:class:`LocalPlan`).
-
-    The editor's relevance per view (``auto``: of ``originals`` [N, H, W, 3] under the full
-    ``embedding``, keys folded from ``key``) times any user masks is lifted to the Gaussians;
-    those inside the regions at :data:`GAUSSIAN_THRESHOLD` or more are editable. View masks:
-    :func:`training_masks` of :func:`render_editable`.
-    """
+    """The :class:`LocalPlan` of a local edit: the editor's relevance of ``originals``
+    [N, H, W, 3] (``auto``) times any user masks, lifted to the Gaussians."""
     import time
 
     from ..editors.base import relevance
@@ -274,17 +243,15 @@ def plan_local(spec: LocalSpec, gaussians, cameras, originals, *, editor=None, e
 
 
 def heat_overlay(image, weight, colour=(1.0, 0.15, 0.0), strength: float = 0.6) -> np.ndarray:
-    """``image`` float [H, W, 3] in [0, 1] with ``weight`` [H, W] in [0, 1] laid over it in
-    ``colour`` (at most ``strength`` of it), float32 [H, W, 3]: a relevance heat map."""
+    """float32 [H, W, 3]: ``image`` with ``weight`` [H, W] laid over it in ``colour``."""
     w = strength * np.clip(np.asarray(weight, np.float32), 0.0, 1.0)[..., None]
     return ((1.0 - w) * np.asarray(image, np.float32)
             + w * np.asarray(colour, np.float32)).astype(np.float32)
 
 
 def write_overlays(folder, gaussians, cameras, images, editable_mask, relevance=None) -> list:
-    """Write the editable Gaussians' rendered relevance over ``images`` float [B, H, W, 3]
-    of ``cameras`` [B] as ``folder/view_XX.png``, and :func:`save_gaussian_relevance`
-    (``relevance`` float [C] or None). Returns the paths of the PNGs."""
+    """Write the relevance over ``images`` float [B, H, W, 3] as ``folder/view_XX.png`` (and
+    :func:`save_gaussian_relevance`); the PNGs' paths."""
     from ..io import write_image
 
     folder = Path(os.fspath(folder))
@@ -303,9 +270,8 @@ GAUSSIANS_FILE = "gaussians.npz"
 
 
 def save_gaussian_relevance(folder, gaussians, editable_mask, relevance=None) -> Path:
-    """Write ``folder/gaussians.npz`` for the alive Gaussians in slot order: ``means``
-    float32 [K, 3] (frozen ones keep their bits in any snapshot), ``editable`` bool [K],
-    ``relevance`` float32 [K] (the editable flags when None). Returns its path."""
+    """Write (and return) ``folder/gaussians.npz``: alive ``means`` float32 [K, 3],
+    ``editable`` bool [K], ``relevance`` float32 [K]."""
     from ..io.files import atomic_write_bytes
 
     alive = np.asarray(gaussians.alive, bool)
@@ -345,11 +311,7 @@ COLD, HOT, CHANGED = (0.15, 0.3, 0.9), (1.0, 0.15, 0.0), (1.0, 0.85, 0.0)
 
 
 def relevance_colours(saved: dict, means) -> np.ndarray:
-    """float32 [N, 3] colours of a snapshot's Gaussians (``means`` [N, 3]) by relevance.
-
-    An input Gaussian (mean found bit for bit in ``saved``) goes from :data:`COLD` to
-    :data:`HOT`; any other is :data:`CHANGED`.
-    """
+    """float32 [N, 3] colours of ``means`` [N, 3] by relevance; :data:`CHANGED` if not in ``saved``."""
     means = np.ascontiguousarray(np.asarray(means, np.float32))
     known = {row.tobytes(): i for i, row in
              enumerate(np.ascontiguousarray(np.asarray(saved["means"], np.float32)))}

@@ -1,7 +1,5 @@
-"""What an edit run measures: renders of scene states (:class:`Renderer`, never
-truncated), :func:`image_scores` against the editor's targets and
-:func:`reprojection_consistency` across views, gathered by :func:`scene_metrics`.
-"""
+"""What an edit run measures of a scene state: image scores, multi-view consistency,
+distance to the input."""
 
 from __future__ import annotations
 
@@ -14,8 +12,7 @@ from ..raster.render import HEADROOM, render_capacity
 
 
 class Renderer:
-    """Render single views over a fixed background, never truncated (outside jit,
-    :func:`jaxedit.raster.render` sizes its own buffer)."""
+    """Render single views over a fixed background, never truncated."""
 
     def __init__(self, background=(1.0, 1.0, 1.0)):
         self.background = jnp.asarray(background, jnp.float32)
@@ -58,11 +55,8 @@ def image_scores(renders: np.ndarray, targets: np.ndarray) -> dict:
 
 def reprojection_consistency(rgb: np.ndarray, alpha: np.ndarray, depth: np.ndarray, cameras,
                              *, min_alpha: float = 0.5) -> float:
-    """Multi-view consistency of renders: PSNR (dB) of colours carried between neighbouring views.
-
-    Pixels of view i with alpha > min_alpha are lifted by their rendered depth into view
-    i+1 (cyclically) and compared where it sees a surface at the same depth (0.05
-    relative). Returns NaN when no pixel is co-visible.
+    """PSNR (dB) of colours carried by rendered depth from view i to view i+1 (cyclically)
+    where both see the same surface; NaN when no pixel is co-visible.
 
     Args:
       rgb: float [N, H, W, 3]; alpha, depth: float [N, H, W]; cameras: batched [N].
@@ -115,16 +109,9 @@ def bundled_lpips():
 
 
 def distance_to_input(renders: np.ndarray, reference: np.ndarray, *, lpips=None) -> dict:
-    """How far renders moved from the input scene's renders of the same views.
-
-    Args:
-      renders, reference: float [N, H, W, 3] in [0, 1] (a scene state's and the input
-        scene's renders of the same cameras).
-      lpips: ``(a, b) -> float`` (None: :func:`bundled_lpips`).
-    Returns:
-      {"psnr_vs_input", "ssim_vs_input", "lpips_vs_input"}: means over the views. Raises
-      ValueError when the shapes differ.
-    """
+    """Mean {"psnr_vs_input", "ssim_vs_input", "lpips_vs_input"} of ``renders`` vs the input's
+    ``reference`` renders, float [N, H, W, 3] in [0, 1]; ValueError when the shapes differ.
+    ``lpips``: ``(a, b) -> float`` (None: :func:`bundled_lpips`)."""
     if renders.shape != reference.shape:
         raise ValueError(f"renders {renders.shape} and reference {reference.shape} differ")
     lpips = bundled_lpips() if lpips is None else lpips
@@ -134,14 +121,9 @@ def distance_to_input(renders: np.ndarray, reference: np.ndarray, *, lpips=None)
 
 
 def scene_metrics(ctx, gaussians, ratio: float, *, reference: tuple | None = None) -> dict:
-    """Numbers of one scene state at the held-out views.
-
-    psnr/ssim_vs_target: vs the editor's noise-free target at r = 1 (None without one);
-    psnr/ssim_vs_subtask_target: vs the target at ``ratio``; multiview_consistency
-    (:func:`reprojection_consistency`); num_gaussians. With ``reference`` = (the input's
-    held-out renders [M, H, W, 3], its Gaussian count): :func:`distance_to_input`,
-    ``input_gaussians`` and ``gaussians_vs_input``.
-    """
+    """Metrics of one scene state at the held-out views: vs the editor's targets at r = 1 and
+    at ``ratio``, consistency, and with ``reference`` = (input renders [M, H, W, 3], input
+    Gaussian count) the :func:`distance_to_input`."""
     rgb, alpha, depth = ctx.renderer.views(gaussians, ctx.data.test_cameras)
     out = {"ratio": float(ratio), "num_gaussians": int(gaussians.num_alive()),
            "multiview_consistency": reprojection_consistency(rgb, alpha, depth,

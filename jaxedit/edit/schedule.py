@@ -1,18 +1,6 @@
-"""ProEdit's difficulty-aware subtask scheduler (paper section 3.2), plus root placement.
-
-A schedule is ratios 0 = r_0 < r_1 < ... < r_n = 1; subtask i edits with e(r_i). Each builder
-returns a :class:`Schedule`:
-
-- :func:`decompose` (the paper): bisection of [0, 1] until every interval has
-  d(r_a, r_b) <= threshold, then pruning.
-- :func:`decompose_root`: greedy farthest placement by optimistix bisection, then balancing;
-  fewer subtasks for more editor calls.
-- :func:`uniform` (``--subtasks N``): n equal steps.
-- :func:`for_target_subtasks` (``--target-subtasks N``): the threshold that gives N subtasks.
-
-``difficulty`` is any deterministic ``(r_a, r_b) -> float`` (e.g. a
-:class:`jaxedit.edit.difficulty.DifficultyOracle`); pair evaluations are memoised.
-"""
+"""Subtask schedules: ratios 0 = r_0 < ... < r_n = 1 from a deterministic difficulty
+``(r_a, r_b) -> float`` (ProEdit 3.2 bisection, greedy root placement, uniform, or the
+threshold that gives N subtasks)."""
 
 from __future__ import annotations
 
@@ -39,13 +27,11 @@ class Schedule:
     Attributes:
       ratios: (r_0, ..., r_n = 1), strictly increasing; r_0 > 0 when continuing an edit.
       difficulties: (d(r_0, r_1), ..., d(r_{n-1}, r_n)); NaN where not measured.
-      depth_limit_hit: True when some difficulty may exceed the threshold (depth limit or
-        grid resolution reached).
-      evaluations: number of distinct (r_a, r_b) pairs the difficulty was evaluated on.
+      depth_limit_hit: True when some difficulty may exceed the threshold.
+      evaluations: number of distinct (r_a, r_b) pairs evaluated.
       method: "bisection", "root" or "uniform".
       threshold: the difficulty threshold used (None for ``uniform``).
-      target_subtasks: the subtask count the threshold was searched for
-        (:func:`for_target_subtasks`), else None.
+      target_subtasks: the count :func:`for_target_subtasks` searched for, else None.
     """
 
     ratios: tuple[float, ...]
@@ -103,9 +89,6 @@ def _check_threshold(threshold) -> float:
     return t
 
 
-# Pair memo threaded through the folds (an immutable mapping, replaced on every new pair)
-
-
 def _measure(difficulty: DifficultyFn, cache: Mapping, a: float, b: float) -> tuple[float, Mapping]:
     key = (a, b)
     if key in cache:
@@ -116,9 +99,6 @@ def _measure(difficulty: DifficultyFn, cache: Mapping, a: float, b: float) -> tu
     return d, {**cache, key: d}
 
 
-# Bisection (the paper)
-
-
 class _BisectState(NamedTuple):
     worklist: tuple[tuple[float, float, int], ...]  # intervals (a, b, depth) still to examine
     accepted: tuple[tuple[float, float, float, bool], ...]  # (a, b, d(a, b), limit hit)
@@ -127,7 +107,6 @@ class _BisectState(NamedTuple):
 
 def _bisect_step(state: _BisectState, difficulty: DifficultyFn, threshold: float,
                  max_depth: int) -> _BisectState:
-    """Examine the first interval of the worklist: accept it or replace it by its two halves."""
     (a, b, depth), rest = state.worklist[0], state.worklist[1:]
     d, cache = _measure(difficulty, state.cache, a, b)
     if d <= threshold or depth >= max_depth:
@@ -138,10 +117,7 @@ def _bisect_step(state: _BisectState, difficulty: DifficultyFn, threshold: float
 
 def _prune(ratios: tuple[float, ...], diffs: tuple[float, ...], difficulty: DifficultyFn,
            threshold: float, cache: Mapping):
-    """Remove interior ratios r_i with d(r_{i-1}, r_{i+1}) <= threshold until none is left.
-
-    Each pass removes the one with the smallest merged difficulty (ties: smallest index).
-    """
+    """Remove interior ratios r_i with d(r_{i-1}, r_{i+1}) <= threshold, smallest first."""
     while True:
         best = None
         for i in range(1, len(ratios) - 1):
@@ -172,14 +148,12 @@ def decompose(difficulty: DifficultyFn, *, threshold: float, max_depth: int = MA
 
     Args:
       difficulty: deterministic ``(r_a, r_b) -> float >= 0``.
-      threshold: d_threshold > 0; every interval ends with d <= threshold unless
-        ``depth_limit_hit``.
+      threshold: d_threshold > 0.
       max_depth: intervals of length 2^-max_depth are accepted whatever their difficulty.
       prune: run the pruning pass.
       start: the ratio already reached when continuing an edit.
 
-    Returns a :class:`Schedule` with method "bisection". Raises DataError on a bad threshold,
-    depth, start or difficulty value.
+    Raises DataError on a bad threshold, depth, start or difficulty value.
     """
     threshold = _check_threshold(threshold)
     if int(max_depth) < 0:
@@ -214,12 +188,8 @@ def prune_ratios(ratios, difficulty: DifficultyFn, *, threshold: float) -> Sched
 
 def split_ratio(difficulty: DifficultyFn, a: float, b: float, *,
                 iterations: int = 3) -> tuple[float, float, float]:
-    """The split a < x < b of one step where d(a, x) ~ d(x, b) (a refined step).
-
-    Bisection on the sign of d(a, x) - d(x, b) from the midpoint, ``iterations`` halvings
-    of the bracket (one new ratio edited each); the best of the points tried is kept.
-    Returns (x, d(a, x), d(x, b)).
-    """
+    """(x, d(a, x), d(x, b)): the split a < x < b where d(a, x) ~ d(x, b), after
+    ``iterations`` bisection halvings."""
     a, b = float(a), float(b)
     if not b > a:
         raise DataError("ratio", f"a step must go up, got {a:g} -> {b:g}")
@@ -238,8 +208,7 @@ def split_ratio(difficulty: DifficultyFn, a: float, b: float, *,
 
 def decompose_interval(difficulty: DifficultyFn, lo: float, hi: float, *, threshold: float,
                        max_depth: int = MAX_DEPTH) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """:func:`decompose` of the ratios [lo, hi] (e.g. past r = 1): the bisection run on
-    [0, 1] rescaled to the interval. Returns (ratios lo < ... < hi, their difficulties)."""
+    """:func:`decompose` rescaled to [lo, hi]: (ratios lo < ... < hi, their difficulties)."""
     lo, hi = float(lo), float(hi)
     if not hi > lo:
         raise DataError("ratio", f"an interval must go up, got {lo:g} -> {hi:g}")
@@ -250,9 +219,6 @@ def decompose_interval(difficulty: DifficultyFn, lo: float, hi: float, *, thresh
     s = decompose(lambda u, v: difficulty(at(u), at(v)), threshold=threshold,
                   max_depth=max_depth)
     return tuple(at(u) for u in s.ratios), tuple(s.difficulties)
-
-
-# Root placement (beyond the paper)
 
 
 def _quantise(y: float, lo: float, resolution: float) -> float:
@@ -281,11 +247,8 @@ def _bracket_steps(resolution: float) -> int:
 
 def _bisect_host(host: Callable[[float], float], lower: float, upper: float,
                  resolution: float) -> tuple[float, float]:
-    """optimistix Bisection on a host function with host(lower) < 0 <= host(upper).
-
-    Returns the final bracket (lower, upper). throw=False: a step-shaped host never reaches
-    atol, so callers check the bracket.
-    """
+    """Final bracket (lower, upper) of optimistix Bisection on host(lower) < 0 <= host(upper);
+    throw=False since a step-shaped host never reaches atol."""
     errors: list[BaseException] = []
 
     def guarded(y):
@@ -315,10 +278,7 @@ def _bisect_host(host: Callable[[float], float], lower: float, upper: float,
 
 def _equalise(difficulty: DifficultyFn, cache: Mapping, a: float, x0: float, b: float,
               resolution: float):
-    """Move x0 in (a, b) on the grid to where d(a, x) ~ d(x, b), if that lowers the max.
-
-    Returns (x, d(a, x), d(x, b), cache).
-    """
+    """(x, d(a, x), d(x, b), cache): x0 moved to where d(a, x) ~ d(x, b) if that lowers the max."""
     da, cache = _measure(difficulty, cache, a, x0)
     db, cache = _measure(difficulty, cache, x0, b)
     best = (max(da, db), x0, da, db)
@@ -361,11 +321,8 @@ def _tighten(fn: Callable[[float], float], lower: float, upper: float, cache: Ma
 
 def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: float,
                 resolution: float, width_hint: float | None):
-    """Largest grid ratio r' in (r, 1] found by bisection with d(r, r') <= threshold.
-
-    Returns (r', d(r, r'), resolution_hit, cache). ``width_hint`` (the previous step) gives a
-    first upper end r + 2 * width_hint, saving editor calls.
-    """
+    """(r', d(r, r'), resolution_hit, cache): the largest grid r' in (r, 1] with
+    d(r, r') <= threshold; ``width_hint`` (the previous step) saves editor calls."""
     d1, cache = _measure(difficulty, cache, r, 1.0)
     if d1 <= threshold:
         return 1.0, d1, False, cache
@@ -400,21 +357,16 @@ def _next_ratio(difficulty: DifficultyFn, cache: Mapping, r: float, threshold: f
 def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: float = 2.0 ** -8,
                    max_subtasks: int = 64, balance: int = 1, prune: bool = True,
                    start: float = 0.0) -> Schedule:
-    """Greedy placement: each next ratio is the largest one within the threshold.
-
-    r_{i+1} = max{r' on the grid : d(r_i, r') <= threshold}, by ``optimistix`` bisection on
-    d(r_i, r') - threshold through ``jax.pure_callback``. For d increasing in r' this gives the
-    fewest subtasks the threshold allows.
+    """Greedy placement: r_{i+1} = max{r' on the grid : d(r_i, r') <= threshold} (the fewest
+    subtasks for d increasing in r').
 
     Args:
       difficulty, threshold, prune, start: as in :func:`decompose`.
       resolution: grid step of the ratios, in (0, 0.5].
       max_subtasks: after this many, the last step jumps to 1.
-      balance: backward sweeps that equalise neighbouring difficulties (never raising the
-        maximum), spreading the small last subtask; 0: none.
+      balance: backward sweeps that equalise neighbouring difficulties; 0: none.
 
-    Returns a :class:`Schedule` with method "root"; ``depth_limit_hit`` when a grid step or
-    the last jump exceeds the threshold. Raises DataError on bad arguments.
+    Raises DataError on bad arguments.
     """
     threshold = _check_threshold(threshold)
     resolution = float(resolution)
@@ -444,17 +396,12 @@ def decompose_root(difficulty: DifficultyFn, *, threshold: float, resolution: fl
                     threshold)
 
 
-# The threshold for a number of subtasks (the --target-subtasks N option)
-
-
 def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
                         method: Callable[..., Schedule] = decompose,
                         resolution: float = 2.0 ** -12, start: float = 0.0,
                         **method_kwargs) -> Schedule:
-    """The schedule of ``method`` whose number of subtasks is closest to ``target``.
-
-    Bisection on the log-threshold t = d(start, 1) * 2^(-24 (1 - y)), y in [0, 1]; of the two
-    thresholds at the count's jump the nearer count wins (ties: fewer subtasks).
+    """The schedule of ``method`` whose subtask count is closest to ``target`` (bisection on
+    the log-threshold; ties: fewer subtasks).
 
     Args:
       difficulty: as in :func:`decompose`.
@@ -463,8 +410,7 @@ def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
       resolution: grid step of y.
       start, method_kwargs: passed to ``method``.
 
-    Returns the chosen :class:`Schedule` with ``target_subtasks`` set (the finest one, with
-    ``depth_limit_hit``, when the target is out of reach). Raises DataError on a bad target.
+    Raises DataError on a bad target.
     """
     if int(target) != target or int(target) < 1:
         raise DataError("target_subtasks", f"must be an integer >= 1, got {target!r}")
@@ -495,12 +441,9 @@ def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
     return dataclasses.replace(best, target_subtasks=target)
 
 
-# Uniform (the --subtasks N override)
-
-
 def uniform(n: int, difficulty: DifficultyFn | None = None, *, start: float = 0.0) -> Schedule:
-    """n equal subtasks r_i = start + i (1 - start) / n; difficulties measured when
-    ``difficulty`` is given, else NaN. Raises DataError unless n is an integer >= 1."""
+    """n equal subtasks from ``start``; difficulties NaN unless ``difficulty`` is given.
+    Raises DataError unless n is an integer >= 1."""
     if int(n) != n or int(n) < 1:
         raise DataError("subtasks", f"must be an integer >= 1, got {n!r}")
     n = int(n)
