@@ -1,17 +1,5 @@
-"""Built-in scenes: procedural ones rendered by an independent NumPy ray caster, and
-rendered datasets shipped with the package, written as nerfstudio datasets::
-
-    from jaxedit import scenes
-    scenes.make_scene("face", "runs/face")
-    scene = scenes.get_scene("face")
-    cams, train, test = scenes.scene_cameras(scene, views=64, test_views=8, size=128)
-    images = scenes.render_scene(scene, cams)               # float32 [72, 128, 128, 3]
-    points, ids, uv = scenes.surface_points_and_ids(scene, cams)
-
-``surface_points_and_ids`` says what every pixel centre sees, so an edit defined on
-the surface is 3D-consistent by construction. ``person`` is Reallusion's CC BY 3.0 model
-(Sweet Home 3D) rendered by Cycles (``scripts/render_person.py``).
-"""
+"""Built-in scenes (procedural ones from a NumPy ray caster, and shipped rendered
+datasets), written as nerfstudio datasets with :func:`make_scene`."""
 
 import numpy as np
 
@@ -25,8 +13,7 @@ from .textures import Texture
 
 
 def render_scene(scene: Scene, cameras, *, supersample: int = 2, alpha: bool = False):
-    """Ground truth of ``scene`` for ``cameras``: float32 [N, H, W, 3] in [0, 1], each pixel
-    averaging ``supersample``^2 rays; ``alpha=True`` adds coverage as a 4th channel."""
+    """float32 [N, H, W, 3] ground truth of ``scene`` (``alpha``: coverage as a 4th channel)."""
     return raycast.render(scene, cameras, supersample=supersample, alpha=alpha)
 
 

@@ -31,9 +31,8 @@ PROCEDURAL_DEFAULTS = {"size": 128, "views": 64, "test_views": 8, "num_points": 
 
 
 def size_arguments(name: str, size: int) -> dict[str, int]:
-    """:func:`make_scene`'s keyword for images of ``size`` px: ``{"size": size}`` for a
-    procedural scene, ``{"downscale": factor}`` for a rendered one (DataError naming
-    ``size`` when it does not divide the rendered width)."""
+    """:func:`make_scene`'s keyword for ``size`` px images: ``{"size": size}`` (procedural)
+    or ``{"downscale": factor}`` (rendered; DataError unless ``size`` divides its width)."""
     from .library import DATASETS, dataset_path
 
     if name not in DATASETS:
@@ -50,14 +49,9 @@ def make_scene(name: str, out_dir: str | os.PathLike, *, size: int | None = None
                views: int | None = None, test_views: int | None = None, seed: int = 0,
                num_points: int | None = None, supersample: int | None = None,
                downscale: int = 1) -> Path:
-    """Write a built-in scene as a nerfstudio dataset; the same arguments give byte-identical files.
-
-    Procedural scenes are rendered here; rendered scenes (:data:`library.DATASETS`) are
-    copied by :func:`copy_rendered_scene` (``size``, ``num_points``, ``supersample`` do not
-    apply). Writes ``transforms.json`` (PINHOLE intrinsics, OpenGL camera-to-world, the
-    split's filenames), ``images/frame_*.png`` (test views interleaved along the spiral),
-    ``sparse_pc.ply`` (:mod:`jaxedit.scenes.points`) and ``jaxedit_scene.json`` (what
-    :func:`jaxedit.scenes.get_scene` needs to rebuild the scene).
+    """Write a built-in scene as a nerfstudio dataset (with ``sparse_pc.ply`` and
+    ``jaxedit_scene.json``); the same arguments give byte-identical files. Rendered scenes
+    go through :func:`copy_rendered_scene`.
 
     Args:
       name: one of :func:`jaxedit.scenes.list_scenes`.
@@ -65,7 +59,7 @@ def make_scene(name: str, out_dir: str | os.PathLike, *, size: int | None = None
       size: image width and height in pixels (procedural; default 128).
       views, test_views: numbers of training and held-out views (default 64, 8).
       seed: scene variant and point-cloud draws.
-      num_points: points in the initial cloud, a few of them outliers (default 4000).
+      num_points: points in the initial cloud (default 4000).
       supersample: rays per pixel along each axis (default 2).
       downscale: integer image downscale factor (rendered scenes).
     Returns:
@@ -120,8 +114,7 @@ def _spread(indices: np.ndarray, count: int | None, field: str) -> np.ndarray:
 
 
 def _rgba_downscaled(path: Path, factor: int) -> np.ndarray:
-    """float32 [H/f, W/f, 4] straight RGBA; colour is averaged premultiplied, so compositing
-    the result equals averaging the composited image (what load_nerfstudio's downscale does)."""
+    """float32 [H/f, W/f, 4] straight RGBA, averaged premultiplied (as load_nerfstudio does)."""
     colour, alpha = read_image_with_alpha(path)
     alpha = np.ones(colour.shape[:2], np.float32) if alpha is None else alpha
     if factor == 1:
@@ -135,12 +128,8 @@ def _rgba_downscaled(path: Path, factor: int) -> np.ndarray:
 
 def copy_rendered_scene(name: str, out_dir: str | os.PathLike, *, downscale: int = 1,
                         views: int | None = None, test_views: int | None = None) -> Path:
-    """Copy the rendered scene ``name`` (e.g. ``person``) into ``out_dir`` as a nerfstudio dataset.
-
-    Images stay RGBA. ``downscale`` area-averages f x f blocks and divides the
-    intrinsics by f; ``views`` / ``test_views`` keep that many views, evenly spread along
-    the camera arc (default: all). The point cloud, ``jaxedit_scene.json`` and the
-    model's credits and licence come along.
+    """Copy the rendered scene ``name`` into ``out_dir`` as an RGBA nerfstudio dataset,
+    ``downscale`` d, keeping ``views`` / ``test_views`` evenly spread views (default: all).
 
     Returns:
       the path of ``transforms.json``.
@@ -176,11 +165,8 @@ def copy_rendered_scene(name: str, out_dir: str | os.PathLike, *, downscale: int
 def photo_capture(name: str, out_dir: str | os.PathLike, *, views: int,
                   first: int = 0, last: int | None = None, background=(0.5, 0.5, 0.5),
                   suffix: str = ".png", exif: dict | None = None):
-    """The rendered scene ``name`` as a folder of plain photos without poses, as a user's capture.
-
-    ``views`` views evenly spread over views ``first .. last``, composited over
-    ``background``, written as ``IMG_0000<suffix>``, ... (``exif``: metadata attributes,
-    e.g. ``{"Exif:FocalLengthIn35mmFilm": 63}``).
+    """``views`` views of rendered scene ``name`` (spread over ``first .. last``) written as
+    pose-less photos ``IMG_0000<suffix>``, ... over ``background``, with ``exif`` metadata.
 
     Returns:
       (the photo paths in order, their true cameras [views]).

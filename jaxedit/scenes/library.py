@@ -1,12 +1,5 @@
-"""The built-in scenes and their camera rigs.
-
-Each procedural scene is a function ``seed -> Scene``; ``seed=0`` is the canonical layout,
-other seeds jitter object placement, never the look of ``face`` (the benchmark scene).
-Rendered scenes (:data:`DATASETS`, e.g. ``person``, Blender Cycles) ship as nerfstudio
-datasets under ``jaxedit/scenes/data/NAME``, copied out by :func:`jaxedit.scenes.make_scene`.
-
-World frame: +z up, units of about a metre. The face looks along +x.
-"""
+"""The built-in scenes (procedural ``seed -> Scene``, or rendered datasets shipped under
+``scenes/data/NAME``) and their camera rigs; +z up, units of about a metre."""
 
 from __future__ import annotations
 
@@ -19,21 +12,13 @@ from ..errors import DataError
 from . import raycast as rc
 from .textures import Texture, mean_color
 
-# ------------------------------------------------------------------ face
-
-# The astronaut picture (512 x 512): her face spans rows ~70-190 and columns ~175-275,
-# her hair rows ~15-90 and columns ~150-300.
+# Crops (rows, cols) of the 512 x 512 astronaut picture: her face, her hair.
 _FACE_CROP = (15, 200, 150, 300)
 _HAIR_CROP = (28, 62, 190, 280)
 
 
 def face(seed: int = 0) -> rc.Scene:
-    """A head wearing the astronaut's face, with ears, neck and shoulders, in the void.
-
-    An analogue of the Instruct-NeRF2NeRF "face" scene: cameras sweep a 200-degree arc
-    in front of the face. The head is an ellipsoid with a hair texture and the face
-    picture projected on its front (see :class:`raycast.Decal`).
-    """
+    """A head wearing the astronaut's face, neck and shoulders (IN2N "face" analogue)."""
     del seed  # the benchmark scene never changes
     face_tex = Texture("astronaut", crop=_FACE_CROP, wrap="clamp")
     hair = Texture("astronaut", crop=_HAIR_CROP, repeat=(6.0, 3.0), wrap="mirror")
@@ -43,8 +28,7 @@ def face(seed: int = 0) -> rc.Scene:
         rc.ellipsoid("head", (0.0, 0.0, 0.3), (0.72, 0.62, 0.85), color=skin,
                      decal=rc.Decal(face_tex, center=(0.5, 0.47), radii=(0.56, 0.5), feather=0.25,
                                     taper=0.55)),
-        # A larger ellipsoid set back and up: where it pokes out of the head it is the hair,
-        # and the intersection curve is a natural hairline.
+        # set back and up: where it pokes out of the head it is the hair
         rc.ellipsoid("hair", (-0.08, 0.0, 0.34), (0.71, 0.7, 0.86), texture=hair),
         rc.ellipsoid("neck", (-0.05, 0.0, -0.55), (0.3, 0.3, 0.45), color=skin),
         rc.ellipsoid("shoulders", (-0.1, 0.0, -1.1), (0.6, 1.2, 0.42), texture=suit),
@@ -56,15 +40,8 @@ def face(seed: int = 0) -> rc.Scene:
                     description="head wearing the astronaut's face (IN2N 'face' analogue)")
 
 
-# ------------------------------------------------------------------ tabletop
-
-
 def tabletop(seed: int = 0) -> rc.Scene:
-    """Textured objects on a stone table top: an indoor analogue with shadows.
-
-    A cat-textured ball, a coffee box, a rocket box, a veined egg and a red ball on a
-    gravel-textured slab. Seeds other than 0 jitter positions and yaw of the objects.
-    """
+    """Textured objects on a stone table top; seeds other than 0 jitter position and yaw."""
     rng = np.random.default_rng(seed)
     jit = (lambda scale: rng.uniform(-scale, scale, size=2)) if seed else (lambda scale: np.zeros(2))
     yaw = (lambda: float(rng.uniform(-30, 30))) if seed else (lambda: 0.0)
@@ -93,15 +70,8 @@ def tabletop(seed: int = 0) -> rc.Scene:
                     description="textured objects on a stone table (indoor analogue)")
 
 
-# ------------------------------------------------------------------ fence
-
-
 def fence(seed: int = 0) -> rc.Scene:
-    """Thin, high-frequency structure: a picket fence before a brick wall, on grass.
-
-    Fourteen 4 cm pickets and two rails cast thin shadows on a tiled grass lawn and a
-    brick wall: edges and textures that a blurry reconstruction cannot fake.
-    """
+    """Thin, high-frequency structure: a picket fence before a brick wall, on grass."""
     del seed
     grass = Texture("grass", tint=(0.45, 0.8, 0.35), tile=0.8, wrap="mirror")
     brick = Texture("brick", tint=(0.95, 0.55, 0.42), tile=0.9, wrap="mirror")
@@ -118,9 +88,6 @@ def fence(seed: int = 0) -> rc.Scene:
     rig = rc.Rig(radius=4.3, target=(0.0, 0.0, 0.35), fov_deg=45.0, elevation_deg=(10.0, 60.0))
     return rc.Scene("fence", tuple(shapes), lights, rig, ambient=0.35,
                     description="picket fence before a brick wall on grass (thin structures)")
-
-
-# ------------------------------------------------------------------ ball
 
 
 def ball(seed: int = 0) -> rc.Scene:
@@ -173,15 +140,9 @@ def dataset_path(name: str) -> Path:
     return path
 
 
-# ------------------------------------------------------------------ cameras
-
-
 def rig_cameras(rig: rc.Rig, n: int, *, width: int = 128, height: int | None = None) -> Camera:
-    """``n`` cameras spread over the rig's band (golden-ratio spiral), batched [n].
-
-    Elevations are stratified in sin(elevation) (equal area) and azimuths follow the
-    golden ratio, so any prefix of views covers the band evenly.
-    """
+    """``n`` cameras [n] on an equal-area golden-ratio spiral over the rig's band, so any
+    prefix of views covers it evenly."""
     if n < 1:
         raise DataError("views", f"need at least one camera, got {n}")
     height = width if height is None else height
@@ -201,8 +162,7 @@ def rig_cameras(rig: rc.Rig, n: int, *, width: int = 128, height: int | None = N
 
 
 def split_views(views: int, test_views: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (train, test) into ``views + test_views`` spiral cameras; test views are
-    spread evenly through the spiral, so they interleave with training views."""
+    """Indices (train, test) into ``views + test_views`` cameras, test views spread evenly."""
     total = views + test_views
     if views < 1 or test_views < 0:
         raise DataError("views", f"need views >= 1 and test views >= 0, got {views}, {test_views}")

@@ -1,6 +1,4 @@
-"""Initial point clouds for the built-in scenes, made to look like a COLMAP sparse cloud
-(:func:`sample_points`).
-"""
+"""COLMAP-like initial point clouds for the built-in scenes."""
 
 from __future__ import annotations
 
@@ -29,7 +27,6 @@ def _visible_from(scene: rc.Scene, points: np.ndarray, ids: np.ndarray, cam: Cam
     delta = points[idx] - origin
     dist = np.linalg.norm(delta, axis=-1)
     t, hit_ids = rc.intersect(scene, origin, delta / dist[:, None])
-    # Seen = the first hit along the ray is this point (same shape, same distance).
     seen[idx] = (hit_ids == ids[idx]) & (np.abs(t - dist) < tol)
     return seen
 
@@ -42,12 +39,10 @@ def sample_points(scene: rc.Scene, cameras: Camera, num_points: int, rng: np.ran
 
     Args:
       scene: the scene.
-      cameras: batched Camera [N] (the training views); at most ``max_cameras`` of them,
-        evenly spread through the batch, decide visibility (keeps this fast).
+      cameras: batched Camera [N]; at most ``max_cameras`` of them decide visibility.
       num_points: total number of points, outliers included.
       rng: the random generator (all draws come from it).
-      position_noise: std of the positional noise, as a fraction of the scene's radius
-        (half the diagonal of its bounding box).
+      position_noise: std of the positional noise, as a fraction of the scene's radius.
       color_noise: std of the additive colour noise (colours in [0, 1]).
       outlier_fraction: fraction of ``num_points`` drawn uniformly in the bounding box.
       min_views: a surface point is kept only if this many cameras see it.
@@ -92,8 +87,7 @@ def sample_points(scene: rc.Scene, cameras: Camera, num_points: int, rng: np.ran
         view = np.concatenate(kept_view)
         order = rng.permutation(len(pts))[:n_surf]
         pts, ids, view = pts[order], ids[order], view[order]
-        # Each point is shaded as seen from the first camera that sees it: one centre per
-        # camera, looked up per point (not one eager einsum per point).
+        # shaded as seen from the first camera that sees it
         cam_centres = np.stack([np.asarray(c.center(), np.float64) for c in cams])
         centres = cam_centres[view]
         colors = rc.shaded_color(scene, pts, ids, centres).astype(np.float64)

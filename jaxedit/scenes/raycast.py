@@ -1,10 +1,6 @@
-"""An independent NumPy ray caster of textured analytic shapes: the built-in scenes' ground truth.
-
-It shares only the camera convention with the splatter, so a reconstruction that
-matches its images has learned the scene. Shapes are ellipsoids, boxes and
-rectangles; shading is view-independent (ambient plus Lambertian lights with hard
-shadows), so degree-0 colours can explain every view.
-"""
+"""A NumPy ray caster of textured analytic shapes, the built-in scenes' ground truth; it
+shares only the camera convention with the splatter, and its view-independent shading
+(ambient plus shadowed Lambertian lights) lets degree-0 colours explain every view."""
 
 from __future__ import annotations
 
@@ -33,18 +29,15 @@ def rotation_xyz(degrees) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True)
 class Decal:
-    """A picture projected orthographically onto the front (+x local) of an ellipsoid.
-
-    uv = ``(0.5 + y/2, 0.5 - z/2)`` of the unit-sphere point: (0.5, 0.5) at the front pole,
-    u to the viewer's right, v down; blended over the albedo with a soft elliptical mask.
+    """A picture projected orthographically onto the front (+x local) of an ellipsoid,
+    blended over the albedo with a soft elliptical mask (uv (0.5, 0.5) at the front pole).
 
     Attributes:
       texture: the picture (with ``wrap="clamp"`` usually).
       center: (u, v) centre of the mask ellipse.
       radii: (u, v) radii of the mask ellipse.
       feather: width of the soft edge, as a fraction of the radii.
-      taper: narrows the lower half of the ellipse (a jaw): the u radius shrinks by this
-        fraction from the centre row to the bottom of the mask.
+      taper: fraction the u radius shrinks from the centre row to the bottom (a jaw).
     """
 
     texture: T.Texture
@@ -62,12 +55,10 @@ class Shape:
       name: a label (shown to editors through the object id -> name table).
       kind: "ellipsoid" (spheres too), "box" or "plane" (a finite rectangle).
       center: (x, y, z) world position.
-      size: ellipsoid radii, box half-extents, or plane half-extents (x, y, ignored z),
-        all along the local axes.
-      rotation: float ``[3][3]`` local->world rotation (rows of a matrix; see rotation_xyz).
+      size: ellipsoid radii, box or plane (x, y, ignored z) half-extents, on the local axes.
+      rotation: float ``[3][3]`` local->world rotation (see rotation_xyz).
       color: RGB albedo when there is no texture.
-      texture: optional picture for the albedo (spheres: equirectangular; boxes: per face;
-        planes: local xy).
+      texture: optional albedo picture (spheres: equirectangular; boxes: per face).
       decal: optional front-projected picture (ellipsoids only).
     """
 
@@ -141,12 +132,8 @@ class Light:
 
 @dataclasses.dataclass(frozen=True)
 class Rig:
-    """Where a scene's cameras live: a band of a sphere around ``target`` (+z up).
-
-    Cameras lie on a low-discrepancy spiral over azimuths ``azimuth_deg`` (start, end;
-    0 deg = +x axis) and elevations ``elevation_deg`` (min, max), all at ``radius`` and
-    looking at ``target`` with horizontal field of view ``fov_deg``.
-    """
+    """Cameras on a spiral over a band of the sphere of ``radius`` around ``target`` (+z up),
+    azimuths ``azimuth_deg`` (0 = +x), elevations ``elevation_deg``, horizontal ``fov_deg``."""
 
     radius: float
     target: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -157,10 +144,7 @@ class Rig:
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """A built-in scene: shapes, lights, background and camera rig.
-
-    ``ids`` returned by the ray caster index ``shapes`` (background: -1).
-    """
+    """A built-in scene: shapes (the ray caster's ``ids``), lights, background, camera rig."""
 
     name: str
     shapes: tuple[Shape, ...]
@@ -179,7 +163,6 @@ class Scene:
         lo, hi = [], []
         for s in self.shapes:
             ext = s.s.copy()
-            # |R| applied to the extents bounds a rotated box/ellipsoid/rectangle.
             half = np.abs(s.R) @ ext
             lo.append(s.c - half)
             hi.append(s.c + half)
@@ -187,11 +170,8 @@ class Scene:
 
 
 def camera_rays(cam: Camera, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """World rays through a regular sub-grid of every pixel of one camera.
-
-    Returns (origin float [3], directions float [H*s, W*s, 3] unit length), rows of the
-    grid going down the image; sub-pixel k of s sits at (k + 0.5) / s inside its pixel.
-    """
+    """(origin float [3], unit directions float [H*s, W*s, 3]) through an s x s sub-grid
+    of every pixel of one camera."""
     s = int(supersample)
     w2c = np.asarray(cam.world_to_camera, np.float64)
     rot, trans = w2c[:3, :3], w2c[:3, 3]
@@ -229,7 +209,6 @@ def _intersect_shape(shape: Shape, o: np.ndarray, d: np.ndarray) -> np.ndarray:
             inv = 1.0 / dl
             ta = (-s - ol) * inv
             tb = (s - ol) * inv
-        # Rays parallel to a slab: inside it -> (-inf, inf); outside -> (-inf, -inf), empty.
         par = dl == 0
         inside = np.abs(ol) <= s
         ta = np.where(par, -np.inf, ta)
@@ -252,8 +231,7 @@ def _bounding_sphere(shape: Shape) -> tuple[np.ndarray, float]:
 
 
 def _candidates(shape: Shape, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """bool [P]: rays that pass within the shape's bounding sphere (a cheap pre-test, so the
-    exact test runs only on the few rays near each shape)."""
+    """bool [P]: rays that pass within the shape's bounding sphere (a cheap pre-test)."""
     c, r = _bounding_sphere(shape)
     oc = c - origins
     if oc.ndim == 1:  # one shared origin (a pinhole camera)
@@ -266,13 +244,8 @@ def _candidates(shape: Shape, origins: np.ndarray, dirs: np.ndarray) -> np.ndarr
 
 
 def intersect(scene: Scene, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """First hits of rays against every shape.
-
-    Args:
-      origins: float [P, 3] or [3]; dirs: float [P, 3] unit length.
-    Returns:
-      (t float [P], inf on a miss; ids int [P], index into scene.shapes, -1 on a miss).
-    """
+    """First hits (t float [P], inf on a miss; ids int [P] into scene.shapes, -1 on a miss)
+    of rays ``origins`` float [P, 3] or [3] + t ``dirs`` float [P, 3] (unit)."""
     dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
     origins = np.asarray(origins, np.float64)
     best_t = np.full(dirs.shape[0], np.inf)
@@ -309,8 +282,7 @@ class _Local:
     front: np.ndarray | None     # float [P] local x of the unit-sphere point (decal side)
 
 
-# Box faces: (axis, sign) -> (u axis, v axis), chosen so that u x v = -n (pictures are not
-# mirrored when seen from outside) and v runs down the sides (world +z up for upright boxes).
+# Box faces: (axis, sign) -> (u, v) axes with u x v = -n, so pictures are not mirrored.
 _BOX_FACES = {
     (0, 1): ((0, 1, 0), (0, 0, -1)), (0, -1): ((0, -1, 0), (0, 0, -1)),
     (1, 1): ((-1, 0, 0), (0, 0, -1)), (1, -1): ((1, 0, 0), (0, 0, -1)),
@@ -370,15 +342,8 @@ def _surface(shape: Shape, points: np.ndarray) -> _Local:
 
 
 def _footprint(uv: np.ndarray, group: np.ndarray) -> np.ndarray:
-    """Per-sample texture footprint (uv units) from neighbours on the ray grid.
-
-    Args:
-      uv: float [H, W, 2] texture coordinates on the supersampled grid.
-      group: int [H, W]; only neighbours of the same group (shape and chart) count.
-    Returns:
-      float [H, W]: max over the two screen axes of the smaller one-sided |d uv|,
-      which ignores jumps at seams and silhouettes.
-    """
+    """float [H, W] texture footprint of ``uv`` [H, W, 2] from same-``group`` [H, W]
+    neighbours (one-sided differences, so seams and silhouettes don't count)."""
     out = np.zeros(group.shape)
     for axis in (0, 1):
         diff = np.linalg.norm(np.diff(uv, axis=axis), axis=-1)
@@ -413,18 +378,14 @@ def _albedo(shape: Shape, local: _Local, sel_grid=None, footprint=None,
         ru = dec.radii[0] * (1.0 - dec.taper * np.clip(dv, 0.0, 1.0))
         du = (local.decal_uv[:, 0] - dec.center[0]) / ru
         r = np.sqrt(du * du + dv * dv)
-        # Soft elliptical mask, restricted to the front half (the projection is two-sided).
+        # front half only: the projection is two-sided
         mask = _smoothstep((1.0 - r) / max(dec.feather, 1e-6)) * _smoothstep(local.front / 0.15)
         base = base * (1 - mask[:, None]) + col * mask[:, None]
     return base.astype(np.float32)
 
 
 def _shade(scene: Scene, points: np.ndarray, normals: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
-    """float [P] light factor: ambient + sum of unshadowed Lambertian terms.
-
-    Normals are flipped to face the viewer, so planes are two-sided; for closed
-    shapes that never changes anything.
-    """
+    """float [P] light factor: ambient + unshadowed Lambertian terms (two-sided normals)."""
     flip = np.einsum("pi,pi->p", normals, view_dirs) > 0
     n = np.where(flip[:, None], -normals, normals)
     shade = np.full(len(points), scene.ambient)
@@ -441,11 +402,8 @@ def _shade(scene: Scene, points: np.ndarray, normals: np.ndarray, view_dirs: np.
 
 
 def _trace_grid(scene: Scene, origin: np.ndarray, dirs: np.ndarray, *, shading: bool = True):
-    """Trace a grid of rays [H, W, 3] from one origin.
-
-    Returns dict: t [H,W], ids [H,W], points [H,W,3], normals [H,W,3], uv [H,W,2],
-    decal_uv [H,W,2] (NaN off decals), rgb [H,W,3] (shaded, background filled) if shading.
-    """
+    """Trace rays [H, W, 3] from one origin: dict of t, ids [H,W], points, normals [H,W,3],
+    uv, decal_uv [H,W,2] (NaN off decals), and with ``shading`` rgb [H,W,3], hit [H,W]."""
     h, w = dirs.shape[:2]
     flat = dirs.reshape(-1, 3)
     t, ids = intersect(scene, origin, flat)
@@ -501,9 +459,8 @@ def render(scene: Scene, cameras: Camera, *, supersample: int = 2, alpha: bool =
     Args:
       scene: a :class:`Scene`.
       cameras: a batched Camera [N] (or a single one).
-      supersample: s; every pixel averages s x s rays (s = 1: one ray at the pixel centre).
-      alpha: also return coverage (the fraction of a pixel's rays that hit a shape) as a
-        4th channel; RGB is always composited over ``scene.background``.
+      supersample: every pixel averages s x s rays.
+      alpha: also return coverage as a 4th channel (RGB is over ``scene.background``).
     Returns:
       float32 [N, H, W, 3] (or [N, H, W, 4]) in [0, 1] ([H, W, C] for a single camera).
     """
@@ -525,17 +482,9 @@ def render(scene: Scene, cameras: Camera, *, supersample: int = 2, alpha: bool =
 
 
 def surface_points_and_ids(scene: Scene, cameras: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What each pixel centre sees (one ray, no supersampling), for edits on the 3D surface.
-
-    Args:
-      scene: a :class:`Scene`; cameras: batched Camera [N] (or a single one).
-    Returns:
-      points: float32 [N, H, W, 3] world position of the first surface hit (NaN on background);
-      ids: int32 [N, H, W] index into ``scene.shapes`` (names: ``scene.object_names``), -1 on
-        background;
-      uv: float32 [N, H, W, 2] texture coordinates of the hit in [0, 1] per repetition (a
-        decal's own coordinates where it has one, :class:`Decal`); NaN on background.
-    """
+    """What each pixel centre of ``cameras`` [N] sees: points float32 [N, H, W, 3] (NaN on
+    background), ids int32 [N, H, W] into ``scene.shapes`` (-1 on background), uv float32
+    [N, H, W, 2] (a decal's own where it has one; NaN on background)."""
     views, batched = _views(cameras)
     pts, ids, uvs = [], [], []
     for cam in views:
@@ -566,7 +515,6 @@ def sample_surface(shape: Shape, n: int, rng: np.random.Generator) -> np.ndarray
     """float [n, 3] world points uniformly distributed (by area) on a shape's surface."""
     s = shape.s
     if shape.kind == "ellipsoid":
-        # uniform on the sphere, accepted in proportion to the ellipsoid's area element
         bound = max(s[1] * s[2], s[0] * s[2], s[0] * s[1])
         out = []
         total = 0

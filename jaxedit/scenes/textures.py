@@ -1,9 +1,5 @@
-"""Textures for the built-in scenes: images shipped inside scikit-image, mip-mapped.
-
-Only images in the installed package are used (no download). Pixel values are the
-albedo as stored (sRGB in [0, 1]). Sampling is trilinear: the caller passes each
-sample's texel footprint, so minified textures are low-passed (no aliasing).
-"""
+"""Mip-mapped textures for the built-in scenes from pictures shipped inside scikit-image
+(no download), sampled trilinearly by footprint so minified textures don't alias."""
 
 from __future__ import annotations
 
@@ -29,12 +25,10 @@ class Texture:
       image: name of a ``skimage.data`` image (see :data:`SHIPPED_IMAGES`).
       crop: (row0, row1, col0, col1) region of the picture, or None for all of it.
       tint: RGB multiplier (grey pictures become tinted; colour ones are scaled).
-      tile: world units per texture repetition on boxes and planes, or None to stretch
-        the crop over each face. Spheres/ellipsoids ignore it and use ``repeat``.
+      tile: world units per repetition on boxes and planes; None stretches the crop.
       repeat: (u, v) repetitions over the surface parameterisation of spheres.
       wrap: "repeat", "mirror" (seamless for any picture) or "clamp".
-      max_size: the picture is downsampled (area filter) so that its longer side is at
-        most this many pixels, which bounds memory and the pyramid build time.
+      max_size: longest side in pixels the picture is downsampled to.
     """
 
     image: str
@@ -87,10 +81,7 @@ def _downsample2(img: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=64)
 def pyramid(tex: Texture) -> tuple[np.ndarray, ...]:
-    """The mip pyramid of a texture: level 0 full size, each next level halved, to 1 pixel.
-
-    Returns a tuple of float32 [H_k, W_k, 3] arrays (cached; treat as read-only).
-    """
+    """The mip pyramid, float32 [H_k, W_k, 3] levels halving down to 1 pixel (cached, read-only)."""
     img = _load_image(tex.image)
     if tex.crop is not None:
         r0, r1, c0, c1 = tex.crop
@@ -142,17 +133,8 @@ def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray, mode: str) -> np.nd
 
 
 def sample(tex: Texture, uv: np.ndarray, footprint: np.ndarray | None = None) -> np.ndarray:
-    """Trilinear mip-mapped lookup.
-
-    Args:
-      tex: the texture.
-      uv: float [P, 2], texture coordinates (1.0 = one repetition of the picture; u to the
-        right, v down the picture).
-      footprint: float [P], size of each sample's footprint in uv units (max over screen
-        directions), or None for the sharpest level.
-    Returns:
-      float32 [P, 3] albedo.
-    """
+    """float32 [P, 3] albedo at ``uv`` float [P, 2] (1.0 = one repetition; v down), trilinear
+    by ``footprint`` float [P] in uv units (None: the sharpest level)."""
     levels = pyramid(tex)
     uv = np.asarray(uv, np.float64)
     if footprint is None:
