@@ -1,11 +1,5 @@
-"""Several processes on JAX's distributed runtime: joining it, splitting edits, failing cleanly.
-
-Every process runs the same deterministic program on the same scene; the views due
-at a step are split over processes and all-gathered (:class:`SplitEditor`), only
-process 0 writes, and settings are checked to agree first (:func:`check_agreement`).
-The runtime calls ``abort()`` on a lost peer, which Python cannot catch, so workers run
-under :func:`supervise`.
-"""
+"""Several processes on JAX's distributed runtime: joining it, splitting edits over the
+processes, and supervising workers (the runtime ``abort()`` s on a lost peer)."""
 
 from __future__ import annotations
 
@@ -35,8 +29,7 @@ class DistributedConfig:
     """How this process joins a multi-process run (one process: the defaults).
 
     Attributes:
-      coordinator: HOST:PORT where process 0 serves JAX's coordinator; auto: detected on
-        TPU slices, SLURM and Open MPI; unset: one process.
+      coordinator: HOST:PORT of process 0's coordinator; auto: detected; unset: one process.
       num_processes: processes in the run (one per host, or per GPU).
       process_id: this process's index, 0 .. num_processes - 1; process 0 writes the outputs.
       init_timeout: seconds to wait for every process to reach the coordinator.
@@ -76,8 +69,8 @@ def parse_address(address: str) -> tuple[str, int]:
 
 
 def initialize(config: DistributedConfig) -> None:
-    """Join the distributed runtime (a no-op for one process) before anything else touches
-    JAX; CPU collectives use gloo. Raises DataError when the coordinator is unreachable."""
+    """Join the distributed runtime before anything else touches JAX (no-op for one
+    process); DataError when the coordinator is unreachable."""
     if not config.active:
         return
     import jax
@@ -105,15 +98,13 @@ def initialize(config: DistributedConfig) -> None:
         raise DataError("coordinator", str(e).splitlines()[0]) from None
 
 
-#: Where each process publishes its settings in the runtime's key-value store.
 AGREEMENT_KEY = "jaxedit/agreement/"
 #: The settings compared first (the message names the first that differs).
 AGREEMENT_FIRST = ("num_processes", "out")
 
 
 def disagreement(mine: dict, theirs: dict) -> str | None:
-    """The first setting (as ``--flag``) on which two records {setting: JSON value} differ,
-    :data:`AGREEMENT_FIRST` first; None when they agree."""
+    """The first setting on which two records {setting: JSON value} differ (None: agree)."""
     keys = [k for k in AGREEMENT_FIRST if k in mine or k in theirs]
     keys += sorted((set(mine) | set(theirs)) - set(keys))
     for key in keys:
@@ -124,8 +115,7 @@ def disagreement(mine: dict, theirs: dict) -> str | None:
 
 def check_agreement(record: dict, timeout: int) -> None:
     """Refuse to go on unless every process publishes the same ``record`` ({setting: JSON
-    value}); a no-op for one process. Process 0's record is read first, so a miscounted
-    process stops at once.
+    value}); a no-op for one process.
 
     Raises:
       DataError: naming the first flag that differs, the two values and the processes.
@@ -149,7 +139,6 @@ def check_agreement(record: dict, timeout: int) -> None:
                 raise DataError("--num-processes", f"process {me} of {count} found no "
                                 f"process {other} within {timeout} s: the processes "
                                 f"disagree on their number") from None
-            # The coordinator went away: process 0 stopped (it says why in its own line).
             raise DataError(f"process {me} of {count}", f"process {other} stopped before "
                             f"every process's settings were compared") from None
         key = disagreement(record, theirs)
@@ -181,16 +170,14 @@ def is_writer() -> bool:
 
 
 def process_slice(count: int, process: int, processes: int) -> slice:
-    """The contiguous slice of ``count`` views ``process`` edits: ``ceil(count / processes)``
-    each, the last ones shorter or empty."""
+    """The contiguous slice of ``count`` views that ``process`` edits (the last may be empty)."""
     per = -(-count // processes)
     lo = min(process * per, count)
     return slice(lo, min(lo + per, count))
 
 
 def gather_views(local, count: int) -> np.ndarray:
-    """Every process's views in process order, float32 [count, H, W, 3], from this
-    process's ``local`` slice [b, H, W, 3] (b may be 0). A collective."""
+    """float32 [count, H, W, 3]: every process's ``local`` [b, H, W, 3] in order (a collective)."""
     from jax.experimental import multihost_utils
 
     processes = process_count()
@@ -212,12 +199,10 @@ def barrier(name: str) -> None:
 
 class SplitEditor:
     """An editor whose ``edit_many`` edits this process's :func:`process_slice` and returns
-    all B views gathered (float32 NumPy [B, H, W, 3], same bits everywhere); everything
-    else is the wrapped editor's."""
+    all B views gathered, float32 [B, H, W, 3]."""
 
     def __init__(self, editor):
         self.inner = editor
-        #: Views :func:`jaxedit.editors.base.edit_views` hands over at once: every process's batch.
         self.batch = max(int(getattr(editor, "batch", 1)), 1) * process_count()
 
     def __getattr__(self, name: str) -> Any:
@@ -249,8 +234,6 @@ def split_edits(editor):
     return SplitEditor(editor) if process_count() > 1 else editor
 
 
-# --- supervision -----------------------------------------------------------------------
-
 #: A glog / absl line: severity, date, time, thread, file:line].
 _LOG_LINE = re.compile(r"[IWEF]\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+ [^\]]+\] ")
 _FATAL = re.compile(r"F\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+ [^\]]+\] ")
@@ -265,13 +248,8 @@ def is_runtime_noise(line: str) -> bool:
 
 
 def fatal_reason(message: str, returncode: int, config: DistributedConfig) -> str:
-    """The one-line reason a worker ended abnormally.
-
-    Args:
-      message: the runtime's fatal log message (empty when there was none).
-      returncode: the worker's exit status (negative: killed by that signal).
-      config: the run's settings (for the coordinator and the timeouts).
-    """
+    """The one-line reason a worker ended abnormally, from the runtime's fatal ``message``
+    (may be empty) and its ``returncode`` (negative: the signal)."""
     text = " ".join(message.split())
     if "stopped sending heartbeats" in text or "heartbeat" in text.lower():
         tasks = re.search(r"heartbeats\):\s*([\d ,]+)", text)
@@ -301,12 +279,8 @@ PUMP_DRAIN_S = 60
 
 def supervise(command: Sequence[str], config: DistributedConfig, *, cleanup=None,
               stderr=None) -> int:
-    """Run ``command`` as a worker; map an abnormal end to one line and status 2.
-
-    Output passes through minus the runtime's noise. Statuses 0, 2 and 130 pass on;
-    anything else prints ``error: process I of N stopped: REASON`` and returns 2, after
-    ``cleanup()``.
-    """
+    """Run ``command`` as a worker, minus the runtime's log noise; an abnormal end prints
+    ``error: process I of N stopped: REASON`` and returns 2, after ``cleanup()``."""
     stderr = stderr or sys.stderr
     env = {**os.environ, WORKER_ENV: "1"}
     env.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # the runtime's info/warning lines
@@ -356,8 +330,7 @@ def _pump(source, sink, fatal: list[str] | None, said: list[str] | None = None) 
 
 
 def _route(line: str, fatal: list[str] | None, stderr, said: list[str] | None = None) -> None:
-    """Pass a worker's stderr ``line`` on, keep it as the fatal message, or drop it;
-    ``error: ...`` lines always pass (into ``said``)."""
+    """Pass a worker's stderr ``line`` on, keep it as the fatal message, or drop it."""
     if said is not None and line.startswith("error: "):
         said.append(line)
         stderr.write(line)
