@@ -1,10 +1,5 @@
-"""Pytrees to and from one ``.npz`` file: the checkpoint format of every jaxedit loop.
-
-Each array leaf is stored under its ``jax.tree_util.keystr`` path (typed PRNG keys as key
-data), with one JSON record: format version, ``kind`` (a file of one kind is never read
-as another), leaf paths and the caller's ``meta``. Writing is atomic; reading restores
-into a template of the same structure, bit for bit.
-"""
+"""Pytrees to and from one ``.npz`` file (leaves under their keystr paths, plus a JSON
+record of version, ``kind`` and ``meta``): the checkpoint format of every jaxedit loop."""
 
 from __future__ import annotations
 
@@ -19,8 +14,7 @@ import numpy as np
 from ..errors import DataError
 from .files import atomic_path, read_npz
 
-#: Bumped whenever the layout of the file changes (not when a pytree gains a leaf:
-#: a missing leaf is reported by its path).
+#: Bumped when the file layout changes (not when a pytree gains a leaf).
 FORMAT_VERSION = 2
 _META = "__meta__"
 
@@ -35,14 +29,8 @@ def leaf_paths(tree) -> list[str]:
 
 
 def save_pytree(path, tree, *, kind: str, meta: dict | None = None) -> Path:
-    """Write ``tree``'s leaves and ``meta`` (JSON-serialisable) to ``path`` atomically.
-
-    Args:
-      path: the ``.npz`` file (its folder must exist).
-      tree: any pytree of arrays (device arrays are fetched; typed keys stored as data).
-      kind: what the file holds, checked again on reading.
-      meta: the caller's record (config, counters...), returned by :func:`read_pytree`.
-    """
+    """Write ``tree``'s leaves and JSON-serialisable ``meta`` to ``path`` atomically;
+    ``kind`` is checked again on reading."""
     path = Path(path)
     flat = jax.tree_util.tree_flatten_with_path(jax.device_get(tree))[0]
     arrays, keys = {}, []
@@ -67,8 +55,7 @@ def read_pytree(path, *, kind: str) -> tuple[dict[str, np.ndarray], dict]:
     """(arrays by leaf path, the caller's meta) of a file written by :func:`save_pytree`.
 
     Raises:
-      DataError naming ``path``: unreadable, not a jaxedit checkpoint, another
-      format version, or another kind.
+      DataError naming ``path``: unreadable, another format version, or another kind.
     """
     path = Path(path)
     arrays = read_npz(path)
@@ -92,14 +79,11 @@ def restore(template, arrays: dict[str, np.ndarray], where, *, shapes: bool = Tr
     """``template`` with every leaf replaced by the array stored under its path.
 
     Args:
-      template: a pytree of the structure that was saved (e.g. a fresh state).
+      template: a pytree of the structure that was saved.
       arrays: from :func:`read_pytree`.
       where: what a DataError names (the file).
-      shapes: also require each stored leaf's shape to be the template's (False:
-        only the dtype, for states whose capacity grows during a run).
-      template_fills: leaves (paths ending so) that files of an earlier layout lack and
-        whose value the template already holds from the file's meta record: a missing
-        one keeps the template's.
+      shapes: also require the template's shapes (False: only dtypes, for growing states).
+      template_fills: path endings whose missing leaves keep the template's value.
     """
     flat, treedef = jax.tree_util.tree_flatten_with_path(template)
     leaves = []

@@ -1,6 +1,4 @@
-"""Atomic file writes: every output goes to a temporary name in its folder and is
-renamed into place, so a crash never leaves a half-written file.
-"""
+"""Atomic file writes (a crash never leaves a half-written file), folder locks, npz reads."""
 
 from __future__ import annotations
 
@@ -12,11 +10,7 @@ from pathlib import Path
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
-
-    The temporary keeps ``path``'s suffix so that format-sniffing writers
-    (OpenImageIO, numpy) pick the right format.
-    """
+    """Yield a temporary path next to ``path`` (same suffix); rename it onto ``path`` on success."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
@@ -56,14 +50,8 @@ LOCK_NAME = ".jaxedit.lock"
 
 @contextlib.contextmanager
 def folder_lock(folder: str | os.PathLike, *, flag: str = "folder"):
-    """Create ``folder`` and hold an exclusive lock on it, or refuse at once.
-
-    Two processes writing one run directory would interleave checkpoints and
-    outputs; the second one gets a :class:`DataError` naming the holder's pid. The
-    lock is an ``flock`` on ``folder/.jaxedit.lock``: the kernel releases it when
-    its holder dies (even by SIGKILL), so a killed run can be resumed at once.
-    The file is removed on a normal exit.
-    """
+    """Create ``folder`` and hold an exclusive ``flock`` on it, or raise a :class:`DataError`
+    naming the holder's pid; the kernel releases it if the holder dies."""
     import fcntl
 
     from ..errors import DataError
@@ -80,8 +68,7 @@ def folder_lock(folder: str | os.PathLike, *, flag: str = "folder"):
             os.close(fd)
             raise DataError(flag, f"{folder} is in use by another jaxedit process (pid {holder}); "
                             "wait for it to finish or choose another folder") from None
-        # The holder before us may have removed the file between our open and flock:
-        # then we locked an orphan and must lock the file that is there now.
+        # the previous holder may have removed the file between our open and flock
         try:
             same = os.stat(path).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:
@@ -100,11 +87,7 @@ def folder_lock(folder: str | os.PathLike, *, flag: str = "folder"):
 
 
 def read_npz(path) -> dict:
-    """Every array of an ``.npz`` file, or a DataError naming it (empty, truncated, not a zip).
-
-    A crash or a full disk can leave such a file where a checkpoint was expected; numpy
-    and zipfile then raise half a dozen exception types, all meaning "unreadable".
-    """
+    """Every array of an ``.npz`` file, or a DataError naming it (empty, truncated, not a zip)."""
     import zipfile
     import zlib
 

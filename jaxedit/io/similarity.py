@@ -1,10 +1,5 @@
-"""Similarity transforms of the world (q = s R p + t) applied to points, cameras, Gaussians.
-
-Use them to map results between a normalised dataset's world and the original one
-(the inverse of ``Dataset.world_transform``). Gaussians' SH bands are rotated by
-matrices fitted by least squares on the SH basis itself (exact: each band is closed
-under rotation), so they hold for whatever convention ``jaxedit.sh`` uses.
-"""
+"""Similarity transforms of the world (q = s R p + t) applied to points, cameras and
+Gaussians, e.g. to undo ``Dataset.world_transform``."""
 
 from __future__ import annotations
 
@@ -25,10 +20,7 @@ _basis = jax.jit(shlib.basis, static_argnums=0)
 
 
 def split_similarity(matrix) -> tuple[np.ndarray, float, np.ndarray]:
-    """4x4 similarity [s R | t; 0 0 0 1] -> (R float64 [3, 3], s, t [3]).
-
-    Raises DataError if ``matrix`` is not a finite similarity with s > 0 and det R = +1.
-    """
+    """4x4 similarity [s R | t; 0 0 0 1] -> (R float64 [3, 3], s, t [3]); DataError otherwise."""
     m = np.asarray(matrix, np.float64)
     if m.shape != (4, 4) or not np.isfinite(m).all():
         raise DataError("world_transform", f"expected a finite 4x4 matrix, got shape {list(m.shape)}")
@@ -51,17 +43,11 @@ def transform_points(points, matrix) -> np.ndarray:
 
 
 def transform_cameras(cameras: Camera, matrix) -> Camera:
-    """The same physical cameras after the world is mapped by the similarity ``matrix``.
-
-    A world point p becomes ``matrix @ p``; camera rotations follow and camera
-    centres move with the points; intrinsics are unchanged (a scaled scene seen
-    from the scaled position gives the same image). Works on single or batched
-    cameras; returns float32 ``world_to_camera``.
-    """
+    """The same cameras (single or batched) after the world is mapped by ``matrix``;
+    intrinsics unchanged, float32 ``world_to_camera``."""
     r, s, t = split_similarity(matrix)
     w2c = np.asarray(cameras.world_to_camera, np.float64)
-    # Old: x = R_c p + t_c. New world q = s R p + t, so p = R^T (q - t) / s and,
-    # measuring camera coordinates in the new units (x' = s x, same pixels):
+    # x = R_c p + t_c with p = R^T (q - t) / s, in new units x' = s x:
     # x' = (R_c R^T) q + (s t_c - R_c R^T t).
     rc, tc = w2c[..., :3, :3], w2c[..., :3, 3]
     new_r = rc @ r.T
@@ -113,17 +99,12 @@ def _fibonacci_directions(n: int) -> np.ndarray:
 
 
 def sh_rotation_matrices(rotation: np.ndarray, degree: int) -> list[np.ndarray]:
-    """Per band l = 0..degree, the matrix X_l [2l+1, 2l+1] with Y_l(R^T d) = X_l^T Y_l(d).
-
-    Rotating a Gaussian by R keeps its appearance when band l of its SH
-    coefficients becomes ``X_l @ sh_l`` (see :func:`rotate_sh`).
-    """
+    """Per band l = 0..degree, X_l [2l+1, 2l+1] with Y_l(R^T d) = X_l^T Y_l(d), fitted by least
+    squares on the basis itself (exact: each band is closed under rotation)."""
     r = np.asarray(rotation, np.float64)
     dirs = _fibonacci_directions(64)
     full = np.asarray(_basis(degree, jnp.asarray(dirs, jnp.float32)), np.float64)
     full_rot = np.asarray(_basis(degree, jnp.asarray(dirs @ r, jnp.float32)), np.float64)
-    # The basis is evaluated in float32 (jax default); least squares over 64
-    # well-spread directions still gives the matrices to ~1e-7.
     out = []
     for band in range(degree + 1):
         sl = slice(band * band, (band + 1) * (band + 1))
@@ -133,11 +114,7 @@ def sh_rotation_matrices(rotation: np.ndarray, degree: int) -> list[np.ndarray]:
 
 
 def rotate_sh(sh, rotation) -> np.ndarray:
-    """SH coefficients float [..., K, 3] of the same appearance after rotating the world by R.
-
-    If ``c(d)`` is the colour seen along direction d before, the result gives
-    ``c(R^T d')`` along d' = R d, i.e. the colour follows the rotation.
-    """
+    """SH coefficients float [..., K, 3] whose colour follows a rotation R of the world."""
     sh = np.asarray(sh, np.float64)
     degree = shlib.degree_from_coeffs(sh.shape[-2])
     out = np.empty_like(sh)
@@ -148,12 +125,8 @@ def rotate_sh(sh, rotation) -> np.ndarray:
 
 
 def transform_gaussians(g: Gaussians, matrix) -> Gaussians:
-    """The same scene after the world is mapped by the similarity ``matrix`` (q = s R p + t).
-
-    Means move, log-scales shift by log s, quaternions are pre-multiplied by R's
-    and the SH bands are rotated so view-dependent colour follows. Dead slots
-    are transformed too (harmlessly); ``alive`` is kept. Returns float32 arrays.
-    """
+    """The same scene (float32) after the world is mapped by ``matrix`` (q = s R p + t),
+    SH bands rotated so view-dependent colour follows."""
     r, s, t = split_similarity(matrix)
     means = transform_points(np.asarray(g.means), matrix)
     q = np.asarray(g.quats, np.float64)

