@@ -26,16 +26,9 @@ def stamp_prepared(out: Path, wanted: dict) -> None:
 
 def prepared_scene(out: Path, scene: str, *, size: int, views: int, test_views: int,
                    seed: int, config=None, points: int | None = None, log=lambda msg: None):
-    """A built-in scene's dataset (``out/data``) and its reconstruction (``out/reconstruct``),
-    made once and reused: (the :class:`jaxedit.io.Dataset`, Gaussians, the reconstruction's
-    metrics).
-
-    ``config`` is the reconstruction's :class:`jaxedit.pipelines.reconstruct.ReconstructConfig`;
-    None makes the dataset only (and returns None for the Gaussians and {} for the
-    metrics). ``points``: the initial cloud's size of a procedural scene (None: the scene's
-    default). The folder is stamped with every setting, so a cache made with others is a
-    DataError (:func:`stamp_prepared`), never silently reused.
-    """
+    """(Dataset, Gaussians, metrics) of a built-in scene's dataset and reconstruction, made
+    once under ``out`` and reused; ``config`` None: the dataset only (None, {}). A folder
+    stamped with other settings is a DataError, never silently reused."""
     from ..io import load_ply
     from ..scenes import make_scene, size_arguments
     from . import reconstruct as recon
@@ -45,8 +38,7 @@ def prepared_scene(out: Path, scene: str, *, size: int, views: int, test_views: 
     stamp_prepared(out, {"scene": scene, "size": size, "views": views, "test_views": test_views,
                          "seed": seed, "reconstruct": None if config is None
                          else dataclasses.asdict(config),
-                         # only when given: folders stamped before the setting existed
-                         # keep their stamp
+                         # only when given, so older stamps stay valid
                          **({} if points is None else {"points": points})})
     if not (data_dir / "transforms.json").exists():
         log(f"making the {scene} scene ({views}+{test_views} views, {size} px)")

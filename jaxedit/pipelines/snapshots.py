@@ -1,11 +1,5 @@
-"""Snapshot folders: what a person looks at for one scene state, and the user's selection.
-
-:func:`write_snapshot` writes any scene state's folder (scene.ply, renders/, depth/,
-turntable.webp). An edit run's ``RUN/original`` and ``RUN/subtasks/NN_rX.XXX`` are
-such folders with their metrics.json (:func:`write_scene_snapshot`);
-:func:`select_snapshot` makes one of them ``RUN/selected.ply``, the user's choice
-of the edit's aggressivity.
-"""
+"""Snapshot folders (what a person looks at for one scene state) and the user's choice
+of one as ``RUN/selected.ply``."""
 
 from __future__ import annotations
 
@@ -34,16 +28,8 @@ def write_snapshot(directory, gaussians, cameras, *, background=(1.0, 1.0, 1.0),
                    depth: bool = True, depth_percentiles=(2.0, 98.0),
                    turntable_frames: int = 0, turntable_size: int | None = None,
                    render_fn: Callable | None = None) -> dict:
-    """Write what a person looks at for one state of the scene.
-
-    Layout (all files written atomically)::
-
-        directory/scene.ply                   (ply=True; the standard 3DGS layout)
-        directory/renders/{prefix}_000.png    one per camera
-        directory/depth/{prefix}_000.png      coloured depth (depth=True), one shared
-                                              near/far for all views so colours compare
-        directory/turntable.webp [.mp4]       (turntable_frames > 0), an orbit matched
-                                              to the cameras (:func:`jaxedit.viz.frame_cameras`)
+    """Write atomically ``scene.ply``, ``renders/{prefix}_000.png`` per camera, ``depth/``
+    (one shared near/far) and ``turntable.webp`` (``turntable_frames`` > 0) of one state.
 
     Args:
       directory: output folder (created).
@@ -85,9 +71,8 @@ def write_snapshot(directory, gaussians, cameras, *, background=(1.0, 1.0, 1.0),
 
 def write_scene_snapshot(ctx, directory: Path, gaussians, *, ratio: float,
                          reference: tuple | None = None) -> dict:
-    """scene.ply, renders/, depth/, (turntable.webp) and metrics.json of one scene state;
-    ``reference``: (the input scene's renders of the held-out views, its Gaussian count),
-    to record how far this state moved from it (:func:`jaxedit.edit.outputs.scene_metrics`)."""
+    """:func:`write_snapshot` plus metrics.json (``reference`` as in
+    :func:`jaxedit.edit.outputs.scene_metrics`)."""
     directory = Path(directory)
     write_snapshot(directory, gaussians, ctx.data.test_cameras,
                        background=tuple(ctx.config.background),
@@ -121,11 +106,8 @@ def branch_folder(run_dir, name: str) -> Path:
 
 
 def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
-    """Make ``run_dir/selected.ply`` the snapshot of a subtask, chosen by ratio or index.
-
-    ``which``: as in :func:`find_snapshot`, or ``"BRANCH:INDEX"`` for a node of a
-    branch (:mod:`jaxedit.pipelines.steer`). Also writes ``selected.json``. Returns the path.
-    """
+    """Make (and return) ``run_dir/selected.ply`` the snapshot ``which`` (as in
+    :func:`find_snapshot`, or ``"BRANCH:INDEX"``), with ``selected.json``."""
     run_dir = Path(run_dir)
     branch = "main"
     if isinstance(which, str) and ":" in which:
@@ -146,13 +128,8 @@ def select_snapshot(run_dir: str | os.PathLike, which) -> Path:
 
 
 def find_snapshot(run_dir: str | os.PathLike, which) -> tuple[dict, Path]:
-    """(schedule.json's entry, scene.ply path) of an edit run's subtask, by ratio or index;
-    reads only.
-
-    ``which``: an int (subtask index, negative counts from the end) or a float
-    ratio (the last subtask with the nearest ratio; a string is parsed: "2" is
-    an index, "0.5" a ratio).
-    """
+    """(schedule.json's entry, scene.ply path) of subtask ``which``: an int index (negative
+    from the end) or a float ratio (the last nearest); strings are parsed."""
     run_dir = Path(run_dir)
     path = run_dir / "schedule.json"
     try:

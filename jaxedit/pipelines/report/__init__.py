@@ -1,24 +1,6 @@
-"""``report.html``: one self-contained page per run directory.
-
-The page is what a person opens to judge an edit. It holds the instruction,
-the subtask schedule, a plot of the difficulty d(0, r) with the chosen ratios,
-an aggressivity gallery (a slider over subtasks showing the same test views
-under the original ones), the depth maps, the turntables and the metrics. For an
-ablation run directory (``ablation.json`` of ``python -m experiments ablation``) it
-shows the statistics: means with 95% confidence intervals per method and the
-paired differences, as tables and a plot.
-
-Self-contained: every image is inlined as a base64 ``data:`` URI, the only
-script is a dozen lines of inline JavaScript (the sliders), the only style is
-inline CSS, and nothing refers to the network, so the file can be mailed,
-archived or opened offline. Images are downscaled (thumbnails of at most
-``thumb_px`` pixels, JPEG) so the page stays small (a few MB).
-
-:mod:`.rundir` reads the run directory, :mod:`.images` turns views, turntables and figures
-into data URIs, :mod:`.plots` draws the plots, :mod:`.html` holds the HTML pieces and the
-page shell, :mod:`.sections` builds each kind of page's sections; :func:`write_report`
-(here) puts them together and writes ``report.html``.
-"""
+"""``report.html``: one self-contained page per run directory (images inlined as
+``data:`` URIs, inline CSS and JavaScript, nothing from the network), for a person to
+judge an edit or an ablation offline."""
 
 from __future__ import annotations
 
@@ -44,19 +26,17 @@ def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | N
     """Write the self-contained ``report.html`` of a run directory.
 
     Args:
-      run_dir: an edit run directory (``schedule.json``), an ablation run
-        directory (``ablation.json``, ``views/``), or any run
-        directory with ``metrics.json`` and ``renders/``.
+      run_dir: an edit (``schedule.json``), ablation (``ablation.json``) or other run
+        directory (``metrics.json``).
       out: where to write (default ``run_dir/report.html``).
       title: page title (default from the run).
-      notes: extra name -> value pairs shown with the instruction (e.g. timings).
+      notes: extra name -> value pairs shown with the instruction.
       thumb_px: longest side of each view in the galleries.
       max_views: at most this many test views per row (evenly spread).
       turntable_px, max_frames: turntables larger than this are re-encoded.
       max_bytes: when the page exceeds it, thumbnails shrink and it is rebuilt.
-      config_path: the config.json whose command line the page shows as the way
-        to reproduce the run (default ``run_dir/config.json``; the demo points it
-        at its own).
+      config_path: the config.json whose command line reproduces the run (default
+        ``run_dir/config.json``).
     Returns:
       The path written.
     Raises:
@@ -91,7 +71,6 @@ def write_report(run_dir, *, out=None, title: str | None = None, notes: dict | N
         text = _page(page_title, [(a, t) for a, t, _ in sections], body)
         if len(text) <= max_bytes or sizes["thumb_px"] <= 48:
             break
-        # Too big: shrink every image by ~30% and try again (a handful of rounds at most).
         sizes = {**sizes, "thumb_px": int(sizes["thumb_px"] * 0.7),
                  "turntable_px": int(sizes["turntable_px"] * 0.7),
                  "max_frames": max(12, int(sizes["max_frames"] * 0.7))}

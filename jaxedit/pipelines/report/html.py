@@ -1,5 +1,4 @@
-"""The page's HTML pieces: escaping and number formatting, tables, the slider, images,
-the inline CSS and JavaScript, the page shell, the command line that reproduces a run."""
+"""The page's HTML pieces: tables, sliders, images, inline CSS/JS and the page shell."""
 
 from __future__ import annotations
 
@@ -64,11 +63,8 @@ def _kv_table(d: dict) -> str:
 
 
 def _slider(sid: str, frames: list[tuple[str, str]], start: int | None = None) -> str:
-    """A range input that shows one of ``frames`` = [(label, inner_html)] at a time.
-
-    Without JavaScript every frame but ``start`` stays hidden, so the page still
-    shows something sensible (the most aggressive level by default).
-    """
+    """A range input that shows one of ``frames`` = [(label, inner_html)] at a time
+    (``start``, default the last, without JavaScript)."""
     if not frames:
         return '<p class="missing">nothing recorded</p>'
     start = len(frames) - 1 if start is None else start

@@ -1,6 +1,4 @@
-"""Images as ``data:`` URIs, so the page refers to no file: thumbnails of the views (at most
-``thumb_px`` pixels, JPEG), grids of them, turntables re-encoded smaller, matplotlib figures
-as PNG."""
+"""Views, turntables and figures as ``data:`` URIs, so the page refers to no file."""
 
 from __future__ import annotations
 
@@ -20,11 +18,10 @@ def _load_thumb(path: Path, thumb_px: int) -> np.ndarray:
     try:
         with Image.open(path) as im:
             im = im.convert("RGBA")
-            # Composite transparency over white, like the renders' default background.
             flat = Image.new("RGBA", im.size, (255, 255, 255, 255))
             flat.alpha_composite(im)
             im = flat.convert("RGB")
-            # Shrink big views to thumb_px; enlarge tiny ones (at most 4x) so they stay legible.
+            # enlarge tiny views (at most 4x) so they stay legible
             scale = min(thumb_px / max(im.size), 4.0)
             if scale < 1.0 or scale >= 1.25:
                 size = (max(1, round(im.size[0] * scale)), max(1, round(im.size[1] * scale)))
@@ -85,7 +82,6 @@ def _turntable_uri(path: Path, turntable_px: int, max_frames: int) -> str | None
     size = (max(1, round(frames.shape[2] * scale)), max(1, round(frames.shape[1] * scale)))
     small = np.stack([np.asarray(Image.fromarray(f).resize(size, Image.Resampling.LANCZOS))
                       for f in frames])
-    # Same orbit duration with fewer frames.
     return data_uri(encode_webp(small, fps=len(small) / max(seconds, 1e-3)), "image/webp")
 
 

@@ -1,6 +1,4 @@
-"""The report's matplotlib plots, each as a PNG data URI: the difficulty d(0, r) with the
-chosen ratios (edit runs), the ablation's means and 95% CIs per method, the training curves
-(reconstructions)."""
+"""The report's matplotlib plots, each as a PNG data URI."""
 
 from __future__ import annotations
 
@@ -11,8 +9,7 @@ from .rundir import _is_number
 
 
 def difficulty_plot(schedule: dict) -> str:
-    """PNG data URI: d(0, r) over r with the chosen ratios marked, and the
-    difficulty of each subtask against the threshold."""
+    """PNG data URI: d(0, r) with the chosen ratios, and each subtask's difficulty."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -101,8 +98,7 @@ def _summary_index(rows: list[dict]) -> dict:
 
 
 def ablation_plot(summary: list[dict], *, metrics=("psnr_best", "mode_mixing")) -> str | None:
-    """PNG data URI: per editor-modes setting (rows) and metric (columns), the mean and 95%
-    CI of every method per scene and instruction (error bars, methods side by side)."""
+    """PNG data URI: each method's mean and CI per editor-modes setting (rows) and metric (columns)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)

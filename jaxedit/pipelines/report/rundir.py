@@ -1,9 +1,4 @@
-"""Reading a run directory for the report: its JSON files (checked field by field, one-line
-:class:`~jaxedit.errors.DataError` when malformed), each subtask's snapshot folder, the
-views in a folder, the JSON-lines training log.
-
-Run-directory layout read here (written by the edit driver; ablation.json by the ablation,
-train_log.jsonl by reconstruct)::
+"""Reading a run directory for the report (a one-line DataError when malformed); layout::
 
     config.json      {"command", "argv", "flags", "jaxedit_version"}   (optional)
     schedule.json    {"prompt", "editor", "mode", "threshold", "difficulty_curve": [[r, d], ...],

@@ -1,8 +1,5 @@
-"""The page's sections per kind of run directory, each a list of (anchor, title, html): an
-edit run (instruction, schedule, difficulty plot, aggressivity gallery, depth, turntables,
-metrics), an ablation run (settings, statistics tables and plot, views) and any other run
-(views, training curves, metrics). ``ablation_table`` is also the ablation's markdown
-(experiments/ablation.py)."""
+"""The page's sections, [(anchor, title, html)], for an edit run, an ablation run and any
+other run."""
 
 from __future__ import annotations
 
@@ -17,17 +14,13 @@ from .plots import (ABLATION_METHODS, _summary_index, ablation_plot, difficulty_
 from .rundir import _is_number, _pngs, _snapshot_dir, read_json, read_train_log
 
 
-# The last difficulty plot drawn: write_report rebuilds the page at smaller
-# image sizes when it is over budget, and the plot does not depend on them.
+# The last difficulty plot: rebuilding the page at smaller sizes need not redraw it.
 _PLOT_MEMO: dict = {}
 
 
-# ---------------------------------------------------------------------------
 # Edit run
-# ---------------------------------------------------------------------------
 def moved_cells(metrics: dict | None) -> list[str]:
-    """The schedule table's cells of how far a snapshot moved from the input scene: PSNR,
-    SSIM / LPIPS of its test renders against the input's, its Gaussians (and their ratio)."""
+    """The schedule table's cells of how far a snapshot moved from the input scene."""
     m = metrics or {}
     if not _is_number(m.get("psnr_vs_input")):
         return ["&mdash;"] * 3
@@ -58,10 +51,8 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
     labels = [f"{s.get('name', i)}  (r = {float(s['ratio']):.3f})" for i, s in enumerate(subtasks)]
     sections = []
 
-    # Instruction ---------------------------------------------------------
     info = {"editor": schedule.get("editor"), "mode": schedule.get("mode"),
             "threshold": schedule.get("threshold"), "subtasks": len(subtasks)}
-    # The level of aggressivity the user picked (edit --select), if any: sliders start there.
     selected = read_json(run_dir / "selected.json", required=False)
     start = None
     if isinstance(selected, dict):
@@ -79,13 +70,11 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
                  "InstructPix2Pix.</p>")
     sections.append(("instruction", "Instruction", body))
 
-    # Local edit (issue 35) ---------------------------------------------------
     local = schedule.get("local")
     if isinstance(local, dict):
         sections.append(("local", "Local edit", _local_body(run_dir, local, thumb_px=thumb_px,
                                                              max_views=max_views)))
 
-    # Schedule ------------------------------------------------------------
     rows, total_s, total_steps = [], 0.0, 0
     for i, s in enumerate(subtasks):
         total_s += float(s.get("seconds") or 0.0)
@@ -113,20 +102,17 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
     if tree:
         sections.append(("tree", "Tree of edits", tree))
 
-    # Difficulty plot (the same at every size: drawn once per schedule) -------
     key = json.dumps(schedule, sort_keys=True, default=str)
     if _PLOT_MEMO.get("key") != key:
         _PLOT_MEMO.update(key=key, uri=difficulty_plot(schedule))
     sections.append(("difficulty", "Difficulty and chosen ratios",
                      _img(_PLOT_MEMO["uri"], "difficulty plot", "plot")))
 
-    # Aggressivity gallery ----------------------------------------------------
     original = _pngs(run_dir / "original" / "renders")
     orig_uri = _grid_uri(original, thumb_px, max_views)
     frames = []
     for label, d in zip(labels, snap_dirs):
         uri = _grid_uri(_pngs(d / "renders" if d else None), thumb_px, max_views)
-        # The snapshot's headline numbers help choose a level, next to its pictures.
         snap_metrics = (read_json(d / "metrics.json", required=False) if d else None) or {}
         headline = ", ".join(f"{k} {_fmt(snap_metrics[k])}" for k in
                              ("psnr_vs_target", "ssim_vs_target", "multiview_consistency",
@@ -143,7 +129,6 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
             + _slider("gallery-slider", frames, start))
     sections.append(("gallery", "Aggressivity gallery", body))
 
-    # Depth maps ----------------------------------------------------------
     frames = []
     orig_depth = _grid_uri(_pngs(run_dir / "original" / "depth"), thumb_px, max_views)
     for label, d in zip(labels, snap_dirs):
@@ -157,7 +142,6 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
             + _slider("depth-slider", frames, start))
     sections.append(("depth", "Depth maps", body))
 
-    # Turntables ----------------------------------------------------------
     cards = []
     orig_tt = _turntable_uri(run_dir / "original" / "turntable.webp", turntable_px, max_frames)
     if orig_tt:
@@ -172,7 +156,6 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
             else '<p class="missing">no turntables recorded</p>')
     sections.append(("turntables", "Turntables", body))
 
-    # Metrics -------------------------------------------------------------
     body = _kv_table(metrics) if metrics else '<p class="missing">no metrics.json</p>'
     per = [(label, read_json(d / "metrics.json", required=False) if d else None)
            for label, d in zip(labels, snap_dirs)]
@@ -187,8 +170,7 @@ def _edit_sections(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: i
 
 
 def _tree_body(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: int) -> str:
-    """The branches of a steered run (``tree.json``): a table, each branch's strip of
-    snapshots (its first test view per subtask) and their step difficulties; "" without."""
+    """The branches of a steered run (``tree.json``) as a table, strips and a plot; "" without."""
     from ...edit.steer import RunTree
     from ..snapshots import branch_folder
 
@@ -234,8 +216,7 @@ def _tree_body(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: int) 
 
 
 def _local_body(run_dir: Path, local: dict, *, thumb_px: int, max_views: int) -> str:
-    """A local edit's figures (schedule.json's ``"local"``) and its region over the held-out
-    views (``local/view_XX.png``, red: the rendered relevance of the editable Gaussians)."""
+    """A local edit's figures (schedule.json's ``"local"``) and its region over the held-out views."""
     uri = _grid_uri(_pngs(run_dir / "local"), thumb_px, max_views)
     figures = {k: (", ".join(v) if isinstance(v, list) else v) for k, v in local.items()}
     body = ("<p>Only the editable Gaussians changed; the others were frozen (bit for bit the "
@@ -245,9 +226,7 @@ def _local_body(run_dir: Path, local: dict, *, thumb_px: int, max_views: int) ->
                    else '<p class="missing">no relevance images recorded</p>')
 
 
-# ---------------------------------------------------------------------------
 # Ablation run
-# ---------------------------------------------------------------------------
 def ablation_table(summary: list[dict], differences: list[dict], *, editor_modes: int,
                    metric: str, digits: int = 2) -> tuple[list[str], list[list[str]]]:
     """(header, rows) of plain-text cells: one row per (scene, instruction), the mean ± 95% CI
@@ -355,9 +334,7 @@ def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_view
     return sections
 
 
-# ---------------------------------------------------------------------------
 # Any other run (e.g. a reconstruction)
-# ---------------------------------------------------------------------------
 def _generic_sections(run_dir: Path, *, thumb_px: int, max_views: int,
                       turntable_px: int, max_frames: int) -> list[tuple[str, str, str]]:
     config = read_json(run_dir / "config.json", required=False)
