@@ -1,8 +1,5 @@
-"""The one exception type for bad input, and the range checks of config fields.
-
-Readers and validators raise :class:`DataError` with a one-line message naming the file
-or field; the CLI prints it and exits 2 (a real bug still shows its traceback).
-"""
+""":class:`DataError`, the one exception for bad input (one line naming the file or field;
+the CLI exits 2), and the range checks of config fields."""
 
 from __future__ import annotations
 
@@ -28,17 +25,14 @@ def quoted(text: str, limit: int = 80) -> str:
     return f"{text[:limit]!r}... ({len(text)} characters)"
 
 
-# --- range checks of config fields -----------------------------------------------------
-# A field declares its range once in its metadata (``ranged(30, low=0)``); ``__post_init__``
-# calls :func:`check_ranges` and the generated flags show it in their help.
+# A field declares its range once (``ranged(30, low=0)``); ``__post_init__`` checks it.
 
 RANGE = "jaxedit.range"
 
 
 @dataclasses.dataclass(frozen=True)
 class Range:
-    """The values a number field accepts: ``low`` <= v <= ``high`` (either may be None);
-    ``open``: the bounds themselves excluded. None (an unset optional field) always passes."""
+    """``low`` <= v <= ``high`` (either may be None; ``open``: bounds excluded; None passes)."""
 
     low: float | None = None
     high: float | None = None
@@ -53,8 +47,7 @@ class Range:
         return f">= {low:g}" if low is not None else f"<= {high:g}"
 
     def problem(self, value) -> str | None:
-        """The error text of ``value`` ("must be >= 1, got 0"), or None if it is in range; a
-        tuple (a colour, a point) is in range when each of its items is."""
+        """The error text of ``value`` (each item of a tuple), or None if it is in range."""
         if value is None:
             return None
         if isinstance(value, tuple):
@@ -71,8 +64,7 @@ class Range:
 
 def ranged(default, *, low: float | None = None, high: float | None = None,
            open: bool = False) -> Any:
-    """A dataclass field of default ``default`` whose values must lie in the :class:`Range`
-    (checked by :func:`check_ranges`)."""
+    """A dataclass field of default ``default`` whose values must lie in the :class:`Range`."""
     return dataclasses.field(default=default,
                              metadata={RANGE: Range(low=low, high=high, open=open)})
 

@@ -1,6 +1,4 @@
-"""The free-memory check every size read from a flag, config or file header goes
-through (:func:`require_memory`) before anything is allocated.
-"""
+"""The free-memory check every size from a flag, config or file header passes before allocation."""
 
 from __future__ import annotations
 
@@ -22,15 +20,8 @@ def available_memory() -> int:
 
 
 def require_memory(where, needed: float, what: str) -> None:
-    """Refuse up front work whose estimated working set exceeds the free memory.
-
-    Args:
-      where: the flag(s) or file that set the size, for the message.
-      needed: estimated bytes.
-      what: what the bytes are for, in words.
-    Raises:
-      DataError: naming ``where``.
-    """
+    """Raise a DataError naming ``where`` (the flag or file that set the size) when
+    ``needed`` estimated bytes for ``what`` exceed the free memory."""
     free = available_memory()
     if needed > free:
         raise DataError(where, f"{what} would need about {gib(needed)} of memory, "
