@@ -1,10 +1,5 @@
-"""Compare estimated camera poses with reference poses, up to a similarity.
-
-Structure from motion recovers a scene only up to a similarity (rotation,
-translation, scale), so estimated cameras are first mapped onto the reference
-ones by the least-squares similarity between their centres (Umeyama 1991), then
-compared view by view.
-"""
+"""Estimated camera poses compared with reference poses after a least-squares similarity
+alignment of their centres (SfM recovers a scene only up to a similarity)."""
 
 from __future__ import annotations
 
@@ -16,13 +11,8 @@ from ..io.similarity import transform_cameras
 
 
 def umeyama(src, dst) -> np.ndarray:
-    """The similarity q = s R p + t minimising sum |dst_i - (s R src_i + t)|^2.
-
-    Args:
-      src, dst: float [N, 3] corresponding points, N >= 3, not all collinear.
-    Returns:
-      float64 [4, 4] similarity matrix mapping ``src`` onto ``dst``.
-    """
+    """float64 [4, 4] similarity (Umeyama) minimising sum |dst_i - (s R src_i + t)|^2 for
+    ``src``, ``dst`` float [N, 3], N >= 3, not all collinear."""
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
         raise DataError("umeyama", f"need two [N, 3] point sets with N >= 3, got "
@@ -50,17 +40,9 @@ def camera_extent(cameras: Camera) -> float:
 
 
 def pose_errors(estimated: Camera, reference: Camera) -> dict:
-    """Per-view pose errors of ``estimated`` after its Umeyama alignment to ``reference``.
-
-    Args:
-      estimated, reference: batched cameras [N] of the same N views.
-    Returns:
-      dict with ``rotation_deg`` float64 [N] (angle of R_est R_ref^T), ``centre_error``
-      float64 [N] (distance, reference units), ``extent`` (see :func:`camera_extent`),
-      ``similarity`` float64 [4, 4] (estimated world -> reference world), the
-      medians ``median_rotation_deg``, ``median_centre_error_rel`` (over ``extent``) and
-      ``median_relative_rotation_deg`` (see :func:`relative_rotation_errors`).
-    """
+    """Pose errors of ``estimated`` [N] aligned to ``reference`` [N]: ``rotation_deg`` and
+    ``centre_error`` float64 [N], ``extent``, ``similarity`` float64 [4, 4] (estimated ->
+    reference world) and medians (``median_centre_error_rel`` over ``extent``)."""
     est_c = np.asarray(estimated.center(), np.float64)
     ref_c = np.asarray(reference.center(), np.float64)
     if est_c.shape != ref_c.shape:
@@ -82,7 +64,7 @@ def pose_errors(estimated: Camera, reference: Camera) -> dict:
 def rotation_angle_deg(rel) -> np.ndarray:
     """Angles in degrees of rotation matrices float [..., 3, 3]."""
     rel = np.asarray(rel, np.float64)
-    # atan2 of the axis part over the trace part: accurate for small angles (arccos is not).
+    # atan2, not arccos: accurate for small angles
     sin = 0.5 * np.linalg.norm(np.stack([rel[..., 2, 1] - rel[..., 1, 2],
                                          rel[..., 0, 2] - rel[..., 2, 0],
                                          rel[..., 1, 0] - rel[..., 0, 1]], -1), axis=-1)
@@ -91,13 +73,8 @@ def rotation_angle_deg(rel) -> np.ndarray:
 
 
 def relative_rotation_errors(estimated: Camera, reference: Camera) -> np.ndarray:
-    """float64 [N (N - 1) / 2]: rotation error of every view pair's relative rotation, degrees.
-
-    Needs no alignment: the rotation between views i and j is the same in any similar
-    frame. Where the camera centres are nearly collinear (a narrow arc) the similarity
-    fitted to them leaves the rotation about their line free, and the aligned rotation
-    error of :func:`pose_errors` grows with that, not with the poses' own error.
-    """
+    """float64 [N (N - 1) / 2]: rotation error (degrees) of every view pair's relative
+    rotation; needs no alignment, so nearly collinear centres don't inflate it."""
     r_est = np.asarray(estimated.world_to_camera, np.float64)[:, :3, :3]
     r_ref = np.asarray(reference.world_to_camera, np.float64)[:, :3, :3]
     i, j = np.triu_indices(len(r_est), 1)

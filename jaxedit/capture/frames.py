@@ -1,12 +1,5 @@
-"""Input frames of a capture: a folder of photos, or frames sampled from a video.
-
-Photos are checked before any structure from motion runs: at least 3 readable
-images of one size. A video is cut into ``target`` windows of consecutive frames
-and the sharpest frame of each window is kept (the blurriest are dropped), the
-sharpness being the variance of the image's Laplacian, a standard blur score
-(motion blur and defocus remove the high frequencies that the Laplacian sees).
-Decoding uses the ffmpeg binary that the ``imageio-ffmpeg`` wheel ships.
-"""
+"""Input frames of a capture: a checked folder of photos, or the sharpest frame of each
+window of a video (decoded with ``imageio-ffmpeg``'s ffmpeg)."""
 
 from __future__ import annotations
 
@@ -31,12 +24,8 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
 
 
 def check_images(paths: list[Path], where: str | os.PathLike) -> tuple[int, int]:
-    """Decode every image once; return their common upright (width, height) (the EXIF
-    orientation applied, as :func:`jaxedit.capture.dataset.process_capture` writes them).
-
-    Raises DataError for fewer than :data:`MIN_IMAGES` images, an unreadable image
-    (naming it) or images of different sizes (jaxedit datasets have one size).
-    """
+    """The images' common upright (width, height), EXIF orientation applied; DataError for
+    fewer than :data:`MIN_IMAGES`, an unreadable image or differing sizes."""
     if len(paths) < MIN_IMAGES:
         raise DataError(where, f"found {len(paths)} image(s) ({', '.join(IMAGE_SUFFIXES)}); "
                                f"structure from motion needs at least {MIN_IMAGES}")
@@ -77,9 +66,7 @@ def _last_line(error: Exception) -> str:
 
 
 def sample_video(path: str | os.PathLike, target: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The sharpest frame of each of ``target`` windows of a video.
-
-    Frames are decoded one at a time (a long video never sits in memory whole).
+    """The sharpest frame of each of ``target`` windows of a video, decoded one at a time.
 
     Args:
       path: any video that ffmpeg reads.
@@ -106,7 +93,7 @@ def sample_video(path: str | os.PathLike, target: int) -> tuple[np.ndarray, np.n
     try:
         for index, raw in enumerate(reader):
             frame = np.frombuffer(raw, np.uint8).reshape(height, width, 3)
-            # ffmpeg's frame count can be short by a frame or two: extras join the last window.
+            # ffmpeg's frame count can be short: extras join the last window
             window = int(window_of[min(index, len(window_of) - 1)]) if len(window_of) else 0
             score = blur_score(frame.astype(np.float32) / 255.0)
             if window not in best or score > best[window][0]:

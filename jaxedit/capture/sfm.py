@@ -1,29 +1,6 @@
-"""Structure from motion with COLMAP, through its Python bindings (pycolmap).
-
-Three stages, as in COLMAP's and nerfstudio's pipelines:
-
-1. **extract**: SIFT features of every image, all images sharing one camera
-   (one set of intrinsics, as for a photo series or a video from one device);
-2. **match**: SIFT matches with geometric verification, for the image pairs of
-   :func:`image_pairs` -- every pair ("exhaustive", for photo sets) or each
-   frame with its ``overlap`` successors plus those 2, 4, 8, ... frames ahead
-   ("sequential", for video frames in order, COLMAP's quadratic overlap);
-3. **map**: incremental mapping; of the models it makes, the one with the most
-   registered images is kept.
-
-Known intrinsics (``camera_params`` or ``focal_px``) set the shared camera before
-extraction and are held fixed in every bundle adjustment, or only start it with
-``refine_intrinsics``. Without them COLMAP starts from the photos' EXIF focal length
-when they carry one (FocalLengthIn35mmFilm, or FocalLength with the sensor size) and
-else from 1.2 x the longer side, and refines it. On narrow object captures the focal
-length trades off against depth and radial distortion, so a known one pins the poses.
-
-Every stage reports its progress through an optional callback
-``report(stage, done, total)``, so callers can draw bars; extraction and
-matching run in chunks for that (each chunk is multi-threaded inside COLMAP).
-pycolmap is imported only here, inside the functions: it is an optional extra
-(``pip install jaxedit[capture]``).
-"""
+"""Structure from motion with pycolmap (the optional ``capture`` extra, imported lazily):
+SIFT extraction with one shared camera, matching of :func:`image_pairs`, incremental
+mapping; progress through ``report(stage, done, total)``. See docs/capture.md."""
 
 from __future__ import annotations
 
@@ -46,22 +23,17 @@ class SfmOptions:
     """Settings of :func:`run_sfm`.
 
     Attributes:
-      camera_model: COLMAP camera model shared by all images. SIMPLE_RADIAL (COLMAP's
-        default: one focal length, one radial coefficient) is well conditioned with few
-        views; OPENCV (nerfstudio's choice) adds fx != fy and k2, p1, p2 for wide lenses.
-      matching: "exhaustive" or "sequential" (see the module docstring).
+      camera_model: COLMAP camera model shared by all images (OPENCV for wide lenses).
+      matching: "exhaustive" (photo sets) or "sequential" (video frames in order).
       overlap: successors matched to each frame in sequential matching.
       max_features: SIFT features per image (COLMAP's default 8192).
       max_image_size: images are downscaled to this longer side for SIFT (COLMAP's 3200).
       num_threads: COLMAP threads (-1: all cores).
       seed: COLMAP's random seed (RANSAC, mapper).
       chunk: images per extraction call and pairs per matching call (progress granularity).
-      camera_params: known intrinsics ``(fx, fy, cx, cy[, k1[, k2[, p1, p2]]])`` in pixels
-        (OpenCV's order; nerfstudio's ``fl_x fl_y cx cy k1 k2 p1 p2``), or None.
-      focal_px: known focal length in pixels (principal point at the image centre, no
-        distortion), or None; excludes ``camera_params``.
-      refine_intrinsics: with known intrinsics, refine them in bundle adjustment (they are
-        then only the start); without, they stay fixed.
+      camera_params: known intrinsics ``(fx, fy, cx, cy[, k1[, k2[, p1, p2]]])`` px, or None.
+      focal_px: known focal length in pixels (centred, no distortion); excludes camera_params.
+      refine_intrinsics: refine known intrinsics in bundle adjustment instead of fixing them.
     """
 
     camera_model: str = "SIMPLE_RADIAL"
@@ -106,8 +78,7 @@ class SfmOptions:
         return None
 
 
-#: COLMAP's parameter order of each model, in the names of ``(fx, fy, cx, cy, k1, k2, p1, p2)``;
-#: "f" is a single focal length (fx == fy).
+#: COLMAP's parameter order of each model ("f": a single focal length, fx == fy).
 MODEL_PARAMS = {"SIMPLE_PINHOLE": ("f", "cx", "cy"), "PINHOLE": ("fx", "fy", "cx", "cy"),
                 "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"), "RADIAL": ("f", "cx", "cy", "k1", "k2"),
                 "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")}
@@ -138,11 +109,8 @@ def check_camera_params(values) -> tuple[float, ...]:
 
 
 def model_params(model: str, values) -> list[float]:
-    """COLMAP parameters of ``model`` for intrinsics ``(fx, fy, cx, cy[, k1, k2, p1, p2])``.
-
-    Refuses intrinsics the model cannot hold (fx != fy for a single focal length, a
-    distortion term the model lacks) rather than dropping them silently.
-    """
+    """COLMAP parameters of ``model`` for intrinsics ``(fx, fy, cx, cy[, k1, k2, p1, p2])``;
+    DataError for terms the model cannot hold, rather than dropping them."""
     named = dict(zip(PARAM_NAMES, (list(values) + [0.0] * len(PARAM_NAMES))[:len(PARAM_NAMES)]))
     wanted = MODEL_PARAMS[model]
     if "f" in wanted and not math.isclose(named["fx"], named["fy"], rel_tol=1e-9):
@@ -165,8 +133,7 @@ class SfmResult:
       num_registered: images with a pose in ``reconstruction``.
       num_models: models the mapper made.
       seconds: wall seconds of each stage ("extract", "match", "map").
-      focal_source: where the starting focal length came from: "given" (the options),
-        "exif" (the photos' metadata, read by COLMAP) or "guess" (1.2 x the longer side).
+      focal_source: where the starting focal length came from: "given", "exif" or "guess".
       focal_start_px: that starting focal length in pixels (before bundle adjustment).
     """
 
@@ -196,14 +163,8 @@ def _chunks(items: list, size: int) -> list[list]:
 def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.PathLike,
             options: SfmOptions = SfmOptions(), report: Report | None = None,
             image_size: tuple[int, int] | None = None) -> SfmResult:
-    """Run the three stages on ``names`` (files in ``image_dir``); COLMAP files go to ``work_dir``.
-
-    ``image_size`` (width, height) places ``options.focal_px``'s principal point; it is
-    needed only with ``focal_px``.
-
-    ``work_dir`` receives ``database.db`` and ``sparse/<k>/`` (COLMAP's binary models),
-    which COLMAP's GUI and nerfstudio's tools open.
-    """
+    """SfM of ``names`` (files in ``image_dir``); ``work_dir`` receives ``database.db`` and
+    ``sparse/<k>/``. ``image_size`` (width, height) is needed only with ``focal_px``."""
     import pycolmap
 
     options.check()
@@ -235,7 +196,7 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
         pycolmap.extract_features(database, image_dir, image_names=chunk,
                                   camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                                   extraction_options=extraction, device=device)
-        # Later chunks join the camera that the first chunk created: one set of intrinsics.
+        # later chunks join the first chunk's camera: one set of intrinsics
         reader.existing_camera_id = 1
         done += len(chunk)
         report("extract", done, len(names))
@@ -289,8 +250,7 @@ def run_sfm(image_dir: str | os.PathLike, names: list[str], work_dir: str | os.P
 
 
 def _starting_focal(database: Path) -> tuple[bool, float | None]:
-    """(whether COLMAP found a focal length in the photos' EXIF, the shared camera's starting
-    focal length in pixels) as the extractor wrote them to ``database``."""
+    """(whether EXIF gave a focal length, the starting focal length px) from ``database``."""
     import pycolmap
 
     db = pycolmap.Database.open(database)
