@@ -150,7 +150,7 @@ def _to_view_size(mask: np.ndarray, hw: tuple[int, int], path) -> np.ndarray:
 
 def editable(gaussians, *, regions=(), relevance=None,
              threshold: float = GAUSSIAN_THRESHOLD) -> jax.Array:
-    """bool [C]: alive, inside the regions and relevant (if ``relevance`` [C]); DataError if none."""
+    """bool [C]: alive, inside the regions and relevant (``relevance`` [C]); DataError if none."""
     inside = in_regions(regions, gaussians.means) & gaussians.alive
     if regions and not bool(jnp.any(inside)):
         raise DataError("--region", f"{' '.join(r.spec() for r in regions)}: contains no "
@@ -170,7 +170,7 @@ def frozen_of(gaussians, editable_mask) -> jax.Array:
 
 @dataclasses.dataclass(frozen=True)
 class LocalSpec:
-    """A run's ``--local`` mode, ``--region`` s (a union) and ``--masks`` float [N, H, W] or None."""
+    """A run's ``--local`` mode, ``--region`` s (a union), ``--masks`` float [N, H, W] or None."""
 
     mode: str = "off"
     regions: tuple = ()
@@ -311,7 +311,7 @@ COLD, HOT, CHANGED = (0.15, 0.3, 0.9), (1.0, 0.15, 0.0), (1.0, 0.85, 0.0)
 
 
 def relevance_colours(saved: dict, means) -> np.ndarray:
-    """float32 [N, 3] colours of ``means`` [N, 3] by relevance; :data:`CHANGED` if not in ``saved``."""
+    """float32 [N, 3] colours of ``means`` [N, 3] by relevance; :data:`CHANGED` if not saved."""
     means = np.ascontiguousarray(np.asarray(means, np.float32))
     known = {row.tobytes(): i for i, row in
              enumerate(np.ascontiguousarray(np.asarray(saved["means"], np.float32)))}

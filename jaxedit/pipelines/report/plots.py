@@ -98,7 +98,7 @@ def _summary_index(rows: list[dict]) -> dict:
 
 
 def ablation_plot(summary: list[dict], *, metrics=("psnr_best", "mode_mixing")) -> str | None:
-    """PNG data URI: each method's mean and CI per editor-modes setting (rows) and metric (columns)."""
+    """PNG data URI: each method's mean and CI per editor-modes setting (rows) and metric."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)

@@ -216,7 +216,7 @@ def _tree_body(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: int) 
 
 
 def _local_body(run_dir: Path, local: dict, *, thumb_px: int, max_views: int) -> str:
-    """A local edit's figures (schedule.json's ``"local"``) and its region over the held-out views."""
+    """A local edit's figures (schedule.json's ``"local"``) and its region over the test views."""
     uri = _grid_uri(_pngs(run_dir / "local"), thumb_px, max_views)
     figures = {k: (", ".join(v) if isinstance(v, list) else v) for k, v in local.items()}
     body = ("<p>Only the editable Gaussians changed; the others were frozen (bit for bit the "
