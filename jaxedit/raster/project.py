@@ -32,8 +32,8 @@ FOOTPRINT_MARGIN = 1e-3
 class Projected(NamedTuple):
     """Screen-space Gaussians for one camera (capacity ``C``).
 
-    Culled Gaussians (dead, outside [near, far], off-screen, degenerate, too transparent)
-    hold finite placeholders, ``opacities == 0``, ``visible == False`` and zero gradients.
+    Culled Gaussians hold finite placeholders, ``opacities == 0``, ``visible == False``, zero
+    gradients.
 
     Attributes:
       means2d: float [C, 2], projected centres in pixels.
@@ -140,7 +140,6 @@ def project(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = Non
     visible = ok & on_screen & jnp.all(jnp.isfinite(means2d), -1) & jnp.all(jnp.isfinite(ext), -1)
     visible = jax.lax.stop_gradient(visible)
 
-    # SH colour along mean - camera centre.
     centre = -matmul_exact(t_w2c, rot_w2c)  # -R^T t, exact (see matmul_exact)
     colors = shlib.evaluate(jnp.where(vm[:, :, None], g.sh, 0.0), means - centre, sh_degree)
 
