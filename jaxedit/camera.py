@@ -1,9 +1,5 @@
-"""Pinhole cameras as pytrees, in the OpenCV convention (x right, y down, +z forward).
-
-Pixel centres are at integer + 0.5; ``width``/``height`` are static. A batch of cameras
-is a :class:`Camera` whose array fields have a leading axis (``world_to_camera``
-[B, 4, 4], ``fx`` [B], ...). The built-in scenes' world has +z up.
-"""
+"""Pinhole cameras as pytrees, in the OpenCV convention (x right, y down, +z forward), pixel
+centres at integer + 0.5; a batch has a leading axis on every array field."""
 
 from __future__ import annotations
 
@@ -91,9 +87,7 @@ class Camera:
         ], -2)
 
     def project(self, points: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Pinhole projection of world points float [N, 3] (single camera):
-        (pixels float [N, 2], centres at +0.5; depth float [N]).
-        """
+        """World points float [N, 3] -> (pixels float [N, 2], depth float [N]); one camera."""
         cam = jnp.matmul(points, self.rotation.T, precision=_EXACT) + self.translation
         z = cam[:, 2]
         safe = jnp.where(jnp.abs(z) > 1e-12, z, 1e-12)
@@ -130,15 +124,8 @@ MIN_FOCAL_WIDTHS = 1e-3
 
 
 def check_cameras(cameras: Camera, where) -> None:
-    """Raise :class:`DataError` (in words) for cameras no image can be rendered from.
-
-    Args:
-      cameras: a Camera or a batch of them.
-      where: the file or flag the cameras came from, for the message.
-    Raises:
-      DataError: empty image size, non-finite values, a focal length that is not
-        positive or gives an absurd field of view, a centre too far from the origin.
-    """
+    """Raise :class:`DataError` naming ``where`` for cameras (one or a batch) no image can be
+    rendered from: empty size, non-finite values, an absurd focal length, a far centre."""
     if cameras.width < 1 or cameras.height < 1:
         raise DataError(where, f"camera image size {cameras.width}x{cameras.height} has no pixels")
     w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
@@ -190,8 +177,7 @@ def opencv_w2c_to_opengl_c2w(w2c) -> np.ndarray:
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenCV world->camera [4, 4] of a camera at ``eye`` looking at ``target``, image up
-    as close to ``up`` as possible."""
+    """OpenCV world->camera [4, 4] at ``eye`` looking at ``target``, image up nearest ``up``."""
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
     forward = target - eye
     forward /= np.linalg.norm(forward)

@@ -1,13 +1,7 @@
-"""CLIP edit metrics of Instruct-NeRF2NeRF over rendered test-view sequences.
-
-With unit CLIP embeddings I(.) of views o_k (original scene) and x_k (edited), and T(.)
-of the captions c_o and c_x:
-
-    dI_k = I(x_k) - I(o_k),  dT = T(c_x) - T(c_o)
-    direction similarity  = mean_k cos(dI_k, dT)
-    direction consistency = mean_k cos(dI_k, dI_{k+1})
-
-A vanishing direction has no cosine: NaN, skipped by the means (``undefined`` counts them).
+"""Instruct-NeRF2NeRF's CLIP edit metrics over rendered test-view sequences: with unit CLIP
+embeddings, dI_k = I(x_k) - I(o_k) (edited, original view k) and dT = T(c_x) - T(c_o)
+(captions), direction similarity = mean_k cos(dI_k, dT) and consistency = mean_k
+cos(dI_k, dI_{k+1}); a vanishing direction's NaN is skipped (counted as ``undefined``).
 """
 
 from __future__ import annotations
@@ -52,12 +46,9 @@ def _mean(values: np.ndarray) -> float:
 
 
 def direction_metrics(image_orig, image_edit, text_orig, text_edit) -> dict:
-    """IN2N's CLIP metrics from embeddings.
-
-    ``image_orig``, ``image_edit``: float [N, D] image embeddings of N views in path order;
-    ``text_orig``, ``text_edit``: float [D]. Returns the two means, their per-view / per-pair
-    values, ``clip_score_edit``, ``image_similarity`` and the undefined counts.
-    """
+    """IN2N's CLIP metrics of image embeddings float [N, D] of N views in path order and
+    text embeddings float [D]: the two means, their per-view / per-pair values,
+    ``clip_score_edit``, ``image_similarity`` and the undefined counts."""
     io, ie = np.asarray(image_orig, np.float64), np.asarray(image_edit, np.float64)
     to, te = np.asarray(text_orig, np.float64), np.asarray(text_edit, np.float64)
     if io.ndim != 2 or io.shape != ie.shape:
@@ -184,8 +175,7 @@ class ClipEncoder:
         return _unit(feats).astype(np.float32)
 
     def edit_metrics(self, originals, edits, caption_orig: str, caption_edit: str) -> dict:
-        """:func:`direction_metrics` for renders float [N, H, W, 3] of the original
-        and edited scene from the same N cameras, in path order."""
+        """:func:`direction_metrics` of renders float [N, H, W, 3], original and edited."""
         if len(originals) != len(edits):
             raise DataError("images", f"{len(originals)} original renders but {len(edits)} edited")
         t = self.encode_texts([caption_orig, caption_edit])

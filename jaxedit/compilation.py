@@ -1,11 +1,7 @@
 """Compiling once: JAX's persistent compilation cache, and a record of what a run compiled.
 
-:func:`enable` switches both on (``import jaxedit`` does not). The cache keeps programs
-under ``$JAXEDIT_CACHE/xla``, bounded by :func:`trim_cache` once per process (JAX's own
-bound costs O(entries) per write). Environment: ``JAXEDIT_COMPILE_CACHE=0`` (off),
-``JAXEDIT_COMPILE_CACHE_DIR`` (folder), ``JAXEDIT_COMPILE_CACHE_MB`` (bound, MiB),
-``JAXEDIT_COMPILE_CACHE_MIN_S`` (shortest compile cached). :func:`compile_stats` reads
-``jax.monitoring`` counters; :func:`compiling_now` names the program compiling now.
+:func:`enable` switches both on (``import jaxedit`` does not); the cache lives under
+``$JAXEDIT_CACHE/xla`` (or ``JAXEDIT_COMPILE_CACHE_DIR``), bounded by :func:`trim_cache`.
 """
 
 from __future__ import annotations
@@ -28,8 +24,7 @@ _CACHE_HIT = "/jax/compilation_cache/cache_hits"
 
 
 def persistent_cache_dir() -> Path | None:
-    """The folder :func:`enable_persistent_cache` uses by default, or None when the
-    environment switches the cache off (``JAXEDIT_COMPILE_CACHE=0``)."""
+    """The cache's default folder, or None for ``JAXEDIT_COMPILE_CACHE=0`` (off)."""
     if os.environ.get("JAXEDIT_COMPILE_CACHE", "1").strip().lower() in ("0", "false", "no", "off"):
         return None
     explicit = os.environ.get("JAXEDIT_COMPILE_CACHE_DIR")
@@ -41,8 +36,7 @@ def persistent_cache_dir() -> Path | None:
 
 
 def _env_number(name: str, default: float, *, zero_ok: bool, what: str) -> float:
-    """The number in environment variable ``name`` (``default`` when unset), else a
-    DataError saying it must be ``what``."""
+    """Environment variable ``name``'s number (unset: ``default``), else DataError."""
     text = os.environ.get(name)
     if not text:
         return default
@@ -72,11 +66,9 @@ def min_compile_seconds() -> float:
 
 
 def enable_persistent_cache(path: str | os.PathLike | None = None) -> Path | None:
-    """Switch on JAX's persistent compilation cache -> its folder, or None when off.
+    """Switch on JAX's persistent compilation cache in ``path`` (None:
+    :func:`persistent_cache_dir`; one JAX already has is kept) -> its folder, or None when off.
 
-    Args:
-      path: the folder (None: :func:`persistent_cache_dir`); a folder JAX already has
-        configured is kept and returned.
     Raises:
       DataError: a bad ``JAXEDIT_COMPILE_CACHE_MB`` or ``_MIN_S``, before anything changes.
     """
@@ -104,12 +96,8 @@ _ENTRY_SUFFIX, _ATIME_SUFFIX = "-cache", "-atime"
 
 
 def trim_cache(folder: str | os.PathLike, max_bytes: int) -> int:
-    """Remove the least recently used entries of ``folder`` until they take at most
-    ``max_bytes`` -> the bytes removed (0 for a missing folder).
-
-    "Used": the later of access and modification time. Entries another process removes
-    meanwhile are skipped.
-    """
+    """Remove the least recently used (accessed or modified) entries of ``folder`` until they
+    take at most ``max_bytes`` -> the bytes removed (0 for a missing folder)."""
     entries, total = [], 0
     try:
         with os.scandir(folder) as listing:
@@ -136,8 +124,6 @@ def trim_cache(folder: str | os.PathLike, max_bytes: int) -> int:
         removed += size
     return removed
 
-
-# ----------------------------------------------------------------------------- what compiled
 
 @dataclasses.dataclass
 class _Program:
@@ -219,21 +205,15 @@ def start_recording() -> None:
 
 
 def enable(path: str | os.PathLike | None = None) -> Path | None:
-    """Switch on the persistent compilation cache and the record of compiles; call once,
-    early. Returns the cache folder, or None when the cache stays off."""
+    """Switch on the persistent cache and the compile record, early -> the cache folder or None."""
     start_recording()
     return enable_persistent_cache(path)
 
 
 def compile_stats(since: dict | None = None) -> dict:
-    """What this process compiled -> ``{"count", "seconds", "cache_hits", "trace_seconds",
-    "lower_seconds", "programs": {name: {"count", "cache_hits", "seconds"}}}``.
-
-    Args:
-      since: an earlier result; the difference is returned.
-
-    ``count``: XLA compiles; ``cache_hits``: persistent cache reads; ``seconds``: both.
-    """
+    """What this process compiled (since an earlier result ``since``) -> ``{"count" (XLA
+    compiles), "seconds", "cache_hits", "trace_seconds", "lower_seconds", "programs": {name:
+    {"count", "cache_hits", "seconds"}}}``."""
     c = _counters()
     with c.lock:
         programs = {name: dataclasses.asdict(p) for name, p in c.programs.items()}

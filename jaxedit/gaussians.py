@@ -1,9 +1,5 @@
-"""The Gaussians pytree: a fixed-capacity set of 3D Gaussians with an ``alive`` mask.
-
-Static shapes, so one compiled train step serves the whole run: densification writes into
-dead slots, culling clears ``alive``, and capacity grows only outside jit (:func:`grow`).
-Dead slots hold finite values and never contribute to a render.
-"""
+"""The Gaussians pytree: a fixed-capacity set of 3D Gaussians with an ``alive`` mask, so one
+compiled train step serves a run; dead slots hold finite values and never render."""
 
 from __future__ import annotations
 
@@ -46,7 +42,6 @@ class Gaussians:
     def sh_degree(self) -> int:
         return shlib.degree_from_coeffs(self.sh.shape[-2])
 
-    # Activated views -------------------------------------------------------
     def num_alive(self) -> jax.Array:
         """Number of live Gaussians (int scalar)."""
         return jnp.sum(self.alive.astype(jnp.int32), axis=-1)
@@ -124,16 +119,9 @@ def mean_knn_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
 
 def from_points(points, colors, *, sh_degree: int = 3, capacity: int | None = None,
                 init_opacity: float = 0.1, dtype=jnp.float32) -> Gaussians:
-    """Gaussians initialised from a point cloud, Splatfacto style.
-
-    Isotropic log-scale from the mean distance to the 3 nearest neighbours, opacity
-    ``init_opacity``, identity rotation, DC colour ``colors``, higher SH 0.
-
-    Args:
-      points: float [N, 3].
-      colors: float [N, 3] in [0, 1] (uint8 colours are rescaled).
-      capacity: slots to allocate (>= N); defaults to N.
-    """
+    """Gaussians at ``points`` float [N, 3], Splatfacto style: isotropic scale from the mean
+    distance to 3 neighbours, identity rotation, opacity ``init_opacity``, DC colour ``colors``
+    float [N, 3] in [0, 1] (uint8 rescaled); ``capacity`` slots (>= N), default N."""
     points = np.asarray(points, np.float64)
     colors = np.asarray(colors)
     if colors.dtype == np.uint8:
@@ -157,16 +145,9 @@ def from_points(points, colors, *, sh_degree: int = 3, capacity: int | None = No
 
 
 def subsample_points(points, colors, max_count: int, key: jax.Array):
-    """At most ``max_count`` of the points, uniformly without replacement, in
-    their original order (the Gaussian cap holds for the initial cloud).
-
-    Args:
-      points: float [N, 3]; colors: [N, 3].
-      max_count: the cap (>= 1).
-      key: PRNG key of the draw.
-    Returns:
-      (points, colors) NumPy [min(N, max_count), 3] each.
-    """
+    """At most ``max_count`` (>= 1) of ``points`` float [N, 3] and their ``colors`` [N, 3],
+    drawn uniformly without replacement by ``key``, in their original order: (points,
+    colors) NumPy [min(N, max_count), 3] each."""
     points, colors = np.asarray(points), np.asarray(colors)
     if max_count < 1:
         raise DataError("max_count", f"must be >= 1, got {max_count}")
@@ -191,13 +172,9 @@ def compact(g: Gaussians) -> Gaussians:
 
 
 def splat_arrays(g: Gaussians) -> dict[str, np.ndarray]:
-    """The alive Gaussians, in slot order, as viser's ``scene.add_gaussian_splats``
-    arguments (one colour per splat: view-dependent SH dropped).
-
-    Returns:
-      {"centers": float32 [N, 3], "covariances": float32 [N, 3, 3], "rgbs": float32 [N, 3]
-      in [0, 1], "opacities": float32 [N, 1]}.
-    """
+    """The alive Gaussians as viser's ``add_gaussian_splats`` arguments (DC colour only):
+    {"centers": float32 [N, 3], "covariances": float32 [N, 3, 3], "rgbs": float32 [N, 3] in
+    [0, 1], "opacities": float32 [N, 1]}."""
     g = compact(g)
     return {"centers": np.asarray(g.means, np.float32),
             "covariances": np.asarray(g.covariances(), np.float32),

@@ -1,11 +1,6 @@
-"""Image losses in JAX: L1, SSIM, D-SSIM and the 3DGS photometric loss.
-
-Images are float [..., H, W, C] in [0, data_range]; everything is jit-, grad- and
-vmap-able. SSIM is scikit-image's ``structural_similarity(gaussian_weights=True,
-sigma=1.5, use_sample_covariance=False, channel_axis=-1)``: Gaussian local statistics
-(radius 5), population (co)variances, C1 = (0.01 R)^2, C2 = (0.03 R)^2, the map
-averaged away from a ``radius`` border strip (so "valid" filtering gives its numbers).
-"""
+"""Image losses in JAX (jit-, grad- and vmap-able): L1, SSIM, D-SSIM and the 3DGS loss, on
+images float [..., H, W, C] in [0, data_range]. SSIM is scikit-image's
+``structural_similarity(gaussian_weights=True, use_sample_covariance=False)``."""
 
 from __future__ import annotations
 
@@ -38,9 +33,8 @@ def _band(rows: int, taps: tuple[float, ...]) -> np.ndarray:
 
 
 def _filter_axis(x, taps: tuple[float, ...], axis: int, block: int = 64):
-    """Correlate ``x`` with ``taps`` along ``axis``, 'valid' part (n - k + 1 outputs),
-    as banded matrix products over blocks of ``block`` outputs (fast to compile and
-    differentiate, linear cost)."""
+    """Correlate ``x`` with ``taps`` along ``axis``, 'valid' part (n - k + 1 outputs), as
+    banded matrix products over blocks of ``block`` outputs."""
     k = len(taps)
     x = jnp.moveaxis(x, axis, 0)
     n = x.shape[0]
@@ -77,7 +71,6 @@ def ssim_map(a, b, *, window: int = 11, sigma: float = 1.5, data_range: float = 
     if a.ndim < 3 or min(a.shape[-3], a.shape[-2]) < window:
         raise ValueError(f"SSIM needs images [..., H, W, C] with H, W >= {window}, got {a.shape}")
     taps = gaussian_window(window, sigma)
-    # One stacked filter pass over the five statistics.
     stats = _filter_valid(jnp.stack([a, b, a * a, b * b, a * b]), taps)
     mu_a, mu_b, e_aa, e_bb, e_ab = stats
     var_a = e_aa - mu_a * mu_a
@@ -123,8 +116,7 @@ def photometric_loss(render, target, lambda_dssim: float = 0.2, *, weight=None,
     Args:
       render, target: float [..., H, W, 3] in [0, 1]; batches are averaged.
       lambda_dssim: l, the D-SSIM weight; may be traced.
-      weight: float [..., H, W] or None: each term a ``weight``-weighted mean over these
-        pixels (D-SSIM over its valid part); 0 for an all-zero weight.
+      weight: float [..., H, W] or None: each term's pixel weights (0 for all-zero weights).
       window, sigma, data_range: SSIM settings (static).
     """
     if weight is None:

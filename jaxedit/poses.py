@@ -1,12 +1,8 @@
-"""Pose corrections: a small rigid correction of cameras fitted to their images.
-
-One parameterisation, two uses: test-time refinement of held-out cameras against a
-frozen scene (:func:`refine_poses`) and training-time camera optimisation
-(:class:`CameraCorrections`). A correction ``delta`` float [6] acts on the left of
-world-to-camera, ``w2c' = [exp(w) | depth * u] w2c``: ``w = delta[:3]`` a rotation
-vector (radians, about the point at the scene's depth on the optical axis),
-``u = delta[3:]`` a camera-frame translation in units of that depth, so a unit of
-either moves the image by about ``f`` pixels and one learning rate suits both.
+"""Small rigid corrections of cameras fitted to their images: held-out cameras refined against
+a frozen scene (:func:`refine_poses`) or training cameras learned with it
+(:class:`CameraCorrections`). A correction float [6] is a rotation vector (radians) about the
+point at the scene's depth on the optical axis and a translation in units of that depth, so a
+unit of either moves the image by about ``f`` pixels and one learning rate suits both.
 """
 
 from __future__ import annotations
@@ -35,8 +31,7 @@ class RefineConfig:
       steps: Adam steps (fixed: no stopping rule).
       lr: initial learning rate of both halves of ``delta``, cosine-decayed.
       final_lr_fraction: the learning rate at the last step, as a fraction of ``lr``.
-      blur_px: blur sigma (pixels) on render and image at the first step, shrinking to 0 at
-        half the steps (coarse to fine); 0 turns it off.
+      blur_px: blur sigma (pixels) at the first step, shrinking to 0 at half the steps; 0: off.
       loss: "mse" (what PSNR scores) or "l1".
       headroom: intersection buffer over the pairs counted at the starting poses.
     """
@@ -62,8 +57,7 @@ class RefineConfig:
 
 
 def so3_exp(omega: jax.Array) -> jax.Array:
-    """Rotation matrices of rotation vectors (Rodrigues): float [..., 3] -> [..., 3, 3];
-    Taylor series near 0 keep values and gradients finite at the identity."""
+    """Rotation vectors float [..., 3] -> matrices [..., 3, 3] (Rodrigues, finite grads at 0)."""
     omega = jnp.asarray(omega)
     t2 = jnp.sum(omega * omega, -1)[..., None, None]
     small = t2 < 1e-8
@@ -80,15 +74,9 @@ def so3_exp(omega: jax.Array) -> jax.Array:
 
 
 def apply_delta(cameras: Camera, delta: jax.Array, depth: jax.Array) -> Camera:
-    """``cameras`` with their poses corrected by ``delta`` (module docstring).
-
-    Args:
-      cameras: a Camera or a batch [B].
-      delta: float [6] or [B, 6]: rotation vector (radians), translation / depth.
-      depth: float [] or [B], the translation unit (scene units).
-    Returns:
-      the cameras with ``world_to_camera`` = [exp(w) | depth u] @ world_to_camera.
-    """
+    """``cameras`` (one or a batch [B]) with ``world_to_camera`` = [exp(w) | depth u] @
+    world_to_camera, ``delta`` float [6] or [B, 6] = (w rotation vector, u translation / depth),
+    ``depth`` float [] or [B] the translation unit (scene units)."""
     w2c = jnp.asarray(cameras.world_to_camera)
     delta = jnp.asarray(delta, w2c.dtype)
     rot = so3_exp(delta[..., :3])
@@ -106,9 +94,7 @@ def apply_delta(cameras: Camera, delta: jax.Array, depth: jax.Array) -> Camera:
 
 
 def scene_depth(gaussians: Gaussians, cameras: Camera) -> jax.Array:
-    """Median camera-space depth of the alive Gaussians in front of each camera [B]:
-    float [B] (1.0 where nothing is in front).
-    """
+    """Median depth of the alive Gaussians in front of each camera [B]: float [B] (else 1.0)."""
     r = jnp.asarray(cameras.world_to_camera)[:, :3, :3]
     t = jnp.asarray(cameras.world_to_camera)[:, :3, 3]
     z = jnp.einsum("bj,cj->bc", r[:, 2], gaussians.means,
@@ -119,8 +105,7 @@ def scene_depth(gaussians: Gaussians, cameras: Camera) -> jax.Array:
 
 
 def _blur(images: jax.Array, sigma: jax.Array, radius: int) -> jax.Array:
-    """Separable Gaussian blur of float [B, H, W, 3], traced sigma (pixels; 0: none),
-    static ``radius`` so one program serves every sigma."""
+    """Gaussian blur of float [B, H, W, 3] by traced ``sigma`` pixels (0: none), static radius."""
     x = jnp.arange(-radius, radius + 1, dtype=images.dtype)
     kern = jnp.exp(-0.5 * (x / jnp.maximum(sigma, 1e-3)) ** 2)
     kern = kern / kern.sum()
@@ -174,12 +159,9 @@ def refine_poses(gaussians: Gaussians, cameras: Camera, images, *,
 
     Args:
       gaussians: the trained scene (capacity C); not changed.
-      cameras: a batch [B] of starting cameras.
-      images: float [B, H, W, 3] in [0, 1], at the cameras' size.
-      config: :class:`RefineConfig`.
-      background: float [3], as the scene was trained with.
-      sh_degree: active SH degree (default all).
-      backend: the compositor (:func:`jaxedit.render`).
+      cameras: a batch [B] of starting cameras; images: float [B, H, W, 3] in [0, 1].
+      config: :class:`RefineConfig`; background: float [3], as the scene was trained with.
+      sh_degree: active SH degree (default all); backend: as :func:`jaxedit.render`'s.
     Returns:
       (cameras [B] refined, info) with ``delta`` float64 [B, 6], ``rotation_deg`` [B],
       ``translation`` [B] (scene units), ``depth`` [B] and ``loss`` float64 [steps, B].
@@ -220,8 +202,6 @@ def refine_poses(gaussians: Gaussians, cameras: Camera, images, *,
     return refined, info
 
 
-# -- Training-time camera optimisation: the same correction, learned with the scene ----
-
 def _row_adam() -> optax.GradientTransformation:
     """The Adam direction of one camera's correction (the learning rate is applied outside)."""
     return optax.scale_by_adam()
@@ -230,17 +210,13 @@ def _row_adam() -> optax.GradientTransformation:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class CameraCorrections:
-    """Per-view pose corrections trained with the scene (Splatfacto's camera
-    optimizer, gsplat's ``pose_opt``), in :func:`apply_delta`'s parameterisation.
-
-    Adam moments and step counts are per row and advance only when that view is trained
-    (sparse Adam), so stale momentum never moves the other views.
+    """Per-view pose corrections trained with the scene (Splatfacto's camera optimizer) by
+    sparse Adam: a row's moments advance only when its view is trained.
 
     Attributes:
-      delta: float [V, 6], the corrections.
+      delta: float [V, 6], the corrections (V = 0 when camera optimisation is off).
       depth: float [V], each view's translation unit and pivot, fixed at init.
       adam: ``optax.scale_by_adam`` state with a leading [V] on every leaf.
-    V = 0 when camera optimisation is off.
     """
 
     delta: jax.Array

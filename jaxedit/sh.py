@@ -1,8 +1,5 @@
-"""Real spherical harmonics up to degree 3, in the sign convention of INRIA's 3DGS.
-
-Colour seen along unit direction ``d`` (camera centre to mean) is
-``max(sum_k sh[k] * Y_k(d) + 0.5, 0)``, ``sh[0]`` the DC term.
-"""
+"""Real spherical harmonics up to degree 3, in INRIA 3DGS's sign convention: the colour seen
+along ``d`` (camera centre to mean) is ``max(sum_k sh[k] Y_k(d) + 0.5, 0)``."""
 
 from __future__ import annotations
 
@@ -55,15 +52,8 @@ def basis(degree: int, dirs: jnp.ndarray) -> jnp.ndarray:
 
 
 def evaluate(sh: jnp.ndarray, dirs: jnp.ndarray, degree: int | None = None) -> jnp.ndarray:
-    """Colour from SH coefficients.
-
-    Args:
-      sh: float [..., K, 3], K = (D+1)^2 coefficients, DC first.
-      dirs: float [..., 3], view directions (need not be normalised).
-      degree: static active degree <= D; defaults to D.
-    Returns:
-      float [..., 3], clamped at 0 from below.
-    """
+    """Colour float [..., 3] (>= 0) of ``sh`` float [..., K, 3] (K = (D+1)^2, DC first) seen
+    along ``dirs`` float [..., 3] (any length), at static ``degree`` <= D (default D)."""
     full = degree_from_coeffs(sh.shape[-2])
     degree = full if degree is None else min(degree, full)
     norm = jnp.sqrt(jnp.sum(dirs * dirs, axis=-1, keepdims=True))

@@ -1,6 +1,4 @@
-"""Outputs people look at: coloured depth maps, turntables (animated WebP, MP4 with
-``imageio-ffmpeg``), image grids, camera paths. Files are written atomically.
-"""
+"""Outputs people look at: depth maps, turntables, image grids, camera paths (atomic writes)."""
 
 from __future__ import annotations
 
@@ -20,14 +18,8 @@ MIN_ALPHA = 1e-3
 
 def depth_range(depth, alpha, *, percentiles: tuple[float, float] = (2.0, 98.0),
                 coverage: float = 0.5) -> tuple[float, float]:
-    """Robust (near, far) of the depth over covered pixels, by percentiles so floaters do
-    not squeeze the colour range; (0, 1) when nothing is covered.
-
-    Args:
-      depth, alpha: float [..., H, W] expected depth and accumulated opacity.
-      percentiles: (low, high) in [0, 100].
-      coverage: pixels with alpha above this take part.
-    """
+    """Robust (near, far): the (low, high) ``percentiles`` of ``depth`` over pixels whose
+    ``alpha`` exceeds ``coverage`` (both float [..., H, W]); (0, 1) when none does."""
     depth, alpha = np.asarray(depth, np.float64), np.asarray(alpha, np.float64)
     if depth.shape != alpha.shape:
         raise DataError("depth", f"shape {depth.shape} differs from alpha's {alpha.shape}")
@@ -49,14 +41,8 @@ def depth_range(depth, alpha, *, percentiles: tuple[float, float] = (2.0, 98.0),
 def colorize_depth(depth, alpha, *, near: float | None = None, far: float | None = None,
                    cmap: str = "turbo", background=(1.0, 1.0, 1.0),
                    percentiles: tuple[float, float] = (2.0, 98.0)) -> np.ndarray:
-    """A depth map as RGB float32 [H, W, 3] in [0, 1], near red, far blue, over ``background`` by alpha.
-
-    Args:
-      depth, alpha: float [H, W] expected depth and accumulated opacity in [0, 1].
-      near, far: colour range; default :func:`depth_range` of this frame.
-      cmap: a matplotlib colormap name.
-      background: float [3] in [0, 1], colour of uncovered pixels.
-    """
+    """Depth float [H, W] as RGB float32 [H, W, 3] in [0, 1] in ``cmap`` from ``near`` to
+    ``far`` (default :func:`depth_range`), over ``background`` [3] by ``alpha`` [H, W]."""
     import matplotlib
 
     depth, alpha = np.asarray(depth, np.float64), np.asarray(alpha, np.float64)
@@ -90,14 +76,8 @@ def to_uint8(image) -> np.ndarray:
 
 def image_grid(images: Sequence, ncols: int | None = None, *, pad: int = 2,
                pad_value: float = 1.0) -> np.ndarray:
-    """Tile images row-major into one float32 image, each cell the largest size.
-
-    Args:
-      images: float [H_i, W_i, 3] in [0, 1] (or uint8), top-left aligned.
-      ncols: columns; default all in one row.
-      pad: pixels between cells and around the grid.
-      pad_value: grey level of the padding in [0, 1].
-    """
+    """Images float [H_i, W_i, 3] in [0, 1] (or uint8) tiled row-major into one float32 image
+    of ``ncols`` columns (default one row), ``pad`` pixels of grey ``pad_value`` around cells."""
     imgs = [np.asarray(im) for im in images]
     if not imgs:
         raise DataError("images", "need at least one image for a grid")
@@ -130,15 +110,8 @@ def _default_render():
 
 def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: int | None = None,
                  render_fn: Callable | None = None):
-    """Render each camera of a batch, one at a time (bounded memory).
-
-    Args:
-      cameras: a batched :class:`jaxedit.Camera` [N] (or one camera).
-      render_fn: ``render(gaussians, camera, *, background, sh_degree)``; default
-        :func:`jaxedit.raster.render`.
-    Returns:
-      (rgb float32 [N, H, W, 3], alpha float32 [N, H, W], depth float32 [N, H, W]).
-    """
+    """(rgb float32 [N, H, W, 3], alpha, depth float32 [N, H, W]) of ``cameras`` [N], one at a
+    time by ``render_fn(gaussians, camera, *, background, sh_degree)`` (:func:`jaxedit.render`)."""
     import jax.numpy as jnp
 
     render_fn = _default_render() if render_fn is None else render_fn
@@ -156,9 +129,7 @@ def render_views(gaussians, cameras, *, background=(1.0, 1.0, 1.0), sh_degree: i
 
 
 def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
-    """(target float [3], radius, elevation_deg, horizontal fov_deg) of an orbit matching
-    ``cameras`` [N] (+z up): the least-squares closest point to the optical axes, the median
-    distance and elevation from it."""
+    """(target float [3], radius, elevation_deg, horizontal fov_deg) of ``cameras`` [N]' orbit."""
     w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
     rot, trans = w2c[:, :3, :3], w2c[:, :3, 3]
     centres = -np.einsum("nji,nj->ni", rot, trans)
@@ -179,9 +150,7 @@ def frame_cameras(cameras) -> tuple[np.ndarray, float, float, float]:
 
 
 def frame_gaussians(gaussians, *, fov_deg: float = 40.0) -> tuple[np.ndarray, float]:
-    """(target float [3], radius) fitting the live Gaussians in a ``fov_deg`` view:
-    median of the means, extent the 95th percentile of distances plus 3-sigma footprints.
-    """
+    """(target float [3], radius) framing the live Gaussians in a ``fov_deg`` view."""
     alive = np.asarray(gaussians.alive, bool)
     if not alive.any():
         raise DataError("gaussians", "no live Gaussians to frame")
@@ -198,12 +167,8 @@ def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
               elevation: float | None = None, target=None, size: int | None = None,
               fov_deg: float | None = None, cameras=None, background=(1.0, 1.0, 1.0),
               sh_degree: int | None = None, render_fn: Callable | None = None) -> np.ndarray:
-    """Render a full orbit around the scene (+z up): uint8 [n_frames, size, size, 3].
-
-    Unset orbit parameters come from ``cameras`` (:func:`frame_cameras`), else from the
-    Gaussians (:func:`frame_gaussians`, 20 degrees elevation, 40 degrees fov). ``size``
-    defaults to the cameras' width, or 128.
-    """
+    """A full orbit around the scene (+z up): uint8 [n_frames, size, size, 3]; unset orbit
+    parameters from ``cameras`` (:func:`frame_cameras`), else :func:`frame_gaussians`."""
     from . import camera as camlib
 
     if n_frames < 1:
@@ -230,13 +195,8 @@ def turntable(gaussians, *, n_frames: int = 36, radius: float | None = None,
 
 
 def load_camera_path(path) -> tuple:
-    """Cameras of a nerfstudio viewer ``camera_path.json`` (perspective only): (batched
-    :class:`jaxedit.Camera` [N], fps or None).
-
-    Reads ``render_width``, ``render_height``, optional ``fps``/``seconds`` and
-    ``camera_path`` entries ``{"camera_to_world": 16 floats (row-major, OpenGL),
-    "fov": vertical degrees}``.
-    """
+    """(Camera [N], fps or None) of a nerfstudio viewer ``camera_path.json`` (perspective;
+    ``camera_to_world`` 16 floats row-major OpenGL, ``fov`` vertical degrees)."""
     import json
 
     from . import camera as camlib
@@ -350,14 +310,9 @@ def _write_mp4(path: Path, frames: np.ndarray, fps: float) -> None:
 
 
 def write_turntable(path, frames, fps: float = 12.0, *, mp4: bool | None = None) -> list[Path]:
-    """Write a turntable as animated WebP at ``path`` (and MP4 beside it); the paths written.
-
-    Args:
-      frames: uint8 or float [F, H, W, 3].
-      fps: frames per second.
-      mp4: also write ``.mp4``; default when ``imageio-ffmpeg`` is installed (True
-        without it raises DataError).
-    """
+    """Write ``frames`` uint8 or float [F, H, W, 3] as animated WebP at ``path`` and, with
+    ``mp4`` (default: whether ``imageio-ffmpeg`` is installed; DataError if True without it),
+    MP4 beside it -> the paths written."""
     path = Path(path)
     if path.suffix.lower() != ".webp":
         raise DataError(path, "turntables are written as .webp (plus .mp4 when available)")

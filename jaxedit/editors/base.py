@@ -1,11 +1,9 @@
 """The Editor protocol every 2D instruction editor implements.
 
-``encode(prompt)`` gives E(prompt) (``encode("")`` is E("")); ``edit`` edits one view
-given an embedding; the framework forms e(r) = r E(p) + (1 - r) E("")
-(:func:`interpolate_embedding`). Images are float32 [H, W, 3] in [0, 1] (``image``
-the render, ``original`` the photo); ``timestep_range`` is (t_min, t_max) as fractions
-of the schedule; ``guidance`` (text, image), None for the editor's own. Optional:
-``edit_many`` with ``batch``, ``calls_side_by_side``, ``relevance`` (local edits).
+Images are float32 [H, W, 3] in [0, 1] (``image`` the render, ``original`` the photo);
+``timestep_range`` is (t_min, t_max) as schedule fractions; ``guidance`` (text, image), None
+for the editor's own. Optional: ``edit_many`` with ``batch``, ``calls_side_by_side``,
+``relevance``.
 """
 
 from __future__ import annotations
@@ -33,14 +31,12 @@ class Editor(Protocol):
     def edit(self, image, original, embedding, key: jax.Array, *,
              timestep_range: tuple[float, float] = (0.02, 0.98),
              guidance: tuple[float, float] | None = None) -> np.ndarray | jax.Array:
-        """Edited image float32 [H, W, 3] in [0, 1], deterministic given ``key`` (NumPy,
-        or a JAX array on the editor's device)."""
+        """Edited image float32 [H, W, 3] in [0, 1] (NumPy or JAX), deterministic given ``key``."""
         ...
 
 
 def editor_guidance(editor, guidance: tuple[float, float] | None = None) -> tuple[float, float]:
-    """``guidance`` as (text, image) floats, or where None the editor's
-    ``guidance`` attribute, else :data:`jaxedit.editors.diffusion.IP2P_GUIDANCE`."""
+    """``guidance``, else the editor's ``guidance`` attribute, else IP2P's, as (text, image)."""
     if guidance is None:
         guidance = getattr(editor, "guidance", IP2P_GUIDANCE)
     return check_guidance(guidance)
@@ -49,8 +45,7 @@ def editor_guidance(editor, guidance: tuple[float, float] | None = None) -> tupl
 def relevance(editor, image, original, embedding, key: jax.Array, *,
               timestep_range: tuple[float, float] = (0.02, 0.98),
               guidance: tuple[float, float] | None = None):
-    """Where ``embedding`` changes the view, float32 [H, W] in [0, 1] (1: relevant),
-    by ``editor.relevance``; DataError for an editor without one."""
+    """``editor.relevance``: float32 [H, W] in [0, 1] (1: relevant); DataError without one."""
     fn = getattr(editor, "relevance", None)
     if fn is None:
         raise DataError("--local", f"editor {getattr(editor, 'name', type(editor).__name__)!r} "
@@ -62,9 +57,7 @@ def relevance(editor, image, original, embedding, key: jax.Array, *,
 
 def warm_up(editor, height: int, width: int, key: jax.Array, *, views: int = 1,
             guidance: tuple[float, float] | None = None) -> None:
-    """Edit ``views`` grey ``height`` x ``width`` views once and drop the result, so the
-    call's program is compiled (and cached) before a run needs it.
-    """
+    """Edit ``views`` grey ``height`` x ``width`` views once, so the program is compiled."""
     grey = jnp.full((views, height, width, 3), 0.5, jnp.float32)
     out = edit_views(editor, grey, grey, editor.encode(""), jax.random.split(key, views),
                      guidance=guidance)
@@ -81,12 +74,11 @@ def interpolate_embedding(e_prompt, e_null, ratio: float):
 def edit_views(editor, images, originals, embedding, keys, *,
                timestep_range: tuple[float, float] = (0.02, 0.98),
                guidance: tuple[float, float] | None = None) -> list:
-    """Edit views [B] with keys [B]: ``editor.edit_many`` in chunks of ``editor.batch``
-    where it has one, else ``edit`` per view; ``calls_side_by_side`` calls at once on threads.
+    """Edit views [B] with keys [B] by ``edit_many`` in chunks of ``editor.batch`` (else
+    ``edit``), ``calls_side_by_side`` calls at once; results do not depend on the batching.
 
     ``images``, ``originals``: [B, H, W, 3] (or sequences of [H, W, 3]); ``embedding``: one
-    for all views; ``keys``: B typed keys. Returns B views (as ``edit`` returns them), in
-    order; results do not depend on the batching.
+    for all views. Returns B views (as ``edit`` returns them), in order.
     """
     count = len(images)
     guidance = editor_guidance(editor, guidance)

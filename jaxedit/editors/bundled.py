@@ -1,5 +1,4 @@
-"""The small InstructPix2Pix shipped inside the package: where its folder is, its working
-size, the instructions it was trained on, the guidance it edits with."""
+"""The small InstructPix2Pix shipped in the package: its folder, size, instructions, guidance."""
 
 
 from __future__ import annotations
@@ -27,9 +26,8 @@ def bundled_editor() -> Path:
 
 
 def native_size(folder: str | Path) -> int:
-    """The resolution a diffusers folder works at, as diffusers' pipelines default to
-    it: the UNet's ``sample_size`` times the VAE factor 2^(len(block_out_channels) - 1);
-    512 for a folder whose configs do not say."""
+    """A diffusers folder's working resolution as its pipelines default to it: the UNet's
+    ``sample_size`` times the VAE factor, 512 where the configs do not say."""
     folder = Path(folder)
     try:
         unet = json.loads((folder / "unet" / "config.json").read_text())
@@ -42,8 +40,7 @@ def native_size(folder: str | Path) -> int:
 
 
 def _listing(folder: str | Path | None) -> tuple[Path, object]:
-    """(path of a folder's ``instructions.json``, its JSON or None without the file);
-    DataError naming the file when it cannot be read."""
+    """(path of ``instructions.json``, its JSON or None); DataError naming an unreadable file."""
     path = Path(folder if folder is not None else BUNDLED) / "instructions.json"
     if not path.is_file():
         return path, None
@@ -54,8 +51,7 @@ def _listing(folder: str | Path | None) -> tuple[Path, object]:
 
 
 def instructions(folder: str | Path | None = None) -> list[dict]:
-    """The instructions a trained folder lists (``instructions.json``): prompt, kind,
-    outcomes; [] for a folder without the file (InstructPix2Pix takes any text)."""
+    """A folder's ``instructions.json`` entries (prompt, kind, outcomes); [] without the file."""
     path, listing = _listing(folder)
     if listing is None:
         return []
@@ -66,9 +62,7 @@ def instructions(folder: str | Path | None = None) -> list[dict]:
 
 
 def recommended_guidance(folder: str | Path | None = None) -> tuple[float, float]:
-    """The (text, image) guidance a trained folder edits with: ``"guidance"`` in
-    its ``instructions.json``, else InstructPix2Pix's. The bundled model's empty prompt keeps
-    the view, so its text scale sets the edit's gain (``docs/editor.md``)."""
+    """The (text, image) guidance of a folder's ``instructions.json``, else InstructPix2Pix's."""
     path, listing = _listing(folder)
     if not isinstance(listing, dict) or "guidance" not in listing:
         return IP2P_GUIDANCE

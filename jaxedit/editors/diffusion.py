@@ -1,9 +1,5 @@
-"""The diffusion arithmetic of the InstructPix2Pix edit, shared by both editors.
-
-The timestep draw, the DDIM schedule (a host list, and fixed-length arrays for ``jit``),
-the model size, dual guidance and the DDIM update, written with arithmetic only so they
-take torch tensors and JAX arrays alike; nothing here imports torch.
-"""
+"""The diffusion arithmetic both InstructPix2Pix editors share (timestep draw, DDIM schedule,
+model size, dual guidance, DDIM update), on torch tensors and JAX arrays alike."""
 
 from __future__ import annotations
 
@@ -14,14 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import DataError
-# The folder checks live with the loader.
 from ..models.load import HOW_TO_GET  # noqa: F401 - re-exported
 from ..models.load import check_layout as resolve_weights  # noqa: F401 - re-exported
 
 DEFAULT_MODEL = "timbrooks/instruct-pix2pix"
 #: The diffusion timesteps Stable Diffusion is trained with.
 NUM_TRAIN_TIMESTEPS = 1000
-#: DDIM steps per edit, both editors' default (IN2N's); commands and studies read it here.
+#: DDIM steps per edit, both editors' default (IN2N's).
 DDIM_STEPS = 20
 #: The short names both editors' ``dtype`` takes for float16, bfloat16 and float32.
 DTYPE_ALIASES = {"fp16": "float16", "half": "float16", "fp32": "float32", "float": "float32",
@@ -29,8 +24,7 @@ DTYPE_ALIASES = {"fp16": "float16", "half": "float16", "fp32": "float32", "float
 
 
 def dtype_name(dtype) -> str:
-    """An editor's ``dtype`` name with a :data:`DTYPE_ALIASES` alias spelled out
-    ("fp16" -> "float16"); other names as given."""
+    """``dtype`` with a :data:`DTYPE_ALIASES` alias spelled out ("fp16" -> "float16")."""
     return DTYPE_ALIASES.get(str(dtype), str(dtype))
 
 
@@ -57,8 +51,7 @@ def draw_timestep(key: jax.Array, timestep_range: tuple[float, float],
 
 
 def timestep_schedule(t_start: int, steps: int) -> list[int]:
-    """DDIM timesteps from ``t_start`` towards 0: round(T (steps - k) / steps), k < steps,
-    repeats and zeros dropped; the step after the last lands on the final alpha."""
+    """DDIM timesteps round(T (steps - k) / steps), k < steps, repeats and zeros dropped."""
     if steps < 1:
         raise DataError("steps", f"must be >= 1, got {steps}")
     ts = [int(round(t_start * (steps - k) / steps)) for k in range(steps)]
@@ -66,16 +59,9 @@ def timestep_schedule(t_start: int, steps: int) -> list[int]:
 
 
 def timestep_table(t_start: jax.Array, steps: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """:func:`timestep_schedule` as fixed-length arrays, for a traced ``t_start``.
-
-    Args:
-      t_start: int [...] timesteps T.
-      steps: static number of slots.
-    Returns:
-      (t, t_next, valid), each [..., steps]: t_k = round(T (steps - k) / steps) (half to
-      even); ``valid`` drops zero and repeated slots, so the valid slots are
-      ``timestep_schedule(T, steps)``; ``t_next`` the next valid timestep (0 after the last).
-    """
+    """:func:`timestep_schedule` of traced ``t_start`` int [...] in ``steps`` static slots:
+    (t, t_next, valid), each [..., steps]; the valid slots of ``t`` are the schedule, ``t_next``
+    the next valid timestep (0 after the last)."""
     t_start = jnp.asarray(t_start, jnp.int32)
     # Integer arithmetic: XLA may compute a quotient as a product with 1 / steps and round
     # a half the wrong way.
@@ -84,7 +70,6 @@ def timestep_table(t_start: jax.Array, steps: int) -> tuple[jax.Array, jax.Array
     t = q + ((2 * r > steps) | ((2 * r == steps) & (q % 2 == 1))).astype(jnp.int32)
     prev = jnp.concatenate([jnp.full(t.shape[:-1] + (1,), -1, jnp.int32), t[..., :-1]], -1)
     valid = (t > 0) & (t != prev)
-    # The slots are non-increasing, so the next valid timestep is the largest smaller one.
     smaller = jnp.where(t[..., None, :] < t[..., :, None], t[..., None, :], 0)
     return t, jnp.max(smaller, axis=-1), valid
 
@@ -96,14 +81,12 @@ def model_size(height: int, width: int, size: int | None, factor: int = 8) -> tu
             max(factor, int(round(width * scale / factor)) * factor))
 
 
-#: InstructPix2Pix's (text, image) guidance scales (Brooks et al. 2023): an editor's unless
-#: its folder recommends its own (:func:`jaxedit.editors.bundled.recommended_guidance`).
+#: InstructPix2Pix's (text, image) guidance scales, unless a folder recommends its own.
 IP2P_GUIDANCE = (7.5, 1.5)
 
 
 def check_guidance(guidance, field: str = "guidance") -> tuple[float, float]:
-    """``guidance`` as (text, image) floats, finite, text >= 0 and image > 0 (0 would drop
-    the view the edit starts from); DataError naming ``field`` otherwise."""
+    """``guidance`` as finite (text >= 0, image > 0) floats, else DataError naming ``field``."""
     try:
         text, image = (float(g) for g in guidance)
     except (TypeError, ValueError):
@@ -114,8 +97,8 @@ def check_guidance(guidance, field: str = "guidance") -> tuple[float, float]:
 
 
 def dual_guidance(eps, text_scale: float, image_scale: float):
-    """Combine the three-branch UNet output [3B, ...] ordered (text+image, image, uncond):
-    eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u). Torch tensors or JAX arrays."""
+    """UNet output [3B, ...] ordered (text+image, image, uncond) -> [B, ...]:
+    eps_u + s_t (eps_ti - eps_i) + s_i (eps_i - eps_u)."""
     b = eps.shape[0] // 3
     eps_ti, eps_i, eps_u = eps[:b], eps[b:2 * b], eps[2 * b:]
     return eps_u + text_scale * (eps_ti - eps_i) + image_scale * (eps_i - eps_u)
@@ -123,12 +106,8 @@ def dual_guidance(eps, text_scale: float, image_scale: float):
 
 def ddim_step(sample, model_output, alpha_t, alpha_prev, prediction_type: str = "epsilon",
               clip_sample: float | None = None):
-    """One deterministic DDIM update (eta = 0) from cumulative alpha ``alpha_t`` to ``alpha_prev``.
-
-    x0 = (x - sqrt(1 - a_t) eps) / sqrt(a_t), clamped to +-``clip_sample`` when given;
-    x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps. Torch tensors with float alphas, or
-    JAX arrays with alphas broadcastable to ``sample``.
-    """
+    """One DDIM update (eta = 0) from cumulative alpha ``alpha_t`` to ``alpha_prev`` (floats,
+    or arrays broadcastable to ``sample``), x0 clamped to +-``clip_sample`` when given."""
     a_t, a_p = alpha_t, alpha_prev
     if isinstance(a_t, (int, float, np.floating)):  # host scalars stay Python floats (torch)
         a_t, a_p = float(a_t), float(a_p)
@@ -149,12 +128,9 @@ def ddim_step(sample, model_output, alpha_t, alpha_prev, prediction_type: str = 
     return a_p ** 0.5 * x0 + (1 - a_p) ** 0.5 * eps
 
 
-# ----------------------------------------------------------------------------- weights folders
-
 def ddim_overrides(folder: Path) -> dict:
-    """DDIM settings for a scheduler config of another class: SD 1.x's DDIM setup
-    (no x0 clipping, final alpha = alpha_0), as IN2N uses for IP2P's Euler-ancestral config.
-    An explicit DDIM config is kept as is."""
+    """SD 1.x's DDIM setup for a scheduler of another class, as IN2N reads IP2P's
+    Euler-ancestral config; {} for a DDIM config."""
     from ..models.load import read_scheduler_config
 
     config = read_scheduler_config(folder / "scheduler_config.json")
@@ -164,11 +140,8 @@ def ddim_overrides(folder: Path) -> dict:
 
 
 def ddim_settings(folder: Path, alphas_cumprod) -> dict:
-    """The DDIM update's settings from a scheduler folder (:func:`ddim_overrides`).
-
-    Returns {"final_alpha": float, "clip_sample": float | None}, with DDIMScheduler's
-    defaults for keys an explicit DDIM config leaves out.
-    """
+    """{"final_alpha": float, "clip_sample": float | None} of a scheduler folder
+    (:func:`ddim_overrides`; DDIMScheduler's defaults for keys left out)."""
     from ..models.load import read_scheduler_config
 
     config = {**read_scheduler_config(folder / "scheduler_config.json"),

@@ -1,13 +1,8 @@
-"""InstructPix2Pix as a jaxedit Editor in torch (extra ``jaxedit[ip2p]``): the reference.
+"""InstructPix2Pix in torch (extra ``jaxedit[ip2p]``): the reference editor, IN2N's edit.
 
-The edit of one view as Instruct-NeRF2NeRF makes it: resize to the model size,
-encode render (scaled posterior sample) and original (posterior mode), noise to T
-(SDEdit), DDIM (eta = 0) with dual classifier-free guidance, decode, resize back.
-IP2P's Euler-ancestral config is read as SD 1.x's DDIM, as IN2N does.
-
-``encode`` returns NumPy float32 [77, D] and edits NumPy float32 [H, W, 3], so the
-framework stays free of torch. T comes from the JAX key and both noises from a
-63-bit seed for a CPU ``torch.Generator``, the same on every device.
+``encode`` gives NumPy float32 [77, D] and ``edit`` NumPy float32 [H, W, 3], so the framework
+stays free of torch; T comes from the JAX key, both noises from a 63-bit seed of a CPU
+``torch.Generator``, the same on every device.
 """
 
 from __future__ import annotations
@@ -35,7 +30,6 @@ import numpy as np
 from ..errors import DataError
 from .base import editor_guidance
 from .bundled import recommended_guidance
-# The shared diffusion arithmetic, re-exported.
 from .diffusion import (DDIM_STEPS, DEFAULT_MODEL, HOW_TO_GET, IP2P_GUIDANCE,  # noqa: F401
                         check_guidance, check_timestep_range, ddim_overrides, ddim_step, draw_timestep,
                         dtype_name, dual_guidance, model_size, resolve_weights,
@@ -47,7 +41,6 @@ __all__ = ["InstructPix2PixEditor", "load_editor", "DEFAULT_MODEL", "HOW_TO_GET"
            "draw_timestep", "dual_guidance", "model_size", "resolve_weights", "seed_from_key",
            "timestep_schedule"]
 
-# ----------------------------------------------------------------------------- pure helpers
 
 def seed_from_key(key: jax.Array) -> tuple[jax.Array, int]:
     """Split a JAX key into (key for the timestep draw, 63-bit torch seed)."""
@@ -55,8 +48,6 @@ def seed_from_key(key: jax.Array) -> tuple[jax.Array, int]:
     hi, lo = (int(v) for v in np.asarray(jax.random.bits(k_n, (2,), np.uint32)))
     return k_t, ((hi << 32) | lo) & ((1 << 63) - 1)
 
-
-# ----------------------------------------------------------------------------- loading
 
 def _load(root: Path, sub: str, loader):
     try:
@@ -67,8 +58,7 @@ def _load(root: Path, sub: str, loader):
 
 
 def _from_jax(x: jax.Array) -> "torch.Tensor":
-    """JAX array -> torch tensor by DLPack (zero-copy) when this torch takes it, else
-    one device-to-host copy."""
+    """JAX array -> torch tensor, zero-copy by DLPack where this torch takes it."""
     try:
         return torch.from_dlpack(x)
     except (RuntimeError, TypeError, BufferError, ValueError):
@@ -88,8 +78,6 @@ def _dtype(dtype):
 def _default_device() -> str:
     return "cuda:0" if torch.cuda.is_available() else "cpu"
 
-
-# ----------------------------------------------------------------------------- the editor
 
 class InstructPix2PixEditor:
     """InstructPix2Pix implementing :class:`jaxedit.editors.Editor` (see the module docstring)."""
@@ -124,7 +112,6 @@ class InstructPix2PixEditor:
         self.final_alpha = float(scheduler.final_alpha_cumprod)
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.prediction_type = scheduler.config.prediction_type
-        # The DDIM update follows the scheduler's config (see ddim_overrides for IP2P's own).
         if getattr(scheduler.config, "thresholding", False):
             raise DataError(f"{source or 'scheduler'}", "dynamic thresholding schedulers are not "
                             "supported by the SDEdit loop")
@@ -142,14 +129,10 @@ class InstructPix2PixEditor:
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, device=None, dtype=None,
                         size: int | None = 512, steps: int = DDIM_STEPS,
                         variant: str | None = None):
-        """Load from a local diffusers folder (or the local HF cache), no network.
-
-        ``path``: folder with unet/ vae/ text_encoder/ tokenizer/ scheduler/, or a cached Hub
-        id. ``device``: torch device (default ``cuda:0`` if available, else ``cpu``); ``dtype``:
-        default fp16 off the CPU, fp32 on it; ``size``: model resolution of the longer side, a
-        multiple of ``vae_factor`` (None: the view's); ``steps``: DDIM steps; ``variant``:
-        diffusers weight variant.
-        """
+        """Load a diffusers folder (unet/ vae/ text_encoder/ tokenizer/ scheduler/) or cached
+        Hub id, no network. ``device``: default ``cuda:0`` if available, else ``cpu``; ``dtype``:
+        default fp16 off the CPU; ``size``: model side, a multiple of ``vae_factor`` (None: the
+        view's); ``steps``: DDIM steps; ``variant``: diffusers weight variant."""
         root = resolve_weights(path)
         device = torch.device(device or _default_device())
         dtype = _dtype(dtype) or (torch.float32 if device.type == "cpu" else torch.float16)
@@ -175,8 +158,6 @@ class InstructPix2PixEditor:
         return (f"InstructPix2PixEditor({self.source!r}, device={self.device}, dtype={self.dtype}, "
                 f"size={self.size}, steps={self.steps})")
 
-    # -- embeddings -----------------------------------------------------------------------
-
     @torch.inference_mode()
     def encode(self, prompt: str) -> np.ndarray:
         """CLIP text embedding E(prompt): NumPy float32 [77, D]; E("") is the null embedding."""
@@ -191,8 +172,6 @@ class InstructPix2PixEditor:
             hidden = self.text_encoder(ids.to(self.device))[0][0]
             self._embeddings[prompt] = hidden.float().cpu().numpy()
         return self._embeddings[prompt].copy()
-
-    # -- tensors in and out ---------------------------------------------------------------
 
     def _image(self, image, field: str) -> "torch.Tensor":
         """float [H, W, 3] (NumPy, JAX, torch) -> float32 [1, 3, H, W] on the editor's device."""
@@ -232,8 +211,6 @@ class InstructPix2PixEditor:
         if tuple(x.shape[-2:]) == tuple(hw):
             return x
         return F.interpolate(x, size=hw, mode="bilinear", align_corners=False, antialias=True)
-
-    # -- the edit -------------------------------------------------------------------------
 
     @torch.inference_mode()
     def edit(self, image, original, embedding, key: jax.Array, *,

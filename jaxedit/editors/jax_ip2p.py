@@ -1,11 +1,7 @@
 """InstructPix2Pix in JAX: the torch reference's edit (:mod:`jaxedit.editors.ip2p`) as one pure jit.
 
-Resize to the model size, VAE-encode render and original, noise to T (SDEdit), DDIM with
-dual classifier-free guidance, decode, resize back. Batched, one T per view; the step count
-is static and T traced, so one program serves every T. Each view key splits into
-(k_t, k_n) as the torch editor's does, so both draw the same T. Batches shard along
-``views`` over the editor's devices; networks run in bfloat16 on accelerators (float32's
-range: no fp16 VAE overflow), float32 on the CPU; latents and output are float32.
+Batched with a traced T per view (drawn as the torch editor draws it), sharded along ``views``;
+networks in bfloat16 on accelerators (no fp16 VAE overflow), float32 on the CPU.
 """
 
 from __future__ import annotations
@@ -40,19 +36,15 @@ VIEWS = "views"
 
 
 class Networks(eqx.Module):
-    """The 8-channel conditional UNet and the VAE (:mod:`jaxedit.models`).
-
-    ``unet(sample [B, h, w, 8], t [B], context [B, 77, D]) -> eps [B, h, w, 4]``;
-    ``vae.encode(x [B, H, W, 3] in [-1, 1]) -> (mean, logvar)``; ``vae.decode(z)``.
-    """
+    """The 8-channel UNet, ``(sample [B, h, w, 8], t [B], context [B, 77, D]) -> eps
+    [B, h, w, 4]``, and the VAE, ``encode(x [B, H, W, 3] in [-1, 1]) -> (mean, logvar)``."""
 
     unet: Any
     vae: Any
 
 
 class DiffusionSchedule(NamedTuple):
-    """The noise schedule: alphas_cumprod float32 [N]; final_alpha, the alpha the
-    last DDIM step lands on."""
+    """alphas_cumprod float32 [N]; final_alpha, the alpha the last DDIM step lands on."""
 
     alphas_cumprod: jax.Array
     final_alpha: jax.Array
@@ -60,13 +52,10 @@ class DiffusionSchedule(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class EditConfig:
-    """Static settings of a compiled edit (hashable: a change recompiles).
-
-    steps: DDIM slots; prediction_type: "epsilon", "v_prediction" or "sample"; clip_sample:
-    x0 clamp (None: none); scaling_factor: the VAE latent scale; dtype: the networks' dtype
-    name; guidance: (text, image) scales; vae_chunk: views per VAE pass (None: all; memory
-    only, same results).
-    """
+    """Static settings of a compiled edit (hashable: a change recompiles): DDIM ``steps``;
+    ``prediction_type`` "epsilon", "v_prediction" or "sample"; ``clip_sample`` (None: no x0
+    clamp); the VAE's ``scaling_factor``; the networks' ``dtype`` name; (text, image)
+    ``guidance``; ``vae_chunk`` views per VAE pass (None: all)."""
 
     steps: int = DDIM_STEPS
     prediction_type: str = "epsilon"
@@ -77,19 +66,13 @@ class EditConfig:
     vae_chunk: int | None = None
 
 
-# ----------------------------------------------------------------------------- pure pieces
-
 def latent_factor(vae) -> int:
-    """The VAE's downsampling factor f (image side / latent side), static.
-
-    Its ``downsample_factor``, or 8 (Stable Diffusion's) for a VAE that states none.
-    """
+    """Static image side / latent side f of the VAE: its ``downsample_factor``, else 8."""
     return int(getattr(vae, "downsample_factor", 8))
 
 
 def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
-    """[B, H, W, C] -> [B, h, w, C], bilinear, antialiased when shrinking (as torch's
-    ``interpolate(..., antialias=True)``)."""
+    """[B, H, W, C] -> [B, h, w, C], bilinear, antialiased when shrinking (as torch's)."""
     if tuple(images.shape[1:3]) == tuple(hw):
         return images
     return jax.image.resize(images, (images.shape[0], *hw, images.shape[3]), method="linear",
@@ -97,9 +80,8 @@ def resize_images(images: jax.Array, hw: tuple[int, int]) -> jax.Array:
 
 
 def in_chunks(fn: Callable, x: jax.Array, chunk: int | None):
-    """``fn(x)`` for a per-example ``fn``, run over chunks of ``chunk`` examples by
-    ``lax.map`` so only one chunk's temporaries are live. The batch is padded with its last
-    example; None or ``chunk >= B``: one call."""
+    """Per-example ``fn(x)`` over chunks of ``chunk`` examples by ``lax.map`` (the batch padded
+    with its last example), so one chunk's temporaries are live; None: one call."""
     b = x.shape[0]
     if chunk is None or chunk >= b:
         return fn(x)
@@ -135,11 +117,8 @@ def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.
 def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, null: jax.Array,
             t_start: jax.Array, sde_noise: jax.Array, schedule: DiffusionSchedule,
             cfg: EditConfig) -> jax.Array:
-    """SDEdit to ``t_start`` (int32 [B]) then DDIM back, float32 [B, h, w, 4].
-
-    ``latents``, ``cond``, ``sde_noise``: [B, h, w, 4]; ``embeddings``: [B, 77, D]; ``null``:
-    [77, D]. Each step runs the UNet on 3B samples, combined by :func:`dual_guidance`.
-    """
+    """SDEdit to ``t_start`` (int32 [B]) then DDIM back: float32 [B, h, w, 4]. ``latents``,
+    ``cond``, ``sde_noise``: [B, h, w, 4]; ``embeddings``: [B, 77, D]; ``null``: [77, D]."""
     a = schedule.alphas_cumprod
     b = latents.shape[0]
     expand = lambda v: v[:, None, None, None]  # noqa: E731
@@ -165,8 +144,7 @@ def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, nu
 
 
 def decode(vae, latents: jax.Array, cfg: EditConfig) -> jax.Array:
-    """Latents [B, h, w, 4] -> float32 [B, f h, f w, 3] in [0, 1], ``cfg.vae_chunk`` views
-    at a time."""
+    """Latents [B, h, w, 4] -> float32 [B, f h, f w, 3] in [0, 1]."""
     decoded = in_chunks(vae.decode, (latents / cfg.scaling_factor).astype(cfg.dtype),
                         cfg.vae_chunk).astype(jnp.float32)
     return jnp.clip((decoded + 1) / 2, 0, 1)
@@ -176,14 +154,11 @@ def edit_with_noise(nets: Networks, images: jax.Array, originals: jax.Array,
                     embeddings: jax.Array, null: jax.Array, t_start: jax.Array,
                     vae_noise: jax.Array, sde_noise: jax.Array, schedule: DiffusionSchedule,
                     cfg: EditConfig) -> jax.Array:
-    """The whole edit with its random draws given (pure).
+    """The whole edit with its random draws given (pure): float32 [B, H, W, 3] in [0, 1].
 
-    Args:
-      images, originals: float [B, H, W, 3] in [0, 1].
-      embeddings: float [B, 77, D] or [77, D]; null: [77, D], E("").
-      t_start: int32 [B]; vae_noise, sde_noise: float32 [B, h/f, w/f, 4], (h, w) the model size.
-    Returns:
-      float32 [B, H, W, 3] in [0, 1].
+    ``images``, ``originals``: float [B, H, W, 3] in [0, 1]; ``embeddings``: [B, 77, D] or
+    [77, D]; ``null``: [77, D], E(""); ``t_start``: int32 [B]; ``vae_noise``, ``sde_noise``:
+    float32 [B, h/f, w/f, 4], (h, w) the model size.
     """
     b, height, width = images.shape[:3]
     f = latent_factor(nets.vae)
@@ -198,10 +173,8 @@ def edit_with_noise(nets: Networks, images: jax.Array, originals: jax.Array,
 
 
 def draw_noise(keys: jax.Array, t_bounds: jax.Array, latent_hw: tuple[int, int]):
-    """(t_start int32 [B], vae_noise, sde_noise float32 [B, h, w, 4]) from keys [B].
-
-    ``t_bounds``: int32 [2], T's inclusive range (:func:`timestep_bounds`).
-    """
+    """(t_start int32 [B], vae_noise, sde_noise float32 [B, h, w, 4]) from keys [B];
+    ``t_bounds``: int32 [2], T's inclusive range (:func:`timestep_bounds`)."""
     def one(key):
         k_t, k_n = jax.random.split(key)
         t = jax.random.randint(k_t, (), t_bounds[0], t_bounds[1] + 1)
@@ -216,10 +189,8 @@ def draw_noise(keys: jax.Array, t_bounds: jax.Array, latent_hw: tuple[int, int])
 def edit_batch(nets: Networks, images: jax.Array, originals: jax.Array, embeddings: jax.Array,
                null: jax.Array, keys: jax.Array, t_bounds: jax.Array,
                schedule: DiffusionSchedule, cfg: EditConfig, model_hw: tuple[int, int]):
-    """Edit B views, float32 [B, H, W, 3], T and noises drawn from typed ``keys`` [B].
-
-    ``model_hw``: the networks' (h, w), multiples of :func:`latent_factor` (:func:`model_size`).
-    """
+    """Edit B views, float32 [B, H, W, 3], drawing from typed ``keys`` [B]; ``model_hw``: the
+    networks' (h, w), multiples of :func:`latent_factor` (:func:`model_size`)."""
     f = latent_factor(nets.vae)
     t_start, vae_noise, sde_noise = draw_noise(keys, t_bounds, (model_hw[0] // f,
                                                                 model_hw[1] // f))
@@ -237,8 +208,7 @@ def _edit_batch_into(kept: tuple, images: jax.Array, cfg: EditConfig, model_hw: 
                       model_hw)
 
 
-#: :func:`edit_batch`, jitted with ``images`` donated to the output; only for a buffer
-#: the caller no longer holds (:meth:`JaxIP2PEditor.edit_many` passes a copy).
+#: :func:`edit_batch` jitted with ``images`` donated: pass a buffer the caller no longer holds.
 edit_batch_donating_jit = eqx.filter_jit(_edit_batch_into, donate="all-except-first")
 
 
@@ -248,12 +218,9 @@ RELEVANCE_DRAWS = 4
 
 def noise_difference(nets, images, originals, embedding, null, keys, t_bounds, schedule,
                      cfg, model_hw: tuple[int, int], draws: int = RELEVANCE_DRAWS) -> jax.Array:
-    """Mean |eps(x_t, c, e) - eps(x_t, c, E(""))| per latent pixel, float32 [B, h/f, w/f].
-
-    ``images``, ``originals``: float [B, H, W, 3] in [0, 1]; ``embedding``, ``null``: [77, D];
-    ``keys``: B typed keys, each drawing ``draws`` timesteps in ``t_bounds`` and noises; the
-    mean is over channels and draws.
-    """
+    """Mean over channels and draws of |eps(x_t, c, e) - eps(x_t, c, E(""))|: float32
+    [B, h/f, w/f]. ``images``, ``originals``: float [B, H, W, 3] in [0, 1]; ``embedding``,
+    ``null``: [77, D]; ``keys``: B typed keys, each drawing ``draws`` timesteps and noises."""
     b = images.shape[0]
     f = latent_factor(nets.vae)
     lat_hw = (model_hw[0] // f, model_hw[1] // f)
@@ -277,8 +244,6 @@ def noise_difference(nets, images, originals, embedding, null, keys, t_bounds, s
 
 noise_difference_jit = eqx.filter_jit(noise_difference)
 
-
-# ----------------------------------------------------------------------------- the editor
 
 def check_prompt(prompt) -> str:
     """``prompt`` if it is a valid UTF-8 string, else DataError naming the bad
@@ -388,14 +353,11 @@ class JaxIP2PEditor:
       tokenize: ``list[str] -> int32 [B, 77]`` CLIP token ids.
       schedule, prediction_type, clip_sample: the DDIM update's.
       devices: default the first JAX device; several shard batches.
-      size: model resolution of the longer side (None: the view's own).
-      steps: DDIM steps; batch: most views per :meth:`edit_many` call.
-      guidance: (text, image) scales of an edit that names none.
-      attention_chunk, vae_chunk: queries per attention chunk, views per VAE pass (None: all);
-        memory only, same results.
-      text_encoder_residency: "device", "host", "reload" or "auto": where the text encoder
-        lives after E("") is encoded.
-      load_text_encoder: ``() -> module``, for "reload".
+      size: model resolution of the longer side (None: the view's own); steps: DDIM steps.
+      batch: most views per :meth:`edit_many` call; guidance: default (text, image) scales.
+      attention_chunk, vae_chunk: queries per attention chunk, views per VAE pass (None: all).
+      text_encoder_residency: where the text encoder lives after E("") is encoded ("device",
+        "host", "reload" or "auto"); load_text_encoder: ``() -> module``, for "reload".
     Raises:
       DataError: a bad setting, or an edit too large for free memory.
     """
@@ -465,11 +427,8 @@ class JaxIP2PEditor:
     def from_pretrained(cls, path: str | os.PathLike = DEFAULT_MODEL, *, devices=None,
                         dtype=None, size: int | None | str = "native", steps: int = DDIM_STEPS,
                         batch: int | None = None, **memory) -> "JaxIP2PEditor":
-        """Load a local diffusers folder (or cached Hub id) into JAX, no torch.
-
-        Tensors are cast to ``dtype`` as read; ``size`` "native": the folder's
-        (:func:`jaxedit.editors.bundled.native_size`); ``memory``: the constructor's keywords.
-        """
+        """Load a local diffusers folder (or cached Hub id), cast to ``dtype`` as read; ``size``
+        "native": :func:`.bundled.native_size`; ``memory``: the constructor's keywords."""
         from ..models import load_ip2p
         from .bundled import native_size, recommended_guidance
         from .diffusion import ddim_settings, resolve_weights
@@ -498,8 +457,7 @@ class JaxIP2PEditor:
 
     @classmethod
     def bundled(cls, *, devices=None, steps: int = DDIM_STEPS, **kwargs) -> "JaxIP2PEditor":
-        """The small InstructPix2Pix shipped in the package, at its native size;
-        arguments as :meth:`from_pretrained`."""
+        """The bundled InstructPix2Pix at its native size; arguments as :meth:`from_pretrained`."""
         from .bundled import bundled_editor, native_size
 
         folder = bundled_editor()
@@ -508,10 +466,8 @@ class JaxIP2PEditor:
 
     @property
     def calls_side_by_side(self) -> int:
-        """Edit calls :func:`jaxedit.editors.edit_views` makes at once:
-        one per core (up to :data:`CPU_CALLS`) on a single CPU device, where XLA runs one edit on
-        about one core; else 1.
-        """
+        """Edit calls :func:`jaxedit.editors.edit_views` makes at once: one per core (up to
+        :data:`CPU_CALLS`) on one CPU device, where an edit uses about one core; else 1."""
         if len(self.devices) > 1 or self.devices[0].platform != "cpu":
             return 1
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -527,8 +483,6 @@ class JaxIP2PEditor:
                           clip_sample=self.clip_sample, scaling_factor=self.scaling_factor,
                           dtype=self.dtype, guidance=editor_guidance(self, guidance),
                           vae_chunk=self.vae_chunk)
-
-    # -- embeddings -----------------------------------------------------------------------
 
     def encode(self, prompt: str) -> np.ndarray:
         """CLIP text embedding E(prompt), NumPy float32 [77, D], cached per prompt."""
@@ -551,15 +505,12 @@ class JaxIP2PEditor:
 
     @property
     def text_encoder(self):
-        """The text encoder on the editor's devices; once released, uploaded or
-        reloaded on each access and not kept."""
+        """The text encoder on the devices; once released, uploaded or reloaded per access."""
         if self._text_encoder is not None:
             return self._text_encoder
         source = (self._text_encoder_host if self.text_encoder_residency == "host"
                   else self._load_text_encoder())
         return jax.device_put(source, self.replicated)
-
-    # -- the edit -------------------------------------------------------------------------
 
     def model_hw(self, height: int, width: int) -> tuple[int, int]:
         return model_size(height, width, self.size, self.latent_factor)
@@ -567,11 +518,8 @@ class JaxIP2PEditor:
     def edit_many(self, images, originals, embeddings, keys: jax.Array, *,
                   timestep_range: tuple[float, float] = (0.02, 0.98),
                   guidance: tuple[float, float] | None = None) -> jax.Array:
-        """Edit B views: float32 [B, H, W, 3] on the editor's devices.
-
-        ``embeddings``: [B, 77, D] or [77, D]; ``keys``: B typed keys (or uint32 [B, 2]). The
-        batch is padded to :func:`padded_batch` and sharded.
-        """
+        """Edit B views: float32 [B, H, W, 3] on the editor's devices. ``embeddings``:
+        [B, 77, D] or [77, D]; ``keys``: B typed keys (or uint32 [B, 2])."""
         images = _as_batch(images, "image", 4)
         originals = _as_batch(originals, "original", 4)
         if images.shape != originals.shape:
@@ -622,9 +570,8 @@ class JaxIP2PEditor:
                   timestep_range: tuple[float, float] = (0.02, 0.98),
                   guidance: tuple[float, float] | None = None, draws: int = RELEVANCE_DRAWS,
                   sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
-        """Where ``embedding`` changes the view, float32 [H, W] in {0, 1} ("Watch
-        Your Steps", ICCV 2023): :func:`noise_difference` through
-        :func:`jaxedit.editors.masks.relevance_mask`. ``image``, ``original``: [H, W, 3]."""
+        """Where ``embedding`` changes the view [H, W, 3], float32 [H, W] in {0, 1} ("Watch Your
+        Steps"): :func:`noise_difference` through :func:`.masks.relevance_mask`."""
         image = jnp.asarray(image, jnp.float32)
         original = jnp.asarray(original, jnp.float32)
         if image.ndim != 3 or image.shape != original.shape:

@@ -1,7 +1,5 @@
-"""Seeding of edits: the ``jax.random`` key of every editor call, derived from a run's key
-by pure ``fold_in`` chains (:func:`view_key`, :func:`edit_key`), so seeded, resumed and
-asynchronous runs draw the same keys.
-"""
+"""The key of every editor call, a pure ``fold_in`` chain from a run's key, so seeded, resumed
+and asynchronous runs draw the same keys."""
 
 from __future__ import annotations
 
@@ -23,9 +21,8 @@ def quantize_ratio(ratio: float) -> int:
 
 
 def view_key(run_key: jax.Array, view_index: int, ratio: float, iteration: int) -> jax.Array:
-    """Key of one edit: fold_in of (view index, quantised ratio, iteration) into
-    ``run_key``; the ratio is quantised (:func:`quantize_ratio`) so that a ratio read back
-    from JSON gives the same key."""
+    """``run_key`` folded with (view index, :func:`quantize_ratio` of ratio, iteration), so a
+    ratio read back from JSON gives the same key."""
     if int(view_index) < 0 or int(iteration) < 0:
         raise DataError("view_key", f"view index and iteration must be >= 0, got "
                         f"{view_index}, {iteration}")
@@ -35,8 +32,7 @@ def view_key(run_key: jax.Array, view_index: int, ratio: float, iteration: int) 
 
 
 def edit_key(edit_stream: jax.Array, view: int, iteration: int) -> jax.Array:
-    """The key of the ``iteration``-th edit of ``view`` in a subtask with edit stream
-    ``edit_stream``."""
+    """The key of the ``iteration``-th edit of ``view`` in a subtask's ``edit_stream``."""
     if int(view) < 0 or int(iteration) < 0:
         raise DataError("edit_key", f"view and iteration must be >= 0, got {view}, {iteration}")
     return jax.random.fold_in(jax.random.fold_in(edit_stream, int(view)), int(iteration))

@@ -1,7 +1,4 @@
-"""Relevance masks from difference maps, shared by the Editor protocol, the simulated
-editor and :meth:`.jax_ip2p.JaxIP2PEditor.relevance` without one importing another; and
-the size check of a mask file (:func:`check_mask_file`).
-"""
+"""Relevance masks from difference maps, shared by the editors, and the mask file check."""
 
 from __future__ import annotations
 
@@ -49,19 +46,12 @@ def blur(x, sigma: float):
 
 
 def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) -> jax.Array:
-    """A difference map as a relevance mask.
-
-    Args:
-      difference: float [H, W] or [B, H, W], >= 0 (e.g. |eps(e) - eps(E(""))|).
-      sigma: blur in pixels; threshold: on the map normalised to [0, 1] per view.
-    Returns:
-      float32 of the input's shape, 1 where relevant, else 0.
-    """
+    """Difference map float [H, W] or [B, H, W], >= 0 -> float32 mask of its shape: 1 where the
+    map blurred by ``sigma`` pixels is >= ``threshold`` x its per-view peak, else 0."""
     d = jnp.asarray(difference, jnp.float32)
     single = d.ndim == 2
     d = d[None] if single else d
     peak = jnp.max(d, axis=(1, 2), keepdims=True)
-    # blur works on [H, W, C]: the views ride along as channels.
     d = jnp.moveaxis(blur(jnp.moveaxis(d / jnp.maximum(peak, 1e-12), 0, -1), sigma), -1, 0)
     peak = jnp.max(d, axis=(1, 2), keepdims=True)
     m = ((d >= threshold * peak) & (peak > 1e-6)).astype(jnp.float32)
@@ -69,12 +59,8 @@ def relevance_mask(difference, *, sigma: float = 1.5, threshold: float = 0.3) ->
 
 
 def check_mask_file(path, hw: tuple[int, int]) -> tuple[int, int]:
-    """The (height, width) of a mask file for a view of size ``hw``, read from its
-    header: the view's size or a whole multiple, and decodable within free memory.
-
-    Raises:
-      DataError naming ``path``.
-    """
+    """(height, width) of a mask file from its header for a view of size ``hw``; DataError
+    naming ``path`` unless it is ``hw`` or a whole multiple and decodable in free memory."""
     from ..io.images import image_header
     from ..memory import require_memory
 

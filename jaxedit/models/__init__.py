@@ -1,9 +1,5 @@
-"""Stable Diffusion 1.x / InstructPix2Pix networks as equinox modules, loaded without torch.
-
-:class:`UNet2DCondition`, :class:`AutoencoderKL`, :class:`CLIPTextEncoder` and
-:class:`CLIPTokenizer`; :func:`load_ip2p` reads a diffusers folder into
-:class:`IP2PModels`; :func:`cast`; :func:`set_query_chunk` bounds attention memory.
-"""
+"""Stable Diffusion 1.x / InstructPix2Pix networks as equinox modules, loaded without torch
+(:func:`load_ip2p` reads a diffusers folder into :class:`IP2PModels`)."""
 
 from .clip_text import CLIPTextEncoder, CLIPTokenizer
 from .load import (DDPMSchedule, IP2PModels, cast, check_layout, load_ip2p, load_module,

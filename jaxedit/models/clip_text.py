@@ -1,11 +1,5 @@
-"""CLIP's text encoder (Stable Diffusion's conditioning) and its tokenizer, without torch.
-
-:class:`CLIPTextEncoder` is transformers' ``CLIPTextModel`` up to the last hidden
-state; its pytree paths are the checkpoint's names without ``text_model.``.
-:class:`CLIPTokenizer` builds transformers' byte-level BPE CLIPTokenizer with the
-``tokenizers`` package from a diffusers ``tokenizer/`` folder, padded/truncated to
-``model_max_length`` (77) as Stable Diffusion's pipelines call it.
-"""
+"""CLIP's text encoder (Stable Diffusion's conditioning) and its tokenizer, without torch;
+pytree paths are the checkpoint's names without ``text_model.``."""
 
 from __future__ import annotations
 
@@ -118,8 +112,6 @@ class CLIPTextEncoder(eqx.Module):
         return self.final_layer_norm(x)
 
 
-# ----------------------------------------------------------------------------- tokenizer
-
 _CLIP_SPLIT = (r"""<\|startoftext\|>|<\|endoftext\|>|'s|'t|'re|'ve|'m|'ll|'d|[\p{L}]+|[\p{N}]|"""
                r"""[^\s\p{L}\p{N}]+""")
 
@@ -141,17 +133,13 @@ def _read_json(path: Path) -> dict:
     return data
 
 
-#: The largest token id a vocabulary may hold (CLIP's is 49407): ids set the rows of the
-#: text encoder's embedding table.
+#: The largest token id a vocabulary may hold (CLIP's is 49407).
 MAX_VOCAB = 2_000_000
 
 
 class CLIPTokenizer:
-    """Prompts -> CLIP token ids int32 [B, max_length], as ``CLIPTokenizer(prompts,
-    padding="max_length", max_length=77, truncation=True)`` gives them.
-
-    Immutable after construction and compared by value (its whole definition), so as a static
-    field of a module two loads of the same folder give the same jit cache key."""
+    """Prompts -> CLIP token ids int32 [B, max_length], as transformers' CLIPTokenizer padded
+    and truncated to 77; immutable and compared by value, so a stable static jit field."""
 
     def __init__(self, tokenizer, *, bos_id: int, eos_id: int, pad_id: int, max_length: int):
         self._tokenizer = tokenizer
@@ -166,9 +154,8 @@ class CLIPTokenizer:
 
     @classmethod
     def from_folder(cls, folder: str | os.PathLike) -> "CLIPTokenizer":
-        """Read a diffusers ``tokenizer/`` folder: ``tokenizer.json`` when present, else
-        ``vocab.json`` + ``merges.txt``; special tokens and length from
-        ``special_tokens_map.json`` / ``tokenizer_config.json`` (CLIP's defaults otherwise)."""
+        """Read a diffusers ``tokenizer/`` folder (``tokenizer.json``, else ``vocab.json`` +
+        ``merges.txt``; special tokens and length from its configs, else CLIP's)."""
         from tokenizers import Regex, Tokenizer, decoders, normalizers, pre_tokenizers
         from tokenizers.models import BPE
 
@@ -222,7 +209,6 @@ class CLIPTokenizer:
                 pre_tokenizers.Split(Regex(_CLIP_SPLIT), behavior="removed", invert=True),
                 pre_tokenizers.ByteLevel(add_prefix_space=False)])
             tok.decoder = decoders.ByteLevel()
-        # The special tokens are matched whole in the text, as transformers registers them.
         tok.add_special_tokens(sorted({bos, eos, unk, pad}))
         tok.no_padding()
         tok.no_truncation()

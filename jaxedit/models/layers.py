@@ -1,10 +1,5 @@
-"""The building blocks of Stable Diffusion 1.x as equinox modules (NHWC).
-
-Every layer with parameters is a :class:`ParamLayer` named as in diffusers, so its
-pytree path is its tensors' checkpoint name; :meth:`ParamLayer.torch_layout` maps
-checkpoint tensors to fields. A layer computes in its weights' dtype; norm statistics
-and attention softmax are float32.
-"""
+"""Stable Diffusion 1.x's building blocks as equinox modules (NHWC), pytree paths the
+checkpoint's names; computing in the weights' dtype, norms and softmax in float32."""
 
 from __future__ import annotations
 
@@ -33,10 +28,8 @@ def _standard_normal_flat(key, length: int, dtype):
 
 
 def standard_normal(key, shape: tuple[int, ...], dtype=jnp.float32) -> Array:
-    """``jax.random.normal(key, shape, dtype)`` from one compiled program per
-    power-of-two length instead of one per shape (a network init draws tens of shapes). With
-    partitionable Threefry (the default) element i depends on the key and i only, so a
-    prefix of a longer flat draw has the same bits."""
+    """``jax.random.normal(key, shape, dtype)``, compiled once per power-of-two length, not
+    per shape (partitionable Threefry: a prefix of a longer draw has the same bits)."""
     if not jax.config.jax_threefry_partitionable:
         return jax.random.normal(key, shape, dtype)
     n = math.prod(shape)
@@ -64,8 +57,6 @@ def activation(name: str) -> Callable[[Array], Array]:
         raise DataError("config", f"unsupported activation {name!r} (supported: {sorted(table)})")
     return table[name]
 
-
-# ----------------------------------------------------------------------------- parameter layers
 
 class ParamLayer(eqx.Module):
     """A layer whose array fields are checkpoint tensors (see :meth:`torch_layout`)."""
@@ -104,8 +95,7 @@ class Linear(ParamLayer):
         return layout
 
 
-#: Feature maps of at most this many positions are convolved as one matmul over their
-#: patches (:func:`_conv_as_matmul`): XLA:CPU's convolution is slow on tiny maps.
+#: Maps of at most this many positions convolve as a patch matmul (XLA:CPU is slow on them).
 SMALL_CONV_POSITIONS = 16
 
 
@@ -224,15 +214,10 @@ class Embedding(ParamLayer):
         return {"weight": (tuple(self.weight.shape), _same)}
 
 
-# ----------------------------------------------------------------------------- attention
-
 def attention(q: Array, k: Array, v: Array, *, causal: bool = False,
               query_chunk: int | None = None) -> Array:
-    """softmax(q k^T / sqrt(Dh)) v per head; logits and softmax in float32.
-
-    q [B, L, N, Dh], k and v [B, S, N, Dh] -> [B, L, N, Dh]. ``query_chunk``: queries in
-    chunks of this many, one after another, so logits are [B, N, chunk, S]; same results.
-    """
+    """softmax(q k^T / sqrt(Dh)) v per head, in float32: q [B, L, N, Dh], k and v
+    [B, S, N, Dh] -> [B, L, N, Dh]; ``query_chunk`` queries at a time (same results)."""
     length = q.shape[1]
     if query_chunk is None or query_chunk >= length or causal:
         return jax.nn.dot_product_attention(q, k, v, is_causal=causal)
@@ -246,9 +231,8 @@ def attention(q: Array, k: Array, v: Array, *, causal: bool = False,
 
 
 class Attention(eqx.Module):
-    """Multi-head attention as diffusers' ``Attention`` (self-attention when
-    ``context`` is None); ``group_norm`` and ``residual`` are the VAE's variant;
-    ``query_chunk`` as :func:`attention`."""
+    """diffusers' ``Attention`` (self-attention when ``context`` is None); ``group_norm`` and
+    ``residual`` are the VAE's variant."""
 
     to_q: Linear
     to_k: Linear
@@ -295,8 +279,7 @@ class GEGLU(eqx.Module):
 
 
 class FeedForward(eqx.Module):
-    """diffusers' FeedForward with GEGLU: ``net = (GEGLU, dropout, Linear)``; the dropout slot
-    is None so the output layer keeps its checkpoint name ``net.2``."""
+    """diffusers' FeedForward, ``net = (GEGLU, None for dropout, Linear)`` (checkpoint names)."""
 
     net: tuple[GEGLU, None, Linear]
 
@@ -339,10 +322,8 @@ class BasicTransformerBlock(eqx.Module):
 
 
 class Transformer2DModel(eqx.Module):
-    """GroupNorm, proj_in, transformer blocks over the H*W tokens, proj_out, plus
-    the input. ``proj_in`` / ``proj_out`` are 1x1 convolutions (SD 1.x) or linear
-    (``use_linear_projection``, SD 2.x); ``eps`` is the blocks' LayerNorm epsilon
-    (diffusers' default, not the UNet's ``norm_eps``)."""
+    """GroupNorm, proj_in (1x1 conv, or linear in SD 2.x), transformer blocks over the H*W
+    tokens, proj_out, plus the input; ``eps``: the blocks' LayerNorm epsilon."""
 
     norm: GroupNorm
     proj_in: Conv2d | Linear
@@ -365,7 +346,6 @@ class Transformer2DModel(eqx.Module):
     def __call__(self, x: Array, context: Array) -> Array:
         """x [B, H, W, C], context [B, S, Dc] -> [B, H, W, C]"""
         b, h, w, c = x.shape
-        # A 1x1 convolution and a linear layer act on the channels alike: apply either to tokens.
         proj = lambda layer, t: (layer(t) if isinstance(layer, Linear)  # noqa: E731
                                  else layer(t.reshape(b, h, w, -1)).reshape(b, h * w, -1))
         t = proj(self.proj_in, self.norm(x).reshape(b, h * w, c))
@@ -373,8 +353,6 @@ class Transformer2DModel(eqx.Module):
             t = block(t, context)
         return proj(self.proj_out, t).reshape(b, h, w, c) + x
 
-
-# ----------------------------------------------------------------------------- conv blocks
 
 class ResnetBlock2D(eqx.Module):
     """norm-SiLU-conv, + time embedding projection, norm-SiLU-conv, + (1x1-projected) input."""
@@ -410,8 +388,7 @@ class ResnetBlock2D(eqx.Module):
 
 
 class Downsample2D(eqx.Module):
-    """Stride-2 3x3 convolution. ``asymmetric``: pad only bottom/right by one and no conv
-    padding, as the VAE encoder does (diffusers' ``padding=0``)."""
+    """Stride-2 3x3 convolution; ``asymmetric``: pad bottom/right by one only (the VAE's)."""
 
     conv: Conv2d
     asymmetric: bool = eqx.field(static=True, default=False)
@@ -430,8 +407,7 @@ class Downsample2D(eqx.Module):
 
 
 def upsample_nearest(x: Array, size: tuple[int, int]) -> Array:
-    """Nearest-neighbour resize of NHWC ``x`` to ``size`` as torch's ``interpolate(mode="nearest")``
-    picks pixels: source index floor(i * in / out)."""
+    """NHWC ``x`` resized to ``size``, nearest pixel floor(i * in / out) as torch picks it."""
     h, w = x.shape[1:3]
     rows = (jnp.arange(size[0]) * h) // size[0]
     cols = (jnp.arange(size[1]) * w) // size[1]
@@ -456,8 +432,6 @@ class Upsample2D(eqx.Module):
             x = upsample_nearest(x, size)
         return self.conv(x)
 
-
-# ----------------------------------------------------------------------------- time embedding
 
 def timestep_embedding(timesteps: Array, dim: int, *, flip_sin_to_cos: bool = True,
                        freq_shift: float = 0.0, max_period: float = 10000.0) -> Array:
@@ -491,8 +465,7 @@ class TimestepEmbedding(eqx.Module):
 
 
 def set_query_chunk(model, query_chunk: int | None):
-    """``model`` (any pytree of modules) with every :class:`Attention` evaluating its queries in
-    chunks of ``query_chunk`` (None: all at once). Same results, bounded attention memory."""
+    """``model`` (a pytree) with every :class:`Attention`'s ``query_chunk`` set (None: all)."""
     is_attention = lambda x: isinstance(x, Attention)  # noqa: E731
     return jax.tree_util.tree_map(
         lambda a: dataclasses.replace(a, query_chunk=query_chunk) if is_attention(a) else a,

@@ -1,11 +1,5 @@
-"""Reading diffusers-format weights straight into the equinox modules, without torch.
-
-Loading builds a shape-only skeleton from each component's ``config.json`` and fills
-every layer from the tensor of its name; a missing, unexpected or mis-shaped tensor
-is a one-line :class:`~jaxedit.errors.DataError`. Weights files, preferred first:
-``*.safetensors``, their ``.fp16`` variants, then torch ``.bin`` checkpoints read by
-a restricted unpickler (a pickle can run code).
-"""
+"""Reading diffusers-format weights into the equinox modules without torch; a missing,
+unexpected or mis-shaped tensor is a one-line :class:`~jaxedit.errors.DataError`."""
 
 from __future__ import annotations
 
@@ -52,8 +46,6 @@ _LEGACY_ATTENTION = {"query": "to_q", "key": "to_k", "value": "to_v", "proj_attn
 _LEGACY_RE = re.compile(r"^(.*attentions\.\d+)\.(query|key|value|proj_attn)\.(weight|bias)$")
 
 
-# ----------------------------------------------------------------------------- the folder
-
 def check_layout(path: str | os.PathLike) -> Path:
     """A local diffusers folder (or a Hub id in the local cache); names the sub-folders missing."""
     p = local_model_folder(path, what="InstructPix2Pix weights", how_to_get=HOW_TO_GET)
@@ -78,11 +70,8 @@ def read_config(path: Path) -> dict:
     return config
 
 
-# ----------------------------------------------------------------------------- config schemas
-
-#: Per network, the config entries that set its architecture: name -> (kind, least, most),
-#: kind "int" / "ints" (one per block) / "float" / "bool" / "strs". The bounds hold every
-#: released SD 1.x / 2.x / XL network; absent entries take the builder's default.
+#: Per network, its architecture's config entries: name -> (kind, least, most), kind "int",
+#: "ints" (one per block), "float", "bool" or "strs"; absent entries take the default.
 CONFIG_SCHEMA = {
     "unet": {"block_out_channels": ("ints", 1, 16384), "layers_per_block": ("ints", 1, 16),
              "in_channels": ("int", 1, 1024), "out_channels": ("int", 1, 1024),
@@ -133,12 +122,8 @@ def _entry_problem(value, kind: str, low: float, high: float) -> str | None:
 
 
 def check_network_config(kind: str, config: dict, where) -> dict:
-    """``config`` (a network's config.json) checked against :data:`CONFIG_SCHEMA`
-    (type, range) and for consistency (channels by norm groups, width by heads).
-
-    Raises:
-      DataError naming ``where`` and the entry.
-    """
+    """A network's config.json checked against :data:`CONFIG_SCHEMA` and for consistency;
+    DataError naming ``where`` and the entry."""
     for name, (entry, low, high) in CONFIG_SCHEMA[kind].items():
         if config.get(name) is None:
             continue
@@ -166,7 +151,6 @@ def check_network_config(kind: str, config: dict, where) -> dict:
 
 
 #: scheduler_config.json's entries: name -> (kind, least, most), as :data:`CONFIG_SCHEMA`.
-#: The timestep count sizes every schedule table, so it is bounded as a size is.
 SCHEDULER_SCHEMA = {
     "num_train_timesteps": ("int", 1, 100_000), "beta_start": ("float", 0, 1),
     "beta_end": ("float", 0, 1), "beta_schedule": ("strs", 1, 1),
@@ -178,12 +162,8 @@ SCHEDULER_SCHEMA = {
 
 
 def check_scheduler_config(config: dict, where) -> dict:
-    """A scheduler config checked against :data:`SCHEDULER_SCHEMA`, with
-    beta_start <= beta_end and ``trained_betas`` one value in (0, 1) per timestep.
-
-    Raises:
-      DataError naming ``where`` and the entry.
-    """
+    """A scheduler config checked against :data:`SCHEDULER_SCHEMA` (beta_start <= beta_end,
+    ``trained_betas`` one in (0, 1) per timestep); DataError naming ``where`` and the entry."""
     for name, (entry, low, high) in SCHEDULER_SCHEMA.items():
         if config.get(name) is None:
             continue
@@ -213,8 +193,7 @@ def _per(value, n: int) -> list:
 
 
 def weight_bytes_at_least(kind: str, config: dict, itemsize: int) -> float:
-    """A lower bound of a checked config's weight bytes from its largest
-    layers, so a config that cannot fit is refused before its network is described."""
+    """A lower bound of a checked config's weight bytes, from its largest layers."""
     if kind == "text_encoder":
         d, layers = config.get("hidden_size", 768), config.get("num_hidden_layers", 12)
         inner = config.get("intermediate_size", 4 * d)
@@ -228,7 +207,7 @@ def weight_bytes_at_least(kind: str, config: dict, itemsize: int) -> float:
 
 
 def weights_file(folder: Path) -> Path:
-    """The weights file of one component folder (see the module docstring for the order)."""
+    """A component folder's weights file: ``.safetensors``, ``.fp16`` ones, then torch ``.bin``."""
     stems = ["diffusion_pytorch_model", "model"]
     for suffix in (".safetensors", ".fp16.safetensors"):
         for stem in stems:
@@ -246,14 +225,11 @@ def weights_file(folder: Path) -> Path:
 
 
 def read_weights(path: Path) -> dict[str, np.ndarray]:
-    """All tensors of a ``.safetensors`` file or a torch ``.bin`` state_dict (no
-    torch, no code run: :func:`jaxedit.io.weights.load_torch_checkpoint`), as NumPy."""
+    """All tensors of a ``.safetensors`` file or a torch ``.bin`` (no code run), as NumPy."""
     if path.suffix == ".bin":
         return load_torch_checkpoint(path)
     return read_safetensors(path)[0]
 
-
-# ----------------------------------------------------------------------------- name mapping
 
 def _path_name(path) -> str:
     parts = []
@@ -292,11 +268,8 @@ def _listing(names: list[str], limit: int = 3) -> str:
 
 def module_from_tensors(skeleton, tensors: dict[str, np.ndarray], where: str | os.PathLike, *,
                         prefix: str = "", dtype=jnp.float32):
-    """``skeleton`` (a module or its ``eqx.filter_eval_shape``) filled from ``tensors``.
-
-    ``tensors``: checkpoint name -> array in torch layout, names starting with ``prefix``.
-    Raises DataError(where, ...) naming missing, unexpected or mis-shaped tensors.
-    """
+    """``skeleton`` (a module, or shapes only) filled from ``tensors``, checkpoint name (under
+    ``prefix``) -> torch-layout array; DataError(where, ...) naming bad tensors."""
     # transformers >= 5 saves CLIPTextModel without "text_model.": accept both.
     prefix = prefix if any(k.startswith(prefix) for k in tensors) else ""
     tensors = _modernise({k[len(prefix):] if k.startswith(prefix) else k: v
@@ -316,8 +289,7 @@ def module_from_tensors(skeleton, tensors: dict[str, np.ndarray], where: str | o
             if array.shape != tuple(shape) and not squeezable:
                 wrong.append(f"{prefix + key!r} has shape {list(array.shape)}, expected {list(shape)}")
                 continue
-            # converted on the host (ml_dtypes rounds as XLA does) and copied by device_put: on the
-            # device each weight shape would compile a conversion of its own
+            # converted on the host: on the device each shape would compile its own conversion
             values[field] = jax.device_put(np.asarray(convert(np.asarray(array)), dtype=dtype))
         filled.append(dataclasses.replace(layer, **values) if values else layer)
     unexpected = sorted(prefix + k for k in tensors if k not in used and not _IGNORED.search(k))
@@ -335,10 +307,8 @@ def module_from_tensors(skeleton, tensors: dict[str, np.ndarray], where: str | o
 
 def load_module(folder: str | os.PathLike, build: Callable[..., Any], *, prefix: str = "",
                 dtype=jnp.float32, kind: str | None = None):
-    """A module from one component folder: ``build(config, key=..., dtype=...)``
-    gives its shapes, the weights file fills it. The config is checked first
-    (:func:`check_network_config`; ``kind`` defaults to the folder's name) and weights that
-    cannot fit in free memory are refused before any is read."""
+    """A module from one component folder, shaped by ``build(config, key=..., dtype=...)``;
+    the config (``kind``: default the folder's name) and free memory are checked first."""
     from ..memory import require_memory
 
     folder = Path(folder)
@@ -352,13 +322,9 @@ def load_module(folder: str | os.PathLike, build: Callable[..., Any], *, prefix:
     return module_from_tensors(skeleton, read_weights(path), path, prefix=prefix, dtype=dtype)
 
 
-# ----------------------------------------------------------------------------- the pipeline
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class DDPMSchedule:
-    """The training noise schedule from ``scheduler/scheduler_config.json``.
-
-    Hashable (by value) so it can be a static field of a jitted module."""
+    """The training noise schedule of ``scheduler_config.json``, hashable by value."""
 
     num_train_timesteps: int
     beta_start: float
@@ -369,8 +335,7 @@ class DDPMSchedule:
 
     @staticmethod
     def from_config(config: dict, where: str | os.PathLike = "scheduler_config.json") -> "DDPMSchedule":
-        """Betas as diffusers' schedulers make them: "linear", "scaled_linear" (linear in
-        sqrt(beta)) or "squaredcos_cap_v2"; alphas_cumprod = prod(1 - beta)."""
+        """Betas as diffusers makes them ("linear", "scaled_linear", "squaredcos_cap_v2")."""
         check_scheduler_config(config, where)
         n = int(config.get("num_train_timesteps", 1000))
         b0, b1 = float(config.get("beta_start", 0.0001)), float(config.get("beta_end", 0.02))
@@ -416,8 +381,7 @@ class IP2PModels(eqx.Module):
 
 
 def load_ip2p(folder: str | os.PathLike, *, dtype=jnp.float32) -> IP2PModels:
-    """An InstructPix2Pix (or any SD 1.x) diffusers folder -> :class:`IP2PModels` in ``dtype``,
-    each tensor converted as read (a bf16 load never holds float32 networks)."""
+    """An InstructPix2Pix (or SD 1.x) diffusers folder -> :class:`IP2PModels`, cast as read."""
     from .unet import UNet2DCondition
     from .vae import AutoencoderKL
 
@@ -449,9 +413,7 @@ def check_tokenizer_fits(tokenizer: CLIPTokenizer, text_encoder, where) -> None:
 
 
 def cast(models, dtype):
-    """Every floating array of ``models`` (any pytree) cast to ``dtype``, in one compiled
-    program (leaf by leaf, each shape would compile its own conversion). Norm statistics and
-    softmax stay float32 (:mod:`jaxedit.models.layers`)."""
+    """Every floating array of ``models`` (any pytree) cast to ``dtype`` in one program."""
     arrays, rest = eqx.partition(models, eqx.is_array)
     return eqx.combine(_cast_floating(arrays, jnp.dtype(dtype)), rest)
 

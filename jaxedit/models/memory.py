@@ -1,9 +1,5 @@
-"""Memory of the networks without holding them: parameter bytes of abstract modules
-(:func:`abstract`, :func:`param_bytes`) and XLA's compiled memory analysis
-(:func:`compiled_memory`; on a CPU only an estimate of a GPU's).
-:data:`SD15_UNET_IP2P`, :data:`SD15_VAE` and :data:`CLIP_L14_TEXT` are
-timbrooks/instruct-pix2pix's configurations.
-"""
+"""Memory of the networks without holding them: parameter bytes of abstract modules and
+XLA's compiled memory analysis; timbrooks/instruct-pix2pix's configurations."""
 
 from __future__ import annotations
 
@@ -43,8 +39,7 @@ def is_array_like(x) -> bool:
 
 
 def abstract(build: Callable[..., Any], config: dict, dtype=jnp.float32):
-    """``build(config, key=..., dtype=dtype)`` evaluated for shapes only: the module with
-    ``jax.ShapeDtypeStruct`` leaves, no weights allocated."""
+    """``build(config, key=..., dtype=dtype)`` with ``jax.ShapeDtypeStruct`` leaves."""
     return eqx.filter_eval_shape(build, config, key=jax.random.key(0), dtype=dtype)
 
 
@@ -82,13 +77,9 @@ def param_bytes(tree, dtype=None) -> int:
 
 
 def compiled_memory(fn: Callable, *args, donate: Sequence[int] = ()) -> dict:
-    """XLA's memory analysis of ``fn(*args)`` compiled for the default backend.
-
-    ``args``: pytrees whose array leaves may be ``jax.ShapeDtypeStruct`` (other leaves
-    static); ``donate``: positions of donated arguments. Returns bytes ``argument``,
-    ``output``, ``alias`` (output in donated buffers), ``temp``, ``peak`` = argument +
-    output - alias + temp, and ``compile_s``.
-    """
+    """XLA's memory analysis of ``fn(*args)`` (leaves may be abstract; ``donate``: donated
+    positions): bytes ``argument``, ``output``, ``alias`` (in donated buffers), ``temp``,
+    ``peak`` = argument + output - alias + temp, and ``compile_s``."""
     import time
 
     dynamic, static = eqx.partition(args, is_array_like)

@@ -1,8 +1,5 @@
-"""Stable Diffusion 1.x's conditional UNet (diffusers' ``UNet2DConditionModel``), NHWC.
-
-Pytree paths are diffusers' tensor names. SD 1.x configs' ``attention_head_dim`` is
-the number of heads (as diffusers reads it); the head width is channels / heads.
-"""
+"""Stable Diffusion 1.x's conditional UNet (diffusers' ``UNet2DConditionModel``), NHWC;
+SD 1.x's ``attention_head_dim`` is the number of heads, as diffusers reads it."""
 
 from __future__ import annotations
 
@@ -142,9 +139,8 @@ class UNet2DCondition(eqx.Module):
         nk = lambda: next(keys)  # noqa: E731
         res = lambda a, b, scale=1.0: ResnetBlock2D.init(  # noqa: E731
             nk(), a, b, temb=temb, groups=groups, eps=eps, output_scale=scale, dtype=dtype)
-        # norm_eps reaches the resnets and conv_norm_out only: diffusers' cross-attention
-        # blocks build Transformer2DModel without it, so its LayerNorms keep the default 1e-5
-        # (and its GroupNorm 1e-6) whatever the config says.
+        # norm_eps reaches the resnets and conv_norm_out only: diffusers' Transformer2DModel
+        # keeps its default epsilons whatever the config says.
         xf = lambda c, i, nl: Transformer2DModel.init(  # noqa: E731
             nk(), c, heads[i], context[i], groups=groups, layers=nl, linear_projection=linear,
             dtype=dtype)
@@ -190,10 +186,8 @@ class UNet2DCondition(eqx.Module):
             bool(config.get("flip_sin_to_cos", True)), float(config.get("freq_shift", 0)))
 
     def __call__(self, sample: Array, timestep: Array | float, context: Array) -> Array:
-        """sample [B, H, W, Cin], timestep [B] or scalar, context [B, L, D] -> eps [B, H, W, Cout].
-
-        Computes in the weights' dtype. H, W need not be multiples of 2^(levels-1): the up
-        path resizes to the skips' sizes as diffusers does."""
+        """sample [B, H, W, Cin], timestep [B] or scalar, context [B, L, D] -> eps [B, H, W, Cout];
+        H, W need not be multiples of 2^(levels-1)."""
         b = sample.shape[0]
         t = jnp.broadcast_to(jnp.asarray(timestep, jnp.float32).reshape(-1), (b,))
         t_emb = timestep_embedding(t, self.conv_in.weight.shape[-1],

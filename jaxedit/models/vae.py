@@ -1,6 +1,4 @@
-"""Stable Diffusion's VAE (diffusers' ``AutoencoderKL``) as an equinox module, NHWC; the
-pytree paths are diffusers' tensor names (``encoder.down_blocks.0.resnets.1.conv2``).
-"""
+"""Stable Diffusion's VAE (diffusers' ``AutoencoderKL``), NHWC, pytree paths its tensor names."""
 
 from __future__ import annotations
 
@@ -163,15 +161,12 @@ class AutoencoderKL(eqx.Module):
 
     @property
     def downsample_factor(self) -> int:
-        """f = 2^(levels-1): image side / latent side (8 for Stable Diffusion's 4 levels, 4 for
-        3), from the encoder's blocks as diffusers' ``vae_scale_factor`` is from
-        ``block_out_channels``."""
+        """f = 2^(levels-1), image side / latent side (diffusers' ``vae_scale_factor``)."""
         return 2 ** (len(self.encoder.down_blocks) - 1)
 
     def encode(self, x: Array) -> tuple[Array, Array]:
         """Images [B, H, W, C] in [-1, 1] -> the posterior's (mean, logvar), each
-        [B, H/f, W/f, latent] (f = 2^(levels-1), 8 for SD); logvar clamped to [-30, 20]
-        as diffusers' DiagonalGaussianDistribution does."""
+        [B, H/f, W/f, latent], logvar clamped to [-30, 20] as diffusers does."""
         moments = self.encoder(x)
         if self.quant_conv is not None:
             moments = self.quant_conv(moments)

@@ -1,7 +1,5 @@
-"""The tile splatter (:func:`render`, its jittable core :func:`render_tiles`) and its
-dense oracle (:func:`render_reference`): one signature and :class:`RenderOutput`,
-INRIA's conventions.
-"""
+"""The tile splatter (:func:`render`, :func:`render_tiles`) and its dense oracle
+(:func:`render_reference`), one signature, INRIA's conventions."""
 
 from .reference import accumulate_weights_reference, render_reference
 from .render import accumulate_weights, next_capacity, render, render_tiles

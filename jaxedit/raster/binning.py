@@ -1,10 +1,5 @@
-"""Tile binning: every (Gaussian, tile it touches) pair in a fixed-capacity buffer.
-
-No per-Gaussian or per-tile cap: a cumulative count gives each Gaussian its slice of the
-buffer, pairs are enumerated in depth order, and one sort on a (tile, depth rank) key
-groups them by tile, front to back. ``num_intersections`` says how many pairs the frame
-needs and ``overflow`` whether some were dropped (:func:`jaxedit.raster.render`).
-"""
+"""Tile binning: every (Gaussian, tile it touches) pair in a fixed-capacity buffer, sorted
+by (tile, depth), with no per-Gaussian or per-tile cap."""
 
 from __future__ import annotations
 
@@ -25,12 +20,10 @@ class Bins(NamedTuple):
     Attributes:
       gids: int32 [N], Gaussian of each pair, sorted by (tile, depth); unused slots hold C.
       tiles: int32 [N], row-major tile of each pair; unused: num_tiles.
-      tile_start: int32 [num_tiles + 1]: tile t's pairs are
-        ``gids[tile_start[t]:tile_start[t + 1]]``.
+      tile_start: int32 [num_tiles + 1], tile t's pairs ``gids[tile_start[t]:tile_start[t+1]]``.
       num_intersections: int32 [], pairs the frame needs (may exceed N).
       overflow: bool [], num_intersections > N.
-      enum_slots: int32 [N], each pair's slot in enumeration order, a Gaussian's pairs
-        consecutive (unused: N), where the Pallas backward writes its rows (no atomics).
+      enum_slots: int32 [N], each pair's slot in enumeration order (unused: N).
       depth_order: int32 [C], Gaussians front to back.
       run_ends: int32 [C], end of the k-th Gaussian's (depth order) run of slots.
     """
@@ -96,9 +89,8 @@ def count_intersections(proj: Projected, width: int, height: int, tile: int = TI
 
 
 def _pair_owners(counts, capacity: int):
-    """int32 [capacity]: for each slot, the Gaussian k whose run of ``counts[k]``
-    slots holds it (past the total: the last with pairs). A running maximum of run-start
-    marks: two passes, much faster on a GPU than a per-slot ``searchsorted``."""
+    """int32 [capacity]: for each slot, the Gaussian k whose run of ``counts[k]`` slots holds
+    it (past the total: the last with pairs), by a running maximum (no ``searchsorted``)."""
     c = counts.shape[0]
     starts = jnp.cumsum(counts) - counts
     marks = jnp.zeros(capacity, jnp.int32).at[jnp.where(counts > 0, starts, capacity)].max(
@@ -108,13 +100,8 @@ def _pair_owners(counts, capacity: int):
 
 def bin_gaussians(proj: Projected, width: int, height: int, capacity: int,
                   tile: int = TILE) -> Bins:
-    """Sorted (tile, depth) intersections in a buffer of static ``capacity``.
-
-    Pairs are enumerated Gaussian by Gaussian in depth order, so a stable sort by tile gives
-    (tile, depth) order, depth ties by Gaussian index as in the oracle. One integer key
-    ``tile * C + depth_rank`` where ``tiles x C < 2^31`` (XLA's single-array sort is fastest
-    on a CPU), else a stable sort of tile ids with positions (a radix sort on a GPU).
-    """
+    """Sorted (tile, depth) intersections in a buffer of static ``capacity``, depth ties by
+    Gaussian index as in the oracle."""
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
     c = proj.means2d.shape[0]

@@ -1,15 +1,7 @@
-"""Exact per-tile alpha compositing with a recomputing ``custom_vjp`` backward.
+"""Exact per-tile alpha compositing in XLA, with a recomputing ``custom_vjp`` backward.
 
-"Chunked pair-major": each tile's depth-sorted list is cut into chunks of ``K`` pairs laid
-end to end (no list capped, at most K - 1 padding per tile). A ``lax.scan`` over the K
-positions advances all chunks at once, blending front to back as INRIA's per-pixel loop;
-a chunk's incoming transmittance comes from a segmented exclusive scan of the earlier
-chunks' products (first pass), and INRIA's T < 1e-4 stop is a per-pixel prefix test.
-Chunks run in cache-sized blocks, and only the blocks holding this frame's pairs (a
-dynamic trip count), so work follows the pairs, not the buffer.
-
-The backward recomputes alpha and T: residuals are the inputs, each chunk's incoming T
-and feature sums and the images, O(pixels + pairs).
+Each tile's depth-sorted pairs are cut into chunks of ``K`` blended in step by a ``lax.scan``;
+a chunk's incoming transmittance comes from a segmented scan of the earlier chunks'.
 """
 
 from __future__ import annotations
@@ -26,8 +18,7 @@ from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
 CHUNK = 32
 #: Target (chunk, pixel) elements per scan block on a CPU: the working set stays in cache.
 BLOCK_ELEMENTS = 8192
-#: The same on an accelerator, where a block costs kernel launches per pair position:
-#: blocks must be large.
+#: The same on an accelerator, where each block costs kernel launches.
 BLOCK_ELEMENTS_ACCELERATOR = 1 << 22
 
 
@@ -47,12 +38,8 @@ def layout(capacity: int, num_tiles: int, tile: int, chunk: int = CHUNK,
 
 def make_chunks(bins: Bins, num_tiles: int, capacity: int, tile: int, chunk: int = CHUNK,
                 block_elements: int = BLOCK_ELEMENTS):
-    """Chunk layout of the sorted pairs (``block_elements``: :func:`block_elements`).
-
-    Returns:
-      (gids int32 [NC, K] (-1 for padding), tile_of int32 [NC] (num_tiles for unused),
-      first bool [NC]: the chunk starts its tile's list).
-    """
+    """Chunk layout of the sorted pairs: (gids int32 [NC, K] (-1 for padding), tile_of int32
+    [NC] (num_tiles for unused), first bool [NC]: the chunk starts its tile's list)."""
     nb, per_block = layout(capacity, num_tiles, tile, chunk, block_elements)
     nc = nb * per_block
     start = bins.tile_start
@@ -109,8 +96,7 @@ def _alpha(m, con, op, px, py):
 
 
 def _map_used(fn, xs, used_blocks, init):
-    """``lax.map(fn, xs)`` over the first ``used_blocks`` blocks only (a dynamic
-    count); skipped blocks keep their ``init`` outputs."""
+    """``lax.map(fn, xs)`` over the first (traced) ``used_blocks`` blocks; others keep ``init``."""
 
     def body(b, outs):
         x = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_index_in_dim(a, b, 0, False), xs)
@@ -205,15 +191,13 @@ def layout_blocks(gids, tile, block: int = BLOCK_ELEMENTS):
 @functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8, 9, 10))
 def composite(means2d, conics, opacities, features, gids, tile_of, first, width, height, tile,
               block=BLOCK_ELEMENTS):
-    """Blend the chunked pairs into images.
+    """Blend the chunked pairs into (features float [H, W, F] = sum_i w_i f_i, transmittance
+    float [H, W]).
 
     Args:
-      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C] (0 for culled);
-        features: float [C, F].
+      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C]; features: float [C, F].
       gids, tile_of, first: the chunk layout from :func:`make_chunks`.
       width, height, tile: static sizes; block: the ``block_elements`` of the layout.
-    Returns:
-      (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
     """
     return _forward(means2d, conics, opacities, features, gids, tile_of, first, width, height,
                     tile, block)[0]
@@ -297,11 +281,8 @@ def _composite_bwd(width, height, tile, block, res, cts):
 composite.defvjp(_composite_fwd, _composite_bwd)
 
 
-# -- Per-Gaussian accumulation of blending weights (no gradient: relevance lifting) ----
-
 def _weigh_block(xs):
-    """One block: per pair, sum over its tile's pixels of w_i(p) v(p), [K, NB, F],
-    with :func:`_blend`'s alpha, transmittance and stop rule."""
+    """One block: per pair, sum over its tile's pixels of w_i(p) v(p), [K, NB, F]."""
     m, con, op, px, py, carry, vals = xs  # vals [NB, P, F]
     nf = vals.shape[-1]
 
@@ -318,15 +299,9 @@ def _weigh_block(xs):
 
 def accumulate_weights(means2d, conics, opacities, values, gids, tile_of, first, width, height,
                        tile, block=BLOCK_ELEMENTS):
-    """Per Gaussian, sum over pixels of its blending weight times values.
+    """Per Gaussian, sum_p T_i(p) alpha_i(p) v(p): float [C, F] (0 for Gaussians not drawn).
 
-    Args:
-      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C].
-      values: float [H, W, F], per-pixel values v.
-      gids, tile_of, first: the chunk layout from :func:`make_chunks`.
-      width, height, tile, block: as :func:`composite`.
-    Returns:
-      float [C, F]: sum_p T_i(p) alpha_i(p) v(p) (0 for Gaussians not drawn).
+    ``values``: float [H, W, F]; the other arguments as :func:`composite`'s.
     """
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y

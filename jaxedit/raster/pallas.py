@@ -1,15 +1,8 @@
-"""Per-tile alpha compositing as a Pallas kernel (Triton on GPU), forward and backward.
+"""Per-tile alpha compositing as Pallas kernels (Triton on GPU, ``interpret=True`` on a CPU).
 
-:mod:`.composite`'s blend with one program per tile, its pixels the vector lanes, pairs
-front to back until every pixel stops. The backward walks each tile back to front
-(T_i = T_{i+1} / (1 - alpha_i)) writing one gradient row per pair, and
-:func:`reduce_pair_rows` sums each Gaussian's rows in a fixed order: no atomics,
-bit-identical gradients. Per pixel, with g = dL/dC, g_T = dL/dT_final and
-S_i = sum_{j > i} w_j f_j:
-
-    dL/dalpha_i = T_i (g . f_i) - (g . S_i + g_T T_final) / (1 - alpha_i)
-
-``interpret=True`` runs the same kernels on the CPU.
+One program per tile, its pixels the vector lanes. The backward walks each tile back to front
+writing one gradient row per pair, and :func:`reduce_pair_rows` sums each Gaussian's rows in a
+fixed order: no atomics, bit-identical gradients.
 """
 
 from __future__ import annotations
@@ -37,8 +30,7 @@ _FOR_GPU = contextvars.ContextVar("jaxedit_pallas_for_gpu", default=False)
 
 @contextlib.contextmanager
 def compiled_for_gpu():
-    """Within this context the kernels are lowered for Triton even off a GPU
-    (``jax.export(..., platforms=("cuda",))`` checks that they lower, without running)."""
+    """Within this context the kernels are lowered for Triton even off a GPU (``jax.export``)."""
     token = _FOR_GPU.set(True)
     try:
         yield
@@ -86,11 +78,8 @@ def _alpha(mx, my, a, b, c, o, px, py):
 
 def _forward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref,
                     feat_ref, trans_ref, last_ref, *, tiles_x, tile, num_features, capacity):
-    """One tile: blend its pairs front to back.
-
-    Outputs: feat_ref float [F, P], trans_ref float [P] (final transmittance), last_ref
-    int32 [P] (slot of the last blended pair, begin - 1 where none).
-    """
+    """One tile front to back -> feat_ref float [F, P], trans_ref float [P] (final T),
+    last_ref int32 [P] (slot of the last blended pair, begin - 1 where none)."""
     t = pl.program_id(0)
     begin = start_ref[t]
     end = start_ref[t + 1]
@@ -137,13 +126,9 @@ def _forward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref,
 def _backward_kernel(start_ref, gids_ref, m_ref, con_ref, op_ref, f_ref, slots_ref, trans_ref,
                      last_ref, gf_ref, gt_ref, zeros_ref, rows_ref, *, tiles_x, tile,
                      num_features, capacity):
-    """One tile: per-pair gradient rows, back to front.
-
-    Inputs: trans_ref float [P], last_ref int32 [P] (forward); gf_ref float [F, P] and
-    gt_ref float [P], the upstream gradients; slots_ref int32 [N], enumeration slots.
-    Output: rows_ref float [N + PAIR_BATCH, ROW] (aliased to zeros_ref); rows of pairs
-    behind the last contributor stay zero.
-    """
+    """One tile back to front -> rows_ref float [N + PAIR_BATCH, ROW] (aliased to zeros_ref),
+    from the forward's trans_ref [P], last_ref int32 [P], the upstream gf_ref float [F, P] and
+    gt_ref [P], and the enumeration slots_ref int32 [N]."""
     del zeros_ref  # the output's initial (zero) contents
     t = pl.program_id(0)
     begin = start_ref[t]
@@ -211,15 +196,9 @@ def _num_warps(tile: int) -> int:
 
 def tiles_forward(means2d, conics, opacities, features, gids, tile_start, width, height, tile,
                   interpret=False):
-    """Forward kernel over all tiles.
-
-    Args:
-      means2d float [C, 2], conics [C, 3], opacities [C], features [C, F];
-      gids int32 [N] (sorted by tile, depth; padding slots may hold C);
-      tile_start int32 [T + 1].
-    Returns:
-      (features float [T, F, P], transmittance float [T, P], last int32 [T, P]).
-    """
+    """Forward kernel over all tiles -> (features float [T, F, P], transmittance float [T, P],
+    last int32 [T, P]) from means2d float [C, 2], conics [C, 3], opacities [C], features
+    [C, F], gids int32 [N] (by tile, depth; padding may hold C), tile_start int32 [T + 1]."""
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
     nf = features.shape[-1]
@@ -253,13 +232,10 @@ def row_width(num_features: int) -> int:
 
 def tiles_backward(means2d, conics, opacities, features, gids, tile_start, enum_slots, trans,
                    last, g_feat, g_trans, width, height, tile, interpret=False):
-    """Backward kernel: float [N + PAIR_BATCH, ROW] gradient rows in enumeration order.
-
-    Row ``enum_slots[i]`` holds pair i's d means2d (2), d conic (3), d opacity (1), d features
-    (F), zero-padded to :func:`row_width`; unused and padding rows are zero. Arguments as
-    :func:`tiles_forward`, plus ``enum_slots`` int32 [N], the forward's ``trans`` and ``last``
-    [T, P], and g_feat float [T, F, P], g_trans float [T, P].
-    """
+    """Backward kernel: float [N + PAIR_BATCH, ROW] gradient rows, row ``enum_slots[i]`` pair
+    i's d means2d, d conic, d opacity, d features (zero-padded; unused rows zero). Arguments
+    as :func:`tiles_forward`, plus ``enum_slots`` int32 [N], the forward's ``trans`` and
+    ``last`` [T, P], and g_feat float [T, F, P], g_trans float [T, P]."""
     tiles_x, tiles_y = grid_shape(width, height, tile)
     num_tiles = tiles_x * tiles_y
     nf = features.shape[-1]
@@ -296,13 +272,8 @@ def _reduce_kernel(ends_ref, rows_ref, out_ref, *, width):
 
 
 def reduce_pair_rows(rows, depth_order, run_ends, interpret=False):
-    """Per-Gaussian sums of gradient rows: float [C, ROW].
-
-    Args:
-      rows: float [N + PAIR_BATCH, ROW] in enumeration order (:func:`tiles_backward`);
-      depth_order: int32 [C], Gaussian of each run; run_ends: int32 [C], where each
-        run ends (both from :class:`.binning.Bins`).
-    """
+    """Per-Gaussian sums float [C, ROW] of ``rows`` [N + PAIR_BATCH, ROW] (:func:`tiles_backward`),
+    with ``depth_order`` and ``run_ends`` int32 [C] of :class:`.binning.Bins`."""
     c, width = depth_order.shape[0], rows.shape[1]
     ends = jnp.minimum(run_ends, rows.shape[0] - PAIR_BATCH)  # an overflowed frame is redone
     sums = _call(functools.partial(_reduce_kernel, width=width), (ends.astype(jnp.int32), rows),
@@ -314,15 +285,8 @@ def reduce_pair_rows(rows, depth_order, run_ends, interpret=False):
 @functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6, 7, 8))
 def composite(means2d, conics, opacities, features, bins, width, height, tile,
               interpret=False):
-    """Blend the sorted pairs into images with the Pallas kernels.
-
-    Args:
-      means2d: float [C, 2]; conics: float [C, 3]; opacities: float [C]; features: float [C, F].
-      bins: the frame's :class:`.binning.Bins`.
-      width, height, tile: static sizes; interpret: use the Pallas interpreter.
-    Returns:
-      (features float [H, W, F] = sum_i w_i f_i, transmittance float [H, W]).
-    """
+    """:func:`.composite.composite` by the Pallas kernels, from the frame's
+    :class:`.binning.Bins`; ``interpret``: use the Pallas interpreter."""
     return _composite_fwd(means2d, conics, opacities, features, bins, width, height, tile,
                           interpret)[0]
 

@@ -1,10 +1,5 @@
-"""Committing arrays where they already are, so that jit compiles one program per call site.
-
-jit's cache key holds each argument's committedness (``jnp`` without a device:
-uncommitted; ``device_put`` or computed from committed inputs: committed). Leaves that
-drift between the two across calls compile the same program twice; :func:`commit` at
-those calls removes the drift without moving anything.
-"""
+"""Committing arrays where they already are, so that jit compiles one program per call site
+(jit's cache key holds each argument's committedness)."""
 
 from __future__ import annotations
 
@@ -14,9 +9,8 @@ import numpy as np
 
 
 def commit(tree):
-    """``tree`` with each uncommitted JAX array committed to its device (an alias, no
-    copy) and each NumPy array or scalar to the default device; committed or sharded arrays,
-    tracers and Python scalars are returned as they are."""
+    """``tree`` with each uncommitted JAX array committed to its device (no copy), NumPy arrays
+    to the default device; other leaves as they are."""
     return jax.tree_util.tree_map(_commit_leaf, tree)
 
 

@@ -1,12 +1,6 @@
-"""EWA projection of 3D Gaussians to screen-space ellipses, with SH colour and culling.
-
-Shared by the tile splatter and the dense oracle, which differ only in compositing.
-Conventions (INRIA 3DGS / gsplat): OpenCV camera (x right, y down, +z forward), pixel
-centres at integer + 0.5, cov2d = J W Sigma W^T J^T + 0.3 I, J at x/z, y/z clamped to
-1.3x the field of view. Footprint: with opacity ``o``, ``alpha >= 1/255`` needs
-``d^T conic d <= 2 ln(255 o)`` (gsplat's opacity-aware extent), so binning to the tiles
-that ellipse touches equals the dense oracle exactly.
-"""
+"""EWA projection of 3D Gaussians to screen-space ellipses, with SH colour and culling, in
+INRIA 3DGS / gsplat's conventions; the footprint is gsplat's opacity-aware extent, so the
+tile splatter equals the dense oracle exactly."""
 
 from __future__ import annotations
 
@@ -38,8 +32,8 @@ FOOTPRINT_MARGIN = 1e-3
 class Projected(NamedTuple):
     """Screen-space Gaussians for one camera (capacity ``C``).
 
-    Culled Gaussians (dead, outside [near, far], off-screen, degenerate, too transparent)
-    hold finite placeholders, ``opacities == 0``, ``visible == False`` and zero gradients.
+    Culled Gaussians hold finite placeholders, ``opacities == 0``, ``visible == False``, zero
+    gradients.
 
     Attributes:
       means2d: float [C, 2], projected centres in pixels.
@@ -63,11 +57,7 @@ class Projected(NamedTuple):
 
 
 def matmul_exact(a: jax.Array, b: jax.Array) -> jax.Array:
-    """``a @ b`` in full float32 on every platform, as ``jnp.matmul``: float [..., n, m].
-
-    A DEFAULT-precision float32 dot runs in TF32 on NVIDIA GPUs, which visibly skews the
-    projected means and their gradients; HIGHEST is free on the CPU.
-    """
+    """``a @ b`` in full float32 (no TF32 on GPUs) on every platform: float [..., n, m]."""
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
@@ -85,17 +75,10 @@ def _inputs_valid(g: Gaussians, near, far, cam: Camera):
 def project(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = None,
             near: float = 0.01, far: float = 1e10,
             means2d_delta: jax.Array | None = None) -> Projected:
-    """Project Gaussians for one (unbatched) camera.
+    """Project Gaussians (capacity C) for one camera -> :class:`Projected`.
 
-    Args:
-      gaussians: the scene, capacity C.
-      camera: a single camera.
-      sh_degree: static active SH degree (<= the pytree's); default all.
-      near, far: camera-space z range kept.
-      means2d_delta: optional float [C, 2] added to the projected means (zeros, to
-        differentiate w.r.t. them).
-    Returns:
-      :class:`Projected`.
+    ``sh_degree``: static active degree (default all); ``near``, ``far``: camera-space z kept;
+    ``means2d_delta``: optional float [C, 2] added to the projected means.
     """
     g = gaussians
     dtype = g.means.dtype
@@ -157,7 +140,6 @@ def project(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = Non
     visible = ok & on_screen & jnp.all(jnp.isfinite(means2d), -1) & jnp.all(jnp.isfinite(ext), -1)
     visible = jax.lax.stop_gradient(visible)
 
-    # SH colour along mean - camera centre.
     centre = -matmul_exact(t_w2c, rot_w2c)  # -R^T t, exact (see matmul_exact)
     colors = shlib.evaluate(jnp.where(vm[:, :, None], g.sh, 0.0), means - centre, sh_degree)
 

@@ -1,7 +1,4 @@
-"""The dense oracle: every pixel against every Gaussian, sorted by depth.
-
-Slow, obviously correct, plain autodiff; the tests hold the tile splatter to it. Per
-pixel, front to back (INRIA's rule), dx, dy from the pixel centre to the mean:
+"""The dense oracle the tests hold the tile splatter to: per pixel, front to back (INRIA):
 
     power = -0.5 (a dx^2 + c dy^2) - b dx dy          (skip if power > 0)
     alpha = min(0.99, o exp(power))                   (skip if alpha < 1/255)
@@ -26,14 +23,8 @@ _BLOCK_ELEMENTS = 1 << 22
 
 
 def pixel_alpha(means2d, conics, opacities, px, py):
-    """alpha of Gaussians at pixel centres, with INRIA's skip rules applied.
-
-    Args:
-      means2d: float [..., 2]; conics: float [..., 3]; opacities: float [...].
-      px, py: float [...], pixel centres (x + 0.5, y + 0.5), broadcastable.
-    Returns:
-      float [...], 0 where skipped (power > 0 or alpha < 1/255).
-    """
+    """alpha float [...] at pixel centres ``px``, ``py`` [...] (broadcastable), 0 where skipped,
+    of means2d [..., 2], conics [..., 3], opacities [...]."""
     dx = means2d[..., 0] - px
     dy = means2d[..., 1] - py
     power = -0.5 * (conics[..., 0] * dx * dx + conics[..., 2] * dy * dy) - conics[..., 1] * dx * dy
@@ -42,15 +33,8 @@ def pixel_alpha(means2d, conics, opacities, px, py):
 
 
 def finish(features, transmittance, background, dtype):
-    """Final images from the accumulated features.
-
-    Args:
-      features: float [H, W, 4], sum_i w_i (r, g, b, z).
-      transmittance: float [H, W], final T.
-      background: float [3] or None (black).
-    Returns:
-      (rgb float [H, W, 3], alpha float [H, W], depth float [H, W]).
-    """
+    """(rgb [H, W, 3], alpha [H, W], depth [H, W]) from features float [H, W, 4] = sum_i w_i
+    (r, g, b, z), final transmittance [H, W] and background [3] or None (black)."""
     rgb = features[..., :3]
     if background is not None:
         rgb = rgb + transmittance[..., None] * jnp.asarray(background, dtype)
@@ -135,8 +119,7 @@ def _weights_one(gaussians, camera, values, near, far):
 
 def accumulate_weights_reference(gaussians: Gaussians, camera: Camera, values, *,
                                  near: float = 0.01, far: float = 1e10) -> jax.Array:
-    """Dense oracle of :func:`jaxedit.raster.render.accumulate_weights`
-    (same signature and output; small images only)."""
+    """Dense oracle of :func:`jaxedit.raster.render.accumulate_weights` (same signature)."""
     values = jnp.asarray(values, gaussians.means.dtype)
     if camera.batch_shape:
         return sum(_weights_one(gaussians, camera[i], values[i], near, far)

@@ -1,11 +1,5 @@
-"""The public entry point: :func:`render` (tile splatter) and its jittable core :func:`render_tiles`.
-
-:func:`.project.project` -> :func:`.binning.bin_gaussians` (fixed-capacity pair
-buffer) -> :func:`.composite.composite` (exact blending, custom VJP). The pair count
-depends on data: outside a trace :func:`render` sizes the buffer on a geometric
-ladder (:func:`render_capacity`) and never returns dropped pairs; inside a caller's
-jit/vmap pass ``max_intersections`` and re-run on ``out.overflow``.
-"""
+"""The entry point: :func:`render` (tile splatter) and its jittable core :func:`render_tiles`:
+project, bin into a fixed-capacity pair buffer, composite."""
 
 from __future__ import annotations
 
@@ -33,8 +27,7 @@ log = logging.getLogger(__name__)
 
 #: Capacities are rounded up to 2^(k/STEPS_PER_OCTAVE) (then to a multiple of 1024).
 STEPS_PER_OCTAVE = 4
-#: The ladder of :func:`render` outside a trace (powers of two): a frame's cost follows its
-#: pairs, not its buffer, so fewer programs win over a tighter buffer.
+#: :func:`render`'s ladder: a frame's cost follows its pairs, not its buffer size.
 RENDER_STEPS_PER_OCTAVE = 1
 MIN_CAPACITY = 1024
 #: Headroom over the counted pairs when a capacity is (re)chosen.
@@ -49,9 +42,8 @@ BACKENDS = ("auto", "xla", "pallas")
 
 
 def resolve_backend(backend: str, platform: str | None = None) -> str:
-    """The compositor for ``backend`` on ``platform`` (default: JAX's default backend):
-    ``auto`` is Pallas on a GPU, XLA elsewhere; ``pallas`` off a GPU runs the interpreter.
-    """
+    """The compositor for ``backend`` on ``platform`` (default JAX's): ``auto`` is Pallas on a
+    GPU, XLA elsewhere; ``pallas`` off a GPU runs the interpreter."""
     if backend not in BACKENDS:
         raise DataError("backend", f"must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if backend == "auto":
@@ -64,9 +56,8 @@ def tile_size(backend: str) -> int:
     return PALLAS_TILE if backend == "pallas" else TILE
 
 def next_capacity(needed: int, steps_per_octave: int = STEPS_PER_OCTAVE) -> int:
-    """Smallest buffer size on the geometric ladder that holds ``needed`` pairs:
-    ``steps_per_octave`` sizes per doubling, multiples of 1024 (few sizes, few recompiles).
-    """
+    """Smallest buffer size holding ``needed`` pairs on the geometric ladder of
+    ``steps_per_octave`` sizes per doubling, multiples of 1024."""
     needed = max(int(needed), MIN_CAPACITY)
     k = math.ceil(steps_per_octave * math.log2(needed) - 1e-9)
     cap = int(math.ceil(2.0 ** (k / steps_per_octave) / 1024.0) * 1024)
@@ -112,11 +103,8 @@ def _render_one(gaussians, camera, background, means2d_delta, near, far, *, capa
 def render_tiles(gaussians: Gaussians, camera: Camera, *, capacity: int, background=None,
                  sh_degree: int | None = None, near: float = 0.01, far: float = 1e10,
                  means2d_delta: jax.Array | None = None, backend: str = "auto") -> RenderOutput:
-    """Pure, jittable tile splatter with a static intersection ``capacity``.
-
-    Arguments as :func:`render`. The caller checks ``out.overflow`` (True: pairs were
-    dropped). Batched cameras are vmapped; the buffer counts pairs at the backend's tile size.
-    """
+    """Pure, jittable tile splatter with a static intersection ``capacity``; arguments as
+    :func:`render`. The caller checks ``out.overflow`` (True: pairs were dropped)."""
     capacity = int(capacity)
     if capacity < 1:
         raise DataError("max_intersections", f"must be a positive int, got {capacity}")
@@ -154,8 +142,7 @@ def count_pairs(gaussians: Gaussians, camera: Camera, *, backend: str = "auto", 
 
 
 def _background_only(gaussians: Gaussians, camera: Camera, background) -> RenderOutput:
-    """The frame of a scene with nothing on screen: background colour, zero
-    alpha/depth, a splatted frame's shapes and dtypes."""
+    """The frame of a scene with nothing on screen, a splatted frame's shapes and dtypes."""
     batch = camera.batch_shape
     dtype = gaussians.means.dtype
     bg = jnp.zeros((3,), dtype) if background is None else jnp.asarray(background, dtype)
@@ -181,9 +168,8 @@ def _pad_slots(gaussians: Gaussians, means2d_delta, capacity: int):
 
 
 def _bucketed(gaussians: Gaussians, means2d_delta):
-    """The scene padded with dead slots to its capacity's step on the
-    :func:`render_capacity` ladder (``means2d_delta`` with zeros), so scenes of nearby sizes
-    share one program; dead slots draw nothing."""
+    """The scene padded with dead slots to its :func:`render_capacity` step, so scenes of
+    nearby sizes share one program."""
     padded = render_capacity(gaussians.capacity)
     if padded == gaussians.capacity:
         return gaussians, means2d_delta
@@ -254,7 +240,6 @@ def render(gaussians: Gaussians, camera: Camera, *, background=None, sh_degree: 
         cap = render_capacity(needed * HEADROOM)
     while True:
         out = _render_tiles_jit(gaussians, camera, capacity=cap, **kwargs)
-        # Host reads of the small per-frame arrays, not eager reductions.
         overflow = bool(np.any(np.asarray(out.overflow)))
         if not overflow:
             return _unpadded(out, n)
@@ -280,16 +265,9 @@ def _weights_one(gaussians, camera, values, near, far, *, capacity, sh_degree):
 
 def accumulate_weights(gaussians: Gaussians, camera: Camera, values, *, near: float = 0.01,
                        far: float = 1e10) -> jax.Array:
-    """Per Gaussian, the sum over pixels (and views) of its blending weight
-    T_i alpha_i times per-pixel values: the pass behind per-Gaussian relevance (no gradient).
-
-    Args:
-      gaussians: the scene, capacity C.
-      camera: one Camera, or a batch [B] (summed, one view at a time).
-      values: float [H, W, F] ([B, H, W, F] for a batch).
-    Returns:
-      float [C, F]; 0 for dead or never-drawn Gaussians. Outside a trace only; XLA compositor.
-    """
+    """Per Gaussian, sum over pixels (and views) of T_i alpha_i times ``values`` float
+    [H, W, F] ([B, H, W, F] for a batch of cameras): float [C, F], 0 for Gaussians never
+    drawn. No gradient; outside a trace only."""
     values = jnp.asarray(values, gaussians.means.dtype)
     if camera.batch_shape:
         total = jnp.zeros((gaussians.capacity, values.shape[-1]), values.dtype)
