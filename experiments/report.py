@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from jaxedit.errors import check_ranges, ranged
+from jaxedit.errors import DataError, check_ranges, ranged
 
 HELP = "write RUN_DIR/report.html (self-contained) from a run directory's JSON and images"
 
@@ -60,8 +60,14 @@ def run_config(args) -> ReportConfig:
 
 def run(args) -> dict:
     from jaxedit.pipelines.report import write_report
+    from jaxedit_lab.ablation.report import write_ablation_report
 
     config = run_config(args)
-    path = write_report(args.run_dir, out=config.output, thumb_px=config.thumb_px,
-                        max_views=config.max_views, max_bytes=int(config.max_mb * 1e6))
+    kinds = ("schedule.json", "ablation.json", "metrics.json")
+    if args.run_dir.is_dir() and not any((args.run_dir / k).is_file() for k in kinds):
+        raise DataError(args.run_dir, "not a run directory (no schedule.json, ablation.json or "
+                                      "metrics.json)")
+    write = write_ablation_report if (args.run_dir / "ablation.json").exists() else write_report
+    path = write(args.run_dir, out=config.output, thumb_px=config.thumb_px,
+                 max_views=config.max_views, max_bytes=int(config.max_mb * 1e6))
     return {"report": str(path), "bytes": path.stat().st_size}

@@ -11,9 +11,9 @@ from scipy import stats
 
 from experiments import cli
 from jaxedit_lab.ablation import METHODS, summarise, tables
+from jaxedit_lab.ablation.report import write_ablation_report
 from jaxedit import DataError
 from jaxedit.metrics import mean_ci, mode_mixture, mode_scores, paired_differences
-from jaxedit.pipelines.report import write_report
 
 PROMPTS = ("make it look like autumn", "make his head bigger")
 
@@ -104,15 +104,15 @@ def test_report_shows_the_statistics(tmp_path):
     (tmp_path / "ablation.json").write_text(json.dumps({
         "settings": {"scenes": ["face"], "seeds": 3}, "runs": runs, "summary": summary,
         "differences": differences}))
-    text = write_report(tmp_path).read_text()
+    text = write_ablation_report(tmp_path).read_text()
     assert "editor modes = 3: mode_mixing" in text and "not InstructPix2Pix" in text
     assert "proedit − nd_equal" in text and "data:image/png;base64," in text
     (tmp_path / "ablation.json").write_text(json.dumps({"proedit": {"psnr": 3}}))
     with pytest.raises(DataError, match="ablation.json"):
-        write_report(tmp_path)
+        write_ablation_report(tmp_path)
     (tmp_path / "ablation.json").write_text(json.dumps({"runs": [], "summary": [{"mean": 1}]}))
     with pytest.raises(DataError, match=r"summary\[0\]"):
-        write_report(tmp_path)
+        write_ablation_report(tmp_path)
 
 
 @pytest.mark.parametrize("argv, needle", [

@@ -175,6 +175,26 @@ def test_report_shrinks_to_budget_and_validates(tmp_path):
         write_report(run)
 
 
+def test_a_run_kind_outside_the_library_brings_its_own_sections(tmp_path):
+    # The seam the lab's ablation page uses: the sections replace the edit/generic ones and
+    # are asked again at smaller sizes while the page is over budget.
+    (tmp_path / "study.json").write_text(json.dumps({"answer": 42}))
+    sizes = []
+
+    def sections(run_dir, *, thumb_px, max_views, turntable_px, max_frames):
+        sizes.append(thumb_px)
+        answer = json.loads((run_dir / "study.json").read_text())["answer"]
+        return [("study", "Study", f"<p>answer {answer}</p>" + "x" * (thumb_px * 100))]
+
+    with pytest.raises(DataError, match="not a run directory"):
+        write_report(tmp_path)  # the library alone knows no study.json
+    text = write_report(tmp_path, sections=sections, title="my study", max_bytes=15_000,
+                        thumb_px=192).read_text()
+    assert "<title>my study</title>" in text and '<section id="study"><h2>Study</h2>' in text
+    assert "answer 42" in text and len(text) <= 15_000
+    assert sizes[0] == 192 and sizes == sorted(sizes, reverse=True) and len(sizes) > 1
+
+
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 

@@ -557,9 +557,9 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
     payload = finish(out, runs, settings_json,
                      wall_time_s=elapsed0 + time.perf_counter() - t_start)
     if report:
-        from jaxedit.pipelines.report import write_report
+        from jaxedit_lab.ablation.report import write_ablation_report
 
-        write_report(out)
+        write_ablation_report(out)
     return payload
 
 

@@ -10,8 +10,8 @@ interval is ProEdit's own spread)."""
 from __future__ import annotations
 
 from jaxedit.metrics import mean_ci, paired_differences
-from jaxedit.pipelines.report import ablation_table
 from jaxedit_lab.ablation.methods import METHODS
+from jaxedit_lab.ablation.report import ablation_table
 
 #: The reference levels: the unedited reconstruction and the ceiling (a scene trained
 #: directly on one outcome's targets).

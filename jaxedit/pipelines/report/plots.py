@@ -85,63 +85,6 @@ def tree_plot(branches: list[dict], threshold) -> str:
     return _figure_uri(fig)
 
 
-ABLATION_METHODS = ("proedit", "nd", "nd_equal", "nd_replay", "nd_k", "uniform", "in2n", "nd_equal_steps",
-                    "unedited", "ceiling")
-_METHOD_COLOURS = {"proedit": "#d62728", "nd": "#1f77b4", "nd_equal": "#2ca02c",
-                   "nd_k": "#17becf", "uniform": "#ff7f0e", "in2n": "#9467bd",
-                   "nd_equal_steps": "#8c564b"}
-
-
-def _summary_index(rows: list[dict]) -> dict:
-    return {(r["editor_modes"], r["scene"], r["prompt"], r["method"], r["metric"]): r
-            for r in rows}
-
-
-def ablation_plot(summary: list[dict], *, metrics=("psnr_best", "mode_mixing")) -> str | None:
-    """PNG data URI: each method's mean and CI per editor-modes setting (rows) and metric."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    index = _summary_index(summary)
-    modes = sorted({r["editor_modes"] for r in summary})
-    metrics = [m for m in metrics if any(r["metric"] == m for r in summary)]
-    if not modes or not metrics:
-        return None
-    groups = list(dict.fromkeys((r["scene"], r["prompt"]) for r in summary))
-    methods = [m for m in ABLATION_METHODS if any(r["method"] == m for r in summary)]
-    fig, axes = plt.subplots(len(modes), len(metrics), squeeze=False,
-                             figsize=(max(8.0, 0.55 * len(groups) * len(metrics) + 3),
-                                      2.9 * len(modes)))
-    width = 0.8 / max(len(methods), 1)
-    for i, k in enumerate(modes):
-        for j, metric in enumerate(metrics):
-            ax = axes[i][j]
-            for n, method in enumerate(methods):
-                xs, ys, es = [], [], []
-                for g, (scene, prompt) in enumerate(groups):
-                    r = index.get((k, scene, prompt, method, metric))
-                    if r is not None:
-                        xs.append(g + (n - (len(methods) - 1) / 2) * width)
-                        ys.append(r["mean"])
-                        es.append(r["ci"] or 0.0)
-                ax.errorbar(xs, ys, yerr=es, fmt="o", ms=4, capsize=2, lw=1,
-                            color=_METHOD_COLOURS.get(method, "#555555"), label=method)
-            ax.set_xticks(range(len(groups)),
-                          [f"{sc}: {pr[:18]}" for sc, pr in groups], rotation=40, ha="right",
-                          fontsize=7)
-            ax.set_title(f"editor modes = {k}: {metric}", fontsize=9)
-            ax.set_ylabel("0: one mode, 1: even blend" if metric == "mode_mixing"
-                          else "higher is better", fontsize=8)
-            ax.tick_params(axis="y", labelsize=8)
-            for g in range(1, len(groups)):
-                ax.axvline(g - 0.5, color="#eeeeee", lw=0.8, zorder=0)
-    axes[0][0].legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    return _figure_uri(fig)
-
-
 def training_plot(records: list[dict]) -> str | None:
     """PNG data URI: loss, PSNR and Gaussian count over the training steps."""
     import matplotlib

@@ -7,8 +7,6 @@
     metrics.json     {name: number, ...}
     original/renders/*.png, original/depth/*.png (optional)
     subtasks/NN_rX.XXX/{renders/*.png, depth/*.png, turntable.webp, metrics.json}
-    ablation.json    {settings, runs, summary, differences} (experiments/ablation.py),
-                     views/*.png
     train_log.jsonl  {"step", "loss", "psnr", "num_gaussians", ...} per line (a reconstruction)
 """
 

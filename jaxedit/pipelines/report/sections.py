@@ -1,5 +1,4 @@
-"""The page's sections, [(anchor, title, html)], for an edit run, an ablation run and any
-other run."""
+"""The page's sections, [(anchor, title, html)], for an edit run and any other run."""
 
 from __future__ import annotations
 
@@ -9,8 +8,7 @@ from pathlib import Path
 from ...errors import DataError
 from .html import _e, _fmt, _img, _kv_table, _metric_names, _reproduce, _slider, _table
 from .images import _grid_uri, _load_thumb, _turntable_uri, image_uri
-from .plots import (ABLATION_METHODS, _summary_index, ablation_plot, difficulty_plot,
-                    training_plot, tree_plot)
+from .plots import difficulty_plot, training_plot, tree_plot
 from .rundir import _is_number, _pngs, _snapshot_dir, read_json, read_train_log
 
 
@@ -224,114 +222,6 @@ def _local_body(run_dir: Path, local: dict, *, thumb_px: int, max_views: int) ->
             "held-out views.</p>" + _kv_table(figures))
     return body + (_img(uri, "relevance over the held-out views") if uri
                    else '<p class="missing">no relevance images recorded</p>')
-
-
-# Ablation run
-def ablation_table(summary: list[dict], differences: list[dict], *, editor_modes: int,
-                   metric: str, digits: int = 2) -> tuple[list[str], list[list[str]]]:
-    """(header, rows) of plain-text cells: one row per (scene, instruction), the mean ± 95% CI
-    of every method, then the paired difference proedit - other (``*``: its CI excludes 0)."""
-    index, dindex = _summary_index(summary), _summary_index(differences)
-    groups = list(dict.fromkeys((r["scene"], r["prompt"]) for r in summary
-                                if r["editor_modes"] == editor_modes))
-    methods = [m for m in ABLATION_METHODS
-               if (editor_modes, *groups[0], m, metric) in index] if groups else []
-    others = [m for m in methods if m != "proedit"]
-
-    def cell(r, mark=False):
-        if r is None:
-            return "-"
-        ci = "" if r["ci"] is None else f" ± {r['ci']:.{digits}f}"
-        sig = mark and r["ci"] is not None and abs(r["mean"]) > r["ci"]
-        return f"{r['mean']:.{digits}f}{ci}" + (" *" if sig else "")
-
-    header = ["scene", "instruction"] + methods + [f"proedit − {m}" for m in others]
-    rows = [[scene, prompt] + [cell(index.get((editor_modes, scene, prompt, m, metric)))
-                               for m in methods]
-            + [cell(dindex.get((editor_modes, scene, prompt, m, metric)), True) for m in others]
-            for scene, prompt in groups]
-    return header, rows
-
-
-#: What the simulated ablation can and cannot show (shown on every ablation page).
-SIMULATION_NOTE = (
-    "The editor here is jaxedit's simulated editor, a test instrument with known noise-free "
-    "targets, not InstructPix2Pix. With <b>editor modes = 1</b> each instruction has one "
-    "outcome and views differ only by noise that shrinks as the render approaches the target; "
-    "with <b>editor modes = K &gt; 1</b> each edit call draws one of K discrete, individually "
-    "3D-consistent outcomes, with probabilities that follow how close the current render is "
-    "to each (jaxedit_lab.simulated, section 4). The ablation therefore tests how the editing "
-    "machinery (schedule, iterative dataset update, adaptive 3DGS) responds to divergent modes "
-    "of a known size. It cannot show how large a real diffusion model's feasible output space "
-    "is, how its modes are distributed, or how the difficulty measure tracks them; scores are "
-    "against the simulated targets only, on small CPU-sized scenes.")
-
-
-def _ablation_sections(run_dir: Path, ablation: dict, *, thumb_px: int, max_views: int,
-                       turntable_px: int, max_frames: int) -> list[tuple[str, str, str]]:
-    path = run_dir / "ablation.json"
-    if not (isinstance(ablation, dict) and isinstance(ablation.get("runs"), list)
-            and isinstance(ablation.get("summary", []), list)
-            and isinstance(ablation.get("differences", []), list)):
-        raise DataError(path, "must be an object {settings, runs: [...], summary: [...], "
-                              "differences: [...]} (python -m experiments ablation)")
-    need = ("editor_modes", "scene", "prompt", "method", "metric", "mean", "ci")
-    for name in ("summary", "differences"):
-        for i, r in enumerate(ablation.get(name, [])):
-            if not isinstance(r, dict) or any(k not in r for k in need) \
-                    or not _is_number(r["mean"]) or not (r["ci"] is None or _is_number(r["ci"])):
-                raise DataError(path, f"{name}[{i}] needs {', '.join(need)} (numbers for "
-                                      f"mean and ci)")
-    summary, differences = ablation.get("summary", []), ablation.get("differences", [])
-    settings = ablation.get("settings") or {}
-    config = read_json(run_dir / "config.json", required=False)
-    note = SIMULATION_NOTE if settings.get("editor", "simulated") == "simulated" else (
-        f"The editor here is {_e(str(settings.get('editor')))}; outcomes are its instructions' "
-        "outcome targets (jaxedit_lab.ablation.outcomes).")
-    body = (f"<p>{note}</p><p>{len(ablation['runs'])} edit runs; means and "
-            "Student-t 95% confidence intervals over seeds; differences are paired by seed "
-            "(proedit minus the other method); &ldquo;all&rdquo; averages the instructions of "
-            "a seed first.</p>" + _reproduce(config))
-    if settings:
-        body += "<h3>Settings</h3>" + _kv_table(settings)
-    sections = [("instruction", "Ablation", body)]
-    if not summary:
-        sections.append(("metrics", "Statistics", '<p class="missing">no summary yet (the run '
-                                                  "has not finished)</p>"))
-        return sections
-
-    body = ""
-    for k in sorted({r["editor_modes"] for r in summary}):
-        for metric, digits in (("psnr_best", 2), ("ssim_best", 3), ("outcome_agreement", 3),
-                               ("mode_mixing", 3), ("plateau_share", 3),
-                               ("multiview_consistency", 2), ("total_steps", 0)):
-            header, rows = ablation_table(summary, differences, editor_modes=k, metric=metric,
-                                          digits=digits)
-            if not rows or len(header) <= 2:
-                continue
-            body += (f"<h3>editor modes = {k}: {_e(metric)}</h3>"
-                     + _table([_e(h) for h in header], [[_e(c) for c in row] for row in rows],
-                              "ablation"))
-    body += ("<p>psnr_best / ssim_best: best over modes of the per-scene score against that "
-             "mode's noise-free target at r = 1 (higher is better); mode_mixing: 0 when the "
-             "result is one mode, 1 for an even blend of all; multiview_consistency: "
-             "reprojection PSNR between neighbouring test views (dB). <b>*</b>: the 95% CI of "
-             "the paired difference excludes 0.</p>")
-    plot = ablation_plot(summary)
-    if plot:
-        body += _img(plot, "means and 95% CIs per method", "plot")
-    sections.append(("metrics", "Statistics", body))
-
-    views = sorted((run_dir / "views").glob("*.png")) if (run_dir / "views").is_dir() else []
-    if views:
-        methods = settings.get("methods") or list(ABLATION_METHODS)
-        rows = [[f"<b>{_e(p.stem)}</b>",
-                 _img(image_uri(_load_thumb(p, 6 * thumb_px)), p.stem)] for p in views]
-        body = (f"<p>Seed 0, test views. Rows of each image: the noise-free target of every "
-                f"mode at r = 1, then the final scene of {_e(', '.join(methods))}.</p>"
-                + _table(["run", "targets, then methods"], rows, "compare"))
-        sections.append(("compare", "Views", body))
-    return sections
 
 
 # Any other run (e.g. a reconstruction)
