@@ -43,7 +43,7 @@ from ..edit.outputs import Renderer
 from ..edit.state import begin_subtask, init_state
 from ..edit.subtask import compile_chunk
 from ..edit.plan import ProEditConfig, SubtaskSpec
-from ..edit.trainer import TrainSettings
+from ..edit.trainer import TrainSettings, resolve_max_gaussians
 from ..errors import DataError, check_ranges, ranged
 from ..editors.diffusion import DDIM_STEPS
 from ..io import load_nerfstudio, load_ply, load_scene
@@ -347,7 +347,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     if not str(prompt).strip() and config.mode != "in2n":
         raise DataError("prompt", "empty instruction")
     run_dir = None if run_dir is None else Path(run_dir)
-    trainer = progressive.make_trainer(config, settings or TrainSettings(), data, gaussians)
+    # the cap is checked before the local plan's work, whose editable set the trainer takes
+    settings = resolve_max_gaussians(settings or TrainSettings(), int(gaussians.num_alive()))
     _, editor_device = pick_devices()
     # The prompt is encoded once per run: here when the local plan's relevance needs it
     # first, else by EditContext.create (after the local plan, whose errors come first).
@@ -365,10 +366,11 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             embedding=None if embeddings is None else embeddings[0],
             key=jax.random.fold_in(jax.random.key(seed), 35))
         masks, local_figures = local_plan.masks, local_plan.figures
-        trainer.editable = local_plan.editable
         log(f"local edit: {local_figures['editable']} Gaussians editable, "
             f"{local_figures['frozen']} frozen, {100 * local_figures['mask_fraction']:.1f}% "
             f"of the pixels inside ({local_figures['seconds']:.1f} s)")
+    trainer = progressive.make_trainer(config, settings, data, gaussians,
+                                       None if local_plan is None else local_plan.editable)
     ctx = EditContext.create(editor, prompt, data, config, trainer, Renderer(config.background),
                              jax.random.key(seed), editor_device, masks=masks,
                              embeddings=embeddings, hooks=hooks)
