@@ -110,16 +110,37 @@ class ChunkResult(NamedTuple):
     metrics: dict
 
 
-# Plain-number settings are traced, not static, so runs differing only in them share one
-# program; min_delta stays static.
+class ChunkScalars(NamedTuple):
+    """A chunk's plain-number settings, traced (int32 scalars each, a pytree) so that runs
+    differing only in them share one program.
+
+    subtask: the spec's index; step0: the subtask's step at the chunk's start; n_active:
+    steps to run (<= the chunk's length); stop_if_plateau: 1 ends the chunk at a plateau;
+    earliest_end: :func:`earliest_end`; warmup, patience: the config's; stop_on_plateau:
+    the limits' (0: no plateau is ever reported).
+    """
+
+    subtask: Any
+    step0: Any
+    n_active: Any
+    stop_if_plateau: Any
+    earliest_end: Any
+    warmup: Any
+    patience: Any
+    stop_on_plateau: Any
+
+    def on_device(self) -> "ChunkScalars":
+        return jax.device_put(ChunkScalars(*(np.int32(int(v)) for v in self)))
+
+
+# min_delta stays static.
 @functools.partial(jax.jit, static_argnames=("length", "min_delta"))
-def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars, *, length,
-                min_delta):
-    subtask, step0, n_active = scalars[0], scalars[1], scalars[2]
-    stop_if_plateau, earliest_end = scalars[3] > 0, scalars[4]
-    warmup, patience, stop_on_plateau = scalars[5], scalars[6], scalars[7] > 0
+def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars: ChunkScalars,
+                *, length, min_delta):
+    step0, warmup, patience = scalars.step0, scalars.warmup, scalars.patience
+    stop_if_plateau, stop_on_plateau = scalars.stop_if_plateau > 0, scalars.stop_on_plateau > 0
     window = tracker.recent.shape[0]
-    key_sub = jax.random.fold_in(run_key, subtask)
+    key_sub = jax.random.fold_in(run_key, scalars.subtask)
     views_key, train_key = (jax.random.fold_in(key_sub, _VIEWS),
                             jax.random.fold_in(key_sub, _TRAIN))
     num_views = images.shape[0]
@@ -145,10 +166,10 @@ def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars
     def after(carry, m, i):
         tr = carry[1]
         plateau = (stop_on_plateau & (tr.count >= window) & (tr.since_best >= patience)
-                   & (step0 + i + 1 >= earliest_end))
+                   & (step0 + i + 1 >= scalars.earliest_end))
         return dict(m, plateau=plateau), plateau & stop_if_plateau
 
-    (train_state, tracker), metrics = scan_steps(one, (train_state, tracker), n_active,
+    (train_state, tracker), metrics = scan_steps(one, (train_state, tracker), scalars.n_active,
                                                  length=length, after=after)
     return train_state, tracker, metrics
 
@@ -162,8 +183,10 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
     without ``limits.stop_on_plateau``).
     """
     cfg = ctx.config
-    scalars = [spec.index, st.step, num_steps, stop_if_plateau, earliest_end(st, cfg),
-               cfg.warmup, cfg.patience, limits.stop_on_plateau]
+    scalars = ChunkScalars(subtask=spec.index, step0=st.step, n_active=num_steps,
+                           stop_if_plateau=stop_if_plateau, earliest_end=earliest_end(st, cfg),
+                           warmup=cfg.warmup, patience=cfg.patience,
+                           stop_on_plateau=limits.stop_on_plateau)
     train, tracker, metrics = _edit_chunk(*_chunk_args(ctx, st, scalars), length=CHUNK,
                                           min_delta=cfg.min_delta)
     metrics = jax.device_get(metrics)
@@ -177,18 +200,18 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
             ChunkResult(np.asarray(metrics["loss"][:k]), redo, plateau, metrics))
 
 
-def _chunk_args(ctx: EditContext, st: EditState, scalars: list) -> tuple:
+def _chunk_args(ctx: EditContext, st: EditState, scalars: ChunkScalars) -> tuple:
     """:func:`_edit_chunk`'s arguments at ``st``, committed where they are, with the
-    eight int32 ``scalars`` uploaded."""
+    ``scalars`` uploaded."""
     return (*commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
-                     ctx.key)), jax.device_put(np.asarray(scalars, np.int32)))
+                     ctx.key)), scalars.on_device())
 
 
 def compile_chunk(ctx: EditContext, st: EditState) -> None:
     """Compile (or read from the persistent cache) the training chunk for ``st``'s
     shapes without running it, so the first chunk starts at once; the edit does it on a
     thread while the difficulty schedule runs."""
-    _edit_chunk.lower(*_chunk_args(ctx, st, [0] * 8), length=CHUNK,
+    _edit_chunk.lower(*_chunk_args(ctx, st, ChunkScalars(*[0] * 8)), length=CHUNK,
                       min_delta=ctx.config.min_delta).compile()
 
 
