@@ -27,7 +27,7 @@ from .context import EditContext
 from .local import blend
 from .plan import (ProEditConfig, SubtaskLimits, SubtaskSpec, anneal_horizon, anneal_timestep,
                    subtask_limits)
-from .state import EditState, apply_edits, begin_subtask, tally_density, track_loss
+from .state import DeviceState, EditState, apply_edits, begin_subtask, tally_density, track_loss
 
 # fold_in "purposes" of the per-subtask key: one stream per use, never shared.
 _ORDER, _TRAIN, _VIEWS, _EDIT = 1, 2, 3, 4
@@ -135,8 +135,9 @@ class ChunkScalars(NamedTuple):
 
 # min_delta stays static.
 @functools.partial(jax.jit, static_argnames=("length", "min_delta"))
-def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars: ChunkScalars,
-                *, length, min_delta):
+def _edit_chunk(device: DeviceState, cameras, regions, run_key, scalars: ChunkScalars, *,
+                length, min_delta):
+    train_state, images, tracker = device
     step0, warmup, patience = scalars.step0, scalars.warmup, scalars.patience
     stop_if_plateau, stop_on_plateau = scalars.stop_if_plateau > 0, scalars.stop_on_plateau > 0
     window = tracker.recent.shape[0]
@@ -195,16 +196,15 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
     redo = bool(np.any(metrics["ran"] & metrics["redo"]))
     plateau = bool(k and metrics["plateau"][k - 1])
     density = tally_density(st.density, metrics["densify"], completed)
-    return (dataclasses.replace(st, train=train, tracker=tracker, step=st.step + k,
-                                density=density),
+    return (st.replace(train=train, tracker=tracker, step=st.step + k, density=density),
             ChunkResult(np.asarray(metrics["loss"][:k]), redo, plateau, metrics))
 
 
 def _chunk_args(ctx: EditContext, st: EditState, scalars: ChunkScalars) -> tuple:
     """:func:`_edit_chunk`'s arguments at ``st``, committed where they are, with the
     ``scalars`` uploaded."""
-    return (*commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
-                     ctx.key)), scalars.on_device())
+    return (*commit((st.device, ctx.data.train_cameras, ctx.masks, ctx.key)),
+            scalars.on_device())
 
 
 def compile_chunk(ctx: EditContext, st: EditState) -> None:
@@ -338,10 +338,10 @@ def step(sub: Subtask, loop: SubtaskLoop) -> tuple[SubtaskLoop, ChunkResult]:
                            stop_if_plateau=stop_if_plateau)
     if chunk.redo:
         k = len(chunk.losses)
-        st = dataclasses.replace(st, train=grow_for_redo(st.train, jax.tree_util.tree_map(
+        st = st.replace(train=grow_for_redo(st.train, jax.tree_util.tree_map(
             lambda a: a[k], chunk.metrics)))
     st = take_edits(ctx, st, source.collect(), sub.horizon)
-    st = dataclasses.replace(st, seconds=time.perf_counter() - sub.started)
+    st = st.replace(seconds=time.perf_counter() - sub.started)
     timed_out_at = loop.timed_out_at
     if timed_out_at is None and cfg.max_seconds is not None and st.seconds >= cfg.max_seconds:
         timed_out_at = st.step
@@ -372,7 +372,7 @@ def settle(sub: Subtask, loop: SubtaskLoop, chunk: ChunkResult) -> tuple[Subtask
     cfg, st = sub.ctx.config, loop.st
     if chunk.plateau and not st.edited.all() and sub.source.can_wait:
         st = await_views(sub, st)
-        st = dataclasses.replace(st, tracker=st.tracker._replace(since_best=jnp.int32(0)))
+        st = st.replace(tracker=st.tracker._replace(since_best=jnp.int32(0)))
         return loop._replace(st=st), False
     if chunk.plateau and st.edited.all():
         return loop._replace(converged=True, done=True), False
@@ -394,7 +394,7 @@ def terminate(loop: SubtaskLoop) -> bool:
 def postprocess(sub: Subtask, loop: SubtaskLoop) -> tuple[EditState, dict]:
     """(the state at the end of the subtask, its info); call after the source is closed."""
     cfg, source, plateau = sub.ctx.config, sub.source, sub.limits.stop_on_plateau
-    st = dataclasses.replace(loop.st, seconds=time.perf_counter() - sub.started,
+    st = loop.st.replace(seconds=time.perf_counter() - sub.started,
                              utilisation=loop.st.utilisation.add(source.utilisation))
     guard = None if loop.converged or not plateau else (
         "seconds" if loop.timed_out_at is not None else "steps")
