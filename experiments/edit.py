@@ -179,7 +179,7 @@ def _command_flags():
 
 
 def _flag_sets():
-    from .cli import distributed_flags
+    from .distributed import distributed_flags
 
     return _config_flags(), _command_flags(), distributed_flags()
 
@@ -246,7 +246,7 @@ def config_tree_json(tree) -> str:
     (without the fields another flag sets)."""
     import json
 
-    from .cli import jsonable
+    from .configfiles import jsonable
 
     out = jsonable(dataclasses.asdict(tree))
     for path in FLAGS[0].derived:
@@ -495,7 +495,7 @@ def run(args) -> dict:
     from jaxedit.pipelines import select_snapshot
     from jaxedit.pipelines.edit import edit_files
 
-    from .cli import writes
+    from .rundirs import writes
     from .editors import make_editor
     from .export import export_selected
 

@@ -95,7 +95,7 @@ def check_sizes(args) -> None:
     machine's, before any work."""
     from jaxedit.scenes.dataset import PROCEDURAL_DEFAULTS
 
-    from experiments.cli import require_memory
+    from jaxedit.memory import require_memory
 
     run_config(args)
     if args.name in _rendered_scenes():

@@ -50,7 +50,7 @@ def _config_flags() -> FlagSet:
 
 
 def _flag_sets():
-    from experiments.cli import distributed_flags
+    from experiments.distributed import distributed_flags
 
     return _config_flags(), distributed_flags()
 
@@ -88,7 +88,7 @@ def run_config(args):
 def _check(args, config) -> None:
     from jaxedit import DataError
 
-    from experiments.cli import require_memory
+    from jaxedit.memory import require_memory
 
     if args.out is None:
         raise DataError("--out", "reconstruct needs a run directory (--out RUN_DIR)")
@@ -107,7 +107,7 @@ def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.parallel.distributed import process_count
 
-    from experiments.cli import writes
+    from experiments.rundirs import writes
 
     config = run_config(args)
     _check(args, config)

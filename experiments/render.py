@@ -112,7 +112,7 @@ def _check(args) -> None:
 
 def check_memory(n: int, width: int, height: int) -> None:
     """Refuse a camera path whose frames would not fit in memory (they are kept for the video)."""
-    from experiments.cli import require_memory
+    from jaxedit.memory import require_memory
 
     # float32 RGB, alpha and depth per pixel per frame, kept until the turntable is written.
     per_frame = width * height * 4 * 5

@@ -222,10 +222,10 @@ def _surface_inputs(root: Path, scene: Path) -> None:
     def edit_run(name: str, size: int = 16, finished=(), **record) -> Path:
         run = root / "edit_runs" / name
         run.mkdir(parents=True)
-        st = EditState(subtask=0, step=0, train=train,
-                       images=np.zeros((3, size, size, 3), np.float32),
-                       edited=np.zeros(3, bool), tracker=LossTracker.init(10),
-                       records=tuple(finished))
+        st = EditState.create(subtask=0, step=0, train=train,
+                              images=np.zeros((3, size, size, 3), np.float32),
+                              edited=np.zeros(3, bool), tracker=LossTracker.init(10),
+                              records=tuple(finished))
         save_checkpoint(run / "checkpoint.npz", st, {"plan": plan, "header": {},
                                                      "wall_time_s": 1.0})
         arrays, info = read_pytree(run / "checkpoint.npz", kind="edit")
@@ -235,7 +235,7 @@ def _surface_inputs(root: Path, scene: Path) -> None:
         (run / "config.json").write_text('{"command": "edit", "mine": true}\n')
         return run
 
-    edit_run("missing_keys", tracker=None)
+    edit_run("missing_keys", seconds=None)
     edit_run("unknown_keys", surprise=1)
     edit_run("wrong_types", step="3")
     edit_run("other_size", size=8)
@@ -474,7 +474,7 @@ def surface_cases(inp: dict, root: Path) -> list[tuple]:
                   ["edit", "--data", str(inp["data"]), "--scene", str(inp["scene"]), "--out",
                    out, "--quiet", "--prompt", "z" * 10_000], "--prompt", None))
     # Damaged edit run directories on --resume: refused, the folder byte-identical.
-    for name, needle in [("missing_keys", "lacks tracker"), ("unknown_keys", "surprise"),
+    for name, needle in [("missing_keys", "lacks seconds"), ("unknown_keys", "surprise"),
                          ("wrong_types", "step"), ("other_size", "8x8 px"),
                          ("snapshot_deleted", "is missing"),
                          ("snapshot_truncated", "truncated or replaced")]:

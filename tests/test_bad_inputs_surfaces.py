@@ -476,10 +476,10 @@ def _edit_run(corpus, tmp_path: Path, *, size: int = 16, views: int = 3, finishe
     run.mkdir(exist_ok=True)
     g = load_ply(corpus.scene)
     train = SubtaskTrainer(TrainSettings(scene_extent=1.0), int(g.num_alive())).init(g)
-    st = EditState(subtask=0, step=0, train=train,
-                   images=np.zeros((views, size, size, 3), np.float32),
-                   edited=np.zeros(views, bool), tracker=LossTracker.init(10),
-                   records=tuple(finished))
+    st = EditState.create(subtask=0, step=0, train=train,
+                          images=np.zeros((views, size, size, 3), np.float32),
+                          edited=np.zeros(views, bool), tracker=LossTracker.init(10),
+                          records=tuple(finished))
     plan = [{"index": 0, "name": "r1", "ratio": 1.0, "difficulty": None, "kind": "edit"}]
     ckpt = run / "checkpoint.npz"
     save_checkpoint(ckpt, st, {"plan": plan, "header": {}, "wall_time_s": 1.0})
@@ -507,7 +507,7 @@ def _resume(corpus, run: Path) -> list:
 
 
 @pytest.mark.parametrize("record, needle", [
-    ({"tracker": _DROP}, "lacks tracker"), ({"subtask": _DROP}, "lacks subtask"),
+    ({"seconds": _DROP}, "lacks seconds"), ({"subtask": _DROP}, "lacks subtask"),
     ({"surprise": 1}, "unknown surprise"), ({"step": "3"}, "step"),
     ({"step": True}, "step"), ({"records": {}}, "records"), ({"tracker": [1, 2]}, "tracker"),
     ({"utilisation": {"bogus": 1}}, "utilisation"), ({"subtask": -1}, "negative"),

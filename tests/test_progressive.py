@@ -84,16 +84,16 @@ def test_the_loss_tracker_starts_afresh_once_the_training_images_are_final():
     t = LossTracker.init(2)
     for loss in [1.0, 1.0, 1.0]:
         t = track_loss(t, loss, min_delta=0.0)
-    st = EditState(subtask=0, step=40, train=None, images=jax.numpy.zeros((2, 1, 1, 3)),
-                   edited=np.zeros(2, bool), tracker=t)
+    st = EditState.create(subtask=0, step=40, train=None, images=jax.numpy.zeros((2, 1, 1, 3)),
+                          edited=np.zeros(2, bool), tracker=t)
     image = np.ones((1, 1, 3), np.float32)
     st = apply_edits(st, [0], [image], [True])     # annealed, not every view edited
     assert st.annealed_at == 40 and st.complete_at < 0 and int(st.tracker.count) == 3
-    st = dataclasses.replace(st, step=45)
+    st = st.replace(step=45)
     st = apply_edits(st, [1], [image], [False])    # now both: a fresh tracker
     assert st.complete_at == 45 and int(st.tracker.count) == 0
     assert not np.isfinite(float(st.tracker.best)) and st.tracker.recent.shape == (2,)
-    st = dataclasses.replace(st, tracker=track_loss(st.tracker, 3.0, min_delta=0.0), step=50)
+    st = st.replace(tracker=track_loss(st.tracker, 3.0, min_delta=0.0), step=50)
     st = apply_edits(st, [0], [image], [True])     # later edits keep it
     assert int(st.tracker.count) == 1
 
@@ -485,7 +485,7 @@ def test_step_chunk_is_a_pure_function_of_its_inputs(chunk_start, num_steps, sto
     from jaxedit.edit.subtask import step_chunk
 
     ctx, start, spec, limits = chunk_start
-    start = dataclasses.replace(start, step=skip)  # any point of the subtask
+    start = start.replace(step=skip)  # any point of the subtask
     before = _bits((start.train, start.tracker, start.images))
     a, ra = step_chunk(ctx, start, spec, limits, num_steps, stop_if_plateau=stop_if_plateau)
     b, rb = step_chunk(ctx, start, spec, limits, num_steps, stop_if_plateau=stop_if_plateau)

@@ -9,6 +9,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import typing
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -18,33 +19,49 @@ from ..errors import DataError
 from ..io.checkpoint import read_pytree, restore, save_pytree
 from ..train.checkpoint import PRE_TRACED_EXTENT
 from .buffer import Utilisation
-from .state import DensityTally, EditState, LossTracker
+from .state import HOST_FIELDS, DensityTally, DeviceState, EditState, HostState, LossTracker
 
 KIND = "edit"
 
 
+#: A host field's form in the checkpoint's JSON record: its type there, to JSON, from JSON.
+_NUMBER = (int, float)
+_JSON = {int: (int, int, int), float: (_NUMBER, float, float), tuple: (list, list, tuple),
+         Utilisation: (dict, Utilisation.as_dict, lambda d: Utilisation(**d)),
+         DensityTally: (dict, DensityTally._asdict, lambda d: DensityTally(**d))}
+_HOST_TYPES = typing.get_type_hints(HostState)
+#: :class:`HostState`'s fields stored in the JSON record (the others, arrays, in the npz).
+JSON_FIELDS = tuple(k for k in HOST_FIELDS if _HOST_TYPES[k] in _JSON)
+#: Its arrays, stored beside :class:`DeviceState`'s leaves.
+ARRAY_FIELDS = tuple(k for k in HOST_FIELDS if k not in JSON_FIELDS)
+#: Host fields an older version's checkpoint may lack (their default is the fresh state's).
+ADDED_LATER = ("complete_at", "annealed_at", "density")
+#: The layout before the tracker was stored whole: its recent losses as ``tracker_recent``,
+#: its count, best and since_best as the record's ``tracker``.
+_LEGACY_TRACKER = "tracker"
+
+
 def save_checkpoint(path: str | os.PathLike, st: EditState, meta: dict) -> None:
-    """Write the edit state to ``path`` (npz, atomic: a crash never leaves half a file)."""
-    tree = {"train": st.train, "images": st.images, "edited": np.asarray(st.edited),
-            "tracker_recent": st.tracker.recent}
-    info = {"subtask": st.subtask, "step": st.step, "records": list(st.records),
-            "seconds": st.seconds, "utilisation": st.utilisation.as_dict(),
-            "complete_at": st.complete_at, "annealed_at": st.annealed_at,
-            "density": st.density._asdict(),
-            "tracker": [int(st.tracker.count), float(st.tracker.best),
-                        int(st.tracker.since_best)],
-            "max_intersections": getattr(st.train, "max_intersections", None), "meta": meta}
+    """Write the edit state to ``path`` (npz, atomic: a crash never leaves half a file):
+    :class:`DeviceState` and the host arrays as leaves, the other host fields (by name),
+    the trainer's ``max_intersections`` and ``meta`` in the JSON record."""
+    tree = {**st.device._asdict(), **{k: np.asarray(getattr(st.host, k)) for k in ARRAY_FIELDS}}
+    info = {k: _JSON[_HOST_TYPES[k]][1](getattr(st.host, k)) for k in JSON_FIELDS}
+    info.update(max_intersections=getattr(st.train, "max_intersections", None), meta=meta)
     save_pytree(path, tree, kind=KIND, meta=info)
 
 
-#: The checkpoint's meta record: key -> (types, required). A key of an older version's
-#: checkpoint that it may lack is not required (its default is the fresh state's).
-_NUMBER = (int, float)
-RECORD = {"subtask": (int, True), "step": (int, True), "records": (list, True),
-          "seconds": (_NUMBER, True), "utilisation": (dict, True),
-          "complete_at": (int, False), "annealed_at": (int, False), "density": (dict, False),
-          "tracker": (list, True), "max_intersections": ((int, type(None)), False),
-          "meta": (dict, True)}
+def record_schema(legacy: bool = False) -> dict:
+    """The checkpoint's meta record: key -> (types, required), derived from
+    :class:`HostState`; ``legacy``: that of the layout with a ``tracker`` list."""
+    schema = {k: (_JSON[_HOST_TYPES[k]][0], not (legacy and k in ADDED_LATER))
+              for k in JSON_FIELDS}
+    schema.update(max_intersections=((int, type(None)), False), meta=(dict, True))
+    if legacy:
+        schema[_LEGACY_TRACKER] = (list, True)
+    return schema
+
+
 #: The run's own part of it (:func:`jaxedit.pipelines.edit.run_edit` writes it).
 RUN_META = {"plan": (list, True), "header": (dict, True), "wall_time_s": (_NUMBER, False)}
 
@@ -74,7 +91,7 @@ def _fields(kind) -> set[str]:
 
 
 def read_record(path, info) -> dict:
-    """The checkpoint's meta record ``info``, checked: every key of :data:`RECORD` and
+    """The checkpoint's meta record ``info``, checked: every key of :func:`record_schema` and
     :data:`RUN_META`, their types and ranges, the counters' fields and each plan entry's.
 
     Raises:
@@ -82,7 +99,8 @@ def read_record(path, info) -> dict:
     """
     from .plan import SubtaskSpec
 
-    _check_keys(info, RECORD, path, "checkpoint record")
+    _check_keys(info, record_schema(isinstance(info, dict) and _LEGACY_TRACKER in info), path,
+                "checkpoint record")
     _check_keys(info["meta"], RUN_META, path, "checkpoint record's meta")
     if info.get("max_intersections") is not None and info["max_intersections"] < 1:
         raise DataError(path, f"checkpoint record's max_intersections is "
@@ -90,7 +108,7 @@ def read_record(path, info) -> dict:
     if info["subtask"] < 0 or info["step"] < 0:
         raise DataError(path, f"checkpoint record is at subtask {info['subtask']}, step "
                               f"{info['step']}: negative")
-    tracker = info["tracker"]
+    tracker = info.get(_LEGACY_TRACKER, [0, 0, 0])
     if len(tracker) != 3 or not all(isinstance(v, _NUMBER) and not isinstance(v, bool)
                                     for v in tracker):
         raise DataError(path, f"checkpoint record's tracker is {json.dumps(tracker)[:60]}, "
@@ -113,7 +131,8 @@ def read_record(path, info) -> dict:
 
 
 def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[EditState, dict]:
-    """Read a checkpoint written by :func:`save_checkpoint` as (state, meta).
+    """Read a checkpoint written by :func:`save_checkpoint` (or by an older version) as
+    (state, meta).
 
     ``train_template``: a trainer state of the same structure (shapes may differ); the
     meta record is checked by :func:`read_record` first. Raises DataError.
@@ -121,23 +140,25 @@ def load_checkpoint(path: str | os.PathLike, train_template) -> tuple[EditState,
     path = Path(path)
     arrays, info = read_pytree(path, kind=KIND)
     info = read_record(path, info)
-    template = {"train": train_template, "images": np.zeros((0,), np.float32),
-                "edited": np.zeros((0,), bool), "tracker_recent": np.zeros((0,), np.float32)}
+    legacy = _LEGACY_TRACKER in info
+    tracker = (np.zeros((0,), np.float32) if legacy else
+               LossTracker(np.zeros((0,), np.float32), np.int32(0), np.float32(0), np.int32(0)))
+    template = {**DeviceState(train_template, np.zeros((0,), np.float32), tracker)._asdict(),
+                **{k: np.zeros((0,), bool) for k in ARRAY_FIELDS}}
+    if legacy:
+        template["tracker_recent"] = template.pop("tracker")
     # stored shapes win (capacity grows); a state without the traced extent takes the template's
     tree = restore(template, arrays, path, shapes=False, template_fills=PRE_TRACED_EXTENT)
     train = tree["train"]
     if info.get("max_intersections") is not None and hasattr(train, "max_intersections"):
         train = dataclasses.replace(train, max_intersections=int(info["max_intersections"]))
-    count, best, since = info["tracker"]
-    tracker = LossTracker(tree["tracker_recent"], jnp.int32(count),
-                          jnp.float32(best), jnp.int32(since))
-    st = EditState(subtask=info["subtask"], step=info["step"], train=train,
-                     images=tree["images"], edited=np.asarray(tree["edited"]),
-                     tracker=tracker, records=tuple(info["records"]), seconds=info["seconds"],
-                     complete_at=int(info.get("complete_at", -1)),
-                     annealed_at=int(info.get("annealed_at", -1)),
-                     density=DensityTally(**info.get("density", {})),
-                     utilisation=Utilisation(**info["utilisation"]))
+    if legacy:
+        count, best, since = info[_LEGACY_TRACKER]
+        tree["tracker"] = LossTracker(tree.pop("tracker_recent"), jnp.int32(count),
+                                      jnp.float32(best), jnp.int32(since))
+    host = {k: _JSON[_HOST_TYPES[k]][2](info[k]) for k in JSON_FIELDS if k in info}
+    host.update({k: np.asarray(tree[k]) for k in ARRAY_FIELDS})
+    st = EditState(DeviceState(train, tree["images"], tree["tracker"]), HostState(**host))
     return st, info["meta"]
 
 

@@ -91,17 +91,28 @@ def tally_density(tally: DensityTally, densify: dict, completed: np.ndarray) -> 
                         tally.shortfall + int(np.sum(short, where=capped)))
 
 
+class DeviceState(NamedTuple):
+    """The device part of an edit's state (a pytree).
+
+    Attributes:
+      train: the trainer's state pytree (Gaussians, optimiser, densify stats).
+      images: float32 [N, H, W, 3], the training images as of now.
+      tracker: the loss tracker of the current subtask.
+    """
+
+    train: Any
+    images: jax.Array
+    tracker: LossTracker
+
+
 @dataclasses.dataclass(frozen=True)
-class EditState:
-    """Where a run is: everything needed to continue it exactly (never mutated).
+class HostState:
+    """The host part of an edit's state: plain values.
 
     Attributes:
       subtask: index of the current subtask in the plan.
       step: steps already taken inside it (0: not started, opacity not yet reset).
-      train: the trainer's state pytree (Gaussians, optimiser, densify stats).
-      images: float32 [N, H, W, 3] on the device, the training images as of now.
-      edited: bool [N] (host), views edited at least once in the current subtask.
-      tracker: the loss tracker of the current subtask.
+      edited: bool [N] (NumPy), views edited at least once in the current subtask.
       records: one dict per finished subtask (schedule.json entries).
       seconds: wall time spent in the current subtask before the last restart.
       utilisation: buffer counters summed over the run.
@@ -114,16 +125,58 @@ class EditState:
 
     subtask: int
     step: int
-    train: Any
-    images: jax.Array
     edited: np.ndarray
-    tracker: LossTracker
     records: tuple = ()
     seconds: float = 0.0
     utilisation: Utilisation = dataclasses.field(default_factory=Utilisation)
     complete_at: int = -1
     annealed_at: int = -1
     density: DensityTally = DensityTally()
+
+
+HOST_FIELDS = tuple(f.name for f in dataclasses.fields(HostState))
+
+
+def _part(part: str, name: str) -> property:
+    return property(lambda st: getattr(getattr(st, part), name),
+                    doc=f"``{part}.{name}`` (read-only)")
+
+
+@dataclasses.dataclass(frozen=True)
+class EditState:
+    """Where a run is: everything needed to continue it exactly (never mutated).
+
+    ``device`` (:class:`DeviceState`) and ``host`` (:class:`HostState`); their fields read
+    as the state's own (``st.train``, ``st.step``), :meth:`replace` changes them by name.
+    """
+
+    device: DeviceState
+    host: HostState
+
+    @staticmethod
+    def create(**fields) -> "EditState":
+        """The state of :class:`DeviceState`'s and :class:`HostState`'s ``fields``."""
+        device = {k: fields.pop(k) for k in DeviceState._fields}
+        return EditState(DeviceState(**device), HostState(**fields))
+
+    def replace(self, **changes) -> "EditState":
+        """This state with the fields ``changes`` (of either part) replaced."""
+        device = {k: changes.pop(k) for k in DeviceState._fields if k in changes}
+        return EditState(self.device._replace(**device) if device else self.device,
+                         dataclasses.replace(self.host, **changes) if changes else self.host)
+
+    train = _part("device", "train")
+    images = _part("device", "images")
+    tracker = _part("device", "tracker")
+    subtask = _part("host", "subtask")
+    step = _part("host", "step")
+    edited = _part("host", "edited")
+    records = _part("host", "records")
+    seconds = _part("host", "seconds")
+    utilisation = _part("host", "utilisation")
+    complete_at = _part("host", "complete_at")
+    annealed_at = _part("host", "annealed_at")
+    density = _part("host", "density")
 
 
 def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) -> EditState:
@@ -135,17 +188,17 @@ def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) ->
                                                      gaussians.capacity))
     if capacity > gaussians.capacity:
         gaussians = grow(gaussians, capacity)
-    return EditState(subtask=0, step=0, train=ctx.trainer.init(gaussians, ctx.data.train_cameras),
-                       images=jax.device_put(np.asarray(images, np.float32)),
-                       edited=np.zeros((len(images),), bool),
-                       tracker=LossTracker.init(ctx.config.loss_window))
+    return EditState.create(
+        subtask=0, step=0, train=ctx.trainer.init(gaussians, ctx.data.train_cameras),
+        images=jax.device_put(np.asarray(images, np.float32)),
+        edited=np.zeros((len(images),), bool), tracker=LossTracker.init(ctx.config.loss_window))
 
 
 def begin_subtask(ctx: EditContext, st: EditState) -> EditState:
     """The state at the start of a subtask: opacity reset (paper 3.3 (1); not in IN2N mode),
     nothing edited yet, a fresh loss tracker."""
     train = ctx.trainer.restart(st.train) if ctx.config.mode != "in2n" else st.train
-    return dataclasses.replace(st, step=0, train=train, edited=np.zeros(len(st.edited), bool),
+    return st.replace(step=0, train=train, edited=np.zeros(len(st.edited), bool),
                                tracker=LossTracker.init(ctx.config.loss_window), seconds=0.0,
                                complete_at=-1, annealed_at=-1, density=DensityTally())
 
@@ -168,12 +221,12 @@ def apply_edits(st: EditState, views, images, annealed=()) -> EditState:
     if min(complete_at, annealed_at) >= 0 > min(st.complete_at, st.annealed_at):
         # an earlier best was against other training images and would end the subtask early
         tracker = LossTracker.init(len(tracker.recent))
-    return dataclasses.replace(st, images=data, edited=edited, complete_at=complete_at,
+    return st.replace(images=data, edited=edited, complete_at=complete_at,
                                annealed_at=annealed_at, tracker=tracker)
 
 
 def finish_subtask(st: EditState, record: dict) -> EditState:
     """The state after a finished subtask: its record kept, the next subtask not begun."""
-    return dataclasses.replace(st, records=tuple(st.records) + (record,), subtask=st.subtask + 1,
+    return st.replace(records=tuple(st.records) + (record,), subtask=st.subtask + 1,
                                step=0, seconds=0.0, complete_at=-1, annealed_at=-1,
                                density=DensityTally())

@@ -27,7 +27,7 @@ from .context import EditContext
 from .local import blend
 from .plan import (ProEditConfig, SubtaskLimits, SubtaskSpec, anneal_horizon, anneal_timestep,
                    subtask_limits)
-from .state import EditState, apply_edits, begin_subtask, tally_density, track_loss
+from .state import DeviceState, EditState, apply_edits, begin_subtask, tally_density, track_loss
 
 # fold_in "purposes" of the per-subtask key: one stream per use, never shared.
 _ORDER, _TRAIN, _VIEWS, _EDIT = 1, 2, 3, 4
@@ -110,16 +110,38 @@ class ChunkResult(NamedTuple):
     metrics: dict
 
 
-# Plain-number settings are traced, not static, so runs differing only in them share one
-# program; min_delta stays static.
+class ChunkScalars(NamedTuple):
+    """A chunk's plain-number settings, traced (int32 scalars each, a pytree) so that runs
+    differing only in them share one program.
+
+    subtask: the spec's index; step0: the subtask's step at the chunk's start; n_active:
+    steps to run (<= the chunk's length); stop_if_plateau: 1 ends the chunk at a plateau;
+    earliest_end: :func:`earliest_end`; warmup, patience: the config's; stop_on_plateau:
+    the limits' (0: no plateau is ever reported).
+    """
+
+    subtask: Any
+    step0: Any
+    n_active: Any
+    stop_if_plateau: Any
+    earliest_end: Any
+    warmup: Any
+    patience: Any
+    stop_on_plateau: Any
+
+    def on_device(self) -> "ChunkScalars":
+        return jax.device_put(ChunkScalars(*(np.int32(int(v)) for v in self)))
+
+
+# min_delta stays static.
 @functools.partial(jax.jit, static_argnames=("length", "min_delta"))
-def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars, *, length,
-                min_delta):
-    subtask, step0, n_active = scalars[0], scalars[1], scalars[2]
-    stop_if_plateau, earliest_end = scalars[3] > 0, scalars[4]
-    warmup, patience, stop_on_plateau = scalars[5], scalars[6], scalars[7] > 0
+def _edit_chunk(device: DeviceState, cameras, regions, run_key, scalars: ChunkScalars, *,
+                length, min_delta):
+    train_state, images, tracker = device
+    step0, warmup, patience = scalars.step0, scalars.warmup, scalars.patience
+    stop_if_plateau, stop_on_plateau = scalars.stop_if_plateau > 0, scalars.stop_on_plateau > 0
     window = tracker.recent.shape[0]
-    key_sub = jax.random.fold_in(run_key, subtask)
+    key_sub = jax.random.fold_in(run_key, scalars.subtask)
     views_key, train_key = (jax.random.fold_in(key_sub, _VIEWS),
                             jax.random.fold_in(key_sub, _TRAIN))
     num_views = images.shape[0]
@@ -145,10 +167,10 @@ def _edit_chunk(train_state, tracker, images, cameras, regions, run_key, scalars
     def after(carry, m, i):
         tr = carry[1]
         plateau = (stop_on_plateau & (tr.count >= window) & (tr.since_best >= patience)
-                   & (step0 + i + 1 >= earliest_end))
+                   & (step0 + i + 1 >= scalars.earliest_end))
         return dict(m, plateau=plateau), plateau & stop_if_plateau
 
-    (train_state, tracker), metrics = scan_steps(one, (train_state, tracker), n_active,
+    (train_state, tracker), metrics = scan_steps(one, (train_state, tracker), scalars.n_active,
                                                  length=length, after=after)
     return train_state, tracker, metrics
 
@@ -162,8 +184,10 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
     without ``limits.stop_on_plateau``).
     """
     cfg = ctx.config
-    scalars = [spec.index, st.step, num_steps, stop_if_plateau, earliest_end(st, cfg),
-               cfg.warmup, cfg.patience, limits.stop_on_plateau]
+    scalars = ChunkScalars(subtask=spec.index, step0=st.step, n_active=num_steps,
+                           stop_if_plateau=stop_if_plateau, earliest_end=earliest_end(st, cfg),
+                           warmup=cfg.warmup, patience=cfg.patience,
+                           stop_on_plateau=limits.stop_on_plateau)
     train, tracker, metrics = _edit_chunk(*_chunk_args(ctx, st, scalars), length=CHUNK,
                                           min_delta=cfg.min_delta)
     metrics = jax.device_get(metrics)
@@ -172,23 +196,22 @@ def step_chunk(ctx: EditContext, st: EditState, spec: SubtaskSpec, limits: Subta
     redo = bool(np.any(metrics["ran"] & metrics["redo"]))
     plateau = bool(k and metrics["plateau"][k - 1])
     density = tally_density(st.density, metrics["densify"], completed)
-    return (dataclasses.replace(st, train=train, tracker=tracker, step=st.step + k,
-                                density=density),
+    return (st.replace(train=train, tracker=tracker, step=st.step + k, density=density),
             ChunkResult(np.asarray(metrics["loss"][:k]), redo, plateau, metrics))
 
 
-def _chunk_args(ctx: EditContext, st: EditState, scalars: list) -> tuple:
+def _chunk_args(ctx: EditContext, st: EditState, scalars: ChunkScalars) -> tuple:
     """:func:`_edit_chunk`'s arguments at ``st``, committed where they are, with the
-    eight int32 ``scalars`` uploaded."""
-    return (*commit((st.train, st.tracker, st.images, ctx.data.train_cameras, ctx.masks,
-                     ctx.key)), jax.device_put(np.asarray(scalars, np.int32)))
+    ``scalars`` uploaded."""
+    return (*commit((st.device, ctx.data.train_cameras, ctx.masks, ctx.key)),
+            scalars.on_device())
 
 
 def compile_chunk(ctx: EditContext, st: EditState) -> None:
     """Compile (or read from the persistent cache) the training chunk for ``st``'s
     shapes without running it, so the first chunk starts at once; the edit does it on a
     thread while the difficulty schedule runs."""
-    _edit_chunk.lower(*_chunk_args(ctx, st, [0] * 8), length=CHUNK,
+    _edit_chunk.lower(*_chunk_args(ctx, st, ChunkScalars(*[0] * 8)), length=CHUNK,
                       min_delta=ctx.config.min_delta).compile()
 
 
@@ -315,10 +338,10 @@ def step(sub: Subtask, loop: SubtaskLoop) -> tuple[SubtaskLoop, ChunkResult]:
                            stop_if_plateau=stop_if_plateau)
     if chunk.redo:
         k = len(chunk.losses)
-        st = dataclasses.replace(st, train=grow_for_redo(st.train, jax.tree_util.tree_map(
+        st = st.replace(train=grow_for_redo(st.train, jax.tree_util.tree_map(
             lambda a: a[k], chunk.metrics)))
     st = take_edits(ctx, st, source.collect(), sub.horizon)
-    st = dataclasses.replace(st, seconds=time.perf_counter() - sub.started)
+    st = st.replace(seconds=time.perf_counter() - sub.started)
     timed_out_at = loop.timed_out_at
     if timed_out_at is None and cfg.max_seconds is not None and st.seconds >= cfg.max_seconds:
         timed_out_at = st.step
@@ -349,7 +372,7 @@ def settle(sub: Subtask, loop: SubtaskLoop, chunk: ChunkResult) -> tuple[Subtask
     cfg, st = sub.ctx.config, loop.st
     if chunk.plateau and not st.edited.all() and sub.source.can_wait:
         st = await_views(sub, st)
-        st = dataclasses.replace(st, tracker=st.tracker._replace(since_best=jnp.int32(0)))
+        st = st.replace(tracker=st.tracker._replace(since_best=jnp.int32(0)))
         return loop._replace(st=st), False
     if chunk.plateau and st.edited.all():
         return loop._replace(converged=True, done=True), False
@@ -371,7 +394,7 @@ def terminate(loop: SubtaskLoop) -> bool:
 def postprocess(sub: Subtask, loop: SubtaskLoop) -> tuple[EditState, dict]:
     """(the state at the end of the subtask, its info); call after the source is closed."""
     cfg, source, plateau = sub.ctx.config, sub.source, sub.limits.stop_on_plateau
-    st = dataclasses.replace(loop.st, seconds=time.perf_counter() - sub.started,
+    st = loop.st.replace(seconds=time.perf_counter() - sub.started,
                              utilisation=loop.st.utilisation.add(source.utilisation))
     guard = None if loop.converged or not plateau else (
         "seconds" if loop.timed_out_at is not None else "steps")

@@ -1,9 +1,10 @@
 """An edit run: its config tree, and :func:`run_edit`, which runs it with a run directory.
 
 ``python -m experiments edit`` generates its settings' flags from
-:class:`EditRunConfig`; :func:`run_edit` plans the edit and runs it
-(:func:`jaxedit.edit.progressive.run_plan`, which writes nothing) and owns only the run
-directory: resume, snapshots, the JSON files. The run directory::
+:class:`EditRunConfig`. :func:`run_edit` is :func:`prepare_edit` (context, state and plan;
+writes nothing) then :func:`jaxedit.edit.progressive.run_plan` (writes nothing), with a
+:class:`jaxedit.pipelines.rundir.RunDir` at the edge: resume, checkpoints, snapshots, the
+JSON files and the report. The run directory::
 
     RUN/schedule.json        the plan and every finished subtask's record
     RUN/metrics.json         the final scene's numbers
@@ -19,12 +20,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import os
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -33,30 +33,23 @@ from ..compilation import compile_stats
 from ..edit import local as local_lib
 from ..edit import progressive
 from ..edit.buffer import pick_devices
-from ..edit.checkpoint import (check_resume, load_checkpoint, save_checkpoint,
-                               snapshot_fingerprint)
 from ..edit.context import EditContext, EditData, encode_prompt
 from ..edit.difficulty import default_distance
 from ..edit.hooks import NO_HOOKS, EditHooks
 from ..edit.identity import IdentityFloor, LowIdentityError
 from ..edit.outputs import Renderer
-from ..edit.state import begin_subtask, init_state
+from ..edit.state import EditState, begin_subtask, init_state
 from ..edit.subtask import compile_chunk
-from ..edit.plan import ProEditConfig, SubtaskSpec
-from ..edit.trainer import TrainSettings
+from ..edit.plan import ProEditConfig
+from ..edit.trainer import TrainSettings, resolve_max_gaussians
 from ..errors import DataError, check_ranges, ranged
 from ..editors.diffusion import DDIM_STEPS
 from ..io import load_nerfstudio, load_ply, load_scene
-from ..io.files import atomic_path, atomic_write_text
-from .report import write_report
-from .snapshots import select_snapshot, snapshot_ratio, write_scene_snapshot
-
-#: The edit state's checkpoint inside a run directory.
-CHECKPOINT_NAME = "checkpoint.npz"
-#: The editor identity check's record of a run it stopped.
-IDENTITY_NAME = "identity.json"
-#: The difficulty oracle's edits and distances, read back by the run's branches.
-ORACLE_NAME = "difficulty.npz"
+from .rundir import RunDir, read_oracle_memo
+# the run directory's names, importable from here too (steer, the viewer)
+from .rundir import (CHECKPOINT_NAME, IDENTITY_NAME, LOCAL_DIR, ORACLE_NAME,  # noqa: F401
+                     write_oracle_memo)
+from .snapshots import snapshot_ratio
 
 
 @dataclasses.dataclass(frozen=True)
@@ -244,33 +237,6 @@ def edit_files(config: EditRunConfig, prompt: str, data_path, scene_path, *, edi
                     distance=distance, local=local, identity=config.identity, **kwargs)
 
 
-def read_oracle_memo(oracle, path: Path) -> bool:
-    """Give ``oracle`` the edits of the memo file ``path`` if it is this oracle's
-    (:meth:`jaxedit.edit.difficulty.DifficultyOracle.restore`); False when absent or not."""
-    if not Path(path).is_file():
-        return False
-    try:
-        with np.load(path, allow_pickle=False) as memo:
-            return oracle.restore(memo)
-    except (OSError, ValueError, KeyError) as e:
-        raise DataError(path, f"unreadable difficulty memo ({e}); delete it to recompute") from None
-
-
-def write_oracle_memo(oracle, path: Path) -> None:
-    """The oracle's edits and distances, atomically, for the run's branches."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **oracle.memo())
-
-
-def _write_json(path: Path, data: dict) -> None:
-    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
-
-
-#: A local edit's folder in the run directory: its relevance over the held-out views.
-LOCAL_DIR = "local"
-
-
 @contextlib.contextmanager
 def on_a_thread(fn: Callable, *args):
     """``fn(*args)`` on a thread while the block runs; joined at its end (a process must not
@@ -292,6 +258,111 @@ def on_a_thread(fn: Callable, *args):
         thread.join()
     if errors:
         raise errors[0]
+
+
+def edit_context(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
+                 settings: TrainSettings | None = None, seed: int = 0, local=None,
+                 hooks: EditHooks = NO_HOOKS, resume_from=None, start: EditStart | None = None,
+                 log: Callable[[str], None] = lambda msg: None) -> tuple[EditContext, object]:
+    """(the run's :class:`EditContext`, its local plan or None): the prompt and the local
+    edit checked, the local plan made, the trainer built with its editable set."""
+    if not str(prompt).strip() and config.mode != "in2n":
+        raise DataError("prompt", "empty instruction")
+    # the cap is checked before the local plan's work, whose editable set the trainer takes
+    settings = resolve_max_gaussians(settings or TrainSettings(), int(gaussians.num_alive()))
+    _, editor_device = pick_devices()
+    # The prompt is encoded once per run: here when the local plan's relevance needs it
+    # first, else by EditContext.create (after the local plan, whose errors come first).
+    embeddings = None if start is None else start.embeddings
+    local_plan = None
+    if local is not None and local.active and (resume_from is not None or start is not None):
+        raise DataError("--local", "a local edit starts from the input scene, not --resume-from")
+    if local is not None and local.active:
+        if local.mode == "auto":
+            embeddings = encode_prompt(editor, prompt)
+        local_plan = local_lib.plan_local(
+            local, gaussians, data.train_cameras, data.train_images, editor=editor,
+            embedding=None if embeddings is None else embeddings[0],
+            key=jax.random.fold_in(jax.random.key(seed), 35))
+        figures = local_plan.figures
+        log(f"local edit: {figures['editable']} Gaussians editable, {figures['frozen']} "
+            f"frozen, {100 * figures['mask_fraction']:.1f}% of the pixels inside "
+            f"({figures['seconds']:.1f} s)")
+    trainer = progressive.make_trainer(config, settings, data, gaussians,
+                                       None if local_plan is None else local_plan.editable)
+    ctx = EditContext.create(editor, prompt, data, config, trainer, Renderer(config.background),
+                             jax.random.key(seed), editor_device,
+                             masks=None if local_plan is None else local_plan.masks,
+                             embeddings=embeddings, hooks=hooks)
+    return ctx, local_plan
+
+
+class EditSetup(NamedTuple):
+    """What :func:`prepare_edit` makes: the context, the state at the plan's start, the
+    plan, schedule.json's header, the local plan (or None), ``time.perf_counter()`` when the
+    context was ready, the difficulty oracle (None in IN2N mode) and whether it took its
+    edits from the memo file."""
+
+    ctx: EditContext
+    state: EditState
+    plan: tuple
+    header: dict
+    local: object
+    started: float
+    oracle: object
+    memo_restored: bool
+
+
+def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
+                 settings: TrainSettings | None = None, seed: int = 0, resume_from=None,
+                 distance: Callable | None = None, local=None, hooks: EditHooks = NO_HOOKS,
+                 identity: IdentityFloor | None = IdentityFloor(),
+                 start: EditStart | None = None, memo: Path | None = None,
+                 log: Callable[[str], None] = lambda msg: None) -> EditSetup:
+    """A new edit, ready for :func:`jaxedit.edit.progressive.run_plan`; writes nothing.
+
+    :func:`edit_context`, the editor's identity on the scene (raises
+    :class:`LowIdentityError`), the state at the start (the input scene, the snapshot
+    ``resume_from`` or the branch's ``start``), then the plan, its difficulty edits read from
+    the ``memo`` file when it holds them, while the training chunks' program is built on a
+    thread. Arguments as :func:`run_edit`'s.
+    """
+    ctx, local_plan = edit_context(editor, prompt, data, gaussians, config=config,
+                                   settings=settings, seed=seed, local=local, hooks=hooks,
+                                   resume_from=resume_from, start=start, log=log)
+    started = time.perf_counter()
+    start_ratio, start_scene, images = 0.0, gaussians, None
+    origin = None if resume_from is None else str(resume_from)
+    if start is not None:
+        start_ratio, start_scene, origin = start.ratio, start.scene, start.label
+        images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
+                           for i in range(len(data.train_images))])
+    elif resume_from is not None:
+        snap = Path(resume_from)
+        start_ratio = snapshot_ratio(snap)
+        start_scene = load_ply(snap / "scene.ply")
+        # The dataset the snapshot was trained on is best approximated by its renders.
+        images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
+                           for i in range(len(data.train_images))])
+        log(f"continuing from {snap} (r = {start_ratio:.3f})")
+    figures = None
+    if identity is not None and start_ratio == 0.0 and start is None:
+        # before anything is compiled for training
+        figures = progressive.check_identity(ctx, gaussians, identity, seed=seed, log=log)
+    st = init_state(ctx, start_scene, images)
+    # The training chunks' program is built (or read back) while the schedule edits.
+    with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
+        oracle = progressive.scene_oracle(
+            ctx, gaussians if start is None else start.path_scene,
+            seed if start is None else start.path_seed, distance)
+        restored = oracle is not None and memo is not None and read_oracle_memo(oracle, memo)
+        plan, header = progressive.plan_edit(
+            ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio,
+            log=log, resumed_from=origin, identity=figures, oracle=oracle,
+            steps=None if start is None else start.steps)
+    if local_plan is not None:
+        header = dict(header, local=local_plan.figures)
+    return EditSetup(ctx, st, plan, header, local_plan, started, oracle, restored)
 
 
 def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
@@ -344,142 +415,61 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     """
     log = log or (lambda msg: None)
     compiles_before = compile_stats()
-    if not str(prompt).strip() and config.mode != "in2n":
-        raise DataError("prompt", "empty instruction")
-    run_dir = None if run_dir is None else Path(run_dir)
-    trainer = progressive.make_trainer(config, settings or TrainSettings(), data, gaussians)
-    _, editor_device = pick_devices()
-    # The prompt is encoded once per run: here when the local plan's relevance needs it
-    # first, else by EditContext.create (after the local plan, whose errors come first).
-    embeddings = None
-    masks, local_figures, local_plan = None, None, None
-    if start is not None:
-        embeddings = start.embeddings
-    if local is not None and local.active and (resume_from is not None or start is not None):
-        raise DataError("--local", "a local edit starts from the input scene, not --resume-from")
-    if local is not None and local.active:
-        if local.mode == "auto":
-            embeddings = encode_prompt(editor, prompt)
-        local_plan = local_lib.plan_local(
-            local, gaussians, data.train_cameras, data.train_images, editor=editor,
-            embedding=None if embeddings is None else embeddings[0],
-            key=jax.random.fold_in(jax.random.key(seed), 35))
-        masks, local_figures = local_plan.masks, local_plan.figures
-        trainer.editable = local_plan.editable
-        log(f"local edit: {local_figures['editable']} Gaussians editable, "
-            f"{local_figures['frozen']} frozen, {100 * local_figures['mask_fraction']:.1f}% "
-            f"of the pixels inside ({local_figures['seconds']:.1f} s)")
-    ctx = EditContext.create(editor, prompt, data, config, trainer, Renderer(config.background),
-                             jax.random.key(seed), editor_device, masks=masks,
-                             embeddings=embeddings, hooks=hooks)
-    wall0 = time.perf_counter()
-    ckpt = None if run_dir is None else run_dir / CHECKPOINT_NAME
-    if resume and (ckpt is None or not ckpt.exists()):
-        raise DataError(ckpt or "run_dir", "no checkpoint to resume from")
-
+    run = RunDir.at(run_dir)
     if resume:
-        st, meta = load_checkpoint(ckpt, trainer.init(gaussians))
-        check_resume(ckpt, st, data.train_images.shape, run_dir)  # before anything is written
-        plan = tuple(SubtaskSpec(**p) for p in meta["plan"])
-        header = meta["header"]
-        wall0 -= meta.get("wall_time_s", 0.0)
-        log(f"resuming subtask {st.subtask} at step {st.step} from {ckpt}")
+        ctx, local_plan = edit_context(editor, prompt, data, gaussians, config=config,
+                                       settings=settings, seed=seed, local=local, hooks=hooks,
+                                       resume_from=resume_from, start=start, log=log)
+        wall0 = time.perf_counter()
+        st, plan, header, wall_s = run.resume(ctx, gaussians, log)
+        wall0 -= wall_s
     else:
-        start_ratio, start_scene, images = 0.0, gaussians, None
-        origin = None if resume_from is None else str(resume_from)
-        if start is not None:
-            start_ratio, start_scene, origin = start.ratio, start.scene, start.label
-            images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
-                               for i in range(len(data.train_images))])
-        elif resume_from is not None:
-            snap = Path(resume_from)
-            start_ratio = snapshot_ratio(snap)
-            start_scene = load_ply(snap / "scene.ply")
-            # The dataset the snapshot was trained on is best approximated by its renders.
-            images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
-                               for i in range(len(data.train_images))])
-            log(f"continuing from {snap} (r = {start_ratio:.3f})")
-        figures = None
-        if identity is not None and start_ratio == 0.0 and start is None:
-            try:  # before anything is compiled for training or written
-                figures = progressive.check_identity(ctx, gaussians, identity, seed=seed,
-                                                     log=log)
-            except LowIdentityError as e:  # the check's record, and nothing else
-                if run_dir is not None:
-                    _write_json(run_dir / IDENTITY_NAME, dict(e.figures, stopped=str(e)))
-                raise
-        st = init_state(ctx, start_scene, images)
-        # The training chunks' program is built (or read back) while the schedule edits.
-        memo = (start.memo if start is not None
-                else None if run_dir is None else run_dir / ORACLE_NAME)
-        with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
-            oracle = progressive.scene_oracle(
-                ctx, gaussians if start is None else start.path_scene,
-                seed if start is None else start.path_seed, distance)
-            restored = oracle is not None and memo is not None and read_oracle_memo(oracle, memo)
-            plan, header = progressive.plan_edit(
-                ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio,
-                log=log, resumed_from=origin, identity=figures, oracle=oracle,
-                steps=None if start is None else start.steps)
-            # the path's owner (re)writes its memo; a branch adds to it, never over another's
-            if oracle is not None and memo is not None and (
-                    restored or start is None or not memo.exists()):
-                write_oracle_memo(oracle, memo)
-        if local_figures is not None:
-            header = dict(header, local=local_figures)
+        try:
+            setup = prepare_edit(editor, prompt, data, gaussians, config=config,
+                                 settings=settings, seed=seed, resume_from=resume_from,
+                                 distance=distance, local=local, hooks=hooks, identity=identity,
+                                 start=start, memo=run.memo(start), log=log)
+        except LowIdentityError as e:  # the check's record, and nothing else
+            run.write_identity(e)
+            raise
+        ctx, st, plan, header, local_plan = setup[:5]
+        wall0 = setup.started
+        run.write_memo(setup.oracle, setup.memo_restored, start)
     # The input scene's renders of the held-out views: every snapshot says how far it moved.
-    reference = None if run_dir is None else (
+    reference = None if run.path is None else (
         ctx.renderer.views(gaussians, data.test_cameras)[0], int(gaussians.num_alive()))
     refine_floor = (identity or IdentityFloor()).refine_min_psnr
-    if run_dir is not None and not resume and start is None:
-        write_scene_snapshot(ctx, run_dir / "original", gaussians, ratio=0.0)
-        if local_figures is not None:  # the region at the held-out views, for the report
-            local_lib.write_overlays(run_dir / LOCAL_DIR, gaussians, data.test_cameras,
-                                     data.test_images, local_plan.editable,
-                                     relevance=local_plan.relevance)
+    if not resume and start is None:
+        run.write_original(ctx, gaussians, local_plan)
 
     def save(state):
-        if ckpt is not None:
-            save_checkpoint(ckpt, state, {"plan": [dataclasses.asdict(p) for p in plan],
-                                          "header": header,
-                                          "wall_time_s": time.perf_counter() - wall0})
-
-    def write_schedule(records):
-        if run_dir is not None:
-            _write_json(run_dir / "schedule.json", progressive.schedule_json(header, plan, records))
+        run.save(state, plan, header, time.perf_counter() - wall0)
 
     def on_subtask(state, spec, record):
         """A finished subtask's snapshot, and schedule.json with its record."""
-        if run_dir is None:
+        if run.path is None:
             return record
-        rel = Path("subtasks") / spec.dirname
-        record = dict(record, metrics=write_scene_snapshot(
-            ctx, run_dir / rel, trainer.gaussians(state.train), ratio=spec.ratio,
-            reference=reference),
-            snapshot=str(rel / "scene.ply"), **snapshot_fingerprint(run_dir / rel / "scene.ply"))
+        record = run.write_snapshot(ctx, spec, ctx.trainer.gaussians(state.train), record,
+                                    reference)
         log(progressive.moved_line(spec.name, record["metrics"]))
         warning = (progressive.refine_warning(spec.name, record["metrics"], refine_floor)
                    if spec.kind == "refine" else None)
         if warning:
             log(warning)
-        write_schedule(tuple(state.records) + (record,))
+        run.write_schedule(progressive.schedule_json(header, plan,
+                                                     tuple(state.records) + (record,)))
         return record
 
-    write_schedule(st.records)
+    run.write_schedule(progressive.schedule_json(header, plan, st.records))
     save(st)
     st = progressive.run_plan(ctx, st, plan, on_subtask=on_subtask, checkpoint=save,
                               progress=progress, callback=callback, stop=stop, log=log)
+    final = ctx.trainer.gaussians(st.train)
     if st.subtask < len(plan):  # stopped between subtasks: the checkpoint resumes it
         return {"schedule": progressive.schedule_json(header, plan, st.records), "metrics": None,
-                "gaussians": trainer.gaussians(st.train), "stopped": True}
-
+                "gaussians": final, "stopped": True}
     metrics = {**progressive.final_metrics(ctx, st, plan, time.perf_counter() - wall0),
                "compiles": compile_stats(since=compiles_before)}
-    if run_dir is not None:
-        _write_json(run_dir / "metrics.json", metrics)
-        if select is not None:
-            select_snapshot(run_dir, select)
-        if report:
-            write_report(run_dir)
+    run.finish(metrics, select, report)
     return {"schedule": progressive.schedule_json(header, plan, st.records), "metrics": metrics,
-            "gaussians": trainer.gaussians(st.train), "stopped": False}
+            "gaussians": final, "stopped": False}
