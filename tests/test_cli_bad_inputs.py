@@ -178,7 +178,7 @@ def test_config_values_get_the_flags_validation(corpus, tmp_path, capfd, key, va
     else:
         # "--flag=value": argparse reads a separate "-1e+16" as an unknown option, not a value.
         typed = [f"{flag}={value}"]
-    if value is None and key == "densify_until":
+    if value is None and key in ("densify_until", "downscale"):
         typed = []  # null where the flag's default is unset means "not given"
     from_flags, _ = (None, "unspellable") if typed is None else _parse(
         _reconstruct_argv(corpus, out, *typed))
