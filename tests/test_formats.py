@@ -245,7 +245,7 @@ def test_wrong_magic_unknown_versions_and_absurd_counts(tmp_path):
         load_scene(_write(tmp_path, "version.spz", bytes(v4)))
     # v3 declaring 2^31 splats in a small file: refused before anything is allocated
     header = struct.pack("<IIIBBBB", spz.MAGIC, 3, 1 << 31, 0, 12, 0, 0)
-    with pytest.raises(DataError, match="truncated file or a wrong count"):
+    with pytest.raises(DataError, match="a wrong count"):
         load_scene(_write(tmp_path, "count.spz", __import__("gzip").compress(header + b"\0" * 64)))
     v4 = bytearray(spz.encode(s))
     struct.pack_into("<I", v4, 8, 41)  # the count disagrees with the streams' sizes
@@ -264,6 +264,61 @@ def test_wrong_magic_unknown_versions_and_absurd_counts(tmp_path):
         files["meta.json"] = json.dumps({**meta, **change}).encode()
         with pytest.raises(DataError, match=message):
             sog.decode_files(files.__getitem__, "x.sog")
+
+
+def _spz_v4(n: int, degree: int, streams: list[tuple[bytes, int]], tail: bytes = b"") -> bytes:
+    """A v4 file of ``n`` splats from (compressed chunk, declared size) pairs, then ``tail``."""
+    header = struct.pack("<IIIBBBBI", spz.MAGIC, 4, n, degree, 12, 0, len(streams), 32)
+    toc = b"".join(struct.pack("<QQ", len(c), size) for c, size in streams)
+    return header.ljust(32, b"\0") + toc + b"".join(c for c, _ in streams) + tail
+
+
+def test_spz_data_beyond_the_count_is_refused_without_inflating_it(tmp_path):
+    """A gzip SPZ declaring 1 splat followed by 64 MiB of zeros: refused after inflating the
+    header and the one splat (not the zeros); the count/data checks of v4's streams too."""
+    import gzip
+    import tracemalloc
+
+    import zstandard
+
+    one = bytes(spz.encode(make_splats(n=1, degree=0), version=3))
+    payload = gzip.decompress(one)
+    bomb = _write(tmp_path, "bomb.spz", gzip.compress(payload + bytes(64 << 20), 9, mtime=0))
+    assert bomb.stat().st_size < 1 << 20
+    tracemalloc.start()
+    try:
+        with pytest.raises(DataError, match="more than the 20 bytes 1 splats need"):
+            load_scene(bomb)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 << 20, peak  # the 64 MiB were never inflated
+    short = _write(tmp_path, "short.spz", gzip.compress(payload[:-3], mtime=0))
+    with pytest.raises(DataError, match="truncated file or a wrong count"):
+        load_scene(short)
+    with pytest.raises(DataError, match="bytes after the gzip stream"):
+        load_scene(_write(tmp_path, "tail.spz", one + b"\0" * 10))
+
+    n = 40
+    s = make_splats(n=n, degree=0)
+    arrays = spz._arrays(s, 4)
+    z = zstandard.ZstdCompressor(level=3)
+    good = [(z.compress(a), len(a)) for a in arrays]
+    assert spz.decode(_spz_v4(n, 0, good)).count == n  # the helper builds a valid file
+    cases = [
+        (_spz_v4(n, 0, good, tail=b"\0" * 9), "9 bytes after the last SPZ v4 stream"),
+        # two frames where the table says one: the second's bytes are more than the count
+        (_spz_v4(n, 0, [good[0], (good[1][0] * 2, n), *good[2:]]), "stream 1 holds more than"),
+        # a frame whose header declares another size than the count implies
+        (_spz_v4(n, 0, [good[0], (z.compress(bytes(n + 1)), n), *good[2:]]),
+         "frame declares 41 bytes"),
+        (_spz_v4(n, 0, [good[0], (b"junkjunk", n), *good[2:]]), "not a ZSTD frame"),
+        # 2^31 splats whose streams are a few bytes: refused before any inflating
+        (_spz_v4(1 << 31, 0, [(c, size // n << 31) for c, size in good]), "cannot inflate"),
+    ]
+    for i, (data, message) in enumerate(cases):
+        with pytest.raises(DataError, match=message):
+            load_scene(_write(tmp_path, f"v4_{i}.spz", data))
 
 
 def test_zero_quaternion_and_nan_in_a_file_are_refused(tmp_path):
