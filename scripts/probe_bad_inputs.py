@@ -283,7 +283,7 @@ def _base(command: str, inp: dict, out: str) -> list[str]:
         "view": ["view", str(inp["edit_run"])],
         "process-data": ["process-data", "--images", str(inp["photos"]), "--out", out],
         "train-editor": ["train-editor", "--out", out],
-        "export": ["export", str(inp["scene"]), "--output", out + ".spz"],
+        "export": ["export", str(inp["scene"]), "--out", out + ".spz"],
     }[command]
 
 

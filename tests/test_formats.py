@@ -24,8 +24,16 @@ from jaxedit.io.formats import compressed_ply, sog, splat, spz
 from jaxedit.io.formats.common import Splats, from_gaussians, morton_order, to_gaussians
 from jaxedit.io.formats.scene import scene_format
 
+def ply_bytes(s: Splats) -> bytes:
+    """The INRIA .ply of ``s`` (save_ply's bytes)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        return save_ply(Path(tmp) / "s.ply", to_gaussians(s)).read_bytes()
+
+
 ENCODERS = {"compressed-ply": compressed_ply.encode, "spz": spz.encode, "sog": sog.encode_sog,
-            "splat": splat.encode}
+            "splat": splat.encode, "ply": ply_bytes}
 SUFFIX = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog",
           "splat": ".splat"}
 
@@ -400,7 +408,7 @@ def raw_columns(s: Splats) -> dict[str, np.ndarray]:
 
 @pytest.mark.slow  # starts node a few times; CI runs the slow tier every time
 @needs_st
-@pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog", "splat"])
+@pytest.mark.parametrize("fmt", ["ply", "compressed-ply", "spz", "sog", "splat"])
 def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
     s = make_splats(n=600, degree=0 if fmt == "splat" else 2)
     path = _write(tmp_path, "ours" + SUFFIX[fmt], ENCODERS[fmt](s))
@@ -412,7 +420,9 @@ def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
     table = stats["stats"][0]
     # --stats gives raw statistics through the monotonic activations (exp scale, sigmoid, rgb)
     mine = raw_columns(ours)
-    assert set(mine) <= set(table["columns"])
+    if fmt == "ply":  # the INRIA layout's normals, written as zeros
+        mine.update({f"n{a}": np.zeros(ours.count, np.float32) for a in "xyz"})
+    assert set(mine) == set(table["columns"])
     for i, name in enumerate(table["columns"]):
         forward = FORWARD.get(name, lambda v: v)
         # .splat: splat-transform decodes a rotation byte as b/127.5 - 1, antimatter15 as (b - 128)/128
@@ -432,11 +442,17 @@ def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
 
 @pytest.mark.slow  # starts node a few times; CI runs the slow tier every time
 @needs_st
-@pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog"])
+@pytest.mark.parametrize("fmt", ["ply", "compressed-ply", "spz", "sog"])
 def test_we_read_splat_transforms_files_as_it_does(tmp_path, fmt):
     s = make_splats(n=600, degree=3)
     source = save_ply(tmp_path / "scene.ply", to_gaussians(s))
     theirs = tmp_path / ("theirs" + SUFFIX[fmt])
+    if fmt == "ply":  # its INRIA .ply of our scene holds our values, bit for bit
+        run_st(source, theirs)
+        back = from_gaussians(load_scene(theirs))
+        for a, b in zip((back.means, back.log_scales, back.quats, back.opacity_logits, back.sh),
+                        (s.means, s.log_scales, s.quats, s.opacity_logits, s.sh)):
+            np.testing.assert_array_equal(a, b)
     run_st(*(["-g", "cpu"] if fmt == "sog" else []), source, theirs)
     run_st(theirs, tmp_path / "decoded.ply")  # their decoder's reading of their file
     ours, ref = load_scene(theirs), load_ply(tmp_path / "decoded.ply")
@@ -467,14 +483,18 @@ def test_export_command_converts_files_and_run_snapshots(tmp_path, capsys):
     from experiments.cli import main
 
     run = _edit_run(tmp_path)
-    assert main(["export", str(run), "--select", "1", "--output", str(tmp_path / "a.spz")]) == 0
+    assert main(["export", str(run), "--select", "1", "--out", str(tmp_path / "a.spz")]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["gaussians"] == 101 and result["format"] == "spz"
     assert not (run / "selected.ply").exists()  # the run is only read
     assert load_scene(tmp_path / "a.spz").capacity == 101
-    assert main(["export", str(tmp_path / "a.spz"), "--output", str(tmp_path / "b" / "meta.json")]) == 0
-    assert load_scene(tmp_path / "b" / "meta.json").capacity == 101
-    assert main(["export", str(run), "--select", "0.5", "--output", str(tmp_path / "c.ply"),
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.spz", "run"]  # no record, no lock
+    # --out names a file: an existing one is replaced; --output is the same flag
+    assert main(["export", str(run), "--select", "0", "--output", str(tmp_path / "a.spz")]) == 0
+    assert load_scene(tmp_path / "a.spz").capacity == 100
+    assert main(["export", str(tmp_path / "a.spz"), "--out", str(tmp_path / "b" / "meta.json")]) == 0
+    assert load_scene(tmp_path / "b" / "meta.json").capacity == 100
+    assert main(["export", str(run), "--select", "0.5", "--out", str(tmp_path / "c.ply"),
                  "--format", "compressed-ply"]) == 0
     assert scene_format(tmp_path / "c.ply") == "compressed-ply"
 
@@ -483,7 +503,10 @@ def test_export_command_converts_files_and_run_snapshots(tmp_path, capsys):
     (["{run}", "--output", "{tmp}/x.spz"], "without selected.ply: give --select"),
     (["{run}", "--select", "7", "--output", "{tmp}/x.spz"], "no finished subtask 7"),
     (["{tmp}/missing.spz", "--output", "{tmp}/x.spz"], "missing.spz"),
-    (["{run}/schedule.json", "--output", "{tmp}/x.spz"], "unsupported SOG version None"),
+    (["{run}/schedule.json", "--output", "{tmp}/x.spz"], "not a SOG meta.json (keys subtasks;"),
+    (["{run}/schedule.json", "--out", "{tmp}/x.spz"], "schedule.json: not a SOG meta.json"),
+    (["{run}", "--select", "0"], "--out: give the file to write"),
+    (["{run}", "--select", "0", "--out", "{tmp}"], "is a directory, expected a file name"),
     (["{run}", "--select", "0", "--output", "{tmp}/x.obj"], "unknown splat file extension"),
     (["{bad}", "--output", "{tmp}/x.ply"], "not an SPZ file"),
 ])
@@ -497,6 +520,26 @@ def test_export_command_answers_bad_input_in_one_line(tmp_path, capsys, argv, me
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and message in err and "\n" not in err
     assert not (tmp_path / "x.spz").exists() and not (tmp_path / "x.ply").exists()
+
+
+@pytest.mark.parametrize("fmt", ["spz", "sog", "compressed-ply"])
+def test_render_scene_takes_every_format(tmp_path, fmt):
+    """``render --scene`` of a .spz (SOG, compressed PLY) draws what load_scene reads: the same
+    frames as rendering that reading saved as an INRIA .ply."""
+    from experiments.cli import main
+    from jaxedit.io import read_image
+
+    s = make_splats(n=48, degree=1, seed=3)
+    s = Splats(s.means * 0.2, s.log_scales - 1.0, s.quats, s.opacity_logits, s.sh)
+    scene = _write(tmp_path, "scene" + SUFFIX[fmt], ENCODERS[fmt](s))
+    plain = save_ply(tmp_path / "read.ply", load_scene(scene))
+    flags = ["--orbit", "2", "--size", "16", "--no-depth", "--quiet"]
+    assert main(["render", "--scene", str(scene), "--out", str(tmp_path / "a"), *flags]) == 0
+    assert main(["render", "--scene", str(plain), "--out", str(tmp_path / "b"), *flags]) == 0
+    for name in ("frame_000.png", "frame_001.png"):
+        a = read_image(tmp_path / "a" / "frames" / name)
+        assert a.min() < 0.9  # something was drawn
+        np.testing.assert_array_equal(a, read_image(tmp_path / "b" / "frames" / name))
 
 
 def _edit_inputs(tmp_path):

@@ -270,8 +270,11 @@ def decode_files(read, where: str | os.PathLike = "sog") -> Splats:
         meta = json.loads(read("meta.json"))
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise DataError(where, f"meta.json is not JSON ({e})") from None
-    if not isinstance(meta, dict):
-        raise DataError(where, "meta.json must hold an object")
+    if not isinstance(meta, dict) or not {"version", "count", "means"} & set(meta):
+        got = (f"keys {', '.join(sorted(map(str, meta))[:5]) or 'none'}" if isinstance(meta, dict)
+               else "not a JSON object")
+        raise DataError(where, f"not a SOG meta.json ({got}; a SOG's has version, count, means, "
+                               f"...; give a .sog, a SOG meta.json or another splat file)")
     if meta.get("version") != 2:
         raise DataError(where, f"unsupported SOG version {meta.get('version')!r} (reads version 2)")
     n = meta.get("count")
