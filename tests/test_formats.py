@@ -129,6 +129,43 @@ def test_sog_round_trip_within_its_codebooks(degree):
         assert np.abs(d.sh[:, 1:] - t.sh[:, 1:]).max() <= 1.8 / 128
 
 
+def test_sog_quantisers_are_the_plain_algorithms_made_fast():
+    """codebook_1d is the weighted 1-D Lloyd it replaces (sorted once, prefix sums); the two-level
+    kmeans is seeded by its seed alone and clusters about as tightly as a flat k-means."""
+    rng = np.random.default_rng(5)
+    values = np.concatenate([rng.normal(0, 1, 3000), rng.exponential(4, 500)])
+    centres, labels = sog.codebook_1d(values, size=64, iterations=6)
+    # the reference: weighted quantiles, then Lloyd steps by bincount over all values
+    flat = values.astype(np.float64)
+    order = np.argsort(flat, kind="stable")
+    weight = np.empty_like(flat)
+    weight[order] = sog._density_weights(flat[order], 0.0)
+    cum = np.cumsum(weight[order])
+    ref = flat[order][np.minimum(np.searchsorted(cum, (np.arange(64) + 0.5) / 64 * cum[-1]),
+                                 len(flat) - 1)]
+    for _ in range(6):
+        ref = np.unique(ref)
+        cell = np.searchsorted((ref[1:] + ref[:-1]) / 2, flat)
+        w = np.bincount(cell, weight, len(ref))
+        ref = np.where(w > 0, np.bincount(cell, flat * weight, len(ref)) / np.maximum(w, 1e-300), ref)
+    np.testing.assert_allclose(np.unique(centres), np.unique(ref.astype(np.float32)), rtol=1e-5,
+                               atol=1e-6)
+    np.testing.assert_array_equal(labels, np.searchsorted((centres[1:] + centres[:-1]) / 2, values))
+
+    blobs = rng.normal(size=(200, 6)).astype(np.float32) * 20  # 200 blobs
+    x = np.repeat(blobs, 12, axis=0) + rng.normal(0, 0.01, (2400, 6)).astype(np.float32)
+    c1, l1 = sog.kmeans(x, 200, iterations=8, seed=3)
+    c2, l2 = sog.kmeans(x, 200, iterations=8, seed=3)
+    np.testing.assert_array_equal(c1, c2)
+    np.testing.assert_array_equal(l1, l2)
+    assert len(c1) <= 200 and l1.max() < len(c1)
+    # a row's label is the nearest centre of its first-level cluster: nearly always the nearest
+    # of all; and the clustering is about as tight as a flat k-means'
+    assert np.mean(l1 == sog._nearest(x, c1)) > 0.9
+    c0, l0 = sog._lloyd(x, 200, 8, np.random.default_rng(3))
+    assert ((c1[l1] - x) ** 2).sum() <= 1.5 * ((c0[l0] - x) ** 2).sum()
+
+
 def test_load_scene_and_save_scene_by_name_and_header(tmp_path):
     g = to_gaussians(make_splats(n=300, degree=1))
     for fmt, suffix in SUFFIX.items():
