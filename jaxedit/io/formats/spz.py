@@ -42,6 +42,9 @@ MAGIC = 0x5053474E  # "NGSP" little-endian
 VERSIONS = (2, 3, 4)
 COLOR_SCALE = 0.15
 FRACTIONAL_BITS = 12
+#: The ZSTD level v4 streams are written at (level 6's lazier search finds little more in the
+#: SH bytes and takes longer: benchmarks/formats.py).
+ZSTD_LEVEL = 5
 _SH_COMPONENTS = {0: 0, 1: 9, 2: 24, 3: 45, 4: 72}
 #: Most bytes one compressed byte inflates to: deflate's 258-byte matches at about 2 bits
 #: each; ZSTD's RLE blocks (128 KiB from 4 bytes). A count needing more is refused unread.
@@ -133,8 +136,8 @@ def encode(s: Splats, *, version: int = 4, axes: str = "ply", level: int | None 
     Args:
       version: 2 or 3 (one gzip stream) or 4 (ZSTD streams, the current version).
       axes: "ply" stores the PLY axes as they are (splat-transform's convention), "rub" converts.
-      level: the compression level (gzip 1-9, default 6; ZSTD 1-22, default 6: splat-transform
-        writes level 12, a smaller file written more slowly).
+      level: the compression level (gzip 1-9, default 6; ZSTD 1-22, default
+        :data:`ZSTD_LEVEL`: splat-transform writes level 12, a smaller file written more slowly).
     """
     _check_axes(axes)
     if version not in VERSIONS:
@@ -148,7 +151,7 @@ def encode(s: Splats, *, version: int = 4, axes: str = "ply", level: int | None 
         return gzip.compress(header + b"".join(arrays), compresslevel=level or 6, mtime=0)
     import zstandard
 
-    compressor = zstandard.ZstdCompressor(level=level or 6, threads=-1)
+    compressor = zstandard.ZstdCompressor(level=level or ZSTD_LEVEL, threads=-1)
     streams = [compressor.compress(a) for a in arrays]
     toc = b"".join(struct.pack("<QQ", len(c), len(a)) for c, a in zip(streams, arrays))
     header = struct.pack("<IIIBBBBI", MAGIC, 4, n, degree, FRACTIONAL_BITS, 0, len(streams), 32)
