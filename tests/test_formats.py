@@ -129,7 +129,7 @@ def test_sog_round_trip_within_its_codebooks(degree):
         assert np.abs(d.sh[:, 1:] - t.sh[:, 1:]).max() <= 1.8 / 128
 
 
-def test_sog_quantisers_are_the_plain_algorithms_made_fast():
+def test_sog_quantisers_are_the_plain_algorithms_made_fast(monkeypatch):
     """codebook_1d is the weighted 1-D Lloyd it replaces (sorted once, prefix sums); the two-level
     kmeans is seeded by its seed alone and clusters about as tightly as a flat k-means."""
     rng = np.random.default_rng(5)
@@ -154,6 +154,7 @@ def test_sog_quantisers_are_the_plain_algorithms_made_fast():
 
     blobs = rng.normal(size=(200, 6)).astype(np.float32) * 20  # 200 blobs
     x = np.repeat(blobs, 12, axis=0) + rng.normal(0, 0.01, (2400, 6)).astype(np.float32)
+    monkeypatch.setattr(sog, "FLAT_KMEANS", 0)  # two levels at this small size too
     c1, l1 = sog.kmeans(x, 200, iterations=8, seed=3)
     c2, l2 = sog.kmeans(x, 200, iterations=8, seed=3)
     np.testing.assert_array_equal(c1, c2)

@@ -42,6 +42,9 @@ MAX_TEXTURE = 16383
 MAX_UNZIPPED = 1 << 32
 RATIO = 64
 _SH_COEFFS = {0: 0, 1: 3, 2: 8, 3: 15}
+#: Rows x centres up to which the SH palette is one flat k-means (a scene of a few thousand
+#: splats); above it, two levels (:func:`kmeans`).
+FLAT_KMEANS = 1 << 26
 _FILES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp")
 
 
@@ -142,17 +145,18 @@ def _lloyd(x: np.ndarray, k: int, iterations: int, rng: np.random.Generator):
 def kmeans(x: np.ndarray, k: int, *, iterations: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(centres float32 [k', D], labels int [N]), k' <= k: k-means in two levels.
 
-    The rows are first split into about sqrt(k) clusters (k-means on a sample of 128 rows a
-    cluster, then every row to its nearest); each cluster then gets a share of the k centres in
-    proportion to its rows, found by k-means among its rows alone: about N sqrt(k) D an
-    iteration where one flat k-means costs N k D. Seeded by ``seed`` alone.
+    Where N k is at most :data:`FLAT_KMEANS` this is one flat k-means. Otherwise the rows are
+    first split into about sqrt(k) clusters (k-means on a sample of 128 rows a cluster, then
+    every row to its nearest); each cluster then gets a share of the k centres in proportion to
+    its rows, found by k-means among its rows alone: about N sqrt(k) D an iteration where the
+    flat k-means costs N k D. Seeded by ``seed`` alone.
     """
     x = np.ascontiguousarray(x, np.float32)
     n = len(x)
     if k >= n:
         return x.copy(), np.arange(n)
     groups = int(round(math.sqrt(k)))
-    if groups < 8:
+    if groups < 8 or n * k <= FLAT_KMEANS:
         return _lloyd(x, k, iterations, np.random.default_rng([seed, 0]))
     rng = np.random.default_rng([seed, 0])
     sample = x[np.sort(rng.choice(n, min(n, 128 * groups), replace=False))]
