@@ -138,7 +138,10 @@ def _lloyd(x: np.ndarray, k: int, iterations: int, rng: np.random.Generator):
         sums = np.add.reduceat(x[order].astype(np.float64), starts[filled], axis=0)
         centres = centres.copy()
         centres[filled] = (sums / counts[filled, None]).astype(np.float32)
-        labels = _nearest(x, centres)
+        moved = _nearest(x, centres)
+        if np.array_equal(moved, labels):  # a fixed point: further steps change nothing
+            break
+        labels = moved
     return centres, labels
 
 
