@@ -22,7 +22,8 @@ threads), each the best of R repeats (default 3; SOG once, its k-means dominates
 busy it was, the CPU time what the work costs.
 
 ``--parts``: which of quality, viewer and speed to run (default all); the parts not run are kept
-from an existing DIR/formats.json. ``--formats``: the formats the speed part times.
+from an existing DIR/formats.json. ``--formats``: the formats the speed part times (with
+``--parts``, the others keep their figures).
 ``--splat-transform DIR``: the npm prefix holding @playcanvas/splat-transform (default
 $SPLAT_TRANSFORM_DIR, then PATH); its parts are skipped, and say so, without it.
 Writes DIR/formats.json.
@@ -318,7 +319,7 @@ def main(argv=None):
     st = find_splat_transform(args.splat_transform)
     load_at_start = os.getloadavg()[0]
     previous = Path(args.out) / "formats.json"
-    results = {}
+    results, kept = {}, {}
     if set(parts) != set(PARTS) and previous.is_file():  # the parts not run are kept
         kept = json.loads(previous.read_text())
         results = {k: v for k, v in kept.items() if k in PARTS and k not in parts}
@@ -332,8 +333,8 @@ def main(argv=None):
             from jaxedit import gaussians as G
 
             results["viewer"] = _viewer(G.compact(_scene_and_cameras(args)[0]), st, tmp, args.out)
-        if "speed" in parts:
-            results["speed"] = _speed(args)
+        if "speed" in parts:  # the formats not timed keep their figures
+            results["speed"] = {**kept.get("speed", {}), **_speed(args)}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if st is None:
