@@ -43,8 +43,10 @@ VERSIONS = (2, 3, 4)
 COLOR_SCALE = 0.15
 FRACTIONAL_BITS = 12
 #: The ZSTD level v4 streams are written at (level 6's lazier search finds little more in the
-#: SH bytes and takes longer: benchmarks/formats.py).
+#: SH bytes and takes longer: benchmarks/formats.py), and the shortest match it looks for: the
+#: arrays are quantised noise, where matches of 4-5 bytes rarely pay for themselves.
 ZSTD_LEVEL = 5
+ZSTD_MIN_MATCH = 6
 _SH_COMPONENTS = {0: 0, 1: 9, 2: 24, 3: 45, 4: 72}
 #: Most bytes one compressed byte inflates to: deflate's 258-byte matches at about 2 bits
 #: each; ZSTD's RLE blocks (128 KiB from 4 bytes). A count needing more is refused unread.
@@ -151,8 +153,12 @@ def encode(s: Splats, *, version: int = 4, axes: str = "ply", level: int | None 
         return gzip.compress(header + b"".join(arrays), compresslevel=level or 6, mtime=0)
     import zstandard
 
-    compressor = zstandard.ZstdCompressor(level=level or ZSTD_LEVEL, threads=-1)
-    streams = [compressor.compress(a) for a in arrays]
+    def compress(a: bytes) -> bytes:  # the level's parameters for this size, longer matches
+        params = zstandard.ZstdCompressionParameters.from_level(
+            level or ZSTD_LEVEL, source_size=len(a), min_match=ZSTD_MIN_MATCH, threads=-1)
+        return zstandard.ZstdCompressor(compression_params=params).compress(a)
+
+    streams = [compress(a) for a in arrays]
     toc = b"".join(struct.pack("<QQ", len(c), len(a)) for c, a in zip(streams, arrays))
     header = struct.pack("<IIIBBBBI", MAGIC, 4, n, degree, FRACTIONAL_BITS, 0, len(streams), 32)
     return header.ljust(32, b"\0") + toc + b"".join(streams)
