@@ -1,7 +1,8 @@
 """Splat file formats: each format's round trip both ways, sizes against splat-transform's, speed.
 
     python benchmarks/formats.py [--smoke] [--out DIR] [--scene FILE --data DATASET]
-                                 [--splat-transform DIR]
+                                 [--splat-transform DIR] [--parts quality,viewer,speed]
+                                 [--formats ply,spz,...] [--repeats R]
 
 Quality, on a scene (``--scene``, e.g. the demo's edited snapshot, with its dataset ``--data`` for
 the test cameras; without them a random scene seen from an orbit):
@@ -14,19 +15,25 @@ Viewer (with splat-transform and chromium): our .spz of the scene in splat-trans
 (the SuperSplat viewer), screenshot in headless Chromium (software WebGL) from a camera looking
 at the scene's centre, against our render of that camera: PSNR, and the two side by side as
 DIR/formats_viewer.png.
-Speed: save_scene and load_scene of N random Gaussians at SH degree 3 (1 M; SOG 20 k, its
-k-means palette dominates), Gaussians per second, the median of a few repeats.
+Speed: save_scene and load_scene of N random Gaussians at SH degree 3 (1 M for every format),
+Gaussians per second by wall time and by this process's CPU time (time.process_time, all its
+threads), each the best of R repeats (default 3; SOG once, its k-means dominates), with the
+1-minute load average before and after each format: on a shared machine the wall time says how
+busy it was, the CPU time what the work costs.
 
+``--parts``: which of quality, viewer and speed to run (default all); the parts not run are kept
+from an existing DIR/formats.json. ``--formats``: the formats the speed part times (with
+``--parts``, the others keep their figures).
 ``--splat-transform DIR``: the npm prefix holding @playcanvas/splat-transform (default
 $SPLAT_TRANSFORM_DIR, then PATH); its parts are skipped, and say so, without it.
-Writes DIR/formats.json. Timings on a shared machine are noisy.
+Writes DIR/formats.json.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
-import statistics
 import subprocess
 import tempfile
 import time
@@ -38,6 +45,8 @@ from common import parse_args, peak_rss_mb, write_json  # noqa: E402  (sets sys.
 SUFFIX = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog",
           "splat": ".splat"}
 THEIRS = ("compressed-ply", "spz", "sog")  # the formats splat-transform writes
+SPEED_FORMATS = ("ply", "compressed-ply", "spz", "splat", "sog")
+PARTS = ("quality", "viewer", "speed")
 
 
 def _extra(parser):
@@ -45,6 +54,10 @@ def _extra(parser):
     parser.add_argument("--data", type=Path, default=None, help="its nerfstudio dataset (cameras)")
     parser.add_argument("--splat-transform", type=Path, default=None,
                         help="npm prefix with @playcanvas/splat-transform installed")
+    parser.add_argument("--parts", default="quality,viewer,speed",
+                        help="comma list of quality, viewer, speed (the others are kept)")
+    parser.add_argument("--formats", default=",".join(SPEED_FORMATS),
+                        help="comma list of the formats the speed part times")
 
 
 def find_splat_transform(prefix: Path | None) -> list[str] | None:
@@ -178,13 +191,15 @@ def _viewer(scene, st, tmp: Path, out_dir: Path) -> dict:
             "image": "formats_viewer.png (viewer left, ours right)"}
 
 
-def _median_seconds(fn, repeats):
-    times = []
+def _best_seconds(fn, repeats) -> tuple[float, float]:
+    """(best wall seconds, best CPU seconds of this process) of ``repeats`` calls of ``fn``."""
+    wall, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return min(wall), min(cpu)
 
 
 def _random_gaussians(n, seed=0):
@@ -266,19 +281,29 @@ def _speed(args) -> dict:
     from jaxedit.io import load_scene, save_scene
 
     repeats = args.repeats or (1 if args.smoke else 3)
+    formats = [f.strip() for f in args.formats.split(",") if f.strip()]
+    unknown = sorted(set(formats) - set(SPEED_FORMATS))
+    if unknown:
+        raise SystemExit(f"--formats: unknown {', '.join(unknown)} (of {', '.join(SPEED_FORMATS)})")
     out = {}
     tmp = Path(tempfile.mkdtemp(prefix="jaxedit-formats-speed-"))
     try:
-        for fmt in ("ply", "compressed-ply", "spz", "splat", "sog"):
-            n = (2000 if fmt == "sog" else 20_000) if args.smoke else (20_000 if fmt == "sog" else 1_000_000)
+        for fmt in formats:
+            n = (2000 if fmt == "sog" else 20_000) if args.smoke else 1_000_000
             g = _random_gaussians(n)
             path = tmp / f"speed{SUFFIX[fmt]}"
-            reps = 1 if fmt == "sog" else repeats  # SOG: a minute a write at this size
-            t_write = _median_seconds(lambda: save_scene(path, g), reps)
-            t_read = _median_seconds(lambda: load_scene(path), reps)
+            reps = 1 if fmt == "sog" else repeats  # SOG: minutes a write at this size
+            load_before = os.getloadavg()[0]
+            t_write, c_write = _best_seconds(lambda: save_scene(path, g), reps)
+            t_read, c_read = _best_seconds(lambda: load_scene(path), reps)
             out[fmt] = {"gaussians": n, "sh_degree": 3, "bytes": path.stat().st_size,
-                        "write_s": t_write, "read_s": t_read,
-                        "write_gaussians_per_s": n / t_write, "read_gaussians_per_s": n / t_read}
+                        "repeats": reps, "write_s": t_write, "write_cpu_s": c_write,
+                        "read_s": t_read, "read_cpu_s": c_read,
+                        "write_gaussians_per_s": n / t_write,
+                        "write_gaussians_per_cpu_s": n / c_write,
+                        "read_gaussians_per_s": n / t_read,
+                        "read_gaussians_per_cpu_s": n / c_read,
+                        "load_average_1m": [load_before, os.getloadavg()[0]]}
             print(fmt, out[fmt], flush=True)
             path.unlink()
     finally:
@@ -288,23 +313,35 @@ def _speed(args) -> dict:
 
 def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra=_extra)
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    if not parts or set(parts) - set(PARTS):
+        raise SystemExit(f"--parts: a comma list of {', '.join(PARTS)}, got {args.parts!r}")
     st = find_splat_transform(args.splat_transform)
     load_at_start = os.getloadavg()[0]
+    previous = Path(args.out) / "formats.json"
+    results, kept = {}, {}
+    if set(parts) != set(PARTS) and previous.is_file():  # the parts not run are kept
+        kept = json.loads(previous.read_text())
+        results = {k: v for k, v in kept.items() if k in PARTS and k not in parts}
+    results["smoke"] = args.smoke
     tmp = Path(tempfile.mkdtemp(prefix="jaxedit-formats-"))
     try:
-        results = {"smoke": args.smoke, "quality": _quality(args, st, tmp)}
+        if "quality" in parts:
+            results["quality"] = _quality(args, st, tmp)
         chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-        if st is not None and chromium is not None and not args.smoke:
+        if "viewer" in parts and st is not None and chromium is not None and not args.smoke:
             from jaxedit import gaussians as G
 
             results["viewer"] = _viewer(G.compact(_scene_and_cameras(args)[0]), st, tmp, args.out)
-        results["speed"] = _speed(args)
+        if "speed" in parts:  # the formats not timed keep their figures
+            results["speed"] = {**kept.get("speed", {}), **_speed(args)}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if st is None:
         results["note"] = "splat-transform not found: its columns are missing"
+    results["parts_run"] = parts
     results["peak_rss_mb"] = peak_rss_mb()
-    # other work on the machine slows the timings: the load before and after them
+    # other work on the machine slows the timings: the load before and after this run
     results["load_average_1m"] = {"start": load_at_start, "end": os.getloadavg()[0]}
     write_json(args.out, "formats", results)
 

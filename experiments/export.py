@@ -1,15 +1,16 @@
 """``export``: write a scene in the format a viewer or another tool reads.
 
-    python -m experiments export SCENE --output FILE            # any format to any format
-    python -m experiments export RUN_DIR --select 2 --output FILE.spz
-    python -m experiments export RUN_DIR --output FILE.sog      # the run's selected.ply
+    python -m experiments export SCENE --out FILE               # any format to any format
+    python -m experiments export RUN_DIR --select 2 --out FILE.spz
+    python -m experiments export RUN_DIR --out FILE.sog         # the run's selected.ply
 
 SCENE is a splat file of any format :func:`jaxedit.io.load_scene` reads (INRIA or compressed
 .ply, .spz, .sog, meta.json, .splat); RUN_DIR an edit run, whose subtask ``--select`` picks (an
 index or a ratio, as ``edit --select``; the run is only read) or, without it, its
 ``selected.ply``. The format is FILE's extension (``.compressed.ply``, ``.spz``, ``.sog``,
-``meta.json``, ``.splat``, ``.ply``) unless ``--format`` says. ``--out`` is not used: the file
-is the output.
+``meta.json``, ``.splat``, ``.ply``) unless ``--format`` says. Here ``--out`` is that file, not
+a run directory (``--output`` is the same flag, kept for older command lines): no run record
+or lock is written beside it, and it is written atomically.
 
 ``edit ... --export spz,sog`` writes the run's selected snapshot the same way
 (:func:`export_selected`).
@@ -17,6 +18,7 @@ is the output.
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 HELP = "write a scene or an edit run's snapshot as .ply, .compressed.ply, .spz, .sog or .splat"
@@ -26,12 +28,23 @@ def add_arguments(p) -> None:
     from jaxedit.io import FORMATS
 
     p.add_argument("source", type=Path, help="a splat file, or an edit run directory")
-    p.add_argument("--output", type=Path, required=True,
-                   help="the file to write; its extension picks the format")
+    # the shared --out (added before this) names the file written; --output is its old name
+    out = next(a for a in p.arguments if a.dest == "out")
+    out.help = "the file to write; its extension picks the format"
+    p.add_argument("--output", dest="out", type=Path, default=None, help=argparse.SUPPRESS)
     p.add_argument("--select", default=None,
                    help="with RUN_DIR: the subtask (index or ratio) to export")
     p.add_argument("--format", default=None, choices=FORMATS,
-                   help="the format, whatever --output's extension")
+                   help="the format, whatever --out's extension")
+
+
+#: experiments/cli.py: ``--out`` names a file here (checked as one), not a run directory.
+OUT_IS_FILE = True
+
+
+def out_use(args) -> str:
+    """No lock or config.json beside the file (experiments/cli.py): the file is the output."""
+    return "signal"
 
 
 def source_scene(source: Path, select: str | None) -> Path:
@@ -55,10 +68,14 @@ def run(args) -> dict:
     from jaxedit.io import load_scene, save_scene
     from jaxedit.io.formats import format_from_name
 
+    from jaxedit import DataError
+
+    if args.out is None:
+        raise DataError("--out", "give the file to write (its extension picks the format)")
     scene_file = source_scene(args.source, args.select)
-    fmt = args.format or format_from_name(args.output)  # a bad extension: before any reading
+    fmt = args.format or format_from_name(args.out)  # a bad extension: before any reading
     gaussians = load_scene(scene_file)
-    path = save_scene(args.output, gaussians, format=fmt)
+    path = save_scene(args.out, gaussians, format=fmt)
     return {"source": str(scene_file), "output": str(path), "format": fmt,
             "gaussians": int(gaussians.alive.sum()), "bytes": path.stat().st_size}
 

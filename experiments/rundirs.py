@@ -85,8 +85,8 @@ def check_paths(args: argparse.Namespace, arguments, *, outputs: bool = True) ->
         name = flag_label(action)
         if action.dest in OUTPUT_DIRS + OUTPUT_FILES and not outputs:
             continue
-        if action.dest in OUTPUT_DIRS:
-            check_output_path(value, name)
+        if action.dest in OUTPUT_DIRS:  # a command whose --out is a file says so (export)
+            check_output_path(value, name, directory=not getattr(args._module, "OUT_IS_FILE", False))
         elif action.dest in OUTPUT_FILES:
             check_output_path(value, name, directory=False)
         else:

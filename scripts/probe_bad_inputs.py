@@ -89,8 +89,29 @@ def _inputs(root: Path) -> dict:
         {"index": 1, "name": "r1", "ratio": 1.0, "snapshot": "subtasks/01/scene.ply"}]}))
     (root / "afile").write_text("x\n")
     (root / "emptydir").mkdir()
+    _bad_splat_files(root / "splats")
     _surface_inputs(root, scene)
     return _paths(root)
+
+
+def _bad_splat_files(folder: Path) -> None:
+    """Splat files whose data disagrees with what they declare (issue 73): a 1-splat .spz
+    followed by 64 MiB of zeros (a gzip bomb), one with bytes after its gzip stream, and a
+    .json that is not a SOG meta.json."""
+    import gzip
+
+    from jaxedit.io.formats import spz
+    from jaxedit.io.formats.common import Splats
+
+    folder.mkdir()
+    one = Splats(np.zeros((1, 3), np.float32), np.full((1, 3), -3.0, np.float32),
+                 np.array([[1.0, 0, 0, 0]], np.float32), np.zeros(1, np.float32),
+                 np.zeros((1, 1, 3), np.float32))
+    v3 = spz.encode(one, version=3)
+    (folder / "bomb.spz").write_bytes(gzip.compress(gzip.decompress(v3) + bytes(64 << 20), 9,
+                                                    mtime=0))
+    (folder / "tail.spz").write_bytes(v3 + bytes(16))
+    (folder / "notsog.json").write_text('{"subtasks": []}\n')
 
 
 def _huge_png(path: Path, width: int, height: int) -> None:
@@ -283,7 +304,7 @@ def _base(command: str, inp: dict, out: str) -> list[str]:
         "view": ["view", str(inp["edit_run"])],
         "process-data": ["process-data", "--images", str(inp["photos"]), "--out", out],
         "train-editor": ["train-editor", "--out", out],
-        "export": ["export", str(inp["scene"]), "--output", out + ".spz"],
+        "export": ["export", str(inp["scene"]), "--out", out + ".spz"],
     }[command]
 
 
@@ -347,6 +368,14 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
                           (float_flags[0].dest, float_flags[0].option_strings[-1]), None))
         found.append((f"{command} --config missing", base + ["--config", "no/cfg.json"],
                       "no/cfg.json", None))
+    # Splat files that declare one thing and hold another, through every reader's command.
+    for name, needle in [("bomb.spz", "more than the 20 bytes"), ("tail.spz", "after the gzip"),
+                         ("notsog.json", "not a SOG meta.json")]:
+        bad = root / "splats" / name
+        found.append((f"export {name}", ["export", str(bad), "--out", out_rel + ".ply"],
+                      needle, bad.parent))
+        found.append((f"render --scene {name}", ["render", "--scene", str(bad), "--out", out_rel],
+                      needle, bad.parent))
     # Non-UTF-8 file names.
     found.append(("process-data non-UTF-8 photo name",
                   ["process-data", "--images", str(inp["badname"]), "--out", out_rel],

@@ -24,8 +24,16 @@ from jaxedit.io.formats import compressed_ply, sog, splat, spz
 from jaxedit.io.formats.common import Splats, from_gaussians, morton_order, to_gaussians
 from jaxedit.io.formats.scene import scene_format
 
+def ply_bytes(s: Splats) -> bytes:
+    """The INRIA .ply of ``s`` (save_ply's bytes)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        return save_ply(Path(tmp) / "s.ply", to_gaussians(s)).read_bytes()
+
+
 ENCODERS = {"compressed-ply": compressed_ply.encode, "spz": spz.encode, "sog": sog.encode_sog,
-            "splat": splat.encode}
+            "splat": splat.encode, "ply": ply_bytes}
 SUFFIX = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog",
           "splat": ".splat"}
 
@@ -119,6 +127,44 @@ def test_sog_round_trip_within_its_codebooks(degree):
     assert d.sh.shape == t.sh.shape
     if degree:  # up to the 256-entry codebook of the palette's values over [-0.9, 0.9]
         assert np.abs(d.sh[:, 1:] - t.sh[:, 1:]).max() <= 1.8 / 128
+
+
+def test_sog_quantisers_are_the_plain_algorithms_made_fast(monkeypatch):
+    """codebook_1d is the weighted 1-D Lloyd it replaces (sorted once, prefix sums); the two-level
+    kmeans is seeded by its seed alone and clusters about as tightly as a flat k-means."""
+    rng = np.random.default_rng(5)
+    values = np.concatenate([rng.normal(0, 1, 3000), rng.exponential(4, 500)])
+    centres, labels = sog.codebook_1d(values, size=64, iterations=6)
+    # the reference: weighted quantiles, then Lloyd steps by bincount over all values
+    flat = values.astype(np.float64)
+    order = np.argsort(flat, kind="stable")
+    weight = np.empty_like(flat)
+    weight[order] = sog._density_weights(flat[order], 0.0)
+    cum = np.cumsum(weight[order])
+    ref = flat[order][np.minimum(np.searchsorted(cum, (np.arange(64) + 0.5) / 64 * cum[-1]),
+                                 len(flat) - 1)]
+    for _ in range(6):
+        ref = np.unique(ref)
+        cell = np.searchsorted((ref[1:] + ref[:-1]) / 2, flat)
+        w = np.bincount(cell, weight, len(ref))
+        ref = np.where(w > 0, np.bincount(cell, flat * weight, len(ref)) / np.maximum(w, 1e-300), ref)
+    np.testing.assert_allclose(np.unique(centres), np.unique(ref.astype(np.float32)), rtol=1e-5,
+                               atol=1e-6)
+    np.testing.assert_array_equal(labels, np.searchsorted((centres[1:] + centres[:-1]) / 2, values))
+
+    blobs = rng.normal(size=(200, 6)).astype(np.float32) * 20  # 200 blobs
+    x = np.repeat(blobs, 12, axis=0) + rng.normal(0, 0.01, (2400, 6)).astype(np.float32)
+    monkeypatch.setattr(sog, "FLAT_KMEANS", 0)  # two levels at this small size too
+    c1, l1 = sog.kmeans(x, 200, iterations=8, seed=3)
+    c2, l2 = sog.kmeans(x, 200, iterations=8, seed=3)
+    np.testing.assert_array_equal(c1, c2)
+    np.testing.assert_array_equal(l1, l2)
+    assert len(c1) <= 200 and l1.max() < len(c1)
+    # a row's label is the nearest centre of its first-level cluster: nearly always the nearest
+    # of all; and the clustering is about as tight as a flat k-means'
+    assert np.mean(l1 == sog._nearest(x, c1)) > 0.9
+    c0, l0 = sog._lloyd(x, 200, 8, np.random.default_rng(3))
+    assert ((c1[l1] - x) ** 2).sum() <= 1.5 * ((c0[l0] - x) ** 2).sum()
 
 
 def test_load_scene_and_save_scene_by_name_and_header(tmp_path):
@@ -245,7 +291,7 @@ def test_wrong_magic_unknown_versions_and_absurd_counts(tmp_path):
         load_scene(_write(tmp_path, "version.spz", bytes(v4)))
     # v3 declaring 2^31 splats in a small file: refused before anything is allocated
     header = struct.pack("<IIIBBBB", spz.MAGIC, 3, 1 << 31, 0, 12, 0, 0)
-    with pytest.raises(DataError, match="truncated file or a wrong count"):
+    with pytest.raises(DataError, match="a wrong count"):
         load_scene(_write(tmp_path, "count.spz", __import__("gzip").compress(header + b"\0" * 64)))
     v4 = bytearray(spz.encode(s))
     struct.pack_into("<I", v4, 8, 41)  # the count disagrees with the streams' sizes
@@ -264,6 +310,61 @@ def test_wrong_magic_unknown_versions_and_absurd_counts(tmp_path):
         files["meta.json"] = json.dumps({**meta, **change}).encode()
         with pytest.raises(DataError, match=message):
             sog.decode_files(files.__getitem__, "x.sog")
+
+
+def _spz_v4(n: int, degree: int, streams: list[tuple[bytes, int]], tail: bytes = b"") -> bytes:
+    """A v4 file of ``n`` splats from (compressed chunk, declared size) pairs, then ``tail``."""
+    header = struct.pack("<IIIBBBBI", spz.MAGIC, 4, n, degree, 12, 0, len(streams), 32)
+    toc = b"".join(struct.pack("<QQ", len(c), size) for c, size in streams)
+    return header.ljust(32, b"\0") + toc + b"".join(c for c, _ in streams) + tail
+
+
+def test_spz_data_beyond_the_count_is_refused_without_inflating_it(tmp_path):
+    """A gzip SPZ declaring 1 splat followed by 64 MiB of zeros: refused after inflating the
+    header and the one splat (not the zeros); the count/data checks of v4's streams too."""
+    import gzip
+    import tracemalloc
+
+    import zstandard
+
+    one = bytes(spz.encode(make_splats(n=1, degree=0), version=3))
+    payload = gzip.decompress(one)
+    bomb = _write(tmp_path, "bomb.spz", gzip.compress(payload + bytes(64 << 20), 9, mtime=0))
+    assert bomb.stat().st_size < 1 << 20
+    tracemalloc.start()
+    try:
+        with pytest.raises(DataError, match="more than the 20 bytes 1 splats need"):
+            load_scene(bomb)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 << 20, peak  # the 64 MiB were never inflated
+    short = _write(tmp_path, "short.spz", gzip.compress(payload[:-3], mtime=0))
+    with pytest.raises(DataError, match="truncated file or a wrong count"):
+        load_scene(short)
+    with pytest.raises(DataError, match="bytes after the gzip stream"):
+        load_scene(_write(tmp_path, "tail.spz", one + b"\0" * 10))
+
+    n = 40
+    s = make_splats(n=n, degree=0)
+    arrays = spz._arrays(s, 4)
+    z = zstandard.ZstdCompressor(level=3)
+    good = [(z.compress(a), len(a)) for a in arrays]
+    assert spz.decode(_spz_v4(n, 0, good)).count == n  # the helper builds a valid file
+    cases = [
+        (_spz_v4(n, 0, good, tail=b"\0" * 9), "9 bytes after the last SPZ v4 stream"),
+        # two frames where the table says one: the second's bytes are more than the count
+        (_spz_v4(n, 0, [good[0], (good[1][0] * 2, n), *good[2:]]), "stream 1 holds more than"),
+        # a frame whose header declares another size than the count implies
+        (_spz_v4(n, 0, [good[0], (z.compress(bytes(n + 1)), n), *good[2:]]),
+         "frame declares 41 bytes"),
+        (_spz_v4(n, 0, [good[0], (b"junkjunk", n), *good[2:]]), "not a ZSTD frame"),
+        # 2^31 splats whose streams are a few bytes: refused before any inflating
+        (_spz_v4(1 << 31, 0, [(c, size // n << 31) for c, size in good]), "cannot inflate"),
+    ]
+    for i, (data, message) in enumerate(cases):
+        with pytest.raises(DataError, match=message):
+            load_scene(_write(tmp_path, f"v4_{i}.spz", data))
 
 
 def test_zero_quaternion_and_nan_in_a_file_are_refused(tmp_path):
@@ -345,7 +446,7 @@ def raw_columns(s: Splats) -> dict[str, np.ndarray]:
 
 @pytest.mark.slow  # starts node a few times; CI runs the slow tier every time
 @needs_st
-@pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog", "splat"])
+@pytest.mark.parametrize("fmt", ["ply", "compressed-ply", "spz", "sog", "splat"])
 def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
     s = make_splats(n=600, degree=0 if fmt == "splat" else 2)
     path = _write(tmp_path, "ours" + SUFFIX[fmt], ENCODERS[fmt](s))
@@ -357,7 +458,9 @@ def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
     table = stats["stats"][0]
     # --stats gives raw statistics through the monotonic activations (exp scale, sigmoid, rgb)
     mine = raw_columns(ours)
-    assert set(mine) <= set(table["columns"])
+    if fmt == "ply":  # the INRIA layout's normals, written as zeros
+        mine.update({f"n{a}": np.zeros(ours.count, np.float32) for a in "xyz"})
+    assert set(mine) == set(table["columns"])
     for i, name in enumerate(table["columns"]):
         forward = FORWARD.get(name, lambda v: v)
         # .splat: splat-transform decodes a rotation byte as b/127.5 - 1, antimatter15 as (b - 128)/128
@@ -377,11 +480,17 @@ def test_splat_transform_reads_our_files_as_we_do(tmp_path, fmt):
 
 @pytest.mark.slow  # starts node a few times; CI runs the slow tier every time
 @needs_st
-@pytest.mark.parametrize("fmt", ["compressed-ply", "spz", "sog"])
+@pytest.mark.parametrize("fmt", ["ply", "compressed-ply", "spz", "sog"])
 def test_we_read_splat_transforms_files_as_it_does(tmp_path, fmt):
     s = make_splats(n=600, degree=3)
     source = save_ply(tmp_path / "scene.ply", to_gaussians(s))
     theirs = tmp_path / ("theirs" + SUFFIX[fmt])
+    if fmt == "ply":  # its INRIA .ply of our scene holds our values, bit for bit
+        run_st(source, theirs)
+        back = from_gaussians(load_scene(theirs))
+        for a, b in zip((back.means, back.log_scales, back.quats, back.opacity_logits, back.sh),
+                        (s.means, s.log_scales, s.quats, s.opacity_logits, s.sh)):
+            np.testing.assert_array_equal(a, b)
     run_st(*(["-g", "cpu"] if fmt == "sog" else []), source, theirs)
     run_st(theirs, tmp_path / "decoded.ply")  # their decoder's reading of their file
     ours, ref = load_scene(theirs), load_ply(tmp_path / "decoded.ply")
@@ -412,14 +521,18 @@ def test_export_command_converts_files_and_run_snapshots(tmp_path, capsys):
     from experiments.cli import main
 
     run = _edit_run(tmp_path)
-    assert main(["export", str(run), "--select", "1", "--output", str(tmp_path / "a.spz")]) == 0
+    assert main(["export", str(run), "--select", "1", "--out", str(tmp_path / "a.spz")]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["gaussians"] == 101 and result["format"] == "spz"
     assert not (run / "selected.ply").exists()  # the run is only read
     assert load_scene(tmp_path / "a.spz").capacity == 101
-    assert main(["export", str(tmp_path / "a.spz"), "--output", str(tmp_path / "b" / "meta.json")]) == 0
-    assert load_scene(tmp_path / "b" / "meta.json").capacity == 101
-    assert main(["export", str(run), "--select", "0.5", "--output", str(tmp_path / "c.ply"),
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.spz", "run"]  # no record, no lock
+    # --out names a file: an existing one is replaced; --output is the same flag
+    assert main(["export", str(run), "--select", "0", "--output", str(tmp_path / "a.spz")]) == 0
+    assert load_scene(tmp_path / "a.spz").capacity == 100
+    assert main(["export", str(tmp_path / "a.spz"), "--out", str(tmp_path / "b" / "meta.json")]) == 0
+    assert load_scene(tmp_path / "b" / "meta.json").capacity == 100
+    assert main(["export", str(run), "--select", "0.5", "--out", str(tmp_path / "c.ply"),
                  "--format", "compressed-ply"]) == 0
     assert scene_format(tmp_path / "c.ply") == "compressed-ply"
 
@@ -428,7 +541,10 @@ def test_export_command_converts_files_and_run_snapshots(tmp_path, capsys):
     (["{run}", "--output", "{tmp}/x.spz"], "without selected.ply: give --select"),
     (["{run}", "--select", "7", "--output", "{tmp}/x.spz"], "no finished subtask 7"),
     (["{tmp}/missing.spz", "--output", "{tmp}/x.spz"], "missing.spz"),
-    (["{run}/schedule.json", "--output", "{tmp}/x.spz"], "unsupported SOG version None"),
+    (["{run}/schedule.json", "--output", "{tmp}/x.spz"], "not a SOG meta.json (keys subtasks;"),
+    (["{run}/schedule.json", "--out", "{tmp}/x.spz"], "schedule.json: not a SOG meta.json"),
+    (["{run}", "--select", "0"], "--out: give the file to write"),
+    (["{run}", "--select", "0", "--out", "{tmp}"], "is a directory, expected a file name"),
     (["{run}", "--select", "0", "--output", "{tmp}/x.obj"], "unknown splat file extension"),
     (["{bad}", "--output", "{tmp}/x.ply"], "not an SPZ file"),
 ])
@@ -442,6 +558,26 @@ def test_export_command_answers_bad_input_in_one_line(tmp_path, capsys, argv, me
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and message in err and "\n" not in err
     assert not (tmp_path / "x.spz").exists() and not (tmp_path / "x.ply").exists()
+
+
+@pytest.mark.parametrize("fmt", ["spz", "sog", "compressed-ply"])
+def test_render_scene_takes_every_format(tmp_path, fmt):
+    """``render --scene`` of a .spz (SOG, compressed PLY) draws what load_scene reads: the same
+    frames as rendering that reading saved as an INRIA .ply."""
+    from experiments.cli import main
+    from jaxedit.io import read_image
+
+    s = make_splats(n=48, degree=1, seed=3)
+    s = Splats(s.means * 0.2, s.log_scales - 1.0, s.quats, s.opacity_logits, s.sh)
+    scene = _write(tmp_path, "scene" + SUFFIX[fmt], ENCODERS[fmt](s))
+    plain = save_ply(tmp_path / "read.ply", load_scene(scene))
+    flags = ["--orbit", "2", "--size", "16", "--no-depth", "--quiet"]
+    assert main(["render", "--scene", str(scene), "--out", str(tmp_path / "a"), *flags]) == 0
+    assert main(["render", "--scene", str(plain), "--out", str(tmp_path / "b"), *flags]) == 0
+    for name in ("frame_000.png", "frame_001.png"):
+        a = read_image(tmp_path / "a" / "frames" / name)
+        assert a.min() < 0.9  # something was drawn
+        np.testing.assert_array_equal(a, read_image(tmp_path / "b" / "frames" / name))
 
 
 def _edit_inputs(tmp_path):

@@ -374,58 +374,82 @@ def ply_fields(sh_degree: int, *, normals: bool = True) -> list[str]:
             + ["opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
 
 
-def gaussians_to_table(g: Gaussians) -> np.ndarray:
-    """The alive Gaussians as a float32 structured array with the INRIA PLY fields [N]."""
+def _alive_fields(g: Gaussians) -> tuple[np.ndarray, ...]:
+    """(means, sh, opacity, log_scales, quats) of the alive Gaussians, float32 NumPy."""
     alive = np.asarray(g.alive, bool)
     fields = [np.asarray(a, np.float32) for a in (g.means, g.sh, g.opacity_logits,
                                                    g.log_scales, g.quats)]
     if not alive.all():
         fields = [a[alive] for a in fields]
+    return tuple(fields)
+
+
+def _fill_rows(out: np.ndarray, fields: tuple, rows: slice) -> None:
+    """Write ``rows`` of ``fields`` into ``out`` [len(rows), F] in the INRIA column order."""
     means, sh, opacity, log_scales, quats = fields  # sh [N, K, 3]
-    n, k = sh.shape[0], sh.shape[1]
-    degree = int(round(np.sqrt(k))) - 1
-    dtype = np.dtype([(name, "<f4") for name in ply_fields(degree)])
-    table = np.empty((n, dtype.itemsize // 4), np.float32)
+    k = sh.shape[1]
     rest = 9 + 3 * (k - 1)  # columns: x y z, normals, f_dc, f_rest, opacity, scales, rot
+    out[:, 0:3] = means[rows]
+    out[:, 3:6] = 0.0  # normals, as INRIA writes them
+    out[:, 6:9] = sh[rows, 0, :]
+    out[:, 9:rest].reshape(len(out), 3, k - 1)[...] = sh[rows, 1:, :].transpose(0, 2, 1)
+    out[:, rest] = opacity[rows]
+    out[:, rest + 1:rest + 4] = log_scales[rows]
+    out[:, rest + 4:rest + 8] = quats[rows]
+
+
+def _ply_dtype(sh_coeffs: int) -> np.dtype:
+    return np.dtype([(name, "<f4") for name in ply_fields(int(round(np.sqrt(sh_coeffs))) - 1)])
+
+
+def gaussians_to_table(g: Gaussians) -> np.ndarray:
+    """The alive Gaussians as a float32 structured array with the INRIA PLY fields [N]."""
+    fields = _alive_fields(g)
+    n, dtype = len(fields[0]), _ply_dtype(fields[1].shape[1])
+    table = np.empty((n, dtype.itemsize // 4), np.float32)
     # A few thousand rows at a time, so that each block of the table is written in cache.
     step = 4096
     for lo in range(0, n, step):
         rows = slice(lo, min(n, lo + step))
-        out = table[rows]
-        out[:, 0:3] = means[rows]
-        out[:, 3:6] = 0.0  # normals, as INRIA writes them
-        out[:, 6:9] = sh[rows, 0, :]
-        out[:, 9:rest].reshape(len(out), 3, k - 1)[...] = sh[rows, 1:, :].transpose(0, 2, 1)
-        out[:, rest] = opacity[rows]
-        out[:, rest + 1:rest + 4] = log_scales[rows]
-        out[:, rest + 4:rest + 8] = quats[rows]
+        _fill_rows(table[rows], fields, rows)
     return table.view(dtype).reshape(n)
 
 
 def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
     """Write the alive Gaussians, in slot order, as a 3DGS .ply (normals zero), atomically;
     float32, so a float32 pytree round-trips bit-exactly through :func:`load_ply`. Returns the path.
+
+    The rows are made and written a block at a time (no table of the whole file in memory); a
+    non-finite value removes the partial file and raises DataError.
     """
     path = Path(path)
     n_coeffs = np.shape(gaussians.sh)[-2]
     if n_coeffs not in (1, 4, 9, 16):
         raise DataError("gaussians.sh", f"{n_coeffs} SH coefficients is not (d+1)^2 for d in 0..3")
-    table = gaussians_to_table(gaussians)
-    if len(table):
-        values = table.view(np.float32).reshape(len(table), -1)
-        bad = ~np.isfinite(values).all(axis=1)
-        if bad.any():
-            # load_ply refuses such files, so never write one.
-            raise DataError(path, f"{int(bad.sum())} alive Gaussians have non-finite values "
-                                  f"(first at alive index {int(np.argmax(bad))}); nothing written")
+    fields = _alive_fields(gaussians)
+    n, dtype = len(fields[0]), _ply_dtype(n_coeffs)
     header = ["ply", "format binary_little_endian 1.0", "comment written by jaxedit",
-              f"element vertex {len(table)}"]
-    header += [f"property float {name}" for name in table.dtype.names]
+              f"element vertex {n}"]
+    header += [f"property float {name}" for name in dtype.names]
     header.append("end_header")
+    step = 16384
+    buffer = np.empty((min(n, step), dtype.itemsize // 4), np.float32)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(memoryview(table.view(np.uint8)))  # no copy of the table
+            for lo in range(0, n, step):
+                rows = slice(lo, min(n, lo + step))
+                block = buffer[:rows.stop - lo]
+                _fill_rows(block, fields, rows)
+                if not np.isfinite(block.sum(dtype=np.float64)):  # finite iff all are
+                    bad = ~np.isfinite(np.concatenate([f.reshape(n, -1) for f in (
+                        fields[0], fields[1].reshape(n, -1), fields[2][:, None], fields[3],
+                        fields[4])], 1)).all(axis=1)
+                    # load_ply refuses such files, so never write one.
+                    raise DataError(path, f"{int(bad.sum())} alive Gaussians have non-finite "
+                                          f"values (first at alive index {int(np.argmax(bad))}); "
+                                          f"nothing written")
+                f.write(memoryview(block.view(np.uint8)))
     return path
 
 

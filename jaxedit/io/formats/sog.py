@@ -10,7 +10,7 @@ ceil(N/width/4)*4), as splat-transform's ``write-sog.ts`` / ``read-sog.ts`` lay 
 - ``scales.webp``: r g b index the 256-entry ``scales.codebook`` of log-scales.
 - ``sh0.webp``: r g b index ``sh0.codebook`` of f_dc values, a = sigmoid(opacity) * 255.
 - ``shN_labels.webp`` / ``shN_centroids.webp`` (degree > 0): a palette of ``shN.count`` SH
-  vectors (k-means, seeded), each splat's 16-bit label in r g; the palette's coefficients
+  vectors (a two-level k-means, :func:`kmeans`, seeded), each splat's 16-bit label in r g; the palette's coefficients
   index ``shN.codebook``, 64 palette entries a texture row, one texel per coefficient.
 
 Codebooks are weighted 1-D k-means (256 centres, :func:`codebook_1d`) over the values they code. The loss is the palette's:
@@ -42,6 +42,9 @@ MAX_TEXTURE = 16383
 MAX_UNZIPPED = 1 << 32
 RATIO = 64
 _SH_COEFFS = {0: 0, 1: 3, 2: 8, 3: 15}
+#: Rows x centres up to which the SH palette is one flat k-means (a scene of a few thousand
+#: splats); above it, two levels (:func:`kmeans`).
+FLAT_KMEANS = 1 << 26
 _FILES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp")
 
 
@@ -67,22 +70,27 @@ def codebook_1d(values: np.ndarray, size: int = 256, iterations: int = 10,
     centres in proportion to its count ** ``density``. 1 is plain k-means (centres crowd the
     dense middle, every label about equally frequent); 0, the default, gives each bin the same
     weight: the tails keep their precision and the labels, fewer of them frequent, compress
-    better in the lossless WebP.
+    better in the lossless WebP. The values are sorted once; each iteration then finds its
+    cells' bounds by bisection and their weighted sums from prefix sums.
     """
     flat = np.asarray(values, np.float64).reshape(-1)
     if flat.size == 0:
         return np.zeros(size, np.float32), np.zeros(np.shape(values), np.uint8)
-    weight = _density_weights(flat, density)
     order = np.argsort(flat, kind="stable")
-    cumulative = np.cumsum(weight[order])
+    ordered = flat[order]
+    weight = _density_weights(ordered, density)
+    cumulative = np.cumsum(weight)
     at = np.searchsorted(cumulative, (np.arange(size) + 0.5) / size * cumulative[-1])
-    centres = flat[order][np.minimum(at, len(flat) - 1)]  # weighted quantiles
+    centres = ordered[np.minimum(at, len(flat) - 1)]  # weighted quantiles
+    weight_sum = np.concatenate([[0.0], cumulative])
+    value_sum = np.concatenate([[0.0], np.cumsum(weight * ordered)])
     for _ in range(iterations):
         centres = np.unique(centres)
         edges = (centres[1:] + centres[:-1]) / 2
-        label = np.searchsorted(edges, flat)
-        sums = np.bincount(label, flat * weight, len(centres))
-        counts = np.bincount(label, weight, len(centres))
+        # cell i holds the values in (edges[i-1], edges[i]]: as searchsorted(edges, v) labels
+        bounds = np.concatenate([[0], np.searchsorted(ordered, edges, side="right"), [len(flat)]])
+        counts = np.diff(weight_sum[bounds])
+        sums = np.diff(value_sum[bounds])
         centres = np.where(counts > 0, sums / np.where(counts > 0, counts, 1), centres)
     centres = np.sort(np.pad(np.unique(centres), (0, max(0, size - len(np.unique(centres)))), mode="edge"))
     edges = (centres[1:] + centres[:-1]) / 2
@@ -90,50 +98,109 @@ def codebook_1d(values: np.ndarray, size: int = 256, iterations: int = 10,
     return centres.astype(np.float32), labels.astype(np.uint8)
 
 
-def _density_weights(flat: np.ndarray, density: float, bins: int = 1024) -> np.ndarray:
-    """float64 [N]: count(bin of each value) ** (density - 1) over ``bins`` bins spaced
-    halfway between equal width and equal count (the tails stay resolved)."""
+def _density_weights(ordered: np.ndarray, density: float, bins: int = 1024) -> np.ndarray:
+    """float64 [N]: count(bin of each of the sorted values ``ordered``) ** (density - 1) over
+    ``bins`` bins spaced halfway between equal width and equal count (the tails stay resolved)."""
     if density == 1.0:
-        return np.ones_like(flat)
+        return np.ones_like(ordered)
     grid = np.linspace(0.0, 1.0, bins + 1)
-    edges = 0.5 * (np.quantile(flat, grid) + (flat.min() + grid * (flat.max() - flat.min())))
+    quantiles = np.interp(grid * (len(ordered) - 1), np.arange(len(ordered)), ordered)
+    edges = 0.5 * (quantiles + (ordered[0] + grid * (ordered[-1] - ordered[0])))
     edges = np.unique(edges)
-    index = np.clip(np.searchsorted(edges, flat, side="right") - 1, 0, max(len(edges) - 2, 0))
+    index = np.clip(np.searchsorted(edges, ordered, side="right") - 1, 0, max(len(edges) - 2, 0))
     counts = np.bincount(index, minlength=max(len(edges) - 1, 1)).astype(np.float64)
     return counts[index] ** (density - 1.0)
 
 
-def _nearest(x: np.ndarray, centres: np.ndarray, block: int = 4096) -> np.ndarray:
+def _nearest(x: np.ndarray, centres: np.ndarray, block: int = 2048) -> np.ndarray:
     """int [N]: index of the nearest row of ``centres`` [K, D] for each row of ``x`` [N, D]."""
     c2 = (centres.astype(np.float32) ** 2).sum(1)
+    ct = np.ascontiguousarray(centres.T, np.float32)
     out = np.empty(len(x), np.int64)
     for i in range(0, len(x), block):
-        d = c2[None, :] - 2.0 * (x[i:i + block] @ centres.T)
+        d = x[i:i + block] @ ct  # |x - c|^2 - |x|^2 = |c|^2 - 2 x.c
+        d *= np.float32(-2.0)
+        d += c2
         out[i:i + block] = np.argmin(d, axis=1)
     return out
 
 
-def kmeans(x: np.ndarray, k: int, *, iterations: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(centres float32 [k', D], labels int [N]) by Lloyd's k-means from a seeded sample, k' <= k."""
-    x = np.asarray(x, np.float32)
-    if k >= len(x):
-        return x.copy(), np.arange(len(x))
-    rng = np.random.default_rng(seed)
-    centres = x[rng.choice(len(x), k, replace=False)]
+def _lloyd(x: np.ndarray, k: int, iterations: int, rng: np.random.Generator):
+    """(centres float32 [k, D], labels int [N]): Lloyd's k-means from ``k`` of the rows drawn
+    by ``rng`` (k < N); an emptied cluster keeps its centre."""
+    centres = x[np.sort(rng.choice(len(x), k, replace=False))]
     labels = _nearest(x, centres)
     for _ in range(iterations):
+        order = np.argsort(labels, kind="stable")
         counts = np.bincount(labels, minlength=k)
-        sums = np.zeros_like(centres, dtype=np.float64)
-        _segment_sum(sums, labels, x)
-        centres = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], centres
-                           ).astype(np.float32)
-        labels = _nearest(x, centres)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        filled = counts > 0
+        sums = np.add.reduceat(x[order].astype(np.float64), starts[filled], axis=0)
+        centres = centres.copy()
+        centres[filled] = (sums / counts[filled, None]).astype(np.float32)
+        moved = _nearest(x, centres)
+        if np.array_equal(moved, labels):  # a fixed point: further steps change nothing
+            break
+        labels = moved
     return centres, labels
 
 
-def _segment_sum(out: np.ndarray, labels: np.ndarray, x: np.ndarray) -> None:
-    for d in range(x.shape[1]):
-        out[:, d] = np.bincount(labels, x[:, d], len(out))
+def kmeans(x: np.ndarray, k: int, *, iterations: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(centres float32 [k', D], labels int [N]), k' <= k: k-means in two levels.
+
+    Where N k is at most :data:`FLAT_KMEANS` this is one flat k-means. Otherwise the rows are
+    first split into about sqrt(k) clusters (k-means on a sample of 128 rows a cluster, then
+    every row to its nearest); each cluster then gets a share of the k centres in proportion to
+    its rows, found by k-means among its rows alone: about N sqrt(k) D an iteration where the
+    flat k-means costs N k D. Seeded by ``seed`` alone.
+    """
+    x = np.ascontiguousarray(x, np.float32)
+    n = len(x)
+    if k >= n:
+        return x.copy(), np.arange(n)
+    groups = int(round(math.sqrt(k)))
+    if groups < 8 or n * k <= FLAT_KMEANS:
+        return _lloyd(x, k, iterations, np.random.default_rng([seed, 0]))
+    rng = np.random.default_rng([seed, 0])
+    sample = x[np.sort(rng.choice(n, min(n, 128 * groups), replace=False))]
+    top = _nearest(x, _lloyd(sample, groups, iterations, rng)[0])
+    sizes = np.bincount(top, minlength=groups)
+    shares = _apportion(sizes, k)
+    order = np.argsort(top, kind="stable")
+    members = np.split(order, np.cumsum(sizes)[:-1])
+    centres, labels, used = [], np.empty(n, np.int64), 0
+    for j, (rows, share) in enumerate(zip(members, shares)):
+        if share == 0:
+            continue
+        if share >= len(rows):  # every row its own centre
+            c, lab = x[rows], np.arange(len(rows))
+        else:
+            c, lab = _lloyd(x[rows], int(share), iterations, np.random.default_rng([seed, 1, j]))
+        centres.append(c)
+        labels[rows] = lab + used
+        used += len(c)
+    return np.concatenate(centres), labels
+
+
+def _apportion(sizes: np.ndarray, k: int) -> np.ndarray:
+    """int [G]: ``k`` split in proportion to ``sizes`` (largest remainders; at least 1 for a
+    non-empty group, at most its size)."""
+    quota = k * sizes / sizes.sum()
+    share = np.minimum(np.floor(quota).astype(np.int64), sizes)
+    share = np.maximum(share, (sizes > 0).astype(np.int64))
+    while share.sum() > k:  # the minimum of 1 overshot: take from the largest shares
+        share[np.argmax(share)] -= 1
+    spare = k - share.sum()
+    if spare > 0:
+        room = sizes - share
+        rank = np.argsort(-(quota - np.floor(quota)), kind="stable")
+        for j in rank:
+            if spare == 0:
+                break
+            add = int(min(room[j], 1))
+            share[j] += add
+            spare -= add
+    return share
 
 
 # --- encoding ------------------------------------------------------------------------
@@ -270,8 +337,11 @@ def decode_files(read, where: str | os.PathLike = "sog") -> Splats:
         meta = json.loads(read("meta.json"))
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise DataError(where, f"meta.json is not JSON ({e})") from None
-    if not isinstance(meta, dict):
-        raise DataError(where, "meta.json must hold an object")
+    if not isinstance(meta, dict) or not {"version", "count", "means"} & set(meta):
+        got = (f"keys {', '.join(sorted(map(str, meta))[:5]) or 'none'}" if isinstance(meta, dict)
+               else "not a JSON object")
+        raise DataError(where, f"not a SOG meta.json ({got}; a SOG's has version, count, means, "
+                               f"...; give a .sog, a SOG meta.json or another splat file)")
     if meta.get("version") != 2:
         raise DataError(where, f"unsupported SOG version {meta.get('version')!r} (reads version 2)")
     n = meta.get("count")

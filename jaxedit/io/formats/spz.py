@@ -42,9 +42,16 @@ MAGIC = 0x5053474E  # "NGSP" little-endian
 VERSIONS = (2, 3, 4)
 COLOR_SCALE = 0.15
 FRACTIONAL_BITS = 12
+#: The ZSTD level v4 streams are written at (level 6's lazier search finds little more in the
+#: SH bytes and takes longer: benchmarks/formats.py), and the shortest match it looks for: the
+#: arrays are quantised noise, where matches of 4-5 bytes rarely pay for themselves.
+ZSTD_LEVEL = 5
+ZSTD_MIN_MATCH = 6
 _SH_COMPONENTS = {0: 0, 1: 9, 2: 24, 3: 45, 4: 72}
-#: A decompressed v2/v3 payload larger than this is refused (a gzip bomb).
-MAX_PAYLOAD = 1 << 34
+#: Most bytes one compressed byte inflates to: deflate's 258-byte matches at about 2 bits
+#: each; ZSTD's RLE blocks (128 KiB from 4 bytes). A count needing more is refused unread.
+DEFLATE_RATIO = 1040
+ZSTD_RATIO = 1 << 15
 #: Sign of each SH coefficient (k = 0..15) when y and z are negated: the parity of its basis
 #: function (degree 1: y z x; degree 2: xy yz z2 xz x2-y2; degree 3 in the usual order).
 RUB_SH_SIGNS = np.array([1, -1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], np.float32)
@@ -131,8 +138,8 @@ def encode(s: Splats, *, version: int = 4, axes: str = "ply", level: int | None 
     Args:
       version: 2 or 3 (one gzip stream) or 4 (ZSTD streams, the current version).
       axes: "ply" stores the PLY axes as they are (splat-transform's convention), "rub" converts.
-      level: the compression level (gzip 1-9, default 6; ZSTD 1-22, default 6: splat-transform
-        writes level 12, a smaller file written more slowly).
+      level: the compression level (gzip 1-9, default 6; ZSTD 1-22, default
+        :data:`ZSTD_LEVEL`: splat-transform writes level 12, a smaller file written more slowly).
     """
     _check_axes(axes)
     if version not in VERSIONS:
@@ -146,27 +153,18 @@ def encode(s: Splats, *, version: int = 4, axes: str = "ply", level: int | None 
         return gzip.compress(header + b"".join(arrays), compresslevel=level or 6, mtime=0)
     import zstandard
 
-    compressor = zstandard.ZstdCompressor(level=level or 6, threads=-1)
-    streams = [compressor.compress(a) for a in arrays]
+    def compress(a: bytes) -> bytes:  # the level's parameters for this size, longer matches
+        params = zstandard.ZstdCompressionParameters.from_level(
+            level or ZSTD_LEVEL, source_size=len(a), min_match=ZSTD_MIN_MATCH, threads=-1)
+        return zstandard.ZstdCompressor(compression_params=params).compress(a)
+
+    streams = [compress(a) for a in arrays]
     toc = b"".join(struct.pack("<QQ", len(c), len(a)) for c, a in zip(streams, arrays))
     header = struct.pack("<IIIBBBBI", MAGIC, 4, n, degree, FRACTIONAL_BITS, 0, len(streams), 32)
     return header.ljust(32, b"\0") + toc + b"".join(streams)
 
 
 # --- decoding ------------------------------------------------------------------------
-
-
-def _gunzip(data: bytes, where) -> bytes:
-    out = zlib.decompressobj(wbits=31)
-    try:
-        payload = out.decompress(data, MAX_PAYLOAD)
-    except zlib.error as e:
-        raise DataError(where, f"corrupt gzip stream ({e})") from None
-    if out.unconsumed_tail:
-        raise DataError(where, f"gzip payload larger than {MAX_PAYLOAD} bytes (refused)")
-    if not out.eof:
-        raise DataError(where, "truncated gzip stream")
-    return payload
 
 
 def _header(where, data: bytes, size: int):
@@ -189,18 +187,65 @@ def _sizes(n: int, degree: int, version: int) -> list[int]:
     return sizes + ([_SH_COMPONENTS[degree] * n] if degree else [])
 
 
-def _streams(data: bytes, where) -> tuple[int, int, int, int, list[bytes]]:
-    if data[:2] == b"\x1f\x8b":
-        payload = _gunzip(data, where)
-        version, n, degree, frac, _ = _header(where, payload, 16)
+def _gunzip(data: bytes, where) -> tuple[tuple, list[bytes]]:
+    """(header fields, arrays) of a v2/v3 file: its header inflated first, then exactly the
+    bytes its count implies (one more is a count/data disagreement, never inflated further)."""
+    stream = zlib.decompressobj(wbits=31)
+    try:
+        head = stream.decompress(data, 16)
+        version, n, degree, frac, flags = _header(where, head, 16)
         if version == 4:
             raise DataError(where, "SPZ version 4 inside a gzip stream (v4 files are not gzipped)")
-        per = sum(_sizes(1, degree, version))
-        need(where, len(payload) - 16, n, per, "SPZ payload")
-        out, offset = [], 16
-        for size in _sizes(n, degree, version):
-            out.append(payload[offset:offset + size])
-            offset += size
+        sizes = _sizes(n, degree, version)
+        expected = sum(sizes)
+        if expected > DEFLATE_RATIO * len(data):
+            raise DataError(where, f"SPZ header declares {n} splats ({expected} bytes), more than "
+                                   f"a {len(data)}-byte gzip stream can inflate to (a wrong count)")
+        payload = stream.decompress(stream.unconsumed_tail, expected + 1)
+    except zlib.error as e:
+        raise DataError(where, f"corrupt gzip stream ({e})") from None
+    if len(payload) > expected:
+        raise DataError(where, f"SPZ payload holds more than the {expected} bytes {n} splats "
+                               f"need (trailing data or a wrong count)")
+    need(where, len(payload), n, sum(_sizes(1, degree, version)), "SPZ payload")
+    if not stream.eof:
+        raise DataError(where, "truncated gzip stream")
+    if stream.unused_data:
+        raise DataError(where, f"{len(stream.unused_data)} bytes after the gzip stream "
+                               f"(trailing data)")
+    out, offset = [], 0
+    for size in sizes:
+        out.append(payload[offset:offset + size])
+        offset += size
+    return (version, n, degree, frac, flags), out
+
+
+def _unzstd(chunk: bytes, expected: int, where, i: int) -> bytes:
+    """Stream ``i``: exactly ``expected`` bytes inflated from one ZSTD frame filling ``chunk``."""
+    import zstandard
+
+    try:  # a frame may declare its size (what decompress() would allocate): checked first
+        declared = zstandard.frame_content_size(chunk)
+    except zstandard.ZstdError:
+        raise DataError(where, f"SPZ v4 stream {i} is not a ZSTD frame") from None
+    if declared not in (-1, expected):
+        raise DataError(where, f"SPZ v4 stream {i}'s frame declares {declared} bytes, "
+                               f"the splats need {expected}")
+    try:  # read_across_frames: bytes after the frame are read (and refused), not ignored
+        reader = zstandard.ZstdDecompressor().stream_reader(chunk, read_across_frames=True)
+        raw = reader.read(expected + 1)
+    except zstandard.ZstdError as e:
+        raise DataError(where, f"corrupt ZSTD stream {i} ({e})") from None
+    if len(raw) != expected:
+        more = "more than" if len(raw) > expected else f"{len(raw)} bytes,"
+        raise DataError(where, f"SPZ v4 stream {i} holds {more} the {expected} bytes the "
+                               f"count implies (a wrong count or a damaged stream)")
+    return raw
+
+
+def _streams(data: bytes, where) -> tuple[int, int, int, int, list[bytes]]:
+    if data[:2] == b"\x1f\x8b":
+        (version, n, degree, frac, _), out = _gunzip(data, where)
         return version, n, degree, frac, out
     version, n, degree, frac, _ = _header(where, data, 32)
     if version != 4:
@@ -212,23 +257,22 @@ def _streams(data: bytes, where) -> tuple[int, int, int, int, list[bytes]]:
     need(where, len(data) - toc, n_streams, 16, "SPZ v4 stream table")
     if toc < 32:
         raise DataError(where, f"SPZ v4 stream table offset {toc} lies inside the header")
-    import zstandard
-
-    out, offset = [], toc + 16 * n_streams
+    # the whole table is checked against the count and the file before any stream is inflated
+    chunks, offset = [], toc + 16 * n_streams
     for i, expected in enumerate(sizes):
         packed, unpacked = struct.unpack_from("<QQ", data, toc + 16 * i)
         if unpacked != expected:
             raise DataError(where, f"SPZ v4 stream {i} declares {unpacked} bytes, {n} splats need {expected}")
         need(where, len(data) - offset, packed, 1, f"SPZ v4 stream {i}")
-        try:
-            raw = zstandard.ZstdDecompressor().decompress(data[offset:offset + packed],
-                                                          max_output_size=expected)
-        except zstandard.ZstdError as e:
-            raise DataError(where, f"corrupt ZSTD stream {i} ({e})") from None
-        if len(raw) != expected:
-            raise DataError(where, f"SPZ v4 stream {i} holds {len(raw)} bytes, expected {expected}")
-        out.append(raw)
+        if expected > ZSTD_RATIO * packed + 64:
+            raise DataError(where, f"SPZ v4 stream {i}: {packed} compressed bytes cannot inflate "
+                                   f"to the {expected} bytes {n} splats need (a wrong count)")
+        chunks.append((offset, packed, expected))
         offset += packed
+    if offset != len(data):
+        raise DataError(where, f"{len(data) - offset} bytes after the last SPZ v4 stream (trailing data)")
+    out = [_unzstd(data[lo:lo + packed], expected, where, i)
+           for i, (lo, packed, expected) in enumerate(chunks)]
     return version, n, degree, frac, out
 
 
