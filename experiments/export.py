@@ -38,7 +38,7 @@ def add_arguments(p) -> None:
                    help="the format, whatever --out's extension")
 
 
-#: experiments/cli.py: ``--out`` names a file here (checked as one), not a run directory.
+#: experiments/rundirs.py: ``--out`` names a file here (checked as one), not a run directory.
 OUT_IS_FILE = True
 
 
