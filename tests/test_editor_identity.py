@@ -201,3 +201,39 @@ def test_the_progress_line_shows_the_last_snapshot():
     assert moved_postfix([{"name": "r0", "metrics": m}]) == {
         "last": "r0", "vs_input": "31.2dB", "lpips": "0.041", "gaussians": "900/1000"}
     assert moved_postfix([]) == {} and moved_postfix([{"name": "r0", "metrics": None}]) == {}
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_cli_edit_stopped_by_the_check_keeps_only_its_record(tmp_path, capfd, existing):
+    """`edit` with a poor editor (tiny random InstructPix2Pix weights): exit 2, one line, and
+    the run folder holds the check's record and nothing else the command wrote."""
+    pytest.importorskip("diffusers")
+    from cli_expect import fails
+    from test_cli_bad_inputs import _dataset
+    from test_ip2p import build_tiny_ip2p
+
+    from jaxedit.io import save_ply
+
+    weights = build_tiny_ip2p(tmp_path / "tiny-ip2p")
+    data = _dataset(tmp_path / "data")
+    scene = tmp_path / "scene.ply"
+    rng = np.random.default_rng(1)
+    save_ply(scene, gl.from_points(rng.normal(scale=0.3, size=(30, 3)),
+                                   rng.uniform(size=(30, 3)), sh_degree=0))
+    out = tmp_path / "new" / "run"
+    before = []
+    if existing:  # a folder the user made: what was there stays, with the record beside it
+        out.mkdir(parents=True)
+        (out / "notes.txt").write_text("mine\n")
+        before = ["notes.txt"]
+    line = fails(capfd, ["edit", "--editor", "ip2p", "--ip2p-weights", weights,
+                         "--ip2p-size", "16", "--ip2p-steps", "1", "--data", data, "--scene",
+                         scene, "--prompt", "make it red", "--mode", "nd", "--sync",
+                         "--test-views", "1", "--turntable-frames", "0", "--quiet",
+                         "--out", out], "--accept-low-identity")
+    assert "dB < floor" in line and "--ip2p-weights" in line
+    assert sorted(p.name for p in out.iterdir()) == sorted(before + ["identity.json"])
+    assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["run"]
+    record = json.loads((out / "identity.json").read_text())
+    assert record["passed"] is False and record["editor_calls"] == len(record["views"])
+    assert record["stopped"].startswith("editor identity")

@@ -43,11 +43,13 @@ class IdentityFloor:
 
 class LowIdentityError(DataError):
     """The editor does not reproduce the scene's views at e(0): the edit stopped before
-    training. ``figures``: :func:`measure_identity`'s record."""
+    training. ``figures``: :func:`measure_identity`'s record; ``record``: the file it was
+    written to (None: not written), which the CLI keeps when it removes the rest."""
 
     def __init__(self, where, problem: str, figures: dict):
         super().__init__(where, problem)
         self.figures = figures
+        self.record = None
 
 
 def measure_identity(editor, renders: np.ndarray, originals: np.ndarray, views: Sequence[int],

@@ -407,6 +407,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             except LowIdentityError as e:  # the check's record, and nothing else
                 if run_dir is not None:
                     _write_json(run_dir / IDENTITY_NAME, dict(e.figures, stopped=str(e)))
+                    e.record = run_dir / IDENTITY_NAME
                 raise
         st = init_state(ctx, start_scene, images)
         # The training chunks' program is built (or read back) while the schedule edits.
