@@ -32,6 +32,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def extra(p):
     p.add_argument("--work", type=Path, default=None,
                    help="keep the dataset, reconstruction and runs here (default: a temp dir)")
+    p.add_argument("--rows", default="control,stretch,detail",
+                   help="comma list of control, stretch, detail (the PNG needs both of the last)")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="r_0's step guard (default: the run's, from the scene)")
+    p.add_argument("--patience", type=int, default=None,
+                   help="r_0's plateau patience (default: the run's)")
+    p.add_argument("--refine-reset", action="store_true",
+                   help="start r_0 with the opacity reset (edit --refine-opacity-reset)")
 
 
 class GivesBack:
@@ -96,7 +104,8 @@ def main(argv=None):
 
     size, views, test_views, iters = (64, 8, 2, 60) if args.smoke else (256, 24, 4, 500)
     plan = dict(subtasks=1, consolidate=False, turntable_frames=0, asynchronous=False,
-                max_steps=20 if args.smoke else 240, patience=10 if args.smoke else 30)
+                max_steps=20 if args.smoke else args.max_steps,
+                patience=10 if args.smoke else args.patience, refine_reset=args.refine_reset)
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         data, recon = work / "data", work / "recon"
@@ -107,7 +116,7 @@ def main(argv=None):
             cli("reconstruct", "--data", str(data), "--out", str(recon), "--iters", str(iters))
         reconstruct_s = time.perf_counter() - t0
         rows, panels = [], []
-        for targets in ("control", "stretch", "detail"):
+        for targets in args.rows.split(","):
             editor = EditorConfig(kind="ip2p", steps=5,
                                   targets="detail" if targets == "control" else targets)
             config = EditRunConfig(plan=ProEditConfig.for_mode("proedit", **plan), editor=editor,
@@ -136,6 +145,7 @@ def main(argv=None):
                                          "num_gaussians", "input_gaussians",
                                          "gaussians_vs_input")},
                 "r0_steps": r0["steps"], "r0_converged": r0["converged"],
+                "r0_guard": r0.get("guard"),
                 "r0_seconds": r0["seconds"], "seconds": time.perf_counter() - t0,
                 "log": [line for line in lines if "WARNING" in line or "identity" in line]})
             photos = held_out_photos(data)
@@ -152,8 +162,9 @@ def main(argv=None):
             panels.append(read_image(run / Path(r0["snapshot"]).parent / "renders"
                                      / "view_000.png")[..., :3])
         args.out.mkdir(parents=True, exist_ok=True)
-        write_image(args.out / "edit_targets.png",
-                    np.ascontiguousarray(np.concatenate(panels, axis=1), np.float32))
+        if len(panels) == 3:
+            write_image(args.out / "edit_targets.png",
+                        np.ascontiguousarray(np.concatenate(panels, axis=1), np.float32))
     write_json(args.out, "edit_targets", {
         "smoke": args.smoke, "scene": "person", "size": size, "views": views,
         "test_views": test_views, "reconstruct_iters": iters, "editor": "bundled, 5 DDIM steps",
