@@ -399,11 +399,13 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
                                for i in range(len(data.train_images))])
             log(f"continuing from {snap} (r = {start_ratio:.3f})")
-        figures = None
+        figures = oracle = None
         if identity is not None and start_ratio == 0.0 and start is None:
+            # the check's e(0) edits stay in the oracle: the schedule reuses them
+            oracle = progressive.scene_oracle(ctx, gaussians, seed, distance)
             try:  # before anything is compiled for training or written
                 figures = progressive.check_identity(ctx, gaussians, identity, seed=seed,
-                                                     log=log)
+                                                     oracle=oracle, log=log)
             except LowIdentityError as e:  # the check's record, and nothing else
                 if run_dir is not None:
                     _write_json(run_dir / IDENTITY_NAME, dict(e.figures, stopped=str(e)))
@@ -414,7 +416,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         memo = (start.memo if start is not None
                 else None if run_dir is None else run_dir / ORACLE_NAME)
         with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
-            oracle = progressive.scene_oracle(
+            oracle = oracle if oracle is not None else progressive.scene_oracle(
                 ctx, gaussians if start is None else start.path_scene,
                 seed if start is None else start.path_seed, distance)
             restored = oracle is not None and memo is not None and read_oracle_memo(oracle, memo)
