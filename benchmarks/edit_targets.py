@@ -13,7 +13,10 @@ scene's renders (PSNR, SSIM, LPIPS, Gaussians), and the held-out PSNR against th
 the input scene and of r_0's snapshot. The run stops after r_0's snapshot. Writes
 ``DIR/edit_targets.json`` and ``DIR/edit_targets.png`` (a held-out view: input scene,
 stretched r_0, detail r_0). ``--smoke``: the person at 64 px (the editor's size: both
-compositions edit alike), 8 views, a few steps.
+compositions edit alike), 8 views, a few steps. r_0 runs to the run's own plateau and step
+guard (``--max-steps``, ``--patience`` to hold it); ``--refine-reset`` starts it with the
+opacity reset (``edit --refine-opacity-reset``) and writes ``DIR/edit_targets_refine_reset.json``
+(``--rows control`` for the control alone).
 """
 
 from __future__ import annotations
@@ -165,7 +168,8 @@ def main(argv=None):
         if len(panels) == 3:
             write_image(args.out / "edit_targets.png",
                         np.ascontiguousarray(np.concatenate(panels, axis=1), np.float32))
-    write_json(args.out, "edit_targets", {
+    name = "edit_targets" + ("_refine_reset" if args.refine_reset else "")
+    write_json(args.out, name, {
         "smoke": args.smoke, "scene": "person", "size": size, "views": views,
         "test_views": test_views, "reconstruct_iters": iters, "editor": "bundled, 5 DDIM steps",
         "plan": plan, "reconstruct_s": reconstruct_s, "rows": rows,
