@@ -10,7 +10,7 @@ checks them against an :class:`IdentityFloor`.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 
