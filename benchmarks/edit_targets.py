@@ -13,7 +13,10 @@ scene's renders (PSNR, SSIM, LPIPS, Gaussians), and the held-out PSNR against th
 the input scene and of r_0's snapshot. The run stops after r_0's snapshot. Writes
 ``DIR/edit_targets.json`` and ``DIR/edit_targets.png`` (a held-out view: input scene,
 stretched r_0, detail r_0). ``--smoke``: the person at 64 px (the editor's size: both
-compositions edit alike), 8 views, a few steps.
+compositions edit alike), 8 views, a few steps. r_0 runs to the run's own plateau and step
+guard (``--max-steps``, ``--patience`` to hold it); ``--refine-reset`` starts it with the
+opacity reset (``edit --refine-opacity-reset``) and writes ``DIR/edit_targets_refine_reset.json``
+(``--rows control`` for the control alone).
 """
 
 from __future__ import annotations
@@ -32,6 +35,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def extra(p):
     p.add_argument("--work", type=Path, default=None,
                    help="keep the dataset, reconstruction and runs here (default: a temp dir)")
+    p.add_argument("--rows", default="control,stretch,detail",
+                   help="comma list of control, stretch, detail (the PNG needs both of the last)")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="r_0's step guard (default: the run's, from the scene)")
+    p.add_argument("--patience", type=int, default=None,
+                   help="r_0's plateau patience (default: the run's)")
+    p.add_argument("--refine-reset", action="store_true",
+                   help="start r_0 with the opacity reset (edit --refine-opacity-reset)")
 
 
 class GivesBack:
@@ -96,7 +107,8 @@ def main(argv=None):
 
     size, views, test_views, iters = (64, 8, 2, 60) if args.smoke else (256, 24, 4, 500)
     plan = dict(subtasks=1, consolidate=False, turntable_frames=0, asynchronous=False,
-                max_steps=20 if args.smoke else 240, patience=10 if args.smoke else 30)
+                max_steps=20 if args.smoke else args.max_steps,
+                patience=10 if args.smoke else args.patience, refine_reset=args.refine_reset)
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         data, recon = work / "data", work / "recon"
@@ -107,7 +119,7 @@ def main(argv=None):
             cli("reconstruct", "--data", str(data), "--out", str(recon), "--iters", str(iters))
         reconstruct_s = time.perf_counter() - t0
         rows, panels = [], []
-        for targets in ("control", "stretch", "detail"):
+        for targets in args.rows.split(","):
             editor = EditorConfig(kind="ip2p", steps=5,
                                   targets="detail" if targets == "control" else targets)
             config = EditRunConfig(plan=ProEditConfig.for_mode("proedit", **plan), editor=editor,
@@ -136,6 +148,7 @@ def main(argv=None):
                                          "num_gaussians", "input_gaussians",
                                          "gaussians_vs_input")},
                 "r0_steps": r0["steps"], "r0_converged": r0["converged"],
+                "r0_guard": r0.get("guard"),
                 "r0_seconds": r0["seconds"], "seconds": time.perf_counter() - t0,
                 "log": [line for line in lines if "WARNING" in line or "identity" in line]})
             photos = held_out_photos(data)
@@ -152,9 +165,11 @@ def main(argv=None):
             panels.append(read_image(run / Path(r0["snapshot"]).parent / "renders"
                                      / "view_000.png")[..., :3])
         args.out.mkdir(parents=True, exist_ok=True)
-        write_image(args.out / "edit_targets.png",
-                    np.ascontiguousarray(np.concatenate(panels, axis=1), np.float32))
-    write_json(args.out, "edit_targets", {
+        if len(panels) == 3:
+            write_image(args.out / "edit_targets.png",
+                        np.ascontiguousarray(np.concatenate(panels, axis=1), np.float32))
+    name = "edit_targets" + ("_refine_reset" if args.refine_reset else "")
+    write_json(args.out, name, {
         "smoke": args.smoke, "scene": "person", "size": size, "views": views,
         "test_views": test_views, "reconstruct_iters": iters, "editor": "bundled, 5 DDIM steps",
         "plan": plan, "reconstruct_s": reconstruct_s, "rows": rows,

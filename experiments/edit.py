@@ -46,6 +46,7 @@ def _config_flags():
         Flag("train.densify.max_gaussians"),
         Flag("plan.schedule_method", choices=("bisect", "root")),
         Flag("plan.refine_first", off="--no-refine-first"),
+        Flag("plan.refine_reset", "--refine-opacity-reset"),
         Flag("plan.consolidate", off="--no-consolidate"),
         Flag("plan.pipelined", off="--inline-edits"),
         Flag("plan.asynchronous", "--async", off="--sync", key="asynchronous"),

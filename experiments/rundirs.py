@@ -127,7 +127,8 @@ def claimed_out(out: Path | None):
     A failure is a DataError or a refused write (:func:`write_refused`, raised as a
     DataError). Entries of ``out`` that existed before (a resumed run's checkpoints) are
     kept, and its ``config.json`` is put back as it was: a failed command leaves the
-    record of the run alone.
+    record of the run alone. A DataError whose ``record`` names a file under ``out`` (the
+    editor identity check's ``identity.json``) keeps that file: the record of why it stopped.
     """
     from jaxedit import DataError
     from jaxedit.io.files import LOCK_NAME, folder_lock
@@ -146,25 +147,38 @@ def claimed_out(out: Path | None):
                 if refused is None:
                     raise
                 raise refused from None
-        except DataError:
-            remove_created(out, created, before, keep={LOCK_NAME, KEPT_RECORD})
+        except DataError as e:
+            remove_created(out, created, before, keep={LOCK_NAME, KEPT_RECORD},
+                           record=getattr(e, "record", None))
             raise
 
 
 def remove_created(out: Path, created: Path | None, before: set | None, *,
-                   keep: set = frozenset()) -> None:
+                   keep: set = frozenset(), record: Path | None = None) -> None:
     """Remove what a failed command created under ``out``: ``created`` (the outermost
     folder it made, :func:`_first_missing`), else the entries not in ``before`` (the
-    listing before it ran) nor in ``keep``."""
+    listing before it ran) nor in ``keep``. ``record``, a file the failure wrote on
+    purpose, stays (with the folders above it)."""
+    record = None if record is None else Path(os.path.abspath(record))
     if created is not None:
-        shutil.rmtree(created, ignore_errors=True)
+        _remove_all_but(Path(os.path.abspath(created)), record)
         return
     for name in set(os.listdir(out)) - before - set(keep):
-        target = Path(out) / name
-        if target.is_dir() and not target.is_symlink():
-            shutil.rmtree(target, ignore_errors=True)
+        _remove_all_but(Path(os.path.abspath(Path(out) / name)), record)
+
+
+def _remove_all_but(target: Path, record: Path | None) -> None:
+    """Remove ``target`` (a file or a folder) except ``record`` and the folders above it."""
+    if record is not None and record == target:
+        return
+    if target.is_dir() and not target.is_symlink():
+        if record is not None and target in record.parents:
+            for entry in target.iterdir():
+                _remove_all_but(entry, record)
         else:
-            target.unlink(missing_ok=True)
+            shutil.rmtree(target, ignore_errors=True)
+    else:
+        target.unlink(missing_ok=True)
 
 
 KEPT_RECORD = ".config.json.kept"

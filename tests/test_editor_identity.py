@@ -15,6 +15,7 @@ from jaxedit import DataError
 from jaxedit import camera as cl
 from jaxedit import gaussians as gl
 from jaxedit.edit import EditData, ProEditConfig, TrainSettings
+from jaxedit.edit.difficulty import DifficultyOracle
 from jaxedit.edit.identity import (IdentityFloor, LowIdentityError, identity_problem,
                                    measure_identity)
 from jaxedit.edit.outputs import Renderer, distance_to_input
@@ -35,6 +36,33 @@ class Identity:
 
     def edit(self, image, original, embedding, key, **kwargs):
         return np.asarray(image, np.float32)
+
+
+class Counting(Identity):
+    """:class:`Identity` that records the SDEdit range of every editor call."""
+
+    def __init__(self):
+        self.calls = []
+
+    def edit(self, image, original, embedding, key, **kwargs):
+        self.calls.append(kwargs["timestep_range"])
+        return super().edit(image, original, embedding, key)
+
+
+def test_the_check_is_the_schedules_edits_at_r0():
+    """One editor call per difficulty view, and d(0, r) edits only at r afterwards."""
+    views = _views(5)
+    editor = Counting()
+    oracle = DifficultyOracle(editor, views, PROMPT, views=[0, 3, 4], seed=0)
+    figures = measure_identity(oracle, views)
+    t = oracle.timestep_range
+    assert editor.calls == [t] * 3 and figures["editor_calls"] == 3
+    assert figures["views"] == [0, 3, 4] and figures["timestep"] == t[1]
+    oracle(0.0, 1.0)
+    assert len(editor.calls) == 6  # the three views at r = 1 only
+    again = measure_identity(oracle, views)  # the memo: no call
+    assert len(editor.calls) == 6 and again["editor_calls"] == 0
+    assert again["psnr"] == figures["psnr"]
 
 
 def _views(n=3, size=32, seed=0):
@@ -64,11 +92,11 @@ def test_identity_of_a_perfect_and_of_a_random_editor():
 
     views = _views(4)
     floor = IdentityFloor()
-    good = measure_identity(Identity(), views, views, [0, 2], np.zeros(4), timestep=0.85, seed=0)
+    good = measure_identity(DifficultyOracle(Identity(), views, PROMPT, views=[0, 2]), views)
     assert good["psnr"] == 100.0 and good["views"] == [0, 2] and good["editor_calls"] == 2
     assert identity_problem(good, floor) is None
     poor = standin_editor(size=32, steps=2)  # random weights: a deliberately poor editor
-    bad = measure_identity(poor, views, views, [0, 1, 3], poor.encode(""), timestep=0.85, seed=0)
+    bad = measure_identity(DifficultyOracle(poor, views, PROMPT, views=[0, 1, 3]), views)
     assert bad["editor_calls"] == 3 and len(bad["psnr_per_view"]) == 3
     problem = identity_problem(bad, floor)
     assert problem is not None and f"floor {floor.min_psnr:g} dB" in problem
@@ -174,7 +202,8 @@ def test_the_simulated_editor_passes_and_every_snapshot_says_how_far_it_moved(si
     sched = json.loads((run_dir / "schedule.json").read_text())
     ident = sched["identity"]
     assert ident["passed"] and ident["editor_calls"] == len(ident["views"]) == 3
-    assert ident["timestep"] == ProEditConfig().timestep_range[1]
+    assert ident["timestep"] == DifficultyOracle.__init__.__kwdefaults__["timestep_range"][1]
+    assert ident["editor_calls"] == len(ident["views"])
     assert any(line.startswith("editor identity on this scene: PSNR") for line in lines)
     for s in sched["subtasks"]:
         m = s["metrics"]
@@ -201,3 +230,67 @@ def test_the_progress_line_shows_the_last_snapshot():
     assert moved_postfix([{"name": "r0", "metrics": m}]) == {
         "last": "r0", "vs_input": "31.2dB", "lpips": "0.041", "gaussians": "900/1000"}
     assert moved_postfix([]) == {} and moved_postfix([{"name": "r0", "metrics": None}]) == {}
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_cli_edit_stopped_by_the_check_keeps_only_its_record(tmp_path, capfd, existing):
+    """`edit` with a poor editor (tiny random InstructPix2Pix weights): exit 2, one line, and
+    the run folder holds the check's record and nothing else the command wrote."""
+    pytest.importorskip("diffusers")
+    from cli_expect import fails
+    from test_cli_bad_inputs import _dataset
+    from test_ip2p import build_tiny_ip2p
+
+    from jaxedit.io import save_ply
+
+    weights = build_tiny_ip2p(tmp_path / "tiny-ip2p")
+    data = _dataset(tmp_path / "data")
+    scene = tmp_path / "scene.ply"
+    rng = np.random.default_rng(1)
+    save_ply(scene, gl.from_points(rng.normal(scale=0.3, size=(30, 3)),
+                                   rng.uniform(size=(30, 3)), sh_degree=0))
+    out = tmp_path / "new" / "run"
+    before = []
+    if existing:  # a folder the user made: what was there stays, with the record beside it
+        out.mkdir(parents=True)
+        (out / "notes.txt").write_text("mine\n")
+        before = ["notes.txt"]
+    line = fails(capfd, ["edit", "--editor", "ip2p", "--ip2p-weights", weights,
+                         "--ip2p-size", "16", "--ip2p-steps", "1", "--data", data, "--scene",
+                         scene, "--prompt", "make it red", "--mode", "nd", "--sync",
+                         "--test-views", "1", "--turntable-frames", "0", "--quiet",
+                         "--out", out], "--accept-low-identity")
+    assert "dB < floor" in line and "--ip2p-weights" in line
+    assert sorted(p.name for p in out.iterdir()) == sorted(before + ["identity.json"])
+    assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["run"]
+    record = json.loads((out / "identity.json").read_text())
+    assert record["passed"] is False and record["editor_calls"] == len(record["views"])
+    assert record["stopped"].startswith("editor identity")
+
+
+@pytest.mark.parametrize("refine_reset", [False, True])
+def test_the_refinement_keeps_the_input_opacities_unless_asked(tiny, refine_reset):
+    """r_0 starts from the input's opacities (its targets are edits of its own renders);
+    every edit subtask, and r_0 with ``refine_reset``, starts from the paper's reset."""
+    from jaxedit.edit.context import EditContext
+    from jaxedit.edit.state import begin_subtask, init_state
+    from jaxedit.edit.trainer import SubtaskTrainer
+
+    g, data = tiny
+    cfg = ProEditConfig.for_mode("proedit", **TINY, refine_reset=refine_reset)
+    trainer = SubtaskTrainer(TrainSettings(scene_extent=3.0), num_input=int(g.num_alive()),
+                             warmup=cfg.warmup)
+    ctx = EditContext.create(Identity(), PROMPT, data, cfg, trainer, Renderer(),
+                             jax.random.key(0))
+    st = init_state(ctx, g)
+    alive = np.asarray(st.train.gaussians.alive)
+    before = np.asarray(jax.nn.sigmoid(st.train.gaussians.opacity_logits))[alive]
+    reset = trainer.settings.densify.cull_alpha
+    for kind, want_reset in (("refine", refine_reset), ("edit", True), ("consolidate", True)):
+        begun = begin_subtask(ctx, st, kind)
+        after = np.asarray(jax.nn.sigmoid(begun.train.gaussians.opacity_logits))[alive]
+        if want_reset:
+            np.testing.assert_allclose(after, reset, rtol=1e-5)
+        else:
+            assert np.array_equal(after, before) and not np.allclose(before, reset)
+        assert int(begun.train.densify_origin) == int(st.train.step) and begun.step == 0

@@ -2,20 +2,18 @@
 
 The refinement subtask r_0 trains on edits made with e(0) = E(""); an editor that
 does not reproduce its input there moves the whole scene before the instruction
-begins. :func:`measure_identity` scores e(0)'s edits at t_max; :func:`identity_problem`
+begins. :func:`measure_identity` scores the difficulty oracle's e(0) edits (the schedule
+needs them anyway, so the check costs no editor call of its own); :func:`identity_problem`
 checks them against an :class:`IdentityFloor`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Sequence
+from typing import Callable
 
-import jax
 import numpy as np
 
-from ..editors.base import edit_views, editor_guidance
-from ..editors.keys import view_key
 from ..errors import DataError, check_ranges, ranged
 from .outputs import bundled_lpips, image_scores
 
@@ -43,59 +41,56 @@ class IdentityFloor:
 
 class LowIdentityError(DataError):
     """The editor does not reproduce the scene's views at e(0): the edit stopped before
-    training. ``figures``: :func:`measure_identity`'s record."""
+    training. ``figures``: :func:`measure_identity`'s record; ``record``: the file it was
+    written to (None: not written), which the CLI keeps when it removes the rest."""
 
     def __init__(self, where, problem: str, figures: dict):
         super().__init__(where, problem)
         self.figures = figures
+        self.record = None
 
 
-def measure_identity(editor, renders: np.ndarray, originals: np.ndarray, views: Sequence[int],
-                     e_null, *, timestep: float, seed: int,
-                     guidance: tuple[float, float] | None = None,
-                     lpips: Callable | None = None, keys_of: Sequence[int] | None = None) -> dict:
-    """Edit ``renders[views]`` with e(0) at ``timestep``; PSNR and LPIPS against the renders
-    or the photos, whichever is nearer (giving back the photo refines towards the capture).
+def measure_identity(oracle, photos: np.ndarray | None = None, *,
+                     lpips: Callable | None = None) -> dict:
+    """Score e(0)'s edits of the difficulty views: the oracle's own edits at r = 0, which
+    its d(0, r) then reuses (the schedule makes no other edit at r = 0).
+
+    Each view's edit (its render, conditioned on itself, at the oracle's timestep and key
+    ``view_key(seed, k, 0, 0)``) is scored against the render, or against the photo
+    where that is nearer (giving back the photo refines towards the capture).
 
     Args:
-      editor: an :class:`jaxedit.editors.Editor`.
-      renders: float [N, H, W, 3], the input scene's renders of the training views.
-      originals: float [N, H, W, 3], their photos (the editor's conditioning).
-      views: the view indices to check (the difficulty views).
-      e_null: the editor's E("").
-      timestep: the SDEdit timestep (fraction of the schedule).
-      seed: the run seed; view k's key is :func:`view_key` (seed, k, 0, 0).
-      guidance: the run's (text, image) scales (None: the editor's own).
+      oracle: a :class:`jaxedit.edit.difficulty.DifficultyOracle` of the input scene's
+        renders; its views are the ones checked.
+      photos: float [N, H, W, 3], the training views' photos (None: renders only).
       lpips: ``(a, b) -> float`` (None: the bundled LPIPS-AlexNet).
-      keys_of: the training-view indices naming ``views`` in keys and record (None: ``views``).
     Returns:
       {"psnr", "lpips" (means of each view's better score), "psnr_per_view",
       "lpips_per_view", "psnr_vs_renders", "lpips_vs_renders", "psnr_vs_photos",
-      "lpips_vs_photos", "views", "timestep", "editor_calls"}.
+      "lpips_vs_photos" (None without ``photos``), "views", "timestep", "editor_calls"
+      (the editor calls the check made; 0 where the oracle had the edits already)}.
     """
-    views = [int(k) for k in views]
-    names = views if keys_of is None else [int(k) for k in keys_of]
     lpips = bundled_lpips() if lpips is None else lpips
-    run_key = jax.random.key(int(seed))
-    keys = [view_key(run_key, k, 0.0, 0) for k in names]
-    edited = edit_views(editor, [renders[k] for k in views], [originals[k] for k in views],
-                        e_null, keys, timestep_range=(float(timestep), float(timestep)),
-                        guidance=editor_guidance(editor, guidance))
-    edited = [np.asarray(e, np.float32) for e in edited]
+    views = [int(k) for k in oracle.views]
+    calls = oracle.editor_calls
+    edited = [oracle.edited(0.0, k) for k in views]
+    calls = oracle.editor_calls - calls
 
     def scores(refs):
-        return ([image_scores(e[None], refs[k][None])["psnr"] for e, k in zip(edited, views)],
+        return ([image_scores(e[None], np.asarray(refs[k])[None])["psnr"]
+                 for e, k in zip(edited, views)],
                 [float(lpips(e, refs[k])) for e, k in zip(edited, views)])
 
-    psnr_r, lp_r = scores(renders)
-    psnr_o, lp_o = scores(originals)
+    psnr_r, lp_r = scores(oracle.originals)
+    psnr_o, lp_o = scores(photos) if photos is not None else (psnr_r, lp_r)
     psnr = [max(a, b) for a, b in zip(psnr_r, psnr_o)]
     lp = [min(a, b) for a, b in zip(lp_r, lp_o)]
     return {"psnr": float(np.mean(psnr)), "lpips": float(np.mean(lp)),
             "psnr_per_view": psnr, "lpips_per_view": lp,
             "psnr_vs_renders": float(np.mean(psnr_r)), "lpips_vs_renders": float(np.mean(lp_r)),
-            "psnr_vs_photos": float(np.mean(psnr_o)), "lpips_vs_photos": float(np.mean(lp_o)),
-            "views": names, "timestep": float(timestep), "editor_calls": len(views)}
+            "psnr_vs_photos": None if photos is None else float(np.mean(psnr_o)),
+            "lpips_vs_photos": None if photos is None else float(np.mean(lp_o)),
+            "views": views, "timestep": float(oracle.timestep_range[1]), "editor_calls": calls}
 
 
 def identity_problem(figures: dict, floor: IdentityFloor) -> str | None:

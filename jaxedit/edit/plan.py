@@ -32,6 +32,10 @@ class ProEditConfig:
       schedule_method: "bisect" (paper) or "root" (optimistix placement).
       max_depth: bisection depth limit (:data:`jaxedit.edit.schedule.MAX_DEPTH`).
       refine_first: first run the extra subtask r_0 = 0, refining with the editor (appendix B).
+      refine_reset: start r_0 with the opacity reset of every other subtask (3.3 (1)); off
+        (default), r_0 starts from the input's opacities: it changes no geometry, and its
+        targets are edits of its own renders, so a reset scene's faded renders would
+        become what it trains towards.
       consolidate: last run the extra subtask r_n = 1, consolidating the edit (appendix B).
       warmup: W, steps after the opacity reset without densify/cull.
       patience: P, steps without a new minimum of the running mean loss.
@@ -70,6 +74,7 @@ class ProEditConfig:
     schedule_method: str = "bisect"
     max_depth: int = MAX_DEPTH
     refine_first: bool = True
+    refine_reset: bool = False
     consolidate: bool = True
     warmup: int = ranged(30, low=0)
     patience: int = ranged(60, low=1)

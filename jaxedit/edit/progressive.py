@@ -129,20 +129,16 @@ def cap_warning(name: str, density: dict, cap: int, alive: int) -> str | None:
 
 
 def check_identity(ctx: EditContext, gaussians, floor: IdentityFloor, *, seed: int,
-                   log=lambda msg: None) -> dict | None:
+                   oracle=None, log=lambda msg: None) -> dict | None:
     """The editor's identity on the input scene (schedule.json's ``"identity"``; None in
-    IN2N mode): :func:`jaxedit.edit.identity.measure_identity` of the difficulty views at
-    t_max, logged. Raises :class:`LowIdentityError` under ``floor`` unless
+    IN2N mode): :func:`jaxedit.edit.identity.measure_identity` of the difficulty oracle's
+    e(0) edits, logged; ``oracle`` (None: :func:`scene_oracle` of ``gaussians``) keeps
+    them for the schedule. Raises :class:`LowIdentityError` under ``floor`` unless
     ``floor.accept_low`` (then a warning)."""
-    config, data = ctx.config, ctx.data
-    if config.mode == "in2n":
+    if ctx.config.mode == "in2n":
         return None
-    views = difficulty_view_subset(len(data.train_images), config.difficulty_views, ctx.key)
-    renders = np.stack([ctx.renderer.rgb(gaussians, data.train_cameras[i]) for i in views])
-    local = np.arange(len(views))
-    figures = measure_identity(ctx.editor, renders, data.train_images[np.asarray(views)], local,
-                               ctx.e_null, timestep=config.timestep_range[1], seed=seed,
-                               guidance=config.guidance, keys_of=views)
+    oracle = scene_oracle(ctx, gaussians, seed) if oracle is None else oracle
+    figures = measure_identity(oracle, ctx.data.train_images)
     log(identity_line(figures))
     problem = identity_problem(figures, floor)
     figures = dict(figures, min_psnr=floor.min_psnr, max_lpips=floor.max_lpips,

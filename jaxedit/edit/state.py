@@ -194,13 +194,16 @@ def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) ->
         edited=np.zeros((len(images),), bool), tracker=LossTracker.init(ctx.config.loss_window))
 
 
-def begin_subtask(ctx: EditContext, st: EditState) -> EditState:
-    """The state at the start of a subtask: opacity reset (paper 3.3 (1); not in IN2N mode),
-    nothing edited yet, a fresh loss tracker."""
-    train = ctx.trainer.restart(st.train) if ctx.config.mode != "in2n" else st.train
+def begin_subtask(ctx: EditContext, st: EditState, kind: str = "edit") -> EditState:
+    """The state at the start of a subtask of ``kind`` (:class:`SubtaskSpec`'s): opacity
+    reset (paper 3.3 (1); not in IN2N mode, nor in the refinement r_0 unless
+    ``refine_reset``), nothing edited yet, a fresh loss tracker."""
+    cfg = ctx.config
+    reset = kind != "refine" or cfg.refine_reset
+    train = ctx.trainer.restart(st.train, reset_opacity=reset) if cfg.mode != "in2n" else st.train
     return st.replace(step=0, train=train, edited=np.zeros(len(st.edited), bool),
-                               tracker=LossTracker.init(ctx.config.loss_window), seconds=0.0,
-                               complete_at=-1, annealed_at=-1, density=DensityTally())
+                       tracker=LossTracker.init(ctx.config.loss_window), seconds=0.0,
+                       complete_at=-1, annealed_at=-1, density=DensityTally())
 
 
 def apply_edits(st: EditState, views, images, annealed=()) -> EditState:

@@ -424,7 +424,7 @@ def run_subtask(ctx: EditContext, st: EditState, spec: SubtaskSpec, *,
       ``converged`` is None for a fixed budget (``stop_on_plateau`` False).
     """
     if st.step == 0:
-        st = begin_subtask(ctx, st)
+        st = begin_subtask(ctx, st, spec.kind)
     sub = prepare(ctx, st, spec)
     with sub.source:
         loop = init(sub, st)

@@ -139,10 +139,12 @@ class SubtaskTrainer:
         return dataclasses.replace(state, frozen=jnp.asarray(np.asarray(gaussians.alive)
                                                              & ~editable))
 
-    def restart(self, state):
-        g, opt = densify.opacity_reset(state.gaussians, state.opt_state,
-                                        self.settings.densify.cull_alpha)
-        if state.frozen is not None:  # a local edit's frozen Gaussians keep their opacity
+    def restart(self, state, *, reset_opacity: bool = True):
+        """``state`` at a subtask's start; ``reset_opacity`` False keeps the opacities."""
+        g, opt = state.gaussians, state.opt_state
+        if reset_opacity:
+            g, opt = densify.opacity_reset(g, opt, self.settings.densify.cull_alpha)
+        if reset_opacity and state.frozen is not None:  # frozen Gaussians keep their opacity
             g = dataclasses.replace(g, opacity_logits=jnp.where(
                 state.frozen, state.gaussians.opacity_logits, g.opacity_logits))
         strategy = densify.strategy_for(state.config.densify, scene_extent=state.scene_extent,

@@ -345,14 +345,17 @@ def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProE
         images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
                            for i in range(len(data.train_images))])
         log(f"continuing from {snap} (r = {start_ratio:.3f})")
-    figures = None
+    figures = oracle = None
     if identity is not None and start_ratio == 0.0 and start is None:
-        # before anything is compiled for training
-        figures = progressive.check_identity(ctx, gaussians, identity, seed=seed, log=log)
+        # before anything is compiled for training; its e(0) edits stay in the oracle, and
+        # the schedule reuses them
+        oracle = progressive.scene_oracle(ctx, gaussians, seed, distance)
+        figures = progressive.check_identity(ctx, gaussians, identity, seed=seed,
+                                             oracle=oracle, log=log)
     st = init_state(ctx, start_scene, images)
     # The training chunks' program is built (or read back) while the schedule edits.
     with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
-        oracle = progressive.scene_oracle(
+        oracle = oracle if oracle is not None else progressive.scene_oracle(
             ctx, gaussians if start is None else start.path_scene,
             seed if start is None else start.path_seed, distance)
         restored = oracle is not None and memo is not None and read_oracle_memo(oracle, memo)

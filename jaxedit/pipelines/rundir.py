@@ -177,6 +177,7 @@ class RunDir:
         """The record of a run the editor identity check (``error``) stopped."""
         if self.path is not None:
             _write_json(self.path / IDENTITY_NAME, dict(error.figures, stopped=str(error)))
+            error.record = self.path / IDENTITY_NAME  # kept by the command's cleanup
 
     def write_memo(self, oracle, restored: bool, start=None) -> None:
         """The oracle's edits, for the run's branches: the path's owner (re)writes its memo;
