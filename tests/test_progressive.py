@@ -374,7 +374,7 @@ def test_cli_edit_writes_contract_files(tiny, tmp_path):
 def test_in2n_baseline_runs_its_fixed_budget_with_one_edit_every_10_steps(tiny):
     g, data, _, _ = tiny
     cfg = ProEditConfig.for_mode("in2n", max_steps=30, checkpoint_every=100)
-    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=0,
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST.classic(), seed=0,
                    run_dir=None)
     (sub,) = out["schedule"]["subtasks"]
     # a fixed budget: it neither plateaus (converged None) nor is cut by a guard

@@ -36,9 +36,8 @@ class TrainSettings:
 
     Attributes:
       scene_extent: world size (None: ``jaxedit.train.scene_extent`` of the train cameras).
-      adaptive: ProEdit's budgeted creation (True) or classic 3DGS thresholds with a
-        periodic opacity reset (False, IN2N).
-      densify: the density control (:data:`EDIT_DENSIFY`); its ``warmup`` must stay the
+      densify: the density control as it runs (:data:`EDIT_DENSIFY`: ProEdit's budgeted
+        creation; :meth:`for_mode` gives IN2N's classic one); its ``warmup`` must stay the
         plan's (:attr:`ProEditConfig.warmup`), else DataError.
       sh_degree: SH degree trained (all degrees on from the start).
       lr_means: Adam learning rate of the means (constant).
@@ -47,7 +46,6 @@ class TrainSettings:
     """
 
     scene_extent: float | None = None
-    adaptive: bool = True
     densify: DensifyConfig = EDIT_DENSIFY
     sh_degree: int = TrainConfig.sh_degree
     lr_means: float = TrainConfig.lr_means
@@ -59,6 +57,18 @@ class TrainSettings:
             raise DataError("densify.warmup", f"{self.densify.warmup}: the plan owns the "
                             "warm-up W; set ProEditConfig.warmup (edit --warmup) instead")
 
+    @classmethod
+    def for_mode(cls, mode: str, **changes) -> "TrainSettings":
+        """The settings of editing mode ``mode`` with ``changes``: IN2N's (in2n) classic
+        density control, else ProEdit's budgeted one."""
+        settings = cls(**changes)
+        return settings.classic() if mode == "in2n" else settings
+
+    def classic(self) -> "TrainSettings":
+        """These settings with classic 3DGS density control (IN2N): no creation budget, a
+        periodic opacity reset."""
+        return self.replace_densify(budget=False, reset_every=CLASSIC_RESET_EVERY)
+
     def replace_densify(self, **changes) -> "TrainSettings":
         """These settings with ``densify``'s fields ``changes`` replaced."""
         return dataclasses.replace(self, densify=dataclasses.replace(self.densify, **changes))
@@ -67,15 +77,14 @@ class TrainSettings:
                      warmup: int = ProEditConfig.warmup) -> TrainConfig:
         """The :class:`jaxedit.train.TrainConfig` of these settings, on the plan's
         ``background`` (RGB, white or black) and warm-up W ``warmup``."""
-        dens = dataclasses.replace(self.densify, warmup=int(warmup))
-        dens = dens if self.adaptive else dataclasses.replace(
-            dens, budget=False, reset_every=CLASSIC_RESET_EVERY)
-        background = background_name(background)
+        dens = self.densify
+        if int(warmup) != dens.warmup:
+            dens = dataclasses.replace(dens, warmup=int(warmup))
         return TrainConfig(iterations=2 ** 30, lr_means=self.lr_means,
                            lr_means_final=self.lr_means, lr_sh_dc=self.lr_sh_dc,
                            lr_sh_rest=self.lr_sh_dc / 20, lr_opacity=self.lr_opacity,
                            sh_degree=self.sh_degree, sh_degree_interval=1,
-                           background=background, densify=dens)
+                           background=background_name(background), densify=dens)
 
 
 #: Room the default cap leaves above a small input (Gaussians).
@@ -141,14 +150,12 @@ class SubtaskTrainer:
 
     def restart(self, state):
         g, opt = densify.opacity_reset(state.gaussians, state.opt_state,
-                                        self.settings.densify.cull_alpha)
+                                        state.config.densify.cull_alpha)
         if state.frozen is not None:  # a local edit's frozen Gaussians keep their opacity
             g = dataclasses.replace(g, opacity_logits=jnp.where(
                 state.frozen, state.gaussians.opacity_logits, g.opacity_logits))
-        strategy = densify.strategy_for(state.config.densify, scene_extent=state.scene_extent,
-                                        iterations=state.config.iterations)
         return dataclasses.replace(state, gaussians=g, opt_state=opt,
-                                   densify_stats=strategy.init(g), densify_origin=state.step)
+                                   densify_stats=state.strategy.init(g), densify_origin=state.step)
 
     @staticmethod
     def gaussians(state):
