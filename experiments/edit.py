@@ -79,7 +79,7 @@ def _config_flags():
         Flag("identity.accept_low", "--accept-low-identity"),
         Flag("distance", choices=DISTANCES),
         Flag("lpips_weights"),
-    ), derived=("train.densify.warmup",)).complete()  # the plan's --warmup
+    )).complete()
 
 
 @dataclasses.dataclass(frozen=True)

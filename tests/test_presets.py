@@ -40,7 +40,9 @@ def _printed(capsys, *argv) -> dict:
 
 
 @pytest.mark.parametrize("argv", [[p] for p in PRESETS] + [["in2n", "--mode", "proedit"],
-                                                            ["proedit", "--mode", "in2n"]],
+                                                            ["proedit", "--mode", "in2n"],
+                                                            ["nd", "--warmup", "12"],
+                                                            ["nd", "--train.densify.warmup", "4"]],
                          ids=lambda a: "-".join(a))
 def test_the_printed_config_is_what_the_run_uses(capsys, scene, argv):
     data, g = scene
@@ -49,10 +51,12 @@ def test_the_printed_config_is_what_the_run_uses(capsys, scene, argv):
     trainer = progressive.make_trainer(tree.plan, tree.train, data, g)
     used = dataclasses.asdict(trainer.config.densify)
     shown = printed["train"]["densify"]
-    # the two fields the run completes: the cap from the input, the warm-up from the plan
+    # the two fields the run completes when unset: the cap from the input, the warm-up W
+    # from the plan
     assert used.pop("max_gaussians") == (shown.pop("max_gaussians") or
                                          default_max_gaussians(int(g.num_alive())))
-    assert "warmup" not in shown and used.pop("warmup") == printed["plan"]["warmup"]
+    assert used.pop("warmup") == (printed["plan"]["warmup"] if shown.pop("warmup") is None
+                                  else tree.train.densify.warmup)
     assert used == shown
     assert "adaptive" not in printed["train"]
     for name in ("lr_means", "lr_sh_dc", "lr_opacity", "sh_degree"):

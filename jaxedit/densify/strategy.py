@@ -115,7 +115,8 @@ class DensifyConfig:
       grad_threshold: classic mode: mean NDC gradient norm needed to refine.
       grad_floor: budget mode: candidates need a mean gradient strictly above this.
       refine_every: steps between two density maintenances.
-      warmup: steps before the first maintenance.
+      warmup: steps before the first maintenance (None: set by the caller; an edit's is its
+        plan's W).
       stop_at: last step with maintenance and opacity resets (None: half the iterations).
       refine_from_warmup: maintenance at ``warmup, warmup + refine_every, ...`` (ProEdit's W)
         instead of INRIA's multiples of ``refine_every`` above ``warmup``.
@@ -139,7 +140,7 @@ class DensifyConfig:
     grad_threshold: float = 2e-4
     grad_floor: float = 0.0
     refine_every: int = ranged(100, low=1)
-    warmup: int = ranged(500, low=0)
+    warmup: int | None = ranged(500, low=0)
     refine_from_warmup: bool = False
     stop_at: int | None = ranged(None, low=0)
     reset_every: int = ranged(3000, low=0)
@@ -207,6 +208,8 @@ def adaptive(config: DensifyConfig, *, iterations: int) -> Strategy:
     """
     if config.max_gaussians is None:
         raise ValueError("max_gaussians is unresolved (None): set the cap first")
+    if config.warmup is None:
+        raise ValueError("warmup is unresolved (None): set the warm-up first")
     stop_at = config.stop_at if config.stop_at is not None else iterations // 2
     reset_every = config.reset_every
     if not config.enabled:

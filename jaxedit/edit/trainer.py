@@ -24,7 +24,7 @@ from .plan import ProEditConfig
 #: reset; the cap is :func:`default_max_gaussians`; maintenance from the plan's W on.
 EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
                              budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
-                             warmup=ProEditConfig.warmup, refine_from_warmup=True, stop_at=2 ** 30,
+                             warmup=None, refine_from_warmup=True, stop_at=2 ** 30,
                              reset_every=0, cull_alpha=0.1)
 #: IN2N / IGS2GS mode: Splatfacto's classic thresholds and its periodic opacity reset.
 CLASSIC_RESET_EVERY = 3000
@@ -37,8 +37,8 @@ class TrainSettings:
     Attributes:
       scene_extent: world size (None: ``jaxedit.train.scene_extent`` of the train cameras).
       densify: the density control as it runs (:data:`EDIT_DENSIFY`: ProEdit's budgeted
-        creation; :meth:`for_mode` gives IN2N's classic one); its ``warmup`` must stay the
-        plan's (:attr:`ProEditConfig.warmup`), else DataError.
+        creation; :meth:`for_mode` gives IN2N's classic one); its ``max_gaussians`` None: from
+        the input (:func:`default_max_gaussians`), its ``warmup`` None: the plan's W.
       sh_degree: SH degree trained (all degrees on from the start).
       lr_means: Adam learning rate of the means (constant).
       lr_sh_dc: Adam learning rate of the SH colour (the higher SH get a twentieth).
@@ -51,11 +51,6 @@ class TrainSettings:
     lr_means: float = TrainConfig.lr_means
     lr_sh_dc: float = TrainConfig.lr_sh_dc
     lr_opacity: float = TrainConfig.lr_opacity
-
-    def __post_init__(self):
-        if self.densify.warmup != EDIT_DENSIFY.warmup:
-            raise DataError("densify.warmup", f"{self.densify.warmup}: the plan owns the "
-                            "warm-up W; set ProEditConfig.warmup (edit --warmup) instead")
 
     @classmethod
     def for_mode(cls, mode: str, **changes) -> "TrainSettings":
@@ -76,9 +71,10 @@ class TrainSettings:
     def train_config(self, background=ProEditConfig.background,
                      warmup: int = ProEditConfig.warmup) -> TrainConfig:
         """The :class:`jaxedit.train.TrainConfig` of these settings, on the plan's
-        ``background`` (RGB, white or black) and warm-up W ``warmup``."""
+        ``background`` (RGB, white or black) and warm-up W ``warmup`` (the density
+        control's unless ``densify.warmup`` is set)."""
         dens = self.densify
-        if int(warmup) != dens.warmup:
+        if dens.warmup is None:
             dens = dataclasses.replace(dens, warmup=int(warmup))
         return TrainConfig(iterations=2 ** 30, lr_means=self.lr_means,
                            lr_means_final=self.lr_means, lr_sh_dc=self.lr_sh_dc,
