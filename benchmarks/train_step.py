@@ -21,6 +21,7 @@ Writes ``DIR/train_step.json``. ``--smoke``: 32 x 32, 300 Gaussians, 3 repeats, 
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 from common import parse_args, peak_rss_mb, time_fn, write_json
@@ -74,8 +75,7 @@ def main(argv=None):
     grad = jax.jit(jax.value_and_grad(
         lambda p: loss_fn(dataclasses.replace(p, alive=g.alive))))
     params = dataclasses.replace(g, alive=None)
-    strategy = D.adaptive(refine_cfg.densify, scene_extent=extent,
-                          iterations=refine_cfg.iterations)
+    strategy = D.strategy_for(refine_cfg.densify, iterations=refine_cfg.iterations)
     aux = D.RenderAux(grad_means2d=jnp.full((g.capacity, 2), 1e-4), radii=jnp.ones(g.capacity),
                       visible=g.alive, image_size=jnp.asarray([size, size], jnp.float32))
     refine_state = dataclasses.replace(state, config=refine_cfg)
@@ -84,8 +84,8 @@ def main(argv=None):
         "loss_and_grad": (grad, params),
         "train_step": (T.train_step, state, batch, key),
         "train_step_refine": (T.train_step, refine_state, batch, key),
-        "densify_update": (jax.jit(strategy.update), g, state.opt_state, state.densify_stats,
-                           aux, 1, key),
+        "densify_update": (jax.jit(functools.partial(strategy.update, scene_extent=extent)),
+                           g, state.opt_state, state.densify_stats, aux, 1, key),
     }
     # fit's device-resident loop: a chunk of T.CHUNK steps in one call (timed per chunk,
     # reported per step below), the views picked from the images on the device.

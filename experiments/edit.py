@@ -23,6 +23,9 @@ import dataclasses
 from pathlib import Path
 
 from jaxedit.errors import ranged
+from jaxedit.pipelines.edit import EditorConfig, EditRunConfig
+
+from .editors import DEFAULT as DEFAULT_EDITOR
 
 HELP = "progressively edit a 3DGS scene with an instruction (ProEdit)"
 
@@ -30,14 +33,21 @@ HELP = "progressively edit a 3DGS scene with an instruction (ProEdit)"
 #: Library arguments named unlike their flags (for error messages).
 FIELD_FLAGS = {"run_dir": "--out"}
 
+@dataclasses.dataclass(frozen=True)
+class EditSettings(EditRunConfig):
+    __doc__ = EditRunConfig.__doc__
+    #: the command's editor without ``--editor``: the lab's offline test instrument
+    editor: EditorConfig = EditorConfig(kind=DEFAULT_EDITOR)
+
+
 def _config_flags():
     from jaxedit.edit.plan import MODES
     from jaxedit.edit.difficulty import DISTANCES
-    from jaxedit.pipelines.edit import EDITORS, EditRunConfig
 
+    from .editors import EDITORS
     from .flags import Flag, FlagSet
 
-    return FlagSet(EditRunConfig, (
+    return FlagSet(EditSettings, (
         Flag("plan.mode", choices=MODES),
         Flag("plan.threshold"),
         Flag("plan.target_subtasks"),
@@ -70,7 +80,7 @@ def _config_flags():
         Flag("identity.accept_low", "--accept-low-identity"),
         Flag("distance", choices=DISTANCES),
         Flag("lpips_weights"),
-    ), derived=("train.densify.warmup",)).complete()  # the plan's --warmup
+    )).complete()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,7 +241,9 @@ def mode_defaults(mode: str):
     without other flags: the mode's preset (:mod:`jaxedit.pipelines.presets`)."""
     from jaxedit.pipelines.presets import preset
 
-    return preset(mode)
+    base = preset(mode)
+    return EditSettings(**{f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
+                        | {"editor": dataclasses.replace(base.editor, kind=DEFAULT_EDITOR)})
 
 
 def run_config(args):

@@ -7,6 +7,12 @@ and is built here, in the layer that may import both.
 
 from __future__ import annotations
 
+#: The commands' 2D editors: the lab's simulated one and the library's
+#: (:data:`jaxedit.pipelines.edit.EDITORS`).
+EDITORS = ("simulated", "ip2p", "ip2p-torch")
+#: The edit command's editor without ``--editor``: the offline test instrument.
+DEFAULT = "simulated"
+
 
 def make_editor(config):
     """The editor ``config`` describes: the lab's simulated editor or a library one."""

@@ -6,6 +6,7 @@ gradients) through a seed.
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -32,9 +33,9 @@ COMMON = D.DensifyConfig(max_gaussians=CAP, refine_every=10, warmup=0, stop_at=1
 
 
 def strategy_with(**changes) -> D.Strategy:
-    """The strategy of COMMON with ``changes`` (DensifyConfig fields)."""
-    return D.adaptive(dataclasses.replace(COMMON, **changes), scene_extent=EXTENT,
-                      iterations=2000)
+    """The strategy of COMMON with ``changes`` (DensifyConfig fields), on a scene of EXTENT."""
+    s = D.strategy_for(dataclasses.replace(COMMON, **changes), iterations=2000)
+    return D.Strategy(s.init, functools.partial(s.update, scene_extent=EXTENT))
 
 
 BUDGETED = strategy_with(budget=True, **BUDGET_KW)

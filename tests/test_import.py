@@ -1,6 +1,7 @@
 """``import jaxedit`` changes nothing in the caller's program, and the layers import downwards."""
 
 import ast
+import re
 import json
 import subprocess
 import sys
@@ -69,3 +70,89 @@ def test_the_lab_is_not_imported_by_the_run_directory_layer():
     bad = {str(p.relative_to(ROOT)): sorted(n for n in _imports(p) if n.startswith("jaxedit_lab"))
            for p in sorted((ROOT / "jaxedit" / "pipelines").rglob("*.py"))}
     assert not {k: v for k, v in bad.items() if v}
+
+
+def _layers() -> dict[str, int]:
+    """{unit of jaxedit (a top-level module or subpackage): its row in docs/architecture.md's
+    table of layers}, read from the table's ``where`` column."""
+    rows = [line.split("|")[2] for line in (ROOT / "docs" / "architecture.md").read_text()
+            .splitlines() if line.startswith("| ") and "`jaxedit/" in line.split("|")[2]]
+    out = {}
+    for rank, where in enumerate(rows):
+        for name in re.findall(r"`([^`]+)`", where):
+            out[name.removeprefix("jaxedit/").removesuffix("/").removesuffix(".py")] = rank
+    return out
+
+
+def _unit(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if parts[0] == "jaxedit" and len(parts) > 1 else None
+
+
+def _unit_graph() -> dict[str, set[str]]:
+    """{unit: the other units it imports} over every file of jaxedit/ but its __init__."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted((ROOT / "jaxedit").rglob("*.py")):
+        rel = path.relative_to(ROOT).with_suffix("")
+        if len(rel.parts) == 2 and rel.name == "__init__":
+            continue  # the package's facade re-exports every layer
+        src = rel.parts[1]
+        targets = set()
+        for name in _imports(path):
+            targets.add(_unit(name))
+        for node in ast.walk(ast.parse(path.read_text())):  # `from .. import train`
+            if isinstance(node, ast.ImportFrom) and node.level and not node.module and \
+                    node.level == len(rel.parts) - 1:
+                targets |= {a.name for a in node.names}
+        graph.setdefault(src, set()).update(t for t in targets if t and t != src)
+    return graph
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one unit (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            part = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                part.append(w)
+                if w == v:
+                    break
+            if len(part) > 1:
+                out.append(sorted(part))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_library_has_no_import_circles():
+    graph = _unit_graph()
+    assert {"train", "densify", "edit", "pipelines"} <= set(graph)
+    assert _circles(graph) == []
+    # the check can fail: a made-up arrow back closes a circle
+    assert _circles(graph | {"densify": graph["densify"] | {"train"}}) == [["densify", "train"]]
+
+
+def test_every_import_follows_the_architecture_tables_layers():
+    layers, graph = _layers(), _unit_graph()
+    units = {p.relative_to(ROOT / "jaxedit").parts[0].removesuffix(".py")
+             for p in (ROOT / "jaxedit").rglob("*.py")} - {"__init__.py", "__init__"}
+    assert sorted(units - set(layers)) == []  # every module has its row
+    up = {f"{src} -> {dst}" for src, dsts in graph.items() for dst in dsts
+          if layers[dst] > layers[src]}
+    assert sorted(up) == []
+    assert layers["pipelines"] > layers["edit"] > layers["editors"] > layers["train"]

@@ -374,7 +374,7 @@ def test_cli_edit_writes_contract_files(tiny, tmp_path):
 def test_in2n_baseline_runs_its_fixed_budget_with_one_edit_every_10_steps(tiny):
     g, data, _, _ = tiny
     cfg = ProEditConfig.for_mode("in2n", max_steps=30, checkpoint_every=100)
-    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST, seed=0,
+    out = run_edit(SimulatedEditor(), PROMPT, data, g, config=cfg, settings=FAST.classic(), seed=0,
                    run_dir=None)
     (sub,) = out["schedule"]["subtasks"]
     # a fixed budget: it neither plateaus (converged None) nor is cut by a guard
@@ -627,15 +627,15 @@ def test_the_run_keeps_the_users_config_and_records_the_scaled_guard(tiny):
         "max_steps": 50, "max_steps_scaled": False, "max_seconds": None}
 
 
-def test_the_plan_owns_the_density_warmup(tiny):
+def test_the_density_warmup_is_the_plans_unless_set(tiny):
     from jaxedit.edit import progressive
 
     g, data, _, _ = tiny
-    with pytest.raises(DataError, match="warmup"):
-        TrainSettings().replace_densify(warmup=5)  # set it on the plan, not here
     cfg = ProEditConfig.for_mode("proedit", warmup=7)
-    trainer = progressive.make_trainer(cfg, FAST, data, g)
-    assert trainer.config.densify.warmup == 7
+    assert FAST.densify.warmup is None
+    assert progressive.make_trainer(cfg, FAST, data, g).config.densify.warmup == 7
+    own = FAST.replace_densify(warmup=5)
+    assert progressive.make_trainer(cfg, own, data, g).config.densify.warmup == 5
 
 
 def test_a_run_encodes_its_prompt_once(tiny):

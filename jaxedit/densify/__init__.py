@@ -1,9 +1,9 @@
 """Adaptive density control (densify / cull) as a pure, optax-shaped transformation::
 
-    strategy = strategy_for(DensifyConfig(...), scene_extent=..., iterations=...)
+    strategy = strategy_for(DensifyConfig(...), iterations=...)   # built once per config
     stats = strategy.init(gaussians)
     gaussians, opt_state, stats, info = strategy.update(
-        gaussians, opt_state, stats, render_aux, step, key)
+        gaussians, opt_state, stats, render_aux, step, key, scene_extent=extent)
 
 Laid out as gsplat's ``strategy/``: :mod:`.ops` (the operations), :mod:`.stats` (the
 statistics), :mod:`.strategy` (settings, ProEdit's budget, :func:`adaptive`).

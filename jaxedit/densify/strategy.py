@@ -1,10 +1,11 @@
-"""The density-control strategy: statistics, settings and the ``(init, update)`` pair
-(:func:`adaptive`, built by name through :func:`strategy_for`).
+"""The density-control strategy: settings and the ``(init, update)`` pair (:func:`adaptive`),
+built once per :class:`DensifyConfig` by name through :func:`strategy_for`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -53,7 +54,9 @@ class DensifyInfo(NamedTuple):
 
 
 class Strategy(NamedTuple):
-    """An ``(init, update)`` pair, like an optax ``GradientTransformation``."""
+    """An ``(init, update)`` pair, like an optax ``GradientTransformation``:
+    ``init(gaussians) -> stats``; ``update(gaussians, opt_state, stats, aux, step, key,
+    frozen=None, *, scene_extent) -> (gaussians, opt_state, stats, info)``."""
 
     init: Callable
     update: Callable
@@ -112,7 +115,8 @@ class DensifyConfig:
       grad_threshold: classic mode: mean NDC gradient norm needed to refine.
       grad_floor: budget mode: candidates need a mean gradient strictly above this.
       refine_every: steps between two density maintenances.
-      warmup: steps before the first maintenance.
+      warmup: steps before the first maintenance (None: set by the caller; an edit's is its
+        plan's W).
       stop_at: last step with maintenance and opacity resets (None: half the iterations).
       refine_from_warmup: maintenance at ``warmup, warmup + refine_every, ...`` (ProEdit's W)
         instead of INRIA's multiples of ``refine_every`` above ``warmup``.
@@ -136,7 +140,7 @@ class DensifyConfig:
     grad_threshold: float = 2e-4
     grad_floor: float = 0.0
     refine_every: int = ranged(100, low=1)
-    warmup: int = ranged(500, low=0)
+    warmup: int | None = ranged(500, low=0)
     refine_from_warmup: bool = False
     stop_at: int | None = ranged(None, low=0)
     reset_every: int = ranged(3000, low=0)
@@ -154,25 +158,36 @@ class DensifyConfig:
             raise DataError("strategy", f"unknown density strategy {self.strategy!r}; "
                                         f"registered: {', '.join(sorted(_STRATEGIES))}")
 
+    @property
+    def floor(self) -> float:
+        """The mean gradient a candidate must exceed: ``grad_floor`` with the budget, else
+        ``grad_threshold``."""
+        return self.grad_floor if self.budget else self.grad_threshold
 
-#: ``make(config, *, scene_extent, iterations) -> Strategy`` by name (:func:`register_strategy`).
+
+#: ``make(config, *, iterations) -> Strategy`` by name (:func:`register_strategy`).
 _STRATEGIES: dict[str, Callable[..., Strategy]] = {}
 
 
 def register_strategy(name: str, make: Callable[..., Strategy]) -> None:
-    """Make ``DensifyConfig(strategy=name)`` use ``make(config, *, scene_extent,
-    iterations) -> Strategy``, a module-level function (compiled programs are cached by it)."""
+    """Make ``DensifyConfig(strategy=name)`` use ``make(config, *, iterations) -> Strategy``."""
     if not name or not callable(make):
         raise DataError("strategy", f"need a name and a callable, got {name!r}, {make!r}")
     _STRATEGIES[name] = make
 
 
-def strategy_for(config: DensifyConfig, *, scene_extent, iterations: int) -> Strategy:
-    """The :class:`Strategy` ``config.strategy`` names, built from ``config``."""
-    return _STRATEGIES[config.strategy](config, scene_extent=scene_extent, iterations=iterations)
+def strategy_for(config: DensifyConfig, *, iterations: int) -> Strategy:
+    """The :class:`Strategy` ``config.strategy`` names, built from ``config`` once: equal
+    settings give the same object, so compiled steps are shared."""
+    return _built(_STRATEGIES[config.strategy], config, int(iterations))
 
 
-def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> Strategy:
+@functools.lru_cache(maxsize=64)
+def _built(make, config: DensifyConfig, iterations: int) -> Strategy:
+    return make(config, iterations=iterations)
+
+
+def adaptive(config: DensifyConfig, *, iterations: int) -> Strategy:
     """3DGS adaptive density control with an optional ProEdit creation budget.
 
     ``update`` accumulates each step's statistics; at maintenance steps (``step >
@@ -187,12 +202,14 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
 
     Args:
       config: the :class:`DensifyConfig`.
-      scene_extent: world size of the scene (INRIA's ``cameras_extent``); scales the
-        duplicate/split and world-cull thresholds.
       iterations: the run's steps (``stop_at=None`` stops at half of them).
+    ``update``'s ``scene_extent`` (INRIA's ``cameras_extent``, traced) scales the
+    duplicate/split and world-cull thresholds.
     """
     if config.max_gaussians is None:
         raise ValueError("max_gaussians is unresolved (None): set the cap first")
+    if config.warmup is None:
+        raise ValueError("warmup is unresolved (None): set the warm-up first")
     stop_at = config.stop_at if config.stop_at is not None else iterations // 2
     reset_every = config.reset_every
     if not config.enabled:
@@ -201,29 +218,25 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
     if config.budget:
         budget = creation_budget(min_new=config.budget_min_new, growth=config.budget_growth,
                                  max_fraction=config.budget_max_fraction)
-    max_gaussians, grad_threshold, grad_floor = (config.max_gaussians, config.grad_threshold,
-                                                 config.grad_floor)
-    refine_every, warmup, cull_alpha = config.refine_every, config.warmup, config.cull_alpha
-    from_warmup = config.refine_from_warmup
-    cull_screen = config.cull_screen
+    refine_every, warmup = config.refine_every, config.warmup
     if refine_every <= 0:
         raise ValueError("refine_every must be positive")
-    if max_gaussians <= 0:
+    if config.max_gaussians <= 0:
         raise ValueError("max_gaussians must be positive")
-    reset_value = 2.0 * cull_alpha if config.reset_value is None else config.reset_value
-    floor = grad_threshold if budget is None else grad_floor
+    reset_value = 2.0 * config.cull_alpha if config.reset_value is None else config.reset_value
     # INRIA culls by screen size only after the first opacity reset.
     screen_from = reset_every if reset_every > 0 else None
-    dup_scale = config.dense_percent * scene_extent
-    big_scale = None if config.cull_scale is None else config.cull_scale * scene_extent
 
     def init(gaussians: Gaussians) -> DensifyStats:
         return init_stats(gaussians.capacity)
 
-    def refine(gaussians, opt_state, stats, step, key, frozen):
+    def refine(gaussians, opt_state, stats, step, key, frozen, scene_extent):
+        dup_scale = config.dense_percent * scene_extent
+        big_scale = None if config.cull_scale is None else config.cull_scale * scene_extent
         n_alive0 = gaussians.num_alive()
-        culled = cull_mask(gaussians, stats, step, cull_alpha=cull_alpha, big_scale=big_scale,
-                           cull_screen=cull_screen, screen_from=screen_from) & ~frozen
+        culled = cull_mask(gaussians, stats, step, cull_alpha=config.cull_alpha,
+                           big_scale=big_scale, cull_screen=config.cull_screen,
+                           screen_from=screen_from) & ~frozen
         g = remove(gaussians, culled)
         n_alive1 = g.num_alive()
         # t(n, N) counts only the editable Gaussians: with frozen ones in N a local edit's
@@ -232,7 +245,8 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
             stats.last_culled, n_alive0 - jnp.sum(gaussians.alive & frozen)), jnp.int32), 0)
         # Frozen Gaussians are never candidates, so only the editable region grows.
         seen = stats._replace(count=jnp.where(frozen, 0, stats.count))
-        sel = select(seen, g.alive, floor=floor, budget=t, max_gaussians=max_gaussians)
+        sel = select(seen, g.alive, floor=config.floor, budget=t,
+                     max_gaussians=config.max_gaussians)
         small = jnp.exp(jnp.max(g.log_scales, axis=-1)) <= dup_scale
         splits, dups = sel.selected & ~small, sel.selected & small
         g, second = split(g, splits, key, config.split_factor)
@@ -245,7 +259,7 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
         new_stats = init_stats(g.capacity)._replace(last_culled=n_culled)
         k = sel.count
         kth = jnp.clip(k - 1, 0, g.capacity - 1)
-        threshold = jnp.where(k > 0, sel.score[sel.order[kth]], jnp.float32(floor))
+        threshold = jnp.where(k > 0, sel.score[sel.order[kth]], jnp.float32(config.floor))
         free = g.capacity - n_alive1
         want_in_cap = jnp.minimum(sel.wanted, sel.room_cap)
         info = DensifyInfo(
@@ -260,11 +274,11 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
             slots_needed=(n_alive1 + want_in_cap).astype(jnp.int32))
         return g, opt_state, new_stats, info
 
-    def skip(gaussians, opt_state, stats, step, key, frozen):
+    def skip(gaussians, opt_state, stats, step, key, frozen, scene_extent):
         return gaussians, opt_state, stats, nothing_done(gaussians.capacity, gaussians.num_alive())
 
     def update(gaussians: Gaussians, opt_state, stats: DensifyStats, aux: RenderAux | None,
-               step, key: jax.Array, frozen: jax.Array | None = None):
+               step, key: jax.Array, frozen: jax.Array | None = None, *, scene_extent):
         """One step of density control (:func:`adaptive`).
 
         Args:
@@ -275,6 +289,7 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
           step: int, 1-based.
           key: PRNG key for split children.
           frozen: bool [C] or None: Gaussians never culled, split, cloned or reset.
+          scene_extent: float [], the world size.
         Returns:
           (gaussians, opt_state, stats, info: DensifyInfo).
         """
@@ -283,13 +298,13 @@ def adaptive(config: DensifyConfig, *, scene_extent: float, iterations: int) -> 
                   else jnp.asarray(frozen, bool))
         if aux is not None:
             stats = accumulate(stats, aux)
-        if from_warmup:
+        if config.refine_from_warmup:
             due = (step >= warmup) & ((step - warmup) % refine_every == 0) & (step > 0)
         else:
             due = (step > warmup) & (step % refine_every == 0)
         due = due & (step <= stop_at)
         gaussians, opt_state, stats, info = jax.lax.cond(
-            due, refine, skip, gaussians, opt_state, stats, step, key, frozen)
+            due, refine, skip, gaussians, opt_state, stats, step, key, frozen, scene_extent)
         if reset_every > 0:
             do_reset = (step % reset_every == 0) & (step <= stop_at)
 

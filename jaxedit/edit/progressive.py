@@ -39,14 +39,13 @@ DEFAULT_SUBTASKS = 4
 
 def make_trainer(config: ProEditConfig, settings: TrainSettings, data: EditData,
                  gaussians, editable=None) -> SubtaskTrainer:
-    """The editing trainer of a run: ``settings`` completed by the plan (warm-up W, mode,
-    background) and the scene (extent from the training cameras when unset); ``editable``:
+    """The editing trainer of a run: ``settings`` as given, completed by the plan (warm-up
+    W, background) and the scene (extent from the training cameras when unset); ``editable``:
     a local edit's bool [C0] (:class:`SubtaskTrainer`; None: every Gaussian trains)."""
     if settings.scene_extent is None:
         # rounded: a static field, so equal rigs read from files share one compiled step
         extent = float(f"{scene_extent(data.train_cameras):.4g}")
         settings = dataclasses.replace(settings, scene_extent=extent)
-    settings = dataclasses.replace(settings, adaptive=config.mode != "in2n")
     return SubtaskTrainer(settings, int(gaussians.num_alive()), background=config.background,
                           warmup=config.warmup, editable=editable)
 

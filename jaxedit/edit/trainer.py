@@ -24,7 +24,7 @@ from .plan import ProEditConfig
 #: reset; the cap is :func:`default_max_gaussians`; maintenance from the plan's W on.
 EDIT_DENSIFY = DensifyConfig(max_gaussians=None, budget=True, budget_min_new=16,
                              budget_growth=0.02, budget_max_fraction=0.1, refine_every=100,
-                             warmup=ProEditConfig.warmup, refine_from_warmup=True, stop_at=2 ** 30,
+                             warmup=None, refine_from_warmup=True, stop_at=2 ** 30,
                              reset_every=0, cull_alpha=0.1)
 #: IN2N / IGS2GS mode: Splatfacto's classic thresholds and its periodic opacity reset.
 CLASSIC_RESET_EVERY = 3000
@@ -36,10 +36,9 @@ class TrainSettings:
 
     Attributes:
       scene_extent: world size (None: ``jaxedit.train.scene_extent`` of the train cameras).
-      adaptive: ProEdit's budgeted creation (True) or classic 3DGS thresholds with a
-        periodic opacity reset (False, IN2N).
-      densify: the density control (:data:`EDIT_DENSIFY`); its ``warmup`` must stay the
-        plan's (:attr:`ProEditConfig.warmup`), else DataError.
+      densify: the density control as it runs (:data:`EDIT_DENSIFY`: ProEdit's budgeted
+        creation; :meth:`for_mode` gives IN2N's classic one); its ``max_gaussians`` None: from
+        the input (:func:`default_max_gaussians`), its ``warmup`` None: the plan's W.
       sh_degree: SH degree trained (all degrees on from the start).
       lr_means: Adam learning rate of the means (constant).
       lr_sh_dc: Adam learning rate of the SH colour (the higher SH get a twentieth).
@@ -47,17 +46,23 @@ class TrainSettings:
     """
 
     scene_extent: float | None = None
-    adaptive: bool = True
     densify: DensifyConfig = EDIT_DENSIFY
     sh_degree: int = TrainConfig.sh_degree
     lr_means: float = TrainConfig.lr_means
     lr_sh_dc: float = TrainConfig.lr_sh_dc
     lr_opacity: float = TrainConfig.lr_opacity
 
-    def __post_init__(self):
-        if self.densify.warmup != EDIT_DENSIFY.warmup:
-            raise DataError("densify.warmup", f"{self.densify.warmup}: the plan owns the "
-                            "warm-up W; set ProEditConfig.warmup (edit --warmup) instead")
+    @classmethod
+    def for_mode(cls, mode: str, **changes) -> "TrainSettings":
+        """The settings of editing mode ``mode`` with ``changes``: IN2N's (in2n) classic
+        density control, else ProEdit's budgeted one."""
+        settings = cls(**changes)
+        return settings.classic() if mode == "in2n" else settings
+
+    def classic(self) -> "TrainSettings":
+        """These settings with classic 3DGS density control (IN2N): no creation budget, a
+        periodic opacity reset."""
+        return self.replace_densify(budget=False, reset_every=CLASSIC_RESET_EVERY)
 
     def replace_densify(self, **changes) -> "TrainSettings":
         """These settings with ``densify``'s fields ``changes`` replaced."""
@@ -66,16 +71,16 @@ class TrainSettings:
     def train_config(self, background=ProEditConfig.background,
                      warmup: int = ProEditConfig.warmup) -> TrainConfig:
         """The :class:`jaxedit.train.TrainConfig` of these settings, on the plan's
-        ``background`` (RGB, white or black) and warm-up W ``warmup``."""
-        dens = dataclasses.replace(self.densify, warmup=int(warmup))
-        dens = dens if self.adaptive else dataclasses.replace(
-            dens, budget=False, reset_every=CLASSIC_RESET_EVERY)
-        background = background_name(background)
+        ``background`` (RGB, white or black) and warm-up W ``warmup`` (the density
+        control's unless ``densify.warmup`` is set)."""
+        dens = self.densify
+        if dens.warmup is None:
+            dens = dataclasses.replace(dens, warmup=int(warmup))
         return TrainConfig(iterations=2 ** 30, lr_means=self.lr_means,
                            lr_means_final=self.lr_means, lr_sh_dc=self.lr_sh_dc,
                            lr_sh_rest=self.lr_sh_dc / 20, lr_opacity=self.lr_opacity,
                            sh_degree=self.sh_degree, sh_degree_interval=1,
-                           background=background, densify=dens)
+                           background=background_name(background), densify=dens)
 
 
 #: Room the default cap leaves above a small input (Gaussians).
@@ -143,14 +148,12 @@ class SubtaskTrainer:
         """``state`` at a subtask's start; ``reset_opacity`` False keeps the opacities."""
         g, opt = state.gaussians, state.opt_state
         if reset_opacity:
-            g, opt = densify.opacity_reset(g, opt, self.settings.densify.cull_alpha)
+            g, opt = densify.opacity_reset(g, opt, state.config.densify.cull_alpha)
         if reset_opacity and state.frozen is not None:  # frozen Gaussians keep their opacity
             g = dataclasses.replace(g, opacity_logits=jnp.where(
                 state.frozen, state.gaussians.opacity_logits, g.opacity_logits))
-        strategy = densify.strategy_for(state.config.densify, scene_extent=state.scene_extent,
-                                        iterations=state.config.iterations)
         return dataclasses.replace(state, gaussians=g, opt_state=opt,
-                                   densify_stats=strategy.init(g), densify_origin=state.step)
+                                   densify_stats=state.strategy.init(g), densify_origin=state.step)
 
     @staticmethod
     def gaussians(state):

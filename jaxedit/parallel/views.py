@@ -89,13 +89,12 @@ def views_loss_and_grad(state, images: jax.Array, cameras, key: jax.Array):
 def views_step(state, images: jax.Array, cameras, key: jax.Array):
     """One optimiser step on the mean loss of V views: (state, {"loss", "overflow"});
     sharded inputs and a replicated state run it data parallel."""
-    from ..train import optimizer
     from ..train.state import params_of
 
     loss, out, grads = views_loss_and_grad(state, images, cameras, key)
     params = params_of(state.gaussians)
-    updates, opt_state = optimizer(state.config, state.scene_extent).update(
-        grads, state.opt_state, params)
+    updates, opt_state = state.optimizer.update(grads, state.opt_state, params,
+                                                scene_extent=state.scene_extent)
     params = optax.apply_updates(params, updates)
     new = dataclasses.replace(state, gaussians=dataclasses.replace(
         params, alive=state.gaussians.alive), opt_state=opt_state, step=state.step + 1)

@@ -77,8 +77,8 @@ class EditStart:
     memo: Path
 
 
-#: The 2D editors an edit run can use (:class:`EditorConfig`).
-EDITORS = ("simulated", "ip2p", "ip2p-torch")
+#: The 2D editors the library builds (:func:`make_editor`).
+EDITORS = ("ip2p", "ip2p-torch")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,9 +86,9 @@ class EditorConfig:
     """The 2D editor of an edit run (:func:`make_editor`).
 
     Attributes:
-      kind: 2D editor (simulated: offline test instrument; ip2p: InstructPix2Pix in JAX,
-        the small model bundled with jaxedit unless ``weights``; ip2p-torch: the torch +
-        diffusers reference).
+      kind: 2D editor (ip2p: InstructPix2Pix in JAX, the small model bundled with jaxedit
+        unless ``weights``; ip2p-torch: the torch + diffusers reference; simulated: the
+        lab's offline test instrument, which the commands build).
       weights: local diffusers folder of the InstructPix2Pix weights (ip2p, ip2p-torch;
         None: the bundled small model, made for the built-in scenes at 64 px: on your own
         capture give SD-size InstructPix2Pix weights, e.g. timbrooks/instruct-pix2pix).
@@ -106,7 +106,7 @@ class EditorConfig:
         (stretch: blurred, the targets before issue 77).
     """
 
-    kind: str = "simulated"
+    kind: str = "ip2p"
     weights: Path | None = None
     device: str | None = None
     dtype: str | None = None
@@ -121,9 +121,6 @@ class EditorConfig:
         if self.targets not in TARGETS:
             raise DataError("targets", f"unknown targets {self.targets!r}; choose from "
                                        f"{', '.join(TARGETS)}")
-        if self.kind not in EDITORS:
-            raise DataError("kind", f"unknown editor {self.kind!r}; choose from "
-                                    f"{', '.join(EDITORS)}")
         check_ranges(self)
         if self.weights is not None and not self.kind.startswith("ip2p"):
             raise DataError("weights", f"used only with the ip2p or ip2p-torch editor (the "
@@ -139,6 +136,9 @@ def make_editor(config: EditorConfig):
     if config.kind == "simulated":
         raise DataError("kind", "the simulated editor is the lab's test instrument: pass "
                                 "jaxedit_lab.simulated.SimulatedEditor() as the editor")
+    if config.kind not in EDITORS:
+        raise DataError("kind", f"unknown editor {config.kind!r}; choose from "
+                                f"{', '.join(EDITORS)}")
     from ..editors import bundled_editor, native_size
 
     weights = config.weights or bundled_editor()
@@ -269,7 +269,8 @@ def edit_context(editor, prompt: str, data: EditData, gaussians, *, config: ProE
     if not str(prompt).strip() and config.mode != "in2n":
         raise DataError("prompt", "empty instruction")
     # the cap is checked before the local plan's work, whose editable set the trainer takes
-    settings = resolve_max_gaussians(settings or TrainSettings(), int(gaussians.num_alive()))
+    settings = resolve_max_gaussians(settings or TrainSettings.for_mode(config.mode),
+                                     int(gaussians.num_alive()))
     _, editor_device = pick_devices()
     # The prompt is encoded once per run: here when the local plan's relevance needs it
     # first, else by EditContext.create (after the local plan, whose errors come first).
@@ -383,7 +384,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
       editor, prompt: the 2D editor and the instruction.
       data: original photos and cameras (train views edited, test views held out).
       gaussians: the input scene (a reconstruction of ``data``).
-      config / settings: plan and trainer knobs.
+      config / settings: plan and trainer knobs (settings None: the mode's,
+        :meth:`TrainSettings.for_mode`).
       seed: the run seed (every random draw derives from it).
       run_dir: where schedule.json, metrics.json, snapshots and the checkpoint go
         (None: in memory only, no files).

@@ -16,22 +16,24 @@ from __future__ import annotations
 from typing import Callable
 
 from ..edit.plan import ProEditConfig
+from ..edit.trainer import TrainSettings
 from ..errors import DataError
 from .edit import EditRunConfig
 
 
-def _igs2gs() -> EditRunConfig:
-    plan = ProEditConfig.for_mode("in2n", max_steps=7500, sweep_every=2500,
-                                  timestep_range=(0.70, 0.98), guidance=(12.5, 1.5))
-    return EditRunConfig(plan=plan)
+def _mode(mode: str, **plan) -> EditRunConfig:
+    """Mode ``mode``'s plan (with ``plan`` changes) and trainer."""
+    return EditRunConfig(plan=ProEditConfig.for_mode(mode, **plan),
+                         train=TrainSettings.for_mode(mode))
 
 
 #: name -> a function building that method's whole :class:`EditRunConfig`.
 PRESETS: dict[str, Callable[[], EditRunConfig]] = {
-    "proedit": lambda: EditRunConfig(plan=ProEditConfig.for_mode("proedit")),
-    "nd": lambda: EditRunConfig(plan=ProEditConfig.for_mode("nd")),
-    "in2n": lambda: EditRunConfig(plan=ProEditConfig.for_mode("in2n")),
-    "igs2gs": _igs2gs,
+    "proedit": lambda: _mode("proedit"),
+    "nd": lambda: _mode("nd"),
+    "in2n": lambda: _mode("in2n"),
+    "igs2gs": lambda: _mode("in2n", max_steps=7500, sweep_every=2500,
+                            timestep_range=(0.70, 0.98), guidance=(12.5, 1.5)),
 }
 
 

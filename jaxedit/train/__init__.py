@@ -15,8 +15,9 @@ from .loop import (CHUNK, GUARD_WINDOW, TrainProgress, divergence, epoch_view, f
 from .room import (GROWTH_ROOM, HEADROOM, ROOM, default_room, grow_for_redo,
                    measure_intersections, plan_room, planned_capacity, planned_headroom,
                    size_buffer, step_with_retry)
-from .state import Batch, TrainState, init_state, optimizer, scene_extent
-from .step import (GUARDED, active_sh_degree, apply_step, background_color, camera_lr, means_lr,
+from .state import (Batch, TrainState, init_state, lr_schedule, means_lr, optimizer,
+                    scene_extent)
+from .step import (GUARDED, active_sh_degree, apply_step, background_color, camera_lr,
                    psnr_from_mse, sh_mask, train_step)
 
 __all__ = [
@@ -24,7 +25,7 @@ __all__ = [
     "GUARDED", "GUARD_WINDOW", "HEADROOM", "ROOM", "TrainConfig", "TrainProgress", "TrainState",
     "active_sh_degree", "apply_step", "background_color", "camera_lr",
     "default_room", "divergence", "epoch_view", "evaluate", "fit", "grow_for_redo", "init_state",
-    "load_checkpoint", "load_checkpoint_with_extra", "means_lr",
+    "load_checkpoint", "load_checkpoint_with_extra", "lr_schedule", "means_lr",
     "measure_intersections", "optimizer", "plan_room", "planned_capacity", "planned_headroom",
     "psnr_from_mse", "put_image", "render_views", "save_checkpoint", "scan_steps",
     "scene_extent", "select_batch", "sh_mask", "size_buffer", "step_with_retry", "train_chunk",

@@ -71,6 +71,9 @@ class TrainConfig:
                                          f"{self.lr_camera_final}, {self.lr_camera}")
         if isinstance(self.densify, dict):
             object.__setattr__(self, "densify", _densify_from_dict(self.densify))
+        if self.densify.warmup is None:
+            raise DataError("warmup", "is unset (None): give the steps before the first "
+                                      "density maintenance")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

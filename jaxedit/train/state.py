@@ -1,8 +1,10 @@
-"""The training state (:class:`TrainState`, one pytree), its optimiser, and a fresh one."""
+"""The training state (:class:`TrainState`, one pytree), its optimiser and learning-rate
+schedules, and a fresh state."""
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -29,8 +31,8 @@ class TrainState:
 
     Attributes:
       gaussians: Gaussians, capacity C.
-      opt_state: optax state of ``optimizer(config, extent)`` over the
-        parameters (the Gaussians without ``alive``).
+      opt_state: optax state of :attr:`optimizer` over the parameters (the Gaussians
+        without ``alive``).
       densify_stats: :class:`jaxedit.densify.DensifyStats`.
       step: int32 [], optimiser steps done.
       densify_origin: int32 [], density control sees ``step - densify_origin`` (reset at
@@ -63,6 +65,18 @@ class TrainState:
     def capacity(self) -> int:
         return self.gaussians.capacity
 
+    @property
+    def optimizer(self) -> optax.GradientTransformationExtraArgs:
+        """The optimiser of ``config`` (:func:`optimizer`, built once per config); its
+        ``update`` takes ``scene_extent=``."""
+        return optimizer(self.config)
+
+    @property
+    def strategy(self):
+        """The density strategy of ``config.densify`` (:func:`jaxedit.densify.strategy_for`,
+        built once per config); its ``update`` takes ``scene_extent=``."""
+        return dens.strategy_for(self.config.densify, iterations=self.config.iterations)
+
 
 class Batch(NamedTuple):
     """One training view: image float [H, W, 3] in [0, 1], its (single) Camera, and its
@@ -83,9 +97,39 @@ def params_of(g: Gaussians) -> Gaussians:
     return dataclasses.replace(g, alive=None)
 
 
-def optimizer(config: TrainConfig,
-              scene_extent: float | jax.Array) -> optax.GradientTransformation:
-    """One Adam per attribute (``optax.partition``), Splatfacto learning rates.
+def lr_schedule(lr: float, lr_final: float, steps: int, *, begin: int = 0, scale=1.0):
+    """optax schedule: ``lr * scale`` at step ``begin``, decayed exponentially to
+    ``lr_final * scale`` over ``steps`` steps (the one decay of every learning rate here)."""
+    return optax.exponential_decay(init_value=lr * scale, transition_steps=max(steps, 1),
+                                   decay_rate=lr_final / lr, transition_begin=begin,
+                                   end_value=lr_final * scale)
+
+
+def means_lr(config: TrainConfig, scene_extent, step):
+    """float [], the means' learning rate at 0-based ``step``: ``lr_means`` to
+    ``lr_means_final`` over ``iterations``, times the scene extent (INRIA)."""
+    return lr_schedule(config.lr_means, config.lr_means_final, config.iterations,
+                       scale=scene_extent)(step)
+
+
+def _scale_by_means_lr(config: TrainConfig) -> optax.GradientTransformationExtraArgs:
+    """``optax.scale_by_learning_rate(means_lr)`` with the extent given to ``update``."""
+    def init(params):
+        return optax.ScaleByScheduleState(count=jnp.zeros([], jnp.int32))
+
+    def update(updates, state, params=None, *, scene_extent, **extra):
+        step_size = -1 * means_lr(config, scene_extent, state.count)
+        updates = jax.tree_util.tree_map(lambda g: jnp.array(step_size, dtype=g.dtype) * g,
+                                         updates)
+        return updates, optax.ScaleByScheduleState(count=optax.safe_increment(state.count))
+
+    return optax.GradientTransformationExtraArgs(init, update)
+
+
+@functools.lru_cache(maxsize=64)
+def optimizer(config: TrainConfig) -> optax.GradientTransformationExtraArgs:
+    """One Adam per attribute (``optax.partition``), Splatfacto learning rates; built once
+    per config; ``update(grads, opt_state, params, scene_extent=...)``.
 
     The SH array holds DC and higher-order coefficients together; Adam is
     elementwise, so one Adam followed by a per-coefficient learning rate
@@ -96,10 +140,6 @@ def optimizer(config: TrainConfig,
         return optax.chain(optax.scale_by_adam(eps=config.adam_eps),
                            optax.scale_by_learning_rate(lr))
 
-    means_lr = optax.exponential_decay(
-        init_value=config.lr_means * scene_extent, transition_steps=max(config.iterations, 1),
-        decay_rate=config.lr_means_final / config.lr_means,
-        end_value=config.lr_means_final * scene_extent)
     k = shlib.num_coeffs(3)
     sh_lr = np.full((k, 1), config.lr_sh_rest, np.float32)
     sh_lr[0] = config.lr_sh_dc
@@ -116,7 +156,9 @@ def optimizer(config: TrainConfig,
         return optax.chain(optax.scale_by_adam(eps=config.adam_eps),
                            optax.GradientTransformation(init, update))
 
-    transforms = {"means": adam(means_lr), "scales": adam(config.lr_scales),
+    transforms = {"means": optax.chain(optax.scale_by_adam(eps=config.adam_eps),
+                                       _scale_by_means_lr(config)),
+                  "scales": adam(config.lr_scales),
                   "quats": adam(config.lr_quats), "opacity": adam(config.lr_opacity),
                   "sh": sh_transform()}
     labels = Gaussians(alive=None, **_LABELS)
@@ -162,9 +204,8 @@ def init_state(gaussians: Gaussians, config: TrainConfig, scene_extent: float, *
     if not np.isfinite(scene_extent) or scene_extent <= 0:
         raise DataError("scene_extent", f"must be a positive number, got {scene_extent}")
     key = jax.random.key(0) if key is None else key
-    tx = optimizer(config, scene_extent)
-    strategy = dens.strategy_for(config.densify, scene_extent=scene_extent,
-                                 iterations=config.iterations)
+    tx = optimizer(config)
+    strategy = dens.strategy_for(config.densify, iterations=config.iterations)
     if max_intersections is None:
         max_intersections = 0
     if config.camera_opt:

@@ -22,7 +22,7 @@ from ..gaussians import Gaussians
 from ..losses import photometric_loss
 from ..raster.render import render_tiles
 from .config import TrainConfig
-from .state import Batch, TrainState, optimizer, params_of
+from .state import Batch, TrainState, lr_schedule, means_lr, params_of
 
 def active_sh_degree(step, config: TrainConfig) -> jax.Array:
     """int32 [], SH degree in use at 0-based ``step``: one more every ``sh_degree_interval``."""
@@ -83,10 +83,10 @@ def apply_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
         loss_fn, argnums=(0, 1, 2), has_aux=True)(params, delta, pose)
     if learn_pose:
         corr = poses.update_correction(corr, view, grad_pose, camera_lr(cfg, state.step))
-    tx = optimizer(cfg, state.scene_extent)
     if frozen is not None:
         grads = keep_rows(frozen, jax.tree_util.tree_map(jnp.zeros_like, grads), grads)
-    updates, opt_state = tx.update(grads, state.opt_state, params)
+    updates, opt_state = state.optimizer.update(grads, state.opt_state, params,
+                                                scene_extent=state.scene_extent)
     if frozen is not None:  # bit-identical: Adam's moments alone would still move them
         params = keep_rows(frozen, params, optax.apply_updates(params, updates))
     else:
@@ -94,12 +94,10 @@ def apply_step(state: TrainState, batch: Batch, key) -> tuple[TrainState, dict]:
     g1 = dataclasses.replace(params, alive=g.alive)
 
     step = state.step + 1
-    strategy = dens.strategy_for(cfg.densify, scene_extent=state.scene_extent,
-                                 iterations=cfg.iterations)
     aux = dens.render_aux(grad2d, out, batch.camera.width, batch.camera.height)
-    g2, opt_state, stats, info = strategy.update(g1, opt_state, state.densify_stats, aux,
-                                                 step - state.densify_origin, k_dens,
-                                                 frozen=frozen)
+    g2, opt_state, stats, info = state.strategy.update(
+        g1, opt_state, state.densify_stats, aux, step - state.densify_origin, k_dens,
+        frozen=frozen, scene_extent=state.scene_extent)
     new = dataclasses.replace(state, gaussians=g2, opt_state=opt_state, densify_stats=stats,
                               step=step, cameras=corr)
     redo = out.overflow | info.capacity_limited
@@ -143,18 +141,11 @@ def _finite_fields(g: Gaussians, loss) -> dict:
 
 
 def camera_lr(cfg: TrainConfig, step):
-    """float [], the pose corrections' learning rate at 0-based ``step`` (0 before
-    ``camera_opt_from``)."""
-    span = max(cfg.iterations - cfg.camera_opt_from, 1)
-    frac = jnp.clip((jnp.asarray(step, jnp.float32) - cfg.camera_opt_from) / span, 0.0, 1.0)
-    lr = cfg.lr_camera * (cfg.lr_camera_final / cfg.lr_camera) ** frac
+    """float [], the pose corrections' learning rate at 0-based ``step``: ``lr_camera`` to
+    ``lr_camera_final`` from ``camera_opt_from`` to ``iterations`` (0 before)."""
+    lr = lr_schedule(cfg.lr_camera, cfg.lr_camera_final, cfg.iterations - cfg.camera_opt_from,
+                     begin=cfg.camera_opt_from)(step)
     return jnp.where(step >= cfg.camera_opt_from, lr, 0.0)
-
-
-def means_lr(cfg: TrainConfig, extent: float, step):
-    rate = cfg.lr_means_final / cfg.lr_means
-    frac = jnp.minimum(jnp.asarray(step, jnp.float32) / max(cfg.iterations, 1), 1.0)
-    return cfg.lr_means * extent * rate ** frac
 
 
 train_step = jax.jit(apply_step)

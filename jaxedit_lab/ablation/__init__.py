@@ -655,6 +655,7 @@ def _edit_counts(cfg, subtasks, views: int) -> list[int]:
 def _run_one(editor: CallLog, prompt, data, scene, cfg, settings, seed, targets):
     """(record, test renders) of one edit run; ``targets`` [K, M, H, W, 3] the outcomes'."""
     t0, c0 = time.perf_counter(), time.process_time()
+    settings = settings.classic() if cfg.mode == "in2n" else settings  # IN2N's density control
     res = run_edit(editor, prompt, data, scene, config=cfg, settings=settings, seed=seed,
                    run_dir=None, report=False, hooks=cfg.hooks(),
                    identity=None)
