@@ -129,13 +129,13 @@ def edit_stages(size: int, batches, smoke: bool) -> dict:
         for dt, q in variants:
             if dt == jnp.bfloat16 and b != batches[0]:
                 continue  # one bf16 compilation shows XLA:CPU's float32 copies of the weights
-            cfg = jx.EditConfig(steps=1, dtype=jnp.dtype(dt).name)
+            cfg = jx.SamplerConfig(steps=1, dtype=jnp.dtype(dt).name)
             run(f"ddim_step/B{b}/{jnp.dtype(dt).name}/attention_chunk={q}",
                 lambda u, *a, cfg=cfg: jx.denoise(u, *a, cfg),
                 set_query_chunk(nets[dt]["unet"], q), *den_args)
         img = S((b, size, size, 3), f32)
         for vc in ((None, 1) if b > 1 else (None,)):
-            cfg = jx.EditConfig(steps=1, vae_chunk=vc)
+            cfg = jx.SamplerConfig(steps=1, vae_chunk=vc)
             vae = set_query_chunk(nets[jnp.float32]["vae"], chunk)
             run(f"vae_encode/B{b}/float32/vae_chunk={vc}",
                 lambda v, i, o, n, cfg=cfg: jx.encode_latents(v, i, o, n, cfg), vae, img, img,
@@ -144,7 +144,7 @@ def edit_stages(size: int, batches, smoke: bool) -> dict:
                 lambda v, z, cfg=cfg: jx.decode(v, z, cfg), vae, S((b, *lat_hw, 4), f32))
         if b == batches[-1] and not smoke:  # the VAE's attention unchunked, whole batch
             vae = nets[jnp.float32]["vae"]
-            cfg = jx.EditConfig(steps=1, vae_chunk=None)
+            cfg = jx.SamplerConfig(steps=1, vae_chunk=None)
             run(f"vae_decode/B{b}/float32/vae_chunk=None/attention_chunk=None",
                 lambda v, z, cfg=cfg: jx.decode(v, z, cfg), vae, S((b, *lat_hw, 4), f32))
     return out

@@ -211,7 +211,7 @@ def test_the_ddim_step_default_is_read_from_one_place():
     from jaxedit.editors.diffusion import DDIM_STEPS
     from jaxedit_lab.ablation import AblationConfig
 
-    defaults = [jax_ip2p.EditConfig.steps, AblationConfig.ip2p_steps,
+    defaults = [jax_ip2p.SamplerConfig.steps, AblationConfig.ip2p_steps,
                 _parse("edit").ip2p_steps]
     fns = [jax_ip2p.JaxIP2PEditor.__init__, jax_ip2p.JaxIP2PEditor.from_pretrained,
            jax_ip2p.JaxIP2PEditor.bundled]

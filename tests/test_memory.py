@@ -73,8 +73,8 @@ def test_compiled_memory_counts_the_arguments(vae):
 def test_chunked_vae_decode_is_the_whole_decode(vae, chunk):
     """3 views in chunks of 1 and of 2 (the last chunk padded) == all at once."""
     z = jax.random.normal(jax.random.key(1), (3, 4, 4, 4)) * 5
-    whole = jax.jit(lambda v, z: jx.decode(v, z, jx.EditConfig(vae_chunk=None)))(vae, z)
-    chunked = jax.jit(lambda v, z: jx.decode(v, z, jx.EditConfig(vae_chunk=chunk)))(vae, z)
+    whole = jax.jit(lambda v, z: jx.decode(v, z, jx.SamplerConfig(vae_chunk=None)))(vae, z)
+    chunked = jax.jit(lambda v, z: jx.decode(v, z, jx.SamplerConfig(vae_chunk=chunk)))(vae, z)
     assert chunked.shape == whole.shape == (3, 16, 16, 3)
     np.testing.assert_allclose(np.asarray(chunked), np.asarray(whole), rtol=0, atol=1e-5)
     assert np.abs(np.asarray(whole[0]) - np.asarray(whole[1])).max() > 1e-3
@@ -88,7 +88,7 @@ def test_chunked_vae_encode_is_the_whole_encode(vae, chunk):
     noise = jax.random.normal(jax.random.key(2), (3, 4, 4, 4))
 
     def run(c):
-        cfg = jx.EditConfig(vae_chunk=c)
+        cfg = jx.SamplerConfig(vae_chunk=c)
         return jax.jit(lambda v, *a: jx.encode_latents(v, *a, cfg))(vae, images, originals, noise)
 
     for got, want in zip(run(chunk), run(None)):

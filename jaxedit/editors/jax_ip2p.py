@@ -26,7 +26,7 @@ from .masks import relevance_mask
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DiffusionSchedule", "EditConfig", "JaxIP2PEditor", "Networks", "decode",
+__all__ = ["DiffusionSchedule", "SamplerConfig", "JaxIP2PEditor", "Networks", "decode",
            "denoise", "draw_noise", "edit_batch", "edit_with_noise", "encode_latents",
            "default_batch", "in_chunks", "latent_factor", "load_bundled", "load_editor",
            "load_text_encoder", "resize_images"]
@@ -51,7 +51,7 @@ class DiffusionSchedule(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class EditConfig:
+class SamplerConfig:
     """Static settings of a compiled edit (hashable: a change recompiles): DDIM ``steps``;
     ``prediction_type`` "epsilon", "v_prediction" or "sample"; ``clip_sample`` (None: no x0
     clamp); the VAE's ``scaling_factor``; the networks' ``dtype`` name; (text, image)
@@ -94,7 +94,7 @@ def in_chunks(fn: Callable, x: jax.Array, chunk: int | None):
 
 
 def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.Array,
-                   cfg: EditConfig) -> tuple[jax.Array, jax.Array]:
+                   cfg: SamplerConfig) -> tuple[jax.Array, jax.Array]:
     """(latents, cond), float32 [B, h/f, w/f, 4]: the render's scaled posterior
     sample (noise ``vae_noise``) and the original's posterior mean; images in [0, 1]."""
     b = images.shape[0]
@@ -116,7 +116,7 @@ def encode_latents(vae, images: jax.Array, originals: jax.Array, vae_noise: jax.
 
 def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, null: jax.Array,
             t_start: jax.Array, sde_noise: jax.Array, schedule: DiffusionSchedule,
-            cfg: EditConfig) -> jax.Array:
+            cfg: SamplerConfig) -> jax.Array:
     """SDEdit to ``t_start`` (int32 [B]) then DDIM back: float32 [B, h, w, 4]. ``latents``,
     ``cond``, ``sde_noise``: [B, h, w, 4]; ``embeddings``: [B, 77, D]; ``null``: [77, D]."""
     a = schedule.alphas_cumprod
@@ -143,7 +143,7 @@ def denoise(unet, latents: jax.Array, cond: jax.Array, embeddings: jax.Array, nu
     return x
 
 
-def decode(vae, latents: jax.Array, cfg: EditConfig) -> jax.Array:
+def decode(vae, latents: jax.Array, cfg: SamplerConfig) -> jax.Array:
     """Latents [B, h, w, 4] -> float32 [B, f h, f w, 3] in [0, 1]."""
     decoded = in_chunks(vae.decode, (latents / cfg.scaling_factor).astype(cfg.dtype),
                         cfg.vae_chunk).astype(jnp.float32)
@@ -153,7 +153,7 @@ def decode(vae, latents: jax.Array, cfg: EditConfig) -> jax.Array:
 def edit_with_noise(nets: Networks, images: jax.Array, originals: jax.Array,
                     embeddings: jax.Array, null: jax.Array, t_start: jax.Array,
                     vae_noise: jax.Array, sde_noise: jax.Array, schedule: DiffusionSchedule,
-                    cfg: EditConfig) -> jax.Array:
+                    cfg: SamplerConfig) -> jax.Array:
     """The whole edit with its random draws given (pure): float32 [B, H, W, 3] in [0, 1].
 
     ``images``, ``originals``: float [B, H, W, 3] in [0, 1]; ``embeddings``: [B, 77, D] or
@@ -188,7 +188,7 @@ def draw_noise(keys: jax.Array, t_bounds: jax.Array, latent_hw: tuple[int, int])
 
 def edit_batch(nets: Networks, images: jax.Array, originals: jax.Array, embeddings: jax.Array,
                null: jax.Array, keys: jax.Array, t_bounds: jax.Array,
-               schedule: DiffusionSchedule, cfg: EditConfig, model_hw: tuple[int, int]):
+               schedule: DiffusionSchedule, cfg: SamplerConfig, model_hw: tuple[int, int]):
     """Edit B views, float32 [B, H, W, 3], drawing from typed ``keys`` [B]; ``model_hw``: the
     networks' (h, w), multiples of :func:`latent_factor` (:func:`model_size`)."""
     f = latent_factor(nets.vae)
@@ -202,7 +202,7 @@ def edit_batch(nets: Networks, images: jax.Array, originals: jax.Array, embeddin
 edit_with_noise_jit = eqx.filter_jit(edit_with_noise)
 
 
-def _edit_batch_into(kept: tuple, images: jax.Array, cfg: EditConfig, model_hw: tuple[int, int]):
+def _edit_batch_into(kept: tuple, images: jax.Array, cfg: SamplerConfig, model_hw: tuple[int, int]):
     nets, originals, embeddings, null, keys, t_bounds, schedule = kept
     return edit_batch(nets, images, originals, embeddings, null, keys, t_bounds, schedule, cfg,
                       model_hw)
@@ -325,7 +325,7 @@ def _as_batch(x, field: str, ndim: int) -> jax.Array:
 
 #: Queries per attention chunk (:class:`JaxIP2PEditor`'s ``attention_chunk``).
 ATTENTION_CHUNK = 1024
-#: Views per VAE pass (:attr:`EditConfig.vae_chunk`).
+#: Views per VAE pass (:attr:`SamplerConfig.vae_chunk`).
 VAE_CHUNK = 1
 #: Where the text encoder may live once the null prompt is encoded (:class:`JaxIP2PEditor`).
 TEXT_ENCODER_RESIDENCY = ("auto", "device", "host", "reload")
@@ -477,9 +477,9 @@ class JaxIP2PEditor:
         return (f"JaxIP2PEditor({self.source!r}, devices={self.devices}, dtype={self.dtype}, "
                 f"size={self.size}, steps={self.steps}, batch={self.batch})")
 
-    def config(self, guidance: tuple[float, float] | None = None) -> EditConfig:
-        """The :class:`EditConfig` at ``guidance`` (None: :attr:`guidance`)."""
-        return EditConfig(steps=self.steps, prediction_type=self.prediction_type,
+    def config(self, guidance: tuple[float, float] | None = None) -> SamplerConfig:
+        """The :class:`SamplerConfig` at ``guidance`` (None: :attr:`guidance`)."""
+        return SamplerConfig(steps=self.steps, prediction_type=self.prediction_type,
                           clip_sample=self.clip_sample, scaling_factor=self.scaling_factor,
                           dtype=self.dtype, guidance=editor_guidance(self, guidance),
                           vae_chunk=self.vae_chunk)
