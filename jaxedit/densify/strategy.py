@@ -31,7 +31,7 @@ class DensifyInfo(NamedTuple):
       capacity: slots in the pytree.
       candidates: Gaussians passing the gradient threshold.
       budget: t(n, N), or the candidate count in classic mode.
-      threshold: the effective gradient threshold (score of the last one created).
+      grad_cut: the gradient score of the last Gaussian created (the effective cut).
       capacity_limited: free slots bound below the cap: grow and redo the step.
       cap_limited: ``max_gaussians`` was the binding limit.
       slots_needed: the capacity the step needed (alive + wanted, within the cap).
@@ -47,7 +47,7 @@ class DensifyInfo(NamedTuple):
     capacity: jax.Array
     candidates: jax.Array
     budget: jax.Array
-    threshold: jax.Array
+    grad_cut: jax.Array
     capacity_limited: jax.Array
     cap_limited: jax.Array
     slots_needed: jax.Array
@@ -96,7 +96,7 @@ def nothing_done(capacity: int, alive) -> DensifyInfo:
     f = jnp.zeros((), bool)
     return DensifyInfo(refined=f, reset=f, created=z, split=z, duplicated=z, culled=z,
                        alive=alive.astype(jnp.int32), capacity=jnp.int32(capacity), candidates=z,
-                       budget=z, threshold=jnp.zeros((), jnp.float32), capacity_limited=f,
+                       budget=z, grad_cut=jnp.zeros((), jnp.float32), capacity_limited=f,
                        cap_limited=f, slots_needed=alive.astype(jnp.int32))
 
 
@@ -259,7 +259,7 @@ def adaptive(config: DensifyConfig, *, iterations: int) -> Strategy:
         new_stats = init_stats(g.capacity)._replace(last_culled=n_culled)
         k = sel.count
         kth = jnp.clip(k - 1, 0, g.capacity - 1)
-        threshold = jnp.where(k > 0, sel.score[sel.order[kth]], jnp.float32(config.floor))
+        grad_cut = jnp.where(k > 0, sel.score[sel.order[kth]], jnp.float32(config.floor))
         free = g.capacity - n_alive1
         want_in_cap = jnp.minimum(sel.wanted, sel.room_cap)
         info = DensifyInfo(
@@ -269,7 +269,7 @@ def adaptive(config: DensifyConfig, *, iterations: int) -> Strategy:
             capacity=jnp.int32(g.capacity), candidates=jnp.sum(sel.candidates.astype(jnp.int32)),
             budget=(jnp.sum(sel.candidates.astype(jnp.int32)) if t is None else t
                     ).astype(jnp.int32),
-            threshold=threshold.astype(jnp.float32), capacity_limited=want_in_cap > free,
+            grad_cut=grad_cut.astype(jnp.float32), capacity_limited=want_in_cap > free,
             cap_limited=sel.wanted > sel.room_cap,
             slots_needed=(n_alive1 + want_in_cap).astype(jnp.int32))
         return g, opt_state, new_stats, info
