@@ -72,6 +72,9 @@ class EditStart:
       path_scene: the scene whose renders the path's difficulty oracle edits.
       path_seed: the seed of the path's oracle.
       memo: the path's oracle memo file (:data:`ORACLE_NAME` of the branch that began it).
+      shapes: the parent's ``capacity`` and ``max_intersections`` at that snapshot (its
+        record's ``shapes``), so the programs the parent compiled fit (None: sized anew).
+      notes: fields added to schedule.json's header (an extension's ``experimental``).
     """
 
     scene: object
@@ -82,6 +85,8 @@ class EditStart:
     path_scene: object
     path_seed: int
     memo: Path
+    shapes: dict | None = None
+    notes: dict | None = None
 
 
 #: The 2D editors an edit run can use (:class:`EditorConfig`).
@@ -408,7 +413,8 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                 if run_dir is not None:
                     _write_json(run_dir / IDENTITY_NAME, dict(e.figures, stopped=str(e)))
                 raise
-        st = init_state(ctx, start_scene, images)
+        shapes = {} if start is None else start.shapes or {}
+        st = init_state(ctx, start_scene, images, **shapes)
         # The training chunks' program is built (or read back) while the schedule edits.
         memo = (start.memo if start is not None
                 else None if run_dir is None else run_dir / ORACLE_NAME)
@@ -421,12 +427,16 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                 ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio,
                 log=log, resumed_from=origin, identity=figures, oracle=oracle,
                 steps=None if start is None else start.steps)
+            log(f"schedule: {len(plan)} subtasks, {header['editor_calls_for_schedule']} editor "
+                f"calls")
             # the path's owner (re)writes its memo; a branch adds to it, never over another's
             if oracle is not None and memo is not None and (
                     restored or start is None or not memo.exists()):
                 write_oracle_memo(oracle, memo)
         if local_figures is not None:
             header = dict(header, local=local_figures)
+        if start is not None and start.notes:
+            header = dict(header, **start.notes)
     # The input scene's renders of the held-out views: every snapshot says how far it moved.
     reference = None if run_dir is None else (
         ctx.renderer.views(gaussians, data.test_cameras)[0], int(gaussians.num_alive()))
@@ -456,7 +466,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         record = dict(record, metrics=write_scene_snapshot(
             ctx, run_dir / rel, trainer.gaussians(state.train), ratio=spec.ratio,
             reference=reference),
-            snapshot=str(rel / "scene.ply"), **snapshot_fingerprint(run_dir / rel / "scene.ply"))
+            snapshot=str(rel / "scene.ply"), **snapshot_fingerprint(run_dir / rel / "scene.ply"),
+            shapes={"capacity": int(state.train.gaussians.capacity),
+                    "max_intersections": int(state.train.max_intersections)})
         log(progressive.moved_line(spec.name, record["metrics"]))
         warning = (progressive.refine_warning(spec.name, record["metrics"], refine_floor)
                    if spec.kind == "refine" else None)
@@ -467,6 +479,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
 
     write_schedule(st.records)
     save(st)
+    compiled = compile_stats(since=compiles_before)
+    log(f"training starts: {compiled['count']} programs compiled, {compiled['cache_hits']} "
+        f"read from the compile cache ({compiled['seconds']:.1f} s)")
     st = progressive.run_plan(ctx, st, plan, on_subtask=on_subtask, checkpoint=save,
                               progress=progress, callback=callback, stop=stop, log=log)
     if st.subtask < len(plan):  # stopped between subtasks: the checkpoint resumes it
