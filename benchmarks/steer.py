@@ -36,6 +36,7 @@ import time
 from pathlib import Path
 
 from common import machine_info, parse_args, write_json
+from experiments.cli import KEPT_RECORD
 from jaxedit.io.files import LOCK_NAME
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -140,9 +141,10 @@ def run_subtasks(run: Path) -> dict:
 
 #: What operations add to a run directory (the parent's own files are everything else):
 #: the tree, the branches, the oracle's memo (a branch adds its edits), the stop request, the
-#: report and the run's lock file (it holds the locking process's id).
+#: report, the run's lock file (it holds the locking process's id) and the hard link to
+#: config.json a command holds while it runs (left behind when the benchmark kills it).
 _NOT_THE_PARENTS = ("tree.json", "branches", "difficulty.npz", "control.json", "report.html",
-                    LOCK_NAME)
+                    LOCK_NAME, KEPT_RECORD)
 
 
 def parent_digest(run: Path) -> str:
