@@ -582,8 +582,12 @@ def test_refine_pressed_in_headless_chromium_renders_the_new_branch(tiny_run, tm
         if not browser.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
             pytest.skip("this Chromium has no WebGL2 (no SwiftShader)")
         wait_for(lambda: f"subtask {k} " in page_text(browser), 60)
-        time.sleep(2)  # software WebGL draws the first frames
-        before = browser.screenshot(tmp_path / "before.png")
+        # software WebGL draws the first frames (slowly on a busy machine)
+        deadline, before = time.monotonic() + 120, None
+        while before is None or splat_pixels(before).sum() <= 3000:
+            assert time.monotonic() < deadline, "the page drew no splats"
+            time.sleep(0.5)
+            before = browser.screenshot(tmp_path / "before.png")
         watcher.start()
         # Press refine in the page: the click reaches the server over viser's websocket.
         assert browser.evaluate("""(() => { const b = [...document.querySelectorAll('button')]
