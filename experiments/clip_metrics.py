@@ -4,8 +4,9 @@
         --caption-orig "a photo of a man" --caption-edit "a photo of a bronze statue of a man"
 
 Compares ``RUN_DIR/original/renders/*.png`` (the input scene) with the renders of a
-snapshot (default: the last one under ``RUN_DIR/subtasks/``, or ``--snapshot DIR``), view
-by view in file-name order (the test cameras' order, which the direction consistency
+snapshot (default: the last one under ``RUN_DIR/subtasks/``; ``--select NODE``: a node of
+the run's tree as ``edit --select-only --select`` names it, e.g. 2, 0.5, b1:-1; or
+``--snapshot DIR``), view by view in file-name order (the test cameras' order, which the direction consistency
 treats as the path). Writes ``clip_metrics.json`` into the snapshot folder and prints it.
 """
 
@@ -27,6 +28,8 @@ class ClipMetricsConfig:
     Attributes:
       run: edit run directory.
       snapshot: snapshot folder with renders/ (None: the run's last subtask).
+      select: a node of the run's tree instead: a subtask index or ratio of the main
+        branch, or BRANCH:INDEX (negative from the end), as ``edit --select`` takes it.
       clip_weights: transformers CLIP folder (or a cached Hub id), e.g.
         openai/clip-vit-large-patch14.
       caption_orig: caption of the original scene.
@@ -36,6 +39,7 @@ class ClipMetricsConfig:
 
     run: Path | None = None
     snapshot: Path | None = None
+    select: str | None = None
     clip_weights: str | None = None
     caption_orig: str | None = None
     caption_edit: str | None = None
@@ -46,7 +50,8 @@ def _config_flags():
     from experiments.flags import Flag, FlagSet
 
     return FlagSet(ClipMetricsConfig, (
-        Flag("run", required=True), Flag("snapshot"), Flag("clip_weights"),
+        Flag("run", required=True), Flag("snapshot"), Flag("select", metavar="NODE"),
+        Flag("clip_weights"),
         Flag("caption_orig", required=True), Flag("caption_edit", required=True),
         Flag("clip_device"))).complete()
 
@@ -69,6 +74,21 @@ def _renders(folder: Path) -> list[Path]:
     if not files:
         raise DataError(folder / "renders", "no rendered views (*.png) here")
     return files
+
+
+def node_folder(run_dir: Path, which: str) -> Path:
+    """The snapshot folder of node ``which`` of a run (``--select``'s syntax)."""
+    from jaxedit.pipelines.snapshots import branch_folder, find_snapshot
+
+    branch, which = (str(which).rpartition(":")[::2] if ":" in str(which)
+                     else ("main", str(which)))
+    try:
+        folder = branch_folder(run_dir, branch)
+    except DataError as e:
+        raise DataError("--select", e.problem) from None
+    if not (folder / "schedule.json").is_file():
+        raise DataError("--select", f"the run has no branch {branch!r}")
+    return find_snapshot(folder, which)[1].parent
 
 
 def clip_metrics_of_run(run_dir: Path, *, snapshot: Path | None = None, clip_weights=None,
@@ -109,7 +129,14 @@ def clip_metrics_of_run(run_dir: Path, *, snapshot: Path | None = None, clip_wei
 
 def run(args):
     config = run_config(args)
-    result = clip_metrics_of_run(config.run, snapshot=config.snapshot,
+    snapshot = config.snapshot
+    if config.select is not None:
+        if snapshot is not None:
+            raise DataError("--select", "either --select or --snapshot")
+        if not Path(config.run).is_dir():
+            raise DataError(config.run, "edit run directory not found")
+        snapshot = node_folder(Path(config.run), config.select)
+    result = clip_metrics_of_run(config.run, snapshot=snapshot,
                                  clip_weights=config.clip_weights,
                                  caption_orig=config.caption_orig,
                                  caption_edit=config.caption_edit, device=config.clip_device)

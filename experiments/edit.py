@@ -498,6 +498,7 @@ def after_release(args) -> None:
     if view is None:
         return
     watcher, what = view
+    watcher.viewer.edit_over(what)
     print(f"{what}; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)", flush=True)
     watcher.serve_forever()
 
@@ -553,6 +554,8 @@ def run(args) -> dict:
     from jaxedit.pipelines import steer
 
     progress = progress_callback(args.quiet)
+    if watcher is not None:  # the running subtask in the viewer's panel too
+        progress = watcher.viewer.following(progress)
     stop = None
     if writes(args):
         steer.read_control(args.out)  # garbled: one line; a valid one is stale (we hold the lock)

@@ -227,11 +227,14 @@ def node_name(node: int | str) -> str:
 
 
 def operation_argv(run_dir: Path, op: str, node: int | str, name: str, *, prompt: str = "",
-                   seed: int | None = None, r_max: float = DEFAULT_R_MAX) -> list[str]:
+                   seed: int | None = None, r_max: float = DEFAULT_R_MAX,
+                   threshold: float | None = None, target_subtasks: int | None = None,
+                   guidance: tuple[float, float] | None = None) -> list[str]:
     """The command line of steering operation ``op`` ("refine", "branch", "extend") on
     ``node``, making branch ``name``: ``python -m experiments edit --out RUN --from NODE ...``
     (a branch command reuses the run's recorded flags). ``branch`` passes ``prompt`` when
-    not blank and ``seed`` when not None."""
+    not blank, and ``seed``, ``threshold``, ``target_subtasks``, ``guidance`` (text, image)
+    when not None."""
     argv = [sys.executable, "-m", "experiments", "edit", "--out", str(Path(run_dir).resolve()),
             "--from", node_name(node), "--name", name]
     if op == "refine":
@@ -242,7 +245,34 @@ def operation_argv(run_dir: Path, op: str, node: int | str, name: str, *, prompt
         raise ValueError(f"unknown operation {op!r}")
     if prompt.strip():
         argv += ["--prompt", prompt.strip()]
+    if threshold is not None:
+        argv += ["--threshold", repr(float(threshold))]
+    if target_subtasks is not None:
+        argv += ["--target-subtasks", str(int(target_subtasks))]
+    if guidance is not None:
+        argv += ["--guidance", *(repr(float(g)) for g in guidance)]
     return argv + ([] if seed is None else ["--seed", str(int(seed))])
+
+
+def branch_labels(run_dir: Path | None, names) -> dict[str, str]:
+    """The branch dropdown's entry of each branch in ``names``: its name, then where it
+    grew from, e.g. ``b1 (refine of main:2)``, ``b2 (branch of b1:0: "patina")``; the main
+    branch (and every branch of a run without a readable tree) is its name alone."""
+    from jaxedit import DataError
+    from jaxedit.pipelines import steer
+
+    labels = {name: name for name in names}
+    if run_dir is None or not (Path(run_dir) / steer.TREE_NAME).is_file():
+        return labels
+    try:
+        tree = steer.read_tree(run_dir)
+    except DataError:
+        return labels
+    for b in tree.branches:
+        if b.name in labels:
+            said = "" if b.prompt is None else f': "{b.prompt[:32]}"'
+            labels[b.name] = f"{b.name} ({b.op} of {b.parent}{said})"
+    return labels
 
 
 def launch_process(argv: list[str]):
@@ -348,7 +378,10 @@ class SnapshotViewer:
         self._button = gui.add_button("write selected.ply", disabled=True,
                                       hint="keep: like edit --select-only --select K")
         self._status = gui.add_markdown("")
-        self._dropdown.on_update(lambda _event: self.choose(str(self._dropdown.value)))
+        self._edit_status = gui.add_markdown("")  # edit --view: the running subtask
+        self._edit_said_at = -1.0
+        self._labels: dict[str, str] = {MAIN: MAIN}  # branch -> its dropdown entry
+        self._dropdown.on_update(lambda _event: self.choose(self._name_of(str(self._dropdown.value))))
         self._slider.on_update(lambda _event: self._display(int(self._slider.value)))
         self._button.on_click(self._select_clicked)
         # A local edit's per-Gaussian relevance (None: a global edit, no checkbox).
@@ -373,8 +406,19 @@ class SnapshotViewer:
                                         hint="branch: a new instruction (blank: the same)")
             self._seed = gui.add_number("seed", run_seed(self.run_dir), step=1,
                                         hint="branch: the new branch's seed")
+            self._threshold = gui.add_number("threshold", 0.0, min=0.0, step=0.001,
+                                             hint="branch: the difficulty threshold of its "
+                                                  "steps (0: the run's)")
+            self._target = gui.add_number("target subtasks", 0, min=0, step=1,
+                                          hint="branch: about this many subtasks (0: the run's)")
+            self._guidance_text = gui.add_number("text guidance", 0.0, min=0.0, step=0.5,
+                                                 hint="branch: the editor's text guidance "
+                                                      "(0 and image 0: the run's)")
+            self._guidance_image = gui.add_number("image guidance", 0.0, min=0.0, step=0.1,
+                                                  hint="branch: the editor's image guidance")
             self._branch_button = gui.add_button("branch", disabled=True,
-                                                 hint="from this node: the instruction or seed above")
+                                                 hint="from this node: the instruction, seed "
+                                                      "and settings above")
             self._r_max = gui.add_number("r_max", DEFAULT_R_MAX, min=1.0, step=0.05,
                                          hint="extend: go past r = 1 up to this ratio")
             self._extend = gui.add_button("extend", disabled=True,
@@ -424,13 +468,15 @@ class SnapshotViewer:
             scenes.append((label, node, arrays))
             if first and len(arrays["centers"]):
                 self._aim(*camera_pose(arrays["centers"]))
-            if tuple(self._dropdown.options) != tuple(self._branches):
-                self._dropdown.options = tuple(self._branches)
+            if branch not in self._labels:
+                self._labels = branch_labels(self.run_dir, self._branches)
+            if tuple(self._dropdown.options) != self._options():
+                self._dropdown.options = self._options()
                 self._dropdown.visible = len(self._branches) > 1
             if branch == self._follow and isinstance(node, str):  # the branch's own node
                 self._follow = None
                 if branch != self._branch:
-                    self._dropdown.value = branch  # its callback chooses it, showing this one
+                    self._dropdown.value = self.label_of(branch)  # its callback chooses it
                     return
                 follow = True
             if branch == self._branch:
@@ -438,14 +484,25 @@ class SnapshotViewer:
                 if follow:
                     self.show(len(scenes) - 1)
 
+    def label_of(self, branch: str) -> str:
+        """The dropdown's entry of ``branch`` (:func:`branch_labels`)."""
+        with self._lock:
+            return self._labels.get(branch, branch)
+
+    def _name_of(self, label: str) -> str:
+        return next((name for name, text in self._labels.items() if text == label), label)
+
+    def _options(self) -> tuple[str, ...]:
+        return tuple(self.label_of(name) for name in self._branches)
+
     def choose(self, branch: str) -> None:
         """Put the slider on ``branch``'s snapshots, showing its newest."""
         with self._lock:
             if branch not in self._branches or (branch == self._branch and self._shown is not None):
                 return
             self._branch, self._shown = branch, None
-            if str(self._dropdown.value) != branch:
-                self._dropdown.value = branch
+            if str(self._dropdown.value) != self.label_of(branch):
+                self._dropdown.value = self.label_of(branch)
             self._slider.max = max(len(self._scenes) - 1, 0)
             if self._scenes:
                 self.show(len(self._scenes) - 1)
@@ -546,8 +603,11 @@ class SnapshotViewer:
                 return None
             seed = int(self._seed.value)
             prompt = str(self._prompt.value)
-            if op == "branch" and not prompt.strip() and seed == run_seed(self.run_dir):
-                self._op_status.content = "error: branch: type a new instruction or change the seed"
+            settings = self.branch_settings()
+            if (op == "branch" and not prompt.strip() and seed == run_seed(self.run_dir)
+                    and not any(v is not None for v in settings.values())):
+                self._op_status.content = ("error: branch: type a new instruction or change the "
+                                           "seed, threshold, target subtasks or guidance")
                 return None
             try:
                 name = read_tree(self.run_dir).next_name()
@@ -556,7 +616,8 @@ class SnapshotViewer:
                 return None
             argv = operation_argv(self.run_dir, op, node, name, prompt=prompt,
                                   seed=None if seed == run_seed(self.run_dir) else seed,
-                                  r_max=float(self._r_max.value))
+                                  r_max=float(self._r_max.value),
+                                  **(settings if op == "branch" else {}))
             try:
                 self._operation = Operation(op, name, argv, launch=self._launch,
                                             on_change=self.refresh_operation)
@@ -566,6 +627,41 @@ class SnapshotViewer:
             self._follow = name
             self.refresh_operation()
             return self._operation
+
+    def branch_settings(self) -> dict:
+        """What the branch control changes besides instruction and seed: ``threshold``,
+        ``target_subtasks``, ``guidance`` (None: the run's, an input left at 0)."""
+        threshold = float(self._threshold.value)
+        target = int(self._target.value)
+        guidance = (float(self._guidance_text.value), float(self._guidance_image.value))
+        return {"threshold": threshold if threshold > 0 else None,
+                "target_subtasks": target if target > 0 else None,
+                "guidance": guidance if any(g > 0 for g in guidance) else None}
+
+    def edit_progress(self, spec, step: int, loss: float, *, every: float = 1.0) -> None:
+        """The running edit's subtask, step and loss in the panel (``edit --view``), at most
+        once every ``every`` seconds."""
+        now = time.monotonic()
+        if now - self._edit_said_at < every:
+            return
+        self._edit_said_at = now
+        self._edit_status.content = (f"editing: subtask {spec.index} {spec.name} "
+                                     f"(r = {float(spec.ratio):.3f}), step {int(step)}, "
+                                     f"loss {float(loss):.4f}")
+
+    def edit_over(self, what: str) -> None:
+        """The edit's outcome in the panel once it released the run (``edit --view``)."""
+        self._edit_status.content = what
+
+    def following(self, progress):
+        """``progress(spec, step, loss, state)`` of an edit (its bars) that also puts the
+        running subtask in the panel; its ``close`` is the bars'."""
+        def both(spec, step, loss, st):
+            progress(spec, step, loss, st)
+            self.edit_progress(spec, step, loss)
+
+        both.close = getattr(progress, "close", lambda: None)
+        return both
 
     def refresh_operation(self) -> None:
         """The running operation's progress (or its outcome) into the panel."""

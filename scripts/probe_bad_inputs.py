@@ -384,6 +384,10 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
         args = _base(command, inp, out_rel)
         args[args.index("--data") + 1] = str(inp["badjson"])
         found.append((f"{command} dataset naming a non-UTF-8 file", args, "\\xff", None))
+    # A node of a run's tree whose branch name would leave the run.
+    found.append(("clip-metrics --select of a branch outside the run",
+                  _base("clip-metrics", inp, out_rel) + ["--select", "../x:0"], "--select",
+                  inp["edit_run"]))
     # Points for a posed dataset: nothing to triangulate, or points already there.
     noise_json = inp["posed_noise"] / "transforms.json"
     found.append(("process-data --triangulate of noise images",

@@ -213,3 +213,42 @@ def test_clip_metrics_command(clip_dir, tmp_path, capsys, monkeypatch):
     assert cli.main(args[:4] + [str(tmp_path / "nope")] + args[5:]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "nope" in err and "--clip-weights" in err
+
+
+def test_clip_metrics_of_a_node_of_the_tree(clip_dir, tmp_path, capsys, monkeypatch):
+    """--select NODE: a main subtask or a branch's, as edit --select-only names it."""
+    import experiments.cli as cli
+    from jaxedit.io import write_image
+
+    run = tmp_path / "run"
+    folders = {"original": 10, "subtasks/00_r0.500": 11, "subtasks/01_r1.000": 12,
+               "branches/b1/subtasks/00_r0.750": 13, "branches/b1/subtasks/01_r1.000": 14}
+    for folder, seed in folders.items():
+        for k, img in enumerate(_views(seed, n=3, h=24, w=32)):
+            write_image(run / folder / "renders" / f"view_{k:03d}.png", img)
+    for base, ratios in (("", (0.5, 1.0)), ("branches/b1/", (0.75, 1.0))):
+        records = [{"index": i, "name": f"r{r}", "ratio": r,
+                    "snapshot": f"subtasks/{i:02d}_r{r:.3f}/scene.ply"} for i, r in enumerate(ratios)]
+        for r in records:
+            (run / base / r["snapshot"]).write_bytes(b"ply")
+        (run / base / "schedule.json").write_text(json.dumps({"subtasks": records}))
+    if "clip-metrics" not in cli.COMMANDS:
+        monkeypatch.setattr(cli, "COMMANDS", cli.COMMANDS + ["clip-metrics"])
+    args = ["clip-metrics", "--run", str(run), "--clip-weights", str(clip_dir),
+            "--caption-orig", "a bear", "--caption-edit", "a panda", "--clip-device", "cpu"]
+    scores = {}
+    for node, folder in (("b1:0", "branches/b1/subtasks/00_r0.750"), ("0", "subtasks/00_r0.500"),
+                         ("b1:-1", "branches/b1/subtasks/01_r1.000")):
+        assert cli.main(args + ["--select", node]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["snapshot"] == str(run / folder)
+        assert (run / folder / "clip_metrics.json").is_file()
+        scores[node] = out["direction_similarity"]
+    assert len(set(scores.values())) == 3  # three snapshots, three scores
+    for node, needle in (("b9:0", "no branch 'b9'"), ("b1:5", "no finished subtask"),
+                         ("../x:0", "--select")):
+        assert cli.main(args + ["--select", node]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and needle in err, err
+    assert cli.main(args + ["--select", "0", "--snapshot", str(run / "original")]) == 2
+    assert "either" in capsys.readouterr().err

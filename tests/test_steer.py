@@ -15,8 +15,8 @@ from experiments import cli
 from jaxedit import DataError
 from jaxedit import gaussians as G
 from jaxedit.edit.schedule import decompose_interval, split_ratio
-from jaxedit.edit.steer import (Branch, NodeRef, RunTree, extend_steps, parse_node,
-                                path_embeddings, refine_steps)
+from jaxedit.edit.steer import (Branch, NodeRef, RunTree, check_name, extend_steps,
+                                parse_node, path_embeddings, refine_steps)
 from jaxedit.io import save_ply
 from jaxedit.io.files import folder_lock
 from jaxedit.pipelines import steer
@@ -96,6 +96,33 @@ def test_tree_json_round_trip_names_and_refusals():
         RunTree.from_json(orphan)
     with pytest.raises(ValueError):
         RunTree.from_json({"version": 99, "branches": []})
+
+
+@pytest.mark.parametrize("name", ["/abs", "../up", "a/b", "", ".", "main", "original",
+                                  "x" * 65, "b 1", 3])
+def test_a_branch_name_cannot_leave_the_run(name, tmp_path):
+    with pytest.raises(DataError, match="--name"):
+        check_name(name)
+    if name != "main":  # the main branch's folder is the run's own
+        with pytest.raises(DataError):
+            steer.branch_dir(tmp_path, name)
+    with pytest.raises(DataError, match="--name"):
+        RunTree().add(Branch(name, "branch", NodeRef(), NodeRef(), 0.0, "main"))
+    entry = Branch("b1", "branch", NodeRef(), NodeRef(), 0.0, "main").to_json()
+    with pytest.raises((ValueError, TypeError)):  # tree.json read back: the same rule
+        RunTree.from_json({"version": 1, "branches": [dict(entry, name=name)]})
+    assert check_name("b-2_x") == "b-2_x"
+
+
+@pytest.mark.parametrize("field,value", [("seed", "3"), ("seed", True), ("from_ratio", "0.5"),
+                                         ("prompt", 7), ("settings", []), ("parent", 0),
+                                         ("path", "../up"), ("path", "b9"), ("op", "merge"),
+                                         ("start", "b9:0")])
+def test_tree_json_fields_are_checked_on_read(field, value):
+    entry = Branch("b1", "branch", NodeRef(), NodeRef(), 0.0, "main", seed=1).to_json()
+    assert RunTree.from_json({"version": 1, "branches": [entry]}).branches[0].seed == 1
+    with pytest.raises((ValueError, TypeError)):
+        RunTree.from_json({"version": 1, "branches": [dict(entry, **{field: value})]})
 
 
 def test_a_new_instruction_starts_its_path_where_the_parent_stood():
@@ -203,6 +230,37 @@ def test_the_same_branch_twice_gives_the_same_bytes_and_keep_selects_it(run, tmp
     assert json.loads((a / "selected.json").read_text())["branch"] == "b1"
 
 
+def test_a_branch_starts_on_its_parents_buffers_and_compiles_no_training_step(
+        run, tmp_path, monkeypatch):
+    import jaxedit.pipelines.edit as pipeline
+    from jaxedit.compilation import compile_stats
+
+    out = fresh_copy(run, tmp_path)
+    record = schedule(out)["subtasks"][0]
+    shapes = record["shapes"]
+    assert shapes["capacity"] >= record["num_gaussians"] and shapes["max_intersections"] > 0
+    scene, got = steer.start_scene(out, NodeRef("main", 0))
+    assert got == shapes and scene.capacity == shapes["capacity"]
+    seen = []
+
+    def compile_chunk(ctx, st):  # the training chunk's program: the parent's, in memory
+        before = compile_stats()
+        real(ctx, st)
+        seen.append(compile_stats(since=before)["programs"].get("_edit_chunk"))
+
+    real = pipeline.compile_chunk
+    monkeypatch.setattr(pipeline, "compile_chunk", compile_chunk)
+    assert cli.main(["edit", "--out", str(out), "--from", "0", "--seed", "4", "--quiet",
+                     "--no-report"]) == 0
+    assert seen == [None]
+    # a run recorded before the shapes were: the scene as it is on disk, sized anew
+    main = schedule(out)
+    main["subtasks"][0].pop("shapes")
+    (out / "schedule.json").write_text(json.dumps(main))
+    scene, got = steer.start_scene(out, NodeRef("main", 0))
+    assert got is None and scene.capacity == record["num_gaussians"]
+
+
 def test_extend_goes_past_one(run, tmp_path):
     out = fresh_copy(run, tmp_path)
     assert cli.main(["edit", "--out", str(out), "--extend", "1.5", "--name", "far", "--quiet",
@@ -211,6 +269,10 @@ def test_extend_goes_past_one(run, tmp_path):
     ratios = [r["ratio"] for r in sub["subtasks"]]
     assert sub["start_ratio"] == 1.0 and ratios[-1] == 1.5 and all(r > 1.0 for r in ratios)
     assert sub["subtasks"][-1]["kind"] == "consolidate"
+    assert sub["experimental"] == steer.EXPERIMENTAL  # marked in its schedule, tree, report
+    assert "far extend of main:" in steer.format_tree(out) and "(experimental)" in \
+        steer.format_tree(out)
+    assert "extend (experimental)" in write_report(out).read_text()
 
 
 def test_stop_then_resume_gives_the_bytes_of_a_whole_run(run, tmp_path):
@@ -269,7 +331,10 @@ def test_bad_steering_inputs_change_nothing(run, tmp_path, capfd):
             (["--from", "1", "--refine", "--extend", "1.5"], "either --refine or --extend"),
             (["--branch", "b1"], "add --resume"),
             (["--branch", "b1", "--resume"], "no branch 'b1'"),
-            (["--from", "1", "--prompt", "  "], "empty instruction")):
+            (["--from", "1", "--prompt", "  "], "empty instruction"),
+            (["--from", "1", "--seed", "3", "--name", "/abs"], "--name"),
+            (["--from", "1", "--seed", "3", "--name", "../up"], "--name"),
+            (["--from", "1", "--seed", "3", "--name", "main"], "reserved")):
         fails(capfd, ["edit", "--out", out, *argv, "--quiet"], needle, keep=out,
               snapshot=contents)
     (out / steer.CONTROL_NAME).write_text("{not json")
@@ -279,6 +344,10 @@ def test_bad_steering_inputs_change_nothing(run, tmp_path, capfd):
     (out / steer.TREE_NAME).write_text('{"version": 1, "branches": [{"name": "x"}]}')
     fails(capfd, ["edit", "--out", out, "--from", "2", "--refine", "--quiet"], "tree.json",
           keep=out, snapshot=contents)
+    entry = Branch("up", "branch", NodeRef(), NodeRef(), 0.0, "main").to_json()
+    (out / steer.TREE_NAME).write_text(json.dumps({"version": 1, "branches": [
+        dict(entry, name="../up")]}))
+    fails(capfd, ["edit", "--out", out, "--tree"], "tree.json", keep=out, snapshot=contents)
 
 
 def test_a_branch_scores_its_last_snapshot_with_clip(run, tmp_path, clip_dir):

@@ -222,9 +222,11 @@ def test_branch_dropdown_lists_the_tree_and_the_slider_follows_the_chosen_branch
     viewer = view.open_run(run, port=0)
     try:
         assert viewer.branches() == ("main", "b1", "b2") and viewer._dropdown.visible
-        assert tuple(viewer._dropdown.options) == ("main", "b1", "b2")
+        # each entry says where the branch grew from
+        assert tuple(viewer._dropdown.options) == ("main", "b1 (refine of main:1)",
+                                                   "b2 (refine of b1:0)")
         assert viewer._branch == "main" and len(viewer) == 3 and viewer.node_on_screen() == 1
-        viewer._dropdown.value = "b1"  # what picking it in the page does
+        viewer._dropdown.value = "b1 (refine of main:1)"  # what picking it in the page does
         assert len(viewer) == 4 and int(viewer._slider.max) == 3
         assert viewer.node_on_screen() == "b1:1" and "b1:1" in viewer._caption.content
         viewer._slider.value = 2
@@ -241,7 +243,7 @@ def test_branch_dropdown_lists_the_tree_and_the_slider_follows_the_chosen_branch
         watcher._seen = {b: {s.path for s in c} for b, c in view.branch_chains(run).items()
                          if b != "b3"}
         assert watcher.refresh() == 3  # original, main:0, b3:0
-        assert tuple(viewer._dropdown.options) == ("main", "b1", "b2", "b3")
+        assert tuple(viewer._dropdown.options)[-1] == "b3 (refine of main:0)"
         assert viewer._branch == "b1" and viewer.node_on_screen() == 0  # the view stays
         viewer._dropdown.value = "main"
         assert len(viewer) == 3 and viewer.node_on_screen() == 1
@@ -338,6 +340,18 @@ def test_steering_buttons_start_the_command_and_show_its_progress(tmp_path, vise
                                          "--prompt", "give him a marble texture"]
         started[2].exit(0)
         viewer._operation.wait(10)
+        # the branch's settings: left at 0 they are the run's, else given
+        viewer._prompt.value, viewer._threshold.value, viewer._target.value = "", 0.01, 3
+        viewer._guidance_text.value, viewer._guidance_image.value = 9.0, 1.25
+        viewer.start("branch")
+        assert started[3].argv == cmd + ["--from", "main:0", "--name", "b1", "--threshold",
+                                         "0.01", "--target-subtasks", "3", "--guidance", "9.0",
+                                         "1.25"]
+        started[3].exit(0)
+        viewer._operation.wait(10)
+        viewer._threshold.value, viewer._target.value = 0.0, 0
+        viewer._guidance_text.value, viewer._guidance_image.value = 0.0, 0.0
+        started.pop()
         viewer.show(2)
         viewer._r_max.value = 1.5
         op = viewer.start("extend")
@@ -354,6 +368,27 @@ def test_steering_buttons_start_the_command_and_show_its_progress(tmp_path, vise
         viewer._launch = broken  # the command cannot even start: said in the panel
         assert viewer.start("refine") is None and not viewer._refine.disabled
         assert viewer._op_status.content.startswith("error: refine: cannot start ")
+    finally:
+        viewer.close()
+
+
+def test_edit_view_shows_the_running_subtask(tmp_path, viser_installed):
+    from jaxedit.edit.plan import SubtaskSpec
+
+    viewer = view.SnapshotViewer(make_steerable(tmp_path / "run"), port=0)
+    bars = []
+    try:
+        progress = viewer.following(lambda *a: bars.append(a[1]))
+        spec = SubtaskSpec(2, "r2", 0.625, 0.01, "edit")
+        progress(spec, 40, 0.0123, None)
+        assert viewer._edit_status.content == "editing: subtask 2 r2 (r = 0.625), step 40, loss 0.0123"
+        progress(spec, 50, 0.02, None)  # within a second: the bars move, the panel waits
+        assert bars == [40, 50] and "step 40" in viewer._edit_status.content
+        viewer._edit_said_at = -1.0
+        progress(spec, 60, 0.02, None)
+        assert "step 60" in viewer._edit_status.content
+        viewer.edit_over("edit finished")
+        assert viewer._edit_status.content == "edit finished"
     finally:
         viewer.close()
 
@@ -547,8 +582,12 @@ def test_refine_pressed_in_headless_chromium_renders_the_new_branch(tiny_run, tm
         if not browser.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
             pytest.skip("this Chromium has no WebGL2 (no SwiftShader)")
         wait_for(lambda: f"subtask {k} " in page_text(browser), 60)
-        time.sleep(2)  # software WebGL draws the first frames
-        before = browser.screenshot(tmp_path / "before.png")
+        # software WebGL draws the first frames (slowly on a busy machine)
+        deadline, before = time.monotonic() + 120, None
+        while before is None or splat_pixels(before).sum() <= 3000:
+            assert time.monotonic() < deadline, "the page drew no splats"
+            time.sleep(0.5)
+            before = browser.screenshot(tmp_path / "before.png")
         watcher.start()
         # Press refine in the page: the click reaches the server over viser's websocket.
         assert browser.evaluate("""(() => { const b = [...document.querySelectorAll('button')]
@@ -560,7 +599,7 @@ def test_refine_pressed_in_headless_chromium_renders_the_new_branch(tiny_run, tm
                  or not viewer._operation.running, 400)
         assert "subtask b1:0 " in page_text(browser), viewer._op_status.content
         assert browser.evaluate("[...document.querySelectorAll('input')]"
-                                ".some(i => i.type === 'text' && i.value === 'b1')")
+                                ".some(i => i.type === 'text' && i.value.startsWith('b1 (refine of'))")
         shown = view.branch_chains(run)["b1"][k + 1]  # b1:0, after main's chain up to k-1
         assert shown.node == "b1:0" and viewer.node_on_screen() == "b1:0"
         deadline, after = time.monotonic() + 60, None

@@ -179,18 +179,26 @@ class EditState:
     density = _part("host", "density")
 
 
-def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None) -> EditState:
-    """A run at its very beginning: the input scene, the original photos as training images."""
+def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None, *,
+               capacity: int | None = None, max_intersections: int | None = None) -> EditState:
+    """A run at its very beginning: the input scene, the original photos as training images.
+
+    ``capacity`` / ``max_intersections``: the slots and tile buffer to start with (a branch
+    takes its parent's, so the parent's compiled programs fit; None: sized from the scene).
+    """
     images = ctx.data.train_images if images is None else images
     # 1.5x room to densify without a recompile, on the ladder the reconstruction used
-    want = next_capacity(math.ceil(1.5 * int(gaussians.num_alive())))
+    want = (next_capacity(math.ceil(1.5 * int(gaussians.num_alive()))) if capacity is None
+            else int(capacity))
     capacity = min(max(want, gaussians.capacity), max(ctx.trainer.settings.densify.max_gaussians,
                                                      gaussians.capacity))
     if capacity > gaussians.capacity:
         gaussians = grow(gaussians, capacity)
+    train = ctx.trainer.init(gaussians, None if max_intersections else ctx.data.train_cameras)
+    if max_intersections:
+        train = dataclasses.replace(train, max_intersections=int(max_intersections))
     return EditState.create(
-        subtask=0, step=0, train=ctx.trainer.init(gaussians, ctx.data.train_cameras),
-        images=jax.device_put(np.asarray(images, np.float32)),
+        subtask=0, step=0, train=train, images=jax.device_put(np.asarray(images, np.float32)),
         edited=np.zeros((len(images),), bool), tracker=LossTracker.init(ctx.config.loss_window))
 
 

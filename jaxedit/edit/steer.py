@@ -19,6 +19,7 @@ Nothing here reads or writes a file (:mod:`jaxedit.pipelines.steer` does).
 from __future__ import annotations
 
 import dataclasses
+import re
 from typing import Callable, Sequence
 
 import numpy as np
@@ -30,6 +31,21 @@ from .schedule import MAX_DEPTH, decompose_interval, split_ratio
 ROOT = "main"
 OPS = ("refine", "branch", "extend")
 TREE_VERSION = 1
+#: A branch name: its folder's name under ``RUN/branches`` (letters, digits, _ and -).
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+#: Names a branch cannot take (the main branch; a snapshot's folder of the run).
+RESERVED = (ROOT, "original")
+
+
+def check_name(name, flag: str = "--name") -> str:
+    """``name`` if it can name a branch (:data:`NAME_PATTERN`, not :data:`RESERVED`), else a
+    DataError naming ``flag``: a name is a folder, so nothing outside the run is reachable."""
+    if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name):
+        raise DataError(flag, f"a branch name is 1 to 64 letters, digits, _ or -, got "
+                              f"{str(name)[:80]!r}")
+    if name in RESERVED:
+        raise DataError(flag, f"{name!r} is reserved; choose another branch name")
+    return name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,14 +106,38 @@ class Branch:
 
     @staticmethod
     def from_json(d: dict) -> "Branch":
-        start = d["start"]
-        branch = Branch(str(d["name"]), str(d["op"]), parse_node(d["parent"], "tree.json"),
+        """The entry ``d`` of ``tree.json``; ValueError / KeyError / TypeError naming the
+        field that is missing or of the wrong type."""
+        if not isinstance(d, dict):
+            raise TypeError(f"a branch entry is an object, got {type(d).__name__}")
+
+        def field(key, *types, optional=False):
+            value = d.get(key) if optional else d[key]
+            if value is None and optional:
+                return None
+            if isinstance(value, bool) or not isinstance(value, types):
+                raise TypeError(f"{key!r} of branch {str(d.get('name'))[:40]!r} is "
+                                f"{type(value).__name__}, not {'/'.join(t.__name__ for t in types)}")
+            return value
+
+        name, op, path = field("name", str), field("op", str), field("path", str)
+        try:
+            check_name(name, "tree.json")
+        except DataError as e:
+            raise ValueError(e.problem) from None
+        if path != ROOT:
+            try:
+                check_name(path, "tree.json")
+            except DataError as e:
+                raise ValueError(f"path: {e.problem}") from None
+        if op not in OPS:
+            raise ValueError(f"unknown op {op!r}")
+        start = field("start", str, optional=True)
+        branch = Branch(name, op, parse_node(field("parent", str), "tree.json"),
                         None if start is None else parse_node(start, "tree.json"),
-                        float(d["from_ratio"]), str(d["path"]),
-                        None if d.get("prompt") is None else str(d["prompt"]), int(d["seed"]),
-                        dict(d.get("settings") or {}))
-        if branch.op not in OPS:
-            raise ValueError(f"unknown op {branch.op!r}")
+                        float(field("from_ratio", int, float)), path,
+                        field("prompt", str, optional=True), int(field("seed", int)),
+                        dict(field("settings", dict, optional=True) or {}))
         return branch
 
 
@@ -123,6 +163,7 @@ class RunTree:
         return tuple(b for b in self.branches if b.parent.branch == name)
 
     def add(self, branch: Branch) -> "RunTree":
+        check_name(branch.name)
         if branch.name in self.names():
             raise DataError("--name", f"the run already has a branch {branch.name!r}")
         return RunTree(self.branches + (branch,))
@@ -142,11 +183,17 @@ class RunTree:
         malformed."""
         if not isinstance(d, dict) or d.get("version") != TREE_VERSION:
             raise ValueError(f"not a version-{TREE_VERSION} run tree")
+        if not isinstance(d["branches"], list):
+            raise TypeError("'branches' is not a list")
         tree = RunTree()
         for entry in d["branches"]:
             branch = Branch.from_json(entry)
             if branch.parent.branch not in tree.names():
                 raise ValueError(f"branch {branch.name!r} has an unknown parent {branch.parent}")
+            if branch.start is not None and branch.start.branch not in tree.names():
+                raise ValueError(f"branch {branch.name!r} has an unknown start {branch.start}")
+            if branch.path not in tree.names() + (branch.name,):
+                raise ValueError(f"branch {branch.name!r} has an unknown path {branch.path!r}")
             tree = tree.add(branch)
         return tree
 
@@ -238,5 +285,6 @@ def extend_steps(r_k: float, r_max: float, threshold: float | None, *,
     return steps
 
 
-__all__ = ["Branch", "NodeRef", "OPS", "ROOT", "RunTree", "extend_steps", "parse_node",
+__all__ = ["Branch", "NAME_PATTERN", "NodeRef", "OPS", "RESERVED", "ROOT", "RunTree",
+           "check_name", "extend_steps", "parse_node",
            "path_embeddings", "refine_steps", "resolve_index", "steps_fields"]

@@ -65,6 +65,9 @@ class EditStart:
       path_scene: the scene whose renders the path's difficulty oracle edits.
       path_seed: the seed of the path's oracle.
       memo: the path's oracle memo file (:data:`ORACLE_NAME` of the branch that began it).
+      shapes: the parent's ``capacity`` and ``max_intersections`` at that snapshot (its
+        record's ``shapes``), so the programs the parent compiled fit (None: sized anew).
+      notes: fields added to schedule.json's header (an extension's ``experimental``).
     """
 
     scene: object
@@ -75,6 +78,8 @@ class EditStart:
     path_scene: object
     path_seed: int
     memo: Path
+    shapes: dict | None = None
+    notes: dict | None = None
 
 
 #: The 2D editors the library builds (:func:`make_editor`).
@@ -353,7 +358,8 @@ def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProE
         oracle = progressive.scene_oracle(ctx, gaussians, seed, distance)
         figures = progressive.check_identity(ctx, gaussians, identity, seed=seed,
                                              oracle=oracle, log=log)
-    st = init_state(ctx, start_scene, images)
+    shapes = {} if start is None else start.shapes or {}
+    st = init_state(ctx, start_scene, images, **shapes)
     # The training chunks' program is built (or read back) while the schedule edits.
     with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
         oracle = oracle if oracle is not None else progressive.scene_oracle(
@@ -364,8 +370,12 @@ def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProE
             ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio,
             log=log, resumed_from=origin, identity=figures, oracle=oracle,
             steps=None if start is None else start.steps)
+        log(f"schedule: {len(plan)} subtasks, {header['editor_calls_for_schedule']} editor "
+            f"calls")
     if local_plan is not None:
         header = dict(header, local=local_plan.figures)
+    if start is not None and start.notes:
+        header = dict(header, **start.notes)
     return EditSetup(ctx, st, plan, header, local_plan, started, oracle, restored)
 
 
@@ -454,8 +464,10 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
         """A finished subtask's snapshot, and schedule.json with its record."""
         if run.path is None:
             return record
+        shapes = {"capacity": int(state.train.gaussians.capacity),
+                  "max_intersections": int(state.train.max_intersections)}
         record = run.write_snapshot(ctx, spec, ctx.trainer.gaussians(state.train), record,
-                                    reference)
+                                    reference, shapes)
         log(progressive.moved_line(spec.name, record["metrics"]))
         warning = (progressive.refine_warning(spec.name, record["metrics"], refine_floor)
                    if spec.kind == "refine" else None)
@@ -467,6 +479,9 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
 
     run.write_schedule(progressive.schedule_json(header, plan, st.records))
     save(st)
+    compiled = compile_stats(since=compiles_before)
+    log(f"training starts: {compiled['count']} programs compiled, {compiled['cache_hits']} "
+        f"read from the compile cache ({compiled['seconds']:.1f} s)")
     st = progressive.run_plan(ctx, st, plan, on_subtask=on_subtask, checkpoint=save,
                               progress=progress, callback=callback, stop=stop, log=log)
     final = ctx.trainer.gaussians(st.train)

@@ -213,9 +213,11 @@ class RunDir:
         if self.path is not None:
             _write_json(self.path / "schedule.json", schedule)
 
-    def write_snapshot(self, ctx, spec, gaussians, record: dict, reference) -> dict:
+    def write_snapshot(self, ctx, spec, gaussians, record: dict, reference,
+                       shapes: dict) -> dict:
         """``record`` with the finished subtask's snapshot (``subtasks/NN_rX.XXX``), its
-        metrics and fingerprint."""
+        metrics, fingerprint and the state's ``shapes`` (capacity, tile buffer: a branch
+        from it starts on them, so the programs compiled for this run fit)."""
         from ..edit.checkpoint import snapshot_fingerprint
         from .snapshots import write_scene_snapshot
 
@@ -223,7 +225,7 @@ class RunDir:
         metrics = write_scene_snapshot(ctx, self.path / rel, gaussians, ratio=spec.ratio,
                                        reference=reference)
         return dict(record, metrics=metrics, snapshot=str(rel / "scene.ply"),
-                    **snapshot_fingerprint(self.path / rel / "scene.ply"))
+                    **snapshot_fingerprint(self.path / rel / "scene.ply"), shapes=shapes)
 
     def finish(self, metrics: dict, select=None, report: bool = True) -> None:
         """metrics.json, ``selected.ply`` (``select``) and report.html."""

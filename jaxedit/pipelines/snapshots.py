@@ -101,8 +101,11 @@ BRANCHES = "branches"
 
 
 def branch_folder(run_dir, name: str) -> Path:
-    """The folder of branch ``name`` of a run ("main": the run directory itself)."""
-    return Path(run_dir) if name == "main" else Path(run_dir) / BRANCHES / name
+    """The folder of branch ``name`` of a run ("main": the run directory itself); a name
+    that is not a branch name (:func:`jaxedit.edit.steer.check_name`) is a DataError."""
+    from ..edit.steer import check_name
+
+    return Path(run_dir) if name == "main" else Path(run_dir) / BRANCHES / check_name(name)
 
 
 def select_snapshot(run_dir: str | os.PathLike, which) -> Path:

@@ -21,8 +21,8 @@ from typing import Callable
 import numpy as np
 
 from ..edit.context import EditData
-from ..edit.steer import (ROOT, Branch, NodeRef, RunTree, extend_steps, path_embeddings,
-                          refine_steps, resolve_index)
+from ..edit.steer import (ROOT, Branch, NodeRef, RunTree, check_name, extend_steps,
+                          path_embeddings, refine_steps, resolve_index)
 from ..errors import DataError
 from ..io import load_scene
 from ..io.files import LOCK_NAME, atomic_write_text
@@ -30,6 +30,8 @@ from .edit import ORACLE_NAME, EditRunConfig, EditStart, run_edit
 from .snapshots import BRANCHES, branch_folder as branch_dir
 
 TREE_NAME = "tree.json"
+#: What schedule.json's ``experimental`` says of an extension past r = 1.
+EXPERIMENTAL = ("embeddings extrapolated past r = 1, where the editor was never trained")
 CONTROL_NAME = "control.json"
 
 
@@ -80,9 +82,25 @@ def node_record(run_dir, ref: NodeRef, flag: str = "--from") -> tuple[NodeRef, d
     return NodeRef(ref.branch, index), record, scene
 
 
-def _start_scene_path(run_dir, start: NodeRef | None) -> Path:
-    return (Path(run_dir) / "original" / "scene.ply" if start is None
-            else node_record(run_dir, start)[2])
+def start_scene(run_dir, start: NodeRef | None) -> tuple[object, dict | None]:
+    """(the Gaussians of node ``start``, the parent's ``shapes`` there): the scene is grown
+    to the capacity the parent trained on after that node, so its compiled programs (in the
+    persistent cache) fit the branch; None shapes (the input scene, or a run recorded before
+    shapes were): sized as a new run sizes them."""
+    from ..gaussians import grow
+
+    if start is None:
+        return load_scene(Path(run_dir) / "original" / "scene.ply"), None
+    _, record, path = node_record(run_dir, start)
+    scene, shapes = load_scene(path), record.get("shapes")
+    if not isinstance(shapes, dict) or not all(
+            isinstance(shapes.get(k), int) and shapes[k] > 0
+            for k in ("capacity", "max_intersections")):
+        return scene, None
+    if shapes["capacity"] > scene.capacity:
+        scene = grow(scene, shapes["capacity"])
+    return scene, {"capacity": max(shapes["capacity"], scene.capacity),
+                   "max_intersections": shapes["max_intersections"]}
 
 
 def _start_of(tree: RunTree, name: str) -> NodeRef | None:
@@ -106,7 +124,9 @@ def plan_branch(run_dir, tree: RunTree, op: str, node: NodeRef, *, name: str | N
     settings = dict(settings or {})
     tree.get(node.branch)  # an unknown branch is refused here
     node, record, _ = node_record(run_dir, node)
-    name = name or tree.next_name()
+    name = tree.next_name() if name is None else check_name(name)
+    if name in tree.names():
+        raise DataError("--name", f"the run already has a branch {name!r}")
     path = _path_of(tree, node.branch)
     path_prompt = (read_schedule(run_dir)["prompt"] if path == ROOT else tree.get(path).prompt)
     if op == "refine":
@@ -155,14 +175,17 @@ def _steps(run_dir, tree: RunTree, branch: Branch, config: EditRunConfig):
 
 
 def _path_inputs(run_dir, tree: RunTree, path: str, data: EditData, input_scene, seed: int,
-                 renderer) -> tuple[EditData, object, int, Path]:
+                 renderer, scenes: dict) -> tuple[EditData, object, int, Path]:
     """(the views, the oracle's scene, its seed, its memo file) of embedding path ``path``:
-    the main path edits the photos; a new instruction's path edits the renders of its start."""
+    the main path edits the photos; a new instruction's path edits the renders of its start
+    (``scenes``: the start scenes loaded already, by node)."""
     if path == ROOT:
         return data, input_scene, int(read_schedule(run_dir).get("seed", seed)), \
             Path(run_dir) / ORACLE_NAME
     owner = tree.get(path)
-    scene = load_scene(_start_scene_path(run_dir, owner.start))
+    if owner.start not in scenes:
+        scenes[owner.start] = start_scene(run_dir, owner.start)[0]
+    scene = scenes[owner.start]
     renders = np.stack([renderer.rgb(scene, data.train_cameras[i])
                         for i in range(len(data.train_images))])
     views = EditData(renders.astype(np.float32), data.train_cameras, data.test_images,
@@ -192,8 +215,10 @@ def run_branch(editor, config: EditRunConfig, data: EditData, input_scene, run_d
             raise DataError(folder, "exists already: choose another --name")
     config = _branch_config(config, branch)
     renderer = Renderer(config.plan.background)
+    scene, shapes = start_scene(run_dir, branch.start)
     views, path_scene, path_seed, memo = _path_inputs(run_dir, tree, branch.path, data,
-                                                      input_scene, branch.seed, renderer)
+                                                      input_scene, branch.seed, renderer,
+                                                      {branch.start: scene})
     main_prompt = read_schedule(run_dir)["prompt"]
 
     def ratio_of(ref: NodeRef) -> float:
@@ -208,9 +233,12 @@ def run_branch(editor, config: EditRunConfig, data: EditData, input_scene, run_d
 
     embeddings = path_embeddings(tree, branch.name, ratio_of, encode, main_prompt)
     prompt = main_prompt if branch.path == ROOT else tree.get(branch.path).prompt
-    start = EditStart(load_scene(_start_scene_path(run_dir, branch.start)), branch.from_ratio,
-                      str(branch.start or "main:original"), embeddings,
-                      _steps(run_dir, tree, branch, config), path_scene, path_seed, memo)
+    notes = {"experimental": EXPERIMENTAL} if branch.op == "extend" else None
+    if notes:
+        log(f"experimental: {EXPERIMENTAL}")
+    start = EditStart(scene, branch.from_ratio, str(branch.start or "main:original"),
+                      embeddings, _steps(run_dir, tree, branch, config), path_scene, path_seed,
+                      memo, shapes, notes)
     if not resume:
         old = (run_dir / TREE_NAME).read_bytes() if (run_dir / TREE_NAME).is_file() else None
         write_tree(run_dir, tree)
@@ -315,6 +343,7 @@ def tree_rows(run_dir) -> list[dict]:
                      "path": ROOT if branch is None else branch.path,
                      "seed": schedule.get("seed") if branch is None else branch.seed,
                      "threshold": schedule.get("threshold"),
+                     "experimental": bool(schedule.get("experimental")),
                      "status": branch_status(run_dir, name), "dir": str(folder), "nodes": nodes})
     return rows
 
@@ -324,6 +353,7 @@ def format_tree(run_dir) -> str:
     lines = []
     for row in tree_rows(run_dir):
         origin = "" if row["parent"] is None else f" {row['op']} of {row['parent']}"
+        origin += " (experimental)" if row["experimental"] else ""
         lines.append(f"{row['name']}{origin}: {row['prompt']!r} [{row['status']}]")
         for n in row["nodes"]:
             moved = ("" if n["psnr_vs_input"] is None

@@ -188,7 +188,10 @@ def _tree_body(run_dir: Path, schedule: dict, *, thumb_px: int, max_views: int) 
         subtasks = [s for s in sched.get("subtasks", []) if s.get("snapshot")]
         status = ("done" if (folder / "metrics.json").is_file() else
                   "open" if sched else "planned")
-        rows.append([f"<b>{_e(name)}</b>", _e("root" if branch is None else branch.op),
+        op = "root" if branch is None else branch.op
+        if sched.get("experimental"):
+            op += " (experimental)"
+        rows.append([f"<b>{_e(name)}</b>", _e(op),
                      _e("" if branch is None else branch.parent),
                      _e(sched.get("prompt", "") if branch is None or branch.prompt is None
                         else branch.prompt),
