@@ -22,11 +22,14 @@ into the run directory:
 
 Initial points (``init``): "auto" takes the dataset's ``ply_file_path`` (as COLMAP's
 sparse cloud would) and, for a dataset without points, SIFT features of the training
-views triangulated at their known poses (jaxedit.capture.triangulate); where that
-cannot be done (no pycolmap, too few points) it says so and falls back to "random":
-``random_points`` points in the box where the training cameras' view frusta overlap,
-the most photo-consistent of 4x as many uniform candidates (jaxedit.capture.points).
-"triangulate" and "random" take those whatever the dataset holds.
+views triangulated at their known poses (jaxedit.capture.triangulate), topped up with
+random points to ``random_points`` when there are fewer (features cover the textured
+parts of a scene; the random points the rest); where triangulation cannot be done (no
+pycolmap, too few points) it says so and falls back to "random": ``random_points``
+points in the box where the training cameras' view frusta overlap, the most
+photo-consistent of 4x as many uniform candidates (jaxedit.capture.points).
+"triangulate" (the triangulated points alone) and "random" take those whatever the
+dataset holds.
 """
 
 from __future__ import annotations
@@ -70,8 +73,9 @@ class ReconstructConfig:
       normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not
         ("none").
       init: initial points: "auto" (the dataset's cloud, else triangulated at the known
-        poses, else random), "triangulate" (SIFT matches at the known poses, pycolmap) or
-        "random" (photo-consistent random points, the start before triangulation).
+        poses topped up with random points to ``random_points``, else random),
+        "triangulate" (SIFT matches at the known poses alone, pycolmap) or "random"
+        (photo-consistent random points, the start before triangulation).
       triangulation: how "triangulate" and "auto" triangulate the training views.
       random_points: initial points of the random start (photo-consistent random points
         where the training frusta overlap).
@@ -185,14 +189,13 @@ CARVE_BORDER_FRACTION = 0.5
 def initial_points(data, n_random: int, seed: int, background=None, *, init: str = "auto",
                    triangulation: TriangulateOptions = TriangulateOptions()):
     """(points [P, 3], colours [P, 3], source) by ``init`` (see the module docstring); source
-    is "dataset", "triangulated" or "random".
+    is "dataset", "triangulated", "triangulated+random" (the triangulated points first,
+    then ``n_random`` minus their count random ones) or "random".
 
     ``background`` (RGB, the training background): when at least
     :data:`CARVE_BORDER_FRACTION` of the training images' border pixels show it (an object
     on a uniform background), random candidates seen as background are carved away.
     """
-
-    from ..capture.points import background_fraction, random_points
 
     if init not in INITS:
         raise DataError("init", f"must be one of {', '.join(INITS)}, got {init!r}")
@@ -202,8 +205,22 @@ def initial_points(data, n_random: int, seed: int, background=None, *, init: str
         return np.asarray(data.points, np.float32), np.asarray(colors, np.float32), "dataset"
     if init in ("auto", "triangulate"):
         found = _triangulated(data, triangulation, required=init == "triangulate")
-        if found is not None:
+        if found is not None and (init == "triangulate" or len(found[0]) >= n_random):
             return (*found, "triangulated")
+        if found is not None:
+            extra = _random_start(data, n_random - len(found[0]), seed, background)
+            log.info("initial points: %d triangulated and %d random points", len(found[0]),
+                     len(extra[0]))
+            return (np.concatenate([found[0], extra[0]]), np.concatenate([found[1], extra[1]]),
+                    "triangulated+random")
+    return (*_random_start(data, n_random, seed, background), "random")
+
+
+def _random_start(data, n_random: int, seed: int, background):
+    """(points, colours): ``n_random`` photo-consistent random points where the training
+    views overlap, carved by ``background`` when their borders show it."""
+    from ..capture.points import background_fraction, random_points
+
     images, cameras = data.train()
     if background is not None and background_fraction(images, background) < CARVE_BORDER_FRACTION:
         background = None  # a scene photo, not an object on a background: no carving
@@ -212,7 +229,7 @@ def initial_points(data, n_random: int, seed: int, background=None, *, init: str
     if background is not None:
         log.info("initial points: %d random points carved by the background %s",
                  len(points), tuple(float(c) for c in background))
-    return points, colors, "random"
+    return points, colors
 
 
 def _triangulated(data, options: TriangulateOptions, *, required: bool):
