@@ -9,7 +9,7 @@ from each start (``reconstruct --init``):
   px) saved without its points;
 * ``capture``: the same scene rendered at twice the size as plain photos (every other of its
   training views, and its held-out views), posed by ``process-data`` (COLMAP, which needs the
-  pixels), its sparse cloud removed, trained at half size, normalised as nerfstudio does; its
+  pixels, on one thread), its sparse cloud removed, trained at half size, normalised as nerfstudio does; its
   held-out views are its own every 8th photo.
 
 Starts: ``auto`` (reconstruct's default for a dataset without points: the triangulated
@@ -24,7 +24,9 @@ scored against the scene's ray-cast surface (distance to the nearest hit over th
 Writes ``DIR/triangulate_init.json`` with the goal of issue 74 checked: the start from
 triangulated points (``auto``) reaches a higher held-out PSNR than the random start on both
 (rewritten after each run).
-``--smoke``: 16 views of 128 px, 20 steps, the scene only.
+``--smoke``: 16 views of 128 px, 20 steps, the scene only, starts ``auto`` and ``random``.
+Each case and start can run in its own process (``--cases``, ``--starts``, one ``--out``
+each): COLMAP runs on one thread, so every process poses the capture alike.
 """
 
 from __future__ import annotations
@@ -101,11 +103,14 @@ def main(argv=None) -> int:
                    help="points of the random start (reconstruct's default; smoke: 2000)")
     p.add_argument("--cases", default="scene,capture",
                    help="cases to run; the others are kept from DIR's JSON of the same settings")
-    p.add_argument("--starts", default="auto,random,triangulate",
-                   help="starts to run, in this order (comma-separated)")
+    p.add_argument("--starts", default=None,
+                   help="starts to run, in this order (comma-separated; default "
+                        "auto,random,triangulate, smoke: auto,random)")
     p.add_argument("--reference", action="store_true",
                    help="also reconstruct from the cloud each dataset was saved with")
     args = p.parse_args(argv)
+    if args.starts is None:
+        args.starts = "auto,random" if args.smoke else "auto,random,triangulate"
 
     import jaxedit
     from jaxedit.capture import quiet_colmap
@@ -178,7 +183,7 @@ def _capture_case(args, root, size, views, config, results, t_start) -> None:
         write_image(sources[-1], shot.images[k])
     t0 = time.perf_counter()
     summary = process_capture(root / "capture", sorted(sources),
-                              options=SfmOptions(max_features=2048))
+                              options=SfmOptions(max_features=2048, num_threads=1))
     sfm_s = time.perf_counter() - t0
     capture = load_nerfstudio(root / "capture", downscale=2, normalize="nerfstudio")
     case = results["cases"]["capture"] = {
