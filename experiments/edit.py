@@ -50,6 +50,7 @@ def _config_flags():
         Flag("plan.pipelined", off="--inline-edits"),
         Flag("plan.asynchronous", "--async", off="--sync", key="asynchronous"),
         Flag("downscale"),
+        Flag("skip_missing_images"),
         Flag("plan.warmup"),
         Flag("plan.patience"),
         Flag("plan.max_steps"),

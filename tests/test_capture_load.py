@@ -267,6 +267,64 @@ def test_missing_images_are_counted_and_can_be_skipped(tmp_path, caplog):
         load_nerfstudio(d, skip_missing=True)
 
 
+@pytest.mark.parametrize("command", ["reconstruct", "edit", "process-data"])
+def test_every_command_that_reads_photos_takes_skip_missing_images(command):
+    from experiments import cli
+
+    args = cli.command_parser(command).parse_args(
+        ["--skip-missing-images", "--data" if command != "process-data" else "--triangulate",
+         "d"] + (["--prompt", "p", "--scene", "s.ply"] if command == "edit" else []))
+    assert args.skip_missing_images is True
+
+
+def test_edit_and_triangulate_skip_missing_images_too(tmp_path, caplog):
+    from jaxedit import gaussians as G
+    from jaxedit.capture.triangulate import triangulate_dataset
+    from jaxedit.io import save_ply
+    from jaxedit.pipelines.edit import EditRunConfig, load_inputs
+
+    rng = np.random.default_rng(8)
+    d = _dataset(tmp_path / "d", [_photo(rng, 24, 32) for _ in range(5)])
+    (d / "images/frame_00002.jpg").unlink()
+    scene = tmp_path / "scene.ply"
+    save_ply(scene, G.from_points(rng.normal(size=(5, 3)), rng.uniform(size=(5, 3)), sh_degree=0))
+    with pytest.raises(DataError, match="1 of 5 .*--skip-missing-images"):
+        load_inputs(EditRunConfig(), d, scene)
+    with caplog.at_level(logging.WARNING, logger="jaxedit.io"):
+        data, _ = load_inputs(EditRunConfig(skip_missing_images=True), d, scene)
+    assert "frame_00002" in caplog.text
+    assert len(data.train_images) + len(data.test_images) == 4
+    pytest.importorskip("pycolmap")
+    with pytest.raises(DataError, match="--skip-missing-images"):
+        triangulate_dataset(d)
+    with pytest.raises(DataError, match="--init random"):  # read 4 views, found no points
+        triangulate_dataset(d, skip_missing=True)
+
+
+def test_render_reads_a_datasets_cameras_without_its_photos(tmp_path, monkeypatch):
+    from jaxedit.io import load_nerfstudio_cameras
+    from jaxedit.io import nerfstudio as ns
+
+    rng = np.random.default_rng(9)
+    dist = {"k1": 0.2, "k2": 0.05}
+    d = _dataset(tmp_path / "d", [_photo(rng, 48, 64) for _ in range(9)],
+                 intrinsics=dict(fl_x=50.0, fl_y=52.0, cx=31.0, cy=25.0, **dist))
+    for normalize in ("none", "nerfstudio"):
+        full = load_nerfstudio(d, normalize=normalize, cache=False)
+        cams, train, test = load_nerfstudio_cameras(d, normalize=normalize)
+        assert (cams.width, cams.height) == (full.cameras.width, full.cameras.height)
+        for k in ("world_to_camera", "fx", "fy", "cx", "cy"):
+            np.testing.assert_array_equal(np.asarray(getattr(cams, k)),
+                                          np.asarray(getattr(full.cameras, k)))
+        assert train.tolist() == full.train_indices.tolist()
+        assert test.tolist() == full.test_indices.tolist()
+    # No photo is decoded, and a missing one does not matter.
+    (d / "images/frame_00004.jpg").unlink()
+    monkeypatch.setattr(ns, "read_photo", lambda *a, **k: pytest.fail("decoded a photo"))
+    monkeypatch.setattr(ns, "photo_header", lambda *a, **k: pytest.fail("read a header"))
+    assert len(load_nerfstudio_cameras(d)[0]) == 9
+
+
 def test_bad_photos_are_one_line_errors(tmp_path):
     rng = np.random.default_rng(7)
     d = _dataset(tmp_path / "d", [_photo(rng, 48, 64) for _ in range(3)])

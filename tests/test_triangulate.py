@@ -216,8 +216,15 @@ def test_process_data_triangulate_bad_inputs_are_one_line_and_write_nothing(tmp_
     (broken / "images" / "f2.png").write_bytes(b"not a png")
     _one_line(_main(capsys, "process-data", "--triangulate", broken, "--quiet"), "f2.png")
     (broken / "images" / "f3.png").unlink()
-    _one_line(_main(capsys, "process-data", "--triangulate", broken, "--quiet"), "missing")
+    _one_line(_main(capsys, "process-data", "--triangulate", broken, "--quiet"), "missing",
+              "--skip-missing-images")
+    (broken / "images" / "f2.png").unlink()
+    _one_line(_main(capsys, "process-data", "--triangulate", broken, "--skip-missing-images",
+                    "--quiet"), "--init random")  # past the missing photos, to the points
     assert not (broken / POINTS_FILE).exists()
+    _one_line(_main(capsys, "process-data", "--images", broken / "images", "--out",
+                    tmp_path / "o2", "--skip-missing-images", "--quiet"),
+              "--skip-missing-images", "--triangulate")
     _one_line(_main(capsys, "process-data", "--triangulate", noise, "--out", tmp_path / "o",
                     "--quiet"), "--out")
     (noise / POINTS_FILE).write_bytes(b"mine")

@@ -182,6 +182,8 @@ class EditRunConfig:
         None: the bundled LPIPS-AlexNet).
       downscale: image downscale factor of the dataset (unset: the smallest power of two
         that brings the photos' long side to at most 1600 px, as reconstruct picks).
+      skip_missing_images: drop the frames whose image file is missing (a warning lists
+        them) instead of stopping.
       test_views: at most this many held-out views in snapshots and metrics (None: all).
       identity: the floor the editor's identity on the scene must clear before training
         (:class:`jaxedit.edit.identity.IdentityFloor`).
@@ -194,6 +196,7 @@ class EditRunConfig:
     distance: str = "auto"
     lpips_weights: Path | None = None
     downscale: int | None = ranged(None, low=1)
+    skip_missing_images: bool = False
     test_views: int | None = ranged(None, low=1)
 
     def __post_init__(self):
@@ -208,7 +211,8 @@ def load_inputs(config: EditRunConfig, data_path, scene_path) -> tuple[EditData,
 
     from ..io.nerfstudio import dataset_downscale
 
-    dataset = load_nerfstudio(data_path, downscale=dataset_downscale(data_path, config.downscale))
+    dataset = load_nerfstudio(data_path, downscale=dataset_downscale(data_path, config.downscale),
+                              skip_missing=config.skip_missing_images)
     check_image_size(dataset, data_path)
     scene = load_scene(scene_path)
     if not np.asarray(scene.alive).any():
