@@ -6,6 +6,7 @@ The oracle of the loader's pixels is the full-size path it replaced: decode at f
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -222,6 +223,64 @@ def test_reconstruct_picks_the_default_downscale_and_refuses_what_cannot_fit(tmp
     monkeypatch.setattr(mem, "available_memory", lambda: 1 << 20)
     with pytest.raises(DataError, match="--downscale.*3 views of 850x20"):
         R.load_dataset(d, config)
+
+
+def test_edit_refuses_what_cannot_fit_before_loading_the_editor_or_a_photo(tmp_path,
+                                                                           monkeypatch):
+    import jaxedit.memory as mem
+    from jaxedit.io import nerfstudio as ns
+    from jaxedit.pipelines.edit import EditorConfig, EditRunConfig, require_edit_memory
+
+    rng = np.random.default_rng(5)
+    d = _dataset(tmp_path / "d", [_photo(rng, 40, 1700) for _ in range(3)])
+    weights = tmp_path / "weights" / "unet"
+    weights.mkdir(parents=True)
+    (weights / "diffusion_pytorch_model.safetensors").write_bytes(b"0" * 300_000)
+    monkeypatch.setattr(ns, "read_photo", lambda *a, **k: pytest.fail("decoded a photo"))
+    config = EditRunConfig(editor=EditorConfig(kind="ip2p", weights=tmp_path / "weights"))
+    require_edit_memory(config, d, 5, editor_loaded=False)  # fits
+    # The cap: --max-gaussians, else the default for the input scene's count.
+    views = mem.working_set(3, 20, 850, 1, 10_005)
+    monkeypatch.setattr(mem, "available_memory", lambda: views + 200_000)
+    require_edit_memory(EditRunConfig(), d, 5, editor_loaded=False)  # simulated: no weights
+    require_edit_memory(config, d, 5)  # the editor is loaded already: free memory says so
+    with pytest.raises(DataError, match="--downscale.*3 views of 850x20.*10005 Gaussians "
+                                        r"\(--max-gaussians\) and the editor's weights"):
+        require_edit_memory(config, d, 5, editor_loaded=False)
+    with pytest.raises(DataError, match="--downscale.*3 views of 850x20 and up to 400000"):
+        require_edit_memory(dataclasses.replace(config, train=config.train.replace_densify(
+            max_gaussians=400_000)), d, 5)
+
+
+def test_edit_keeps_uint8_views_and_reads_the_same_floats(tmp_path):
+    import jax
+    from jaxedit import gaussians as G
+    from jaxedit.io import save_ply
+    from jaxedit.io.views import FloatViews, device_float, stored_views
+    from jaxedit.pipelines.edit import EditRunConfig, load_inputs
+
+    rng = np.random.default_rng(3)
+    d = _dataset(tmp_path / "d", [_photo(rng, 24, 32) for _ in range(9)])
+    scene = tmp_path / "scene.ply"
+    save_ply(scene, G.from_points(rng.normal(size=(5, 3)), rng.uniform(size=(5, 3)), sh_degree=0))
+    data, _ = load_inputs(EditRunConfig(), d, scene)
+    full = load_nerfstudio(d)
+    floats = full.images  # what edit held before: the float32 views
+    train, test = full.train_indices, full.test_indices
+    assert isinstance(data.train_images, FloatViews)
+    assert stored_views(data.train_images).dtype == np.uint8
+    assert data.train_images.shape == (len(train), 24, 32, 3) and len(data.test_images) == 2
+    # Every way a consumer reads them gives the float32 views bit for bit.
+    np.testing.assert_array_equal(np.asarray(data.train_images), floats[train])
+    np.testing.assert_array_equal(data.train_images[3], floats[train[3]])
+    np.testing.assert_array_equal(data.train_images[np.array([1, 4])], floats[train[[1, 4]]])
+    np.testing.assert_array_equal(np.stack(list(data.test_images)), floats[test])
+    np.testing.assert_array_equal(np.asarray(data.train_images, np.float32), floats[train])
+    on_device = jax.device_put(stored_views(data.train_images))
+    np.testing.assert_array_equal(np.asarray(device_float(on_device[2])), floats[train[2]])
+    every = np.arange(256, dtype=np.uint8)
+    np.testing.assert_array_equal(np.asarray(jax.jit(device_float)(every)),
+                                  np.asarray(FloatViews(every)))
 
 
 def test_edit_loads_a_large_capture_at_the_size_reconstruct_picks(tmp_path):

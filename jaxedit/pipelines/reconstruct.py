@@ -116,18 +116,21 @@ def resolve_downscale(path, config: ReconstructConfig) -> int:
     return dataset_downscale(path, config.downscale)
 
 
-#: Bytes a Gaussian costs in training at degree-3 SH: 59 float32 parameters, each with a
-#: gradient and two Adam moments, and the densification statistics (about 1 KiB).
-GAUSSIAN_BYTES = 1024
+def require_dataset_memory(path, downscale: int, max_gaussians: int, *, extra: float = 0.0,
+                           extra_what: str = "") -> None:
+    """DataError naming ``--downscale`` when fitting ``max_gaussians`` Gaussians to the views
+    of the dataset at ``path`` (:func:`jaxedit.memory.working_set`), with ``extra`` bytes
+    (``extra_what``, e.g. an editor's weights), would not fit in free memory: from
+    transforms.json and one image header, before any photo is decoded."""
+    from ..io.nerfstudio import nerfstudio_frame_count, nerfstudio_view_size
+    from ..memory import require_memory, working_set
 
-
-def working_set(num_views: int, height: int, width: int, channel_bytes: int,
-                max_gaussians: int) -> float:
-    """Estimated bytes of a reconstruction: the views on the host and on the device
-    (``channel_bytes`` 1 for uint8), one float32 copy of them (the random start and the
-    evaluation read float views) and the Gaussians at the cap."""
-    views = num_views * height * width * 3
-    return views * (2 * channel_bytes + 4) + max_gaussians * GAUSSIAN_BYTES
+    height, width = nerfstudio_view_size(path, downscale=downscale)
+    count, channel_bytes = nerfstudio_frame_count(path)
+    require_memory("--downscale", working_set(count, height, width, channel_bytes,
+                                              max_gaussians) + extra,
+                   f"{count} views of {width}x{height} and up to {max_gaussians} Gaussians "
+                   f"(--max-gaussians){extra_what}")
 
 
 def load_dataset(path, config: ReconstructConfig):
@@ -135,16 +138,9 @@ def load_dataset(path, config: ReconstructConfig):
     RGBA composited over the background, missing images); DataError if its images are too
     small or the run would not fit in memory (checked before any photo is decoded)."""
     from ..io import load_nerfstudio
-    from ..io.nerfstudio import nerfstudio_frame_count, nerfstudio_view_size
-    from ..memory import require_memory
 
     downscale = resolve_downscale(path, config)
-    height, width = nerfstudio_view_size(path, downscale=downscale)
-    count, channel_bytes = nerfstudio_frame_count(path)
-    require_memory("--downscale", working_set(count, height, width, channel_bytes,
-                                              config.train.densify.max_gaussians),
-                   f"{count} views of {width}x{height} and up to "
-                   f"{config.train.densify.max_gaussians} Gaussians (--max-gaussians)")
+    require_dataset_memory(path, downscale, config.train.densify.max_gaussians)
     data = load_nerfstudio(path, downscale=downscale, normalize=config.normalize,
                            background=composite_background(config.train.background),
                            skip_missing=config.skip_missing_images)
