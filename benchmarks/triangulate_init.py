@@ -9,8 +9,8 @@ from each start (``reconstruct --init``):
   px) saved without its points;
 * ``capture``: the same scene rendered at twice the size as plain photos (every other of its
   training views, and its held-out views), posed by ``process-data`` (COLMAP, which needs the
-  pixels, on one thread), its sparse cloud removed, trained at half size, normalised as nerfstudio does; its
-  held-out views are its own every 8th photo.
+  pixels, on one thread), its sparse cloud removed, trained at half size, normalised as
+  nerfstudio does; its held-out views are its own every 8th photo.
 
 Starts: ``auto`` (reconstruct's default for a dataset without points: the triangulated
 points topped up with random ones to ``--random-points``), ``triangulate`` (SIFT matches of

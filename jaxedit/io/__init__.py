@@ -12,7 +12,8 @@ from .similarity import rotate_sh, transform_cameras, transform_gaussians, trans
 
 __all__ = [
     "Dataset", "Distortion", "FORMATS", "atomic_path", "atomic_write_bytes", "atomic_write_text",
-    "distort_points", "load_nerfstudio", "load_nerfstudio_cameras", "load_ply", "load_scene", "load_points_ply", "nerfstudio_view_size",
+    "distort_points", "load_nerfstudio", "load_nerfstudio_cameras", "load_ply", "load_scene",
+    "load_points_ply", "nerfstudio_view_size",
     "nerfstudio_world_transform",
     "read_image", "read_image_with_alpha", "rotate_sh", "save_nerfstudio", "save_ply", "save_scene", "save_points_ply",
     "transform_cameras", "transform_gaussians", "transform_points", "undistort_image",
