@@ -561,3 +561,44 @@ def test_the_reused_remap_is_bilinear_sample():
         got = undistort_image(image, *args[2:], fill=fill, table=table)
         np.testing.assert_allclose(got, want, atol=1e-6)
         np.testing.assert_array_equal(got, undistort_image(image, *args[2:], fill=fill))
+
+
+def test_an_edit_of_uint8_views_is_bit_identical_to_one_of_their_floats():
+    """A small edit from FloatViews of uint8 photos ends with the Gaussians, bit for bit, of
+    the same edit from the float32 arrays edit held before."""
+    import dataclasses as dc
+
+    import jax
+    from jaxedit import camera as cl
+    from jaxedit import gaussians as gl
+    from jaxedit.edit import EditData, ProEditConfig, TrainSettings
+    from jaxedit.edit.outputs import Renderer
+    from jaxedit.io.views import FloatViews
+    from jaxedit.pipelines import run_edit
+    from jaxedit_lab.simulated import SimulatedEditor
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(200, 3))  # test_progressive's tiny scene: its programs are cached
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    g = gl.from_points(d * 0.5, np.clip(0.5 + 0.4 * d[:, [2, 0, 1]], 0, 1), sh_degree=1,
+                       init_opacity=0.8)
+    g = dc.replace(g, log_scales=g.log_scales + 0.3)
+    cams = cl.orbit(10, radius=2.5, width=32, height=32, elevation_deg=15)
+    photos = np.stack([np.round(np.clip(Renderer().rgb(g, cams[i]), 0, 1) * 255).astype(np.uint8)
+                       for i in range(10)])
+    train, test = np.arange(8), np.arange(8, 10)
+    # What edit held before: Dataset.images, uint8 times 1/255 in float32.
+    floats = photos.astype(np.float32) * np.float32(1.0 / 255.0)
+    np.testing.assert_array_equal(floats, np.asarray(FloatViews(photos)))
+    cfg = ProEditConfig.for_mode("proedit", warmup=6, patience=8, loss_window=4, max_steps=24,
+                                 edit_every=3, subtasks=1, consolidate=False, asynchronous=False,
+                                 turntable_frames=0)
+    runs = []
+    for data in (EditData.create(floats[train], cams[train], floats[test], cams[test]),
+                 EditData.create(FloatViews(photos[train]), cams[train],
+                                 FloatViews(photos[test]), cams[test])):
+        runs.append(run_edit(SimulatedEditor(), "turn him into a bronze statue", data, g, config=cfg,
+                             settings=TrainSettings(lr_sh_dc=0.05), seed=3, run_dir=None))
+    for x, y in zip(jax.tree_util.tree_leaves(runs[0]["gaussians"]),
+                    jax.tree_util.tree_leaves(runs[1]["gaussians"])):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
