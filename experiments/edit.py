@@ -61,6 +61,7 @@ def _config_flags():
         Flag("plan.pipelined", off="--inline-edits"),
         Flag("plan.asynchronous", "--async", off="--sync", key="asynchronous"),
         Flag("downscale"),
+        Flag("skip_missing_images"),
         Flag("plan.warmup"),
         Flag("plan.patience"),
         Flag("plan.max_steps"),
@@ -440,7 +441,7 @@ def run_steering(args, kind: str) -> dict:
                                    seed=merged.seed, settings=settings)
     scene = merged.scene if merged.scene is not None and Path(merged.scene).is_file() \
         else args.out / "original" / "scene.ply"
-    data, input_scene = load_inputs(run_cfg, merged.data, scene)
+    data, input_scene = load_inputs(run_cfg, merged.data, scene, editor_loaded=False)
     editor = make_editor(run_cfg.editor)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     log(f"{branch.op} {branch.name} from {branch.parent}")

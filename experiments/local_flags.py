@@ -23,7 +23,8 @@ def local_spec(args, config, data):
         from jaxedit.io.nerfstudio import dataset_downscale
 
         dataset = load_nerfstudio(args.data, downscale=dataset_downscale(args.data,
-                                                                         config.downscale))
+                                                                         config.downscale),
+                                  skip_missing=config.skip_missing_images)
         names = [dataset.filenames[i] for i in np.asarray(dataset.train_indices)]
         masks = L.load_masks(args.masks, names, tuple(data.train_images.shape[1:3]),
                              originals=_photo_names(dataset.path, names))

@@ -72,6 +72,8 @@ class ProcessDataCommand:
       matching: image pairs to match (auto: exhaustive for photos, sequential for video).
       camera_params: known intrinsics in pixels (nerfstudio's fl_x,fl_y,cx,cy,k1,...), in
         --camera-model's terms; held fixed unless --refine-intrinsics (excludes --focal-px).
+      skip_missing_images: with --triangulate: triangulate without the frames whose image
+        file is missing (a warning lists them) instead of stopping.
     """
 
     images: Path | None = None
@@ -79,6 +81,7 @@ class ProcessDataCommand:
     triangulate: Path | None = None
     matching: str = "auto"
     camera_params: str | None = None
+    skip_missing_images: bool = False
 
 
 def _command_flags():
@@ -89,7 +92,8 @@ def _command_flags():
         Flag("video", exclusive="source", required=True),
         Flag("triangulate", exclusive="source", required=True, metavar="DATA"),
         Flag("matching", choices=("auto", "exhaustive", "sequential")),
-        Flag("camera_params", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]"))).complete()
+        Flag("camera_params", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]"),
+        Flag("skip_missing_images"))).complete()
 
 
 #: The command's flags: its settings', generated from :class:`jaxedit.capture.CaptureConfig`,
@@ -159,6 +163,8 @@ def run(args) -> dict:
     config = run_config(args)
     if getattr(args, "triangulate", None) is not None:
         return triangulate(args, config)
+    if getattr(args, "skip_missing_images", False):
+        raise DataError("--skip-missing-images", "only applies with --triangulate")
     options = config.sfm.check()
     check_out_dir(args.out)  # before decoding anything
     extra = {}
@@ -194,6 +200,7 @@ def triangulate(args, config) -> dict:
     if meta.get("ply_file_path") is not None:  # before any photo is read
         raise DataError(json_path, f"already has points (ply_file_path: "
                                    f"{meta['ply_file_path']!r}); remove that key to triangulate")
-    points, colors, summary = triangulate_dataset(json_path, options=config.triangulation)
+    points, colors, summary = triangulate_dataset(json_path, options=config.triangulation,
+                                                  skip_missing=args.skip_missing_images)
     ply = write_dataset_points(json_path, points, colors)
     return summary | {"ply_file_path": str(ply), "transforms": str(json_path)}

@@ -129,15 +129,14 @@ def cameras_for(args, gaussians):
             cams = cams.scaled(args.size / cams.width)
         return cams, fps
     if args.data is not None:
-        from jaxedit.io import load_nerfstudio
+        from jaxedit.io import load_nerfstudio_cameras
 
-        ds = load_nerfstudio(args.data, normalize=args.normalize)
+        # transforms.json alone: the photos are neither decoded nor needed.
+        cams, train, test = load_nerfstudio_cameras(args.data, normalize=args.normalize)
         if args.split == "train":
-            cams = ds.cameras[np.asarray(ds.train_indices)]
+            cams = cams[train]
         elif args.split == "test":
-            cams = ds.cameras[np.asarray(ds.test_indices)]
-        else:
-            cams = ds.cameras
+            cams = cams[test]
         if not cams.batch_shape or len(cams) == 0:
             raise DataError(args.data, f"no cameras in split {args.split!r}")
         if args.size is not None and args.size != cams.width:

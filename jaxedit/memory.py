@@ -3,8 +3,34 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from .errors import DataError
+
+#: Bytes a Gaussian costs in training at degree-3 SH: 59 float32 parameters, each with a
+#: gradient and two Adam moments, and the densification statistics (about 1 KiB).
+GAUSSIAN_BYTES = 1024
+
+
+def working_set(num_views: int, height: int, width: int, channel_bytes: int,
+                max_gaussians: int) -> float:
+    """Estimated bytes of fitting Gaussians to views (reconstruct, edit): the views on the
+    host and on a device (``channel_bytes`` 1 for uint8), one float32 copy of them (the
+    training images of an edit; the random start and the evaluation of a reconstruction)
+    and ``max_gaussians`` Gaussians (:data:`GAUSSIAN_BYTES` each)."""
+    views = num_views * height * width * 3
+    return views * (2 * channel_bytes + 4) + max_gaussians * GAUSSIAN_BYTES
+
+
+#: Suffixes of network weight files.
+WEIGHT_SUFFIXES = (".safetensors", ".bin", ".npz", ".msgpack")
+
+
+def weight_file_bytes(folder) -> int:
+    """Bytes of the weight files under ``folder`` (as stored: a lower bound of the weights
+    in memory)."""
+    return sum(f.stat().st_size for f in Path(folder).rglob("*")
+               if f.suffix in WEIGHT_SUFFIXES and f.is_file())
 
 
 def available_memory() -> int:

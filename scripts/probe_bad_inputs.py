@@ -396,6 +396,9 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
     found.append(("process-data --triangulate of a dataset with points",
                   ["process-data", "--triangulate", str(inp["data"]), "--quiet"],
                   "ply_file_path", inp["data"] / "transforms.json"))
+    found.append(("process-data --skip-missing-images without --triangulate",
+                  ["process-data", "--images", str(inp["photos"]), "--out", out_rel,
+                   "--skip-missing-images", "--quiet"], "--triangulate", None))
     found.append(("reconstruct --init triangulate of noise images",
                   ["reconstruct", "--data", str(inp["posed_noise"]), "--out", out_rel,
                    "--init", "triangulate", "--quiet"], "--init random", noise_json))

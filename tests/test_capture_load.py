@@ -6,6 +6,7 @@ The oracle of the loader's pixels is the full-size path it replaced: decode at f
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -224,6 +225,64 @@ def test_reconstruct_picks_the_default_downscale_and_refuses_what_cannot_fit(tmp
         R.load_dataset(d, config)
 
 
+def test_edit_refuses_what_cannot_fit_before_loading_the_editor_or_a_photo(tmp_path,
+                                                                           monkeypatch):
+    import jaxedit.memory as mem
+    from jaxedit.io import nerfstudio as ns
+    from jaxedit.pipelines.edit import EditorConfig, EditRunConfig, require_edit_memory
+
+    rng = np.random.default_rng(5)
+    d = _dataset(tmp_path / "d", [_photo(rng, 40, 1700) for _ in range(3)])
+    weights = tmp_path / "weights" / "unet"
+    weights.mkdir(parents=True)
+    (weights / "diffusion_pytorch_model.safetensors").write_bytes(b"0" * 300_000)
+    monkeypatch.setattr(ns, "read_photo", lambda *a, **k: pytest.fail("decoded a photo"))
+    config = EditRunConfig(editor=EditorConfig(kind="ip2p", weights=tmp_path / "weights"))
+    require_edit_memory(config, d, 5, editor_loaded=False)  # fits
+    # The cap: --max-gaussians, else the default for the input scene's count.
+    views = mem.working_set(3, 20, 850, 1, 10_005)
+    monkeypatch.setattr(mem, "available_memory", lambda: views + 200_000)
+    require_edit_memory(EditRunConfig(), d, 5, editor_loaded=False)  # simulated: no weights
+    require_edit_memory(config, d, 5)  # the editor is loaded already: free memory says so
+    with pytest.raises(DataError, match="--downscale.*3 views of 850x20.*10005 Gaussians "
+                                        r"\(--max-gaussians\) and the editor's weights"):
+        require_edit_memory(config, d, 5, editor_loaded=False)
+    with pytest.raises(DataError, match="--downscale.*3 views of 850x20 and up to 400000"):
+        require_edit_memory(dataclasses.replace(config, train=config.train.replace_densify(
+            max_gaussians=400_000)), d, 5)
+
+
+def test_edit_keeps_uint8_views_and_reads_the_same_floats(tmp_path):
+    import jax
+    from jaxedit import gaussians as G
+    from jaxedit.io import save_ply
+    from jaxedit.io.views import FloatViews, device_float, stored_views
+    from jaxedit.pipelines.edit import EditRunConfig, load_inputs
+
+    rng = np.random.default_rng(3)
+    d = _dataset(tmp_path / "d", [_photo(rng, 24, 32) for _ in range(9)])
+    scene = tmp_path / "scene.ply"
+    save_ply(scene, G.from_points(rng.normal(size=(5, 3)), rng.uniform(size=(5, 3)), sh_degree=0))
+    data, _ = load_inputs(EditRunConfig(), d, scene)
+    full = load_nerfstudio(d)
+    floats = full.images  # what edit held before: the float32 views
+    train, test = full.train_indices, full.test_indices
+    assert isinstance(data.train_images, FloatViews)
+    assert stored_views(data.train_images).dtype == np.uint8
+    assert data.train_images.shape == (len(train), 24, 32, 3) and len(data.test_images) == 2
+    # Every way a consumer reads them gives the float32 views bit for bit.
+    np.testing.assert_array_equal(np.asarray(data.train_images), floats[train])
+    np.testing.assert_array_equal(data.train_images[3], floats[train[3]])
+    np.testing.assert_array_equal(data.train_images[np.array([1, 4])], floats[train[[1, 4]]])
+    np.testing.assert_array_equal(np.stack(list(data.test_images)), floats[test])
+    np.testing.assert_array_equal(np.asarray(data.train_images, np.float32), floats[train])
+    on_device = jax.device_put(stored_views(data.train_images))
+    np.testing.assert_array_equal(np.asarray(device_float(on_device[2])), floats[train[2]])
+    every = np.arange(256, dtype=np.uint8)
+    np.testing.assert_array_equal(np.asarray(jax.jit(device_float)(every)),
+                                  np.asarray(FloatViews(every)))
+
+
 def test_edit_loads_a_large_capture_at_the_size_reconstruct_picks(tmp_path):
     from jaxedit import gaussians as G
     from jaxedit.io import save_ply
@@ -265,6 +324,64 @@ def test_missing_images_are_counted_and_can_be_skipped(tmp_path, caplog):
     (d / names[4]).unlink()
     with pytest.raises(DataError, match="all 6 frames' image files are missing"):
         load_nerfstudio(d, skip_missing=True)
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "edit", "process-data"])
+def test_every_command_that_reads_photos_takes_skip_missing_images(command):
+    from experiments import cli
+
+    args = cli.command_parser(command).parse_args(
+        ["--skip-missing-images", "--data" if command != "process-data" else "--triangulate",
+         "d"] + (["--prompt", "p", "--scene", "s.ply"] if command == "edit" else []))
+    assert args.skip_missing_images is True
+
+
+def test_edit_and_triangulate_skip_missing_images_too(tmp_path, caplog):
+    from jaxedit import gaussians as G
+    from jaxedit.capture.triangulate import triangulate_dataset
+    from jaxedit.io import save_ply
+    from jaxedit.pipelines.edit import EditRunConfig, load_inputs
+
+    rng = np.random.default_rng(8)
+    d = _dataset(tmp_path / "d", [_photo(rng, 24, 32) for _ in range(5)])
+    (d / "images/frame_00002.jpg").unlink()
+    scene = tmp_path / "scene.ply"
+    save_ply(scene, G.from_points(rng.normal(size=(5, 3)), rng.uniform(size=(5, 3)), sh_degree=0))
+    with pytest.raises(DataError, match="1 of 5 .*--skip-missing-images"):
+        load_inputs(EditRunConfig(), d, scene)
+    with caplog.at_level(logging.WARNING, logger="jaxedit.io"):
+        data, _ = load_inputs(EditRunConfig(skip_missing_images=True), d, scene)
+    assert "frame_00002" in caplog.text
+    assert len(data.train_images) + len(data.test_images) == 4
+    pytest.importorskip("pycolmap")
+    with pytest.raises(DataError, match="--skip-missing-images"):
+        triangulate_dataset(d)
+    with pytest.raises(DataError, match="--init random"):  # read 4 views, found no points
+        triangulate_dataset(d, skip_missing=True)
+
+
+def test_render_reads_a_datasets_cameras_without_its_photos(tmp_path, monkeypatch):
+    from jaxedit.io import load_nerfstudio_cameras
+    from jaxedit.io import nerfstudio as ns
+
+    rng = np.random.default_rng(9)
+    dist = {"k1": 0.2, "k2": 0.05}
+    d = _dataset(tmp_path / "d", [_photo(rng, 48, 64) for _ in range(9)],
+                 intrinsics=dict(fl_x=50.0, fl_y=52.0, cx=31.0, cy=25.0, **dist))
+    for normalize in ("none", "nerfstudio"):
+        full = load_nerfstudio(d, normalize=normalize, cache=False)
+        cams, train, test = load_nerfstudio_cameras(d, normalize=normalize)
+        assert (cams.width, cams.height) == (full.cameras.width, full.cameras.height)
+        for k in ("world_to_camera", "fx", "fy", "cx", "cy"):
+            np.testing.assert_array_equal(np.asarray(getattr(cams, k)),
+                                          np.asarray(getattr(full.cameras, k)))
+        assert train.tolist() == full.train_indices.tolist()
+        assert test.tolist() == full.test_indices.tolist()
+    # No photo is decoded, and a missing one does not matter.
+    (d / "images/frame_00004.jpg").unlink()
+    monkeypatch.setattr(ns, "read_photo", lambda *a, **k: pytest.fail("decoded a photo"))
+    monkeypatch.setattr(ns, "photo_header", lambda *a, **k: pytest.fail("read a header"))
+    assert len(load_nerfstudio_cameras(d)[0]) == 9
 
 
 def test_bad_photos_are_one_line_errors(tmp_path):
@@ -444,3 +561,44 @@ def test_the_reused_remap_is_bilinear_sample():
         got = undistort_image(image, *args[2:], fill=fill, table=table)
         np.testing.assert_allclose(got, want, atol=1e-6)
         np.testing.assert_array_equal(got, undistort_image(image, *args[2:], fill=fill))
+
+
+def test_an_edit_of_uint8_views_is_bit_identical_to_one_of_their_floats():
+    """A small edit from FloatViews of uint8 photos ends with the Gaussians, bit for bit, of
+    the same edit from the float32 arrays edit held before."""
+    import dataclasses as dc
+
+    import jax
+    from jaxedit import camera as cl
+    from jaxedit import gaussians as gl
+    from jaxedit.edit import EditData, ProEditConfig, TrainSettings
+    from jaxedit.edit.outputs import Renderer
+    from jaxedit.io.views import FloatViews
+    from jaxedit.pipelines import run_edit
+    from jaxedit_lab.simulated import SimulatedEditor
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(200, 3))  # test_progressive's tiny scene: its programs are cached
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    g = gl.from_points(d * 0.5, np.clip(0.5 + 0.4 * d[:, [2, 0, 1]], 0, 1), sh_degree=1,
+                       init_opacity=0.8)
+    g = dc.replace(g, log_scales=g.log_scales + 0.3)
+    cams = cl.orbit(10, radius=2.5, width=32, height=32, elevation_deg=15)
+    photos = np.stack([np.round(np.clip(Renderer().rgb(g, cams[i]), 0, 1) * 255).astype(np.uint8)
+                       for i in range(10)])
+    train, test = np.arange(8), np.arange(8, 10)
+    # What edit held before: Dataset.images, uint8 times 1/255 in float32.
+    floats = photos.astype(np.float32) * np.float32(1.0 / 255.0)
+    np.testing.assert_array_equal(floats, np.asarray(FloatViews(photos)))
+    cfg = ProEditConfig.for_mode("proedit", warmup=6, patience=8, loss_window=4, max_steps=24,
+                                 edit_every=3, subtasks=1, consolidate=False, asynchronous=False,
+                                 turntable_frames=0)
+    runs = []
+    for data in (EditData.create(floats[train], cams[train], floats[test], cams[test]),
+                 EditData.create(FloatViews(photos[train]), cams[train],
+                                 FloatViews(photos[test]), cams[test])):
+        runs.append(run_edit(SimulatedEditor(), "turn him into a bronze statue", data, g, config=cfg,
+                             settings=TrainSettings(lr_sh_dc=0.05), seed=3, run_dir=None))
+    for x, y in zip(jax.tree_util.tree_leaves(runs[0]["gaussians"]),
+                    jax.tree_util.tree_leaves(runs[1]["gaussians"])):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

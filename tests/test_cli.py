@@ -135,6 +135,8 @@ def test_render_along_dataset_cameras(tmp_path, ply):
     cams = camlib.hemisphere(3, radius=2.2, width=SIZE, height=SIZE, fov_deg=50.0)
     data = save_nerfstudio(tmp_path / "data", np.ones((3, SIZE, SIZE, 3), np.float32), cams,
                            test_indices=np.array([1]))
+    for photo in (tmp_path / "data" / "images").iterdir():  # cameras alone: photos unread
+        photo.unlink()
     out = tmp_path / "along"
     assert cli.main(["render", "--scene", str(ply), "--out", str(out), "--data", str(data),
                      "--split", "test", "--no-depth", "--quiet"]) == 0

@@ -7,6 +7,7 @@ or not), and not on its mirror image.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 from pathlib import Path
@@ -17,8 +18,9 @@ import pytest
 from experiments import cli
 from jaxedit import DataError, scenes
 from jaxedit import camera as camlib
-from jaxedit.capture.triangulate import (POINTS_FILE, TriangulateOptions, neighbor_pairs,
-                                         triangulate, write_dataset_points)
+from jaxedit.capture.triangulate import (MAX_ENLARGE, POINTS_FILE, TriangulateOptions,
+                                         enlargement, neighbor_pairs, triangulate,
+                                         write_dataset_points)
 from jaxedit.io import load_nerfstudio
 from jaxedit.io.images import write_image
 from jaxedit.pipelines.reconstruct import initial_points
@@ -91,20 +93,51 @@ def test_triangulated_points_lie_on_the_true_surface_in_the_loaded_world(face, n
     assert np.median(_nearest(scaled, truth) / extent) > 0.03
 
 
+def test_small_views_are_enlarged_for_features_up_to_a_limit():
+    assert enlargement(128, 96, 256) == 2 and enlargement(100, 60, 256) == 3
+    assert enlargement(512, 300, 256) == 1 and enlargement(8, 8, 256) == MAX_ENLARGE
+
+
+def test_enlarged_views_give_more_points_on_the_same_surface(face):
+    data = load_nerfstudio(face)
+    images, cameras = data.train()
+    plain = dataclasses.replace(FAST, feature_side=1, peak_threshold=1 / 150, min_points=1)
+    few = triangulate(images, cameras, options=plain)[0]
+    many = triangulate(images, cameras, options=FAST)[0]
+    assert len(many) > 1.5 * len(few), (len(many), len(few))
+    truth = _surface(cameras)
+    extent = np.linalg.norm(truth.max(0) - truth.min(0))
+    # Intrinsics scaled with the views: the points are as close to the surface as before.
+    assert (np.median(_nearest(many.astype(np.float64), truth))
+            <= 1.2 * np.median(_nearest(few.astype(np.float64), truth)) + 1e-4 * extent)
+
+
 def test_reconstruct_init_auto_triangulates_a_bare_dataset_and_random_keeps_the_old_start(face):
     data = load_nerfstudio(face)
-    auto = initial_points(data, 300, 0, triangulation=FAST)
-    assert auto[2] == "triangulated" and len(auto[0]) >= FAST.min_points
+    tri = initial_points(data, 300, 0, init="triangulate", triangulation=FAST)
+    assert tri[2] == "triangulated" and len(tri[0]) >= FAST.min_points
     # The training views' points, the same ones on every run (a multi-process run relies on it).
     again = triangulate(*data.train(), options=FAST)
-    np.testing.assert_array_equal(auto[0], again[0])
-    np.testing.assert_array_equal(auto[1], again[1])
+    np.testing.assert_array_equal(tri[0], again[0])
+    np.testing.assert_array_equal(tri[1], again[1])
     random = initial_points(data, 300, 0, init="random")
     assert random[2] == "random" and len(random[0]) == 300
-    with_points = data.__class__(**{**data.__dict__, "points": auto[0], "point_colors": auto[1]})
+    # auto: every triangulated point, then random ones up to the random start's count...
+    n = len(tri[0]) + 40
+    auto = initial_points(data, n, 0, triangulation=FAST)
+    assert auto[2] == "triangulated+random" and len(auto[0]) == len(auto[1]) == n
+    np.testing.assert_array_equal(auto[0][:len(tri[0])], tri[0])
+    np.testing.assert_array_equal(auto[1][:len(tri[0])], tri[1])
+    extra = initial_points(data, 40, 0, init="random")
+    np.testing.assert_array_equal(auto[0][len(tri[0]):], extra[0])
+    # ...and the triangulated points alone when they are as many.
+    alone = initial_points(data, len(tri[0]), 0, triangulation=FAST)
+    assert alone[2] == "triangulated"
+    np.testing.assert_array_equal(alone[0], tri[0])
+    with_points = data.__class__(**{**data.__dict__, "points": tri[0], "point_colors": tri[1]})
     kept = initial_points(with_points, 300, 0)
     assert kept[2] == "dataset"
-    np.testing.assert_array_equal(kept[0], auto[0])
+    np.testing.assert_array_equal(kept[0], tri[0])
     assert initial_points(with_points, 300, 0, init="random")[2] == "random"
 
 
@@ -183,8 +216,15 @@ def test_process_data_triangulate_bad_inputs_are_one_line_and_write_nothing(tmp_
     (broken / "images" / "f2.png").write_bytes(b"not a png")
     _one_line(_main(capsys, "process-data", "--triangulate", broken, "--quiet"), "f2.png")
     (broken / "images" / "f3.png").unlink()
-    _one_line(_main(capsys, "process-data", "--triangulate", broken, "--quiet"), "missing")
+    _one_line(_main(capsys, "process-data", "--triangulate", broken, "--quiet"), "missing",
+              "--skip-missing-images")
+    (broken / "images" / "f2.png").unlink()
+    _one_line(_main(capsys, "process-data", "--triangulate", broken, "--skip-missing-images",
+                    "--quiet"), "--init random")  # past the missing photos, to the points
     assert not (broken / POINTS_FILE).exists()
+    _one_line(_main(capsys, "process-data", "--images", broken / "images", "--out",
+                    tmp_path / "o2", "--skip-missing-images", "--quiet"),
+              "--skip-missing-images", "--triangulate")
     _one_line(_main(capsys, "process-data", "--triangulate", noise, "--out", tmp_path / "o",
                     "--quiet"), "--out")
     (noise / POINTS_FILE).write_bytes(b"mine")

@@ -38,6 +38,11 @@ class TriangulateOptions:
     Attributes:
       neighbors: views each view is matched with (its nearest camera centres).
       max_features: SIFT features per view.
+      peak_threshold: SIFT's contrast threshold (COLMAP's default is 1/150); lower finds
+        more features on smooth, small views.
+      feature_side: views whose long side is shorter are enlarged for SIFT (bicubic, by the
+        integer factor, at most 4, that brings it to at least this; the intrinsics follow):
+        SIFT finds few features in a small view.
       min_track: fewest views that must see a point for it to be kept.
       max_error: largest mean reprojection error in pixels of a kept point.
       min_points: fewer points than this is an error (too little texture or overlap).
@@ -52,6 +57,8 @@ class TriangulateOptions:
 
     neighbors: int = ranged(20, low=1)
     max_features: int = ranged(8192, low=1)
+    peak_threshold: float = ranged(0.002, low=0.0)
+    feature_side: int = ranged(256, low=1)
     min_track: int = ranged(2, low=2)
     max_error: float = ranged(2.0, low=0.0)
     min_points: int = ranged(100, low=1)
@@ -78,24 +85,40 @@ def neighbor_pairs(cameras: Camera, neighbors: int) -> list[tuple[int, int]]:
     return sorted(pairs)
 
 
-def _write_views(images, folder: Path) -> list[str]:
-    from ..io.images import write_image
+#: Largest factor views are enlarged by for feature extraction.
+MAX_ENLARGE = 4
+
+
+def enlargement(width: int, height: int, feature_side: int) -> int:
+    """The integer factor (1 to :data:`MAX_ENLARGE`) that brings a view's long side to at
+    least ``feature_side``."""
+    return int(min(MAX_ENLARGE, max(1, -(-int(feature_side) // max(int(width), int(height))))))
+
+
+def _write_views(images, folder: Path, scale: int = 1) -> list[str]:
+    """PNGs of ``images`` enlarged ``scale`` times (bicubic), named view_NNNNN.png."""
+    from PIL import Image
 
     names = [f"view_{k:05d}.png" for k in range(len(images))]
     for name, image in zip(names, images):
         image = np.asarray(image)
-        write_image(folder / name, image.astype(np.float32) / 255.0 if image.dtype == np.uint8
-                    else image)
+        if image.dtype != np.uint8:
+            image = np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+        pil = Image.fromarray(image[..., :3])
+        if scale > 1:
+            pil = pil.resize((pil.width * scale, pil.height * scale), Image.BICUBIC)
+        pil.save(folder / name)
     return names
 
 
-def _known_reconstruction(database: Path, cameras: Camera):
-    """A pycolmap.Reconstruction of the database's images at the known cameras and poses."""
+def _known_reconstruction(database: Path, cameras: Camera, scale: int = 1):
+    """A pycolmap.Reconstruction of the database's images at the known cameras and poses,
+    the views enlarged ``scale`` times (pixel edges at integers: intrinsics times ``scale``)."""
     import pycolmap
 
     w2c = np.asarray(cameras.world_to_camera, np.float64).reshape(-1, 4, 4)
     n = len(w2c)
-    fx, fy, cx, cy = (np.broadcast_to(np.asarray(getattr(cameras, k), np.float64), (n,))
+    fx, fy, cx, cy = (scale * np.broadcast_to(np.asarray(getattr(cameras, k), np.float64), (n,))
                       for k in ("fx", "fy", "cx", "cy"))
     db = pycolmap.Database.open(database)
     try:
@@ -105,8 +128,8 @@ def _known_reconstruction(database: Path, cameras: Camera):
     rec = pycolmap.Reconstruction()
     for image in sorted(images, key=lambda im: im.name):
         k = int(Path(image.name).stem.split("_")[1])
-        camera = pycolmap.Camera(model="PINHOLE", width=int(cameras.width),
-                                 height=int(cameras.height),
+        camera = pycolmap.Camera(model="PINHOLE", width=scale * int(cameras.width),
+                                 height=scale * int(cameras.height),
                                  params=[fx[k], fy[k], cx[k], cy[k]], camera_id=image.camera_id)
         rec.add_camera_with_trivial_rig(camera)
         rec.add_image_with_trivial_frame(
@@ -142,13 +165,15 @@ def triangulate(images, cameras: Camera, *, options: TriangulateOptions = Triang
     image_dir, database = work / "images", work / "database.db"
     image_dir.mkdir(parents=True, exist_ok=True)
     database.unlink(missing_ok=True)
-    names = _write_views(images, image_dir)
+    scale = enlargement(cameras.width, cameras.height, options.feature_side)
+    names = _write_views(images, image_dir, scale)
     pycolmap.set_random_seed(options.seed)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = options.max_features
-    extraction.max_image_size = max(int(cameras.width), int(cameras.height))
+    extraction.sift.peak_threshold = options.peak_threshold
+    extraction.max_image_size = scale * max(int(cameras.width), int(cameras.height))
     extraction.num_threads = options.num_threads
     pycolmap.extract_features(database, image_dir, image_names=names,
                               camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
@@ -162,7 +187,7 @@ def triangulate(images, cameras: Camera, *, options: TriangulateOptions = Triang
     pairing.match_list_path = pair_file
     pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=pairing,
                                device=pycolmap.Device.cpu)
-    known = _known_reconstruction(database, cameras)
+    known = _known_reconstruction(database, cameras, scale)
     pipeline = pycolmap.IncrementalPipelineOptions()
     pipeline.num_threads = options.num_threads
     pipeline.random_seed = options.seed

@@ -23,9 +23,10 @@ class EditData:
     """Views of the scene being edited (build with :meth:`create` or :meth:`from_dataset`).
 
     Attributes:
-      train_images: float32 [N, H, W, 3], the original photos of the training views.
+      train_images: float32 [N, H, W, 3], the original photos of the training views (an
+        array, or :class:`jaxedit.io.views.FloatViews` of 8-bit photos kept as uint8).
       train_cameras: batched Camera [N], on the device.
-      test_images: float32 [M, H, W, 3], held-out originals (never trained on).
+      test_images: float32 [M, H, W, 3], held-out originals (never trained on; likewise).
       test_cameras: batched Camera [M].
     """
 
@@ -51,14 +52,17 @@ class EditData:
 
     @staticmethod
     def from_dataset(dataset) -> "EditData":
-        """From a :func:`jaxedit.io.load_nerfstudio` dataset (train/test split)."""
-        images = np.asarray(dataset.images, np.float32)
+        """From a :func:`jaxedit.io.load_nerfstudio` dataset (train/test split), its views
+        kept as loaded (uint8) and read as float32."""
+        from ..io.views import FloatViews
+
+        pixels = np.asarray(dataset.pixels)
         train = np.asarray(dataset.train_indices)
         test = np.asarray(dataset.test_indices)
         if len(test) == 0:  # no held-out split: score on the training views, say so
             test = train
-        return EditData.create(images[train], dataset.cameras[train], images[test],
-                               dataset.cameras[test])
+        return EditData.create(FloatViews(pixels[train]), dataset.cameras[train],
+                               FloatViews(pixels[test]), dataset.cameras[test])
 
 
 def encode_prompt(editor, prompt: str) -> tuple[np.ndarray, np.ndarray]:

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..editors.base import edit_views, interpolate_embedding
 from ..editors.keys import edit_key
+from ..io.views import device_float, stored_views
 from ..raster.placement import commit
 from ..train import CHUNK, Batch, apply_step, epoch_view, grow_for_redo, scan_steps
 from .buffer import EditedView, EditJob, EditSource, make_source, side_by_side, view_order
@@ -56,7 +57,7 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
     sub_key = jax.random.fold_in(jax.random.fold_in(ctx.key, spec.index), _EDIT)
     renderer = ctx.renderer
     cameras = [ctx.data.train_cameras[i] for i in range(len(ctx.data.train_images))]
-    originals = jax.device_put(ctx.data.train_images, ctx.editor_device)
+    originals = jax.device_put(stored_views(ctx.data.train_images), ctx.editor_device)
 
     def t_range(job: EditJob) -> tuple[float, float]:
         if job.timestep is not None:
@@ -72,7 +73,8 @@ def make_edit_fns(ctx: EditContext, spec: SubtaskSpec, horizon: int) -> tuple[
         # Device arrays where the scene is; a torch editor copies them to its device.
         renders = [renderer(scene, cameras[job.view]).rgb for job in jobs]
         # A local edit's mask is applied once, in take_edits.
-        return edit_views(ctx.editor, renders, [originals[job.view] for job in jobs], embedding,
+        photos = [device_float(originals[job.view]) for job in jobs]
+        return edit_views(ctx.editor, renders, photos, embedding,
                           [edit_key(sub_key, job.view, job.iteration) for job in jobs],
                           timestep_range=t_range(jobs[0]), guidance=cfg.guidance)
 

@@ -605,6 +605,50 @@ def _load_view(image_path: Path, intr: _Intrinsics, orientation: int, downscale:
     return np.ascontiguousarray(image, np.float32)
 
 
+def _cameras(json_path: Path, parsed: list, downscale: int, crop, normalize: str):
+    """(batched Camera of the views as loaded, world transform [4, 4], scale)."""
+    x0, y0, x1, y1 = crop
+    intr_arr = np.asarray([_scaled_intrinsics(p[2], downscale) for p in parsed], np.float64)
+    intr_arr[:, 2] -= x0
+    intr_arr[:, 3] -= y0
+
+    c2w = np.stack([p[1] for p in parsed])
+    if normalize == "nerfstudio":
+        world_transform, scale = nerfstudio_world_transform(c2w)
+    else:
+        world_transform, scale = np.eye(4), 1.0
+    cameras = Camera(
+        world_to_camera=opengl_c2w_to_opencv_w2c(c2w).astype(np.float32),
+        fx=intr_arr[:, 0].astype(np.float32), fy=intr_arr[:, 1].astype(np.float32),
+        cx=intr_arr[:, 2].astype(np.float32), cy=intr_arr[:, 3].astype(np.float32),
+        width=x1 - x0, height=y1 - y0)
+    check_cameras(cameras, json_path)
+    if normalize != "none":
+        cameras = transform_cameras(cameras, world_transform)
+    return cameras, world_transform, scale
+
+
+def load_nerfstudio_cameras(path: str | os.PathLike, *, downscale: int = 1,
+                            normalize: str = "none", split_every: int = 8
+                            ) -> tuple[Camera, np.ndarray, np.ndarray]:
+    """The cameras of every frame of a nerfstudio dataset, as :func:`load_nerfstudio` gives
+    them (undistorted, cropped, downscaled, normalised), from transforms.json alone: no
+    image is read, so frames whose image is missing keep their cameras.
+
+    Returns:
+      (batched Camera [N], train_indices int64 [T], test_indices int64 [E]).
+    """
+    downscale = _check_downscale(downscale)
+    if normalize not in NORMALIZE_MODES:
+        raise DataError("normalize", f"must be one of {NORMALIZE_MODES}, got {normalize!r}")
+    json_path = _resolve_json(path)
+    meta = _load_meta(json_path)
+    parsed, (full_w, full_h) = _parse_frames(json_path, meta)
+    crop = _view_geometry(json_path, parsed, full_w, full_h, downscale)[1]
+    train_idx, test_idx = _split(json_path, meta, [p[0] for p in parsed], split_every)
+    return _cameras(json_path, parsed, downscale, crop, normalize)[0], train_idx, test_idx
+
+
 def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(1.0, 1.0, 1.0),
                     normalize: str = "none", split_every: int = 8, skip_missing: bool = False,
                     cache: bool = True) -> Dataset:
@@ -667,23 +711,7 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
             view = _load_view(image_path, intr, o, downscale, crop, bg, eight_bit, tables)
             views.put(entry, view)
         pixels[k] = view
-    intr_arr = np.asarray([_scaled_intrinsics(p[2], downscale) for p in parsed], np.float64)
-    intr_arr[:, 2] -= crop[0]
-    intr_arr[:, 3] -= crop[1]
-
-    c2w = np.stack([p[1] for p in parsed])
-    if normalize == "nerfstudio":
-        world_transform, scale = nerfstudio_world_transform(c2w)
-    else:
-        world_transform, scale = np.eye(4), 1.0
-    cameras = Camera(
-        world_to_camera=opengl_c2w_to_opencv_w2c(c2w).astype(np.float32),
-        fx=intr_arr[:, 0].astype(np.float32), fy=intr_arr[:, 1].astype(np.float32),
-        cx=intr_arr[:, 2].astype(np.float32), cy=intr_arr[:, 3].astype(np.float32),
-        width=width, height=height)
-    check_cameras(cameras, json_path)
-    if normalize != "none":
-        cameras = transform_cameras(cameras, world_transform)
+    cameras, world_transform, scale = _cameras(json_path, parsed, downscale, crop, normalize)
 
     points = colors = None
     if meta.get("ply_file_path") is not None:

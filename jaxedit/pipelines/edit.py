@@ -180,6 +180,8 @@ class EditRunConfig:
         None: the bundled LPIPS-AlexNet).
       downscale: image downscale factor of the dataset (unset: the smallest power of two
         that brings the photos' long side to at most 1600 px, as reconstruct picks).
+      skip_missing_images: drop the frames whose image file is missing (a warning lists
+        them) instead of stopping.
       test_views: at most this many held-out views in snapshots and metrics (None: all).
       identity: the floor the editor's identity on the scene must clear before training
         (:class:`jaxedit.edit.identity.IdentityFloor`).
@@ -192,25 +194,50 @@ class EditRunConfig:
     distance: str = "auto"
     lpips_weights: Path | None = None
     downscale: int | None = ranged(None, low=1)
+    skip_missing_images: bool = False
     test_views: int | None = ranged(None, low=1)
 
     def __post_init__(self):
         check_ranges(self)
 
 
-def load_inputs(config: EditRunConfig, data_path, scene_path) -> tuple[EditData, object]:
+def require_edit_memory(config: EditRunConfig, data_path, num_input: int, *,
+                        editor_loaded: bool = True) -> None:
+    """Refuse in one line naming ``--downscale`` an edit whose views, Gaussians at the cap
+    (``--max-gaussians``, or the default for ``num_input`` input Gaussians) and, unless
+    ``editor_loaded``, editor weights would not fit in free memory; before any photo is
+    decoded (:func:`jaxedit.pipelines.reconstruct.require_dataset_memory`)."""
+    from ..edit.trainer import default_max_gaussians
+    from ..editors import bundled_editor
+    from ..io.nerfstudio import auto_downscale, nerfstudio_photo_size
+    from ..memory import weight_file_bytes
+    from .reconstruct import require_dataset_memory
+
+    editor = 0 if editor_loaded or config.editor.kind == "simulated" else weight_file_bytes(
+        config.editor.weights or bundled_editor())
+    cap = config.train.densify.max_gaussians or default_max_gaussians(num_input)
+    downscale = config.downscale or auto_downscale(*nerfstudio_photo_size(data_path))
+    require_dataset_memory(data_path, downscale, cap, extra=editor,
+                           extra_what=" and the editor's weights" if editor else "")
+
+
+def load_inputs(config: EditRunConfig, data_path, scene_path, *,
+                editor_loaded: bool = True) -> tuple[EditData, object]:
     """(EditData, input Gaussians) of the nerfstudio dataset ``data_path`` and the splat file
     ``scene_path`` (any format :func:`jaxedit.io.load_scene` reads), read as ``config`` says
-    (downscale, at most ``test_views``)."""
+    (downscale, at most ``test_views``), once :func:`require_edit_memory` lets it."""
     from .reconstruct import check_image_size
 
     from ..io.nerfstudio import dataset_downscale
 
-    dataset = load_nerfstudio(data_path, downscale=dataset_downscale(data_path, config.downscale))
-    check_image_size(dataset, data_path)
     scene = load_scene(scene_path)
     if not np.asarray(scene.alive).any():
         raise DataError(scene_path, "has no Gaussians (zero vertices): nothing to edit")
+    require_edit_memory(config, data_path, int(np.asarray(scene.alive).sum()),
+                        editor_loaded=editor_loaded)
+    dataset = load_nerfstudio(data_path, downscale=dataset_downscale(data_path, config.downscale),
+                              skip_missing=config.skip_missing_images)
+    check_image_size(dataset, data_path)
     data = EditData.from_dataset(dataset)
     if config.test_views is not None and len(data.test_images) > config.test_views:
         keep = np.linspace(0, len(data.test_images) - 1, config.test_views).round().astype(int)

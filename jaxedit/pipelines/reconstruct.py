@@ -22,11 +22,14 @@ into the run directory:
 
 Initial points (``init``): "auto" takes the dataset's ``ply_file_path`` (as COLMAP's
 sparse cloud would) and, for a dataset without points, SIFT features of the training
-views triangulated at their known poses (jaxedit.capture.triangulate); where that
-cannot be done (no pycolmap, too few points) it says so and falls back to "random":
-``random_points`` points in the box where the training cameras' view frusta overlap,
-the most photo-consistent of 4x as many uniform candidates (jaxedit.capture.points).
-"triangulate" and "random" take those whatever the dataset holds.
+views triangulated at their known poses (jaxedit.capture.triangulate), topped up with
+random points to ``random_points`` when there are fewer (features cover the textured
+parts of a scene; the random points the rest); where triangulation cannot be done (no
+pycolmap, too few points) it says so and falls back to "random": ``random_points``
+points in the box where the training cameras' view frusta overlap, the most
+photo-consistent of 4x as many uniform candidates (jaxedit.capture.points).
+"triangulate" (the triangulated points alone) and "random" take those whatever the
+dataset holds.
 """
 
 from __future__ import annotations
@@ -70,8 +73,9 @@ class ReconstructConfig:
       normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not
         ("none").
       init: initial points: "auto" (the dataset's cloud, else triangulated at the known
-        poses, else random), "triangulate" (SIFT matches at the known poses, pycolmap) or
-        "random" (photo-consistent random points, the start before triangulation).
+        poses topped up with random points to ``random_points``, else random),
+        "triangulate" (SIFT matches at the known poses alone, pycolmap) or "random"
+        (photo-consistent random points, the start before triangulation).
       triangulation: how "triangulate" and "auto" triangulate the training views.
       random_points: initial points of the random start (photo-consistent random points
         where the training frusta overlap).
@@ -112,18 +116,21 @@ def resolve_downscale(path, config: ReconstructConfig) -> int:
     return dataset_downscale(path, config.downscale)
 
 
-#: Bytes a Gaussian costs in training at degree-3 SH: 59 float32 parameters, each with a
-#: gradient and two Adam moments, and the densification statistics (about 1 KiB).
-GAUSSIAN_BYTES = 1024
+def require_dataset_memory(path, downscale: int, max_gaussians: int, *, extra: float = 0.0,
+                           extra_what: str = "") -> None:
+    """DataError naming ``--downscale`` when fitting ``max_gaussians`` Gaussians to the views
+    of the dataset at ``path`` (:func:`jaxedit.memory.working_set`), with ``extra`` bytes
+    (``extra_what``, e.g. an editor's weights), would not fit in free memory: from
+    transforms.json and one image header, before any photo is decoded."""
+    from ..io.nerfstudio import nerfstudio_frame_count, nerfstudio_view_size
+    from ..memory import require_memory, working_set
 
-
-def working_set(num_views: int, height: int, width: int, channel_bytes: int,
-                max_gaussians: int) -> float:
-    """Estimated bytes of a reconstruction: the views on the host and on the device
-    (``channel_bytes`` 1 for uint8), one float32 copy of them (the random start and the
-    evaluation read float views) and the Gaussians at the cap."""
-    views = num_views * height * width * 3
-    return views * (2 * channel_bytes + 4) + max_gaussians * GAUSSIAN_BYTES
+    height, width = nerfstudio_view_size(path, downscale=downscale)
+    count, channel_bytes = nerfstudio_frame_count(path)
+    require_memory("--downscale", working_set(count, height, width, channel_bytes,
+                                              max_gaussians) + extra,
+                   f"{count} views of {width}x{height} and up to {max_gaussians} Gaussians "
+                   f"(--max-gaussians){extra_what}")
 
 
 def load_dataset(path, config: ReconstructConfig):
@@ -131,16 +138,9 @@ def load_dataset(path, config: ReconstructConfig):
     RGBA composited over the background, missing images); DataError if its images are too
     small or the run would not fit in memory (checked before any photo is decoded)."""
     from ..io import load_nerfstudio
-    from ..io.nerfstudio import nerfstudio_frame_count, nerfstudio_view_size
-    from ..memory import require_memory
 
     downscale = resolve_downscale(path, config)
-    height, width = nerfstudio_view_size(path, downscale=downscale)
-    count, channel_bytes = nerfstudio_frame_count(path)
-    require_memory("--downscale", working_set(count, height, width, channel_bytes,
-                                              config.train.densify.max_gaussians),
-                   f"{count} views of {width}x{height} and up to "
-                   f"{config.train.densify.max_gaussians} Gaussians (--max-gaussians)")
+    require_dataset_memory(path, downscale, config.train.densify.max_gaussians)
     data = load_nerfstudio(path, downscale=downscale, normalize=config.normalize,
                            background=composite_background(config.train.background),
                            skip_missing=config.skip_missing_images)
@@ -185,14 +185,13 @@ CARVE_BORDER_FRACTION = 0.5
 def initial_points(data, n_random: int, seed: int, background=None, *, init: str = "auto",
                    triangulation: TriangulateOptions = TriangulateOptions()):
     """(points [P, 3], colours [P, 3], source) by ``init`` (see the module docstring); source
-    is "dataset", "triangulated" or "random".
+    is "dataset", "triangulated", "triangulated+random" (the triangulated points first,
+    then ``n_random`` minus their count random ones) or "random".
 
     ``background`` (RGB, the training background): when at least
     :data:`CARVE_BORDER_FRACTION` of the training images' border pixels show it (an object
     on a uniform background), random candidates seen as background are carved away.
     """
-
-    from ..capture.points import background_fraction, random_points
 
     if init not in INITS:
         raise DataError("init", f"must be one of {', '.join(INITS)}, got {init!r}")
@@ -202,8 +201,22 @@ def initial_points(data, n_random: int, seed: int, background=None, *, init: str
         return np.asarray(data.points, np.float32), np.asarray(colors, np.float32), "dataset"
     if init in ("auto", "triangulate"):
         found = _triangulated(data, triangulation, required=init == "triangulate")
-        if found is not None:
+        if found is not None and (init == "triangulate" or len(found[0]) >= n_random):
             return (*found, "triangulated")
+        if found is not None:
+            extra = _random_start(data, n_random - len(found[0]), seed, background)
+            log.info("initial points: %d triangulated and %d random points", len(found[0]),
+                     len(extra[0]))
+            return (np.concatenate([found[0], extra[0]]), np.concatenate([found[1], extra[1]]),
+                    "triangulated+random")
+    return (*_random_start(data, n_random, seed, background), "random")
+
+
+def _random_start(data, n_random: int, seed: int, background):
+    """(points, colours): ``n_random`` photo-consistent random points where the training
+    views overlap, carved by ``background`` when their borders show it."""
+    from ..capture.points import background_fraction, random_points
+
     images, cameras = data.train()
     if background is not None and background_fraction(images, background) < CARVE_BORDER_FRACTION:
         background = None  # a scene photo, not an object on a background: no carving
@@ -212,7 +225,7 @@ def initial_points(data, n_random: int, seed: int, background=None, *, init: str
     if background is not None:
         log.info("initial points: %d random points carved by the background %s",
                  len(points), tuple(float(c) for c in background))
-    return points, colors, "random"
+    return points, colors
 
 
 def _triangulated(data, options: TriangulateOptions, *, required: bool):
