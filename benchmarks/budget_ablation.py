@@ -5,7 +5,7 @@
 
 (defaults: 8 seeds, every variant of VARIANTS.)
 
-The editing trainer's density control (:class:`jaxedit.edit.trainer.TrainSettings`) creates
+The editing trainer's density control (:class:`jaxedit.edit.trainer.EditTrainConfig`) creates
 at most t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N))) Gaussians per
 maintenance step (:func:`jaxedit.densify.creation_budget`; n culled at the previous one, N
 alive), every ``refine_every`` steps. The constants 16 / 0.02 / 0.1 are our own guesses
@@ -42,7 +42,7 @@ Variants (one constant changed; with N ~ 8.5k, ceil(0.02 N) ~ 170):
   this scene; 256 is a round value above that.
 
 Scores (held-out test views, renders vs the editor's noise-free target at r = 1):
-``psnr_vs_target``, ``ssim_vs_target`` (from :func:`jaxedit.pipelines.edit.run_edit`),
+``psnr_vs_target``, ``ssim_vs_target`` (from :func:`jaxedit.pipelines.edit_run.run_edit`),
 ``lpips_vs_target`` (LPIPS-VGG, when its weights are converted), ``multiview_consistency``,
 ``edit_fit_psnr``; the scene: ``final_gaussians``, ``created`` and ``culled`` (summed over
 every maintenance step of the edit), ``maintenance`` (maintenance steps), ``budget_bound``
@@ -180,14 +180,14 @@ def run_one(editor, data, scene, *, variant: str, seed: int, sizes: dict, lpips=
     """One progressive edit of ``variant`` and ``seed`` -> its record (scores, counts, cost)."""
     import numpy as np
 
-    from jaxedit.edit import ProEditConfig, TrainSettings
+    from jaxedit.edit import ProEditConfig, EditTrainConfig
     from jaxedit.edit.outputs import Renderer
     from jaxedit.pipelines import run_edit
 
     overrides = dict(VARIANTS[variant])
     if sizes["refine_every"] is not None:  # smoke: a period short enough to fire at all
         overrides.setdefault("refine_every", sizes["refine_every"])
-    settings = TrainSettings().replace_densify(**overrides)
+    settings = EditTrainConfig().replace_densify(**overrides)
     config = ProEditConfig.for_mode("proedit", max_steps=sizes["max_steps"],
                                     patience=sizes["patience"], warmup=sizes["warmup"],
                                     difficulty_views=sizes["difficulty_views"],

@@ -70,7 +70,7 @@ def main(argv=None):
     args = parse_args(__doc__.splitlines()[0], argv, extra)
     import jax
 
-    from jaxedit.edit import ProEditConfig, TrainSettings
+    from jaxedit.edit import ProEditConfig, EditTrainConfig
     from jaxedit.pipelines import run_edit
     from jaxedit_lab.simulated import SimulatedEditor
 
@@ -86,7 +86,7 @@ def main(argv=None):
                                      edit_every=5, asynchronous=asynchronous)
         t0 = time.perf_counter()
         out = run_edit(editor, "turn him into a bronze statue", data, scene, config=cfg,
-                       settings=TrainSettings(lr_sh_dc=0.025), seed=0, run_dir=None)
+                       settings=EditTrainConfig(lr_sh_dc=0.025), seed=0, run_dir=None)
         wall = time.perf_counter() - t0
         m = out["metrics"]
         u = m["utilisation"]

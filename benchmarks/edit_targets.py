@@ -103,7 +103,7 @@ def main(argv=None):
     from jaxedit.edit import ProEditConfig
     from jaxedit.edit.identity import IdentityFloor
     from jaxedit.io import read_image, write_image
-    from jaxedit.pipelines.edit import EditorConfig, EditRunConfig, edit_files
+    from jaxedit.pipelines.edit_run import EditorConfig, EditRunConfig, edit_files
 
     size, views, test_views, iters = (64, 8, 2, 60) if args.smoke else (256, 24, 4, 500)
     plan = dict(subtasks=1, consolidate=False, turntable_frames=0, asynchronous=False,

@@ -164,7 +164,7 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
     """The global and the local edit of one seed: (the seed's record, {name: renders})."""
     import jax
 
-    from jaxedit.edit import TrainSettings
+    from jaxedit.edit import EditTrainConfig
     from jaxedit.edit import local as L
     from jaxedit.errors import DataError
     from jaxedit.edit.hooks import NO_HOOKS
@@ -197,7 +197,7 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
         t0 = time.perf_counter()
         try:
             res = run_edit(editor, prompt, data, g, config=arm_config,
-                           settings=TrainSettings(), seed=seed, run_dir=None, report=False,
+                           settings=EditTrainConfig(), seed=seed, run_dir=None, report=False,
                            local=local, hooks=getattr(arm_config, "hooks", lambda: NO_HOOKS)())
         except DataError as e:   # the local plan has another subtask count than the global
             runs[name] = {"skipped": str(e)}

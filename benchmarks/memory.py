@@ -162,12 +162,12 @@ def train_step_stages(size: int, n_input: int, intersections: int,
     import numpy as np
 
     from jaxedit.camera import Camera
-    from jaxedit.edit.trainer import TrainSettings, resolve_max_gaussians
+    from jaxedit.edit.trainer import EditTrainConfig, resolve_max_gaussians
     from jaxedit.gaussians import Gaussians
     from jaxedit.models.memory import compiled_memory
     from jaxedit.train import Batch, apply_step, init_state
 
-    settings = resolve_max_gaussians(TrainSettings(), n_input)
+    settings = resolve_max_gaussians(EditTrainConfig(), n_input)
     capacity = int(settings.densify.max_gaussians)
     config = dataclasses.replace(settings.train_config(), sh_degree=3)
 

@@ -7,7 +7,7 @@
 fence, ball) are rendered at ``--size`` by the ray caster.
 
 Stages (make-scene and reconstruct are the in-process calls of those commands; the edit
-is the call the edit command makes, :func:`jaxedit.pipelines.edit.edit_files`, with a
+is the call the edit command makes, :func:`jaxedit.pipelines.edit_run.edit_files`, with a
 config tree, :func:`edit_config`; each stage directory is a complete, reproducible run
 directory of its command, whose config.json gives the command line)::
 
@@ -233,7 +233,7 @@ def _edit_extra(pairs: list[str]) -> dict:
 
 
 def edit_config(config: DemoConfig):
-    """The edit stage's :class:`jaxedit.pipelines.edit.EditRunConfig`: the edit command's
+    """The edit stage's :class:`jaxedit.pipelines.edit_run.EditRunConfig`: the edit command's
     defaults for the demo's mode, the demo's settings, then its ``edit_arg`` ones."""
     from jaxedit.edit.difficulty import lpips_weights_to_use
 
@@ -293,11 +293,11 @@ def _editor_warm_up(editor, edit_cfg, data: Path, seed: int) -> Callable[[], Non
 
 def _run_edit(run_cfg, argv: list[str], *, prompt: str, data: Path, scene: Path, out: Path,
               seed: int, quiet: bool, editor=None) -> None:
-    """The edit stage: :func:`jaxedit.pipelines.edit.edit_files`, the call the edit command
+    """The edit stage: :func:`jaxedit.pipelines.edit_run.edit_files`, the call the edit command
     makes, with the edit command's progress bars; ``out`` gets the config.json the edit
     command writes for ``argv``, the same run."""
     from experiments import cli
-    from jaxedit.pipelines.edit import edit_files
+    from jaxedit.pipelines.edit_run import edit_files
 
     from .edit import progress_callback
     from .editors import make_editor
@@ -347,7 +347,7 @@ def run(args) -> dict:
     def reconstruct():
         if config.reuse and (edit / "schedule.json").exists():
             return _run_stage(recon_argv)
-        from jaxedit.pipelines.edit import on_a_thread
+        from jaxedit.pipelines.edit_run import on_a_thread
 
         from .editors import make_editor
 

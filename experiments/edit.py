@@ -9,7 +9,7 @@ continues a crashed run; ``--resume-from SNAPSHOT_DIR`` continues from any
 snapshot with another schedule (more or fewer subtasks, another threshold).
 ``--view`` serves the scene in the browser while it is edited (``experiments/view.py``).
 
-Steering (the run as a tree, :mod:`jaxedit.pipelines.steer`): ``--from NODE --refine``
+Steering (the run as a tree, :mod:`jaxedit.pipelines.steer_run`): ``--from NODE --refine``
 redoes a step split in two, ``--from NODE --prompt TEXT`` (or another ``--seed``,
 ``--threshold``, ...) branches, ``--extend R_MAX`` goes past r = 1, ``--stop`` asks the
 running edit to stop after its subtask, ``--tree`` prints the tree; a branch reuses the run's
@@ -23,7 +23,7 @@ import dataclasses
 from pathlib import Path
 
 from jaxedit.errors import ranged
-from jaxedit.pipelines.edit import EditorConfig, EditRunConfig
+from jaxedit.pipelines.edit_run import EditorConfig, EditRunConfig
 
 from .editors import DEFAULT as DEFAULT_EDITOR
 
@@ -87,7 +87,7 @@ def _config_flags():
 @dataclasses.dataclass(frozen=True)
 class EditCommand:
     """What one ``edit`` command works on and does besides the edit's settings
-    (:class:`jaxedit.pipelines.edit.EditRunConfig`).
+    (:class:`jaxedit.pipelines.edit_run.EditRunConfig`).
 
     Attributes:
       preset: a method's whole config tree to start from (proedit, nd, in2n, igs2gs;
@@ -196,7 +196,7 @@ def _flag_sets():
     return _config_flags(), _command_flags(), distributed_flags()
 
 
-#: The command's flags: its settings' (:class:`jaxedit.pipelines.edit.EditRunConfig`), its
+#: The command's flags: its settings' (:class:`jaxedit.pipelines.edit_run.EditRunConfig`), its
 #: inputs' and actions' (:class:`EditCommand`) and the multi-process run's
 #: (:class:`jaxedit.parallel.distributed.DistributedConfig`), all generated from the trees.
 FLAGS = _flag_sets()
@@ -238,7 +238,7 @@ def add_clip_metrics(args) -> dict | None:
 
 
 def mode_defaults(mode: str):
-    """The :class:`jaxedit.pipelines.edit.EditRunConfig` the command runs for ``--mode``
+    """The :class:`jaxedit.pipelines.edit_run.EditRunConfig` the command runs for ``--mode``
     without other flags: the mode's preset (:mod:`jaxedit.pipelines.presets`)."""
     from jaxedit.pipelines.presets import preset
 
@@ -248,7 +248,7 @@ def mode_defaults(mode: str):
 
 
 def run_config(args):
-    """The :class:`jaxedit.pipelines.edit.EditRunConfig` of ``args``: the flags given over
+    """The :class:`jaxedit.pipelines.edit_run.EditRunConfig` of ``args``: the flags given over
     ``--preset``'s tree, else ``--mode``'s (:func:`mode_defaults`; DataErrors name its fields)."""
     base = mode_defaults(args.preset or args.mode)
     return FLAGS[0].build(args, bases={f.name: getattr(base, f.name)
@@ -392,8 +392,8 @@ def run_steering(args, kind: str) -> dict:
     from jaxedit import DataError
     from jaxedit.edit.difficulty import default_distance
     from jaxedit.edit.steer import parse_node
-    from jaxedit.pipelines import steer
-    from jaxedit.pipelines.edit import load_inputs
+    from jaxedit.pipelines import steer_run
+    from jaxedit.pipelines.edit_run import load_inputs
     from jaxedit.pipelines.report import write_report
 
     from .cli import parse
@@ -401,19 +401,20 @@ def run_steering(args, kind: str) -> dict:
     from .export import export_selected
 
     if kind == "tree":
-        print(steer.format_tree(args.out), flush=True)
+        print(steer_run.format_tree(args.out), flush=True)
         return {}
     if kind == "stop":
-        return {"stop_requested": str(steer.request_stop(args.out))}
-    steer.read_control(args.out)  # a garbled request: one line before anything
-    (args.out / steer.CONTROL_NAME).unlink(missing_ok=True)  # a valid one is stale: we hold the lock
+        return {"stop_requested": str(steer_run.request_stop(args.out))}
+    steer_run.read_control(args.out)  # a garbled request: one line before anything
+    # a valid one is stale: we hold the lock
+    (args.out / steer_run.CONTROL_NAME).unlink(missing_ok=True)
     given = {token.split("=", 1)[0][2:].replace("-", "_") for token in args._argv
              if token.startswith("--")}  # what this command line changes
     merged = parse(["edit", *recorded_settings(args.out), *args._argv[1:]])
     if merged.local != "off" or merged.region or merged.masks is not None:
         raise DataError("--from", "branches of a local edit are not supported yet")
     run_cfg = run_config(merged)
-    tree = steer.read_tree(args.out)
+    tree = steer_run.read_tree(args.out)
     if kind == "resume":
         if not args.resume:
             raise DataError("--branch", "names the branch --resume continues; add --resume")
@@ -436,7 +437,7 @@ def run_steering(args, kind: str) -> dict:
                                       "--threshold, --target-subtasks or --guidance (or "
                                       "--refine / --extend)")
         node = parse_node(args.from_node if args.from_node is not None else "-1")
-        branch = steer.plan_branch(args.out, tree, op, node, name=args.name,
+        branch = steer_run.plan_branch(args.out, tree, op, node, name=args.name,
                                    prompt=args.prompt if "prompt" in given else None,
                                    seed=merged.seed, settings=settings)
     scene = merged.scene if merged.scene is not None and Path(merged.scene).is_file() \
@@ -447,14 +448,14 @@ def run_steering(args, kind: str) -> dict:
     log(f"{branch.op} {branch.name} from {branch.parent}")
     progress = progress_callback(args.quiet)
     try:
-        out = steer.run_branch(editor, run_cfg, data, input_scene, args.out, branch,
+        out = steer_run.run_branch(editor, run_cfg, data, input_scene, args.out, branch,
                                distance=default_distance(run_cfg.distance, run_cfg.lpips_weights),
-                               resume=args.resume, stop=steer.stop_requested(args.out, log),
+                               resume=args.resume, stop=steer_run.stop_requested(args.out, log),
                                progress=progress, log=log)
     finally:
         progress.close()
     records = out["schedule"]["subtasks"]
-    folder = steer.branch_dir(args.out, branch.name)
+    folder = steer_run.branch_dir(args.out, branch.name)
     if merged.clip_weights is not None and not out["stopped"]:
         branch_clip_metrics(merged, args.out, folder, records)
     if not args.no_report:
@@ -462,7 +463,7 @@ def run_steering(args, kind: str) -> dict:
     exported = ([] if out["stopped"] else
                 export_selected(args.out, command_config(args).export, f"{branch.name}:-1", log))
     return {"exported": exported, "branch": branch.name, "op": branch.op, "parent": str(branch.parent),
-            "stopped": out["stopped"], "run_dir": str(steer.branch_dir(args.out, branch.name)),
+            "stopped": out["stopped"], "run_dir": str(steer_run.branch_dir(args.out, branch.name)),
             "subtasks": [{"index": r["index"], "ratio": r["ratio"], "kind": r["kind"],
                           "difficulty": r["difficulty"], "done": bool(r.get("snapshot"))}
                          for r in records]}
@@ -508,7 +509,7 @@ def run(args) -> dict:
     from jaxedit import DataError
     from jaxedit.parallel.distributed import split_edits
     from jaxedit.pipelines import select_snapshot
-    from jaxedit.pipelines.edit import edit_files
+    from jaxedit.pipelines.edit_run import edit_files
 
     from .rundirs import writes
     from .editors import make_editor
@@ -552,16 +553,17 @@ def run(args) -> dict:
         from .view import watch_edit
 
         watcher = watch_edit(args.out, port=args.view_port)
-    from jaxedit.pipelines import steer
+    from jaxedit.pipelines import steer_run
 
     progress = progress_callback(args.quiet)
     if watcher is not None:  # the running subtask in the viewer's panel too
         progress = watcher.viewer.following(progress)
     stop = None
     if writes(args):
-        steer.read_control(args.out)  # garbled: one line; a valid one is stale (we hold the lock)
-        (args.out / steer.CONTROL_NAME).unlink(missing_ok=True)
-        stop = steer.stop_requested(args.out, log)
+        # garbled: one line; a valid one is stale (we hold the lock)
+        steer_run.read_control(args.out)
+        (args.out / steer_run.CONTROL_NAME).unlink(missing_ok=True)
+        stop = steer_run.stop_requested(args.out, log)
     try:
         out = edit_files(run_cfg, args.prompt or "", args.data, args.scene, editor=editor,
                          stop=stop,

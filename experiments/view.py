@@ -12,7 +12,7 @@ of their lifted relevance (``local/gaussians.npz``: blue 0 .. red 1, the editabl
 Gaussians' set where the run kept only that; yellow: Gaussians the edit moved or created,
 all from editable ones), so the frozen part of the scene shows as what stayed bit for bit.
 
-A steered run (``tree.json``, :mod:`jaxedit.pipelines.steer`) adds a dropdown of its
+A steered run (``tree.json``, :mod:`jaxedit.pipelines.steer_run`) adds a dropdown of its
 branches: the slider runs over the chosen branch, from the original through its parent
 chain's snapshots up to its start, then its own (keep writes a branch node as
 ``select_snapshot(RUN, "b1:2")`` does). An ``edit`` run directory (with its config.json)
@@ -157,20 +157,20 @@ def branch_chains(run_dir: Path) -> dict[str, list[Snapshot]]:
     then its own finished subtasks. A run without tree.json: ``{"main": run_snapshots()}``.
     """
     from jaxedit import DataError
-    from jaxedit.pipelines import steer
+    from jaxedit.pipelines import steer_run
 
     run_dir = Path(run_dir)
     main = run_snapshots(run_dir)
-    if not (run_dir / steer.TREE_NAME).is_file():
+    if not (run_dir / steer_run.TREE_NAME).is_file():
         return {MAIN: main}
-    tree = steer.read_tree(run_dir)
+    tree = steer_run.read_tree(run_dir)
     try:
         own = {row["name"]: [Snapshot(node_label(row["name"], n), Path(n["snapshot"]),
                                       int(n["index"]), row["name"])
                              for n in row["nodes"] if n["snapshot"]]
-               for row in steer.tree_rows(run_dir) if row["name"] != MAIN}
+               for row in steer_run.tree_rows(run_dir) if row["name"] != MAIN}
     except (KeyError, TypeError, ValueError) as e:
-        raise DataError(run_dir / steer.BRANCHES, f"malformed branch schedule ({e})") from None
+        raise DataError(run_dir / steer_run.BRANCHES, f"malformed branch schedule ({e})") from None
     own[MAIN] = [s for s in main if s.subtask is not None]
     original = [s for s in main if s.subtask is None]
 
@@ -189,7 +189,7 @@ def relevance_of_run(run_dir: Path) -> dict | None:
     """A local edit's per-Gaussian relevance (``RUN_DIR/local/gaussians.npz``,
     :func:`jaxedit.edit.local.load_gaussian_relevance`), None for a global edit's run."""
     from jaxedit.edit.local import load_gaussian_relevance
-    from jaxedit.pipelines.edit import LOCAL_DIR
+    from jaxedit.pipelines.edit_run import LOCAL_DIR
 
     return load_gaussian_relevance(Path(run_dir) / LOCAL_DIR)
 
@@ -259,13 +259,13 @@ def branch_labels(run_dir: Path | None, names) -> dict[str, str]:
     grew from, e.g. ``b1 (refine of main:2)``, ``b2 (branch of b1:0: "patina")``; the main
     branch (and every branch of a run without a readable tree) is its name alone."""
     from jaxedit import DataError
-    from jaxedit.pipelines import steer
+    from jaxedit.pipelines import steer_run
 
     labels = {name: name for name in names}
-    if run_dir is None or not (Path(run_dir) / steer.TREE_NAME).is_file():
+    if run_dir is None or not (Path(run_dir) / steer_run.TREE_NAME).is_file():
         return labels
     try:
-        tree = steer.read_tree(run_dir)
+        tree = steer_run.read_tree(run_dir)
     except DataError:
         return labels
     for b in tree.branches:
@@ -396,7 +396,7 @@ class SnapshotViewer:
             self._add_steering(gui)
 
     def _add_steering(self, gui) -> None:
-        """The controls of :mod:`jaxedit.pipelines.steer` (an ``edit`` run directory only)."""
+        """The controls of :mod:`jaxedit.pipelines.steer_run` (an ``edit`` run directory only)."""
         with gui.add_folder("steer"):
             self._op_status = gui.add_markdown("")
             self._stop = gui.add_button("stop", hint="the running edit stops after its subtask")
@@ -590,7 +590,7 @@ class SnapshotViewer:
         (the refine / branch / extend buttons); None, with the reason in the panel, when it
         cannot start (another operation running, no node, a branch that changes nothing)."""
         from jaxedit import DataError
-        from jaxedit.pipelines.steer import read_tree
+        from jaxedit.pipelines.steer_run import read_tree
 
         with self._lock:
             node = self.node_on_screen()
@@ -676,9 +676,9 @@ class SnapshotViewer:
 
     def stop_edit(self) -> Path | None:
         """Ask the edit running in the run directory to stop after its current subtask
-        (:func:`jaxedit.pipelines.steer.request_stop`); the stop button's action."""
+        (:func:`jaxedit.pipelines.steer_run.request_stop`); the stop button's action."""
         from jaxedit import DataError
-        from jaxedit.pipelines.steer import request_stop
+        from jaxedit.pipelines.steer_run import request_stop
 
         try:
             path = request_stop(self.run_dir)

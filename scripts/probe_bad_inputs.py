@@ -152,7 +152,7 @@ def _surface_inputs(root: Path, scene: Path) -> None:
 
     from jaxedit.edit.checkpoint import save_checkpoint, snapshot_fingerprint
     from jaxedit.edit.state import EditState, LossTracker
-    from jaxedit.edit.trainer import SubtaskTrainer, TrainSettings
+    from jaxedit.edit.trainer import SubtaskTrainer, EditTrainConfig
     from jaxedit.editors.bundled import bundled_editor
     from jaxedit_lab.train_editor.tiny_ip2p import EditorTrainConfig
     from jaxedit.io import load_ply
@@ -237,7 +237,7 @@ def _surface_inputs(root: Path, scene: Path) -> None:
 
     # Edit run directories with a damaged checkpoint record, other data, bad snapshots.
     g = load_ply(scene)
-    train = SubtaskTrainer(TrainSettings(scene_extent=1.0), int(g.num_alive())).init(g)
+    train = SubtaskTrainer(EditTrainConfig(scene_extent=1.0), int(g.num_alive())).init(g)
     plan = [{"index": 0, "name": "r1", "ratio": 1.0, "difficulty": None, "kind": "edit"}]
 
     def edit_run(name: str, size: int = 16, finished=(), **record) -> Path:

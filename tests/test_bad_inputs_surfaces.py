@@ -468,14 +468,14 @@ def _edit_run(corpus, tmp_path: Path, *, size: int = 16, views: int = 3, finishe
     px) with its record overridden by ``record`` (``_DROP`` removes a key)."""
     from jaxedit.edit.checkpoint import KIND, save_checkpoint
     from jaxedit.edit.state import EditState, LossTracker
-    from jaxedit.edit.trainer import SubtaskTrainer, TrainSettings
+    from jaxedit.edit.trainer import SubtaskTrainer, EditTrainConfig
     from jaxedit.io import load_ply
     from jaxedit.io.checkpoint import read_pytree
 
     run = tmp_path / "run"
     run.mkdir(exist_ok=True)
     g = load_ply(corpus.scene)
-    train = SubtaskTrainer(TrainSettings(scene_extent=1.0), int(g.num_alive())).init(g)
+    train = SubtaskTrainer(EditTrainConfig(scene_extent=1.0), int(g.num_alive())).init(g)
     st = EditState.create(subtask=0, step=0, train=train,
                           images=np.zeros((views, size, size, 3), np.float32),
                           edited=np.zeros(views, bool), tracker=LossTracker.init(10),

@@ -229,7 +229,7 @@ def test_edit_refuses_what_cannot_fit_before_loading_the_editor_or_a_photo(tmp_p
                                                                            monkeypatch):
     import jaxedit.memory as mem
     from jaxedit.io import nerfstudio as ns
-    from jaxedit.pipelines.edit import EditorConfig, EditRunConfig, require_edit_memory
+    from jaxedit.pipelines.edit_run import EditorConfig, EditRunConfig, require_edit_memory
 
     rng = np.random.default_rng(5)
     d = _dataset(tmp_path / "d", [_photo(rng, 40, 1700) for _ in range(3)])
@@ -257,7 +257,7 @@ def test_edit_keeps_uint8_views_and_reads_the_same_floats(tmp_path):
     from jaxedit import gaussians as G
     from jaxedit.io import save_ply
     from jaxedit.io.views import FloatViews, device_float, stored_views
-    from jaxedit.pipelines.edit import EditRunConfig, load_inputs
+    from jaxedit.pipelines.edit_run import EditRunConfig, load_inputs
 
     rng = np.random.default_rng(3)
     d = _dataset(tmp_path / "d", [_photo(rng, 24, 32) for _ in range(9)])
@@ -286,7 +286,7 @@ def test_edit_keeps_uint8_views_and_reads_the_same_floats(tmp_path):
 def test_edit_loads_a_large_capture_at_the_size_reconstruct_picks(tmp_path):
     from jaxedit import gaussians as G
     from jaxedit.io import save_ply
-    from jaxedit.pipelines.edit import EditRunConfig, load_inputs
+    from jaxedit.pipelines.edit_run import EditRunConfig, load_inputs
 
     rng = np.random.default_rng(7)
     d = _dataset(tmp_path / "d", [_photo(rng, 40, 1700) for _ in range(3)])
@@ -340,7 +340,7 @@ def test_edit_and_triangulate_skip_missing_images_too(tmp_path, caplog):
     from jaxedit import gaussians as G
     from jaxedit.capture.triangulate import triangulate_dataset
     from jaxedit.io import save_ply
-    from jaxedit.pipelines.edit import EditRunConfig, load_inputs
+    from jaxedit.pipelines.edit_run import EditRunConfig, load_inputs
 
     rng = np.random.default_rng(8)
     d = _dataset(tmp_path / "d", [_photo(rng, 24, 32) for _ in range(5)])
@@ -571,7 +571,7 @@ def test_an_edit_of_uint8_views_is_bit_identical_to_one_of_their_floats():
     import jax
     from jaxedit import camera as cl
     from jaxedit import gaussians as gl
-    from jaxedit.edit import EditData, ProEditConfig, TrainSettings
+    from jaxedit.edit import EditData, ProEditConfig, EditTrainConfig
     from jaxedit.edit.outputs import Renderer
     from jaxedit.io.views import FloatViews
     from jaxedit.pipelines import run_edit
@@ -598,7 +598,7 @@ def test_an_edit_of_uint8_views_is_bit_identical_to_one_of_their_floats():
                  EditData.create(FloatViews(photos[train]), cams[train],
                                  FloatViews(photos[test]), cams[test])):
         runs.append(run_edit(SimulatedEditor(), "turn him into a bronze statue", data, g, config=cfg,
-                             settings=TrainSettings(lr_sh_dc=0.05), seed=3, run_dir=None))
+                             settings=EditTrainConfig(lr_sh_dc=0.05), seed=3, run_dir=None))
     for x, y in zip(jax.tree_util.tree_leaves(runs[0]["gaussians"]),
                     jax.tree_util.tree_leaves(runs[1]["gaussians"])):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

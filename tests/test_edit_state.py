@@ -15,7 +15,7 @@ from jaxedit.edit.buffer import Utilisation
 from jaxedit.edit.checkpoint import KIND, load_checkpoint, record_schema, save_checkpoint
 from jaxedit.edit.state import (DensityTally, DeviceState, EditState, HostState, LossTracker,
                                 track_loss)
-from jaxedit.edit.trainer import SubtaskTrainer, TrainSettings
+from jaxedit.edit.trainer import SubtaskTrainer, EditTrainConfig
 from jaxedit.io.checkpoint import FORMAT_VERSION, read_pytree
 
 PLAN = [{"index": 0, "name": "r1", "ratio": 1.0, "difficulty": None, "kind": "edit"}]
@@ -26,7 +26,7 @@ def state() -> tuple[EditState, object]:
     rng = np.random.default_rng(3)
     g = gl.from_points(rng.normal(size=(12, 3)), rng.uniform(size=(12, 3)), sh_degree=0)
     cams = cl.orbit(2, radius=4.0, width=8, height=8)
-    train = SubtaskTrainer(TrainSettings(scene_extent=1.0), int(g.num_alive())).init(g, cams)
+    train = SubtaskTrainer(EditTrainConfig(scene_extent=1.0), int(g.num_alive())).init(g, cams)
     tracker = LossTracker.init(3)
     for loss in (0.5, 0.25, 0.75, 0.125):
         tracker = track_loss(tracker, loss, min_delta=0.01)

@@ -14,7 +14,7 @@ import pytest
 from jaxedit import DataError
 from jaxedit import camera as cl
 from jaxedit import gaussians as gl
-from jaxedit.edit import EditData, ProEditConfig, TrainSettings
+from jaxedit.edit import EditData, ProEditConfig, EditTrainConfig
 from jaxedit.edit.difficulty import DifficultyOracle
 from jaxedit.edit.identity import (IdentityFloor, LowIdentityError, identity_problem,
                                    measure_identity)
@@ -189,7 +189,7 @@ def simulated_run(tiny, tmp_path_factory):
     # a refinement floor no real r_0 clears, so that its warning must be logged
     out = run_edit(SimulatedEditor(), PROMPT, data, g,
                    config=ProEditConfig.for_mode("proedit", **TINY),
-                   settings=TrainSettings(lr_sh_dc=0.05), seed=1, run_dir=run_dir,
+                   settings=EditTrainConfig(lr_sh_dc=0.05), seed=1, run_dir=run_dir,
                    log=lines.append, identity=IdentityFloor(refine_min_psnr=99.0))
     return run_dir, out, lines
 
@@ -278,7 +278,7 @@ def test_the_refinement_keeps_the_input_opacities_unless_asked(tiny, refine_rese
 
     g, data = tiny
     cfg = ProEditConfig.for_mode("proedit", **TINY, refine_reset=refine_reset)
-    trainer = SubtaskTrainer(TrainSettings(scene_extent=3.0), num_input=int(g.num_alive()),
+    trainer = SubtaskTrainer(EditTrainConfig(scene_extent=3.0), num_input=int(g.num_alive()),
                              warmup=cfg.warmup)
     ctx = EditContext.create(Identity(), PROMPT, data, cfg, trainer, Renderer(),
                              jax.random.key(0))

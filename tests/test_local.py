@@ -369,14 +369,14 @@ class Crash(RuntimeError):
 
 
 def _local_edit(ball, run_dir, editor=None, **kw):
-    from jaxedit.edit import ProEditConfig, TrainSettings
+    from jaxedit.edit import ProEditConfig, EditTrainConfig
     from jaxedit_lab.simulated import SimulatedEditor
     from jaxedit.pipelines import run_edit
 
     g, data = ball
     return run_edit(editor or SimulatedEditor(), LOCAL_PROMPT, data, g,
                     config=ProEditConfig.for_mode("proedit", **LOCAL_RUN),
-                    settings=TrainSettings(lr_sh_dc=0.05), seed=3, run_dir=run_dir,
+                    settings=EditTrainConfig(lr_sh_dc=0.05), seed=3, run_dir=run_dir,
                     report=False, local=L.LocalSpec("auto"), **kw)
 
 

@@ -1,7 +1,7 @@
 """The method presets: what ``edit --preset NAME --print-config`` prints is what the run uses.
 
 The oracle is the trainer the run builds (:func:`jaxedit.edit.progressive.make_trainer`, as
-:func:`jaxedit.pipelines.edit.run_edit` calls it) and the editor the command builds: their
+:func:`jaxedit.pipelines.edit_run.run_edit` calls it) and the editor the command builds: their
 settings are compared field by field with the printed tree.
 """
 
@@ -20,7 +20,7 @@ from experiments.editors import make_editor
 from jaxedit import gaussians as G
 from jaxedit import scenes
 from jaxedit.edit import progressive
-from jaxedit.edit.trainer import TrainSettings, default_max_gaussians
+from jaxedit.edit.trainer import EditTrainConfig, default_max_gaussians
 from jaxedit.pipelines.presets import PRESETS
 
 
@@ -90,5 +90,5 @@ def test_the_grad_threshold_flag_reaches_the_strategy_unchanged(scene):
 
 def test_library_modes_default_to_their_presets_trainer():
     for mode in ("proedit", "nd", "in2n"):
-        assert TrainSettings.for_mode(mode) == PRESETS[mode]().train
-    assert TrainSettings.for_mode("in2n") == TrainSettings().classic()
+        assert EditTrainConfig.for_mode(mode) == PRESETS[mode]().train
+    assert EditTrainConfig.for_mode("in2n") == EditTrainConfig().classic()

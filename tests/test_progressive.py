@@ -16,7 +16,7 @@ from hypothesis import given, settings, strategies as st
 from jaxedit import DataError
 from jaxedit import camera as cl
 from jaxedit import gaussians as gl
-from jaxedit.edit import EditData, ProEditConfig, TrainSettings, anneal_timestep, plan_subtasks
+from jaxedit.edit import EditData, ProEditConfig, EditTrainConfig, anneal_timestep, plan_subtasks
 from jaxedit.edit.state import EditState, LossTracker, apply_edits, track_loss
 from jaxedit.edit.subtask import train_view
 from jaxedit.edit.outputs import Renderer, reprojection_consistency
@@ -141,7 +141,7 @@ def tiny():
     return g, data, cams, images
 
 
-FAST = TrainSettings(lr_sh_dc=0.05)  # a few dozen steps must visibly move colours
+FAST = EditTrainConfig(lr_sh_dc=0.05)  # a few dozen steps must visibly move colours
 TINY = dict(warmup=6, patience=8, loss_window=4, max_steps=24, edit_every=3, checkpoint_every=5,
             subtasks=1, consolidate=False, asynchronous=False, turntable_frames=0)
 #: The sync run: the difficulty-aware scheduler picks two edit subtasks (not ND).
@@ -429,15 +429,15 @@ def test_edit_cap_defaults_to_twice_the_input_and_is_never_below_it():
     def cap(settings):
         return settings.densify.max_gaussians
 
-    capped = TrainSettings().replace_densify
-    assert cap(resolve_max_gaussians(TrainSettings(), 300_000)) == 600_000
+    capped = EditTrainConfig().replace_densify
+    assert cap(resolve_max_gaussians(EditTrainConfig(), 300_000)) == 600_000
     assert cap(resolve_max_gaussians(capped(max_gaussians=400_000), 300_000)) == 400_000
     with pytest.raises(DataError, match="max_gaussians"):
         resolve_max_gaussians(capped(max_gaussians=1000), 300_000)
-    trainer = SubtaskTrainer(TrainSettings(), num_input=250_000)
+    trainer = SubtaskTrainer(EditTrainConfig(), num_input=250_000)
     assert trainer.config.densify.max_gaussians == 500_000
     with pytest.raises(DataError, match="max_gaussians"):
-        SubtaskTrainer(TrainSettings())
+        SubtaskTrainer(EditTrainConfig())
 
 
 def test_difficulty_views_are_a_fixed_seeded_subset():
@@ -527,7 +527,7 @@ def test_work_on_a_thread_ends_with_the_block_and_its_error_is_raised_there():
     """on_a_thread (the chunk compile beside the schedule, the demo's editor warm-up beside
     the reconstruction): joined when the block ends; its error raised there, unless the
     block failed too, whose own error then goes first."""
-    from jaxedit.pipelines.edit import on_a_thread
+    from jaxedit.pipelines.edit_run import on_a_thread
 
     done, release = [], threading.Event()
     with on_a_thread(lambda: (release.wait(10), done.append(1))):

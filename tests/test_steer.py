@@ -19,7 +19,7 @@ from jaxedit.edit.steer import (Branch, NodeRef, RunTree, check_name, extend_ste
                                 parse_node, path_embeddings, refine_steps)
 from jaxedit.io import save_ply
 from jaxedit.io.files import folder_lock
-from jaxedit.pipelines import steer
+from jaxedit.pipelines import steer_run
 from jaxedit.pipelines.report import write_report
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -105,7 +105,7 @@ def test_a_branch_name_cannot_leave_the_run(name, tmp_path):
         check_name(name)
     if name != "main":  # the main branch's folder is the run's own
         with pytest.raises(DataError):
-            steer.branch_dir(tmp_path, name)
+            steer_run.branch_dir(tmp_path, name)
     with pytest.raises(DataError, match="--name"):
         RunTree().add(Branch(name, "branch", NodeRef(), NodeRef(), 0.0, "main"))
     entry = Branch("b1", "branch", NodeRef(), NodeRef(), 0.0, "main").to_json()
@@ -187,7 +187,7 @@ def test_refine_splits_the_step_and_recomputes_nothing_of_the_parent(run, tmp_pa
     # the parent's files are untouched; the branch has its own folder and tree entry
     assert {n: b for n, b in contents(out).items() if n in before and n != "difficulty.npz"} == \
         {n: b for n, b in before.items() if n != "difficulty.npz"}
-    tree = steer.read_tree(out)
+    tree = steer_run.read_tree(out)
     (b1,) = tree.branches
     assert (b1.op, b1.parent, b1.start) == ("refine", NodeRef("main", k), NodeRef("main", k - 1))
     sub = schedule(out / "branches" / "b1")
@@ -232,14 +232,14 @@ def test_the_same_branch_twice_gives_the_same_bytes_and_keep_selects_it(run, tmp
 
 def test_a_branch_starts_on_its_parents_buffers_and_compiles_no_training_step(
         run, tmp_path, monkeypatch):
-    import jaxedit.pipelines.edit as pipeline
+    import jaxedit.pipelines.edit_run as pipeline
     from jaxedit.compilation import compile_stats
 
     out = fresh_copy(run, tmp_path)
     record = schedule(out)["subtasks"][0]
     shapes = record["shapes"]
     assert shapes["capacity"] >= record["num_gaussians"] and shapes["max_intersections"] > 0
-    scene, got = steer.start_scene(out, NodeRef("main", 0))
+    scene, got = steer_run.start_scene(out, NodeRef("main", 0))
     assert got == shapes and scene.capacity == shapes["capacity"]
     seen = []
 
@@ -257,7 +257,7 @@ def test_a_branch_starts_on_its_parents_buffers_and_compiles_no_training_step(
     main = schedule(out)
     main["subtasks"][0].pop("shapes")
     (out / "schedule.json").write_text(json.dumps(main))
-    scene, got = steer.start_scene(out, NodeRef("main", 0))
+    scene, got = steer_run.start_scene(out, NodeRef("main", 0))
     assert got is None and scene.capacity == record["num_gaussians"]
 
 
@@ -269,19 +269,19 @@ def test_extend_goes_past_one(run, tmp_path):
     ratios = [r["ratio"] for r in sub["subtasks"]]
     assert sub["start_ratio"] == 1.0 and ratios[-1] == 1.5 and all(r > 1.0 for r in ratios)
     assert sub["subtasks"][-1]["kind"] == "consolidate"
-    assert sub["experimental"] == steer.EXPERIMENTAL  # marked in its schedule, tree, report
-    assert "far extend of main:" in steer.format_tree(out) and "(experimental)" in \
-        steer.format_tree(out)
+    assert sub["experimental"] == steer_run.EXPERIMENTAL  # marked in its schedule, tree, report
+    assert "far extend of main:" in steer_run.format_tree(out) and "(experimental)" in \
+        steer_run.format_tree(out)
     assert "extend (experimental)" in write_report(out).read_text()
 
 
 def test_stop_then_resume_gives_the_bytes_of_a_whole_run(run, tmp_path):
     """run_edit stopped after its second subtask, then resumed, ends as the run did."""
     from jaxedit.edit.steer import ROOT  # noqa: F401
-    from jaxedit.pipelines.edit import load_inputs
+    from jaxedit.pipelines.edit_run import load_inputs
     from experiments.edit import recorded_settings, run_config
     from experiments.editors import make_editor
-    from jaxedit.pipelines.edit import run_edit
+    from jaxedit.pipelines.edit_run import run_edit
     from jaxedit.edit.difficulty import default_distance
 
     args = cli.parse(["edit", *recorded_settings(run)])
@@ -310,10 +310,10 @@ def test_stop_request_and_its_refusals(run, tmp_path, capfd):
           snapshot=contents)
     with folder_lock(out):  # another process's running edit
         assert cli.main(["edit", "--out", str(out), "--stop"]) == 0
-        assert steer.read_control(out) == {"stop": True}
+        assert steer_run.read_control(out) == {"stop": True}
         fails(capfd, ["edit", "--out", out, "--from", "1", "--refine"], "in use", keep=out,
               snapshot=contents)
-    assert steer.stop_requested(out)() is True and steer.read_control(out) == {}
+    assert steer_run.stop_requested(out)() is True and steer_run.read_control(out) == {}
 
 
 def test_bad_steering_inputs_change_nothing(run, tmp_path, capfd):
@@ -337,15 +337,15 @@ def test_bad_steering_inputs_change_nothing(run, tmp_path, capfd):
             (["--from", "1", "--seed", "3", "--name", "main"], "reserved")):
         fails(capfd, ["edit", "--out", out, *argv, "--quiet"], needle, keep=out,
               snapshot=contents)
-    (out / steer.CONTROL_NAME).write_text("{not json")
+    (out / steer_run.CONTROL_NAME).write_text("{not json")
     fails(capfd, ["edit", "--out", out, "--from", "2", "--refine", "--quiet"], "control.json",
           keep=out, snapshot=contents)
-    (out / steer.CONTROL_NAME).unlink()
-    (out / steer.TREE_NAME).write_text('{"version": 1, "branches": [{"name": "x"}]}')
+    (out / steer_run.CONTROL_NAME).unlink()
+    (out / steer_run.TREE_NAME).write_text('{"version": 1, "branches": [{"name": "x"}]}')
     fails(capfd, ["edit", "--out", out, "--from", "2", "--refine", "--quiet"], "tree.json",
           keep=out, snapshot=contents)
     entry = Branch("up", "branch", NodeRef(), NodeRef(), 0.0, "main").to_json()
-    (out / steer.TREE_NAME).write_text(json.dumps({"version": 1, "branches": [
+    (out / steer_run.TREE_NAME).write_text(json.dumps({"version": 1, "branches": [
         dict(entry, name="../up")]}))
     fails(capfd, ["edit", "--out", out, "--tree"], "tree.json", keep=out, snapshot=contents)
 
@@ -386,18 +386,18 @@ class Tint:
 
 def test_a_new_instruction_branches_from_the_parents_embedding(run, tmp_path):
     from experiments.edit import recorded_settings, run_config
-    from jaxedit.pipelines.edit import load_inputs
+    from jaxedit.pipelines.edit_run import load_inputs
 
     out = fresh_copy(run, tmp_path)
     args = cli.parse(["edit", *recorded_settings(out)])
     config = run_config(args)
     data, scene = load_inputs(config, args.data, args.scene)
     editor = Tint()
-    tree = steer.read_tree(out)
-    branch = steer.plan_branch(out, tree, "branch", NodeRef("main", 2), prompt="make it gold",
+    tree = steer_run.read_tree(out)
+    branch = steer_run.plan_branch(out, tree, "branch", NodeRef("main", 2), prompt="make it gold",
                                seed=1)
     assert branch.path == "b1" and branch.from_ratio == 0.0
-    done = steer.run_branch(editor, config, data, scene, out, branch)
+    done = steer_run.run_branch(editor, config, data, scene, out, branch)
     r_k = schedule(out)["subtasks"][2]["ratio"]
     e_from = r_k * editor.encode(PROMPT)
     first = schedule(out / "branches" / "b1")["subtasks"][0]
@@ -406,10 +406,10 @@ def test_a_new_instruction_branches_from_the_parents_embedding(run, tmp_path):
     assert done["schedule"]["prompt"] == "make it gold"
     assert (out / "branches" / "b1" / "difficulty.npz").is_file()
     # its own refine reads the new path's memo: only the split's ratios are edited
-    tree = steer.read_tree(out)
+    tree = steer_run.read_tree(out)
     k = next(r["index"] for r in done["schedule"]["subtasks"] if r["kind"] == "edit")
-    refine = steer.plan_branch(out, tree, "refine", NodeRef("b1", k), seed=1)
+    refine = steer_run.plan_branch(out, tree, "refine", NodeRef("b1", k), seed=1)
     assert (refine.path, refine.start) == ("b1", NodeRef("main", 2) if k == 0 else NodeRef("b1", k - 1))
-    again = steer.run_branch(editor, config, data, scene, out, refine)
+    again = steer_run.run_branch(editor, config, data, scene, out, refine)
     views = done["schedule"]["difficulty"]["num_views"]
     assert again["schedule"]["editor_calls_for_schedule"] <= 4 * views

@@ -29,7 +29,7 @@ from experiments.cli import main
 from jaxedit import DataError
 from jaxedit.edit.steer import Branch, NodeRef, RunTree
 from jaxedit.io.files import folder_lock
-from jaxedit.pipelines import select_snapshot, steer
+from jaxedit.pipelines import select_snapshot, steer_run
 from jaxedit.gaussians import covariance, from_points, grow, splat_arrays
 from jaxedit.io import save_ply
 
@@ -188,7 +188,7 @@ def test_watcher_shows_each_snapshot_as_the_run_writes_it(tmp_path, viser_instal
 
 
 def add_branch(run, name, parent, start, records, rgb, seed):
-    """Branch ``name`` of ``run`` as steer.run_branch leaves it: tree.json's entry and its
+    """Branch ``name`` of ``run`` as steer_run.run_branch leaves it: tree.json's entry and its
     folder with one finished subtask per (ratio) in ``records``, all of colour ``rgb``."""
     folder = run / "branches" / name
     subtasks = [{"index": i, "name": f"s{i}", "kind": "edit", "ratio": r,
@@ -196,8 +196,8 @@ def add_branch(run, name, parent, start, records, rgb, seed):
                                             blob(seed + i, rgb))}
                 for i, r in enumerate(records)]
     (folder / "schedule.json").write_text(json.dumps({"prompt": "test", "subtasks": subtasks}))
-    tree = steer.read_tree(run).add(Branch(name, "refine", parent, start, 0.5, "main"))
-    steer.write_tree(run, tree)
+    tree = steer_run.read_tree(run).add(Branch(name, "refine", parent, start, 0.5, "main"))
+    steer_run.write_tree(run, tree)
 
 
 def make_steerable(run):
@@ -262,11 +262,11 @@ def test_stop_writes_the_control_file_only_while_an_edit_holds_the_run(tmp_path,
         viewer._stop_clicked(None)  # nothing runs: refused in the panel
         assert viewer._op_status.content.startswith("error: ") and "no edit is running" in \
             viewer._op_status.content
-        assert not (run / steer.CONTROL_NAME).exists()
+        assert not (run / steer_run.CONTROL_NAME).exists()
         with folder_lock(run):  # an edit (another process) holds the run
             viewer._stop_clicked(None)
         assert viewer._op_status.content.startswith("stop requested")
-        assert json.loads((run / steer.CONTROL_NAME).read_text()) == {"stop": True}
+        assert json.loads((run / steer_run.CONTROL_NAME).read_text()) == {"stop": True}
     finally:
         viewer.close()
 
@@ -441,7 +441,7 @@ def test_refine_button_really_refines_a_tiny_run(tiny_run, tmp_path, viser_insta
     finally:
         viewer.close()
     assert viewer._op_status.content == "refine b1 finished"
-    rows = steer.tree_rows(run)
+    rows = steer_run.tree_rows(run)
     assert [(r["name"], r["op"], r["parent"], r["status"]) for r in rows[1:]] == [
         ("b1", "refine", f"main:{k}", "done")]
     # The view moved to the new branch: its last node, after main's up to the refined step.
@@ -622,7 +622,7 @@ def test_edit_view_serves_on_steerable_once_the_edit_released_the_run(
     d, seen = tiny_run.parent, {}
 
     def serve(viewer):  # instead of blocking until Ctrl-C: what the user would find
-        seen.update(locked=steer._locked(out), branches=viewer.branches(), shown=len(viewer),
+        seen.update(locked=steer_run._locked(out), branches=viewer.branches(), shown=len(viewer),
                     steerable=viewer.steerable)
 
     monkeypatch.setattr(view.SnapshotViewer, "serve_forever", serve)

@@ -7,12 +7,13 @@ from .hooks import NO_HOOKS, EditHooks
 from .difficulty import DifficultyOracle, default_distance, l1_distance, ms_ssim_distance
 from .plan import ProEditConfig, SubtaskSpec, anneal_timestep, plan_subtasks
 from .schedule import Schedule, decompose, decompose_root, prune_ratios, spread, uniform
-from .trainer import TrainSettings
+from .trainer import EditTrainConfig
 
 __all__ = [
     "AsyncEditSource", "EditContext", "EditData", "EditHooks", "EditJob", "EditedView",
     "EditorThreadError", "NO_HOOKS", "SweepEditSource",
-    "ProEditConfig", "SubtaskSpec", "SyncEditSource", "TrainSettings", "Utilisation", "anneal_timestep",
+    "ProEditConfig", "SubtaskSpec", "SyncEditSource", "EditTrainConfig", "Utilisation",
+    "anneal_timestep",
     "plan_subtasks",
     "DifficultyOracle", "Schedule", "decompose",
     "decompose_root", "default_distance", "l1_distance",

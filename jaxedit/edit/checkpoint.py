@@ -62,7 +62,7 @@ def record_schema(legacy: bool = False) -> dict:
     return schema
 
 
-#: The run's own part of it (:func:`jaxedit.pipelines.edit.run_edit` writes it).
+#: The run's own part of it (:func:`jaxedit.pipelines.edit_run.run_edit` writes it).
 RUN_META = {"plan": (list, True), "header": (dict, True), "wall_time_s": (_NUMBER, False)}
 
 

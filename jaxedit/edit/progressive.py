@@ -8,7 +8,7 @@ density control under a hard cap (3.3 (2)), until the loss plateaus or a guard f
 ``proedit`` (difficulty-aware schedule), ``nd`` (one edit subtask 0 -> 1, the paper's
 ablation), ``in2n`` (Instruct-NeRF2NeRF on 3DGS). Every random draw folds (subtask,
 purpose, step) into one key, so a resumed run ends with the same bits. Nothing here writes
-a file: :func:`jaxedit.pipelines.edit.run_edit` passes callbacks to :func:`run_plan`.
+a file: :func:`jaxedit.pipelines.edit_run.run_edit` passes callbacks to :func:`run_plan`.
 """
 
 from __future__ import annotations
@@ -31,13 +31,13 @@ from .outputs import image_scores, scene_metrics
 from .plan import ProEditConfig, SubtaskSpec, plan_subtasks, step_guard, subtask_limits
 from .state import EditState, finish_subtask
 from .subtask import run_subtask
-from .trainer import SubtaskTrainer, TrainSettings
+from .trainer import SubtaskTrainer, EditTrainConfig
 
 #: Default threshold = d(0, 1) / 4 (paper: ~4 subtasks for texture edits).
 DEFAULT_SUBTASKS = 4
 
 
-def make_trainer(config: ProEditConfig, settings: TrainSettings, data: EditData,
+def make_trainer(config: ProEditConfig, settings: EditTrainConfig, data: EditData,
                  gaussians, editable=None) -> SubtaskTrainer:
     """The editing trainer of a run: ``settings`` as given, completed by the plan (warm-up
     W, background) and the scene (extent from the training cameras when unset); ``editable``:

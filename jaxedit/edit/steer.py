@@ -13,7 +13,7 @@ a new instruction p' from a node at ratio r on its parent's path starts a path o
 - ``extend`` node k: past the path's end, r in (r_k, r_max] (:func:`extend_steps`),
   experimental: e(r) extrapolates beyond the instruction.
 
-Nothing here reads or writes a file (:mod:`jaxedit.pipelines.steer` does).
+Nothing here reads or writes a file (:mod:`jaxedit.pipelines.steer_run` does).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The trainer of a subtask: :mod:`jaxedit.train`'s pure steps with ProEdit's density control.
 
-:class:`TrainSettings` declares its knobs and makes the :class:`jaxedit.train.TrainConfig`.
+:class:`EditTrainConfig` declares its knobs and makes the :class:`jaxedit.train.TrainConfig`.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ CLASSIC_RESET_EVERY = 3000
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainSettings:
+class EditTrainConfig:
     """Optimisation settings of the editing trainer (Splatfacto learning rates, constant).
 
     Attributes:
@@ -53,18 +53,18 @@ class TrainSettings:
     lr_opacity: float = TrainConfig.lr_opacity
 
     @classmethod
-    def for_mode(cls, mode: str, **changes) -> "TrainSettings":
+    def for_mode(cls, mode: str, **changes) -> "EditTrainConfig":
         """The settings of editing mode ``mode`` with ``changes``: IN2N's (in2n) classic
         density control, else ProEdit's budgeted one."""
         settings = cls(**changes)
         return settings.classic() if mode == "in2n" else settings
 
-    def classic(self) -> "TrainSettings":
+    def classic(self) -> "EditTrainConfig":
         """These settings with classic 3DGS density control (IN2N): no creation budget, a
         periodic opacity reset."""
         return self.replace_densify(budget=False, reset_every=CLASSIC_RESET_EVERY)
 
-    def replace_densify(self, **changes) -> "TrainSettings":
+    def replace_densify(self, **changes) -> "EditTrainConfig":
         """These settings with ``densify``'s fields ``changes`` replaced."""
         return dataclasses.replace(self, densify=dataclasses.replace(self.densify, **changes))
 
@@ -93,7 +93,7 @@ def default_max_gaussians(num_input: int) -> int:
     return max(2 * int(num_input), int(num_input) + CAP_MIN_ROOM)
 
 
-def resolve_max_gaussians(settings: TrainSettings, num_input: int) -> TrainSettings:
+def resolve_max_gaussians(settings: EditTrainConfig, num_input: int) -> EditTrainConfig:
     """``settings`` with its cap resolved for an input of ``num_input`` Gaussians (never below)."""
     cap = settings.densify.max_gaussians
     if cap is None:
@@ -110,7 +110,7 @@ class SubtaskTrainer:
     fresh density statistics and clock).
     """
 
-    def __init__(self, settings: TrainSettings = TrainSettings(), num_input: int | None = None,
+    def __init__(self, settings: EditTrainConfig = EditTrainConfig(), num_input: int | None = None,
                  *, background=ProEditConfig.background, warmup: int = ProEditConfig.warmup,
                  editable=None):
         """``num_input``: the input's Gaussian count the cap is resolved against

@@ -6,7 +6,7 @@
 below writes no run directory: it hands records and states to callbacks.
 """
 
-from .edit import EditorConfig, EditRunConfig, edit_files, make_editor, run_edit
+from .edit_run import EditorConfig, EditRunConfig, edit_files, make_editor, run_edit
 from .snapshots import select_snapshot
 
 __all__ = ["EditRunConfig", "EditorConfig", "edit_files", "make_editor", "run_edit",

@@ -16,15 +16,15 @@ from __future__ import annotations
 from typing import Callable
 
 from ..edit.plan import ProEditConfig
-from ..edit.trainer import TrainSettings
+from ..edit.trainer import EditTrainConfig
 from ..errors import DataError
-from .edit import EditRunConfig
+from .edit_run import EditRunConfig
 
 
 def _mode(mode: str, **plan) -> EditRunConfig:
     """Mode ``mode``'s plan (with ``plan`` changes) and trainer."""
     return EditRunConfig(plan=ProEditConfig.for_mode(mode, **plan),
-                         train=TrainSettings.for_mode(mode))
+                         train=EditTrainConfig.for_mode(mode))
 
 
 #: name -> a function building that method's whole :class:`EditRunConfig`.

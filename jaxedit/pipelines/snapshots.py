@@ -96,7 +96,7 @@ def snapshot_ratio(directory: Path) -> float:
         raise DataError(path, f"malformed snapshot metrics ({e})") from None
 
 
-#: A steered run's branches' folders (RUN/branches/NAME, :mod:`jaxedit.pipelines.steer`).
+#: A steered run's branches' folders (RUN/branches/NAME, :mod:`jaxedit.pipelines.steer_run`).
 BRANCHES = "branches"
 
 

@@ -97,7 +97,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxedit.edit import EditData, TrainSettings
+from jaxedit.edit import EditData, EditTrainConfig
 from jaxedit.edit.outputs import Renderer
 from jaxedit.edit.plan import anneal_horizon
 from jaxedit.editors.diffusion import DDIM_STEPS
@@ -109,7 +109,7 @@ from jaxedit.io import write_image
 from jaxedit.io.files import atomic_write_text
 from jaxedit.viz import image_grid
 from jaxedit.pipelines.cache import prepared_scene
-from jaxedit.pipelines.edit import run_edit
+from jaxedit.pipelines.edit_run import run_edit
 from jaxedit_lab.ablation.methods import (BANDS, CONTROL_METHODS, FOLLOWERS, MAIN_METHODS, METHODS, TARGET_SUBTASKS,
                       TARGET_SUBTASKS_DEFAULT, CallLog, edits_per_subtask,
                       method_config, periodic_exchanges, sweep_agreement, timestep_bands)
@@ -489,7 +489,7 @@ def run_ablation(out: Path, config: AblationConfig = AblationConfig(), *, recon_
         data = EditData.from_dataset(dataset)
         test_idx = np.asarray(dataset.test_indices) if len(dataset.test_indices) else \
             np.asarray(dataset.train_indices)
-        settings = TrainSettings(lr_sh_dc=config.lr_sh_dc, sh_degree=scene.sh_degree
+        settings = EditTrainConfig(lr_sh_dc=config.lr_sh_dc, sh_degree=scene.sh_degree
                                  ).replace_densify(refine_every=config.refine_every)
         n_views = len(data.train_images)
         for label, ed in editors.items():

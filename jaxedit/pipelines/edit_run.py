@@ -41,7 +41,7 @@ from ..edit.outputs import Renderer
 from ..edit.state import EditState, begin_subtask, init_state
 from ..edit.subtask import compile_chunk
 from ..edit.plan import ProEditConfig
-from ..edit.trainer import TrainSettings, resolve_max_gaussians
+from ..edit.trainer import EditTrainConfig, resolve_max_gaussians
 from ..errors import DataError, check_ranges, ranged
 from ..editors.diffusion import DDIM_STEPS
 from ..io import load_nerfstudio, load_ply, load_scene
@@ -54,7 +54,7 @@ from .snapshots import snapshot_ratio
 
 @dataclasses.dataclass(frozen=True)
 class EditStart:
-    """Where a branch of an edit run begins (:mod:`jaxedit.pipelines.steer` builds it).
+    """Where a branch of an edit run begins (:mod:`jaxedit.pipelines.steer_run` builds it).
 
     Attributes:
       scene: the Gaussians of the parent's snapshot.
@@ -172,7 +172,7 @@ class EditRunConfig:
     Attributes:
       plan: the edit's plan (:class:`jaxedit.edit.plan.ProEditConfig`; its mode's
         defaults from :meth:`ProEditConfig.for_mode`).
-      train: the editing trainer (:class:`jaxedit.edit.trainer.TrainSettings`).
+      train: the editing trainer (:class:`jaxedit.edit.trainer.EditTrainConfig`).
       editor: the 2D editor (:class:`EditorConfig`).
       distance: difficulty distance (auto or lpips: LPIPS as in the paper, with the bundled
         AlexNet weights or ``lpips_weights``; ms-ssim).
@@ -188,7 +188,7 @@ class EditRunConfig:
     """
 
     plan: ProEditConfig = ProEditConfig()
-    train: TrainSettings = TrainSettings()
+    train: EditTrainConfig = EditTrainConfig()
     editor: EditorConfig = EditorConfig()
     identity: IdentityFloor = IdentityFloor()
     distance: str = "auto"
@@ -293,7 +293,7 @@ def on_a_thread(fn: Callable, *args):
 
 
 def edit_context(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
-                 settings: TrainSettings | None = None, seed: int = 0, local=None,
+                 settings: EditTrainConfig | None = None, seed: int = 0, local=None,
                  hooks: EditHooks = NO_HOOKS, resume_from=None, start: EditStart | None = None,
                  log: Callable[[str], None] = lambda msg: None) -> tuple[EditContext, object]:
     """(the run's :class:`EditContext`, its local plan or None): the prompt and the local
@@ -301,7 +301,7 @@ def edit_context(editor, prompt: str, data: EditData, gaussians, *, config: ProE
     if not str(prompt).strip() and config.mode != "in2n":
         raise DataError("prompt", "empty instruction")
     # the cap is checked before the local plan's work, whose editable set the trainer takes
-    settings = resolve_max_gaussians(settings or TrainSettings.for_mode(config.mode),
+    settings = resolve_max_gaussians(settings or EditTrainConfig.for_mode(config.mode),
                                      int(gaussians.num_alive()))
     _, editor_device = pick_devices()
     # The prompt is encoded once per run: here when the local plan's relevance needs it
@@ -347,7 +347,7 @@ class EditSetup(NamedTuple):
 
 
 def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
-                 settings: TrainSettings | None = None, seed: int = 0, resume_from=None,
+                 settings: EditTrainConfig | None = None, seed: int = 0, resume_from=None,
                  distance: Callable | None = None, local=None, hooks: EditHooks = NO_HOOKS,
                  identity: IdentityFloor | None = IdentityFloor(),
                  start: EditStart | None = None, memo: Path | None = None,
@@ -407,7 +407,7 @@ def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProE
 
 
 def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditConfig,
-             settings: TrainSettings | None = None, seed: int = 0,
+             settings: EditTrainConfig | None = None, seed: int = 0,
              run_dir: str | os.PathLike | None = None, resume: bool = False,
              resume_from: str | os.PathLike | None = None, select=None,
              callback: Callable | None = None, progress: Callable | None = None,
@@ -422,7 +422,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
       data: original photos and cameras (train views edited, test views held out).
       gaussians: the input scene (a reconstruction of ``data``).
       config / settings: plan and trainer knobs (settings None: the mode's,
-        :meth:`TrainSettings.for_mode`).
+        :meth:`EditTrainConfig.for_mode`).
       seed: the run seed (every random draw derives from it).
       run_dir: where schedule.json, metrics.json, snapshots and the checkpoint go
         (None: in memory only, no files).

@@ -26,7 +26,7 @@ from ..edit.steer import (ROOT, Branch, NodeRef, RunTree, check_name, extend_ste
 from ..errors import DataError
 from ..io import load_scene
 from ..io.files import LOCK_NAME, atomic_write_text
-from .edit import ORACLE_NAME, EditRunConfig, EditStart, run_edit
+from .edit_run import ORACLE_NAME, EditRunConfig, EditStart, run_edit
 from .snapshots import BRANCHES, branch_folder as branch_dir
 
 TREE_NAME = "tree.json"
@@ -198,7 +198,7 @@ def run_branch(editor, config: EditRunConfig, data: EditData, input_scene, run_d
                stop: Callable[[], bool] | None = None, progress=None,
                log: Callable[[str], None] = lambda m: None) -> dict:
     """Run ``branch`` (new: added to the tree first; ``resume``: from its checkpoint) in
-    ``RUN/branches/NAME``; returns :func:`jaxedit.pipelines.edit.run_edit`'s summary.
+    ``RUN/branches/NAME``; returns :func:`jaxedit.pipelines.edit_run.run_edit`'s summary.
 
     Nothing of the parent is recomputed: the branch starts from the parent's snapshot, and
     its path's difficulty edits are read from the memo. A DataError before training leaves
@@ -304,7 +304,7 @@ def read_control(run_dir) -> dict:
 
 
 def stop_requested(run_dir, log: Callable[[str], None] = lambda m: None) -> Callable[[], bool]:
-    """``stop()`` for :func:`jaxedit.pipelines.edit.run_edit`: True once ``--stop`` asked
+    """``stop()`` for :func:`jaxedit.pipelines.edit_run.run_edit`: True once ``--stop`` asked
     (the request is then removed); a garbled request is logged and ignored mid-run."""
     path = Path(run_dir) / CONTROL_NAME
 
