@@ -242,7 +242,8 @@ def test_edit_refuses_what_cannot_fit_before_loading_the_editor_or_a_photo(tmp_p
     # The cap: --max-gaussians, else the default for the input scene's count.
     views = mem.working_set(3, 20, 850, 1, 10_005)
     monkeypatch.setattr(mem, "available_memory", lambda: views + 200_000)
-    require_edit_memory(EditRunConfig(), d, 5, editor_loaded=False)  # simulated: no weights
+    simulated = EditRunConfig(editor=EditorConfig(kind="simulated"))  # the lab's: no weights
+    require_edit_memory(simulated, d, 5, editor_loaded=False)
     require_edit_memory(config, d, 5)  # the editor is loaded already: free memory says so
     with pytest.raises(DataError, match="--downscale.*3 views of 850x20.*10005 Gaussians "
                                         r"\(--max-gaussians\) and the editor's weights"):

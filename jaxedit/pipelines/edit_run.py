@@ -213,7 +213,8 @@ def require_edit_memory(config: EditRunConfig, data_path, num_input: int, *,
     from ..memory import weight_file_bytes
     from .reconstruct import require_dataset_memory
 
-    editor = 0 if editor_loaded or config.editor.kind == "simulated" else weight_file_bytes(
+    # only the library's InstructPix2Pix editors have weight files it knows of
+    editor = 0 if editor_loaded or config.editor.kind not in EDITORS else weight_file_bytes(
         config.editor.weights or bundled_editor())
     cap = config.train.densify.max_gaussians or default_max_gaussians(num_input)
     downscale = config.downscale or auto_downscale(*nerfstudio_photo_size(data_path))

@@ -32,8 +32,11 @@ class ControlConfig(ProEditConfig):
         (every ``edit_every`` steps) or a tuple of ``(step, count, timestep)``: at ``step``
         steps after the warm-up edit the next ``count`` views of the cyclic order, at
         ``timestep`` (None: annealed by the step) (:class:`ScheduledEditSource`).
+      refine_reset: the method's field, on here: the registered study resets the opacities
+        at r_0 as at every other subtask, the protocol its seeds were run with.
     """
 
+    refine_reset: bool = True
     nd_subtasks: int = 1
     subtask_steps: tuple[int, ...] | None = None
     edit_plan: tuple | None = None
