@@ -60,7 +60,7 @@ BACKGROUND_TOLERANCE = 0.02
 
 
 def background_fraction(images, background) -> float:
-    """Fraction of the images' border pixels within :data:`BACKGROUND_TOLERANCE` of ``background``."""
+    """Fraction of the border pixels within :data:`BACKGROUND_TOLERANCE` of ``background``."""
     images = np.asarray(images)
     border = np.concatenate([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
     bg = np.asarray(background, np.float64)

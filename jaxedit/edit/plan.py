@@ -26,7 +26,7 @@ class ProEditConfig:
       schedule_method: "bisect" (paper) or "root" (optimistix placement).
       max_depth: bisection depth limit (:data:`jaxedit.edit.schedule.MAX_DEPTH`).
       refine_first: first run the extra subtask r_0 = 0, refining with the editor (appendix B).
-      refine_reset: start r_0 with the opacity reset too (off: its faded renders would be its targets).
+      refine_reset: start r_0 with the opacity reset too (off: it would train to faded renders).
       consolidate: last run the extra subtask r_n = 1, consolidating the edit (appendix B).
       warmup: W, steps after the opacity reset without densify/cull.
       patience: P, steps without a new minimum of the running mean loss.
