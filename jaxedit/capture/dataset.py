@@ -1,26 +1,11 @@
 """A COLMAP reconstruction as a nerfstudio dataset, written the way ``ns-process-data`` does.
 
-Conventions (those of nerfstudio's ``colmap_to_json``, so that nerfstudio and
-jaxedit both read the result):
-
-* COLMAP gives OpenCV world-to-camera poses; ``transform_matrix`` is the OpenGL
-  camera-to-world (camera y and z flipped), in a world rotated by
-  ``applied_transform`` = [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0]] (COLMAP's
-  y-down world becomes z-up). The sparse points (``sparse_pc.ply``) are in that
-  same rotated world.
-* One shared camera: OPENCV intrinsics (``fl_x fl_y cx cy k1 k2 p1 p2``) for the
-  radial models, PINHOLE for the pinhole ones, at the top level.
-* ``images/frame_00001.png`` ... (1-based, in the sorted order of the inputs; a photo
-  whose EXIF orientation is not "as stored" is written upright as PNG, since COLMAP
-  reads the stored pixels and ignores the tag, then the poses and the loader agree) and
-  area-averaged copies ``images_2/``, ``images_4/``; the COLMAP database and
-  models stay in ``colmap/``. Frames that SfM could not register stay in
-  ``images/`` but are not listed in ``transforms.json``. Each frame made from a
-  photo keeps its photo's file name as ``original_file_path`` (nerfstudio's
-  loader ignores keys it does not know).
-
-The dataset is staged in a temporary folder beside the output and renamed into
-place when complete: a failure leaves nothing behind.
+As nerfstudio's ``colmap_to_json``: ``transform_matrix`` is the OpenGL camera-to-world in a
+world rotated by ``applied_transform`` (COLMAP's y-down world becomes z-up), as are the
+points (``sparse_pc.ply``); one shared OPENCV or PINHOLE camera at the top level; frames
+``images/frame_00001.png`` ... (EXIF-rotated photos written upright as PNG, as COLMAP
+reads the stored pixels), ``images_2/``, ``images_4/`` copies, COLMAP's files in
+``colmap/``; unregistered frames are not listed. Staged, so a failure leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -147,16 +132,13 @@ def min_registered(num_images: int, fraction: float) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class CaptureConfig:
-    """``process-data``'s settings: structure from motion, a video's frames, the floor of
-    registered views.
+    """``process-data``'s settings.
 
     Attributes:
       sfm: structure-from-motion settings (:class:`~jaxedit.capture.sfm.SfmOptions`).
-      triangulation: settings of ``--triangulate``, points for a posed dataset
-        (:class:`~jaxedit.capture.triangulate.TriangulateOptions`).
+      triangulation: settings of ``--triangulate`` (points for a posed dataset).
       num_frames: a video is cut into this many windows and the sharpest frame of each is kept.
-      min_registered: fewer registered views than this fraction of the images (or fewer than
-        3) is an error: such a model covers too little of the capture.
+      min_registered: fewer registered views than this fraction of the images (or 3) is an error.
     """
 
     sfm: SfmOptions = SfmOptions()
@@ -175,11 +157,9 @@ def process_capture(out_dir: str | os.PathLike, sources: list, *, options: SfmOp
 
     Args:
       out_dir: the dataset folder; must not exist or be empty.
-      sources: image files (copied byte for byte; upright PNGs of photos with an EXIF
-        orientation) and/or uint8 [H, W, 3] frames (PNG), in order.
+      sources: image files and/or uint8 [H, W, 3] frames (PNG), in order.
       options: SfM settings (:class:`SfmOptions`).
-      min_fraction: fewer registered views than this fraction of the images (or fewer
-        than 3) is an error: such a model covers too little of the capture.
+      min_fraction: fewer registered views than this fraction of the images (or 3) is an error.
       downscales: factors of the ``images_<f>/`` copies.
       report: progress callback ``(stage, done, total)``; stages "extract", "match",
         "map", "write".

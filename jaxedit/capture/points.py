@@ -1,23 +1,9 @@
-"""Starting points for a dataset that has none (no SfM cloud): photo-consistent random points.
+"""Starting points for a dataset without an SfM cloud: photo-consistent random points.
 
-Splatfacto starts such scenes from uniform random points in a fixed cube. Two
-things make that work better here:
-
-1. **where**: the box where the training cameras' view frusta overlap
-   (:func:`view_box`), which holds whatever they all film -- the box of the
-   camera centres misses an object that cameras circle from above;
-2. **which**: of ``oversample`` x more uniform candidates in that box, keep those
-   whose colours agree best across the views that see them (lowest variance),
-   coloured by their mean. Points on a surface see one colour from every side,
-   points in free space see unrelated pixels: this is the photo-consistency test
-   of voxel colouring, without its occlusion bookkeeping;
-3. **carving**: when the images show an object on a known uniform ``background``
-   (renders, RGBA captures composited over a colour), a candidate that projects
-   onto a background pixel in any view lies on a ray that hits nothing: it is in
-   free space, and is dropped (the visual hull of space carving). Without this,
-   free-space candidates that see the background in every view are the most
-   photo-consistent of all, and train into background-coloured floaters that
-   cover the object in held-out views.
+Uniform candidates in the box the cameras' frusta share (:func:`view_box`); the ones whose
+colours agree best across the views that see them are kept (voxel colouring's test), and
+with a uniform ``background`` those seen as background by any view are carved away (else
+they train into background-coloured floaters).
 """
 
 from __future__ import annotations
@@ -46,10 +32,8 @@ def _project(points: np.ndarray, cameras: Camera):
 def view_box(cameras: Camera, *, grid: int = 32, min_fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The box where the cameras' view frusta overlap: where a scene they all film must be.
 
-    A ``grid``^3 lattice fills a cube around the camera centres (twice their spread
-    each way); each lattice point counts the cameras that see it (in front, inside
-    the image); the box bounds the points seen by at least ``min_fraction`` of the
-    best-seen point's count, padded by half a lattice cell.
+    Bounds the points of a ``grid``^3 lattice seen by at least ``min_fraction`` of the
+    best-seen point's camera count.
 
     Args:
       cameras: batched Camera [N].
@@ -76,11 +60,7 @@ BACKGROUND_TOLERANCE = 0.02
 
 
 def background_fraction(images, background) -> float:
-    """Fraction of the images' border pixels within :data:`BACKGROUND_TOLERANCE` of ``background``.
-
-    An object filmed against a uniform background (a render, an RGBA capture) has
-    borders of that colour; a photo of a scene does not.
-    """
+    """Fraction of the border pixels within :data:`BACKGROUND_TOLERANCE` of ``background``."""
     images = np.asarray(images)
     border = np.concatenate([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
     bg = np.asarray(background, np.float64)
@@ -90,8 +70,7 @@ def background_fraction(images, background) -> float:
 def _score(points: np.ndarray, images: np.ndarray, cameras: Camera, background):
     """(variance float64 [P], mean colour float64 [P, 3], views that see each point int [P]).
 
-    The variance is inf for points that cannot be tested (seen by fewer than two
-    views) and for carved ones (seen as ``background`` by a view): they rank last.
+    The variance is inf (ranked last) for points seen by < 2 views or carved.
     """
     cols, rows, inside = _project(points, cameras)
     views = np.arange(len(images))[:, None]
@@ -112,17 +91,15 @@ def random_points(images, cameras: Camera, num_points: int, key: jax.Array, *,
                   max_rounds: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Photo-consistent random starting points (see the module docstring).
 
-    Candidates are drawn in rounds of ``num_points * oversample`` until that many are
-    testable and not carved, or ``max_rounds`` rounds were drawn (carving may reject
-    most of the box); the ``num_points`` lowest-variance candidates are kept.
+    Rounds of ``num_points * oversample`` candidates are drawn until that many are testable
+    (or ``max_rounds``); the ``num_points`` lowest-variance ones are kept.
 
     Args:
       images: float [N, H, W, 3] training images; cameras: batched Camera [N] (same N).
       num_points: points returned.
       key: PRNG key of the candidate draws.
       oversample: candidates drawn per point kept (1: plain uniform points, random colours).
-      background: RGB of a uniform background that the images show around the scene, or
-        None: candidates seen as background by any view are carved (ranked last).
+      background: RGB of a uniform background around the scene (carves), or None.
       max_rounds: most rounds of candidates drawn.
     Returns:
       (points float32 [num_points, 3], colours float32 [num_points, 3] in [0, 1]).

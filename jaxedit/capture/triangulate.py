@@ -1,21 +1,10 @@
 """Points for a posed dataset that has none: SIFT features triangulated at the known poses.
 
-A ``transforms.json`` from instant-ngp, Polycam or Record3D often has poses but no
-point cloud. The poses are known, so COLMAP does not need to map: it extracts SIFT
-features, matches them between views that can see the same things, and triangulates
-the matches at the given poses (COLMAP's ``point_triangulator``), leaving cameras and
-poses untouched. The points are what a COLMAP capture starts 3DGS from.
-
-The views are the loaded ones (:class:`jaxedit.io.Dataset`: undistorted, cropped,
-downscaled, PINHOLE intrinsics, OpenCV world-to-camera), so the points come out in
-the frame of those cameras -- the dataset's (normalised) world -- with no conversion:
-the loader has already turned nerfstudio's OpenGL camera-to-world into them
-(:func:`jaxedit.camera.opengl_c2w_to_opencv_w2c`), and COLMAP's ``cam_from_world`` is
-OpenCV world-to-camera too. Pixel centres sit at integer + 0.5 in both.
-
-Pairs: each view is matched with its ``neighbors`` nearest cameras (by centre), and
-with every view when there are few, since the poses say which views are close.
-pycolmap is imported only inside the functions (the optional extra ``capture``).
+COLMAP extracts SIFT features, matches each view with its ``neighbors`` nearest cameras
+and triangulates at the given poses (``point_triangulator``), leaving the cameras alone.
+The views are the loaded ones (:class:`jaxedit.io.Dataset`, OpenCV world-to-camera, as is
+COLMAP's ``cam_from_world``), so the points come out in the dataset's world. pycolmap is
+imported only inside the functions (the optional extra ``capture``).
 """
 
 from __future__ import annotations
@@ -38,21 +27,14 @@ class TriangulateOptions:
     Attributes:
       neighbors: views each view is matched with (its nearest camera centres).
       max_features: SIFT features per view.
-      peak_threshold: SIFT's contrast threshold (COLMAP's default is 1/150); lower finds
-        more features on smooth, small views.
-      feature_side: views whose long side is shorter are enlarged for SIFT (bicubic, by the
-        integer factor, at most 4, that brings it to at least this; the intrinsics follow):
-        SIFT finds few features in a small view.
+      peak_threshold: SIFT's contrast threshold (lower finds more features on smooth views).
+      feature_side: views whose long side is shorter are enlarged (at most 4x) for SIFT.
       min_track: fewest views that must see a point for it to be kept.
       max_error: largest mean reprojection error in pixels of a kept point.
       min_points: fewer points than this is an error (too little texture or overlap).
-      num_threads: COLMAP threads extracting, matching and triangulating (-1: all cores).
-        One gives the same points on every run (and in every process of a multi-process
-        reconstruction); with more, COLMAP's threads change a few of them.
+      num_threads: COLMAP threads (-1: all cores; only 1 gives the same points every run).
       seed: COLMAP's random seed (RANSAC).
-      max_side: ``process-data --triangulate`` reads the photos at the power-of-two downscale
-        that brings their long side to at most this (nerfstudio's rule); ``reconstruct``
-        triangulates its training views as loaded.
+      max_side: ``process-data --triangulate`` downscales the photos' long side to at most this.
     """
 
     neighbors: int = ranged(20, low=1)
@@ -214,9 +196,7 @@ def triangulate_dataset(path, *, options: TriangulateOptions = TriangulateOption
                         skip_missing: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """Points triangulated at the poses of the nerfstudio dataset at ``path``.
 
-    Every listed view is read (not normalised: the points are in transforms.json's world,
-    where ``ply_file_path`` lives) at the downscale that brings the long side to at most
-    ``options.max_side``.
+    Every listed view is read unnormalised, long side at most ``options.max_side``.
 
     Returns:
       (points float32 [P, 3], colours float32 [P, 3] in [0, 1], a summary: ``num_points``,
@@ -241,10 +221,8 @@ def triangulate_dataset(path, *, options: TriangulateOptions = TriangulateOption
 def write_dataset_points(path, points, colors) -> Path:
     """Write ``points`` as the ``ply_file_path`` of the nerfstudio dataset at ``path``.
 
-    The cloud goes to :data:`POINTS_FILE` beside transforms.json, then transforms.json is
-    rewritten with ``ply_file_path`` (both atomically; the cloud is removed again when the
-    json cannot be written). A dataset that already has points, or a :data:`POINTS_FILE`
-    it does not list, is refused: nothing of the user's is overwritten.
+    Writes :data:`POINTS_FILE`, then transforms.json (both atomically); a dataset that
+    already has points, or an unlisted :data:`POINTS_FILE`, is refused.
 
     Returns:
       the path of the cloud.

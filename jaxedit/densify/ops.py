@@ -1,12 +1,6 @@
-"""The named pure operations of density control, on Gaussians and optimiser state.
-
-As gsplat's ``strategy/ops.py``: each is usable alone, and
-:func:`jaxedit.densify.strategy.adaptive` composes them: cull (:func:`cull_mask`,
-:func:`remove`), rank (:func:`select`), :func:`split`, duplicate (:func:`place`), reset
-(:func:`opacity_reset`, :func:`zero_moments`), and capacity growth outside jit
-(:func:`grown_capacity`, :func:`grow_state`). All work on the fixed-capacity ``alive``
-layout, so no shape depends on data.
-"""
+"""The named pure operations of density control (as gsplat's ``strategy/ops.py``): cull,
+rank, split, duplicate, reset and capacity growth outside jit, on the fixed-capacity
+``alive`` layout, composed by :func:`jaxedit.densify.strategy.adaptive`."""
 
 from __future__ import annotations
 
@@ -29,10 +23,7 @@ def _is_gaussians(x) -> bool:
 
 
 def _map_gaussian_nodes(fn, tree):
-    """Apply ``fn(name, array) -> array`` to every array field of every Gaussians node.
-
-    Other leaves (counts, ``optax.partition``'s ``MaskedNode``s) are left alone.
-    """
+    """Apply ``fn(name, array) -> array`` to every array field of every Gaussians node."""
 
     def on_node(node):
         if not _is_gaussians(node):
@@ -203,9 +194,8 @@ def split(g: Gaussians, mask: jax.Array, key: jax.Array, factor: float
     """Split the Gaussians of ``mask`` [C] in two, drawn from the parent's distribution.
 
     Returns:
-      (g with each split parent replaced by its first child, rows [C] holding the second
-      children at split rows and ``g``'s own elsewhere). Children's scales are divided by
-      ``factor``.
+      (g with split parents replaced by their first child, rows [C]: the second children
+      at split rows, ``g``'s own elsewhere); children's scales divided by ``factor``.
     """
     eps = jax.random.normal(key, (g.capacity, 2, 3), g.means.dtype)
     offsets = jnp.einsum("cij,ckj->cki", g.rotations(), eps * jnp.exp(g.log_scales)[:, None, :],

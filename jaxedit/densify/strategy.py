@@ -1,6 +1,4 @@
-"""The density-control strategy: settings and the ``(init, update)`` pair (:func:`adaptive`),
-built once per :class:`DensifyConfig` by name through :func:`strategy_for`.
-"""
+"""The density-control strategy: settings and the ``(init, update)`` pair (:func:`adaptive`)."""
 
 from __future__ import annotations
 
@@ -65,13 +63,8 @@ class Strategy(NamedTuple):
 # -- Creation budget t(n, N) -----------------------------------------------------------
 
 def creation_budget(*, min_new: int, growth: float, max_fraction: float) -> BudgetFn:
-    """ProEdit's creation budget, paper section 3.3::
-
-        t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N)))
-
-    ``n``: culled at the previous maintenance, ``N``: alive. Re-creating ``n`` moves
-    capacity from faded Gaussians to high-gradient regions; ``growth`` adds a geometric
-    trickle, ``max_fraction`` bounds one step, ``min_new`` lets a tiny scene grow.
+    """ProEdit's creation budget (paper 3.3), ``n`` culled at the previous maintenance, ``N``
+    alive: t(n, N) = max(min_new, min(floor(max_fraction N), n + ceil(growth N))).
 
     Returns:
       a jit-able function (n int [], N int []) -> int32 [].
@@ -102,8 +95,7 @@ def nothing_done(capacity: int, alive) -> DensifyInfo:
 
 @dataclasses.dataclass(frozen=True)
 class DensifyConfig:
-    """Density control settings and their defaults (Splatfacto / INRIA 3DGS);
-    :func:`adaptive` turns them into a strategy.
+    """Density control settings and their defaults (Splatfacto / INRIA 3DGS).
 
     Attributes:
       enabled: False turns density control off (no maintenance, no resets).
@@ -115,19 +107,16 @@ class DensifyConfig:
       grad_threshold: classic mode: mean NDC gradient norm needed to refine.
       grad_floor: budget mode: candidates need a mean gradient strictly above this.
       refine_every: steps between two density maintenances.
-      warmup: steps before the first maintenance (None: set by the caller; an edit's is its
-        plan's W).
+      warmup: steps before the first maintenance (None: set by the caller).
       stop_at: last step with maintenance and opacity resets (None: half the iterations).
-      refine_from_warmup: maintenance at ``warmup, warmup + refine_every, ...`` (ProEdit's W)
-        instead of INRIA's multiples of ``refine_every`` above ``warmup``.
+      refine_from_warmup: maintenance from ``warmup`` on (ProEdit's W), not at multiples.
       reset_every: opacity reset period (0 disables).
       cull_alpha: cull opacity below this.
       reset_value: opacity after a periodic reset (None: ``2 * cull_alpha``).
       dense_percent: duplicate if max scale <= this * scene_extent, else split.
       split_factor: children's scales are the parent's divided by this.
       cull_scale: cull if max scale > this * scene_extent (None disables).
-      cull_screen: cull if the screen radius reached this fraction of max(W, H), after the
-        first opacity reset (None disables).
+      cull_screen: cull if the screen radius reached this fraction of max(W, H) (None disables).
       strategy: the registered name of the strategy that reads these (:func:`register_strategy`).
     """
 
@@ -190,15 +179,10 @@ def _built(make, config: DensifyConfig, iterations: int) -> Strategy:
 def adaptive(config: DensifyConfig, *, iterations: int) -> Strategy:
     """3DGS adaptive density control with an optional ProEdit creation budget.
 
-    ``update`` accumulates each step's statistics; at maintenance steps (``step >
-    warmup``, every ``refine_every``, until ``stop_at``; from ``warmup`` itself with
-    ``refine_from_warmup``) it culls (low opacity, too large in the world or, after the
-    first reset, on screen), then splits large and duplicates small high-gradient
-    candidates, at most ``min(free slots, max_gaussians - alive)`` and, with the budget,
-    t(n, N) (:func:`creation_budget`); changed slots' moments are zeroed. Every
-    ``reset_every`` steps opacities are clamped to ``reset_value``. When free slots bind
-    below the cap, ``info.capacity_limited`` and ``info.slots_needed`` tell the caller to
-    grow (:func:`jaxedit.densify.ops.grow_state`) and redo the pure step.
+    At maintenance steps ``update`` culls, then splits large and duplicates small
+    high-gradient candidates (at most the free slots, the cap and t(n, N)); every
+    ``reset_every`` steps opacities are clamped. ``info.capacity_limited`` asks the caller
+    to grow (:func:`jaxedit.densify.ops.grow_state`) and redo the step.
 
     Args:
       config: the :class:`DensifyConfig`.

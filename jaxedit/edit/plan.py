@@ -1,9 +1,5 @@
-"""The plan of a ProEdit run: its configuration and its subtasks (paper 3.1, 3.3).
-
-A run is the sequence r_0 (refine, e(0)) -> r_1 ... r_n -> consolidate (e(1));
-:func:`plan_subtasks` lays it out from the scheduler's ratios and
-:func:`anneal_timestep` is the SDEdit timestep within a subtask (HiFA's annealing).
-"""
+"""The plan of a ProEdit run: its configuration, its subtasks r_0 -> r_1 ... r_n -> consolidate
+and the SDEdit timestep annealing within a subtask (paper 3.1, 3.3)."""
 
 from __future__ import annotations
 
@@ -23,48 +19,35 @@ class ProEditConfig:
     """Knobs of a progressive edit (defaults follow the paper where it gives a value).
 
     Attributes:
-      mode: "proedit" (difficulty-aware schedule), "nd" (one subtask 0 -> 1) or "in2n"
-        (the Instruct-NeRF2NeRF baseline).
-      threshold: d_threshold of the scheduler, a mean distance per view (None:
-        ``target_subtasks``, else d(0, 1) / 4).
+      mode: "proedit" (difficulty-aware), "nd" (one subtask 0 -> 1) or "in2n" (baseline).
+      threshold: the scheduler's d_threshold (None: ``target_subtasks``, else d(0, 1) / 4).
       target_subtasks: find the threshold that gives this many subtasks.
       subtasks: override with N uniform ratios.
       schedule_method: "bisect" (paper) or "root" (optimistix placement).
       max_depth: bisection depth limit (:data:`jaxedit.edit.schedule.MAX_DEPTH`).
       refine_first: first run the extra subtask r_0 = 0, refining with the editor (appendix B).
-      refine_reset: start r_0 with the opacity reset of every other subtask (3.3 (1)); off
-        (default), r_0 starts from the input's opacities: it changes no geometry, and its
-        targets are edits of its own renders, so a reset scene's faded renders would
-        become what it trains towards.
+      refine_reset: start r_0 with the opacity reset too (off: it would train to faded renders).
       consolidate: last run the extra subtask r_n = 1, consolidating the edit (appendix B).
       warmup: W, steps after the opacity reset without densify/cull.
       patience: P, steps without a new minimum of the running mean loss.
       loss_window: length of the running mean.
       min_delta: relative decrease that counts as "decreased".
-      max_steps: per-subtask step guard bounding the plateau test (None:
-        :func:`subtask_guard` of the scene).
+      max_steps: per-subtask step guard (None: :func:`subtask_guard` of the scene).
       max_seconds: per-subtask wall-clock guard, not reproducible (None: none).
-      anneal_steps: N of the HiFA annealing, in steps after the warm-up (None:
-        :func:`anneal_horizon`).
+      anneal_steps: N of the HiFA annealing after the warm-up (None: :func:`anneal_horizon`).
       timestep_range: (t_min, t_max) of SDEdit (paper 0.45-0.85).
-      guidance: (text, image) classifier-free guidance scales (None: the editor's own,
-        :func:`jaxedit.editors.editor_guidance`).
+      guidance: (text, image) classifier-free guidance scales (None: the editor's own).
       edit_every: trainer steps between edits in the deterministic mode.
-      sweep_every: edit every view every that many steps after the warm-up (Instruct-GS2GS)
-        instead of one view every ``edit_every`` (None); not with ``asynchronous``.
+      sweep_every: edit every view every this many steps (None: one per ``edit_every``).
       initial_sweep: edit every view at the start of a subtask (deterministic mode).
-      pipelined: make the deterministic edits on a worker thread beside the trainer, same
-        bits (:class:`jaxedit.edit.buffer.PipelinedEditSource`); False: inline.
-      asynchronous: a producer thread instead of the deterministic schedule, faster when
-        the editor has a device of its own but not reproducible.
+      pipelined: make the deterministic edits on a worker thread, same bits (False: inline).
+      asynchronous: a producer thread instead of the deterministic schedule (not reproducible).
       checkpoint_every: steps between checkpoints inside a subtask.
-      difficulty_views: size of the seeded subset of training views the difficulty is taken
-        over (None: all, up to :data:`jaxedit.edit.difficulty.DIFFICULTY_VIEWS`).
+      difficulty_views: seeded subset of views the difficulty is taken over (None: default).
       curve_points: grid size of the reported d(0, r) curve.
       turntable_frames: frames of each snapshot's turntable (0: none).
       background: render background (the editor sees renders on it).
-      stop_on_plateau: end a subtask on the loss plateau (ProEdit); False runs exactly
-        ``max_steps`` (IN2N).
+      stop_on_plateau: end a subtask on the loss plateau (False: run ``max_steps``, IN2N).
     """
 
     mode: str = "proedit"
@@ -177,19 +160,15 @@ def anneal_timestep(step: int, total: int, t_min: float, t_max: float) -> float:
 
 #: The smallest step guard of a subtask (what every scene gets at least).
 GUARD_MIN_STEPS = 600
-#: Epochs over the training views the guard allows at the reference resolution (an
-#: assumption: the paper bounds a subtask only in time).
+#: Epochs over the training views the guard allows at the reference resolution.
 GUARD_EPOCHS = 20
 #: The side (sqrt of pixels) the epoch count is meant for; the guard grows above it.
 GUARD_REFERENCE_SIDE = 256
 
 
 def subtask_guard(num_views: int, height: int, width: int) -> int:
-    """The default ``max_steps`` guard of a scene with ``num_views`` training views of H x W.
-
-    ``max(GUARD_MIN_STEPS, GUARD_EPOCHS * num_views * max(1, sqrt(H W) / 256))``: the same
-    passes per view whatever the view count, more at high resolution.
-    """
+    """The default ``max_steps`` of a scene with ``num_views`` views of H x W:
+    ``max(GUARD_MIN_STEPS, GUARD_EPOCHS * num_views * max(1, sqrt(H W) / 256))``."""
     side = math.sqrt(float(height) * float(width)) / GUARD_REFERENCE_SIDE
     return max(GUARD_MIN_STEPS, int(math.ceil(GUARD_EPOCHS * num_views * max(1.0, side))))
 

@@ -7,12 +7,8 @@ A normalised undistorted point (x, y) = ((u - cx) / fx, (v - cy) / fy) maps to
     x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
     y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
 
-(OpenCV's model; COLMAP's ``OPENCV`` uses k1, k2, p1, p2, nerfstudio all six).
-Undistorting an image needs only this forward map: pixel (u, v) of the result
-samples the input at ``K distort(K^-1 (u, v))``, same K. Points need the inverse
-(:func:`undistort_points`, Newton). Where pincushion distortion leaves pixels
-without a source (:func:`source_inside`), :func:`valid_rectangle` finds a crop
-in which none is made up.
+Undistorting an image samples the input at ``K distort(K^-1 (u, v))`` (same K);
+:func:`valid_rectangle` crops to the pixels that have a source.
 """
 
 from __future__ import annotations
@@ -66,12 +62,10 @@ def undistort_points(xy_d: np.ndarray, d: Distortion, *, iterations: int = 20,
     Args:
       xy_d: float [..., 2] normalised distorted points.
       d: the distortion coefficients.
-      iterations: Newton steps at most (convergence is quadratic; 5-10 are
-        enough for real lenses inside the image).
+      iterations: Newton steps at most.
     Returns:
-      float [..., 2] undistorted points p with ``distort_points(p) ~= xy_d``.
-      Points where the model is not invertible (outside its monotone range)
-      come back as the last iterate; check with ``distort_points`` if needed.
+      float [..., 2] undistorted points p with ``distort_points(p) ~= xy_d`` (the last
+      iterate where the model is not invertible).
     """
     xy_d = np.asarray(xy_d, np.float64)
     xy = xy_d.copy()
@@ -92,11 +86,8 @@ def undistort_points(xy_d: np.ndarray, d: Distortion, *, iterations: int = 20,
 def bilinear_sample(image: np.ndarray, u: np.ndarray, v: np.ndarray, fill) -> np.ndarray:
     """Sample ``image`` float [H, W, C] at continuous pixel coordinates.
 
-    Coordinates follow the camera convention (pixel centres at integer + 0.5):
-    (u, v) = (0.5, 0.5) is the centre of the top-left pixel. Samples within the
-    image rectangle [0, W] x [0, H] clamp to the edge pixels; samples outside it
-    get ``fill`` (float [C]).
-    Returns float [*u.shape, C].
+    Pixel centres at integer + 0.5; samples inside [0, W] x [0, H] clamp to the edge
+    pixels, outside get ``fill`` (float [C]). Returns float [*u.shape, C].
     """
     from scipy import ndimage  # scipy ships with scikit-image
 
@@ -140,10 +131,8 @@ def source_inside(height: int, width: int, fx: float, fy: float, cx: float, cy: 
 def valid_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1): an axis-aligned rectangle ``mask[y0:y1, x0:x1]`` that is all True.
 
-    Starting from the whole image, the side whose row or column holds the most False
-    pixels moves in by one until none is left inside (greedy: large, not always the
-    largest). A mask that is True everywhere gives (0, 0, W, H); an all-False one an
-    empty rectangle (x0 == x1 or y0 == y1).
+    Greedy (large, not always the largest): the side holding the most False pixels moves
+    in; an all-False mask gives an empty rectangle (x0 == x1 or y0 == y1).
     """
     mask = np.asarray(mask, bool)
     h, w = mask.shape
@@ -174,8 +163,7 @@ class Remap(NamedTuple):
     and applied to every image of one camera (:func:`remap_table`, :func:`apply_remap`).
 
     Attributes:
-      matrix: scipy.sparse CSR float32 [M, S]: each output pixel's 4 bilinear weights over
-        the S source pixels (a sparse product is the fastest gather NumPy has).
+      matrix: scipy.sparse CSR float32 [M, S]: each output pixel's 4 bilinear weights.
       inside: bool [M], the samples inside the source rectangle (others get ``fill``).
       shape: the output's (height, width) and the source's (height, width).
     """
@@ -249,8 +237,7 @@ def undistort_image(image: np.ndarray, fx: float, fy: float, cx: float, cy: floa
       fx, fy, cx, cy: intrinsics in pixels (pixel centres at integer + 0.5).
       d: distortion coefficients.
       fill: value [C] for pixels whose source falls outside the captured image.
-      table: :func:`undistortion_table` of these intrinsics and size, to reuse over the
-        images of one camera (built here when None).
+      table: :func:`undistortion_table` to reuse over one camera's images (None: built here).
     Returns:
       float32 [H, W, C], :func:`bilinear_sample` at the distorted positions.
     """

@@ -1,47 +1,16 @@
 """nerfstudio ``transforms.json`` datasets: load them, write them.
 
-The format (see reference.md section 2): a JSON object with intrinsics at the
-top level or per frame (``fl_x fl_y cx cy w h camera_model`` and optional
-distortion ``k1 k2 k3 k4 p1 p2``), a list of ``frames`` each with a
-``file_path`` (relative to the json) and a ``transform_matrix`` (4x4 OpenGL
-camera-to-world: x right, y up, looking down -z), and optionally
-``ply_file_path`` (initial points) and ``train_filenames`` / ``val_filenames``
-/ ``test_filenames``.
-
-What :func:`load_nerfstudio` does, in order (and why):
-
-* Frames are sorted by ``file_path``, as nerfstudio does, so that the held-out
-  views of the default split are the ones a nerfstudio user gets.
-* Camera models: PINHOLE, SIMPLE_PINHOLE and OPENCV. OPENCV images are
-  **undistorted on load** by an exact remap (forward distortion model +
-  bilinear resampling, :mod:`jaxedit.io.distortion`) that keeps the declared
-  intrinsics, then **cropped** to a rectangle of pixels that all have a source
-  inside the photo (``cx``, ``cy`` and the size follow the crop), so no pixel is
-  made up. OPENCV_FISHEYE, EQUIRECTANGULAR and anything else are refused with a
-  :class:`DataError`, as is a PINHOLE camera that declares non-zero distortion.
-* Split: explicit ``train_filenames`` and ``test_filenames`` (falling back to
-  ``val_filenames``) when present, else every ``split_every``-th view is held
-  out (``index % split_every == 0``, nerfstudio's interval rule).
-* ``downscale=f`` averages f x f pixel blocks (cropping the right/bottom
-  remainder) and divides the intrinsics by f: exact in the pixel-centre
-  convention. A JPEG is decoded at 1/2, 1/4 or 1/8 size by the codec
-  (:func:`jaxedit.io.images.read_photo`) and undistorted at the loaded size;
-  :func:`auto_downscale` is nerfstudio's default factor for a capture.
-* Views are held as uint8 when every photo is 8-bit (:attr:`Dataset.pixels`) and
-  kept as loaded in a cache beside the dataset (:mod:`jaxedit.io.view_cache`),
-  so the next load reads them back instead of decoding the photos.
-* EXIF orientation: a photo whose upright size is the declared ``w`` x ``h`` is
-  turned upright; one whose stored size is (posed as stored, the way COLMAP reads
-  photos) is read as stored.
-* Frames whose image file is missing are an error that counts them; with
-  ``skip_missing`` they are dropped with a warning that lists them.
-* ``normalize="nerfstudio"``: nerfstudio's default orientation ("up": the mean
-  camera up vector is rotated onto +z), centring (mean camera position) and
-  scaling (max |t| = 1), applied to cameras and points. ``world_transform``
-  records the similarity so that results can be mapped back with
-  :func:`transform_cameras` / :func:`transform_points` and its inverse.
-
-Every problem raises :class:`DataError` naming the file or field.
+The format (reference.md section 2): intrinsics at the top level or per frame
+(``fl_x fl_y cx cy w h camera_model``, distortion ``k1 k2 k3 k4 p1 p2``), ``frames`` with a
+``file_path`` and a ``transform_matrix`` (4x4 OpenGL camera-to-world), optional
+``ply_file_path`` and ``train/val/test_filenames``. :func:`load_nerfstudio` sorts frames by
+``file_path`` (as nerfstudio does); takes PINHOLE, SIMPLE_PINHOLE and OPENCV (undistorted on
+load and cropped to the pixels with a source, :mod:`jaxedit.io.distortion`), refusing any other
+model; splits by the filename lists, else holds out ``index % split_every == 0``;
+downscales by f x f block averages with K / f; turns EXIF-rotated photos upright when
+their upright size is the declared one; and with ``normalize="nerfstudio"`` orients up,
+centres and scales (``world_transform`` records the similarity). Every problem raises
+:class:`DataError` naming the file or field.
 """
 
 from __future__ import annotations
@@ -83,9 +52,7 @@ class Dataset:
 
     Attributes:
       path: the transforms.json it came from.
-      pixels: [N, H, W, 3] the views as loaded (undistorted, cropped to the pixels that
-        have a source, downscaled): uint8 when every photo is 8-bit, else float32 in
-        [0, 1]. :attr:`images` is them as float32.
+      pixels: [N, H, W, 3] the views as loaded: uint8 when every photo is 8-bit, else float32.
       cameras: batched Camera [N], OpenCV world->camera, in the (normalised) world.
       filenames: the frames' ``file_path`` strings as in the json, in dataset order.
       train_indices: int [Ntrain]; test_indices: int [Ntest].
@@ -180,11 +147,8 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def nerfstudio_world_transform(c2w_opengl: np.ndarray) -> tuple[np.ndarray, float]:
-    """nerfstudio's default pose normalisation as a similarity.
-
-    Orientation "up" (the mean camera up vector, column 1 of the OpenGL
-    camera-to-world, is rotated onto +z), centring on the mean camera position,
-    then scaling so that the largest |coordinate| of a camera position is 1.
+    """nerfstudio's default pose normalisation as a similarity: mean camera up onto +z,
+    centred on the mean camera position, largest |camera coordinate| scaled to 1.
 
     Args:
       c2w_opengl: float [N, 4, 4] (or [N, 3, 4]) camera-to-world poses.
@@ -531,8 +495,7 @@ def _view_geometry(json_path: Path, parsed: list, full_w: int, full_h: int, down
 
 def nerfstudio_view_size(path: str | os.PathLike, *, downscale: int = 1) -> tuple[int, int]:
     """(height, width) of the views :func:`load_nerfstudio` would give, from transforms.json
-    alone (no image decoded), with its errors: what a caller needs to compile for the views
-    ahead of them."""
+    alone (no image decoded), with its errors."""
     downscale = _check_downscale(downscale)
     json_path = _resolve_json(path)
     parsed, (full_w, full_h) = _parse_frames(json_path, _load_meta(json_path))
@@ -631,9 +594,8 @@ def _cameras(json_path: Path, parsed: list, downscale: int, crop, normalize: str
 def load_nerfstudio_cameras(path: str | os.PathLike, *, downscale: int = 1,
                             normalize: str = "none", split_every: int = 8
                             ) -> tuple[Camera, np.ndarray, np.ndarray]:
-    """The cameras of every frame of a nerfstudio dataset, as :func:`load_nerfstudio` gives
-    them (undistorted, cropped, downscaled, normalised), from transforms.json alone: no
-    image is read, so frames whose image is missing keep their cameras.
+    """The cameras of every frame as :func:`load_nerfstudio` gives them, from transforms.json
+    alone (frames whose image is missing keep their cameras).
 
     Returns:
       (batched Camera [N], train_indices int64 [T], test_indices int64 [E]).
@@ -656,18 +618,12 @@ def load_nerfstudio(path: str | os.PathLike, *, downscale: int = 1, background=(
 
     Args:
       path: the dataset folder or its transforms.json.
-      downscale: integer factor >= 1 (area average; intrinsics divided by it); JPEGs
-        are decoded at the reduced size.
+      downscale: integer factor >= 1 (area average; intrinsics divided by it).
       background: RGB in [0, 1] for compositing RGBA images.
-      normalize: "none" (poses as in the file) or "nerfstudio" (orient up,
-        centre, scale max |t| to 1).
-      split_every: hold out views with ``index % split_every == 0`` when the
-        file has no filename lists; 0 keeps every view for training.
-      skip_missing: drop the frames whose image file is missing (logged as a warning
-        listing them) instead of raising.
-      cache: read and write the views as loaded in the dataset's view cache
-        (:mod:`jaxedit.io.view_cache`) when loading changes them (a downscale or a
-        distortion); False decodes every photo.
+      normalize: "none" (poses as in the file) or "nerfstudio".
+      split_every: hold out ``index % split_every == 0`` without filename lists (0: none).
+      skip_missing: drop (with a warning) the frames whose image is missing instead of raising.
+      cache: use the dataset's view cache (:mod:`jaxedit.io.view_cache`); False decodes every photo.
     Returns:
       a :class:`Dataset`.
     Raises:
@@ -740,25 +696,15 @@ def save_nerfstudio(out_dir: str | os.PathLike, images, cameras: Camera, *, file
                     image_format: str = "png") -> Path:
     """Write a nerfstudio dataset: ``transforms.json``, ``images/*`` and ``sparse_pc.ply``.
 
-    The output is what nerfstudio's own dataparser reads, and
-    :func:`load_nerfstudio` reads it back to the same images (up to 8-bit
-    quantisation for PNG; ``image_format="exr"`` is exact), cameras and split.
-    Intrinsics go at the top level when all cameras share them, per frame
-    otherwise; ``camera_model`` is PINHOLE; ``transform_matrix`` is the OpenGL
-    camera-to-world. With a split, ``train_filenames``, ``val_filenames`` and
-    ``test_filenames`` are written (nerfstudio's evaluation reads the "val" list).
+    nerfstudio's dataparser reads it, and :func:`load_nerfstudio` reads it back to the same
+    images (up to PNG's 8 bits), cameras and split (PINHOLE, OpenGL camera-to-world).
 
     Args:
-      out_dir: folder to create or update; files are staged in a temporary
-        folder and moved into place, ``transforms.json`` last, so a failure
-        leaves nothing half-written.
-      images: float [N, H, W, 3] in [0, 1], or [N, H, W, 4] with straight alpha (written
-        as RGBA; :func:`load_nerfstudio` composites it over its ``background``).
+      out_dir: folder to create or update (staged; a failure leaves nothing half-written).
+      images: float [N, H, W, 3] in [0, 1], or [N, H, W, 4] with straight alpha.
       cameras: batched Camera [N] of size W x H.
-      filenames: N relative paths (default ``images/frame_00000.<fmt>``); the
-        suffix picks the image format.
-      train_indices, test_indices: int arrays; when one is given the other
-        defaults to its complement.
+      filenames: N relative paths (default ``images/frame_00000.<fmt>``).
+      train_indices, test_indices: int arrays; one given, the other is its complement.
       points, point_colors: float [P, 3] initial points (colours in [0, 1]).
       image_format: "png" (8-bit), "exr" (float) or "jpg" for default names.
     Returns:

@@ -1,10 +1,8 @@
 """An edit run: its config tree, and :func:`run_edit`, which runs it with a run directory.
 
-``python -m experiments edit`` generates its settings' flags from
-:class:`EditRunConfig`. :func:`run_edit` is :func:`prepare_edit` (context, state and plan;
-writes nothing) then :func:`jaxedit.edit.progressive.run_plan` (writes nothing), with a
-:class:`jaxedit.pipelines.rundir.RunDir` at the edge: resume, checkpoints, snapshots, the
-JSON files and the report. The run directory::
+``python -m experiments edit`` generates its flags from :class:`EditRunConfig`.
+:func:`run_edit` is :func:`prepare_edit` then :func:`jaxedit.edit.progressive.run_plan`, with a
+:class:`jaxedit.pipelines.rundir.RunDir` at the edge. The run directory::
 
     RUN/schedule.json        the plan and every finished subtask's record
     RUN/metrics.json         the final scene's numbers
@@ -65,8 +63,7 @@ class EditStart:
       path_scene: the scene whose renders the path's difficulty oracle edits.
       path_seed: the seed of the path's oracle.
       memo: the path's oracle memo file (:data:`ORACLE_NAME` of the branch that began it).
-      shapes: the parent's ``capacity`` and ``max_intersections`` at that snapshot (its
-        record's ``shapes``), so the programs the parent compiled fit (None: sized anew).
+      shapes: the parent's ``capacity`` and ``max_intersections`` there (None: sized anew).
       notes: fields added to schedule.json's header (an extension's ``experimental``).
     """
 
@@ -91,24 +88,14 @@ class EditorConfig:
     """The 2D editor of an edit run (:func:`make_editor`).
 
     Attributes:
-      kind: 2D editor (ip2p: InstructPix2Pix in JAX, the small model bundled with jaxedit
-        unless ``weights``; ip2p-torch: the torch + diffusers reference; simulated: the
-        lab's offline test instrument, which the commands build).
-      weights: local diffusers folder of the InstructPix2Pix weights (ip2p, ip2p-torch;
-        None: the bundled small model, made for the built-in scenes at 64 px: on your own
-        capture give SD-size InstructPix2Pix weights, e.g. timbrooks/instruct-pix2pix).
-      device: torch device of ip2p-torch (None: cuda:0, else cpu); the JAX editor runs on
-        the editor's JAX device (the second if any).
-      dtype: networks' dtype (None: float32 on the CPU; bfloat16 (JAX) or float16 (torch)
-        on accelerators).
-      size: IP2P working resolution in px (None: the bundled editor's 64, 512 for other
-        weights).
+      kind: 2D editor (ip2p: InstructPix2Pix in JAX; ip2p-torch: diffusers; simulated).
+      weights: diffusers folder of InstructPix2Pix weights (None: the bundled small 64 px model).
+      device: torch device of ip2p-torch (None: cuda:0, else cpu).
+      dtype: networks' dtype (None: float32 on the CPU, bfloat16/float16 on accelerators).
+      size: IP2P working resolution in px (None: 64 for the bundled editor, else 512).
       steps: DDIM steps per IP2P edit.
-      batch: ip2p: most views per editor call when several are due at once (a subtask's
-        initial sweep, the difficulty's views; None: 8 per accelerator, 1 on the CPU).
-      targets: ip2p: a view larger than the editor's size gets as its target the render
-        plus the edit's change made at the editor's size (detail), or the edit enlarged
-        (stretch: blurred, the targets before issue 77).
+      batch: ip2p: most views per editor call (None: 8 per accelerator, 1 on the CPU).
+      targets: ip2p: a larger view's target: render + edit change (detail) or the edit enlarged.
     """
 
     kind: str = "ip2p"
@@ -133,11 +120,8 @@ class EditorConfig:
 
 
 def make_editor(config: EditorConfig):
-    """The InstructPix2Pix editor ``config`` describes (the bundled one without ``weights``).
-
-    The simulated editor is the lab's (:mod:`jaxedit_lab.simulated`): the commands build it
-    (``experiments/editors.py``); library users pass it to :func:`run_edit` themselves.
-    """
+    """The InstructPix2Pix editor ``config`` describes (the bundled one without ``weights``);
+    the simulated editor is built by the commands, not here."""
     if config.kind == "simulated":
         raise DataError("kind", "the simulated editor is the lab's test instrument: pass "
                                 "jaxedit_lab.simulated.SimulatedEditor() as the editor")
@@ -170,21 +154,15 @@ class EditRunConfig:
     """An edit run's settings.
 
     Attributes:
-      plan: the edit's plan (:class:`jaxedit.edit.plan.ProEditConfig`; its mode's
-        defaults from :meth:`ProEditConfig.for_mode`).
+      plan: the edit's plan (:class:`jaxedit.edit.plan.ProEditConfig`).
       train: the editing trainer (:class:`jaxedit.edit.trainer.EditTrainConfig`).
       editor: the 2D editor (:class:`EditorConfig`).
-      distance: difficulty distance (auto or lpips: LPIPS as in the paper, with the bundled
-        AlexNet weights or ``lpips_weights``; ms-ssim).
-      lpips_weights: LPIPS .safetensors/.npz written by convert-lpips (e.g. --net vgg;
-        None: the bundled LPIPS-AlexNet).
-      downscale: image downscale factor of the dataset (unset: the smallest power of two
-        that brings the photos' long side to at most 1600 px, as reconstruct picks).
-      skip_missing_images: drop the frames whose image file is missing (a warning lists
-        them) instead of stopping.
+      distance: difficulty distance (auto or lpips: LPIPS as in the paper; ms-ssim).
+      lpips_weights: LPIPS weights written by convert-lpips (None: the bundled LPIPS-AlexNet).
+      downscale: image downscale factor (unset: a power of two, long side <= 1600 px).
+      skip_missing_images: drop the frames whose image file is missing instead of stopping.
       test_views: at most this many held-out views in snapshots and metrics (None: all).
-      identity: the floor the editor's identity on the scene must clear before training
-        (:class:`jaxedit.edit.identity.IdentityFloor`).
+      identity: the floor the editor's identity must clear before training.
     """
 
     plan: ProEditConfig = ProEditConfig()
@@ -203,10 +181,8 @@ class EditRunConfig:
 
 def require_edit_memory(config: EditRunConfig, data_path, num_input: int, *,
                         editor_loaded: bool = True) -> None:
-    """Refuse in one line naming ``--downscale`` an edit whose views, Gaussians at the cap
-    (``--max-gaussians``, or the default for ``num_input`` input Gaussians) and, unless
-    ``editor_loaded``, editor weights would not fit in free memory; before any photo is
-    decoded (:func:`jaxedit.pipelines.reconstruct.require_dataset_memory`)."""
+    """Refuse (naming ``--downscale``) an edit whose views, Gaussians at the cap and, unless
+    ``editor_loaded``, editor weights would not fit in free memory, before any photo is decoded."""
     from ..edit.trainer import default_max_gaussians
     from ..editors import bundled_editor
     from ..io.nerfstudio import auto_downscale, nerfstudio_photo_size
@@ -225,8 +201,7 @@ def require_edit_memory(config: EditRunConfig, data_path, num_input: int, *,
 def load_inputs(config: EditRunConfig, data_path, scene_path, *,
                 editor_loaded: bool = True) -> tuple[EditData, object]:
     """(EditData, input Gaussians) of the nerfstudio dataset ``data_path`` and the splat file
-    ``scene_path`` (any format :func:`jaxedit.io.load_scene` reads), read as ``config`` says
-    (downscale, at most ``test_views``), once :func:`require_edit_memory` lets it."""
+    ``scene_path``, read as ``config`` says once :func:`require_edit_memory` lets it."""
     from .reconstruct import check_image_size
 
     from ..io.nerfstudio import dataset_downscale
@@ -272,9 +247,7 @@ def edit_files(config: EditRunConfig, prompt: str, data_path, scene_path, *, edi
 
 @contextlib.contextmanager
 def on_a_thread(fn: Callable, *args):
-    """``fn(*args)`` on a thread while the block runs; joined at its end (a process must not
-    end while XLA compiles on a thread), where the thread's error is raised unless the
-    block's own is on its way."""
+    """``fn(*args)`` on a thread while the block runs, joined (and its error raised) at its end."""
     errors: list[BaseException] = []
 
     def work():
@@ -305,8 +278,7 @@ def edit_context(editor, prompt: str, data: EditData, gaussians, *, config: ProE
     settings = resolve_max_gaussians(settings or EditTrainConfig.for_mode(config.mode),
                                      int(gaussians.num_alive()))
     _, editor_device = pick_devices()
-    # The prompt is encoded once per run: here when the local plan's relevance needs it
-    # first, else by EditContext.create (after the local plan, whose errors come first).
+    # The prompt is encoded once per run: here if the local plan needs it, else by EditContext.
     embeddings = None if start is None else start.embeddings
     local_plan = None
     if local is not None and local.active and (resume_from is not None or start is not None):
@@ -332,10 +304,8 @@ def edit_context(editor, prompt: str, data: EditData, gaussians, *, config: ProE
 
 
 class EditSetup(NamedTuple):
-    """What :func:`prepare_edit` makes: the context, the state at the plan's start, the
-    plan, schedule.json's header, the local plan (or None), ``time.perf_counter()`` when the
-    context was ready, the difficulty oracle (None in IN2N mode) and whether it took its
-    edits from the memo file."""
+    """What :func:`prepare_edit` makes: context, start state, plan, schedule.json's header,
+    local plan, ready time, difficulty oracle (None in IN2N) and whether the memo served it."""
 
     ctx: EditContext
     state: EditState
@@ -355,11 +325,8 @@ def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProE
                  log: Callable[[str], None] = lambda msg: None) -> EditSetup:
     """A new edit, ready for :func:`jaxedit.edit.progressive.run_plan`; writes nothing.
 
-    :func:`edit_context`, the editor's identity on the scene (raises
-    :class:`LowIdentityError`), the state at the start (the input scene, the snapshot
-    ``resume_from`` or the branch's ``start``), then the plan, its difficulty edits read from
-    the ``memo`` file when it holds them, while the training chunks' program is built on a
-    thread. Arguments as :func:`run_edit`'s.
+    The context, the identity check (raises :class:`LowIdentityError`), the start state and
+    the plan. Arguments as :func:`run_edit`'s.
     """
     ctx, local_plan = edit_context(editor, prompt, data, gaussians, config=config,
                                    settings=settings, seed=seed, local=local, hooks=hooks,
@@ -422,36 +389,23 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
       editor, prompt: the 2D editor and the instruction.
       data: original photos and cameras (train views edited, test views held out).
       gaussians: the input scene (a reconstruction of ``data``).
-      config / settings: plan and trainer knobs (settings None: the mode's,
-        :meth:`EditTrainConfig.for_mode`).
+      config / settings: plan and trainer knobs (settings None: the mode's).
       seed: the run seed (every random draw derives from it).
-      run_dir: where schedule.json, metrics.json, snapshots and the checkpoint go
-        (None: in memory only, no files).
-      resume: continue the run in ``run_dir`` from its checkpoint (exactly, in
-        the deterministic mode).
-      resume_from: a snapshot directory (``subtasks/NN_rX.XXX``) to continue from
-        with this config's schedule (the ratios above the snapshot's).
-      select: ratio (float) or subtask index (int) whose snapshot becomes
-        ``run_dir/selected.ply``.
+      run_dir: the run directory (None: in memory only, no files).
+      resume: continue the run in ``run_dir`` from its checkpoint.
+      resume_from: a snapshot directory (``subtasks/NN_rX.XXX``) to continue from.
+      select: ratio (float) or subtask index (int) whose snapshot becomes ``selected.ply``.
       callback: ``callback(spec, step, loss)`` after every training step.
       progress: ``progress(spec, step, loss, state)`` after every training step.
       report: write ``run_dir/report.html`` at the end.
       log: ``log(message)`` for what a person should read (warnings, resumption).
-      distance: perceptual distance of the difficulty (default multi-scale SSIM; pass
-        :func:`jaxedit.lpips.lpips_distance` for the paper's LPIPS).
-      local: a :class:`jaxedit.edit.local.LocalSpec` (None or inactive: a global edit):
-        Gaussians outside it are frozen, the views blended outside its rendered relevance;
-        its figures go to schedule.json's ``"local"``.
-      hooks: a study's changes to the plan, limits or edit source
-        (:class:`jaxedit.edit.hooks.EditHooks`; the lab's controls use them).
-      identity: the floor of the editor's identity on the scene, checked before the
-        schedule's edits (:func:`jaxedit.edit.progressive.check_identity`; None: not
-        checked); under it the run stops with a :class:`LowIdentityError`, having written
-        only ``run_dir/identity.json``. Its ``refine_min_psnr`` flags an r_0 that moved the
-        scene.
+      distance: perceptual distance of the difficulty (default multi-scale SSIM).
+      local: a :class:`jaxedit.edit.local.LocalSpec` (None or inactive: a global edit).
+      hooks: a study's changes (:class:`jaxedit.edit.hooks.EditHooks`).
+      identity: the editor identity floor (None: not checked); under it raises
+        :class:`LowIdentityError`, having written only ``run_dir/identity.json``.
       start: a branch's beginning (:class:`EditStart`; None: the input scene at r = 0).
-      stop: ``stop() -> bool``, asked between subtasks: True ends the run after the
-        finished one (no metrics.json; ``resume`` goes on).
+      stop: ``stop() -> bool``, asked between subtasks: True ends the run (``resume`` goes on).
     Returns:
       {"schedule": schedule.json contents, "metrics": metrics.json contents (None when
       stopped), "gaussians": final, "stopped": whether ``stop`` ended it}.

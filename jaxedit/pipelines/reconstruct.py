@@ -1,35 +1,15 @@
 """A reconstruction run: fit 3D Gaussians to a nerfstudio dataset and write its run directory.
 
-The library half of ``python -m experiments reconstruct`` (the command is its thin edge:
-flags, progress bars, printing). :class:`ReconstructConfig` is the run's one config
-tree; the command's flags are generated from it. What :func:`reconstruct` writes
-into the run directory:
+The library half of ``python -m experiments reconstruct``, whose flags are generated from
+:class:`ReconstructConfig`. :func:`reconstruct` writes ``scene.ply`` (INRIA 3DGS PLY),
+``test/NNN_<name>.png`` and ``test_compare.png``, ``metrics.json``, ``train_log.jsonl``,
+``checkpoints/ckpt_<step>.npz`` (resuming ends with the same Gaussians) and, with
+``camera_opt``, ``dataset/`` (the images as trained with the learned pose corrections).
 
-* ``scene.ply``: the alive Gaussians as an INRIA 3DGS PLY (any splat viewer reads it);
-* ``test/NNN_<name>.png``: renders of the held-out views, and ``test_compare.png``
-  (ground truth above, render below, one column per view);
-* ``metrics.json``: ``test_psnr``, ``test_ssim`` (scikit-image), per-view values,
-  ``num_gaussians``, ``wall_time_s``, ``steps_per_s``, where the time went;
-* ``train_log.jsonl``: training metrics every ``log_every`` steps and at every
-  density-control step;
-* with ``camera_opt``, ``dataset/``: a nerfstudio dataset of the images as trained
-  (undistorted, downscaled, in the normalised world) with the training cameras'
-  learned pose corrections applied; the scene lives in its frame, so
-  ``edit --data RUN_DIR/dataset --scene RUN_DIR/scene.ply`` edits with those poses;
-* ``checkpoints/ckpt_<step>.npz``: the full training state every
-  ``checkpoint_every`` steps and at the end. Resuming continues from the
-  newest one and ends with the same Gaussians as an uninterrupted run.
-
-Initial points (``init``): "auto" takes the dataset's ``ply_file_path`` (as COLMAP's
-sparse cloud would) and, for a dataset without points, SIFT features of the training
-views triangulated at their known poses (jaxedit.capture.triangulate), topped up with
-random points to ``random_points`` when there are fewer (features cover the textured
-parts of a scene; the random points the rest); where triangulation cannot be done (no
-pycolmap, too few points) it says so and falls back to "random": ``random_points``
-points in the box where the training cameras' view frusta overlap, the most
-photo-consistent of 4x as many uniform candidates (jaxedit.capture.points).
-"triangulate" (the triangulated points alone) and "random" take those whatever the
-dataset holds.
+Initial points (``init``): "auto" takes the dataset's ``ply_file_path``, else SIFT features
+triangulated at the known poses (:mod:`jaxedit.capture.triangulate`) topped up with random
+points, else (logged) photo-consistent random points (:mod:`jaxedit.capture.points`);
+"triangulate" and "random" take those alone.
 """
 
 from __future__ import annotations
@@ -66,19 +46,12 @@ class ReconstructConfig:
 
     Attributes:
       train: training hyper-parameters (:class:`jaxedit.train.TrainConfig`).
-      downscale: integer image downscale factor (1: full size; unset: the smallest power of
-        two that brings the photos' long side to at most 1600 px, nerfstudio's rule, logged).
-      skip_missing_images: drop the frames whose image file is missing (a warning lists
-        them) instead of stopping.
-      normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not
-        ("none").
-      init: initial points: "auto" (the dataset's cloud, else triangulated at the known
-        poses topped up with random points to ``random_points``, else random),
-        "triangulate" (SIFT matches at the known poses alone, pycolmap) or "random"
-        (photo-consistent random points, the start before triangulation).
+      downscale: integer image downscale factor (1: full size; unset: long side <= 1600 px).
+      skip_missing_images: drop the frames whose image file is missing instead of stopping.
+      normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not ("none").
+      init: initial points: "auto" (dataset, else triangulated + random), "triangulate" or "random".
       triangulation: how "triangulate" and "auto" triangulate the training views.
-      random_points: initial points of the random start (photo-consistent random points
-        where the training frusta overlap).
+      random_points: initial points of the random start (photo-consistent random points).
       checkpoint_every: checkpoint period in steps (0: only at the end).
       log_every: train_log.jsonl period in steps.
     """
@@ -118,10 +91,8 @@ def resolve_downscale(path, config: ReconstructConfig) -> int:
 
 def require_dataset_memory(path, downscale: int, max_gaussians: int, *, extra: float = 0.0,
                            extra_what: str = "") -> None:
-    """DataError naming ``--downscale`` when fitting ``max_gaussians`` Gaussians to the views
-    of the dataset at ``path`` (:func:`jaxedit.memory.working_set`), with ``extra`` bytes
-    (``extra_what``, e.g. an editor's weights), would not fit in free memory: from
-    transforms.json and one image header, before any photo is decoded."""
+    """DataError naming ``--downscale`` when ``max_gaussians`` Gaussians on the views at ``path``
+    plus ``extra`` bytes (``extra_what``) would not fit in free memory; decodes no photo."""
     from ..io.nerfstudio import nerfstudio_frame_count, nerfstudio_view_size
     from ..memory import require_memory, working_set
 
@@ -134,9 +105,8 @@ def require_dataset_memory(path, downscale: int, max_gaussians: int, *, extra: f
 
 
 def load_dataset(path, config: ReconstructConfig):
-    """The nerfstudio dataset at ``path`` as ``config`` reads it (downscale, normalisation,
-    RGBA composited over the background, missing images); DataError if its images are too
-    small or the run would not fit in memory (checked before any photo is decoded)."""
+    """The nerfstudio dataset at ``path`` as ``config`` reads it; DataError if its images are
+    too small or the run would not fit in memory."""
     from ..io import load_nerfstudio
 
     downscale = resolve_downscale(path, config)
@@ -184,13 +154,9 @@ CARVE_BORDER_FRACTION = 0.5
 
 def initial_points(data, n_random: int, seed: int, background=None, *, init: str = "auto",
                    triangulation: TriangulateOptions = TriangulateOptions()):
-    """(points [P, 3], colours [P, 3], source) by ``init`` (see the module docstring); source
-    is "dataset", "triangulated", "triangulated+random" (the triangulated points first,
-    then ``n_random`` minus their count random ones) or "random".
-
-    ``background`` (RGB, the training background): when at least
-    :data:`CARVE_BORDER_FRACTION` of the training images' border pixels show it (an object
-    on a uniform background), random candidates seen as background are carved away.
+    """(points [P, 3], colours [P, 3], source) by ``init``; source is "dataset",
+    "triangulated", "triangulated+random" or "random". Random candidates are carved by
+    ``background`` (RGB) when :data:`CARVE_BORDER_FRACTION` of the borders show it.
     """
 
     if init not in INITS:
@@ -213,8 +179,7 @@ def initial_points(data, n_random: int, seed: int, background=None, *, init: str
 
 
 def _random_start(data, n_random: int, seed: int, background):
-    """(points, colours): ``n_random`` photo-consistent random points where the training
-    views overlap, carved by ``background`` when their borders show it."""
+    """(points, colours): ``n_random`` photo-consistent random points, carved by ``background``."""
     from ..capture.points import background_fraction, random_points
 
     images, cameras = data.train()
@@ -259,11 +224,7 @@ def _triangulated(data, options: TriangulateOptions, *, required: bool):
 def capped_initial_points(data, n_random: int, cap: int, seed: int, background=None, *,
                           init: str = "auto",
                           triangulation: TriangulateOptions = TriangulateOptions()):
-    """:func:`initial_points`, subsampled to at most ``cap`` (``max_gaussians``) points.
-
-    The cap is hard from the first step on, so a larger initial cloud is thinned
-    (a uniform draw, logged) rather than trained and culled later.
-    """
+    """:func:`initial_points`, thinned (uniformly, logged) to at most ``cap`` points."""
 
     points, colors, source = initial_points(data, n_random, seed, background, init=init,
                                             triangulation=triangulation)
@@ -283,13 +244,11 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
 
     Args:
       data: a :class:`jaxedit.io.Dataset`.
-      out: run directory (None: write nothing, as the processes other than 0 of a
-        multi-process run, :mod:`jaxedit.parallel.distributed`).
+      out: run directory (None: write nothing, as processes other than 0 do).
       config: :class:`jaxedit.train.TrainConfig`.
       seed, resume, checkpoint_every, log_every, random_points, init, triangulation: as
         :class:`ReconstructConfig` (``resume``: continue from the newest checkpoint).
-      progress: :func:`jaxedit.train.fit`'s progress callback (a bar at the edge); its
-        ``close()``, if it has one, is called when training ends.
+      progress: :func:`jaxedit.train.fit`'s progress callback (its ``close()`` called at the end).
     Returns:
       the metrics dict (also written to ``out/metrics.json``).
     """
@@ -376,8 +335,7 @@ def reconstruct(data, out: Path, config, *, seed: int = 0, resume: bool = False,
     seconds = np.asarray([t for t, _ in chunk_times], np.float64)
     times = seconds / np.maximum([n for _, n in chunk_times], 1) if chunk_times else seconds
     median = float(np.median(times)) if len(times) else float("nan")
-    # Chunks far slower per step than the median are the ones that (re)compiled the
-    # train chunk: the first one, and each growth of the capacity or of the buffer.
+    # Chunks far slower per step than the median are the ones that (re)compiled.
     slow = times > 10 * median if len(times) else times.astype(bool)
     metrics = {
         "test_psnr": result["psnr"], "test_ssim": result["ssim"], "eval_split": eval_split,
@@ -430,11 +388,8 @@ def write_outputs(out: Path, data, renders, test_images, test_idx, eval_split: s
 
 
 def write_corrected_dataset(folder: Path, data, corrections) -> dict:
-    """Write ``data`` as trained, with its training cameras' learned corrections, to
-    ``folder`` (a nerfstudio dataset, atomically); returns the corrections' summary.
-
-    The test cameras keep their poses: they were never trained on.
-    """
+    """Write ``data`` as trained, with its training cameras' learned corrections (test
+    cameras keep theirs), to ``folder`` atomically; returns the corrections' summary."""
 
     from .. import poses
     from ..io import save_nerfstudio

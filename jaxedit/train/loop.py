@@ -1,9 +1,5 @@
 """The training loop: data order, compiled chunks of steps, the divergence guard, :func:`fit`.
-
-The view and key of step ``s`` are pure functions of ``(base key, s)``, so a resumed
-run ends with bit-identical Gaussians whatever the chunking; the host acts only
-between chunks.
-"""
+Step ``s``'s view and key depend on ``(base key, s)`` only, so resuming is bit-identical."""
 
 from __future__ import annotations
 
@@ -80,9 +76,8 @@ CHUNK = 16
 def scan_steps(step, carry, n_active, *, length: int, after=None):
     """Up to ``length`` steps of ``step`` in one ``lax.scan``, ending early on a redo or a stop.
 
-    Steps past ``n_active`` or after a redo/stop are skipped (``lax.cond``) with blank
-    metrics, so one compiled chunk serves every count. A step asking for a redo must
-    leave its carry unchanged.
+    Steps past ``n_active`` or after a redo/stop are skipped with blank metrics; a step
+    asking for a redo must leave its carry unchanged.
 
     Args:
       step: ``(carry, i) -> (carry, metrics)``, ``i`` int32 [] the index in the chunk;
@@ -160,8 +155,7 @@ def divergence(step0: int, metrics: dict, *, history=None, max_loss: float | Non
       step0: the step count before the chunk.
       metrics: per-step metrics of the chunk's completed steps (NumPy, [n]).
       history: the run's losses so far, this chunk's included (default: the chunk's).
-      max_loss: bound on the loss averaged over the last ``window`` steps. The
-        photometric loss is at most ~1.2; a render unrelated to its target sits near 1.
+      max_loss: bound on the loss averaged over the last ``window`` steps.
       window: steps averaged by the loss rule.
     Returns:
       a one-line reason naming the first bad step and quantity.
@@ -218,8 +212,7 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
         room: float | None | str = "auto") -> TrainState:
     """Train until ``state.step == iterations`` (default ``state.config.iterations``).
 
-    Steps run in compiled chunks of up to ``chunk`` (:func:`train_chunk`); the host acts
-    only between chunks. The next chunk is dispatched before the current one is read.
+    Steps run in compiled chunks of up to ``chunk`` (:func:`train_chunk`).
 
     Args:
       state: TrainState, fresh from :func:`init_state` or from a checkpoint.
@@ -227,20 +220,15 @@ def fit(state: TrainState, images, cameras: Camera, *, key=None, iterations: int
       cameras: Camera batch [N] matching ``images``.
       key: base PRNG key; default: the one in ``state``.
       iterations: stop at this step count (default: the config's).
-      log: ``log(record)`` with a JSON-ready metrics record every ``log_every`` steps,
-        at the last step and at every density-control step.
-      checkpoint: ``checkpoint(state)`` every ``checkpoint_every`` steps (chunks end on
-        them) and at the end of a run that took a step. The library writes no files.
+      log: ``log(record)`` every ``log_every`` steps, at the last and at density-control steps.
+      checkpoint: ``checkpoint(state)`` every ``checkpoint_every`` steps and at the end.
       progress: ``progress(TrainProgress)`` at the start and after every chunk.
-      callback: ``callback(state, metrics)`` after every chunk, metrics of its completed
-        steps (NumPy [n]).
-      should_stop: ``should_stop(step, loss_history) -> bool`` before every chunk; True
-        ends the loop (a final checkpoint is still written).
+      callback: ``callback(state, metrics)`` after every chunk (NumPy metrics [n]).
+      should_stop: ``should_stop(step, loss_history) -> bool`` before every chunk.
       chunk: steps per compiled chunk (1: the host sees every step).
       max_loss: divergence guard threshold (:func:`divergence`; None: non-finite only).
-      room: capacity of a fresh densifying run, x its alive Gaussians (:func:`plan_room`;
-        None: grown on demand; "auto": :func:`default_room`), and of an unsized buffer
-        x the usual headroom. Changes only speed and the floats' last bits.
+      room: capacity of a fresh densifying run, x its alive Gaussians (None: grown on
+        demand; "auto": :func:`default_room`). Changes only speed and the floats' last bits.
     Returns:
       the final TrainState.
     Raises:
