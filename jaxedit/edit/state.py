@@ -165,18 +165,13 @@ class EditState:
         return EditState(self.device._replace(**device) if device else self.device,
                          dataclasses.replace(self.host, **changes) if changes else self.host)
 
-    train = _part("device", "train")
-    images = _part("device", "images")
-    tracker = _part("device", "tracker")
-    subtask = _part("host", "subtask")
-    step = _part("host", "step")
-    edited = _part("host", "edited")
-    records = _part("host", "records")
-    seconds = _part("host", "seconds")
-    utilisation = _part("host", "utilisation")
-    complete_at = _part("host", "complete_at")
-    annealed_at = _part("host", "annealed_at")
-    density = _part("host", "density")
+
+# Every field of either part reads as the state's own (``st.train``, ``st.step``).
+for _name in DeviceState._fields:
+    setattr(EditState, _name, _part("device", _name))
+for _name in HOST_FIELDS:
+    setattr(EditState, _name, _part("host", _name))
+del _name
 
 
 def init_state(ctx: EditContext, gaussians, images: np.ndarray | None = None, *,
