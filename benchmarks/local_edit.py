@@ -196,9 +196,12 @@ def edit_seed(case: str, seed: int, data, g, editor, config, renderer, base, tar
                                        subtask_steps=tuple(runs["global"]["subtask_steps"]))
         t0 = time.perf_counter()
         try:
+            # the editor is a controlled instrument, not a user's: no identity floor (as the
+            # lab's ablation runs)
             res = run_edit(editor, prompt, data, g, config=arm_config,
                            settings=EditTrainConfig(), seed=seed, run_dir=None, report=False,
-                           local=local, hooks=getattr(arm_config, "hooks", lambda: NO_HOOKS)())
+                           local=local, hooks=getattr(arm_config, "hooks", lambda: NO_HOOKS)(),
+                           identity=None)
         except DataError as e:   # the local plan has another subtask count than the global
             runs[name] = {"skipped": str(e)}
             continue
