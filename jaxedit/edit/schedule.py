@@ -433,12 +433,30 @@ def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
     def h(y: float) -> float:
         return target + 0.5 - schedule_at(y).num_subtasks
 
-    lower, upper = 0.0, 1.0
-    if h(lower) < 0.0 <= h(upper):
+    lower, upper = _bracket_from_above(h, target, octaves)
+    if lower is not None:
         lower, upper = _bisect_host(h, lower, upper, resolution)
+    else:  # even the finest threshold gives at most ``target`` subtasks
+        lower = 0.0
     candidates = [schedule_at(lower), schedule_at(upper)]
     best = min(candidates, key=lambda c: (abs(c.num_subtasks - target), c.num_subtasks))
     return dataclasses.replace(best, target_subtasks=target)
+
+
+def _bracket_from_above(h: Callable[[float], float], target: int,
+                        octaves: float) -> tuple[float | None, float]:
+    """(lower, upper) with h(lower) < 0 <= h(upper), searched down from y = 1 one octave of
+    threshold at a time, starting at d(0, 1) / target; lower is None when h >= 0 down to y = 0.
+
+    Every threshold probed is at least the finest one needed, so the search edits no ratio
+    that the finest schedule of the bracket does not edit itself."""
+    upper, y = 1.0, min(1.0, 1.0 - math.log2(target) / octaves)
+    while True:
+        if h(y) < 0.0:
+            return y, upper
+        if y <= 0.0:
+            return None, y
+        upper, y = y, max(0.0, y - 1.0 / octaves)
 
 
 def uniform(n: int, difficulty: DifficultyFn | None = None, *, start: float = 0.0) -> Schedule:
