@@ -225,7 +225,7 @@ def test_target_subtasks_finds_a_threshold_within_one_subtask(inc, target):
 @pytest.mark.parametrize("target", [2, 4, 7])
 def test_target_subtasks_edits_no_ratio_finer_than_its_answer_needs(target):
     # An oracle's cost is one edit per distinct ratio: the search must not probe the finest
-    # grid first, only ratios a decomposition one octave below its answer would probe.
+    # grid first, only ratios a decomposition half an octave below its answer would probe.
     def ratios_probed(fn):
         seen = set()
 
@@ -236,7 +236,7 @@ def test_target_subtasks_edits_no_ratio_finer_than_its_answer_needs(target):
 
     base = monotone_difficulty(np.linspace(0.2, 1.0, KNOTS))
     s, searched = ratios_probed(lambda d: for_target_subtasks(d, target, max_depth=6))
-    _, finer = ratios_probed(lambda d: decompose(d, threshold=s.threshold / 2, max_depth=6))
+    _, finer = ratios_probed(lambda d: decompose(d, threshold=s.threshold / 2 ** 0.5, max_depth=6))
     assert abs(s.num_subtasks - target) <= 1
     assert searched <= finer, sorted(searched - finer)
     assert len(searched) < 2 ** 6 + 1

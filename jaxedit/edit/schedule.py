@@ -445,18 +445,17 @@ def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
 
 def _bracket_from_above(h: Callable[[float], float], target: int,
                         octaves: float) -> tuple[float | None, float]:
-    """(lower, upper) with h(lower) < 0 <= h(upper), searched down from y = 1 one octave of
-    threshold at a time, starting at d(0, 1) / target; lower is None when h >= 0 down to y = 0.
-
-    Every threshold probed is at least the finest one needed, so the search edits no ratio
-    that the finest schedule of the bracket does not edit itself."""
+    """(lower, upper) with h(lower) < 0 <= h(upper), searched down from y = 1 half an octave
+    of threshold at a time, starting at d(0, 1) / target; lower is None when h >= 0 down to
+    y = 0. Decompositions' probes are nested in the threshold, so the search edits no ratio
+    that the schedule at ``lower`` does not edit itself."""
     upper, y = 1.0, min(1.0, 1.0 - math.log2(target) / octaves)
     while True:
         if h(y) < 0.0:
             return y, upper
         if y <= 0.0:
             return None, y
-        upper, y = y, max(0.0, y - 1.0 / octaves)
+        upper, y = y, max(0.0, y - 0.5 / octaves)
 
 
 def uniform(n: int, difficulty: DifficultyFn | None = None, *, start: float = 0.0) -> Schedule:
