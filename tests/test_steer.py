@@ -40,10 +40,18 @@ def test_split_ratio_meets_where_the_halves_are_equally_hard():
     x, d1, d2 = split_ratio(square_distance, 0.0, 1.0, iterations=12)
     assert x == pytest.approx(np.sqrt(0.5), abs=1e-3)
     assert d1 == pytest.approx(d2, abs=2e-3) and max(d1, d2) < square_distance(0.0, 1.0)
-    # three halvings: within an eighth of the bracket, and no harder than the midpoint
-    x3, a3, b3 = split_ratio(square_distance, 0.2, 0.6)
-    assert abs(x3 - np.sqrt((0.2 ** 2 + 0.6 ** 2) / 2)) <= 0.4 / 8
-    assert max(a3, b3) <= max(square_distance(0.2, 0.4), square_distance(0.4, 0.6))
+    # the default: the midpoint and one regula falsi step, two probes (each an editor call
+    # per difficulty view); within 1/32 of the bracket, no harder than the midpoint
+    probed = []
+
+    def counted(a, b):
+        probed.append((a, b))
+        return square_distance(a, b)
+    x1, a1, b1 = split_ratio(counted, 0.2, 0.6)
+    assert len({r for pair in probed for r in pair} - {0.2, 0.6}) == 2
+    assert abs(x1 - np.sqrt((0.2 ** 2 + 0.6 ** 2) / 2)) <= 0.4 / 32
+    assert max(a1, b1) <= max(square_distance(0.2, 0.4), square_distance(0.4, 0.6))
+    assert x1 == split_ratio(square_distance, 0.2, 0.6)[0]
     with pytest.raises(DataError, match="go up"):
         split_ratio(square_distance, 0.5, 0.5)
 

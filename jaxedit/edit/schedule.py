@@ -186,23 +186,38 @@ def prune_ratios(ratios, difficulty: DifficultyFn, *, threshold: float) -> Sched
                     threshold)
 
 
-def split_ratio(difficulty: DifficultyFn, a: float, b: float, *,
-                iterations: int = 3) -> tuple[float, float, float]:
-    """(x, d(a, x), d(x, b)): the split a < x < b where d(a, x) ~ d(x, b), after
-    ``iterations`` bisection halvings."""
+def split_ratio(difficulty: DifficultyFn, a: float, b: float, *, iterations: int = 1,
+                grid: int = 1024) -> tuple[float, float, float]:
+    """(x, d(a, x), d(x, b)): the split a < x < b where d(a, x) ~ d(x, b).
+
+    Probes the midpoint, then ``iterations`` regula falsi steps (Illinois) on
+    g(x) = d(a, x) - d(x, b), which runs from -d(a, b) at a to d(a, b) at b; probes lie on
+    the grid a + k (b - a) / ``grid``. Returns the probe whose harder half is the easiest.
+    """
     a, b = float(a), float(b)
     if not b > a:
         raise DataError("ratio", f"a step must go up, got {a:g} -> {b:g}")
-    lo, hi, cache, best = a, b, {}, None
-    for _ in range(max(int(iterations), 0) + 1):
-        x = 0.5 * (lo + hi)
+    whole, cache = _measure(difficulty, {}, a, b)
+    lo, g_lo, hi, g_hi = a, -whole, b, whole
+    best, kept = None, 0  # kept: the end a step left in place twice in a row (Illinois)
+    for step in range(max(int(iterations), 0) + 1):
+        x = 0.5 * (lo + hi) if step == 0 else lo + (hi - lo) * g_lo / (g_lo - g_hi)
+        x = a + (b - a) * round((x - a) / (b - a) * grid) / grid
+        if not lo < x < hi:
+            break
         d1, cache = _measure(difficulty, cache, a, x)
         d2, cache = _measure(difficulty, cache, x, b)
         if best is None or max(d1, d2) < max(best[1], best[2]):
             best = (x, d1, d2)
-        if d1 == d2:
+        g = d1 - d2
+        if g == 0.0:
             break
-        lo, hi = (lo, x) if d1 > d2 else (x, hi)
+        if g < 0.0:
+            lo, g_lo, kept = x, g, (kept - 1 if kept < 0 else -1)
+            g_hi = g_hi / 2 if kept < -1 else g_hi
+        else:
+            hi, g_hi, kept = x, g, (kept + 1 if kept > 0 else 1)
+            g_lo = g_lo / 2 if kept > 1 else g_lo
     return best
 
 
