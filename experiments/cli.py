@@ -140,16 +140,17 @@ def _add_command_arguments(p: OneLineParser, mod) -> OneLineParser:
 
 
 @functools.cache
-def build_parser() -> OneLineParser:
+def build_parser(only: str | None = None) -> OneLineParser:
     """The command line's parser, built once per process (every command module imported,
-    every flag generated); its ``commands`` are the subcommands' parsers.
+    every flag generated); its ``commands`` are the subcommands' parsers. ``only``: the
+    parser of a command line that names that command (no other command's module imported).
 
     Nothing changes it once built: :func:`parse` gives a config file's values to a parser
     of the one command, built for that parse (:func:`_parser_with_config`)."""
     parser = OneLineParser(prog=PROG,
                            description="jaxedit: progressive 3DGS scene editing (ProEdit) in JAX")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
-    for name in COMMANDS:
+    for name in COMMANDS if only is None else [only]:
         try:
             mod = _module(name)
         except ModuleNotFoundError as e:
@@ -162,8 +163,8 @@ def build_parser() -> OneLineParser:
 
 
 def command_parser(command: str) -> OneLineParser:
-    """The parser of subcommand ``command`` (of the process's one :func:`build_parser`)."""
-    return build_parser().commands[command]
+    """The parser of subcommand ``command`` (the one :func:`parse` reads it with)."""
+    return build_parser(command).commands[command]
 
 
 def _parser_with_config(command: str, values: dict) -> OneLineParser:
@@ -183,13 +184,13 @@ def _parser_with_config(command: str, values: dict) -> OneLineParser:
 def parse(argv: list[str]) -> argparse.Namespace:
     """The flags of ``argv``, over ``--config``'s values, over the command's defaults.
 
-    Without ``--config`` the process's one parser (:func:`build_parser`) reads ``argv``;
+    Without ``--config`` the process's parser of the command (:func:`build_parser`) reads ``argv``;
     with it, the file's values (checked as their flags' command-line text would be,
     :func:`config_values`) are the defaults of a parser of that command built for this
     parse. No parser is changed after it is built, so parses never see each other's files.
     """
-    parser = build_parser()
     command = argv[0] if argv else None
+    parser = build_parser(command if command in COMMANDS else None)
     config = _config_file(argv[1:]) if command in parser.commands else None
     values = {}
     if config is None:
