@@ -5,19 +5,30 @@ Enlarging the edit of a shrunk view blurs every target, and so the scene.
 
     target = image + up(edit(down(image)) - down(image))
 
-(antialiased bilinear resizes), so unchanged areas keep the view's own detail.
-Views at or under the editor's size are edited as the editor edits them.
+(antialiased bilinear resizes), so unchanged areas keep the view's own detail, but the
+editor's own identity error (what e(0) changes) reaches every target. :class:`DeltaTargets`
+pairs the edit with e(0)'s edit of the same view and noise (as Delta Denoising Score pairs
+its two scores), so only the instruction's change is added::
+
+    target = image + up(edit_e(r)(down(image)) - edit_e(0)(down(image)))
+
+At e(0) the target is the view itself. Views at or under the editor's size are edited as
+the editor edits them.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from ..errors import DataError
 
-#: How a larger view's target is made: "detail" (:class:`DetailTargets`) or "stretch" (the
-#: editor's own result, its edit enlarged).
-TARGETS = ("detail", "stretch")
+#: How a larger view's target is made: "delta" (:class:`DeltaTargets`), "detail"
+#: (:class:`DetailTargets`) or "stretch" (the editor's own result, its edit enlarged).
+TARGETS = ("delta", "detail", "stretch")
+#: Editor images per edited view of each composition at e(r), r > 0 (at e(0), "delta" needs
+#: none: its change is zero).
+EDITS_PER_VIEW = {"delta": 2, "detail": 1, "stretch": 1}
 
 
 def compose_target(images, small, edited_small):
@@ -86,12 +97,69 @@ class DetailTargets:
                               key.reshape(1), **kwargs)[0]
 
 
+class DeltaTargets(DetailTargets):
+    """``editor`` whose edits of views larger than its model size add only the instruction's
+    change: ``image + up(edit_e(down) - edit_null(down))``, both edits of one view made with
+    its key in one ``edit_many`` call of 2B views (:func:`compose_target`); at e(0) the view
+    itself, with no editor call. Half the editor's ``batch`` views per call, so a call edits
+    as many images as the editor's own. :attr:`measuring` is the single-edit
+    :class:`DetailTargets` of the editor: its identity check and difficulty oracle edit with
+    it, so they measure the editor, not the pairing."""
+
+    def __init__(self, editor):
+        super().__init__(editor)
+        self.measuring = DetailTargets(editor)
+        self._e_null = None
+
+    def __repr__(self):
+        return f"DeltaTargets({self.editor!r})"
+
+    @property
+    def batch(self) -> int:
+        return max(1, int(getattr(self.editor, "batch", 1)) // 2)
+
+    @property
+    def e_null(self) -> np.ndarray:
+        """E(""), the editor's embedding of the empty instruction (encoded once)."""
+        if self._e_null is None:
+            self._e_null = np.asarray(self.editor.encode(""), np.float32)
+        return self._e_null
+
+    def edit_many(self, images, originals, embeddings, keys, **kwargs):
+        """Paired edits composed as above for views larger than the editor's size (else the
+        editor's edit); ``embeddings`` [77, D] or [B, 77, D]; float32 [B, H, W, 3]."""
+        from .jax_ip2p import resize_images
+
+        images = jnp.asarray(images, jnp.float32)
+        hw = self._smaller(*images.shape[1:3])
+        if hw is None:
+            return self.editor.edit_many(images, originals, embeddings, keys, **kwargs)
+        b, null = images.shape[0], self.e_null
+        emb = jnp.broadcast_to(jnp.asarray(embeddings, jnp.float32), (b, *null.shape))
+        if bool(jnp.all(emb == null)):  # e(0): the change is zero
+            return jnp.clip(images, 0.0, 1.0)
+        small = resize_images(images, hw)
+        orig = resize_images(jnp.asarray(originals, jnp.float32), hw)
+        pair = lambda x, y: jnp.concatenate([x, y])  # noqa: E731
+        edited = self.editor.edit_many(pair(small, small), pair(orig, orig),
+                                       pair(emb, jnp.broadcast_to(null, emb.shape)),
+                                       pair(keys, keys), **kwargs)
+        return compose_target(images, edited[b:], edited[:b])
+
+
+def measuring_editor(editor):
+    """The editor an identity check and a difficulty oracle edit with: a
+    :class:`DeltaTargets`' single-edit :attr:`~DeltaTargets.measuring`, else ``editor``."""
+    return getattr(editor, "measuring", editor) if isinstance(editor, DeltaTargets) else editor
+
+
 def with_targets(editor, targets: str):
     """``editor`` making larger views' targets as ``targets`` says (one of :data:`TARGETS`):
-    "detail" wraps an editor that has a model size in :class:`DetailTargets` (others, e.g.
-    the simulated editor, edit at the view's size and are returned as they are)."""
+    "delta" / "detail" wrap an editor that has a model size in :class:`DeltaTargets` /
+    :class:`DetailTargets` (others, e.g. the simulated editor, edit at the view's size and
+    are returned as they are)."""
     if targets not in TARGETS:
         raise DataError("targets", f"must be one of {', '.join(TARGETS)}, got {targets!r}")
     if targets == "stretch" or not hasattr(editor, "model_hw"):
         return editor
-    return DetailTargets(editor)
+    return DeltaTargets(editor) if targets == "delta" else DetailTargets(editor)
