@@ -175,14 +175,15 @@ class Shifting:
 def test_delta_targets_add_only_the_instructions_change_with_paired_keys():
     inner = Shifting()
     delta = with_targets(inner, "delta")
-    assert isinstance(delta, DeltaTargets) and delta.batch == 2 and delta.name == "shifting"
+    assert isinstance(delta, DeltaTargets) and delta.batch == 4 and delta.name == "shifting"
     big = jnp.asarray(_views(3, size=48))
     keys = jax.random.split(jax.random.key(0), 3)
     e_p, e_null = inner.encode(PROMPT), inner.encode("")
     e_half = interpolate_embedding(e_p, e_null, 0.5)
     got = np.asarray(delta.edit_many(big, big, e_half, keys))
-    # one call of both edits of every view; the darkening and each key's noise cancel
-    assert inner.calls == [6]
+    # calls of both edits of half the editor's batch of views; the darkening and each key's
+    # noise cancel
+    assert inner.calls == [4, 2]
     shift = inner.per_embedding * float(e_half.mean())
     np.testing.assert_allclose(got, np.clip(np.asarray(big) + shift, 0, 1), atol=1e-5)
     # the detail composition keeps the editor's identity error and the noise
@@ -205,6 +206,10 @@ def test_delta_targets_are_the_view_where_the_instruction_changes_nothing():
     blind = Shifting(per_embedding=0.0)
     got = DeltaTargets(blind).edit_many(big, big, blind.encode(PROMPT), keys)
     assert np.array_equal(np.asarray(got), np.asarray(big)) and blind.calls == [4]
+    # an editor of batch 1 (the CPU's) still gets a view's pair in one call
+    single = Shifting(per_embedding=0.0, batch=1)
+    DeltaTargets(single).edit_many(big, big, single.encode(PROMPT), keys)
+    assert single.calls == [2, 2]
     # e(0): the change is zero by construction, no editor call
     inner = Shifting()
     at_zero = interpolate_embedding(inner.encode(PROMPT), inner.encode(""), 0.0)
@@ -225,7 +230,8 @@ def test_delta_targets_batch_the_pairs_within_the_editors_batch():
     keys = jax.random.split(jax.random.key(2), 5)
     e = inner.encode(PROMPT)
     got = edit_views(DeltaTargets(inner), big, big, e, keys)
-    assert inner.calls == [4, 4, 2]  # pairs of 2 views, then the last view's pair
+    # edit_views' chunks of the editor's batch, each in pairs of 2 views
+    assert inner.calls == [4, 4, 2]
     whole = DeltaTargets(Shifting(batch=16)).edit_many(big, big, e, keys)
     np.testing.assert_allclose(np.stack(got), np.asarray(whole), atol=1e-6)
 

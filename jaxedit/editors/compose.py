@@ -101,8 +101,10 @@ class DeltaTargets(DetailTargets):
     """``editor`` whose edits of views larger than its model size add only the instruction's
     change: ``image + up(edit_e(down) - edit_null(down))``, both edits of one view made with
     its key in one ``edit_many`` call of 2B views (:func:`compose_target`); at e(0) the view
-    itself, with no editor call. Half the editor's ``batch`` views per call, so a call edits
-    as many images as the editor's own. :attr:`measuring` is the single-edit
+    itself, with no editor call. The pairs of half the editor's ``batch`` views go in one
+    call (one view's pair where that is under 2), so a call edits no more images than the
+    editor's own (its ``batch`` is the editor's: views at its size are edited as
+    before). :attr:`measuring` is the single-edit
     :class:`DetailTargets` of the editor: its identity check and difficulty oracle edit with
     it, so they measure the editor, not the pairing."""
 
@@ -113,10 +115,6 @@ class DeltaTargets(DetailTargets):
 
     def __repr__(self):
         return f"DeltaTargets({self.editor!r})"
-
-    @property
-    def batch(self) -> int:
-        return max(1, int(getattr(self.editor, "batch", 1)) // 2)
 
     @property
     def e_null(self) -> np.ndarray:
@@ -140,11 +138,18 @@ class DeltaTargets(DetailTargets):
             return jnp.clip(images, 0.0, 1.0)
         small = resize_images(images, hw)
         orig = resize_images(jnp.asarray(originals, jnp.float32), hw)
+        nulls = jnp.broadcast_to(null, emb.shape)
         pair = lambda x, y: jnp.concatenate([x, y])  # noqa: E731
-        edited = self.editor.edit_many(pair(small, small), pair(orig, orig),
-                                       pair(emb, jnp.broadcast_to(null, emb.shape)),
-                                       pair(keys, keys), **kwargs)
-        return compose_target(images, edited[b:], edited[:b])
+        per = max(1, int(getattr(self.editor, "batch", 1)) // 2)
+        parts = []
+        for lo in range(0, b, per):
+            at = slice(lo, min(lo + per, b))
+            edited = self.editor.edit_many(pair(small[at], small[at]), pair(orig[at], orig[at]),
+                                           pair(emb[at], nulls[at]), pair(keys[at], keys[at]),
+                                           **kwargs)
+            n = at.stop - lo
+            parts.append(compose_target(images[at], edited[n:], edited[:n]))
+        return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
 
 
 def measuring_editor(editor):
