@@ -1,4 +1,4 @@
-"""Targets of views larger than the editor: stretched, detail-keeping and paired (delta) edits.
+"""Targets of views larger than the editor: stretched, detail-keeping and paired edits.
 
     python benchmarks/edit_targets.py [--smoke] [--out DIR] [--work DIR]
 
@@ -7,9 +7,11 @@ edited by "turn him into a bronze statue" in one subtask (r_0 = 0, e(0), what ev
 ProEdit run does first, then r = 1) with the bundled 64 px InstructPix2Pix, once with each
 way of making a larger view's target (:mod:`jaxedit.editors.compose`): ``stretch`` (the
 64 px edit enlarged, the targets before issue 77), ``detail`` (the render plus the edit's
-change at 64 px) and ``delta`` (the render plus e(r)'s edit minus e(0)'s of the same view
-and noise: two editor images per view, none at e(0)), and a control editor that gives the
-render back (r_0's own cost, no editor's; it stops after r_0). Per composition: the editor
+change at 64 px), ``delta`` (the render plus e(r)'s edit minus e(0)'s of the same view
+and noise: two editor images per view, none at e(0)), ``anchored`` (e(0)'s pair made on
+the view's photo, less the photo: two images per view) and ``hybrid`` (the render at e(0),
+detail after), and a control editor that gives the render back (r_0's own cost, no
+editor's; it stops after r_0). Per composition: the editor
 identity check's figures; r_0's and r = 1's snapshots against the input scene's renders
 (PSNR, SSIM, LPIPS, Gaussians) and their held-out PSNR against the photos; r = 1's
 renders against r_0's; the editor images per edited view of each subtask (counted at the
@@ -42,8 +44,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def extra(p):
     p.add_argument("--work", type=Path, default=None,
                    help="keep the dataset, reconstruction and runs here (default: a temp dir)")
-    p.add_argument("--rows", default="delta,detail,stretch,control",
-                   help="comma list of delta, detail, stretch, control")
+    p.add_argument("--rows", default="delta,anchored,hybrid,detail,stretch,control",
+                   help="comma list of delta, anchored, hybrid, detail, stretch, control")
     p.add_argument("--max-steps", type=int, default=None,
                    help="each subtask's step guard (default: the run's, from the scene)")
     p.add_argument("--patience", type=int, default=None,

@@ -222,6 +222,43 @@ def test_delta_targets_are_the_view_where_the_instruction_changes_nothing():
     assert np.array_equal(np.asarray(got), np.asarray(want))
 
 
+def test_anchored_pairs_take_e0s_identity_error_on_the_photo():
+    inner = Shifting()
+    anchored = with_targets(inner, "anchored")
+    assert isinstance(anchored, DeltaTargets) and anchored.reference == "photo"
+    big = jnp.asarray(_views(2, size=48))
+    photos = jnp.asarray(_views(2, size=48, seed=5))
+    keys = jax.random.split(jax.random.key(3), 2)
+    e_p = inner.encode(PROMPT)
+    shift = inner.per_embedding * float(e_p.mean())
+    # the render is its photo: only the instruction's change, the key's noise cancelled
+    got = np.asarray(anchored.edit_many(big, big, e_p, keys))
+    np.testing.assert_allclose(got, np.clip(np.asarray(big) + shift, 0, 1), atol=1e-5)
+    assert inner.calls == [4]
+    at_zero = np.asarray(anchored.edit_many(big, big, inner.encode(""), keys))
+    np.testing.assert_allclose(at_zero, np.asarray(big), atol=1e-5)
+    assert inner.calls == [4, 4]  # e(0) is edited: the render and the photo may differ
+    # else the editor's darkening of the render less its darkening of the photo remains
+    got = np.asarray(anchored.edit_many(big, photos, e_p, keys))
+    small, ref = resize_images(big, (16, 16)), resize_images(photos, (16, 16))
+    want = compose_target(big, small, small + shift - 0.2 * (small - ref))
+    np.testing.assert_allclose(got, np.asarray(want), atol=1e-5)
+
+
+def test_hybrid_targets_are_the_view_at_e0_and_detail_after():
+    inner = Shifting()
+    hybrid = with_targets(inner, "hybrid")
+    assert isinstance(hybrid, DetailTargets) and hybrid.keep_null
+    big = jnp.asarray(_views(2, size=48))
+    keys = jax.random.split(jax.random.key(4), 2)
+    got = hybrid.edit_many(big, big, inner.encode(""), keys)
+    assert np.array_equal(np.asarray(got), np.asarray(big)) and inner.calls == []
+    e_p = inner.encode(PROMPT)
+    detail = with_targets(inner, "detail").edit_many(big, big, e_p, keys)
+    assert np.array_equal(np.asarray(hybrid.edit_many(big, big, e_p, keys)), np.asarray(detail))
+    assert inner.calls == [2, 2]
+
+
 def test_delta_targets_batch_the_pairs_within_the_editors_batch():
     from jaxedit.editors.base import edit_views
 
@@ -244,6 +281,9 @@ def test_the_identity_check_and_the_oracle_measure_the_editor_not_the_pairing():
     assert measuring.editor is inner
     detail = with_targets(inner, "detail")
     assert measuring_editor(detail) is detail and measuring_editor(inner) is inner
+    for name in ("anchored", "hybrid"):
+        m = measuring_editor(with_targets(inner, name))
+        assert type(m) is DetailTargets and not m.keep_null and m.editor is inner
     views = _views(3, size=48)
     figures = measure_identity(DifficultyOracle(measuring, views, PROMPT, views=[0, 2]), views)
     # the darkening: far from the 100 dB the pairing would report at e(0)

@@ -95,8 +95,10 @@ class EditorConfig:
       size: IP2P working resolution in px (None: 64 for the bundled editor, else 512).
       steps: DDIM steps per IP2P edit.
       batch: ip2p: most views per editor call (None: 8 per accelerator, 1 on the CPU).
-      targets: ip2p: a larger view's target: render + e(r)'s edit minus e(0)'s (delta, two
-        edits per view), render + edit change (detail) or the edit enlarged (stretch).
+      targets: ip2p: a larger view's target: render + edit change (detail), the render at
+        e(0) and detail after (hybrid), render + e(r)'s edit minus e(0)'s of the render
+        (delta) or of the photo less the photo (anchored; both two edits per view), or the
+        edit enlarged (stretch).
     """
 
     kind: str = "ip2p"
