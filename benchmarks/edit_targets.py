@@ -20,8 +20,9 @@ e(1) (t = 0.98, one key per view) against those renders. Writes ``DIR/edit_targe
 (after each row), ``DIR/edit_targets.png`` (a held-out view; per composition: input, r_0,
 r = 1) and ``DIR/edit_targets_r1_targets.png`` (per composition: the render, its targets
 at e(0) and e(1)). ``--smoke``: the person at 64 px (the editor's size: every composition
-edits alike), 8 views, a few steps. Subtasks run to the run's own plateau and step guard
-(``--max-steps``, ``--patience`` to hold them); ``--r0-only`` stops after r_0;
+edits alike, so only anchored and the control run), 8 views, a few steps. Subtasks run to
+the run's own plateau and step guard (``--max-steps``, ``--patience`` to hold them);
+``--r0-only`` stops after r_0;
 ``--refine-reset`` starts r_0 with the opacity reset (``edit --refine-opacity-reset``) and
 writes ``DIR/edit_targets_refine_reset.json`` (``--rows control`` for the control alone).
 """
@@ -44,8 +45,9 @@ ROOT = Path(__file__).resolve().parents[1]
 def extra(p):
     p.add_argument("--work", type=Path, default=None,
                    help="keep the dataset, reconstruction and runs here (default: a temp dir)")
-    p.add_argument("--rows", default="delta,anchored,hybrid,detail,stretch,control",
-                   help="comma list of delta, anchored, hybrid, detail, stretch, control")
+    p.add_argument("--rows", default=None,
+                   help="comma list of delta, anchored, hybrid, detail, stretch, control "
+                        "(default: all; --smoke: anchored, control)")
     p.add_argument("--max-steps", type=int, default=None,
                    help="each subtask's step guard (default: the run's, from the scene)")
     p.add_argument("--patience", type=int, default=None,
@@ -212,7 +214,9 @@ def main(argv=None):
         reconstruct_s = time.perf_counter() - t0
         photos = held_out_photos(data)
         rows, panels, probes = [], [], []
-        for targets in args.rows.split(","):
+        rows_asked = args.rows or ("anchored,control" if args.smoke else
+                                   "delta,anchored,hybrid,detail,stretch,control")
+        for targets in rows_asked.split(","):
             control = targets == "control"
             editor_cfg = EditorConfig(kind="ip2p", steps=5,
                                       targets="detail" if control else targets)
