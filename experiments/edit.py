@@ -22,6 +22,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
+from jaxedit.editors.compose import TARGETS
 from jaxedit.errors import ranged
 from jaxedit.pipelines.edit_run import EditorConfig, EditRunConfig
 
@@ -77,7 +78,7 @@ def _config_flags():
         Flag("editor.size", "--ip2p-size"),
         Flag("editor.steps", "--ip2p-steps"),
         Flag("editor.batch", "--ip2p-batch"),
-        Flag("editor.targets", "--edit-targets", choices=("detail", "stretch")),
+        Flag("editor.targets", "--edit-targets", choices=TARGETS),
         Flag("identity.accept_low", "--accept-low-identity"),
         Flag("distance", choices=DISTANCES),
         Flag("lpips_weights"),

@@ -422,6 +422,10 @@ def cases(inp: dict, root: Path) -> list[tuple[str, list[str], str, Path | None]
                        "--prompt", PROMPT, "--out", str(inp["edit_run"]), "--select-only",
                        "--select", bad], "--select" if bad != "1" else "scene.ply",
                       inp["edit_run"] / "config.json"))
+    # A composition of larger views' targets that does not exist.
+    found.append(("edit --edit-targets sharpest",
+                  _base("edit", inp, out_rel) + ["--edit-targets", "sharpest"],
+                  "--edit-targets", None))
     # Ablation flag combinations.
     for flags, needle in [(["--methods", "foo"], "--methods"),
                           (["--methods", "nd_equal_steps"], "--methods"),

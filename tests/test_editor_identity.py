@@ -19,7 +19,9 @@ from jaxedit.edit.difficulty import DifficultyOracle
 from jaxedit.edit.identity import (IdentityFloor, LowIdentityError, identity_problem,
                                    measure_identity)
 from jaxedit.edit.outputs import Renderer, distance_to_input
-from jaxedit.editors.compose import DetailTargets, compose_target, with_targets
+from jaxedit.editors.compose import (DeltaTargets, DetailTargets, compose_target,
+                                     measuring_editor, with_targets)
+from jaxedit.editors.base import interpolate_embedding
 from jaxedit.editors.jax_ip2p import resize_images
 
 PROMPT = "turn him into a bronze statue"
@@ -133,6 +135,159 @@ def test_detail_targets_only_change_views_larger_than_the_editor():
     np.testing.assert_allclose(one, got[0], atol=1e-6)
     with pytest.raises(DataError, match="targets"):
         with_targets(inner, "sharpest")
+    # the paired edits in one call are the editor's two edits made apart
+    delta = with_targets(inner, "delta")
+    e_p = inner.encode(PROMPT)
+    got = np.asarray(delta.edit_many(big, big, e_p, keys))
+    want = compose_target(big, inner.edit_many(small, small, e, keys),
+                          inner.edit_many(small, small, e_p, keys))
+    np.testing.assert_allclose(got, np.asarray(want), atol=1e-5)
+    assert np.abs(got - np.asarray(big)).max() > 1e-3  # the instruction changed something
+
+
+class Shifting:
+    """An editor of a 16 px model size whose edit darkens the view (an identity error), adds
+    ``per_embedding`` times the embedding's mean and a noise drawn from the view's key."""
+
+    name = "shifting"
+    guidance = (7.5, 1.5)
+
+    def __init__(self, per_embedding=0.002, batch=4):
+        self.per_embedding, self.batch, self.calls = per_embedding, batch, []
+
+    def model_hw(self, height, width):
+        return (16, 16)
+
+    def encode(self, prompt):
+        return np.full((2, 3), float(len(prompt)), np.float32)
+
+    def edit_many(self, images, originals, embeddings, keys, **kwargs):
+        images = jnp.asarray(images, jnp.float32)
+        b = images.shape[0]
+        self.calls.append(b)
+        emb = jnp.broadcast_to(jnp.asarray(embeddings, jnp.float32), (b, 2, 3))
+        noise = jax.vmap(lambda k: jax.random.uniform(k, images.shape[1:], minval=-0.05,
+                                                      maxval=0.05))(keys)
+        shift = self.per_embedding * emb.mean((1, 2))[:, None, None, None]
+        return 0.8 * images + 0.1 + shift + noise
+
+
+def test_delta_targets_add_only_the_instructions_change_with_paired_keys():
+    inner = Shifting()
+    delta = with_targets(inner, "delta")
+    assert isinstance(delta, DeltaTargets) and delta.batch == 4 and delta.name == "shifting"
+    big = jnp.asarray(_views(3, size=48))
+    keys = jax.random.split(jax.random.key(0), 3)
+    e_p, e_null = inner.encode(PROMPT), inner.encode("")
+    e_half = interpolate_embedding(e_p, e_null, 0.5)
+    got = np.asarray(delta.edit_many(big, big, e_half, keys))
+    # calls of both edits of half the editor's batch of views; the darkening and each key's
+    # noise cancel
+    assert inner.calls == [4, 2]
+    shift = inner.per_embedding * float(e_half.mean())
+    np.testing.assert_allclose(got, np.clip(np.asarray(big) + shift, 0, 1), atol=1e-5)
+    # the detail composition keeps the editor's identity error and the noise
+    detail = np.asarray(with_targets(inner, "detail").edit_many(big, big, e_half, keys))
+    assert np.abs(detail - got).mean() > 0.02
+    # per-view embeddings: each view's own change
+    per_view = jnp.stack([e_null, e_half, e_p])
+    got = np.asarray(delta.edit_many(big, big, per_view, keys))
+    for i, e in enumerate(per_view):
+        np.testing.assert_allclose(got[i], np.clip(np.asarray(big[i]) + inner.per_embedding
+                                                   * float(e.mean()), 0, 1), atol=1e-5)
+    one = np.asarray(delta.edit(big[1], big[1], e_half, keys[1]))
+    np.testing.assert_allclose(one, np.clip(np.asarray(big[1]) + shift, 0, 1), atol=1e-5)
+
+
+def test_delta_targets_are_the_view_where_the_instruction_changes_nothing():
+    big = jnp.asarray(_views(2, size=48))
+    keys = jax.random.split(jax.random.key(1), 2)
+    # an editor whose e(r) edit equals its e(0) edit: every target is the view, bit for bit
+    blind = Shifting(per_embedding=0.0)
+    got = DeltaTargets(blind).edit_many(big, big, blind.encode(PROMPT), keys)
+    assert np.array_equal(np.asarray(got), np.asarray(big)) and blind.calls == [4]
+    # an editor of batch 1 (the CPU's) still gets a view's pair in one call
+    single = Shifting(per_embedding=0.0, batch=1)
+    DeltaTargets(single).edit_many(big, big, single.encode(PROMPT), keys)
+    assert single.calls == [2, 2]
+    # e(0): the change is zero by construction, no editor call
+    inner = Shifting()
+    at_zero = interpolate_embedding(inner.encode(PROMPT), inner.encode(""), 0.0)
+    got = DeltaTargets(inner).edit_many(big, big, at_zero, keys)
+    assert np.array_equal(np.asarray(got), np.asarray(big)) and inner.calls == []
+    # views at the editor's size: the editor's own edit
+    small = jnp.asarray(_views(2, size=16))
+    want = inner.edit_many(small, small, inner.encode(PROMPT), keys)
+    got = DeltaTargets(inner).edit_many(small, small, inner.encode(PROMPT), keys)
+    assert np.array_equal(np.asarray(got), np.asarray(want))
+
+
+def test_anchored_pairs_take_e0s_identity_error_on_the_photo():
+    inner = Shifting()
+    anchored = with_targets(inner, "anchored")
+    assert isinstance(anchored, DeltaTargets) and anchored.reference == "photo"
+    big = jnp.asarray(_views(2, size=48))
+    photos = jnp.asarray(_views(2, size=48, seed=5))
+    keys = jax.random.split(jax.random.key(3), 2)
+    e_p = inner.encode(PROMPT)
+    shift = inner.per_embedding * float(e_p.mean())
+    # the render is its photo: only the instruction's change, the key's noise cancelled
+    got = np.asarray(anchored.edit_many(big, big, e_p, keys))
+    np.testing.assert_allclose(got, np.clip(np.asarray(big) + shift, 0, 1), atol=1e-5)
+    assert inner.calls == [4]
+    at_zero = np.asarray(anchored.edit_many(big, big, inner.encode(""), keys))
+    np.testing.assert_allclose(at_zero, np.asarray(big), atol=1e-5)
+    assert inner.calls == [4, 4]  # e(0) is edited: the render and the photo may differ
+    # else the editor's darkening of the render less its darkening of the photo remains
+    got = np.asarray(anchored.edit_many(big, photos, e_p, keys))
+    small, ref = resize_images(big, (16, 16)), resize_images(photos, (16, 16))
+    want = compose_target(big, small, small + shift - 0.2 * (small - ref))
+    np.testing.assert_allclose(got, np.asarray(want), atol=1e-5)
+
+
+def test_hybrid_targets_are_the_view_at_e0_and_detail_after():
+    inner = Shifting()
+    hybrid = with_targets(inner, "hybrid")
+    assert isinstance(hybrid, DetailTargets) and hybrid.keep_null
+    big = jnp.asarray(_views(2, size=48))
+    keys = jax.random.split(jax.random.key(4), 2)
+    got = hybrid.edit_many(big, big, inner.encode(""), keys)
+    assert np.array_equal(np.asarray(got), np.asarray(big)) and inner.calls == []
+    e_p = inner.encode(PROMPT)
+    detail = with_targets(inner, "detail").edit_many(big, big, e_p, keys)
+    assert np.array_equal(np.asarray(hybrid.edit_many(big, big, e_p, keys)), np.asarray(detail))
+    assert inner.calls == [2, 2]
+
+
+def test_delta_targets_batch_the_pairs_within_the_editors_batch():
+    from jaxedit.editors.base import edit_views
+
+    inner = Shifting(batch=4)
+    big = jnp.asarray(_views(5, size=32))
+    keys = jax.random.split(jax.random.key(2), 5)
+    e = inner.encode(PROMPT)
+    got = edit_views(DeltaTargets(inner), big, big, e, keys)
+    # edit_views' chunks of the editor's batch, each in pairs of 2 views
+    assert inner.calls == [4, 4, 2]
+    whole = DeltaTargets(Shifting(batch=16)).edit_many(big, big, e, keys)
+    np.testing.assert_allclose(np.stack(got), np.asarray(whole), atol=1e-6)
+
+
+def test_the_identity_check_and_the_oracle_measure_the_editor_not_the_pairing():
+    inner = Shifting()
+    delta = with_targets(inner, "delta")
+    measuring = measuring_editor(delta)
+    assert isinstance(measuring, DetailTargets) and not isinstance(measuring, DeltaTargets)
+    assert measuring.editor is inner
+    detail = with_targets(inner, "detail")
+    assert measuring_editor(detail) is detail and measuring_editor(inner) is inner
+    for name in ("anchored", "hybrid"):
+        m = measuring_editor(with_targets(inner, name))
+        assert type(m) is DetailTargets and not m.keep_null and m.editor is inner
+    views = _views(3, size=48)
+    figures = measure_identity(DifficultyOracle(measuring, views, PROMPT, views=[0, 2]), views)
+    # the darkening: far from the 100 dB the pairing would report at e(0)
+    assert figures["psnr"] < 40 and figures["editor_calls"] == 2
 
 
 # ---------------------------------------------------------------------------

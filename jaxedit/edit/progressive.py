@@ -53,10 +53,13 @@ def make_trainer(config: ProEditConfig, settings: EditTrainConfig, data: EditDat
 def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distance=None):
     """The memoised d(r_a, r_b), a mean over the difficulty views' renders ``originals``
     [N, H, W, 3] of the input scene; ``distance`` e.g. :func:`jaxedit.lpips.lpips_distance`
-    (None: multi-scale SSIM)."""
+    (None: multi-scale SSIM). It edits with the editor's single edits
+    (:func:`jaxedit.editors.compose.measuring_editor`), so its e(0) edits measure the editor."""
+    from ..editors.compose import measuring_editor
+
     views = difficulty_view_subset(len(originals), ctx.config.difficulty_views,
                                    jax.random.key(seed))
-    return DifficultyOracle(ctx.editor, originals, ctx.prompt, views=views, distance=distance,
+    return DifficultyOracle(measuring_editor(ctx.editor), originals, ctx.prompt, views=views, distance=distance,
                             guidance=ctx.config.guidance, seed=seed,
                             embeddings=(ctx.e_prompt, ctx.e_null))
 

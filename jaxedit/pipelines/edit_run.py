@@ -95,7 +95,10 @@ class EditorConfig:
       size: IP2P working resolution in px (None: 64 for the bundled editor, else 512).
       steps: DDIM steps per IP2P edit.
       batch: ip2p: most views per editor call (None: 8 per accelerator, 1 on the CPU).
-      targets: ip2p: a larger view's target: render + edit change (detail) or the edit enlarged.
+      targets: ip2p: a larger view's target: render + e(r)'s edit minus e(0)'s of the photo
+        plus the photo (anchored, two edits per view), minus e(0)'s of the render (delta, two
+        edits), render + edit change (detail), the render at e(0) and detail after (hybrid),
+        or the edit enlarged (stretch). Views at the editor's size: the editor's own edit.
     """
 
     kind: str = "ip2p"
@@ -105,7 +108,7 @@ class EditorConfig:
     size: int | None = ranged(None, low=8)
     steps: int = ranged(DDIM_STEPS, low=1)
     batch: int | None = ranged(None, low=1)
-    targets: str = "detail"
+    targets: str = "anchored"
 
     def __post_init__(self):
         from ..editors.compose import TARGETS
