@@ -153,8 +153,9 @@ def _viewer(scene, st, tmp: Path, out_dir: Path) -> dict:
     import jaxedit
     from jaxedit import camera as camlib
     from jaxedit import metrics
-    from jaxedit.io import load_scene, save_scene
+    from jaxedit.io import load_scene, save_scene, transform_gaussians, upright
 
+    scene = transform_gaussians(scene, upright("+z"))  # as `export --up +z`: upright in viewers
     means = np.asarray(scene.means)[np.asarray(scene.alive)]
     target = np.median(means, axis=0)
     extent = float(np.percentile(np.linalg.norm(means - target, axis=1), 95))

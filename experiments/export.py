@@ -8,7 +8,9 @@ SCENE is a splat file of any format :func:`jaxedit.io.load_scene` reads (INRIA o
 .ply, .spz, .sog, meta.json, .splat); RUN_DIR an edit run, whose subtask ``--select`` picks (an
 index or a ratio, as ``edit --select``; the run is only read) or, without it, its
 ``selected.ply``. The format is FILE's extension (``.compressed.ply``, ``.spz``, ``.sog``,
-``meta.json``, ``.splat``, ``.ply``) unless ``--format`` says. Here ``--out`` is that file, not
+``meta.json``, ``.splat``, ``.ply``) unless ``--format`` says. ``--up AXIS`` turns the scene's up
+axis to -y, the up of the 3DGS .ply convention that splat viewers show upright (its view-dependent
+colour turned with it). Here ``--out`` is that file, not
 a run directory (``--output`` is the same flag, kept for older command lines): no run record
 or lock is written beside it, and it is written atomically.
 
@@ -26,6 +28,7 @@ HELP = "write a scene or an edit run's snapshot as .ply, .compressed.ply, .spz, 
 
 def add_arguments(p) -> None:
     from jaxedit.io import FORMATS
+    from jaxedit.io.similarity import AXES
 
     p.add_argument("source", type=Path, help="a splat file, or an edit run directory")
     # the shared --out (added before this) names the file written; --output is its old name
@@ -36,6 +39,11 @@ def add_arguments(p) -> None:
                    help="with RUN_DIR: the subtask (index or ratio) to export")
     p.add_argument("--format", default=None, choices=FORMATS,
                    help="the format, whatever --out's extension")
+    p.add_argument("--up", default=None, choices=AXES,
+                   help="the scene's up axis, turned to -y so that splat viewers (SuperSplat, "
+                        "the INRIA viewer) show it upright; +z for the built-in scenes and "
+                        "nerfstudio datasets; a minus sign needs the = form, --up=-z "
+                        "(default: the file keeps the scene's axes)")
 
 
 #: experiments/rundirs.py: ``--out`` names a file here (checked as one), not a run directory.
@@ -65,7 +73,7 @@ def source_scene(source: Path, select: str | None) -> Path:
 
 
 def run(args) -> dict:
-    from jaxedit.io import load_scene, save_scene
+    from jaxedit.io import load_scene, save_scene, transform_gaussians, upright
     from jaxedit.io.formats import format_from_name
 
     from jaxedit import DataError
@@ -75,8 +83,10 @@ def run(args) -> dict:
     scene_file = source_scene(args.source, args.select)
     fmt = args.format or format_from_name(args.out)  # a bad extension: before any reading
     gaussians = load_scene(scene_file)
+    if args.up is not None:
+        gaussians = transform_gaussians(gaussians, upright(args.up))
     path = save_scene(args.out, gaussians, format=fmt)
-    return {"source": str(scene_file), "output": str(path), "format": fmt,
+    return {"source": str(scene_file), "output": str(path), "format": fmt, "up": args.up,
             "gaussians": int(gaussians.alive.sum()), "bytes": path.stat().st_size}
 
 

@@ -19,10 +19,11 @@ import pytest
 from jaxedit import sh as shlib
 from jaxedit.errors import DataError
 from jaxedit.gaussians import quat_to_rotmat
-from jaxedit.io import load_ply, load_scene, save_ply, save_scene
+from jaxedit.io import load_ply, load_scene, save_ply, save_scene, upright
 from jaxedit.io.formats import compressed_ply, sog, splat, spz
 from jaxedit.io.formats.common import Splats, from_gaussians, morton_order, to_gaussians
 from jaxedit.io.formats.scene import scene_format
+from jaxedit.io.similarity import AXES
 
 def ply_bytes(s: Splats) -> bytes:
     """The INRIA .ply of ``s`` (save_ply's bytes)."""
@@ -535,6 +536,43 @@ def test_export_command_converts_files_and_run_snapshots(tmp_path, capsys):
     assert main(["export", str(run), "--select", "0.5", "--out", str(tmp_path / "c.ply"),
                  "--format", "compressed-ply"]) == 0
     assert scene_format(tmp_path / "c.ply") == "compressed-ply"
+
+
+@pytest.mark.parametrize("up", AXES)
+def test_upright_turns_each_axis_to_the_viewers_up(up):
+    m = upright(up)
+    r = m[:3, :3]
+    axis = np.eye(3)["xyz".index(up[1])] * (1.0 if up[0] == "+" else -1.0)
+    np.testing.assert_array_equal(r @ axis, [0.0, -1.0, 0.0])
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(r) == pytest.approx(1.0) and (m[:3, 3] == 0).all()
+    assert set(np.unique(r)) <= {-1.0, 0.0, 1.0}  # a turn of the axes: exact in float32
+    with pytest.raises(DataError, match="--up"):
+        upright("up")
+
+
+def test_export_up_turns_the_scene_and_its_view_dependent_colour(tmp_path, capsys):
+    """``export --up +z``: the exported scene seen from the turned camera is the input scene
+    seen from the camera, view-dependent colour included."""
+    import jaxedit
+    from experiments.cli import main
+    from jaxedit import camera as camlib
+    from jaxedit.io import transform_cameras
+
+    s = make_splats(n=64, degree=2, seed=5)
+    s = Splats(s.means * 0.3, s.log_scales - 1.2, s.quats, s.opacity_logits, s.sh)
+    scene = save_ply(tmp_path / "scene.ply", to_gaussians(s))
+    assert main(["export", str(scene), "--out", str(tmp_path / "up.ply"), "--up", "+z"]) == 0
+    assert json.loads(capsys.readouterr().out)["up"] == "+z"
+    cam = camlib.make_camera(camlib.look_at((2.0, 0.6, 0.4), (0.0, 0.0, 0.0)), width=24,
+                             height=24, focal=24.0)
+    turned = transform_cameras(cam, upright("+z"))
+    before = np.asarray(jaxedit.render(load_scene(scene), cam).rgb)
+    after = np.asarray(jaxedit.render(load_scene(tmp_path / "up.ply"), turned).rgb)
+    assert before.max() > 0.1
+    np.testing.assert_allclose(after, before, atol=2e-4)
+    plain = np.asarray(jaxedit.render(load_scene(scene), turned).rgb)
+    assert np.abs(plain - before).max() > 0.2  # the camera did turn
 
 
 @pytest.mark.parametrize("argv, message", [

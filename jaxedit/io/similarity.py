@@ -124,6 +124,32 @@ def rotate_sh(sh, rotation) -> np.ndarray:
     return out
 
 
+#: Axis names of :func:`upright`.
+AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
+
+
+def upright(up: str) -> np.ndarray:
+    """4x4 rotation taking the world's ``up`` axis (one of :data:`AXES`) to -y, the up of
+    the 3DGS .ply convention (an OpenCV / COLMAP world) that splat viewers show upright:
+    the quarter turn about ``up`` x (-y), a half turn about x for +y, identity for -y."""
+    if up not in AXES:
+        raise DataError("--up", f"must be one of {', '.join(AXES)}, got {up!r}")
+    u = np.zeros(3)
+    u["xyz".index(up[1])] = 1.0 if up[0] == "+" else -1.0
+    v = np.array([0.0, -1.0, 0.0])
+    if u @ v > 0.5:
+        r = np.eye(3)
+    elif u @ v < -0.5:
+        r = np.diag([1.0, -1.0, -1.0])
+    else:  # Rodrigues' formula for a quarter turn about the unit axis u x v
+        k = np.cross(u, v)
+        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        r = np.eye(3) + kx + kx @ kx
+    m = np.eye(4)
+    m[:3, :3] = r
+    return m
+
+
 def transform_gaussians(g: Gaussians, matrix) -> Gaussians:
     """The same scene (float32) after the world is mapped by ``matrix`` (q = s R p + t),
     SH bands rotated so view-dependent colour follows."""
