@@ -199,7 +199,9 @@ def split_ratio(difficulty: DifficultyFn, a: float, b: float, *, iterations: int
         raise DataError("ratio", f"a step must go up, got {a:g} -> {b:g}")
     whole, cache = _measure(difficulty, {}, a, b)
     lo, g_lo, hi, g_hi = a, -whole, b, whole
-    best, kept = None, 0  # kept: the end a step left in place twice in a row (Illinois)
+    # kept: steps in a row that moved the same end (< 0: lo); from the second, the end left
+    # in place has its g halved (Illinois), so the secant does not stall on one side
+    best, kept = None, 0
     for step in range(max(int(iterations), 0) + 1):
         x = 0.5 * (lo + hi) if step == 0 else lo + (hi - lo) * g_lo / (g_lo - g_hi)
         x = a + (b - a) * round((x - a) / (b - a) * grid) / grid
