@@ -13,7 +13,8 @@ from each start (``reconstruct --init``):
   nerfstudio does; its held-out views are its own every 8th photo.
 
 Starts: ``auto`` (reconstruct's default for a dataset without points: the triangulated
-points topped up with random ones to ``--random-points``), ``triangulate`` (SIFT matches of
+points topped up to ``--random-points`` with points on the surfaces they mark,
+:mod:`jaxedit.capture.dense`), ``triangulate`` (SIFT matches of
 the training views triangulated at the known poses alone, :mod:`jaxedit.capture.triangulate`),
 ``random`` (``--random-points`` photo-consistent random points, the start before it) and
 with ``--reference`` the cloud the dataset was saved with
@@ -24,6 +25,7 @@ scored against the scene's ray-cast surface (distance to the nearest hit over th
 Writes ``DIR/triangulate_init.json`` with the goal of issue 74 checked: the start from
 triangulated points (``auto``) reaches a higher held-out PSNR than the random start on both
 (rewritten after each run).
+``--seed`` seeds every start's points and training (other seeds give the spread).
 ``--smoke``: 16 views of 128 px, 20 steps, the scene only, starts ``auto`` and ``random``.
 Each case and start can run in its own process (``--cases``, ``--starts``, one ``--out``
 each): COLMAP runs on one thread, so every process poses the capture alike.
