@@ -123,15 +123,18 @@ def test_reconstruct_init_auto_triangulates_a_bare_dataset_and_random_keeps_the_
     random = initial_points(data, 300, 0, init="random")
     assert random[2] == "random" and len(random[0]) == 300
     # auto: every triangulated point, then points on the surfaces they mark up to the random
-    # start's count, nearer the surface than the random ones...
+    # start's count, nearer the surface than the random ones (both carved by the white
+    # background, as reconstruct does)...
     n = len(tri[0]) + 300
-    auto = initial_points(data, n, 0, triangulation=FAST)
+    white = (1.0, 1.0, 1.0)
+    auto = initial_points(data, n, 0, white, triangulation=FAST)
     assert auto[2] == "triangulated+dense" and len(auto[0]) == len(auto[1]) == n
     np.testing.assert_array_equal(auto[0][:len(tri[0])], tri[0])
     np.testing.assert_array_equal(auto[1][:len(tri[0])], tri[1])
     truth = _surface(data.train()[1])
     dense = _nearest(auto[0][len(tri[0]):].astype(np.float64), truth)
-    far = _nearest(random[0].astype(np.float64), truth)
+    far = _nearest(initial_points(data, 300, 0, white, init="random")[0].astype(np.float64),
+                   truth)
     assert np.median(dense) < 0.25 * np.median(far), (np.median(dense), np.median(far))
     # ...and the triangulated points alone when they are as many.
     alone = initial_points(data, len(tri[0]), 0, triangulation=FAST)
