@@ -122,14 +122,20 @@ def test_reconstruct_init_auto_triangulates_a_bare_dataset_and_random_keeps_the_
     np.testing.assert_array_equal(tri[1], again[1])
     random = initial_points(data, 300, 0, init="random")
     assert random[2] == "random" and len(random[0]) == 300
-    # auto: every triangulated point, then random ones up to the random start's count...
-    n = len(tri[0]) + 40
-    auto = initial_points(data, n, 0, triangulation=FAST)
-    assert auto[2] == "triangulated+random" and len(auto[0]) == len(auto[1]) == n
+    # auto: every triangulated point, then points on the surfaces they mark up to the random
+    # start's count, nearer the surface than the random ones (both carved by the white
+    # background, as reconstruct does)...
+    n = len(tri[0]) + 300
+    white = (1.0, 1.0, 1.0)
+    auto = initial_points(data, n, 0, white, triangulation=FAST)
+    assert auto[2] == "triangulated+dense" and len(auto[0]) == len(auto[1]) == n
     np.testing.assert_array_equal(auto[0][:len(tri[0])], tri[0])
     np.testing.assert_array_equal(auto[1][:len(tri[0])], tri[1])
-    extra = initial_points(data, 40, 0, init="random")
-    np.testing.assert_array_equal(auto[0][len(tri[0]):], extra[0])
+    truth = _surface(data.train()[1])
+    dense = _nearest(auto[0][len(tri[0]):].astype(np.float64), truth)
+    far = _nearest(initial_points(data, 300, 0, white, init="random")[0].astype(np.float64),
+                   truth)
+    assert np.median(dense) < 0.25 * np.median(far), (np.median(dense), np.median(far))
     # ...and the triangulated points alone when they are as many.
     alone = initial_points(data, len(tri[0]), 0, triangulation=FAST)
     assert alone[2] == "triangulated"

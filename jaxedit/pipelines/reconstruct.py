@@ -7,9 +7,9 @@ The library half of ``python -m experiments reconstruct``, whose flags are gener
 ``camera_opt``, ``dataset/`` (the images as trained with the learned pose corrections).
 
 Initial points (``init``): "auto" takes the dataset's ``ply_file_path``, else SIFT features
-triangulated at the known poses (:mod:`jaxedit.capture.triangulate`) topped up with random
-points, else (logged) photo-consistent random points (:mod:`jaxedit.capture.points`);
-"triangulate" and "random" take those alone.
+triangulated at the known poses (:mod:`jaxedit.capture.triangulate`) topped up with points on
+the surfaces they mark (:mod:`jaxedit.capture.dense`), else (logged) photo-consistent random
+points (:mod:`jaxedit.capture.points`); "triangulate" and "random" take those alone.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ class ReconstructConfig:
       downscale: integer image downscale factor (1: full size; unset: long side <= 1600 px).
       skip_missing_images: drop the frames whose image file is missing instead of stopping.
       normalize: re-centre and scale the poses as nerfstudio does ("nerfstudio") or not ("none").
-      init: initial points: "auto" (dataset, else triangulated + random), "triangulate" or "random".
+      init: initial points: "auto" (dataset, else triangulated + dense), "triangulate" or "random".
       triangulation: how "triangulate" and "auto" triangulate the training views.
       random_points: initial points of the random start (photo-consistent random points).
       checkpoint_every: checkpoint period in steps (0: only at the end).
@@ -155,7 +155,8 @@ CARVE_BORDER_FRACTION = 0.5
 def initial_points(data, n_random: int, seed: int, background=None, *, init: str = "auto",
                    triangulation: TriangulateOptions = TriangulateOptions()):
     """(points [P, 3], colours [P, 3], source) by ``init``; source is "dataset",
-    "triangulated", "triangulated+random" or "random". Random candidates are carved by
+    "triangulated", "triangulated+dense" (up to ``n_random`` points; "+random" when the
+    surfaces gave too few) or "random". Random and dense candidates are carved by
     ``background`` (RGB) when :data:`CARVE_BORDER_FRACTION` of the borders show it.
     """
 
@@ -170,27 +171,52 @@ def initial_points(data, n_random: int, seed: int, background=None, *, init: str
         if found is not None and (init == "triangulate" or len(found[0]) >= n_random):
             return (*found, "triangulated")
         if found is not None:
-            extra = _random_start(data, n_random - len(found[0]), seed, background)
-            log.info("initial points: %d triangulated and %d random points", len(found[0]),
-                     len(extra[0]))
-            return (np.concatenate([found[0], extra[0]]), np.concatenate([found[1], extra[1]]),
-                    "triangulated+random")
+            return _dense_start(data, found, n_random, seed, background)
     return (*_random_start(data, n_random, seed, background), "random")
 
 
 def _random_start(data, n_random: int, seed: int, background):
     """(points, colours): ``n_random`` photo-consistent random points, carved by ``background``."""
-    from ..capture.points import background_fraction, random_points
+    from ..capture.points import random_points
 
     images, cameras = data.train()
-    if background is not None and background_fraction(images, background) < CARVE_BORDER_FRACTION:
-        background = None  # a scene photo, not an object on a background: no carving
+    background = _carving(images, background)
     points, colors = random_points(images, cameras, n_random, jax.random.key(seed),
                                    background=background)
     if background is not None:
         log.info("initial points: %d random points carved by the background %s",
                  len(points), tuple(float(c) for c in background))
     return points, colors
+
+
+def _carving(images, background):
+    """``background`` where :data:`CARVE_BORDER_FRACTION` of the images' borders show it."""
+    from ..capture.points import background_fraction
+
+    if background is not None and background_fraction(images, background) < CARVE_BORDER_FRACTION:
+        return None  # a scene photo, not an object on a background: no carving
+    return background
+
+
+def _dense_start(data, found, n_random: int, seed: int, background):
+    """(points, colours, source): the triangulated ``found`` points, then points on the
+    surfaces they mark up to ``n_random`` (:mod:`jaxedit.capture.dense`), then random
+    ones if those fall short."""
+    from ..capture.dense import surface_points
+
+    images, cameras = data.train()
+    dense = surface_points(found[0], images, cameras, n_random - len(found[0]),
+                           jax.random.fold_in(jax.random.key(seed), 2),
+                           background=_carving(images, background))
+    parts, source = [found, dense], "triangulated+dense"
+    short = n_random - len(found[0]) - len(dense[0])
+    if short > 0:
+        parts.append(_random_start(data, short, seed, background))
+        source += "+random"
+    log.info("initial points: %d triangulated, %d on the surfaces they mark%s", len(found[0]),
+             len(dense[0]), f", {short} random" if short > 0 else "")
+    return (np.concatenate([p[0] for p in parts]).astype(np.float32),
+            np.concatenate([p[1] for p in parts]).astype(np.float32), source)
 
 
 def _triangulated(data, options: TriangulateOptions, *, required: bool):
