@@ -76,6 +76,7 @@ def interpolate_depth(u: np.ndarray, v: np.ndarray, z: np.ndarray, qu: np.ndarra
     inverse depth linear over their triangulation, the nearest point's outside it (or
     everywhere when the points span no triangle)."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+    from scipy.spatial import QhullError
 
     known = np.stack([u, v], -1)
     query = np.stack([qu, qv], -1)
@@ -84,7 +85,7 @@ def interpolate_depth(u: np.ndarray, v: np.ndarray, z: np.ndarray, qu: np.ndarra
         try:
             linear = LinearNDInterpolator(known, 1.0 / z)(query)
             inv = np.where(np.isfinite(linear), linear, inv)
-        except Exception:  # noqa: BLE001  (collinear points: qhull finds no triangle)
+        except QhullError:  # collinear points: no triangle to interpolate over
             pass
     return 1.0 / inv
 
