@@ -59,8 +59,8 @@ def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distan
 
     views = difficulty_view_subset(len(originals), ctx.config.difficulty_views,
                                    jax.random.key(seed))
-    return DifficultyOracle(measuring_editor(ctx.editor), originals, ctx.prompt, views=views, distance=distance,
-                            guidance=ctx.config.guidance, seed=seed,
+    return DifficultyOracle(measuring_editor(ctx.editor), originals, ctx.prompt, views=views,
+                            distance=distance, guidance=ctx.config.guidance, seed=seed,
                             embeddings=(ctx.e_prompt, ctx.e_null))
 
 
