@@ -39,10 +39,15 @@ TARGETS = ("delta", "anchored", "hybrid", "detail", "stretch")
 EDITS_PER_VIEW = {"delta": 2, "anchored": 2, "hybrid": 1, "detail": 1, "stretch": 1}
 
 
+def _per_view(editor, embeddings, b: int) -> tuple[jnp.ndarray, np.ndarray]:
+    """(``b`` views' embeddings [B, D...] from [D...] or [B, D...], E("") [D...])."""
+    null = np.asarray(editor.encode(""), np.float32)
+    return jnp.broadcast_to(jnp.asarray(embeddings, jnp.float32), (b, *null.shape)), null
+
+
 def _all_null(editor, embeddings, b: int) -> bool:
     """Whether every one of ``b`` views' ``embeddings`` ([D...] or [B, D...]) is E("")."""
-    null = np.asarray(editor.encode(""), np.float32)
-    emb = jnp.broadcast_to(jnp.asarray(embeddings, jnp.float32), (b, *null.shape))
+    emb, null = _per_view(editor, embeddings, b)
     return bool(jnp.all(emb == null))
 
 
@@ -155,10 +160,9 @@ class DeltaTargets(DetailTargets):
         if hw is None:
             return self.editor.edit_many(images, originals, embeddings, keys, **kwargs)
         b = images.shape[0]
-        if self.reference == "render" and _all_null(self.editor, embeddings, b):
+        emb, null = _per_view(self.editor, embeddings, b)
+        if self.reference == "render" and bool(jnp.all(emb == null)):
             return jnp.clip(images, 0.0, 1.0)  # e(0): the change is zero
-        null = np.asarray(self.editor.encode(""), np.float32)
-        emb = jnp.broadcast_to(jnp.asarray(embeddings, jnp.float32), (b, *null.shape))
         small = resize_images(images, hw)
         orig = resize_images(jnp.asarray(originals, jnp.float32), hw)
         ref = small if self.reference == "render" else orig
