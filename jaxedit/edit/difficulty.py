@@ -218,6 +218,14 @@ class DifficultyOracle:
             self._pairs[(qa, qb)] = hit
         return hit
 
+    def edited_ratios(self) -> list[float]:
+        """The ratios whose every view is edited already (d between them costs no editor call)."""
+        counts: dict[int, int] = {}
+        for q, k in self._images:
+            if k in self.views:
+                counts[q] = counts.get(q, 0) + 1
+        return sorted(q / 1e6 for q, n in counts.items() if n >= len(set(self.views)))
+
     def fingerprint(self) -> str:
         """A digest of what the answers depend on (editor inputs, embeddings, keys, views,
         distance): two oracles of one fingerprint give the same d."""

@@ -21,6 +21,7 @@ import jax
 import numpy as np
 
 from ..editors.base import editor_guidance
+from ..editors.keys import quantize_ratio
 from ..train import scene_extent
 from . import schedule as sched
 from .context import EditContext, EditData
@@ -64,14 +65,14 @@ def difficulty_oracle(ctx: EditContext, originals: np.ndarray, seed: int, distan
                             embeddings=(ctx.e_prompt, ctx.e_null))
 
 
-def scene_oracle(ctx: EditContext, gaussians, seed: int, distance=None):
+def scene_oracle(ctx: EditContext, gaussians, seed: int, distance=None, renders=None):
     """:func:`difficulty_oracle` of the renders of ``gaussians`` at the training views
-    (None in IN2N mode, which has no schedule)."""
+    (``renders``: them, made already; None in IN2N mode, which has no schedule)."""
     if ctx.config.mode == "in2n":
         return None
-    originals = np.stack([ctx.renderer.rgb(gaussians, ctx.data.train_cameras[i])
-                          for i in range(len(ctx.data.train_images))])
-    return difficulty_oracle(ctx, originals, seed, distance)
+    if renders is None:
+        renders = ctx.renderer.views(gaussians, ctx.data.train_cameras)[0]
+    return difficulty_oracle(ctx, renders, seed, distance)
 
 
 def distance_name(distance) -> str:
@@ -221,10 +222,7 @@ def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ra
         if schedule.target_subtasks is not None:
             log(f"threshold {schedule.threshold:.4g} gives {schedule.num_subtasks} subtasks "
                 f"(target {schedule.target_subtasks})")
-    curve = []
-    if oracle is not None:
-        grid = np.linspace(0.0, 1.0, max(config.curve_points, 2))
-        curve = [[r, d] for r, d in oracle.curve(sorted(set(map(float, grid)) | set(ratios)))]
+    curve = [] if oracle is None else difficulty_curve(oracle, ratios)
     header = {"prompt": ctx.prompt,
               "editor": getattr(ctx.editor, "name", type(ctx.editor).__name__),
               "mode": config.mode, "threshold": fields["threshold"],
@@ -251,6 +249,32 @@ def plan_edit(ctx: EditContext, gaussians, *, seed: int, distance=None, start_ra
               "max_gaussians": ctx.trainer.settings.densify.max_gaussians,
               "input_gaussians": int(gaussians.num_alive()), "identity": identity}
     return plan, header
+
+
+def curve_grid(config: ProEditConfig) -> list[float]:
+    """The ratios of the reported d(0, r) curve: ``config.curve_points`` evenly in [0, 1]."""
+    return [float(r) for r in np.linspace(0.0, 1.0, max(config.curve_points, 2))]
+
+
+def difficulty_curve(oracle, ratios=()) -> list[list[float]]:
+    """[[r, d(0, r)], ...] at 0, ``ratios`` and every ratio the oracle has edited already: no
+    editor call (:func:`complete_curve` adds the grid's other points later)."""
+    chosen = {quantize_ratio(r): float(r) for r in oracle.edited_ratios()}
+    chosen.update({quantize_ratio(r): float(r) for r in (0.0, *ratios)})
+    return [[r, d] for r, d in oracle.curve(sorted(chosen.values()))]
+
+
+def complete_curve(header: dict, oracle, config: ProEditConfig) -> dict:
+    """``header`` with its curve at :func:`curve_grid` too (their editor calls made now, after
+    the first snapshot rather than before it); ``header`` itself when nothing is missing."""
+    curve = header.get("difficulty_curve") or []
+    chosen = {quantize_ratio(r): float(r) for r, _ in curve}
+    missing = [r for r in curve_grid(config) if quantize_ratio(r) not in chosen]
+    if oracle is None or not missing:
+        return header
+    chosen.update({quantize_ratio(r): r for r in missing})
+    return dict(header, difficulty_curve=[[r, d] for r, d in
+                                          oracle.curve(sorted(chosen.values()))])
 
 
 def schedule_json(header: dict, plan, records) -> dict:

@@ -65,6 +65,8 @@ class EditStart:
       memo: the path's oracle memo file (:data:`ORACLE_NAME` of the branch that began it).
       shapes: the parent's ``capacity`` and ``max_intersections`` there (None: sized anew).
       notes: fields added to schedule.json's header (an extension's ``experimental``).
+      images: float [N, H, W, 3], ``scene`` rendered at the training views (None: rendered
+        when the edit starts).
     """
 
     scene: object
@@ -77,6 +79,7 @@ class EditStart:
     memo: Path
     shapes: dict | None = None
     notes: dict | None = None
+    images: np.ndarray | None = None
 
 
 #: The 2D editors the library builds (:func:`make_editor`).
@@ -339,8 +342,8 @@ def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProE
     origin = None if resume_from is None else str(resume_from)
     if start is not None:
         start_ratio, start_scene, origin = start.ratio, start.scene, start.label
-        images = np.stack([ctx.renderer.rgb(start_scene, data.train_cameras[i])
-                           for i in range(len(data.train_images))])
+        images = (start.images if start.images is not None else
+                  ctx.renderer.views(start_scene, data.train_cameras)[0])
     elif resume_from is not None:
         snap = Path(resume_from)
         start_ratio = snapshot_ratio(snap)
@@ -360,9 +363,12 @@ def prepare_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProE
     st = init_state(ctx, start_scene, images, **shapes)
     # The training chunks' program is built (or read back) while the schedule edits.
     with on_a_thread(compile_chunk, ctx, begin_subtask(ctx, st)):
-        oracle = oracle if oracle is not None else progressive.scene_oracle(
-            ctx, gaussians if start is None else start.path_scene,
-            seed if start is None else start.path_seed, distance)
+        if oracle is None and start is not None:  # the start's renders when they are the path's
+            oracle = progressive.scene_oracle(
+                ctx, start.path_scene, start.path_seed, distance,
+                renders=images if start.path_scene is start.scene else None)
+        elif oracle is None:
+            oracle = progressive.scene_oracle(ctx, gaussians, seed, distance)
         restored = oracle is not None and memo is not None and read_oracle_memo(oracle, memo)
         plan, header = progressive.plan_edit(
             ctx, gaussians, seed=seed, distance=distance, start_ratio=start_ratio,
@@ -416,6 +422,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     log = log or (lambda msg: None)
     compiles_before = compile_stats()
     run = RunDir.at(run_dir)
+    setup, memo_owner = None, False
     if resume:
         ctx, local_plan = edit_context(editor, prompt, data, gaussians, config=config,
                                        settings=settings, seed=seed, local=local, hooks=hooks,
@@ -434,7 +441,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             raise
         ctx, st, plan, header, local_plan = setup[:5]
         wall0 = setup.started
-        run.write_memo(setup.oracle, setup.memo_restored, start)
+        memo_owner = run.write_memo(setup.oracle, setup.memo_restored, start)
     # The input scene's renders of the held-out views: every snapshot says how far it moved.
     reference = None if run.path is None else (
         ctx.renderer.views(gaussians, data.test_cameras)[0], int(gaussians.num_alive()))
@@ -445,9 +452,21 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     def save(state):
         run.save(state, plan, header, time.perf_counter() - wall0)
 
+    def complete_curve(state) -> bool:
+        """After the first snapshot: the difficulty curve's other points (and their edits in
+        the memo); whether the header changed."""
+        nonlocal header
+        if setup is None or state.records:
+            return False
+        before, header = header, progressive.complete_curve(header, setup.oracle, ctx.config)
+        if memo_owner and header is not before:
+            write_oracle_memo(setup.oracle, run.memo(start))
+        return header is not before
+
     def on_subtask(state, spec, record):
         """A finished subtask's snapshot, and schedule.json with its record."""
         if run.path is None:
+            complete_curve(state)
             return record
         shapes = {"capacity": int(state.train.gaussians.capacity),
                   "max_intersections": int(state.train.max_intersections)}
@@ -458,8 +477,10 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
                    if spec.kind == "refine" else None)
         if warning:
             log(warning)
-        run.write_schedule(progressive.schedule_json(header, plan,
-                                                     tuple(state.records) + (record,)))
+        records = tuple(state.records) + (record,)
+        run.write_schedule(progressive.schedule_json(header, plan, records))
+        if complete_curve(state):
+            run.write_schedule(progressive.schedule_json(header, plan, records))
         return record
 
     run.write_schedule(progressive.schedule_json(header, plan, st.records))

@@ -179,13 +179,15 @@ class RunDir:
             _write_json(self.path / IDENTITY_NAME, dict(error.figures, stopped=str(error)))
             error.record = self.path / IDENTITY_NAME  # kept by the command's cleanup
 
-    def write_memo(self, oracle, restored: bool, start=None) -> None:
+    def write_memo(self, oracle, restored: bool, start=None) -> bool:
         """The oracle's edits, for the run's branches: the path's owner (re)writes its memo;
-        a branch adds to it, never over another's."""
+        a branch adds to it, never over another's. Whether it wrote."""
         memo = self.memo(start)
         if oracle is not None and memo is not None and (
                 restored or start is None or not memo.exists()):
             write_oracle_memo(oracle, memo)
+            return True
+        return False
 
     def write_original(self, ctx, gaussians, local_plan=None) -> None:
         """The input scene's snapshot and a local edit's region at the held-out views."""

@@ -26,7 +26,7 @@ from ..edit.steer import (ROOT, Branch, NodeRef, RunTree, check_name, extend_ste
 from ..errors import DataError
 from ..io import load_scene
 from ..io.files import LOCK_NAME, atomic_write_text
-from .edit_run import ORACLE_NAME, EditRunConfig, EditStart, run_edit
+from .edit_run import ORACLE_NAME, EditRunConfig, EditStart, prepare_edit, run_edit
 from .snapshots import BRANCHES, branch_folder as branch_dir
 
 TREE_NAME = "tree.json"
@@ -186,33 +186,18 @@ def _path_inputs(run_dir, tree: RunTree, path: str, data: EditData, input_scene,
     if owner.start not in scenes:
         scenes[owner.start] = start_scene(run_dir, owner.start)[0]
     scene = scenes[owner.start]
-    renders = np.stack([renderer.rgb(scene, data.train_cameras[i])
-                        for i in range(len(data.train_images))])
-    views = EditData(renders.astype(np.float32), data.train_cameras, data.test_images,
-                     data.test_cameras)
+    renders = renderer.views(scene, data.train_cameras)[0]
+    views = EditData(renders, data.train_cameras, data.test_images, data.test_cameras)
     return views, scene, owner.seed, branch_dir(run_dir, path) / ORACLE_NAME
 
 
-def run_branch(editor, config: EditRunConfig, data: EditData, input_scene, run_dir,
-               branch: Branch, *, distance=None, resume: bool = False,
-               stop: Callable[[], bool] | None = None, progress=None,
-               log: Callable[[str], None] = lambda m: None) -> dict:
-    """Run ``branch`` (new: added to the tree first; ``resume``: from its checkpoint) in
-    ``RUN/branches/NAME``; returns :func:`jaxedit.pipelines.edit_run.run_edit`'s summary.
-
-    Nothing of the parent is recomputed: the branch starts from the parent's snapshot, and
-    its path's difficulty edits are read from the memo. A DataError before training leaves
-    the run as it was (the branch's folder and tree entry removed).
-    """
+def branch_inputs(editor, config: EditRunConfig, data: EditData, input_scene, run_dir,
+                  tree: RunTree, branch: Branch,
+                  log: Callable[[str], None] = lambda m: None) -> tuple:
+    """(config, views, prompt, :class:`EditStart`) of ``branch`` in ``tree``, read from the
+    run's files; writes nothing."""
     from ..edit.outputs import Renderer
 
-    run_dir = Path(run_dir)
-    tree = read_tree(run_dir)
-    folder = branch_dir(run_dir, branch.name)
-    if not resume:
-        tree = tree.add(branch)
-        if folder.exists():
-            raise DataError(folder, "exists already: choose another --name")
     config = _branch_config(config, branch)
     renderer = Renderer(config.plan.background)
     scene, shapes = start_scene(run_dir, branch.start)
@@ -238,7 +223,31 @@ def run_branch(editor, config: EditRunConfig, data: EditData, input_scene, run_d
         log(f"experimental: {EXPERIMENTAL}")
     start = EditStart(scene, branch.from_ratio, str(branch.start or "main:original"),
                       embeddings, _steps(run_dir, tree, branch, config), path_scene, path_seed,
-                      memo, shapes, notes)
+                      memo, shapes, notes,
+                      images=views.train_images if path_scene is scene else None)
+    return config, views, prompt, start
+
+
+def run_branch(editor, config: EditRunConfig, data: EditData, input_scene, run_dir,
+               branch: Branch, *, distance=None, resume: bool = False,
+               stop: Callable[[], bool] | None = None, progress=None,
+               log: Callable[[str], None] = lambda m: None) -> dict:
+    """Run ``branch`` (new: added to the tree first; ``resume``: from its checkpoint) in
+    ``RUN/branches/NAME``; returns :func:`jaxedit.pipelines.edit_run.run_edit`'s summary.
+
+    Nothing of the parent is recomputed: the branch starts from the parent's snapshot, and
+    its path's difficulty edits are read from the memo. A DataError before training leaves
+    the run as it was (the branch's folder and tree entry removed).
+    """
+    run_dir = Path(run_dir)
+    tree = read_tree(run_dir)
+    folder = branch_dir(run_dir, branch.name)
+    if not resume:
+        tree = tree.add(branch)
+        if folder.exists():
+            raise DataError(folder, "exists already: choose another --name")
+    config, views, prompt, start = branch_inputs(editor, config, data, input_scene, run_dir,
+                                                 tree, branch, log)
     if not resume:
         old = (run_dir / TREE_NAME).read_bytes() if (run_dir / TREE_NAME).is_file() else None
         write_tree(run_dir, tree)
@@ -255,6 +264,26 @@ def run_branch(editor, config: EditRunConfig, data: EditData, input_scene, run_d
             else:
                 atomic_write_text(run_dir / TREE_NAME, old.decode())
         raise
+
+
+def warm_up(editor, config: EditRunConfig, data: EditData, input_scene, run_dir, *,
+            distance=None) -> bool:
+    """Prepare a refine of the run's last edit step in memory, writing nothing, so that this
+    process holds what an operation on the run compiles, reads and renders (the viewer's
+    warm worker); False when the run has no edit step to refine."""
+    tree = read_tree(run_dir)
+    steps = [r for r in read_schedule(run_dir)["subtasks"]
+             if r["kind"] == "edit" and r.get("snapshot")]
+    if not steps:
+        return False
+    branch = plan_branch(run_dir, tree, "refine", NodeRef(ROOT, steps[-1]["index"]))
+    tree = tree.add(branch)
+    config, views, prompt, start = branch_inputs(editor, config, data, input_scene, run_dir,
+                                                 tree, branch)
+    prepare_edit(editor, prompt, views, input_scene, config=config.plan, settings=config.train,
+                 seed=branch.seed, distance=distance, identity=None, start=start,
+                 memo=start.memo)
+    return True
 
 
 # Requests to a running edit
