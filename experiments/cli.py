@@ -207,7 +207,10 @@ def parse(argv: list[str]) -> argparse.Namespace:
     return args
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, preloaded=None) -> int:
+    """Run the command ``argv``; its exit status. ``preloaded``: an
+    :class:`experiments.edit.Preloaded` that keeps a steering command's inputs for the next
+    command of this process (the viewer's warm worker)."""
     from jaxedit import DataError
 
     argv = sys.argv[1:] if argv is None else argv
@@ -216,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     result_out = sys.stdout
     try:
         args = parse(argv)
+        args._preloaded = preloaded
         dist = distributed_config(args)
         if dist is not None and not _is_worker():
             return supervised(argv, args, dist)

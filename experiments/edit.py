@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 
 from jaxedit.editors.compose import TARGETS
@@ -388,17 +389,81 @@ def recorded_settings(out: Path) -> list[str]:
     return kept
 
 
+class Preloaded:
+    """What steering commands read before their branch (the views, the input scene, the
+    editor, the difficulty distance), kept between the commands of one process while the
+    files and settings they were read with stay the same: the viewer's warm worker
+    (:mod:`experiments.steer_worker`). A command line makes a new, empty one."""
+
+    def __init__(self):
+        self._kept: dict[str, tuple] = {}
+
+    def get(self, kind: str, key, make: Callable):
+        """``make()``, or what it gave for ``kind`` last time if ``key`` is the same."""
+        kept = self._kept.get(kind)
+        if kept is None or kept[0] != key:
+            self._kept.pop(kind, None)  # the old one goes before the new one is read
+            kept = self._kept[kind] = (key, make())
+        return kept[1]
+
+
+def _stamp(path) -> tuple:
+    """What says a file (a dataset folder: its transforms.json) changed."""
+    path = Path(path)
+    path = path / "transforms.json" if path.is_dir() else path
+    try:
+        st = path.stat()
+    except OSError:
+        return (str(path),)
+    return (str(path), st.st_mtime_ns, st.st_size)
+
+
+def steering_inputs(out: Path, merged, run_cfg, preloaded: Preloaded) -> tuple:
+    """(views, input scene, editor, difficulty distance) of a steering command on run ``out``."""
+    from jaxedit.edit.difficulty import default_distance
+    from jaxedit.pipelines.edit_run import load_inputs
+
+    from .editors import make_editor
+
+    scene = merged.scene if merged.scene is not None and Path(merged.scene).is_file() \
+        else out / "original" / "scene.ply"
+    reads = {f.name: getattr(run_cfg, f.name) for f in dataclasses.fields(run_cfg)
+             if f.name != "plan"}  # branches change the plan only
+    data, input_scene = preloaded.get(
+        "inputs", (_stamp(merged.data), _stamp(scene), repr(reads)),
+        lambda: load_inputs(run_cfg, merged.data, scene, editor_loaded=False))
+    editor = preloaded.get("editor", repr(run_cfg.editor), lambda: make_editor(run_cfg.editor))
+    distance = preloaded.get("distance", (run_cfg.distance, str(run_cfg.lpips_weights)),
+                             lambda: default_distance(run_cfg.distance, run_cfg.lpips_weights))
+    return data, input_scene, editor, distance
+
+
+def recorded_run(out: Path):
+    """(the run's recorded flags as parsed, their EditRunConfig)."""
+    from .cli import parse
+
+    merged = parse(["edit", *recorded_settings(out), "--out", str(out)])
+    return merged, run_config(merged)
+
+
+def warm_steering(out: Path, preloaded: Preloaded) -> bool:
+    """Read run ``out``'s inputs into ``preloaded`` and prepare a refine in memory
+    (:func:`jaxedit.pipelines.steer_run.warm_up`): the warm worker's start."""
+    from jaxedit.pipelines import steer_run
+
+    merged, run_cfg = recorded_run(out)
+    data, input_scene, editor, distance = steering_inputs(out, merged, run_cfg, preloaded)
+    return steer_run.warm_up(editor, run_cfg, data, input_scene, out, distance=distance)
+
+
 def run_steering(args, kind: str) -> dict:
     """--stop, --tree, a new branch or a branch's --resume on the run in --out."""
     from jaxedit import DataError
-    from jaxedit.edit.difficulty import default_distance
     from jaxedit.edit.steer import parse_node
     from jaxedit.pipelines import steer_run
-    from jaxedit.pipelines.edit_run import load_inputs
     from jaxedit.pipelines.report import write_report
 
     from .cli import parse
-    from .editors import make_editor
     from .export import export_selected
 
     if kind == "tree":
@@ -441,17 +506,15 @@ def run_steering(args, kind: str) -> dict:
         branch = steer_run.plan_branch(args.out, tree, op, node, name=args.name,
                                    prompt=args.prompt if "prompt" in given else None,
                                    seed=merged.seed, settings=settings)
-    scene = merged.scene if merged.scene is not None and Path(merged.scene).is_file() \
-        else args.out / "original" / "scene.ply"
-    data, input_scene = load_inputs(run_cfg, merged.data, scene, editor_loaded=False)
-    editor = make_editor(run_cfg.editor)
+    data, input_scene, editor, distance = steering_inputs(
+        args.out, merged, run_cfg, getattr(args, "_preloaded", None) or Preloaded())
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     log(f"{branch.op} {branch.name} from {branch.parent}")
     progress = progress_callback(args.quiet)
     try:
         out = steer_run.run_branch(editor, run_cfg, data, input_scene, args.out, branch,
-                               distance=default_distance(run_cfg.distance, run_cfg.lpips_weights),
-                               resume=args.resume, stop=steer_run.stop_requested(args.out, log),
+                               distance=distance, resume=args.resume,
+                               stop=steer_run.stop_requested(args.out, log),
                                progress=progress, log=log)
     finally:
         progress.close()
@@ -502,6 +565,7 @@ def after_release(args) -> None:
         return
     watcher, what = view
     watcher.viewer.edit_over(what)
+    watcher.viewer.warm_up()
     print(f"{what}; the viewer keeps serving {watcher.viewer.url} (Ctrl-C to stop)", flush=True)
     watcher.serve_forever()
 

@@ -275,14 +275,90 @@ def branch_labels(run_dir: Path | None, names) -> dict[str, str]:
     return labels
 
 
-def launch_process(argv: list[str]):
+def launch_process(argv: list[str], stdin=subprocess.DEVNULL):
     """Start ``argv`` (a steering command) with its stderr piped as text lines; this
     checkout's packages first on the path, so ``-m experiments`` is this one's."""
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
-    return subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+    return subprocess.Popen(argv, stdin=stdin, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, bufsize=1, env=env)
+
+
+class WorkerCommand:
+    """A steering command running in a :class:`WarmWorker`, as :class:`Operation` reads a
+    process: ``stderr`` yields its messages until the worker says it ended, ``wait()`` gives
+    its exit status, ``terminate()`` ends the worker with it."""
+
+    def __init__(self, worker: subprocess.Popen):
+        self._worker, self.returncode = worker, None
+        self.stderr = self._messages()
+
+    def _messages(self):
+        from .steer_worker import EXIT, READY
+
+        for line in self._worker.stderr:
+            if line.startswith(EXIT):
+                self.returncode = int(line[len(EXIT):])
+                return
+            if line.rstrip("\n") != READY:
+                yield line
+        self.returncode = self._worker.wait()  # the worker ended (terminated, crashed)
+
+    def wait(self, timeout: float | None = None) -> int | None:
+        return self.returncode
+
+    def terminate(self) -> None:
+        self._worker.terminate()
+
+
+class WarmWorker:
+    """``launch(argv)`` for a viewer of one edit run: its steering commands run one at a
+    time in a worker process (:mod:`experiments.steer_worker`) that read the run and
+    prepared a refine before the first one arrives, and stays warm for the next. A worker
+    that ended (terminated with its command, crashed) is started anew by the next command.
+
+    ``start()`` starts it (the viewer does when it opens the run, ``edit --view`` once the
+    edit is over); ``close()`` ends it.
+    """
+
+    def __init__(self, run_dir: Path):
+        self.run_dir = Path(run_dir).resolve()
+        self._proc: subprocess.Popen | None = None
+        self.warm_up_messages: list[str] = []
+
+    def start(self) -> subprocess.Popen:
+        if self._proc is None or self._proc.poll() is not None:
+            self._proc = launch_process([sys.executable, "-m", "experiments.steer_worker",
+                                         str(self.run_dir)], stdin=subprocess.PIPE)
+        return self._proc
+
+    def wait_ready(self) -> bool:
+        """Block until the worker is warm (its warm-up messages in ``warm_up_messages``);
+        False when it ended first. Not while a command runs (both read its stderr)."""
+        from .steer_worker import READY
+
+        for line in self.start().stderr:
+            if line.rstrip("\n") == READY:
+                return True
+            self.warm_up_messages.append(line.rstrip("\n"))
+        return False
+
+    def __call__(self, argv: list[str]) -> WorkerCommand:
+        prefix = [sys.executable, "-m", "experiments"]
+        if argv[:3] != prefix:
+            raise ValueError(f"not a command of python -m experiments: {argv[:3]}")
+        proc = self.start()
+        proc.stdin.write(json.dumps({"argv": argv[3:]}) + "\n")
+        proc.stdin.flush()
+        return WorkerCommand(proc)
+
+    def close(self) -> None:
+        """End the worker (the viewer ends a running command first)."""
+        proc, self._proc = self._proc, None
+        if proc is not None and proc.poll() is None:
+            proc.terminate()
+            proc.wait(30)
 
 
 def branch_progress(run_dir: Path, name: str) -> tuple[int, int] | None:
@@ -691,6 +767,12 @@ class SnapshotViewer:
     def _stop_clicked(self, _event) -> None:
         self.stop_edit()
 
+    def warm_up(self) -> None:
+        """Start the operations' warm worker (a ``launch`` with ``start``, :class:`WarmWorker`)."""
+        start = getattr(self._launch, "start", None)
+        if self.steerable and start is not None:
+            start()
+
     def serve_forever(self) -> None:
         """Block until Ctrl-C (the server runs on viser's own threads)."""
         try:
@@ -705,6 +787,7 @@ class SnapshotViewer:
         if op is not None and op.running:
             op.proc.terminate()
             op.wait(30)
+        getattr(self._launch, "close", lambda: None)()
         self.server.stop()
 
 
@@ -807,15 +890,18 @@ def open_run(run_dir: Path, *, port: int = DEFAULT_PORT,
 
 
 def watch_edit(run_dir: Path, *, port: int = DEFAULT_PORT) -> RunWatcher:
-    """``edit --view``: a viewer of ``run_dir`` refreshed from a background thread as subtasks end."""
-    viewer = SnapshotViewer(Path(run_dir), port=port)
+    """``edit --view``: a viewer of ``run_dir`` refreshed from a background thread as subtasks
+    end; its operations run in a :class:`WarmWorker` started once the edit is over."""
+    viewer = SnapshotViewer(Path(run_dir), port=port, launch=WarmWorker(run_dir))
     print(f"viewer: {viewer.url} (refreshed as each subtask ends)", flush=True)
     return RunWatcher(run_dir, viewer).start()
 
 
 def run(args) -> dict:
-    watcher = watch_run(args.run_dir, port=run_config(args).port)
+    run_dir = edit_run_dir(args.run_dir)
+    watcher = watch_run(run_dir, port=run_config(args).port, launch=WarmWorker(run_dir))
     viewer = watcher.viewer
+    viewer.warm_up()
     print(f"viewer: {viewer.url} ({len(viewer)} snapshots; Ctrl-C to stop)", flush=True)
     watcher.serve_forever()  # new branches and snapshots appear as they are written
     return {"url": viewer.url, "snapshots": len(viewer)}

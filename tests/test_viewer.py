@@ -451,6 +451,54 @@ def test_refine_button_really_refines_a_tiny_run(tiny_run, tmp_path, viser_insta
     assert all(isinstance(s.node, str) for s in chain[k + 1:])
 
 
+
+def test_worker_protocol_runs_each_command_line_and_says_its_status(tmp_path, capsys):
+    """experiments.steer_worker: one JSON command per line, its messages on stderr, then the
+    exit line; a garbled line is refused with status 2 and the worker goes on."""
+    import io
+
+    from experiments import steer_worker
+
+    commands = io.StringIO("not json\n" + json.dumps(
+        {"argv": ["edit", "--out", str(tmp_path), "--tree", "--bogus"]}) + "\n")
+    assert steer_worker.serve(tmp_path / "none", commands) == 0
+    lines = capsys.readouterr().err.split("\n")
+    assert lines[0].startswith("warm-up skipped: ") and "no config.json" in lines[0]
+    assert lines[1] == steer_worker.READY
+    assert lines[2].startswith("error: the worker's command is not JSON")
+    assert lines[3] == f"{steer_worker.EXIT}2"
+    assert "unrecognized arguments: --bogus" in lines[4] and lines[5] == f"{steer_worker.EXIT}2"
+    assert lines[6:] == [""]
+
+
+@pytest.mark.slow
+def test_warm_worker_refines_as_the_command_line_does(tiny_run, tmp_path):
+    """The viewer's worker runs its commands one after another in one warm process: a refused
+    one says its one line, and a refine gives the bytes the command line gives."""
+    run, cold = (shutil.copytree(tiny_run, tmp_path / name) for name in ("run", "cold"))
+    k = last_edit_step(run)
+    worker = view.WarmWorker(run)
+    try:
+        assert worker.wait_ready(), worker.warm_up_messages
+        pid = worker._proc.pid
+        refused = worker(view.operation_argv(run, "extend", k, "b1", r_max=1.0))
+        assert [line for line in refused.stderr if line.startswith("error: --extend")]
+        assert refused.wait() == 2 and not (run / "branches").exists()
+        refine = worker(view.operation_argv(run, "refine", k, "b1"))
+        said = list(refine.stderr)
+        assert refine.wait() == 0, said
+        assert worker._proc.pid == pid  # the same process, still warm
+    finally:
+        worker.close()
+    assert worker._proc is None
+    assert main(view.operation_argv(cold, "refine", k, "b1")[3:] + ["--quiet"]) == 0
+    for folder in ("run", "cold"):
+        assert steer_run.branch_status(tmp_path / folder, "b1") == "done"
+    snaps = [sorted((tmp_path / f / "branches" / "b1" / "subtasks").glob("*/scene.ply"))
+             for f in ("run", "cold")]
+    assert len(snaps[0]) == len(snaps[1]) >= 2
+    assert all(a.read_bytes() == b.read_bytes() for a, b in zip(*snaps))
+
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 WIDTH, HEIGHT = 1000, 700
 
@@ -572,9 +620,10 @@ def page_text(browser):
 def test_refine_pressed_in_headless_chromium_renders_the_new_branch(tiny_run, tmp_path,
                                                                     viser_installed):
     run = shutil.copytree(tiny_run, tmp_path / "run")
-    watcher = view.watch_run(run, port=0)
+    watcher = view.watch_run(run, port=0, launch=view.WarmWorker(run))  # as `view` does
     watcher.interval = 0.3
     viewer, browser = watcher.viewer, None
+    viewer.warm_up()
     k = last_edit_step(run)
     try:
         viewer.show(k + 1)  # main:k, the last edit step, on screen
