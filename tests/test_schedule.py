@@ -242,6 +242,25 @@ def test_target_subtasks_edits_no_ratio_finer_than_its_answer_needs(target):
     assert len(searched) < 2 ** 6 + 1
 
 
+
+@pytest.mark.parametrize("target", [2, 4, 8])
+def test_an_exact_target_probes_only_its_own_schedule_at_its_tightest_threshold(target):
+    """A threshold of the search that gives exactly ``target`` subtasks ends it: no ratio
+    beyond what the answer's decomposition probes (here d(0, 1) / target gives them at
+    once), and the lowest threshold of the search's grid that still gives those steps."""
+    base = lambda a, b: abs(b - a) ** 1.05  # noqa: E731  (2^k equal steps, each under 2^-k)
+    searched, own = set(), set()
+    s = for_target_subtasks(recording(base, searched), target, max_depth=6)
+    assert s.num_subtasks == target
+    decompose(recording(base, own), threshold=s.threshold, max_depth=6)
+    assert {r for pair in searched for r in pair} == {r for pair in own for r in pair} == {
+        i / target for i in range(target + 1)}
+    step = 2.0 ** -12  # the search's grid of y, threshold d(0, 1) 2^(-24 (1 - y))
+    y = 1.0 + math.log2(s.threshold / (1.0 + 1e-9)) / 24.0
+    below = 2.0 ** (-24.0 * (1.0 - (round(y / step) - 1) * step)) * (1.0 + 1e-9)
+    assert below < max(s.difficulties) <= s.threshold
+    assert decompose(base, threshold=below, max_depth=6).num_subtasks > target
+
 def test_target_subtasks_beyond_the_depth_limit_gives_the_finest_schedule_and_says_so():
     d = monotone_difficulty(np.ones(KNOTS))
     s = for_target_subtasks(d, 40, max_depth=3)

@@ -450,8 +450,27 @@ def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
     def h(y: float) -> float:
         return target + 0.5 - schedule_at(y).num_subtasks
 
+    def threshold_at(k: int) -> float:  # schedule_at's threshold at grid point k
+        return d01 * 2.0 ** (-octaves * (1.0 - k * resolution)) * (1.0 + 1e-9)
+
+    def tightest(y: float) -> float:
+        """The lowest grid y whose threshold covers schedule_at(y)'s hardest step: the same
+        steps (decompositions are nested in the threshold), so no new probe."""
+        hardest = max(schedule_at(y).difficulties)
+        if not hardest > 0.0:
+            return y
+        k = max(0, math.ceil((1.0 + math.log2(hardest / d01) / octaves) / resolution))
+        while k > 0 and threshold_at(k - 1) >= hardest:
+            k -= 1
+        while threshold_at(k) < hardest:
+            k += 1
+        low = min(k * resolution, y)
+        return low if schedule_at(low).ratios == schedule_at(y).ratios else y
+
     lower, upper = _bracket_from_above(h, target, octaves)
-    if lower is not None:
+    if lower is not None and lower == upper:  # exactly the target: no finer probe needed
+        lower = upper = tightest(upper)
+    elif lower is not None:
         lower, upper = _bisect_host(h, lower, upper, resolution)
     else:  # even the finest threshold gives at most ``target`` subtasks
         lower = 0.0
@@ -463,13 +482,17 @@ def for_target_subtasks(difficulty: DifficultyFn, target: int, *,
 def _bracket_from_above(h: Callable[[float], float], target: int,
                         octaves: float) -> tuple[float | None, float]:
     """(lower, upper) with h(lower) < 0 <= h(upper), searched down from y = 1 half an octave
-    of threshold at a time, starting at d(0, 1) / target; lower is None when h >= 0 down to
-    y = 0. Decompositions' probes are nested in the threshold, so the search edits no ratio
-    that the schedule at ``lower`` does not edit itself."""
+    of threshold at a time, starting at d(0, 1) / target; (y, y) at the first y that gives
+    exactly ``target`` subtasks (h = 0.5); lower is None when h >= 0 down to y = 0.
+    Decompositions' probes are nested in the threshold, so the search edits no ratio that
+    the schedule at ``lower`` does not edit itself."""
     upper, y = 1.0, min(1.0, 1.0 - math.log2(target) / octaves)
     while True:
-        if h(y) < 0.0:
+        value = h(y)
+        if value < 0.0:
             return y, upper
+        if value == 0.5:
+            return y, y
         if y <= 0.0:
             return None, y
         upper, y = y, max(0.0, y - 0.5 / octaves)
