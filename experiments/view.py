@@ -57,13 +57,17 @@ DEFAULT_R_MAX = 1.25  # the extend control's initial r_max
 
 @dataclasses.dataclass(frozen=True)
 class ViewConfig:
-    """Where the viewer listens.
+    """Where the viewer listens, and how it runs its steering buttons.
 
     Attributes:
       port: port on 127.0.0.1 (taken: the next free one; 0: any free port).
+      warm_worker: run the steering buttons' commands in a worker process that reads the
+        run, its editor and programs as the viewer opens; off: each click starts a new
+        process, and nothing is loaded before it.
     """
 
     port: int = ranged(DEFAULT_PORT, low=0, high=65535)
+    warm_worker: bool = True
 
     def __post_init__(self):
         check_ranges(self)
@@ -72,7 +76,8 @@ class ViewConfig:
 def _config_flags():
     from experiments.flags import Flag, FlagSet
 
-    return FlagSet(ViewConfig, (Flag("port"),)).complete()
+    return FlagSet(ViewConfig, (Flag("port"), Flag("warm_worker", off="--no-warm-worker"))
+                   ).complete()
 
 
 #: The command's flags, generated from :class:`ViewConfig`.
@@ -898,8 +903,9 @@ def watch_edit(run_dir: Path, *, port: int = DEFAULT_PORT) -> RunWatcher:
 
 
 def run(args) -> dict:
-    run_dir = edit_run_dir(args.run_dir)
-    watcher = watch_run(run_dir, port=run_config(args).port, launch=WarmWorker(run_dir))
+    config, run_dir = run_config(args), edit_run_dir(args.run_dir)
+    watcher = watch_run(run_dir, port=config.port,
+                        launch=WarmWorker(run_dir) if config.warm_worker else launch_process)
     viewer = watcher.viewer
     viewer.warm_up()
     print(f"viewer: {viewer.url} ({len(viewer)} snapshots; Ctrl-C to stop)", flush=True)
