@@ -10,8 +10,9 @@ the bundled editor), ``--extend 1.25``, and (not in the smoke) the refine and th
 in a copy of the run. Each is stopped once its first snapshot is on disk. Then the viewer's
 way, each in a fresh copy of the run: the viewer's warm worker started and warmed up
 (:class:`experiments.view.WarmWorker`), the operation sent as its button sends it, seconds
-from that click to the first snapshot (``viewer``). Per command-line operation:
-seconds from the command's start to that snapshot, split into stages by the command's log
+from that click to the first snapshot (``viewer``: the median of three fresh workers).
+Per command-line operation: seconds from the command's start to that snapshot, split into
+stages by the command's log
 lines (setup: imports, inputs, editor; start: the start scene's state and the difficulty
 oracle; schedule: its edits; compile wait and checkpoint; training; snapshot), the programs it
 compiled or read from the compile cache before training, its first subtask's training
@@ -44,6 +45,8 @@ from jaxedit.io.files import LOCK_NAME
 
 ROOT = Path(__file__).resolve().parents[1]
 
+#: Fresh warm workers per operation the viewer's way (the median is reported).
+VIEWER_TRIES = 3
 #: The log lines that end each stage before training, in order (prefixes; ``{op}``: the op).
 STAGES = (("setup_s", "{op} "), ("start_s", "difficulty distance:"),
           ("schedule_s", "schedule:"), ("compile_wait_s", "training starts:"))
@@ -259,9 +262,14 @@ def main(argv=None):
                                   == Path(ops[name]["snapshot"]).read_bytes())
                     ops[name]["again_first_snapshot_s"] = again["first_snapshot_s"]
             for name in argvs:  # the viewer's way: each the first click on a warm worker
-                shutil.rmtree(work / "viewer", ignore_errors=True)
-                shutil.copytree(pristine, work / "viewer")
-                ops[name]["viewer"] = first_snapshot_warm(work / "viewer", name, argvs[name])
+                tries = []
+                for _ in range(1 if args.smoke else VIEWER_TRIES):
+                    shutil.rmtree(work / "viewer", ignore_errors=True)
+                    shutil.copytree(pristine, work / "viewer")
+                    tries.append(first_snapshot_warm(work / "viewer", name, argvs[name]))
+                median = sorted(tries, key=lambda t: t["first_snapshot_s"])[len(tries) // 2]
+                ops[name]["viewer"] = dict(median, tries_first_snapshot_s=[
+                    t["first_snapshot_s"] for t in tries])
             measured.write_text(json.dumps([ops, parent_unchanged, same]))
         refine_header = ops["refine"]["header"]
         halves = [r["difficulty"] for r in refine_header["subtasks"]
