@@ -21,10 +21,7 @@ import sys
 import traceback
 from pathlib import Path
 
-#: The line that says the worker is warm (its first command starts at once).
-READY = "jaxedit-worker: ready"
-#: The start of the line that ends a command's messages; its exit status follows.
-EXIT = "jaxedit-worker: exit "
+from .view import WORKER_EXIT as EXIT, WORKER_READY as READY  # the viewer reads them
 
 
 def run_command(argv: list[str], preloaded) -> int:

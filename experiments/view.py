@@ -290,6 +290,12 @@ def launch_process(argv: list[str], stdin=subprocess.DEVNULL):
                             stderr=subprocess.PIPE, text=True, bufsize=1, env=env)
 
 
+#: The worker's line that says it is warm (:mod:`experiments.steer_worker`).
+WORKER_READY = "jaxedit-worker: ready"
+#: The start of the worker's line that ends a command's messages; its exit status follows.
+WORKER_EXIT = "jaxedit-worker: exit "
+
+
 class WorkerCommand:
     """A steering command running in a :class:`WarmWorker`, as :class:`Operation` reads a
     process: ``stderr`` yields its messages until the worker says it ended, ``wait()`` gives
@@ -300,13 +306,11 @@ class WorkerCommand:
         self.stderr = self._messages()
 
     def _messages(self):
-        from .steer_worker import EXIT, READY
-
         for line in self._worker.stderr:
-            if line.startswith(EXIT):
-                self.returncode = int(line[len(EXIT):])
+            if line.startswith(WORKER_EXIT):
+                self.returncode = int(line[len(WORKER_EXIT):])
                 return
-            if line.rstrip("\n") != READY:
+            if line.rstrip("\n") != WORKER_READY:
                 yield line
         self.returncode = self._worker.wait()  # the worker ended (terminated, crashed)
 
@@ -341,10 +345,8 @@ class WarmWorker:
     def wait_ready(self) -> bool:
         """Block until the worker is warm (its warm-up messages in ``warm_up_messages``);
         False when it ended first. Not while a command runs (both read its stderr)."""
-        from .steer_worker import READY
-
         for line in self.start().stderr:
-            if line.rstrip("\n") == READY:
+            if line.rstrip("\n") == WORKER_READY:
                 return True
             self.warm_up_messages.append(line.rstrip("\n"))
         return False
