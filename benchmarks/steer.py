@@ -38,6 +38,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 from common import machine_info, parse_args, write_json
 from experiments.cli import KEPT_RECORD
@@ -85,6 +86,25 @@ def stages(op: str, lines: list, first_snapshot_s: float, train_s: float) -> dic
     return out
 
 
+def first_record(schedule: Path, argv: list[str], t0: float, failure: Callable[[], str | None],
+                 timeout: float) -> dict:
+    """The first finished subtask's record in a branch's ``schedule`` (schedule.json), once
+    written; ``failure()`` says why the command ended without one (None while it may yet)."""
+    while True:
+        why = failure()
+        if why is not None:
+            raise RuntimeError(f"edit {' '.join(argv)} failed: {why}")
+        if time.perf_counter() - t0 > timeout:
+            raise RuntimeError(f"edit {' '.join(argv)}: no snapshot in {timeout:.0f} s")
+        time.sleep(0.05)
+        try:
+            done = [r for r in json.loads(schedule.read_text())["subtasks"] if r.get("snapshot")]
+        except (FileNotFoundError, ValueError):
+            continue
+        if done:
+            return done[0]
+
+
 def first_snapshot(run: Path, name: str, op: str, argv: list[str],
                    timeout: float = 3600.0) -> dict:
     """Start ``edit --out run ARGV`` and stop it once branch ``name`` has a snapshot."""
@@ -98,24 +118,19 @@ def first_snapshot(run: Path, name: str, op: str, argv: list[str],
         lines: list = []
         reader = threading.Thread(target=_read_lines, args=(proc.stdout, lines, t0), daemon=True)
         reader.start()
-        record = None
-        while record is None:
-            if proc.poll() is not None and not schedule.is_file():
-                err.seek(0)
-                raise RuntimeError(f"edit {' '.join(argv)} failed: {err.read()[-2000:]}")
-            if time.perf_counter() - t0 > timeout:
-                proc.kill()
-                raise RuntimeError(f"edit {' '.join(argv)}: no snapshot in {timeout:.0f} s")
-            time.sleep(0.2)
-            try:
-                done = [r for r in json.loads(schedule.read_text())["subtasks"]
-                        if r.get("snapshot")]
-            except (FileNotFoundError, ValueError):
-                continue
-            record = done[0] if done else None
-        seconds = time.perf_counter() - t0
-        proc.kill()
-        proc.wait()
+
+        def failure():
+            if proc.poll() is None or schedule.is_file():
+                return None
+            err.seek(0)
+            return err.read()[-2000:]
+
+        try:
+            record = first_record(schedule, argv, t0, failure, timeout)
+            seconds = time.perf_counter() - t0
+        finally:
+            proc.kill()
+            proc.wait()
         reader.join(timeout=5)
     header = json.loads(schedule.read_text())
     compiled = next((m for m in map(_COMPILED.match, (line for _, line in lines)) if m), None)
@@ -153,19 +168,8 @@ def first_snapshot_warm(run: Path, name: str, argv: list[str], timeout: float = 
         messages: list = []
         reader = threading.Thread(target=lambda: messages.extend(command.stderr), daemon=True)
         reader.start()
-        record = None
-        while record is None:
-            if not reader.is_alive() and not schedule.is_file():
-                raise RuntimeError(f"edit {' '.join(argv)} failed: {''.join(messages)[-2000:]}")
-            if time.perf_counter() - t0 > timeout:
-                raise RuntimeError(f"edit {' '.join(argv)}: no snapshot in {timeout:.0f} s")
-            time.sleep(0.05)
-            try:
-                done = [r for r in json.loads(schedule.read_text())["subtasks"]
-                        if r.get("snapshot")]
-            except (FileNotFoundError, ValueError):
-                continue
-            record = done[0] if done else None
+        record = first_record(schedule, argv, t0, lambda: None if reader.is_alive() or
+                              schedule.is_file() else "".join(messages)[-2000:], timeout)
         seconds = time.perf_counter() - t0
         load_after = os.getloadavg()[0]
         try:
