@@ -3,8 +3,9 @@
 COLMAP extracts SIFT features, matches each view with its ``neighbors`` nearest cameras
 and triangulates at the given poses (``point_triangulator``), leaving the cameras alone.
 The views are the loaded ones (:class:`jaxedit.io.Dataset`, OpenCV world-to-camera, as is
-COLMAP's ``cam_from_world``), so the points come out in the dataset's world. pycolmap is
-imported only inside the functions (the optional extra ``capture``).
+COLMAP's ``cam_from_world``), read again from larger photos when they were loaded smaller
+than features need (:func:`feature_views`), so the points come out in the dataset's world.
+pycolmap is imported only inside the functions (the optional extra ``capture``).
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ class TriangulateOptions:
       neighbors: views each view is matched with (its nearest camera centres).
       max_features: SIFT features per view.
       peak_threshold: SIFT's contrast threshold (lower finds more features on smooth views).
-      feature_side: views whose long side is shorter are enlarged (at most 4x) for SIFT.
+      feature_side: long side SIFT runs at: views loaded smaller are read again from larger
+        photos (:func:`feature_views`), then enlarged (at most 4x).
       min_track: fewest views that must see a point for it to be kept.
       max_error: largest mean reprojection error in pixels of a kept point.
       min_points: fewer points than this is an error (too little texture or overlap).
