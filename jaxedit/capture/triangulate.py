@@ -209,14 +209,16 @@ def feature_views(data, feature_side: int, background=(1.0, 1.0, 1.0)):
     from ..io.nerfstudio import nerfstudio_frame_count, nerfstudio_photo_size
 
     images, cameras = data.train()
-    loaded = max(data.image_size)
+    loaded = max(np.shape(images)[1:3])
+    if loaded >= feature_side or getattr(data, "path", None) is None:
+        return images, cameras
     try:
         photo = max(nerfstudio_photo_size(data.path))
         listed = nerfstudio_frame_count(data.path)[0]
     except (DataError, OSError, TypeError):
         return images, cameras
     factor = max(1, photo // int(feature_side))
-    if loaded >= feature_side or photo // factor <= loaded:
+    if photo // factor <= loaded:
         return images, cameras
     normalized = not np.allclose(data.world_transform, np.eye(4))
     try:
