@@ -174,6 +174,7 @@ def _capture_case(args, root, size, views, config, results, t_start) -> None:
     """A process-data capture of the face scene's renders, without COLMAP's cloud."""
     from jaxedit import scenes
     from jaxedit.capture import SfmOptions, process_capture
+    from jaxedit.capture.triangulate import TriangulateOptions, feature_views, triangulate
     from jaxedit.io import load_nerfstudio
     from jaxedit.io.images import write_image
 
@@ -192,9 +193,16 @@ def _capture_case(args, root, size, views, config, results, t_start) -> None:
                               options=SfmOptions(max_features=2048, num_threads=1))
     sfm_s = time.perf_counter() - t0
     capture = load_nerfstudio(root / "capture", downscale=2, normalize="nerfstudio")
+    options = TriangulateOptions()
+    t0 = time.perf_counter()
+    views = feature_views(capture, options.feature_side)
+    points, _ = triangulate(*views, options=options)
     case = results["cases"]["capture"] = {
         "photos": len(sources), "registered": summary["num_registered"],
-        "sfm_seconds": round(sfm_s, 1), "sfm_points": summary["num_points"]}
+        "sfm_seconds": round(sfm_s, 1), "sfm_points": summary["num_points"],
+        "feature_views_px": list(views[0].shape[1:3]),
+        "triangulate_seconds": round(time.perf_counter() - t0, 2),
+        "triangulated_points": int(len(points))}
 
     def record(runs):
         case["runs"] = runs

@@ -19,15 +19,16 @@ from experiments import cli
 from jaxedit import DataError, scenes
 from jaxedit import camera as camlib
 from jaxedit.capture.triangulate import (MAX_ENLARGE, POINTS_FILE, TriangulateOptions,
-                                         enlargement, neighbor_pairs, triangulate,
-                                         write_dataset_points)
+                                         enlargement, feature_views, neighbor_pairs,
+                                         triangulate, write_dataset_points)
 from jaxedit.io import load_nerfstudio
 from jaxedit.io.images import write_image
 from jaxedit.pipelines.reconstruct import initial_points
 
 pycolmap = pytest.importorskip("pycolmap")
 SIZE, VIEWS = 128, 16
-FAST = TriangulateOptions()  # one COLMAP thread: the same points every run
+# One COLMAP thread: the same points every run; features at 256 px, quicker than the default.
+FAST = TriangulateOptions(feature_side=256)
 
 
 def _bare(folder: Path) -> Path:
@@ -96,6 +97,23 @@ def test_triangulated_points_lie_on_the_true_surface_in_the_loaded_world(face, n
 def test_small_views_are_enlarged_for_features_up_to_a_limit():
     assert enlargement(128, 96, 256) == 2 and enlargement(100, 60, 256) == 3
     assert enlargement(512, 300, 256) == 1 and enlargement(8, 8, 256) == MAX_ENLARGE
+
+
+@pytest.mark.parametrize("normalize", ["none", "nerfstudio"])
+def test_views_loaded_smaller_than_their_photos_are_read_again_for_features(face, normalize):
+    full = load_nerfstudio(face, normalize=normalize)
+    half = load_nerfstudio(face, downscale=2, normalize=normalize)
+    images, cameras = feature_views(half, SIZE)
+    # The photos' own pixels and the same frames, poses and world, intrinsics at their size.
+    np.testing.assert_allclose(images, full.train()[0], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(cameras.world_to_camera),
+                               np.asarray(half.train()[1].world_to_camera), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(cameras.fx), 2 * np.asarray(half.train()[1].fx))
+    # Loaded at feature size already, or photos no larger than loaded: the views as loaded.
+    for data, side in ((half, SIZE // 2), (full, 4 * SIZE)):
+        images, cameras = feature_views(data, side)
+        np.testing.assert_array_equal(images, data.train()[0])
+        assert cameras.width == data.image_size[1]
 
 
 def test_enlarged_views_give_more_points_on_the_same_surface(face):

@@ -3,8 +3,9 @@
 COLMAP extracts SIFT features, matches each view with its ``neighbors`` nearest cameras
 and triangulates at the given poses (``point_triangulator``), leaving the cameras alone.
 The views are the loaded ones (:class:`jaxedit.io.Dataset`, OpenCV world-to-camera, as is
-COLMAP's ``cam_from_world``), so the points come out in the dataset's world. pycolmap is
-imported only inside the functions (the optional extra ``capture``).
+COLMAP's ``cam_from_world``), read again from larger photos when they were loaded smaller
+than features need (:func:`feature_views`), so the points come out in the dataset's world.
+pycolmap is imported only inside the functions (the optional extra ``capture``).
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ class TriangulateOptions:
       neighbors: views each view is matched with (its nearest camera centres).
       max_features: SIFT features per view.
       peak_threshold: SIFT's contrast threshold (lower finds more features on smooth views).
-      feature_side: views whose long side is shorter are enlarged (at most 4x) for SIFT.
+      feature_side: long side SIFT runs at: views loaded smaller are read again from larger
+        photos (:func:`feature_views`), then enlarged (at most 4x).
       min_track: fewest views that must see a point for it to be kept.
       max_error: largest mean reprojection error in pixels of a kept point.
       min_points: fewer points than this is an error (too little texture or overlap).
@@ -40,7 +42,7 @@ class TriangulateOptions:
     neighbors: int = ranged(20, low=1)
     max_features: int = ranged(8192, low=1)
     peak_threshold: float = ranged(0.002, low=0.0)
-    feature_side: int = ranged(256, low=1)
+    feature_side: int = ranged(512, low=1)
     min_track: int = ranged(2, low=2)
     max_error: float = ranged(2.0, low=0.0)
     min_points: int = ranged(100, low=1)
@@ -186,6 +188,55 @@ def triangulate(images, cameras: Camera, *, options: TriangulateOptions = Triang
     xyz = np.array([p.xyz for p in kept], np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in kept], np.float32).reshape(-1, 3) / 255.0
     return xyz.astype(np.float32), rgb
+
+
+def feature_views(data, feature_side: int, background=(1.0, 1.0, 1.0)):
+    """(images [T, H, W, 3], cameras [T]): ``data``'s training views to extract features from.
+
+    Views loaded with a long side under ``feature_side`` from larger photos are read again
+    from the photos (same frames, poses and world), at the largest integer downscale that
+    keeps the long side at least ``feature_side`` (the photo's own size when smaller);
+    otherwise, or when they cannot be read alike, the views as loaded.
+
+    Args:
+      data: a :class:`jaxedit.io.Dataset` read from a nerfstudio transforms.json.
+      feature_side: the long side features are wanted at (:class:`TriangulateOptions`).
+      background: RGB that RGBA photos are composited over (as for ``data``).
+    """
+    import logging
+
+    from ..io import load_nerfstudio
+    from ..io.nerfstudio import nerfstudio_frame_count, nerfstudio_photo_size
+
+    images, cameras = data.train()
+    loaded = max(np.shape(images)[1:3])
+    if loaded >= feature_side or getattr(data, "path", None) is None:
+        return images, cameras
+    try:
+        photo = max(nerfstudio_photo_size(data.path))
+        listed = nerfstudio_frame_count(data.path)[0]
+    except (DataError, OSError, TypeError):
+        return images, cameras
+    factor = max(1, photo // int(feature_side))
+    if photo // factor <= loaded:
+        return images, cameras
+    normalized = not np.allclose(data.world_transform, np.eye(4))
+    try:
+        full = load_nerfstudio(data.path, downscale=factor, background=background,
+                               normalize="nerfstudio" if normalized else "none",
+                               split_every=0, skip_missing=listed > len(data))
+    except DataError as e:
+        logging.getLogger(__name__).info("features on the views as loaded: %s", e)
+        return images, cameras
+    index = {name: k for k, name in enumerate(full.filenames)}
+    names = [data.filenames[k] for k in data.train_indices]
+    if not all(name in index for name in names):
+        return images, cameras
+    pick = np.array([index[name] for name in names], np.int64)
+    same = (np.allclose(full.world_transform, data.world_transform)
+            and np.allclose(np.asarray(full.cameras.world_to_camera)[pick],
+                            np.asarray(cameras.world_to_camera), atol=1e-5))
+    return full.subset(pick) if same else (images, cameras)
 
 
 #: The file :func:`write_dataset_points` writes beside transforms.json.

@@ -167,7 +167,8 @@ def initial_points(data, n_random: int, seed: int, background=None, *, init: str
             (len(data.points), 3), 0.5, np.float32)
         return np.asarray(data.points, np.float32), np.asarray(colors, np.float32), "dataset"
     if init in ("auto", "triangulate"):
-        found = _triangulated(data, triangulation, required=init == "triangulate")
+        found = _triangulated(data, triangulation, required=init == "triangulate",
+                              background=background)
         if found is not None and (init == "triangulate" or len(found[0]) >= n_random):
             return (*found, "triangulated")
         if found is not None:
@@ -219,10 +220,12 @@ def _dense_start(data, found, n_random: int, seed: int, background):
             np.concatenate([p[1] for p in parts]).astype(np.float32), source)
 
 
-def _triangulated(data, options: TriangulateOptions, *, required: bool):
-    """(points, colours) triangulated at the training views' poses; when not ``required``,
-    None (logged) where pycolmap is missing or finds too few points."""
-    from ..capture.triangulate import triangulate
+def _triangulated(data, options: TriangulateOptions, *, required: bool, background=None):
+    """(points, colours) triangulated at the training views' poses, their features found on
+    the photos read at ``options.feature_side`` when the views were loaded smaller
+    (:func:`jaxedit.capture.triangulate.feature_views`); when not ``required``, None (logged)
+    where pycolmap is missing or finds too few points."""
+    from ..capture.triangulate import feature_views, triangulate
 
     try:
         import pycolmap  # noqa: F401
@@ -233,7 +236,8 @@ def _triangulated(data, options: TriangulateOptions, *, required: bool):
         log.warning("initial points: the dataset has none and pycolmap is not installed "
                     "to triangulate them; starting from random points")
         return None
-    images, cameras = data.train()
+    images, cameras = feature_views(data, options.feature_side,
+                                    (1.0, 1.0, 1.0) if background is None else background)
     try:
         points, colors = triangulate(images, cameras, options=options,
                                      where=getattr(data, "path", "dataset"))
@@ -242,8 +246,9 @@ def _triangulated(data, options: TriangulateOptions, *, required: bool):
             raise
         log.warning("initial points: %s; starting from random points", e)
         return None
-    log.info("initial points: %d triangulated at the known poses of %d training views",
-             len(points), len(images))
+    log.info("initial points: %d triangulated at the known poses of %d training views "
+             "(features at %dx%d px)", len(points), len(images), images.shape[2],
+             images.shape[1])
     return points, colors
 
 
