@@ -452,7 +452,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     def save(state):
         run.save(state, plan, header, time.perf_counter() - wall0)
 
-    def complete_curve(state) -> bool:
+    def finish_curve(state) -> bool:
         """After the first snapshot: the difficulty curve's other points (and their edits in
         the memo); whether the header changed."""
         nonlocal header
@@ -466,7 +466,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
     def on_subtask(state, spec, record):
         """A finished subtask's snapshot, and schedule.json with its record."""
         if run.path is None:
-            complete_curve(state)
+            finish_curve(state)
             return record
         shapes = {"capacity": int(state.train.gaussians.capacity),
                   "max_intersections": int(state.train.max_intersections)}
@@ -479,7 +479,7 @@ def run_edit(editor, prompt: str, data: EditData, gaussians, *, config: ProEditC
             log(warning)
         records = tuple(state.records) + (record,)
         run.write_schedule(progressive.schedule_json(header, plan, records))
-        if complete_curve(state):
+        if finish_curve(state):
             run.write_schedule(progressive.schedule_json(header, plan, records))
         return record
 
