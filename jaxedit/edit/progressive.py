@@ -267,14 +267,11 @@ def difficulty_curve(oracle, ratios=()) -> list[list[float]]:
 def complete_curve(header: dict, oracle, config: ProEditConfig) -> dict:
     """``header`` with its curve at :func:`curve_grid` too (their editor calls made now, after
     the first snapshot rather than before it); ``header`` itself when nothing is missing."""
-    curve = header.get("difficulty_curve") or []
-    chosen = {quantize_ratio(r): float(r) for r, _ in curve}
-    missing = [r for r in curve_grid(config) if quantize_ratio(r) not in chosen]
-    if oracle is None or not missing:
+    have = [r for r, _ in header.get("difficulty_curve") or []]
+    known = {quantize_ratio(r) for r in have}
+    if oracle is None or all(quantize_ratio(r) in known for r in curve_grid(config)):
         return header
-    chosen.update({quantize_ratio(r): r for r in missing})
-    return dict(header, difficulty_curve=[[r, d] for r, d in
-                                          oracle.curve(sorted(chosen.values()))])
+    return dict(header, difficulty_curve=difficulty_curve(oracle, have + curve_grid(config)))
 
 
 def schedule_json(header: dict, plan, records) -> dict:
